@@ -1,0 +1,1 @@
+"""The `hybridgi` command: headless renders through the bpy module."""

@@ -1,0 +1,278 @@
+"""Scene snapshot: plain numpy copies of what the tracer and shader need.
+
+The Blender side fills these from the depsgraph on the main thread; everything after that
+(tracing, shading, cache updates) reads only these arrays, so worker threads never touch `bpy`.
+Units and conventions follow Cycles (see GI_FACTS.md): lights in watts (sun: W/m^2), emission and
+world colour as radiance.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .errors import EmptySceneError, InvalidGeometryError
+
+log = logging.getLogger(__name__)
+
+LIGHT_KINDS = ("POINT", "SPOT", "SUN", "AREA")
+AREA_SHAPES = ("SQUARE", "RECTANGLE", "DISK", "ELLIPSE")
+
+
+@dataclass
+class Geometry:
+    """World-space triangles, unindexed per corner where attributes split.
+
+    positions : (V, 3) float32, world space
+    triangles : (T, 3) int32, indices into positions
+    normals : (V, 3) float32, unit shading normals per vertex (corner normals already split)
+    uvs : (V, 2) float32, active UV layer; NaN where the mesh has none
+    material_index : (T,) int32, index into SceneSnapshot.materials
+    object_index : (T,) int32, index into SceneSnapshot.objects
+    """
+
+    positions: np.ndarray
+    triangles: np.ndarray
+    normals: np.ndarray
+    uvs: np.ndarray
+    material_index: np.ndarray
+    object_index: np.ndarray
+
+    @property
+    def triangle_count(self) -> int:
+        return int(self.triangles.shape[0])
+
+    def subset(self, tri_mask: np.ndarray) -> "Geometry":
+        """Triangles where tri_mask is true, vertices compacted."""
+        tris = self.triangles[tri_mask]
+        used, inverse = np.unique(tris.ravel(), return_inverse=True)
+        return Geometry(
+            positions=self.positions[used],
+            triangles=inverse.reshape(-1, 3).astype(np.int32),
+            normals=self.normals[used],
+            uvs=self.uvs[used],
+            material_index=self.material_index[tri_mask],
+            object_index=self.object_index[tri_mask],
+        )
+
+    def face_normals(self) -> np.ndarray:
+        """(T, 3) float32 unit geometric normals (zero for degenerate triangles)."""
+        p = self.positions[self.triangles]
+        n = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
+        length = np.linalg.norm(n, axis=1, keepdims=True)
+        return np.divide(n, length, out=np.zeros_like(n), where=length > 0).astype(np.float32)
+
+
+@dataclass
+class Material:
+    """Lambertian surface: linear base colour, optional texture, emission radiance.
+
+    texture : (h, w, 3) float32 linear RGB, row 0 at v = 0 (Blender's image order), or None
+    emission : (3,) radiance in W/(m^2 sr) = emission colour x strength
+    """
+
+    name: str = "default"
+    base_color: np.ndarray = field(default_factory=lambda: np.full(3, 0.8, np.float32))
+    texture: np.ndarray | None = None
+    emission: np.ndarray = field(default_factory=lambda: np.zeros(3, np.float32))
+
+    @property
+    def mean_albedo(self) -> np.ndarray:
+        """(3,) albedo to use where no UV is known (decimated ray meshes)."""
+        if self.texture is None:
+            return self.base_color
+        return (self.base_color * self.texture.reshape(-1, 3).mean(axis=0)).astype(np.float32)
+
+
+@dataclass
+class Light:
+    """A Blender light with Cycles' radiometric conventions.
+
+    kind : POINT | SPOT | SUN | AREA
+    power : watts for POINT/SPOT/AREA, irradiance in W/m^2 for SUN (Blender's "Strength")
+    matrix : (4, 4) world matrix; lights shine along local -Z (SPOT, SUN, AREA)
+    radius : metres, soft-shadow radius of POINT/SPOT ("shadow_soft_size")
+    spot_size : radians, full cone angle; spot_blend : 0..1
+    angle : radians, full angular diameter of the SUN disc
+    shape, size, size_y : AREA shape and its extents in metres (size_y for RECTANGLE/ELLIPSE)
+    """
+
+    kind: str
+    color: np.ndarray
+    power: float
+    matrix: np.ndarray
+    radius: float = 0.0
+    spot_size: float = np.pi / 4
+    spot_blend: float = 0.15
+    angle: float = 0.0
+    shape: str = "SQUARE"
+    size: float = 1.0
+    size_y: float = 1.0
+    name: str = ""
+
+    def __post_init__(self) -> None:
+        if self.kind not in LIGHT_KINDS:
+            raise InvalidGeometryError(f"unknown light kind {self.kind!r}")
+        if self.kind == "AREA" and self.shape not in AREA_SHAPES:
+            raise InvalidGeometryError(f"unknown area light shape {self.shape!r}")
+        self.color = np.asarray(self.color, np.float32).reshape(3)
+        self.matrix = np.asarray(self.matrix, np.float64).reshape(4, 4)
+
+    @property
+    def position(self) -> np.ndarray:
+        return self.matrix[:3, 3].astype(np.float32)
+
+    @property
+    def direction(self) -> np.ndarray:
+        """Unit emission axis in world space (local -Z)."""
+        d = -self.matrix[:3, 2]
+        return (d / max(np.linalg.norm(d), 1e-30)).astype(np.float32)
+
+
+@dataclass
+class World:
+    """Uniform sky: radiance = background colour x strength; AO distance from World settings."""
+
+    color: np.ndarray = field(default_factory=lambda: np.zeros(3, np.float32))
+    ao_distance: float = 1.0
+
+
+@dataclass
+class ObjectInfo:
+    name: str
+    dynamic: bool = False  # moves or deforms over the animation: traced in the per-frame scene
+
+
+@dataclass
+class SceneSnapshot:
+    geometry: Geometry
+    materials: list[Material]
+    lights: list[Light] = field(default_factory=list)
+    world: World = field(default_factory=World)
+    objects: list[ObjectInfo] = field(default_factory=list)
+
+    def bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """(lo, hi) float32 corners of the geometry's bounding box."""
+        if self.geometry.triangle_count == 0:
+            raise EmptySceneError("the scene has no triangles")
+        used = self.geometry.positions[np.unique(self.geometry.triangles)]
+        return used.min(axis=0), used.max(axis=0)
+
+
+def sanitized(geometry: Geometry, n_materials: int, n_objects: int) -> Geometry:
+    """Cast to the documented dtypes and drop triangles that cannot be traced.
+
+    Triangles with non-finite vertices or (near) zero area are dropped with a log line, never
+    passed to Embree; shape errors raise InvalidGeometryError. Normals that are missing or
+    non-finite fall back to the face normal.
+    """
+    pos = np.asarray(geometry.positions, np.float32).reshape(-1, 3)
+    tris = np.asarray(geometry.triangles)
+    if tris.size and (tris.ndim != 2 or tris.shape[1] != 3):
+        raise InvalidGeometryError(f"triangles must be (T, 3), got {tris.shape}")
+    tris = tris.reshape(-1, 3).astype(np.int32)
+    n_vert = pos.shape[0]
+    if tris.size and (tris.min() < 0 or tris.max() >= n_vert):
+        raise InvalidGeometryError("triangle indices out of range of the positions")
+    normals = np.asarray(geometry.normals, np.float32).reshape(-1, 3)
+    uvs = np.asarray(geometry.uvs, np.float32).reshape(-1, 2)
+    if normals.shape[0] != n_vert or uvs.shape[0] != n_vert:
+        raise InvalidGeometryError("normals and uvs need one row per position")
+    mat = np.asarray(geometry.material_index, np.int32).reshape(-1)
+    obj = np.asarray(geometry.object_index, np.int32).reshape(-1)
+    if mat.shape[0] != tris.shape[0] or obj.shape[0] != tris.shape[0]:
+        raise InvalidGeometryError("material_index and object_index need one entry per triangle")
+    if mat.size and (mat.min() < 0 or mat.max() >= max(n_materials, 1)):
+        raise InvalidGeometryError("material_index out of range of the materials")
+    if obj.size and (obj.min() < 0 or obj.max() >= max(n_objects, 1)):
+        raise InvalidGeometryError("object_index out of range of the objects")
+
+    p = pos[tris]
+    finite = np.isfinite(p).all(axis=(1, 2))
+    with np.errstate(invalid="ignore", over="ignore"):
+        cross = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
+        area2 = np.linalg.norm(cross.astype(np.float64), axis=1)
+        extent = np.abs(p).max(axis=(1, 2)).astype(np.float64)
+    keep = finite & (area2 > 1e-12 * np.maximum(extent, 1.0) ** 2)
+    dropped = int((~keep).sum())
+    if dropped:
+        log.warning(
+            "dropped %d of %d triangles (non-finite vertices: %d, zero area: %d)",
+            dropped, tris.shape[0], int((~finite).sum()), dropped - int((~finite).sum()),
+        )
+    bad_n = ~np.isfinite(normals).all(axis=1) | (np.linalg.norm(normals, axis=1) < 1e-6)
+    out = Geometry(pos, tris, normals.copy(), uvs, mat, obj).subset(keep)
+    if bad_n.any() and out.triangle_count:
+        fn = out.face_normals()
+        fix = ~np.isfinite(out.normals).all(axis=1) | (np.linalg.norm(out.normals, axis=1) < 1e-6)
+        # A vertex shared by several triangles takes the last face normal: good enough for a fallback.
+        vert_fn = np.zeros_like(out.normals)
+        vert_fn[out.triangles.ravel()] = np.repeat(fn, 3, axis=0)
+        out.normals[fix] = vert_fn[fix]
+    norm = np.linalg.norm(out.normals, axis=1, keepdims=True)
+    out.normals = (out.normals / np.maximum(norm, 1e-12)).astype(np.float32)
+    return out
+
+
+def make_snapshot(
+    geometry: Geometry,
+    materials: list[Material],
+    lights: list[Light] | None = None,
+    world: World | None = None,
+    objects: list[ObjectInfo] | None = None,
+) -> SceneSnapshot:
+    """Validated snapshot: sanitized geometry, at least one material and one object entry."""
+    materials = materials or [Material()]
+    n_obj = int(np.max(geometry.object_index, initial=-1)) + 1
+    objects = objects if objects is not None else [ObjectInfo(f"object_{i}") for i in range(n_obj)]
+    geometry = sanitized(geometry, len(materials), len(objects))
+    return SceneSnapshot(geometry, materials, list(lights or []), world or World(), objects)
+
+
+def geometry_from_arrays(
+    positions: np.ndarray,
+    triangles: np.ndarray,
+    material_index: np.ndarray | int = 0,
+    object_index: np.ndarray | int = 0,
+    normals: np.ndarray | None = None,
+    uvs: np.ndarray | None = None,
+) -> Geometry:
+    """Convenience constructor for procedural scenes and tests: flat normals when none are given.
+
+    Without normals, every triangle gets its own three vertices so flat shading is exact.
+    """
+    positions = np.asarray(positions, np.float32).reshape(-1, 3)
+    triangles = np.asarray(triangles, np.int64).reshape(-1, 3)
+    t = triangles.shape[0]
+    if normals is None:
+        corners = triangles.ravel()
+        positions = positions[corners]
+        if uvs is not None:
+            uvs = np.asarray(uvs, np.float32).reshape(-1, 2)[corners]
+        triangles = np.arange(3 * t, dtype=np.int32).reshape(-1, 3)
+        g = Geometry(positions, triangles, np.zeros_like(positions), np.zeros((3 * t, 2), np.float32),
+                     np.zeros(t, np.int32), np.zeros(t, np.int32))
+        normals = np.repeat(g.face_normals(), 3, axis=0)
+    mat = np.broadcast_to(np.asarray(material_index, np.int32), (t,)).copy()
+    obj = np.broadcast_to(np.asarray(object_index, np.int32), (t,)).copy()
+    if uvs is None:
+        uvs = np.full((positions.shape[0], 2), np.nan, np.float32)
+    return Geometry(positions, triangles.astype(np.int32), np.asarray(normals, np.float32), np.asarray(uvs, np.float32), mat, obj)
+
+
+def concat_geometry(parts: list[Geometry]) -> Geometry:
+    """Join geometries, offsetting triangle indices."""
+    if not parts:
+        return Geometry(np.zeros((0, 3), np.float32), np.zeros((0, 3), np.int32), np.zeros((0, 3), np.float32),
+                        np.zeros((0, 2), np.float32), np.zeros(0, np.int32), np.zeros(0, np.int32))
+    offsets = np.cumsum([0] + [p.positions.shape[0] for p in parts[:-1]])
+    return Geometry(
+        positions=np.concatenate([p.positions for p in parts]).astype(np.float32),
+        triangles=np.concatenate([p.triangles + o for p, o in zip(parts, offsets)]).astype(np.int32),
+        normals=np.concatenate([p.normals for p in parts]).astype(np.float32),
+        uvs=np.concatenate([p.uvs for p in parts]).astype(np.float32),
+        material_index=np.concatenate([p.material_index for p in parts]).astype(np.int32),
+        object_index=np.concatenate([p.object_index for p in parts]).astype(np.int32),
+    )

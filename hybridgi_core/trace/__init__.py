@@ -1,0 +1,41 @@
+"""Ray casting behind one API: an Embree backend and a numpy reference backend.
+
+Both take float32 arrays, never mutate them, and return `Hits`; tests check they agree.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Protocol
+
+import numpy as np
+
+#: Ray origins are pushed this far (relative to the scene extent) off surfaces: Embree's tnear is 0.
+SURFACE_EPSILON = 1e-4
+
+
+@dataclass
+class Hits:
+    """Closest hits of n rays.
+
+    t : (n,) float32 distance along the unit direction; np.inf where nothing was hit
+    prim : (n,) int32 triangle index into the traced Geometry; -1 for a miss
+    u, v : (n,) float32 barycentrics of vertices 1 and 2 (vertex 0 weight = 1 - u - v)
+    """
+
+    t: np.ndarray
+    prim: np.ndarray
+    u: np.ndarray
+    v: np.ndarray
+
+    @property
+    def hit(self) -> np.ndarray:
+        return self.prim >= 0
+
+
+class Tracer(Protocol):
+    def intersect(self, origins: np.ndarray, directions: np.ndarray, tfar: float | np.ndarray = np.inf) -> Hits:
+        """Closest hit of each ray. origins, directions : (n, 3) float32, directions unit length."""
+
+    def occluded(self, origins: np.ndarray, directions: np.ndarray, tfar: float | np.ndarray = np.inf) -> np.ndarray:
+        """(n,) bool: something lies on the ray before tfar."""
