@@ -55,5 +55,5 @@ class CacheSettings:
         """SH coefficients per channel: 4 for L1, 9 for L2."""
         return (self.sh_order + 1) ** 2
 
-    def with_(self, **changes) -> "CacheSettings":
+    def with_(self, **changes) -> CacheSettings:
         return replace(self, **changes)

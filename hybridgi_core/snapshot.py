@@ -44,7 +44,7 @@ class Geometry:
     def triangle_count(self) -> int:
         return int(self.triangles.shape[0])
 
-    def subset(self, tri_mask: np.ndarray) -> "Geometry":
+    def subset(self, tri_mask: np.ndarray) -> Geometry:
         """Triangles where tri_mask is true, vertices compacted."""
         tris = self.triangles[tri_mask]
         used, inverse = np.unique(tris.ravel(), return_inverse=True)
@@ -270,7 +270,7 @@ def concat_geometry(parts: list[Geometry]) -> Geometry:
     offsets = np.cumsum([0] + [p.positions.shape[0] for p in parts[:-1]])
     return Geometry(
         positions=np.concatenate([p.positions for p in parts]).astype(np.float32),
-        triangles=np.concatenate([p.triangles + o for p, o in zip(parts, offsets)]).astype(np.int32),
+        triangles=np.concatenate([p.triangles + o for p, o in zip(parts, offsets, strict=True)]).astype(np.int32),
         normals=np.concatenate([p.normals for p in parts]).astype(np.float32),
         uvs=np.concatenate([p.uvs for p in parts]).astype(np.float32),
         material_index=np.concatenate([p.material_index for p in parts]).astype(np.int32),

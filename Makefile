@@ -1,0 +1,31 @@
+# The README's two commands: `make demo` (headless GI render of a bundled scene) and `make test`.
+# Both set everything up on a fresh machine first (apt packages, .venv); re-running is cheap.
+VENV := .venv
+STAMP := $(VENV)/.setup-done
+OUT ?= out
+
+.PHONY: setup test demo bench scenes lint clean
+
+$(STAMP): pyproject.toml scripts/setup.sh
+	bash scripts/setup.sh
+	touch $@
+
+setup: $(STAMP)
+
+test: setup
+	$(VENV)/bin/pytest -q
+
+bench: setup
+	$(VENV)/bin/python bench/bench_core.py
+
+scenes: setup
+	$(VENV)/bin/python blend_scenes/build.py
+
+demo: setup
+	$(VENV)/bin/python bench/demo.py --out $(OUT)/demo
+
+lint: setup
+	$(VENV)/bin/ruff check .
+
+clean:
+	rm -rf $(OUT) dist .pytest_cache

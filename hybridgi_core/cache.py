@@ -1,0 +1,147 @@
+"""The 3D irradiance cache: per-cell SH radiance, AO, depth moments, and how samples blend in.
+
+Per cell (N cells, K = 4 or 9 SH coefficients, D = depth_texels):
+- sh_direct (N, K, 3): radiance that a surface near the cell receives straight from the sky or an
+  emissive surface (Cycles counts both as Direct light)
+- sh_indirect (N, K, 3): radiance reflected by surfaces (Cycles' Indirect)
+- ao_sh (N, K): visibility within the AO distance, 1 = open
+- depth (N, D*D, 2): mean and mean square probe-ray distance per octahedral texel (Chebyshev test)
+- backface (N,): share of rays hitting back faces; above `inside_threshold` the cell sits inside
+  geometry and is disabled, so it does not darken its neighbours
+- samples (N,), last_frame (N,): updates blended so far and the frame of the latest one
+- urgency (N,): 0..1 extra blend weight for cells near something that changed (localized updates)
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import numpy as np
+
+from .grid import CacheGrid
+from .settings import CacheSettings
+from .snapshot import SceneSnapshot
+
+log = logging.getLogger(__name__)
+
+#: Depth moments saturate at this many cell sizes: sharper Chebyshev tests (DDGI clamps likewise).
+DEPTH_CAP_CELLS = 2.0
+
+
+@dataclass
+class CellSamples:
+    """One update's estimates for a set of cells, shaped like the cache arrays indexed by `cells`."""
+
+    cells: np.ndarray  # (m,) int64
+    sh_direct: np.ndarray  # (m, K, 3)
+    sh_indirect: np.ndarray  # (m, K, 3)
+    ao_sh: np.ndarray  # (m, K)
+    depth_sum: np.ndarray  # (m, T, 2) sums of d and d^2 over this update's rays per texel
+    depth_count: np.ndarray  # (T,) rays per texel (directions are shared by every cell)
+    backface: np.ndarray  # (m,)
+
+
+class IrradianceCache:
+    def __init__(self, grid: CacheGrid, settings: CacheSettings):
+        self.grid = grid
+        self.settings = settings
+        n, k = grid.count, settings.sh_coeffs
+        t = settings.depth_texels**2
+        self.sh_direct = np.zeros((n, k, 3), np.float32)
+        self.sh_indirect = np.zeros((n, k, 3), np.float32)
+        self.ao_sh = np.zeros((n, k), np.float32)
+        self.depth = np.zeros((n, t, 2), np.float32)
+        self.depth_cap = np.float32(DEPTH_CAP_CELLS * grid.cell_size)
+        self.depth[..., 0] = self.depth_cap
+        self.depth[..., 1] = self.depth_cap**2
+        self.backface = np.zeros(n, np.float32)
+        self.samples = np.zeros(n, np.int32)
+        self.last_frame = np.full(n, -(2**31), np.int64)
+        self.urgency = np.zeros(n, np.float32)
+        self.centers = grid.centers()
+        #: Bumped on every blend; GPU uploads compare it to skip unchanged caches.
+        self.version = 0
+
+    @classmethod
+    def for_scene(cls, scene: SceneSnapshot, settings: CacheSettings) -> IrradianceCache:
+        lo, hi = scene.bounds()
+        return cls(CacheGrid.from_bounds(lo, hi, settings.resolution), settings)
+
+    @property
+    def inside(self) -> np.ndarray:
+        """(N,) bool: cells disabled because they sit inside geometry."""
+        return self.backface > self.settings.inside_threshold
+
+    @property
+    def valid(self) -> np.ndarray:
+        """(N,) bool: cells the gather may read (sampled at least once and not inside geometry)."""
+        return (self.samples > 0) & ~self.inside
+
+    def blend_weights(self, cells: np.ndarray) -> np.ndarray:
+        """(m,) float32 weight of a new sample: the EMA's 1 - hysteresis, more while a cell is young
+        (1 / (n + 1): a plain mean until the EMA window is reached) or urgent."""
+        fresh = 1.0 / (self.samples[cells].astype(np.float32) + 1.0)
+        base = np.float32(1.0 - self.settings.hysteresis)
+        return np.maximum(np.maximum(fresh, base), self.urgency[cells])
+
+    def blend(self, s: CellSamples, frame: int) -> None:
+        """Fold one update into the cache with the exponential moving average."""
+        c = s.cells
+        a = self.blend_weights(c)
+        a3 = a[:, None, None]
+        self.sh_direct[c] += a3 * (s.sh_direct - self.sh_direct[c])
+        self.sh_indirect[c] += a3 * (s.sh_indirect - self.sh_indirect[c])
+        self.ao_sh[c] += a[:, None] * (s.ao_sh - self.ao_sh[c])
+        self.backface[c] += a * (s.backface - self.backface[c])
+        # Depth: only texels that received rays this update move, each towards its own mean.
+        hit_texels = s.depth_count > 0
+        if hit_texels.any():
+            mean = s.depth_sum[:, hit_texels] / s.depth_count[hit_texels][None, :, None]
+            old = self.depth[c][:, hit_texels]
+            self.depth[np.ix_(c, np.flatnonzero(hit_texels))] = old + a3 * (mean - old)
+        self.samples[c] += 1
+        self.last_frame[c] = frame
+        # Urgency decays as the refreshed cells take samples: the burst lasts a few updates.
+        self.urgency[c] *= 0.5
+        self.version += 1
+
+    # --- named events (what depsgraph and frame-change handlers call) ---------------------------
+
+    def influence_radius(self) -> float:
+        """Metres around a change within which cells refresh: the indirect range.
+
+        The seed limits indirect light to a quadratic fall-off; its range is the ray length when
+        one is set, else a few cells (bounce light from a small change fades within it).
+        """
+        s = self.settings
+        return float(s.ray_length) if s.ray_length > 0 else 4.0 * self.grid.cell_size
+
+    def on_geometry_changed(self, boxes: list[tuple[np.ndarray, np.ndarray]]) -> np.ndarray:
+        """Objects inside these world boxes (old and new positions) moved or deformed.
+
+        Cells within the influence radius get urgency (1 - (d / R)^2): refreshed with lower
+        hysteresis, most strongly close to the change. Returns the affected flat cells.
+        """
+        radius = self.influence_radius()
+        touched = []
+        for lo, hi in boxes:
+            cells, dist = self.grid.cells_near(lo, hi, radius)
+            falloff = np.clip(1.0 - (dist / radius) ** 2, 0.0, 1.0).astype(np.float32)
+            np.maximum.at(self.urgency, cells, falloff)
+            # Depth moments and inside flags near the change are stale: let them re-form quickly.
+            touched.append(cells)
+        if not touched:
+            return np.zeros(0, np.int64)
+        return np.unique(np.concatenate(touched))
+
+    def on_lights_changed(self) -> None:
+        """Any lamp or the world changed: every cell's radiance is stale, its geometry is not.
+
+        Radiance bands re-converge at a raised blend weight; AO, depth and inside flags keep.
+        """
+        np.maximum(self.urgency, np.float32(0.5), out=self.urgency)
+
+    def reset(self) -> None:
+        """Forget everything (new scene, new grid settings)."""
+        self.__init__(self.grid, self.settings)

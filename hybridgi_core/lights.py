@@ -1,0 +1,527 @@
+"""Direct irradiance from Blender lamps with Cycles' conventions, shadowed by shadow rays.
+
+One implementation shades both the probe-ray hits of the irradiance cache and the G-buffer pixels
+of the deferred pass, so the cache and the final image can never disagree about a lamp.
+
+Conventions (GI_FACTS.md, Cycles 4.x/5.0):
+
+- POINT of power P: intensity P / (4 pi) W/sr; E = I cos / d^2. A radius only softens the
+  shadow: shadow rays aim at a disc of that radius facing the receiver.
+- SPOT: as POINT, times smoothstep((cos_axis - cos(size/2)) / ((1 - cos(size/2)) * blend)),
+  where cos_axis is taken in the lamp's local frame, so object scale squashes the cone as in
+  Cycles (`spot_light_to_local` uses the inverse transform).
+- SUN: Strength is the irradiance on a surface facing it; light arrives from -direction within a
+  cone of full angle `angle`.
+- AREA: one-sided radiance P / (pi A) on the local -Z side; A from the matrix-scaled extents.
+  Samples are drawn uniformly in the solid angle the lamp's rectangle subtends (Urena et al.
+  2013; DISK/ELLIPSE reject the corners of their bounding rectangle), so a single sample is
+  bounded by 2 pi L and unbiased right up to the lamp's face; uniform area sampling with
+  1 / d^2 is either unbounded or, clamped, biased by tens of percent within a lamp size of it.
+
+Everything is numpy (float32 out; float64 where precision needs it): worker threads call it, so
+it never touches bpy.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import numpy as np
+
+from .snapshot import Light
+from .trace import Tracer
+
+log = logging.getLogger(__name__)
+
+#: Rays (receivers x samples) per chunk: bounds temporaries to a few MB for any number of points;
+#: 16k measured fastest (the float64 temporaries stay in cache), 64k was ~15% slower.
+CHUNK_RAYS = 1 << 14
+
+#: Sheared area lamps only (area sampling): a sample closer than this fraction of its patch size,
+#: sqrt(A / samples), counts as that far away, keeping the 1/d^2 estimate finite on the lamp.
+AREA_MIN_DISTANCE_FRACTION = 1e-2
+
+_F32 = np.float32
+
+
+# --------------------------------------------------------------------------------------------
+# Sample patterns
+# --------------------------------------------------------------------------------------------
+
+
+def _radical_inverse_base2(i: np.ndarray) -> np.ndarray:
+    """(k,) float64 van der Corput sequence of the non-negative integers i."""
+    i = i.astype(np.uint32)
+    i = ((i << 16) | (i >> 16)).astype(np.uint32)
+    i = ((i & 0x00FF00FF) << 8) | ((i & 0xFF00FF00) >> 8)
+    i = ((i & 0x0F0F0F0F) << 4) | ((i & 0xF0F0F0F0) >> 4)
+    i = ((i & 0x33333333) << 2) | ((i & 0xCCCCCCCC) >> 2)
+    i = ((i & 0x55555555) << 1) | ((i & 0xAAAAAAAA) >> 1)
+    return i.astype(np.float64) / 2.0**32
+
+
+def hammersley(n: int) -> np.ndarray:
+    """(n, 2) float64 Hammersley points in [0, 1)^2: stratified in both axes for any n."""
+    i = np.arange(n)
+    return np.stack([(i + 0.5) / n, _radical_inverse_base2(i)], axis=1)
+
+
+def stratified_uv(rng: np.random.Generator, m: int, samples: int) -> tuple[np.ndarray, np.ndarray]:
+    """Per-receiver randomly shifted Hammersley sets (Cranley-Patterson rotation).
+
+    Each point is uniformly distributed (so estimates are unbiased) while the set of one receiver
+    stays stratified; only one 2D offset per receiver is drawn, which keeps the rng cheap.
+
+    Returns u, v : (m, samples) float32 in [0, 1).
+    """
+    pattern = hammersley(samples).astype(_F32)
+    offset = rng.random((m, 2), dtype=_F32)
+    u = pattern[None, :, 0] + offset[:, None, 0]
+    v = pattern[None, :, 1] + offset[:, None, 1]
+    u -= np.floor(u)
+    v -= np.floor(v)
+    return u, v
+
+
+def concentric_disk(u: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Shirley-Chiu map of [0, 1)^2 onto the unit disc: uniform in area, keeps stratification.
+
+    u, v : float32 arrays of one shape -> x, y : float32 arrays of that shape.
+    """
+    a = 2.0 * u - 1.0
+    b = 2.0 * v - 1.0
+    first = np.abs(a) > np.abs(b)
+    r = np.where(first, a, b)
+    # Guard the centre (a = b = 0) where both angle formulas divide by zero.
+    safe_a = np.where(a == 0, 1.0, a)
+    safe_b = np.where(b == 0, 1.0, b)
+    phi = np.where(first, (np.pi / 4) * (b / safe_a), (np.pi / 2) - (np.pi / 4) * (a / safe_b))
+    return (r * np.cos(phi)).astype(_F32), (r * np.sin(phi)).astype(_F32)
+
+
+def _onb(ax: np.ndarray, ay: np.ndarray, az: np.ndarray):
+    """Two unit tangents of unit vectors (Duff et al. 2017, branchless, exact at the poles)."""
+    sign = np.copysign(_F32(1.0), az)
+    a = -1.0 / (sign + az)
+    b = ax * ay * a
+    t1 = (1.0 + sign * ax * ax * a, sign * b, -sign * ax)
+    t2 = (b, sign + ay * ay * a, -ay)
+    return t1, t2
+
+
+# --------------------------------------------------------------------------------------------
+# Light geometry
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass
+class _AreaShape:
+    """An area lamp in world space, with the matrix's scale applied."""
+
+    centre: np.ndarray  # (3,) float32
+    half_u: np.ndarray  # (3,) float32, centre to edge along the local X extent (scaled)
+    half_v: np.ndarray  # (3,) float32
+    normal: np.ndarray  # (3,) float32, unit, the emitting side (local -Z)
+    area: float  # m^2, scaled (pi/4 of the bounding parallelogram for DISK / ELLIPSE)
+    round: bool  # DISK / ELLIPSE
+    rectangular: bool  # u and v extents orthogonal (no shear): solid-angle sampling applies
+    corner: np.ndarray  # (3,) float64, centre - half_u - half_v
+    frame: tuple  # three (3,) float64 unit vectors: u axis, v axis, normal
+    len_u: float  # metres, full extents
+    len_v: float
+    extent: float  # metres, the larger extent: scale of the "on the light plane" tolerance
+
+
+def _area_shape(light: Light) -> _AreaShape:
+    m = light.matrix
+    sx = float(light.size)
+    sy = float(light.size if light.shape in ("SQUARE", "DISK") else light.size_y)
+    eu = m[:3, 0] * sx
+    ev = m[:3, 1] * sy
+    cross = np.cross(eu, ev)
+    par = float(np.linalg.norm(cross))
+    round_shape = light.shape in ("DISK", "ELLIPSE")
+    area = par * (np.pi / 4 if round_shape else 1.0)
+    normal = cross / par if par > 0 else -m[:3, 2]
+    # The emitting side is local -Z even if the matrix mirrors (negative scale) the X/Y axes.
+    if np.dot(normal, -m[:3, 2]) < 0:
+        normal = -normal
+    len_u, len_v = float(np.linalg.norm(eu)), float(np.linalg.norm(ev))
+    unit_u = eu / max(len_u, 1e-300)
+    unit_v = ev / max(len_v, 1e-300)
+    rectangular = par > 0 and abs(float(np.dot(unit_u, unit_v))) < 1e-6
+    if par > 0 and not rectangular:
+        log.debug("area light %r is sheared: area sampling instead of solid-angle sampling", light.name)
+    return _AreaShape(
+        centre=m[:3, 3].astype(_F32),
+        half_u=(0.5 * eu).astype(_F32),
+        half_v=(0.5 * ev).astype(_F32),
+        normal=normal.astype(_F32),
+        area=area,
+        round=round_shape,
+        rectangular=rectangular,
+        corner=m[:3, 3] - 0.5 * eu - 0.5 * ev,
+        frame=(unit_u, unit_v, normal),
+        len_u=len_u,
+        len_v=len_v,
+        extent=max(len_u, len_v),
+    )
+
+
+def _area_points(shape: _AreaShape, u: np.ndarray, v: np.ndarray):
+    """World positions (x, y, z) on the shape for sample coordinates u, v in [0, 1)."""
+    if shape.round:
+        a, b = concentric_disk(u, v)
+    else:
+        a, b = 2.0 * u - 1.0, 2.0 * v - 1.0
+    c, hu, hv = shape.centre, shape.half_u, shape.half_v
+    return tuple(c[k] + a * hu[k] + b * hv[k] for k in range(3))
+
+
+def light_position_samples(light: Light, n: int, rng: np.random.Generator) -> np.ndarray:
+    """(n, 3) float32 world-space points uniformly distributed on the lamp's emitting shape.
+
+    AREA: the (scaled) square, rectangle, disc or ellipse; POINT/SPOT: the sphere of `radius`
+    (its centre when the radius is 0). A SUN has no position and raises ValueError.
+    """
+    if light.kind == "SUN":
+        raise ValueError("a sun light has no position to sample")
+    if light.kind == "AREA":
+        u, v = stratified_uv(rng, 1, n)
+        x, y, z = _area_points(_area_shape(light), u[0], v[0])
+        return np.stack([x, y, z], axis=1).astype(_F32)
+    d = rng.normal(size=(n, 3))
+    d /= np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-30)
+    return (light.position[None, :] + float(light.radius) * d).astype(_F32)
+
+
+def smoothstep01(x: np.ndarray) -> np.ndarray:
+    """Cycles' `smoothstepf`: the cubic 3x^2 - 2x^3 on x clamped to [0, 1]."""
+    t = np.clip(x, 0.0, 1.0)
+    return t * t * (3.0 - 2.0 * t)
+
+
+def spot_attenuation(light: Light, to_point: np.ndarray) -> np.ndarray:
+    """(k,) float32 cone factor of a SPOT for world directions lamp -> receiver.
+
+    to_point : (k, 3) float32, not necessarily unit. The direction is taken into the lamp's local
+    frame with the inverse matrix (as Cycles' `spot_light_to_local`), so a non-uniformly scaled
+    lamp has an elliptic cone; with uniform scale this is the cosine to `Light.direction`.
+    """
+    m3 = light.matrix[:3, :3]
+    try:
+        inv = np.linalg.inv(m3).astype(_F32)
+    except np.linalg.LinAlgError:
+        # A zero-scaled lamp has no local frame; the emission axis is the best available.
+        inv = None
+    if inv is None:
+        local_z = -(to_point @ light.direction)
+        norm = np.linalg.norm(to_point, axis=1)
+    else:
+        local = to_point @ inv.T
+        local_z = local[:, 2]
+        norm = np.linalg.norm(local, axis=1)
+    cos_axis = -local_z / np.maximum(norm, 1e-30)
+    cos_half = np.cos(0.5 * float(light.spot_size))
+    blend = float(light.spot_blend)
+    if blend <= 0.0:
+        return (cos_axis > cos_half).astype(_F32)
+    return smoothstep01((cos_axis - cos_half) / ((1.0 - cos_half) * blend)).astype(_F32)
+
+
+# --------------------------------------------------------------------------------------------
+# Per-light irradiance of one chunk (structure of arrays: px, py, pz are (m,) float32)
+# --------------------------------------------------------------------------------------------
+
+
+def _unoccluded(tracer, ox, oy, oz, dx, dy, dz, tfar) -> np.ndarray:
+    """(k,) bool: nothing blocks the shadow rays (all true without a tracer or rays)."""
+    if tracer is None or ox.size == 0:
+        return np.ones(ox.shape, bool)
+    origins = np.ascontiguousarray(np.stack([ox, oy, oz], axis=1), dtype=_F32)
+    dirs = np.ascontiguousarray(np.stack([dx, dy, dz], axis=1), dtype=_F32)
+    tfar = tfar if np.isscalar(tfar) else np.ascontiguousarray(tfar, dtype=_F32)
+    return ~np.asarray(tracer.occluded(origins, dirs, tfar), bool)
+
+
+def _shadow_to_targets(tracer, p, nrm, idx, tx, ty, tz, epsilon):
+    """Visibility of targets (tx, ty, tz) from receivers p[idx] (offset along their normals)."""
+    ox = p[0][idx] + nrm[0][idx] * epsilon
+    oy = p[1][idx] + nrm[1][idx] * epsilon
+    oz = p[2][idx] + nrm[2][idx] * epsilon
+    dx, dy, dz = tx - ox, ty - oy, tz - oz
+    dist = np.sqrt(dx * dx + dy * dy + dz * dz)
+    inv = 1.0 / np.maximum(dist, 1e-30)
+    tfar = np.maximum(dist - epsilon, 0.0)
+    return _unoccluded(tracer, ox, oy, oz, dx * inv, dy * inv, dz * inv, tfar)
+
+
+def _point_chunk(light, p, nrm, tracer, rng, samples, epsilon):
+    c = light.position
+    wx, wy, wz = c[0] - p[0], c[1] - p[1], c[2] - p[2]  # receiver -> lamp
+    # I / d^2 is exact for a facing receiver outside a Lambertian sphere of that radius and its
+    # maximum (pi L) at the surface: no receiver is closer than the radius (or epsilon).
+    d2 = np.maximum(wx * wx + wy * wy + wz * wz, max(float(light.radius) ** 2, epsilon * epsilon))
+    inv_d = 1.0 / np.sqrt(d2)
+    cos_r = (wx * nrm[0] + wy * nrm[1] + wz * nrm[2]) * inv_d
+    e = (float(light.power) / (4.0 * np.pi)) * np.maximum(cos_r, 0.0) / d2
+    if light.kind == "SPOT":
+        e *= spot_attenuation(light, -np.stack([wx, wy, wz], axis=1))
+    radius = float(light.radius)
+    # Soft shadows need a target pattern per receiver; draw it for every receiver so the rng
+    # stream does not depend on which receivers happen to face the lamp.
+    s = samples if radius > 0.0 else 1
+    if radius > 0.0:
+        u, v = stratified_uv(rng, p[0].shape[0], s)
+    if tracer is None:
+        return e
+    live = np.nonzero(e != 0)[0]
+    if live.size == 0:
+        return e
+    if radius == 0.0:
+        vis = _shadow_to_targets(tracer, p, nrm, live, _F32(c[0]), _F32(c[1]), _F32(c[2]), epsilon)
+        e[live] *= vis
+        return e
+    # Disc of the lamp's radius facing the receiver: axis lamp -> receiver.
+    ax, ay, az = (-wx[live] * inv_d[live], -wy[live] * inv_d[live], -wz[live] * inv_d[live])
+    t1, t2 = _onb(ax[:, None], ay[:, None], az[:, None])
+    a, b = concentric_disk(u[live], v[live])
+    a *= radius
+    b *= radius
+    tx = c[0] + a * t1[0] + b * t2[0]
+    ty = c[1] + a * t1[1] + b * t2[1]
+    tz = c[2] + a * t1[2] + b * t2[2]
+    rows = np.repeat(live, s)
+    vis = _shadow_to_targets(tracer, p, nrm, rows, tx.ravel(), ty.ravel(), tz.ravel(), epsilon)
+    e[live] *= vis.reshape(-1, s).mean(axis=1, dtype=_F32)
+    return e
+
+
+def _sun_chunk(light, p, nrm, tracer, rng, samples, epsilon):
+    lx, ly, lz = (-light.direction).astype(_F32)  # receiver -> sun
+    half = 0.5 * float(light.angle)
+    m = p[0].shape[0]
+    if half <= 0.0:
+        e = float(light.power) * np.maximum(nrm[0] * lx + nrm[1] * ly + nrm[2] * lz, 0.0)
+        if tracer is not None:
+            live = np.nonzero(e != 0)[0]
+            ox, oy, oz = (p[k][live] + nrm[k][live] * epsilon for k in range(3))
+            k = live.size
+            e[live] *= _unoccluded(tracer, ox, oy, oz, np.full(k, lx), np.full(k, ly), np.full(k, lz), np.inf)
+        return e
+    # Uniform directions in the cone (concentric map, as Cycles' sample_uniform_cone_concentric).
+    one_minus_cos = 2.0 * np.sin(0.5 * half) ** 2
+    u, v = stratified_uv(rng, m, samples)
+    a, b = concentric_disk(u, v)
+    r2 = a * a + b * b
+    cos_t = 1.0 - r2 * one_minus_cos
+    # Scale the disc point (radius sqrt(r2)) to the cone's sine: sin_t / sqrt(r2).
+    scale = np.sqrt(np.maximum(one_minus_cos * (2.0 - r2 * one_minus_cos), 0.0))
+    t1, t2 = _onb(np.asarray([lx]), np.asarray([ly]), np.asarray([lz]))
+    dx = a * scale * t1[0] + b * scale * t2[0] + cos_t * lx
+    dy = a * scale * t1[1] + b * scale * t2[1] + cos_t * ly
+    dz = a * scale * t1[2] + b * scale * t2[2] + cos_t * lz
+    cos_r = np.maximum(dx * nrm[0][:, None] + dy * nrm[1][:, None] + dz * nrm[2][:, None], 0.0)
+    # Strength is the irradiance on a facing surface: the cone's mean cosine is divided out.
+    weight = float(light.power) / ((1.0 - 0.5 * one_minus_cos) * samples)
+    contrib = cos_r.astype(_F32) * _F32(weight)
+    if tracer is not None:
+        rows, cols = np.nonzero(cos_r > 0)
+        if rows.size:
+            ox, oy, oz = (p[k][rows] + nrm[k][rows] * epsilon for k in range(3))
+            vis = _unoccluded(tracer, ox, oy, oz, dx[rows, cols], dy[rows, cols], dz[rows, cols], np.inf)
+            contrib[rows[~vis], cols[~vis]] = 0.0
+    return contrib.sum(axis=1)
+
+
+def _area_chunk(light, shape, p, nrm, tracer, rng, samples, epsilon):
+    m = p[0].shape[0]
+    # Drawn for every receiver so the rng stream does not depend on which ones face the lamp.
+    u, v = stratified_uv(rng, m, samples)
+    e = np.zeros(m, _F32)
+    radiance = float(light.power) / (np.pi * shape.area)
+    if not shape.rectangular:
+        return _area_chunk_by_area(shape, radiance, p, nrm, tracer, u, v, samples, epsilon)
+    # Receiver-relative coordinates of the lamp's bounding rectangle in its frame (x, y, normal).
+    # float64: the solid angle below is a small difference of angles that sum to ~2 pi.
+    ex, ey, ez = shape.frame
+    corner = shape.corner
+    d = [corner[k] - p[k].astype(np.float64) for k in range(3)]
+    z0 = d[0] * ez[0] + d[1] * ez[1] + d[2] * ez[2]
+    # One-sided: only receivers strictly on the emitting side (z0 < 0 in Urena's convention).
+    live = np.nonzero(z0 < -1e-9 * shape.extent)[0]
+    if live.size == 0:
+        return e
+    z0 = z0[live]
+    x0 = (d[0] * ex[0] + d[1] * ex[1] + d[2] * ex[2])[live]
+    y0 = (d[0] * ey[0] + d[1] * ey[1] + d[2] * ey[2])[live]
+    xu, yv, inside, solid_angle = _sample_spherical_rectangle(
+        x0, y0, z0, shape.len_u, shape.len_v, u[live].astype(np.float64), v[live].astype(np.float64)
+    )
+    # World vector receiver -> sample from its local coordinates.
+    wx = xu * ex[0] + yv * ey[0] + z0[:, None] * ez[0]
+    wy = xu * ex[1] + yv * ey[1] + z0[:, None] * ez[1]
+    wz = xu * ex[2] + yv * ey[2] + z0[:, None] * ez[2]
+    inv = 1.0 / np.sqrt(wx * wx + wy * wy + wz * wz)
+    cos_r = (wx * nrm[0][live, None] + wy * nrm[1][live, None] + wz * nrm[2][live, None]) * inv
+    f = (np.maximum(cos_r, 0.0) * inside).astype(_F32)
+    if shape.round:
+        # Bounding-rectangle samples outside the ellipse carry no light: still unbiased.
+        a = 2.0 * (xu - x0[:, None]) / shape.len_u - 1.0
+        b = 2.0 * (yv - y0[:, None]) / shape.len_v - 1.0
+        f *= a * a + b * b <= 1.0
+    if tracer is not None:
+        rows, cols = np.nonzero(f > 0)
+        if rows.size:
+            src = live[rows]
+            tx = (p[0][src] + wx[rows, cols]).astype(_F32)
+            ty = (p[1][src] + wy[rows, cols]).astype(_F32)
+            tz = (p[2][src] + wz[rows, cols]).astype(_F32)
+            vis = _shadow_to_targets(tracer, p, nrm, src, tx, ty, tz, epsilon)
+            f[rows[~vis], cols[~vis]] = 0.0
+    # Solid-angle sampling: each sample estimates L * S * cos_r, bounded by 2 pi L.
+    e[live] = f.sum(axis=1) * (solid_angle * (radiance / samples)).astype(_F32)
+    return e
+
+
+def _sample_spherical_rectangle(x0, y0, z0, len_x, len_y, u, v):
+    """Urena, Fajardo & King 2013: directions uniform in the solid angle of a rectangle.
+
+    The rectangle spans [x0, x0 + len_x] x [y0, y0 + len_y] in the plane z = z0 < 0 of a frame
+    centred on the receiver. x0, y0, z0 : (m,) float64; u, v : (m, s) float64 in [0, 1).
+
+    Returns xu, yv : (m, s) float64 local coordinates of the samples on the rectangle,
+    valid : (m, s) bool (false where a degenerate receiver gave no finite sample) and
+    S : (m,) float64 solid angle, the inverse of the (uniform) pdf.
+    """
+    x1, y1 = x0 + len_x, y0 + len_y
+    z0sq = z0 * z0
+    # z components of the unit normals of the four planes through the receiver and each edge.
+    n0z = -y0 / np.sqrt(z0sq + y0 * y0)
+    n1z = x1 / np.sqrt(z0sq + x1 * x1)
+    n2z = y1 / np.sqrt(z0sq + y1 * y1)
+    n3z = -x0 / np.sqrt(z0sq + x0 * x0)
+    g0 = np.arccos(np.clip(-n0z * n1z, -1.0, 1.0))
+    g1 = np.arccos(np.clip(-n1z * n2z, -1.0, 1.0))
+    g2 = np.arccos(np.clip(-n2z * n3z, -1.0, 1.0))
+    g3 = np.arccos(np.clip(-n3z * n0z, -1.0, 1.0))
+    b0, b1 = n0z[:, None], n2z[:, None]
+    k = 2.0 * np.pi - g2 - g3
+    solid_angle = np.maximum(g0 + g1 - k, 0.0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        au = u * solid_angle[:, None] + k[:, None]
+        fu = (np.cos(au) * b0 - b1) / np.sin(au)
+        cu = np.clip(np.copysign(1.0, fu) / np.sqrt(fu * fu + b0 * b0), -1.0, 1.0)
+        xu = -(cu * z0[:, None]) / np.sqrt(1.0 - cu * cu)
+        xu = np.clip(xu, x0[:, None], x1[:, None])
+        dist = np.sqrt(xu * xu + z0sq[:, None])
+        h0 = y0[:, None] / np.sqrt(dist * dist + y0[:, None] ** 2)
+        h1 = y1[:, None] / np.sqrt(dist * dist + y1[:, None] ** 2)
+        hv = h0 + v * (h1 - h0)
+        hv2 = hv * hv
+        yv = np.where(hv2 < 1.0 - 1e-12, hv * dist / np.sqrt(np.maximum(1.0 - hv2, 1e-300)), y1[:, None])
+    valid = np.isfinite(xu) & np.isfinite(yv)
+    xu = np.where(valid, xu, x0[:, None])
+    yv = np.where(valid, yv, y0[:, None])
+    return xu, yv, valid, solid_angle
+
+
+def _area_chunk_by_area(shape, radiance, p, nrm, tracer, u, v, samples, epsilon):
+    """Uniform area sampling, for sheared (non-rectangular) lamps that Urena's method cannot take."""
+    qx, qy, qz = _area_points(shape, u, v)
+    wx, wy, wz = qx - p[0][:, None], qy - p[1][:, None], qz - p[2][:, None]  # receiver -> sample
+    d_min2 = max(AREA_MIN_DISTANCE_FRACTION**2 * shape.area / samples, epsilon * epsilon)
+    d2 = np.maximum(wx * wx + wy * wy + wz * wz, _F32(d_min2))
+    inv_d = 1.0 / np.sqrt(d2)
+    cos_r = (wx * nrm[0][:, None] + wy * nrm[1][:, None] + wz * nrm[2][:, None]) * inv_d
+    ln = shape.normal
+    cos_l = -(wx * ln[0] + wy * ln[1] + wz * ln[2]) * inv_d
+    g = np.maximum(cos_r, 0.0) * np.maximum(cos_l, 0.0) / d2
+    if tracer is not None:
+        rows, cols = np.nonzero(g > 0)
+        if rows.size:
+            vis = _shadow_to_targets(tracer, p, nrm, rows, qx[rows, cols], qy[rows, cols], qz[rows, cols], epsilon)
+            g[rows[~vis], cols[~vis]] = 0.0
+    return g.sum(axis=1) * _F32(radiance * shape.area / samples)
+
+
+# --------------------------------------------------------------------------------------------
+# Public entry point
+# --------------------------------------------------------------------------------------------
+
+
+def direct_irradiance(
+    lights: list[Light],
+    points: np.ndarray,
+    normals: np.ndarray,
+    tracer: Tracer | None,
+    rng: np.random.Generator,
+    samples: int = 1,
+    epsilon: float = 1e-4,
+) -> np.ndarray:
+    """Irradiance from the lamps at one-sided Lambertian receivers, with shadow rays.
+
+    Lamps only: the world and emissive meshes live in the irradiance cache.
+
+    Parameters
+    ----------
+    lights : the scene's lamps.
+    points : (n, 3) float32 world-space receiver positions.
+    normals : (n, 3) float32 unit normals; light from below (n . l <= 0) contributes nothing.
+    tracer : `occluded` is called for shadow rays; None traces no shadows.
+    rng : source of the sample patterns; results are deterministic given its state, and the
+        stream consumed does not depend on the tracer or on which receivers face a lamp.
+    samples : samples per receiver for area lights, sun discs (angle > 0) and soft point/spot
+        shadows (radius > 0); hard lamps always use one ray.
+    epsilon : metres; shadow rays start this far along the normal and stop this short of the lamp.
+
+    Returns
+    -------
+    (n, 3) float32 irradiance in W/m^2 times each lamp's colour. Receivers with non-finite
+    position or normal get 0.
+    """
+    if samples < 1:
+        raise ValueError(f"samples must be >= 1, got {samples}")
+    pts = np.asarray(points, _F32).reshape(-1, 3)
+    nrm = np.asarray(normals, _F32).reshape(-1, 3)
+    if pts.shape != nrm.shape:
+        raise ValueError(f"points {pts.shape} and normals {nrm.shape} differ in shape")
+    n = pts.shape[0]
+    out = np.zeros((n, 3), _F32)
+    active = [lt for lt in lights if float(lt.power) != 0.0 and np.any(lt.color != 0)]
+    if n == 0 or not active:
+        return out
+    shapes = {}
+    for i, lt in enumerate(active):
+        if lt.kind == "AREA":
+            shape = _area_shape(lt)
+            if shape.area > 0.0:
+                shapes[i] = shape
+            else:
+                log.debug("area light %r has zero area; skipped", lt.name)
+
+    finite = np.isfinite(pts).all(axis=1) & np.isfinite(nrm).all(axis=1)
+    sel = None if finite.all() else np.nonzero(finite)[0]
+    if sel is not None:
+        pts, nrm = pts[sel], nrm[sel]
+    acc = np.zeros((pts.shape[0], 3), _F32)
+    step = max(1, CHUNK_RAYS // samples)
+    for start in range(0, pts.shape[0], step):
+        stop = min(start + step, pts.shape[0])
+        p = tuple(np.ascontiguousarray(pts[start:stop, k]) for k in range(3))
+        q = tuple(np.ascontiguousarray(nrm[start:stop, k]) for k in range(3))
+        for i, lt in enumerate(active):
+            if lt.kind in ("POINT", "SPOT"):
+                e = _point_chunk(lt, p, q, tracer, rng, samples, epsilon)
+            elif lt.kind == "SUN":
+                e = _sun_chunk(lt, p, q, tracer, rng, samples, epsilon)
+            elif i in shapes:
+                e = _area_chunk(lt, shapes[i], p, q, tracer, rng, samples, epsilon)
+            else:
+                continue
+            acc[start:stop] += e[:, None] * lt.color[None, :]
+    if sel is None:
+        return acc
+    out[sel] = acc
+    return out

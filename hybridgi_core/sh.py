@@ -1,0 +1,64 @@
+"""Real spherical harmonics up to L2 (Sloan's ordering and constants) for radiance and irradiance.
+
+The cache stores *radiance* SH; irradiance E(n) is its convolution with the clamped cosine
+(Ramamoorthi & Hanrahan 2001): band l is scaled by A_l = pi, 2pi/3, pi/4.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+C0 = 0.28209479177387814  # 1 / (2 sqrt(pi))
+C1 = 0.4886025119029199  # sqrt(3 / (4 pi))
+C2 = 1.0925484305920792  # sqrt(15 / (4 pi))
+C3 = 0.31539156525252005  # sqrt(5 / (16 pi))
+C4 = 0.5462742152960396  # sqrt(15 / (16 pi))
+
+#: Clamped-cosine convolution per band.
+COSINE_BANDS = (np.pi, 2.0 * np.pi / 3.0, np.pi / 4.0)
+
+
+def coeff_count(order: int) -> int:
+    return (order + 1) ** 2
+
+
+def basis(dirs: np.ndarray, order: int) -> np.ndarray:
+    """SH basis at unit directions.
+
+    dirs : (n, 3) float; returns (n, K) float32 with K = 4 (order 1) or 9 (order 2).
+    """
+    x, y, z = (np.asarray(dirs, np.float32)[:, i] for i in range(3))
+    cols = [np.full_like(x, C0), C1 * y, C1 * z, C1 * x]
+    if order >= 2:
+        cols += [C2 * x * y, C2 * y * z, C3 * (3.0 * z * z - 1.0), C2 * x * z, C4 * (x * x - y * y)]
+    return np.stack(cols, axis=1).astype(np.float32)
+
+
+def cosine_scale(order: int) -> np.ndarray:
+    """(K,) float32 per-coefficient factor turning radiance SH into irradiance SH."""
+    bands = [0] + [1] * 3 + [2] * 5
+    return np.array([COSINE_BANDS[b] for b in bands[: coeff_count(order)]], np.float32)
+
+
+def project_uniform(values: np.ndarray, dirs: np.ndarray, order: int) -> np.ndarray:
+    """Monte-Carlo projection of values sampled at directions uniform over the sphere.
+
+    values : (m, r, c) one row of r samples per cell; dirs : (r, 3) shared by all cells.
+    Returns (m, K, c) float32 = 4 pi / r * sum_i f(w_i) Y(w_i).
+    """
+    y = basis(dirs, order)  # (r, K)
+    r = y.shape[0]
+    # (m, c, r) @ (r, K) is one batched GEMM: far faster than einsum or add.at over cells.
+    out = np.matmul(np.swapaxes(values, 1, 2), y) * np.float32(4.0 * np.pi / r)
+    return np.swapaxes(out, 1, 2).astype(np.float32, copy=False)
+
+
+def irradiance(coeffs: np.ndarray, normals: np.ndarray) -> np.ndarray:
+    """Irradiance from radiance SH at unit normals.
+
+    coeffs : (n, K, c) radiance SH per point; normals : (n, 3). Returns (n, c) float32 (unclamped).
+    """
+    k = coeffs.shape[1]
+    order = 1 if k == 4 else 2
+    yk = basis(normals, order) * cosine_scale(order)  # (n, K)
+    return np.einsum("nk,nkc->nc", yk, coeffs).astype(np.float32, copy=False)

@@ -1,0 +1,43 @@
+"""Step 3 of the seed pipeline: the cache cells that the visible surfaces read.
+
+Only cells the gather will touch for some pixel of the (downsampled) G-buffer are updated, so the
+ray budget follows the camera.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .grid import CacheGrid
+
+
+def visible_cells(grid: CacheGrid, positions: np.ndarray, normals: np.ndarray, normal_bias: float) -> np.ndarray:
+    """Sorted unique flat cells around G-buffer points.
+
+    positions, normals : (n, 3) float32 of pixels with geometry (background already removed);
+    normal_bias : cells, the same offset the gather applies. Returns (m,) int64.
+    """
+    if positions.shape[0] == 0:
+        return np.zeros(0, np.int64)
+    p = np.asarray(positions, np.float32) + np.asarray(normals, np.float32) * np.float32(normal_bias * grid.cell_size)
+    # Neighbouring pixels share cells: dedupe the base cell first so the 8-corner expansion is small.
+    g = np.floor((p - grid.lo) / np.float32(grid.cell_size) - 0.5).astype(np.int64)
+    g = np.unique(g, axis=0)
+    dims = np.asarray(grid.dims)
+    corners = np.array([[c & 1, (c >> 1) & 1, (c >> 2) & 1] for c in range(8)])
+    ijk = np.clip(g[:, None, :] + corners[None], 0, dims - 1).reshape(-1, 3)
+    return np.unique(grid.flatten(ijk))
+
+
+def pixels_to_points(position_rgba: np.ndarray, normal_rgb: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Flatten G-buffer read-backs to the pixels that hold geometry.
+
+    position_rgba : (h, w, 4) with w = 1 on geometry; normal_rgb : (h, w, >=3).
+    Returns positions (n, 3), normals (n, 3) float32 and the (n,) flat pixel indices.
+    """
+    pos = position_rgba.reshape(-1, position_rgba.shape[-1])
+    nrm = normal_rgb.reshape(-1, normal_rgb.shape[-1])[:, :3]
+    idx = np.flatnonzero((pos[:, 3] > 0.5) & np.isfinite(pos[:, :3]).all(axis=1))
+    n = nrm[idx].astype(np.float32)
+    n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+    return pos[idx, :3].astype(np.float32), n, idx
