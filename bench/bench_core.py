@@ -25,9 +25,23 @@ from hybridgi_core.system import GISystem  # noqa: E402
 from hybridgi_core.visible import pixels_to_points  # noqa: E402
 
 
+def camera_rays(camera, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
+    """Origin (3,) and unit directions (h*w, 3) float32 through pixel centres, rows bottom-up."""
+    m = camera.matrix()
+    half_w = 0.5 * camera.sensor_width_mm / camera.lens_mm
+    half_h = half_w * height / width
+    x = ((np.arange(width) + 0.5) / width * 2 - 1) * half_w
+    y = ((np.arange(height) + 0.5) / height * 2 - 1) * half_h
+    xx, yy = np.meshgrid(x, y)
+    local = np.stack([xx.ravel(), yy.ravel(), -np.ones(xx.size)], axis=1)
+    d = local @ m[:3, :3].T
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    return m[:3, 3].astype(np.float32), d.astype(np.float32)
+
+
 def camera_gbuffer(system: GISystem, camera, width: int, height: int):
     """Primary-ray G-buffer (positions with w, normals) of the scene camera: (h, w, 4), (h, w, 3)."""
-    origin, dirs = camera.rays(width, height)
+    origin, dirs = camera_rays(camera, width, height)
     hits = system.tracer.intersect(np.repeat(origin[None], dirs.shape[0], axis=0).astype(np.float32), dirs)
     ok = hits.prim >= 0
     surf = system.surfaces.surface(hits.prim[ok], hits.u[ok], hits.v[ok], dirs[ok])
@@ -73,7 +87,7 @@ def main() -> None:
 
     t0 = time.perf_counter()
     scene = procedural.atrium()
-    camera = procedural.ATRIUM_CAMERA
+    camera = procedural.camera("atrium")
     print(f"atrium: {scene.geometry.triangle_count} triangles, generated in {time.perf_counter() - t0:.2f} s")
     default = CacheSettings()
     configs = [(default.resolution, default.rays_per_cell)] if args.quick else [

@@ -142,3 +142,32 @@ def gather(
     covered = w.sum(axis=1) > 0
     ao = np.where(covered, np.clip(sh.irradiance(sh_a, normals)[:, 0] / np.pi, 0.0, 1.0), 1.0)
     return Gathered(direct.astype(np.float32), indirect.astype(np.float32), ao.astype(np.float32))
+
+
+#: How far (cells) a probe hit looks along its normal for the cell it reads: sqrt(3) / 2 puts
+#: the centre of the containing cell on the front side of the hit's plane for any normal.
+HIT_LOOKUP_BIAS = 0.87
+
+
+def irradiance_sh(cache: IrradianceCache, bounced: bool) -> np.ndarray:
+    """(N, K, 3) float32 per-cell *irradiance* SH (cosine-convolved): direct band, plus the bounced
+    band when `bounced`. Invalid cells are zero. Evaluating it is one dot product per point."""
+    coeffs = cache.sh_direct + cache.sh_indirect if bounced else cache.sh_direct.copy()
+    coeffs *= sh.cosine_scale(cache.settings.sh_order)[None, :, None]
+    coeffs[~cache.valid] = 0.0
+    return coeffs
+
+
+def nearest_irradiance(cache: IrradianceCache, table: np.ndarray, points: np.ndarray, normals: np.ndarray) -> np.ndarray:
+    """(n, 3) float32 irradiance >= 0 at probe-ray hits from the single cell in front of each hit.
+
+    Further bounces are low frequency and costly in bulk (one per probe ray), so they read one
+    cell instead of the 8-neighbour visibility-weighted gather. table : `irradiance_sh(...)`.
+    """
+    normals = np.asarray(normals, np.float32)
+    p = np.asarray(points, np.float32) + normals * np.float32(HIT_LOOKUP_BIAS * cache.grid.cell_size)
+    ijk = np.floor((p - cache.grid.lo) / np.float32(cache.grid.cell_size)).astype(np.int64)
+    ijk = np.clip(ijk, 0, np.asarray(cache.grid.dims) - 1)
+    coeffs = np.take(table, cache.grid.flatten(ijk), axis=0)  # (n, K, 3)
+    y = sh.basis(normals, cache.settings.sh_order)
+    return np.maximum(np.einsum("nk,nkc->nc", y, coeffs), 0.0).astype(np.float32)

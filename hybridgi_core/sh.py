@@ -46,11 +46,18 @@ def project_uniform(values: np.ndarray, dirs: np.ndarray, order: int) -> np.ndar
     values : (m, r, c) one row of r samples per cell; dirs : (r, 3) shared by all cells.
     Returns (m, K, c) float32 = 4 pi / r * sum_i f(w_i) Y(w_i).
     """
-    y = basis(dirs, order)  # (r, K)
-    r = y.shape[0]
-    # (m, c, r) @ (r, K) is one batched GEMM: far faster than einsum or add.at over cells.
-    out = np.matmul(np.swapaxes(values, 1, 2), y) * np.float32(4.0 * np.pi / r)
-    return np.swapaxes(out, 1, 2).astype(np.float32, copy=False)
+    return project_channels(np.swapaxes(values, 1, 2), dirs, order)
+
+
+def project_channels(values: np.ndarray, dirs: np.ndarray, order: int) -> np.ndarray:
+    """`project_uniform` for channel-major values (m, c, r); returns (m, K, c) float32.
+
+    One (m*c, r) @ (r, K) GEMM: far faster than a batch of tiny matmuls, einsum or add.at.
+    """
+    y = basis(dirs, order) * np.float32(4.0 * np.pi / dirs.shape[0])  # (r, K)
+    m, c, r = values.shape
+    flat = np.ascontiguousarray(values, dtype=np.float32).reshape(m * c, r)
+    return np.swapaxes((flat @ y).reshape(m, c, -1), 1, 2)
 
 
 def irradiance(coeffs: np.ndarray, normals: np.ndarray) -> np.ndarray:

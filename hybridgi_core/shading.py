@@ -62,7 +62,7 @@ class SurfaceTable:
         w0 = 1.0 - u - v
         pos = r[:, _V0] + u * r[:, _E1] + v * r[:, _E2]
         nrm = w0 * r[:, _N0] + u * r[:, _N1] + v * r[:, _N2]
-        nrm /= np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-12)
+        nrm /= np.sqrt(np.maximum(np.einsum("ij,ij->i", nrm, nrm), 1e-24))[:, None]
         fn = r[:, _FN]
         backface = np.einsum("ij,ij->i", fn, ray_dirs) > 0
         mat = r[:, _MAT].astype(np.int32)

@@ -16,7 +16,7 @@ import numpy as np
 
 from . import sh
 from .cache import CellSamples, IrradianceCache
-from .evaluate import gather
+from .evaluate import irradiance_sh, nearest_irradiance
 from .lights import direct_irradiance
 from .sampling import frame_directions, frame_rng, octahedral_texel
 from .settings import AO_ONLY, MULTI_BOUNCE
@@ -82,10 +82,12 @@ class CacheUpdater:
         if cells.size == 0:
             return stats
         dirs = frame_directions(s.rays_per_cell, s.seed, frame)
+        # Hits read the cache as it was before this update, whatever the thread timing.
+        table = irradiance_sh(cache, bounced=s.indirect_quality == MULTI_BOUNCE)
         per_chunk = max(1, CHUNK_RAYS // s.rays_per_cell)
         chunks = [cells[i : i + per_chunk] for i in range(0, cells.size, per_chunk)]
         jobs = [
-            self._pool.submit(self._sample_chunk, chunk, dirs, frame_rng(s.seed, frame * 7919 + i))
+            self._pool.submit(self._sample_chunk, chunk, dirs, table, frame_rng(s.seed, frame * 7919 + i))
             for i, chunk in enumerate(chunks)
         ]
         # Blend only after every chunk is sampled: hits read the cache (further bounces), and a
@@ -99,7 +101,7 @@ class CacheUpdater:
         stats.wall_ms = (time.perf_counter() - t0) * 1e3
         return stats
 
-    def _sample_chunk(self, cells: np.ndarray, dirs: np.ndarray, rng: np.random.Generator):
+    def _sample_chunk(self, cells: np.ndarray, dirs: np.ndarray, table: np.ndarray, rng: np.random.Generator):
         """Estimates for one chunk of cells (worker thread: numpy and the tracer only)."""
         cache = self.cache
         s = cache.settings
@@ -115,15 +117,18 @@ class CacheUpdater:
         tic = time.perf_counter()
         hit = hits.prim >= 0
         idx = np.flatnonzero(hit)
-        radiance_direct = np.zeros((m * r, 3), np.float32)
-        radiance_indirect = np.zeros((m * r, 3), np.float32)
-        radiance_direct[~hit] = self.scene.world.color
+        # Channel-major (m, 7, r): direct RGB, indirect RGB, AO visibility; the SH projection is
+        # then one GEMM with no transposed copy.
+        values = np.zeros((m, 7, r), np.float32)
+        rad_d = np.zeros((m * r, 3), np.float32)
+        rad_i = np.zeros((m * r, 3), np.float32)
+        rad_d[~hit] = self.scene.world.color
         surf = self.scene.surfaces.surface(hits.prim[idx], hits.u[idx], hits.v[idx], ray_dirs[idx])
         backface = np.zeros(m * r, bool)
         backface[idx] = surf.backface
         shadow_ms = 0.0
         if s.indirect_quality != AO_ONLY and idx.size:
-            radiance_direct[idx] = surf.emission
+            rad_d[idx] = surf.emission
             ts = time.perf_counter()
             e_lamps = direct_irradiance(
                 self.scene.lights, surf.position, surf.normal, self.tracer, rng,
@@ -131,20 +136,18 @@ class CacheUpdater:
             )
             shadow_ms = (time.perf_counter() - ts) * 1e3
             # Further bounces read the cache at the hit: the sky/emission band gives the second
-            # bounce even at ONE_BOUNCE quality; MULTI_BOUNCE adds the bounced band as well.
-            g = gather(cache, surf.position, surf.normal)
-            e_in = e_lamps + g.direct
-            if s.indirect_quality == MULTI_BOUNCE:
-                e_in += g.indirect
-            radiance_indirect[idx] = surf.albedo * e_in * np.float32(1.0 / np.pi)
+            # bounce even at ONE_BOUNCE quality; MULTI_BOUNCE's table adds the bounced band.
+            e_in = e_lamps + nearest_irradiance(cache, table, surf.position, surf.normal)
+            rad_i[idx] = surf.albedo * e_in * np.float32(1.0 / np.pi)
         times["shadow"] = shadow_ms
         times["shade"] = (time.perf_counter() - tic) * 1e3 - shadow_ms
 
         tic = time.perf_counter()
-        t = np.where(hit, hits.t, np.inf).reshape(m, r)
-        visible = (t > s.ao_distance).astype(np.float32)
-        both = np.concatenate([radiance_direct.reshape(m, r, 3), radiance_indirect.reshape(m, r, 3), visible[..., None]], axis=2)
-        coeffs = sh.project_uniform(both, dirs, s.sh_order)  # (m, K, 7)
+        t = np.where(hit, hits.t, np.float32(np.inf)).reshape(m, r)
+        values[:, 0:3] = rad_d.reshape(m, r, 3).transpose(0, 2, 1)
+        values[:, 3:6] = rad_i.reshape(m, r, 3).transpose(0, 2, 1)
+        values[:, 6] = t > s.ao_distance
+        coeffs = sh.project_channels(values, dirs, s.sh_order)  # (m, K, 7)
         depth = np.minimum(t, cache.depth_cap).astype(np.float32)
         texel = octahedral_texel(dirs, s.depth_texels)
         onehot = np.zeros((r, s.depth_texels**2), np.float32)
