@@ -89,14 +89,15 @@ class GISystem:
         """Steps 4-5 for these cells."""
         return self.updater.update(cells, frame)
 
-    def warm_up(self, iterations: int, cells: np.ndarray | None = None) -> list[UpdateStats]:
+    def warm_up(self, iterations: int, cells: np.ndarray | None = None, start: int = 0) -> list[UpdateStats]:
         """Converge the cache before a final render, deterministically.
 
         Iteration i always uses the same rays whatever frame is being rendered, so a static scene
-        renders identically on every frame and on any machine of a render farm.
+        renders identically on every frame and on any machine of a render farm. `start` lets a
+        caller run the iterations one at a time (progress, cancelling).
         """
         cells = self.surface_cells() if cells is None else cells
-        return [self.update(cells, WARMUP_FRAME_BASE + i) for i in range(iterations)]
+        return [self.update(cells, WARMUP_FRAME_BASE + i) for i in range(start, start + iterations)]
 
     def corner_visibility(self, points: np.ndarray, normals: np.ndarray) -> np.ndarray:
         """(n, 8) bool exact visibility of the neighbouring cells (occlusion rays) for the gather."""

@@ -1,0 +1,20 @@
+"""HybridGI: real-time global illumination from a ray-traced irradiance cache and raster passes.
+
+Blender loads this package as an extension (metadata in blender_manifest.toml). The numerics live
+in `hybridgi_core`, found through `_core`.
+"""
+
+from . import engine, properties, ui
+
+# Registration order: properties first (panels and the engine read `scene.hybridgi`).
+_modules = (properties, engine, ui)
+
+
+def register():
+    for module in _modules:
+        module.register()
+
+
+def unregister():
+    for module in reversed(_modules):
+        module.unregister()

@@ -1,0 +1,110 @@
+"""The HYBRIDGI render engine: thin callbacks into `pipeline`, errors reported from one place."""
+
+import importlib
+import logging
+
+import bpy
+
+from ._core import errors
+
+log = logging.getLogger(__name__)
+
+#: Message of the last failed final render in this process; None after a successful one.
+#: Blender prints and swallows exceptions raised in `render()` (the operator still returns
+#: FINISHED), so headless callers such as the CLI read this to know a frame failed.
+LAST_ERROR = None
+
+#: Passes besides Combined, named like Cycles' so the EXRs of both engines compare layer by layer:
+#: (pass name, channels, channel ids, type, the view-layer flag that enables it).
+PASSES = (
+    ("Depth", 1, "Z", "VALUE", "use_pass_z"),
+    ("Normal", 3, "XYZ", "VECTOR", "use_pass_normal"),
+    ("Diffuse Direct", 3, "RGB", "COLOR", "use_pass_diffuse_direct"),
+    ("Diffuse Indirect", 3, "RGB", "COLOR", "use_pass_diffuse_indirect"),
+    ("Diffuse Color", 3, "RGB", "COLOR", "use_pass_diffuse_color"),
+    ("Ambient Occlusion", 3, "RGB", "COLOR", "use_pass_ambient_occlusion"),
+)
+
+
+def enabled_passes(view_layer):
+    """Names of the PASSES the view layer asks for (Combined is always there)."""
+    return [name for name, _channels, _ids, _kind, flag in PASSES if getattr(view_layer, flag)]
+
+
+class HybridGIRenderEngine(bpy.types.RenderEngine):
+    bl_idname = "HYBRIDGI"
+    bl_label = "HybridGI"
+    bl_use_gpu_context = True  # the raster passes draw with the `gpu` module inside render()
+    bl_use_shading_nodes_custom = False  # materials keep Blender's standard shader nodes
+    bl_use_eevee_viewport = True  # Material Preview shading uses EEVEE
+    bl_use_postprocess = True
+
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        #: Per-engine state the pipeline may keep between frames of one render job (the cache).
+        self.session = None
+
+    def render(self, depsgraph):
+        render_frame(self, depsgraph)
+
+    def update_render_passes(self, scene=None, renderlayer=None):
+        self.register_pass(scene, renderlayer, "Combined", 4, "RGBA", "COLOR")
+        for name, channels, chan_ids, kind, flag in PASSES:
+            if getattr(renderlayer, flag):
+                self.register_pass(scene, renderlayer, name, channels, chan_ids, kind)
+
+
+def render_frame(engine, depsgraph):
+    """Render one frame through `pipeline.render_frame`; the one place render errors are reported."""
+    global LAST_ERROR
+    LAST_ERROR = None
+    try:
+        pipeline = _pipeline()
+        if pipeline is None:
+            _fail(engine, "this HybridGI build has no render pipeline (addon/pipeline.py)")
+            return
+        pipeline.render_frame(engine, depsgraph)
+    except errors.HybridGIError as err:
+        _fail(engine, str(err))
+    except Exception as err:
+        # Blender would print this and carry on as if the frame had rendered: record it first so
+        # the CLI and tests fail, then let Blender print the traceback.
+        _fail(engine, f"internal error: {type(err).__name__}: {err}")
+        raise
+
+
+def _pipeline():
+    """The pipeline module, or None when this build has none.
+
+    Imported on first render, not at registration: it pulls in embreex and the gpu passes, which
+    registering the add-on (and its UI) must not need. A missing dependency of the pipeline is
+    not "no pipeline": that ModuleNotFoundError propagates.
+    """
+    name = f"{__package__}.pipeline"
+    try:
+        return importlib.import_module(name)
+    except ModuleNotFoundError as err:
+        if err.name != name:
+            raise
+        return None
+
+
+def _fail(engine, message):
+    global LAST_ERROR
+    LAST_ERROR = message
+    log.error("HybridGI render failed: %s", message)
+    engine.error_set(message)
+    engine.report({"ERROR"}, message)
+
+
+classes = (HybridGIRenderEngine,)
+
+
+def register():
+    for cls in classes:
+        bpy.utils.register_class(cls)
+
+
+def unregister():
+    for cls in reversed(classes):
+        bpy.utils.unregister_class(cls)

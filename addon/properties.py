@@ -1,0 +1,190 @@
+"""HybridGI's scene settings (`scene.hybridgi`) and their conversion to the core's frozen settings."""
+
+# No `from __future__ import annotations` here: bpy reads the property annotations at registration
+# and needs them evaluated.
+
+import bpy
+from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty, PointerProperty
+
+from . import _core
+from ._core import settings as core_settings
+
+SH_ORDER_ITEMS = (
+    ("L1", "L1", "4 spherical-harmonic coefficients per colour channel: cheaper, broad light reads ~5% low", 1),
+    ("L2", "L2", "9 coefficients per colour channel: removes the L1 bias", 2),
+)
+SH_ORDER = {"L1": 1, "L2": 2}
+
+INDIRECT_QUALITY_ITEMS = (
+    ("AO", "Ambient Occlusion", "Probe rays measure occlusion only; no bounce light", 0),
+    ("ONE_BOUNCE", "One Bounce", "Probe-ray hits are lit by lamps, emission and the sky", 1),
+    ("MULTI_BOUNCE", "Multi Bounce", "Hits also read the cache itself and converge to all bounces over updates", 2),
+)
+INDIRECT_QUALITY = {
+    "AO": core_settings.AO_ONLY,
+    "ONE_BOUNCE": core_settings.ONE_BOUNCE,
+    "MULTI_BOUNCE": core_settings.MULTI_BOUNCE,
+}
+
+BLEND_MODE_ITEMS = (
+    ("MUL", "Multiply", "The product of both: stronger contact shadows", 0),
+    ("MIN", "Minimum", "The darker of ray-traced and screen-space occlusion: no double darkening", 1),
+)
+
+# The numbers are the deferred pass's DEBUG_* constants (hybridgi_core/raster/settings.py);
+# CELLS is drawn by the pipeline itself.
+DEBUG_VIEW_ITEMS = (
+    ("FINAL", "Final", "The shaded image", 0),
+    ("INDIRECT", "Indirect Light", "Albedo times the indirect light gathered from the cache", 1),
+    ("AO", "Ambient Occlusion", "Ray-traced and screen-space occlusion after blending", 2),
+    ("AO_SPLIT", "AO Split", "Ray-traced occlusion on the left half, screen-space occlusion on the right", 3),
+    ("CELLS", "Cache Cells", "Each pixel coloured by the cache cell it reads", 4),
+)
+DEBUG_VIEW = {identifier: number for identifier, _name, _description, number in DEBUG_VIEW_ITEMS}
+
+
+class HybridGISettings(bpy.types.PropertyGroup):
+    """Render settings of the HybridGI engine, stored per scene."""
+
+    # Irradiance cache (step 4-5 of the paper).
+    resolution: IntProperty(
+        name="Resolution",
+        description="Cache cells along the longest axis of the scene's bounding box",
+        default=32, min=1, max=512, soft_min=4, soft_max=128,
+    )
+    sh_order: EnumProperty(
+        name="SH Order",
+        description="Spherical-harmonic order of the radiance stored per cell",
+        items=SH_ORDER_ITEMS, default="L2",
+    )
+    rays_per_cell: IntProperty(
+        name="Rays per Cell",
+        description="Probe rays traced from each visible cell per cache update",
+        default=64, min=1, max=65536, soft_max=1024,
+    )
+    ray_length: FloatProperty(
+        name="Ray Length",
+        description="Longest probe ray; 0 traces across the whole scene",
+        default=0.0, min=0.0, soft_max=100.0, subtype="DISTANCE", unit="LENGTH",
+    )
+    hysteresis: FloatProperty(
+        name="Hysteresis",
+        description="Share of the previous cache value each update keeps: higher is smoother but reacts slower",
+        default=0.9, min=0.0, max=0.99, subtype="FACTOR",
+    )
+    warmup_iterations: IntProperty(
+        name="Warm-up Updates",
+        description="Cache updates before the first frame of a final render, so it starts converged",
+        default=8, min=0, max=1024, soft_max=64,
+    )
+
+    # What a probe ray's hit contributes.
+    indirect_quality: EnumProperty(
+        name="Indirect Quality",
+        description="How much light transport the probe rays compute",
+        items=INDIRECT_QUALITY_ITEMS, default="MULTI_BOUNCE",
+    )
+    light_samples: IntProperty(
+        name="Light Samples",
+        description="Shadow rays per area light and sun at each probe-ray hit",
+        default=1, min=1, max=256, soft_max=16,
+    )
+    lod_ratio: FloatProperty(
+        name="Ray Mesh Detail",
+        description="Share of triangles kept in the simplified mesh the probe rays trace",
+        default=1.0, min=0.01, max=1.0, subtype="FACTOR",
+    )
+    seed: IntProperty(
+        name="Seed",
+        description="Seed of the probe-ray directions; frame f rotates them with seed + f",
+        default=0, min=0,
+    )
+
+    # Screen-space passes (steps 2, 7 and 8).
+    downsample: IntProperty(
+        name="Downsample",
+        description="Resolution divisor of the G-buffer used to find visible cells and for screen-space AO",
+        default=4, min=1, max=16,
+    )
+    ssao_radius: FloatProperty(
+        name="Radius",
+        description="World-space radius of screen-space ambient occlusion and near-field colour bleeding",
+        default=0.5, min=0.001, soft_max=5.0, subtype="DISTANCE", unit="LENGTH",
+    )
+    ssao_strength: FloatProperty(
+        name="Strength",
+        description="How strongly screen-space occlusion darkens indirect light",
+        default=1.0, min=0.0, max=4.0, soft_max=1.0, subtype="FACTOR",
+    )
+    blend_mode: EnumProperty(
+        name="Blend",
+        description="How ray-traced and screen-space occlusion combine",
+        items=BLEND_MODE_ITEMS, default="MUL",
+    )
+
+    # Debugging.
+    debug_view: EnumProperty(
+        name="View",
+        description="Intermediate result to show instead of the final image",
+        items=DEBUG_VIEW_ITEMS, default="FINAL",
+    )
+    use_viewport_overlay: BoolProperty(
+        name="Cells Overlay",
+        description="Draw the irradiance cache's cells in the 3D viewport",
+        default=False,
+    )
+
+    def cache_settings(self, scene=None):
+        """The core's `CacheSettings` for these properties.
+
+        The AO distance is the World's (Cycles reads the same setting), threads follow the
+        scene's render threads. Raises `SettingsError` if a value is out of the core's range.
+        """
+        scene = scene if scene is not None else self.id_data
+        defaults = core_settings.CacheSettings
+        world = scene.world
+        ao_distance = world.light_settings.distance if world is not None else defaults.ao_distance
+        return core_settings.CacheSettings(
+            resolution=self.resolution,
+            sh_order=SH_ORDER[self.sh_order],
+            rays_per_cell=self.rays_per_cell,
+            ray_length=_f(self.ray_length),
+            hysteresis=_f(self.hysteresis),
+            indirect_quality=INDIRECT_QUALITY[self.indirect_quality],
+            # The World allows 0; the core needs a positive distance.
+            ao_distance=max(_f(ao_distance), 1e-4),
+            lod_ratio=_f(self.lod_ratio),
+            light_samples=self.light_samples,
+            seed=self.seed,
+            threads=min(max(scene.render.threads, 1), 64),
+        )
+
+    def raster_settings(self):
+        """The raster passes' `RasterSettings` for these properties (SettingsError if out of range)."""
+        raster = _core.submodule("raster.settings")
+        return raster.RasterSettings(
+            downsample=self.downsample,
+            ssao_radius=_f(self.ssao_radius),
+            ssao_strength=_f(self.ssao_strength),
+            ao_blend=self.blend_mode,
+        )
+
+
+def _f(value):
+    """A float property's single-precision value as the decimal the user typed (0.9, not 0.8999999761)."""
+    return float(f"{value:.7g}")
+
+
+classes = (HybridGISettings,)
+
+
+def register():
+    for cls in classes:
+        bpy.utils.register_class(cls)
+    bpy.types.Scene.hybridgi = PointerProperty(type=HybridGISettings, name="HybridGI Settings")
+
+
+def unregister():
+    del bpy.types.Scene.hybridgi
+    for cls in reversed(classes):
+        bpy.utils.unregister_class(cls)

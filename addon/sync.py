@@ -1,0 +1,418 @@
+"""Depsgraph -> `SceneSnapshot`: the one module that reads scene data for the core.
+
+Main thread only: it reads `bpy` data. Everything it returns is numpy arrays and plain Python
+values (no bpy object survives in the snapshot), so the core's worker threads can use it freely.
+
+Conventions (Cycles', see GI_FACTS.md): geometry in world space with modifiers, instances and
+geometry nodes applied; lights in Blender's units with colour x temperature, exposure and the
+diffuse factor folded into `color`/`power`, area-light sizes unscaled (the object's scale stays
+in the matrix); materials reduced to a Lambertian base colour (optionally an image) plus emission radiance.
+"""
+
+import logging
+from dataclasses import dataclass
+
+import numpy as np
+
+from ._core import snapshot as snap
+
+log = logging.getLogger(__name__)
+
+#: Albedo of materials this module cannot interpret (Blender's default material colour).
+FALLBACK_GREY = 0.8
+
+#: Colour spaces of byte images: sRGB-encoded values are linearized, linear ones kept; any other
+#: (Display P3, Rec.2020, log encodings) is read as linear Rec.709 with a warning.
+SRGB_SPACES = frozenset({"sRGB"})
+LINEAR_SPACES = frozenset({"Linear Rec.709", "Non-Color", "scene_linear"})
+
+#: Output-node target: Cycles is the reference the engine is compared against.
+OUTPUT_TARGET = "CYCLES"
+
+
+def snapshot_from_depsgraph(depsgraph, dynamic_names=frozenset()):
+    """The evaluated scene of `depsgraph` as a validated `SceneSnapshot`.
+
+    dynamic_names : names of objects that move or deform over the animation; an instance is
+        dynamic when its object or its instancer is named here.
+
+    An empty scene gives a snapshot with no triangles (its `bounds()` raises EmptySceneError),
+    so a scene lit only by the sky still syncs; the pipeline decides whether that is an error.
+    """
+    builder = _SnapshotBuilder(frozenset(dynamic_names))
+    for instance in depsgraph.object_instances:
+        builder.add_instance(instance)
+    return builder.finish(world_from_blender(depsgraph.scene.world))
+
+
+@dataclass(slots=True)
+class _LocalMesh:
+    """One evaluated mesh in object space, split per corner (face corners are the vertices).
+
+    positions, normals : (L, 3) float32; uvs : (L, 2) float32 (NaN without a UV map)
+    triangles : (T, 3) int32 corner indices; slot : (T,) int32 material slot of each triangle
+    """
+
+    positions: np.ndarray
+    normals: np.ndarray
+    uvs: np.ndarray
+    triangles: np.ndarray
+    slot: np.ndarray
+
+
+def mesh_arrays(mesh):
+    """`_LocalMesh` of a Blender mesh, or None when it has no polygons.
+
+    One foreach_get per attribute into arrays of the attribute's own dtype (a dtype mismatch
+    makes foreach_get several times slower).
+    """
+    n_poly = len(mesh.polygons)
+    n_tri = len(mesh.loop_triangles)
+    if n_poly == 0 or n_tri == 0:
+        return None
+    n_vert = len(mesh.vertices)
+    n_corner = len(mesh.loops)
+
+    vert_pos = np.empty(n_vert * 3, np.float32)
+    mesh.attributes["position"].data.foreach_get("vector", vert_pos)
+    corner_vert = np.empty(n_corner, np.int32)
+    mesh.attributes[".corner_vert"].data.foreach_get("value", corner_vert)
+    triangles = np.empty(n_tri * 3, np.int32)
+    mesh.loop_triangles.foreach_get("loops", triangles)
+    tri_poly = np.empty(n_tri, np.int32)
+    mesh.loop_triangle_polygons.foreach_get("value", tri_poly)
+    normals = np.empty(n_corner * 3, np.float32)
+    mesh.corner_normals.foreach_get("vector", normals)
+
+    uv_layer = mesh.uv_layers.active
+    if uv_layer is not None:
+        uvs = np.empty(n_corner * 2, np.float32)
+        uv_layer.uv.foreach_get("vector", uvs)
+        uvs = uvs.reshape(-1, 2)
+    else:
+        uvs = np.full((n_corner, 2), np.nan, np.float32)
+
+    material_attr = mesh.attributes.get("material_index")
+    if material_attr is not None and material_attr.domain == "FACE" and material_attr.data_type == "INT":
+        poly_slot = np.empty(n_poly, np.int32)
+        material_attr.data.foreach_get("value", poly_slot)
+        slot = poly_slot[tri_poly]
+    else:
+        slot = np.zeros(n_tri, np.int32)
+
+    return _LocalMesh(
+        positions=vert_pos.reshape(-1, 3)[corner_vert],
+        normals=normals.reshape(-1, 3),
+        uvs=uvs,
+        triangles=triangles.reshape(-1, 3),
+        slot=slot,
+    )
+
+
+def transformed(local, matrix, slot_to_material, object_index):
+    """`Geometry` of one instance of `local` placed by the (4, 4) `matrix`.
+
+    slot_to_material : (S,) int32 global material index of each material slot (at least one).
+    Returns None when the matrix is singular (a zero scale leaves nothing to trace).
+    """
+    matrix = np.asarray(matrix, np.float64)
+    linear = matrix[:3, :3]
+    det = np.linalg.det(linear)
+    if not np.isfinite(det) or abs(det) < 1e-30:
+        return None
+    positions = (local.positions @ linear.T + matrix[:3, 3]).astype(np.float32)
+    # Normals transform with the inverse transpose so non-uniform scale keeps them perpendicular.
+    normals = local.normals @ np.linalg.inv(linear).astype(np.float32)
+    length = np.linalg.norm(normals, axis=1, keepdims=True)
+    normals = np.divide(normals, length, out=np.zeros_like(normals), where=length > 0)
+    triangles = local.triangles
+    if det < 0:
+        # A mirroring transform flips the winding; reverse it so geometric and shading normals agree.
+        triangles = triangles[:, ::-1]
+    slots = np.clip(local.slot, 0, len(slot_to_material) - 1)
+    n_tri = triangles.shape[0]
+    return snap.Geometry(
+        positions=positions,
+        triangles=np.ascontiguousarray(triangles, np.int32),
+        normals=normals,
+        uvs=local.uvs,
+        material_index=np.asarray(slot_to_material, np.int32)[slots],
+        object_index=np.full(n_tri, object_index, np.int32),
+    )
+
+
+class _SnapshotBuilder:
+    def __init__(self, dynamic_names):
+        self.dynamic_names = dynamic_names
+        self.parts = []
+        self.objects = []
+        self.lights = []
+        self.materials = []
+        self._material_index = {}
+        self._meshes = {}  # evaluated mesh pointer -> _LocalMesh | None, shared by its instances
+        self._textures = _TextureCache()
+
+    def add_instance(self, instance):
+        obj = instance.object
+        if obj.type == "LIGHT":
+            self.lights.append(light_from_blender(obj.data, instance.matrix_world, obj.name))
+            return
+        # Only meshes: curves, text, surfaces and metaballs also arrive as a mesh instance of
+        # their evaluated geometry (converting them too would count them twice).
+        if obj.type != "MESH" or not instance.show_self:
+            return
+        local = self._local_mesh(obj)
+        if local is None:
+            return
+        slot_to_material = self._slot_materials(obj)
+        geometry = transformed(local, instance.matrix_world, slot_to_material, len(self.objects))
+        if geometry is None:
+            log.debug("skipped %s: singular transform", obj.name)
+            return
+        parent = instance.parent if instance.is_instance else None
+        # A curve's own mesh instance has the curve as its parent: keep its plain name.
+        name = obj.name if parent is None or parent.name == obj.name else f"{parent.name}/{obj.name}"
+        dynamic = obj.name in self.dynamic_names or (parent is not None and parent.name in self.dynamic_names)
+        self.objects.append(snap.ObjectInfo(name=name, dynamic=dynamic))
+        self.parts.append(geometry)
+
+    def finish(self, world):
+        geometry = snap.concat_geometry(self.parts)
+        return snap.make_snapshot(geometry, self.materials, self.lights, world, self.objects)
+
+    def _local_mesh(self, obj):
+        key = obj.data.as_pointer()
+        if key not in self._meshes:
+            self._meshes[key] = mesh_arrays(obj.data)
+        return self._meshes[key]
+
+    def _slot_materials(self, obj):
+        materials = [slot.material for slot in obj.material_slots]
+        if not materials:
+            materials = list(obj.data.materials)
+        return [self._material(material) for material in materials] or [self._material(None)]
+
+    def _material(self, material):
+        key = None if material is None else material.name_full
+        index = self._material_index.get(key)
+        if index is None:
+            converted = snap.Material() if material is None else material_from_blender(material, self._textures)
+            index = self._material_index[key] = len(self.materials)
+            self.materials.append(converted)
+        return index
+
+
+# --- materials -----------------------------------------------------------------------------
+
+
+def material_from_blender(material, textures=None):
+    """Lambertian `Material` of a Blender material (see the module docstring for what is read)."""
+    textures = textures if textures is not None else _TextureCache()
+    name = material.name
+    tree = material.node_tree
+    if tree is None:
+        return snap.Material(name=name, base_color=_rgb(material.diffuse_color))
+    shader = _linked_node(_surface_input(tree))
+    if shader is None:
+        log.warning("material %r: no shader linked to an active output; using grey", name)
+        return _grey(name)
+    if shader.type == "BSDF_PRINCIPLED":
+        base, texture = _color_socket(shader.inputs["Base Color"], textures, name)
+        emission = _rgb(shader.inputs["Emission Color"].default_value) * _value(shader.inputs["Emission Strength"])
+        if shader.inputs["Emission Color"].is_linked:
+            log.warning("material %r: linked emission colour is not supported; using its value", name)
+        return snap.Material(name=name, base_color=base, texture=texture, emission=emission.astype(np.float32))
+    if shader.type == "BSDF_DIFFUSE":
+        base, texture = _color_socket(shader.inputs["Color"], textures, name)
+        return snap.Material(name=name, base_color=base, texture=texture)
+    if shader.type == "EMISSION":
+        emission = _rgb(shader.inputs["Color"].default_value) * _value(shader.inputs["Strength"])
+        return snap.Material(name=name, base_color=np.zeros(3, np.float32), emission=emission.astype(np.float32))
+    log.warning("material %r: shader %s is not supported; using grey %.1f", name, shader.bl_idname, FALLBACK_GREY)
+    return _grey(name)
+
+
+def _grey(name):
+    return snap.Material(name=name, base_color=np.full(3, FALLBACK_GREY, np.float32))
+
+
+def _surface_input(tree):
+    output = tree.get_output_node(OUTPUT_TARGET)
+    return None if output is None else output.inputs.get("Surface")
+
+
+def _source(socket):
+    """(node, output socket identifier) feeding `socket` through reroutes; (None, None) when the
+    socket is unlinked or the link or node is muted (Cycles then uses the socket's own value)."""
+    while socket is not None and socket.is_linked:
+        link = socket.links[0]
+        if link.is_muted:
+            return None, None
+        node = link.from_node
+        if node.type != "REROUTE":
+            return (None, None) if node.mute else (node, link.from_socket.identifier)
+        socket = node.inputs[0]
+    return None, None
+
+
+def _linked_node(socket):
+    return _source(socket)[0]
+
+
+def _color_socket(socket, textures, material_name):
+    """(base colour (3,) float32, texture or None) of a colour input."""
+    value = _rgb(socket.default_value)
+    if not socket.is_linked:
+        return value, None
+    node, output = _source(socket)
+    if node is not None and node.type == "TEX_IMAGE" and output == "Color":
+        texture = textures.get(node.image, material_name)
+        if texture is not None:
+            # The texture is the colour; the base colour multiplies it (Material.mean_albedo).
+            return np.ones(3, np.float32), texture
+        return value, None
+    what = "a muted link" if node is None else f"{node.bl_idname}"
+    log.warning("material %r: colour from %s is not supported; using its value", material_name, what)
+    return value, None
+
+
+def _rgb(color):
+    return np.asarray(tuple(color)[:3], np.float32)
+
+
+def _value(socket):
+    return np.float32(socket.default_value)
+
+
+def srgb_to_linear(c):
+    """sRGB EOTF (IEC 61966-2-1), elementwise on float32."""
+    c = np.asarray(c, np.float32)
+    return np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4).astype(np.float32)
+
+
+class _TextureCache:
+    """Image -> (h, w, 3) float32 linear RGB (row 0 at v = 0), each image read once per sync."""
+
+    def __init__(self):
+        self._images = {}
+
+    def get(self, image, material_name):
+        if image is None:
+            log.warning("material %r: image texture without an image; using the base colour", material_name)
+            return None
+        # The original datablock owns the pixel buffer; an evaluated copy may not have loaded one.
+        image = image.original
+        key = image.name_full
+        if key not in self._images:
+            self._images[key] = image_pixels(image)
+            if self._images[key] is None:
+                log.warning("material %r: image %r could not be read; using the base colour", material_name, key)
+        return self._images[key]
+
+
+def image_pixels(image):
+    """(h, w, 3) float32 linear RGB of a Blender image, or None when it has no pixels."""
+    width, height = image.size
+    channels = image.channels
+    count = width * height * channels
+    if count == 0 or len(image.pixels) != count:
+        return None
+    pixels = np.empty(count, np.float32)
+    image.pixels.foreach_get(pixels)
+    pixels = pixels.reshape(height, width, channels)
+    if channels >= 3:
+        rgb = pixels[:, :, :3]
+    else:
+        rgb = np.repeat(pixels[:, :, :1], 3, axis=2)  # grey (+ alpha)
+    # Byte buffers hold the file's encoded values; float buffers are already scene-linear.
+    space = image.colorspace_settings.name
+    if not image.is_float and space in SRGB_SPACES:
+        rgb = srgb_to_linear(rgb)
+    elif not image.is_float and space not in LINEAR_SPACES:
+        log.warning("image %r: colour space %r is read as linear Rec.709", image.name, space)
+    return np.ascontiguousarray(rgb, np.float32)
+
+
+# --- lights and world ----------------------------------------------------------------------
+
+
+def light_from_blender(light, matrix_world, name=""):
+    """`Light` of a Blender light placed by `matrix_world` (Cycles' sync_light conventions).
+
+    power = energy x 2^exposure x diffuse factor (HybridGI shades diffuse only); colour includes
+    the blackbody tint. AREA size/size_y are Blender's (unscaled): the object's scale stays in
+    `matrix` and the core applies it to the extents (hybridgi_core/lights.py), as Cycles does. An
+    unnormalized area light keeps its radiance (strength / pi) by multiplying the power by the
+    placed area.
+    """
+    matrix = np.array(matrix_world, np.float64)
+    color = _rgb(light.color)
+    if getattr(light, "use_temperature", False):
+        color = color * _rgb(light.temperature_color)
+    exposure = float(getattr(light, "exposure", 0.0))
+    power = float(light.energy) * 2.0**exposure * float(getattr(light, "diffuse_factor", 1.0))
+    normalize = getattr(light, "normalize", True)
+    kind = light.type
+    fields = {}
+    if kind in ("POINT", "SPOT"):
+        fields["radius"] = float(light.shadow_soft_size)
+        if kind == "SPOT":
+            fields["spot_size"] = float(light.spot_size)
+            fields["spot_blend"] = float(light.spot_blend)
+        if not normalize and fields["radius"] > 0:
+            log.warning("light %r: unnormalized point and spot lights are treated as normalized", name)
+    elif kind == "SUN":
+        fields["angle"] = float(light.angle)
+        if not normalize:
+            log.warning("light %r: unnormalized sun is treated as normalized", name)
+    elif kind == "AREA":
+        shape = light.shape
+        size_y = light.size_y if shape in ("RECTANGLE", "ELLIPSE") else light.size
+        fields.update(shape=shape, size=float(light.size), size_y=float(size_y))
+        if not normalize:
+            # Extents as the lamp is placed: the core scales size/size_y by the matrix the same way.
+            extent_u = matrix[:3, 0] * light.size
+            extent_v = matrix[:3, 1] * size_y
+            area = float(np.linalg.norm(np.cross(extent_u, extent_v)))
+            power *= area * (np.pi / 4 if shape in ("DISK", "ELLIPSE") else 1.0)
+    return snap.Light(kind=kind, color=color, power=power, matrix=matrix, name=name, **fields)
+
+
+def equirect_mean(pixels):
+    """(3,) float32 mean over the sphere of an (h, w, 3) equirectangular image (rows weighted by
+    the solid angle they cover, so the stretched poles do not dominate)."""
+    height = pixels.shape[0]
+    latitude = (np.arange(height) + 0.5) / height * np.pi - np.pi / 2
+    weight = np.cos(latitude)
+    rows = pixels.mean(axis=1)
+    return (weight @ rows / weight.sum()).astype(np.float32)
+
+
+def world_from_blender(world):
+    """`World` of a Blender world: Background colour x strength (or the world colour)."""
+    if world is None:
+        return snap.World()
+    ao_distance = float(world.light_settings.distance)
+    tree = world.node_tree
+    if tree is None:
+        return snap.World(color=_rgb(world.color), ao_distance=ao_distance)
+    node = _linked_node(_surface_input(tree))
+    if node is None:
+        # Cycles renders a world with nothing linked to its output as black.
+        return snap.World(color=np.zeros(3, np.float32), ao_distance=ao_distance)
+    if node.type != "BACKGROUND":
+        log.warning("world %r: %s is not supported; using the viewport colour", world.name, node.bl_idname)
+        return snap.World(color=_rgb(world.color), ao_distance=ao_distance)
+    color_socket = node.inputs["Color"]
+    color = _rgb(color_socket.default_value)
+    if color_socket.is_linked:
+        source, output = _source(color_socket)
+        is_env = source is not None and source.type == "TEX_ENVIRONMENT" and output == "Color"
+        pixels = image_pixels(source.image.original) if is_env and source.image is not None else None
+        if pixels is not None:
+            log.warning("world %r: environment image approximated by its mean radiance", world.name)
+            color = equirect_mean(pixels)
+        else:
+            log.warning("world %r: linked background colour is not supported; using its value", world.name)
+    radiance = (color * _value(node.inputs["Strength"])).astype(np.float32)
+    return snap.World(color=radiance, ao_distance=ao_distance)

@@ -1,0 +1,146 @@
+"""The seed's nine steps for one view: every raster pass plus the CPU cache work between them.
+
+Shared by final renders and the viewport: both hand in a `GISystem` (the cache lives in world
+space and outlives views) and camera matrices, and read back a `ShadedFrame`.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..visible import pixels_to_points
+from .bilateral import BilateralPass
+from .deferred import DeferredPass, ShadedFrame
+from .downsample import DownsamplePass
+from .gather import GatherPass
+from .gbuffer import GBufferPass
+from .passes import low_res_size
+from .readback import upload_texture_2d
+from .settings import DEBUG_FINAL, RasterSettings
+from .ssao import SSAOPass
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class FrameStats:
+    steps_ms: dict[str, float] = field(default_factory=dict)
+    visible_cells: int = 0
+    rays: int = 0
+    low_res: tuple[int, int] = (0, 0)
+
+    @contextmanager
+    def step(self, name: str):
+        t0 = time.perf_counter()
+        try:
+            yield
+        finally:
+            self.steps_ms[name] = self.steps_ms.get(name, 0.0) + (time.perf_counter() - t0) * 1e3
+
+
+class FramePipeline:
+    """Owns the passes of one view; `resize`, `upload`, then `render` per frame; `free` at the end."""
+
+    def __init__(self, settings: RasterSettings | None = None, direct_samples: int = 16):
+        self.settings = settings or RasterSettings()
+        #: Shadow-ray samples per pixel and lamp for the full-res direct light: soft shadows of area
+        #: lights and suns are visible noise at 1 sample; the viewport may use fewer.
+        self.direct_samples = direct_samples
+        self.gbuffer = GBufferPass()
+        self.downsample = DownsamplePass(self.settings.downsample)
+        self.gather = GatherPass()
+        self.ssao = SSAOPass(self.settings)
+        self.bilateral = BilateralPass(self.settings)
+        self.deferred = DeferredPass(self.settings)
+        self._passes = (self.gbuffer, self.downsample, self.gather, self.ssao, self.bilateral, self.deferred)
+        self.width = self.height = 0
+        self._direct_tex = None
+
+    def resize(self, width: int, height: int) -> None:
+        if (width, height) == (self.width, self.height):
+            return
+        low = low_res_size(width, height, self.settings.downsample)
+        for p in (self.gbuffer, self.downsample, self.bilateral, self.deferred):
+            p.resize(width, height)
+        for p in (self.gather, self.ssao):  # these run at the GI resolution
+            p.resize(*low)
+        self.width, self.height = width, height
+
+    def upload(self, snapshot) -> None:
+        """Geometry and materials for the G-buffer (once per scene change)."""
+        self.gbuffer.upload(snapshot)
+
+    def free(self) -> None:
+        for p in self._passes:
+            p.free()
+        self._direct_tex = None
+        self.width = self.height = 0
+
+    def render(self, system, view: np.ndarray, proj: np.ndarray, frame: int, warmup: int = 0,
+               update: bool = True, debug_view: int = DEBUG_FINAL, world_color=(0.0, 0.0, 0.0),
+               progress=None) -> tuple[ShadedFrame, FrameStats]:
+        """Steps 1-9. warmup > 0 converges the cache first (final renders); update = False only
+        reads the cache (a redraw while a worker owns the updates). progress(i, n) is called
+        after each warm-up iteration and may raise to cancel."""
+        stats = FrameStats()
+        with stats.step("gbuffer"):
+            gbuf = self.gbuffer.execute(view, proj)
+        with stats.step("downsample"):
+            low = self.downsample.execute(gbuf)
+            normal_lo, position_lo = self.downsample.read_normal_position()
+            points, normals, pix = pixels_to_points(position_lo, normal_lo)
+        stats.low_res = (self.downsample.low_width, self.downsample.low_height)
+        with stats.step("select"):
+            cells = system.visible_cells(points, normals)
+        stats.visible_cells = int(cells.size)
+        if warmup > 0:
+            with stats.step("warmup"):
+                warm_cells = np.union1d(system.surface_cells(), cells)
+                runs = []
+                for i in range(warmup):
+                    runs += system.warm_up(1, warm_cells, start=i)
+                    if progress is not None:
+                        progress(i, warmup)
+            stats.rays += sum(r.rays for r in runs)
+            for r in runs:
+                for k, v in r.steps_ms.items():
+                    stats.steps_ms[f"warmup_{k}"] = stats.steps_ms.get(f"warmup_{k}", 0.0) + v
+        if update:
+            with stats.step("update"):
+                run = system.update(cells, frame)
+            stats.rays += run.rays
+            for k, v in run.steps_ms.items():
+                stats.steps_ms[f"update_{k}"] = v
+        with stats.step("visibility"):
+            visible = system.corner_visibility(points, normals)
+        with stats.step("gather"):
+            mask = np.zeros((low.height * low.width, 8), bool)
+            mask[pix] = visible
+            self.gather.upload(system.cache)
+            gi_indirect, gi_direct = self.gather.execute(low, corner_visible=mask.reshape(low.height, low.width, 8))
+        with stats.step("direct_low"):
+            # Lamp light at the low-res pixels: what the SSAO pass's near-field bounce reflects
+            # (the far-field bounce of the cache's light is already in the gathered indirect).
+            lit = np.zeros((low.height * low.width, 4), np.float32)
+            lit[pix, :3] = system.direct(points, normals, frame, samples=1)
+            lit_tex = upload_texture_2d(lit.reshape(low.height, low.width, 4), "RGBA16F")
+        with stats.step("ssao"):
+            ssao = self.ssao.execute(low, view, proj, irradiance=lit_tex)
+        with stats.step("bilateral"):
+            filtered = self.bilateral.execute(gbuf, low, gi_indirect, gi_direct, ssao)
+        with stats.step("direct"):
+            normal = self.gbuffer.read("normal")
+            position = self.gbuffer.read("position")
+            p_full, n_full, pix_full = pixels_to_points(position, normal)
+            direct = np.zeros((self.height * self.width, 4), np.float32)
+            direct[pix_full, :3] = system.direct(p_full, n_full, frame, samples=self.direct_samples)
+            self._direct_tex = upload_texture_2d(direct.reshape(self.height, self.width, 4), "RGBA32F")
+        with stats.step("deferred"):
+            shaded = self.deferred.execute(gbuf, self._direct_tex, filtered, world_color=world_color,
+                                           debug_view=debug_view, relative_bounce=self.ssao.relative_bounce)
+        return shaded, stats

@@ -1,0 +1,169 @@
+"""Step 6 on the GPU: the 3D cache gathered into image space at the low resolution.
+
+Reproduces `hybridgi_core.evaluate.gather` (see `gather_frag.glsl`) from textures packed from the
+cache arrays. Cache data goes into 2D float textures addressed by a linear texel index rather
+than 3D textures: 2K slots per cell (18 for L2) along one axis of a 3D texture would exceed the
+2048-texel 3D limit already at 114 cells, and texelFetch keeps the result bit-for-bit the numpy
+formula (no filtering).
+
+Outputs (low res, RGBA32F), the layouts BilateralPass expects:
+    gi_indirect : rgb = indirect irradiance (W/m^2), a = ray AO (1 = open / no cell)
+    gi_direct   : rgb = direct-from-cache irradiance (sky + emissive surfaces), a = 0
+"""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+
+from .glsl import load_glsl
+from .passes import RasterError, RasterPass, check_size, compile_spec, fullscreen_spec, make_target
+from .readback import read_framebuffer, upload_texture_2d
+
+log = logging.getLogger(__name__)
+
+#: Width of the packed cache textures (texels); well under every GPU's 2D limit (>= 8192).
+PACK_WIDTH = 4096
+
+MODE_PLAIN, MODE_CHEBYSHEV, MODE_MASK = 0, 1, 2
+
+
+def _pack_rows(texels: np.ndarray) -> np.ndarray:
+    """(n, c) texels -> (rows, PACK_WIDTH, c) zero-padded, linear index = row * width + column."""
+    n, c = texels.shape
+    width = min(PACK_WIDTH, max(n, 1))
+    rows = -(-max(n, 1) // width)
+    out = np.zeros((rows * width, c), np.float32)
+    out[:n] = texels
+    return out.reshape(rows, width, c)
+
+
+def pack_cache(cache) -> tuple[np.ndarray, np.ndarray]:
+    """The cache arrays as texture data (see gather_frag.glsl for the layout).
+
+    Returns sh (rows, w, 4) float32: per cell K texels (sh_direct rgb, ao_sh) then K texels
+    (sh_indirect rgb, valid in the first one's alpha); depth (rows, w, 2) float32: per cell the
+    D*D octahedral (mean, mean square) distances.
+    """
+    n, k = cache.sh_direct.shape[:2]
+    sh_tex = np.zeros((n, 2 * k, 4), np.float32)
+    sh_tex[:, :k, :3] = cache.sh_direct
+    sh_tex[:, :k, 3] = cache.ao_sh
+    sh_tex[:, k:, :3] = cache.sh_indirect
+    sh_tex[:, k, 3] = cache.valid
+    depth = np.ascontiguousarray(cache.depth, np.float32).reshape(-1, 2)
+    return _pack_rows(sh_tex.reshape(-1, 4)), _pack_rows(depth)
+
+
+def pack_corner_mask(corner_visible: np.ndarray) -> np.ndarray:
+    """(h, w, 8) bool -> (h, w) float32 bit masks (bit c = corner c visible; exact in float)."""
+    bits = (np.asarray(corner_visible, bool) * (1 << np.arange(8))).sum(axis=-1)
+    return bits.astype(np.float32)
+
+
+class GatherPass(RasterPass):
+    """`upload(cache)` when it changed; `resize(low_w, low_h)`;
+    `execute(low, visibility=True, corner_visible=None) -> (gi_indirect, gi_direct)`."""
+
+    name = "gather"
+
+    def __init__(self) -> None:
+        super().__init__()
+        self._targets = None
+        self._fb = None
+        self._cache_tx = None
+        self._depth_tx = None
+        self._uploaded = None  # (id(cache), version) of the textures
+        self._grid = None
+        self._settings = None
+        self._no_mask = None
+
+    def _build_shaders(self) -> dict:
+        spec = fullscreen_spec(
+            "hybridgi_gather",
+            load_glsl("common_lib.glsl", "gather_frag.glsl"),
+            samplers=((0, "FLOAT_2D", "position_tx"), (1, "FLOAT_2D", "normal_tx"),
+                      (2, "FLOAT_2D", "cache_tx"), (3, "FLOAT_2D", "depth_tx"), (4, "FLOAT_2D", "mask_tx")),
+            push=(("VEC4", "grid_lo_cell"), ("IVEC4", "grid_dims"), ("FLOAT", "normal_bias"),
+                  ("INT", "depth_texels"), ("INT", "mode")),
+            outputs=((0, "VEC4", "out_indirect"), (1, "VEC4", "out_direct")),
+        )
+        return {"main": compile_spec(spec)}
+
+    def _allocate(self, width: int, height: int) -> None:
+        import gpu  # noqa: PLC0415
+
+        self._targets = [make_target(width, height, "RGBA32F") for _ in range(2)]
+        self._fb = gpu.types.GPUFrameBuffer(color_slots=tuple(self._targets))
+        self._no_mask = upload_texture_2d(np.zeros((height, width), np.float32), "R32F")
+
+    def _release_targets(self) -> None:
+        self._targets = None
+        self._fb = None
+        self._no_mask = None
+
+    def free(self) -> None:
+        super().free()
+        self._cache_tx = self._depth_tx = None
+        self._uploaded = None
+
+    def upload(self, cache) -> bool:
+        """Upload the cache's arrays unless this cache version is already on the GPU.
+
+        Returns True when it uploaded. (`IrradianceCache.version` is bumped on every blend.)
+        """
+        # IrradianceCache.reset() restarts `version` at 0 with new arrays: the arrays' identity
+        # tells a reset cache from an unchanged one.
+        key = (id(cache), cache.version, id(cache.sh_direct))
+        if self._uploaded == key:
+            return False
+        sh_data, depth_data = pack_cache(cache)
+        self._cache_tx = upload_texture_2d(sh_data, "RGBA32F")
+        self._depth_tx = upload_texture_2d(depth_data, "RG32F")
+        self._grid = cache.grid
+        self._settings = cache.settings
+        self._uploaded = key
+        return True
+
+    def execute(self, low, visibility: bool = True, corner_visible=None):
+        """Gather at the low-res G-buffer `low` (LowResGBuffer of the resize size).
+
+        visibility : False = plain trilinear x valid (evaluate's visibility=False)
+        corner_visible : optional (h, w, 8) bool (rows bottom-up, like the read-back the CPU traced
+            from) or an R32F bit-mask texture; replaces the Chebyshev test as in evaluate.
+        Returns (gi_indirect, gi_direct) RGBA32F textures.
+        """
+        self._require()
+        if self._cache_tx is None:
+            raise RasterError("gather: upload(cache) before execute()")
+        check_size(low.position, self.width, self.height, "low-res gbuffer")
+        mask_tx = self._no_mask
+        mode = MODE_CHEBYSHEV if visibility else MODE_PLAIN
+        if visibility and corner_visible is not None:
+            mode = MODE_MASK
+            if isinstance(corner_visible, np.ndarray):
+                if corner_visible.shape != (self.height, self.width, 8):
+                    raise RasterError(f"corner_visible {corner_visible.shape}, expected {(self.height, self.width, 8)}")
+                mask_tx = upload_texture_2d(pack_corner_mask(corner_visible), "R32F")
+            else:
+                check_size(corner_visible, self.width, self.height, "corner mask")
+                mask_tx = corner_visible
+        g, s = self._grid, self._settings
+        shader = self._shader()
+        shader.uniform_sampler("position_tx", low.position)
+        shader.uniform_sampler("normal_tx", low.normal)
+        shader.uniform_sampler("cache_tx", self._cache_tx)
+        shader.uniform_sampler("depth_tx", self._depth_tx)
+        shader.uniform_sampler("mask_tx", mask_tx)
+        shader.uniform_float("grid_lo_cell", (*np.asarray(g.lo, np.float32).tolist(), float(g.cell_size)))
+        shader.uniform_int("grid_dims", (*[int(d) for d in g.dims], int(s.sh_coeffs)))
+        shader.uniform_float("normal_bias", float(s.normal_bias))
+        shader.uniform_int("depth_texels", int(s.depth_texels))
+        shader.uniform_int("mode", mode)
+        self._draw_fullscreen(self._fb, shader, (self.width, self.height))
+        return tuple(self._targets)
+
+    def read(self, slot: int, out: np.ndarray | None = None) -> np.ndarray:
+        """Output `slot` (0 gi_indirect, 1 gi_direct) as (h, w, 4) float32, rows bottom-up."""
+        return read_framebuffer(self._fb, slot, self.width, self.height, 4, out=out)

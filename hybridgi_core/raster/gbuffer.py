@@ -1,0 +1,263 @@
+"""Step 1: rasterize the snapshot into a full-resolution G-buffer (MRT).
+
+Targets (all bottom-up rows, world space, scene-linear):
+
+| slot | name     | format  | content                                                      |
+|------|----------|---------|--------------------------------------------------------------|
+| 0    | albedo   | RGBA16F | linear base colour x texture, a = 1 on geometry              |
+| 1    | normal   | RGBA16F | unit shading normal, flipped to face the camera, a = 1       |
+| 2    | position | RGBA32F | world position xyz, w = 1 on geometry, 0 on the background   |
+| 3    | emission | RGBA16F | emitted radiance W/(m^2 sr), a = 1                           |
+| 4    | depth    | R32F    | view-axis distance (Cycles' Depth pass), 1e10 on background  |
+
+Everything else is 0 on the background. Geometry is uploaded once (`upload`); animated vertices
+replace only the position buffer (`update_positions`). One draw call per material.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import numpy as np
+
+from .glsl import ShaderSpec, load_glsl
+from .passes import (
+    BACKGROUND_DEPTH,
+    CAMERA_TYPEDEF,
+    RasterError,
+    RasterPass,
+    camera_block,
+    compile_spec,
+    draw_state,
+    make_target,
+)
+from .readback import read_framebuffer, upload_texture_2d
+
+log = logging.getLogger(__name__)
+
+#: (name, format, channels) of the colour targets, in framebuffer slot order.
+GBUFFER_TARGETS = (
+    ("albedo", "RGBA16F", 4),
+    ("normal", "RGBA16F", 4),
+    ("position", "RGBA32F", 4),
+    ("emission", "RGBA16F", 4),
+    ("depth", "R32F", 1),
+)
+
+
+@dataclass
+class GBuffer:
+    """The G-buffer textures of one frame (owned by the pass; valid until the next resize/free)."""
+
+    albedo: object
+    normal: object
+    position: object
+    emission: object
+    depth: object
+    width: int
+    height: int
+
+
+@dataclass
+class _MaterialDraw:
+    batch: object
+    ibo: object
+    base_color: tuple
+    fallback_albedo: tuple
+    emission: tuple
+    texture: object  # GPUTexture or None
+
+
+class GBufferPass(RasterPass):
+    """Rasterizes a `SceneSnapshot`'s triangles into the G-buffer.
+
+    Usage: `create()`, `upload(snapshot)`, `resize(w, h)`, then per frame
+    `execute(view, proj) -> GBuffer`; `update_positions(p)` for moving vertices.
+    """
+
+    name = "gbuffer"
+
+    def __init__(self) -> None:
+        super().__init__()
+        self._targets = None
+        self._depth_buffer = None
+        self._fb = None
+        self._fb_depth_only = None
+        self._ubo = None
+        self._pos_vbo = None
+        self._attr_vbo = None
+        self._draws: list[_MaterialDraw] = []
+        self._dummy_texture = None
+        self._vertex_count = 0
+
+    # -- lifecycle ---------------------------------------------------------------------------
+    def _build_shaders(self) -> dict:
+        spec = ShaderSpec(
+            name="hybridgi_gbuffer",
+            vertex=load_glsl("common_lib.glsl", "gbuffer_vert.glsl"),
+            fragment=load_glsl("common_lib.glsl", "gbuffer_frag.glsl"),
+            vertex_in=((0, "VEC3", "pos"), (1, "VEC3", "nor"), (2, "VEC2", "uv"), (3, "FLOAT", "uv_valid")),
+            varyings=(("smooth", "VEC3", "world_pos"), ("smooth", "VEC3", "world_nor"),
+                      ("smooth", "VEC2", "tex_uv"), ("smooth", "FLOAT", "uv_ok")),
+            samplers=((0, "FLOAT_2D", "albedo_tx"),),
+            # 52 bytes of push constants per material; the camera (80 bytes) is a UBO.
+            push=(("VEC4", "base_color"), ("VEC4", "fallback_albedo"), ("VEC4", "emission"),
+                  ("INT", "has_texture")),
+            typedefs=CAMERA_TYPEDEF,
+            ubos=((0, "CameraBlock", "camera"),),
+            outputs=tuple((slot, "FLOAT" if ch == 1 else "VEC4", f"out_{name}")
+                          for slot, (name, _fmt, ch) in enumerate(GBUFFER_TARGETS)),
+        )
+        return {"main": compile_spec(spec)}
+
+    def _allocate(self, width: int, height: int) -> None:
+        import gpu  # noqa: PLC0415
+
+        self._targets = {name: make_target(width, height, fmt) for name, fmt, _ch in GBUFFER_TARGETS}
+        self._depth_buffer = make_target(width, height, "DEPTH_COMPONENT32F")
+        self._fb = gpu.types.GPUFrameBuffer(
+            depth_slot=self._depth_buffer,
+            color_slots=tuple(self._targets[name] for name, _f, _c in GBUFFER_TARGETS),
+        )
+        # Separate framebuffer so the depth target can be cleared to BACKGROUND_DEPTH while the
+        # other targets clear to 0 (a clear writes one value to every colour slot).
+        self._fb_depth_only = gpu.types.GPUFrameBuffer(color_slots=(self._targets["depth"],))
+
+    def _release_targets(self) -> None:
+        self._targets = None
+        self._depth_buffer = None
+        self._fb = None
+        self._fb_depth_only = None
+
+    def free(self) -> None:
+        super().free()
+        self._ubo = None
+        self._pos_vbo = None
+        self._attr_vbo = None
+        self._draws = []
+        self._dummy_texture = None
+        self._vertex_count = 0
+
+    # -- geometry ----------------------------------------------------------------------------
+    def upload(self, snapshot) -> None:
+        """Build vertex/index buffers and material textures from a `SceneSnapshot`.
+
+        Uses geometry.positions (V, 3) float32, normals (V, 3), uvs (V, 2) (NaN = no UV),
+        triangles (T, 3) int32 and material_index (T,) int32. Triangles are grouped by material
+        (one index buffer each) over shared vertex buffers; textures are uploaded once here.
+        """
+        import gpu  # noqa: PLC0415
+
+        self.create()
+        geo = snapshot.geometry
+        n_vert = int(geo.positions.shape[0])
+        uvs = np.asarray(geo.uvs, np.float32).reshape(n_vert, 2)
+        uv_valid = np.isfinite(uvs).all(axis=1).astype(np.float32)
+        fmt = gpu.types.GPUVertFormat()
+        fmt.attr_add(id="nor", comp_type="F32", len=3, fetch_mode="FLOAT")
+        fmt.attr_add(id="uv", comp_type="F32", len=2, fetch_mode="FLOAT")
+        fmt.attr_add(id="uv_valid", comp_type="F32", len=1, fetch_mode="FLOAT")
+        self._attr_vbo = gpu.types.GPUVertBuf(fmt, max(n_vert, 1))
+        if n_vert:
+            self._attr_vbo.attr_fill("nor", np.ascontiguousarray(geo.normals, np.float32).reshape(n_vert, 3))
+            self._attr_vbo.attr_fill("uv", np.ascontiguousarray(np.nan_to_num(uvs, nan=0.0, posinf=0.0, neginf=0.0)))
+            self._attr_vbo.attr_fill("uv_valid", uv_valid)
+        self._vertex_count = n_vert
+        if self._dummy_texture is None:
+            self._dummy_texture = upload_texture_2d(np.ones((1, 1, 4), np.float32), "RGBA16F")
+
+        tris = np.asarray(geo.triangles, np.int32).reshape(-1, 3)
+        mat_index = np.asarray(geo.material_index, np.int32).reshape(-1)
+        self._draws = []
+        for m, material in enumerate(snapshot.materials):
+            sel = tris[mat_index == m]
+            if sel.shape[0] == 0:
+                continue
+            texture = None
+            if material.texture is not None:
+                texture = upload_texture_2d(material.texture, "RGBA16F")
+            base = np.asarray(material.base_color, np.float32).reshape(3)
+            self._draws.append(_MaterialDraw(
+                batch=None,
+                ibo=gpu.types.GPUIndexBuf(type="TRIS", seq=np.ascontiguousarray(sel)),
+                base_color=(*base.tolist(), 1.0),
+                fallback_albedo=(*np.asarray(material.mean_albedo, np.float32).reshape(3).tolist(), 1.0),
+                emission=(*np.asarray(material.emission, np.float32).reshape(3).tolist(), 1.0),
+                texture=texture,
+            ))
+        self.update_positions(geo.positions)
+        log.debug("gbuffer upload: %d vertices, %d triangles, %d material draws",
+                  n_vert, tris.shape[0], len(self._draws))
+
+    def update_positions(self, positions: np.ndarray) -> None:
+        """Replace the vertex positions, (V, 3) float32 world space, same V as `upload`.
+
+        Only the position buffer is rebuilt; normals, UVs, indices and textures are kept.
+        (Blender's Python API cannot refill a vertex buffer that was drawn: a new one is made.)
+        """
+        import gpu  # noqa: PLC0415
+
+        if self._attr_vbo is None:
+            raise RasterError("update_positions before upload")
+        positions = np.ascontiguousarray(positions, np.float32).reshape(-1, 3)
+        if positions.shape[0] != self._vertex_count:
+            raise RasterError(f"update_positions: {positions.shape[0]} positions for {self._vertex_count} vertices")
+        fmt = gpu.types.GPUVertFormat()
+        fmt.attr_add(id="pos", comp_type="F32", len=3, fetch_mode="FLOAT")
+        self._pos_vbo = gpu.types.GPUVertBuf(fmt, max(positions.shape[0], 1))
+        if positions.shape[0]:
+            self._pos_vbo.attr_fill("pos", positions)
+        for draw in self._draws:
+            draw.batch = gpu.types.GPUBatch(type="TRIS", buf=self._pos_vbo, elem=draw.ibo)
+            draw.batch.vertbuf_add(self._attr_vbo)
+
+    # -- frame -------------------------------------------------------------------------------
+    def execute(self, view: np.ndarray, proj: np.ndarray) -> GBuffer:
+        """Rasterize with camera `view` (4, 4) world->camera and `proj` (4, 4) camera->clip
+        (numpy or mathutils matrices, perspective or orthographic).
+
+        Returns the GBuffer textures at the size set by `resize` (background only before `upload`).
+        """
+        import gpu  # noqa: PLC0415
+
+        self._require()
+        data = camera_block(view, proj)
+        if self._ubo is None:
+            self._ubo = gpu.types.GPUUniformBuf(data)
+        else:
+            self._ubo.update(data)
+        shader = self._shader()
+        with self._fb.bind():
+            gpu.state.viewport_set(0, 0, self.width, self.height)
+            self._fb.clear(color=(0.0, 0.0, 0.0, 0.0), depth=1.0)
+        with self._fb_depth_only.bind():
+            self._fb_depth_only.clear(color=(BACKGROUND_DEPTH, 0.0, 0.0, 0.0))
+        with self._fb.bind():
+            gpu.state.viewport_set(0, 0, self.width, self.height)
+            with draw_state(depth_test="LESS", depth_mask=True):
+                gpu.state.face_culling_set("NONE")
+                for draw in self._draws:
+                    shader.uniform_block("camera", self._ubo)
+                    shader.uniform_float("base_color", draw.base_color)
+                    shader.uniform_float("fallback_albedo", draw.fallback_albedo)
+                    shader.uniform_float("emission", draw.emission)
+                    shader.uniform_int("has_texture", 1 if draw.texture is not None else 0)
+                    shader.uniform_sampler("albedo_tx", draw.texture or self._dummy_texture)
+                    draw.batch.draw(shader)
+        return self.outputs()
+
+    def outputs(self) -> GBuffer:
+        """The current targets (after `execute`)."""
+        t = self._targets
+        if t is None:
+            raise RasterError("gbuffer: no targets (resize first)")
+        return GBuffer(t["albedo"], t["normal"], t["position"], t["emission"], t["depth"],
+                       self.width, self.height)
+
+    def read(self, name: str, out: np.ndarray | None = None) -> np.ndarray:
+        """Target `name` (albedo|normal|position|emission|depth) as (h, w, c) float32, bottom-up."""
+        for slot, (tname, _fmt, ch) in enumerate(GBUFFER_TARGETS):
+            if tname == name:
+                return read_framebuffer(self._fb, slot, self.width, self.height, ch, out=out)
+        raise KeyError(name)

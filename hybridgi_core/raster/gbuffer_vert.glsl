@@ -1,0 +1,10 @@
+/* G-buffer: world-space geometry in, world-space attributes out (no model matrix: the snapshot
+ * is already in world space). */
+void main()
+{
+  world_pos = pos;
+  world_nor = nor;
+  tex_uv = uv;
+  uv_ok = uv_valid;
+  gl_Position = camera.view_proj * vec4(pos, 1.0);
+}

@@ -1,0 +1,49 @@
+"""Frozen settings of the raster passes (units in comments). Pure Python: no `gpu` import."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+from ..errors import SettingsError
+
+#: How ray-traced (cache) AO and screen-space AO combine (the seed's MIN and MUL blends).
+AO_BLEND_MODES = ("MUL", "MIN")  # index = BLEND_MUL / BLEND_MIN in deferred_frag.glsl
+
+#: Debug views of the deferred pass (its `debug_view` argument).
+DEBUG_FINAL = 0  # Combined as rendered
+DEBUG_INDIRECT = 1  # albedo x indirect irradiance / pi only
+DEBUG_AO = 2  # the combined AO as grey
+DEBUG_AO_SPLIT = 3  # left half: ray AO, right half: screen-space AO
+
+
+@dataclass(frozen=True)
+class RasterSettings:
+    downsample: int = 4  # full-res pixels per low-res pixel along x and y (GI resolution divisor)
+    ssao_radius: float = 0.5  # metres; screen-space AO / near-field bounce search radius
+    ssao_strength: float = 1.0  # scales the screen-space occlusion and bounce, 0..4
+    ssao_samples: int = 16  # hemisphere samples per low-res pixel
+    ao_blend: str = "MUL"  # "MUL": ray_ao * ss_ao; "MIN": min(ray_ao, ss_ao)
+    bilateral_radius: int = 2  # low-res taps on each side of the centre, per axis
+    bilateral_sigma: float = 1.0  # spatial Gaussian sigma in low-res pixels
+    bilateral_plane_sigma: float = 0.02  # plane-distance tolerance as a share of the view depth
+    bilateral_normal_power: float = 8.0  # exponent of max(0, n_p . n_q) in the range weight
+
+    def __post_init__(self) -> None:
+        checks = {
+            "downsample": 1 <= self.downsample <= 16,
+            "ssao_radius": self.ssao_radius > 0.0,
+            "ssao_strength": 0.0 <= self.ssao_strength <= 4.0,
+            "ssao_samples": 1 <= self.ssao_samples <= 64,
+            "ao_blend": self.ao_blend in AO_BLEND_MODES,
+            "bilateral_radius": 0 <= self.bilateral_radius <= 8,
+            "bilateral_sigma": self.bilateral_sigma > 0.0,
+            "bilateral_plane_sigma": self.bilateral_plane_sigma > 0.0,
+            "bilateral_normal_power": self.bilateral_normal_power >= 0.0,
+        }
+        bad = [name for name, ok in checks.items() if not ok]
+        if bad:
+            values = ", ".join(f"{name}={getattr(self, name)!r}" for name in bad)
+            raise SettingsError(f"raster settings out of range: {values}")
+
+    def with_(self, **changes) -> RasterSettings:
+        return replace(self, **changes)

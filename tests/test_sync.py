@@ -1,0 +1,370 @@
+"""addon/sync.py: depsgraph -> SceneSnapshot, on scenes built with bpy.data in each test."""
+
+from __future__ import annotations
+
+import importlib
+import logging
+import math
+
+import numpy as np
+import pytest
+
+from hybridgi_core.errors import EmptySceneError
+
+
+@pytest.fixture(scope="module")
+def addon(bpy_module):
+    """The add-on package, enabled from this checkout (imports it the way Blender does)."""
+    from hybridgi_cli import dev_install
+
+    return dev_install.enable()
+
+
+@pytest.fixture(scope="module")
+def sync(addon):
+    return importlib.import_module(f"{addon.__name__}.sync")
+
+
+@pytest.fixture
+def scene(empty_scene):
+    return empty_scene
+
+
+def snapshot(sync, bpy, dynamic_names=frozenset()):
+    return sync.snapshot_from_depsgraph(bpy.context.evaluated_depsgraph_get(), dynamic_names)
+
+
+CUBE_VERTS = [(x, y, z) for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)]
+CUBE_FACES = [(0, 1, 3, 2), (4, 6, 7, 5), (0, 4, 5, 1), (2, 3, 7, 6), (0, 2, 6, 4), (1, 5, 7, 3)]
+
+
+def add_mesh(bpy, scene, name, verts, faces, mesh=None, collection=None):
+    if mesh is None:
+        mesh = bpy.data.meshes.new(name)
+        mesh.from_pydata(verts, [], faces)
+        mesh.update()
+    obj = bpy.data.objects.new(name, mesh)
+    (collection or scene.collection).objects.link(obj)
+    return obj
+
+
+def add_cube(bpy, scene, name="cube", **kwargs):
+    return add_mesh(bpy, scene, name, CUBE_VERTS, CUBE_FACES, **kwargs)
+
+
+def principled(bpy, name, color=(0.8, 0.8, 0.8)):
+    mat = bpy.data.materials.new(name)
+    bsdf = mat.node_tree.nodes["Principled BSDF"]
+    bsdf.inputs["Base Color"].default_value = (*color, 1.0)
+    return mat, bsdf
+
+
+def test_transformed_subdivided_cube(bpy_module, scene, sync):
+    bpy = bpy_module
+    cube = add_cube(bpy, scene)
+    cube.location = (1.0, 2.0, 3.0)
+    cube.rotation_euler = (0.0, 0.0, math.pi / 2)
+    cube.scale = (2.0, 1.0, 0.5)
+    cube.modifiers.new("subsurf", "SUBSURF").levels = 1
+
+    snap = snapshot(sync, bpy)
+
+    assert snap.geometry.triangle_count == 6 * 4 * 2  # 24 quads after one Catmull-Clark level
+    depsgraph = bpy.context.evaluated_depsgraph_get()
+    evaluated = cube.evaluated_get(depsgraph)
+    matrix = np.array(evaluated.matrix_world)
+    local = np.array([v.co for v in evaluated.data.vertices])
+    expected = local @ matrix[:3, :3].T + matrix[:3, 3]
+    got = snap.geometry.positions[np.unique(snap.geometry.triangles)]
+    # Every snapshot vertex is a transformed evaluated vertex, and every one is used.
+    dist = np.linalg.norm(got[:, None, :] - expected[None, :, :], axis=2)
+    assert dist.min(axis=1).max() < 1e-5 and dist.min(axis=0).max() < 1e-5
+    # Outward shading normals survive the non-uniform scale and rotation.
+    centroid = snap.geometry.positions[snap.geometry.triangles].mean(axis=1)
+    tri_normal = snap.geometry.normals[snap.geometry.triangles].mean(axis=1)
+    assert np.all(np.einsum("ij,ij->i", tri_normal, centroid - matrix[:3, 3]) > 0)
+    assert np.allclose(np.linalg.norm(snap.geometry.normals, axis=1), 1.0, atol=1e-5)
+    assert snap.objects[0].name == "cube" and snap.objects[0].dynamic is False
+
+
+def test_mirrored_object_keeps_outward_winding(bpy_module, scene, sync):
+    bpy = bpy_module
+    add_cube(bpy, scene).scale = (-1.0, 1.0, 1.0)
+    geo = snapshot(sync, bpy).geometry
+    centroid = geo.positions[geo.triangles].mean(axis=1)
+    # Geometric normals from the winding agree with the outward shading normals.
+    assert np.all(np.einsum("ij,ij->i", geo.face_normals(), centroid) > 0)
+    assert np.all(np.einsum("ij,ij->i", geo.normals[geo.triangles[:, 0]], centroid) > 0)
+
+
+def test_material_slots_map_to_deduplicated_materials(bpy_module, scene, sync):
+    bpy = bpy_module
+    red, _ = principled(bpy, "red", (1.0, 0.0, 0.0))
+    green, _ = principled(bpy, "green", (0.0, 1.0, 0.0))
+    verts = [(x, y, z) for z in (0, 1) for (x, y) in ((0, 0), (1, 0), (1, 1), (0, 1))]
+    two = add_mesh(bpy, scene, "two", verts, [(0, 1, 2, 3), (4, 5, 6, 7)])  # quads at z = 0 and z = 1
+    two.data.materials.append(red)
+    two.data.materials.append(green)
+    two.data.polygons[1].material_index = 1
+    other = add_mesh(bpy, scene, "other", [(3, 0, 0), (4, 0, 0), (4, 1, 0)], [(0, 1, 2)])
+    other.data.materials.append(green)
+
+    snap = snapshot(sync, bpy)
+
+    names = [m.name for m in snap.materials]
+    assert sorted(names) == ["green", "red"]
+    geo = snap.geometry
+    tri_z = geo.positions[geo.triangles][:, :, 2].mean(axis=1)
+    tri_x = geo.positions[geo.triangles][:, :, 0].mean(axis=1)
+    tri_mat = np.array(names)[geo.material_index]
+    assert set(tri_mat[(tri_z < 0.5) & (tri_x < 2)]) == {"red"}
+    assert set(tri_mat[tri_z > 0.5]) == {"green"}
+    assert set(tri_mat[tri_x > 2]) == {"green"}
+    red_mat = snap.materials[names.index("red")]
+    np.testing.assert_allclose(red_mat.base_color, [1.0, 0.0, 0.0])
+
+
+def test_image_texture_is_linearized_rgb_with_row0_at_v0(bpy_module, scene, sync):
+    bpy = bpy_module
+    image = bpy.data.images.new("tex", 4, 2)
+    assert image.colorspace_settings.name == "sRGB" and not image.is_float
+    pixels = np.full((2, 4, 4), 0.5, np.float32)
+    pixels[0, :, :3] = 1.0  # bottom row (v = 0) white
+    image.pixels.foreach_set(pixels.ravel())
+    mat, bsdf = principled(bpy, "textured")
+    tex = mat.node_tree.nodes.new("ShaderNodeTexImage")
+    tex.image = image
+    mat.node_tree.links.new(tex.outputs["Color"], bsdf.inputs["Base Color"])
+    add_cube(bpy, scene).data.materials.append(mat)
+
+    material = snapshot(sync, bpy).materials[0]
+
+    assert material.texture.shape == (2, 4, 3) and material.texture.dtype == np.float32
+    np.testing.assert_allclose(material.texture[0], 1.0, atol=1e-3)
+    np.testing.assert_allclose(material.texture[1], 0.214, atol=2e-3)  # sRGB 0.5 -> linear
+    np.testing.assert_allclose(material.base_color, 1.0)
+
+
+def test_missing_image_falls_back_to_base_colour(bpy_module, scene, sync, caplog, tmp_path):
+    bpy = bpy_module
+    image = bpy.data.images.new("gone", 2, 2)
+    image.source = "FILE"
+    image.filepath = str(tmp_path / "missing.png")
+    mat, bsdf = principled(bpy, "broken", (0.1, 0.2, 0.3))
+    tex = mat.node_tree.nodes.new("ShaderNodeTexImage")
+    tex.image = image
+    mat.node_tree.links.new(tex.outputs["Color"], bsdf.inputs["Base Color"])
+    add_cube(bpy, scene).data.materials.append(mat)
+
+    with caplog.at_level(logging.WARNING):
+        material = snapshot(sync, bpy).materials[0]
+
+    assert material.texture is None
+    np.testing.assert_allclose(material.base_color, [0.1, 0.2, 0.3], atol=1e-6)
+    assert any("could not be read" in r.getMessage() for r in caplog.records)
+
+
+def test_shader_kinds(bpy_module, scene, sync, caplog):
+    bpy = bpy_module
+    glowing, bsdf = principled(bpy, "glowing", (0.5, 0.5, 0.5))
+    bsdf.inputs["Emission Color"].default_value = (1.0, 0.5, 0.25, 1.0)
+    bsdf.inputs["Emission Strength"].default_value = 4.0
+
+    def replaced(name, node_type):
+        mat = bpy.data.materials.new(name)
+        tree = mat.node_tree
+        tree.nodes.remove(tree.nodes["Principled BSDF"])
+        node = tree.nodes.new(node_type)
+        tree.links.new(node.outputs[0], tree.nodes["Material Output"].inputs["Surface"])
+        return mat, node
+
+    lamp, emission = replaced("lamp", "ShaderNodeEmission")
+    emission.inputs["Color"].default_value = (1.0, 1.0, 0.5, 1.0)
+    emission.inputs["Strength"].default_value = 10.0
+    matte, diffuse = replaced("matte", "ShaderNodeBsdfDiffuse")
+    diffuse.inputs["Color"].default_value = (0.2, 0.3, 0.4, 1.0)
+    shiny, _ = replaced("shiny", "ShaderNodeBsdfGlossy")
+    cube = add_cube(bpy, scene)
+    for mat in (glowing, lamp, matte, shiny):
+        cube.data.materials.append(mat)
+    for i, poly in enumerate(cube.data.polygons):
+        poly.material_index = min(i, 3)
+
+    with caplog.at_level(logging.WARNING):
+        by_name = {m.name: m for m in snapshot(sync, bpy).materials}
+
+    np.testing.assert_allclose(by_name["glowing"].emission, [4.0, 2.0, 1.0])
+    np.testing.assert_allclose(by_name["glowing"].base_color, [0.5, 0.5, 0.5])
+    np.testing.assert_allclose(by_name["lamp"].emission, [10.0, 10.0, 5.0])
+    np.testing.assert_allclose(by_name["lamp"].base_color, 0.0)
+    np.testing.assert_allclose(by_name["matte"].base_color, [0.2, 0.3, 0.4], atol=1e-6)
+    np.testing.assert_allclose(by_name["matte"].emission, 0.0)
+    np.testing.assert_allclose(by_name["shiny"].base_color, 0.8)
+    assert any("'shiny'" in r.getMessage() and "not supported" in r.getMessage() for r in caplog.records)
+
+
+def add_light(bpy, scene, kind, **settings):
+    data = bpy.data.lights.new(kind.lower(), kind)
+    for key, value in settings.items():
+        setattr(data, key, value)
+    obj = bpy.data.objects.new(kind.lower(), data)
+    scene.collection.objects.link(obj)
+    return obj
+
+
+def test_every_light_type(bpy_module, scene, sync):
+    bpy = bpy_module
+    point = add_light(bpy, scene, "POINT", energy=100.0, shadow_soft_size=0.2, color=(1.0, 0.5, 0.25))
+    point.location = (1.0, 2.0, 3.0)
+    add_light(bpy, scene, "SPOT", energy=50.0, spot_size=math.radians(45), spot_blend=0.3, exposure=1.0)
+    sun = add_light(bpy, scene, "SUN", energy=3.0, angle=math.radians(10))
+    sun.rotation_euler = (0.5, 0.0, 0.0)
+    rect = add_light(bpy, scene, "AREA", energy=200.0, shape="RECTANGLE", size=2.0, size_y=1.0)
+    rect.scale = (2.0, 3.0, 1.0)
+    square = add_light(bpy, scene, "AREA", energy=10.0, shape="SQUARE", size=1.0)
+    square.scale = (1.0, 2.0, 1.0)
+    square.name = "stretched"
+    unnormalized = add_light(bpy, scene, "AREA", energy=1.0, shape="DISK", size=2.0, normalize=False)
+    unnormalized.name = "unnormalized"
+
+    snap = snapshot(sync, bpy)
+    lights = {light.name: light for light in snap.lights}
+    assert len(lights) == 6
+
+    p = lights["point"]
+    assert (p.kind, p.power, p.radius) == ("POINT", pytest.approx(100.0), pytest.approx(0.2))
+    np.testing.assert_allclose(p.color, [1.0, 0.5, 0.25])
+    np.testing.assert_allclose(p.position, [1.0, 2.0, 3.0])
+    s = lights["spot"]
+    assert s.power == pytest.approx(100.0)  # exposure 1 doubles the power
+    assert s.spot_size == pytest.approx(math.radians(45)) and s.spot_blend == pytest.approx(0.3)
+    sun_light = lights["sun"]
+    assert sun_light.power == pytest.approx(3.0) and sun_light.angle == pytest.approx(math.radians(10))
+    np.testing.assert_allclose(sun_light.matrix, np.array(sun.matrix_world), atol=1e-6)
+    np.testing.assert_allclose(sun_light.direction, -np.array(sun.matrix_world)[:3, 2], atol=1e-6)
+    # Area extents as placed: Blender's size times the matrix's X/Y scale (the core's reading).
+    a = lights["area"]
+    assert (a.shape, a.size, a.size_y) == ("RECTANGLE", pytest.approx(2.0), pytest.approx(1.0))
+    assert a.power == pytest.approx(200.0)
+    np.testing.assert_allclose(np.linalg.norm(a.matrix[:3, :2], axis=0) * [a.size, a.size_y], [4.0, 3.0], rtol=1e-6)
+    stretched = lights["stretched"]
+    assert (stretched.shape, stretched.size, stretched.size_y) == ("SQUARE", pytest.approx(1.0), pytest.approx(1.0))
+    np.testing.assert_allclose(np.linalg.norm(stretched.matrix[:3, :2], axis=0), [1.0, 2.0], rtol=1e-6)
+    # Without normalization Cycles' radiance is strength / pi: power x area in the normalized formula.
+    disk = lights["unnormalized"]
+    assert disk.shape == "DISK" and disk.power == pytest.approx(math.pi)
+
+
+def test_world_radiance_and_ao_distance(bpy_module, scene, sync):
+    bpy = bpy_module
+    assert snapshot(sync, bpy).world.color.tolist() == [0.0, 0.0, 0.0]  # no World: black
+    world = bpy.data.worlds.new("sky")
+    background = world.node_tree.nodes["Background"]
+    background.inputs["Color"].default_value = (0.2, 0.4, 0.6, 1.0)
+    background.inputs["Strength"].default_value = 2.0
+    world.light_settings.distance = 3.5
+    scene.world = world
+
+    snap = snapshot(sync, bpy)
+
+    np.testing.assert_allclose(snap.world.color, [0.4, 0.8, 1.2], rtol=1e-6)
+    assert snap.world.ao_distance == pytest.approx(3.5)
+
+
+def test_cache_settings_from_properties(bpy_module, scene, addon):
+    scene.world = bpy_module.data.worlds.new("w")
+    scene.world.light_settings.distance = 2.5
+    props = scene.hybridgi
+    props.sh_order = "L1"
+    props.indirect_quality = "ONE_BOUNCE"
+    props.hysteresis = 0.95
+    settings = props.cache_settings(scene)
+    assert (settings.sh_order, settings.indirect_quality) == (1, 1)
+    assert settings.hysteresis == 0.95 and settings.ao_distance == 2.5
+    props.blend_mode = "MIN"
+    props.ssao_radius = 0.25
+    raster = props.raster_settings()
+    assert (raster.ao_blend, raster.ssao_radius, raster.downsample) == ("MIN", 0.25, props.downsample)
+
+
+def test_instances_and_linked_duplicates(bpy_module, scene, sync):
+    bpy = bpy_module
+    collection = bpy.data.collections.new("props")  # not linked to the scene: only instanced
+    add_mesh(bpy, scene, "plane", [(0, 0, 0), (1, 0, 0), (1, 1, 0), (0, 1, 0)], [(0, 1, 2, 3)], collection=collection)
+    for i in range(2):
+        empty = bpy.data.objects.new(f"inst{i}", None)
+        empty.instance_type = "COLLECTION"
+        empty.instance_collection = collection
+        empty.location = (10.0 * i, 0.0, 0.0)
+        scene.collection.objects.link(empty)
+    cube = add_cube(bpy, scene)
+    twin = add_cube(bpy, scene, "twin", mesh=cube.data)
+    twin.location = (0.0, 5.0, 0.0)
+
+    snap = snapshot(sync, bpy, dynamic_names={"inst1"})
+
+    assert snap.geometry.triangle_count == 2 * 2 + 2 * 12
+    by_name = {o.name: o for o in snap.objects}
+    assert set(by_name) == {"inst0/plane", "inst1/plane", "cube", "twin"}
+    assert by_name["inst1/plane"].dynamic and not by_name["inst0/plane"].dynamic
+    x = snap.geometry.positions[:, 0]
+    assert x.max() == pytest.approx(11.0)  # the second instance is moved by its instancer
+
+
+def test_geometry_nodes_instances(bpy_module, scene, sync):
+    bpy = bpy_module
+    tree = bpy.data.node_groups.new("scatter", "GeometryNodeTree")
+    tree.interface.new_socket("Geometry", in_out="INPUT", socket_type="NodeSocketGeometry")
+    tree.interface.new_socket("Geometry", in_out="OUTPUT", socket_type="NodeSocketGeometry")
+    group_in = tree.nodes.new("NodeGroupInput")
+    group_out = tree.nodes.new("NodeGroupOutput")
+    cube = tree.nodes.new("GeometryNodeMeshCube")
+    scatter = tree.nodes.new("GeometryNodeInstanceOnPoints")
+    tree.links.new(group_in.outputs[0], scatter.inputs["Points"])
+    tree.links.new(cube.outputs["Mesh"], scatter.inputs["Instance"])
+    tree.links.new(scatter.outputs["Instances"], group_out.inputs[0])
+    points = add_mesh(bpy, scene, "points", [(0, 0, 0), (5, 0, 0), (0, 5, 0)], [])
+    points.modifiers.new("scatter", "NODES").node_group = tree
+
+    snap = snapshot(sync, bpy)
+
+    assert snap.geometry.triangle_count == 3 * 12
+    assert len(snap.objects) == 3
+
+
+def test_text_and_curves_are_counted_once(bpy_module, scene, sync):
+    bpy = bpy_module
+    text = bpy.data.objects.new("text", bpy.data.curves.new("text", "FONT"))
+    scene.collection.objects.link(text)
+    depsgraph = bpy.context.evaluated_depsgraph_get()
+    evaluated = text.evaluated_get(depsgraph)
+    expected = len(evaluated.to_mesh().loop_triangles)
+    evaluated.to_mesh_clear()
+
+    snap = snapshot(sync, bpy)
+
+    assert expected > 0
+    # Zero-area slivers of the glyph triangulation may be dropped, never duplicated.
+    assert 0.9 * expected <= snap.geometry.triangle_count <= expected
+    assert [o.name for o in snap.objects] == ["text"]
+
+
+def test_empty_scene_gives_empty_snapshot(bpy_module, scene, sync):
+    snap = snapshot(sync, bpy_module)
+    assert snap.geometry.triangle_count == 0 and snap.objects == []
+    with pytest.raises(EmptySceneError):
+        snap.bounds()
+
+
+def test_mesh_without_faces_is_skipped(bpy_module, scene, sync):
+    add_mesh(bpy_module, scene, "wire", [(0, 0, 0), (1, 0, 0)], [])
+    assert snapshot(sync, bpy_module).objects == []
+
+
+def test_nan_vertices_are_dropped(bpy_module, scene, sync):
+    bpy = bpy_module
+    verts = [(0, 0, 0), (1, 0, 0), (1, 1, 0), (0, 1, 0), (float("nan"), 0.0, 1.0)]
+    add_mesh(bpy, scene, "bad", verts, [(0, 1, 2, 3), (0, 1, 4)])
+    geo = snapshot(sync, bpy).geometry
+    assert geo.triangle_count == 2
+    assert np.isfinite(geo.positions).all()
