@@ -47,7 +47,6 @@ def render_frame(engine, depsgraph):
     props = scene.hybridgi
     width, height = render_size(scene.render)
     settings = props.cache_settings(scene)
-    raster = props.raster_settings()
     steps = {}
 
     engine.update_stats("HybridGI", "Syncing scene")
@@ -69,7 +68,7 @@ def render_frame(engine, depsgraph):
     ts = time.perf_counter()
     system = core_system.GISystem(snapshot, settings)
     steps["build"] = (time.perf_counter() - ts) * 1e3
-    pipeline = frame_mod.FramePipeline(raster)
+    pipeline = frame_mod.FramePipeline(props.raster_settings(cell_size=system.cache.grid.cell_size))
     try:
         pipeline.resize(width, height)
         ts = time.perf_counter()

@@ -66,8 +66,14 @@ def run_config(scene, camera, settings: CacheSettings, repeats: int, gbuffer_res
             t2 = time.perf_counter()
             stats = system.update(cells, frame=r)
             rows.append(
-                {"gbuffer_ms": (t1 - t0) * 1e3, "select_ms": (t2 - t1) * 1e3, "update_ms": stats.wall_ms,
-                 "rays": stats.rays, "cells": stats.cells, **{f"{k}_ms": v for k, v in stats.steps_ms.items()}}
+                {
+                    "gbuffer_ms": (t1 - t0) * 1e3,
+                    "select_ms": (t2 - t1) * 1e3,
+                    "update_ms": stats.wall_ms,
+                    "rays": stats.rays,
+                    "cells": stats.cells,
+                    **{f"{k}_ms": v for k, v in stats.steps_ms.items()},
+                }
             )
         raw = system.tracer.raw_throughput(200_000)
         med = {k: statistics.median(row[k] for row in rows) for k in rows[0]}
@@ -90,9 +96,11 @@ def main() -> None:
     camera = procedural.camera("atrium")
     print(f"atrium: {scene.geometry.triangle_count} triangles, generated in {time.perf_counter() - t0:.2f} s")
     default = CacheSettings()
-    configs = [(default.resolution, default.rays_per_cell)] if args.quick else [
-        (res, rays) for res in (24, 48) for rays in (4, 16, 64)
-    ] + [(default.resolution, default.rays_per_cell)]
+    configs = (
+        [(default.resolution, default.rays_per_cell)]
+        if args.quick
+        else [(res, rays) for res in (24, 48) for rays in (4, 16, 64)] + [(default.resolution, default.rays_per_cell)]
+    )
     header = f"{'res':>4} {'rays/cell':>9} {'cells':>6} {'rays':>8} {'select':>7} {'trace':>7} {'shade':>7} {'shadow':>7} {'sh':>6} {'blend':>6} {'update':>7} {'Mrays/s':>8} {'raw':>6} {'eff':>5}"
     print("per-step ms (trace..blend summed over worker threads; update = wall clock)")
     print(header)
@@ -109,17 +117,23 @@ def main() -> None:
             result = m
     ms_per_100k = result["update_ms"] * 100_000 / result["rays"]
     print(f"default settings: {ms_per_100k:.1f} ms per 100k probe rays (shading and shadow rays included)")
-    print(json.dumps({
-        "triangles": result["triangles"],
-        "rays_per_frame": int(result["rays"]),
-        "cells": int(result["cells"]),
-        "update_ms": round(result["update_ms"], 2),
-        "ms_per_100k_rays": round(ms_per_100k, 2),
-        "rays_per_s": round(result["rays_per_s"]),
-        "raw_rays_per_s": round(result["raw_rays_per_s"]),
-        "efficiency": round(result["efficiency"], 3),
-        "steps_ms": {k: round(result[f"{k}_ms"], 2) for k in ("select", "trace", "shade", "shadow", "sh", "blend")},
-    }))
+    print(
+        json.dumps(
+            {
+                "triangles": result["triangles"],
+                "rays_per_frame": int(result["rays"]),
+                "cells": int(result["cells"]),
+                "update_ms": round(result["update_ms"], 2),
+                "ms_per_100k_rays": round(ms_per_100k, 2),
+                "rays_per_s": round(result["rays_per_s"]),
+                "raw_rays_per_s": round(result["raw_rays_per_s"]),
+                "efficiency": round(result["efficiency"], 3),
+                "steps_ms": {
+                    k: round(result[f"{k}_ms"], 2) for k in ("select", "trace", "shade", "shadow", "sh", "blend")
+                },
+            }
+        )
+    )
 
 
 if __name__ == "__main__":

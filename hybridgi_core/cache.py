@@ -85,10 +85,11 @@ class IrradianceCache:
         base = np.float32(1.0 - self.settings.hysteresis)
         return np.maximum(np.maximum(fresh, base), self.urgency[cells])
 
-    def blend(self, s: CellSamples, frame: int) -> None:
-        """Fold one update into the cache with the exponential moving average."""
+    def blend(self, s: CellSamples, frame: int, alpha: float | None = None) -> None:
+        """Fold one update into the cache with the exponential moving average (or with the given
+        weight: 1 replaces, as the warm-up's bounce propagation does)."""
         c = s.cells
-        a = self.blend_weights(c)
+        a = self.blend_weights(c) if alpha is None else np.full(c.size, alpha, np.float32)
         a3 = a[:, None, None]
         self.sh_direct[c] += a3 * (s.sh_direct - self.sh_direct[c])
         self.sh_indirect[c] += a3 * (s.sh_indirect - self.sh_indirect[c])

@@ -165,9 +165,21 @@ def nearest_irradiance(cache: IrradianceCache, table: np.ndarray, points: np.nda
     cell instead of the 8-neighbour visibility-weighted gather. table : `irradiance_sh(...)`.
     """
     normals = np.asarray(normals, np.float32)
-    p = np.asarray(points, np.float32) + normals * np.float32(HIT_LOOKUP_BIAS * cache.grid.cell_size)
+    points = np.asarray(points, np.float32)
+    p = points + normals * np.float32(HIT_LOOKUP_BIAS * cache.grid.cell_size)
     ijk = np.floor((p - cache.grid.lo) / np.float32(cache.grid.cell_size)).astype(np.int64)
     ijk = np.clip(ijk, 0, np.asarray(cache.grid.dims) - 1)
-    coeffs = np.take(table, cache.grid.flatten(ijk), axis=0)  # (n, K, 3)
+    flat = cache.grid.flatten(ijk)
+    # Near an object's edge the cell in front of a hit can be one disabled inside the object:
+    # those hits take the best valid neighbour in front of their tangent plane instead.
+    bad = np.flatnonzero(~cache.valid[flat])
+    if bad.size:
+        corners, tri = cache.grid.corner_cells(p[bad])
+        in_front = np.einsum("nci,ni->nc", cache.centers[corners] - points[bad, None, :], normals[bad]) > 0
+        score = tri * cache.valid[corners] * in_front
+        best = score.argmax(axis=1)
+        ok = score[np.arange(bad.size), best] > 0
+        flat[bad[ok]] = corners[ok, best[ok]]
+    coeffs = np.take(table, flat, axis=0)  # (n, K, 3); invalid cells hold zeros
     y = sh.basis(normals, cache.settings.sh_order)
     return np.maximum(np.einsum("nk,nkc->nc", y, coeffs), 0.0).astype(np.float32)

@@ -72,8 +72,10 @@ class CacheUpdater:
     def __exit__(self, *exc) -> None:
         self.close()
 
-    def update(self, cells: np.ndarray, frame: int) -> UpdateStats:
-        """Trace, shade and blend the given flat cells for this frame (deterministic per frame)."""
+    def update(self, cells: np.ndarray, frame: int, alpha: float | None = None) -> UpdateStats:
+        """Trace, shade and blend the given flat cells for this frame (deterministic per frame).
+
+        alpha : blend weight overriding the EMA's (see `IrradianceCache.blend`)."""
         t0 = time.perf_counter()
         cache = self.cache
         s = cache.settings
@@ -94,7 +96,7 @@ class CacheUpdater:
         # frame must read the same cache whatever the thread timing.
         for samples, times in [job.result() for job in jobs]:
             tb = time.perf_counter()
-            cache.blend(samples, frame)
+            cache.blend(samples, frame, alpha)
             times["blend"] = (time.perf_counter() - tb) * 1e3
             for k, v in times.items():
                 stats.steps_ms[k] += v

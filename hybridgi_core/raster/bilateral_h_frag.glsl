@@ -33,7 +33,10 @@ void main()
     wsum += w;
     wspatial += ws;
   }
-  float inv = (wsum > 0.0) ? 1.0 / wsum : 0.0;
+  /* Range weights can underflow to denormals: 1 / wsum would overflow the half-float targets to
+   * inf (NaN downstream). Below a millionth of the spatial weight the taps are "no match" (the
+   * confidence in alpha is then ~0 and the vertical taps ignore this row). */
+  float inv = (wsum > 1e-6 * wspatial && wsum > 0.0) ? 1.0 / wsum : 0.0;
   out_indirect = a0 * inv;
   /* The direct-from-cache alpha carries the confidence the vertical taps weight by. */
   out_direct = vec4(a1.rgb * inv, (wspatial > 0.0) ? wsum / wspatial : 0.0);

@@ -103,7 +103,7 @@ class FramePipeline:
                 warm_cells = np.union1d(system.surface_cells(), cells)
                 runs = []
                 for i in range(warmup):
-                    runs += system.warm_up(1, warm_cells, start=i)
+                    runs += system.warm_up(1, warm_cells, start=i, total=warmup)
                     if progress is not None:
                         progress(i, warmup)
             stats.rays += sum(r.rays for r in runs)
