@@ -4,7 +4,7 @@ VENV := .venv
 STAMP := $(VENV)/.setup-done
 OUT ?= out
 
-.PHONY: setup test demo bench scenes lint clean
+.PHONY: setup test demo bench scenes lint extension clean
 
 $(STAMP): pyproject.toml scripts/setup.sh
 	bash scripts/setup.sh
@@ -24,8 +24,12 @@ scenes: setup
 demo: setup
 	$(VENV)/bin/python bench/demo.py --out $(OUT)/demo
 
+# Installable zips, one per platform, into dist/ (Blender's own extension tool; wheels cached in build/wheels/).
+extension: setup
+	$(VENV)/bin/python scripts/build_extension.py
+
 lint: setup
 	$(VENV)/bin/ruff check .
 
 clean:
-	rm -rf $(OUT) dist .pytest_cache
+	rm -rf $(OUT) dist build/extension .pytest_cache
