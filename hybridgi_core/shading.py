@@ -36,18 +36,19 @@ class SurfaceTable:
     """Packed triangles and materials of one traced Geometry (built once per geometry change)."""
 
     def __init__(self, geometry: Geometry, materials: list[Material]):
-        p = geometry.positions[geometry.triangles]  # (T, 3, 3)
-        n = geometry.normals[geometry.triangles]
-        uv = geometry.uvs[geometry.triangles]
-        rec = np.empty((geometry.triangle_count, RECORD_FLOATS), np.float32)
-        rec[:, _V0] = p[:, 0]
-        rec[:, _E1] = p[:, 1] - p[:, 0]
-        rec[:, _E2] = p[:, 2] - p[:, 0]
-        rec[:, _N0], rec[:, _N1], rec[:, _N2] = n[:, 0], n[:, 1], n[:, 2]
-        rec[:, _UV0], rec[:, _UV1], rec[:, _UV2] = uv[:, 0], uv[:, 1], uv[:, 2]
-        rec[:, _MAT] = geometry.material_index
-        rec[:, _FN] = geometry.face_normals()
-        self.records = rec
+        self.records = _pack(geometry, np.arange(geometry.triangle_count))
+        self.set_materials(materials)
+
+    def update_rows(self, geometry: Geometry, rows: np.ndarray) -> None:
+        """Re-pack the triangles `rows` (moved or deformed) from `geometry` (same topology).
+
+        A new records array is swapped in whole, so a worker reading the old one stays consistent.
+        """
+        records = self.records.copy()
+        records[rows] = _pack(geometry, rows)
+        self.records = records
+
+    def set_materials(self, materials: list[Material]) -> None:
         self.materials = materials
         self.albedo = np.array([m.base_color for m in materials], np.float32).reshape(-1, 3)
         self.mean_albedo = np.array([m.mean_albedo for m in materials], np.float32).reshape(-1, 3)
@@ -82,6 +83,25 @@ class SurfaceTable:
         flip = np.einsum("ij,ij->i", nrm, ray_dirs) > 0
         nrm[flip] *= -1.0
         return SurfaceHits(pos, nrm, albedo, self.emission[mat], backface)
+
+
+def _pack(geometry: Geometry, rows: np.ndarray) -> np.ndarray:
+    """(len(rows), RECORD_FLOATS) float32 records of the given triangles."""
+    tris = geometry.triangles[rows]
+    p = geometry.positions[tris]  # (m, 3, 3)
+    n = geometry.normals[tris]
+    uv = geometry.uvs[tris]
+    rec = np.empty((tris.shape[0], RECORD_FLOATS), np.float32)
+    rec[:, _V0] = p[:, 0]
+    rec[:, _E1] = p[:, 1] - p[:, 0]
+    rec[:, _E2] = p[:, 2] - p[:, 0]
+    rec[:, _N0], rec[:, _N1], rec[:, _N2] = n[:, 0], n[:, 1], n[:, 2]
+    rec[:, _UV0], rec[:, _UV1], rec[:, _UV2] = uv[:, 0], uv[:, 1], uv[:, 2]
+    rec[:, _MAT] = geometry.material_index[rows]
+    fn = np.cross(rec[:, _E1], rec[:, _E2])
+    length = np.linalg.norm(fn, axis=1, keepdims=True)
+    rec[:, _FN] = np.divide(fn, length, out=np.zeros_like(fn), where=length > 0)
+    return rec
 
 
 def sample_texture(texture: np.ndarray, uv: np.ndarray) -> np.ndarray:

@@ -1,0 +1,87 @@
+"""GISession: snapshot diffs become the cache's named events, localized to what changed."""
+
+import numpy as np
+
+from hybridgi_core.session import GISession
+from hybridgi_core.settings import CacheSettings
+from hybridgi_core.snapshot import (
+    Light,
+    Material,
+    ObjectInfo,
+    World,
+    concat_geometry,
+    geometry_from_arrays,
+    make_snapshot,
+)
+
+_C = np.array([[x, y, z] for z in (0, 1) for y in (0, 1) for x in (0, 1)], np.float32)
+_Q = [(0, 1, 3, 2), (4, 6, 7, 5), (0, 4, 5, 1), (2, 3, 7, 6), (0, 2, 6, 4), (1, 5, 7, 3)]
+
+
+def cube(lo, size, obj, inward=False):
+    p = np.asarray(lo, np.float32) + _C * np.float32(size)
+    tris = []
+    for a, b, c, d in _Q:
+        tris += [(a, b, c), (a, c, d)] if inward else [(a, c, b), (a, d, c)]
+    return geometry_from_arrays(p, np.array(tris), 0, obj)
+
+
+def scene(ball_x=2.0, energy=300.0):
+    room = cube([0, 0, 0], 10.0, 0, inward=True)
+    ball = cube([ball_x, 4.5, 0.0], 1.0, 1)
+    light = Light("POINT", np.ones(3), energy, np.array([[1, 0, 0, 5], [0, 1, 0, 5], [0, 0, 1, 8], [0, 0, 0, 1.0]]))
+    return make_snapshot(concat_geometry([room, ball]), [Material()], [light], World(),
+                         [ObjectInfo("room"), ObjectInfo("ball")])
+
+
+SETTINGS = CacheSettings(resolution=20, rays_per_cell=16, hysteresis=0.9)
+
+
+def test_moving_one_object_refreshes_only_cells_near_it():
+    s = GISession(SETTINGS)
+    assert s.sync(scene()).rebuilt
+    s.system.warm_up(2)
+    assert not s.sync(scene()).rebuilt  # identical snapshot: nothing to do
+    assert s.system.cache.urgency.max() == 0
+
+    first = s.sync(scene(ball_x=3.0))  # a static object starts moving: one rebuild, cache kept
+    assert first.moved == ["ball"] and first.rebuilt
+    assert s.system.cache.samples.max() > 0  # the cache survived the rebuild
+    s.system.cache.urgency[:] = 0
+    second = s.sync(scene(ball_x=4.0))  # now dynamic: no rebuild
+    assert second.moved == ["ball"] and not second.rebuilt
+    touched = np.flatnonzero(s.system.cache.urgency > 0)
+    assert touched.size == second.touched_cells
+    assert 0 < touched.size < 0.25 * s.system.cache.grid.count
+    centres = s.system.cache.centers[touched]
+    # Every refreshed cell lies within the influence radius of the ball's old or new box.
+    r = s.system.cache.influence_radius()
+    d = np.maximum(np.maximum(np.array([3.0, 4.5, 0.0]) - centres, centres - np.array([5.0, 5.5, 1.0])), 0)
+    assert (np.linalg.norm(d, axis=1) <= r + 1e-4).all()
+    # The tracer sees the ball at its new place.
+    hits = s.system.tracer.intersect(np.array([[4.5, 0.5, 0.5]], np.float32), np.array([[0, 1.0, 0]], np.float32))
+    assert abs(hits.t[0] - 4.0) < 1e-3
+    s.close()
+
+
+def test_light_change_raises_urgency_everywhere_but_keeps_geometry():
+    s = GISession(SETTINGS)
+    s.sync(scene())
+    s.system.warm_up(2)
+    tracer = s.system.tracer
+    rep = s.sync(scene(energy=600.0))
+    assert rep.lights_changed and not rep.rebuilt and not rep.moved
+    assert s.system.tracer is tracer
+    assert (s.system.cache.urgency >= 0.5).all()
+    assert s.system.scene.lights[0].power == 600.0
+    s.close()
+
+
+def test_settings_change_rebuilds_with_fresh_cache():
+    s = GISession(SETTINGS)
+    s.sync(scene())
+    s.system.warm_up(1)
+    s.set_settings(SETTINGS.with_(resolution=10))
+    assert s.sync(scene()).rebuilt
+    assert s.system.cache.samples.max() == 0 and s.system.cache.grid.dims[0] == 10
+    s.close()
