@@ -42,6 +42,15 @@ DEBUG_VIEW_ITEMS = (
 )
 DEBUG_VIEW = {identifier: number for identifier, _name, _description, number in DEBUG_VIEW_ITEMS}
 
+# How final renders of an animation treat the cache between frames (addon/pipeline.py).
+ANIMATION_MODE_ITEMS = (
+    ("INDEPENDENT", "Independent", "Every frame converges a fresh cache with the same deterministic warm-up: "
+     "frame N renders identically whatever was rendered before (render farms may split the animation)", 0),
+    ("INCREMENTAL", "Incremental", "Successive frames keep one cache: what moved, deformed or changed is re-traced "
+     "and the cells near it refresh quickly, then one update of the visible cells instead of a full warm-up. "
+     "Faster and temporally smooth; a frame depends on the frames rendered before it in the job", 1),
+)
+
 
 class HybridGISettings(bpy.types.PropertyGroup):
     """Render settings of the HybridGI engine, stored per scene."""
@@ -104,8 +113,9 @@ class HybridGISettings(bpy.types.PropertyGroup):
     # Screen-space passes (steps 2, 7 and 8).
     downsample: IntProperty(
         name="Downsample",
-        description="Resolution divisor of the G-buffer used to find visible cells and for screen-space AO",
-        default=4, min=1, max=16,
+        description="Resolution divisor of the G-buffer used to find visible cells and for screen-space AO "
+        "(2: atrium error vs Cycles 0.107, 4: 0.121, at the same render time)",
+        default=2, min=1, max=16,
     )
     ssao_radius: FloatProperty(
         name="Radius",
@@ -134,6 +144,15 @@ class HybridGISettings(bpy.types.PropertyGroup):
         name="Cells Overlay",
         description="Draw the irradiance cache's cells in the 3D viewport",
         default=False,
+    )
+
+    # Animation (final renders).
+    animation_mode: EnumProperty(
+        name="Animation",
+        description="How final renders of successive frames use the cache",
+        items=ANIMATION_MODE_ITEMS, default="INDEPENDENT",
+        # Switching to Independent frees the cache an incremental render job kept for this scene.
+        update=lambda self, _context: _drop_render_job(self),
     )
 
     def cache_settings(self, scene=None):
@@ -174,6 +193,13 @@ class HybridGISettings(bpy.types.PropertyGroup):
             ssao_strength=_f(self.ssao_strength),
             ao_blend=self.blend_mode,
         )
+
+
+def _drop_render_job(props):
+    if props.animation_mode != "INCREMENTAL":
+        from . import animation  # noqa: PLC0415  (imports bpy handlers; only needed on a switch)
+
+        animation.unregister_session(animation.render_job_key(props.id_data.name_full))
 
 
 def _f(value):

@@ -65,7 +65,7 @@ class IrradianceCache:
 
     @classmethod
     def for_scene(cls, scene: SceneSnapshot, settings: CacheSettings) -> IrradianceCache:
-        lo, hi = scene.bounds()
+        lo, hi = scene.focus_bounds()
         return cls(CacheGrid.from_bounds(lo, hi, settings.resolution), settings)
 
     @property

@@ -137,7 +137,7 @@ class GISession:
 
     @staticmethod
     def _fits(cache, snapshot: SceneSnapshot) -> bool:
-        lo, hi = snapshot.bounds()
+        lo, hi = snapshot.focus_bounds()
         margin = cache.grid.cell_size
         return bool((lo >= cache.grid.lo - margin).all() and (hi <= cache.grid.hi + margin).all())
 

@@ -19,6 +19,10 @@ log = logging.getLogger(__name__)
 
 LIGHT_KINDS = ("POINT", "SPOT", "SUN", "AREA")
 AREA_SHAPES = ("SQUARE", "RECTANGLE", "DISK", "ELLIPSE")
+#: A planar object this many times larger than the rest of the scene is a ground plane (see
+#: SceneSnapshot.focus_bounds); the grid then extends FOCUS_MARGIN of the rest's size around it.
+GROUND_RATIO = 2.5
+FOCUS_MARGIN = 0.6
 
 
 @dataclass
@@ -159,6 +163,37 @@ class SceneSnapshot:
             raise EmptySceneError("the scene has no triangles")
         used = self.geometry.positions[np.unique(self.geometry.triangles)]
         return used.min(axis=0), used.max(axis=0)
+
+    def focus_bounds(self, margin: float = FOCUS_MARGIN) -> tuple[np.ndarray, np.ndarray]:
+        """Bounds the cache grid should cover: like `bounds`, but a ground plane much larger than
+        everything else (a car on a 20 m floor) does not set them.
+
+        Such a plane would stretch the cells until the objects on it fall into one or two layers
+        of cells. Planar objects over GROUND_RATIO times the extent of the rest are left out, the
+        rest's box grows by `margin` of its extent on each side (bounce light from the floor
+        around it), and the result stays inside the full bounds.
+        """
+        lo, hi = self.bounds()
+        g = self.geometry
+        boxes = {}
+        for obj in np.unique(g.object_index):
+            verts = g.positions[g.triangles[g.object_index == obj].ravel()]
+            olo, ohi = verts.min(axis=0), verts.max(axis=0)
+            planar = float(np.sort(ohi - olo)[0]) <= 1e-3 * max(float((ohi - olo).max()), 1e-9)
+            boxes[int(obj)] = (olo, ohi, planar)
+        rest = [b for b in boxes.values() if not b[2]]
+        if not rest or len(rest) == len(boxes):
+            return lo, hi
+        rlo = np.min([b[0] for b in rest], axis=0)
+        rhi = np.max([b[1] for b in rest], axis=0)
+        rest_extent = float((rhi - rlo).max())
+        kept = [b for b in boxes.values() if not b[2] or float((b[1] - b[0]).max()) <= GROUND_RATIO * rest_extent]
+        flo = np.min([b[0] for b in kept], axis=0)
+        fhi = np.max([b[1] for b in kept], axis=0)
+        if len(kept) == len(boxes):
+            return lo, hi
+        pad = margin * (fhi - flo).max()
+        return np.maximum(flo - pad, lo).astype(np.float32), np.minimum(fhi + pad, hi).astype(np.float32)
 
 
 def sanitized(geometry: Geometry, n_materials: int, n_objects: int) -> Geometry:

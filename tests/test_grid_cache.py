@@ -80,3 +80,25 @@ def test_urgency_from_geometry_change_is_local_and_quadratic():
     assert 0 < cells.size < cache.grid.count / 10
     far = np.setdiff1d(np.arange(cache.grid.count), cells)
     assert (cache.urgency[far] == 0).all()
+
+
+def test_focus_bounds_ignore_a_huge_ground_plane_but_not_room_walls():
+    from hybridgi_core.snapshot import ObjectInfo, concat_geometry, geometry_from_arrays, make_snapshot
+
+    def quad(x0, x1, y0, y1, obj):
+        return geometry_from_arrays([[x0, y0, 0], [x1, y0, 0], [x1, y1, 0], [x0, y1, 0]], [[0, 1, 2], [0, 2, 3]], 0, obj)
+
+    def block(lo, hi, obj):
+        c = np.array([[x, y, z] for z in (lo[2], hi[2]) for y in (lo[1], hi[1]) for x in (lo[0], hi[0])])
+        t = [(0, 1, 3), (0, 3, 2), (4, 6, 7), (4, 7, 5), (0, 4, 5), (0, 5, 1), (2, 3, 7), (2, 7, 6), (0, 2, 6), (0, 6, 4), (1, 5, 7), (1, 7, 3)]
+        return geometry_from_arrays(c, np.array(t), 0, obj)
+
+    car = block([-2, -1, 0], [2, 1, 1.5], 1)
+    snap = make_snapshot(concat_geometry([quad(-50, 50, -50, 50, 0), car]), [], objects=[ObjectInfo("floor"), ObjectInfo("car")])
+    lo, hi = snap.focus_bounds()
+    assert (hi - lo).max() < 10 and lo[2] == 0.0  # around the car, not the 100 m floor
+    cache_grid = CacheGrid.from_bounds(lo, hi, 32)
+    assert cache_grid.dims[2] >= 5
+    # A floor the size of the objects on it is not a ground plane: full bounds.
+    snap2 = make_snapshot(concat_geometry([quad(-3, 3, -3, 3, 0), car]), [], objects=[ObjectInfo("floor"), ObjectInfo("car")])
+    np.testing.assert_allclose(np.concatenate(snap2.focus_bounds()), np.concatenate(snap2.bounds()))
