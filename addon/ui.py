@@ -33,6 +33,7 @@ class HYBRIDGI_PT_cache(HybridGIButtonsPanel, Panel):
         col.prop(props, "ray_length")
         col.prop(props, "hysteresis")
         col.prop(props, "warmup_iterations")
+        col.prop(props, "animation_mode")
         world = context.scene.world
         if world is not None:
             # The AO distance belongs to the World (Cycles reads it there too); shown here
