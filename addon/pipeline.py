@@ -1,22 +1,44 @@
 """Final renders of the HYBRIDGI engine: depsgraph -> snapshot -> the seed's nine steps -> passes.
 
-Main thread only (it reads `bpy`); the cache work inside runs on numpy snapshots. Every frame
-starts from a fresh cache converged with deterministic warm-up rays, so frame N renders the same
-whether or not other frames were rendered before it (render farms may split an animation).
+Main thread only (it reads `bpy`); the cache work inside runs on numpy snapshots. Two animation
+modes (`scene.hybridgi.animation_mode`):
+
+- INDEPENDENT (default, farm-safe): every frame starts from a fresh cache converged with
+  deterministic warm-up rays, so frame N renders the same whether or not other frames were
+  rendered before it (render farms may split an animation).
+- INCREMENTAL: a run of successive frames of one scene is one job that keeps a `GISession`. Each
+  frame syncs its snapshot: moved objects go through the per-frame dynamic Embree scene, deformed
+  meshes are re-traced, and the cells within the indirect range of what changed get urgency
+  (quadratic fall-off: lower hysteresis) and extra rays; then one update of the visible cells
+  replaces the warm-up. The job's first frame warms up as INDEPENDENT does.
+
+Both seed the lamps' shadow rays with the scene's seed alone, not the frame (Cycles' default, a
+non-animated seed): static parts of an animation keep one noise pattern instead of crawling.
 """
 
 import logging
 import time
+from dataclasses import dataclass
 
 import numpy as np
 
-from . import properties, sync
+from . import animation, properties, sync
 from ._core import errors, submodule
 
 log = logging.getLogger(__name__)
 
 #: Stats of the last rendered frame (seconds, per-step ms, rays): read by the CLI's JSON line.
 LAST_STATS = {}
+
+#: Frame number that seeds the direct light's shadow rays in every frame (see the docstring).
+DIRECT_SEED_FRAME = 0
+#: Extra updates of cells close to a change use frame numbers this far above the frame's own, so
+#: their ray rotations differ from every frame's main update.
+EXTRA_PASS_FRAME_OFFSET = 1 << 22
+#: Cells whose urgency is at least this (within half the influence radius: 1 - 0.5^2) get the
+#: extra update: near a change the cache needs more rays per frame, not only a faster blend.
+EXTRA_PASS_URGENCY = 0.75
+
 
 class RenderCancelled(errors.HybridGIError):
     """The user stopped the render (Esc)."""
@@ -47,27 +69,49 @@ def render_frame(engine, depsgraph):
     props = scene.hybridgi
     width, height = render_size(scene.render)
     settings = props.cache_settings(scene)
+    incremental = props.animation_mode == "INCREMENTAL"
+    key = animation.render_job_key(scene.name_full)
+    if not incremental:
+        animation.unregister_session(key)  # a job kept by an earlier incremental render: free it
     steps = {}
 
     engine.update_stats("HybridGI", "Syncing scene")
     ts = time.perf_counter()
-    snapshot = sync.snapshot_from_depsgraph(depsgraph)
+    # Animated objects start in the per-frame dynamic ray scene of an incremental job; a fresh
+    # system per frame has no use for that split (and keeps the LOD of every object).
+    dynamic = animation.animated_object_names(depsgraph.objects) if incremental else frozenset()
+    snapshot = sync.snapshot_from_depsgraph(depsgraph, dynamic)
     steps["sync"] = (time.perf_counter() - ts) * 1e3
     view, proj = camera_matrices(depsgraph, scene, width, height)
     world = snapshot.world.color
 
     if snapshot.geometry.triangle_count == 0:
+        animation.unregister_session(key)  # nothing to keep a cache of
         engine.report({"WARNING"}, "HybridGI: the scene has no geometry to render; only the world is shown")
         _write_background(engine, depsgraph, width, height, world)
-        _record(scene, t0, steps, width, height, rays=0, cells=0)
+        _record(scene, t0, steps, width, height, rays=0, cells=0, animation_mode=props.animation_mode)
         return
 
-    core_system = submodule("system")
     frame_mod = submodule("raster.frame")
     engine.update_stats("HybridGI", f"Building ray scene ({snapshot.geometry.triangle_count:,} triangles)")
     ts = time.perf_counter()
-    system = core_system.GISystem(snapshot, settings)
+    job = None
+    extra = {"animation_mode": props.animation_mode}
+    if incremental:
+        job = _job_for(scene, settings, dynamic)
+        try:
+            system, fresh, job_stats = job.advance(snapshot)
+        except BaseException:
+            animation.unregister_session(key)  # never continue a job from a frame that failed
+            raise
+        extra.update(job_stats)
+    else:
+        system, fresh = submodule("system").GISystem(snapshot, settings), True
     steps["build"] = (time.perf_counter() - ts) * 1e3
+    # A new cache (every independent frame, a job's first frame, a scene that outgrew the grid)
+    # converges with the warm-up; later frames of a job update once, through _IncrementalUpdate.
+    warmup = props.warmup_iterations if fresh else 0
+    renderer = system if fresh else _IncrementalUpdate(system, scene.frame_current, job.near)
     pipeline = frame_mod.FramePipeline(props.raster_settings(cell_size=system.cache.grid.cell_size))
     try:
         pipeline.resize(width, height)
@@ -82,22 +126,178 @@ def render_frame(engine, depsgraph):
                 raise RenderCancelled("render cancelled")
 
         shaded, stats = pipeline.render(
-            system, view, proj, frame=scene.frame_current, warmup=props.warmup_iterations, update=False,
-            debug_view=min(properties.DEBUG_VIEW[props.debug_view], 3), world_color=world, progress=progress,
+            renderer, view, proj, frame=DIRECT_SEED_FRAME, warmup=warmup, update=not fresh,
+            debug_view=0 if props.debug_view == "CELLS" else properties.DEBUG_VIEW[props.debug_view], world_color=world, progress=progress,
         )
         steps.update(stats.steps_ms)
+        if not fresh:
+            extra.update(updated_cells=renderer.updated_cells, extra_cells=renderer.extra_cells)
         engine.update_stats("HybridGI", "Writing passes")
         ts = time.perf_counter()
-        _write_result(engine, depsgraph, pipeline, width, height, world)
+        cells_view = props.debug_view == "CELLS"
+        _write_result(engine, depsgraph, pipeline, width, height, world,
+                      cache=system.cache if cells_view else None)
         steps["write"] = (time.perf_counter() - ts) * 1e3
+        if job is not None:
+            job.finish(scene.frame_current)
+            extra["job_frames"] = job.frames
         _record(scene, t0, steps, width, height, rays=stats.rays, cells=stats.visible_cells,
-                grid=list(system.cache.grid.dims), triangles=snapshot.geometry.triangle_count)
+                grid=list(system.cache.grid.dims), triangles=snapshot.geometry.triangle_count, **extra)
     except RenderCancelled:
         log.info("HybridGI render cancelled")
+        animation.unregister_session(key)  # its cache stopped half-converged
+    except BaseException:
+        animation.unregister_session(key)  # never continue a job from a frame that failed
+        raise
     finally:
         pipeline.free()
-        system.close()
+        if job is None:
+            system.close()
     engine.update_progress(1.0)
+
+
+# --- incremental jobs --------------------------------------------------------------------------
+
+
+#: Incremental jobs by registry key; each is also registered with `animation` (handlers feed it).
+_JOBS = {}
+
+
+@dataclass
+class IncrementalJob:
+    """One scene's run of successive incremental frames: a `GISession` and where it stands.
+
+    A render continues the job when its settings are the job's and its frame comes 1 to
+    `frame_step` frames after the job's last one (Render Animation, or the CLI's --frames A-B,
+    which renders one frame per job of Blender's); anything else starts a new job, so re-rendering
+    a frame or jumping back converges from scratch.
+    """
+
+    key: tuple
+    session: object  # hybridgi_core.session.GISession
+    settings: object  # hybridgi_core.settings.CacheSettings
+    frame: int | None = None  # the last frame rendered
+    frames: int = 0  # frames finished in this job
+    #: Surface cells within the indirect range of what changed this frame (int64).
+    near: np.ndarray = None
+
+    def continues(self, settings, frame, step) -> bool:
+        return (self.frame is not None and settings == self.settings
+                and 0 < frame - self.frame <= max(step, 1))
+
+    def advance(self, snapshot):
+        """Sync to this frame's snapshot and mark the cells near what changed.
+
+        Returns (system, fresh, stats): fresh when the cache is new (first frame, or the scene
+        outgrew the grid) and must converge before this frame renders.
+        """
+        events = animation.take_events(self.key)
+        old = self.session.snapshot
+        report = self.session.sync(snapshot)
+        system = self.session.system
+        boxes = _changed_boxes(old, snapshot, report) + events.boxes
+        touched = system.cache.on_geometry_changed(boxes) if boxes else np.zeros(0, np.int64)
+        self.near = np.intersect1d(touched, system.surface_cells())
+        fresh = not (system.cache.samples > 0).any()
+        stats = {
+            "rebuilt": report.rebuilt, "moved": report.moved, "lights_changed": report.lights_changed,
+            "touched_cells": int(touched.size), "sync_ms": round(report.ms, 2),
+        }
+        return system, fresh, stats
+
+    def finish(self, frame) -> None:
+        self.frame = frame
+        self.frames += 1
+
+
+def _job_for(scene, settings, dynamic):
+    key = animation.render_job_key(scene.name_full)
+    job = _JOBS.get(key)
+    if job is not None and job.continues(settings, scene.frame_current, scene.frame_step):
+        return job
+    animation.unregister_session(key)  # the previous job ends here (its on_drop closes it)
+    job = IncrementalJob(key, submodule("session").GISession(settings, frozenset(dynamic)), settings)
+    _JOBS[key] = job
+    animation.register_session(key, job.session, scene=scene.name_full, on_drop=lambda: _close_job(key))
+    animation.take_events(key)  # whatever happened before the job is no news to it
+    return job
+
+
+def _close_job(key):
+    job = _JOBS.pop(key, None)
+    if job is not None:
+        job.session.close()
+
+
+def _changed_boxes(old, new, report):
+    """World (lo, hi) boxes of what changed between two snapshots of one job: moved or deformed
+    objects where they were and where they are, and objects that appeared or disappeared (a
+    rebuild keeps the cache, but light bounced by a deleted object must fade near it)."""
+    if old is None:
+        return []
+    names = set(report.moved)
+    if report.rebuilt:
+        before = {o.name: i for i, o in enumerate(old.objects)}
+        after = {o.name: i for i, o in enumerate(new.objects)}
+        names |= set(before) ^ set(after)
+        # Same name, other triangles (a modifier's level, an edit of the topology).
+        old_counts = np.bincount(old.geometry.object_index, minlength=len(old.objects))
+        new_counts = np.bincount(new.geometry.object_index, minlength=len(new.objects))
+        names |= {n for n in set(before) & set(after) if old_counts[before[n]] != new_counts[after[n]]}
+    boxes = []
+    for snapshot in (old, new):
+        index = {o.name: i for i, o in enumerate(snapshot.objects)}
+        for name in sorted(names):
+            box = _object_box(snapshot, index[name]) if name in index else None
+            if box is not None:
+                boxes.append(box)
+    return boxes
+
+
+def _object_box(snapshot, index):
+    g = snapshot.geometry
+    tris = g.triangles[g.object_index == index]
+    if tris.size == 0:
+        return None
+    verts = g.positions[tris.ravel()]
+    return verts.min(axis=0), verts.max(axis=0)
+
+
+class _IncrementalUpdate:
+    """A `GISystem` as `FramePipeline.render` sees it in an incremental frame.
+
+    The pipeline finds the visible cells and calls `update(cells, frame)` once; this turns that
+    call into the frame's localized refresh: the visible cells plus the surface cells near what
+    changed, traced with this frame's ray rotation (the pipeline's own `frame` seeds the direct
+    light only), and a second update, with other rays, of the cells closest to the change.
+    Everything else is the system's own.
+    """
+
+    def __init__(self, system, frame, near):
+        self._system = system
+        self._frame = frame
+        self._near = near if near is not None else np.zeros(0, np.int64)
+        self.updated_cells = 0
+        self.extra_cells = 0
+
+    def __getattr__(self, name):
+        return getattr(self._system, name)
+
+    def update(self, cells, _frame, alpha=None):
+        system = self._system
+        cells = np.union1d(np.asarray(cells, np.int64), self._near)
+        # Chosen before the update: blending halves the urgency of the cells it refreshes.
+        inner = cells[system.cache.urgency[cells] >= EXTRA_PASS_URGENCY]
+        stats = system.update(cells, self._frame, alpha)
+        self.updated_cells = int(cells.size)
+        if inner.size:
+            more = system.update(inner, self._frame + EXTRA_PASS_FRAME_OFFSET, alpha)
+            self.extra_cells = int(inner.size)
+            stats.rays += more.rays
+            stats.wall_ms += more.wall_ms
+            for k, v in more.steps_ms.items():
+                stats.steps_ms[k] = stats.steps_ms.get(k, 0.0) + v
+        return stats
 
 
 def _record(scene, t0, steps, width, height, **extra):
@@ -124,11 +324,19 @@ def _set_pass(layer, name, pixels):
     rp.rect.foreach_set(data.ravel())
 
 
-def _write_result(engine, depsgraph, pipeline, width, height, world):
+def _write_result(engine, depsgraph, pipeline, width, height, world, cache=None):
+    """Read the deferred targets back into the render result; with `cache`, Combined shows the
+    Cache Cells debug view instead (each pixel coloured by the cell it reads)."""
     film_transparent = depsgraph.scene.render.film_transparent
     result = engine.begin_result(0, 0, width, height)
     layer = result.layers[0]
     combined = pipeline.deferred.read("combined").copy()
+    if cache is not None:
+        visible = submodule("visible")
+        points, normals, pix = visible.pixels_to_points(pipeline.gbuffer.read("position"), pipeline.gbuffer.read("normal"))
+        flat = combined.reshape(-1, 4)
+        flat[:, :3] = 0.0
+        flat[pix, :3] = visible.cell_debug_colors(cache, points, normals)
     if not film_transparent:
         combined[..., 3] = 1.0  # Cycles' alpha is 1 on the background unless the film is transparent
     _set_pass(layer, "Combined", combined)

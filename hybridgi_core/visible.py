@@ -41,3 +41,24 @@ def pixels_to_points(position_rgba: np.ndarray, normal_rgb: np.ndarray) -> tuple
     n = nrm[idx].astype(np.float32)
     n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
     return pos[idx, :3].astype(np.float32), n, idx
+
+
+def cell_debug_colors(cache, points: np.ndarray, normals: np.ndarray) -> np.ndarray:
+    """(n, 3) float32 debug colours: a stable hash colour per cell, the neighbour with the largest
+    gather weight at each point; full brightness where it is converged (>= 1 / (1 - hysteresis)
+    samples), dim while converging, dark grey where no valid cell is near, dark red where the
+    nearest cell is disabled inside geometry."""
+    from .evaluate import corner_weights  # noqa: PLC0415 (evaluate imports this module's siblings)
+
+    flats, w = corner_weights(cache, points, normals)
+    flat = flats[np.arange(flats.shape[0]), w.argmax(axis=1)]
+    none = w.sum(axis=1) <= 0
+    # Knuth multiplicative hash -> three bytes -> a pastel colour per cell.
+    h = (flat.astype(np.uint64) * np.uint64(2654435761)) & np.uint64(0xFFFFFF)
+    rgb = np.stack([(h >> np.uint64(s)) & np.uint64(0xFF) for s in (0, 8, 16)], axis=1).astype(np.float32) / 255.0
+    rgb = 0.35 + 0.65 * rgb
+    converged = cache.samples[flat] >= 1.0 / max(1.0 - cache.settings.hysteresis, 1e-3)
+    rgb *= np.where(converged, 1.0, 0.5)[:, None]
+    rgb[none] = (0.05, 0.05, 0.05)
+    rgb[none & cache.inside[flats[:, 0]]] = (0.4, 0.0, 0.0)
+    return rgb.astype(np.float32)

@@ -181,3 +181,18 @@ def test_core_imports_without_blender():
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
     assert out.returncode == 0, out.stderr
     assert out.stdout.strip() == "ok"
+
+
+def test_cell_debug_colors_mark_cells_and_their_state():
+    from hybridgi_core.visible import cell_debug_colors
+
+    with GISystem(make_snapshot(box([0, 0, 0], [2, 2, 2]), [Material()]), CacheSettings(resolution=4, rays_per_cell=8)) as gi:
+        pts = np.array([[0.3, 0.3, 0.0], [1.7, 1.7, 0.0]], np.float32)
+        up = np.tile([[0, 0, 1.0]], (2, 1)).astype(np.float32)
+        assert (cell_debug_colors(gi.cache, pts, up) == 0.05).all()  # nothing sampled yet: dark
+        gi.warm_up(1)
+        young = cell_debug_colors(gi.cache, pts, up)
+        assert not np.allclose(young[0], young[1])  # different cells, different colours
+        gi.warm_up(20, start=1, total=21)
+        old = cell_debug_colors(gi.cache, pts, up)
+        np.testing.assert_allclose(old, 2 * young, rtol=1e-5)  # converged cells at full brightness

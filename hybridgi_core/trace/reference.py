@@ -47,13 +47,11 @@ def prepare_rays(
         raise ValueError(f"tfar must be a scalar or ({n},), got {tfar_arr.shape}")
     tfar_out = np.empty(n, np.float32)
     tfar_out[:] = tfar_arr
-    with np.errstate(invalid="ignore"):
-        valid = (
-            np.isfinite(origins).all(axis=1)
-            & np.isfinite(directions).all(axis=1)
-            & (np.abs(directions).max(axis=1, initial=0.0) > 0.0)
-            & (tfar_out >= 0.0)  # also false for NaN
-        )
+    with np.errstate(invalid="ignore", over="ignore"):
+        # Row sums propagate NaN/inf, so one finiteness test per ray covers all six components
+        # (a sum that overflows a finite ray to inf marks it invalid too: far beyond any scene).
+        finite = np.isfinite(np.einsum("ij->i", origins) + np.einsum("ij->i", directions))
+        valid = finite & (np.einsum("ij,ij->i", directions, directions) > 0.0) & (tfar_out >= 0.0)
     return origins, directions, tfar_out, valid
 
 
