@@ -4,10 +4,11 @@ Blender loads this package as an extension (metadata in blender_manifest.toml). 
 in `hybridgi_core`, found through `_core`.
 """
 
-from . import engine, properties, ui
+from . import animation, engine, properties, ui
 
-# Registration order: properties first (panels and the engine read `scene.hybridgi`).
-_modules = (properties, engine, ui)
+# Registration order: properties first (panels and the engine read `scene.hybridgi`); animation
+# last, so its handlers are removed first and any kept render cache is freed on unregister.
+_modules = (properties, engine, ui, animation)
 
 
 def register():

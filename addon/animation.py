@@ -41,14 +41,15 @@ class CacheEvents:
 
     frame : the latest frame the scene changed to (None: no frame change)
     moved : names of objects that moved or deformed
-    boxes : world (lo, hi) float32 (3,) boxes of those objects where the handler saw them
+    swept : per moved object, the world (lo, hi) float32 (3,) box around every place the
+        handlers saw it since the events were last taken (bounded however long nobody takes them)
     lights : a lamp, the world or a material changed (the cache's `on_lights_changed`)
     edited : some other edit (objects added or removed, settings): re-sync to find out
     """
 
     frame: int | None = None
     moved: set[str] = field(default_factory=set)
-    boxes: list[tuple[np.ndarray, np.ndarray]] = field(default_factory=list)
+    swept: dict[str, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
     lights: bool = False
     edited: bool = False
 
@@ -56,6 +57,16 @@ class CacheEvents:
     def dirty(self) -> bool:
         """Whether anything changed that a sync could see."""
         return self.frame is not None or bool(self.moved) or self.lights or self.edited
+
+    @property
+    def boxes(self) -> list[tuple[np.ndarray, np.ndarray]]:
+        """The swept boxes, as `IrradianceCache.on_geometry_changed` takes them."""
+        return list(self.swept.values())
+
+    def note_moved(self, name: str, box: tuple[np.ndarray, np.ndarray]) -> None:
+        self.moved.add(name)
+        old = self.swept.get(name)
+        self.swept[name] = box if old is None else (np.minimum(old[0], box[0]), np.maximum(old[1], box[1]))
 
 
 @dataclass
@@ -262,7 +273,7 @@ def on_frame_change_post(scene, depsgraph=None) -> None:
     for key, entry in entries:
         if entry.animated is None:
             entry.animated = animated_object_names(scene.objects)
-        moved, boxes, lights = set(), [], world_animated
+        boxes, lights = {}, world_animated
         for name in entry.animated:
             obj = scene.objects.get(name)
             if obj is None:
@@ -272,13 +283,12 @@ def on_frame_change_post(scene, depsgraph=None) -> None:
                 continue
             box = _world_box(obj.evaluated_get(depsgraph))
             if box is not None:
-                moved.add(name)
-                boxes.append(box)
+                boxes[name] = box
         with _lock:
             ev = entry.events
             ev.frame = frame
-            ev.moved |= moved
-            ev.boxes.extend(boxes)
+            for name, box in boxes.items():
+                ev.note_moved(name, box)
             ev.lights |= lights
         _request_refresh(key, entry)
 
@@ -289,7 +299,7 @@ def on_depsgraph_update_post(scene, depsgraph) -> None:
     entries = _entries_for(scene)
     if not entries:
         return
-    moved, boxes = set(), []
+    boxes = {}
     lights = edited = relink = False
     for update in depsgraph.updates:
         data = update.id
@@ -299,20 +309,19 @@ def on_depsgraph_update_post(scene, depsgraph) -> None:
             elif update.is_updated_transform or update.is_updated_geometry:
                 box = _world_box(data)
                 if box is not None:
-                    moved.add(data.name)
-                    boxes.append(box)
+                    boxes[data.name] = box
         elif isinstance(data, (bpy.types.Light, bpy.types.World, bpy.types.Material, bpy.types.ShaderNodeTree)):
             lights = True
         elif isinstance(data, (bpy.types.Action, bpy.types.Collection, bpy.types.Scene)):
             # Keyframes, objects added or removed, scene settings: what is animated may differ.
             edited = relink = True
-    if not (moved or lights or edited):
+    if not (boxes or lights or edited):
         return
     for key, entry in entries:
         with _lock:
             ev = entry.events
-            ev.moved |= moved
-            ev.boxes.extend(boxes)
+            for name, box in boxes.items():
+                ev.note_moved(name, box)
             ev.lights |= lights
             ev.edited |= edited
             if relink:

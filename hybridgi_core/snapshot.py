@@ -169,29 +169,35 @@ class SceneSnapshot:
         everything else (a car on a 20 m floor) does not set them.
 
         Such a plane would stretch the cells until the objects on it fall into one or two layers
-        of cells. Planar objects over GROUND_RATIO times the extent of the rest are left out, the
-        rest's box grows by `margin` of its extent on each side (bounce light from the floor
-        around it), and the result stays inside the full bounds.
+        of cells. Only a horizontal plane at the bottom of the scene can be a ground plane (walls
+        never are, so a room keeps its bounds while things move inside it), and only when it is
+        over GROUND_RATIO times the extent of the rest; the rest's box then grows by `margin` of
+        its extent on each side (bounce light from the floor around it), within the full bounds.
         """
         lo, hi = self.bounds()
         g = self.geometry
-        boxes = {}
+        boxes = []
         for obj in np.unique(g.object_index):
             verts = g.positions[g.triangles[g.object_index == obj].ravel()]
-            olo, ohi = verts.min(axis=0), verts.max(axis=0)
-            planar = float(np.sort(ohi - olo)[0]) <= 1e-3 * max(float((ohi - olo).max()), 1e-9)
-            boxes[int(obj)] = (olo, ohi, planar)
-        rest = [b for b in boxes.values() if not b[2]]
-        if not rest or len(rest) == len(boxes):
+            boxes.append((verts.min(axis=0), verts.max(axis=0)))
+        extent = float((hi - lo).max())
+        flat = [float(b[1][2] - b[0][2]) <= 1e-3 * max(float((b[1] - b[0]).max()), 1e-9) for b in boxes]
+        at_bottom = [float(b[1][2]) <= float(lo[2]) + 1e-3 * extent for b in boxes]
+        candidates = [i for i in range(len(boxes)) if flat[i] and at_bottom[i]]
+        rest = [b for i, b in enumerate(boxes) if i not in candidates]
+        if not candidates or not rest:
             return lo, hi
         rlo = np.min([b[0] for b in rest], axis=0)
         rhi = np.max([b[1] for b in rest], axis=0)
         rest_extent = float((rhi - rlo).max())
-        kept = [b for b in boxes.values() if not b[2] or float((b[1] - b[0]).max()) <= GROUND_RATIO * rest_extent]
+        grounds = [i for i in candidates if float((boxes[i][1] - boxes[i][0]).max()) > GROUND_RATIO * rest_extent]
+        if not grounds:
+            return lo, hi
+        kept = [b for i, b in enumerate(boxes) if i not in grounds]
         flo = np.min([b[0] for b in kept], axis=0)
         fhi = np.max([b[1] for b in kept], axis=0)
-        if len(kept) == len(boxes):
-            return lo, hi
+        # The ground's own height still counts: cells must reach down to it.
+        flo[2] = min(float(flo[2]), float(lo[2]))
         pad = margin * (fhi - flo).max()
         return np.maximum(flo - pad, lo).astype(np.float32), np.minimum(fhi + pad, hi).astype(np.float32)
 

@@ -102,3 +102,16 @@ def test_focus_bounds_ignore_a_huge_ground_plane_but_not_room_walls():
     # A floor the size of the objects on it is not a ground plane: full bounds.
     snap2 = make_snapshot(concat_geometry([quad(-3, 3, -3, 3, 0), car]), [], objects=[ObjectInfo("floor"), ObjectInfo("car")])
     np.testing.assert_allclose(np.concatenate(snap2.focus_bounds()), np.concatenate(snap2.bounds()))
+
+
+def test_focus_bounds_keep_a_room_whose_walls_dwarf_what_moves_inside():
+    from hybridgi_core.snapshot import ObjectInfo, concat_geometry, geometry_from_arrays, make_snapshot
+
+    def plane(corners, obj):
+        return geometry_from_arrays(corners, [[0, 1, 2], [0, 2, 3]], 0, obj)
+
+    floor = plane([[0, 0, 0], [6, 0, 0], [6, 6, 0], [0, 6, 0]], 0)
+    wall = plane([[0, 6, 0], [6, 6, 0], [6, 6, 3], [0, 6, 3]], 1)
+    ball = geometry_from_arrays([[2, 2, 0.5], [2.5, 2, 0.5], [2.2, 2.4, 1.0]], [[0, 1, 2]], 0, 2)
+    snap = make_snapshot(concat_geometry([floor, wall, ball]), [], objects=[ObjectInfo(n) for n in ("floor", "wall", "ball")])
+    np.testing.assert_allclose(np.concatenate(snap.focus_bounds()), np.concatenate(snap.bounds()))
