@@ -4,26 +4,12 @@ import numpy as np
 
 from hybridgi_core.session import GISession
 from hybridgi_core.settings import CacheSettings
-from hybridgi_core.snapshot import (
-    Light,
-    Material,
-    ObjectInfo,
-    World,
-    concat_geometry,
-    geometry_from_arrays,
-    make_snapshot,
-)
-
-_C = np.array([[x, y, z] for z in (0, 1) for y in (0, 1) for x in (0, 1)], np.float32)
-_Q = [(0, 1, 3, 2), (4, 6, 7, 5), (0, 4, 5, 1), (2, 3, 7, 6), (0, 2, 6, 4), (1, 5, 7, 3)]
+from hybridgi_core.snapshot import Light, Material, ObjectInfo, World, concat_geometry, make_snapshot
+from tests.shapes import box
 
 
 def cube(lo, size, obj, inward=False):
-    p = np.asarray(lo, np.float32) + _C * np.float32(size)
-    tris = []
-    for a, b, c, d in _Q:
-        tris += [(a, b, c), (a, c, d)] if inward else [(a, c, b), (a, d, c)]
-    return geometry_from_arrays(p, np.array(tris), 0, obj)
+    return box(lo, np.asarray(lo, np.float32) + np.float32(size), inward=inward, obj=obj)
 
 
 def scene(ball_x=2.0, energy=300.0):
