@@ -4,11 +4,11 @@ Blender loads this package as an extension (metadata in blender_manifest.toml). 
 in `hybridgi_core`, found through `_core`.
 """
 
-from . import animation, engine, properties, ui
+from . import animation, engine, overlay, properties, ui
 
 # Registration order: properties first (panels and the engine read `scene.hybridgi`); animation
 # last, so its handlers are removed first and any kept render cache is freed on unregister.
-_modules = (properties, engine, ui, animation)
+_modules = (properties, engine, overlay, ui, animation)
 
 
 def register():

@@ -43,9 +43,23 @@ class HybridGIRenderEngine(bpy.types.RenderEngine):
         super().__init__(*args, **kwargs)
         #: Per-engine state the pipeline may keep between frames of one render job (the cache).
         self.session = None
+        #: The live view of Rendered shading (`viewport.ViewportSession`), made by view_update.
+        self.viewport = None
+
+    def __del__(self):
+        # The viewport's worker thread must stop with the engine (Blender frees the engine when
+        # the viewport leaves Rendered shading).
+        if getattr(self, "viewport", None) is not None:
+            _viewport().free(self)
 
     def render(self, depsgraph):
         render_frame(self, depsgraph)
+
+    def view_update(self, context, depsgraph):
+        _viewport().view_update(self, context, depsgraph)
+
+    def view_draw(self, context, depsgraph):
+        _viewport().view_draw(self, context, depsgraph)
 
     def update_render_passes(self, scene=None, renderlayer=None):
         self.register_pass(scene, renderlayer, "Combined", 4, "RGBA", "COLOR")
@@ -87,6 +101,11 @@ def _pipeline():
         if err.name != name:
             raise
         return None
+
+
+def _viewport():
+    """The viewport module, imported on first use for the reason `_pipeline` gives."""
+    return importlib.import_module(f"{__package__}.viewport")
 
 
 def _fail(engine, message):

@@ -140,6 +140,11 @@ class HybridGISettings(bpy.types.PropertyGroup):
         description="Intermediate result to show instead of the final image",
         items=DEBUG_VIEW_ITEMS, default="FINAL",
     )
+    use_gi_overlay: BoolProperty(
+        name="GI Overlay",
+        description="Multiply HybridGI's bounce light and contact shadows into Solid and Material Preview shading",
+        default=False,
+    )
     use_viewport_overlay: BoolProperty(
         name="Cells Overlay",
         description="Draw the irradiance cache's cells in the 3D viewport",

@@ -1,4 +1,7 @@
-"""Properties-editor panels of the HybridGI engine, and the built-in panels it shares."""
+"""Properties-editor panels of the HybridGI engine, the built-in panels it shares, and the 3D View
+sidebar tab of the live viewport GI."""
+
+import sys
 
 import bpy
 from bpy.types import Panel
@@ -87,6 +90,8 @@ class HYBRIDGI_PT_debug(HybridGIButtonsPanel, Panel):
         col = layout.column()
         col.prop(props, "debug_view")
         col.prop(props, "use_viewport_overlay")
+        if hasattr(props, "use_gi_overlay"):
+            col.prop(props, "use_gi_overlay")
 
 
 class HYBRIDGI_PT_passes(HybridGIButtonsPanel, Panel):
@@ -115,12 +120,117 @@ class HYBRIDGI_PT_passes(HybridGIButtonsPanel, Panel):
         col.prop(view_layer, "use_pass_ambient_occlusion", text="Ambient Occlusion")
 
 
+class HybridGIViewPanel:
+    """The 3D View sidebar tab: shown whatever the engine (the GI overlay works with any)."""
+
+    bl_space_type = "VIEW_3D"
+    bl_region_type = "UI"
+    bl_category = "HybridGI"
+
+
+def _loaded(name):
+    """An add-on module if something imported it already; panels never import the GI machinery."""
+    return sys.modules.get(f"{__package__}.{name}")
+
+
+class HYBRIDGI_PT_view3d(HybridGIViewPanel, Panel):
+    bl_label = "HybridGI"
+
+    def draw(self, context):
+        layout = self.layout
+        scene = context.scene
+        props = scene.hybridgi
+        col = layout.column(align=True)
+        col.prop(scene.render, "engine", text="")
+        shading = getattr(getattr(context.space_data, "shading", None), "type", None)
+        if scene.render.engine == ENGINE and shading != "RENDERED":
+            col.label(text="Rendered shading shows the live GI", icon="INFO")
+        if hasattr(props, "use_gi_overlay"):
+            col.prop(props, "use_gi_overlay", text="GI Overlay (Solid, Material Preview)", toggle=True)
+        else:
+            overlay = _loaded("overlay")
+            on = overlay is not None and overlay.is_enabled(scene)
+            col.operator("hybridgi.gi_overlay", text="GI Overlay (Solid, Material Preview)", depress=on)
+
+
+class HYBRIDGI_PT_view3d_settings(HybridGIViewPanel, Panel):
+    bl_label = "Settings"
+    bl_parent_id = "HYBRIDGI_PT_view3d"
+
+    def draw(self, context):
+        layout = self.layout
+        layout.use_property_split = True
+        layout.use_property_decorate = False
+        props = context.scene.hybridgi
+        col = layout.column()
+        col.prop(props, "resolution")
+        col.prop(props, "rays_per_cell")
+        col.prop(props, "hysteresis")
+        col.prop(props, "indirect_quality", text="Quality")
+        col.prop(props, "downsample")
+        col.prop(props, "ssao_strength", text="SSAO")
+
+
+class HYBRIDGI_PT_view3d_stats(HybridGIViewPanel, Panel):
+    """Live numbers of the last redraw of a view of this scene (read from a cache, never computed here)."""
+
+    bl_label = "Statistics"
+    bl_parent_id = "HYBRIDGI_PT_view3d"
+
+    def draw(self, context):
+        layout = self.layout
+        viewport = _loaded("viewport")
+        live = viewport.LIVE_STATS.get(context.scene.name) if viewport is not None else None
+        if live is None:
+            layout.label(text="No live view yet")
+            return
+        if live.error:
+            layout.label(text=live.error, icon="ERROR")
+        w, d = live.worker, live.draw
+        col = layout.column(align=True)
+        col.label(text=f"Converged: {w.converged:.0%} of {w.visible_cells:,} visible cells")
+        col.label(text=f"GI updates: {w.updates_per_s:.0f}/s, {w.rays_per_s / 1e6:.2f} Mrays/s")
+        col.label(text=f"Main thread: {d.cpu_ms:.1f} ms CPU + {d.gpu_ms:.1f} ms GPU")
+        box = layout.box().column(align=True)
+        box.label(text="Main thread (ms)")
+        for name, ms in d.steps_ms.items():
+            box.label(text=f"{name}: {ms:.2f}")
+        box = layout.box().column(align=True)
+        box.label(text="Worker (ms, last run)")
+        for name, ms in w.steps_ms.items():
+            box.label(text=f"{name}: {ms:.2f}")
+
+
+class HYBRIDGI_PT_view3d_debug(HybridGIViewPanel, Panel):
+    bl_label = "Debug"
+    bl_parent_id = "HYBRIDGI_PT_view3d"
+    bl_options = {"DEFAULT_CLOSED"}
+
+    def draw(self, context):
+        layout = self.layout
+        layout.use_property_split = True
+        layout.use_property_decorate = False
+        props = context.scene.hybridgi
+        col = layout.column()
+        col.prop(props, "debug_view")
+        col.prop(props, "use_viewport_overlay")
+
+
+#: Properties-editor panels: shown for this engine only.
 classes = (
     HYBRIDGI_PT_cache,
     HYBRIDGI_PT_indirect,
     HYBRIDGI_PT_screen_space,
     HYBRIDGI_PT_debug,
     HYBRIDGI_PT_passes,
+)
+
+#: The 3D View sidebar tab: shown whatever the engine.
+view3d_classes = (
+    HYBRIDGI_PT_view3d,
+    HYBRIDGI_PT_view3d_settings,
+    HYBRIDGI_PT_view3d_stats,
+    HYBRIDGI_PT_view3d_debug,
 )
 
 # Built-in panels that serve any engine ('BLENDER_RENDER' in their COMPAT_ENGINES) but that this
@@ -158,7 +268,7 @@ def builtin_panels():
 
 
 def register():
-    for cls in classes:
+    for cls in classes + view3d_classes:
         bpy.utils.register_class(cls)
     for panel in builtin_panels():
         panel.COMPAT_ENGINES.add(ENGINE)
@@ -167,5 +277,5 @@ def register():
 def unregister():
     for panel in builtin_panels():
         panel.COMPAT_ENGINES.discard(ENGINE)
-    for cls in reversed(classes):
+    for cls in reversed(classes + view3d_classes):
         bpy.utils.unregister_class(cls)

@@ -20,10 +20,14 @@ def visible_cells(grid: CacheGrid, positions: np.ndarray, normals: np.ndarray, n
     if positions.shape[0] == 0:
         return np.zeros(0, np.int64)
     p = np.asarray(positions, np.float32) + np.asarray(normals, np.float32) * np.float32(normal_bias * grid.cell_size)
-    # Neighbouring pixels share cells: dedupe the base cell first so the 8-corner expansion is small.
-    g = np.floor((p - grid.lo) / np.float32(grid.cell_size) - 0.5).astype(np.int64)
-    g = np.unique(g, axis=0)
+    # Neighbouring pixels share cells: dedupe the base cell first so the 8-corner expansion is
+    # small. Through a 1-D key: np.unique(axis=0) is ~15x slower (35 ms for 52k points).
     dims = np.asarray(grid.dims)
+    g = np.floor((p - grid.lo) / np.float32(grid.cell_size) - 0.5).astype(np.int64)
+    g = np.clip(g, -1, dims - 1) + 1  # base cells span -1 .. dims-1: shift to 0 .. dims
+    sx, sy = dims[0] + 1, dims[1] + 1
+    key = np.unique(g[:, 0] + sx * (g[:, 1] + sy * g[:, 2]))
+    g = np.stack([key % sx, (key // sx) % sy, key // (sx * sy)], axis=1) - 1
     corners = np.array([[c & 1, (c >> 1) & 1, (c >> 2) & 1] for c in range(8)])
     ijk = np.clip(g[:, None, :] + corners[None], 0, dims - 1).reshape(-1, 3)
     return np.unique(grid.flatten(ijk))

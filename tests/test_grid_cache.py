@@ -115,3 +115,15 @@ def test_focus_bounds_keep_a_room_whose_walls_dwarf_what_moves_inside():
     ball = geometry_from_arrays([[2, 2, 0.5], [2.5, 2, 0.5], [2.2, 2.4, 1.0]], [[0, 1, 2]], 0, 2)
     snap = make_snapshot(concat_geometry([floor, wall, ball]), [], objects=[ObjectInfo(n) for n in ("floor", "wall", "ball")])
     np.testing.assert_allclose(np.concatenate(snap.focus_bounds()), np.concatenate(snap.bounds()))
+
+
+def test_visible_cells_equal_the_corners_the_gather_reads():
+    from hybridgi_core.visible import visible_cells
+
+    g = CacheGrid.from_bounds(np.zeros(3), np.array([4.0, 3.0, 2.0]), 12)
+    rng = np.random.default_rng(3)
+    pts = (rng.random((3000, 3)) * [4.6, 3.6, 2.6] - 0.3).astype(np.float32)  # some outside the grid
+    nrm = rng.normal(size=(3000, 3)).astype(np.float32)
+    nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
+    expected = np.unique(g.corner_cells(pts + nrm * np.float32(0.1 * g.cell_size))[0])
+    np.testing.assert_array_equal(visible_cells(g, pts, nrm, 0.1), expected)

@@ -44,16 +44,24 @@ class FrameStats:
 
 
 class FramePipeline:
-    """Owns the passes of one view; `resize`, `upload`, then `render` per frame; `free` at the end."""
+    """Owns the passes of one view; `resize`, `upload`, then `render` per frame; `free` at the end.
 
-    def __init__(self, settings: RasterSettings | None = None, direct_samples: int = 16):
+    `render` runs the CPU steps in line (final renders). The viewport splits a frame into its GPU
+    halves, `rasterize` (steps 1-2) and `shade` (steps 6-9), and runs the CPU steps on a worker
+    thread in between, a frame or more behind.
+    """
+
+    def __init__(self, settings: RasterSettings | None = None, direct_samples: int = 16,
+                 gather: GatherPass | None = None):
+        """gather : a GatherPass (subclass) to use instead of a plain one; the viewport's takes
+        cache textures its worker thread packed."""
         self.settings = settings or RasterSettings()
         #: Shadow-ray samples per pixel and lamp for the full-res direct light: soft shadows of area
         #: lights and suns are visible noise at 1 sample; the viewport may use fewer.
         self.direct_samples = direct_samples
         self.gbuffer = GBufferPass()
         self.downsample = DownsamplePass(self.settings.downsample)
-        self.gather = GatherPass()
+        self.gather = gather if gather is not None else GatherPass()
         self.ssao = SSAOPass(self.settings)
         self.bilateral = BilateralPass(self.settings)
         self.deferred = DeferredPass(self.settings)
@@ -71,6 +79,16 @@ class FramePipeline:
             p.resize(*low)
         self.width, self.height = width, height
 
+    def set_settings(self, settings: RasterSettings) -> bool:
+        """Take new settings in place when the targets can stay (SSAO, blend, bilateral values);
+        False when they cannot (another downsample factor): build a new pipeline then."""
+        if settings.downsample != self.settings.downsample:
+            return False
+        self.settings = settings
+        for p in (self.ssao, self.bilateral, self.deferred):
+            p.settings = settings
+        return True
+
     def upload(self, snapshot) -> None:
         """Geometry and materials for the G-buffer (once per scene change)."""
         self.gbuffer.upload(snapshot)
@@ -81,6 +99,38 @@ class FramePipeline:
         self._direct_tex = None
         self.width = self.height = 0
 
+    def rasterize(self, view: np.ndarray, proj: np.ndarray, stats: FrameStats | None = None):
+        """Steps 1-2 on the GPU: the G-buffer and its downsampled copy -> (GBuffer, LowResGBuffer)."""
+        stats = stats if stats is not None else FrameStats()
+        with stats.step("gbuffer"):
+            gbuf = self.gbuffer.execute(view, proj)
+        with stats.step("downsample"):
+            low = self.downsample.execute(gbuf)
+        stats.low_res = (self.downsample.low_width, self.downsample.low_height)
+        return gbuf, low
+
+    def shade(self, gbuf, low, view: np.ndarray, proj: np.ndarray, direct, corner_visible=None,
+              irradiance=None, debug_view: int = DEBUG_FINAL, world_color=(0.0, 0.0, 0.0),
+              stats: FrameStats | None = None) -> ShadedFrame:
+        """Steps 6-9 on the GPU, the cache already uploaded (`self.gather.upload`).
+
+        direct : full-res RGBA texture of lamp irradiance (W/m^2) at the G-buffer's pixels
+        corner_visible : None (Chebyshev test), (h, w, 8) bool or an R32F bit-mask texture at the
+            low resolution (see GatherPass.execute)
+        irradiance : low-res RGBA texture of the light the near-field bounce reflects, or None
+        """
+        stats = stats if stats is not None else FrameStats()
+        with stats.step("gather"):
+            gi_indirect, gi_direct = self.gather.execute(low, corner_visible=corner_visible)
+        with stats.step("ssao"):
+            ssao = self.ssao.execute(low, view, proj, irradiance=irradiance)
+        with stats.step("bilateral"):
+            filtered = self.bilateral.execute(gbuf, low, gi_indirect, gi_direct, ssao)
+        with stats.step("deferred"):
+            shaded = self.deferred.execute(gbuf, direct, filtered, world_color=world_color,
+                                           debug_view=debug_view, relative_bounce=self.ssao.relative_bounce)
+        return shaded
+
     def render(self, system, view: np.ndarray, proj: np.ndarray, frame: int, warmup: int = 0,
                update: bool = True, debug_view: int = DEBUG_FINAL, world_color=(0.0, 0.0, 0.0),
                progress=None) -> tuple[ShadedFrame, FrameStats]:
@@ -88,13 +138,10 @@ class FramePipeline:
         reads the cache (a redraw while a worker owns the updates). progress(i, n) is called
         after each warm-up iteration and may raise to cancel."""
         stats = FrameStats()
-        with stats.step("gbuffer"):
-            gbuf = self.gbuffer.execute(view, proj)
+        gbuf, low = self.rasterize(view, proj, stats)
         with stats.step("downsample"):
-            low = self.downsample.execute(gbuf)
             normal_lo, position_lo = self.downsample.read_normal_position()
             points, normals, pix = pixels_to_points(position_lo, normal_lo)
-        stats.low_res = (self.downsample.low_width, self.downsample.low_height)
         with stats.step("select"):
             cells = system.visible_cells(points, normals)
         stats.visible_cells = int(cells.size)
@@ -122,17 +169,12 @@ class FramePipeline:
             mask = np.zeros((low.height * low.width, 8), bool)
             mask[pix] = visible
             self.gather.upload(system.cache)
-            gi_indirect, gi_direct = self.gather.execute(low, corner_visible=mask.reshape(low.height, low.width, 8))
         with stats.step("direct_low"):
             # Lamp light at the low-res pixels: what the SSAO pass's near-field bounce reflects
             # (the far-field bounce of the cache's light is already in the gathered indirect).
             lit = np.zeros((low.height * low.width, 4), np.float32)
             lit[pix, :3] = system.direct(points, normals, frame, samples=1)
             lit_tex = upload_texture_2d(lit.reshape(low.height, low.width, 4), "RGBA16F")
-        with stats.step("ssao"):
-            ssao = self.ssao.execute(low, view, proj, irradiance=lit_tex)
-        with stats.step("bilateral"):
-            filtered = self.bilateral.execute(gbuf, low, gi_indirect, gi_direct, ssao)
         with stats.step("direct"):
             normal = self.gbuffer.read("normal")
             position = self.gbuffer.read("position")
@@ -140,7 +182,7 @@ class FramePipeline:
             direct = np.zeros((self.height * self.width, 4), np.float32)
             direct[pix_full, :3] = system.direct(p_full, n_full, frame, samples=self.direct_samples)
             self._direct_tex = upload_texture_2d(direct.reshape(self.height, self.width, 4), "RGBA32F")
-        with stats.step("deferred"):
-            shaded = self.deferred.execute(gbuf, self._direct_tex, filtered, world_color=world_color,
-                                           debug_view=debug_view, relative_bounce=self.ssao.relative_bounce)
+        shaded = self.shade(gbuf, low, view, proj, self._direct_tex,
+                            corner_visible=mask.reshape(low.height, low.width, 8), irradiance=lit_tex,
+                            debug_view=debug_view, world_color=world_color, stats=stats)
         return shaded, stats

@@ -1,0 +1,981 @@
+"""Real-time GI in the 3D viewport: the HYBRIDGI engine's `view_update` / `view_draw`, and the
+session the Solid-mode GI overlay (`overlay.py`) shares.
+
+Threads. The main thread (this module) reads Blender: it turns depsgraph updates into scene edits
+for the worker (`worker.py`), rasterizes the G-buffer with the viewport's camera, reads back the
+downsampled G-buffer when the camera or the geometry changed, uploads what the worker published,
+runs the GPU passes and draws. The worker does every CPU step of a frame (visible cells, corner
+visibility rays, direct light with shadow rays, cache updates) a frame or more behind, on numpy.
+
+No black or flickering frames while navigating: the cache lives in world space, so a new camera
+gathers it at once; the direct light the worker traced for an older camera is reprojected through
+that camera and joint-bilateral upsampled (`DirectResolvePass`) until the new view's light
+arrives; the exact corner-visibility mask is used only when it belongs to this very view (the
+Chebyshev test of the depth moments stands in meanwhile).
+
+Redraws: `view_draw` asks Blender for another redraw (`engine.tag_redraw()`) while the worker is
+busy or has published something not drawn yet; an unchanged view with nothing new redraws the
+last image without running the pipeline.
+"""
+
+import dataclasses
+import logging
+import os
+import time
+import weakref
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from . import sync, worker
+from ._core import errors, submodule
+
+log = logging.getLogger(__name__)
+
+_frame = submodule("raster.frame")
+_gather = submodule("raster.gather")
+_passes = submodule("raster.passes")
+_glsl = submodule("raster.glsl")
+_readback = submodule("raster.readback")
+_raster_settings = submodule("raster.settings")
+_downsample = submodule("raster.downsample")
+
+#: Full-res pixels per pixel of the direct light the worker traces (the GI itself runs at the
+#: `downsample` setting). 2 keeps shadow edges sharp enough to model by at a quarter of the rays.
+DIRECT_FACTOR = 2
+#: Shadow-ray passes averaged while the view holds still (each pass: 1 sample per pixel and lamp).
+DIRECT_PASSES = 16
+#: GI updates per second the worker aims at; it sizes each update's ray budget to the ray rate.
+UPDATE_HZ = 30.0
+#: Object types whose evaluated geometry the sync turns into triangles.
+GEOMETRY_TYPES = frozenset({"MESH", "CURVE", "CURVES", "SURFACE", "META", "FONT", "POINTCLOUD", "VOLUME",
+                            "GREASEPENCIL"})
+#: Present-pass modes.
+PRESENT_COLOR, PRESENT_CELLS = 0, 1
+#: props.debug_view of the cells view (drawn here, not by the deferred pass).
+DEBUG_CELLS = "CELLS"
+#: Steps of `DrawStats` that only submit GPU work or wait for it (not main-thread CPU work).
+GPU_STEPS = frozenset({"gbuffer", "downsample", "readback", "resolve", "gather", "ssao", "bilateral", "deferred",
+                       "present", "display"})
+
+#: Scene name -> the latest `LiveStats` of a view of it, read by the sidebar panel.
+LIVE_STATS: dict = {}
+#: Every open session (engine viewports and overlays), for the redraw timer.
+_OPEN = weakref.WeakSet()
+
+
+def any_busy() -> bool:
+    """Whether some open session still has something to show (the redraw timer asks)."""
+    return any(session.needs_redraw() for session in list(_OPEN))
+
+
+def drawn_cache(scene_name: str):
+    """The `worker.CacheFrame` the last live view of this scene drew, or None."""
+    for session in list(_OPEN):
+        if session.scene_name == scene_name and session.gpu is not None and session.gpu.cache_frame is not None:
+            return session.gpu.cache_frame
+    return None
+
+
+# --- camera and statistics ---------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class ViewCamera:
+    """A viewport camera: world->view and view->clip (4, 4) float64, as `region_data` gives them."""
+
+    view: np.ndarray
+    proj: np.ndarray
+
+    @classmethod
+    def from_region_data(cls, rv3d) -> "ViewCamera":
+        # window_matrix already frames the region as drawn: perspective, orthographic or the
+        # camera view with its zoom and offset (the passepartout area included).
+        return cls(np.array(rv3d.view_matrix, np.float64), np.array(rv3d.window_matrix, np.float64))
+
+    @property
+    def key(self) -> bytes:
+        return self.view.tobytes() + self.proj.tobytes()
+
+
+@dataclass
+class DrawStats:
+    """Main-thread milliseconds of one redraw, per step (GPU_STEPS submit or wait for the GPU)."""
+
+    steps_ms: dict = field(default_factory=dict)
+    total_ms: float = 0.0  # wall time of the whole redraw
+    redrawn: bool = False  # False: the last image was drawn again without running the pipeline
+    posted_view: bool = False
+    view_current: bool = False  # the direct light drawn was traced for this very view
+    low_res: tuple = (0, 0)  # FramePipeline.rasterize records the GI resolution here
+
+    def step(self, name: str):
+        return _Timer(self.steps_ms, name)
+
+    @property
+    def cpu_ms(self) -> float:
+        """Main-thread time that is not GPU work: the wall time minus the GPU steps."""
+        return max(self.total_ms - self.gpu_ms, 0.0)
+
+    @property
+    def gpu_ms(self) -> float:
+        return sum(v for k, v in self.steps_ms.items() if k in GPU_STEPS)
+
+
+class _Timer:
+    def __init__(self, out: dict, name: str):
+        self.out, self.name = out, name
+
+    def __enter__(self):
+        self.t0 = time.perf_counter()
+
+    def __exit__(self, *exc):
+        self.out[self.name] = self.out.get(self.name, 0.0) + (time.perf_counter() - self.t0) * 1e3
+
+
+@dataclass(frozen=True)
+class LiveStats:
+    """What the sidebar shows for one view: the last redraw and the worker's record."""
+
+    draw: DrawStats
+    worker: worker.WorkerStats
+    error: str | None
+
+
+# --- settings ----------------------------------------------------------------------------------
+
+
+def viewport_cache_settings(scene):
+    """The scene's cache settings with one core left to Blender's own thread (UI, drawing)."""
+    settings = scene.hybridgi.cache_settings(scene)
+    cores = os.cpu_count() or 2
+    return settings.with_(threads=max(1, min(settings.threads, cores - 1)))
+
+
+def debug_view_of(props) -> tuple[int, int]:
+    """(deferred debug view, present mode) of the panel's debug view."""
+    name = getattr(props, "debug_view", "FINAL")
+    if name == DEBUG_CELLS:
+        return _raster_settings.DEBUG_FINAL, PRESENT_CELLS
+    numbers = {"FINAL": 0, "INDIRECT": 1, "AO": 2, "AO_SPLIT": 3}
+    return numbers.get(name, 0), PRESENT_COLOR
+
+
+# --- the main thread's copy of the scene --------------------------------------------------------
+
+
+@dataclass
+class _Changes:
+    """What one set of depsgraph updates asks for."""
+
+    full: bool = False
+    moved: dict = field(default_factory=dict)  # object name -> (4, 4) world matrix
+    lights: bool = False
+    world: bool = False
+    materials: bool = False
+    material_names: set | None = field(default_factory=set)  # which to read again; None = all
+
+
+def classify_updates(depsgraph, structure_key) -> _Changes:
+    """Read `depsgraph.updates` (only valid inside view_update / depsgraph handlers)."""
+    import bpy  # noqa: PLC0415
+
+    c = _Changes()
+    shading_only = False
+    structure = False
+    node_trees = False
+    for update in depsgraph.updates:
+        id_ = update.id
+        if isinstance(id_, bpy.types.Object):
+            if id_.type == "LIGHT":
+                c.lights = True
+            elif id_.type in GEOMETRY_TYPES:
+                if update.is_updated_geometry or id_.is_instancer:
+                    c.full = True
+                elif update.is_updated_transform:
+                    c.moved[id_.name] = np.array(id_.matrix_world, np.float64)
+                elif update.is_updated_shading:
+                    shading_only = True  # a material slot changed, or a material edit (below)
+            elif update.is_updated_transform and id_.is_instancer:
+                c.full = True  # a collection instance moved: its instances are not plain objects
+        elif isinstance(id_, bpy.types.Light):
+            c.lights = True
+        elif isinstance(id_, bpy.types.World):
+            c.world = True
+        elif isinstance(id_, bpy.types.Material):
+            c.materials = True
+            if c.material_names is not None:
+                c.material_names.add(id_.name)
+        elif isinstance(id_, bpy.types.Image):
+            c.materials, c.material_names = True, None
+            c.world = True  # an environment texture
+        elif isinstance(id_, bpy.types.NodeTree):
+            node_trees = True  # a material's or world's own tree comes with that ID's update
+        elif isinstance(id_, (bpy.types.Scene, bpy.types.Collection)):
+            structure = True
+        elif isinstance(id_, bpy.types.ID) and update.is_updated_geometry and not isinstance(id_, bpy.types.Camera):
+            c.full = True  # mesh, curve, text... data edited
+    if node_trees and not (c.materials or c.world):
+        c.materials, c.material_names, c.world = True, None, True  # a node group: any user may change
+    if shading_only and not c.materials:
+        c.full = True
+    if structure and not c.full and scene_structure(depsgraph) != structure_key:
+        c.full = True  # objects added, deleted, hidden or shown
+    return c
+
+
+def scene_structure(depsgraph) -> tuple:
+    """What a full snapshot depends on besides data edits: the instances and their visibility."""
+    return tuple(
+        (inst.object.name, inst.object.type, inst.is_instance, inst.show_self,
+         inst.parent.name if inst.is_instance and inst.parent is not None else "")
+        for inst in depsgraph.object_instances
+    )
+
+
+class SceneMirror:
+    """The scene as the main thread knows it: the last snapshot, and the vertex positions the
+    G-buffer draws (moved objects are updated in place here, never in a snapshot the worker holds).
+    """
+
+    def __init__(self):
+        self.snapshot = None
+        self.structure = None
+        self.geometry_gen = 0  # bumped whenever the G-buffer's geometry changes
+        self.gpu_dirty = None  # None | "positions" | "full": what the G-buffer must re-upload
+        self._matrices: dict = {}
+        self._local: dict = {}
+        self._positions = None
+        self._normals = None
+
+    def full_sync(self, depsgraph):
+        """Snapshot the whole scene; returns the worker edit."""
+        self.snapshot = sync.snapshot_from_depsgraph(depsgraph)
+        self.structure = scene_structure(depsgraph)
+        # Placement of every plain (non-instanced) object: moves are applied relative to it.
+        self._matrices = {
+            inst.object.name: np.array(inst.matrix_world, np.float64)
+            for inst in depsgraph.object_instances
+            if not inst.is_instance and inst.object.type in GEOMETRY_TYPES
+        }
+        self._local.clear()
+        self._positions = self._normals = None
+        self.geometry_gen += 1
+        self.gpu_dirty = "full"
+        return worker.FullScene(self.snapshot)
+
+    def move(self, name: str, matrix: np.ndarray):
+        """Edit for a plain object now placed by `matrix`: a MoveVertices, () when the object has
+        no triangles, or None when only a full sync can express the change (instances, mirroring)."""
+        if name not in self._matrices:
+            return None
+        local = self._local.get(name)
+        if local is None:
+            local = self._local[name] = self._object_local(name)
+        if local is None:
+            return ()  # no triangles in the snapshot: nothing to move
+        indices, pos_local, nrm_local, det_sign = local
+        linear = matrix[:3, :3]
+        det = np.linalg.det(linear)
+        if not np.isfinite(det) or abs(det) < 1e-30 or np.sign(det) != det_sign:
+            return None  # degenerate or mirrored: the winding changes, the full sync handles it
+        positions = (pos_local @ linear.T + matrix[:3, 3]).astype(np.float32)
+        normals = nrm_local @ np.linalg.inv(linear)
+        normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
+        normals = normals.astype(np.float32)
+        if self._positions is None:
+            self._positions = self.snapshot.geometry.positions.copy()
+            self._normals = self.snapshot.geometry.normals.copy()
+        rotated = not np.allclose(normals, self._normals[indices], atol=1e-6)
+        self._positions[indices] = positions
+        self._normals[indices] = normals
+        # The G-buffer can replace its positions alone; new normals need a full upload.
+        self.gpu_dirty = "full" if rotated or self.gpu_dirty == "full" else "positions"
+        self.geometry_gen += 1
+        return worker.MoveVertices(indices, positions.copy(), normals.copy())
+
+    def _object_local(self, name: str):
+        """(vertex indices, object-space positions and normals, det sign) of an object, from the
+        snapshot and the matrix of the full sync (so repeated moves never accumulate error)."""
+        snap = self.snapshot
+        names = [o.name for o in snap.objects]
+        if name not in names:
+            return None
+        g = snap.geometry
+        indices = np.unique(g.triangles[g.object_index == names.index(name)])
+        if indices.size == 0:
+            return None
+        m0 = self._matrices[name]
+        linear0 = m0[:3, :3]
+        pos_local = (g.positions[indices].astype(np.float64) - m0[:3, 3]) @ np.linalg.inv(linear0).T
+        # World normals are local normals times inv(linear0): undo it.
+        nrm_local = g.normals[indices].astype(np.float64) @ linear0
+        return indices, pos_local, nrm_local, np.sign(np.linalg.det(linear0))
+
+    def set_shading(self, lights=None, world=None, materials=None):
+        snap = self.snapshot
+        self.snapshot = dataclasses.replace(
+            snap,
+            lights=snap.lights if lights is None else lights,
+            world=snap.world if world is None else world,
+            materials=snap.materials if materials is None else materials,
+        )
+        if materials is not None:
+            self.gpu_dirty = "full"  # material colours are the G-buffer's per-draw constants
+        return worker.SetShading(lights=lights, world=world, materials=materials)
+
+    def gpu_snapshot(self):
+        """The snapshot with the positions and normals the G-buffer must draw."""
+        if self._positions is None:
+            return self.snapshot
+        geometry = dataclasses.replace(self.snapshot.geometry, positions=self._positions, normals=self._normals)
+        return dataclasses.replace(self.snapshot, geometry=geometry)
+
+    @property
+    def gpu_positions(self):
+        return self._positions if self._positions is not None else self.snapshot.geometry.positions
+
+
+def scene_lights(depsgraph) -> list:
+    return [sync.light_from_blender(inst.object.data, inst.matrix_world, inst.object.name)
+            for inst in depsgraph.object_instances if inst.object.type == "LIGHT"]
+
+
+def scene_materials(snapshot, names=None) -> list:
+    """The snapshot's materials, those named (None: all) read again from Blender; same order, so
+    the triangles' material indices stay valid."""
+    import bpy  # noqa: PLC0415
+
+    out = []
+    for material in snapshot.materials:
+        source = bpy.data.materials.get(material.name) if names is None or material.name in names else None
+        out.append(material if source is None else sync.material_from_blender(source))
+    return out
+
+
+# --- GPU passes of the viewport ------------------------------------------------------------------
+
+
+class PackedGatherPass(_gather.GatherPass):
+    """The gather pass fed with `worker.CacheFrame`s: the worker packed the textures already, the
+    main thread only uploads them (a plain cache still works, for the final-render path)."""
+
+    def upload(self, cache) -> bool:
+        if not isinstance(cache, worker.CacheFrame):
+            return super().upload(cache)
+        key = ("frame", cache.serial)
+        if self._uploaded == key:
+            return False
+        self._cache_tx = _readback.upload_texture_2d(cache.sh_texels, "RGBA32F")
+        self._depth_tx = _readback.upload_texture_2d(cache.depth_texels, "RG32F")
+        self._grid = cache.grid
+        self._settings = cache.settings
+        self._uploaded = key
+        return True
+
+
+RESOLVE_GLSL = """
+/* Direct light traced by the worker for a (maybe older) camera at a lower resolution, resolved at
+ * this frame's pixels: each pixel projects through the source camera and averages the 4x4 source
+ * pixels around it, weighted by screen distance, normal agreement and distance to the pixel's
+ * plane (joint-bilateral). Pixels the source never saw (disocclusions) fall back to the normal-
+ * weighted taps (a = 0.5), then to no lamp light (a = 0): never garbage, never NaN. With `nearest`,
+ * the best-weighted tap is taken as is (colour codes such as the Cache Cells view must not mix). */
+void main()
+{
+  ivec2 px = ivec2(gl_FragCoord.xy);
+  vec4 P = texelFetch(position_tx, px, 0);
+  out_direct = vec4(0.0);
+  if (P.w < 0.5) {
+    return;
+  }
+  vec3 N = normalize(texelFetch(normal_tx, px, 0).xyz);
+  vec4 clip = src_view_proj * vec4(P.xyz, 1.0);
+  if (clip.w <= 1e-6) {
+    return;
+  }
+  vec2 sp = (clip.xy / clip.w * 0.5 + 0.5) * vec2(src_size.xy) - 0.5;
+  ivec2 base = ivec2(floor(sp));
+  float depth = max(view_depth(src_view_z, P.xyz), 0.0);
+  float footprint = max(src_footprint.x * depth + src_footprint.y, 1e-6);
+  vec3 acc = vec3(0.0);
+  float wsum = 0.0;
+  vec3 loose = vec3(0.0);
+  float wloose = 0.0;
+  vec3 best = vec3(0.0);
+  float wbest = 0.0;
+  for (int j = -1; j <= 2; j++) {
+    for (int i = -1; i <= 2; i++) {
+      ivec2 q = base + ivec2(i, j);
+      if (any(lessThan(q, ivec2(0))) || any(greaterThanEqual(q, src_size.xy))) {
+        continue;
+      }
+      vec4 Q = texelFetch(src_position_tx, q, 0);
+      vec4 D = texelFetch(src_direct_tx, q, 0);
+      if (Q.w < 0.5 || D.a < 0.5) {
+        continue;
+      }
+      vec3 M = texelFetch(src_normal_tx, q, 0).xyz;
+      vec2 d = vec2(q) - sp;
+      float ws = exp(-0.5 * dot(d, d));
+      float wn = pow(max(dot(N, M), 0.0), 8.0);
+      vec3 delta = Q.xyz - P.xyz;
+      float plane = dot(N, delta) / footprint;
+      float lateral = length(delta) / (2.0 * footprint);
+      float wg = exp(-4.0 * plane * plane - lateral * lateral);
+      acc += ws * wn * wg * D.rgb;
+      wsum += ws * wn * wg;
+      if (ws * wn * wg > wbest) {
+        wbest = ws * wn * wg;
+        best = D.rgb;
+      }
+      loose += ws * wn * D.rgb;
+      wloose += ws * wn;
+    }
+  }
+  if (nearest != 0 && wbest > 1e-6) {
+    out_direct = vec4(best, 1.0);
+  }
+  else if (wsum > 1e-3) {
+    out_direct = vec4(acc / wsum, 1.0);
+  }
+  else if (wloose > 1e-4) {
+    out_direct = vec4(loose / wloose, 0.5);
+  }
+}
+"""
+
+
+class DirectResolvePass(_passes.RasterPass):
+    """`resize(w, h)`; `execute(position, normal, source) -> RGBA16F texture` (rgb W/m^2, a = trust).
+
+    source : `_DirectSource` (the worker's direct light, its positions and normals, its camera).
+    """
+
+    name = "direct resolve"
+
+    def __init__(self, fmt: str = "RGBA16F"):
+        super().__init__()
+        self.format = fmt
+        self._target = None
+        self._fb = None
+
+    def _build_shaders(self) -> dict:
+        spec = _passes.fullscreen_spec(
+            "hybridgi_direct_resolve",
+            _glsl.load_glsl("common_lib.glsl") + RESOLVE_GLSL,
+            samplers=((0, "FLOAT_2D", "position_tx"), (1, "FLOAT_2D", "normal_tx"),
+                      (2, "FLOAT_2D", "src_position_tx"), (3, "FLOAT_2D", "src_normal_tx"),
+                      (4, "FLOAT_2D", "src_direct_tx")),
+            # 64 + 16 + 16 + 16 + 4 = 116 bytes: under the 128-byte push-constant limit.
+            push=(("MAT4", "src_view_proj"), ("VEC4", "src_view_z"), ("VEC4", "src_footprint"),
+                  ("IVEC4", "src_size"), ("INT", "nearest")),
+            outputs=((0, "VEC4", "out_direct"),),
+        )
+        return {"main": _passes.compile_spec(spec)}
+
+    def _allocate(self, width: int, height: int) -> None:
+        import gpu  # noqa: PLC0415
+
+        self._target = _passes.make_target(width, height, self.format)
+        self._fb = gpu.types.GPUFrameBuffer(color_slots=(self._target,))
+
+    def _release_targets(self) -> None:
+        self._target = self._fb = None
+
+    def execute(self, position, normal, source, nearest: bool = False):
+        self._require()
+        shader = self._shader()
+        shader.uniform_sampler("position_tx", position)
+        shader.uniform_sampler("normal_tx", normal)
+        shader.uniform_sampler("src_position_tx", source.position)
+        shader.uniform_sampler("src_normal_tx", source.normal)
+        shader.uniform_sampler("src_direct_tx", source.direct)
+        view_proj = source.proj @ source.view
+        # A flat list is read column-major, as GLSL stores a mat4.
+        shader.uniform_float("src_view_proj", view_proj.T.ravel().astype(np.float32).tolist())
+        shader.uniform_float("src_view_z", [float(v) for v in source.view[2]])
+        shader.uniform_float("src_footprint", (*source.footprint, 0.0, 0.0))
+        shader.uniform_int("src_size", (source.width, source.height, 0, 0))
+        shader.uniform_int("nearest", 1 if nearest else 0)
+        self._draw_fullscreen(self._fb, shader, (self.width, self.height))
+        return self._target
+
+    def read(self) -> np.ndarray:
+        return _readback.read_framebuffer(self._fb, 0, self.width, self.height, 4)
+
+
+@dataclass
+class _DirectSource:
+    """Textures of one `worker.ViewResult` (uploaded once per result): its direct light, or
+    (`cells_of`) its Cache Cells colours, with the positions and normals they were made at."""
+
+    serial: int
+    direct: object
+    position: object
+    normal: object
+    view: np.ndarray
+    proj: np.ndarray
+    width: int
+    height: int
+    footprint: tuple  # (a, b): a source pixel spans a * view depth + b world units
+
+    @classmethod
+    def upload(cls, result: worker.ViewResult) -> "_DirectSource":
+        h, w = result.direct.shape[:2]
+        up = _readback.upload_texture_2d
+        return cls(result.serial, up(result.direct, "RGBA32F"), up(result.position, "RGBA32F"),
+                   up(result.normal, "RGBA16F"), result.view, result.proj, w, h, pixel_footprint(result.proj, h))
+
+    @classmethod
+    def cells_of(cls, result: worker.ViewResult) -> "_DirectSource":
+        h, w = result.cells.shape[:2]
+        up = _readback.upload_texture_2d
+        return cls(result.serial, up(result.cells, "RGBA16F"), up(result.gi_position, "RGBA32F"),
+                   up(result.gi_normal, "RGBA16F"), result.view, result.proj, w, h, pixel_footprint(result.proj, h))
+
+    @classmethod
+    def empty(cls) -> "_DirectSource":
+        up = _readback.upload_texture_2d
+        zero = np.zeros((1, 1, 4), np.float32)
+        eye = np.eye(4)
+        return cls(-1, up(zero, "RGBA32F"), up(zero, "RGBA32F"), up(zero, "RGBA16F"), eye, eye, 1, 1, (1.0, 0.0))
+
+
+def pixel_footprint(proj: np.ndarray, height: int) -> tuple[float, float]:
+    """(a, b) with a pixel's height in world units = a * view depth + b (perspective: b = 0,
+    orthographic: a = 0), from the projection matrix and the image height in pixels."""
+    scale = 2.0 / (max(abs(float(proj[1, 1])), 1e-12) * max(height, 1))
+    orthographic = abs(float(proj[3, 3]) - 1.0) < 1e-6
+    return (0.0, scale) if orthographic else (scale, 0.0)
+
+
+PRESENT_GLSL = """
+/* The image handed to Blender's display: Combined with an opaque alpha unless the film is
+ * transparent; in the Cache Cells view, the worker's cell colours on geometry (dark grey until
+ * they arrive). */
+void main()
+{
+  ivec2 px = ivec2(gl_FragCoord.xy);
+  vec4 c = texelFetch(combined_tx, px, 0);
+  if (mode == 1 && texelFetch(position_tx, px, 0).w > 0.5) {
+    vec4 cells = texelFetch(cells_tx, px, 0);
+    c.rgb = (cells.a > 0.0) ? cells.rgb : vec3(0.05);
+  }
+  out_color = vec4(c.rgb, (opaque != 0) ? 1.0 : c.a);
+}
+"""
+
+
+class PresentPass(_passes.RasterPass):
+    """Combined -> the texture drawn into the viewport (RGBA16F, scene linear)."""
+
+    name = "present"
+
+    def __init__(self):
+        super().__init__()
+        self._target = None
+        self._fb = None
+
+    def _build_shaders(self) -> dict:
+        spec = _passes.fullscreen_spec(
+            "hybridgi_present",
+            PRESENT_GLSL,
+            samplers=((0, "FLOAT_2D", "combined_tx"), (1, "FLOAT_2D", "position_tx"), (2, "FLOAT_2D", "cells_tx")),
+            push=(("INT", "mode"), ("INT", "opaque")),
+            outputs=((0, "VEC4", "out_color"),),
+        )
+        return {"main": _passes.compile_spec(spec)}
+
+    def _allocate(self, width: int, height: int) -> None:
+        import gpu  # noqa: PLC0415
+
+        self._target = _passes.make_target(width, height, "RGBA16F")
+        self._fb = gpu.types.GPUFrameBuffer(color_slots=(self._target,))
+
+    def _release_targets(self) -> None:
+        self._target = self._fb = None
+
+    def execute(self, combined, gbuf, mode: int, opaque: bool, cells=None):
+        """cells : full-res RGBA texture of Cache Cells colours (mode PRESENT_CELLS)."""
+        self._require()
+        shader = self._shader()
+        shader.uniform_sampler("combined_tx", combined)
+        shader.uniform_sampler("position_tx", gbuf.position)
+        shader.uniform_sampler("cells_tx", cells if cells is not None else combined)
+        shader.uniform_int("mode", int(mode) if cells is not None else PRESENT_COLOR)
+        shader.uniform_int("opaque", 1 if opaque else 0)
+        self._draw_fullscreen(self._fb, shader, (self.width, self.height))
+        return self._target
+
+    @property
+    def output(self):
+        return self._target
+
+    def read(self) -> np.ndarray:
+        return _readback.read_framebuffer(self._fb, 0, self.width, self.height, 4)
+
+
+_SCREEN_BATCH = {}
+
+
+def draw_texture_fullscreen(texture) -> None:
+    """Draw `texture` over the whole bound framebuffer with Blender's IMAGE shader (the one
+    `bind_display_space_shader` binds), whatever the matrix stack holds."""
+    import gpu  # noqa: PLC0415
+    from gpu_extras.batch import batch_for_shader  # noqa: PLC0415
+    from mathutils import Matrix  # noqa: PLC0415
+
+    shader = gpu.shader.from_builtin("IMAGE")
+    batch = _SCREEN_BATCH.get("image")
+    if batch is None:
+        corners = ((-1.0, -1.0), (1.0, -1.0), (-1.0, 1.0), (1.0, 1.0))
+        uvs = ((0.0, 0.0), (1.0, 0.0), (0.0, 1.0), (1.0, 1.0))
+        batch = _SCREEN_BATCH["image"] = batch_for_shader(shader, "TRI_STRIP", {"pos": corners, "texCoord": uvs})
+    with gpu.matrix.push_pop(), gpu.matrix.push_pop_projection():
+        gpu.matrix.load_identity()
+        gpu.matrix.load_projection_matrix(Matrix.Identity(4))
+        shader.uniform_sampler("image", texture)
+        batch.draw(shader)
+
+
+# --- one live view -------------------------------------------------------------------------------
+
+
+class _GPUState:
+    """Everything of a session that lives on the GPU (main thread only)."""
+
+    def __init__(self, raster_settings):
+        self.pipeline = _frame.FramePipeline(raster_settings, gather=PackedGatherPass())
+        factor = DIRECT_FACTOR if DIRECT_FACTOR != raster_settings.downsample else None
+        self.direct_down = _downsample.DownsamplePass(factor) if factor else None
+        self.resolve_full = DirectResolvePass("RGBA32F")
+        self.resolve_low = DirectResolvePass("RGBA16F")
+        self.present = PresentPass()
+        self.source = None  # _DirectSource of the last ViewResult uploaded
+        self.cells_source = None  # its Cache Cells colours, when drawn
+        self.mask_tx = None
+        self.mask_serial = None
+        self.cache_frame = None  # the CacheFrame on the GPU
+        self.width = self.height = 0
+
+    def resize(self, width: int, height: int) -> None:
+        if (width, height) == (self.width, self.height):
+            return
+        self.pipeline.resize(width, height)
+        low = _passes.low_res_size(width, height, self.pipeline.settings.downsample)
+        if self.direct_down is not None:
+            self.direct_down.resize(width, height)
+        self.resolve_full.resize(width, height)
+        self.resolve_low.resize(*low)
+        self.present.resize(width, height)
+        self.width, self.height = width, height
+
+    def free(self) -> None:
+        for p in (self.pipeline, self.resolve_full, self.resolve_low, self.present):
+            p.free()
+        if self.direct_down is not None:
+            self.direct_down.free()
+        self.source = self.cells_source = self.mask_tx = self.cache_frame = None
+
+
+class ViewportSession:
+    """One live view of a scene: the main-thread half here, the CPU half in a `ViewportWorker`.
+
+    `sync(depsgraph, scene)` after depsgraph updates (view_update, or a depsgraph handler for the
+    overlay); `draw(scene, camera, width, height)` on every redraw; `close()` at the end.
+    """
+
+    def __init__(self, options: worker.WorkerOptions | None = None):
+        self.options = options or worker.WorkerOptions(update_hz=UPDATE_HZ, direct_passes=DIRECT_PASSES)
+        self.mirror = SceneMirror()
+        self.worker: worker.ViewportWorker | None = None
+        self.gpu: _GPUState | None = None
+        self.last_stats = DrawStats()
+        self.last_edit_gen = 0
+        self._raster = None
+        self._posted_key = None
+        self._drawn_key = None
+        self._drawn_serials = None
+        self.scene_name = None
+        _OPEN.add(self)
+
+    # --- scene ----------------------------------------------------------------------------------
+
+    def sync(self, depsgraph, scene) -> None:
+        """Bring the worker's scene up to `depsgraph`: the first call snapshots everything, later
+        calls read `depsgraph.updates` and send only what changed."""
+        settings = viewport_cache_settings(scene)
+        self.scene_name = scene.name
+        if self.worker is None or not self.worker.alive:
+            # A first sync, or a fresh start after the worker failed: it knows no scene, no view.
+            self.worker = worker.ViewportWorker(settings, self.options)
+            self.mirror = SceneMirror()
+            self._posted_key = self._drawn_key = None
+        else:
+            self.worker.set_settings(settings)
+        if self.mirror.snapshot is None:
+            self._post(self.mirror.full_sync(depsgraph))
+            return
+        changes = classify_updates(depsgraph, self.mirror.structure)
+        self.apply_changes(depsgraph, changes)
+
+    def apply_changes(self, depsgraph, changes: _Changes) -> None:
+        mirror = self.mirror
+        edits = []
+        if not changes.full:
+            for name, matrix in changes.moved.items():
+                edit = mirror.move(name, matrix)
+                if edit is None:
+                    changes.full = True
+                    break
+                if edit:
+                    edits.append(edit)
+        if changes.full:
+            self._post(mirror.full_sync(depsgraph))
+            return
+        for edit in edits:
+            self._post(edit)
+        if changes.lights or changes.world or changes.materials:
+            self._post(mirror.set_shading(
+                lights=scene_lights(depsgraph) if changes.lights else None,
+                world=sync.world_from_blender(depsgraph.scene.world) if changes.world else None,
+                materials=scene_materials(mirror.snapshot, changes.material_names) if changes.materials else None,
+            ))
+
+    def _post(self, edit) -> None:
+        self.last_edit_gen = self.worker.post_edit(edit)
+
+    # --- drawing --------------------------------------------------------------------------------
+
+    def draw(self, scene, camera: ViewCamera, width: int, height: int, opaque: bool = True):
+        """Run the frame's GPU half for `camera` at width x height; returns the texture to show
+        (RGBA16F, scene linear) or None before the first sync. Raises HybridGIError when the
+        worker failed."""
+        if self.worker is None or self.mirror.snapshot is None:
+            return None
+        stats = DrawStats()
+        t0 = time.perf_counter()
+        published = self.worker.latest()
+        if published.error is not None:
+            raise errors.HybridGIError(f"viewport GI stopped: {published.error}")
+        props = scene.hybridgi
+        debug_view, present_mode = debug_view_of(props)
+        with stats.step("settings"):
+            gpu_state = self._ensure_gpu(props, published, width, height)
+        serials = (
+            None if published.cache is None else published.cache.serial,
+            None if published.view is None else published.view.serial,
+        )
+        key = (camera.key, width, height, self.mirror.geometry_gen, debug_view, present_mode, opaque,
+               self._raster, published.empty)
+        if key == self._drawn_key and serials == self._drawn_serials and self.mirror.gpu_dirty is None:
+            stats.total_ms = (time.perf_counter() - t0) * 1e3
+            self.last_stats = stats
+            return gpu_state.present.output
+        stats.redrawn = True
+        pipeline = gpu_state.pipeline
+        with stats.step("upload_geometry"):
+            self._upload_geometry(pipeline)
+        view = camera.view.astype(np.float32)
+        proj = camera.proj.astype(np.float32)
+        gbuf, low = pipeline.rasterize(view, proj, stats)
+        debug_cells = present_mode == PRESENT_CELLS
+        view_key = (camera.key, width, height, self.mirror.geometry_gen, self._raster.downsample, debug_cells)
+        if view_key != self._posted_key and not published.empty:
+            self._post_view(gpu_state, gbuf, camera, view_key, stats, debug_cells)
+        with stats.step("upload_results"):
+            source, mask = self._upload_results(gpu_state, published, view_key)
+        stats.view_current = published.view is not None and published.view.key == view_key
+        with stats.step("resolve"):
+            direct = gpu_state.resolve_full.execute(gbuf.position, gbuf.normal, source)
+            lit = gpu_state.resolve_low.execute(low.position, low.normal, source)
+        world = self.mirror.snapshot.world.color
+        shaded = pipeline.shade(gbuf, low, view, proj, direct, corner_visible=mask, irradiance=lit,
+                                debug_view=debug_view, world_color=world, stats=stats)
+        with stats.step("present"):
+            cells = None
+            if debug_cells:
+                result = published.view
+                if result is not None and result.cells is not None:
+                    if gpu_state.cells_source is None or gpu_state.cells_source.serial != result.serial:
+                        gpu_state.cells_source = _DirectSource.cells_of(result)
+                    # The direct light's resolve is done with its target: reuse it for the colours.
+                    cells = gpu_state.resolve_full.execute(gbuf.position, gbuf.normal, gpu_state.cells_source,
+                                                           nearest=True)
+            out = gpu_state.present.execute(shaded.combined, gbuf, present_mode, opaque, cells)
+        self._drawn_key, self._drawn_serials = key, serials
+        stats.total_ms = (time.perf_counter() - t0) * 1e3
+        self.last_stats = stats
+        LIVE_STATS[scene.name] = LiveStats(stats, published.stats, published.error)
+        return out
+
+    def needs_redraw(self) -> bool:
+        """More to show: the worker is busy or published something not drawn yet."""
+        if self.worker is None:
+            return False
+        published = self.worker.latest()
+        if published.error is not None:
+            return False
+        serials = (
+            None if published.cache is None else published.cache.serial,
+            None if published.view is None else published.view.serial,
+        )
+        return not published.stats.idle or serials != self._drawn_serials or self.mirror.gpu_dirty is not None
+
+    def _ensure_gpu(self, props, published, width: int, height: int) -> _GPUState:
+        cell = published.cache.grid.cell_size if published.cache is not None else None
+        raster = props.raster_settings(cell_size=cell)
+        if self.gpu is not None and raster != self._raster and not self.gpu.pipeline.set_settings(raster):
+            self.gpu.free()
+            self.gpu = None
+        if self.gpu is None:
+            self.gpu = _GPUState(raster)
+            self.mirror.gpu_dirty = "full"
+            self._posted_key = None
+        self._raster = raster
+        self.gpu.resize(width, height)
+        return self.gpu
+
+    def _upload_geometry(self, pipeline) -> None:
+        dirty = self.mirror.gpu_dirty
+        if dirty == "full":
+            pipeline.upload(self.mirror.gpu_snapshot())
+        elif dirty == "positions":
+            pipeline.gbuffer.update_positions(self.mirror.gpu_positions)
+        self.mirror.gpu_dirty = None
+
+    def _post_view(self, gpu_state: _GPUState, gbuf, camera: ViewCamera, view_key, stats: DrawStats,
+                   debug_cells: bool = False) -> None:
+        """Read back the low-res G-buffer(s) and hand them to the worker (copies: the passes
+        reuse their read-back arrays)."""
+        with stats.step("readback"):
+            normal, position = gpu_state.pipeline.downsample.read_normal_position()
+            if gpu_state.direct_down is not None:
+                gpu_state.direct_down.execute(gbuf)
+                d_normal, d_position = gpu_state.direct_down.read_normal_position()
+            else:
+                d_normal, d_position = normal, position
+        with stats.step("post"):
+            request = worker.ViewRequest(
+                key=view_key, position=position.copy(), normal=normal.copy(),
+                direct_position=d_position.copy(), direct_normal=d_normal.copy(),
+                view=camera.view, proj=camera.proj, debug_cells=debug_cells,
+            )
+            self.worker.post_view(request)
+        self._posted_key = view_key
+        stats.posted_view = True
+
+    def _upload_results(self, gpu_state: _GPUState, published, view_key):
+        """Cache textures and the view's light, each uploaded once per published serial."""
+        if published.cache is not None and published.cache is not gpu_state.cache_frame:
+            gpu_state.pipeline.gather.upload(published.cache)
+            gpu_state.cache_frame = published.cache
+        elif published.cache is None and gpu_state.cache_frame is None:
+            gpu_state.pipeline.gather.upload(_empty_cache_frame())
+            gpu_state.cache_frame = None
+        result = published.view
+        if result is None:
+            if gpu_state.source is None or gpu_state.source.serial != -1:
+                gpu_state.source = _DirectSource.empty()
+        elif gpu_state.source is None or gpu_state.source.serial != result.serial:
+            gpu_state.source = _DirectSource.upload(result)
+        mask = None
+        if result is not None and result.corner_mask is not None and result.key == view_key:
+            if gpu_state.mask_serial != result.serial:
+                gpu_state.mask_tx = _readback.upload_texture_2d(result.corner_mask, "R32F")
+                gpu_state.mask_serial = result.serial
+            mask = gpu_state.mask_tx
+        return gpu_state.source, mask
+
+    # --- lifetime -------------------------------------------------------------------------------
+
+    def close(self) -> None:
+        if self.worker is not None:
+            self.worker.close()
+            self.worker = None
+        if self.gpu is not None:
+            self.gpu.free()
+            self.gpu = None
+
+
+_EMPTY = {}
+
+
+def _empty_cache_frame() -> worker.CacheFrame:
+    """A one-cell cache with nothing valid: what the gather reads before the worker's first frame."""
+    frame = _EMPTY.get("frame")
+    if frame is None:
+        grid_mod = submodule("grid")
+        cache_mod = submodule("cache")
+        settings_mod = submodule("settings")
+        settings = settings_mod.CacheSettings(resolution=1)
+        cache = cache_mod.IrradianceCache(grid_mod.CacheGrid.from_bounds(np.zeros(3), np.ones(3), 1), settings)
+        sh_tex, depth_tex = _gather.pack_cache(cache)
+        frame = _EMPTY["frame"] = worker.CacheFrame(0, cache.grid, settings, sh_tex, depth_tex)
+    return frame
+
+
+# --- the engine's callbacks ----------------------------------------------------------------------
+
+
+def view_update(engine, context, depsgraph) -> None:
+    """HybridGIRenderEngine.view_update: sync what changed to the engine's viewport session."""
+    session = getattr(engine, "viewport", None)
+    if session is None:
+        session = engine.viewport = ViewportSession()
+    session.sync(depsgraph, depsgraph.scene)
+    engine.tag_redraw()
+
+
+def view_draw(engine, context, depsgraph) -> None:
+    """HybridGIRenderEngine.view_draw: draw the live GI image with Blender's display transform."""
+    import gpu  # noqa: PLC0415
+
+    t0 = time.perf_counter()
+    session = getattr(engine, "viewport", None)
+    if session is None:
+        # Blender calls view_update first; a draw without it (tests, a reset) syncs here.
+        view_update(engine, context, depsgraph)
+        session = engine.viewport
+    scene = depsgraph.scene
+    region = context.region
+    pixel_size = max(int(engine.get_preview_pixel_size(scene)), 1)
+    width, height = max(region.width // pixel_size, 1), max(region.height // pixel_size, 1)
+    camera = ViewCamera.from_region_data(context.region_data)
+    try:
+        texture = session.draw(scene, camera, width, height, opaque=not scene.render.film_transparent)
+    except errors.HybridGIError as err:
+        log.error("HybridGI viewport: %s", err)
+        engine.update_stats("HybridGI", f"Error: {err}")
+        return
+    if texture is None:
+        return
+    with session.last_stats.step("display"):
+        gpu.state.blend_set("ALPHA_PREMULT" if scene.render.film_transparent else "NONE")
+        engine.bind_display_space_shader(scene)
+        draw_texture_fullscreen(texture)
+        engine.unbind_display_space_shader()
+        gpu.state.blend_set("NONE")
+    with session.last_stats.step("status"):
+        if session.needs_redraw():
+            engine.tag_redraw()
+        engine.update_stats("HybridGI", status_line(session))
+    session.last_stats.total_ms = (time.perf_counter() - t0) * 1e3
+
+
+def status_line(session: ViewportSession) -> str:
+    published = session.worker.latest() if session.worker is not None else None
+    if published is None:
+        return ""
+    s = published.stats
+    state = "converged" if s.idle else f"converging {s.converged:.0%}"
+    return f"{state} | {s.visible_cells} cells | {s.updates_per_s:.0f} updates/s | {s.rays_per_s / 1e6:.1f} Mrays/s"
+
+
+def free(engine) -> None:
+    """Stop the engine's worker (RenderEngine.__del__)."""
+    session = getattr(engine, "viewport", None)
+    if session is not None:
+        session.close()
+        engine.viewport = None

@@ -1,0 +1,741 @@
+"""The viewport's CPU half on a background thread: cache updates, visible cells, corner visibility
+and direct light at the pixels, all on numpy snapshots.
+
+The main thread posts scene edits (applied in order) and view requests (the latest wins) and reads
+what the worker published: one immutable `Published` record, swapped under a lock, holding
+version-stamped copies (the packed cache textures, the view's direct light and visibility mask).
+The worker alone owns its `GISession`: it builds, syncs, updates and closes it; the main thread
+never calls into it, so closing the viewport while a rebuild runs is safe.
+
+This module imports nothing from bpy, gpu or mathutils (a test imports it with them blocked): a
+Blender object deleted while the worker traces cannot be reached from here.
+"""
+
+from __future__ import annotations
+
+import collections
+import dataclasses
+import logging
+import threading
+import time
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from types import MappingProxyType
+
+import numpy as np
+
+from ._core import errors, submodule
+
+log = logging.getLogger(__name__)
+
+_session = submodule("session")
+_visible = submodule("visible")
+# The texture layout the GPU gather reads; pure numpy (the module imports gpu only inside methods).
+_gather_layout = submodule("raster.gather")
+
+#: A cell whose urgency exceeds this after an edit starts converging again (see `_settled`).
+URGENT = 0.01
+#: Seconds over which updates and rays per second are counted.
+RATE_WINDOW_S = 1.0
+#: Points per chunk of the corner-visibility rays (8 rays each): between chunks the worker looks
+#: for a newer view and drops a mask that would be stale before it is done.
+MASK_CHUNK = 4096
+#: Shortest time between two published caches while updates continue: packing costs the worker
+#: and uploading costs the main thread about 1 ms per 3 MB of texture data, and a display shows
+#: no more than about this rate anyway.
+PUBLISH_INTERVAL_S = 1.0 / 30.0
+
+
+# --- what the main thread posts -----------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class FullScene:
+    """A whole new snapshot (first sync, objects added or deleted, meshes edited)."""
+
+    snapshot: object  # SceneSnapshot
+
+
+@dataclass(frozen=True)
+class MoveVertices:
+    """New world positions and normals of some vertices of the current snapshot (objects moved).
+
+    indices : (k,) int64 rows of geometry.positions; positions, normals : (k, 3) float32
+    """
+
+    indices: np.ndarray
+    positions: np.ndarray
+    normals: np.ndarray
+
+
+@dataclass(frozen=True)
+class SetShading:
+    """Replaced lamps, world or materials (None keeps the current ones); geometry unchanged."""
+
+    lights: list | None = None
+    world: object | None = None
+    materials: list | None = None
+
+
+@dataclass(frozen=True)
+class ViewRequest:
+    """One frame's G-buffer read-backs to light, rows bottom-up.
+
+    key : identifies the camera, size and scene geometry of the frame; echoed by `ViewResult`
+    position, normal : (h, w, 4) float32 at the GI resolution (world position with w = 1 on
+        geometry; unit normal): visible cells and corner visibility
+    direct_position, direct_normal : the same at the direct light's resolution (may be the same arrays)
+    view, proj : (4, 4) float64 camera of the frame (the main thread reprojects results with them)
+    """
+
+    key: tuple
+    position: np.ndarray
+    normal: np.ndarray
+    direct_position: np.ndarray
+    direct_normal: np.ndarray
+    view: np.ndarray
+    proj: np.ndarray
+    debug_cells: bool = False  # also colour the GI pixels by cache cell (the Cache Cells view)
+
+
+@dataclass(frozen=True)
+class WorkerOptions:
+    update_hz: float = 30.0  # GI updates per second aimed at: each update's ray budget follows the
+    # measured ray rate so that one step (update + the view's own rays) takes about 1 / update_hz
+    rays_per_update: int = 262144  # most probe rays of one update (cells = budget / rays per cell)
+    min_cells_per_update: int = 32  # fewest cells of one update (per-update overhead stays small)
+    settle_updates: int = 24  # updates after a change before a cell counts as converged
+    direct_samples: int = 1  # shadow-ray samples per pixel and lamp in each direct-light pass
+    direct_passes: int = 16  # passes averaged while the view stays still (soft shadows converge)
+    background_cells: bool = True  # once the view converged, also converge every surface's cells
+
+
+# --- what the worker publishes ------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class CacheFrame:
+    """The cache as GPU texture data (`raster.gather.pack_cache` layout), packed by the worker."""
+
+    serial: int
+    grid: object  # CacheGrid
+    settings: object  # CacheSettings
+    sh_texels: np.ndarray
+    depth_texels: np.ndarray
+
+
+@dataclass(frozen=True)
+class ViewResult:
+    """Light of one `ViewRequest`: arrays float32, rows bottom-up like the request.
+
+    direct : (h, w, 4) at the direct resolution, rgb = lamp irradiance W/m^2 (mean over `passes`
+        passes), a = 1 where computed; position, normal : the request's direct-resolution arrays
+    corner_mask : (h_gi, w_gi) float32 bit masks of the visible neighbour cells, None until traced
+    cells : (h_gi, w_gi, 4) `visible.cell_debug_colors` of the GI pixels (a = 1 on geometry) when
+        the request asked for them, with gi_position, gi_normal: the request's GI-resolution arrays
+    scene_gen : the scene edits the light was traced with
+    """
+
+    key: tuple
+    serial: int
+    scene_gen: int
+    position: np.ndarray
+    normal: np.ndarray
+    view: np.ndarray
+    proj: np.ndarray
+    direct: np.ndarray
+    passes: int
+    corner_mask: np.ndarray | None = None
+    cells: np.ndarray | None = None
+    gi_position: np.ndarray | None = None
+    gi_normal: np.ndarray | None = None
+
+
+@dataclass(frozen=True)
+class WorkerStats:
+    updates: int = 0  # GI updates since the worker started
+    updates_per_s: float = 0.0  # over the last RATE_WINDOW_S
+    rays_per_s: float = 0.0  # probe, shadow and visibility rays over the last RATE_WINDOW_S
+    visible_cells: int = 0
+    converged: float = 0.0  # share of the visible cells that settled since the last change
+    steps_ms: Mapping[str, float] = field(default_factory=lambda: MappingProxyType({}))
+    scene_gen: int = 0  # edits applied so far (compare with `post_edit`'s return value)
+    idle: bool = False
+
+
+@dataclass(frozen=True)
+class Published:
+    cache: CacheFrame | None = None
+    view: ViewResult | None = None
+    stats: WorkerStats = WorkerStats()
+    empty: bool = False  # the scene has no geometry (the world alone is drawn)
+    error: str | None = None  # the worker stopped on this error
+
+
+def _frozen(array: np.ndarray) -> np.ndarray:
+    array.flags.writeable = False
+    return array
+
+
+# --- the worker ---------------------------------------------------------------------------------
+
+
+class ViewportWorker:
+    """A thread that owns one `GISession` and keeps it converged for the latest view."""
+
+    def __init__(self, settings, options: WorkerOptions | None = None, name: str = "hybridgi-viewport"):
+        self.options = options or WorkerOptions()
+        self._cond = threading.Condition()
+        # Inbox (guarded by _cond).
+        self._edits: list = []
+        self._edit_gen = 0
+        self._view: ViewRequest | None = None
+        self._settings = settings
+        self._stop = False
+        self._idle = False
+        # Outbox (guarded by _cond; the record itself is immutable).
+        self._published = Published()
+        # Worker-thread state: touched by the worker thread only.
+        self._session = None
+        self._snapshot = None
+        self._empty = False
+        self._applied_gen = 0
+        self._scene_version = 0  # bumped by every sync that changed something: stale view light
+        self._more_updates = False
+        self._cache_ref = None
+        self._settled = np.zeros(0, np.int32)
+        self._secondary: np.ndarray | None = None
+        self._frame = 0
+        self._serial = 0
+        self._published_cache_key = None
+        self._published_at = 0.0
+        self._view_state: _ViewState | None = None
+        self._rates: collections.deque = collections.deque()
+        self._updates = 0
+        self._ray_rate = 0.0  # probe rays per ms of update wall time (moving average)
+        self._view_ms = 0.0  # wall time of lighting a new view (moving average)
+        self._steps: dict[str, float] = {}
+        self._thread = threading.Thread(target=self._run, name=name, daemon=True)
+        self._thread.start()
+
+    # --- main-thread API ------------------------------------------------------------------------
+
+    def post_edit(self, edit) -> int:
+        """Queue a scene edit; returns its generation (done when `stats.scene_gen` reaches it)."""
+        with self._cond:
+            self._edits.append(edit)
+            self._edit_gen += 1
+            self._idle = False
+            self._cond.notify_all()
+            return self._edit_gen
+
+    def post_view(self, request: ViewRequest) -> None:
+        """Replace the view to light (an older one not yet started is dropped)."""
+        with self._cond:
+            self._view = request
+            self._idle = False
+            self._cond.notify_all()
+
+    def set_settings(self, settings) -> None:
+        with self._cond:
+            if settings != self._settings:
+                self._settings = settings
+                self._idle = False
+                self._cond.notify_all()
+
+    def latest(self) -> Published:
+        with self._cond:
+            return self._published
+
+    @property
+    def idle(self) -> bool:
+        """Nothing left to do: every edit applied, the view lit and converged."""
+        with self._cond:
+            return self._idle and not self._edits
+
+    @property
+    def alive(self) -> bool:
+        return self._thread.is_alive()
+
+    def wait(self, predicate: Callable[[Published], bool], timeout: float) -> bool:
+        """Block until predicate(latest()) holds, the worker failed or stopped, or timeout (False)."""
+        with self._cond:
+            done = self._cond.wait_for(
+                lambda: predicate(self._published) or self._published.error is not None or self._stop, timeout)
+            return bool(done) and predicate(self._published)
+
+    def wait_idle(self, timeout: float) -> bool:
+        """Block until the worker has nothing left to do (True) or timeout (False)."""
+        with self._cond:
+            return bool(self._cond.wait_for(
+                lambda: (self._idle and not self._edits) or self._published.error is not None, timeout)) \
+                and self._published.error is None
+
+    def close(self, timeout: float = 10.0) -> None:
+        """Stop the thread; it closes its session itself. A step in progress (a rebuild) is
+        finished first: after `timeout` the daemon thread is left to end on its own."""
+        with self._cond:
+            self._stop = True
+            self._cond.notify_all()
+        if threading.current_thread() is not self._thread:
+            self._thread.join(timeout)
+            if self._thread.is_alive():
+                log.warning("viewport worker still busy after %.1f s; it stops after its current step", timeout)
+
+    # --- worker thread --------------------------------------------------------------------------
+
+    def _run(self) -> None:
+        try:
+            while True:
+                with self._cond:
+                    while not self._stop and not self._edits and not self._has_work():
+                        if not self._idle:
+                            self._idle = True
+                            # Cheap: the last step packed the cache already (pack=False).
+                            self._published = self._build_published(idle=True, pack=False)
+                            self._cond.notify_all()
+                        self._cond.wait()
+                    if self._stop:
+                        return
+                    edits, self._edits = self._edits, []
+                    edit_gen = self._edit_gen
+                    view, settings = self._view, self._settings
+                    self._idle = False
+                self._step(edits, edit_gen, view, settings)
+        except errors.HybridGIError as err:
+            self._fail(str(err))
+        except Exception as err:
+            # The thread ends here: log the traceback and publish the message, which the main
+            # thread reports (an exception cannot cross threads by itself).
+            log.exception("viewport worker failed")
+            self._fail(f"internal error: {type(err).__name__}: {err}")
+        finally:
+            if self._session is not None:
+                self._session.close()
+                self._session = None
+
+    def _has_work(self) -> bool:
+        """Called by the worker under the lock (for the inbox): cheap checks only, no numpy work."""
+        if self._settings != getattr(self._session, "settings", self._settings):
+            return True
+        if self._session is None or self._session.system is None:
+            return False
+        state = self._view_state
+        if self._view is not None and (state is None or not state.current(self._view, self._scene_version)):
+            return True
+        if state is not None and (state.mask is None or state.passes < self.options.direct_passes):
+            return True
+        if state is not None and state.request.debug_cells:
+            cache = self._session.system.cache
+            if state.cells_key != (id(cache), cache.version):
+                return True  # the Cache Cells colours lag behind the cache
+        return self._more_updates
+
+    def _step(self, edits: list, edit_gen: int, view: ViewRequest | None, settings) -> None:
+        t0 = time.perf_counter()
+        if self._session is None:
+            self._session = _session.GISession(settings)
+        resync = settings != self._session.settings
+        if resync:
+            self._session.set_settings(settings)
+        if edits or resync:
+            self._apply(edits, resync)
+        self._applied_gen = edit_gen
+        self._steps["sync"] = (time.perf_counter() - t0) * 1e3
+        system = self._session.system
+        if system is None:
+            self._more_updates = False
+            self._publish()
+            return
+        state = self._view_state
+        moving = view is not None and (state is None or not state.current(view, self._scene_version))
+        if moving:
+            t_view = time.perf_counter()
+            self._begin_view(system, view)
+            self._publish()  # the new view's light first: the main thread reprojects it meanwhile
+            ms = (time.perf_counter() - t_view) * 1e3
+            self._view_ms = ms if self._view_ms == 0 else 0.7 * self._view_ms + 0.3 * ms
+        cells = self._cells_to_update(view_work=moving)
+        if cells.size:
+            self._update(system, cells)
+        state = self._view_state
+        if state is not None and state.request.debug_cells:
+            self._cell_colors(system, state, force=moving or not cells.size)
+        if state is not None and not moving:
+            # Refinements of a view that held still for a whole step.
+            if state.mask is None:
+                self._trace_mask(system, state)
+            elif state.passes < self.options.direct_passes:
+                self._direct_pass(system, state)
+        self._more_updates = self._cells_to_update().size > 0
+        # The last update before a pause is always published; in between, at PUBLISH_INTERVAL_S.
+        self._publish(force=not self._more_updates)
+
+    # --- scene ----------------------------------------------------------------------------------
+
+    def _apply(self, edits: list, resync: bool) -> None:
+        t0 = time.perf_counter()
+        old = self._snapshot
+        snapshot = old
+        positions = normals = None
+        for edit in edits:
+            if isinstance(edit, FullScene):
+                snapshot, positions, normals = edit.snapshot, None, None
+            elif isinstance(edit, MoveVertices):
+                if snapshot is None:
+                    continue  # nothing to move yet; the full scene that follows has the positions
+                if positions is None:
+                    # Copies: the main thread's snapshot arrays are shared and stay untouched.
+                    positions = snapshot.geometry.positions.copy()
+                    normals = snapshot.geometry.normals.copy()
+                positions[edit.indices] = edit.positions
+                normals[edit.indices] = edit.normals
+            elif isinstance(edit, SetShading):
+                if snapshot is None:
+                    continue
+                snapshot = _with_geometry(snapshot, positions, normals)
+                positions = normals = None
+                snapshot = dataclasses.replace(
+                    snapshot,
+                    lights=snapshot.lights if edit.lights is None else list(edit.lights),
+                    world=snapshot.world if edit.world is None else edit.world,
+                    materials=snapshot.materials if edit.materials is None else list(edit.materials),
+                )
+            else:
+                raise TypeError(f"unknown scene edit {type(edit).__name__}")
+        if snapshot is None:
+            return
+        snapshot = _with_geometry(snapshot, positions, normals)
+        self._snapshot = snapshot
+        self._scene_version += 1
+        try:
+            report = self._session.sync(snapshot)
+        except errors.EmptySceneError:
+            self._empty = True
+            self._view_state = None
+            self._cache_ref = None
+            return
+        self._empty = False
+        cache = self._session.system.cache
+        if cache is not self._cache_ref:
+            self._cache_ref = cache
+            self._settled = np.zeros(cache.grid.count, np.int32)
+        if report.rebuilt and old is not None and cache.samples.any():
+            # GISession keeps the cache across a rebuild but raises no event for objects that
+            # appeared, vanished or changed topology, nor for light edits that came with them.
+            boxes = _changed_object_boxes(old, snapshot)
+            if boxes:
+                cache.on_geometry_changed(boxes)
+            if _shading_key(old) != _shading_key(snapshot):
+                cache.on_lights_changed()
+        if report.rebuilt or report.moved or report.lights_changed or resync:
+            self._settled[cache.urgency > URGENT] = 0
+            self._secondary = None
+        self._steps["apply"] = (time.perf_counter() - t0) * 1e3
+
+    # --- view -----------------------------------------------------------------------------------
+
+    def _begin_view(self, system, view: ViewRequest) -> None:
+        """Visible cells and a first, coarse pass of direct light at the GI resolution: what a
+        moving camera needs at once; the direct light's own resolution follows while it holds still."""
+        t0 = time.perf_counter()
+        points, normals, pix = _visible.pixels_to_points(view.position, view.normal)
+        cells = system.visible_cells(points, normals)
+        state = _ViewState(view, self._scene_version, (points, normals, pix), cells)
+        self._steps["visible"] = (time.perf_counter() - t0) * 1e3
+        self._view_state = state
+        self._direct_pass(system, state, state.coarse)
+
+    def _direct_pass(self, system, state: _ViewState, level: _DirectLevel | None = None) -> None:
+        t0 = time.perf_counter()
+        level = level or state.fine_level()
+        self._frame += 1
+        samples = self.options.direct_samples * level.samples
+        points, normals, pix = level.points
+        if points.shape[0]:
+            level.sum[pix, :3] += system.direct(points, normals, self._frame, samples=samples)
+        level.passes += 1
+        self._count_rays(points.shape[0] * samples * max(len(system.scene.lights), 1))
+        self._steps["direct"] = (time.perf_counter() - t0) * 1e3
+        state.dirty = True
+
+    def _cell_colors(self, system, state: _ViewState, force: bool) -> None:
+        """The Cache Cells view of the GI pixels, as final renders draw it; again when the cache
+        changed (at most every PUBLISH_INTERVAL_S while it converges)."""
+        cache = system.cache
+        key = (id(cache), cache.version)
+        if state.cells_key == key or not (force or time.perf_counter() - state.cells_at >= PUBLISH_INTERVAL_S):
+            return
+        t0 = time.perf_counter()
+        points, normals, pix = state.gi_points
+        h, w = state.request.position.shape[:2]
+        rgba = np.zeros((h * w, 4), np.float32)
+        if points.shape[0]:
+            rgba[pix, :3] = _visible.cell_debug_colors(cache, points, normals)
+            rgba[pix, 3] = 1.0
+        state.cell_colors = rgba.reshape(h, w, 4)
+        state.cells_key, state.cells_at = key, time.perf_counter()
+        self._steps["cells"] = (time.perf_counter() - t0) * 1e3
+        state.dirty = True
+
+    def _trace_mask(self, system, state: _ViewState) -> None:
+        t0 = time.perf_counter()
+        h, w = state.request.position.shape[:2]
+        points, normals, pix = state.gi_points
+        mask = np.zeros((h * w, 8), bool)
+        for start in range(0, points.shape[0], MASK_CHUNK):
+            if self._view is not state.request:
+                return  # a newer view arrived (a plain read of the inbox reference is atomic)
+            chunk = slice(start, start + MASK_CHUNK)
+            mask[pix[chunk]] = system.corner_visibility(points[chunk], normals[chunk])
+        state.mask = _gather_layout.pack_corner_mask(mask.reshape(h, w, 8))
+        self._count_rays(8 * points.shape[0])
+        self._steps["visibility"] = (time.perf_counter() - t0) * 1e3
+        state.dirty = True
+
+    # --- cache ----------------------------------------------------------------------------------
+
+    def _cells_to_update(self, view_work: bool = False) -> np.ndarray:
+        """Unsettled cells of the view first, then (option) of every surface; within the ray budget
+        (view_work: this step lit a new view too, which takes its share of the step's time)."""
+        system = getattr(self._session, "system", None)
+        if system is None or self._settled.size == 0:
+            return np.zeros(0, np.int64)
+        target = self.options.settle_updates
+        state = self._view_state
+        if state is None:
+            return np.zeros(0, np.int64)
+        cells = state.cells[self._settled[state.cells] < target]
+        if cells.size == 0 and self.options.background_cells:
+            if self._secondary is None:
+                self._secondary = system.surface_cells()
+            cells = self._secondary[self._settled[self._secondary] < target]
+        budget = self._cell_budget(system.settings.rays_per_cell, view_work)
+        if cells.size > budget:
+            # The least refreshed first: cells take turns, and a change's surroundings lead.
+            order = np.argsort(self._settled[cells], kind="stable")[:budget]
+            cells = np.sort(cells[order])
+        return cells
+
+    def _cell_budget(self, rays_per_cell: int, view_work: bool) -> int:
+        """Cells of the next update: what the measured ray rate traces in the part of a
+        1 / update_hz step that lighting the view leaves (at least a quarter of it)."""
+        o = self.options
+        step_ms = 1000.0 / o.update_hz
+        spare = step_ms - (self._view_ms if view_work else 0.25 * step_ms)
+        rays = o.rays_per_update
+        if self._ray_rate > 0:
+            rays = min(rays, int(self._ray_rate * max(spare, 0.25 * step_ms)))
+        return max(o.min_cells_per_update, rays // rays_per_cell)
+
+    def _update(self, system, cells: np.ndarray) -> None:
+        t0 = time.perf_counter()
+        self._frame += 1
+        run = system.update(cells, self._frame)
+        self._settled[cells] += 1
+        self._updates += 1
+        self._count_rays(run.rays, update=True)
+        ms = (time.perf_counter() - t0) * 1e3
+        self._steps["update"] = ms
+        rate = run.rays / max(ms, 1e-3)
+        self._ray_rate = rate if self._ray_rate == 0 else 0.7 * self._ray_rate + 0.3 * rate
+
+    # --- publishing -----------------------------------------------------------------------------
+
+    def _count_rays(self, rays: int, update: bool = False) -> None:
+        now = time.perf_counter()
+        self._rates.append((now, int(rays), update))
+        while self._rates and now - self._rates[0][0] > RATE_WINDOW_S:
+            self._rates.popleft()
+
+    def _stats(self) -> WorkerStats:
+        now = time.perf_counter()
+        recent = [r for r in self._rates if now - r[0] <= RATE_WINDOW_S]
+        span = max(now - recent[0][0], 1e-3) if len(recent) > 1 else RATE_WINDOW_S
+        state = self._view_state
+        visible = state.cells if state is not None else np.zeros(0, np.int64)
+        settled = self._settled[visible] >= self.options.settle_updates if self._settled.size else np.zeros(0, bool)
+        return WorkerStats(
+            updates=self._updates,
+            updates_per_s=sum(1 for r in recent if r[2]) / span,
+            rays_per_s=sum(r[1] for r in recent) / span,
+            visible_cells=int(visible.size),
+            converged=float(settled.mean()) if settled.size else 0.0,
+            steps_ms=MappingProxyType(dict(self._steps)),
+            scene_gen=self._applied_gen,
+        )
+
+    def _publish(self, force: bool = True) -> None:
+        published = self._build_published(idle=False, force=force)
+        with self._cond:
+            self._published = published
+            self._cond.notify_all()
+
+    def _build_published(self, idle: bool, pack: bool = True, force: bool = True) -> Published:
+        """A new `Published` from the worker's state; arrays handed out are copies never written
+        again. pack : whether the cache may be packed now; force : even within PUBLISH_INTERVAL_S."""
+        system = getattr(self._session, "system", None)
+        cache_frame, view_result = self._published.cache, self._published.view
+        if system is None:
+            cache_frame = view_result = None
+        else:
+            cache = system.cache
+            key = (id(cache), cache.version, id(cache.sh_direct))
+            old = self._published_cache_key
+            new_cache = old is None or old[0] != key[0] or old[2] != key[2]
+            due = force or new_cache or time.perf_counter() - self._published_at >= PUBLISH_INTERVAL_S
+            if pack and key != old and due:
+                t0 = time.perf_counter()
+                sh_tex, depth_tex = _gather_layout.pack_cache(cache)
+                self._serial += 1
+                cache_frame = CacheFrame(self._serial, cache.grid, cache.settings, _frozen(sh_tex), _frozen(depth_tex))
+                self._published_cache_key = key
+                self._published_at = time.perf_counter()
+                self._steps["pack"] = (time.perf_counter() - t0) * 1e3
+            state = self._view_state
+            if state is None:
+                view_result = None
+            elif state.dirty:
+                self._serial += 1
+                view_result = state.result(self._serial)
+                state.dirty = False
+        stats = dataclasses.replace(self._stats(), idle=idle)
+        return Published(cache=cache_frame, view=view_result, stats=stats, empty=self._empty)
+
+    def _fail(self, message: str) -> None:
+        with self._cond:
+            self._published = dataclasses.replace(self._published, error=message)
+            self._stop = True
+            self._cond.notify_all()
+
+
+class _DirectLevel:
+    """Running sum of direct-light passes at one resolution (worker thread only)."""
+
+    def __init__(self, position: np.ndarray, normal: np.ndarray, points: tuple, samples: int = 1):
+        self.position, self.normal = position, normal
+        self.points = points  # (points, normals, flat pixels)
+        self.samples = samples  # shadow-ray samples per pixel and pass, in units of direct_samples
+        h, w = position.shape[:2]
+        self.sum = np.zeros((h * w, 4), np.float32)
+        self.sum[points[2], 3] = 1.0
+        self.passes = 0
+
+    @property
+    def samples_per_pixel(self) -> int:
+        return self.passes * self.samples
+
+    def mean(self) -> np.ndarray:
+        h, w = self.position.shape[:2]
+        out = self.sum.copy()
+        out[:, :3] /= max(self.passes, 1)
+        return out.reshape(h, w, 4)
+
+
+class _ViewState:
+    """The worker's running state for the latest view (worker thread only): visible cells, the
+    corner mask, and direct light at two levels, coarse (GI resolution, one pass, as soon as the
+    view arrives) and fine (the direct light's resolution, refined while the view holds still)."""
+
+    def __init__(self, request: ViewRequest, scene_gen: int, gi_points: tuple, cells: np.ndarray):
+        self.request = request
+        self.scene_gen = scene_gen
+        self.gi_points = gi_points  # (points, normals, flat pixels) at the GI resolution
+        self.cells = cells
+        # The coarse pass traces as many rays as one fine pass (more samples on fewer pixels), so
+        # soft shadows shimmer no more while the camera moves than once it stops.
+        ratio = request.direct_position.shape[0] * request.direct_position.shape[1] / max(
+            request.position.shape[0] * request.position.shape[1], 1)
+        self.coarse = _DirectLevel(request.position, request.normal, gi_points, int(np.clip(round(ratio), 1, 16)))
+        self._fine: _DirectLevel | None = None
+        self.mask: np.ndarray | None = None
+        self.cell_colors: np.ndarray | None = None  # Cache Cells view, when the request asks
+        self.cells_key = None
+        self.cells_at = 0.0
+        self.dirty = False
+
+    def fine_level(self) -> _DirectLevel:
+        if self._fine is None:
+            r = self.request
+            if r.direct_position is r.position:
+                self._fine = self.coarse  # one resolution: the coarse pass is the first fine one
+            else:
+                points = _visible.pixels_to_points(r.direct_position, r.direct_normal)
+                self._fine = _DirectLevel(r.direct_position, r.direct_normal, points)
+        return self._fine
+
+    @property
+    def passes(self) -> int:
+        """Passes of the light that is published: fine once it has one, else the coarse one."""
+        return self._fine.passes if self._fine is not None else 0
+
+    def current(self, request: ViewRequest, scene_gen: int) -> bool:
+        return request is self.request and scene_gen == self.scene_gen
+
+    def result(self, serial: int) -> ViewResult:
+        # The fine light replaces the coarse one once it is no noisier per pixel.
+        fine = self._fine
+        level = fine if fine is not None and fine.samples_per_pixel >= self.coarse.samples_per_pixel else self.coarse
+        r = self.request
+        return ViewResult(
+            key=r.key, serial=serial, scene_gen=self.scene_gen, position=level.position, normal=level.normal,
+            view=r.view, proj=r.proj, direct=_frozen(level.mean()), passes=level.passes,
+            corner_mask=None if self.mask is None else _frozen(self.mask.copy()),
+            cells=None if self.cell_colors is None else _frozen(self.cell_colors.copy()),
+            gi_position=r.position, gi_normal=r.normal,
+        )
+
+
+# --- snapshot helpers (pure numpy) ----------------------------------------------------------------
+
+
+def _with_geometry(snapshot, positions, normals):
+    if positions is None:
+        return snapshot
+    geometry = dataclasses.replace(snapshot.geometry, positions=positions, normals=normals)
+    return dataclasses.replace(snapshot, geometry=geometry)
+
+
+def object_boxes(snapshot) -> dict[str, tuple[np.ndarray, np.ndarray, int]]:
+    """Object name -> (lo, hi, triangle count) of its triangles in `snapshot`."""
+    g = snapshot.geometry
+    out = {}
+    if g.triangle_count == 0:
+        return out
+    # Triangles are grouped by object (the sync appends objects one after the other).
+    order = np.argsort(g.object_index, kind="stable")
+    obj = g.object_index[order]
+    starts = np.flatnonzero(np.r_[True, obj[1:] != obj[:-1]])
+    corners = g.positions[g.triangles[order]]  # (T, 3, 3)
+    lo = np.minimum.reduceat(corners.min(axis=1), starts)
+    hi = np.maximum.reduceat(corners.max(axis=1), starts)
+    counts = np.diff(np.r_[starts, obj.size])
+    for i, s in enumerate(starts):
+        out[snapshot.objects[int(obj[s])].name] = (lo[i], hi[i], int(counts[i]))
+    return out
+
+
+def _changed_object_boxes(old, new) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Boxes of objects that appeared, vanished or changed triangle count between two snapshots."""
+    a, b = object_boxes(old), object_boxes(new)
+    boxes = []
+    for name in a.keys() | b.keys():
+        if name in a and name in b and a[name][2] == b[name][2]:
+            continue
+        for rec in (a.get(name), b.get(name)):
+            if rec is not None:
+                boxes.append((rec[0], rec[1]))
+    return boxes
+
+
+def _shading_key(snapshot) -> tuple:
+    lights = tuple(
+        (lt.kind, lt.color.tobytes(), float(lt.power), lt.matrix.tobytes(), lt.radius, lt.spot_size,
+         lt.spot_blend, lt.angle, lt.shape, lt.size, lt.size_y)
+        for lt in snapshot.lights
+    )
+    materials = tuple(
+        (m.base_color.tobytes(), m.emission.tobytes(), None if m.texture is None else (m.texture.shape, float(m.texture.sum())))
+        for m in snapshot.materials
+    )
+    return lights, materials, snapshot.world.color.tobytes(), float(snapshot.world.ao_distance)

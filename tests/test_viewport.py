@@ -1,0 +1,605 @@
+"""Live viewport GI: the HYBRIDGI engine's view_update / view_draw and the Solid-mode GI overlay,
+driven the way Blender drives them but from the test (timers and draw handlers never run in the
+bpy module): a fake engine and context with a viewport camera, an offscreen target, pixels read
+back. Every wait on the worker has a timeout; nothing sleeps.
+
+The Cornell box is built from `blend_scenes/build.py` into a temporary folder. Images are tiny
+(96x72) and the cache coarse so the whole file stays within a few seconds on two shared cores.
+"""
+
+from __future__ import annotations
+
+import importlib
+import json
+import os
+import subprocess
+import sys
+import textwrap
+import threading
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+pytestmark = pytest.mark.blender
+
+REPO = Path(__file__).resolve().parents[1]
+W, H = 96, 72
+TIMEOUT_S = 60.0
+LUMA = np.array([0.2126, 0.7152, 0.0722], np.float32)
+
+
+# ----------------------------------------------------------------------------------------------
+# fixtures: the scene, the add-on, a fake viewport
+# ----------------------------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def cornell_blend(tmp_path_factory):
+    out = tmp_path_factory.mktemp("scenes")
+    env = dict(os.environ)
+    env.pop("BLENDER_USER_RESOURCES", None)
+    run = subprocess.run([sys.executable, str(REPO / "blend_scenes" / "build.py"), "--only", "cornell", "--out", str(out)],
+                         capture_output=True, text=True, timeout=120, env=env, cwd=REPO)
+    assert run.returncode == 0, run.stderr[-2000:]
+    return out / "cornell.blend"
+
+
+@pytest.fixture
+def addon(bpy_module, gpu_context, cornell_blend):
+    """The Cornell box open with the add-on enabled; returns the add-on's modules."""
+    bpy = bpy_module
+    from hybridgi_cli import dev_install  # noqa: PLC0415
+
+    bpy.ops.wm.open_mainfile(filepath=str(cornell_blend))
+    package = dev_install.enable()
+    scene = bpy.context.scene
+    scene.render.engine = "HYBRIDGI"
+    props = scene.hybridgi
+    props.resolution = 10  # coarse cache and few rays: converges in about a second here
+    props.rays_per_cell = 32
+    modules = SimpleNamespace(
+        bpy=bpy,
+        viewport=importlib.import_module(f"{package.__name__}.viewport"),
+        overlay=importlib.import_module(f"{package.__name__}.overlay"),
+        worker=importlib.import_module(f"{package.__name__}.worker"),
+    )
+    yield modules
+    modules.overlay.close_all()
+
+
+class FakeEngine:
+    """What view_update / view_draw use of a RenderEngine (one cannot be made from Python)."""
+
+    def __init__(self):
+        self.viewport = None
+        self.redraws = 0
+        self.status = ""
+
+    def tag_redraw(self):
+        self.redraws += 1
+
+    def get_preview_pixel_size(self, scene):
+        return 1
+
+    def bind_display_space_shader(self, scene):
+        pass  # Blender binds its IMAGE shader here; view_draw draws with that same shader
+
+    def unbind_display_space_shader(self):
+        pass
+
+    def update_stats(self, stats, info):
+        self.status = info
+
+
+class View:
+    """A fake 3D View: region, region_data with the scene camera's matrices, an offscreen target."""
+
+    def __init__(self, m, ortho_scale=None):
+        import gpu  # noqa: PLC0415
+
+        self.m = m
+        bpy = m.bpy
+        scene = bpy.context.scene
+        depsgraph = bpy.context.evaluated_depsgraph_get()
+        cam = scene.camera.evaluated_get(depsgraph)
+        window = cam.calc_matrix_camera(depsgraph, x=W, y=H)
+        if ortho_scale is not None:
+            window = _orthographic(ortho_scale)
+        self.region_data = SimpleNamespace(
+            view_matrix=cam.matrix_world.inverted(), window_matrix=window,
+            is_perspective=ortho_scale is None, view_perspective="CAMERA" if ortho_scale is None else "ORTHO",
+        )
+        self.context = SimpleNamespace(
+            region=SimpleNamespace(width=W, height=H), region_data=self.region_data, scene=scene,
+            evaluated_depsgraph_get=bpy.context.evaluated_depsgraph_get,
+        )
+        self.engine = FakeEngine()
+        self.offscreen = gpu.types.GPUOffScreen(W, H, format="RGBA16F")
+        self._handler = None
+
+    @property
+    def session(self):
+        return self.engine.viewport
+
+    def update(self):
+        self.m.viewport.view_update(self.engine, self.context, self.m.bpy.context.evaluated_depsgraph_get())
+
+    def draw(self, fill=(0.0, 0.0, 0.0, 0.0), overlay=False) -> np.ndarray:
+        """One redraw into the offscreen; (H, W, 4) float32 rows bottom-up."""
+        import gpu  # noqa: PLC0415
+
+        out = np.empty((H, W, 4), np.float32)
+        with self.offscreen.bind():
+            fb = gpu.state.active_framebuffer_get()
+            fb.clear(color=fill)
+            if overlay:
+                self.m.overlay.draw_overlay(self.context)
+            else:
+                self.m.viewport.view_draw(self.engine, self.context, self.m.bpy.context.evaluated_depsgraph_get())
+            fb.read_color(0, 0, W, H, 4, 0, "FLOAT", data=gpu.types.Buffer("FLOAT", out.size, out))
+        return out
+
+    def converge(self, session=None):
+        session = session or self.session
+        assert session.worker.wait_idle(TIMEOUT_S), "the worker did not converge in time"
+        published = session.worker.latest()
+        assert published.error is None, published.error
+        assert published.stats.scene_gen >= session.last_edit_gen
+        return published
+
+    def follow_edits(self):
+        """Call view_update after each depsgraph evaluation, as Blender does for a viewport."""
+        def handler(scene, depsgraph):
+            self.m.viewport.view_update(self.engine, self.context, depsgraph)
+
+        self._handler = handler
+        self.m.bpy.app.handlers.depsgraph_update_post.append(handler)
+
+    def close(self):
+        if self._handler is not None:
+            self.m.bpy.app.handlers.depsgraph_update_post.remove(self._handler)
+        if self.session is not None:
+            self.m.viewport.free(self.engine)
+        self.offscreen.free()
+
+
+@pytest.fixture
+def view(addon):
+    v = View(addon)
+    yield v
+    v.close()
+
+
+def _orthographic(half_height, near=0.1, far=100.0):
+    from mathutils import Matrix  # noqa: PLC0415
+
+    half_width = half_height * W / H
+    return Matrix(((1 / half_width, 0, 0, 0), (0, 1 / half_height, 0, 0),
+                   (0, 0, -2 / (far - near), -(far + near) / (far - near)), (0, 0, 0, 1)))
+
+
+def _luma(img):
+    return img[..., :3] @ LUMA
+
+
+def _converged_image(view):
+    view.update()
+    view.draw()  # posts the first view request
+    view.converge()
+    return view.draw()
+
+
+# ----------------------------------------------------------------------------------------------
+# the worker alone, with bpy blocked
+# ----------------------------------------------------------------------------------------------
+WORKER_WITHOUT_BPY = textwrap.dedent("""
+    import importlib, json, sys, types
+    import numpy as np
+    for name in ("bpy", "gpu", "mathutils", "bmesh", "gpu_extras"):
+        sys.modules[name] = None  # any import of these raises ImportError
+    package = types.ModuleType("hybridgi_addon_probe")
+    package.__path__ = [sys.argv[1]]  # the add-on folder, without running its __init__ (bpy)
+    sys.modules[package.__name__] = package
+    worker = importlib.import_module("hybridgi_addon_probe.worker")
+
+    from blend_scenes import procedural
+    from hybridgi_core.settings import CacheSettings
+    from hybridgi_core.system import GISystem
+
+    scene = procedural.cornell()
+    settings = CacheSettings(resolution=8, rays_per_cell=16, threads=1)
+    cam = procedural.describe("cornell").camera
+    w, h = 32, 24
+    m = cam.matrix()
+    half_w = 0.5 * cam.sensor_width_mm / cam.lens_mm
+    x = ((np.arange(w) + 0.5) / w * 2 - 1) * half_w
+    y = ((np.arange(h) + 0.5) / h * 2 - 1) * half_w * h / w
+    xx, yy = np.meshgrid(x, y)
+    d = np.stack([xx.ravel(), yy.ravel(), -np.ones(xx.size)], 1) @ m[:3, :3].T
+    d = (d / np.linalg.norm(d, axis=1, keepdims=True)).astype(np.float32)
+    with GISystem(scene, settings) as primary:  # a pinhole G-buffer, as the GPU would read back
+        hits = primary.tracer.intersect(np.repeat(m[None, :3, 3], d.shape[0], 0).astype(np.float32), d)
+        ok = hits.prim >= 0
+        surf = primary.surfaces.surface(hits.prim[ok], hits.u[ok], hits.v[ok], d[ok])
+    pos = np.zeros((h * w, 4), np.float32)
+    nrm = np.zeros((h * w, 4), np.float32)
+    pos[ok, :3], pos[ok, 3], nrm[ok, :3] = surf.position, 1.0, surf.normal
+    pos, nrm = pos.reshape(h, w, 4), nrm.reshape(h, w, 4)
+
+    wk = worker.ViewportWorker(settings, worker.WorkerOptions(direct_passes=4))
+    gen = wk.post_edit(worker.FullScene(scene))
+    wk.post_view(worker.ViewRequest(("k",), pos, nrm, pos, nrm, np.linalg.inv(m), np.eye(4)))
+    idle = wk.wait_idle(60)
+    p = wk.latest()
+    wk.close()
+    k = settings.sh_coeffs
+    valid = p.cache.sh_texels.reshape(-1, 4)[: p.cache.grid.count * 2 * k].reshape(-1, 2 * k, 4)[:, k, 3]
+    print(json.dumps({
+        "idle": idle, "error": p.error, "scene_gen": p.stats.scene_gen, "gen": gen,
+        "converged": p.stats.converged, "visible": p.stats.visible_cells,
+        "direct_mean": float(p.view.direct[..., :3][ok.reshape(h, w)].mean()),
+        "passes": p.view.passes, "has_mask": p.view.corner_mask is not None,
+        "valid_cells": int(valid.sum()), "writeable": bool(p.cache.sh_texels.flags.writeable),
+        "blocked": all(sys.modules.get(n) is None for n in ("bpy", "gpu", "mathutils")),
+        "threads_alive": wk.alive,
+    }))
+""")
+
+
+def test_worker_runs_with_bpy_gpu_mathutils_blocked():
+    """Structural guard: the worker module imports nothing of Blender's, and a whole worker
+    session (sync, view light, visibility mask, cache updates) runs in a process without them."""
+    env = dict(os.environ, PYTHONPATH=str(REPO))
+    run = subprocess.run([sys.executable, "-c", WORKER_WITHOUT_BPY, str(REPO / "addon")], capture_output=True,
+                         text=True, timeout=120, env=env, cwd=REPO)
+    assert run.returncode == 0, run.stderr[-3000:]
+    r = json.loads(run.stdout.strip().splitlines()[-1])
+    assert r["blocked"] and r["idle"] and r["error"] is None
+    assert r["scene_gen"] == r["gen"] == 1
+    assert r["visible"] > 0 and r["converged"] == 1.0
+    assert r["direct_mean"] > 0.5 and r["passes"] == 4 and r["has_mask"]  # the box is lit by its lamp
+    assert r["valid_cells"] > 0 and not r["writeable"]  # published arrays are read-only copies
+    assert not r["threads_alive"]
+
+
+# ----------------------------------------------------------------------------------------------
+# the engine's viewport
+# ----------------------------------------------------------------------------------------------
+def test_viewport_frame_of_cornell_box_shows_colour_bleeding(view):
+    img = _converged_image(view)
+    assert np.isfinite(img).all()
+    session = view.session
+    albedo = session.gpu.pipeline.deferred.read("diffuse_color")
+    geometry = session.gpu.pipeline.gbuffer.read("position")[..., 3] > 0.5
+    assert geometry.mean() > 0.3 and _luma(img)[geometry].mean() > 0.05  # a lit box, not black
+    assert np.all(img[..., 3] == 1.0)  # opaque: the film is not transparent
+    # White surfaces (floor, ceiling, back wall, blocks) pick up the red wall's light on the left
+    # and the green wall's on the right.
+    white = geometry & (np.abs(albedo[..., 0] - albedo[..., 1]) < 0.02) & (albedo[..., 0] > 0.5)
+    cols = np.arange(W)[None, :].repeat(H, 0)
+    left, right = white & (cols < W * 0.4), white & (cols > W * 0.6)
+    assert left.sum() > 50 and right.sum() > 50
+    rg_left = img[left, 0].mean() / img[left, 1].mean()
+    rg_right = img[right, 0].mean() / img[right, 1].mean()
+    assert rg_left > 1.1 and rg_right < 0.93, (rg_left, rg_right)
+    # Converged and drawn: nothing more to redraw, and a redraw reuses the image.
+    assert not session.needs_redraw()
+    again = view.draw()
+    assert not session.last_stats.redrawn and np.array_equal(again, img)
+
+
+def test_camera_move_keeps_previous_gi_without_a_black_frame(view):
+    from mathutils import Matrix  # noqa: PLC0415
+
+    before = _converged_image(view)
+    session = view.session
+    geometry_before = session.gpu.pipeline.gbuffer.read("position")[..., 3] > 0.5
+    for step in range(3):
+        # Orbit a little: the very next frame must show GI at once (the cache is world space,
+        # the direct light is reprojected from the previous camera).
+        view.region_data.view_matrix = (Matrix.Rotation(0.04, 4, "Y") @ Matrix.Translation((0.08, 0.02, 0.0))
+                                        @ view.region_data.view_matrix)
+        img = view.draw()
+        stats = session.last_stats
+        assert stats.redrawn and stats.posted_view and not stats.view_current
+        geometry = session.gpu.pipeline.gbuffer.read("position")[..., 3] > 0.5
+        luma = _luma(img)
+        assert np.isfinite(img).all()
+        assert luma[geometry].mean() > 0.6 * _luma(before)[geometry_before].mean(), step
+        assert (luma[geometry] < 1e-3).mean() < 0.02, step  # no black patches
+    view.converge()
+    settled = view.draw()
+    assert session.last_stats.view_current
+    assert _luma(settled)[geometry].mean() > 0.05
+
+
+def test_orthographic_view_draws(addon):
+    v = View(addon, ortho_scale=1.4)
+    try:
+        img = _converged_image(v)
+        geometry = v.session.gpu.pipeline.gbuffer.read("position")[..., 3] > 0.5
+        assert geometry.mean() > 0.3 and np.isfinite(img).all()
+        assert _luma(img)[geometry].mean() > 0.05
+    finally:
+        v.close()
+
+
+def test_light_energy_doubling_brightens_the_view(view, addon):
+    before = _converged_image(view)
+    view.follow_edits()
+    light = next(o for o in addon.bpy.data.objects if o.type == "LIGHT")
+    energy = light.data.energy
+    light.data.energy *= 2.0
+    addon.bpy.context.view_layer.update()  # -> depsgraph_update_post -> view_update
+    mirror = view.session.mirror
+    assert mirror.snapshot.lights[0].power == pytest.approx(2.0 * energy, rel=1e-5)
+    view.converge()
+    after = view.draw()
+    geometry = view.session.gpu.pipeline.gbuffer.read("position")[..., 3] > 0.5
+    ratio = _luma(after)[geometry].mean() / _luma(before)[geometry].mean()
+    assert 1.8 < ratio < 2.2, ratio  # direct and bounced light both scale with the lamp
+
+
+def test_moving_an_object_resyncs_only_that_object(view, addon):
+    _converged_image(view)
+    view.follow_edits()
+    session = view.session
+    snapshot = session.mirror.snapshot
+    block = addon.bpy.data.objects["short_block"]
+    before_gen = session.mirror.geometry_gen
+    block.location.x += 0.25
+    addon.bpy.context.view_layer.update()
+    # A transform update moves the block's vertices (no new snapshot of the whole scene) and the
+    # G-buffer takes new positions only.
+    assert session.mirror.snapshot is snapshot
+    assert session.mirror.geometry_gen == before_gen + 1
+    assert session.mirror.gpu_dirty == "positions"
+    view.draw()
+    view.converge()
+    moved = view.draw()
+    position = session.gpu.pipeline.gbuffer.read("position")
+    xs = position[..., 0][position[..., 3] > 0.5]
+    assert np.isfinite(moved).all() and xs.size
+    # The worker traced the moved block: its snapshot holds the new vertex positions.
+    names = [o.name for o in snapshot.objects]
+    idx = names.index("short_block")
+    g = snapshot.geometry
+    verts = np.unique(g.triangles[g.object_index == idx])
+    assert np.allclose(session.mirror.gpu_snapshot().geometry.positions[verts, 0],
+                       g.positions[verts, 0] + 0.25, atol=1e-4)
+
+
+def test_deleting_an_object_while_the_worker_traces_is_safe(view, addon):
+    from mathutils import Matrix  # noqa: PLC0415
+
+    _converged_image(view)
+    view.follow_edits()
+    view.region_data.view_matrix = Matrix.Translation((0.1, 0.0, 0.0)) @ view.region_data.view_matrix
+    view.draw()  # the worker starts lighting the new view
+    assert not view.session.worker.idle
+    addon.bpy.data.objects.remove(addon.bpy.data.objects["tall_block"])
+    addon.bpy.context.view_layer.update()
+    img = view.draw()  # no exception; the next frame draws
+    assert np.isfinite(img).all()
+    published = view.converge()
+    assert published.error is None
+    img = view.draw()
+    assert np.isfinite(img).all() and _luma(img).mean() > 0.02
+    assert "tall_block" not in [o.name for o in view.session.mirror.snapshot.objects]
+
+
+# ----------------------------------------------------------------------------------------------
+# the worker never touches Blender, checked at run time
+# ----------------------------------------------------------------------------------------------
+BLENDER_MODULES = ("bpy", "gpu", "mathutils", "bmesh", "gpu_extras", "bpy_extras", "addon_utils", "_bpy", "_bpy_types")
+BPY_SIDE = (".viewport", ".overlay", ".engine", ".sync", ".ui", ".properties", ".pipeline")
+
+
+class BlenderAccessGuard:
+    """A profile hook on every thread started while installed: records each Python call into a
+    Blender module or a bpy-side add-on module, and each C call on a Blender object (RNA data,
+    collections, mathutils values, gpu objects) or into a Blender module, made by a HybridGI
+    worker thread (`hybridgi-*`). Bare attribute reads make no call: the structural test above
+    covers those (the worker cannot even import bpy)."""
+
+    def __init__(self):
+        import bpy  # noqa: PLC0415
+        import gpu  # noqa: PLC0415
+        import mathutils  # noqa: PLC0415
+
+        self.violations = []
+        self.events = 0
+        self.blender_types = (
+            bpy.types.bpy_struct, bpy.types.bpy_prop_collection, bpy.types.bpy_prop_array, type(bpy.data),
+            mathutils.Vector, mathutils.Matrix, mathutils.Quaternion, mathutils.Euler, mathutils.Color,
+            gpu.types.GPUTexture, gpu.types.GPUFrameBuffer, gpu.types.GPUShader, gpu.types.GPUBatch,
+            gpu.types.GPUOffScreen, gpu.types.Buffer,
+        )
+
+    def __call__(self, frame, event, arg):
+        name = threading.current_thread().name
+        if not name.startswith("hybridgi"):
+            return
+        self.events += 1
+        if event == "call":
+            module = frame.f_globals.get("__name__", "") or ""
+            if module.split(".")[0] in BLENDER_MODULES or module.endswith(BPY_SIDE):
+                self.violations.append((name, module, frame.f_code.co_name))
+        elif event == "c_call":
+            owner = getattr(arg, "__self__", None)
+            module = getattr(arg, "__module__", None) or getattr(owner, "__name__", "") or ""
+            if isinstance(owner, self.blender_types) or str(module).split(".")[0] in BLENDER_MODULES:
+                self.violations.append((name, type(owner).__name__, getattr(arg, "__name__", "?")))
+
+
+def test_worker_threads_never_touch_bpy(addon):
+    guard = BlenderAccessGuard()
+    threading.setprofile(guard)
+    try:
+        # The guard itself catches a thread that does touch Blender.
+        probe = threading.Thread(target=lambda: (addon.bpy.data.objects.get("floor"),
+                                                 addon.bpy.context.scene.name), name="hybridgi-probe")
+        probe.start()
+        probe.join()
+        assert guard.violations, "the guard missed a bpy access"
+        guard.violations.clear()
+        v = View(addon)
+        try:
+            _converged_image(v)
+            v.follow_edits()
+            light = next(o for o in addon.bpy.data.objects if o.type == "LIGHT")
+            light.data.energy *= 1.5
+            addon.bpy.data.objects["short_block"].location.y += 0.1
+            addon.bpy.context.view_layer.update()
+            v.draw()
+            v.converge()
+            v.draw()
+        finally:
+            v.close()
+    finally:
+        threading.setprofile(None)
+    assert guard.events > 1000  # the worker and its update pool ran under the guard
+    assert not guard.violations, guard.violations[:5]
+
+
+# ----------------------------------------------------------------------------------------------
+# the Solid-mode overlay
+# ----------------------------------------------------------------------------------------------
+def test_gi_overlay_multiplies_indirect_light_into_the_view(view, addon):
+    overlay = addon.overlay
+    scene = addon.bpy.context.scene
+    grey = (0.5, 0.5, 0.5, 1.0)
+    assert not overlay.is_enabled(scene)
+    untouched = view.draw(fill=grey, overlay=True)
+    assert np.all(untouched[..., :3] == 0.5)  # off: nothing drawn
+    overlay.set_enabled(scene, True)
+    try:
+        view.draw(fill=grey, overlay=True)
+        session = overlay.session_for(scene)
+        assert session.worker.wait_idle(TIMEOUT_S)
+        img = view.draw(fill=grey, overlay=True)
+        geometry = session.gpu.pipeline.gbuffer.read("position")[..., 3] > 0.5
+        assert np.isfinite(img).all()
+        assert np.all(img[~geometry, :3] == pytest.approx(0.5, abs=1e-3))  # background untouched
+        changed = np.abs(img[geometry, :3] - 0.5).max(axis=1) > 0.01
+        assert changed.mean() > 0.5  # the GI changed most pixels it was drawn over
+        cols = np.arange(W)[None, :].repeat(H, 0)
+        left, right = geometry & (cols < W * 0.4), geometry & (cols > W * 0.6)
+        # Red bounce light on the left, green on the right, multiplied into the grey view.
+        assert img[left, 0].mean() > img[left, 1].mean()
+        assert img[right, 1].mean() > img[right, 0].mean()
+    finally:
+        overlay.set_enabled(scene, False)
+    assert overlay.session_for(scene) is None
+
+
+def test_cells_overlay_draws_a_point_per_valid_cell(view, addon):
+    import gpu  # noqa: PLC0415
+
+    scene = addon.bpy.context.scene
+    _converged_image(view)
+    frame = addon.viewport.drawn_cache(scene.name)
+    assert frame is view.session.gpu.cache_frame
+    centres, colours = addon.overlay.cell_points(frame)
+    assert centres.shape[0] > 0 and colours.shape == (centres.shape[0], 4)
+    assert np.isfinite(colours).all() and colours[:, :3].max() < 1.0  # Reinhard-mapped radiance
+    assert not addon.overlay.draw_cells(scene)  # off by default
+    scene.hybridgi.use_viewport_overlay = True
+    out = np.empty((H, W, 4), np.float32)
+    with view.offscreen.bind():
+        fb = gpu.state.active_framebuffer_get()
+        fb.clear(color=(0.0, 0.0, 0.0, 0.0))
+        # POST_VIEW draws with the view's matrices on the stack.
+        gpu.matrix.load_matrix(view.region_data.view_matrix)
+        gpu.matrix.load_projection_matrix(view.region_data.window_matrix)
+        assert addon.overlay.draw_cells(scene)
+        fb.read_color(0, 0, W, H, 4, 0, "FLOAT", data=gpu.types.Buffer("FLOAT", out.size, out))
+    assert (out[..., 3] > 0).sum() > 20  # points landed on the image
+
+
+class PanelLayout:
+    """Records what a panel draws (props must exist on their data)."""
+
+    def __init__(self):
+        self.props, self.labels, self.operators = [], [], []
+        self.use_property_split = False
+        self.use_property_decorate = True
+
+    def column(self, **_kwargs):
+        return self
+
+    row = box = column
+
+    def prop(self, data, name, **_kwargs):
+        assert name in data.bl_rna.properties, f"{type(data).__name__} has no property {name!r}"
+        self.props.append(name)
+
+    def label(self, text="", **_kwargs):
+        self.labels.append(text)
+
+    def operator(self, idname, **_kwargs):
+        self.operators.append(idname)
+
+
+def test_sidebar_tab_shows_settings_and_live_stats(view, addon):
+    import bpy  # noqa: PLC0415
+
+    ui = sys.modules[addon.viewport.__name__.rsplit(".", 1)[0] + ".ui"]
+    scene = bpy.context.scene
+    context = SimpleNamespace(scene=scene, space_data=None)
+    panels = {cls.__name__: cls for cls in ui.view3d_classes}
+    assert all(cls.bl_space_type == "VIEW_3D" and cls.bl_region_type == "UI" and cls.bl_category == "HybridGI"
+               for cls in panels.values())
+    addon.viewport.LIVE_STATS.pop(scene.name, None)
+    layout = PanelLayout()
+    panels["HYBRIDGI_PT_view3d_stats"].draw(SimpleNamespace(layout=layout), context)
+    assert layout.labels == ["No live view yet"]
+    _converged_image(view)
+    drawn = PanelLayout()
+    for cls in panels.values():
+        cls.draw(SimpleNamespace(layout=drawn), context)
+    assert {"engine", "resolution", "rays_per_cell", "downsample", "debug_view", "use_viewport_overlay"} <= set(drawn.props)
+    assert "hybridgi.gi_overlay" in drawn.operators or "use_gi_overlay" in drawn.props
+    text = "\n".join(drawn.labels)
+    assert "Converged: 100%" in text and "GI updates" in text and "Main thread" in text, text
+
+
+def test_material_edit_reaches_the_image_without_a_full_resync(view, addon):
+    bpy = addon.bpy
+    before = _converged_image(view)
+    albedo = view.session.gpu.pipeline.deferred.read("diffuse_color")
+    green = (albedo[..., 1] > 2.0 * albedo[..., 0]) & (albedo[..., 1] > 0.2)  # the right wall
+    assert green.sum() > 50
+    view.follow_edits()
+    geometry = view.session.mirror.snapshot.geometry
+    material = bpy.data.materials["green"]
+    material.node_tree.nodes["Principled BSDF"].inputs["Base Color"].default_value = (0.05, 0.05, 0.8, 1.0)
+    bpy.context.view_layer.update()
+    assert view.session.mirror.snapshot.geometry is geometry  # only the materials were read again
+    view.draw()
+    view.converge()
+    after = view.draw()
+    assert before[green, 1].mean() > 2.0 * before[green, 2].mean()
+    assert after[green, 2].mean() > 2.0 * after[green, 1].mean()  # the wall is blue now
+
+
+def test_cache_cells_view_matches_the_final_render_colours(view, addon):
+    """The viewport's Cache Cells view shows `visible.cell_debug_colors` (the final render's), made
+    by the worker at the GI pixels and upsampled: hash colours, full brightness once converged."""
+    scene = addon.bpy.context.scene
+    scene.hybridgi.debug_view = "CELLS"
+    try:
+        img = _converged_image(view)
+    finally:
+        scene.hybridgi.debug_view = "FINAL"
+    result = view.session.worker.latest().view
+    assert result.cells is not None and result.cells.shape[:2] == result.gi_position.shape[:2]
+    geometry = view.session.gpu.pipeline.gbuffer.read("position")[..., 3] > 0.5
+    rgb = img[geometry, :3]
+    assert np.isfinite(rgb).all()
+    # Converged cells are drawn at full brightness (0.35 + 0.65 x hash bytes per channel).
+    assert np.median(rgb.min(axis=1)) > 0.3
+    colours = np.unique(np.round(rgb * 255).astype(np.int32), axis=0)
+    assert colours.shape[0] > 10  # many cells, each its own colour
+    on_geometry = result.cells[..., 3] > 0.5
+    assert (result.cells[on_geometry, :3] >= 0.35 - 1e-6).all()  # the worker's colours, all converged
