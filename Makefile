@@ -12,14 +12,17 @@ $(STAMP): pyproject.toml scripts/setup.sh
 
 setup: $(STAMP)
 
-test: setup
+test: setup scenes
 	$(VENV)/bin/pytest -q
 
 bench: setup
 	$(VENV)/bin/python bench/bench_core.py
 
-scenes: setup
-	$(VENV)/bin/python blend_scenes/build.py
+# The bundled .blend files are build outputs of procedural.py + build.py (not kept in git).
+SCENES := $(addprefix blend_scenes/,$(addsuffix .blend,cornell atrium spheres car animated))
+scenes: $(SCENES)
+blend_scenes/%.blend: blend_scenes/procedural.py blend_scenes/build.py | $(STAMP)
+	$(VENV)/bin/python blend_scenes/build.py --only $*
 
 demo: setup
 	$(VENV)/bin/python bench/demo.py --out $(OUT)/demo

@@ -1,7 +1,7 @@
 """HybridGI's GI on top of Solid and Material Preview shading: a 3D View draw handler that runs a
 `viewport.ViewportSession` for the view and multiplies its indirect light into what Blender drew.
 
-The factor per pixel (`OVERLAY_GLSL`): screen-space AO, times the colour of the bounce light
+The factor per pixel (`overlay_frag.glsl`): screen-space AO, times the colour of the bounce light
 (unit luminance) weighted by the share of indirect light in the pixel's total, so contact shadows
 and colour bleeding show while Blender's own shading keeps its brightness. The view's pixels are
 display-encoded there, so the factor is encoded the same way (a power of 1/2.2).
@@ -25,6 +25,7 @@ import numpy as np
 from bpy.app.handlers import persistent
 
 from ._core import errors, submodule
+from .viewport_passes import load_addon_glsl
 
 log = logging.getLogger(__name__)
 
@@ -92,29 +93,6 @@ def close_all() -> None:
 # --- drawing -------------------------------------------------------------------------------------
 
 
-OVERLAY_GLSL = """
-/* Multiply factor of the GI overlay (blend MULTIPLY: the view's colour times this). */
-void main()
-{
-  vec2 uv = gl_FragCoord.xy / screen_size.xy;
-  ivec2 px = ivec2(uv * vec2(textureSize(position_tx, 0)));
-  out_factor = vec4(1.0);
-  if (texelFetch(position_tx, px, 0).w < 0.5) {
-    return;
-  }
-  vec3 e_ind = texelFetch(indirect_tx, px, 0).rgb;
-  vec3 e_dir = texelFetch(direct_tx, px, 0).rgb;
-  float ao = texture(ssao_tx, uv).a;
-  const vec3 lum = vec3(0.2126, 0.7152, 0.0722);
-  float li = dot(e_ind, lum);
-  float ld = dot(e_dir, lum);
-  vec3 bleed = (li > 1e-6) ? e_ind / li : vec3(1.0);
-  float share = li / max(li + ld, 1e-6);
-  vec3 factor = mix(vec3(1.0), bleed, clamp(strength.x * share, 0.0, 1.0));
-  factor *= mix(1.0, clamp(ao, 0.0, 1.0), strength.y);
-  out_factor = vec4(pow(max(factor, vec3(0.0)), vec3(1.0 / 2.2)), 1.0);
-}
-"""
 
 _shader_cache: dict = {}
 
@@ -124,7 +102,7 @@ def _overlay_shader():
     if shader is None:
         spec = _passes.fullscreen_spec(
             "hybridgi_gi_overlay",
-            OVERLAY_GLSL,
+            load_addon_glsl("overlay_frag.glsl"),
             samplers=((0, "FLOAT_2D", "position_tx"), (1, "FLOAT_2D", "indirect_tx"), (2, "FLOAT_2D", "direct_tx"),
                       (3, "FLOAT_2D", "ssao_tx")),
             push=(("VEC4", "screen_size"), ("VEC4", "strength")),

@@ -30,6 +30,15 @@ W, H = 96, 54
 FAST = ("--res", f"{W}x{H}", "--set", "warmup_iterations=4")
 
 
+@pytest.fixture(scope="module", autouse=True)
+def bundled_scenes():
+    """The bundled .blend files are build outputs (not in git): build the missing ones."""
+    for blend in (ANIMATED, CORNELL):
+        if not blend.exists():
+            subprocess.run([sys.executable, str(REPO / "blend_scenes" / "build.py"), "--only", blend.stem],
+                           check=True, capture_output=True, timeout=300)
+
+
 # --- helpers -------------------------------------------------------------------------------------
 
 

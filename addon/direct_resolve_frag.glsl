@@ -1,0 +1,68 @@
+/* Direct light traced by the worker for a (maybe older) camera at a lower resolution, resolved at
+ * this frame's pixels: each pixel projects through the source camera and averages the 4x4 source
+ * pixels around it, weighted by screen distance, normal agreement and distance to the pixel's
+ * plane (joint-bilateral). Pixels the source never saw (disocclusions) fall back to the normal-
+ * weighted taps (a = 0.5), then to no lamp light (a = 0): never garbage, never NaN. With `nearest`,
+ * the best-weighted tap is taken as is (colour codes such as the Cache Cells view must not mix). */
+void main()
+{
+  ivec2 px = ivec2(gl_FragCoord.xy);
+  vec4 P = texelFetch(position_tx, px, 0);
+  out_direct = vec4(0.0);
+  if (P.w < 0.5) {
+    return;
+  }
+  vec3 N = normalize(texelFetch(normal_tx, px, 0).xyz);
+  vec4 clip = src_view_proj * vec4(P.xyz, 1.0);
+  if (clip.w <= 1e-6) {
+    return;
+  }
+  vec2 sp = (clip.xy / clip.w * 0.5 + 0.5) * vec2(src_size.xy) - 0.5;
+  ivec2 base = ivec2(floor(sp));
+  float depth = max(view_depth(src_view_z, P.xyz), 0.0);
+  float footprint = max(src_footprint.x * depth + src_footprint.y, 1e-6);
+  vec3 acc = vec3(0.0);
+  float wsum = 0.0;
+  vec3 loose = vec3(0.0);
+  float wloose = 0.0;
+  vec3 best = vec3(0.0);
+  float wbest = 0.0;
+  for (int j = -1; j <= 2; j++) {
+    for (int i = -1; i <= 2; i++) {
+      ivec2 q = base + ivec2(i, j);
+      if (any(lessThan(q, ivec2(0))) || any(greaterThanEqual(q, src_size.xy))) {
+        continue;
+      }
+      vec4 Q = texelFetch(src_position_tx, q, 0);
+      vec4 D = texelFetch(src_direct_tx, q, 0);
+      if (Q.w < 0.5 || D.a < 0.5) {
+        continue;
+      }
+      vec3 M = texelFetch(src_normal_tx, q, 0).xyz;
+      vec2 d = vec2(q) - sp;
+      float ws = exp(-0.5 * dot(d, d));
+      float wn = pow(max(dot(N, M), 0.0), 8.0);
+      vec3 delta = Q.xyz - P.xyz;
+      float plane = dot(N, delta) / footprint;
+      float lateral = length(delta) / (2.0 * footprint);
+      float wg = exp(-4.0 * plane * plane - lateral * lateral);
+      acc += ws * wn * wg * D.rgb;
+      wsum += ws * wn * wg;
+      if (ws * wn * wg > wbest) {
+        wbest = ws * wn * wg;
+        best = D.rgb;
+      }
+      loose += ws * wn * D.rgb;
+      wloose += ws * wn;
+    }
+  }
+  if (nearest != 0 && wbest > 1e-6) {
+    out_direct = vec4(best, 1.0);
+  }
+  else if (wsum > 1e-3) {
+    out_direct = vec4(acc / wsum, 1.0);
+  }
+  else if (wloose > 1e-4) {
+    out_direct = vec4(loose / wloose, 0.5);
+  }
+}

@@ -1,0 +1,228 @@
+"""GPU passes of the viewport: the gather fed with worker-packed cache textures, the resolve of
+the worker's direct light onto the current camera, the present pass, and a fullscreen draw.
+
+Main thread only (they use `gpu`); their GLSL lives beside this module.
+"""
+
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from . import worker
+from ._core import submodule
+
+log = logging.getLogger(__name__)
+
+_gather = submodule("raster.gather")
+_passes = submodule("raster.passes")
+_glsl = submodule("raster.glsl")
+_readback = submodule("raster.readback")
+
+#: Present-pass modes.
+PRESENT_COLOR, PRESENT_CELLS = 0, 1
+
+
+def load_addon_glsl(name: str) -> str:
+    """GLSL source of a `.glsl` file beside this module."""
+    return (Path(__file__).parent / name).read_text()
+
+
+
+class PackedGatherPass(_gather.GatherPass):
+    """The gather pass fed with `worker.CacheFrame`s: the worker packed the textures already, the
+    main thread only uploads them (a plain cache still works, for the final-render path)."""
+
+    def upload(self, cache) -> bool:
+        if not isinstance(cache, worker.CacheFrame):
+            return super().upload(cache)
+        key = ("frame", cache.serial)
+        if self._uploaded == key:
+            return False
+        self._cache_tx = _readback.upload_texture_2d(cache.sh_texels, "RGBA32F")
+        self._depth_tx = _readback.upload_texture_2d(cache.depth_texels, "RG32F")
+        self._grid = cache.grid
+        self._settings = cache.settings
+        self._uploaded = key
+        return True
+
+
+
+
+class DirectResolvePass(_passes.RasterPass):
+    """`resize(w, h)`; `execute(position, normal, source) -> RGBA16F texture` (rgb W/m^2, a = trust).
+
+    source : `_DirectSource` (the worker's direct light, its positions and normals, its camera).
+    """
+
+    name = "direct resolve"
+
+    def __init__(self, fmt: str = "RGBA16F"):
+        super().__init__()
+        self.format = fmt
+        self._target = None
+        self._fb = None
+
+    def _build_shaders(self) -> dict:
+        spec = _passes.fullscreen_spec(
+            "hybridgi_direct_resolve",
+            _glsl.load_glsl("common_lib.glsl") + load_addon_glsl("direct_resolve_frag.glsl"),
+            samplers=((0, "FLOAT_2D", "position_tx"), (1, "FLOAT_2D", "normal_tx"),
+                      (2, "FLOAT_2D", "src_position_tx"), (3, "FLOAT_2D", "src_normal_tx"),
+                      (4, "FLOAT_2D", "src_direct_tx")),
+            # 64 + 16 + 16 + 16 + 4 = 116 bytes: under the 128-byte push-constant limit.
+            push=(("MAT4", "src_view_proj"), ("VEC4", "src_view_z"), ("VEC4", "src_footprint"),
+                  ("IVEC4", "src_size"), ("INT", "nearest")),
+            outputs=((0, "VEC4", "out_direct"),),
+        )
+        return {"main": _passes.compile_spec(spec)}
+
+    def _allocate(self, width: int, height: int) -> None:
+        import gpu  # noqa: PLC0415
+
+        self._target = _passes.make_target(width, height, self.format)
+        self._fb = gpu.types.GPUFrameBuffer(color_slots=(self._target,))
+
+    def _release_targets(self) -> None:
+        self._target = self._fb = None
+
+    def execute(self, position, normal, source, nearest: bool = False):
+        self._require()
+        shader = self._shader()
+        shader.uniform_sampler("position_tx", position)
+        shader.uniform_sampler("normal_tx", normal)
+        shader.uniform_sampler("src_position_tx", source.position)
+        shader.uniform_sampler("src_normal_tx", source.normal)
+        shader.uniform_sampler("src_direct_tx", source.direct)
+        view_proj = source.proj @ source.view
+        # A flat list is read column-major, as GLSL stores a mat4.
+        shader.uniform_float("src_view_proj", view_proj.T.ravel().astype(np.float32).tolist())
+        shader.uniform_float("src_view_z", [float(v) for v in source.view[2]])
+        shader.uniform_float("src_footprint", (*source.footprint, 0.0, 0.0))
+        shader.uniform_int("src_size", (source.width, source.height, 0, 0))
+        shader.uniform_int("nearest", 1 if nearest else 0)
+        self._draw_fullscreen(self._fb, shader, (self.width, self.height))
+        return self._target
+
+    def read(self) -> np.ndarray:
+        return _readback.read_framebuffer(self._fb, 0, self.width, self.height, 4)
+
+
+@dataclass
+class _DirectSource:
+    """Textures of one `worker.ViewResult` (uploaded once per result): its direct light, or
+    (`cells_of`) its Cache Cells colours, with the positions and normals they were made at."""
+
+    serial: int
+    direct: object
+    position: object
+    normal: object
+    view: np.ndarray
+    proj: np.ndarray
+    width: int
+    height: int
+    footprint: tuple  # (a, b): a source pixel spans a * view depth + b world units
+
+    @classmethod
+    def upload(cls, result: worker.ViewResult) -> "_DirectSource":
+        h, w = result.direct.shape[:2]
+        up = _readback.upload_texture_2d
+        return cls(result.serial, up(result.direct, "RGBA32F"), up(result.position, "RGBA32F"),
+                   up(result.normal, "RGBA16F"), result.view, result.proj, w, h, pixel_footprint(result.proj, h))
+
+    @classmethod
+    def cells_of(cls, result: worker.ViewResult) -> "_DirectSource":
+        h, w = result.cells.shape[:2]
+        up = _readback.upload_texture_2d
+        return cls(result.serial, up(result.cells, "RGBA16F"), up(result.gi_position, "RGBA32F"),
+                   up(result.gi_normal, "RGBA16F"), result.view, result.proj, w, h, pixel_footprint(result.proj, h))
+
+    @classmethod
+    def empty(cls) -> "_DirectSource":
+        up = _readback.upload_texture_2d
+        zero = np.zeros((1, 1, 4), np.float32)
+        eye = np.eye(4)
+        return cls(-1, up(zero, "RGBA32F"), up(zero, "RGBA32F"), up(zero, "RGBA16F"), eye, eye, 1, 1, (1.0, 0.0))
+
+
+def pixel_footprint(proj: np.ndarray, height: int) -> tuple[float, float]:
+    """(a, b) with a pixel's height in world units = a * view depth + b (perspective: b = 0,
+    orthographic: a = 0), from the projection matrix and the image height in pixels."""
+    scale = 2.0 / (max(abs(float(proj[1, 1])), 1e-12) * max(height, 1))
+    orthographic = abs(float(proj[3, 3]) - 1.0) < 1e-6
+    return (0.0, scale) if orthographic else (scale, 0.0)
+
+
+
+
+class PresentPass(_passes.RasterPass):
+    """Combined -> the texture drawn into the viewport (RGBA16F, scene linear)."""
+
+    name = "present"
+
+    def __init__(self):
+        super().__init__()
+        self._target = None
+        self._fb = None
+
+    def _build_shaders(self) -> dict:
+        spec = _passes.fullscreen_spec(
+            "hybridgi_present",
+            load_addon_glsl("present_frag.glsl"),
+            samplers=((0, "FLOAT_2D", "combined_tx"), (1, "FLOAT_2D", "position_tx"), (2, "FLOAT_2D", "cells_tx")),
+            push=(("INT", "mode"), ("INT", "opaque")),
+            outputs=((0, "VEC4", "out_color"),),
+        )
+        return {"main": _passes.compile_spec(spec)}
+
+    def _allocate(self, width: int, height: int) -> None:
+        import gpu  # noqa: PLC0415
+
+        self._target = _passes.make_target(width, height, "RGBA16F")
+        self._fb = gpu.types.GPUFrameBuffer(color_slots=(self._target,))
+
+    def _release_targets(self) -> None:
+        self._target = self._fb = None
+
+    def execute(self, combined, gbuf, mode: int, opaque: bool, cells=None):
+        """cells : full-res RGBA texture of Cache Cells colours (mode PRESENT_CELLS)."""
+        self._require()
+        shader = self._shader()
+        shader.uniform_sampler("combined_tx", combined)
+        shader.uniform_sampler("position_tx", gbuf.position)
+        shader.uniform_sampler("cells_tx", cells if cells is not None else combined)
+        shader.uniform_int("mode", int(mode) if cells is not None else PRESENT_COLOR)
+        shader.uniform_int("opaque", 1 if opaque else 0)
+        self._draw_fullscreen(self._fb, shader, (self.width, self.height))
+        return self._target
+
+    @property
+    def output(self):
+        return self._target
+
+    def read(self) -> np.ndarray:
+        return _readback.read_framebuffer(self._fb, 0, self.width, self.height, 4)
+
+
+_SCREEN_BATCH = {}
+
+
+def draw_texture_fullscreen(texture) -> None:
+    """Draw `texture` over the whole bound framebuffer with Blender's IMAGE shader (the one
+    `bind_display_space_shader` binds), whatever the matrix stack holds."""
+    import gpu  # noqa: PLC0415
+    from gpu_extras.batch import batch_for_shader  # noqa: PLC0415
+    from mathutils import Matrix  # noqa: PLC0415
+
+    shader = gpu.shader.from_builtin("IMAGE")
+    batch = _SCREEN_BATCH.get("image")
+    if batch is None:
+        corners = ((-1.0, -1.0), (1.0, -1.0), (-1.0, 1.0), (1.0, 1.0))
+        uvs = ((0.0, 0.0), (1.0, 0.0), (0.0, 1.0), (1.0, 1.0))
+        batch = _SCREEN_BATCH["image"] = batch_for_shader(shader, "TRI_STRIP", {"pos": corners, "texCoord": uvs})
+    with gpu.matrix.push_pop(), gpu.matrix.push_pop_projection():
+        gpu.matrix.load_identity()
+        gpu.matrix.load_projection_matrix(Matrix.Identity(4))
+        shader.uniform_sampler("image", texture)
+        batch.draw(shader)
