@@ -166,20 +166,54 @@ def nearest_irradiance(cache: IrradianceCache, table: np.ndarray, points: np.nda
     """
     normals = np.asarray(normals, np.float32)
     points = np.asarray(points, np.float32)
-    p = points + normals * np.float32(HIT_LOOKUP_BIAS * cache.grid.cell_size)
-    ijk = np.floor((p - cache.grid.lo) / np.float32(cache.grid.cell_size)).astype(np.int64)
-    ijk = np.clip(ijk, 0, np.asarray(cache.grid.dims) - 1)
-    flat = cache.grid.flatten(ijk)
+    grid = cache.grid
+    cell = np.float32(grid.cell_size)
+    p = points + normals * np.float32(HIT_LOOKUP_BIAS * grid.cell_size)
+    g = (p - grid.lo) / cell  # (n, 3) in cell units
+    ijk = np.floor(g).astype(np.int32)
+    np.clip(ijk, 0, np.asarray(grid.dims, np.int32) - 1, out=ijk)
+    nx, ny, _ = grid.dims
+    flat = ijk[:, 0] + nx * (ijk[:, 1] + ny * ijk[:, 2])
+    valid = cache.valid
     # Near an object's edge the cell in front of a hit can be one disabled inside the object:
     # those hits take the best valid neighbour in front of their tangent plane instead.
-    bad = np.flatnonzero(~cache.valid[flat])
+    bad = np.flatnonzero(~valid[flat])
     if bad.size:
-        corners, tri = cache.grid.corner_cells(p[bad])
-        in_front = np.einsum("nci,ni->nc", cache.centers[corners] - points[bad, None, :], normals[bad]) > 0
-        score = tri * cache.valid[corners] * in_front
-        best = score.argmax(axis=1)
-        ok = score[np.arange(bad.size), best] > 0
-        flat[bad[ok]] = corners[ok, best[ok]]
+        flat[bad] = _best_front_neighbour(grid, valid, g[bad] - np.float32(0.5), points[bad], normals[bad], flat[bad])
     coeffs = np.take(table, flat, axis=0)  # (n, K, 3); invalid cells hold zeros
     y = sh.basis(normals, cache.settings.sh_order)
-    return np.maximum(np.einsum("nk,nkc->nc", y, coeffs), 0.0).astype(np.float32)
+    e = np.matmul(y[:, None, :], coeffs)[:, 0]
+    return np.maximum(e, 0.0, out=e)
+
+
+def _best_front_neighbour(grid, valid, g, points, normals, fallback):
+    """(k,) flat cells: of the 8 cells around each point (g : (k, 3) cell coordinates less 0.5),
+    the valid one in front of the point's tangent plane with the largest trilinear weight;
+    `fallback` where there is none. The same choice as scoring `grid.corner_cells`, per axis."""
+    base = np.floor(g)
+    f = (g - base).astype(np.float32)
+    base = base.astype(np.int32)
+    dims = grid.dims
+    stride = (1, dims[0], dims[0] * dims[1])
+    idx, wgt, front = [], [], []
+    for a in range(3):
+        i0 = np.clip(base[:, a], 0, dims[a] - 1)
+        i1 = np.clip(base[:, a] + 1, 0, dims[a] - 1)
+        # Offset of each candidate centre from the point along this axis, times the normal's axis.
+        c0 = (grid.lo[a] + (i0 + 0.5) * grid.cell_size).astype(np.float32) - points[:, a]
+        c1 = (grid.lo[a] + (i1 + 0.5) * grid.cell_size).astype(np.float32) - points[:, a]
+        idx.append((i0 * stride[a], i1 * stride[a]))
+        wgt.append((1.0 - f[:, a], f[:, a]))
+        front.append((c0 * normals[:, a], c1 * normals[:, a]))
+    k = g.shape[0]
+    score = np.empty((k, 8), np.float32)
+    flats = np.empty((k, 8), np.int64)
+    for c in range(8):
+        ox, oy, oz = c & 1, (c >> 1) & 1, (c >> 2) & 1
+        flat = idx[0][ox] + idx[1][oy] + idx[2][oz]
+        flats[:, c] = flat
+        in_front = front[0][ox] + front[1][oy] + front[2][oz] > 0
+        score[:, c] = wgt[0][ox] * wgt[1][oy] * wgt[2][oz] * valid[flat] * in_front
+    best = score.argmax(axis=1)
+    rows = np.arange(k)
+    return np.where(score[rows, best] > 0, flats[rows, best], fallback)

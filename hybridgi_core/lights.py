@@ -298,11 +298,13 @@ def _point_chunk(light, p, nrm, tracer, rng, samples, epsilon):
     return e
 
 
-def _sun_chunk(light, p, nrm, tracer, rng, samples, epsilon):
+def _sun_chunk(light, p, nrm, tracer, rng, samples, epsilon, disc=True):
     lx, ly, lz = (-light.direction).astype(_F32)  # receiver -> sun
     half = 0.5 * float(light.angle)
     m = p[0].shape[0]
-    if half <= 0.0:
+    # Without the disc: one ray along the axis. Same expected irradiance (the cone's mean cosine
+    # is cos(n, axis) times the factor divided out below), hard shadows.
+    if half <= 0.0 or not disc:
         e = float(light.power) * np.maximum(nrm[0] * lx + nrm[1] * ly + nrm[2] * lz, 0.0)
         if tracer is not None:
             live = np.nonzero(e != 0)[0]
@@ -459,6 +461,7 @@ def direct_irradiance(
     rng: np.random.Generator,
     samples: int = 1,
     epsilon: float = 1e-4,
+    sun_disc: bool = True,
 ) -> np.ndarray:
     """Irradiance from the lamps at one-sided Lambertian receivers, with shadow rays.
 
@@ -475,6 +478,8 @@ def direct_irradiance(
     samples : samples per receiver for area lights, sun discs (angle > 0) and soft point/spot
         shadows (radius > 0); hard lamps always use one ray.
     epsilon : metres; shadow rays start this far along the normal and stop this short of the lamp.
+    sun_disc : sample the sun's angular disc (soft shadows); False traces one ray along its axis,
+        enough where the result is averaged anyway (probe-ray hits of the low-frequency cache).
 
     Returns
     -------
@@ -515,7 +520,7 @@ def direct_irradiance(
             if lt.kind in ("POINT", "SPOT"):
                 e = _point_chunk(lt, p, q, tracer, rng, samples, epsilon)
             elif lt.kind == "SUN":
-                e = _sun_chunk(lt, p, q, tracer, rng, samples, epsilon)
+                e = _sun_chunk(lt, p, q, tracer, rng, samples, epsilon, sun_disc)
             elif i in shapes:
                 e = _area_chunk(lt, shapes[i], p, q, tracer, rng, samples, epsilon)
             else:

@@ -14,6 +14,9 @@ C2 = 1.0925484305920792  # sqrt(15 / (4 pi))
 C3 = 0.31539156525252005  # sqrt(5 / (16 pi))
 C4 = 0.5462742152960396  # sqrt(15 / (16 pi))
 
+#: OpenBLAS runs a GEMM on the calling thread alone up to this m*n*k (SMP_THRESHOLD_MIN * 4).
+_GEMM_SINGLE_THREAD_MNK = 65536 * 4
+
 #: Clamped-cosine convolution per band.
 COSINE_BANDS = (np.pi, 2.0 * np.pi / 3.0, np.pi / 4.0)
 
@@ -52,12 +55,18 @@ def project_uniform(values: np.ndarray, dirs: np.ndarray, order: int) -> np.ndar
 def project_channels(values: np.ndarray, dirs: np.ndarray, order: int) -> np.ndarray:
     """`project_uniform` for channel-major values (m, c, r); returns (m, K, c) float32.
 
-    One (m*c, r) @ (r, K) GEMM: far faster than a batch of tiny matmuls, einsum or add.at.
+    (m*c, r) @ (r, K) GEMMs: far faster than a batch of tiny matmuls, einsum or add.at. They run
+    in row blocks small enough that OpenBLAS keeps each on the calling thread: its own threads,
+    woken from the update's worker threads on a busy 2-core machine, made this step ~15x slower.
     """
     y = basis(dirs, order) * np.float32(4.0 * np.pi / dirs.shape[0])  # (r, K)
     m, c, r = values.shape
     flat = np.ascontiguousarray(values, dtype=np.float32).reshape(m * c, r)
-    return np.swapaxes((flat @ y).reshape(m, c, -1), 1, 2)
+    out = np.empty((m * c, y.shape[1]), np.float32)
+    step = max(1, _GEMM_SINGLE_THREAD_MNK // max(1, r * y.shape[1]))
+    for start in range(0, m * c, step):
+        np.matmul(flat[start : start + step], y, out=out[start : start + step])
+    return np.swapaxes(out.reshape(m, c, -1), 1, 2)
 
 
 def irradiance(coeffs: np.ndarray, normals: np.ndarray) -> np.ndarray:

@@ -61,13 +61,20 @@ class SurfaceTable:
         u = u[:, None]
         v = v[:, None]
         w0 = 1.0 - u - v
-        pos = r[:, _V0] + u * r[:, _E1] + v * r[:, _E2]
-        nrm = w0 * r[:, _N0] + u * r[:, _N1] + v * r[:, _N2]
-        nrm /= np.sqrt(np.maximum(np.einsum("ij,ij->i", nrm, nrm), 1e-24))[:, None]
-        fn = r[:, _FN]
-        backface = np.einsum("ij,ij->i", fn, ray_dirs) > 0
+        pos = r[:, _E1] * u
+        pos += r[:, _V0]
+        pos += v * r[:, _E2]
+        nrm = r[:, _N0] * w0
+        nrm += u * r[:, _N1]
+        nrm += v * r[:, _N2]
+        # Normalize and turn to the side the ray came from (probe rays see both faces of open
+        # meshes) in one scale: the sign of n . d does not depend on n's length.
+        scale = 1.0 / np.sqrt(np.maximum(np.einsum("ij,ij->i", nrm, nrm), np.float32(1e-24)))
+        np.negative(scale, out=scale, where=np.einsum("ij,ij->i", nrm, ray_dirs) > 0)
+        nrm *= scale[:, None]
+        backface = np.einsum("ij,ij->i", r[:, _FN], ray_dirs) > 0
         mat = r[:, _MAT].astype(np.int32)
-        albedo = self.albedo[mat]
+        albedo = np.take(self.albedo, mat, axis=0)
         if self.textured:
             uv = w0 * r[:, _UV0] + u * r[:, _UV1] + v * r[:, _UV2]
             for m in self.textured:
@@ -79,10 +86,7 @@ class SurfaceTable:
                 col = np.tile(self.mean_albedo[m], (tex_uv.shape[0], 1))
                 col[known] = self.albedo[m] * sample_texture(self.materials[m].texture, tex_uv[known])
                 albedo[sel] = col
-        # Shading normal on the side the ray came from: probe rays see both faces of open meshes.
-        flip = np.einsum("ij,ij->i", nrm, ray_dirs) > 0
-        nrm[flip] *= -1.0
-        return SurfaceHits(pos, nrm, albedo, self.emission[mat], backface)
+        return SurfaceHits(pos, nrm, albedo, np.take(self.emission, mat, axis=0), backface)
 
 
 def _pack(geometry: Geometry, rows: np.ndarray) -> np.ndarray:

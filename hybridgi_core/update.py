@@ -109,6 +109,7 @@ class CacheUpdater:
         s = cache.settings
         times = {}
         m, r = cells.size, dirs.shape[0]
+        n = m * r
         tic = time.perf_counter()
         origins = np.repeat(cache.centers[cells], r, axis=0)
         ray_dirs = np.tile(dirs, (m, 1))
@@ -117,52 +118,57 @@ class CacheUpdater:
         times["trace"] = (time.perf_counter() - tic) * 1e3
 
         tic = time.perf_counter()
-        hit = hits.prim >= 0
-        idx = np.flatnonzero(hit)
-        # Channel-major (m, 7, r): direct RGB, indirect RGB, AO visibility; the SH projection is
-        # then one GEMM with no transposed copy.
-        values = np.zeros((m, 7, r), np.float32)
-        rad_d = np.zeros((m * r, 3), np.float32)
-        rad_i = np.zeros((m * r, 3), np.float32)
-        rad_d[~hit] = self.scene.world.color
+        idx = np.flatnonzero(hits.prim >= 0)
+        # Ray-major rows: direct RGB, indirect RGB, AO visibility; one transposed copy makes them
+        # channel-major (m, 7, r) for the SH projection's GEMM.
+        rows = np.zeros((n, 7), np.float32)
+        rows[:, 0:3] = self.scene.world.color
         surf = self.scene.surfaces.surface(hits.prim[idx], hits.u[idx], hits.v[idx], ray_dirs[idx])
-        backface = np.zeros(m * r, bool)
-        backface[idx] = surf.backface
         shadow_ms = 0.0
         if s.indirect_quality != AO_ONLY and idx.size:
-            rad_d[idx] = surf.emission
+            rows[idx, 0:3] = surf.emission
             ts = time.perf_counter()
-            e_lamps = direct_irradiance(
+            # The cache is low frequency: one shadow ray along a sun's axis per hit is enough
+            # (image pixels keep the sun's soft disc).
+            e_in = direct_irradiance(
                 self.scene.lights, surf.position, surf.normal, self.tracer, rng,
-                samples=s.light_samples, epsilon=float(self.epsilon),
+                samples=s.light_samples, epsilon=float(self.epsilon), sun_disc=False,
             )
             shadow_ms = (time.perf_counter() - ts) * 1e3
             # Further bounces read the cache at the hit: the sky/emission band gives the second
             # bounce even at ONE_BOUNCE quality; MULTI_BOUNCE's table adds the bounced band.
-            e_in = e_lamps + nearest_irradiance(cache, table, surf.position, surf.normal)
-            rad_i[idx] = surf.albedo * e_in * np.float32(1.0 / np.pi)
+            e_in += nearest_irradiance(cache, table, surf.position, surf.normal)
+            e_in *= surf.albedo
+            e_in *= np.float32(1.0 / np.pi)
+            rows[idx, 3:6] = e_in
+        elif idx.size:
+            rows[idx, 0:3] = 0.0
         times["shadow"] = shadow_ms
         times["shade"] = (time.perf_counter() - tic) * 1e3 - shadow_ms
 
         tic = time.perf_counter()
-        t = np.where(hit, hits.t, np.float32(np.inf)).reshape(m, r)
-        values[:, 0:3] = rad_d.reshape(m, r, 3).transpose(0, 2, 1)
-        values[:, 3:6] = rad_i.reshape(m, r, 3).transpose(0, 2, 1)
-        values[:, 6] = t > s.ao_distance
+        t = np.where(hits.prim >= 0, hits.t, np.float32(np.inf))
+        rows[:, 6] = t > s.ao_distance
+        values = rows.reshape(m, r, 7).transpose(0, 2, 1)
         coeffs = sh.project_channels(values, dirs, s.sh_order)  # (m, K, 7)
-        depth = np.minimum(t, cache.depth_cap).astype(np.float32)
+        # Depth moments per (cell, octahedral texel): bincount over keys cell * T + texel (the
+        # texels are shared by every cell). A one-hot GEMM cost more and woke OpenBLAS threads.
+        n_tex = s.depth_texels**2
         texel = octahedral_texel(dirs, s.depth_texels)
-        onehot = np.zeros((r, s.depth_texels**2), np.float32)
-        onehot[np.arange(r), texel] = 1.0
-        depth_sum = np.stack([depth @ onehot, (depth * depth) @ onehot], axis=2)
+        keys = (np.arange(m, dtype=np.intp)[:, None] * n_tex + texel[None, :]).ravel()
+        depth = np.minimum(t, cache.depth_cap)
+        depth_sum = np.empty((m, n_tex, 2), np.float32)
+        depth_sum[..., 0] = np.bincount(keys, weights=depth, minlength=m * n_tex).reshape(m, n_tex)
+        depth_sum[..., 1] = np.bincount(keys, weights=depth * depth, minlength=m * n_tex).reshape(m, n_tex)
+        backface = np.bincount(idx // r, weights=surf.backface, minlength=m) * (1.0 / r)
         samples = CellSamples(
             cells=cells,
             sh_direct=coeffs[..., 0:3],
             sh_indirect=coeffs[..., 3:6],
             ao_sh=coeffs[..., 6],
             depth_sum=depth_sum,
-            depth_count=onehot.sum(axis=0),
-            backface=backface.reshape(m, r).mean(axis=1).astype(np.float32),
+            depth_count=np.bincount(texel, minlength=n_tex).astype(np.float32),
+            backface=backface.astype(np.float32),
         )
         times["sh"] = (time.perf_counter() - tic) * 1e3
         return samples, times

@@ -54,6 +54,7 @@ class _SubScene:
     vertex_ids: np.ndarray
     local_triangles: np.ndarray
     vertices: np.ndarray
+    identity: bool = False  # ids == arange(k): primIDs are already global ids
 
 
 class EmbreeTracer:
@@ -149,6 +150,16 @@ class EmbreeTracer:
         v = np.zeros(n, np.float32)
 
         def work(sl: slice) -> None:
+            if len(scenes) == 1 and scenes[0].identity:
+                # One scene whose primIDs are the global ids: copy its answers straight out.
+                res = scenes[0].scene.run(o[sl], d[sl], dists=tf[sl], query="INTERSECT", output=1)
+                hit = res["primID"] >= 0
+                prim[sl] = res["primID"]
+                if not np.shares_memory(res["tfar"], tf):
+                    tf[sl] = res["tfar"]
+                np.copyto(u[sl], res["u"], where=hit)
+                np.copyto(v[sl], res["v"], where=hit)
+                return
             for sub in scenes:
                 res = sub.scene.run(o[sl], d[sl], dists=tf[sl], query="INTERSECT", output=1)
                 hit = res["primID"] >= 0
@@ -159,8 +170,9 @@ class EmbreeTracer:
                 v[sl][hit] = res["v"][hit]
 
         self._for_chunks(n, work)
-        prim[~valid] = -1
-        t = np.where(prim >= 0, tf, np.float32(np.inf)).astype(np.float32)
+        if not valid.all():
+            prim[~valid] = -1
+        t = np.where(prim >= 0, tf, np.float32(np.inf))
         return Hits(t, prim, u, v)
 
     def occluded(self, origins: np.ndarray, directions: np.ndarray, tfar: float | np.ndarray = np.inf) -> np.ndarray:
@@ -247,7 +259,8 @@ class EmbreeTracer:
         mesh = TriangleMesh(scene, vertices, local)
         # embreex commits lazily on the first run(); do it here, on one thread, not racing in workers.
         scene.run(np.zeros((1, 3), np.float32), np.array([[0.0, 0.0, 1.0]], np.float32), dists=np.zeros(1, np.float32))
-        return _SubScene(scene, mesh, ids, vertex_ids, local, vertices)
+        identity = bool(np.array_equal(ids, np.arange(ids.size)))
+        return _SubScene(scene, mesh, ids, vertex_ids, local, vertices, identity)
 
     @staticmethod
     def _count(sub: _SubScene | None) -> int:
