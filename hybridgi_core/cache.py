@@ -90,17 +90,27 @@ class IrradianceCache:
         weight: 1 replaces, as the warm-up's bounce propagation does)."""
         c = s.cells
         a = self.blend_weights(c) if alpha is None else np.full(c.size, alpha, np.float32)
-        a3 = a[:, None, None]
-        self.sh_direct[c] += a3 * (s.sh_direct - self.sh_direct[c])
-        self.sh_indirect[c] += a3 * (s.sh_indirect - self.sh_indirect[c])
-        self.ao_sh[c] += a[:, None] * (s.ao_sh - self.ao_sh[c])
+        a1 = a[:, None]
+        m = c.size
+        # Flat (m, -1) rows: broadcasting a per-cell weight over short trailing axes is slow.
+        for name, new in (("sh_direct", s.sh_direct), ("sh_indirect", s.sh_indirect), ("ao_sh", s.ao_sh)):
+            arr = getattr(self, name)
+            old = arr[c].reshape(m, -1)
+            delta = new.reshape(m, -1) - old
+            delta *= a1
+            old += delta
+            arr[c] = old.reshape((m,) + arr.shape[1:])
         self.backface[c] += a * (s.backface - self.backface[c])
-        # Depth: only texels that received rays this update move, each towards its own mean.
-        hit_texels = s.depth_count > 0
-        if hit_texels.any():
-            mean = s.depth_sum[:, hit_texels] / s.depth_count[hit_texels][None, :, None]
-            old = self.depth[c][:, hit_texels]
-            self.depth[np.ix_(c, np.flatnonzero(hit_texels))] = old + a3 * (mean - old)
+        # Depth: only texels that received rays this update move, each towards its own mean
+        # (whole rows, with a zero weight on empty texels: cheaper than indexing the subset).
+        count = np.repeat(s.depth_count, 2)  # matches the (T, 2) moment pairs, flattened
+        if (count > 0).any():
+            old = self.depth[c].reshape(m, -1)
+            delta = s.depth_sum.reshape(m, -1) / np.maximum(count, np.float32(1.0))
+            delta -= old
+            delta *= a1 * (count > 0)
+            old += delta
+            self.depth[c] = old.reshape(m, *self.depth.shape[1:])
         self.samples[c] += 1
         self.last_frame[c] = frame
         # Urgency decays as the refreshed cells take samples: the burst lasts a few updates.

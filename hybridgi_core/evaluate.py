@@ -158,11 +158,14 @@ def irradiance_sh(cache: IrradianceCache, bounced: bool) -> np.ndarray:
     return coeffs
 
 
-def nearest_irradiance(cache: IrradianceCache, table: np.ndarray, points: np.ndarray, normals: np.ndarray) -> np.ndarray:
+def nearest_irradiance(
+    cache: IrradianceCache, table: np.ndarray, points: np.ndarray, normals: np.ndarray, valid: np.ndarray | None = None
+) -> np.ndarray:
     """(n, 3) float32 irradiance >= 0 at probe-ray hits from the single cell in front of each hit.
 
     Further bounces are low frequency and costly in bulk (one per probe ray), so they read one
-    cell instead of the 8-neighbour visibility-weighted gather. table : `irradiance_sh(...)`.
+    cell instead of the 8-neighbour visibility-weighted gather. table : `irradiance_sh(...)`;
+    valid : (N,) bool cells to read, `cache.valid` when None (a snapshot taken with the table).
     """
     normals = np.asarray(normals, np.float32)
     points = np.asarray(points, np.float32)
@@ -174,16 +177,23 @@ def nearest_irradiance(cache: IrradianceCache, table: np.ndarray, points: np.nda
     np.clip(ijk, 0, np.asarray(grid.dims, np.int32) - 1, out=ijk)
     nx, ny, _ = grid.dims
     flat = ijk[:, 0] + nx * (ijk[:, 1] + ny * ijk[:, 2])
-    valid = cache.valid
+    valid = cache.valid if valid is None else valid
     # Near an object's edge the cell in front of a hit can be one disabled inside the object:
     # those hits take the best valid neighbour in front of their tangent plane instead.
     bad = np.flatnonzero(~valid[flat])
     if bad.size:
         flat[bad] = _best_front_neighbour(grid, valid, g[bad] - np.float32(0.5), points[bad], normals[bad], flat[bad])
-    coeffs = np.take(table, flat, axis=0)  # (n, K, 3); invalid cells hold zeros
-    y = sh.basis(normals, cache.settings.sh_order)
-    e = np.matmul(y[:, None, :], coeffs)[:, 0]
-    return np.maximum(e, 0.0, out=e)
+    # Structure of arrays: (K*3, n) coefficient rows and (K, n) basis rows make the per-point
+    # dot product K contiguous multiply-adds (a stacked (1, K) @ (K, 3) matmul was 2.5x slower).
+    n_k = table.shape[1]
+    rows = np.ascontiguousarray(table.reshape(table.shape[0], -1).T)  # (K*3, N)
+    coeffs = np.take(rows, flat, axis=1)  # invalid cells hold zeros
+    y = sh.basis(normals, cache.settings.sh_order).T  # (K, n) contiguous
+    e = coeffs[0:3] * y[0]
+    for k in range(1, n_k):
+        e += coeffs[3 * k : 3 * k + 3] * y[k]
+    np.maximum(e, 0.0, out=e)
+    return np.ascontiguousarray(e.T)
 
 
 def _best_front_neighbour(grid, valid, g, points, normals, fallback):

@@ -506,8 +506,10 @@ def direct_irradiance(
             else:
                 log.debug("area light %r has zero area; skipped", lt.name)
 
-    finite = np.isfinite(pts).all(axis=1) & np.isfinite(nrm).all(axis=1)
-    sel = None if finite.all() else np.nonzero(finite)[0]
+    sel = None
+    # Whole-array test first: the per-row reduction over 3 columns is slow and rarely needed.
+    if not (np.isfinite(pts).all() and np.isfinite(nrm).all()):
+        sel = np.nonzero(np.isfinite(pts).all(axis=1) & np.isfinite(nrm).all(axis=1))[0]
     if sel is not None:
         pts, nrm = pts[sel], nrm[sel]
     acc = np.zeros((pts.shape[0], 3), _F32)

@@ -30,11 +30,21 @@ def basis(dirs: np.ndarray, order: int) -> np.ndarray:
 
     dirs : (n, 3) float; returns (n, K) float32 with K = 4 (order 1) or 9 (order 2).
     """
-    x, y, z = (np.asarray(dirs, np.float32)[:, i] for i in range(3))
-    cols = [np.full_like(x, C0), C1 * y, C1 * z, C1 * x]
+    # Computed as contiguous rows (K, n) and returned transposed: ufuncs over the strided (n, 3)
+    # columns were 3x slower.
+    x, y, z = np.ascontiguousarray(np.asarray(dirs, np.float32).T)
+    out = np.empty((coeff_count(order), x.shape[0]), np.float32)
+    out[0] = C0
+    np.multiply(y, np.float32(C1), out=out[1])
+    np.multiply(z, np.float32(C1), out=out[2])
+    np.multiply(x, np.float32(C1), out=out[3])
     if order >= 2:
-        cols += [C2 * x * y, C2 * y * z, C3 * (3.0 * z * z - 1.0), C2 * x * z, C4 * (x * x - y * y)]
-    return np.stack(cols, axis=1).astype(np.float32)
+        np.multiply(C2 * x, y, out=out[4])
+        np.multiply(C2 * y, z, out=out[5])
+        out[6] = C3 * (3.0 * z * z - 1.0)
+        np.multiply(C2 * x, z, out=out[7])
+        out[8] = C4 * (x * x - y * y)
+    return out.T
 
 
 def cosine_scale(order: int) -> np.ndarray:

@@ -48,11 +48,27 @@ def prepare_rays(
     tfar_out = np.empty(n, np.float32)
     tfar_out[:] = tfar_arr
     with np.errstate(invalid="ignore", over="ignore"):
-        # Row sums propagate NaN/inf, so one finiteness test per ray covers all six components
-        # (a sum that overflows a finite ray to inf marks it invalid too: far beyond any scene).
-        finite = np.isfinite(np.einsum("ij->i", origins) + np.einsum("ij->i", directions))
-        valid = finite & (np.einsum("ij,ij->i", directions, directions) > 0.0) & (tfar_out >= 0.0)
+        dd = np.einsum("ij,ij->i", directions, directions)
+        if n and _bounded(origins) and _bounded(directions):
+            # Every component finite and far from overflow (NaN fails the comparisons): the
+            # per-ray test below would pass every ray, so only zero directions remain.
+            valid = dd > 0.0
+        else:
+            # Row sums propagate NaN/inf, so one finiteness test per ray covers all six components
+            # (a sum that overflows a finite ray to inf marks it invalid too: far beyond any scene).
+            finite = np.isfinite(np.einsum("ij->i", origins) + np.einsum("ij->i", directions))
+            valid = finite & (dd > 0.0)
+        valid &= (tfar_out >= 0.0) if tfar_arr.ndim else bool(tfar_arr >= 0.0)
     return origins, directions, tfar_out, valid
+
+
+#: Components below this magnitude cannot overflow a row sum of three (float32 max ~3.4e38).
+_SAFE_COMPONENT = 1e37
+
+
+def _bounded(a: np.ndarray) -> bool:
+    """All components of a within +-_SAFE_COMPONENT (false for NaN): two fast whole-array passes."""
+    return bool(a.max() < _SAFE_COMPONENT) and bool(a.min() > -_SAFE_COMPONENT)
 
 
 class NumpyTracer:
