@@ -305,4 +305,9 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    code = main()
+    sys.stdout.flush()
+    sys.stderr.flush()
+    # The bpy module frees its GPU context before Python frees cached `gpu` objects: finalizing
+    # would segfault after the results are printed (tests/conftest.py does the same).
+    os._exit(code)
