@@ -59,7 +59,7 @@ class HybridGISettings(bpy.types.PropertyGroup):
     resolution: IntProperty(
         name="Resolution",
         description="Cache cells along the longest axis of the scene's bounding box",
-        default=32, min=1, max=512, soft_min=4, soft_max=128,
+        default=48, min=1, max=512, soft_min=4, soft_max=128,
     )
     sh_order: EnumProperty(
         name="SH Order",

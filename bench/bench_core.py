@@ -103,7 +103,9 @@ def main() -> None:
     configs = (
         [(default.resolution, default.rays_per_cell)]
         if args.quick
-        else [(res, rays) for res in (24, 48) for rays in (4, 16, 64)] + [(default.resolution, default.rays_per_cell)]
+        else list(dict.fromkeys(
+            [(res, rays) for res in (32, 48) for rays in (4, 16, 64)] + [(default.resolution, default.rays_per_cell)]
+        ))
     )
     header = f"{'res':>4} {'rays/cell':>9} {'cells':>6} {'rays':>8} {'select':>7} {'trace':>7} {'shade':>7} {'shadow':>7} {'sh':>6} {'blend':>6} {'update':>7} {'Mrays/s':>8} {'raw':>6} {'eff':>5}"
     print("per-step ms (trace..blend summed over worker threads; update = wall clock)")

@@ -14,7 +14,7 @@ MULTI_BOUNCE = 2  # hits also read the cache itself: converges to the multi-boun
 
 @dataclass(frozen=True)
 class CacheSettings:
-    resolution: int = 32  # cells along the longest axis of the scene bounds
+    resolution: int = 48  # cells along the longest axis of the grid bounds (48: atrium DI error 0.098 vs Cycles, 32: 0.107)
     sh_order: int = 2  # 1 -> L1 (4 coefficients per channel), 2 -> L2 (9)
     rays_per_cell: int = 64  # probe rays per visible cell per update
     ray_length: float = 0.0  # metres; 0 = unlimited (the scene diagonal)
