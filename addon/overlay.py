@@ -8,8 +8,8 @@ display-encoded there, so the factor is encoded the same way (a power of 1/2.2).
 
 Blender drives it through a draw handler (drawing), a depsgraph handler (edits) and a timer (redraws
 while the worker converges); none of those run in the bpy module, so tests call `draw_overlay`
-and `on_depsgraph_update` directly. On/off: `scene.hybridgi.use_gi_overlay` where the add-on has
-that property, else the `HYBRIDGI_OT_gi_overlay` toggle's per-scene flag.
+and `on_depsgraph_update` directly. On/off: `scene.hybridgi.use_gi_overlay` (the panel's toggle, or
+the `HYBRIDGI_OT_gi_overlay` operator for keymaps).
 
 The same handler draws the cache's cells (`scene.hybridgi.use_viewport_overlay`, any shading): a
 point at each valid cell's centre, coloured by the radiance it holds, from the cache the last
@@ -45,26 +45,16 @@ POLL_IDLE_S = 0.5
 
 #: Scene name -> the overlay's ViewportSession for that scene.
 _sessions: dict = {}
-#: Scenes with the overlay on, when `scene.hybridgi` has no `use_gi_overlay` property.
-_fallback_enabled: set = set()
 _draw_handle = None
 
 
 def is_enabled(scene) -> bool:
     props = getattr(scene, "hybridgi", None)
-    if props is not None and hasattr(props, "use_gi_overlay"):
-        return bool(props.use_gi_overlay)
-    return scene.name in _fallback_enabled
+    return bool(props is not None and props.use_gi_overlay)
 
 
 def set_enabled(scene, enabled: bool) -> None:
-    props = getattr(scene, "hybridgi", None)
-    if props is not None and hasattr(props, "use_gi_overlay"):
-        props.use_gi_overlay = enabled
-    elif enabled:
-        _fallback_enabled.add(scene.name)
-    else:
-        _fallback_enabled.discard(scene.name)
+    scene.hybridgi.use_gi_overlay = enabled
     if not enabled:
         close_session(scene.name)
 
@@ -220,7 +210,6 @@ def on_depsgraph_update(scene, depsgraph) -> None:
 def on_load(*_args) -> None:
     """A new file: the sessions belong to the old one's scenes."""
     close_all()
-    _fallback_enabled.clear()
     _cell_batches.clear()
 
 

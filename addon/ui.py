@@ -90,8 +90,7 @@ class HYBRIDGI_PT_debug(HybridGIButtonsPanel, Panel):
         col = layout.column()
         col.prop(props, "debug_view")
         col.prop(props, "use_viewport_overlay")
-        if hasattr(props, "use_gi_overlay"):
-            col.prop(props, "use_gi_overlay")
+        col.prop(props, "use_gi_overlay")
 
 
 class HYBRIDGI_PT_passes(HybridGIButtonsPanel, Panel):
@@ -145,12 +144,7 @@ class HYBRIDGI_PT_view3d(HybridGIViewPanel, Panel):
         shading = getattr(getattr(context.space_data, "shading", None), "type", None)
         if scene.render.engine == ENGINE and shading != "RENDERED":
             col.label(text="Rendered shading shows the live GI", icon="INFO")
-        if hasattr(props, "use_gi_overlay"):
-            col.prop(props, "use_gi_overlay", text="GI Overlay (Solid, Material Preview)", toggle=True)
-        else:
-            overlay = _loaded("overlay")
-            on = overlay is not None and overlay.is_enabled(scene)
-            col.operator("hybridgi.gi_overlay", text="GI Overlay (Solid, Material Preview)", depress=on)
+        col.prop(props, "use_gi_overlay", text="GI Overlay (Solid, Material Preview)", toggle=True)
 
 
 class HYBRIDGI_PT_view3d_settings(HybridGIViewPanel, Panel):
