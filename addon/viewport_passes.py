@@ -126,17 +126,18 @@ class _DirectSource:
 
     @classmethod
     def upload(cls, result: worker.ViewResult) -> "_DirectSource":
-        h, w = result.direct.shape[:2]
-        up = _readback.upload_texture_2d
-        return cls(result.serial, up(result.direct, "RGBA32F"), up(result.position, "RGBA32F"),
-                   up(result.normal, "RGBA16F"), result.view, result.proj, w, h, pixel_footprint(result.proj, h))
+        return cls._of(result, result.direct, "RGBA32F", result.position, result.normal)
 
     @classmethod
     def cells_of(cls, result: worker.ViewResult) -> "_DirectSource":
-        h, w = result.cells.shape[:2]
+        return cls._of(result, result.cells, "RGBA16F", result.gi_position, result.gi_normal)
+
+    @classmethod
+    def _of(cls, result, colour, colour_format, position, normal) -> "_DirectSource":
+        h, w = colour.shape[:2]
         up = _readback.upload_texture_2d
-        return cls(result.serial, up(result.cells, "RGBA16F"), up(result.gi_position, "RGBA32F"),
-                   up(result.gi_normal, "RGBA16F"), result.view, result.proj, w, h, pixel_footprint(result.proj, h))
+        return cls(result.serial, up(colour, colour_format), up(position, "RGBA32F"), up(normal, "RGBA16F"),
+                   result.view, result.proj, w, h, pixel_footprint(result.proj, h))
 
     @classmethod
     def empty(cls) -> "_DirectSource":
