@@ -158,72 +158,109 @@ def irradiance_sh(cache: IrradianceCache, bounced: bool) -> np.ndarray:
     return coeffs
 
 
-def nearest_irradiance(
-    cache: IrradianceCache, table: np.ndarray, points: np.ndarray, normals: np.ndarray, valid: np.ndarray | None = None
-) -> np.ndarray:
-    """(n, 3) float32 irradiance >= 0 at probe-ray hits from the single cell in front of each hit.
+class HitLookup:
+    """The cache as probe-ray hits read it during one update: a frozen snapshot, so hits read the
+    cache as it was before the update began, whatever the thread timing.
 
-    Further bounces are low frequency and costly in bulk (one per probe ray), so they read one
-    cell instead of the 8-neighbour visibility-weighted gather. table : `irradiance_sh(...)`;
-    valid : (N,) bool cells to read, `cache.valid` when None (a snapshot taken with the table).
+    Further bounces are low frequency and costly in bulk (one per probe ray), so a hit reads the
+    single cell in front of it instead of the 8-neighbour visibility-weighted gather. Cells that
+    cannot be read (never sampled, or inside geometry) are redirected, per dominant axis of the
+    hit normal, to the nearest valid cell in front along that axis, precomputed per cell here.
+
+    Irradiance is a polynomial in the normal (SH up to L2): the table holds it on the monomials
+    1, y, z, x, xy, yz, z^2, xz, x^2 - y^2 with every SH and cosine constant folded in, as
+    (rows, N) structure-of-arrays rows so each term is one contiguous multiply-add per hit.
     """
-    normals = np.asarray(normals, np.float32)
-    points = np.asarray(points, np.float32)
-    grid = cache.grid
-    cell = np.float32(grid.cell_size)
-    p = points + normals * np.float32(HIT_LOOKUP_BIAS * grid.cell_size)
-    g = (p - grid.lo) / cell  # (n, 3) in cell units
-    ijk = np.floor(g).astype(np.int32)
-    np.clip(ijk, 0, np.asarray(grid.dims, np.int32) - 1, out=ijk)
-    nx, ny, _ = grid.dims
-    flat = ijk[:, 0] + nx * (ijk[:, 1] + ny * ijk[:, 2])
-    valid = cache.valid if valid is None else valid
-    # Near an object's edge the cell in front of a hit can be one disabled inside the object:
-    # those hits take the best valid neighbour in front of their tangent plane instead.
-    bad = np.flatnonzero(~valid[flat])
-    if bad.size:
-        flat[bad] = _best_front_neighbour(grid, valid, g[bad] - np.float32(0.5), points[bad], normals[bad], flat[bad])
-    # Structure of arrays: (K*3, n) coefficient rows and (K, n) basis rows make the per-point
-    # dot product K contiguous multiply-adds (a stacked (1, K) @ (K, 3) matmul was 2.5x slower).
-    n_k = table.shape[1]
-    rows = np.ascontiguousarray(table.reshape(table.shape[0], -1).T)  # (K*3, N)
-    coeffs = np.take(rows, flat, axis=1)  # invalid cells hold zeros
-    y = sh.basis(normals, cache.settings.sh_order).T  # (K, n) contiguous
-    e = coeffs[0:3] * y[0]
-    for k in range(1, n_k):
-        e += coeffs[3 * k : 3 * k + 3] * y[k]
-    np.maximum(e, 0.0, out=e)
-    return np.ascontiguousarray(e.T)
+
+    def __init__(self, cache: IrradianceCache, bounced: bool):
+        grid = cache.grid
+        self.valid = cache.valid
+        table = irradiance_sh(cache, bounced)  # (N, K, 3), zero where invalid
+        k = table.shape[1]
+        scale = np.array([sh.C0, sh.C1, sh.C1, sh.C1, sh.C2, sh.C2, 3.0 * sh.C3, sh.C2, sh.C4][:k], np.float32)
+        poly = table * scale[None, :, None]
+        if k == 9:
+            poly[:, 0] -= table[:, 6] * np.float32(sh.C3)  # C3 (3 z^2 - 1): the -1 joins the constant
+        self.terms = k
+        self.rows = np.ascontiguousarray(poly.reshape(poly.shape[0], -1).T)  # (K*3, N)
+        self.origin = np.asarray(grid.lo, np.float32)
+        self.inv_cell = np.float32(1.0 / grid.cell_size)
+        self.bias = np.float32(HIT_LOOKUP_BIAS * grid.cell_size)
+        self.top = np.asarray(grid.dims, np.int32) - 1
+        self.strides = (1, grid.dims[0], grid.dims[0] * grid.dims[1])
+        self.grid = grid
+
+    def irradiance(self, points: np.ndarray, normals: np.ndarray) -> np.ndarray:
+        """(3, n) float32 irradiance >= 0 (channel rows) at points (n, 3) with unit normals (n, 3);
+        zero normals (missed rays) read a cell but get no special treatment: mask them yourself."""
+        g = normals * self.bias
+        g += points
+        g -= self.origin
+        g *= self.inv_cell
+        # Truncation is floor wherever the clamp below keeps the value (negatives all clamp to 0).
+        ijk = g.astype(np.int32)
+        np.maximum(ijk, 0, out=ijk)
+        np.minimum(ijk, self.top, out=ijk)
+        flat = ijk[:, 0].astype(np.intp)
+        flat += ijk[:, 1] * self.strides[1]
+        flat += ijk[:, 2] * self.strides[2]
+        bad = np.flatnonzero(~self.valid[flat])
+        if bad.size:
+            flat[bad] = _best_front_neighbour(self.grid, self.valid, g[bad] - np.float32(0.5), points[bad], normals[bad], flat[bad])
+        c = np.take(self.rows, flat, axis=1)  # (K*3, n)
+        x, y, z = np.ascontiguousarray(normals.T)
+        e = c[0:3].copy()
+        e += c[3:6] * y
+        e += c[6:9] * z
+        e += c[9:12] * x
+        if self.terms == 9:
+            e += c[12:15] * (x * y)
+            e += c[15:18] * (y * z)
+            e += c[18:21] * (z * z)
+            e += c[21:24] * (x * z)
+            xx_yy = x * x
+            xx_yy -= y * y
+            e += c[24:27] * xx_yy
+        np.maximum(e, 0.0, out=e)
+        return e
 
 
 def _best_front_neighbour(grid, valid, g, points, normals, fallback):
     """(k,) flat cells: of the 8 cells around each point (g : (k, 3) cell coordinates less 0.5),
     the valid one in front of the point's tangent plane with the largest trilinear weight;
-    `fallback` where there is none. The same choice as scoring `grid.corner_cells`, per axis."""
+    `fallback` where there is none. The same choice as scoring `grid.corner_cells`.
+
+    A running best over the 8 corners on (k,) arrays: (k, 8) score tables and broadcasts over
+    short trailing axes measured slower.
+    """
     base = np.floor(g)
     f = (g - base).astype(np.float32)
     base = base.astype(np.int32)
     dims = grid.dims
     stride = (1, dims[0], dims[0] * dims[1])
+    cell = np.float32(grid.cell_size)
     idx, wgt, front = [], [], []
     for a in range(3):
         i0 = np.clip(base[:, a], 0, dims[a] - 1)
         i1 = np.clip(base[:, a] + 1, 0, dims[a] - 1)
         # Offset of each candidate centre from the point along this axis, times the normal's axis.
-        c0 = (grid.lo[a] + (i0 + 0.5) * grid.cell_size).astype(np.float32) - points[:, a]
-        c1 = (grid.lo[a] + (i1 + 0.5) * grid.cell_size).astype(np.float32) - points[:, a]
+        lo = np.float32(grid.lo[a]) + np.float32(0.5) * cell - points[:, a]
         idx.append((i0 * stride[a], i1 * stride[a]))
         wgt.append((1.0 - f[:, a], f[:, a]))
-        front.append((c0 * normals[:, a], c1 * normals[:, a]))
-    k = g.shape[0]
-    score = np.empty((k, 8), np.float32)
-    flats = np.empty((k, 8), np.int64)
-    for c in range(8):
-        ox, oy, oz = c & 1, (c >> 1) & 1, (c >> 2) & 1
-        flat = idx[0][ox] + idx[1][oy] + idx[2][oz]
-        flats[:, c] = flat
-        in_front = front[0][ox] + front[1][oy] + front[2][oz] > 0
-        score[:, c] = wgt[0][ox] * wgt[1][oy] * wgt[2][oz] * valid[flat] * in_front
-    best = score.argmax(axis=1)
-    rows = np.arange(k)
-    return np.where(score[rows, best] > 0, flats[rows, best], fallback)
+        front.append(((i0 * cell + lo) * normals[:, a], (i1 * cell + lo) * normals[:, a]))
+    best = np.zeros(g.shape[0], np.float32)
+    out = np.asarray(fallback, np.intp).copy()
+    for ox in (0, 1):
+        for oy in (0, 1):
+            w_xy = wgt[0][ox] * wgt[1][oy]
+            i_xy = idx[0][ox] + idx[1][oy]
+            f_xy = front[0][ox] + front[1][oy]
+            for oz in (0, 1):
+                flat = i_xy + idx[2][oz]
+                ok = (f_xy + front[2][oz]) > 0
+                ok &= valid[flat]
+                score = np.where(ok, w_xy * wgt[2][oz], np.float32(0.0))
+                better = score > best
+                np.copyto(out, flat, where=better)
+                np.maximum(best, score, out=best)
+    return out

@@ -1,7 +1,10 @@
 """Surface attributes at ray hits: position, normals, albedo, emission.
 
-Per-triangle data is packed into one float32 record so a hit costs a single `np.take` row gather
-(about 3x faster than chained fancy indexing over several arrays).
+Probe-ray shading reads one packed float32 record per hit (16 floats, one cache line) with a
+single `np.take`: chained fancy indexing over several arrays cost about 3x more. The record holds
+what shading needs and nothing it can get cheaper elsewhere: the hit position comes from the ray
+(origin + t * direction), so vertex positions stay out of it. Row -1 is a zero record that rays
+which missed index, so a batch with few misses is shaded whole, without compaction.
 """
 
 from __future__ import annotations
@@ -12,18 +15,16 @@ import numpy as np
 
 from .snapshot import Geometry, Material
 
-# Record layout (floats): v0 | e1 | e2 | n0 | n1 | n2 | uv0 | uv1 | uv2 | material | face normal
-_V0, _E1, _E2, _N0, _N1, _N2 = (slice(3 * i, 3 * i + 3) for i in range(6))
-_UV0, _UV1, _UV2 = slice(18, 20), slice(20, 22), slice(22, 24)
-_MAT = 24
-_FN = slice(25, 28)
-RECORD_FLOATS = 28
+# Record layout (floats): n0 | n1 - n0 | n2 - n0 | albedo / pi | emission | spare
+_N0, _DN1, _DN2, _BRDF, _EMIT = (slice(3 * i, 3 * i + 3) for i in range(5))
+RECORD_FLOATS = 16
+_INV_PI = np.float32(1.0 / np.pi)
 
 
 @dataclass
 class SurfaceHits:
-    """Attributes of n hit points. position/normal/face_normal : (n, 3); albedo/emission : (n, 3);
-    backface : (n,) bool (the ray arrived from behind the geometric normal)."""
+    """Attributes of n hit points. position/normal : (n, 3); albedo/emission : (n, 3);
+    backface : (n,) bool (the ray arrived from behind the shading normal)."""
 
     position: np.ndarray
     normal: np.ndarray
@@ -32,21 +33,42 @@ class SurfaceHits:
     backface: np.ndarray
 
 
+@dataclass
+class ProbeHits:
+    """What hit shading needs for n probe rays, misses included (zero normal, brdf, emission).
+
+    normal (n, 3) unit, facing the ray; brdf (n, 3) albedo / pi; emission (n, 3);
+    backface (n,) bool. brdf and emission may be strided views into a gathered record block.
+    """
+
+    normal: np.ndarray
+    brdf: np.ndarray
+    emission: np.ndarray
+    backface: np.ndarray
+
+
 class SurfaceTable:
     """Packed triangles and materials of one traced Geometry (built once per geometry change)."""
 
     def __init__(self, geometry: Geometry, materials: list[Material]):
-        self.records = _pack(geometry, np.arange(geometry.triangle_count))
+        rows = np.arange(geometry.triangle_count)
+        self._normals = _pack_normals(geometry, rows)
+        self._positions = _pack_positions(geometry, rows)
+        self._uvs = _pack_uvs(geometry, rows)
+        self.material_index = np.asarray(geometry.material_index, np.int32)
         self.set_materials(materials)
 
     def update_rows(self, geometry: Geometry, rows: np.ndarray) -> None:
         """Re-pack the triangles `rows` (moved or deformed) from `geometry` (same topology).
 
-        A new records array is swapped in whole, so a worker reading the old one stays consistent.
+        New arrays are swapped in whole, so a worker reading the old ones stays consistent.
         """
+        normals, positions = self._normals.copy(), self._positions.copy()
+        normals[rows] = _pack_normals(geometry, rows)
+        positions[rows] = _pack_positions(geometry, rows)
         records = self.records.copy()
-        records[rows] = _pack(geometry, rows)
-        self.records = records
+        records[rows, : normals.shape[1]] = normals[rows]
+        self._normals, self._positions, self.records = normals, positions, records
 
     def set_materials(self, materials: list[Material]) -> None:
         self.materials = materials
@@ -54,58 +76,93 @@ class SurfaceTable:
         self.mean_albedo = np.array([m.mean_albedo for m in materials], np.float32).reshape(-1, 3)
         self.emission = np.array([m.emission for m in materials], np.float32).reshape(-1, 3)
         self.textured = [i for i, m in enumerate(materials) if m.texture is not None]
+        records = np.zeros((self._normals.shape[0] + 1, RECORD_FLOATS), np.float32)
+        records[:-1, : self._normals.shape[1]] = self._normals
+        if len(materials):
+            mat = np.clip(self.material_index, 0, len(materials) - 1)
+            records[:-1, _BRDF] = self.albedo[mat] * _INV_PI
+            records[:-1, _EMIT] = self.emission[mat]
+        self.records = records
 
-    def surface(self, prim: np.ndarray, u: np.ndarray, v: np.ndarray, ray_dirs: np.ndarray) -> SurfaceHits:
-        """Attributes at hits (prim >= 0 only). prim (n,) int32, u, v (n,) float32, ray_dirs (n, 3)."""
-        r = np.take(self.records, prim, axis=0)
+    def probe_hits(self, prim: np.ndarray, u: np.ndarray, v: np.ndarray, ray_dirs: np.ndarray) -> ProbeHits:
+        """Shading inputs of probe rays. prim (n,) int32 (-1 = miss), u, v (n,) float32 (any value
+        on misses), ray_dirs (n, 3) float32."""
+        r = np.take(self.records, prim, axis=0)  # prim -1 reads the zero record
         u = u[:, None]
         v = v[:, None]
-        w0 = 1.0 - u - v
-        pos = r[:, _E1] * u
-        pos += r[:, _V0]
-        pos += v * r[:, _E2]
-        nrm = r[:, _N0] * w0
-        nrm += u * r[:, _N1]
-        nrm += v * r[:, _N2]
+        nrm = r[:, _DN1] * u
+        nrm += r[:, _N0]
+        nrm += v * r[:, _DN2]
         # Normalize and turn to the side the ray came from (probe rays see both faces of open
         # meshes) in one scale: the sign of n . d does not depend on n's length.
-        scale = 1.0 / np.sqrt(np.maximum(np.einsum("ij,ij->i", nrm, nrm), np.float32(1e-24)))
-        np.negative(scale, out=scale, where=np.einsum("ij,ij->i", nrm, ray_dirs) > 0)
+        facing = np.einsum("ij,ij->i", nrm, ray_dirs)
+        backface = facing > 0
+        scale = np.einsum("ij,ij->i", nrm, nrm)
+        np.maximum(scale, np.float32(1e-24), out=scale)
+        np.sqrt(scale, out=scale)
+        np.divide(np.float32(1.0), scale, out=scale)
+        np.negative(scale, out=scale, where=backface)
         nrm *= scale[:, None]
-        backface = np.einsum("ij,ij->i", r[:, _FN], ray_dirs) > 0
-        mat = r[:, _MAT].astype(np.int32)
-        albedo = np.take(self.albedo, mat, axis=0)
+        brdf = r[:, _BRDF]
         if self.textured:
-            uv = w0 * r[:, _UV0] + u * r[:, _UV1] + v * r[:, _UV2]
-            for m in self.textured:
-                sel = mat == m
-                if not sel.any():
-                    continue
-                tex_uv = uv[sel]
-                known = np.isfinite(tex_uv).all(axis=1)
-                col = np.tile(self.mean_albedo[m], (tex_uv.shape[0], 1))
-                col[known] = self.albedo[m] * sample_texture(self.materials[m].texture, tex_uv[known])
-                albedo[sel] = col
-        return SurfaceHits(pos, nrm, albedo, np.take(self.emission, mat, axis=0), backface)
+            brdf = self._textured_brdf(brdf.copy(), prim, u[:, 0], v[:, 0])
+        return ProbeHits(nrm, brdf, r[:, _EMIT], backface)
+
+    def surface(self, prim: np.ndarray, u: np.ndarray, v: np.ndarray, ray_dirs: np.ndarray) -> SurfaceHits:
+        """Attributes at hits (prim >= 0 only), position from the triangle's vertices.
+        prim (n,) int32, u, v (n,) float32, ray_dirs (n, 3)."""
+        h = self.probe_hits(prim, u, v, ray_dirs)
+        p = np.take(self._positions, prim, axis=0)
+        pos = p[:, 3:6] * u[:, None]
+        pos += p[:, 0:3]
+        pos += v[:, None] * p[:, 6:9]
+        return SurfaceHits(pos, h.normal, h.brdf * np.float32(np.pi), np.ascontiguousarray(h.emission), h.backface)
+
+    def _textured_brdf(self, brdf: np.ndarray, prim: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+        """brdf with the texture of textured materials applied at the hits' UVs (misses skipped)."""
+        hit = prim >= 0
+        mat = np.where(hit, np.take(self.material_index, np.maximum(prim, 0)), -1)
+        for m in self.textured:
+            sel = np.flatnonzero(mat == m)
+            if sel.size == 0:
+                continue
+            t = np.take(self._uvs, prim[sel], axis=0)
+            uv = t[:, 0:2] + u[sel, None] * t[:, 2:4] + v[sel, None] * t[:, 4:6]
+            known = np.isfinite(uv).all(axis=1)
+            col = np.tile(self.mean_albedo[m] * _INV_PI, (sel.size, 1))
+            col[known] = (self.albedo[m] * _INV_PI) * sample_texture(self.materials[m].texture, uv[known])
+            brdf[sel] = col
+        return brdf
 
 
-def _pack(geometry: Geometry, rows: np.ndarray) -> np.ndarray:
-    """(len(rows), RECORD_FLOATS) float32 records of the given triangles."""
-    tris = geometry.triangles[rows]
-    p = geometry.positions[tris]  # (m, 3, 3)
-    n = geometry.normals[tris]
-    uv = geometry.uvs[tris]
-    rec = np.empty((tris.shape[0], RECORD_FLOATS), np.float32)
-    rec[:, _V0] = p[:, 0]
-    rec[:, _E1] = p[:, 1] - p[:, 0]
-    rec[:, _E2] = p[:, 2] - p[:, 0]
-    rec[:, _N0], rec[:, _N1], rec[:, _N2] = n[:, 0], n[:, 1], n[:, 2]
-    rec[:, _UV0], rec[:, _UV1], rec[:, _UV2] = uv[:, 0], uv[:, 1], uv[:, 2]
-    rec[:, _MAT] = geometry.material_index[rows]
-    fn = np.cross(rec[:, _E1], rec[:, _E2])
-    length = np.linalg.norm(fn, axis=1, keepdims=True)
-    rec[:, _FN] = np.divide(fn, length, out=np.zeros_like(fn), where=length > 0)
-    return rec
+def _pack_normals(geometry: Geometry, rows: np.ndarray) -> np.ndarray:
+    """(len(rows), 9) float32: vertex normal n0 and the differences n1 - n0, n2 - n0."""
+    n = geometry.normals[geometry.triangles[rows]]  # (m, 3, 3)
+    out = np.empty((n.shape[0], 9), np.float32)
+    out[:, _N0] = n[:, 0]
+    out[:, _DN1] = n[:, 1] - n[:, 0]
+    out[:, _DN2] = n[:, 2] - n[:, 0]
+    return out
+
+
+def _pack_positions(geometry: Geometry, rows: np.ndarray) -> np.ndarray:
+    """(len(rows), 9) float32: v0 and the edges v1 - v0, v2 - v0."""
+    p = geometry.positions[geometry.triangles[rows]]
+    out = np.empty((p.shape[0], 9), np.float32)
+    out[:, 0:3] = p[:, 0]
+    out[:, 3:6] = p[:, 1] - p[:, 0]
+    out[:, 6:9] = p[:, 2] - p[:, 0]
+    return out
+
+
+def _pack_uvs(geometry: Geometry, rows: np.ndarray) -> np.ndarray:
+    """(len(rows), 6) float32: uv0 and the differences uv1 - uv0, uv2 - uv0."""
+    t = geometry.uvs[geometry.triangles[rows]]
+    out = np.empty((t.shape[0], 6), np.float32)
+    out[:, 0:2] = t[:, 0]
+    out[:, 2:4] = t[:, 1] - t[:, 0]
+    out[:, 4:6] = t[:, 2] - t[:, 0]
+    return out
 
 
 def sample_texture(texture: np.ndarray, uv: np.ndarray) -> np.ndarray:

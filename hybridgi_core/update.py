@@ -16,7 +16,7 @@ import numpy as np
 
 from . import sh
 from .cache import CellSamples, IrradianceCache
-from .evaluate import irradiance_sh, nearest_irradiance
+from .evaluate import HitLookup
 from .lights import direct_irradiance
 from .sampling import frame_directions, frame_rng, octahedral_texel
 from .settings import AO_ONLY, MULTI_BOUNCE
@@ -29,6 +29,9 @@ STEPS = ("trace", "shade", "shadow", "sh", "blend")
 #: contend less for the GIL (measured: 16k rays 45 ms, 48k 40.5 ms per 158k-ray update on 2 cores);
 #: `update` splits into equal items, a multiple of the thread count.
 CHUNK_RAYS = 49152
+#: Below this share of hits a chunk's hits are compacted before shading; above it every ray is
+#: shaded in place (misses read a zero surface record), which skips the gathers and scatters.
+COMPACT_BELOW = 0.75
 
 
 @dataclass
@@ -87,16 +90,15 @@ class CacheUpdater:
             return stats
         dirs = frame_directions(s.rays_per_cell, s.seed, frame)
         # Hits read the cache as it was before this update, whatever the thread timing: the
-        # irradiance table and the valid flags are snapshots, so chunks blend as they finish.
-        table = irradiance_sh(cache, bounced=s.indirect_quality == MULTI_BOUNCE)
-        valid = cache.valid
+        # lookup is a snapshot, so chunks blend as they finish.
+        lookup = HitLookup(cache, bounced=s.indirect_quality == MULTI_BOUNCE)
         # Equal chunks, as many as the threads or a multiple of them, each at most CHUNK_RAYS rays
         # (one cell at least): no thread waits long for the others at the end.
         threads = max(1, s.threads)
         n_chunks = -(-stats.rays // CHUNK_RAYS)
         n_chunks = min(cells.size, -(-n_chunks // threads) * threads)
         jobs = [
-            self._pool.submit(self._sample_chunk, chunk, dirs, table, frame_rng(s.seed, frame * 7919 + i), valid)
+            self._pool.submit(self._sample_chunk, chunk, dirs, lookup, frame_rng(s.seed, frame * 7919 + i))
             for i, chunk in enumerate(np.array_split(cells, n_chunks))
         ]
         # Chunks hold disjoint cells and a blend reads only its own cells: the order is free.
@@ -110,14 +112,10 @@ class CacheUpdater:
         stats.wall_ms = (time.perf_counter() - t0) * 1e3
         return stats
 
-    def _sample_chunk(
-        self, cells: np.ndarray, dirs: np.ndarray, table: np.ndarray, rng: np.random.Generator,
-        valid: np.ndarray | None = None,
-    ):
+    def _sample_chunk(self, cells: np.ndarray, dirs: np.ndarray, lookup: HitLookup, rng: np.random.Generator):
         """Estimates for one chunk of cells (worker thread: numpy and the tracer only).
 
-        table, valid : `irradiance_sh` and `IrradianceCache.valid` taken before the update began
-        (valid defaults to the cache's current flags)."""
+        lookup : the cache as hits read it, taken before the update began."""
         cache = self.cache
         s = cache.settings
         times = {}
@@ -131,50 +129,61 @@ class CacheUpdater:
         times["trace"] = (time.perf_counter() - tic) * 1e3
 
         tic = time.perf_counter()
-        idx = np.flatnonzero(hits.prim >= 0)
-        # Ray-major rows: direct RGB, indirect RGB, AO visibility; one transposed copy makes them
-        # channel-major (m, 7, r) for the SH projection's GEMM.
-        rows = np.zeros((n, 7), np.float32)
-        rows[:, 0:3] = self.scene.world.color
-        surf = self.scene.surfaces.surface(hits.prim[idx], hits.u[idx], hits.v[idx], ray_dirs[idx])
+        hit = hits.prim >= 0
+        # Channel-major rows per ray: direct RGB, indirect RGB, AO visibility; (7, n) reshapes to
+        # the SH projection's (m, 7, r) blocks with one transposed copy.
+        values = np.empty((7, n), np.float32)
+        values[0:3] = self.scene.world.color[:, None]
+        values[3:6] = 0.0
+        np.greater(hits.t, s.ao_distance, out=values[6])  # misses have t = inf
+        n_hit = int(np.count_nonzero(hit))
+        # Mostly hits (interiors): shade every ray, misses read a zero record and add nothing.
+        # Mostly misses (open scenes): compact the hits first.
+        idx = None if n_hit >= COMPACT_BELOW * n else np.flatnonzero(hit)
+        pick = (lambda a: a) if idx is None else (lambda a: a[idx])
+        t_hit = np.where(hit, hits.t, np.float32(0.0)) if idx is None else hits.t[idx]
+        prim, hd = pick(hits.prim), pick(ray_dirs)
+        surf = self.scene.surfaces.probe_hits(prim, pick(hits.u), pick(hits.v), hd)
         shadow_ms = 0.0
-        if s.indirect_quality != AO_ONLY and idx.size:
+        if s.indirect_quality != AO_ONLY and n_hit:
+            position = hd * t_hit[:, None]
+            position += pick(origins)
             ts = time.perf_counter()
             # The cache is low frequency: one shadow ray along a sun's axis per hit is enough
             # (image pixels keep the sun's soft disc).
             e_in = direct_irradiance(
-                self.scene.lights, surf.position, surf.normal, self.tracer, rng,
+                self.scene.lights, position, surf.normal, self.tracer, rng,
                 samples=s.light_samples, epsilon=float(self.epsilon), sun_disc=False,
-            )
+            ).T
             shadow_ms = (time.perf_counter() - ts) * 1e3
             # Further bounces read the cache at the hit: the sky/emission band gives the second
             # bounce even at ONE_BOUNCE quality; MULTI_BOUNCE's table adds the bounced band.
-            e_in += nearest_irradiance(cache, table, surf.position, surf.normal, valid)
-            hit_rows = np.empty((idx.size, 6), np.float32)
-            hit_rows[:, 0:3] = surf.emission
-            np.multiply(e_in, surf.albedo, out=hit_rows[:, 3:6])
-            hit_rows[:, 3:6] *= np.float32(1.0 / np.pi)
-            rows[idx, 0:6] = hit_rows
-        elif idx.size:
-            rows[idx, 0:3] = 0.0
+            e_in += lookup.irradiance(position, surf.normal)
+            e_in *= surf.brdf.T
+            if idx is None:
+                np.copyto(values[0:3], surf.emission.T, where=hit)
+                values[3:6] = e_in
+            else:
+                values[0:3, idx] = surf.emission.T
+                values[3:6, idx] = e_in
+        elif n_hit:
+            values[0:3, hit] = 0.0
         times["shadow"] = shadow_ms
         times["shade"] = (time.perf_counter() - tic) * 1e3 - shadow_ms
 
         tic = time.perf_counter()
-        t = np.where(hits.prim >= 0, hits.t, np.float32(np.inf))
-        rows[:, 6] = t > s.ao_distance
-        values = rows.reshape(m, r, 7).transpose(0, 2, 1)
-        coeffs = sh.project_channels(values, dirs, s.sh_order)  # (m, K, 7)
+        coeffs = sh.project_channels(values.reshape(7, m, r).transpose(1, 0, 2), dirs, s.sh_order)  # (m, K, 7)
         # Depth moments per (cell, octahedral texel): bincount over keys cell * T + texel (the
         # texels are shared by every cell). A one-hot GEMM cost more and woke OpenBLAS threads.
         n_tex = s.depth_texels**2
         texel = octahedral_texel(dirs, s.depth_texels)
         keys = (np.arange(m, dtype=np.intp)[:, None] * n_tex + texel[None, :]).ravel()
-        depth = np.minimum(t, cache.depth_cap)
+        depth = np.minimum(hits.t, cache.depth_cap)
         depth_sum = np.empty((m, n_tex, 2), np.float32)
         depth_sum[..., 0] = np.bincount(keys, weights=depth, minlength=m * n_tex).reshape(m, n_tex)
         depth_sum[..., 1] = np.bincount(keys, weights=depth * depth, minlength=m * n_tex).reshape(m, n_tex)
-        backface = np.bincount(idx // r, weights=surf.backface, minlength=m) * (1.0 / r)
+        back = surf.backface if idx is None else np.bincount(idx, weights=surf.backface, minlength=n)
+        backface = back.reshape(m, r).sum(axis=1, dtype=np.float32) * np.float32(1.0 / r)
         samples = CellSamples(
             cells=cells,
             sh_direct=coeffs[..., 0:3],
@@ -182,7 +191,7 @@ class CacheUpdater:
             ao_sh=coeffs[..., 6],
             depth_sum=depth_sum,
             depth_count=np.bincount(texel, minlength=n_tex).astype(np.float32),
-            backface=backface.astype(np.float32),
+            backface=backface,
         )
         times["sh"] = (time.perf_counter() - tic) * 1e3
         return samples, times

@@ -1,0 +1,96 @@
+"""Probe-hit shading inputs: the packed surface table and the update's two shading layouts."""
+
+import numpy as np
+import pytest
+
+from hybridgi_core import update
+from hybridgi_core.settings import CacheSettings
+from hybridgi_core.shading import SurfaceTable
+from hybridgi_core.snapshot import Material, World, concat_geometry, geometry_from_arrays, make_snapshot
+from hybridgi_core.system import GISystem
+from tests.shapes import box
+from tests.test_lights import sun_light
+
+QUAD = [[0, 0, 0], [2, 0, 0], [2, 1, 0], [0, 1, 0]]
+
+
+def floor_quads():
+    """Two unit-UV quads on z = 0: x in [0, 2] textured (material 0), x in [3, 5] plain (1)."""
+    uv = np.array([[0, 0], [1, 0], [1, 1], [0, 1]], np.float32)
+    up = np.tile([[0, 0, 1.0]], (4, 1))
+    textured = geometry_from_arrays(QUAD, [[0, 1, 2], [0, 2, 3]], 0, normals=up, uvs=uv)
+    plain = geometry_from_arrays(np.add(QUAD, [3, 0, 0]), [[0, 1, 2], [0, 2, 3]], 1, normals=up, uvs=uv)
+    return concat_geometry([textured, plain])
+
+
+def test_probe_hits_read_texture_base_colour_emission_and_misses():
+    tex = np.zeros((1, 2, 3), np.float32)
+    tex[0, 0] = (1.0, 0.0, 0.0)  # u < 0.5 red
+    tex[0, 1] = (0.0, 1.0, 0.0)  # u > 0.5 green
+    mats = [
+        Material("tex", np.full(3, 0.5, np.float32), tex),
+        Material("lamp", np.array([0.2, 0.4, 0.6], np.float32), None, np.array([3.0, 2.0, 1.0], np.float32)),
+    ]
+    table = SurfaceTable(floor_quads(), mats)
+    # Rays straight down onto x = 0.25 (red texel), x = 1.75 (green), the plain quad, and a miss.
+    prim = np.array([0, 0, 2, -1], np.int32)
+    u = np.array([0.125, 0.875, 0.5, 0.0], np.float32)  # triangle (0, 1, 2): u weights vertex 1
+    v = np.array([0.0, 0.0, 0.25, 0.0], np.float32)
+    down = np.tile([[0, 0, -1.0]], (4, 1)).astype(np.float32)
+    h = table.probe_hits(prim, u, v, down)
+    inv_pi = 1.0 / np.pi
+    texel_blend = 0.5 * np.array([[0.75, 0.25, 0], [0.25, 0.75, 0]])  # bilinear across the 2 texels
+    np.testing.assert_allclose(h.brdf[:2], texel_blend * inv_pi, atol=1e-6)
+    np.testing.assert_allclose(h.brdf[2], mats[1].base_color * inv_pi, atol=1e-7)
+    np.testing.assert_allclose(h.emission[2], mats[1].emission)
+    np.testing.assert_allclose(h.normal[:3], np.tile([0, 0, 1.0], (3, 1)), atol=1e-6)
+    assert not h.backface[:3].any()
+    # A miss reads the zero record: no light, no normal, no NaN.
+    assert (h.brdf[3] == 0).all() and (h.emission[3] == 0).all() and (h.normal[3] == 0).all()
+    # From below the floor the normal turns to the ray and the hit counts as a back face.
+    up = table.probe_hits(prim[:1], u[:1], v[:1], -down[:1])
+    np.testing.assert_allclose(up.normal[0], [0, 0, -1.0], atol=1e-6)
+    assert up.backface[0]
+
+
+def test_surface_positions_follow_moved_rows():
+    geo = floor_quads()
+    table = SurfaceTable(geo, [Material(), Material()])
+    prim = np.array([0, 3], np.int32)
+    u = np.array([0.25, 0.5], np.float32)
+    v = np.array([0.25, 0.25], np.float32)
+    down = np.tile([[0, 0, -1.0]], (2, 1)).astype(np.float32)
+    before = table.surface(prim, u, v, down).position
+    tri = geo.positions[geo.triangles[prim]]
+    expected = tri[:, 0] + u[:, None] * (tri[:, 1] - tri[:, 0]) + v[:, None] * (tri[:, 2] - tri[:, 0])
+    np.testing.assert_allclose(before, expected, atol=1e-6)
+    moved = geometry_from_arrays(geo.positions + [0, 0, 1.0], geo.triangles, geo.material_index,
+                                 normals=-geo.normals, uvs=geo.uvs)
+    table.update_rows(moved, np.array([3]))
+    after = table.surface(prim, u, v, down)
+    np.testing.assert_allclose(after.position[0], before[0], atol=1e-6)  # row 0 kept
+    np.testing.assert_allclose(after.position[1], before[1] + [0, 0, 1.0], atol=1e-6)
+    assert after.backface[1] and not after.backface[0]  # row 3's normals were flipped
+
+
+@pytest.mark.parametrize("scene", ["closed", "open"])
+def test_compacted_and_whole_batch_shading_agree(monkeypatch, scene):
+    """Hits are shaded either in place (mostly hits) or compacted (mostly misses): same cache."""
+    sun = sun_light([0.3, 0.2, -1.0])
+    room = box([0, 0, 0], [2, 2, 2]) if scene == "closed" else geometry_from_arrays(
+        [[-4, -4, 0], [4, -4, 0], [4, 4, 0], [-4, 4, 0]], [[0, 1, 2], [0, 2, 3]])
+    mat = Material("m", np.array([0.7, 0.5, 0.3], np.float32), None, np.array([0.2, 0.1, 0.0], np.float32))
+    snap = make_snapshot(concat_geometry([room, box([0.6, 0.6, 0.0], [1.2, 1.2, 0.7], inward=False)]), [mat],
+                         [sun], World(np.full(3, 0.4, np.float32)))
+    settings = CacheSettings(resolution=6, rays_per_cell=32, threads=1)
+
+    def run(threshold):
+        monkeypatch.setattr(update, "COMPACT_BELOW", threshold)
+        with GISystem(snap, settings) as gi:
+            gi.warm_up(4)
+            return gi.cache.sh_direct.copy(), gi.cache.sh_indirect.copy(), gi.cache.ao_sh.copy()
+
+    whole, compact = run(0.0), run(1.01)
+    assert whole[1][:, 0].max() > 0.01  # bounce light exists, so the comparison means something
+    for a, b in zip(whole, compact):
+        np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-6)
