@@ -8,7 +8,10 @@ Per cell (N cells, K = 4 or 9 SH coefficients, D = depth_texels):
 - depth (N, D*D, 2): mean and mean square probe-ray distance per octahedral texel (Chebyshev test)
 - backface (N,): share of rays hitting back faces; above `inside_threshold` the cell sits inside
   geometry and is disabled, so it does not darken its neighbours
-- samples (N,), last_frame (N,): updates blended so far and the frame of the latest one
+- samples (N,), last_frame (N,): shaded updates blended so far and the frame of the latest update.
+  Cells inside geometry are traced (their rays keep the inside test and depth current) but not
+  shaded: nothing reads their radiance. A cell that comes out of geometry restarts at 0 samples,
+  so it turns valid only once an update has shaded it.
 - urgency (N,): 0..1 extra blend weight for cells near something that changed (localized updates)
 """
 
@@ -40,6 +43,7 @@ class CellSamples:
     depth_sum: np.ndarray  # (m, T, 2) sums of d and d^2 over this update's rays per texel
     depth_count: np.ndarray  # (T,) rays per texel (directions are shared by every cell)
     backface: np.ndarray  # (m,)
+    shaded: np.ndarray | None = None  # (m,) bool: radiance bands estimated (None = all)
 
 
 class IrradianceCache:
@@ -87,19 +91,23 @@ class IrradianceCache:
 
     def blend(self, s: CellSamples, frame: int, alpha: float | None = None) -> None:
         """Fold one update into the cache with the exponential moving average (or with the given
-        weight: 1 replaces, as the warm-up's bounce propagation does)."""
+        weight: 1 replaces, as the warm-up's bounce propagation does). Radiance bands of rows
+        that were not shaded keep their values."""
         c = s.cells
         a = self.blend_weights(c) if alpha is None else np.full(c.size, alpha, np.float32)
         a1 = a[:, None]
         m = c.size
+        shaded = np.ones(m, bool) if s.shaded is None else np.asarray(s.shaded, bool)
+        a_rad = (a * shaded)[:, None]
         # Flat (m, -1) rows: broadcasting a per-cell weight over short trailing axes is slow.
-        for name, new in (("sh_direct", s.sh_direct), ("sh_indirect", s.sh_indirect), ("ao_sh", s.ao_sh)):
+        for name, new, w in (("sh_direct", s.sh_direct, a_rad), ("sh_indirect", s.sh_indirect, a_rad), ("ao_sh", s.ao_sh, a1)):
             arr = getattr(self, name)
             old = arr[c].reshape(m, -1)
             delta = new.reshape(m, -1) - old
-            delta *= a1
+            delta *= w
             old += delta
             arr[c] = old.reshape((m,) + arr.shape[1:])
+        was_inside = self.inside[c]
         self.backface[c] += a * (s.backface - self.backface[c])
         # Depth: only texels that received rays this update move, each towards its own mean
         # (whole rows, with a zero weight on empty texels: cheaper than indexing the subset).
@@ -111,7 +119,9 @@ class IrradianceCache:
             delta *= a1 * (count > 0)
             old += delta
             self.depth[c] = old.reshape(m, *self.depth.shape[1:])
-        self.samples[c] += 1
+        self.samples[c] += shaded
+        # Out of geometry (it moved): radiance from before is stale; valid again once shaded.
+        self.samples[c[was_inside & ~self.inside[c]]] = 0
         self.last_frame[c] = frame
         # Urgency decays as the refreshed cells take samples: the burst lasts a few updates.
         self.urgency[c] *= 0.5

@@ -175,6 +175,7 @@ class HitLookup:
     def __init__(self, cache: IrradianceCache, bounced: bool):
         grid = cache.grid
         self.valid = cache.valid
+        self.inside = cache.inside
         table = irradiance_sh(cache, bounced)  # (N, K, 3), zero where invalid
         k = table.shape[1]
         scale = np.array([sh.C0, sh.C1, sh.C1, sh.C1, sh.C2, sh.C2, 3.0 * sh.C3, sh.C2, sh.C4][:k], np.float32)

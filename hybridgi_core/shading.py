@@ -55,6 +55,7 @@ class SurfaceTable:
         self._normals = _pack_normals(geometry, rows)
         self._positions = _pack_positions(geometry, rows)
         self._uvs = _pack_uvs(geometry, rows)
+        self._face_normals = _face_normals(self._positions)
         self.material_index = np.asarray(geometry.material_index, np.int32)
         self.set_materials(materials)
 
@@ -68,7 +69,9 @@ class SurfaceTable:
         positions[rows] = _pack_positions(geometry, rows)
         records = self.records.copy()
         records[rows, : normals.shape[1]] = normals[rows]
-        self._normals, self._positions, self.records = normals, positions, records
+        face = self._face_normals.copy()
+        face[rows] = _face_normals(positions[rows])[:-1]
+        self._normals, self._positions, self.records, self._face_normals = normals, positions, records, face
 
     def set_materials(self, materials: list[Material]) -> None:
         self.materials = materials
@@ -107,6 +110,10 @@ class SurfaceTable:
         if self.textured:
             brdf = self._textured_brdf(brdf.copy(), prim, u[:, 0], v[:, 0])
         return ProbeHits(nrm, brdf, r[:, _EMIT], backface)
+
+    def face_normals(self, prim: np.ndarray) -> np.ndarray:
+        """(n, 3) float32 unit geometric normals (winding order) of triangles prim; 0 for -1."""
+        return np.take(self._face_normals, prim, axis=0)
 
     def surface(self, prim: np.ndarray, u: np.ndarray, v: np.ndarray, ray_dirs: np.ndarray) -> SurfaceHits:
         """Attributes at hits (prim >= 0 only), position from the triangle's vertices.
@@ -152,6 +159,15 @@ def _pack_positions(geometry: Geometry, rows: np.ndarray) -> np.ndarray:
     out[:, 0:3] = p[:, 0]
     out[:, 3:6] = p[:, 1] - p[:, 0]
     out[:, 6:9] = p[:, 2] - p[:, 0]
+    return out
+
+
+def _face_normals(positions: np.ndarray) -> np.ndarray:
+    """(m + 1, 3) float32 unit winding normals of packed positions, then a zero row (for -1)."""
+    fn = np.cross(positions[:, 3:6], positions[:, 6:9])
+    length = np.linalg.norm(fn, axis=1, keepdims=True)
+    out = np.zeros((positions.shape[0] + 1, 3), np.float32)
+    np.divide(fn, length, out=out[:-1], where=length > 0)
     return out
 
 

@@ -119,8 +119,13 @@ class CacheUpdater:
         cache = self.cache
         s = cache.settings
         times = {}
+        # Cells inside geometry are traced (inside test, depth) but not shaded: nothing reads
+        # their radiance. Outside cells go first, so the shaded rays are a prefix of the batch.
+        inside = lookup.inside[cells]
+        cells = np.concatenate([cells[~inside], cells[inside]])
         m, r = cells.size, dirs.shape[0]
         n = m * r
+        n_s = int(m - np.count_nonzero(inside)) * r
         tic = time.perf_counter()
         origins = np.repeat(cache.centers[cells], r, axis=0)
         ray_dirs = np.tile(dirs, (m, 1))
@@ -129,7 +134,8 @@ class CacheUpdater:
         times["trace"] = (time.perf_counter() - tic) * 1e3
 
         tic = time.perf_counter()
-        hit = hits.prim >= 0
+        hit_all = hits.prim >= 0
+        hit = hit_all[:n_s]
         # Channel-major rows per ray: direct RGB, indirect RGB, AO visibility; (7, n) reshapes to
         # the SH projection's (m, 7, r) blocks with one transposed copy.
         values = np.empty((7, n), np.float32)
@@ -139,9 +145,9 @@ class CacheUpdater:
         n_hit = int(np.count_nonzero(hit))
         # Mostly hits (interiors): shade every ray, misses read a zero record and add nothing.
         # Mostly misses (open scenes): compact the hits first.
-        idx = None if n_hit >= COMPACT_BELOW * n else np.flatnonzero(hit)
-        pick = (lambda a: a) if idx is None else (lambda a: a[idx])
-        t_hit = np.where(hit, hits.t, np.float32(0.0)) if idx is None else hits.t[idx]
+        idx = None if n_hit >= COMPACT_BELOW * n_s else np.flatnonzero(hit)
+        pick = (lambda a: a[:n_s]) if idx is None else (lambda a: a[idx])
+        t_hit = np.where(hit, hits.t[:n_s], np.float32(0.0)) if idx is None else hits.t[idx]
         prim, hd = pick(hits.prim), pick(ray_dirs)
         surf = self.scene.surfaces.probe_hits(prim, pick(hits.u), pick(hits.v), hd)
         shadow_ms = 0.0
@@ -161,13 +167,13 @@ class CacheUpdater:
             e_in += lookup.irradiance(position, surf.normal)
             e_in *= surf.brdf.T
             if idx is None:
-                np.copyto(values[0:3], surf.emission.T, where=hit)
-                values[3:6] = e_in
+                np.copyto(values[0:3, :n_s], surf.emission.T, where=hit)
+                values[3:6, :n_s] = e_in
             else:
                 values[0:3, idx] = surf.emission.T
                 values[3:6, idx] = e_in
         elif n_hit:
-            values[0:3, hit] = 0.0
+            values[0:3, :n_s][:, hit] = 0.0
         times["shadow"] = shadow_ms
         times["shade"] = (time.perf_counter() - tic) * 1e3 - shadow_ms
 
@@ -182,7 +188,12 @@ class CacheUpdater:
         depth_sum = np.empty((m, n_tex, 2), np.float32)
         depth_sum[..., 0] = np.bincount(keys, weights=depth, minlength=m * n_tex).reshape(m, n_tex)
         depth_sum[..., 1] = np.bincount(keys, weights=depth * depth, minlength=m * n_tex).reshape(m, n_tex)
-        back = surf.backface if idx is None else np.bincount(idx, weights=surf.backface, minlength=n)
+        # Back faces of every ray, the unshaded ones included: they keep the inside test current.
+        back = np.einsum("ij,ij->i", self.scene.surfaces.face_normals(hits.prim[n_s:]), ray_dirs[n_s:]) > 0
+        if idx is None:
+            back = np.concatenate([surf.backface, back])
+        else:
+            back = np.concatenate([np.bincount(idx, weights=surf.backface, minlength=n_s) > 0, back])
         backface = back.reshape(m, r).sum(axis=1, dtype=np.float32) * np.float32(1.0 / r)
         samples = CellSamples(
             cells=cells,
@@ -192,6 +203,7 @@ class CacheUpdater:
             depth_sum=depth_sum,
             depth_count=np.bincount(texel, minlength=n_tex).astype(np.float32),
             backface=backface,
+            shaded=np.arange(m) < n_s // max(r, 1),
         )
         times["sh"] = (time.perf_counter() - tic) * 1e3
         return samples, times

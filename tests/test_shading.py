@@ -92,5 +92,5 @@ def test_compacted_and_whole_batch_shading_agree(monkeypatch, scene):
 
     whole, compact = run(0.0), run(1.01)
     assert whole[1][:, 0].max() > 0.01  # bounce light exists, so the comparison means something
-    for a, b in zip(whole, compact):
+    for a, b in zip(whole, compact, strict=True):
         np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-6)
