@@ -71,3 +71,40 @@ def test_settings_change_rebuilds_with_fresh_cache():
     assert s.sync(scene()).rebuilt
     assert s.system.cache.samples.max() == 0 and s.system.cache.grid.dims[0] == 10
     s.close()
+
+
+def test_cells_inside_a_moving_object_are_not_shaded_and_restart_when_it_leaves():
+    """Inside cells keep tracing (their inside test stays current) but take no radiance; a cell the
+    object moves away from becomes valid again only after an update has shaded it."""
+    big = 3.0
+    def snap(x):
+        room = cube([0, 0, 0], 10.0, 0, inward=True)
+        block = cube([x, 3.5, 0.0], big, 1)
+        light = Light("POINT", np.ones(3), 300.0, np.array([[1, 0, 0, 5], [0, 1, 0, 5], [0, 0, 1, 8], [0, 0, 0, 1.0]]))
+        return make_snapshot(concat_geometry([room, block]), [Material()], [light], World(),
+                             [ObjectInfo("room"), ObjectInfo("block")])
+
+    s = GISession(SETTINGS)
+    s.sync(snap(1.0))
+    cache = s.system.cache
+    everything = np.arange(cache.grid.count)
+    s.system.update(everything, frame=0)
+    s.system.update(everything, frame=1)
+    inside = np.flatnonzero(cache.inside)
+    assert inside.size > 0
+    shaded_before = cache.samples[inside].copy()
+    radiance = cache.sh_indirect[inside].copy()
+    s.system.update(everything, frame=2)
+    np.testing.assert_array_equal(cache.samples[inside], shaded_before)  # not shaded again
+    np.testing.assert_array_equal(cache.sh_indirect[inside], radiance)  # radiance untouched
+    outside = np.flatnonzero(~cache.inside & (cache.samples > 0))
+    assert (cache.samples[outside] == 3).all()
+
+    s.sync(snap(6.0))  # the block moves away: its old cells are open again
+    s.system.update(everything, frame=3)
+    freed = inside[~cache.inside[inside]]
+    assert freed.size > 0
+    assert (cache.samples[freed] == 0).all() and not cache.valid[freed].any()  # stale: not read
+    s.system.update(everything, frame=4)
+    assert cache.valid[freed].all() and (cache.samples[freed] == 1).all()
+    s.close()
