@@ -145,6 +145,16 @@ class EmbreeTracer:
         o, d, tf, valid = self._embree_rays(origins, directions, tfar)
         n = o.shape[0]
         scenes = [s for s in (self._static, self._dynamic) if s is not None]
+        if len(scenes) == 1 and scenes[0].identity and not self._parallel(n):
+            # One call on one scene whose primIDs are the global ids: its arrays are the answer.
+            res = scenes[0].scene.run(o, d, dists=tf, query="INTERSECT", output=1)
+            prim, t = res["primID"], res["tfar"]
+            if not valid.all():
+                prim[~valid] = -1
+            # Misses keep the tfar they were given: inf unless a finite tfar was asked for.
+            if not (np.isinf(tfar).all() if np.ndim(tfar) else np.isinf(tfar)) or not valid.all():
+                t = np.where(prim >= 0, t, np.float32(np.inf))
+            return Hits(t, prim, res["u"], res["v"])
         prim = np.full(n, -1, np.int32)
         u = np.zeros(n, np.float32)
         v = np.zeros(n, np.float32)
@@ -231,12 +241,16 @@ class EmbreeTracer:
             tf[bad] = -1.0
         return o, d, tf, valid
 
+    def _parallel(self, n: int) -> bool:
+        """Whether a batch of n rays is split over the worker pool."""
+        return self._pool is not None and n >= 2 * MIN_CHUNK_RAYS
+
     def _for_chunks(self, n: int, work: Callable[[slice], None]) -> None:
         """Run work over slices of range(n), on the pool when the batch is large enough."""
         if n == 0:
             return
         pool = self._pool
-        if pool is None or n < 2 * MIN_CHUNK_RAYS:
+        if not self._parallel(n):
             work(slice(0, n))
             return
         size = max(MIN_CHUNK_RAYS, math.ceil(n / (self.threads * CHUNKS_PER_THREAD)))
