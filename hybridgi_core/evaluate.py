@@ -176,14 +176,18 @@ class HitLookup:
         grid = cache.grid
         self.valid = cache.valid
         self.inside = cache.inside
-        table = irradiance_sh(cache, bounced)  # (N, K, 3), zero where invalid
-        k = table.shape[1]
-        scale = np.array([sh.C0, sh.C1, sh.C1, sh.C1, sh.C2, sh.C2, 3.0 * sh.C3, sh.C2, sh.C4][:k], np.float32)
-        poly = table * scale[None, :, None]
+        # Irradiance SH (cosine-convolved) times the basis constants, as flat (N, K*3) rows: one
+        # multiply by a (K*3,) factor (per-axis broadcasts over (N, K, 3) cost 3x more).
+        k = cache.settings.sh_coeffs
+        coeffs = cache.sh_direct + cache.sh_indirect if bounced else cache.sh_direct.copy()
+        poly = coeffs.reshape(coeffs.shape[0], k * 3)
+        basis = np.array([sh.C0, sh.C1, sh.C1, sh.C1, sh.C2, sh.C2, 3.0 * sh.C3, sh.C2, sh.C4][:k], np.float32)
+        poly *= np.repeat(sh.cosine_scale(cache.settings.sh_order) * basis, 3)
         if k == 9:
-            poly[:, 0] -= table[:, 6] * np.float32(sh.C3)  # C3 (3 z^2 - 1): the -1 joins the constant
+            poly[:, 0:3] -= poly[:, 18:21] * np.float32(1.0 / 3.0)  # C3 (3 z^2 - 1): -1 joins the constant
+        poly[~self.valid] = 0.0
         self.terms = k
-        self.rows = np.ascontiguousarray(poly.reshape(poly.shape[0], -1).T)  # (K*3, N)
+        self.rows = np.ascontiguousarray(poly.T)  # (K*3, N)
         self.origin = np.asarray(grid.lo, np.float32)
         self.inv_cell = np.float32(1.0 / grid.cell_size)
         self.bias = np.float32(HIT_LOOKUP_BIAS * grid.cell_size)
