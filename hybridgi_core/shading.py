@@ -142,24 +142,21 @@ class SurfaceTable:
         return brdf
 
 
+def _pack_corners(per_vertex: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    """(m, 3 d) float32 of (m, 3) triangles over (V, d) vertex data: the first corner's value, then
+    the other two corners' differences from it, so barycentric interpolation is a + u b + v c."""
+    c = per_vertex[triangles]
+    return np.concatenate([c[:, 0], c[:, 1] - c[:, 0], c[:, 2] - c[:, 0]], axis=1).astype(np.float32)
+
+
 def _pack_normals(geometry: Geometry, rows: np.ndarray) -> np.ndarray:
-    """(len(rows), 9) float32: vertex normal n0 and the differences n1 - n0, n2 - n0."""
-    n = geometry.normals[geometry.triangles[rows]]  # (m, 3, 3)
-    out = np.empty((n.shape[0], 9), np.float32)
-    out[:, _N0] = n[:, 0]
-    out[:, _DN1] = n[:, 1] - n[:, 0]
-    out[:, _DN2] = n[:, 2] - n[:, 0]
-    return out
+    """(len(rows), 9): vertex normal n0 and the differences n1 - n0, n2 - n0."""
+    return _pack_corners(geometry.normals, geometry.triangles[rows])
 
 
 def _pack_positions(geometry: Geometry, rows: np.ndarray) -> np.ndarray:
-    """(len(rows), 9) float32: v0 and the edges v1 - v0, v2 - v0."""
-    p = geometry.positions[geometry.triangles[rows]]
-    out = np.empty((p.shape[0], 9), np.float32)
-    out[:, 0:3] = p[:, 0]
-    out[:, 3:6] = p[:, 1] - p[:, 0]
-    out[:, 6:9] = p[:, 2] - p[:, 0]
-    return out
+    """(len(rows), 9): v0 and the edges v1 - v0, v2 - v0."""
+    return _pack_corners(geometry.positions, geometry.triangles[rows])
 
 
 def _face_normals(positions: np.ndarray) -> np.ndarray:
@@ -172,13 +169,8 @@ def _face_normals(positions: np.ndarray) -> np.ndarray:
 
 
 def _pack_uvs(geometry: Geometry, rows: np.ndarray) -> np.ndarray:
-    """(len(rows), 6) float32: uv0 and the differences uv1 - uv0, uv2 - uv0."""
-    t = geometry.uvs[geometry.triangles[rows]]
-    out = np.empty((t.shape[0], 6), np.float32)
-    out[:, 0:2] = t[:, 0]
-    out[:, 2:4] = t[:, 1] - t[:, 0]
-    out[:, 4:6] = t[:, 2] - t[:, 0]
-    return out
+    """(len(rows), 6): uv0 and the differences uv1 - uv0, uv2 - uv0."""
+    return _pack_corners(geometry.uvs, geometry.triangles[rows])
 
 
 def sample_texture(texture: np.ndarray, uv: np.ndarray) -> np.ndarray:
