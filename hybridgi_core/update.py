@@ -26,9 +26,12 @@ from .trace import Tracer
 
 STEPS = ("trace", "shade", "shadow", "sh", "blend")
 #: Most rays per work item. Big items amortize the per-call overhead of numpy and embree and
-#: contend less for the GIL (measured: 16k rays 45 ms, 48k 40.5 ms per 158k-ray update on 2 cores);
+#: contend less for the GIL; too big and the shading temporaries fall out of cache (measured on
+#: the 307k-ray atrium update, 2 cores: 24k rays 64 ms, 48k 60 ms, 96k 56 ms, 150k 70 ms).
 #: `update` splits into equal items, a multiple of the thread count.
-CHUNK_RAYS = 49152
+CHUNK_RAYS = 98304
+#: Fewest rays per chunk worth splitting an update further for load balance.
+MIN_CHUNK_RAYS = 16384
 #: Below this share of hits a chunk's hits are compacted before shading; above it every ray is
 #: shaded in place (misses read a zero surface record), which skips the gathers and scatters.
 COMPACT_BELOW = 0.75
@@ -92,10 +95,13 @@ class CacheUpdater:
         # Hits read the cache as it was before this update, whatever the thread timing: the
         # lookup is a snapshot, so chunks blend as they finish.
         lookup = HitLookup(cache, bounced=s.indirect_quality == MULTI_BOUNCE)
-        # Equal chunks, as many as the threads or a multiple of them, each at most CHUNK_RAYS rays
-        # (one cell at least): no thread waits long for the others at the end.
+        # Equal chunks, a multiple of the threads and at least two per thread when the update is
+        # big enough, each at most CHUNK_RAYS rays (one cell at least): a thread that drew cheap
+        # cells takes another, and the last chunk's blend, which runs alone, stays small.
         threads = max(1, s.threads)
         n_chunks = -(-stats.rays // CHUNK_RAYS)
+        if stats.rays >= 2 * threads * MIN_CHUNK_RAYS:
+            n_chunks = max(n_chunks, 2 * threads)
         n_chunks = min(cells.size, -(-n_chunks // threads) * threads)
         jobs = [
             self._pool.submit(self._sample_chunk, chunk, dirs, lookup, frame_rng(s.seed, frame * 7919 + i))
