@@ -149,23 +149,14 @@ def gather(
 HIT_LOOKUP_BIAS = 0.87
 
 
-def irradiance_sh(cache: IrradianceCache, bounced: bool) -> np.ndarray:
-    """(N, K, 3) float32 per-cell *irradiance* SH (cosine-convolved): direct band, plus the bounced
-    band when `bounced`. Invalid cells are zero. Evaluating it is one dot product per point."""
-    coeffs = cache.sh_direct + cache.sh_indirect if bounced else cache.sh_direct.copy()
-    coeffs *= sh.cosine_scale(cache.settings.sh_order)[None, :, None]
-    coeffs[~cache.valid] = 0.0
-    return coeffs
-
-
 class HitLookup:
     """The cache as probe-ray hits read it during one update: a frozen snapshot, so hits read the
     cache as it was before the update began, whatever the thread timing.
 
     Further bounces are low frequency and costly in bulk (one per probe ray), so a hit reads the
-    single cell in front of it instead of the 8-neighbour visibility-weighted gather. Cells that
-    cannot be read (never sampled, or inside geometry) are redirected, per dominant axis of the
-    hit normal, to the nearest valid cell in front along that axis, precomputed per cell here.
+    single cell in front of it instead of the 8-neighbour visibility-weighted gather. A hit whose
+    cell cannot be read (never sampled, or inside geometry) takes the best valid one of the 8
+    cells around it, in front of its tangent plane (`_best_front_neighbour`).
 
     Irradiance is a polynomial in the normal (SH up to L2): the table holds it on the monomials
     1, y, z, x, xy, yz, z^2, xz, x^2 - y^2 with every SH and cosine constant folded in, as

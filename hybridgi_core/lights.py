@@ -321,20 +321,11 @@ def _sun_axis(light, pts, nrm, tracer, epsilon):
     return e
 
 
-def _sun_chunk(light, p, nrm, tracer, rng, samples, epsilon, disc=True):
+def _sun_chunk(light, p, nrm, tracer, rng, samples, epsilon):
+    """A sun with a disc (angle > 0), sampled; `_sun_axis` shades suns traced along their axis."""
     lx, ly, lz = (-light.direction).astype(_F32)  # receiver -> sun
     half = 0.5 * float(light.angle)
     m = p[0].shape[0]
-    # Without the disc: one ray along the axis. Same expected irradiance (the cone's mean cosine
-    # is cos(n, axis) times the factor divided out below), hard shadows.
-    if half <= 0.0 or not disc:
-        e = float(light.power) * np.maximum(nrm[0] * lx + nrm[1] * ly + nrm[2] * lz, 0.0)
-        if tracer is not None:
-            live = np.nonzero(e != 0)[0]
-            ox, oy, oz = (p[k][live] + nrm[k][live] * epsilon for k in range(3))
-            k = live.size
-            e[live] *= _unoccluded(tracer, ox, oy, oz, np.full(k, lx), np.full(k, ly), np.full(k, lz), np.inf)
-        return e
     # Uniform directions in the cone (concentric map, as Cycles' sample_uniform_cone_concentric).
     one_minus_cos = 2.0 * np.sin(0.5 * half) ** 2
     u, v = stratified_uv(rng, m, samples)
@@ -537,24 +528,21 @@ def direct_irradiance(
         pts, nrm = pts[sel], nrm[sel]
     acc = np.zeros((pts.shape[0], 3), _F32)
     # Suns traced along their axis need no sample patterns: whole arrays at once, row-major.
-    axial = {i for i, lt in enumerate(active) if lt.kind == "SUN" and (not sun_disc or float(lt.angle) <= 0.0)}
-    for i in axial:
-        lt = active[i]
-        acc += _sun_axis(lt, pts, nrm, tracer, epsilon)[:, None] * lt.color[None, :]
+    axial = [lt.kind == "SUN" and (not sun_disc or float(lt.angle) <= 0.0) for lt in active]
+    for lt, ax in zip(active, axial, strict=True):
+        if ax:
+            acc += _sun_axis(lt, pts, nrm, tracer, epsilon)[:, None] * lt.color[None, :]
+    sampled = [(i, lt) for i, (lt, ax) in enumerate(zip(active, axial, strict=True)) if not ax]
     step = max(1, CHUNK_RAYS // samples)
-    for start in range(0, pts.shape[0], step):
-        if len(axial) == len(active):
-            break
+    for start in range(0, pts.shape[0] if sampled else 0, step):
         stop = min(start + step, pts.shape[0])
         p = tuple(np.ascontiguousarray(pts[start:stop, k]) for k in range(3))
         q = tuple(np.ascontiguousarray(nrm[start:stop, k]) for k in range(3))
-        for i, lt in enumerate(active):
-            if i in axial:
-                continue
+        for i, lt in sampled:
             if lt.kind in ("POINT", "SPOT"):
                 e = _point_chunk(lt, p, q, tracer, rng, samples, epsilon)
             elif lt.kind == "SUN":
-                e = _sun_chunk(lt, p, q, tracer, rng, samples, epsilon, sun_disc)
+                e = _sun_chunk(lt, p, q, tracer, rng, samples, epsilon)
             elif i in shapes:
                 e = _area_chunk(lt, shapes[i], p, q, tracer, rng, samples, epsilon)
             else:

@@ -55,7 +55,8 @@ class SurfaceTable:
         self._normals = _pack_normals(geometry, rows)
         self._positions = _pack_positions(geometry, rows)
         self._uvs = _pack_uvs(geometry, rows)
-        self._face_normals = _face_normals(self._positions)
+        # A zero row last, for the -1 of missed rays.
+        self._face_normals = np.concatenate([_face_normals(self._positions), np.zeros((1, 3), np.float32)])
         self.material_index = np.asarray(geometry.material_index, np.int32)
         self.set_materials(materials)
 
@@ -70,7 +71,7 @@ class SurfaceTable:
         records = self.records.copy()
         records[rows, : normals.shape[1]] = normals[rows]
         face = self._face_normals.copy()
-        face[rows] = _face_normals(positions[rows])[:-1]
+        face[rows] = _face_normals(positions[rows])
         self._normals, self._positions, self.records, self._face_normals = normals, positions, records, face
 
     def set_materials(self, materials: list[Material]) -> None:
@@ -160,12 +161,10 @@ def _pack_positions(geometry: Geometry, rows: np.ndarray) -> np.ndarray:
 
 
 def _face_normals(positions: np.ndarray) -> np.ndarray:
-    """(m + 1, 3) float32 unit winding normals of packed positions, then a zero row (for -1)."""
+    """(m, 3) float32 unit winding normals of packed positions (0 for degenerate triangles)."""
     fn = np.cross(positions[:, 3:6], positions[:, 6:9])
     length = np.linalg.norm(fn, axis=1, keepdims=True)
-    out = np.zeros((positions.shape[0] + 1, 3), np.float32)
-    np.divide(fn, length, out=out[:-1], where=length > 0)
-    return out
+    return np.divide(fn, length, out=np.zeros_like(fn), where=length > 0)
 
 
 def _pack_uvs(geometry: Geometry, rows: np.ndarray) -> np.ndarray:

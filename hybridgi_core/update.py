@@ -131,7 +131,8 @@ class CacheUpdater:
         cells = np.concatenate([cells[~inside], cells[inside]])
         m, r = cells.size, dirs.shape[0]
         n = m * r
-        n_s = int(m - np.count_nonzero(inside)) * r
+        m_s = int(m - np.count_nonzero(inside))  # shaded cells
+        n_s = m_s * r
         tic = time.perf_counter()
         origins = np.repeat(cache.centers[cells], r, axis=0)
         ray_dirs = np.tile(dirs, (m, 1))
@@ -140,8 +141,7 @@ class CacheUpdater:
         times["trace"] = (time.perf_counter() - tic) * 1e3
 
         tic = time.perf_counter()
-        hit_all = hits.prim >= 0
-        hit = hit_all[:n_s]
+        hit = hits.prim[:n_s] >= 0
         # Channel-major rows per ray: direct RGB, indirect RGB, AO visibility; (7, n) reshapes to
         # the SH projection's (m, 7, r) blocks with one transposed copy.
         values = np.empty((7, n), np.float32)
@@ -209,7 +209,7 @@ class CacheUpdater:
             depth_sum=depth_sum,
             depth_count=np.bincount(texel, minlength=n_tex).astype(np.float32),
             backface=backface,
-            shaded=np.arange(m) < n_s // max(r, 1),
+            shaded=np.arange(m) < m_s,
         )
         times["sh"] = (time.perf_counter() - tic) * 1e3
         return samples, times

@@ -148,13 +148,10 @@ class EmbreeTracer:
         if len(scenes) == 1 and scenes[0].identity and not self._parallel(n):
             # One call on one scene whose primIDs are the global ids: its arrays are the answer.
             res = scenes[0].scene.run(o, d, dists=tf, query="INTERSECT", output=1)
-            prim, t = res["primID"], res["tfar"]
+            prim = res["primID"]
             if not valid.all():
                 prim[~valid] = -1
-            # Misses keep the tfar they were given: inf unless a finite tfar was asked for.
-            if not (np.isinf(tfar).all() if np.ndim(tfar) else np.isinf(tfar)) or not valid.all():
-                t = np.where(prim >= 0, t, np.float32(np.inf))
-            return Hits(t, prim, res["u"], res["v"])
+            return Hits(np.where(prim >= 0, res["tfar"], np.float32(np.inf)), prim, res["u"], res["v"])
         prim = np.full(n, -1, np.int32)
         u = np.zeros(n, np.float32)
         v = np.zeros(n, np.float32)
