@@ -314,9 +314,8 @@ def _sun_axis(light, pts, nrm, tracer, epsilon):
         origins = nrm[live]
         origins *= _F32(epsilon)
         origins += pts[live]
-        dirs = np.empty_like(origins)
-        dirs[:] = to_sun
-        live = live[~np.asarray(tracer.occluded(origins, dirs, np.inf), bool)]
+        # Finite receivers (checked by the caller) and one unit direction: rays need no checks.
+        live = live[~np.asarray(tracer.occluded(origins, to_sun[None], np.inf, trusted=True), bool)]
     e[live] = cos_r[live] * _F32(light.power)
     return e
 

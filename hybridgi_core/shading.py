@@ -5,6 +5,11 @@ single `np.take`: chained fancy indexing over several arrays cost about 3x more.
 what shading needs and nothing it can get cheaper elsewhere: the hit position comes from the ray
 (origin + t * direction), so vertex positions stay out of it. Row -1 is a zero record that rays
 which missed index, so a batch with few misses is shaded whole, without compaction.
+
+Probe hits are shaded with the triangle's geometric normal, image pixels (`surface`) with the
+interpolated vertex normal. A probe hit only feeds a cell's average over many rays, where the
+facet's tilt averages out, and interpolating and renormalizing the normal was a tenth of the whole
+update's CPU time.
 """
 
 from __future__ import annotations
@@ -15,8 +20,8 @@ import numpy as np
 
 from .snapshot import Geometry, Material
 
-# Record layout (floats): n0 | n1 - n0 | n2 - n0 | albedo / pi | emission | spare
-_N0, _DN1, _DN2, _BRDF, _EMIT = (slice(3 * i, 3 * i + 3) for i in range(5))
+# Record layout (floats): unit geometric normal | albedo / pi | emission | spare
+_NG, _BRDF, _EMIT = (slice(3 * i, 3 * i + 3) for i in range(3))
 RECORD_FLOATS = 16
 _INV_PI = np.float32(1.0 / np.pi)
 
@@ -37,8 +42,9 @@ class SurfaceHits:
 class ProbeHits:
     """What hit shading needs for n probe rays, misses included (zero normal, brdf, emission).
 
-    normal (n, 3) unit, facing the ray; brdf (n, 3) albedo / pi; emission (n, 3);
-    backface (n,) bool. brdf and emission may be strided views into a gathered record block.
+    normal (n, 3) unit geometric normal, facing the ray; brdf (n, 3) albedo / pi; emission (n, 3);
+    backface (n,) bool (the ray hit the triangle's back, by winding). brdf and emission may be
+    strided views into a gathered record block.
     """
 
     normal: np.ndarray
@@ -55,8 +61,6 @@ class SurfaceTable:
         self._normals = _pack_normals(geometry, rows)
         self._positions = _pack_positions(geometry, rows)
         self._uvs = _pack_uvs(geometry, rows)
-        # A zero row last, for the -1 of missed rays.
-        self._face_normals = np.concatenate([_face_normals(self._positions), np.zeros((1, 3), np.float32)])
         self.material_index = np.asarray(geometry.material_index, np.int32)
         self.set_materials(materials)
 
@@ -69,10 +73,8 @@ class SurfaceTable:
         normals[rows] = _pack_normals(geometry, rows)
         positions[rows] = _pack_positions(geometry, rows)
         records = self.records.copy()
-        records[rows, : normals.shape[1]] = normals[rows]
-        face = self._face_normals.copy()
-        face[rows] = _face_normals(positions[rows])
-        self._normals, self._positions, self.records, self._face_normals = normals, positions, records, face
+        records[rows, _NG] = _face_normals(positions[rows])
+        self._normals, self._positions, self.records = normals, positions, records
 
     def set_materials(self, materials: list[Material]) -> None:
         self.materials = materials
@@ -80,8 +82,9 @@ class SurfaceTable:
         self.mean_albedo = np.array([m.mean_albedo for m in materials], np.float32).reshape(-1, 3)
         self.emission = np.array([m.emission for m in materials], np.float32).reshape(-1, 3)
         self.textured = [i for i, m in enumerate(materials) if m.texture is not None]
+        # A zero row last, for the -1 of missed rays.
         records = np.zeros((self._normals.shape[0] + 1, RECORD_FLOATS), np.float32)
-        records[:-1, : self._normals.shape[1]] = self._normals
+        records[:-1, _NG] = _face_normals(self._positions)
         if len(materials):
             mat = np.clip(self.material_index, 0, len(materials) - 1)
             records[:-1, _BRDF] = self.albedo[mat] * _INV_PI
@@ -89,42 +92,41 @@ class SurfaceTable:
         self.records = records
 
     def probe_hits(self, prim: np.ndarray, u: np.ndarray, v: np.ndarray, ray_dirs: np.ndarray) -> ProbeHits:
-        """Shading inputs of probe rays. prim (n,) int32 (-1 = miss), u, v (n,) float32 (any value
-        on misses), ray_dirs (n, 3) float32."""
+        """Shading inputs of probe rays. prim (n,) int32 (-1 = miss), u, v (n,) float32 (read only
+        for textured materials; any value on misses), ray_dirs (n, 3) float32."""
         r = np.take(self.records, prim, axis=0)  # prim -1 reads the zero record
-        u = u[:, None]
-        v = v[:, None]
-        nrm = r[:, _DN1] * u
-        nrm += r[:, _N0]
-        nrm += v * r[:, _DN2]
-        # Normalize and turn to the side the ray came from (probe rays see both faces of open
-        # meshes) in one scale: the sign of n . d does not depend on n's length.
-        facing = np.einsum("ij,ij->i", nrm, ray_dirs)
+        # Turn the normal to the side the ray came from: probe rays see both faces of open meshes.
+        facing = np.einsum("ij,ij->i", r[:, _NG], ray_dirs)
         backface = facing > 0
-        scale = np.einsum("ij,ij->i", nrm, nrm)
-        np.maximum(scale, np.float32(1e-24), out=scale)
-        np.sqrt(scale, out=scale)
-        np.divide(np.float32(1.0), scale, out=scale)
-        np.negative(scale, out=scale, where=backface)
-        nrm *= scale[:, None]
+        nrm = r[:, _NG] * np.where(backface, np.float32(-1.0), np.float32(1.0))[:, None]
         brdf = r[:, _BRDF]
         if self.textured:
-            brdf = self._textured_brdf(brdf.copy(), prim, u[:, 0], v[:, 0])
+            brdf = self._textured_brdf(brdf.copy(), prim, u, v)
         return ProbeHits(nrm, brdf, r[:, _EMIT], backface)
 
     def face_normals(self, prim: np.ndarray) -> np.ndarray:
         """(n, 3) float32 unit geometric normals (winding order) of triangles prim; 0 for -1."""
-        return np.take(self._face_normals, prim, axis=0)
+        return np.take(self.records, prim, axis=0)[:, _NG]
 
     def surface(self, prim: np.ndarray, u: np.ndarray, v: np.ndarray, ray_dirs: np.ndarray) -> SurfaceHits:
-        """Attributes at hits (prim >= 0 only), position from the triangle's vertices.
-        prim (n,) int32, u, v (n,) float32, ray_dirs (n, 3)."""
-        h = self.probe_hits(prim, u, v, ray_dirs)
+        """Attributes at hits (prim >= 0 only), with the interpolated vertex normal facing the ray
+        and the position from the triangle's vertices. prim (n,) int32, u, v (n,) float32,
+        ray_dirs (n, 3)."""
+        u = u[:, None]
+        v = v[:, None]
+        c = np.take(self._normals, prim, axis=0)
+        nrm = c[:, 0:3] + u * c[:, 3:6] + v * c[:, 6:9]
+        backface = np.einsum("ij,ij->i", nrm, ray_dirs) > 0
+        length = np.linalg.norm(nrm, axis=1)
+        scale = np.where(backface, -1.0, 1.0).astype(np.float32) / np.maximum(length, np.float32(1e-12))
+        nrm *= scale[:, None]
         p = np.take(self._positions, prim, axis=0)
-        pos = p[:, 3:6] * u[:, None]
-        pos += p[:, 0:3]
-        pos += v[:, None] * p[:, 6:9]
-        return SurfaceHits(pos, h.normal, h.brdf * np.float32(np.pi), np.ascontiguousarray(h.emission), h.backface)
+        pos = p[:, 0:3] + u * p[:, 3:6] + v * p[:, 6:9]
+        r = np.take(self.records, prim, axis=0)
+        brdf = r[:, _BRDF]
+        if self.textured:
+            brdf = self._textured_brdf(brdf.copy(), prim, u[:, 0], v[:, 0])
+        return SurfaceHits(pos, nrm, brdf * np.float32(np.pi), np.ascontiguousarray(r[:, _EMIT]), backface)
 
     def _textured_brdf(self, brdf: np.ndarray, prim: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
         """brdf with the texture of textured materials applied at the hits' UVs (misses skipped)."""

@@ -137,7 +137,7 @@ class CacheUpdater:
         origins = np.repeat(cache.centers[cells], r, axis=0)
         ray_dirs = np.tile(dirs, (m, 1))
         tfar = np.float32(s.ray_length) if s.ray_length > 0 else np.float32(np.inf)
-        hits = self.tracer.intersect(origins, ray_dirs, tfar)
+        hits = self.tracer.intersect(origins, ray_dirs, tfar, trusted=True)  # cell centres, unit directions
         times["trace"] = (time.perf_counter() - tic) * 1e3
 
         tic = time.perf_counter()
@@ -173,7 +173,10 @@ class CacheUpdater:
             e_in += lookup.irradiance(position, surf.normal)
             e_in *= surf.brdf.T
             if idx is None:
-                np.copyto(values[0:3, :n_s], surf.emission.T, where=hit)
+                values[0:3, :n_s] = surf.emission.T  # misses read a zero record: the sky is restored below
+                if n_hit < n_s and self.scene.world.color.any():
+                    miss = np.flatnonzero(~hit)
+                    values[0:3, miss] = self.scene.world.color[:, None]
                 values[3:6, :n_s] = e_in
             else:
                 values[0:3, idx] = surf.emission.T

@@ -28,7 +28,7 @@ class TriangleTracer:
 
     def _t(self, origins, dirs):
         o = np.asarray(origins, np.float64)
-        d = np.asarray(dirs, np.float64)
+        d = np.broadcast_to(np.asarray(dirs, np.float64), o.shape)  # (1, 3): one direction for all
         best = np.full(o.shape[0], np.inf)
         prim = np.full(o.shape[0], -1, np.int32)
         for i, (a, b, c) in enumerate(self.tris):
@@ -47,15 +47,16 @@ class TriangleTracer:
             prim[hit] = i
         return best, prim
 
-    def intersect(self, origins, directions, tfar=np.inf):
+    def intersect(self, origins, directions, tfar=np.inf, trusted=False):
         t, prim = self._t(origins, directions)
         miss = t >= tfar
         t[miss], prim[miss] = np.inf, -1
         z = np.zeros(t.shape, np.float32)
         return Hits(t.astype(np.float32), prim, z, z)
 
-    def occluded(self, origins, directions, tfar=np.inf):
+    def occluded(self, origins, directions, tfar=np.inf, trusted=False):
         assert origins.dtype == np.float32 and directions.dtype == np.float32
+        assert directions.shape in (origins.shape, (1, 3))
         assert np.allclose(np.linalg.norm(directions, axis=1), 1.0, atol=1e-5)
         self.calls += 1
         self.rays += origins.shape[0]
@@ -288,7 +289,7 @@ class TestSun:
         class Recorder:
             dirs = []
 
-            def occluded(self, o, d, tfar=np.inf):
+            def occluded(self, o, d, tfar=np.inf, trusted=False):
                 assert np.isinf(tfar)
                 self.dirs.append(d.copy())
                 return np.zeros(o.shape[0], bool)

@@ -53,6 +53,28 @@ def test_probe_hits_read_texture_base_colour_emission_and_misses():
     assert up.backface[0]
 
 
+def test_probe_hits_take_the_geometric_normal_image_pixels_the_smooth_one():
+    """Probe hits only feed a cell's average, so they skip normal interpolation; `surface` (image
+    pixels) keeps the smooth normal. Both follow a triangle that moves (update_rows)."""
+    tilt = np.array([0.6, 0.0, 0.8], np.float32)
+    geo = geometry_from_arrays(QUAD, [[0, 1, 2], [0, 2, 3]], 0, normals=np.tile(tilt, (4, 1)))
+    table = SurfaceTable(geo, [Material()])
+    prim = np.array([0, 1], np.int32)
+    u = np.array([0.25, 0.25], np.float32)
+    v = np.array([0.25, 0.5], np.float32)
+    down = np.tile([[0, 0, -1.0]], (2, 1)).astype(np.float32)
+    np.testing.assert_allclose(table.probe_hits(prim, u, v, down).normal, [[0, 0, 1.0]] * 2, atol=1e-6)
+    np.testing.assert_allclose(table.surface(prim, u, v, down).normal, [tilt] * 2, atol=1e-6)
+    # Stand triangle 1 up in the xz plane: its winding now faces -y; a ray along +y meets its front.
+    upright = geo.positions[:, [0, 2, 1]]
+    table.update_rows(geometry_from_arrays(upright, geo.triangles, 0, normals=geo.normals), np.array([1]))
+    along_y = np.array([[0, 0, -1.0], [0, 1.0, 0]], np.float32)
+    h = table.probe_hits(prim, u, v, along_y)
+    np.testing.assert_allclose(h.normal, [[0, 0, 1.0], [0, -1.0, 0]], atol=1e-6)
+    assert not h.backface.any()
+    assert table.probe_hits(prim[1:], u[1:], v[1:], -along_y[1:]).backface[0]
+
+
 def test_surface_positions_follow_moved_rows():
     geo = floor_quads()
     table = SurfaceTable(geo, [Material(), Material()])

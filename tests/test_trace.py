@@ -135,6 +135,31 @@ def test_threaded_batches_give_the_same_hits_as_one_thread():
         np.testing.assert_array_equal(two.intersect(origins, directions).prim, a.prim)  # usable after close
 
 
+@pytest.mark.parametrize(
+    ("backend", "n_rays"),
+    [(NumpyTracer, 3000), (lambda g: EmbreeTracer(g, threads=1), 3000), (lambda g: EmbreeTracer(g, threads=2), 2 * MIN_CHUNK_RAYS + 77)],
+    ids=["numpy", "embree", "embree-threaded"],
+)
+def test_one_shared_direction_and_trusted_rays_give_the_same_answers(backend, n_rays):
+    """A (1, 3) direction stands for every ray (shadow rays towards a sun), and trusted=True only
+    skips the input checks: both must answer exactly as the general call does, threaded or not."""
+    tracer = backend(soup())
+    origins, _ = random_rays(n_rays, seed=9)
+    d = np.array([[0.36, -0.48, 0.8]], np.float32)
+    full = np.repeat(d, n_rays, axis=0)
+    tfar = np.float32(0.7)
+    general = tracer.intersect(origins, full, tfar)
+    assert 0.1 < general.hit.mean() < 0.9  # the batch has both hits and misses
+    for kwargs in ({}, {"trusted": True}):
+        for dirs in (d, full):
+            h = tracer.intersect(origins, dirs, tfar, **kwargs)
+            for field in ("t", "prim", "u", "v"):
+                np.testing.assert_array_equal(getattr(h, field), getattr(general, field))
+            np.testing.assert_array_equal(tracer.occluded(origins, dirs, tfar, **kwargs), general.hit)
+    if isinstance(tracer, EmbreeTracer):
+        tracer.close()
+
+
 # -- distances and tfar -----------------------------------------------------------------------
 
 

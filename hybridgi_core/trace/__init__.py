@@ -34,8 +34,20 @@ class Hits:
 
 
 class Tracer(Protocol):
-    def intersect(self, origins: np.ndarray, directions: np.ndarray, tfar: float | np.ndarray = np.inf) -> Hits:
-        """Closest hit of each ray. origins, directions : (n, 3) float32, directions unit length."""
+    """Ray queries. origins (n, 3) float32; directions (n, 3) or (1, 3) (one for every ray) float32
+    unit vectors; tfar scalar or (n,).
 
-    def occluded(self, origins: np.ndarray, directions: np.ndarray, tfar: float | np.ndarray = np.inf) -> np.ndarray:
+    Rays with non-finite or zero components are reported as misses unless the caller passes
+    trusted=True, which promises finite origins, unit directions and tfar >= 0 (rays the core
+    built itself) and skips those checks: they cost several passes over every batch.
+    """
+
+    def intersect(
+        self, origins: np.ndarray, directions: np.ndarray, tfar: float | np.ndarray = np.inf, trusted: bool = False
+    ) -> Hits:
+        """Closest hit of each ray."""
+
+    def occluded(
+        self, origins: np.ndarray, directions: np.ndarray, tfar: float | np.ndarray = np.inf, trusted: bool = False
+    ) -> np.ndarray:
         """(n,) bool: something lies on the ray before tfar."""

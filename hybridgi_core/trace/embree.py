@@ -57,6 +57,11 @@ class _SubScene:
     identity: bool = False  # ids == arange(k): primIDs are already global ids
 
 
+def _rows(a: np.ndarray, sl: slice) -> np.ndarray:
+    """a[sl], except that a single row (one direction for every ray) is shared by every slice."""
+    return a if a.shape[0] == 1 else a[sl]
+
+
 class EmbreeTracer:
     """Closest-hit and occlusion queries on Embree, with a rebuildable dynamic part.
 
@@ -136,20 +141,22 @@ class EmbreeTracer:
 
     # -- queries ------------------------------------------------------------------------------
 
-    def intersect(self, origins: np.ndarray, directions: np.ndarray, tfar: float | np.ndarray = np.inf) -> Hits:
+    def intersect(
+        self, origins: np.ndarray, directions: np.ndarray, tfar: float | np.ndarray = np.inf, trusted: bool = False
+    ) -> Hits:
         """Closest hit of each ray over both scenes.
 
-        origins, directions : (n, 3) float (cast to float32); tfar : scalar or (n,).
-        Returns `Hits` of length n; prim indexes `self.geometry`.
+        origins : (n, 3) float (cast to float32); directions : (n, 3) or (1, 3); tfar : scalar or
+        (n,); trusted : see `Tracer`. Returns `Hits` of length n; prim indexes `self.geometry`.
         """
-        o, d, tf, valid = self._embree_rays(origins, directions, tfar)
+        o, d, tf, valid = self._embree_rays(origins, directions, tfar, trusted)
         n = o.shape[0]
         scenes = [s for s in (self._static, self._dynamic) if s is not None]
         if len(scenes) == 1 and scenes[0].identity and not self._parallel(n):
             # One call on one scene whose primIDs are the global ids: its arrays are the answer.
             res = scenes[0].scene.run(o, d, dists=tf, query="INTERSECT", output=1)
             prim = res["primID"]
-            if not valid.all():
+            if valid is not None:
                 prim[~valid] = -1
             return Hits(np.where(prim >= 0, res["tfar"], np.float32(np.inf)), prim, res["u"], res["v"])
         prim = np.full(n, -1, np.int32)
@@ -159,7 +166,7 @@ class EmbreeTracer:
         def work(sl: slice) -> None:
             if len(scenes) == 1 and scenes[0].identity:
                 # One scene whose primIDs are the global ids: copy its answers straight out.
-                res = scenes[0].scene.run(o[sl], d[sl], dists=tf[sl], query="INTERSECT", output=1)
+                res = scenes[0].scene.run(o[sl], _rows(d, sl), dists=tf[sl], query="INTERSECT", output=1)
                 hit = res["primID"] >= 0
                 prim[sl] = res["primID"]
                 if not np.shares_memory(res["tfar"], tf):
@@ -168,7 +175,7 @@ class EmbreeTracer:
                 np.copyto(v[sl], res["v"], where=hit)
                 return
             for sub in scenes:
-                res = sub.scene.run(o[sl], d[sl], dists=tf[sl], query="INTERSECT", output=1)
+                res = sub.scene.run(o[sl], _rows(d, sl), dists=tf[sl], query="INTERSECT", output=1)
                 hit = res["primID"] >= 0
                 # tf now holds the nearest t so far: the next scene only looks for nearer hits.
                 tf[sl] = res["tfar"]
@@ -177,25 +184,29 @@ class EmbreeTracer:
                 v[sl][hit] = res["v"][hit]
 
         self._for_chunks(n, work)
-        if not valid.all():
+        if valid is not None:
             prim[~valid] = -1
         t = np.where(prim >= 0, tf, np.float32(np.inf))
         return Hits(t, prim, u, v)
 
-    def occluded(self, origins: np.ndarray, directions: np.ndarray, tfar: float | np.ndarray = np.inf) -> np.ndarray:
-        """(n,) bool: a triangle of either scene lies on the ray at 0 < t <= tfar."""
-        o, d, tf, valid = self._embree_rays(origins, directions, tfar)
+    def occluded(
+        self, origins: np.ndarray, directions: np.ndarray, tfar: float | np.ndarray = np.inf, trusted: bool = False
+    ) -> np.ndarray:
+        """(n,) bool: a triangle of either scene lies on the ray at 0 < t <= tfar.
+
+        directions : (n, 3) or (1, 3); trusted : see `Tracer`."""
+        o, d, tf, valid = self._embree_rays(origins, directions, tfar, trusted)
         n = o.shape[0]
         scenes = [s for s in (self._static, self._dynamic) if s is not None]
         out = np.zeros(n, bool)
 
         def work(sl: slice) -> None:
             for sub in scenes:
-                out[sl] |= sub.scene.run(o[sl], d[sl], dists=tf[sl], query="OCCLUDED") >= 0
+                out[sl] |= sub.scene.run(o[sl], _rows(d, sl), dists=tf[sl], query="OCCLUDED") >= 0
 
         self._for_chunks(n, work)
         # embreex reports a ray Embree skipped (tfar < tnear) as occluded: mask those out here.
-        return out & valid
+        return out if valid is None else out & valid
 
     @property
     def epsilon(self) -> float:
@@ -209,9 +220,9 @@ class EmbreeTracer:
         origins = (lo + rng.random((n_rays, 3)) * (hi - lo)).astype(np.float32)
         directions = rng.normal(size=(n_rays, 3))
         directions = (directions / np.linalg.norm(directions, axis=1, keepdims=True)).astype(np.float32)
-        self.intersect(origins[:1024], directions[:1024])  # first-touch costs stay out of the timing
+        self.intersect(origins[:1024], directions[:1024], trusted=True)  # first-touch costs stay out of the timing
         start = time.perf_counter()
-        self.intersect(origins, directions)
+        self.intersect(origins, directions, trusted=True)
         rate = n_rays / max(time.perf_counter() - start, 1e-9)
         log.info("embree raw throughput: %.3g rays/s on %d threads", rate, self.threads)
         return rate
@@ -219,13 +230,22 @@ class EmbreeTracer:
     # -- internals ----------------------------------------------------------------------------
 
     def _embree_rays(
-        self, origins: np.ndarray, directions: np.ndarray, tfar: float | np.ndarray
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """(n, 3) float32 C-contiguous origins and directions, (n,) float32 tfar, (n,) bool valid.
+        self, origins: np.ndarray, directions: np.ndarray, tfar: float | np.ndarray, trusted: bool
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]:
+        """(n, 3) float32 C-contiguous origins, (n, 3) or (1, 3) directions, (n,) float32 tfar and
+        (n,) bool valid, or None when every ray is valid.
 
         Invalid rays get a harmless finite ray with tfar < tnear, which Embree skips, and the
         callers mask their results with `valid`; the caller's arrays are never written to.
         """
+        if trusted:
+            o = np.ascontiguousarray(origins, np.float32)
+            d = np.ascontiguousarray(directions, np.float32)
+            tf = np.empty(o.shape[0], np.float32)
+            tf[:] = tfar
+            return o, d, tf, None
+        if np.shape(directions) == (1, 3):
+            directions = np.broadcast_to(directions, np.shape(origins))
         origins, directions, tf, valid = prepare_rays(origins, directions, tfar)
         o = np.ascontiguousarray(origins, np.float32)
         d = np.ascontiguousarray(directions, np.float32)
@@ -236,7 +256,8 @@ class EmbreeTracer:
             o[bad] = 0.0
             d[bad] = (0.0, 0.0, 1.0)
             tf[bad] = -1.0
-        return o, d, tf, valid
+            return o, d, tf, valid
+        return o, d, tf, None
 
     def _parallel(self, n: int) -> bool:
         """Whether a batch of n rays is split over the worker pool."""

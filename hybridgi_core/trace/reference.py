@@ -89,11 +89,16 @@ class NumpyTracer:
         self._e2 = np.ascontiguousarray((p[:, 2] - p[:, 0]).T)
         self._chunk = max(1, PAIR_BUDGET // geometry.triangle_count)
 
-    def intersect(self, origins: np.ndarray, directions: np.ndarray, tfar: float | np.ndarray = np.inf) -> Hits:
+    def intersect(
+        self, origins: np.ndarray, directions: np.ndarray, tfar: float | np.ndarray = np.inf, trusted: bool = False
+    ) -> Hits:
         """Closest hit of each ray.
 
-        origins, directions : (n, 3) float32; tfar : scalar or (n,). Returns `Hits` of length n.
+        origins : (n, 3) float32; directions : (n, 3) or (1, 3); tfar : scalar or (n,). Returns
+        `Hits` of length n. The reference always checks its rays: `trusted` is accepted and ignored.
         """
+        origins = np.asarray(origins)
+        directions = np.broadcast_to(directions, origins.shape) if np.shape(directions) == (1, 3) else directions
         origins, directions, tfar, valid = prepare_rays(origins, directions, tfar)
         n = origins.shape[0]
         t_out = np.full(n, np.inf, np.float32)
@@ -109,7 +114,9 @@ class NumpyTracer:
             t_out[rays], prim_out[rays], u_out[rays], v_out[rays] = t, prim, u, v
         return Hits(t_out, prim_out, u_out, v_out)
 
-    def occluded(self, origins: np.ndarray, directions: np.ndarray, tfar: float | np.ndarray = np.inf) -> np.ndarray:
+    def occluded(
+        self, origins: np.ndarray, directions: np.ndarray, tfar: float | np.ndarray = np.inf, trusted: bool = False
+    ) -> np.ndarray:
         """(n,) bool: some triangle lies on the ray at 0 < t <= tfar."""
         return self.intersect(origins, directions, tfar).hit
 
