@@ -185,18 +185,29 @@ class HitLookup:
         self.top = np.asarray(grid.dims, np.int32) - 1
         self.strides = (1, grid.dims[0], grid.dims[0] * grid.dims[1])
         self.grid = grid
+        self._rows_of = (np.zeros((0, 3), np.float32), np.zeros((0, 3), np.int32))
+
+    def _per_row(self, n: int) -> tuple[np.ndarray, np.ndarray]:
+        """origin and top repeated over n rows: numpy broadcasts a (3,) operand over (n, 3) rows
+        ~4x slower than it combines two (n, 3) arrays. Grown on demand; a race only repeats work."""
+        origin, top = self._rows_of
+        if origin.shape[0] < n:
+            origin, top = np.tile(self.origin, (n, 1)), np.tile(self.top, (n, 1))
+            self._rows_of = (origin, top)
+        return origin[:n], top[:n]
 
     def irradiance(self, points: np.ndarray, normals: np.ndarray) -> np.ndarray:
         """(3, n) float32 irradiance >= 0 (channel rows) at points (n, 3) with unit normals (n, 3);
         zero normals (missed rays) read a cell but get no special treatment: mask them yourself."""
+        origin, top = self._per_row(points.shape[0])
         g = normals * self.bias
         g += points
-        g -= self.origin
+        g -= origin
         g *= self.inv_cell
         # Truncation is floor wherever the clamp below keeps the value (negatives all clamp to 0).
         ijk = g.astype(np.int32)
         np.maximum(ijk, 0, out=ijk)
-        np.minimum(ijk, self.top, out=ijk)
+        np.minimum(ijk, top, out=ijk)
         flat = ijk[:, 0].astype(np.intp)
         flat += ijk[:, 1] * self.strides[1]
         flat += ijk[:, 2] * self.strides[2]

@@ -305,7 +305,10 @@ def _sun_axis(light, pts, nrm, tracer, epsilon):
     the disc path divides out), hard shadows. pts, nrm : (n, 3) float32 row-major.
     """
     to_sun = (-light.direction).astype(_F32)
-    cos_r = np.einsum("ij,j->i", nrm, to_sun)
+    # Column by column: numpy broadcasts a (3,) operand over (n, 3) rows (einsum "ij,j") 2x slower.
+    cos_r = nrm[:, 0] * to_sun[0]
+    cos_r += nrm[:, 1] * to_sun[1]
+    cos_r += nrm[:, 2] * to_sun[2]
     live = np.flatnonzero(cos_r > 0)
     e = np.zeros(pts.shape[0], _F32)
     if live.size == 0:

@@ -65,18 +65,25 @@ def project_uniform(values: np.ndarray, dirs: np.ndarray, order: int) -> np.ndar
 def project_channels(values: np.ndarray, dirs: np.ndarray, order: int) -> np.ndarray:
     """`project_uniform` for channel-major values (m, c, r); returns (m, K, c) float32.
 
-    (m*c, r) @ (r, K) GEMMs: far faster than a batch of tiny matmuls, einsum or add.at. They run
-    in row blocks small enough that OpenBLAS keeps each on the calling thread: its own threads,
-    woken from the update's worker threads on a busy 2-core machine, made this step ~15x slower.
+    (m*c, r) @ (r, K) GEMMs (`matmul_on_this_thread`): far faster than a batch of tiny matmuls,
+    einsum or add.at.
     """
     y = basis(dirs, order) * np.float32(4.0 * np.pi / dirs.shape[0])  # (r, K)
     m, c, r = values.shape
-    flat = np.ascontiguousarray(values, dtype=np.float32).reshape(m * c, r)
-    out = np.empty((m * c, y.shape[1]), np.float32)
-    step = max(1, _GEMM_SINGLE_THREAD_MNK // max(1, r * y.shape[1]))
-    for start in range(0, m * c, step):
-        np.matmul(flat[start : start + step], y, out=out[start : start + step])
+    out = matmul_on_this_thread(np.ascontiguousarray(values, dtype=np.float32).reshape(m * c, r), y)
     return np.swapaxes(out.reshape(m, c, -1), 1, 2)
+
+
+def matmul_on_this_thread(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """a (M, r) @ b (r, K) float32, in row blocks small enough that OpenBLAS runs each on the
+    calling thread: its own threads, woken from the update's worker threads on a busy 2-core
+    machine, made such products ~15x slower."""
+    m, r = a.shape
+    out = np.empty((m, b.shape[1]), np.float32)
+    step = max(1, _GEMM_SINGLE_THREAD_MNK // max(1, r * b.shape[1]))
+    for start in range(0, m, step):
+        np.matmul(a[start : start + step], b, out=out[start : start + step])
+    return out
 
 
 def irradiance(coeffs: np.ndarray, normals: np.ndarray) -> np.ndarray:

@@ -82,6 +82,7 @@ class SurfaceTable:
         self.mean_albedo = np.array([m.mean_albedo for m in materials], np.float32).reshape(-1, 3)
         self.emission = np.array([m.emission for m in materials], np.float32).reshape(-1, 3)
         self.textured = [i for i, m in enumerate(materials) if m.texture is not None]
+        self.emissive = bool(self.emission.any())
         # A zero row last, for the -1 of missed rays.
         records = np.zeros((self._normals.shape[0] + 1, RECORD_FLOATS), np.float32)
         records[:-1, _NG] = _face_normals(self._positions)

@@ -173,7 +173,9 @@ class CacheUpdater:
             e_in += lookup.irradiance(position, surf.normal)
             e_in *= surf.brdf.T
             if idx is None:
-                values[0:3, :n_s] = surf.emission.T  # misses read a zero record: the sky is restored below
+                # Hits add their emission (a strided read: skipped where nothing emits); misses
+                # read a zero record and get the sky back below.
+                values[0:3, :n_s] = surf.emission.T if self.scene.surfaces.emissive else np.float32(0.0)
                 if n_hit < n_s and self.scene.world.color.any():
                     miss = np.flatnonzero(~hit)
                     values[0:3, miss] = self.scene.world.color[:, None]
@@ -188,15 +190,18 @@ class CacheUpdater:
 
         tic = time.perf_counter()
         coeffs = sh.project_channels(values.reshape(7, m, r).transpose(1, 0, 2), dirs, s.sh_order)  # (m, K, 7)
-        # Depth moments per (cell, octahedral texel): bincount over keys cell * T + texel (the
-        # texels are shared by every cell). A one-hot GEMM cost more and woke OpenBLAS threads.
+        # Depth moments per (cell, octahedral texel): every cell shares the texels of the frame's
+        # directions, so the sums are (2m, r) @ one-hot (r, T); bincount cost 3x more (it widens
+        # its weights to float64).
         n_tex = s.depth_texels**2
         texel = octahedral_texel(dirs, s.depth_texels)
-        keys = (np.arange(m, dtype=np.intp)[:, None] * n_tex + texel[None, :]).ravel()
-        depth = np.minimum(hits.t, cache.depth_cap)
-        depth_sum = np.empty((m, n_tex, 2), np.float32)
-        depth_sum[..., 0] = np.bincount(keys, weights=depth, minlength=m * n_tex).reshape(m, n_tex)
-        depth_sum[..., 1] = np.bincount(keys, weights=depth * depth, minlength=m * n_tex).reshape(m, n_tex)
+        one_hot = np.zeros((r, n_tex), np.float32)
+        one_hot[np.arange(r), texel] = 1.0
+        depth = np.empty((2, n), np.float32)
+        np.minimum(hits.t, cache.depth_cap, out=depth[0])
+        np.multiply(depth[0], depth[0], out=depth[1])
+        sums = sh.matmul_on_this_thread(depth.reshape(2 * m, r), one_hot).reshape(2, m, n_tex)
+        depth_sum = np.stack([sums[0], sums[1]], axis=-1)  # (m, T, 2)
         # Back faces of every ray, the unshaded ones included: they keep the inside test current.
         back = np.einsum("ij,ij->i", self.scene.surfaces.face_normals(hits.prim[n_s:]), ray_dirs[n_s:]) > 0
         if idx is None:
@@ -210,7 +215,7 @@ class CacheUpdater:
             sh_indirect=coeffs[..., 3:6],
             ao_sh=coeffs[..., 6],
             depth_sum=depth_sum,
-            depth_count=np.bincount(texel, minlength=n_tex).astype(np.float32),
+            depth_count=one_hot.sum(axis=0),
             backface=backface,
             shaded=np.arange(m) < m_s,
         )
