@@ -100,10 +100,7 @@ class SurfaceTable:
         facing = np.einsum("ij,ij->i", r[:, _NG], ray_dirs)
         backface = facing > 0
         nrm = r[:, _NG] * np.where(backface, np.float32(-1.0), np.float32(1.0))[:, None]
-        brdf = r[:, _BRDF]
-        if self.textured:
-            brdf = self._textured_brdf(brdf.copy(), prim, u, v)
-        return ProbeHits(nrm, brdf, r[:, _EMIT], backface)
+        return ProbeHits(nrm, self._brdf(r, prim, u, v), r[:, _EMIT], backface)
 
     def face_normals(self, prim: np.ndarray) -> np.ndarray:
         """(n, 3) float32 unit geometric normals (winding order) of triangles prim; 0 for -1."""
@@ -124,10 +121,14 @@ class SurfaceTable:
         p = np.take(self._positions, prim, axis=0)
         pos = p[:, 0:3] + u * p[:, 3:6] + v * p[:, 6:9]
         r = np.take(self.records, prim, axis=0)
-        brdf = r[:, _BRDF]
-        if self.textured:
-            brdf = self._textured_brdf(brdf.copy(), prim, u[:, 0], v[:, 0])
+        brdf = self._brdf(r, prim, u[:, 0], v[:, 0])
         return SurfaceHits(pos, nrm, brdf * np.float32(np.pi), np.ascontiguousarray(r[:, _EMIT]), backface)
+
+    def _brdf(self, r: np.ndarray, prim: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+        """(n, 3) albedo / pi of gathered records r at hits (prim, u, v): the record's, or the
+        texture's at the hit UV for textured materials (then a fresh array, else a view into r)."""
+        brdf = r[:, _BRDF]
+        return self._textured_brdf(brdf.copy(), prim, u, v) if self.textured else brdf
 
     def _textured_brdf(self, brdf: np.ndarray, prim: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
         """brdf with the texture of textured materials applied at the hits' UVs (misses skipped)."""

@@ -244,8 +244,6 @@ class EmbreeTracer:
             tf = np.empty(o.shape[0], np.float32)
             tf[:] = tfar
             return o, d, tf, None
-        if np.shape(directions) == (1, 3):
-            directions = np.broadcast_to(directions, np.shape(origins))
         origins, directions, tf, valid = prepare_rays(origins, directions, tfar)
         o = np.ascontiguousarray(origins, np.float32)
         d = np.ascontiguousarray(directions, np.float32)

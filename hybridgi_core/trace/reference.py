@@ -27,18 +27,22 @@ def prepare_rays(
 
     Parameters
     ----------
-    origins, directions : (n, 3) array-like, any float dtype
+    origins : (n, 3) array-like, any float dtype
+    directions : (n, 3), or (1, 3) for one direction shared by every ray
     tfar : scalar or (n,) array-like, maximum hit distance
 
     Returns
     -------
-    origins, directions : (n, 3) arrays as given (not copied, never to be mutated)
+    origins, directions : (n, 3) arrays as given (not copied, never to be mutated; a shared
+        direction comes back as a read-only broadcast view)
     tfar : (n,) float32, a fresh array the caller may overwrite
     valid : (n,) bool, false for non-finite origins, zero / non-finite directions and NaN or
         negative tfar; such rays are reported as misses by both backends
     """
     origins = np.asarray(origins)
     directions = np.asarray(directions)
+    if directions.shape == (1, 3) and origins.ndim == 2:
+        directions = np.broadcast_to(directions, origins.shape)
     if origins.ndim != 2 or origins.shape[1] != 3 or directions.shape != origins.shape:
         raise ValueError(f"origins and directions must both be (n, 3), got {origins.shape} and {directions.shape}")
     n = origins.shape[0]
@@ -97,8 +101,6 @@ class NumpyTracer:
         origins : (n, 3) float32; directions : (n, 3) or (1, 3); tfar : scalar or (n,). Returns
         `Hits` of length n. The reference always checks its rays: `trusted` is accepted and ignored.
         """
-        origins = np.asarray(origins)
-        directions = np.broadcast_to(directions, origins.shape) if np.shape(directions) == (1, 3) else directions
         origins, directions, tfar, valid = prepare_rays(origins, directions, tfar)
         n = origins.shape[0]
         t_out = np.full(n, np.inf, np.float32)
