@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ._core import snapshot as snap
+from hybridgi_core import snapshot as snap
 
 log = logging.getLogger(__name__)
 

@@ -27,8 +27,18 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from hybridgi_core import cache as _cache
+from hybridgi_core import errors
+from hybridgi_core import grid as _grid
+from hybridgi_core import settings as _settings
+from hybridgi_core.raster import downsample as _downsample
+from hybridgi_core.raster import frame as _frame
+from hybridgi_core.raster import gather as _gather
+from hybridgi_core.raster import passes as _passes
+from hybridgi_core.raster import readback as _readback
+from hybridgi_core.raster import settings as _raster_settings
+
 from . import sync, worker
-from ._core import errors, submodule
 from .viewport_passes import (
     PRESENT_CELLS,
     PRESENT_COLOR,
@@ -41,12 +51,6 @@ from .viewport_passes import (
 
 log = logging.getLogger(__name__)
 
-_frame = submodule("raster.frame")
-_gather = submodule("raster.gather")
-_passes = submodule("raster.passes")
-_readback = submodule("raster.readback")
-_raster_settings = submodule("raster.settings")
-_downsample = submodule("raster.downsample")
 
 #: Full-res pixels per pixel of the direct light the worker traces (the GI itself runs at the
 #: `downsample` setting). 2 keeps shadow edges sharp enough to model by at a quarter of the rays.
@@ -626,11 +630,8 @@ def _empty_cache_frame() -> worker.CacheFrame:
     """A one-cell cache with nothing valid: what the gather reads before the worker's first frame."""
     frame = _EMPTY.get("frame")
     if frame is None:
-        grid_mod = submodule("grid")
-        cache_mod = submodule("cache")
-        settings_mod = submodule("settings")
-        settings = settings_mod.CacheSettings(resolution=1)
-        cache = cache_mod.IrradianceCache(grid_mod.CacheGrid.from_bounds(np.zeros(3), np.ones(3), 1), settings)
+        settings = _settings.CacheSettings(resolution=1)
+        cache = _cache.IrradianceCache(_grid.CacheGrid.from_bounds(np.zeros(3), np.ones(3), 1), settings)
         sh_tex, depth_tex = _gather.pack_cache(cache)
         frame = _EMPTY["frame"] = worker.CacheFrame(0, cache.grid, settings, sh_tex, depth_tex)
     return frame

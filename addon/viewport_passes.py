@@ -10,15 +10,15 @@ from pathlib import Path
 
 import numpy as np
 
+from hybridgi_core.raster import gather as _gather
+from hybridgi_core.raster import glsl as _glsl
+from hybridgi_core.raster import passes as _passes
+from hybridgi_core.raster import readback as _readback
+
 from . import worker
-from ._core import submodule
 
 log = logging.getLogger(__name__)
 
-_gather = submodule("raster.gather")
-_passes = submodule("raster.passes")
-_glsl = submodule("raster.glsl")
-_readback = submodule("raster.readback")
 
 #: Present-pass modes.
 PRESENT_COLOR, PRESENT_CELLS = 0, 1

@@ -24,14 +24,13 @@ from types import MappingProxyType
 
 import numpy as np
 
-from ._core import errors, submodule
+from hybridgi_core import errors
+from hybridgi_core import visible as _visible
+from hybridgi_core.raster import gather as _gather_layout
+from hybridgi_core.session import GISession
 
 log = logging.getLogger(__name__)
 
-_session = submodule("session")
-_visible = submodule("visible")
-# The texture layout the GPU gather reads; pure numpy (the module imports gpu only inside methods).
-_gather_layout = submodule("raster.gather")
 
 #: A cell whose urgency exceeds this after an edit starts converging again (see `_settled`).
 URGENT = 0.01
@@ -334,7 +333,7 @@ class ViewportWorker:
     def _step(self, edits: list, edit_gen: int, view: ViewRequest | None, settings) -> None:
         t0 = time.perf_counter()
         if self._session is None:
-            self._session = _session.GISession(settings)
+            self._session = GISession(settings)
         resync = settings != self._session.settings
         if resync:
             self._session.set_settings(settings)
@@ -375,8 +374,7 @@ class ViewportWorker:
 
     def _apply(self, edits: list, resync: bool) -> None:
         t0 = time.perf_counter()
-        old = self._snapshot
-        snapshot = old
+        snapshot = self._snapshot
         positions = normals = None
         for edit in edits:
             if isinstance(edit, FullScene):
@@ -420,15 +418,8 @@ class ViewportWorker:
         if cache is not self._cache_ref:
             self._cache_ref = cache
             self._settled = np.zeros(cache.grid.count, np.int32)
-        if report.rebuilt and old is not None and cache.samples.any():
-            # GISession keeps the cache across a rebuild but raises no event for objects that
-            # appeared, vanished or changed topology, nor for light edits that came with them.
-            boxes = _changed_object_boxes(old, snapshot)
-            if boxes:
-                cache.on_geometry_changed(boxes)
-            if _shading_key(old) != _shading_key(snapshot):
-                cache.on_lights_changed()
-        if report.rebuilt or report.moved or report.lights_changed or resync:
+        # The session raised the cache's events; policy here: what they touched settles again.
+        if report.rebuilt or report.changes.any or resync:
             self._settled[cache.urgency > URGENT] = 0
             self._secondary = None
         self._steps["apply"] = (time.perf_counter() - t0) * 1e3
@@ -694,48 +685,3 @@ def _with_geometry(snapshot, positions, normals):
         return snapshot
     geometry = dataclasses.replace(snapshot.geometry, positions=positions, normals=normals)
     return dataclasses.replace(snapshot, geometry=geometry)
-
-
-def object_boxes(snapshot) -> dict[str, tuple[np.ndarray, np.ndarray, int]]:
-    """Object name -> (lo, hi, triangle count) of its triangles in `snapshot`."""
-    g = snapshot.geometry
-    out = {}
-    if g.triangle_count == 0:
-        return out
-    # Triangles are grouped by object (the sync appends objects one after the other).
-    order = np.argsort(g.object_index, kind="stable")
-    obj = g.object_index[order]
-    starts = np.flatnonzero(np.r_[True, obj[1:] != obj[:-1]])
-    corners = g.positions[g.triangles[order]]  # (T, 3, 3)
-    lo = np.minimum.reduceat(corners.min(axis=1), starts)
-    hi = np.maximum.reduceat(corners.max(axis=1), starts)
-    counts = np.diff(np.r_[starts, obj.size])
-    for i, s in enumerate(starts):
-        out[snapshot.objects[int(obj[s])].name] = (lo[i], hi[i], int(counts[i]))
-    return out
-
-
-def _changed_object_boxes(old, new) -> list[tuple[np.ndarray, np.ndarray]]:
-    """Boxes of objects that appeared, vanished or changed triangle count between two snapshots."""
-    a, b = object_boxes(old), object_boxes(new)
-    boxes = []
-    for name in a.keys() | b.keys():
-        if name in a and name in b and a[name][2] == b[name][2]:
-            continue
-        for rec in (a.get(name), b.get(name)):
-            if rec is not None:
-                boxes.append((rec[0], rec[1]))
-    return boxes
-
-
-def _shading_key(snapshot) -> tuple:
-    lights = tuple(
-        (lt.kind, lt.color.tobytes(), float(lt.power), lt.matrix.tobytes(), lt.radius, lt.spot_size,
-         lt.spot_blend, lt.angle, lt.shape, lt.size, lt.size_y)
-        for lt in snapshot.lights
-    )
-    materials = tuple(
-        (m.base_color.tobytes(), m.emission.tobytes(), None if m.texture is None else (m.texture.shape, float(m.texture.sum())))
-        for m in snapshot.materials
-    )
-    return lights, materials, snapshot.world.color.tobytes(), float(snapshot.world.ao_distance)
