@@ -30,7 +30,7 @@ from hybridgi_core.session import GISession
 from hybridgi_core.settings import CacheSettings
 from hybridgi_core.system import GISystem
 
-from . import animation, properties, sync
+from . import animation, properties, sync, updates
 
 log = logging.getLogger(__name__)
 
@@ -91,7 +91,7 @@ def render_frame(engine, depsgraph):
     ts = time.perf_counter()
     # Animated objects start in the per-frame dynamic ray scene of an incremental job; a fresh
     # system per frame has no use for that split (and keeps the LOD of every object).
-    dynamic = animation.animated_object_names(depsgraph.objects) if incremental else frozenset()
+    dynamic = updates.animated_object_names(depsgraph.objects) if incremental else frozenset()
     snapshot = sync.snapshot_from_depsgraph(depsgraph, dynamic)
     steps["sync"] = (time.perf_counter() - ts) * 1e3
     view, proj = camera_matrices(depsgraph, scene, width, height)

@@ -416,3 +416,25 @@ def world_from_blender(world):
             log.warning("world %r: linked background colour is not supported; using its value", world.name)
     radiance = (color * _value(node.inputs["Strength"])).astype(np.float32)
     return snap.World(color=radiance, ao_distance=ao_distance)
+
+
+# --- partial re-reads (shading edits in the viewport) ---------------------------------------
+
+
+def scene_lights(depsgraph) -> list:
+    """Every lamp instance of the depsgraph as a `Light` (the snapshot's lamps, read again)."""
+    return [light_from_blender(inst.object.data, inst.matrix_world, inst.object.name)
+            for inst in depsgraph.object_instances if inst.object.type == "LIGHT"]
+
+
+def scene_materials(snapshot, names=None) -> list:
+    """The snapshot's materials, those named (None: all) read again from Blender; same order, so
+    the triangles' material indices stay valid."""
+    import bpy  # noqa: PLC0415
+
+    out = []
+    textures = _TextureCache()
+    for material in snapshot.materials:
+        source = bpy.data.materials.get(material.name) if names is None or material.name in names else None
+        out.append(material if source is None else material_from_blender(source, textures))
+    return out

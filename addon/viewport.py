@@ -38,7 +38,7 @@ from hybridgi_core.raster import passes as _passes
 from hybridgi_core.raster import readback as _readback
 from hybridgi_core.raster import settings as _raster_settings
 
-from . import sync, worker
+from . import sync, updates, worker
 from .viewport_passes import (
     PRESENT_CELLS,
     PRESENT_COLOR,
@@ -59,9 +59,6 @@ DIRECT_FACTOR = 2
 DIRECT_PASSES = 16
 #: GI updates per second the worker aims at; it sizes each update's ray budget to the ray rate.
 UPDATE_HZ = 30.0
-#: Object types whose evaluated geometry the sync turns into triangles.
-GEOMETRY_TYPES = frozenset({"MESH", "CURVE", "CURVES", "SURFACE", "META", "FONT", "POINTCLOUD", "VOLUME",
-                            "GREASEPENCIL"})
 #: props.debug_view of the cells view (drawn here, not by the deferred pass).
 DEBUG_CELLS = "CELLS"
 #: Steps of `DrawStats` that only submit GPU work or wait for it (not main-thread CPU work).
@@ -174,75 +171,6 @@ def debug_view_of(props) -> tuple[int, int]:
 # --- the main thread's copy of the scene --------------------------------------------------------
 
 
-@dataclass
-class _Changes:
-    """What one set of depsgraph updates asks for."""
-
-    full: bool = False
-    moved: dict = field(default_factory=dict)  # object name -> (4, 4) world matrix
-    lights: bool = False
-    world: bool = False
-    materials: bool = False
-    material_names: set | None = field(default_factory=set)  # which to read again; None = all
-
-
-def classify_updates(depsgraph, structure_key) -> _Changes:
-    """Read `depsgraph.updates` (only valid inside view_update / depsgraph handlers)."""
-    import bpy  # noqa: PLC0415
-
-    c = _Changes()
-    shading_only = False
-    structure = False
-    node_trees = False
-    for update in depsgraph.updates:
-        id_ = update.id
-        if isinstance(id_, bpy.types.Object):
-            if id_.type == "LIGHT":
-                c.lights = True
-            elif id_.type in GEOMETRY_TYPES:
-                if update.is_updated_geometry or id_.is_instancer:
-                    c.full = True
-                elif update.is_updated_transform:
-                    c.moved[id_.name] = np.array(id_.matrix_world, np.float64)
-                elif update.is_updated_shading:
-                    shading_only = True  # a material slot changed, or a material edit (below)
-            elif update.is_updated_transform and id_.is_instancer:
-                c.full = True  # a collection instance moved: its instances are not plain objects
-        elif isinstance(id_, bpy.types.Light):
-            c.lights = True
-        elif isinstance(id_, bpy.types.World):
-            c.world = True
-        elif isinstance(id_, bpy.types.Material):
-            c.materials = True
-            if c.material_names is not None:
-                c.material_names.add(id_.name)
-        elif isinstance(id_, bpy.types.Image):
-            c.materials, c.material_names = True, None
-            c.world = True  # an environment texture
-        elif isinstance(id_, bpy.types.NodeTree):
-            node_trees = True  # a material's or world's own tree comes with that ID's update
-        elif isinstance(id_, (bpy.types.Scene, bpy.types.Collection)):
-            structure = True
-        elif isinstance(id_, bpy.types.ID) and update.is_updated_geometry and not isinstance(id_, bpy.types.Camera):
-            c.full = True  # mesh, curve, text... data edited
-    if node_trees and not (c.materials or c.world):
-        c.materials, c.material_names, c.world = True, None, True  # a node group: any user may change
-    if shading_only and not c.materials:
-        c.full = True
-    if structure and not c.full and scene_structure(depsgraph) != structure_key:
-        c.full = True  # objects added, deleted, hidden or shown
-    return c
-
-
-def scene_structure(depsgraph) -> tuple:
-    """What a full snapshot depends on besides data edits: the instances and their visibility."""
-    return tuple(
-        (inst.object.name, inst.object.type, inst.is_instance, inst.show_self,
-         inst.parent.name if inst.is_instance and inst.parent is not None else "")
-        for inst in depsgraph.object_instances
-    )
-
-
 class SceneMirror:
     """The scene as the main thread knows it: the last snapshot, and the vertex positions the
     G-buffer draws (moved objects are updated in place here, never in a snapshot the worker holds).
@@ -261,13 +189,9 @@ class SceneMirror:
     def full_sync(self, depsgraph):
         """Snapshot the whole scene; returns the worker edit."""
         self.snapshot = sync.snapshot_from_depsgraph(depsgraph)
-        self.structure = scene_structure(depsgraph)
+        self.structure = updates.scene_structure(depsgraph)
         # Placement of every plain (non-instanced) object: moves are applied relative to it.
-        self._matrices = {
-            inst.object.name: np.array(inst.matrix_world, np.float64)
-            for inst in depsgraph.object_instances
-            if not inst.is_instance and inst.object.type in GEOMETRY_TYPES
-        }
+        self._matrices = updates.plain_object_matrices(depsgraph)
         self._local.clear()
         self._positions = self._normals = None
         self.geometry_gen += 1
@@ -344,23 +268,6 @@ class SceneMirror:
     @property
     def gpu_positions(self):
         return self._positions if self._positions is not None else self.snapshot.geometry.positions
-
-
-def scene_lights(depsgraph) -> list:
-    return [sync.light_from_blender(inst.object.data, inst.matrix_world, inst.object.name)
-            for inst in depsgraph.object_instances if inst.object.type == "LIGHT"]
-
-
-def scene_materials(snapshot, names=None) -> list:
-    """The snapshot's materials, those named (None: all) read again from Blender; same order, so
-    the triangles' material indices stay valid."""
-    import bpy  # noqa: PLC0415
-
-    out = []
-    for material in snapshot.materials:
-        source = bpy.data.materials.get(material.name) if names is None or material.name in names else None
-        out.append(material if source is None else sync.material_from_blender(source))
-    return out
 
 
 # --- one live view -------------------------------------------------------------------------------
@@ -441,10 +348,10 @@ class ViewportSession:
         if self.mirror.snapshot is None:
             self._post(self.mirror.full_sync(depsgraph))
             return
-        changes = classify_updates(depsgraph, self.mirror.structure)
+        changes = updates.classify_updates(depsgraph, self.mirror.structure)
         self.apply_changes(depsgraph, changes)
 
-    def apply_changes(self, depsgraph, changes: _Changes) -> None:
+    def apply_changes(self, depsgraph, changes: updates.DepsgraphUpdates) -> None:
         mirror = self.mirror
         edits = []
         if not changes.full:
@@ -462,9 +369,9 @@ class ViewportSession:
             self._post(edit)
         if changes.lights or changes.world or changes.materials:
             self._post(mirror.set_shading(
-                lights=scene_lights(depsgraph) if changes.lights else None,
+                lights=sync.scene_lights(depsgraph) if changes.lights else None,
                 world=sync.world_from_blender(depsgraph.scene.world) if changes.world else None,
-                materials=scene_materials(mirror.snapshot, changes.material_names) if changes.materials else None,
+                materials=sync.scene_materials(mirror.snapshot, changes.material_names) if changes.materials else None,
             ))
 
     def _post(self, edit) -> None:
