@@ -45,7 +45,7 @@ from .viewport_passes import (
     DirectResolvePass,
     PackedGatherPass,
     PresentPass,
-    _DirectSource,
+    DirectSource,
     draw_texture_fullscreen,
 )
 
@@ -283,7 +283,7 @@ class _GPUState:
         self.resolve_full = DirectResolvePass("RGBA32F")
         self.resolve_low = DirectResolvePass("RGBA16F")
         self.present = PresentPass()
-        self.source = None  # _DirectSource of the last ViewResult uploaded
+        self.source = None  # DirectSource of the last ViewResult uploaded
         self.cells_source = None  # its Cache Cells colours, when drawn
         self.mask_tx = None
         self.mask_serial = None
@@ -430,7 +430,7 @@ class ViewportSession:
                 result = published.view
                 if result is not None and result.cells is not None:
                     if gpu_state.cells_source is None or gpu_state.cells_source.serial != result.serial:
-                        gpu_state.cells_source = _DirectSource.cells_of(result)
+                        gpu_state.cells_source = DirectSource.cells_of(result)
                     # The direct light's resolve is done with its target: reuse it for the colours.
                     cells = gpu_state.resolve_full.execute(gbuf.position, gbuf.normal, gpu_state.cells_source,
                                                            nearest=True)
@@ -508,9 +508,9 @@ class ViewportSession:
         result = published.view
         if result is None:
             if gpu_state.source is None or gpu_state.source.serial != -1:
-                gpu_state.source = _DirectSource.empty()
+                gpu_state.source = DirectSource.empty()
         elif gpu_state.source is None or gpu_state.source.serial != result.serial:
-            gpu_state.source = _DirectSource.upload(result)
+            gpu_state.source = DirectSource.upload(result)
         mask = None
         if result is not None and result.corner_mask is not None and result.key == view_key:
             if gpu_state.mask_serial != result.serial:

@@ -2,7 +2,7 @@
 
 The Blender side fills these from the depsgraph on the main thread; everything after that
 (tracing, shading, cache updates) reads only these arrays, so worker threads never touch `bpy`.
-Units and conventions follow Cycles (see GI_FACTS.md): lights in watts (sun: W/m^2), emission and
+Units and conventions follow Cycles (checked against its passes): lights in watts (sun: W/m^2), emission and
 world colour as radiance.
 """
 

@@ -119,10 +119,18 @@ class GatherPass(RasterPass):
         if self._uploaded == key:
             return False
         sh_data, depth_data = pack_cache(cache)
-        self._cache_tx = upload_texture_2d(sh_data, "RGBA32F")
-        self._depth_tx = upload_texture_2d(depth_data, "RG32F")
-        self._grid = cache.grid
-        self._settings = cache.settings
+        return self.upload_packed(key, cache.grid, cache.settings, sh_data, depth_data)
+
+    def upload_packed(self, key, grid, settings, sh_texels: np.ndarray, depth_texels: np.ndarray) -> bool:
+        """Upload textures already in the `pack_cache` layout (packed on another thread), unless
+        `key` (any hashable naming this version of the cache) is the one on the GPU already.
+        Returns True when it uploaded."""
+        if self._uploaded == key:
+            return False
+        self._cache_tx = upload_texture_2d(sh_texels, "RGBA32F")
+        self._depth_tx = upload_texture_2d(depth_texels, "RG32F")
+        self._grid = grid
+        self._settings = settings
         self._uploaded = key
         return True
 
