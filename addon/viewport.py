@@ -43,9 +43,9 @@ from .viewport_passes import (
     PRESENT_CELLS,
     PRESENT_COLOR,
     DirectResolvePass,
+    DirectSource,
     PackedGatherPass,
     PresentPass,
-    DirectSource,
     draw_texture_fullscreen,
 )
 
