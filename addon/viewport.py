@@ -1,8 +1,9 @@
 """Real-time GI in the 3D viewport: the HYBRIDGI engine's `view_update` / `view_draw`, and the
 session the Solid-mode GI overlay (`overlay.py`) shares.
 
-Threads. The main thread (this module) reads Blender: it turns depsgraph updates into scene edits
-for the worker (`worker.py`), rasterizes the G-buffer with the viewport's camera, reads back the
+Threads. The main thread (this module) turns the depsgraph updates `updates.py` classifies into
+scene edits for the worker (`worker.py`; `sync.py` reads the snapshots, `viewport_mirror.py`
+keeps the main thread's copy of the scene), rasterizes the G-buffer with the viewport's camera, reads back the
 downsampled G-buffer when the camera or the geometry changed, uploads what the worker published,
 runs the GPU passes and draws. The worker does every CPU step of a frame (visible cells, corner
 visibility rays, direct light with shadow rays, cache updates) a frame or more behind, on numpy.
@@ -18,12 +19,10 @@ busy or has published something not drawn yet; an unchanged view with nothing ne
 last image without running the pipeline.
 """
 
-import dataclasses
 import logging
 import os
 import time
 import weakref
-from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -38,7 +37,8 @@ from hybridgi_core.raster import passes as _passes
 from hybridgi_core.raster import readback as _readback
 from hybridgi_core.raster import settings as _raster_settings
 
-from . import sync, updates, worker
+from . import sync, updates, viewport_stats, worker
+from .viewport_mirror import SceneMirror
 from .viewport_passes import (
     PRESENT_CELLS,
     PRESENT_COLOR,
@@ -48,6 +48,7 @@ from .viewport_passes import (
     PresentPass,
     draw_texture_fullscreen,
 )
+from .viewport_stats import GPU_STEPS, DrawStats, LiveStats, ViewCamera  # noqa: F401  (GPU_STEPS: the benchmark's)
 
 log = logging.getLogger(__name__)
 
@@ -61,9 +62,6 @@ DIRECT_PASSES = 16
 UPDATE_HZ = 30.0
 #: props.debug_view of the cells view (drawn here, not by the deferred pass).
 DEBUG_CELLS = "CELLS"
-#: Steps of `DrawStats` that only submit GPU work or wait for it (not main-thread CPU work).
-GPU_STEPS = frozenset({"gbuffer", "downsample", "readback", "resolve", "gather", "ssao", "bilateral", "deferred",
-                       "present", "display"})
 
 #: Scene name -> the latest `LiveStats` of a view of it, read by the sidebar panel.
 LIVE_STATS: dict = {}
@@ -84,71 +82,6 @@ def drawn_cache(scene_name: str):
     return None
 
 
-# --- camera and statistics ---------------------------------------------------------------------
-
-
-@dataclass(frozen=True)
-class ViewCamera:
-    """A viewport camera: world->view and view->clip (4, 4) float64, as `region_data` gives them."""
-
-    view: np.ndarray
-    proj: np.ndarray
-
-    @classmethod
-    def from_region_data(cls, rv3d) -> "ViewCamera":
-        # window_matrix already frames the region as drawn: perspective, orthographic or the
-        # camera view with its zoom and offset (the passepartout area included).
-        return cls(np.array(rv3d.view_matrix, np.float64), np.array(rv3d.window_matrix, np.float64))
-
-    @property
-    def key(self) -> bytes:
-        return self.view.tobytes() + self.proj.tobytes()
-
-
-@dataclass
-class DrawStats:
-    """Main-thread milliseconds of one redraw, per step (GPU_STEPS submit or wait for the GPU)."""
-
-    steps_ms: dict = field(default_factory=dict)
-    total_ms: float = 0.0  # wall time of the whole redraw
-    redrawn: bool = False  # False: the last image was drawn again without running the pipeline
-    posted_view: bool = False
-    view_current: bool = False  # the direct light drawn was traced for this very view
-    low_res: tuple = (0, 0)  # FramePipeline.rasterize records the GI resolution here
-
-    def step(self, name: str):
-        return _Timer(self.steps_ms, name)
-
-    @property
-    def cpu_ms(self) -> float:
-        """Main-thread time that is not GPU work: the wall time minus the GPU steps."""
-        return max(self.total_ms - self.gpu_ms, 0.0)
-
-    @property
-    def gpu_ms(self) -> float:
-        return sum(v for k, v in self.steps_ms.items() if k in GPU_STEPS)
-
-
-class _Timer:
-    def __init__(self, out: dict, name: str):
-        self.out, self.name = out, name
-
-    def __enter__(self):
-        self.t0 = time.perf_counter()
-
-    def __exit__(self, *exc):
-        self.out[self.name] = self.out.get(self.name, 0.0) + (time.perf_counter() - self.t0) * 1e3
-
-
-@dataclass(frozen=True)
-class LiveStats:
-    """What the sidebar shows for one view: the last redraw and the worker's record."""
-
-    draw: DrawStats
-    worker: worker.WorkerStats
-    error: str | None
-
-
 # --- settings ----------------------------------------------------------------------------------
 
 
@@ -166,108 +99,6 @@ def debug_view_of(props) -> tuple[int, int]:
         return _raster_settings.DEBUG_FINAL, PRESENT_CELLS
     numbers = {"FINAL": 0, "INDIRECT": 1, "AO": 2, "AO_SPLIT": 3}
     return numbers.get(name, 0), PRESENT_COLOR
-
-
-# --- the main thread's copy of the scene --------------------------------------------------------
-
-
-class SceneMirror:
-    """The scene as the main thread knows it: the last snapshot, and the vertex positions the
-    G-buffer draws (moved objects are updated in place here, never in a snapshot the worker holds).
-    """
-
-    def __init__(self):
-        self.snapshot = None
-        self.structure = None
-        self.geometry_gen = 0  # bumped whenever the G-buffer's geometry changes
-        self.gpu_dirty = None  # None | "positions" | "full": what the G-buffer must re-upload
-        self._matrices: dict = {}
-        self._local: dict = {}
-        self._positions = None
-        self._normals = None
-
-    def full_sync(self, depsgraph):
-        """Snapshot the whole scene; returns the worker edit."""
-        self.snapshot = sync.snapshot_from_depsgraph(depsgraph)
-        self.structure = updates.scene_structure(depsgraph)
-        # Placement of every plain (non-instanced) object: moves are applied relative to it.
-        self._matrices = updates.plain_object_matrices(depsgraph)
-        self._local.clear()
-        self._positions = self._normals = None
-        self.geometry_gen += 1
-        self.gpu_dirty = "full"
-        return worker.FullScene(self.snapshot)
-
-    def move(self, name: str, matrix: np.ndarray):
-        """Edit for a plain object now placed by `matrix`: a MoveVertices, () when the object has
-        no triangles, or None when only a full sync can express the change (instances, mirroring)."""
-        if name not in self._matrices:
-            return None
-        local = self._local.get(name)
-        if local is None:
-            local = self._local[name] = self._object_local(name)
-        if local is None:
-            return ()  # no triangles in the snapshot: nothing to move
-        indices, pos_local, nrm_local, det_sign = local
-        linear = matrix[:3, :3]
-        det = np.linalg.det(linear)
-        if not np.isfinite(det) or abs(det) < 1e-30 or np.sign(det) != det_sign:
-            return None  # degenerate or mirrored: the winding changes, the full sync handles it
-        positions = (pos_local @ linear.T + matrix[:3, 3]).astype(np.float32)
-        normals = nrm_local @ np.linalg.inv(linear)
-        normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
-        normals = normals.astype(np.float32)
-        if self._positions is None:
-            self._positions = self.snapshot.geometry.positions.copy()
-            self._normals = self.snapshot.geometry.normals.copy()
-        rotated = not np.allclose(normals, self._normals[indices], atol=1e-6)
-        self._positions[indices] = positions
-        self._normals[indices] = normals
-        # The G-buffer can replace its positions alone; new normals need a full upload.
-        self.gpu_dirty = "full" if rotated or self.gpu_dirty == "full" else "positions"
-        self.geometry_gen += 1
-        return worker.MoveVertices(indices, positions.copy(), normals.copy())
-
-    def _object_local(self, name: str):
-        """(vertex indices, object-space positions and normals, det sign) of an object, from the
-        snapshot and the matrix of the full sync (so repeated moves never accumulate error)."""
-        snap = self.snapshot
-        names = [o.name for o in snap.objects]
-        if name not in names:
-            return None
-        g = snap.geometry
-        indices = np.unique(g.triangles[g.object_index == names.index(name)])
-        if indices.size == 0:
-            return None
-        m0 = self._matrices[name]
-        linear0 = m0[:3, :3]
-        pos_local = (g.positions[indices].astype(np.float64) - m0[:3, 3]) @ np.linalg.inv(linear0).T
-        # World normals are local normals times inv(linear0): undo it.
-        nrm_local = g.normals[indices].astype(np.float64) @ linear0
-        return indices, pos_local, nrm_local, np.sign(np.linalg.det(linear0))
-
-    def set_shading(self, lights=None, world=None, materials=None):
-        snap = self.snapshot
-        self.snapshot = dataclasses.replace(
-            snap,
-            lights=snap.lights if lights is None else lights,
-            world=snap.world if world is None else world,
-            materials=snap.materials if materials is None else materials,
-        )
-        if materials is not None:
-            self.gpu_dirty = "full"  # material colours are the G-buffer's per-draw constants
-        return worker.SetShading(lights=lights, world=world, materials=materials)
-
-    def gpu_snapshot(self):
-        """The snapshot with the positions and normals the G-buffer must draw."""
-        if self._positions is None:
-            return self.snapshot
-        geometry = dataclasses.replace(self.snapshot.geometry, positions=self._positions, normals=self._normals)
-        return dataclasses.replace(self.snapshot, geometry=geometry)
-
-    @property
-    def gpu_positions(self):
-        return self._positions if self._positions is not None else self.snapshot.geometry.positions
 
 
 # --- one live view -------------------------------------------------------------------------------
@@ -593,12 +424,7 @@ def view_draw(engine, context, depsgraph) -> None:
 
 
 def status_line(session: ViewportSession) -> str:
-    published = session.worker.latest() if session.worker is not None else None
-    if published is None:
-        return ""
-    s = published.stats
-    state = "converged" if s.idle else f"converging {s.converged:.0%}"
-    return f"{state} | {s.visible_cells} cells | {s.updates_per_s:.0f} updates/s | {s.rays_per_s / 1e6:.1f} Mrays/s"
+    return viewport_stats.status_line(session.worker.latest() if session.worker is not None else None)
 
 
 def free(engine) -> None:
