@@ -61,11 +61,31 @@ def render_size(render):
     return max(int(render.resolution_x * scale), 1), max(int(render.resolution_y * scale), 1)
 
 
+def result_rect(render, width, height):
+    """(x, y, w, h) pixels of the frame the render result holds, bottom-up like Blender's: the
+    whole frame, or the render border (Cycles renders the border only; Blender crops the saved
+    image to it or pads it back to the full frame, by `use_crop_to_border`)."""
+    if not render.use_border:
+        return 0, 0, width, height
+    x0 = min(max(int(render.border_min_x * width), 0), width - 1)
+    y0 = min(max(int(render.border_min_y * height), 0), height - 1)
+    x1 = min(max(int(render.border_max_x * width), x0 + 1), width)
+    y1 = min(max(int(render.border_max_y * height), y0 + 1), height)
+    return x0, y0, x1 - x0, y1 - y0
+
+
 def camera_matrices(depsgraph, scene, width, height):
     """(view, proj) numpy 4x4 of the scene camera, as Blender's own engines build them."""
     cam = scene.camera
     if cam is None:
         raise errors.HybridGIError("the scene has no active camera")
+    if cam.type != "CAMERA":
+        raise errors.HybridGIError(f"the active camera {cam.name!r} is not a camera object")
+    if cam.data.type == "PANO":
+        # The G-buffer is a raster of a pinhole projection: there is no panoramic raster pass.
+        raise errors.HybridGIError(
+            f"camera {cam.name!r} is panoramic, which HybridGI cannot render; use a perspective or "
+            "orthographic camera, or render it with Cycles")
     cam_eval = cam.evaluated_get(depsgraph)
     render = scene.render
     proj = cam_eval.calc_matrix_camera(depsgraph, x=width, y=height,
@@ -325,41 +345,61 @@ def _set_pass(layer, name, pixels):
     rp.rect.foreach_set(data.ravel())
 
 
+class _Result:
+    """The engine's render result for the frame's `result_rect`: passes are given as whole-frame
+    (h, w, c) bottom-up arrays and cut to the rectangle here."""
+
+    def __init__(self, engine, render, width, height):
+        self.engine = engine
+        self.x, self.y, self.w, self.h = result_rect(render, width, height)
+        # Blender's result is the rectangle itself: its coordinates start at the rectangle's corner.
+        self.result = engine.begin_result(0, 0, self.w, self.h)
+        self.layer = self.result.layers[0]
+
+    def set(self, name, pixels):
+        _set_pass(self.layer, name, pixels[self.y:self.y + self.h, self.x:self.x + self.w])
+
+    def end(self):
+        self.engine.end_result(self.result)
+
+
 def _write_result(engine, depsgraph, pipeline, width, height, world, cache=None):
     """Read the deferred targets back into the render result; with `cache`, Combined shows the
     Cache Cells debug view instead (each pixel coloured by the cell it reads)."""
-    film_transparent = depsgraph.scene.render.film_transparent
-    result = engine.begin_result(0, 0, width, height)
-    layer = result.layers[0]
+    render = depsgraph.scene.render
+    result = _Result(engine, render, width, height)
     combined = pipeline.deferred.read("combined").copy()
     if cache is not None:
         points, normals, pix = visible.pixels_to_points(pipeline.gbuffer.read("position"), pipeline.gbuffer.read("normal"))
         flat = combined.reshape(-1, 4)
         flat[:, :3] = 0.0
         flat[pix, :3] = visible.cell_debug_colors(cache, points, normals)
-    if not film_transparent:
+    if render.film_transparent:
+        # Cycles' transparent film: premultiplied, the world lights the scene but is not seen.
+        combined[..., :3] *= combined[..., 3:4]
+    else:
         combined[..., 3] = 1.0  # Cycles' alpha is 1 on the background unless the film is transparent
-    _set_pass(layer, "Combined", combined)
-    _set_pass(layer, "Diffuse Direct", pipeline.deferred.read("diffuse_direct"))
-    _set_pass(layer, "Diffuse Indirect", pipeline.deferred.read("diffuse_indirect"))
-    _set_pass(layer, "Diffuse Color", pipeline.deferred.read("diffuse_color"))
+    result.set("Combined", combined)
+    result.set("Diffuse Direct", pipeline.deferred.read("diffuse_direct"))
+    result.set("Diffuse Indirect", pipeline.deferred.read("diffuse_indirect"))
+    result.set("Diffuse Color", pipeline.deferred.read("diffuse_color"))
     ao = pipeline.deferred.read("ao")
-    _set_pass(layer, "Ambient Occlusion", np.repeat(ao, 3, axis=-1))
+    result.set("Ambient Occlusion", np.repeat(ao, 3, axis=-1))
     depth = pipeline.gbuffer.read("depth")
-    _set_pass(layer, "Depth", depth)
+    result.set("Depth", depth)
     normal = pipeline.gbuffer.read("normal")
-    _set_pass(layer, "Normal", normal[..., :3] * (depth < 1e9))
-    engine.end_result(result)
+    result.set("Normal", normal[..., :3] * (depth < 1e9))
+    result.end()
 
 
 def _write_background(engine, depsgraph, width, height, world):
-    result = engine.begin_result(0, 0, width, height)
-    layer = result.layers[0]
-    alpha = 0.0 if depsgraph.scene.render.film_transparent else 1.0
-    bg = np.empty((height, width, 4), np.float32)
-    bg[...] = (*np.asarray(world, np.float32).tolist(), alpha)
-    _set_pass(layer, "Combined", bg)
+    render = depsgraph.scene.render
+    result = _Result(engine, render, width, height)
+    bg = np.zeros((height, width, 4), np.float32)
+    if not render.film_transparent:
+        bg[...] = (*np.asarray(world, np.float32).tolist(), 1.0)
+    result.set("Combined", bg)
     for name in ("Diffuse Direct", "Diffuse Indirect", "Diffuse Color", "Ambient Occlusion", "Normal"):
-        _set_pass(layer, name, np.zeros((height, width, 3), np.float32))
-    _set_pass(layer, "Depth", np.full((height, width, 1), 1e10, np.float32))
-    engine.end_result(result)
+        result.set(name, np.zeros((height, width, 3), np.float32))
+    result.set("Depth", np.full((height, width, 1), 1e10, np.float32))
+    result.end()

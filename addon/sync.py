@@ -39,10 +39,41 @@ def snapshot_from_depsgraph(depsgraph, dynamic_names=frozenset()):
     An empty scene gives a snapshot with no triangles (its `bounds()` raises EmptySceneError),
     so a scene lit only by the sky still syncs; the pipeline decides whether that is an error.
     """
-    builder = _SnapshotBuilder(frozenset(dynamic_names))
+    builder = _SnapshotBuilder(frozenset(dynamic_names), _collection_flags(depsgraph.view_layer))
     for instance in depsgraph.object_instances:
         builder.add_instance(instance)
+    builder.warn_unsupported()
     return builder.finish(world_from_blender(depsgraph.scene.world))
+
+
+#: Cycles' per-object ray visibility HybridGI does not follow (the object takes part as if on):
+#: property -> what it means, for the warning.
+IGNORED_VISIBILITY = {
+    "visible_shadow": "hidden from shadow rays",
+    "visible_diffuse": "hidden from diffuse rays",
+    "is_holdout": "a holdout",
+}
+
+
+def _collection_flags(view_layer) -> dict[str, set[str]]:
+    """Object name -> {"holdout", "indirect_only"} flags its view-layer collections set."""
+    flags: dict[str, set[str]] = {}
+
+    def walk(layer_collection, inherited):
+        own = set(inherited)
+        if layer_collection.holdout:
+            own.add("holdout")
+        if layer_collection.indirect_only:
+            own.add("indirect_only")
+        if own:
+            for obj in layer_collection.collection.objects:
+                flags.setdefault(obj.name, set()).update(own)
+        for child in layer_collection.children:
+            walk(child, own)
+
+    if view_layer is not None:
+        walk(view_layer.layer_collection, set())
+    return flags
 
 
 @dataclass(slots=True)
@@ -113,16 +144,20 @@ def transformed(local, matrix, slot_to_material, object_index):
     """`Geometry` of one instance of `local` placed by the (4, 4) `matrix`.
 
     slot_to_material : (S,) int32 global material index of each material slot (at least one).
-    Returns None when the matrix is singular (a zero scale leaves nothing to trace).
+    Returns None when the matrix is not finite. A zero scale on one axis flattens the object, as
+    in Cycles, which still renders it (a plane seen from both sides); on two axes its triangles
+    have no area and the snapshot drops them.
     """
     matrix = np.asarray(matrix, np.float64)
+    if not np.isfinite(matrix).all():
+        return None
     linear = matrix[:3, :3]
     det = np.linalg.det(linear)
-    if not np.isfinite(det) or abs(det) < 1e-30:
-        return None
     positions = (local.positions @ linear.T + matrix[:3, 3]).astype(np.float32)
-    # Normals transform with the inverse transpose so non-uniform scale keeps them perpendicular.
-    normals = local.normals @ np.linalg.inv(linear).astype(np.float32)
+    # Normals transform with the cofactor matrix (det x inverse transpose), so non-uniform scale
+    # keeps them perpendicular; unlike the inverse it exists for a flattened object, whose
+    # normals all turn along the squashed axis. Only their direction counts (renormalized below).
+    normals = (local.normals @ _cofactor(linear).T * np.sign(det or 1.0)).astype(np.float32)
     length = np.linalg.norm(normals, axis=1, keepdims=True)
     normals = np.divide(normals, length, out=np.zeros_like(normals), where=length > 0)
     triangles = local.triangles
@@ -141,9 +176,16 @@ def transformed(local, matrix, slot_to_material, object_index):
     )
 
 
+def _cofactor(m):
+    """(3, 3) cofactor matrix of `m` (det(m) inv(m).T where m is invertible)."""
+    return np.stack([np.cross(m[1], m[2]), np.cross(m[2], m[0]), np.cross(m[0], m[1])])
+
+
 class _SnapshotBuilder:
-    def __init__(self, dynamic_names):
+    def __init__(self, dynamic_names, collection_flags=None):
         self.dynamic_names = dynamic_names
+        self.collection_flags = collection_flags or {}
+        self.ignored: dict[str, set[str]] = {}  # what is approximated -> object names, warned once
         self.parts = []
         self.objects = []
         self.lights = []
@@ -173,8 +215,29 @@ class _SnapshotBuilder:
         # A curve's own mesh instance has the curve as its parent: keep its plain name.
         name = obj.name if parent is None or parent.name == obj.name else f"{parent.name}/{obj.name}"
         dynamic = obj.name in self.dynamic_names or (parent is not None and parent.name in self.dynamic_names)
-        self.objects.append(snap.ObjectInfo(name=name, dynamic=dynamic))
+        camera_visible = bool(getattr(obj, "visible_camera", True))
+        if parent is not None and parent.name != obj.name:
+            camera_visible = camera_visible and bool(getattr(parent, "visible_camera", True))
+        self._note_ignored(obj)
+        self.objects.append(snap.ObjectInfo(name=name, dynamic=dynamic, camera_visible=camera_visible))
         self.parts.append(geometry)
+
+    def _note_ignored(self, obj):
+        for prop, meaning in IGNORED_VISIBILITY.items():
+            hidden = not getattr(obj, prop, True) if prop.startswith("visible") else getattr(obj, prop, False)
+            if hidden:
+                self.ignored.setdefault(meaning, set()).add(obj.name)
+        for flag in self.collection_flags.get(obj.name, ()):
+            meaning = {"holdout": "in a holdout collection", "indirect_only": "in an indirect-only collection"}[flag]
+            self.ignored.setdefault(meaning, set()).add(obj.name)
+
+    def warn_unsupported(self):
+        """One warning per kind of setting HybridGI does not follow, naming the objects."""
+        for meaning, names in sorted(self.ignored.items()):
+            shown = ", ".join(sorted(names)[:5]) + (f" and {len(names) - 5} more" if len(names) > 5 else "")
+            objects = "object" if len(names) == 1 else "objects"
+            log.warning("%s %s %s %s; HybridGI renders it like any other object", objects, shown,
+                        "is" if len(names) == 1 else "are", meaning)
 
     def finish(self, world):
         geometry = snap.concat_geometry(self.parts)

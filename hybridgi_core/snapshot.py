@@ -147,6 +147,7 @@ class World:
 class ObjectInfo:
     name: str
     dynamic: bool = False  # moves or deforms over the animation: traced in the per-frame scene
+    camera_visible: bool = True  # seen by the camera (False: still casts shadows and bounces light)
 
 
 @dataclass
