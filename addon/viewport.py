@@ -160,6 +160,7 @@ class ViewportSession:
         self._drawn_key = None
         self._drawn_serials = None
         self.scene_name = None
+        self.settings_error: str | None = None  # the scene's settings are invalid: this message
         _OPEN.add(self)
 
     # --- scene ----------------------------------------------------------------------------------
@@ -167,14 +168,25 @@ class ViewportSession:
     def sync(self, depsgraph, scene) -> None:
         """Bring the worker's scene up to `depsgraph`: the first call snapshots everything, later
         calls read `depsgraph.updates` and send only what changed."""
-        settings = viewport_cache_settings(scene)
         self.scene_name = scene.name
+        try:
+            settings = viewport_cache_settings(scene)
+            self.settings_error = None
+        except errors.HybridGIError as err:
+            # A setting out of range (a NaN typed in a field): say so on every redraw, and keep
+            # the worker in step with the scene under the settings it has until it is fixed.
+            if self.settings_error != str(err):
+                log.error("HybridGI viewport: %s", err)
+            self.settings_error = str(err)
+            if self.worker is None or not self.worker.alive:
+                return
+            settings = None
         if self.worker is None or not self.worker.alive:
             # A first sync, or a fresh start after the worker failed: it knows no scene, no view.
             self.worker = worker.ViewportWorker(settings, self.options)
             self.mirror = SceneMirror()
             self._posted_key = self._drawn_key = None
-        else:
+        elif settings is not None:
             self.worker.set_settings(settings)
         if self.mirror.snapshot is None:
             self._post(self.mirror.full_sync(depsgraph))
@@ -409,6 +421,7 @@ def view_draw(engine, context, depsgraph) -> None:
         engine.update_stats("HybridGI", f"Error: {err}")
         return
     if texture is None:
+        engine.update_stats("HybridGI", status_line(session))
         return
     with session.last_stats.step("display"):
         gpu.state.blend_set("ALPHA_PREMULT" if scene.render.film_transparent else "NONE")
@@ -424,6 +437,8 @@ def view_draw(engine, context, depsgraph) -> None:
 
 
 def status_line(session: ViewportSession) -> str:
+    if session.settings_error is not None:
+        return f"Error: {session.settings_error}"
     return viewport_stats.status_line(session.worker.latest() if session.worker is not None else None)
 
 
