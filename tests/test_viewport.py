@@ -392,7 +392,8 @@ def test_deleting_an_object_while_the_worker_traces_is_safe(view, addon):
 # the worker never touches Blender, checked at run time
 # ----------------------------------------------------------------------------------------------
 BLENDER_MODULES = ("bpy", "gpu", "mathutils", "bmesh", "gpu_extras", "bpy_extras", "addon_utils", "_bpy", "_bpy_types")
-BPY_SIDE = (".viewport", ".overlay", ".engine", ".sync", ".ui", ".properties", ".pipeline")
+BPY_SIDE = (".viewport", ".viewport_mirror", ".viewport_stats", ".overlay", ".engine", ".sync", ".updates", ".ui",
+            ".properties", ".pipeline", ".animation")
 
 
 class BlenderAccessGuard:
