@@ -14,6 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from hybridgi_core import environment
 from hybridgi_core import snapshot as snap
 
 log = logging.getLogger(__name__)
@@ -43,6 +44,7 @@ def snapshot_from_depsgraph(depsgraph, dynamic_names=frozenset()):
     for instance in depsgraph.object_instances:
         builder.add_instance(instance)
     builder.warn_unsupported()
+    builder.lights += world_lights(depsgraph.scene.world)
     return builder.finish(world_from_blender(depsgraph.scene.world))
 
 
@@ -441,18 +443,104 @@ def light_from_blender(light, matrix_world, name=""):
     return snap.Light(kind=kind, color=color, power=power, matrix=matrix, name=name, **fields)
 
 
-def equirect_mean(pixels):
-    """(3,) float32 mean over the sphere of an (h, w, 3) equirectangular image (rows weighted by
-    the solid angle they cover, so the stretched poles do not dominate)."""
-    height = pixels.shape[0]
-    latitude = (np.arange(height) + 0.5) / height * np.pi - np.pi / 2
-    weight = np.cos(latitude)
-    rows = pixels.mean(axis=1)
-    return (weight @ rows / weight.sum()).astype(np.float32)
+#: Environment maps already split, by what they depend on (`_environment_key`): a world that did
+#: not change costs nothing on the next sync. A few entries: worlds are few and maps large.
+_SPLITS: dict = {}
+_SPLITS_KEPT = 4
+
+
+def _euler_matrix(euler):
+    """(3, 3) rotation of Blender's XYZ Euler angles (X applied first)."""
+    x, y, z = (float(a) for a in euler)
+    cx, sx, cy, sy, cz, sz = np.cos(x), np.sin(x), np.cos(y), np.sin(y), np.cos(z), np.sin(z)
+    rx = np.array([[1, 0, 0], [0, cx, -sx], [0, sx, cx]])
+    ry = np.array([[cy, 0, sy], [0, 1, 0], [-sy, 0, cy]])
+    rz = np.array([[cz, -sz, 0], [sz, cz, 0], [0, 0, 1]])
+    return rz @ ry @ rx
+
+
+def _texture_to_world(env_node, world_name):
+    """(3, 3) map from the Environment Texture's lookup directions to world directions, or None
+    when its Vector input is something this reader does not follow (a warning says what)."""
+    node, output = _source(env_node.inputs["Vector"])
+    if node is None:
+        return np.eye(3)  # unlinked: the world direction itself
+    if node.type == "TEX_COORD" and output in ("Generated", "Object"):
+        return np.eye(3)
+    if node.type != "MAPPING":
+        log.warning("world %r: environment vector from %s is not supported; read unrotated", world_name, node.bl_idname)
+        return np.eye(3)
+    inner, inner_out = _source(node.inputs["Vector"])
+    if inner is not None and not (inner.type == "TEX_COORD" and inner_out in ("Generated", "Object")):
+        log.warning("world %r: mapping of %s is not supported; read unrotated", world_name, inner.bl_idname)
+        return np.eye(3)
+    rotation = _euler_matrix(node.inputs["Rotation"].default_value)
+    scale = np.diag([float(v) or 1e-12 for v in node.inputs["Scale"].default_value])
+    forward = rotation @ scale  # POINT, VECTOR, NORMAL: texture = R (S d) (+ location)
+    if node.vector_type == "TEXTURE":
+        forward = np.linalg.inv(forward)  # the inverse transform
+    return np.linalg.inv(forward)
+
+
+def _environment_split(source, world_name):
+    """`EnvironmentSplit` of an Environment Texture node (cached), or None when it has no image."""
+    image = source.image
+    if image is None:
+        return None
+    if source.projection != "EQUIRECTANGULAR":
+        log.warning("world %r: %s projection is read as equirectangular", world_name, source.projection.lower())
+    to_world = _texture_to_world(source, world_name)
+    image = image.original
+    key = (image.name_full, image.filepath, tuple(image.size), image.is_dirty, to_world.round(6).tobytes(),
+           image.colorspace_settings.name)
+    split = _SPLITS.get(key)
+    if split is None:
+        pixels = image_pixels(image)
+        if pixels is None:
+            return None
+        split = _SPLITS[key] = environment.split_environment(pixels, to_world)
+        while len(_SPLITS) > _SPLITS_KEPT:
+            _SPLITS.pop(next(iter(_SPLITS)))
+    return split
+
+
+def _background(world):
+    """(Background node, linked Environment Texture node or None) of a world's node tree."""
+    tree = world.node_tree
+    node = _linked_node(_surface_input(tree)) if tree is not None else None
+    if node is None or node.type != "BACKGROUND":
+        return node, None
+    source, output = _source(node.inputs["Color"])
+    is_env = source is not None and source.type == "TEX_ENVIRONMENT" and output == "Color"
+    return node, source if is_env else None
+
+
+def world_lights(world):
+    """The lamps a world brings: the sun of an environment map, as a shadowed SUN `Light`."""
+    if world is None or world.node_tree is None:
+        return []
+    node, env = _background(world)
+    split = _environment_split(env, world.name) if env is not None else None
+    if split is None or split.sun_direction is None:
+        return []
+    strength = float(_value(node.inputs["Strength"]))
+    irradiance = split.sun_irradiance.astype(np.float64) * strength
+    power = float(irradiance.max())
+    if power <= 0.0:
+        return []
+    z = np.asarray(split.sun_direction, np.float64)  # the lamp's local +Z points at the sun
+    helper = np.array([1.0, 0.0, 0.0]) if abs(z[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    x = np.cross(helper, z)
+    x /= np.linalg.norm(x)
+    matrix = np.eye(4)
+    matrix[:3, 0], matrix[:3, 1], matrix[:3, 2] = x, np.cross(z, x), z
+    return [snap.Light(kind="SUN", color=(irradiance / power).astype(np.float32), power=power, matrix=matrix,
+                       angle=split.sun_angle, name=f"{world.name}/sun")]
 
 
 def world_from_blender(world):
-    """`World` of a Blender world: Background colour x strength (or the world colour)."""
+    """`World` of a Blender world: Background colour x strength (or the world colour). An
+    environment map's sun goes to `world_lights`; the rest is its sky (`environment.py`)."""
     if world is None:
         return snap.World()
     ao_distance = float(world.light_settings.distance)
@@ -469,12 +557,15 @@ def world_from_blender(world):
     color_socket = node.inputs["Color"]
     color = _rgb(color_socket.default_value)
     if color_socket.is_linked:
-        source, output = _source(color_socket)
-        is_env = source is not None and source.type == "TEX_ENVIRONMENT" and output == "Color"
-        pixels = image_pixels(source.image.original) if is_env and source.image is not None else None
-        if pixels is not None:
-            log.warning("world %r: environment image approximated by its mean radiance", world.name)
-            color = equirect_mean(pixels)
+        _node, env = _background(world)
+        split = _environment_split(env, world.name) if env is not None else None
+        if split is not None:
+            log.info("world %r: environment map as %s and a sky of L2 spherical harmonics", world.name,
+                     "a shadowed sun" if split.sun_direction is not None else "no sun")
+            color = split.sky
+            strength = _value(node.inputs["Strength"])
+            return snap.World(color=(color * strength).astype(np.float32), ao_distance=ao_distance,
+                              sky_sh=(split.sky_sh * strength).astype(np.float32))
         else:
             log.warning("world %r: linked background colour is not supported; using its value", world.name)
     radiance = (color * _value(node.inputs["Strength"])).astype(np.float32)
@@ -485,9 +576,11 @@ def world_from_blender(world):
 
 
 def scene_lights(depsgraph) -> list:
-    """Every lamp instance of the depsgraph as a `Light` (the snapshot's lamps, read again)."""
-    return [light_from_blender(inst.object.data, inst.matrix_world, inst.object.name)
-            for inst in depsgraph.object_instances if inst.object.type == "LIGHT"]
+    """Every lamp instance of the depsgraph as a `Light`, then the world's (the snapshot's lamps,
+    read again)."""
+    lamps = [light_from_blender(inst.object.data, inst.matrix_world, inst.object.name)
+             for inst in depsgraph.object_instances if inst.object.type == "LIGHT"]
+    return lamps + world_lights(depsgraph.scene.world)
 
 
 def scene_materials(snapshot, names=None) -> list:

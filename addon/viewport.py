@@ -212,7 +212,8 @@ class ViewportSession:
             self._post(edit)
         if changes.lights or changes.world or changes.materials:
             self._post(mirror.set_shading(
-                lights=sync.scene_lights(depsgraph) if changes.lights else None,
+                # An environment map's sun is a lamp too: a world edit reads the lamps again.
+                lights=sync.scene_lights(depsgraph) if changes.lights or changes.world else None,
                 world=sync.world_from_blender(depsgraph.scene.world) if changes.world else None,
                 materials=sync.scene_materials(mirror.snapshot, changes.material_names) if changes.materials else None,
             ))

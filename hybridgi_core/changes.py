@@ -220,7 +220,7 @@ def _material_key(material: Material) -> tuple:
 
 
 def _world_key(world: World) -> tuple:
-    return world.color.tobytes(), float(world.ao_distance)
+    return world.color.tobytes(), float(world.ao_distance), None if world.sky_sh is None else world.sky_sh.tobytes()
 
 
 def shading_key(snapshot: SceneSnapshot) -> tuple:

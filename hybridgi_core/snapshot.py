@@ -137,10 +137,29 @@ class Light:
 
 @dataclass
 class World:
-    """Uniform sky: radiance = background colour x strength; AO distance from World settings."""
+    """The sky: radiance = background colour x strength; AO distance from World settings.
+
+    sky_sh : (9, 3) float32 L2 radiance SH of a sky that varies with direction (an environment
+        map without its sun, `environment.split_environment`), or None for a uniform `color`
+        (which then still holds its mean over the upper hemisphere, for the background).
+    """
 
     color: np.ndarray = field(default_factory=lambda: np.zeros(3, np.float32))
     ao_distance: float = 1.0
+    sky_sh: np.ndarray | None = None
+
+    @property
+    def any(self) -> bool:
+        """Whether the sky gives any light."""
+        return bool(self.color.any()) or (self.sky_sh is not None and bool(self.sky_sh.any()))
+
+    def radiance(self, directions: np.ndarray) -> np.ndarray:
+        """(n, 3) float32 sky radiance towards unit `directions` (n, 3)."""
+        if self.sky_sh is None:
+            return np.broadcast_to(self.color.astype(np.float32), (directions.shape[0], 3))
+        from .sh import basis  # noqa: PLC0415  (sh imports nothing from here; kept local for clarity)
+
+        return np.maximum(basis(directions, 2) @ self.sky_sh.astype(np.float32), np.float32(0.0))
 
 
 @dataclass
