@@ -10,7 +10,10 @@ from hybridgi_core.snapshot import World
 H, W = 128, 256
 
 
-def sky_with_sun(direction, sun_radiance=2000.0, sun_radius=np.radians(0.8), sky=0.4):
+SUN_RADIUS = np.radians(0.8)
+
+
+def sky_with_sun(direction, sun_radiance=2000.0, sun_radius=SUN_RADIUS, sky=0.4):
     dirs, _solid = equirect_directions(H, W)
     d = np.asarray(direction, np.float64) / np.linalg.norm(direction)
     pixels = np.full((H, W, 3), sky, np.float64)
