@@ -17,6 +17,8 @@ import numpy as np
 from hybridgi_core import environment
 from hybridgi_core import snapshot as snap
 
+from . import world_bake
+
 log = logging.getLogger(__name__)
 
 #: Albedo of materials this module cannot interpret (Blender's default material colour).
@@ -504,26 +506,53 @@ def _environment_split(source, world_name):
     return split
 
 
-def _background(world):
-    """(Background node, linked Environment Texture node or None) of a world's node tree."""
+def _output_node(world):
     tree = world.node_tree
-    node = _linked_node(_surface_input(tree)) if tree is not None else None
-    if node is None or node.type != "BACKGROUND":
-        return node, None
-    source, output = _source(node.inputs["Color"])
-    is_env = source is not None and source.type == "TEX_ENVIRONMENT" and output == "Color"
-    return node, source if is_env else None
+    return _linked_node(_surface_input(tree)) if tree is not None else None
+
+
+def _is_uniform(node) -> bool:
+    """Whether a world's output node gives the same radiance in every direction."""
+    return (node.type == "BACKGROUND" and not node.inputs["Color"].is_linked
+            and not node.inputs["Strength"].is_linked)
+
+
+def _world_split(world):
+    """(`EnvironmentSplit`, strength still to apply) of a world whose light varies with
+    direction; None for a uniform or black world, or one that could not be read.
+
+    An Environment Texture on the Background's colour is read directly (exact, fast); any other
+    tree (Sky Texture, gradients, mixes) is baked by Blender itself (`world_bake`), both cached.
+    """
+    node = _output_node(world)
+    if node is None or _is_uniform(node):
+        return None
+    if node.type == "BACKGROUND" and not node.inputs["Strength"].is_linked:
+        source, output = _source(node.inputs["Color"])
+        if source is not None and source.type == "TEX_ENVIRONMENT" and output == "Color":
+            split = _environment_split(source, world.name)
+            if split is not None:
+                return split, float(_value(node.inputs["Strength"]))
+    key = ("baked", world_bake.world_key(world))
+    split = _SPLITS.get(key)
+    if split is None:
+        pixels = world_bake.bake_world(world)
+        if pixels is None:
+            return None
+        split = _SPLITS[key] = environment.split_environment(pixels)
+        while len(_SPLITS) > _SPLITS_KEPT:
+            _SPLITS.pop(next(iter(_SPLITS)))
+    return split, 1.0
 
 
 def world_lights(world):
-    """The lamps a world brings: the sun of an environment map, as a shadowed SUN `Light`."""
+    """The lamps a world brings: the sun of its map, as a shadowed SUN `Light`."""
     if world is None or world.node_tree is None:
         return []
-    node, env = _background(world)
-    split = _environment_split(env, world.name) if env is not None else None
-    if split is None or split.sun_direction is None:
+    found = _world_split(world)
+    if found is None or found[0].sun_direction is None:
         return []
-    strength = float(_value(node.inputs["Strength"]))
+    split, strength = found
     irradiance = split.sun_irradiance.astype(np.float64) * strength
     power = float(irradiance.max())
     if power <= 0.0:
@@ -539,36 +568,30 @@ def world_lights(world):
 
 
 def world_from_blender(world):
-    """`World` of a Blender world: Background colour x strength (or the world colour). An
-    environment map's sun goes to `world_lights`; the rest is its sky (`environment.py`)."""
+    """`World` of a Blender world: a uniform Background colour x strength, or the sky of a world
+    that varies with direction (its sun goes to `world_lights`, see `environment.py`)."""
     if world is None:
         return snap.World()
     ao_distance = float(world.light_settings.distance)
-    tree = world.node_tree
-    if tree is None:
+    if world.node_tree is None:
         return snap.World(color=_rgb(world.color), ao_distance=ao_distance)
-    node = _linked_node(_surface_input(tree))
+    node = _output_node(world)
     if node is None:
         # Cycles renders a world with nothing linked to its output as black.
         return snap.World(color=np.zeros(3, np.float32), ao_distance=ao_distance)
+    found = _world_split(world)
+    if found is not None:
+        split, strength = found
+        log.info("world %r: %s and a sky of L2 spherical harmonics", world.name,
+                 "a shadowed sun" if split.sun_direction is not None else "no sun")
+        return snap.World(color=(split.sky * strength).astype(np.float32), ao_distance=ao_distance,
+                          sky_sh=(split.sky_sh * strength).astype(np.float32))
     if node.type != "BACKGROUND":
-        log.warning("world %r: %s is not supported; using the viewport colour", world.name, node.bl_idname)
+        log.warning("world %r: %s could not be read; using the viewport colour", world.name, node.bl_idname)
         return snap.World(color=_rgb(world.color), ao_distance=ao_distance)
-    color_socket = node.inputs["Color"]
-    color = _rgb(color_socket.default_value)
-    if color_socket.is_linked:
-        _node, env = _background(world)
-        split = _environment_split(env, world.name) if env is not None else None
-        if split is not None:
-            log.info("world %r: environment map as %s and a sky of L2 spherical harmonics", world.name,
-                     "a shadowed sun" if split.sun_direction is not None else "no sun")
-            color = split.sky
-            strength = _value(node.inputs["Strength"])
-            return snap.World(color=(color * strength).astype(np.float32), ao_distance=ao_distance,
-                              sky_sh=(split.sky_sh * strength).astype(np.float32))
-        else:
-            log.warning("world %r: linked background colour is not supported; using its value", world.name)
-    radiance = (color * _value(node.inputs["Strength"])).astype(np.float32)
+    if not _is_uniform(node):
+        log.warning("world %r: its background could not be read; using its colour value", world.name)
+    radiance = (_rgb(node.inputs["Color"].default_value) * _value(node.inputs["Strength"])).astype(np.float32)
     return snap.World(color=radiance, ao_distance=ao_distance)
 
 
