@@ -283,20 +283,123 @@ def material_from_blender(material, textures=None):
     if shader is None:
         log.warning("material %r: no shader linked to an active output; using grey", name)
         return _grey(name)
-    if shader.type == "BSDF_PRINCIPLED":
+    surface = _shader_surface(shader, textures, name)
+    if surface is None:
+        log.warning("material %r: shader %s is not supported; using grey %.1f", name, shader.bl_idname, FALLBACK_GREY)
+        return _grey(name)
+    base, texture, emission = surface
+    return snap.Material(name=name, base_color=base.astype(np.float32), texture=texture,
+                         emission=emission.astype(np.float32))
+
+
+def _shader_surface(shader, textures, name, depth=0):
+    """(diffuse colour (3,), texture or None, emission radiance (3,)) of a shader node, or None
+    when it is not one this reader knows. The diffuse colour is what Cycles' Diffuse Color pass
+    shows: a Principled BSDF's base colour weighted by (1 - metallic) (1 - transmission), tinted
+    by its coat; Mix and Add Shader combine their inputs by their (constant) factor."""
+    zero = np.zeros(3, np.float32)
+    kind = shader.type
+    if kind == "BSDF_PRINCIPLED":
         base, texture = _color_socket(shader.inputs["Base Color"], textures, name)
-        emission = _rgb(shader.inputs["Emission Color"].default_value) * _value(shader.inputs["Emission Strength"])
-        if shader.inputs["Emission Color"].is_linked:
-            log.warning("material %r: linked emission colour is not supported; using its value", name)
-        return snap.Material(name=name, base_color=base, texture=texture, emission=emission.astype(np.float32))
-    if shader.type == "BSDF_DIFFUSE":
+        metallic = _constant_value(shader.inputs["Metallic"], name)
+        transmission = _constant_value(_input(shader, "Transmission Weight", "Transmission"), name)
+        coat = _constant_value(_input(shader, "Coat Weight"), name) if _input(shader, "Coat Weight") else 0.0
+        tint = _constant_color(_input(shader, "Coat Tint"), name) if _input(shader, "Coat Tint") else np.ones(3)
+        weight = (1.0 - np.clip(metallic, 0, 1)) * (1.0 - np.clip(transmission, 0, 1))
+        base = base * weight * (1.0 + np.clip(coat, 0, 1) * (tint - 1.0))
+        emission = _constant_color(shader.inputs["Emission Color"], name) * _constant_value(
+            shader.inputs["Emission Strength"], name)
+        return base, texture, emission
+    if kind == "BSDF_DIFFUSE":
         base, texture = _color_socket(shader.inputs["Color"], textures, name)
-        return snap.Material(name=name, base_color=base, texture=texture)
-    if shader.type == "EMISSION":
-        emission = _rgb(shader.inputs["Color"].default_value) * _value(shader.inputs["Strength"])
-        return snap.Material(name=name, base_color=np.zeros(3, np.float32), emission=emission.astype(np.float32))
-    log.warning("material %r: shader %s is not supported; using grey %.1f", name, shader.bl_idname, FALLBACK_GREY)
-    return _grey(name)
+        return base, texture, zero
+    if kind == "EMISSION":
+        emission = _constant_color(shader.inputs["Color"], name) * _constant_value(shader.inputs["Strength"], name)
+        return zero, None, emission
+    if kind in ("BSDF_TRANSPARENT", "BSDF_GLOSSY", "BSDF_ANISOTROPIC", "BSDF_REFRACTION", "BSDF_GLASS",
+                "HOLDOUT", "BSDF_TRANSLUCENT"):
+        # No diffuse reflection (Cycles' Diffuse Color pass is black there); HybridGI renders
+        # diffuse light only, so what these reflect or transmit is missing from Combined.
+        log.warning("material %r: %s reflects no diffuse light; its %s is not rendered", name, shader.bl_idname,
+                    "transparency" if kind == "BSDF_TRANSPARENT" else "glossy or transmitted light")
+        return zero, None, zero
+    if kind in ("MIX_SHADER", "ADD_SHADER") and depth < 8:
+        parts = []
+        for socket in shader.inputs[-2:] if kind == "MIX_SHADER" else shader.inputs[:2]:
+            node = _linked_node(socket)
+            part = _shader_surface(node, textures, name, depth + 1) if node is not None else (zero, None, zero)
+            if part is None:
+                return None
+            parts.append(part)
+        fac = np.clip(_constant_value(shader.inputs["Fac"], name), 0, 1) if kind == "MIX_SHADER" else None
+        weights = (1.0 - fac, fac) if fac is not None else (1.0, 1.0)
+        textured = [i for i, p in enumerate(parts) if p[1] is not None and weights[i] > 0]
+        if len(textured) > 1:
+            log.warning("material %r: a mix of two image textures keeps the stronger one", name)
+        texture = parts[max(textured, key=lambda i: weights[i])][1] if textured else None
+        # With a texture, colour = base x texture: the other parts' colours enter base divided by
+        # the texture's mean, so the mean albedo of the mix is right.
+        mean = texture.reshape(-1, 3).mean(axis=0) if texture is not None else np.ones(3)
+        base = sum(w * (p[0] if p[1] is texture else p[0] * (p[1].reshape(-1, 3).mean(axis=0) if p[1] is not None else 1.0)
+                        / np.maximum(mean, 1e-6)) for w, p in zip(weights, parts, strict=True))
+        emission = sum(w * p[2] for w, p in zip(weights, parts, strict=True))
+        return np.asarray(base, np.float32), texture, np.asarray(emission, np.float32)
+    return None
+
+
+def _input(node, *names):
+    """The first of `names` that `node` has as an input (socket names changed across versions)."""
+    for n in names:
+        socket = node.inputs.get(n)
+        if socket is not None:
+            return socket
+    return None
+
+
+def _constant_color(socket, material_name):
+    """(3,) colour of an input, following links to constant nodes (RGB, Value, a Mix of
+    constants); a socket fed by anything else keeps its own value, with a warning."""
+    value = _fold(socket, 0)
+    if value is None:
+        node = _linked_node(socket)
+        log.warning("material %r: %s from %s is not supported; using its value", material_name, socket.name,
+                    node.bl_idname if node is not None else "a muted link")
+        return _rgb(socket.default_value) if hasattr(socket.default_value, "__len__") else np.full(3, _value(socket), np.float32)
+    return np.broadcast_to(np.asarray(value, np.float32), (3,)).copy()
+
+
+def _constant_value(socket, material_name):
+    if socket is None:
+        return 0.0
+    value = _fold(socket, 0)
+    if value is None:
+        log.warning("material %r: %s from a node is not supported; using its value", material_name, socket.name)
+        return float(socket.default_value)
+    return float(np.mean(value))
+
+
+def _fold(socket, depth):
+    """The constant an input evaluates to (float or (3,) array), or None when it is not constant."""
+    if not socket.is_linked:
+        value = socket.default_value
+        return np.asarray(tuple(value)[:3], np.float64) if hasattr(value, "__len__") else float(value)
+    node, output = _source(socket)
+    if node is None or depth > 16:
+        return None
+    if node.type == "RGB":
+        return np.asarray(tuple(node.outputs[0].default_value)[:3], np.float64)
+    if node.type == "VALUE":
+        return float(node.outputs[0].default_value)
+    if node.type == "MIX" and getattr(node, "data_type", "") in ("RGBA", "FLOAT") and node.blend_type == "MIX":
+        names = ("A", "B")
+        sockets = [s for s in node.inputs if s.name in names and s.enabled]
+        fac = _fold(node.inputs[0], depth + 1)
+        values = [_fold(s, depth + 1) for s in sockets]
+        if fac is None or len(values) != 2 or any(v is None for v in values):
+            return None
+        fac = float(np.clip(np.mean(fac), 0, 1)) if getattr(node, "clamp_factor", True) else float(np.mean(fac))
+        return (1 - fac) * np.asarray(values[0]) + fac * np.asarray(values[1])
+    return None
 
 
 def _grey(name):
