@@ -21,6 +21,10 @@ MULTI_BOUNCE = 2  # hits also read the cache itself: converges to the multi-boun
 #: the 512 maximum would need over 100 GiB, which no render should start allocating.
 DEFAULT_CACHE_MEMORY_MIB = 4096
 
+#: Texels of the largest 2D texture the GPU gather packs the cache into (raster/gather.py): 16384
+#: per side, the limit of llvmpipe, Apple and most desktop GPUs (gather checks the real one again).
+GPU_TEXTURE_TEXELS = 16384 * 16384
+
 #: Bytes per cell that do not depend on the SH order or the depth map: backface, samples,
 #: last_frame (int64), urgency, and the cell centres (3 float32).
 _CELL_FIXED_BYTES = 4 + 4 + 8 + 4 + 12
@@ -120,21 +124,31 @@ class CacheSettings:
         return 2 * k * 3 * 4 + k * 4 + t * 2 * 4 + _CELL_FIXED_BYTES
 
     def check_cell_count(self, dims: tuple[int, int, int]) -> None:
-        """Raise LimitError before allocating a cache of `dims` cells over `max_memory_mib`.
+        """Raise LimitError before allocating a cache of `dims` cells that would exceed
+        `max_memory_mib` or not fit the gather's GPU textures (GPU_TEXTURE_TEXELS).
 
-        The message names the estimate, the limit and the largest resolution that fits.
+        The message names the limit, the estimate and the largest resolution that fits.
         """
         count = int(dims[0]) * int(dims[1]) * int(dims[2])
+        texels = count * max(2 * self.sh_coeffs, self.depth_texels**2)
         need = count * self.cell_bytes
         limit = self.max_memory_mib * 2**20
-        if need <= limit:
+        problems = []
+        if need > limit:
+            problems.append((need / limit, f"needs {need / 2**30:.1f} GiB, over the cache memory limit of "
+                                           f"{limit / 2**30:.1f} GiB"))
+        if texels > GPU_TEXTURE_TEXELS:
+            problems.append((texels / GPU_TEXTURE_TEXELS, f"needs {texels} texels, over the GPU's "
+                                                          "16384x16384 texture limit"))
+        if not problems:
             return
-        # Cell count grows with the cube of the resolution.
-        fits = max(1, int(self.resolution * (limit / need) ** (1 / 3)))
+        # Cell count grows with the cube of the resolution: the tighter limit sets what fits.
+        ratio = max(r for r, _text in problems)
+        fits = max(1, int(self.resolution * ratio ** (-1 / 3)))
         raise LimitError(
-            f"cache of {dims[0]}x{dims[1]}x{dims[2]} cells at resolution {self.resolution} needs "
-            f"{need / 2**30:.1f} GiB, over the cache memory limit of {limit / 2**30:.1f} GiB: "
-            f"lower the HybridGI Resolution to {fits} or less"
+            f"cache of {dims[0]}x{dims[1]}x{dims[2]} cells at resolution {self.resolution} "
+            + " and ".join(text for _r, text in problems)
+            + f": lower the HybridGI Resolution to {fits} or less"
         )
 
     def with_(self, **changes) -> CacheSettings:
