@@ -135,8 +135,19 @@ class Light:
             raise InvalidGeometryError(f"unknown light kind {self.kind!r}")
         if self.kind == "AREA" and self.shape not in AREA_SHAPES:
             raise InvalidGeometryError(f"unknown area light shape {self.shape!r}")
-        self.color = np.asarray(self.color, np.float32).reshape(3)
+        what = f"light {self.name!r}"
+        self.color = _finite_color(self.color, 0.0, f"{what} colour")
         self.matrix = np.asarray(self.matrix, np.float64).reshape(4, 4)
+        if not np.isfinite(self.matrix).all():
+            raise InvalidGeometryError(f"{what}: its transform is not finite")
+        # A light that is not finite would put NaN in every pixel it reaches: it emits nothing.
+        for name in ("power", "radius", "spot_size", "spot_blend", "angle", "size", "size_y"):
+            value = float(getattr(self, name))
+            if not np.isfinite(value):
+                log.warning("%s: %s=%r is not finite; the light is switched off", what, name, value)
+                self.power = 0.0
+                value = 0.0
+            setattr(self, name, value)
 
     @property
     def position(self) -> np.ndarray:
@@ -155,6 +166,12 @@ class World:
 
     color: np.ndarray = field(default_factory=lambda: np.zeros(3, np.float32))
     ao_distance: float = 1.0
+
+    def __post_init__(self) -> None:
+        self.color = _finite_color(self.color, 0.0, "world colour")
+        if not (np.isfinite(self.ao_distance) and self.ao_distance >= 0.0):
+            log.warning("world AO distance %r is not a finite distance; using 1 m", self.ao_distance)
+            self.ao_distance = 1.0
 
 
 @dataclass
