@@ -14,7 +14,8 @@ import math
 import sys
 from pathlib import Path
 
-import bpy  # noqa: I001  (bpy first: it makes bmesh and mathutils importable)
+# ruff: noqa: I001  (bpy must come first: importing it makes bmesh and mathutils importable)
+import bpy
 import bmesh
 from mathutils import Vector
 
@@ -63,8 +64,9 @@ def cube_mesh(name="cube", size=1.0):
     return _mesh_from(name, lambda bm: bmesh.ops.create_cube(bm, size=size))
 
 
-def sphere_mesh(name="sphere", radius=1.0):
-    return _mesh_from(name, lambda bm: bmesh.ops.create_uvsphere(bm, u_segments=24, v_segments=12, radius=radius))
+def sphere_mesh(name="sphere", radius=1.0, segments=24):
+    return _mesh_from(name, lambda bm: bmesh.ops.create_uvsphere(bm, u_segments=segments, v_segments=segments // 2,
+                                                                 radius=radius))
 
 
 def plane_mesh(name="plane", size=1.0):
@@ -79,6 +81,7 @@ def _camera(scene, location, target, lens=35.0, clip=(0.1, 100.0)):
     cam = bpy.data.objects.new("camera", bpy.data.cameras.new("camera"))
     cam.location = location
     direction = Vector(target) - Vector(location)
+    direction /= direction.length  # to_track_quat treats micrometre-long vectors as zero
     cam.rotation_euler = direction.to_track_quat("-Z", "Y").to_euler()
     cam.data.lens = lens
     cam.data.clip_start, cam.data.clip_end = clip
@@ -109,8 +112,10 @@ def _basic(offset=(0.0, 0.0, 0.0), scale=1.0):
     scene = _reset()
     o = Vector(offset)
     grey = _material("grey")
-    _object(scene, "floor", plane_mesh("floor", 4.0 * scale), location=o, material=grey)
-    _object(scene, "cube", cube_mesh("cube", scale), location=o + Vector((0, 0, 0.5 * scale)),
+    # Scaled objects, not scaled meshes: bmesh merges vertices closer than ~1e-6.
+    s3 = (scale, scale, scale)
+    _object(scene, "floor", plane_mesh("floor", 4.0), location=o, scale=s3, material=grey)
+    _object(scene, "cube", cube_mesh("cube", 1.0), location=o + Vector((0, 0, 0.5 * scale)), scale=s3,
             material=_material("orange", (0.8, 0.35, 0.1)))
     _camera(scene, o + Vector((3.0, -3.0, 2.4)) * scale, o + Vector((0, 0, 0.4 * scale)),
             clip=(0.01 * scale, 100.0 * scale))
@@ -127,13 +132,15 @@ def basic():
 
 
 def far_sphere():
-    """A 1 m sphere on a floor 100 km from the origin (float32 still resolves ~8 mm there)."""
+    """A 1 m sphere of 2,256 triangles on a floor 100 km from the origin (float32 still resolves
+    ~8 mm there); a zero-area test growing with the distance from the origin dropped them all."""
     scene = _reset()
     o = Vector((1.0e5, 0.0, 0.0))
     grey = _material("grey")
     _object(scene, "floor", plane_mesh("floor", 6.0), location=o + Vector((0, 0, -1)), material=grey)
-    _object(scene, "sphere", sphere_mesh("sphere", 1.0), location=o, material=_material("blue", (0.1, 0.3, 0.8)))
-    _camera(scene, o + Vector((4.0, -4.0, 2.0)), o)
+    _object(scene, "sphere", sphere_mesh("sphere", 0.5, segments=48), location=o,
+            material=_material("blue", (0.1, 0.3, 0.8)))
+    _camera(scene, o + Vector((2.5, -2.5, 1.2)), o)
     _sun(scene)
     _world(scene)
 
@@ -147,7 +154,7 @@ def zero_scale():
     """A cube squashed flat (scale z = 0) lying above the floor: Cycles renders its square."""
     scene = _basic()
     cube = scene.objects["cube"]
-    cube.scale = (1.0, 1.0, 0.0)
+    cube.scale.z = 0.0
     cube.location.z = 0.3
 
 
@@ -272,6 +279,15 @@ def camera_invisible():
     scene.objects["cube"].visible_camera = False
 
 
+def tall():
+    """The basic scene with a 2.05 m tall cube: at resolution 128 its grid is 128x128x66 cells,
+    whose depth texture needed more than OpenGL's 16384 rows in the old 4096-wide layout."""
+    scene = _basic()
+    cube = scene.objects["cube"]
+    cube.scale.z = 2.05  # basic's cube has scale 1
+    cube.location.z = 1.025
+
+
 def percent_small():
     """resolution_percentage 10 of 48x36: a 4x3 image."""
     scene = _basic()
@@ -281,7 +297,7 @@ def percent_small():
 SCENES = {f.__name__: f for f in (
     basic, far_sphere, micro_cube, zero_scale, nan_vertices, instances, wide_texture, nan_light,
     nan_material, nan_world, no_camera, only_degenerate, camera_only, render_border, render_border_crop,
-    film_transparent, panoramic_camera, camera_invisible, percent_small,
+    film_transparent, panoramic_camera, camera_invisible, percent_small, tall,
 )}
 
 
