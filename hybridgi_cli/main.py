@@ -27,7 +27,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from . import dev_install, interrupt, output
+from . import dev_install, interrupt, output, tracebacks
 
 ENGINES = ("HYBRIDGI", "CYCLES", "BLENDER_EEVEE")
 
@@ -80,7 +80,8 @@ def main(argv: list[str] | None = None) -> int:
         # The process is this command: it owns the signals and stderr (a caller of main(argv)
         # from Python keeps its own).
         interrupt.install(cleanups=(_remove_own_folders,))
-        hold_tracebacks()
+        if not os.environ.get(DEBUG_ENV):
+            tracebacks.hold()
     try:
         return args.run(args)
     except (CliError, output.OutputError) as err:
@@ -93,7 +94,8 @@ def main(argv: list[str] | None = None) -> int:
             import traceback  # noqa: PLC0415
 
             traceback.print_exc()
-        return fail(f"internal error: {type(err).__name__}: {err}")
+        hint = "" if os.environ.get(DEBUG_ENV) else f" ({DEBUG_ENV}=1 shows the traceback)"
+        return fail(f"internal error: {type(err).__name__}: {err}{hint}")
 
 
 def fail(message: str, status: int = 1) -> int:
@@ -402,46 +404,6 @@ def render_frame(bpy, scene, frame: int, files: output.FrameFiles, engine: str, 
         "exr": str(exr),
         **(pipeline_stats(addon) if engine == "HYBRIDGI" else {"steps_ms": {}}),
     }
-
-
-class _TracebackFilter:
-    """sys.stderr of the command: passes text through, but holds back the tracebacks Python and
-    Blender print for an exception they then ignore (one in the engine's render(), which the
-    engine records and the CLI reports in its one error line; one in a `__del__` at exit).
-    HYBRIDGI_DEBUG lets them through."""
-
-    def __init__(self, stream) -> None:
-        self.stream = stream
-        self.in_traceback = False
-        self.pending = ""
-
-    def write(self, text: str) -> int:
-        self.pending += text
-        *lines, self.pending = self.pending.split("\n")
-        for line in lines:
-            if line.startswith(("Traceback (most recent call last):", "Exception ignored in")):
-                self.in_traceback = True
-            elif self.in_traceback and line and not line[0].isspace() and not line.startswith("Traceback"):
-                self.in_traceback = False  # the exception's own line ends the traceback
-                continue
-            if not self.in_traceback:
-                self.stream.write(line + "\n")
-        return len(text)
-
-    def flush(self) -> None:
-        if self.pending and not self.in_traceback:
-            self.stream.write(self.pending)
-        self.pending = ""
-        self.stream.flush()
-
-    def __getattr__(self, name):
-        return getattr(self.stream, name)
-
-
-def hold_tracebacks() -> None:
-    """From here on, tracebacks Python prints on sys.stderr are held back (unless HYBRIDGI_DEBUG)."""
-    if not os.environ.get(DEBUG_ENV) and not isinstance(sys.stderr, _TracebackFilter):
-        sys.stderr = _TracebackFilter(sys.stderr)
 
 
 def frame_error(addon) -> str | None:

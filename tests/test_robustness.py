@@ -264,3 +264,20 @@ def test_gpu_gather_with_textures_wider_than_the_pack_width(raster, monkeypatch)
     monkeypatch.setattr(gather, "upload_texture_2d", upload)
     test_raster.test_gpu_gather_equals_evaluate(raster)
     assert 48 in widths  # the cache textures did widen (the mask texture keeps its own width)
+
+
+def test_tracebacks_of_reported_errors_are_held_back():
+    import io
+
+    from hybridgi_cli.tracebacks import TracebackFilter
+
+    stream = io.StringIO()
+    f = TracebackFilter(stream)
+    f.write("hybridgi: frame 1 (1/1): rendering\nTraceback (most recent call last):\n  File \"x.py\", line 1")
+    f.write(", in render\n    boom()\nTypeError: boom\nBlender's own line\n")
+    f.write("Exception ignored in: <function E.__del__>\nTraceback (most recent call last):\n  File \"e.py\"\n")
+    f.write("ReferenceError: removed\nhybridgi: error: frame 1: internal error: TypeError: boom\n")
+    f.flush()
+    assert stream.getvalue().splitlines() == [
+        "hybridgi: frame 1 (1/1): rendering", "Blender's own line", "hybridgi: error: frame 1: internal error: TypeError: boom"]
+    assert "TypeError: boom" in f.held and "ReferenceError: removed" in f.held
