@@ -332,11 +332,13 @@ def check_value(prop, value) -> None:
 def _range_text(prop) -> str:
     low = prop.hard_min if prop.hard_min > -1e30 else None
     high = prop.hard_max if prop.hard_max < 1e30 and abs(prop.hard_max) < 2**31 - 1 else None
+    fmt = "{:d}" if prop.type == "INT" else "{:g}"
+    low, high = (None if v is None else fmt.format(v) for v in (low, high))
     if low is not None and high is not None:
-        return f"{low:g} to {high:g}"
+        return f"{low} to {high}"
     if low is not None:
-        return f">= {low:g}"
-    return f"<= {high:g}" if high is not None else "any finite number"
+        return f">= {low}"
+    return f"<= {high}" if high is not None else "any finite number"
 
 
 def check_core_settings(scene) -> None:
