@@ -122,6 +122,7 @@ def draw_overlay(context) -> bool:
         session.sync(context.evaluated_depsgraph_get(), scene)
     region = context.region
     camera = _viewport().ViewCamera.from_region_data(context.region_data)
+    session.poll_world(context.evaluated_depsgraph_get())
     try:
         texture = session.draw(scene, camera, region.width, region.height)
     except errors.HybridGIError as err:

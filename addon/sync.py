@@ -33,7 +33,7 @@ LINEAR_SPACES = frozenset({"Linear Rec.709", "Non-Color", "scene_linear"})
 OUTPUT_TARGET = "CYCLES"
 
 
-def snapshot_from_depsgraph(depsgraph, dynamic_names=frozenset()):
+def snapshot_from_depsgraph(depsgraph, dynamic_names=frozenset(), wait_for_world=True):
     """The evaluated scene of `depsgraph` as a validated `SceneSnapshot`.
 
     dynamic_names : names of objects that move or deform over the animation; an instance is
@@ -46,8 +46,9 @@ def snapshot_from_depsgraph(depsgraph, dynamic_names=frozenset()):
     for instance in depsgraph.object_instances:
         builder.add_instance(instance)
     builder.warn_unsupported()
-    builder.lights += world_lights(depsgraph.scene.world)
-    return builder.finish(world_from_blender(depsgraph.scene.world))
+    world = depsgraph.scene.world
+    builder.lights += world_lights(world, wait_for_world)
+    return builder.finish(world_from_blender(world, wait_for_world))
 
 
 #: Cycles' per-object ray visibility HybridGI does not follow (the object takes part as if on):
@@ -620,7 +621,7 @@ def _is_uniform(node) -> bool:
             and not node.inputs["Strength"].is_linked)
 
 
-def _world_split(world):
+def _world_split(world, wait=True):
     """(`EnvironmentSplit`, strength still to apply) of a world whose light varies with
     direction; None for a uniform or black world, or one that could not be read.
 
@@ -639,7 +640,7 @@ def _world_split(world):
     key = ("baked", world_bake.world_key(world))
     split = _SPLITS.get(key)
     if split is None:
-        pixels = world_bake.bake_world(world)
+        pixels = world_bake.bake_world(world, wait=wait)
         if pixels is None:
             return None
         split = _SPLITS[key] = environment.split_environment(pixels)
@@ -648,11 +649,12 @@ def _world_split(world):
     return split, 1.0
 
 
-def world_lights(world):
-    """The lamps a world brings: the sun of its map, as a shadowed SUN `Light`."""
+def world_lights(world, wait=True):
+    """The lamps a world brings: the sun of its map, as a shadowed SUN `Light` (wait=False: none
+    while its map bakes in the background)."""
     if world is None or world.node_tree is None:
         return []
-    found = _world_split(world)
+    found = _world_split(world, wait)
     if found is None or found[0].sun_direction is None:
         return []
     split, strength = found
@@ -670,9 +672,10 @@ def world_lights(world):
                        angle=split.sun_angle, name=f"{world.name}/sun")]
 
 
-def world_from_blender(world):
+def world_from_blender(world, wait=True):
     """`World` of a Blender world: a uniform Background colour x strength, or the sky of a world
-    that varies with direction (its sun goes to `world_lights`, see `environment.py`)."""
+    that varies with direction (its sun goes to `world_lights`, see `environment.py`). wait=False
+    (the viewport): a world whose map still bakes reads as its uniform colour meanwhile."""
     if world is None:
         return snap.World()
     ao_distance = float(world.light_settings.distance)
@@ -682,7 +685,7 @@ def world_from_blender(world):
     if node is None:
         # Cycles renders a world with nothing linked to its output as black.
         return snap.World(color=np.zeros(3, np.float32), ao_distance=ao_distance)
-    found = _world_split(world)
+    found = _world_split(world, wait)
     if found is not None:
         split, strength = found
         log.info("world %r: %s and a sky of L2 spherical harmonics", world.name,
@@ -692,7 +695,7 @@ def world_from_blender(world):
     if node.type != "BACKGROUND":
         log.warning("world %r: %s could not be read; using the viewport colour", world.name, node.bl_idname)
         return snap.World(color=_rgb(world.color), ao_distance=ao_distance)
-    if not _is_uniform(node):
+    if not _is_uniform(node) and not world_bake.pending():
         log.warning("world %r: its background could not be read; using its colour value", world.name)
     radiance = (_rgb(node.inputs["Color"].default_value) * _value(node.inputs["Strength"])).astype(np.float32)
     return snap.World(color=radiance, ao_distance=ao_distance)
@@ -701,12 +704,12 @@ def world_from_blender(world):
 # --- partial re-reads (shading edits in the viewport) ---------------------------------------
 
 
-def scene_lights(depsgraph) -> list:
+def scene_lights(depsgraph, wait_for_world=True) -> list:
     """Every lamp instance of the depsgraph as a `Light`, then the world's (the snapshot's lamps,
     read again)."""
     lamps = [light_from_blender(inst.object.data, inst.matrix_world, inst.object.name)
              for inst in depsgraph.object_instances if inst.object.type == "LIGHT"]
-    return lamps + world_lights(depsgraph.scene.world)
+    return lamps + world_lights(depsgraph.scene.world, wait_for_world)
 
 
 def scene_materials(snapshot, names=None) -> list:

@@ -37,7 +37,7 @@ from hybridgi_core.raster import passes as _passes
 from hybridgi_core.raster import readback as _readback
 from hybridgi_core.raster import settings as _raster_settings
 
-from . import sync, updates, viewport_stats, worker
+from . import sync, updates, viewport_stats, worker, world_bake
 from .viewport_mirror import SceneMirror
 from .viewport_passes import (
     PRESENT_CELLS,
@@ -161,6 +161,7 @@ class ViewportSession:
         self._drawn_serials = None
         self.scene_name = None
         self.settings_error: str | None = None  # the scene's settings are invalid: this message
+        self._world_bakes_seen = world_bake.completed
         _OPEN.add(self)
 
     # --- scene ----------------------------------------------------------------------------------
@@ -213,8 +214,8 @@ class ViewportSession:
         if changes.lights or changes.world or changes.materials:
             self._post(mirror.set_shading(
                 # An environment map's sun is a lamp too: a world edit reads the lamps again.
-                lights=sync.scene_lights(depsgraph) if changes.lights or changes.world else None,
-                world=sync.world_from_blender(depsgraph.scene.world) if changes.world else None,
+                lights=sync.scene_lights(depsgraph, wait_for_world=False) if changes.lights or changes.world else None,
+                world=sync.world_from_blender(depsgraph.scene.world, wait=False) if changes.world else None,
                 materials=sync.scene_materials(mirror.snapshot, changes.material_names) if changes.materials else None,
             ))
 
@@ -285,10 +286,23 @@ class ViewportSession:
         LIVE_STATS[scene.name] = LiveStats(stats, published.stats, published.error)
         return out
 
+    def poll_world(self, depsgraph) -> None:
+        """Read the world again once a map it waited for has baked (`world_bake` runs it in the
+        background: the view showed the world's uniform colour meanwhile)."""
+        if self.mirror.snapshot is None or self.worker is None:
+            return
+        if world_bake.completed != self._world_bakes_seen:
+            self._world_bakes_seen = world_bake.completed
+            world = depsgraph.scene.world
+            self._post(self.mirror.set_shading(lights=sync.scene_lights(depsgraph, wait_for_world=False),
+                                               world=sync.world_from_blender(world, wait=False)))
+
     def needs_redraw(self) -> bool:
         """More to show: the worker is busy or published something not drawn yet."""
         if self.worker is None:
             return False
+        if world_bake.pending():
+            return True
         published = self.worker.latest()
         if published.error is not None:
             return False
@@ -415,6 +429,7 @@ def view_draw(engine, context, depsgraph) -> None:
     pixel_size = max(int(engine.get_preview_pixel_size(scene)), 1)
     width, height = max(region.width // pixel_size, 1), max(region.height // pixel_size, 1)
     camera = ViewCamera.from_region_data(context.region_data)
+    session.poll_world(depsgraph)
     try:
         texture = session.draw(scene, camera, width, height, opaque=not scene.render.film_transparent)
     except errors.HybridGIError as err:

@@ -31,7 +31,8 @@ class SceneMirror:
 
     def full_sync(self, depsgraph):
         """Snapshot the whole scene; returns the worker edit."""
-        self.snapshot = sync.snapshot_from_depsgraph(depsgraph)
+        # A world map still baking reads as its uniform colour until `ViewportSession.poll_world`.
+        self.snapshot = sync.snapshot_from_depsgraph(depsgraph, wait_for_world=False)
         self.structure = updates.scene_structure(depsgraph)
         # Placement of every plain (non-instanced) object: moves are applied relative to it.
         self._matrices = updates.plain_object_matrices(depsgraph)

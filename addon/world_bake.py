@@ -6,8 +6,11 @@ start inside another one, and the user's file must not change). The map then goe
 same split as an environment image (`hybridgi_core.environment`: a shadowed sun plus an SH sky).
 
 Baked maps are cached under a key of everything the world's output depends on (`world_key`), in
-memory and on disk, so a world that did not change costs nothing on the next sync. Main thread
-only (it reads `bpy`); the bake process itself runs headless with the factory settings.
+memory and on disk, so a world that did not change costs nothing on the next sync. Final renders
+wait for a bake; the viewport does not (`bake_world(world, wait=False)`): the bake runs on a
+thread that only waits for the process, the view keeps its last world meanwhile, and `completed`
+counts finished bakes so that it can read the world again. Everything that touches `bpy` runs on
+the main thread; the bake process itself runs headless with the factory settings.
 """
 
 from __future__ import annotations
@@ -15,9 +18,11 @@ from __future__ import annotations
 import hashlib
 import logging
 import os
+import shutil
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from pathlib import Path
 
@@ -39,6 +44,10 @@ BAKE_TIMEOUT_S = 120
 KEPT = 8
 
 _CACHE: dict[str, np.ndarray] = {}
+#: Background bakes by key, and how many have finished (the viewport compares it).
+_JOBS: dict[str, threading.Thread] = {}
+_lock = threading.Lock()
+completed = 0
 
 #: Runs in the bake process: argv = the .blend holding the world, its name, the output .npy.
 _BAKE_SCRIPT = r"""
@@ -131,11 +140,30 @@ def _cache_dir() -> Path:
     return Path(root) / "hybridgi" / "worlds"
 
 
-def bake_world(world) -> np.ndarray | None:
+def bake_world(world, wait: bool = True) -> np.ndarray | None:
     """(h, w, 3) float32 linear radiance of `world` in every direction (the core's equirect
-    layout), or None when the bake failed (logged; the caller falls back)."""
+    layout), or None when the bake failed (logged; the caller falls back) or, with wait=False,
+    is still running in the background."""
     key = world_key(world)
-    pixels = _CACHE.get(key)
+    pixels = _cached(key)
+    if pixels is not None:
+        return pixels
+    if not wait:
+        _start(world, key)
+        return None
+    pixels = _finish(key, _bake(world))
+    return pixels
+
+
+def pending() -> bool:
+    """Whether a background bake is running."""
+    with _lock:
+        return any(job.is_alive() for job in _JOBS.values())
+
+
+def _cached(key: str) -> np.ndarray | None:
+    with _lock:
+        pixels = _CACHE.get(key)
     if pixels is not None:
         return pixels
     disk = _cache_dir() / f"{key}.npy"
@@ -143,45 +171,86 @@ def bake_world(world) -> np.ndarray | None:
         try:
             pixels = np.load(disk)
         except (OSError, ValueError):
-            pixels = None
-    if pixels is None:
-        pixels = _bake(world)
-        if pixels is None:
             return None
+        with _lock:
+            _CACHE[key] = pixels
+    return pixels
+
+
+def _finish(key: str, pixels: np.ndarray | None) -> np.ndarray | None:
+    """Keep a finished bake in memory and on disk (any thread: numpy and files only)."""
+    if pixels is None:
+        return None
+    try:
+        disk = _cache_dir() / f"{key}.npy"
+        disk.parent.mkdir(parents=True, exist_ok=True)
+        np.save(disk, pixels)
+    except OSError as err:
+        log.debug("world map not cached on disk: %s", err)
+    with _lock:
+        _CACHE[key] = pixels
+        while len(_CACHE) > KEPT:
+            _CACHE.pop(next(iter(_CACHE)))
+    return pixels
+
+
+def _start(world, key: str) -> None:
+    """Bake on a thread (main thread: the world is written out here, the thread only waits)."""
+    with _lock:
+        job = _JOBS.get(key)
+        if job is not None and job.is_alive():
+            return
+    tmp = tempfile.mkdtemp(prefix="hybridgi_world_")
+    cmd, out = _command(world, tmp)
+    name = world.name
+
+    def run():
+        global completed
         try:
-            disk.parent.mkdir(parents=True, exist_ok=True)
-            np.save(disk, pixels)
-        except OSError as err:
-            log.debug("world map not cached on disk: %s", err)
-    _CACHE[key] = pixels
-    while len(_CACHE) > KEPT:
-        _CACHE.pop(next(iter(_CACHE)))
+            _finish(key, _run(cmd, out, name))
+        finally:
+            with _lock:
+                completed += 1
+            shutil.rmtree(tmp, ignore_errors=True)
+
+    job = threading.Thread(target=run, name="hybridgi-world-bake", daemon=True)
+    with _lock:
+        _JOBS[key] = job
+    log.info("world %r: baking its map in the background", name)
+    job.start()
+
+
+def _command(world, tmp: str) -> tuple[list[str], str]:
+    """The bake process's command line for `world` (written to a .blend in `tmp`), and its output."""
+    blend = os.path.join(tmp, "world.blend")
+    out = os.path.join(tmp, "map")
+    # Only the world and what it uses; image paths made absolute so the bake finds them.
+    bpy.data.libraries.write(blend, {world}, path_remap="ABSOLUTE", fake_user=True)
+    args = [blend, world.name, out, str(BAKE_WIDTH), str(BAKE_HEIGHT), str(BAKE_SAMPLES), str(BAKE_REDUCE)]
+    if bpy.app.binary_path:  # inside Blender: its own binary, headless
+        return [bpy.app.binary_path, "-b", "--factory-startup", "--python-expr", _BAKE_SCRIPT, "--", *args], out
+    return [sys.executable, "-c", _BAKE_SCRIPT, *args], out  # the bpy module: this Python
+
+
+def _run(cmd: list[str], out: str, name: str) -> np.ndarray | None:
+    """Run the bake process and read its map (any thread: no bpy)."""
+    t0 = time.perf_counter()
+    try:
+        run = subprocess.run(cmd, capture_output=True, text=True, timeout=BAKE_TIMEOUT_S)
+    except (OSError, subprocess.TimeoutExpired) as err:
+        log.warning("world %r could not be baked (%s); using its mean colour", name, err)
+        return None
+    if run.returncode != 0 or not os.path.isfile(out + ".npy"):
+        tail = (run.stderr or run.stdout).strip().splitlines()[-3:]
+        log.warning("world %r could not be baked (exit %s: %s); using its mean colour", name, run.returncode,
+                    " | ".join(tail))
+        return None
+    pixels = np.load(out + ".npy").astype(np.float32)
+    log.info("world %r baked to a %dx%d map in %.1f s", name, pixels.shape[1], pixels.shape[0], time.perf_counter() - t0)
     return pixels
 
 
 def _bake(world) -> np.ndarray | None:
-    t0 = time.perf_counter()
     with tempfile.TemporaryDirectory(prefix="hybridgi_world_") as tmp:
-        blend = os.path.join(tmp, "world.blend")
-        out = os.path.join(tmp, "map")
-        # Only the world and what it uses; image paths made absolute so the bake finds them.
-        bpy.data.libraries.write(blend, {world}, path_remap="ABSOLUTE", fake_user=True)
-        args = [blend, world.name, out, str(BAKE_WIDTH), str(BAKE_HEIGHT), str(BAKE_SAMPLES), str(BAKE_REDUCE)]
-        if bpy.app.binary_path:  # inside Blender: its own binary, headless
-            cmd = [bpy.app.binary_path, "-b", "--factory-startup", "--python-expr", _BAKE_SCRIPT, "--", *args]
-        else:  # the bpy module: this Python
-            cmd = [sys.executable, "-c", _BAKE_SCRIPT, *args]
-        try:
-            run = subprocess.run(cmd, capture_output=True, text=True, timeout=BAKE_TIMEOUT_S)
-        except (OSError, subprocess.TimeoutExpired) as err:
-            log.warning("world %r could not be baked (%s); using its mean colour", world.name, err)
-            return None
-        if run.returncode != 0 or not os.path.isfile(out + ".npy"):
-            tail = (run.stderr or run.stdout).strip().splitlines()[-3:]
-            log.warning("world %r could not be baked (exit %s: %s); using its mean colour", world.name,
-                        run.returncode, " | ".join(tail))
-            return None
-        pixels = np.load(out + ".npy").astype(np.float32)
-    log.info("world %r baked to a %dx%d map in %.1f s", world.name, BAKE_WIDTH // BAKE_REDUCE,
-             BAKE_HEIGHT // BAKE_REDUCE, time.perf_counter() - t0)
-    return pixels
+        cmd, out = _command(world, tmp)
+        return _run(cmd, out, world.name)
