@@ -288,13 +288,14 @@ def material_from_blender(material, textures=None):
     if surface is None:
         log.warning("material %r: shader %s is not supported; using grey %.1f", name, shader.bl_idname, FALLBACK_GREY)
         return _grey(name)
-    base, texture, emission = surface
+    base, texture, emission, alpha = surface
     return snap.Material(name=name, base_color=base.astype(np.float32), texture=texture,
-                         emission=emission.astype(np.float32))
+                         emission=emission.astype(np.float32), alpha=alpha)
 
 
 def _shader_surface(shader, textures, name, depth=0):
-    """(diffuse colour (3,), texture or None, emission radiance (3,)) of a shader node, or None
+    """(diffuse colour (3,), texture or None, emission radiance (3,), alpha (h, w) or None) of a
+    shader node, or None
     when it is not one this reader knows. The diffuse colour is what Cycles' Diffuse Color pass
     shows: a Principled BSDF's base colour weighted by (1 - metallic) (1 - transmission), tinted
     by its coat; Mix and Add Shader combine their inputs by their (constant) factor."""
@@ -310,25 +311,26 @@ def _shader_surface(shader, textures, name, depth=0):
         base = base * weight * (1.0 + np.clip(coat, 0, 1) * (tint - 1.0))
         emission = _constant_color(shader.inputs["Emission Color"], name) * _constant_value(
             shader.inputs["Emission Strength"], name)
-        return base, texture, emission
+        return base, texture, emission, _alpha_map(shader.inputs["Alpha"], textures, name)
     if kind == "BSDF_DIFFUSE":
         base, texture = _color_socket(shader.inputs["Color"], textures, name)
-        return base, texture, zero
+        return base, texture, zero, None
     if kind == "EMISSION":
         emission = _constant_color(shader.inputs["Color"], name) * _constant_value(shader.inputs["Strength"], name)
-        return zero, None, emission
+        return zero, None, emission, None
     if kind in ("BSDF_TRANSPARENT", "BSDF_GLOSSY", "BSDF_ANISOTROPIC", "BSDF_REFRACTION", "BSDF_GLASS",
                 "HOLDOUT", "BSDF_TRANSLUCENT"):
         # No diffuse reflection (Cycles' Diffuse Color pass is black there); HybridGI renders
         # diffuse light only, so what these reflect or transmit is missing from Combined.
-        log.warning("material %r: %s reflects no diffuse light; its %s is not rendered", name, shader.bl_idname,
-                    "transparency" if kind == "BSDF_TRANSPARENT" else "glossy or transmitted light")
-        return zero, None, zero
+        if kind != "BSDF_TRANSPARENT":
+            log.warning("material %r: %s reflects no diffuse light; its glossy or transmitted light is not "
+                        "rendered", name, shader.bl_idname)
+        return zero, None, zero, None
     if kind in ("MIX_SHADER", "ADD_SHADER") and depth < 8:
         parts = []
         for socket in shader.inputs[-2:] if kind == "MIX_SHADER" else shader.inputs[:2]:
             node = _linked_node(socket)
-            part = _shader_surface(node, textures, name, depth + 1) if node is not None else (zero, None, zero)
+            part = _shader_surface(node, textures, name, depth + 1) if node is not None else (zero, None, zero, None)
             if part is None:
                 return None
             parts.append(part)
@@ -344,7 +346,40 @@ def _shader_surface(shader, textures, name, depth=0):
         base = sum(w * (p[0] if p[1] is texture else p[0] * (p[1].reshape(-1, 3).mean(axis=0) if p[1] is not None else 1.0)
                         / np.maximum(mean, 1e-6)) for w, p in zip(weights, parts, strict=True))
         emission = sum(w * p[2] for w, p in zip(weights, parts, strict=True))
-        return np.asarray(base, np.float32), texture, np.asarray(emission, np.float32)
+        alpha = next((p[3] for p in parts if p[3] is not None), None)
+        if kind == "MIX_SHADER":
+            # The usual cutout: Mix(Fac = an image's alpha, Transparent BSDF, the surface).
+            kinds = [_linked_node(sk).type if _linked_node(sk) is not None else None for sk in shader.inputs[-2:]]
+            if "BSDF_TRANSPARENT" in kinds:
+                fac_map = _alpha_map(shader.inputs["Fac"], textures, name, constant_ok=False)
+                if fac_map is not None:
+                    alpha = fac_map if kinds[0] == "BSDF_TRANSPARENT" else 1.0 - fac_map
+                    # The transparent part's weight is the hole, not a darker surface.
+                    solid = parts[1] if kinds[0] == "BSDF_TRANSPARENT" else parts[0]
+                    base, texture, emission = solid[0], solid[1], solid[2]
+        return np.asarray(base, np.float32), texture, np.asarray(emission, np.float32), alpha
+    return None
+
+
+def _alpha_map(socket, textures, name, constant_ok=True):
+    """(h, w) float32 opacity an input reads from an image (its Alpha output, or its colour's
+    mean when the colour output feeds it), or None for an opaque or constant input."""
+    if socket is None or not socket.is_linked:
+        if constant_ok and socket is not None and float(socket.default_value) < 1.0:
+            log.warning("material %r: a constant alpha of %.2f is rendered opaque", name, float(socket.default_value))
+        return None
+    node, output = _source(socket)
+    if node is not None and node.type == "TEX_IMAGE":
+        if output == "Alpha":
+            alpha = textures.alpha(node.image, name)
+            if alpha is None:
+                return None  # an image without alpha reads as opaque, as in Cycles
+            return alpha
+        if output == "Color":
+            colour = textures.get(node.image, name)
+            return None if colour is None else colour.mean(axis=-1)
+    log.warning("material %r: alpha from %s is not supported; rendered opaque", name,
+                node.bl_idname if node is not None else "a muted link")
     return None
 
 
@@ -462,12 +497,13 @@ def srgb_to_linear(c):
 
 
 class _TextureCache:
-    """Image -> (h, w, 3) float32 linear RGB (row 0 at v = 0), each image read once per sync."""
+    """Image -> (h, w, 3) float32 linear RGB and (h, w) alpha (row 0 at v = 0), each image read
+    once per sync."""
 
     def __init__(self):
         self._images = {}
 
-    def get(self, image, material_name):
+    def _read(self, image, material_name):
         if image is None:
             log.warning("material %r: image texture without an image; using the base colour", material_name)
             return None
@@ -475,14 +511,30 @@ class _TextureCache:
         image = image.original
         key = image.name_full
         if key not in self._images:
-            self._images[key] = image_pixels(image)
+            self._images[key] = read_image(image)
             if self._images[key] is None:
                 log.warning("material %r: image %r could not be read; using the base colour", material_name, key)
         return self._images[key]
 
+    def get(self, image, material_name):
+        read = self._read(image, material_name)
+        return None if read is None else read[0]
+
+    def alpha(self, image, material_name):
+        """(h, w) float32 alpha of an image, None without an alpha channel."""
+        read = self._read(image, material_name)
+        return None if read is None else read[1]
+
 
 def image_pixels(image):
     """(h, w, 3) float32 linear RGB of a Blender image, or None when it has no pixels."""
+    read = read_image(image)
+    return None if read is None else read[0]
+
+
+def read_image(image):
+    """((h, w, 3) float32 linear RGB, (h, w) float32 alpha or None without an alpha channel) of
+    a Blender image, or None when it has no pixels. One read of the pixel buffer for both."""
     width, height = image.size
     channels = image.channels
     count = width * height * channels
@@ -501,7 +553,8 @@ def image_pixels(image):
         rgb = srgb_to_linear(rgb)
     elif not image.is_float and space not in LINEAR_SPACES:
         log.warning("image %r: colour space %r is read as linear Rec.709", image.name, space)
-    return np.ascontiguousarray(rgb, np.float32)
+    alpha = np.ascontiguousarray(pixels[:, :, -1], np.float32) if channels in (2, 4) else None
+    return np.ascontiguousarray(rgb, np.float32), alpha
 
 
 # --- lights and world ----------------------------------------------------------------------

@@ -23,6 +23,9 @@ AREA_SHAPES = ("SQUARE", "RECTANGLE", "DISK", "ELLIPSE")
 #: SceneSnapshot.focus_bounds); the grid then extends FOCUS_MARGIN of the rest's size around it.
 GROUND_RATIO = 2.5
 FOCUS_MARGIN = 0.6
+#: Opacity under which an alpha-textured surface is a hole (Cycles blends stochastically; a
+#: clip at one half keeps the same outline).
+ALPHA_CUTOFF = 0.5
 #: A triangle is degenerate when twice its area is below this share of its object's squared size
 #: (the diagonal of the object's box): the tolerance follows the object, so a micrometre cube and
 #: a sphere 100 km from the origin keep their triangles.
@@ -82,12 +85,15 @@ class Material:
 
     texture : (h, w, 3) float32 linear RGB, row 0 at v = 0 (Blender's image order), or None
     emission : (3,) radiance in W/(m^2 sr) = emission colour x strength
+    alpha : (h, w) float32 opacity from an image, row 0 at v = 0, or None (opaque): the surface is
+        cut out where it is below ALPHA_CUTOFF, for the camera and for rays (`cutout.py`)
     """
 
     name: str = "default"
     base_color: np.ndarray = field(default_factory=lambda: np.full(3, 0.8, np.float32))
     texture: np.ndarray | None = None
     emission: np.ndarray = field(default_factory=lambda: np.zeros(3, np.float32))
+    alpha: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         # Non-finite colours would reach every pixel that sees (or bounces off) this material.

@@ -12,6 +12,7 @@ import time
 import numpy as np
 
 from .cache import IrradianceCache
+from .cutout import Cutouts
 from .evaluate import Gathered, corner_visibility, gather
 from .lights import direct_irradiance
 from .lod import decimate
@@ -48,6 +49,7 @@ class GISystem:
         self._static_rays = self._static_ray_geometry(scene)
         self.ray_geometry = self._with_dynamic(scene)
         self.tracer = EmbreeTracer(self.ray_geometry, self.dynamic_objects, threads=1)
+        self.tracer.set_cutouts(Cutouts(self.ray_geometry, scene.materials))
         self.surfaces = SurfaceTable(self.ray_geometry, scene.materials)
         self.cache = cache if cache is not None else IrradianceCache.for_scene(scene, settings)
         self.updater = CacheUpdater(self.cache, self.tracer, ShadingScene(self.surfaces, scene.lights, scene.world), self.tracer.epsilon)
@@ -81,6 +83,7 @@ class GISystem:
         self.scene = scene
         self.ray_geometry = self._with_dynamic(scene)
         self.tracer.update_dynamic(self.ray_geometry)
+        self.tracer.set_cutouts(Cutouts(self.ray_geometry, scene.materials))
         rows = np.arange(self._static_rays.triangle_count, self.ray_geometry.triangle_count)
         self.surfaces.update_rows(self.ray_geometry, rows)
 
@@ -89,6 +92,7 @@ class GISystem:
         self.scene = scene
         self.updater.scene = ShadingScene(self.surfaces, scene.lights, scene.world)
         self.surfaces.set_materials(scene.materials)
+        self.tracer.set_cutouts(Cutouts(self.ray_geometry, scene.materials))
 
     # --- cache events (raised by GISession.sync from the snapshot diff) --------------------------
 

@@ -59,6 +59,27 @@ class GBuffer:
     height: int
 
 
+#: `has_texture` bits of the G-buffer shader: the texture's rgb is the colour / its alpha cuts.
+TEXTURE_COLOR = 1
+TEXTURE_ALPHA = 2
+
+
+def _texture_rgba(material) -> np.ndarray:
+    """(h, w, 4) float32: the material's colour texture (or white) with its alpha (or 1)."""
+    colour, alpha = material.texture, material.alpha
+    if colour is None:
+        colour = np.ones((*alpha.shape, 3), np.float32)
+    h, w = colour.shape[:2]
+    if alpha is None:
+        alpha = np.ones((h, w), np.float32)
+    elif alpha.shape != (h, w):
+        # Another image than the colour's: nearest texels at the colour's size.
+        ys = (np.arange(h) * alpha.shape[0]) // h
+        xs = (np.arange(w) * alpha.shape[1]) // w
+        alpha = alpha[ys][:, xs]
+    return np.ascontiguousarray(np.concatenate([colour, alpha[..., None]], axis=-1), np.float32)
+
+
 @dataclass
 class _MaterialDraw:
     batch: object
@@ -67,6 +88,7 @@ class _MaterialDraw:
     fallback_albedo: tuple
     emission: tuple
     texture: object  # GPUTexture or None
+    flags: int = 0  # TEXTURE_COLOR | TEXTURE_ALPHA: what `texture` holds
 
 
 class GBufferPass(RasterPass):
@@ -178,9 +200,11 @@ class GBufferPass(RasterPass):
             sel = tris[(mat_index == m) & drawn]
             if sel.shape[0] == 0:
                 continue
-            texture = None
-            if material.texture is not None:
-                texture = upload_texture_2d(material.texture, "RGBA16F")
+            texture, flags = None, 0
+            if material.texture is not None or material.alpha is not None:
+                texture, flags = upload_texture_2d(_texture_rgba(material), "RGBA16F"), (
+                    (TEXTURE_COLOR if material.texture is not None else 0)
+                    | (TEXTURE_ALPHA if material.alpha is not None else 0))
             base = np.asarray(material.base_color, np.float32).reshape(3)
             self._draws.append(_MaterialDraw(
                 batch=None,
@@ -189,6 +213,7 @@ class GBufferPass(RasterPass):
                 fallback_albedo=(*np.asarray(material.mean_albedo, np.float32).reshape(3).tolist(), 1.0),
                 emission=(*np.asarray(material.emission, np.float32).reshape(3).tolist(), 1.0),
                 texture=texture,
+                flags=flags,
             ))
         self.update_positions(geo.positions)
         log.debug("gbuffer upload: %d vertices, %d triangles, %d material draws",
@@ -246,7 +271,7 @@ class GBufferPass(RasterPass):
                     shader.uniform_float("base_color", draw.base_color)
                     shader.uniform_float("fallback_albedo", draw.fallback_albedo)
                     shader.uniform_float("emission", draw.emission)
-                    shader.uniform_int("has_texture", 1 if draw.texture is not None else 0)
+                    shader.uniform_int("has_texture", draw.flags)
                     shader.uniform_sampler("albedo_tx", draw.texture or self._dummy_texture)
                     draw.batch.draw(shader)
         return self.outputs()

@@ -1,5 +1,6 @@
 /* G-buffer MRT. One draw per material: the material's constants are push constants and its
- * texture (or a 1x1 dummy) is `albedo_tx`. */
+ * texture (or a 1x1 dummy) is `albedo_tx`; `has_texture` bit 1: its rgb is the colour, bit 2:
+ * its alpha cuts the surface out below one half (gbuffer.py TEXTURE_COLOR / TEXTURE_ALPHA). */
 
 ivec2 wrap_texel(ivec2 i, ivec2 n)
 {
@@ -9,18 +10,23 @@ ivec2 wrap_texel(ivec2 i, ivec2 n)
 
 /* Bilinear filtering with REPEAT done by hand, texel centres at (i + 0.5) / size as in Cycles'
  * Linear interpolation: independent of the sampler state the Python API can set. */
-vec3 sample_repeat_bilinear(vec2 uv)
+vec4 sample_repeat_bilinear4(vec2 uv)
 {
   ivec2 size = textureSize(albedo_tx, 0);
   vec2 st = uv * vec2(size) - 0.5;
   vec2 f = floor(st);
   vec2 t = st - f;
   ivec2 i0 = ivec2(f);
-  vec3 c00 = texelFetch(albedo_tx, wrap_texel(i0, size), 0).rgb;
-  vec3 c10 = texelFetch(albedo_tx, wrap_texel(i0 + ivec2(1, 0), size), 0).rgb;
-  vec3 c01 = texelFetch(albedo_tx, wrap_texel(i0 + ivec2(0, 1), size), 0).rgb;
-  vec3 c11 = texelFetch(albedo_tx, wrap_texel(i0 + ivec2(1, 1), size), 0).rgb;
+  vec4 c00 = texelFetch(albedo_tx, wrap_texel(i0, size), 0);
+  vec4 c10 = texelFetch(albedo_tx, wrap_texel(i0 + ivec2(1, 0), size), 0);
+  vec4 c01 = texelFetch(albedo_tx, wrap_texel(i0 + ivec2(0, 1), size), 0);
+  vec4 c11 = texelFetch(albedo_tx, wrap_texel(i0 + ivec2(1, 1), size), 0);
   return mix(mix(c00, c10, t.x), mix(c01, c11, t.x), t.y);
+}
+
+vec3 sample_repeat_bilinear(vec2 uv)
+{
+  return sample_repeat_bilinear4(uv).rgb;
 }
 
 /* Texels seen through one pixel, as Cycles' pixel filter sees them: up to MAX_TAPS x MAX_TAPS
@@ -63,7 +69,10 @@ void main()
   }
   vec3 albedo = fallback_albedo.rgb;
   /* uv_ok interpolates to < 1 on triangles with any NaN-UV corner: no usable UV there. */
-  if (has_texture != 0 && uv_ok > 0.999) {
+  if ((has_texture & 2) != 0 && uv_ok > 0.999 && sample_repeat_bilinear4(tex_uv).a < 0.5) {
+    discard; /* a cut-out hole: what is behind shows (the rays see through it too, cutout.py) */
+  }
+  if ((has_texture & 1) != 0 && uv_ok > 0.999) {
     albedo = base_color.rgb * sample_footprint(tex_uv, du, dv);
   }
   out_albedo = vec4(albedo, 1.0);

@@ -38,6 +38,10 @@ CHUNKS_PER_THREAD = 4
 ROBUST = True
 
 
+#: Cut-out layers a ray passes through before it counts as stopped (foliage: a handful).
+CUTOUT_LAYERS = 8
+
+
 @dataclass
 class _SubScene:
     """One committed Embree scene over a subset of the Geometry's triangles.
@@ -81,6 +85,7 @@ class EmbreeTracer:
         if not 1 <= threads <= 64:
             raise SettingsError(f"threads must be 1..64, got {threads}")
         self.geometry = geometry
+        self._cutouts = None  # see set_cutouts
         self.dynamic_objects = frozenset(int(i) for i in dynamic_objects)
         self.threads = int(threads)
         self._device = rtc.EmbreeDevice()
@@ -141,14 +146,43 @@ class EmbreeTracer:
 
     # -- queries ------------------------------------------------------------------------------
 
+    def set_cutouts(self, cutouts) -> None:
+        """Rays pass through the holes `cutouts.transparent(prim, u, v)` reports (a `cutout.Cutouts`
+        or None): `intersect` continues them past such hits and `occluded` ignores them."""
+        self._cutouts = cutouts if cutouts is not None and cutouts.any else None
+
     def intersect(
         self, origins: np.ndarray, directions: np.ndarray, tfar: float | np.ndarray = np.inf, trusted: bool = False
     ) -> Hits:
-        """Closest hit of each ray over both scenes.
+        """Closest hit of each ray over both scenes, through alpha cutouts (`set_cutouts`).
 
         origins : (n, 3) float (cast to float32); directions : (n, 3) or (1, 3); tfar : scalar or
         (n,); trusted : see `Tracer`. Returns `Hits` of length n; prim indexes `self.geometry`.
         """
+        hits = self._intersect_once(origins, directions, tfar, trusted)
+        cutouts = self._cutouts
+        if cutouts is None:
+            return hits
+        o = np.asarray(origins, np.float32).reshape(-1, 3)
+        d = np.broadcast_to(np.asarray(directions, np.float32).reshape(-1, 3), o.shape)
+        limit = np.broadcast_to(np.asarray(tfar, np.float32), (o.shape[0],))
+        t, prim, u, v = hits.t.copy(), hits.prim.copy(), hits.u.copy(), hits.v.copy()
+        eps = np.float32(self.epsilon)
+        for _layer in range(CUTOUT_LAYERS):
+            holes = np.flatnonzero(cutouts.transparent(prim, u, v))
+            if holes.size == 0:
+                break
+            start = t[holes] + eps
+            again = self._intersect_once(o[holes] + d[holes] * start[:, None], d[holes],
+                                         np.maximum(limit[holes] - start, 0.0), True)
+            t[holes] = np.where(again.prim >= 0, start + again.t, np.float32(np.inf))
+            prim[holes], u[holes], v[holes] = again.prim, again.u, again.v
+        return Hits(t, prim, u, v)
+
+    def _intersect_once(
+        self, origins: np.ndarray, directions: np.ndarray, tfar: float | np.ndarray = np.inf, trusted: bool = False
+    ) -> Hits:
+        """The closest hit over both scenes, holes included."""
         o, d, tf, valid = self._embree_rays(origins, directions, tfar, trusted)
         n = o.shape[0]
         scenes = [s for s in (self._static, self._dynamic) if s is not None]
@@ -194,7 +228,11 @@ class EmbreeTracer:
     ) -> np.ndarray:
         """(n,) bool: a triangle of either scene lies on the ray at 0 < t <= tfar.
 
-        directions : (n, 3) or (1, 3); trusted : see `Tracer`."""
+        directions : (n, 3) or (1, 3); trusted : see `Tracer`. Through alpha cutouts, a ray is
+        occluded only by a solid part: it is found as the closest hit (slower than Embree's any-hit
+        query, so only for scenes that have cutouts)."""
+        if self._cutouts is not None:
+            return self.intersect(origins, directions, tfar, trusted).prim >= 0
         o, d, tf, valid = self._embree_rays(origins, directions, tfar, trusted)
         n = o.shape[0]
         scenes = [s for s in (self._static, self._dynamic) if s is not None]

@@ -1,0 +1,64 @@
+"""Alpha cutouts for rays: which hits land on a cut-out part of an alpha-textured surface.
+
+The tracer asks `Cutouts` about its hits and continues the rays that hit a hole past it
+(`EmbreeTracer.set_cutouts`), so probe rays, shadow rays and visibility rays all see through
+leaves, fences and decals where Cycles does. The image's own pixels are cut in the G-buffer
+shader from the same alpha. Pure numpy.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .snapshot import ALPHA_CUTOFF, Geometry, Material
+
+
+class Cutouts:
+    """Per-triangle alpha lookups of one ray geometry (indices as the tracer's prim ids)."""
+
+    def __init__(self, geometry: Geometry, materials: list[Material]):
+        cut = [i for i, m in enumerate(materials) if m.alpha is not None]
+        self._alpha = {i: np.asarray(materials[i].alpha, np.float32) for i in cut}
+        self._material = np.asarray(geometry.material_index, np.int32)
+        self._has = np.isin(self._material, cut) if cut else np.zeros(geometry.triangle_count, bool)
+        uvs = np.asarray(geometry.uvs, np.float32)
+        self._corner_uv = uvs[geometry.triangles] if self._has.any() else None  # (T, 3, 2)
+        if self._corner_uv is not None:
+            # Triangles without a usable UV (NaN) stay solid.
+            self._has &= np.isfinite(self._corner_uv).all(axis=(1, 2))
+
+    @property
+    def any(self) -> bool:
+        return bool(self._has.any())
+
+    def transparent(self, prim: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+        """(n,) bool: the hit (triangle prim, Embree barycentrics u, v) lies in a hole."""
+        out = np.zeros(prim.shape[0], bool)
+        if not self.any:
+            return out
+        hit = prim >= 0
+        rows = np.flatnonzero(hit)
+        rows = rows[self._has[prim[rows]]]
+        if rows.size == 0:
+            return out
+        tri = prim[rows]
+        c = self._corner_uv[tri]
+        uu, vv = u[rows, None], v[rows, None]
+        uv = (1.0 - uu - vv) * c[:, 0] + uu * c[:, 1] + vv * c[:, 2]
+        mats = self._material[tri]
+        for m, alpha in self._alpha.items():
+            sel = mats == m
+            if not sel.any():
+                continue
+            h, w = alpha.shape
+            # Bilinear, repeating, texel centres at (i + 0.5) / size: as the G-buffer samples it.
+            st = uv[sel] * np.array([w, h], np.float32) - 0.5
+            f = np.floor(st)
+            t = st - f
+            x0 = f[:, 0].astype(np.int64) % w
+            y0 = f[:, 1].astype(np.int64) % h
+            x1, y1 = (x0 + 1) % w, (y0 + 1) % h
+            a = (alpha[y0, x0] * (1 - t[:, 0]) + alpha[y0, x1] * t[:, 0]) * (1 - t[:, 1]) \
+                + (alpha[y1, x0] * (1 - t[:, 0]) + alpha[y1, x1] * t[:, 0]) * t[:, 1]
+            out[rows[sel]] = a < ALPHA_CUTOFF
+        return out
