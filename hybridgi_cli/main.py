@@ -400,6 +400,9 @@ def render_frame(bpy, scene, frame: int, files: output.FrameFiles, engine: str, 
         raise CliError(f"frame {frame}: {error or failure}")
     png, exr = files.paths
     save(bpy, scene, files.temp[png], files.temp[exr])
+    bad = output.non_finite_channels(files.temp[exr])
+    if bad:
+        raise CliError(f"frame {frame}: the render has non-finite pixels in {', '.join(bad)}; nothing was written")
     percent = scene.render.resolution_percentage / 100
     return {
         "frame": frame,

@@ -281,3 +281,17 @@ def test_tracebacks_of_reported_errors_are_held_back():
     assert stream.getvalue().splitlines() == [
         "hybridgi: frame 1 (1/1): rendering", "Blender's own line", "hybridgi: error: frame 1: internal error: TypeError: boom"]
     assert "TypeError: boom" in f.held and "ReferenceError: removed" in f.held
+
+
+def test_exr_with_non_finite_pixels_is_named(bpy_module, tmp_path):
+    bpy = bpy_module
+    image = bpy.data.images.new("nan", 4, 2, alpha=True, float_buffer=True)
+    pixels = np.ones((2, 4, 4), np.float32)
+    pixels[0, 1, 0] = np.nan
+    pixels[1, 2, 1] = np.nan
+    image.pixels.foreach_set(pixels.ravel())
+    image.filepath_raw = str(tmp_path / "nan.exr")
+    image.file_format = "OPEN_EXR"
+    image.save()
+    bpy.data.images.remove(image)
+    assert sorted(output.non_finite_channels(tmp_path / "nan.exr")) == ["G (1)", "R (1)"]
