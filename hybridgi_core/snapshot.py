@@ -2,7 +2,7 @@
 
 The Blender side fills these from the depsgraph on the main thread; everything after that
 (tracing, shading, cache updates) reads only these arrays, so worker threads never touch `bpy`.
-Units and conventions follow Cycles (see GI_FACTS.md): lights in watts (sun: W/m^2), emission and
+Units and conventions follow Cycles (checked against its passes): lights in watts (sun: W/m^2), emission and
 world colour as radiance.
 """
 
@@ -162,10 +162,29 @@ class Light:
 
 @dataclass
 class World:
-    """Uniform sky: radiance = background colour x strength; AO distance from World settings."""
+    """The sky: radiance = background colour x strength; AO distance from World settings.
+
+    sky_sh : (9, 3) float32 L2 radiance SH of a sky that varies with direction (an environment
+        map without its sun, `environment.split_environment`), or None for a uniform `color`
+        (which then still holds its mean over the upper hemisphere, for the background).
+    """
 
     color: np.ndarray = field(default_factory=lambda: np.zeros(3, np.float32))
     ao_distance: float = 1.0
+    sky_sh: np.ndarray | None = None
+
+    @property
+    def any(self) -> bool:
+        """Whether the sky gives any light."""
+        return bool(self.color.any()) or (self.sky_sh is not None and bool(self.sky_sh.any()))
+
+    def radiance(self, directions: np.ndarray) -> np.ndarray:
+        """(n, 3) float32 sky radiance towards unit `directions` (n, 3)."""
+        if self.sky_sh is None:
+            return np.broadcast_to(self.color.astype(np.float32), (directions.shape[0], 3))
+        from .sh import basis  # noqa: PLC0415  (sh imports nothing from here; kept local for clarity)
+
+        return np.maximum(basis(directions, 2) @ self.sky_sh.astype(np.float32), np.float32(0.0))
 
     def __post_init__(self) -> None:
         self.color = _finite_color(self.color, 0.0, "world colour")
@@ -178,6 +197,7 @@ class World:
 class ObjectInfo:
     name: str
     dynamic: bool = False  # moves or deforms over the animation: traced in the per-frame scene
+    camera_visible: bool = True  # seen by the camera (False: still casts shadows and bounces light)
 
 
 @dataclass

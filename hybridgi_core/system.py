@@ -90,6 +90,17 @@ class GISystem:
         self.updater.scene = ShadingScene(self.surfaces, scene.lights, scene.world)
         self.surfaces.set_materials(scene.materials)
 
+    # --- cache events (raised by GISession.sync from the snapshot diff) --------------------------
+
+    def on_geometry_changed(self, boxes: list[tuple[np.ndarray, np.ndarray]]) -> np.ndarray:
+        """Geometry changed inside these world (lo, hi) boxes (where it was and where it is):
+        the cells within the indirect range re-converge. Returns the touched flat cells (int64)."""
+        return self.cache.on_geometry_changed(boxes)
+
+    def on_lights_changed(self) -> None:
+        """Lamps, the world or materials changed (call after `set_lights`): every cell re-converges."""
+        self.cache.on_lights_changed()
+
     def close(self) -> None:
         self.updater.close()
         self.tracer.close()

@@ -392,7 +392,8 @@ def test_deleting_an_object_while_the_worker_traces_is_safe(view, addon):
 # the worker never touches Blender, checked at run time
 # ----------------------------------------------------------------------------------------------
 BLENDER_MODULES = ("bpy", "gpu", "mathutils", "bmesh", "gpu_extras", "bpy_extras", "addon_utils", "_bpy", "_bpy_types")
-BPY_SIDE = (".viewport", ".overlay", ".engine", ".sync", ".ui", ".properties", ".pipeline")
+BPY_SIDE = (".viewport", ".viewport_mirror", ".viewport_stats", ".overlay", ".engine", ".sync", ".updates", ".ui",
+            ".properties", ".pipeline", ".animation")
 
 
 class BlenderAccessGuard:
@@ -603,3 +604,26 @@ def test_cache_cells_view_matches_the_final_render_colours(view, addon):
     assert colours.shape[0] > 10  # many cells, each its own colour
     on_geometry = result.cells[..., 3] > 0.5
     assert (result.cells[on_geometry, :3] >= 0.35 - 1e-6).all()  # the worker's colours, all converged
+
+
+def test_an_invalid_setting_is_shown_as_an_error_not_as_converged(view, addon):
+    """A NaN typed into a setting: every redraw says what is wrong (never "converged"), the view
+    keeps drawing, and fixing the value converges again."""
+    scene = addon.bpy.context.scene
+    view.update()
+    view.draw()
+    view.converge()
+    old = scene.hybridgi.hysteresis
+    scene.hybridgi.hysteresis = float("nan")
+    try:
+        view.update()  # raised on every update before
+        img = view.draw()
+        assert view.engine.status.startswith("Error:") and "hysteresis" in view.engine.status
+        assert np.isfinite(img).all()
+    finally:
+        scene.hybridgi.hysteresis = old
+    view.update()
+    view.draw()
+    view.converge()
+    view.draw()
+    assert not view.engine.status.startswith("Error") and "cells" in view.engine.status
