@@ -67,7 +67,8 @@ class CliError(Exception):
 #: Set (to anything) to print the traceback of an internal error after its one-line message.
 DEBUG_ENV = "HYBRIDGI_DEBUG"
 
-#: Folders this process created (the throw-away Blender user folder), removed on exit or signal.
+#: Folders this process created (the throw-away Blender user folder, Blender's session temp
+#: folder), removed when a signal ends the process (a normal exit removes them by itself).
 _OWN_FOLDERS: list[str] = []
 
 
@@ -255,6 +256,10 @@ def import_bpy():
         atexit.register(shutil.rmtree, folder, ignore_errors=True)
     import bpy  # noqa: PLC0415
 
+    # Blender's session temp folder: Blender removes it at a normal exit, an interrupt must.
+    session_tmp = Path(bpy.app.tempdir)
+    if session_tmp.name.startswith("blender_") and str(session_tmp) not in _OWN_FOLDERS:
+        _OWN_FOLDERS.append(str(session_tmp))
     return bpy
 
 
@@ -395,6 +400,9 @@ def render_frame(bpy, scene, frame: int, files: output.FrameFiles, engine: str, 
         raise CliError(f"frame {frame}: {error or failure}")
     png, exr = files.paths
     save(bpy, scene, files.temp[png], files.temp[exr])
+    bad = output.non_finite_channels(files.temp[exr])
+    if bad:
+        raise CliError(f"frame {frame}: the render has non-finite pixels in {', '.join(bad)}; nothing was written")
     percent = scene.render.resolution_percentage / 100
     return {
         "frame": frame,

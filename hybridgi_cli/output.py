@@ -16,6 +16,8 @@ import tempfile
 import threading
 from pathlib import Path
 
+import numpy as np
+
 #: Held while a frame's files are renamed and its JSON line is written: an interrupt waits for it,
 #: so a frame is either complete and reported, or absent.
 COMMIT_LOCK = threading.RLock()
@@ -113,6 +115,19 @@ class FrameFiles:
         except OSError as err:
             raise OutputError(f"cannot write {final}: {err.strerror or err}") from None
         self.committed = True
+
+
+def non_finite_channels(exr_path: Path) -> list[str]:
+    """Channels of an EXR that hold NaN or infinite pixels, as "name (count)" (a render that
+    produced them is a failed render, whatever the engine says)."""
+    from . import exr  # noqa: PLC0415
+
+    bad = []
+    for name, values in exr.read_channels(exr_path).items():
+        count = int(values.size - np.count_nonzero(np.isfinite(values)))
+        if count:
+            bad.append(f"{name} ({count})")
+    return bad
 
 
 def discard_pending() -> None:

@@ -383,10 +383,13 @@ def _report(case: Case, outcome: str, seconds: float) -> None:
                 k: v for k, v in case.notes.items() if k in ("iou", "error")}}) + "\n")
 
 
-def _run_interrupted(args, sig) -> tuple[subprocess.CompletedProcess, float]:
-    """Start the render, send `sig` once it renders; seconds = from the signal to the exit."""
+def _run_interrupted(args, sig, temp: Path) -> tuple[subprocess.CompletedProcess, float]:
+    """Start the render, send `sig` once it renders; seconds = from the signal to the exit.
+    The command's temporary folders go to `temp` (TMPDIR), which it must leave empty."""
+    temp.mkdir()
+    env = {**cli_env(), "TMPDIR": str(temp)}
     proc = subprocess.Popen([*command(), *map(str, args)], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                            text=True, env=cli_env(), cwd=REPO)
+                            text=True, env=env, cwd=REPO)
     seen = ""
     while "rendering with" not in seen:
         line = proc.stderr.readline()
@@ -397,12 +400,13 @@ def _run_interrupted(args, sig) -> tuple[subprocess.CompletedProcess, float]:
     proc.send_signal(sig)
     stdout, stderr = proc.communicate(timeout=30)
     seconds = time.perf_counter() - start
+    assert list(temp.iterdir()) == [], "the Blender user or session folder was left behind"
     return subprocess.CompletedProcess(proc.args, proc.returncode, stdout, seen + stderr), seconds
 
 
 @pytest.mark.parametrize("case", [pytest.param(c, id=c.name, marks=[pytest.mark.xfail(reason=c.xfail, strict=True)]
                                                if c.xfail else []) for c in CASES])
-def test_corpus(case: Case, corpus: Path, tmp_path: Path):
+def test_corpus(case: Case, corpus: Path, tmp_path: Path, tmp_path_factory):
     out = tmp_path
     if case.scene == "corrupt":
         blend = out / "corrupt.blend"
@@ -423,7 +427,7 @@ def test_corpus(case: Case, corpus: Path, tmp_path: Path):
     outcome = "fail"
     try:
         if "signal" in case.notes:
-            run, seconds = _run_interrupted(args, case.notes["signal"])
+            run, seconds = _run_interrupted(args, case.notes["signal"], tmp_path_factory.mktemp("tmpdir") / "t")
             assert seconds < 1.0, f"stopped {seconds:.2f} s after the signal"
         else:
             run, seconds = run_cli(*args)

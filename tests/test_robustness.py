@@ -281,3 +281,45 @@ def test_tracebacks_of_reported_errors_are_held_back():
     assert stream.getvalue().splitlines() == [
         "hybridgi: frame 1 (1/1): rendering", "Blender's own line", "hybridgi: error: frame 1: internal error: TypeError: boom"]
     assert "TypeError: boom" in f.held and "ReferenceError: removed" in f.held
+
+
+def test_exr_with_non_finite_pixels_is_named(bpy_module, tmp_path):
+    bpy = bpy_module
+    image = bpy.data.images.new("nan", 4, 2, alpha=True, float_buffer=True)
+    pixels = np.ones((2, 4, 4), np.float32)
+    pixels[0, 1, 0] = np.nan
+    pixels[1, 2, 1] = np.nan
+    image.pixels.foreach_set(pixels.ravel())
+    image.filepath_raw = str(tmp_path / "nan.exr")
+    image.file_format = "OPEN_EXR"
+    image.save()
+    bpy.data.images.remove(image)
+    assert sorted(output.non_finite_channels(tmp_path / "nan.exr")) == ["G (1)", "R (1)"]
+
+
+def test_gpu_gather_uploads_depth_moments_only_for_the_chebyshev_test(raster, monkeypatch):  # noqa: F811
+    from hybridgi_core.raster.gather import GatherPass
+
+    formats = []
+    real_upload = gather.upload_texture_2d
+    monkeypatch.setattr(gather, "upload_texture_2d", lambda data, fmt: formats.append((fmt, data.size)) or real_upload(data, fmt))
+    scene = test_raster.box_snapshot()
+    gbuf, _ = test_raster.render_gbuffer(raster, scene, test_raster.look_at((1.6, -1.7, 1.9), (-0.5, 0.6, 0.5)),
+                                         test_raster.perspective(70.0))
+    low = raster["downsample"].execute(gbuf)
+    cache = test_raster.random_cache(scene, 2)
+    depth_size = cache.depth.size
+    w, h = test_raster.W // test_raster.F, test_raster.H // test_raster.F
+    with GatherPass() as gp:
+        gp.resize(w, h)
+        gp.upload(cache)
+        gp.execute(low, corner_visible=np.ones((h, w, 8), bool))  # final renders: a corner mask
+        gp.execute(low, visibility=False)
+        assert not any(fmt == "RG32F" and size >= depth_size for fmt, size in formats)
+        gp.execute(low)  # the Chebyshev test reads the moments: uploaded now, once
+        gp.execute(low)
+        assert sum(fmt == "RG32F" and size >= depth_size for fmt, size in formats) == 1
+        cache.version += 1  # the cache moved on: the next upload packs its SH, depth waits again
+        assert gp.upload(cache)
+        gp.execute(low, corner_visible=np.ones((h, w, 8), bool))
+        assert sum(fmt == "RG32F" and size >= depth_size for fmt, size in formats) == 1

@@ -14,6 +14,7 @@ Outputs (low res, RGBA32F), the layouts BilateralPass expects:
 from __future__ import annotations
 
 import logging
+import weakref
 
 import numpy as np
 
@@ -88,13 +89,23 @@ def pack_cache(cache, max_size: int = DEFAULT_MAX_TEXTURE_SIZE) -> tuple[np.ndar
     """
     n, k = cache.sh_direct.shape[:2]
     check_cache_textures(n, k, cache.settings.depth_texels, max_size)
+    return pack_sh(cache, max_size), pack_depth(cache, max_size)
+
+
+def pack_sh(cache, max_size: int = DEFAULT_MAX_TEXTURE_SIZE) -> np.ndarray:
+    """The SH texture data of `pack_cache` alone."""
+    n, k = cache.sh_direct.shape[:2]
     sh_tex = np.zeros((n, 2 * k, 4), np.float32)
     sh_tex[:, :k, :3] = cache.sh_direct
     sh_tex[:, :k, 3] = cache.ao_sh
     sh_tex[:, k:, :3] = cache.sh_indirect
     sh_tex[:, k, 3] = cache.valid
-    depth = np.ascontiguousarray(cache.depth, np.float32).reshape(-1, 2)
-    return _pack_rows(sh_tex.reshape(-1, 4), max_size), _pack_rows(depth, max_size)
+    return _pack_rows(sh_tex.reshape(-1, 4), max_size)
+
+
+def pack_depth(cache, max_size: int = DEFAULT_MAX_TEXTURE_SIZE) -> np.ndarray:
+    """The depth-moment texture data of `pack_cache` alone."""
+    return _pack_rows(np.ascontiguousarray(cache.depth, np.float32).reshape(-1, 2), max_size)
 
 
 def pack_corner_mask(corner_visible: np.ndarray) -> np.ndarray:
@@ -105,7 +116,12 @@ def pack_corner_mask(corner_visible: np.ndarray) -> np.ndarray:
 
 class GatherPass(RasterPass):
     """`upload(cache)` when it changed; `resize(low_w, low_h)`;
-    `execute(low, visibility=True, corner_visible=None) -> (gi_indirect, gi_direct)`."""
+    `execute(low, visibility=True, corner_visible=None) -> (gi_indirect, gi_direct)`.
+
+    The depth moments (the larger texture: D*D texels per cell against 2K) are only read by the
+    Chebyshev test, so they are packed and uploaded on the first execute that needs them; final
+    renders pass a corner mask and never do (at resolution 128 that saves a 1 GiB texture).
+    """
 
     name = "gather"
 
@@ -115,6 +131,8 @@ class GatherPass(RasterPass):
         self._fb = None
         self._cache_tx = None
         self._depth_tx = None
+        self._depth_source = None  # weakref to the cache whose depth is not uploaded yet
+        self._no_depth = None
         self._uploaded = None  # (id(cache), version) of the textures
         self._grid = None
         self._settings = None
@@ -138,15 +156,18 @@ class GatherPass(RasterPass):
         self._targets = [make_target(width, height, "RGBA32F") for _ in range(2)]
         self._fb = gpu.types.GPUFrameBuffer(color_slots=tuple(self._targets))
         self._no_mask = upload_texture_2d(np.zeros((height, width), np.float32), "R32F")
+        self._no_depth = upload_texture_2d(np.zeros((1, 1, 2), np.float32), "RG32F")
 
     def _release_targets(self) -> None:
         self._targets = None
         self._fb = None
         self._no_mask = None
+        self._no_depth = None
 
     def free(self) -> None:
         super().free()
         self._cache_tx = self._depth_tx = None
+        self._depth_source = None
         self._uploaded = None
 
     def upload(self, cache) -> bool:
@@ -154,13 +175,19 @@ class GatherPass(RasterPass):
 
         Returns True when it uploaded. (`IrradianceCache.version` is bumped on every blend.)
         """
-        # IrradianceCache.reset() restarts `version` at 0 with new arrays: the arrays' identity
-        # tells a reset cache from an unchanged one.
-        key = (id(cache), cache.version, id(cache.sh_direct))
+        key = self._key(cache)
         if self._uploaded == key:
             return False
-        sh_data, depth_data = pack_cache(cache, max_texture_size())
-        return self.upload_packed(key, cache.grid, cache.settings, sh_data, depth_data)
+        max_size = max_texture_size()
+        n, k = cache.sh_direct.shape[:2]
+        check_cache_textures(n, k, cache.settings.depth_texels, max_size)
+        self._cache_tx = upload_texture_2d(pack_sh(cache, max_size), "RGBA32F")
+        self._depth_tx = None
+        self._depth_source = weakref.ref(cache)
+        self._grid = cache.grid
+        self._settings = cache.settings
+        self._uploaded = key
+        return True
 
     def upload_packed(self, key, grid, settings, sh_texels: np.ndarray, depth_texels: np.ndarray) -> bool:
         """Upload textures already in the `pack_cache` layout (packed on another thread), unless
@@ -170,10 +197,29 @@ class GatherPass(RasterPass):
             return False
         self._cache_tx = upload_texture_2d(sh_texels, "RGBA32F")
         self._depth_tx = upload_texture_2d(depth_texels, "RG32F")
+        self._depth_source = None
         self._grid = grid
         self._settings = settings
         self._uploaded = key
         return True
+
+    @staticmethod
+    def _key(cache):
+        # IrradianceCache.reset() restarts `version` at 0 with new arrays: the arrays' identity
+        # tells a reset cache from an unchanged one.
+        return (id(cache), cache.version, id(cache.sh_direct))
+
+    def _require_depth(self) -> None:
+        """Upload the depth moments of the uploaded cache (the Chebyshev test reads them)."""
+        if self._depth_tx is not None:
+            return
+        cache = self._depth_source() if self._depth_source is not None else None
+        if cache is None:
+            raise RasterError("gather: the uploaded cache is gone; upload(cache) again")
+        if self._key(cache) != self._uploaded:
+            # The cache moved on since upload(): take both textures from its current state.
+            self.upload(cache)
+        self._depth_tx = upload_texture_2d(pack_depth(cache, max_texture_size()), "RG32F")
 
     def execute(self, low, visibility: bool = True, corner_visible=None):
         """Gather at the low-res G-buffer `low` (LowResGBuffer of the resize size).
@@ -198,12 +244,14 @@ class GatherPass(RasterPass):
             else:
                 check_size(corner_visible, self.width, self.height, "corner mask")
                 mask_tx = corner_visible
+        if mode == MODE_CHEBYSHEV:
+            self._require_depth()
         g, s = self._grid, self._settings
         shader = self._shader()
         shader.uniform_sampler("position_tx", low.position)
         shader.uniform_sampler("normal_tx", low.normal)
         shader.uniform_sampler("cache_tx", self._cache_tx)
-        shader.uniform_sampler("depth_tx", self._depth_tx)
+        shader.uniform_sampler("depth_tx", self._depth_tx if self._depth_tx is not None else self._no_depth)
         shader.uniform_sampler("mask_tx", mask_tx)
         shader.uniform_float("grid_lo_cell", (*np.asarray(g.lo, np.float32).tolist(), float(g.cell_size)))
         shader.uniform_int("grid_dims", (*[int(d) for d in g.dims], int(s.sh_coeffs)))
