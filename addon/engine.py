@@ -48,7 +48,11 @@ class HybridGIRenderEngine(bpy.types.RenderEngine):
     def __del__(self):
         # The viewport's worker thread must stop with the engine (Blender frees the engine when
         # the viewport leaves Rendered shading).
-        if getattr(self, "viewport", None) is not None:
+        try:
+            viewport = getattr(self, "viewport", None)
+        except ReferenceError:
+            return  # Blender freed the engine's RNA first (after a failed render): nothing of ours is left
+        if viewport is not None:
             _viewport().free(self)
 
     def render(self, depsgraph):
