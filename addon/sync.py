@@ -534,8 +534,23 @@ def image_pixels(image):
 
 def read_image(image):
     """((h, w, 3) float32 linear RGB, (h, w) float32 alpha or None without an alpha channel) of
-    a Blender image, or None when it has no pixels. One read of the pixel buffer for both."""
+    a Blender image, or None when it has no pixels. One read of the pixel buffer for both.
+
+    An image larger than the core keeps (`snapshot.MAX_TEXTURE_SIZE` per side) is scaled by
+    Blender first, on a copy: a 16k texture is never copied whole into float32 arrays."""
     width, height = image.size
+    largest = max(width, height)
+    if largest > snap.MAX_TEXTURE_SIZE:
+        import bpy  # noqa: PLC0415
+
+        factor = -(-largest // snap.MAX_TEXTURE_SIZE)  # ceil: the box filter's integer factor
+        copy = image.copy()
+        try:
+            copy.scale(max(width // factor, 1), max(height // factor, 1))
+            log.info("image %r: %dx%d read at 1/%d size", image.name, width, height, factor)
+            return read_image(copy)
+        finally:
+            bpy.data.images.remove(copy)
     channels = image.channels
     count = width * height * channels
     if count == 0 or len(image.pixels) != count:
