@@ -94,6 +94,30 @@ def camera_matrices(depsgraph, scene, width, height):
     return np.array(view, np.float32), np.array(proj, np.float32)
 
 
+#: View-layer passes Cycles writes and HybridGI does not (the flag, its name in the warning).
+UNWRITTEN_PASSES = (
+    ("use_pass_glossy_direct", "Glossy Direct"), ("use_pass_glossy_indirect", "Glossy Indirect"),
+    ("use_pass_glossy_color", "Glossy Color"), ("use_pass_transmission_direct", "Transmission Direct"),
+    ("use_pass_transmission_indirect", "Transmission Indirect"), ("use_pass_transmission_color", "Transmission Color"),
+    ("use_pass_emit", "Emission"), ("use_pass_environment", "Environment"), ("use_pass_shadow", "Shadow"),
+    ("use_pass_mist", "Mist"), ("use_pass_position", "Position"), ("use_pass_vector", "Vector"),
+    ("use_pass_uv", "UV"), ("use_pass_object_index", "Object Index"), ("use_pass_material_index", "Material Index"),
+    ("use_pass_cryptomatte_object", "Cryptomatte Object"), ("use_pass_cryptomatte_material", "Cryptomatte Material"),
+    ("use_pass_cryptomatte_asset", "Cryptomatte Asset"),
+)
+
+
+def unsupported_settings(scene, view_layer) -> list[str]:
+    """What this scene asks for that Cycles honours and HybridGI does not render (warned once)."""
+    notes = []
+    if getattr(scene.render, "use_motion_blur", False):
+        notes.append("motion blur is not rendered")
+    passes = [label for flag, label in UNWRITTEN_PASSES if getattr(view_layer, flag, False)]
+    if passes:
+        notes.append(f"passes not written: {', '.join(passes)}")
+    return notes
+
+
 def render_frame(engine, depsgraph):
     """Render the current frame into the engine's result (the HYBRIDGI engine's `render`)."""
     t0 = time.perf_counter()
@@ -101,6 +125,9 @@ def render_frame(engine, depsgraph):
     props = scene.hybridgi
     width, height = render_size(scene.render)
     settings = props.cache_settings(scene)
+    for note in unsupported_settings(scene, depsgraph.view_layer):
+        engine.report({"WARNING"}, f"HybridGI: {note}")
+        log.warning("%s", note)
     incremental = props.animation_mode == "INCREMENTAL"
     key = animation.render_job_key(scene.name_full)
     if not incremental:

@@ -126,3 +126,9 @@ def test_panoramic_camera_is_refused_with_a_clear_message(scenes, tmp_path):
     assert run.returncode != 0
     assert "panoramic" in run.stderr and "Traceback" not in run.stderr
     assert not list(tmp_path.glob("p_*.exr")) and not list(tmp_path.glob("p_*.png"))
+
+
+def test_motion_blur_and_passes_hybridgi_does_not_write_are_warned_by_name(scenes, tmp_path):
+    run = render(scenes / "cornell.blend", tmp_path / "w", "--set", "render.use_motion_blur=true")
+    assert run.returncode == 0, run.stderr[-2000:]
+    assert "motion blur is not rendered" in run.stderr
