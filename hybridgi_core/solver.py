@@ -1,0 +1,664 @@
+"""Trace once, re-shade many: the final-render GI solver over stored probe-ray hits.
+
+The EMA updater (`update.py`) retraces every probe ray on every update, and each update adds one
+bounce, so a converged multi-bounce cache cost one fully traced pass per bounce (16 warm-up
+passes). While geometry is static a probe ray's hit never changes; only the light arriving at it
+does. `StoredHits` keeps each ray's hit (triangle, distance, the cell its further bounces read,
+the normal's irradiance monomials, albedo, and the lamp light that reached it through its shadow
+rays), and `GISolver` turns the cache into a fixed point over them:
+
+    sh_indirect = P(brdf * (E_lamp + E_cache(sh_direct + sh_indirect)))
+
+where P projects a cell's rays onto SH and E_cache reads the cache at each hit as the updater
+does (`evaluate.HitLookup`). One iteration is a gather and a GEMM per cell, no ray; each adds one
+bounce. A converging geometric tail is then extrapolated (its ratio estimated from the last two
+iterations), so a closed box with albedo rho reaches the infinite-bounce answer in a handful of
+iterations instead of ~1 / (1 - rho) of them.
+
+Rays the solver saves go into more directions per cell: each traced batch appends a set of
+directions (frame `WARMUP_FRAME_BASE + b`, as the warm-up pass b of the updater used), and a
+cell's estimate is the mean over its batches.
+
+Events (what `GISystem` forwards):
+- `invalidate_boxes(boxes)`: geometry changed inside world boxes: the stored rays of every cell
+  with a ray segment (cell centre to hit, or to the ray length) through a box are dropped, and the
+  lamp light of stored hits whose shadow rays could cross a box is re-traced at the next solve.
+- `lights_changed()`: lamps, world or materials changed: every stored hit is re-shaded (shadow
+  rays only, no probe ray), then the fixed point is solved again.
+
+numpy + embreex only (worker threads).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from . import sh
+from .cache import CellSamples, IrradianceCache
+from .evaluate import HitLookup, irradiance_rows, monomials
+from .lights import direct_irradiance
+from .sampling import frame_directions, frame_rng, octahedral_texel
+from .settings import AO_ONLY, MULTI_BOUNCE
+
+log = logging.getLogger(__name__)
+
+#: Warm-up batch b traces the directions of this frame number + b (the updater's warm-up frames).
+WARMUP_FRAME_BASE = -(2**20)
+#: Cells per stored chunk: the unit of work of a worker thread (rays = cells * rays_per_cell).
+CHUNK_RAYS = 98304
+#: Fixed-point iterations stop once the update's L1 norm falls below this share of the solution's.
+CONVERGED = 2e-3
+#: Largest geometric ratio the tail extrapolation trusts (above it the tail is not yet geometric).
+MAX_TAIL_RATIO = 0.95
+#: Iterations stop once the tail the extrapolation adds is below this share of the solution: the
+#: extrapolated tail is itself right to ~10% (Cornell box), so ~0.3% of the light is left.
+TAIL_SHARE = 0.03
+#: Batches whose stored hits carry the further bounces (A of x = b + A x); every batch adds to b.
+BOUNCE_BATCHES = 1
+#: Of those batches' directions, every BOUNCE_STRIDE-th carries the further bounces (at least
+#: MIN_BOUNCE_RAYS per cell): A costs that much less per iteration.
+BOUNCE_STRIDE = 1
+MIN_BOUNCE_RAYS = 16
+
+
+@dataclass
+class SolveStats:
+    """What one solver step did; steps_ms sums worker CPU time per step like `UpdateStats`."""
+
+    cells: int = 0
+    rays: int = 0  # probe rays traced
+    shadow_points: int = 0  # hits whose lamp light was (re)traced
+    iterations: int = 0
+    wall_ms: float = 0.0
+    steps_ms: dict[str, float] = field(default_factory=dict)
+
+    def add(self, name: str, ms: float) -> None:
+        self.steps_ms[name] = self.steps_ms.get(name, 0.0) + ms
+
+
+@dataclass
+class StoredHits:
+    """The probe rays of one traced batch for a block of cells (m cells x r directions).
+
+    Per ray (n = m * r, cell-major): t (n,) float32 hit distance, inf for misses; prim (n,) int32
+    (-1 = miss); u, v (n,) float32 barycentrics. Per hit (h of them, `hit` (h,) intp indexes the
+    rays): normal (h, 3) facing the ray, brdf (3, h) albedo / pi, mono (K, h) the normal's
+    irradiance monomials, e_lamp (3, h) lamp irradiance W/m^2 (None: to trace), flat (h,) the cell
+    the hit reads (None: to look up), lamp_stale (h,) bool hits to re-trace. Per cell: bands of
+    the batch that depend on geometry alone (direct band SH, AO SH, depth sums, back faces).
+    """
+
+    batch: int
+    cells: np.ndarray
+    dirs: np.ndarray
+    t: np.ndarray
+    prim: np.ndarray
+    u: np.ndarray
+    v: np.ndarray
+    hit: np.ndarray = None
+    normal: np.ndarray = None
+    brdf: np.ndarray = None
+    mono: np.ndarray = None
+    e_lamp: np.ndarray = None
+    flat: np.ndarray = None
+    lamp_stale: np.ndarray = None
+    backface: np.ndarray = None  # (h,) bool: the ray hit the triangle's back
+    bounce_view: StoredHits | None = None  # `strided` copy the further bounces iterate over
+    samples: CellSamples = None  # geometry bands of this batch (sh_indirect left zero)
+
+    @property
+    def rays(self) -> int:
+        return int(self.t.shape[0])
+
+    def positions(self, centers: np.ndarray) -> np.ndarray:
+        """(h, 3) float32 world positions of the hits."""
+        r = self.dirs.shape[0]
+        cell_of, ray_of = np.divmod(self.hit, r)
+        p = self.dirs[ray_of] * self.t[self.hit, None]
+        p += centers[self.cells[cell_of]]
+        return p
+
+    def strided(self, stride: int) -> StoredHits:
+        """Every `stride`-th direction of this batch, with the hits' lookup data (flat, mono,
+        brdf) only: what the further bounces of the fixed point iterate over."""
+        if stride <= 1:
+            return self
+        r = self.dirs.shape[0]
+        keep = (self.hit % r) % stride == 0
+        hit = self.hit[keep]
+        cell_of, ray_of = np.divmod(hit, r)
+        r2 = -(-r // stride)
+        return StoredHits(
+            batch=self.batch, cells=self.cells, dirs=self.dirs[::stride], t=self.t[::stride], prim=self.prim[::stride],
+            u=self.u[::stride], v=self.v[::stride], hit=cell_of * r2 + ray_of // stride,
+            brdf=self.brdf[:, keep], mono=self.mono[:, keep], flat=self.flat[keep],
+        )
+
+    def select_cells(self, keep: np.ndarray) -> StoredHits | None:
+        """This batch restricted to the cells where keep (m,) bool; None when none is left."""
+        if keep.all():
+            return self
+        if not keep.any():
+            return None
+        r = self.dirs.shape[0]
+        ray_keep = np.repeat(keep, r)
+        new_index = np.cumsum(ray_keep) - 1
+        hit_keep = ray_keep[self.hit]
+        samples = _sample_rows(self.samples, keep)
+        def pick(a):
+            return (None if a is None else a[..., hit_keep])
+        return StoredHits(
+            batch=self.batch, cells=self.cells[keep], dirs=self.dirs,
+            t=self.t[ray_keep], prim=self.prim[ray_keep], u=self.u[ray_keep], v=self.v[ray_keep],
+            hit=new_index[self.hit[hit_keep]], normal=self.normal[hit_keep], brdf=pick(self.brdf),
+            mono=pick(self.mono), e_lamp=pick(self.e_lamp), flat=pick(self.flat),
+            lamp_stale=self.lamp_stale[hit_keep], backface=self.backface[hit_keep], samples=samples,
+        )
+
+
+class GISolver:
+    """Stored probe hits of a set of cells and the multi-bounce fixed point over them.
+
+    Lifecycle: `begin(cells)`, then `trace_batch(b)` for b = 0..B-1, then `relax()` until it
+    returns False (converged), then `finish()`. Events between solves: `invalidate_boxes`,
+    `lights_changed`; `resolve()` re-traces what they dropped and solves again.
+    """
+
+    def __init__(self, cache: IrradianceCache, tracer, scene, epsilon: float, pool: ThreadPoolExecutor):
+        """scene : `update.ShadingScene` (swap `self.scene` when lamps or materials change)."""
+        self.cache = cache
+        self.tracer = tracer
+        self.scene = scene
+        self.epsilon = np.float32(epsilon)
+        self._pool = pool
+        self.cells = np.zeros(0, np.int64)
+        self.chunks: list[StoredHits] = []
+        self.batches = 0
+        self._lookup_valid = None  # cache.valid the stored flats were looked up with
+        self._materials_stale = False
+        self._sources = None  # (cells, b) of the fixed point; None: to compute
+        self._reset_series()
+        self.stats = SolveStats()
+
+    # --- building ------------------------------------------------------------------------------
+
+    def begin(self, cells: np.ndarray) -> None:
+        """Forget stored hits; the next batches trace `cells` (flat, any order)."""
+        self.cells = np.unique(np.asarray(cells, np.int64))
+        self.chunks = []
+        self.batches = 0
+        self._lookup_valid = None
+        self._materials_stale = False
+        self._sources = None
+        self._reset_series()
+
+    def _reset_series(self) -> None:
+        #: L1 norms of the plain iterations' updates (their ratio is the tail's), the last update
+        #: (cells, step) and whether the last update fell below CONVERGED.
+        self._deltas: list[float] = []
+        self._last_step = None
+        self.converged = False
+
+    @property
+    def has_hits(self) -> bool:
+        return bool(self.chunks)
+
+    def trace_batch(self, batch: int, cells: np.ndarray | None = None, blend: bool = True) -> SolveStats:
+        """Trace directions batch `batch` from `cells` (default: every solver cell), store the hits,
+        shade their lamp light, and fold the geometry bands (direct light from sky and emitters, AO,
+        depth, back faces) into the cache as the mean over the batches traced so far."""
+        t0 = time.perf_counter()
+        stats = SolveStats()
+        cells = self.cells if cells is None else np.unique(np.asarray(cells, np.int64))
+        s = self.cache.settings
+        if cells.size == 0:
+            return stats
+        dirs = frame_directions(s.rays_per_cell, s.seed, WARMUP_FRAME_BASE + batch)
+        per_chunk = max(1, CHUNK_RAYS // s.rays_per_cell)
+        n_chunks = max(-(-cells.size // per_chunk), min(cells.size, max(1, s.threads)))
+        parts = np.array_split(cells, n_chunks)
+        jobs = [self._pool.submit(self._trace_chunk, part, dirs, batch, i) for i, part in enumerate(parts)]
+        new = []
+        for job in jobs:
+            chunk, times = job.result()
+            new.append(chunk)
+            for k, v in times.items():
+                stats.add(k, v)
+        self.chunks += new
+        self.batches = max(self.batches, batch + 1)
+        stats.cells = int(cells.size)
+        stats.rays = int(cells.size) * s.rays_per_cell
+        stats.shadow_points = sum(int(c.hit.size) for c in new)
+        if blend:
+            tb = time.perf_counter()
+            self._blend_geometry(cells)
+            stats.add("blend", (time.perf_counter() - tb) * 1e3)
+        self._reset_series()
+        stats.wall_ms = (time.perf_counter() - t0) * 1e3
+        return stats
+
+    def _trace_chunk(self, cells: np.ndarray, dirs: np.ndarray, batch: int, index: int):
+        """Worker: trace one chunk, shade its hits (materials, lamp light) and project the bands
+        that do not depend on the cache."""
+        cache = self.cache
+        s = cache.settings
+        times = {}
+        m, r = cells.size, dirs.shape[0]
+        tic = time.perf_counter()
+        origins = np.repeat(cache.centers[cells], r, axis=0)
+        ray_dirs = np.tile(dirs, (m, 1))
+        tfar = np.float32(s.ray_length) if s.ray_length > 0 else np.float32(np.inf)
+        hits = self.tracer.intersect(origins, ray_dirs, tfar, trusted=True)
+        times["trace"] = (time.perf_counter() - tic) * 1e3
+        chunk = StoredHits(batch, cells, dirs, hits.t, hits.prim, hits.u, hits.v)
+        chunk.hit = np.flatnonzero(hits.prim >= 0)
+        chunk.lamp_stale = np.ones(chunk.hit.size, bool)
+        self._shade_materials(chunk, ray_dirs[chunk.hit])
+        tic = time.perf_counter()
+        self._shade_lamps(chunk, frame_rng(s.seed, (WARMUP_FRAME_BASE + batch) * 7919 + index))
+        times["shadow"] = (time.perf_counter() - tic) * 1e3
+        tic = time.perf_counter()
+        chunk.samples = self._geometry_bands(chunk)
+        times["sh"] = (time.perf_counter() - tic) * 1e3
+        return chunk, times
+
+    def _shade_materials(self, chunk: StoredHits, hit_dirs: np.ndarray) -> None:
+        """Normal, brdf and monomials of the stored hits from the surface table."""
+        h = chunk.hit
+        surf = self.scene.surfaces.probe_hits(chunk.prim[h], chunk.u[h], chunk.v[h], hit_dirs)
+        chunk.normal = np.ascontiguousarray(surf.normal)
+        chunk.brdf = np.ascontiguousarray(surf.brdf.T)
+        chunk.mono = monomials(chunk.normal, self.cache.settings.sh_coeffs)
+        chunk.backface = np.asarray(surf.backface, bool)
+
+    def _shade_lamps(self, chunk: StoredHits, rng: np.random.Generator) -> int:
+        """Trace the lamp light of the chunk's stale hits (all of them the first time)."""
+        s = self.cache.settings
+        stale = np.flatnonzero(chunk.lamp_stale)
+        if chunk.e_lamp is None:
+            chunk.e_lamp = np.zeros((3, chunk.hit.size), np.float32)
+        if stale.size and s.indirect_quality != AO_ONLY and self.scene.lights:
+            pos = chunk.positions(self.cache.centers)[stale]
+            # One shadow ray along a sun's axis per hit, as the updater's: the cache is low frequency.
+            e = direct_irradiance(self.scene.lights, pos, chunk.normal[stale], self.tracer, rng,
+                                  samples=s.light_samples, epsilon=float(self.epsilon), sun_disc=False)
+            chunk.e_lamp[:, stale] = e.T
+        elif stale.size:
+            chunk.e_lamp[:, stale] = 0.0
+        chunk.lamp_stale[:] = False
+        return int(stale.size)
+
+    def _geometry_bands(self, chunk: StoredHits) -> CellSamples:
+        """Direct band (sky on misses, emission on hits), AO, depth moments and back faces."""
+        cache = self.cache
+        s = cache.settings
+        m, r = chunk.cells.size, chunk.dirs.shape[0]
+        n = m * r
+        values = np.empty((4, n), np.float32)
+        values[0:3] = self.scene.world.color[:, None]
+        h = chunk.hit
+        if h.size:
+            values[0:3, h] = self.scene.surfaces.emission_of(chunk.prim[h]).T
+        if s.indirect_quality == AO_ONLY:
+            values[0:3] = 0.0
+        np.greater(chunk.t, s.ao_distance, out=values[3])
+        coeffs = sh.project_channels(values.reshape(4, m, r).transpose(1, 0, 2), chunk.dirs, s.sh_order)  # (m, K, 4)
+        n_tex = s.depth_texels**2
+        texel = octahedral_texel(chunk.dirs, s.depth_texels)
+        one_hot = np.zeros((r, n_tex), np.float32)
+        one_hot[np.arange(r), texel] = 1.0
+        depth = np.empty((2, n), np.float32)
+        np.minimum(chunk.t, cache.depth_cap, out=depth[0])
+        np.multiply(depth[0], depth[0], out=depth[1])
+        sums = sh.matmul_on_this_thread(depth.reshape(2 * m, r), one_hot).reshape(2, m, n_tex)
+        back = np.zeros(n, bool)
+        back[h] = chunk.backface
+        return CellSamples(
+            cells=chunk.cells,
+            sh_direct=np.ascontiguousarray(coeffs[..., 0:3]),
+            sh_indirect=np.zeros_like(coeffs[..., 0:3]),
+            ao_sh=np.ascontiguousarray(coeffs[..., 3]),
+            depth_sum=np.stack([sums[0], sums[1]], axis=-1),
+            depth_count=one_hot.sum(axis=0),
+            backface=back.reshape(m, r).sum(axis=1, dtype=np.float32) * np.float32(1.0 / r),
+        )
+
+    def _blend_geometry(self, cells: np.ndarray) -> None:
+        """Write the mean over stored batches of the geometry bands of `cells` into the cache
+        (a running mean: batch i enters with weight 1 / (i + 1)); sh_indirect keeps its value, the
+        fixed point's starting iterate."""
+        cache = self.cache
+        for i, b in enumerate(sorted({c.batch for c in self.chunks})):
+            for c in self.chunks:
+                if c.batch != b:
+                    continue
+                rows = np.isin(c.cells, cells, assume_unique=True)
+                if not rows.any():
+                    continue
+                part = _sample_rows(c.samples, rows)
+                part.sh_indirect = cache.sh_indirect[part.cells]
+                cache.blend(part, WARMUP_FRAME_BASE + b, alpha=1.0 / (i + 1))
+        self._lookup_valid = None
+        self._sources = None  # validity may have changed: look the hits' cells up again
+
+    # --- the fixed point -----------------------------------------------------------------------
+
+    def _ensure_lookup(self) -> None:
+        valid = self.cache.valid
+        if self._lookup_valid is not None and np.array_equal(valid, self._lookup_valid):
+            return
+        lookup = HitLookup(self.cache, bounced=True)
+        jobs = [self._pool.submit(self._lookup_chunk, c, lookup) for c in self.chunks]
+        flats = [j.result() for j in jobs]
+        # Hits read few of the grid's cells: index a table of those only (the grid's whole table
+        # cost more to rebuild per iteration than the iteration's own gathers).
+        self._read_cells = np.unique(np.concatenate(flats)) if flats else np.zeros(0, np.intp)
+        for c, flat in zip(self.chunks, flats, strict=True):
+            c.flat = np.searchsorted(self._read_cells, flat)
+            if c.batch < BOUNCE_BATCHES:
+                r = c.dirs.shape[0]
+                stride = max(1, min(BOUNCE_STRIDE, r // MIN_BOUNCE_RAYS))
+                c.bounce_view = c.strided(stride if r % stride == 0 else 1)
+        self._read_valid = valid[self._read_cells]
+        self._lookup_valid = valid
+        self._sources = None
+
+    def _rows(self, coeffs: np.ndarray) -> np.ndarray:
+        """(K*3, R) irradiance table of the cells stored hits read, from (N, K, 3) radiance SH."""
+        return irradiance_rows(coeffs[self._read_cells], self._read_valid)
+
+    def _lookup_chunk(self, chunk: StoredHits, lookup: HitLookup) -> np.ndarray:
+        """Worker: the grid cell each of the chunk's hits reads."""
+        return lookup.cells(chunk.positions(self.cache.centers), chunk.normal)
+
+    def _ensure_sources(self, stats: SolveStats) -> None:
+        """Each chunk's first bounce, the constant term b of the fixed point x = b + A x: its
+        hits' lamp light plus the direct band (sky, emitters) read at the hits, projected; and
+        b's mean over the batches per solver cell."""
+        if self._sources is not None:
+            return
+        tic = time.perf_counter()
+        rows = self._rows(self.cache.sh_direct)
+        jobs = [self._pool.submit(self._project_hits, c, rows, True) for c in self.chunks]
+        self._sources = self._mean_over_batches([j.result() for j in jobs], self.chunks)
+        stats.add("source", (time.perf_counter() - tic) * 1e3)
+
+    def _mean_over_batches(self, coeffs: list[np.ndarray], chunks: list[StoredHits]):
+        """(cells (k,), mean (k, K, 3)) over the chunks' batches, for solver cells with any."""
+        total = np.zeros((self.cells.size,) + self.cache.sh_indirect.shape[1:], np.float32)
+        count = np.zeros(self.cells.size, np.float32)
+        for c, x in zip(chunks, coeffs, strict=True):
+            pos = np.searchsorted(self.cells, c.cells)
+            total[pos] += x
+            count[pos] += 1.0
+        have = count > 0
+        return self.cells[have], total[have] / count[have, None, None]
+
+    def _project_hits(self, chunk: StoredHits, rows: np.ndarray, lamps: bool) -> np.ndarray:
+        """Worker: (m, K, 3) SH of one chunk's rays: brdf * (irradiance table `rows` read at the
+        hits [+ lamp light])."""
+        m, r = chunk.cells.size, chunk.dirs.shape[0]
+        e = evaluate_rows(rows, chunk.flat, chunk.mono)  # (3, h)
+        if lamps:
+            e += chunk.e_lamp
+        e *= chunk.brdf
+        values = np.zeros((3, m * r), np.float32)
+        values[:, chunk.hit] = e
+        return sh.project_channels(values.reshape(3, m, r).transpose(1, 0, 2), chunk.dirs, self.cache.settings.sh_order)
+
+    def relax(self) -> SolveStats:
+        """One fixed-point iteration x <- b + A x of sh_indirect: b is the first bounce (lamp
+        light and the direct band at every stored hit, the mean over all batches, computed once);
+        A x re-reads the indirect band at the hits of the first BOUNCE_BATCHES batches only: the
+        light of further bounces is smooth and dimmed by the albedo, and A's estimate need not be
+        the same rays as b's for the fixed point to be unbiased. Adds one bounce; no ray."""
+        t0 = time.perf_counter()
+        stats = SolveStats()
+        cache = self.cache
+        s = cache.settings
+        if not self.chunks or s.indirect_quality == AO_ONLY:
+            self.converged = True
+            return stats
+        self._ensure_lookup()
+        self._ensure_sources(stats)
+        src_cells, src = self._sources
+        new = src.copy()
+        bounced = s.indirect_quality == MULTI_BOUNCE
+        if bounced:
+            tl = time.perf_counter()
+            rows = self._rows(cache.sh_indirect)
+            stats.add("lookup", (time.perf_counter() - tl) * 1e3)
+            tb = time.perf_counter()
+            chunks = [c.bounce_view for c in self.chunks if c.batch < BOUNCE_BATCHES]
+            jobs = [self._pool.submit(self._project_hits, c, rows, False) for c in chunks]
+            b_cells, bounce = self._mean_over_batches([j.result() for j in jobs], chunks)
+            new[np.searchsorted(src_cells, b_cells)] += bounce
+            stats.add("bounce", (time.perf_counter() - tb) * 1e3)
+        step = new - cache.sh_indirect[src_cells]
+        delta = float(np.abs(step[:, 0]).sum())
+        norm = float(np.abs(new[:, 0]).sum())
+        cache.sh_indirect[src_cells] = new
+        cache.version += 1
+        self._deltas.append(delta)
+        self._last_step = (src_cells, step)
+        # ONE_BOUNCE hits read only the direct band, which iterations do not change: one is exact.
+        # Else converged once the tail the extrapolation will add is a small share of the light.
+        q = self.tail_ratio()
+        self.converged = (not bounced) or delta <= CONVERGED * max(norm, 1e-30) or (
+            q is not None and delta * q / (1.0 - q) <= TAIL_SHARE * norm)
+        stats.iterations = 1
+        stats.cells = int(src_cells.size)
+        stats.wall_ms = (time.perf_counter() - t0) * 1e3
+        return stats
+
+    def tail_ratio(self) -> float | None:
+        """The ratio q of the last two iterations' updates when the series looks geometric
+        (0 < q < MAX_TAIL_RATIO), else None."""
+        if len(self._deltas) < 2 or self._deltas[-2] <= 0:
+            return None
+        q = self._deltas[-1] / self._deltas[-2]
+        return q if 0.0 < q < MAX_TAIL_RATIO else None
+
+    def extrapolate(self) -> bool:
+        """Add the geometric tail of the bounce series: the last update times q / (1 - q).
+
+        Bounce k's light shrinks by the scene's mean albedo-and-visibility ratio q per bounce, so
+        after the last iteration the bounces still missing sum to that (exact in a furnace).
+        Returns whether a tail was added. Call once, after the last `relax`."""
+        q = self.tail_ratio()
+        if q is None or self._last_step is None or self.cache.settings.indirect_quality != MULTI_BOUNCE:
+            return False
+        cells, step = self._last_step
+        self.cache.sh_indirect[cells] += step * np.float32(q / (1.0 - q))
+        self.cache.version += 1
+        self._last_step = None
+        self._deltas.clear()
+        return True
+
+    def solve(self, max_iterations: int = 16, extrapolate: bool = True) -> SolveStats:
+        """relax() until converged or max_iterations, then the tail (`extrapolate`)."""
+        stats = SolveStats()
+        self._reset_series()
+        for _ in range(max_iterations):
+            _merge(stats, self.relax())
+            if self.converged:
+                break
+        if extrapolate:
+            self.extrapolate()
+        return stats
+
+    # --- events --------------------------------------------------------------------------------
+
+    def invalidate_boxes(self, boxes) -> np.ndarray:
+        """Geometry changed inside these world boxes [(lo (3,), hi (3,)), ...] (old and new places).
+
+        Drops the stored rays of every cell with a ray whose segment (cell centre to its hit, or
+        to the ray length when it missed) meets a box: those cells must be traced again. Stored
+        hits that stay but whose shadow rays could cross a box get their lamp light re-traced at
+        the next `resolve`. Returns the flat cells whose rays were dropped (sorted, int64).
+        """
+        boxes = [(np.asarray(lo, np.float32), np.asarray(hi, np.float32)) for lo, hi in boxes]
+        if not boxes or not self.chunks:
+            return np.zeros(0, np.int64)
+        s = self.cache.settings
+        pad = np.float32(self.epsilon) * 4
+        tfar = np.float32(s.ray_length) if s.ray_length > 0 else np.float32(np.inf)
+        dropped = []
+        kept = []
+        for chunk in self.chunks:
+            m, r = chunk.cells.size, chunk.dirs.shape[0]
+            origins = np.repeat(self.cache.centers[chunk.cells], r, axis=0)
+            ray_dirs = np.tile(chunk.dirs, (m, 1))
+            reach = np.minimum(chunk.t, tfar)
+            crosses = np.zeros(m * r, bool)
+            for lo, hi in boxes:
+                crosses |= segments_meet_box(origins, ray_dirs, reach, lo - pad, hi + pad)
+            bad = crosses.reshape(m, r).any(axis=1)
+            if bad.any():
+                dropped.append(chunk.cells[bad])
+            chunk = chunk.select_cells(~bad)
+            if chunk is None:
+                continue
+            self._mark_shadows(chunk, boxes, pad)
+            kept.append(chunk)
+        self.chunks = kept
+        self._lookup_valid = None
+        self._sources = None
+        if not dropped:
+            return np.zeros(0, np.int64)
+        return np.unique(np.concatenate(dropped))
+
+    def _mark_shadows(self, chunk: StoredHits, boxes, pad) -> None:
+        """Flag hits whose shadow rays could pass through a box (conservatively: the segment to
+        each lamp's centre against the box grown by the lamp's extent; a sun's ray to infinity)."""
+        if chunk.hit.size == 0 or not self.scene.lights:
+            return
+        p = chunk.positions(self.cache.centers)
+        for lt in self.scene.lights:
+            if lt.kind == "SUN":
+                d = np.broadcast_to(-np.asarray(lt.direction, np.float32), p.shape)
+                reach = np.full(p.shape[0], np.inf, np.float32)
+                grow = np.float32(0.0)
+                # A sun disc spreads its rays by the angle: grow the box with distance instead of
+                # a fixed pad; a cone test is overkill: a small angle is covered by 2x the pad.
+            else:
+                to = np.asarray(lt.position, np.float32) - p
+                reach = np.linalg.norm(to, axis=1).astype(np.float32)
+                d = to / np.maximum(reach, np.float32(1e-12))[:, None]
+                grow = np.float32(_light_extent(lt))
+            for lo, hi in boxes:
+                chunk.lamp_stale |= segments_meet_box(p, d, reach, lo - pad - grow, hi + pad + grow)
+
+    def lights_changed(self) -> None:
+        """Lamps, world or materials changed: every stored hit is re-shaded at the next resolve."""
+        for chunk in self.chunks:
+            chunk.lamp_stale[:] = True
+            chunk.e_lamp = None
+        self._materials_stale = True
+
+    def resolve(self, max_iterations: int = 16) -> SolveStats:
+        """After events: trace the dropped cells' batches again, re-shade stale hits (materials,
+        lamp light through shadow rays: no probe ray), refresh the geometry bands, solve."""
+        stats = SolveStats()
+        t0 = time.perf_counter()
+        if not self.cells.size:
+            return stats
+        s = self.cache.settings
+        if getattr(self, "_materials_stale", False):
+            jobs = [self._pool.submit(self._reshade_chunk, c) for c in self.chunks]
+            for j in jobs:
+                j.result()
+            self._materials_stale = False
+            self._blend_geometry(self.cells)
+        stale = [c for c in self.chunks if c.lamp_stale.any()]
+        if stale:
+            tic = time.perf_counter()
+            jobs = [self._pool.submit(self._shade_lamps, c, frame_rng(s.seed, (WARMUP_FRAME_BASE + c.batch) * 7919 + i))
+                    for i, c in enumerate(stale)]
+            stats.shadow_points = sum(j.result() for j in jobs)
+            self._sources = None
+            stats.add("shadow", (time.perf_counter() - tic) * 1e3)
+        retraced = []
+        for b in range(self.batches):
+            have = np.concatenate([c.cells for c in self.chunks if c.batch == b] or [np.zeros(0, np.int64)])
+            missing = np.setdiff1d(self.cells, have)
+            if missing.size:
+                _merge(stats, self.trace_batch(b, missing, blend=False))
+                retraced.append(missing)
+        if retraced:
+            self._blend_geometry(np.unique(np.concatenate(retraced)))
+        _merge(stats, self.solve(max_iterations))
+        stats.wall_ms = (time.perf_counter() - t0) * 1e3
+        return stats
+
+    def _reshade_chunk(self, chunk: StoredHits) -> None:
+        r = chunk.dirs.shape[0]
+        ray_of = chunk.hit % r
+        self._shade_materials(chunk, chunk.dirs[ray_of])
+        chunk.lamp_stale[:] = True
+        chunk.samples = self._geometry_bands(chunk)
+
+    def stored_rays(self) -> int:
+        return sum(c.rays for c in self.chunks)
+
+
+def evaluate_rows(rows: np.ndarray, index: np.ndarray, mono: np.ndarray) -> np.ndarray:
+    """(3, n) float32 irradiance >= 0 of table `rows` (K*3, R) at entries index (n,), normals
+    given as their monomials (K, n); the same sums as `HitLookup.evaluate`."""
+    c = np.take(rows, index, axis=1)
+    e = c[0:3] * mono[0]
+    for k in range(1, mono.shape[0]):
+        e += c[3 * k : 3 * k + 3] * mono[k]
+    np.maximum(e, 0.0, out=e)
+    return e
+
+
+def _sample_rows(s: CellSamples, rows: np.ndarray) -> CellSamples:
+    """The rows (m,) bool of a CellSamples."""
+    return CellSamples(
+        cells=s.cells[rows], sh_direct=s.sh_direct[rows], sh_indirect=s.sh_indirect[rows], ao_sh=s.ao_sh[rows],
+        depth_sum=s.depth_sum[rows], depth_count=s.depth_count, backface=s.backface[rows],
+        shaded=None if s.shaded is None else s.shaded[rows],
+    )
+
+
+def _merge(into: SolveStats, other: SolveStats) -> None:
+    into.rays += other.rays
+    into.shadow_points += other.shadow_points
+    into.iterations += other.iterations
+    into.cells = max(into.cells, other.cells)
+    into.wall_ms += other.wall_ms
+    for k, v in other.steps_ms.items():
+        into.add(k, v)
+
+
+def _light_extent(light) -> float:
+    """Metres around a lamp's centre that its shadow rays may aim at."""
+    if light.kind == "AREA":
+        scale = np.linalg.norm(np.asarray(light.matrix, np.float64)[:3, :3], axis=0)
+        return 0.5 * float(np.hypot(light.size * scale[0], (light.size_y or light.size) * scale[1]))
+    return float(light.radius)
+
+
+def segments_meet_box(origins: np.ndarray, dirs: np.ndarray, reach: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """(n,) bool: the segments origin + s dir, 0 <= s <= reach (inf allowed), meet the box [lo, hi].
+
+    Slab test; directions need not be normalized, zero components are handled as parallel slabs."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inv = np.float32(1.0) / dirs
+        t0 = (lo - origins) * inv
+        t1 = (hi - origins) * inv
+    # A zero direction component gives +-inf (or nan when the origin is on the slab): inside the
+    # slab means any s, outside means none.
+    par = dirs == 0
+    inside = (origins >= lo) & (origins <= hi)
+    near = np.where(par, np.where(inside, -np.inf, np.inf), np.minimum(t0, t1))
+    far = np.where(par, np.where(inside, np.inf, -np.inf), np.maximum(t0, t1))
+    enter = np.maximum(near.max(axis=1), 0.0)
+    leave = np.minimum(far.min(axis=1), reach)
+    return enter <= leave
