@@ -55,6 +55,8 @@ CHUNK_RAYS = 98304
 CONVERGED = 2e-3
 #: Largest geometric ratio the tail extrapolation trusts (above it the tail is not yet geometric).
 MAX_TAIL_RATIO = 0.95
+#: The tail's ratio is trusted once the last two update ratios agree to this share.
+RATIO_AGREEMENT = 0.1
 #: Iterations stop once the tail the extrapolation adds is below this share of the solution: the
 #: extrapolated tail is itself right to ~10% (Cornell box), so ~0.3% of the light is left.
 TAIL_SHARE = 0.03
@@ -203,6 +205,10 @@ class GISolver:
         self._deltas: list[float] = []
         self._last_step = None
         self.converged = False
+
+    def extend(self, cells: np.ndarray) -> None:
+        """Add cells to the solver's set (traced by the next `resolve`)."""
+        self.cells = np.union1d(self.cells, np.asarray(cells, np.int64))
 
     @property
     def has_hits(self) -> bool:
@@ -457,12 +463,16 @@ class GISolver:
         return stats
 
     def tail_ratio(self) -> float | None:
-        """The ratio q of the last two iterations' updates when the series looks geometric
-        (0 < q < MAX_TAIL_RATIO), else None."""
-        if len(self._deltas) < 2 or self._deltas[-2] <= 0:
+        """The ratio q of the last two iterations' updates when the series looks geometric: the
+        last two ratios agree to RATIO_AGREEMENT and 0 < q < MAX_TAIL_RATIO; else None. (Early
+        ratios are smaller than the asymptotic one: the first bounces' fast-decaying modes.)"""
+        d = self._deltas
+        if len(d) < 3 or d[-2] <= 0 or d[-3] <= 0:
             return None
-        q = self._deltas[-1] / self._deltas[-2]
-        return q if 0.0 < q < MAX_TAIL_RATIO else None
+        q, q_prev = d[-1] / d[-2], d[-2] / d[-3]
+        if not (0.0 < q < MAX_TAIL_RATIO) or abs(q - q_prev) > RATIO_AGREEMENT * q:
+            return None
+        return q
 
     def extrapolate(self) -> bool:
         """Add the geometric tail of the bounce series: the last update times q / (1 - q).

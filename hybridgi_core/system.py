@@ -94,6 +94,10 @@ class GISystem:
         self.surfaces.update_rows(self.ray_geometry, rows)
         if self.solver.has_hits:
             self.solver.invalidate_boxes(_moved_boxes(old, self.ray_geometry, rows))
+        if self._surface_cells is not None and rows.size:
+            # Surfaces that moved read new cells: further bounces need those converged too
+            # (`resolve` traces them).
+            self._surface_cells = np.union1d(self._surface_cells, self._cells_on(rows))
 
     def set_lights(self, scene: SceneSnapshot) -> None:
         """New lamps, world or materials (same geometry): the shading inputs change, rays do not."""
@@ -122,24 +126,29 @@ class GISystem:
     def surface_cells(self) -> np.ndarray:
         """Cells any surface of the scene reads: what further bounces need converged."""
         if self._surface_cells is None:
-            g = self.ray_geometry
-            p = g.positions[g.triangles]
-            area = np.linalg.norm(np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), axis=1)
-            rng = np.random.default_rng(12345)
-            # Enough points that every cell-sized patch of surface gets several, whatever the
-            # triangle count (34 large Cornell triangles need as many as 300k small ones).
-            cell_area = self.cache.grid.cell_size**2
-            n = int(np.clip(8.0 * area.sum() / cell_area, 1000, SURFACE_SAMPLES))
-            tri = rng.choice(g.triangle_count, size=n, p=area / area.sum())
-            a, b = rng.random((2, n, 1), dtype=np.float32)
-            flip = (a + b) > 1
-            a, b = np.where(flip, 1 - a, a), np.where(flip, 1 - b, b)
-            pts = p[tri, 0] + a * (p[tri, 1] - p[tri, 0]) + b * (p[tri, 2] - p[tri, 0])
-            fn = g.face_normals()[tri]
-            # Both sides: open meshes are seen from both.
-            cells = np.union1d(self.visible_cells(pts, fn), self.visible_cells(pts, -fn))
-            self._surface_cells = cells
+            self._surface_cells = self._cells_on(np.arange(self.ray_geometry.triangle_count))
         return self._surface_cells
+
+    def _cells_on(self, rows: np.ndarray) -> np.ndarray:
+        """Cells the surfaces of triangles `rows` of the ray geometry read (sampled points)."""
+        g = self.ray_geometry
+        p = g.positions[g.triangles[rows]]
+        area = np.linalg.norm(np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), axis=1)
+        if rows.size == 0 or area.sum() <= 0:
+            return np.zeros(0, np.int64)
+        rng = np.random.default_rng(12345)
+        # Enough points that every cell-sized patch of surface gets several, whatever the
+        # triangle count (34 large Cornell triangles need as many as 300k small ones).
+        cell_area = self.cache.grid.cell_size**2
+        n = int(np.clip(8.0 * area.sum() / cell_area, 1000, SURFACE_SAMPLES))
+        tri = rng.choice(rows.size, size=n, p=area / area.sum())
+        a, b = rng.random((2, n, 1), dtype=np.float32)
+        flip = (a + b) > 1
+        a, b = np.where(flip, 1 - a, a), np.where(flip, 1 - b, b)
+        pts = p[tri, 0] + a * (p[tri, 1] - p[tri, 0]) + b * (p[tri, 2] - p[tri, 0])
+        fn = g.face_normals()[rows[tri]]
+        # Both sides: open meshes are seen from both.
+        return np.union1d(self.visible_cells(pts, fn), self.visible_cells(pts, -fn))
 
     def update(self, cells: np.ndarray, frame: int, alpha: float | None = None) -> UpdateStats:
         """Steps 4-5 for these cells."""
@@ -246,6 +255,8 @@ class GISystem:
         re-shade stale hits, solve again. No-op (empty stats) without stored hits."""
         if not self.solver.has_hits:
             return SolveStats()
+        if self._surface_cells is not None:
+            self.solver.extend(self._surface_cells)
         return self.solver.resolve(max_iterations)
 
     def corner_visibility(self, points: np.ndarray, normals: np.ndarray) -> np.ndarray:
