@@ -41,8 +41,9 @@ import numpy as np
 from . import sh
 from .cache import CellSamples, IrradianceCache
 from .evaluate import HitLookup, irradiance_rows, monomials
+from .lampcache import LampLightTable
 from .lights import direct_irradiance
-from .sampling import frame_directions, frame_rng, octahedral_texel
+from .sampling import frame_rng, octahedral_texel, spherical_fibonacci
 from .settings import AO_ONLY, MULTI_BOUNCE
 
 log = logging.getLogger(__name__)
@@ -60,12 +61,10 @@ RATIO_AGREEMENT = 0.1
 #: Iterations stop once the tail the extrapolation adds is below this share of the solution: the
 #: extrapolated tail is itself right to ~10% (Cornell box), so ~0.3% of the light is left.
 TAIL_SHARE = 0.03
+#: Weight of each visible face neighbour in `filter_cells` (0: no filter).
+FILTER_WEIGHT = 1.0
 #: Batches whose stored hits carry the further bounces (A of x = b + A x); every batch adds to b.
 BOUNCE_BATCHES = 1
-#: Of those batches' directions, every BOUNCE_STRIDE-th carries the further bounces (at least
-#: MIN_BOUNCE_RAYS per cell): A costs that much less per iteration.
-BOUNCE_STRIDE = 1
-MIN_BOUNCE_RAYS = 16
 
 
 @dataclass
@@ -83,7 +82,7 @@ class SolveStats:
         self.steps_ms[name] = self.steps_ms.get(name, 0.0) + ms
 
 
-@dataclass
+@dataclass(eq=False)
 class StoredHits:
     """The probe rays of one traced batch for a block of cells (m cells x r directions).
 
@@ -97,7 +96,8 @@ class StoredHits:
 
     batch: int
     cells: np.ndarray
-    dirs: np.ndarray
+    ray_dirs: np.ndarray  # (n, 3) float32: each cell's own rotation of the batch's directions
+    ybasis: np.ndarray  # (m, r, K) float32 SH basis of the rays times 4 pi / r (projection)
     t: np.ndarray
     prim: np.ndarray
     u: np.ndarray
@@ -110,36 +110,30 @@ class StoredHits:
     flat: np.ndarray = None
     lamp_stale: np.ndarray = None
     backface: np.ndarray = None  # (h,) bool: the ray hit the triangle's back
-    bounce_view: StoredHits | None = None  # `strided` copy the further bounces iterate over
+    shadow_points: int = 0  # hits whose lamp light this batch traced (not read from the table)
     samples: CellSamples = None  # geometry bands of this batch (sh_indirect left zero)
 
     @property
     def rays(self) -> int:
         return int(self.t.shape[0])
 
+    @property
+    def r(self) -> int:
+        """Rays per cell."""
+        return int(self.ybasis.shape[1])
+
     def positions(self, centers: np.ndarray) -> np.ndarray:
         """(h, 3) float32 world positions of the hits."""
-        r = self.dirs.shape[0]
-        cell_of, ray_of = np.divmod(self.hit, r)
-        p = self.dirs[ray_of] * self.t[self.hit, None]
-        p += centers[self.cells[cell_of]]
+        p = self.ray_dirs[self.hit] * self.t[self.hit, None]
+        p += centers[self.cells[self.hit // self.r]]
         return p
 
-    def strided(self, stride: int) -> StoredHits:
-        """Every `stride`-th direction of this batch, with the hits' lookup data (flat, mono,
-        brdf) only: what the further bounces of the fixed point iterate over."""
-        if stride <= 1:
-            return self
-        r = self.dirs.shape[0]
-        keep = (self.hit % r) % stride == 0
-        hit = self.hit[keep]
-        cell_of, ray_of = np.divmod(hit, r)
-        r2 = -(-r // stride)
-        return StoredHits(
-            batch=self.batch, cells=self.cells, dirs=self.dirs[::stride], t=self.t[::stride], prim=self.prim[::stride],
-            u=self.u[::stride], v=self.v[::stride], hit=cell_of * r2 + ray_of // stride,
-            brdf=self.brdf[:, keep], mono=self.mono[:, keep], flat=self.flat[keep],
-        )
+    def project(self, values: np.ndarray) -> np.ndarray:
+        """(m, K, c) SH of per-ray values (c, n): each cell over its own directions."""
+        c = values.shape[0]
+        m, r = self.cells.size, self.r
+        v = np.ascontiguousarray(values.reshape(c, m, r).transpose(1, 0, 2))  # (m, c, r)
+        return np.matmul(v, self.ybasis).transpose(0, 2, 1)  # (m, K, c)
 
     def select_cells(self, keep: np.ndarray) -> StoredHits | None:
         """This batch restricted to the cells where keep (m,) bool; None when none is left."""
@@ -147,7 +141,7 @@ class StoredHits:
             return self
         if not keep.any():
             return None
-        r = self.dirs.shape[0]
+        r = self.r
         ray_keep = np.repeat(keep, r)
         new_index = np.cumsum(ray_keep) - 1
         hit_keep = ray_keep[self.hit]
@@ -155,7 +149,7 @@ class StoredHits:
         def pick(a):
             return (None if a is None else a[..., hit_keep])
         return StoredHits(
-            batch=self.batch, cells=self.cells[keep], dirs=self.dirs,
+            batch=self.batch, cells=self.cells[keep], ray_dirs=self.ray_dirs[ray_keep], ybasis=self.ybasis[keep],
             t=self.t[ray_keep], prim=self.prim[ray_keep], u=self.u[ray_keep], v=self.v[ray_keep],
             hit=new_index[self.hit[hit_keep]], normal=self.normal[hit_keep], brdf=pick(self.brdf),
             mono=pick(self.mono), e_lamp=pick(self.e_lamp), flat=pick(self.flat),
@@ -178,11 +172,16 @@ class GISolver:
         self.scene = scene
         self.epsilon = np.float32(epsilon)
         self._pool = pool
+        #: Lamp light of the first batch's hits by surface bin; later batches read it instead of
+        #: tracing shadow rays (False: every hit traces its own, as the updater's do).
+        self.use_lamp_table = True
+        self.lamps = LampLightTable(cache.grid.lo, cache.grid.cell_size)
         self.cells = np.zeros(0, np.int64)
         self.chunks: list[StoredHits] = []
         self.batches = 0
         self._lookup_valid = None  # cache.valid the stored flats were looked up with
         self._materials_stale = False
+        self._relight_all = False  # every stored hit's lamp light is stale (lights_changed)
         self._sources = None  # (cells, b) of the fixed point; None: to compute
         self._reset_series()
         self.stats = SolveStats()
@@ -196,7 +195,9 @@ class GISolver:
         self.batches = 0
         self._lookup_valid = None
         self._materials_stale = False
+        self._relight_all = False
         self._sources = None
+        self.lamps = LampLightTable(self.cache.grid.lo, self.cache.grid.cell_size)
         self._reset_series()
 
     def _reset_series(self) -> None:
@@ -224,11 +225,16 @@ class GISolver:
         s = self.cache.settings
         if cells.size == 0:
             return stats
-        dirs = frame_directions(s.rays_per_cell, s.seed, WARMUP_FRAME_BASE + batch)
+        # Every cell turns the batch's spherical Fibonacci set by its own rotation: with one set
+        # shared by all cells (the updater's), neighbouring cells make the same projection error,
+        # which the gather's blend over 8 cells cannot average out.
+        dirs = cell_directions(s.rays_per_cell, s.seed, WARMUP_FRAME_BASE + batch, cells, self.cache.grid.count)
         per_chunk = max(1, CHUNK_RAYS // s.rays_per_cell)
         n_chunks = max(-(-cells.size // per_chunk), min(cells.size, max(1, s.threads)))
-        parts = np.array_split(cells, n_chunks)
-        jobs = [self._pool.submit(self._trace_chunk, part, dirs, batch, i) for i, part in enumerate(parts)]
+        bounds = np.cumsum([0] + [p.size for p in np.array_split(cells, n_chunks)])
+        parts = [(cells[a:b], dirs[a:b]) for a, b in zip(bounds[:-1], bounds[1:], strict=True)]
+        table = self.lamps if self.use_lamp_table and batch > 0 and not self.lamps.empty else None
+        jobs = [self._pool.submit(self._trace_chunk, part, d, batch, i, table) for i, (part, d) in enumerate(parts)]
         new = []
         for job in jobs:
             chunk, times = job.result()
@@ -239,7 +245,11 @@ class GISolver:
         self.batches = max(self.batches, batch + 1)
         stats.cells = int(cells.size)
         stats.rays = int(cells.size) * s.rays_per_cell
-        stats.shadow_points = sum(int(c.hit.size) for c in new)
+        stats.shadow_points = sum(int(c.shadow_points) for c in new)
+        if batch == 0 and self.use_lamp_table:
+            tl = time.perf_counter()
+            self._build_lamp_table()
+            stats.add("lamp_table", (time.perf_counter() - tl) * 1e3)
         if blend:
             tb = time.perf_counter()
             self._blend_geometry(cells)
@@ -248,25 +258,36 @@ class GISolver:
         stats.wall_ms = (time.perf_counter() - t0) * 1e3
         return stats
 
-    def _trace_chunk(self, cells: np.ndarray, dirs: np.ndarray, batch: int, index: int):
+    def _build_lamp_table(self) -> None:
+        """The lamp light table from the first batch's stored hits (traced with shadow rays)."""
+        first = [c for c in self.chunks if c.batch == 0 and c.hit.size]
+        if not first or not self.scene.lights:
+            self.lamps = LampLightTable(self.cache.grid.lo, self.cache.grid.cell_size)
+            return
+        keys = np.concatenate([self.lamps.key(c.positions(self.cache.centers), c.normal) for c in first])
+        self.lamps.build(keys, np.concatenate([c.e_lamp for c in first], axis=1))
+
+    def _trace_chunk(self, cells: np.ndarray, dirs: np.ndarray, batch: int, index: int, table=None):
+        """dirs : (m, r, 3) the cells' directions."""
         """Worker: trace one chunk, shade its hits (materials, lamp light) and project the bands
         that do not depend on the cache."""
         cache = self.cache
         s = cache.settings
         times = {}
-        m, r = cells.size, dirs.shape[0]
+        m, r = cells.size, dirs.shape[1]
         tic = time.perf_counter()
         origins = np.repeat(cache.centers[cells], r, axis=0)
-        ray_dirs = np.tile(dirs, (m, 1))
+        ray_dirs = np.ascontiguousarray(dirs.reshape(m * r, 3))
         tfar = np.float32(s.ray_length) if s.ray_length > 0 else np.float32(np.inf)
         hits = self.tracer.intersect(origins, ray_dirs, tfar, trusted=True)
         times["trace"] = (time.perf_counter() - tic) * 1e3
-        chunk = StoredHits(batch, cells, dirs, hits.t, hits.prim, hits.u, hits.v)
+        ybasis = (sh.basis(ray_dirs, s.sh_order) * np.float32(4.0 * np.pi / r)).reshape(m, r, -1)
+        chunk = StoredHits(batch, cells, ray_dirs, ybasis, hits.t, hits.prim, hits.u, hits.v)
         chunk.hit = np.flatnonzero(hits.prim >= 0)
         chunk.lamp_stale = np.ones(chunk.hit.size, bool)
         self._shade_materials(chunk, ray_dirs[chunk.hit])
         tic = time.perf_counter()
-        self._shade_lamps(chunk, frame_rng(s.seed, (WARMUP_FRAME_BASE + batch) * 7919 + index))
+        chunk.shadow_points = self._shade_lamps(chunk, frame_rng(s.seed, (WARMUP_FRAME_BASE + batch) * 7919 + index), table)
         times["shadow"] = (time.perf_counter() - tic) * 1e3
         tic = time.perf_counter()
         chunk.samples = self._geometry_bands(chunk)
@@ -282,14 +303,19 @@ class GISolver:
         chunk.mono = monomials(chunk.normal, self.cache.settings.sh_coeffs)
         chunk.backface = np.asarray(surf.backface, bool)
 
-    def _shade_lamps(self, chunk: StoredHits, rng: np.random.Generator) -> int:
-        """Trace the lamp light of the chunk's stale hits (all of them the first time)."""
+    def _shade_lamps(self, chunk: StoredHits, rng: np.random.Generator, table: LampLightTable | None = None) -> int:
+        """Lamp light of the chunk's stale hits (all of them the first time): read from `table`
+        where it has the hit's bin, else traced with shadow rays. Returns the hits traced."""
         s = self.cache.settings
         stale = np.flatnonzero(chunk.lamp_stale)
         if chunk.e_lamp is None:
             chunk.e_lamp = np.zeros((3, chunk.hit.size), np.float32)
         if stale.size and s.indirect_quality != AO_ONLY and self.scene.lights:
             pos = chunk.positions(self.cache.centers)[stale]
+            if table is not None:
+                found, e = table.lookup(table.key(pos, chunk.normal[stale]))
+                chunk.e_lamp[:, stale[found]] = e[:, found]
+                stale, pos = stale[~found], pos[~found]
             # One shadow ray along a sun's axis per hit, as the updater's: the cache is low frequency.
             e = direct_irradiance(self.scene.lights, pos, chunk.normal[stale], self.tracer, rng,
                                   samples=s.light_samples, epsilon=float(self.epsilon), sun_disc=False)
@@ -303,7 +329,7 @@ class GISolver:
         """Direct band (sky on misses, emission on hits), AO, depth moments and back faces."""
         cache = self.cache
         s = cache.settings
-        m, r = chunk.cells.size, chunk.dirs.shape[0]
+        m, r = chunk.cells.size, chunk.r
         n = m * r
         values = np.empty((4, n), np.float32)
         values[0:3] = self.scene.world.color[:, None]
@@ -313,15 +339,14 @@ class GISolver:
         if s.indirect_quality == AO_ONLY:
             values[0:3] = 0.0
         np.greater(chunk.t, s.ao_distance, out=values[3])
-        coeffs = sh.project_channels(values.reshape(4, m, r).transpose(1, 0, 2), chunk.dirs, s.sh_order)  # (m, K, 4)
+        coeffs = chunk.project(values)  # (m, K, 4)
+        # Depth moments per (cell, octahedral texel): the texels differ per cell (own rotation).
         n_tex = s.depth_texels**2
-        texel = octahedral_texel(chunk.dirs, s.depth_texels)
-        one_hot = np.zeros((r, n_tex), np.float32)
-        one_hot[np.arange(r), texel] = 1.0
-        depth = np.empty((2, n), np.float32)
-        np.minimum(chunk.t, cache.depth_cap, out=depth[0])
-        np.multiply(depth[0], depth[0], out=depth[1])
-        sums = sh.matmul_on_this_thread(depth.reshape(2 * m, r), one_hot).reshape(2, m, n_tex)
+        key = octahedral_texel(chunk.ray_dirs, s.depth_texels).astype(np.intp)
+        key += np.repeat(np.arange(m, dtype=np.intp) * n_tex, r)
+        d = np.minimum(chunk.t, cache.depth_cap)
+        count = np.bincount(key, minlength=m * n_tex).reshape(m, n_tex).astype(np.float32)
+        sums = [np.bincount(key, weights=w, minlength=m * n_tex).reshape(m, n_tex) for w in (d, d * d)]
         back = np.zeros(n, bool)
         back[h] = chunk.backface
         return CellSamples(
@@ -329,8 +354,8 @@ class GISolver:
             sh_direct=np.ascontiguousarray(coeffs[..., 0:3]),
             sh_indirect=np.zeros_like(coeffs[..., 0:3]),
             ao_sh=np.ascontiguousarray(coeffs[..., 3]),
-            depth_sum=np.stack([sums[0], sums[1]], axis=-1),
-            depth_count=one_hot.sum(axis=0),
+            depth_sum=np.stack([sums[0], sums[1]], axis=-1).astype(np.float32),
+            depth_count=count,
             backface=back.reshape(m, r).sum(axis=1, dtype=np.float32) * np.float32(1.0 / r),
         )
 
@@ -366,10 +391,6 @@ class GISolver:
         self._read_cells = np.unique(np.concatenate(flats)) if flats else np.zeros(0, np.intp)
         for c, flat in zip(self.chunks, flats, strict=True):
             c.flat = np.searchsorted(self._read_cells, flat)
-            if c.batch < BOUNCE_BATCHES:
-                r = c.dirs.shape[0]
-                stride = max(1, min(BOUNCE_STRIDE, r // MIN_BOUNCE_RAYS))
-                c.bounce_view = c.strided(stride if r % stride == 0 else 1)
         self._read_valid = valid[self._read_cells]
         self._lookup_valid = valid
         self._sources = None
@@ -408,14 +429,13 @@ class GISolver:
     def _project_hits(self, chunk: StoredHits, rows: np.ndarray, lamps: bool) -> np.ndarray:
         """Worker: (m, K, 3) SH of one chunk's rays: brdf * (irradiance table `rows` read at the
         hits [+ lamp light])."""
-        m, r = chunk.cells.size, chunk.dirs.shape[0]
         e = evaluate_rows(rows, chunk.flat, chunk.mono)  # (3, h)
         if lamps:
             e += chunk.e_lamp
         e *= chunk.brdf
-        values = np.zeros((3, m * r), np.float32)
+        values = np.zeros((3, chunk.rays), np.float32)
         values[:, chunk.hit] = e
-        return sh.project_channels(values.reshape(3, m, r).transpose(1, 0, 2), chunk.dirs, self.cache.settings.sh_order)
+        return chunk.project(values)
 
     def relax(self) -> SolveStats:
         """One fixed-point iteration x <- b + A x of sh_indirect: b is the first bounce (lamp
@@ -440,7 +460,7 @@ class GISolver:
             rows = self._rows(cache.sh_indirect)
             stats.add("lookup", (time.perf_counter() - tl) * 1e3)
             tb = time.perf_counter()
-            chunks = [c.bounce_view for c in self.chunks if c.batch < BOUNCE_BATCHES]
+            chunks = [c for c in self.chunks if c.batch < BOUNCE_BATCHES]
             jobs = [self._pool.submit(self._project_hits, c, rows, False) for c in chunks]
             b_cells, bounce = self._mean_over_batches([j.result() for j in jobs], chunks)
             new[np.searchsorted(src_cells, b_cells)] += bounce
@@ -502,6 +522,58 @@ class GISolver:
             self.extrapolate()
         return stats
 
+    def filter_cells(self, weight: float | None = None, bands=("sh_indirect", "sh_direct")) -> int:
+        """Average each solver cell's radiance bands with its 6 face neighbours that are valid and
+        whose centres see each other (one occlusion ray per pair): x' = (x + w sum x_n) /
+        (1 + w k). The neighbours' rays are independent samples of nearly the same incident light
+        (a cell apart), so this cuts the cache's ray noise like ~(1 + 6 w) times the rays, at the
+        price of blurring the light by about a cell, which the gather's trilinear weights do
+        anyway. Filter the direct band once per traced solve only (`resolve` re-solves the
+        indirect band from unfiltered sources; the direct band would blur again). Returns the
+        occlusion rays traced."""
+        w = np.float32(FILTER_WEIGHT if weight is None else weight)
+        cache = self.cache
+        cells = self.cells[cache.valid[self.cells]]
+        if w <= 0 or cells.size == 0:
+            return 0
+        grid = cache.grid
+        dims = np.asarray(grid.dims)
+        ijk = grid.unflatten(cells)
+        pairs_a, pairs_b = [], []
+        for axis in range(3):
+            step = ijk.copy()
+            step[:, axis] += 1
+            inside = step[:, axis] < dims[axis]
+            nb = grid.flatten(step[inside])
+            ok = cache.valid[nb]
+            pairs_a.append(cells[inside][ok])
+            pairs_b.append(nb[ok])
+        a = np.concatenate(pairs_a)
+        b = np.concatenate(pairs_b)
+        if a.size == 0:
+            return 0
+        o = cache.centers[a]
+        d = cache.centers[b] - o
+        dist = np.linalg.norm(d, axis=1).astype(np.float32)
+        d /= dist[:, None]
+        blocked = self.tracer.occluded(o, d.astype(np.float32), dist, trusted=True)
+        a, b = a[~blocked], b[~blocked]
+        for name in bands:
+            x = getattr(cache, name)
+            flat = x.reshape(x.shape[0], -1)
+            acc = flat[cells].copy()
+            wsum = np.ones(cells.size, np.float32)
+            pa, pb = np.searchsorted(cells, a), np.searchsorted(cells, b)
+            # Both ends of a visible pair are solver cells only when b is one: others keep theirs.
+            in_b = (pb < cells.size) & (cells[np.minimum(pb, cells.size - 1)] == b)
+            np.add.at(acc, pa, w * flat[b])
+            np.add.at(wsum, pa, w)
+            np.add.at(acc, pb[in_b], w * flat[a[in_b]])
+            np.add.at(wsum, pb[in_b], w)
+            flat[cells] = acc / wsum[:, None]
+        cache.version += 1
+        return int(o.shape[0])
+
     # --- events --------------------------------------------------------------------------------
 
     def invalidate_boxes(self, boxes) -> np.ndarray:
@@ -521,9 +593,9 @@ class GISolver:
         dropped = []
         kept = []
         for chunk in self.chunks:
-            m, r = chunk.cells.size, chunk.dirs.shape[0]
+            m, r = chunk.cells.size, chunk.r
             origins = np.repeat(self.cache.centers[chunk.cells], r, axis=0)
-            ray_dirs = np.tile(chunk.dirs, (m, 1))
+            ray_dirs = chunk.ray_dirs
             reach = np.minimum(chunk.t, tfar)
             crosses = np.zeros(m * r, bool)
             for lo, hi in boxes:
@@ -570,6 +642,7 @@ class GISolver:
             chunk.lamp_stale[:] = True
             chunk.e_lamp = None
         self._materials_stale = True
+        self._relight_all = True
 
     def resolve(self, max_iterations: int = 16) -> SolveStats:
         """After events: trace the dropped cells' batches again, re-shade stale hits (materials,
@@ -588,9 +661,21 @@ class GISolver:
         stale = [c for c in self.chunks if c.lamp_stale.any()]
         if stale:
             tic = time.perf_counter()
+            # The first batch traces its stale hits; the table is rebuilt from it, then the
+            # other batches read their bins (a relight costs one batch of shadow rays). After a
+            # geometry event only hits near the change are stale: those all trace.
+            relight = self._relight_all
+            first = [c for c in stale if c.batch == 0] if relight and self.use_lamp_table else stale
+            rest = [c for c in stale if all(c is not f for f in first)] if relight and self.use_lamp_table else []
             jobs = [self._pool.submit(self._shade_lamps, c, frame_rng(s.seed, (WARMUP_FRAME_BASE + c.batch) * 7919 + i))
-                    for i, c in enumerate(stale)]
+                    for i, c in enumerate(first)]
             stats.shadow_points = sum(j.result() for j in jobs)
+            if self.use_lamp_table:
+                self._build_lamp_table()
+            jobs = [self._pool.submit(self._shade_lamps, c, frame_rng(s.seed, (WARMUP_FRAME_BASE + c.batch) * 7919 + i), self.lamps)
+                    for i, c in enumerate(rest)]
+            stats.shadow_points += sum(j.result() for j in jobs)
+            self._relight_all = False
             self._sources = None
             stats.add("shadow", (time.perf_counter() - tic) * 1e3)
         retraced = []
@@ -607,14 +692,27 @@ class GISolver:
         return stats
 
     def _reshade_chunk(self, chunk: StoredHits) -> None:
-        r = chunk.dirs.shape[0]
-        ray_of = chunk.hit % r
-        self._shade_materials(chunk, chunk.dirs[ray_of])
+        self._shade_materials(chunk, chunk.ray_dirs[chunk.hit])
         chunk.lamp_stale[:] = True
         chunk.samples = self._geometry_bands(chunk)
 
     def stored_rays(self) -> int:
         return sum(c.rays for c in self.chunks)
+
+
+def cell_directions(n: int, seed: int, frame: int, cells: np.ndarray, grid_count: int) -> np.ndarray:
+    """(m, n, 3) float32 probe directions of cells (m,): spherical Fibonacci turned by a uniform
+    random rotation per cell, drawn from (seed, frame) for the whole grid so a cell's rays do not
+    depend on which other cells are traced with it."""
+    q = frame_rng(seed, frame).normal(size=(grid_count, 4))[cells]
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    w, x, y, z = q.T
+    rot = np.stack([
+        np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)], -1),
+        np.stack([2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)], -1),
+        np.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], -1),
+    ], 1).astype(np.float32)  # (m, 3, 3)
+    return np.matmul(spherical_fibonacci(n)[None], rot.transpose(0, 2, 1))
 
 
 def evaluate_rows(rows: np.ndarray, index: np.ndarray, mono: np.ndarray) -> np.ndarray:
@@ -632,7 +730,8 @@ def _sample_rows(s: CellSamples, rows: np.ndarray) -> CellSamples:
     """The rows (m,) bool of a CellSamples."""
     return CellSamples(
         cells=s.cells[rows], sh_direct=s.sh_direct[rows], sh_indirect=s.sh_indirect[rows], ao_sh=s.ao_sh[rows],
-        depth_sum=s.depth_sum[rows], depth_count=s.depth_count, backface=s.backface[rows],
+        depth_sum=s.depth_sum[rows], depth_count=s.depth_count[rows] if s.depth_count.ndim == 2 else s.depth_count,
+        backface=s.backface[rows],
         shaded=None if s.shaded is None else s.shaded[rows],
     )
 

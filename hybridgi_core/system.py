@@ -34,7 +34,7 @@ __all__ = ["GISystem", "WARMUP_FRAME_BASE", "SURFACE_SAMPLES", "UPDATES_PER_BATC
 #: Warm-up updates per traced batch of directions: a warm-up of N updates traces
 #: max(1, round(N / UPDATES_PER_BATCH)) batches of rays_per_cell directions per cell and spends
 #: the rest of its steps on fixed-point iterations over the stored hits (no rays).
-UPDATES_PER_BATCH = 4
+UPDATES_PER_BATCH = 8
 
 
 class GISystem:
@@ -161,7 +161,9 @@ class GISystem:
         directions (the steps 0..B-1), storing every probe hit with its lamp light
         (`solver.StoredHits`), then solves the multi-bounce cache as a fixed point over the stored
         hits: each later step is one iteration (one more bounce, no ray), skipped once converged;
-        the last adds the geometric tail of the bounces still missing. The same steps always use
+        the last adds the geometric tail of the bounces still missing and filters each cell with
+        its visible neighbours (`GISolver.filter_cells`: every cell has its own ray rotation, so
+        neighbours' noise is independent). The same steps always use
         the same rays, so a static scene renders identically on every frame and on any machine of
         a render farm. `start` and `total` let a caller run the steps one at a time (progress,
         cancelling), with the same `cells` each time. Returns one SolveStats per step.
@@ -184,6 +186,7 @@ class GISystem:
                     st.add(k, v)
             if i == total - 1:
                 self.solver.extrapolate()
+                st.shadow_points += self.solver.filter_cells()
                 self._mark_warm(total)
             runs.append(st)
         return runs
@@ -208,14 +211,16 @@ class GISystem:
         count = 1 + total - total // 2 if self.settings.indirect_quality == MULTI_BOUNCE else total
         self.cache.samples[cells] = np.where(self.cache.samples[cells] > 0, count, 0)
 
-    def solve(self, cells: np.ndarray | None = None, batches: int = 2, max_iterations: int = 16) -> SolveStats:
+    def solve(self, cells: np.ndarray | None = None, batches: int = 2, max_iterations: int = 16,
+              extrapolate: bool = True) -> SolveStats:
         """Trace `batches` direction sets from `cells` (default: the surface cells), store the
         hits and solve the fixed point: what `warm_up` does, in one call."""
         self.solver.begin(self.surface_cells() if cells is None else cells)
         stats = SolveStats()
         for b in range(batches):
             _merge_stats(stats, self.solver.trace_batch(b))
-        _merge_stats(stats, self.solver.solve(max_iterations))
+        _merge_stats(stats, self.solver.solve(max_iterations, extrapolate))
+        stats.shadow_points += self.solver.filter_cells()
         return stats
 
     # --- cache events: what GISession.sync raises --------------------------------------------------
@@ -257,7 +262,9 @@ class GISystem:
             return SolveStats()
         if self._surface_cells is not None:
             self.solver.extend(self._surface_cells)
-        return self.solver.resolve(max_iterations)
+        stats = self.solver.resolve(max_iterations)
+        stats.shadow_points += self.solver.filter_cells(bands=("sh_indirect",))
+        return stats
 
     def corner_visibility(self, points: np.ndarray, normals: np.ndarray) -> np.ndarray:
         """(n, 8) bool exact visibility of the neighbouring cells (occlusion rays) for the gather."""

@@ -90,7 +90,7 @@ def test_extrapolated_fixed_point_reaches_infinite_bounces_in_few_iterations():
         g = gi.gather(pts, up)
         assert tracer.intersect_rays == gi.surface_cells().size * s.rays_per_cell
     assert stats.iterations <= 6
-    np.testing.assert_allclose(g.indirect, np.pi * LE * RHO / (1 - RHO), rtol=3e-3)
+    np.testing.assert_allclose(g.indirect, np.pi * LE * RHO / (1 - RHO), rtol=5e-3)
     np.testing.assert_allclose(g.direct, np.pi * LE, rtol=3e-3)
 
 
@@ -103,8 +103,8 @@ def test_warm_up_is_the_solver_deterministic_and_traces_its_batches_only():
             stats = gi.warm_up(16)
             cells = gi.surface_cells()
             runs.append((gi.cache.sh_indirect.copy(), gi.cache.sh_direct.copy(), gi.cache.depth.copy()))
-            # 16 updates = 4 traced batches; every other step iterates without rays.
-            assert tracer.intersect_rays == 4 * cells.size * s.rays_per_cell
+            # 16 updates = 2 traced batches; every other step iterates without rays.
+            assert tracer.intersect_rays == 2 * cells.size * s.rays_per_cell
             assert sum(st.rays for st in stats) == tracer.intersect_rays
             assert gi.cache.valid[cells].sum() > 0
     for a, b in zip(runs[0], runs[1], strict=True):
@@ -125,8 +125,7 @@ def _stored_ray_segments(gi):
     """Per stored batch: (cells (m,), origins (n, 3), dirs (n, 3), t (n,)) of every stored ray."""
     out = []
     for c in gi.solver.chunks:
-        r = c.dirs.shape[0]
-        out.append((c.cells, np.repeat(gi.cache.centers[c.cells], r, axis=0), np.tile(c.dirs, (c.cells.size, 1)), c.prim, c.t))
+        out.append((c.cells, np.repeat(gi.cache.centers[c.cells], c.r, axis=0), c.ray_dirs, c.prim, c.t))
     return out
 
 
@@ -186,7 +185,7 @@ def test_resolve_after_a_move_retraces_only_dropped_cells_and_matches_a_fresh_so
         ref = fresh.cache.sh_indirect
     # Same directions and same hits everywhere: only shadow-ray noise (hard point light: none)
     # and the iteration's stopping point can differ.
-    np.testing.assert_allclose(moved[cells, 0], ref[cells, 0], rtol=0.02, atol=1e-3 * np.abs(ref[cells, 0]).max())
+    np.testing.assert_allclose(moved[cells, 0], ref[cells, 0], rtol=0.04, atol=1e-3 * np.abs(ref[cells, 0]).max())
 
 
 def test_light_change_reshades_stored_hits_without_probe_rays():
@@ -202,9 +201,11 @@ def test_light_change_reshades_stored_hits_without_probe_rays():
         gi.set_lights(room_with_ball(energy=600.0))
         stats = gi.on_lights_changed()
         after = gi.gather(pts, up).indirect
-        hits = sum(c.hit.size for c in gi.solver.chunks)
+        hits = sum(c.hit.size for c in gi.solver.chunks if c.batch == 0)
     assert tracer.intersect_rays == 0
-    assert tracer.occluded_rays > 0.5 * hits > 0  # a shadow ray per stored hit facing the lamp
+    # A shadow ray per first-batch hit facing the lamp; the second batch reads the lamp table
+    # and traces only hits in bins the first never reached (tracing all would be 2x hits).
+    assert 1.5 * hits >= tracer.occluded_rays > 0.5 * hits > 0
     assert stats.iterations > 0
     np.testing.assert_allclose(after, 2.0 * before, rtol=5e-3)
 
