@@ -61,6 +61,8 @@ RATIO_AGREEMENT = 0.1
 #: Iterations stop once the tail the extrapolation adds is below this share of the solution: the
 #: extrapolated tail is itself right to ~10% (Cornell box), so ~0.3% of the light is left.
 TAIL_SHARE = 0.03
+#: Hits per lamp-table bin of the first batch that trace shadow rays (the rest share their mean).
+LAMP_SAMPLES_PER_BIN = 2
 #: Weight of each visible face neighbour in `filter_cells` (0: no filter).
 FILTER_WEIGHT = 1.0
 #: Batches whose stored hits carry the further bounces (A of x = b + A x); every batch adds to b.
@@ -172,9 +174,11 @@ class GISolver:
         self.scene = scene
         self.epsilon = np.float32(epsilon)
         self._pool = pool
-        #: Lamp light of the first batch's hits by surface bin; later batches read it instead of
-        #: tracing shadow rays (False: every hit traces its own, as the updater's do).
-        self.use_lamp_table = True
+        #: Lamp light shared by surface bin (`lampcache.py`): the first batch traces a few hits per
+        #: bin, every other hit reads its bin. Off by default: on 2 cores its sort and lookups
+        #: cost as much as the shadow rays they save (Cornell box, 2 batches: 1.4 s vs 1.3 s of
+        #: worker time per batch); worth it with many batches or many lamps per hit.
+        self.use_lamp_table = False
         self.lamps = LampLightTable(cache.grid.lo, cache.grid.cell_size)
         self.cells = np.zeros(0, np.int64)
         self.chunks: list[StoredHits] = []
@@ -234,7 +238,8 @@ class GISolver:
         bounds = np.cumsum([0] + [p.size for p in np.array_split(cells, n_chunks)])
         parts = [(cells[a:b], dirs[a:b]) for a, b in zip(bounds[:-1], bounds[1:], strict=True)]
         table = self.lamps if self.use_lamp_table and batch > 0 and not self.lamps.empty else None
-        jobs = [self._pool.submit(self._trace_chunk, part, d, batch, i, table) for i, (part, d) in enumerate(parts)]
+        by_bins = self.use_lamp_table and table is None and bool(self.scene.lights)
+        jobs = [self._pool.submit(self._trace_chunk, part, d, batch, i, table, by_bins) for i, (part, d) in enumerate(parts)]
         new = []
         for job in jobs:
             chunk, times = job.result()
@@ -246,10 +251,10 @@ class GISolver:
         stats.cells = int(cells.size)
         stats.rays = int(cells.size) * s.rays_per_cell
         stats.shadow_points = sum(int(c.shadow_points) for c in new)
-        if batch == 0 and self.use_lamp_table:
+        if by_bins:
             tl = time.perf_counter()
-            self._build_lamp_table()
-            stats.add("lamp_table", (time.perf_counter() - tl) * 1e3)
+            stats.shadow_points += self._shade_by_bins(new)
+            stats.add("shadow", (time.perf_counter() - tl) * 1e3)
         if blend:
             tb = time.perf_counter()
             self._blend_geometry(cells)
@@ -258,19 +263,43 @@ class GISolver:
         stats.wall_ms = (time.perf_counter() - t0) * 1e3
         return stats
 
-    def _build_lamp_table(self) -> None:
-        """The lamp light table from the first batch's stored hits (traced with shadow rays)."""
-        first = [c for c in self.chunks if c.batch == 0 and c.hit.size]
-        if not first or not self.scene.lights:
-            self.lamps = LampLightTable(self.cache.grid.lo, self.cache.grid.cell_size)
-            return
-        keys = np.concatenate([self.lamps.key(c.positions(self.cache.centers), c.normal) for c in first])
-        self.lamps.build(keys, np.concatenate([c.e_lamp for c in first], axis=1))
+    def _shade_by_bins(self, chunks: list[StoredHits]) -> int:
+        """Lamp light of every hit of `chunks` through the table: shadow rays from the first
+        LAMP_SAMPLES_PER_BIN hits of each surface bin only, the table built from their means,
+        every hit given its bin's mean (the first batch's ~6 hits per bin share their rays).
+        Rebuilds `self.lamps`. Returns the hits traced."""
+        s = self.cache.settings
+        self.lamps = LampLightTable(self.cache.grid.lo, self.cache.grid.cell_size)
+        live = [c for c in chunks if c.hit.size]
+        if not live:
+            return 0
+        keys = [self.lamps.key(c.positions(self.cache.centers), c.normal) for c in live]
+        flat = np.concatenate(keys)
+        order = np.argsort(flat, kind="stable")
+        sk = flat[order]
+        start = np.flatnonzero(np.concatenate([[True], sk[1:] != sk[:-1]]))
+        rank = np.arange(sk.size) - np.repeat(start, np.diff(np.append(start, sk.size)))
+        chosen = np.zeros(flat.size, bool)
+        chosen[order[rank < LAMP_SAMPLES_PER_BIN]] = True
+        offsets = np.cumsum([0] + [k.size for k in keys])
+        for c, a, b in zip(live, offsets[:-1], offsets[1:], strict=True):
+            c.lamp_stale = chosen[a:b].copy()
+            c.e_lamp = np.zeros((3, c.hit.size), np.float32)
+        jobs = [self._pool.submit(self._shade_lamps, c, frame_rng(s.seed, (WARMUP_FRAME_BASE + c.batch) * 7919 + i))
+                for i, c in enumerate(live)]
+        traced = sum(j.result() for j in jobs)
+        e = np.concatenate([c.e_lamp for c in live], axis=1)
+        self.lamps.build(flat[chosen], e[:, chosen])
+        _, mean = self.lamps.lookup(flat)
+        for c, a, b in zip(live, offsets[:-1], offsets[1:], strict=True):
+            c.e_lamp = np.ascontiguousarray(mean[:, a:b])
+            c.lamp_stale[:] = False
+        return traced
 
-    def _trace_chunk(self, cells: np.ndarray, dirs: np.ndarray, batch: int, index: int, table=None):
-        """dirs : (m, r, 3) the cells' directions."""
-        """Worker: trace one chunk, shade its hits (materials, lamp light) and project the bands
-        that do not depend on the cache."""
+    def _trace_chunk(self, cells: np.ndarray, dirs: np.ndarray, batch: int, index: int, table=None, defer=False):
+        """Worker: trace one chunk (dirs (m, r, 3): the cells' directions), shade its hits
+        (materials; lamp light from `table`, else traced, unless `defer`: `_shade_by_bins` does it)
+        and project the bands that do not depend on the cache."""
         cache = self.cache
         s = cache.settings
         times = {}
@@ -286,9 +315,11 @@ class GISolver:
         chunk.hit = np.flatnonzero(hits.prim >= 0)
         chunk.lamp_stale = np.ones(chunk.hit.size, bool)
         self._shade_materials(chunk, ray_dirs[chunk.hit])
-        tic = time.perf_counter()
-        chunk.shadow_points = self._shade_lamps(chunk, frame_rng(s.seed, (WARMUP_FRAME_BASE + batch) * 7919 + index), table)
-        times["shadow"] = (time.perf_counter() - tic) * 1e3
+        if not defer:
+            tic = time.perf_counter()
+            rng = frame_rng(s.seed, (WARMUP_FRAME_BASE + batch) * 7919 + index)
+            chunk.shadow_points = self._shade_lamps(chunk, rng, table)
+            times["shadow"] = (time.perf_counter() - tic) * 1e3
         tic = time.perf_counter()
         chunk.samples = self._geometry_bands(chunk)
         times["sh"] = (time.perf_counter() - tic) * 1e3
@@ -340,13 +371,18 @@ class GISolver:
             values[0:3] = 0.0
         np.greater(chunk.t, s.ao_distance, out=values[3])
         coeffs = chunk.project(values)  # (m, K, 4)
-        # Depth moments per (cell, octahedral texel): the texels differ per cell (own rotation).
+        # Depth moments per (cell, octahedral texel), the texels differing per cell (own rotation),
+        # from the first batch only: final renders gather through occlusion-ray masks, so depth
+        # only backs the mask-less fallback, and its texel lookup is the costliest part here.
         n_tex = s.depth_texels**2
-        key = octahedral_texel(chunk.ray_dirs, s.depth_texels).astype(np.intp)
-        key += np.repeat(np.arange(m, dtype=np.intp) * n_tex, r)
-        d = np.minimum(chunk.t, cache.depth_cap)
-        count = np.bincount(key, minlength=m * n_tex).reshape(m, n_tex).astype(np.float32)
-        sums = [np.bincount(key, weights=w, minlength=m * n_tex).reshape(m, n_tex) for w in (d, d * d)]
+        count = np.zeros((m, n_tex), np.float32)
+        sums = [count, count]
+        if chunk.batch == 0:
+            key = octahedral_texel(chunk.ray_dirs, s.depth_texels).astype(np.intp)
+            key += np.repeat(np.arange(m, dtype=np.intp) * n_tex, r)
+            d = np.minimum(chunk.t, cache.depth_cap)
+            count = np.bincount(key, minlength=m * n_tex).reshape(m, n_tex).astype(np.float32)
+            sums = [np.bincount(key, weights=w, minlength=m * n_tex).reshape(m, n_tex) for w in (d, d * d)]
         back = np.zeros(n, bool)
         back[h] = chunk.backface
         return CellSamples(
@@ -664,14 +700,15 @@ class GISolver:
             # The first batch traces its stale hits; the table is rebuilt from it, then the
             # other batches read their bins (a relight costs one batch of shadow rays). After a
             # geometry event only hits near the change are stale: those all trace.
-            relight = self._relight_all
-            first = [c for c in stale if c.batch == 0] if relight and self.use_lamp_table else stale
-            rest = [c for c in stale if all(c is not f for f in first)] if relight and self.use_lamp_table else []
-            jobs = [self._pool.submit(self._shade_lamps, c, frame_rng(s.seed, (WARMUP_FRAME_BASE + c.batch) * 7919 + i))
-                    for i, c in enumerate(first)]
-            stats.shadow_points = sum(j.result() for j in jobs)
-            if self.use_lamp_table:
-                self._build_lamp_table()
+            by_bins = self._relight_all and self.use_lamp_table and bool(self.scene.lights)
+            first = [c for c in stale if c.batch == 0] if by_bins else stale
+            rest = [c for c in stale if all(c is not f for f in first)] if by_bins else []
+            if by_bins:
+                stats.shadow_points = self._shade_by_bins(first)
+            else:
+                jobs = [self._pool.submit(self._shade_lamps, c, frame_rng(s.seed, (WARMUP_FRAME_BASE + c.batch) * 7919 + i))
+                        for i, c in enumerate(first)]
+                stats.shadow_points = sum(j.result() for j in jobs)
             jobs = [self._pool.submit(self._shade_lamps, c, frame_rng(s.seed, (WARMUP_FRAME_BASE + c.batch) * 7919 + i), self.lamps)
                     for i, c in enumerate(rest)]
             stats.shadow_points += sum(j.result() for j in jobs)
