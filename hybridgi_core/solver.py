@@ -60,7 +60,7 @@ MAX_TAIL_RATIO = 0.95
 RATIO_AGREEMENT = 0.1
 #: Iterations stop once the tail the extrapolation adds is below this share of the solution: the
 #: extrapolated tail is itself right to ~10% (Cornell box), so ~0.3% of the light is left.
-TAIL_SHARE = 0.03
+TAIL_SHARE = 0.06
 #: Hits per lamp-table bin of the first batch that trace shadow rays (the rest share their mean).
 LAMP_SAMPLES_PER_BIN = 2
 #: Weight of each visible face neighbour in `filter_cells` (0: no filter).
