@@ -30,11 +30,13 @@ log = logging.getLogger(__name__)
 SURFACE_SAMPLES = 2_000_000
 #: Warm-up batches use frame numbers from WARMUP_FRAME_BASE on (defined in solver.py, re-exported
 #: here), so warm-up rays never repeat a frame's rays.
-__all__ = ["GISystem", "WARMUP_FRAME_BASE", "SURFACE_SAMPLES", "UPDATES_PER_BATCH"]
+__all__ = ["GISystem", "MAX_WARMUP_ITERATIONS", "SURFACE_SAMPLES", "UPDATES_PER_BATCH", "WARMUP_FRAME_BASE"]
 #: Warm-up updates per traced batch of directions: a warm-up of N updates traces
 #: max(1, round(N / UPDATES_PER_BATCH)) batches of rays_per_cell directions per cell and spends
 #: the rest of its steps on fixed-point iterations over the stored hits (no rays).
 UPDATES_PER_BATCH = 8
+#: Most fixed-point iterations of one warm-up (they stop earlier once converged).
+MAX_WARMUP_ITERATIONS = 16
 
 
 class GISystem:
@@ -160,8 +162,8 @@ class GISystem:
         A warm-up of `total` updates traces B = max(1, round(total / UPDATES_PER_BATCH)) batches of
         directions (the steps 0..B-1), storing every probe hit with its lamp light
         (`solver.StoredHits`), then solves the multi-bounce cache as a fixed point over the stored
-        hits: each later step is one iteration (one more bounce, no ray), skipped once converged;
-        the last adds the geometric tail of the bounces still missing and filters each cell with
+        hits: each later step runs its share of MAX_WARMUP_ITERATIONS iterations (each one more
+        bounce, no ray), none once converged; the last adds the geometric tail of the bounces still missing and filters each cell with
         its visible neighbours (`GISolver.filter_cells`: every cell has its own ray rotation, so
         neighbours' noise is independent). The same steps always use
         the same rays, so a static scene renders identically on every frame and on any machine of
@@ -171,19 +173,19 @@ class GISystem:
         cells = self.surface_cells() if cells is None else cells
         total = iterations if total is None else total
         batches = max(1, min(total, round(total / UPDATES_PER_BATCH)))
+        # The iterations (cheap) spread over the steps left, up to MAX_WARMUP_ITERATIONS in all:
+        # a short warm-up converges as far as a long one.
+        per_step = -(-MAX_WARMUP_ITERATIONS // max(1, total - batches))
         runs = []
         for i in range(start, start + iterations):
             if i == 0:
                 self.solver.begin(cells)
-            if i < batches:
-                st = self.solver.trace_batch(i)
-            else:
-                st = SolveStats() if self.solver.converged else self.solver.relax()
-            if i == batches - 1 and total == batches:
-                st_relax = self.solver.relax()  # no step left for iterations: one bounce at least
-                st.iterations += st_relax.iterations
-                for k, v in st_relax.steps_ms.items():
-                    st.add(k, v)
+            st = self.solver.trace_batch(i) if i < batches else SolveStats()
+            if i >= batches or total == batches and i == batches - 1:
+                for _ in range(per_step):
+                    if self.solver.converged:
+                        break
+                    _merge_stats(st, self.solver.relax())
             if i == total - 1:
                 self.solver.extrapolate()
                 st.shadow_points += self.solver.filter_cells()
