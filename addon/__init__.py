@@ -1,7 +1,8 @@
 """HybridGI: real-time global illumination from a ray-traced irradiance cache and raster passes.
 
 Blender loads this package as an extension (metadata in blender_manifest.toml). The numerics live
-in `hybridgi_core`, found through `_core`.
+in `hybridgi_core`, imported by its own name: the development checkout installs it in the Python
+environment, the extension zip ships it as a wheel that Blender installs with the extension.
 """
 
 from . import animation, engine, overlay, properties, ui

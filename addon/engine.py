@@ -1,11 +1,10 @@
 """The HYBRIDGI render engine: thin callbacks into `pipeline`, errors reported from one place."""
 
-import importlib
 import logging
 
 import bpy
 
-from ._core import errors
+from hybridgi_core import errors
 
 log = logging.getLogger(__name__)
 
@@ -73,11 +72,7 @@ def render_frame(engine, depsgraph):
     global LAST_ERROR
     LAST_ERROR = None
     try:
-        pipeline = _pipeline()
-        if pipeline is None:
-            _fail(engine, "this HybridGI build has no render pipeline (addon/pipeline.py)")
-            return
-        pipeline.render_frame(engine, depsgraph)
+        _pipeline().render_frame(engine, depsgraph)
     except errors.HybridGIError as err:
         _fail(engine, str(err))
     except Exception as err:
@@ -88,24 +83,18 @@ def render_frame(engine, depsgraph):
 
 
 def _pipeline():
-    """The pipeline module, or None when this build has none.
+    """The pipeline module, imported on first render, not at registration: it pulls in embreex
+    and the gpu passes, which registering the add-on (and its UI) must not need."""
+    from . import pipeline  # noqa: PLC0415
 
-    Imported on first render, not at registration: it pulls in embreex and the gpu passes, which
-    registering the add-on (and its UI) must not need. A missing dependency of the pipeline is
-    not "no pipeline": that ModuleNotFoundError propagates.
-    """
-    name = f"{__package__}.pipeline"
-    try:
-        return importlib.import_module(name)
-    except ModuleNotFoundError as err:
-        if err.name != name:
-            raise
-        return None
+    return pipeline
 
 
 def _viewport():
     """The viewport module, imported on first use for the reason `_pipeline` gives."""
-    return importlib.import_module(f"{__package__}.viewport")
+    from . import viewport  # noqa: PLC0415
+
+    return viewport
 
 
 def _fail(engine, message):

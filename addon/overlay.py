@@ -16,7 +16,6 @@ point at each valid cell's centre, coloured by the radiance it holds, from the c
 live view of the scene (engine or overlay) drew.
 """
 
-import importlib
 import logging
 import sys
 
@@ -24,13 +23,13 @@ import bpy
 import numpy as np
 from bpy.app.handlers import persistent
 
-from ._core import errors, submodule
+from hybridgi_core import errors
+from hybridgi_core.raster import passes as _passes
+
 from .viewport_passes import load_addon_glsl
 
 log = logging.getLogger(__name__)
 
-_passes = submodule("raster.passes")
-_glsl = submodule("raster.glsl")
 
 #: Shading types the overlay draws over (Rendered shading of HYBRIDGI has the GI already).
 SHADING_TYPES = frozenset({"SOLID", "MATERIAL"})
@@ -62,7 +61,9 @@ def set_enabled(scene, enabled: bool) -> None:
 def _viewport():
     """The viewport module, imported on first use: it pulls in embreex through the worker, which
     registering the add-on must not need (as `engine._pipeline`)."""
-    return importlib.import_module(f"{__package__}.viewport")
+    from . import viewport  # noqa: PLC0415
+
+    return viewport
 
 
 def session_for(scene):
@@ -121,6 +122,7 @@ def draw_overlay(context) -> bool:
         session.sync(context.evaluated_depsgraph_get(), scene)
     region = context.region
     camera = _viewport().ViewCamera.from_region_data(context.region_data)
+    session.poll_world(context.evaluated_depsgraph_get())
     try:
         texture = session.draw(scene, camera, region.width, region.height)
     except errors.HybridGIError as err:
@@ -223,7 +225,7 @@ def _poll() -> float:
             close_session(name)
         elif session.needs_redraw():
             busy = True
-    module = importlib.import_module(f"{__package__}.viewport") if f"{__package__}.viewport" in sys.modules else None
+    module = sys.modules.get(f"{__package__}.viewport")  # only once some view imported it
     if module is not None and module.any_busy():
         busy = True
     if busy:

@@ -24,8 +24,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from . import animation, properties, sync
-from ._core import errors, submodule
+from hybridgi_core import errors, visible
+from hybridgi_core.raster.frame import FramePipeline
+from hybridgi_core.session import GISession
+from hybridgi_core.settings import CacheSettings
+from hybridgi_core.system import GISystem
+
+from . import animation, properties, sync, updates
 
 log = logging.getLogger(__name__)
 
@@ -56,11 +61,31 @@ def render_size(render):
     return max(int(render.resolution_x * scale), 1), max(int(render.resolution_y * scale), 1)
 
 
+def result_rect(render, width, height):
+    """(x, y, w, h) pixels of the frame the render result holds, bottom-up like Blender's: the
+    whole frame, or the render border (Cycles renders the border only; Blender crops the saved
+    image to it or pads it back to the full frame, by `use_crop_to_border`)."""
+    if not render.use_border:
+        return 0, 0, width, height
+    x0 = min(max(int(render.border_min_x * width), 0), width - 1)
+    y0 = min(max(int(render.border_min_y * height), 0), height - 1)
+    x1 = min(max(int(render.border_max_x * width), x0 + 1), width)
+    y1 = min(max(int(render.border_max_y * height), y0 + 1), height)
+    return x0, y0, x1 - x0, y1 - y0
+
+
 def camera_matrices(depsgraph, scene, width, height):
     """(view, proj) numpy 4x4 of the scene camera, as Blender's own engines build them."""
     cam = scene.camera
     if cam is None:
         raise errors.HybridGIError("the scene has no active camera")
+    if cam.type != "CAMERA":
+        raise errors.HybridGIError(f"the active camera {cam.name!r} is not a camera object")
+    if cam.data.type == "PANO":
+        # The G-buffer is a raster of a pinhole projection: there is no panoramic raster pass.
+        raise errors.HybridGIError(
+            f"camera {cam.name!r} is panoramic, which HybridGI cannot render; use a perspective or "
+            "orthographic camera, or render it with Cycles")
     cam_eval = cam.evaluated_get(depsgraph)
     render = scene.render
     proj = cam_eval.calc_matrix_camera(depsgraph, x=width, y=height,
@@ -86,7 +111,7 @@ def render_frame(engine, depsgraph):
     ts = time.perf_counter()
     # Animated objects start in the per-frame dynamic ray scene of an incremental job; a fresh
     # system per frame has no use for that split (and keeps the LOD of every object).
-    dynamic = animation.animated_object_names(depsgraph.objects) if incremental else frozenset()
+    dynamic = updates.animated_object_names(depsgraph.objects) if incremental else frozenset()
     snapshot = sync.snapshot_from_depsgraph(depsgraph, dynamic)
     steps["sync"] = (time.perf_counter() - ts) * 1e3
     view, proj = camera_matrices(depsgraph, scene, width, height)
@@ -99,7 +124,6 @@ def render_frame(engine, depsgraph):
         _record(scene, t0, steps, width, height, rays=0, cells=0, animation_mode=props.animation_mode)
         return
 
-    frame_mod = submodule("raster.frame")
     engine.update_stats("HybridGI", f"Building ray scene ({snapshot.geometry.triangle_count:,} triangles)")
     ts = time.perf_counter()
     job = None
@@ -113,15 +137,15 @@ def render_frame(engine, depsgraph):
             raise
         extra.update(job_stats)
     else:
-        system, fresh = submodule("system").GISystem(snapshot, settings), True
+        system, fresh = GISystem(snapshot, settings), True
     steps["build"] = (time.perf_counter() - ts) * 1e3
     # A new cache (every independent frame, a job's first frame, a scene that outgrew the grid)
     # converges with the warm-up; later frames of a job update, through _IncrementalUpdate.
     warmup = props.warmup_iterations if fresh else 0
     # A job without warm-up updates from its first frame on (else its cache would stay empty).
     update = job is not None and warmup == 0
-    renderer = _IncrementalUpdate(system, job.near, job.inner, extra["lights_changed"]) if update else system
-    pipeline = frame_mod.FramePipeline(props.raster_settings(cell_size=system.cache.grid.cell_size))
+    refresh = _IncrementalUpdate(system, job.near, job.inner, extra["lights_changed"]) if update else None
+    pipeline = FramePipeline(props.raster_settings(cell_size=system.cache.grid.cell_size))
     try:
         pipeline.resize(width, height)
         ts = time.perf_counter()
@@ -135,12 +159,13 @@ def render_frame(engine, depsgraph):
                 raise RenderCancelled("render cancelled")
 
         shaded, stats = pipeline.render(
-            renderer, view, proj, frame=DIRECT_SEED_FRAME, warmup=warmup, update=update,
+            system, view, proj, frame=DIRECT_SEED_FRAME, warmup=warmup, update=update,
             debug_view=0 if props.debug_view == "CELLS" else properties.DEBUG_VIEW[props.debug_view], world_color=world, progress=progress,
+            update_hook=refresh,
         )
         steps.update(stats.steps_ms)
         if update:
-            extra.update(updated_cells=renderer.updated_cells, extra_cells=renderer.extra_cells)
+            extra.update(updated_cells=refresh.updated_cells, extra_cells=refresh.extra_cells)
         engine.update_stats("HybridGI", "Writing passes")
         ts = time.perf_counter()
         cells_view = props.debug_view == "CELLS"
@@ -183,8 +208,8 @@ class IncrementalJob:
     """
 
     key: tuple
-    session: object  # hybridgi_core.session.GISession
-    settings: object  # hybridgi_core.settings.CacheSettings
+    session: GISession
+    settings: CacheSettings
     frame: int | None = None  # the last frame rendered
     frames: int = 0  # frames finished in this job
     #: Surface cells within the indirect range of what changed this frame, and those of them
@@ -204,31 +229,34 @@ class IncrementalJob:
         outgrew the grid) and must converge before this frame renders.
         """
         events = animation.take_events(self.key)
-        old = self.session.snapshot
         report = self.session.sync(snapshot)
         system = self.session.system
         cache = system.cache
-        # Plus the handlers' boxes (evaluated bounds, every place seen since the last frame) of
-        # what the snapshot diff confirms moved: the handlers note every animated object, moving
-        # this frame or not.
-        boxes = _changed_boxes(old, snapshot, report)
-        boxes += [box for name, box in events.swept.items() if name in report.moved]
-        touched = cache.on_geometry_changed(boxes) if boxes else np.zeros(0, np.int64)
+        changes = report.changes
+        # The session raised the snapshot diff's events. Plus the handlers' boxes (evaluated
+        # bounds, every place seen since the last frame) of what the diff confirms moved: the
+        # handlers note every animated object, moving this frame or not.
+        swept = [box for name, box in events.swept.items() if name in changes.displaced]
+        touched = report.touched
+        if swept and not report.fresh:
+            touched = np.union1d(touched, system.on_geometry_changed(swept))
+        boxes = [] if report.fresh else changes.boxes + swept
         self.near = np.intersect1d(touched, system.surface_cells())
         half = 0.5 * cache.influence_radius()
         close = [cache.grid.cells_near(lo, hi, half)[0] for lo, hi in boxes]
         self.inner = np.intersect1d(self.near, np.concatenate(close)) if close else np.zeros(0, np.int64)
-        if report.lights_changed:
+        relit = changes.shading_changed and not report.fresh
+        if relit:
             # The session raised every cell's urgency to re-converge at half weight, the viewport's
             # compromise between lag and ray noise. With the job's fixed rays the new estimate
             # carries no frame-to-frame noise, so a refreshed cell takes it whole: no lag behind
             # a moving lamp, no flicker (measured on the animated scene, frames 2-12: frame-to-
             # frame noise 1.0% vs 2.9% at half weight; difference to independent frames 4.4% vs 5.6%).
             cache.urgency.fill(1.0)
-        jumped = report.lights_changed and old is not None and _light_jumped(old, snapshot, cache.influence_radius())
+        jumped = relit and changes.light_jumped(cache.influence_radius(), LIGHT_JUMP)
         fresh = jumped or not (cache.samples > 0).any()
         stats = {
-            "rebuilt": report.rebuilt, "moved": report.moved, "lights_changed": report.lights_changed,
+            "rebuilt": report.rebuilt, "moved": report.moved, "lights_changed": relit,
             "light_jump": bool(jumped), "touched_cells": int(touched.size), "sync_ms": round(report.ms, 2),
         }
         return system, fresh, stats
@@ -244,7 +272,7 @@ def _job_for(scene, settings, dynamic):
     if job is not None and job.continues(settings, scene.frame_current, scene.frame_step):
         return job
     animation.unregister_session(key)  # the previous job ends here (its on_drop closes it)
-    job = IncrementalJob(key, submodule("session").GISession(settings, frozenset(dynamic)), settings)
+    job = IncrementalJob(key, GISession(settings, frozenset(dynamic)), settings)
     _JOBS[key] = job
     animation.register_session(key, job.session, scene=scene.name_full, on_drop=lambda: _close_job(key))
     animation.take_events(key)  # whatever happened before the job is no news to it
@@ -257,69 +285,14 @@ def _close_job(key):
         job.session.close()
 
 
-def _changed_boxes(old, new, report):
-    """World (lo, hi) boxes of what changed between two snapshots of one job: moved or deformed
-    objects where they were and where they are, and objects that appeared or disappeared (a
-    rebuild keeps the cache, but light bounced by a deleted object must fade near it)."""
-    if old is None:
-        return []
-    names = set(report.moved)
-    if report.rebuilt:
-        before = {o.name: i for i, o in enumerate(old.objects)}
-        after = {o.name: i for i, o in enumerate(new.objects)}
-        names |= set(before) ^ set(after)
-        # Same name, other triangles (a modifier's level, an edit of the topology).
-        old_counts = np.bincount(old.geometry.object_index, minlength=len(old.objects))
-        new_counts = np.bincount(new.geometry.object_index, minlength=len(new.objects))
-        names |= {n for n in set(before) & set(after) if old_counts[before[n]] != new_counts[after[n]]}
-    boxes = []
-    for snapshot in (old, new):
-        index = {o.name: i for i, o in enumerate(snapshot.objects)}
-        for name in sorted(names):
-            box = _object_box(snapshot, index[name]) if name in index else None
-            if box is not None:
-                boxes.append(box)
-    return boxes
-
-
-def _light_jumped(old, new, reach):
-    """Whether the light changed too much between two frames for one raised-weight update:
-    a lamp added, removed, changed in kind, in flux by more than LIGHT_JUMP or moved further
-    than `reach` metres (the indirect range), or the sky or an emitter changed by LIGHT_JUMP."""
-
-    def jumped(a, b):
-        a, b = np.asarray(a, np.float64), np.asarray(b, np.float64)
-        return bool(np.abs(a - b).max(initial=0.0) > LIGHT_JUMP * max(np.abs(a).max(initial=0.0), np.abs(b).max(initial=0.0), 1e-12))
-
-    if len(old.lights) != len(new.lights) or len(old.materials) != len(new.materials):
-        return True
-    for a, b in zip(old.lights, new.lights, strict=True):
-        if a.kind != b.kind or jumped(a.color * a.power, b.color * b.power):
-            return True
-        if np.linalg.norm(a.position - b.position) > reach:
-            return True
-    if jumped(old.world.color, new.world.color):
-        return True
-    return any(jumped(a.emission, b.emission) for a, b in zip(old.materials, new.materials, strict=True))
-
-
-def _object_box(snapshot, index):
-    g = snapshot.geometry
-    tris = g.triangles[g.object_index == index]
-    if tris.size == 0:
-        return None
-    verts = g.positions[tris.ravel()]
-    return verts.min(axis=0), verts.max(axis=0)
-
-
 class _IncrementalUpdate:
-    """A `GISystem` as `FramePipeline.render` sees it in an incremental frame.
+    """The update hook of an incremental frame (`FramePipeline.render(update_hook=...)`).
 
-    The pipeline finds the visible cells and calls `update(cells, frame)` once; this turns that
-    call into the frame's localized refresh: the visible cells plus the surface cells near what
+    The pipeline finds the visible cells and calls the hook once with them; it turns that call
+    into the frame's localized refresh: the visible cells plus the surface cells near what
     changed (`near`), traced with the job's fixed rays (JOB_RAYS_FRAME; the pipeline's own `frame`
     seeds the direct light only), then a second update, with other rays, of the cells closest to
-    the change (`inner`). Everything else is the system's own.
+    the change (`inner`).
     """
 
     def __init__(self, system, near, inner, relit):
@@ -330,10 +303,7 @@ class _IncrementalUpdate:
         self.updated_cells = 0
         self.extra_cells = 0
 
-    def __getattr__(self, name):
-        return getattr(self._system, name)
-
-    def update(self, cells, _frame, alpha=None):
+    def __call__(self, cells, alpha=None):
         system = self._system
         cells = np.union1d(np.asarray(cells, np.int64), self._near)
         stats = system.update(cells, JOB_RAYS_FRAME, alpha)
@@ -375,42 +345,61 @@ def _set_pass(layer, name, pixels):
     rp.rect.foreach_set(data.ravel())
 
 
+class _Result:
+    """The engine's render result for the frame's `result_rect`: passes are given as whole-frame
+    (h, w, c) bottom-up arrays and cut to the rectangle here."""
+
+    def __init__(self, engine, render, width, height):
+        self.engine = engine
+        self.x, self.y, self.w, self.h = result_rect(render, width, height)
+        # Blender's result is the rectangle itself: its coordinates start at the rectangle's corner.
+        self.result = engine.begin_result(0, 0, self.w, self.h)
+        self.layer = self.result.layers[0]
+
+    def set(self, name, pixels):
+        _set_pass(self.layer, name, pixels[self.y:self.y + self.h, self.x:self.x + self.w])
+
+    def end(self):
+        self.engine.end_result(self.result)
+
+
 def _write_result(engine, depsgraph, pipeline, width, height, world, cache=None):
     """Read the deferred targets back into the render result; with `cache`, Combined shows the
     Cache Cells debug view instead (each pixel coloured by the cell it reads)."""
-    film_transparent = depsgraph.scene.render.film_transparent
-    result = engine.begin_result(0, 0, width, height)
-    layer = result.layers[0]
+    render = depsgraph.scene.render
+    result = _Result(engine, render, width, height)
     combined = pipeline.deferred.read("combined").copy()
     if cache is not None:
-        visible = submodule("visible")
         points, normals, pix = visible.pixels_to_points(pipeline.gbuffer.read("position"), pipeline.gbuffer.read("normal"))
         flat = combined.reshape(-1, 4)
         flat[:, :3] = 0.0
         flat[pix, :3] = visible.cell_debug_colors(cache, points, normals)
-    if not film_transparent:
+    if render.film_transparent:
+        # Cycles' transparent film: premultiplied, the world lights the scene but is not seen.
+        combined[..., :3] *= combined[..., 3:4]
+    else:
         combined[..., 3] = 1.0  # Cycles' alpha is 1 on the background unless the film is transparent
-    _set_pass(layer, "Combined", combined)
-    _set_pass(layer, "Diffuse Direct", pipeline.deferred.read("diffuse_direct"))
-    _set_pass(layer, "Diffuse Indirect", pipeline.deferred.read("diffuse_indirect"))
-    _set_pass(layer, "Diffuse Color", pipeline.deferred.read("diffuse_color"))
+    result.set("Combined", combined)
+    result.set("Diffuse Direct", pipeline.deferred.read("diffuse_direct"))
+    result.set("Diffuse Indirect", pipeline.deferred.read("diffuse_indirect"))
+    result.set("Diffuse Color", pipeline.deferred.read("diffuse_color"))
     ao = pipeline.deferred.read("ao")
-    _set_pass(layer, "Ambient Occlusion", np.repeat(ao, 3, axis=-1))
+    result.set("Ambient Occlusion", np.repeat(ao, 3, axis=-1))
     depth = pipeline.gbuffer.read("depth")
-    _set_pass(layer, "Depth", depth)
+    result.set("Depth", depth)
     normal = pipeline.gbuffer.read("normal")
-    _set_pass(layer, "Normal", normal[..., :3] * (depth < 1e9))
-    engine.end_result(result)
+    result.set("Normal", normal[..., :3] * (depth < 1e9))
+    result.end()
 
 
 def _write_background(engine, depsgraph, width, height, world):
-    result = engine.begin_result(0, 0, width, height)
-    layer = result.layers[0]
-    alpha = 0.0 if depsgraph.scene.render.film_transparent else 1.0
-    bg = np.empty((height, width, 4), np.float32)
-    bg[...] = (*np.asarray(world, np.float32).tolist(), alpha)
-    _set_pass(layer, "Combined", bg)
+    render = depsgraph.scene.render
+    result = _Result(engine, render, width, height)
+    bg = np.zeros((height, width, 4), np.float32)
+    if not render.film_transparent:
+        bg[...] = (*np.asarray(world, np.float32).tolist(), 1.0)
+    result.set("Combined", bg)
     for name in ("Diffuse Direct", "Diffuse Indirect", "Diffuse Color", "Ambient Occlusion", "Normal"):
-        _set_pass(layer, name, np.zeros((height, width, 3), np.float32))
-    _set_pass(layer, "Depth", np.full((height, width, 1), 1e10, np.float32))
-    engine.end_result(result)
+        result.set(name, np.zeros((height, width, 3), np.float32))
+    result.set("Depth", np.full((height, width, 1), 1e10, np.float32))
+    result.end()

@@ -6,8 +6,8 @@
 import bpy
 from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty, PointerProperty
 
-from . import _core
-from ._core import settings as core_settings
+from hybridgi_core import settings as core_settings
+from hybridgi_core.raster import settings as raster
 
 SH_ORDER_ITEMS = (
     ("L1", "L1", "4 spherical-harmonic coefficients per colour channel: cheaper, broad light reads ~5% low", 1),
@@ -190,7 +190,6 @@ class HybridGISettings(bpy.types.PropertyGroup):
 
         cell_size : metres of one cache cell, the automatic SSAO radius (radius 0); 0.5 m if unknown.
         """
-        raster = _core.submodule("raster.settings")
         radius = _f(self.ssao_radius) or (cell_size if cell_size else 0.5)
         return raster.RasterSettings(
             downsample=self.downsample,

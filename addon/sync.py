@@ -3,7 +3,7 @@
 Main thread only: it reads `bpy` data. Everything it returns is numpy arrays and plain Python
 values (no bpy object survives in the snapshot), so the core's worker threads can use it freely.
 
-Conventions (Cycles', see GI_FACTS.md): geometry in world space with modifiers, instances and
+Conventions (Cycles', checked against its Diffuse Direct pass to < 1%): geometry in world space with modifiers, instances and
 geometry nodes applied; lights in Blender's units with colour x temperature, exposure and the
 diffuse factor folded into `color`/`power`, area-light sizes unscaled (the object's scale stays
 in the matrix); materials reduced to a Lambertian base colour (optionally an image) plus emission radiance.
@@ -14,7 +14,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ._core import snapshot as snap
+from hybridgi_core import environment
+from hybridgi_core import snapshot as snap
+
+from . import world_bake
 
 log = logging.getLogger(__name__)
 
@@ -30,7 +33,7 @@ LINEAR_SPACES = frozenset({"Linear Rec.709", "Non-Color", "scene_linear"})
 OUTPUT_TARGET = "CYCLES"
 
 
-def snapshot_from_depsgraph(depsgraph, dynamic_names=frozenset()):
+def snapshot_from_depsgraph(depsgraph, dynamic_names=frozenset(), wait_for_world=True):
     """The evaluated scene of `depsgraph` as a validated `SceneSnapshot`.
 
     dynamic_names : names of objects that move or deform over the animation; an instance is
@@ -39,10 +42,43 @@ def snapshot_from_depsgraph(depsgraph, dynamic_names=frozenset()):
     An empty scene gives a snapshot with no triangles (its `bounds()` raises EmptySceneError),
     so a scene lit only by the sky still syncs; the pipeline decides whether that is an error.
     """
-    builder = _SnapshotBuilder(frozenset(dynamic_names))
+    builder = _SnapshotBuilder(frozenset(dynamic_names), _collection_flags(depsgraph.view_layer))
     for instance in depsgraph.object_instances:
         builder.add_instance(instance)
-    return builder.finish(world_from_blender(depsgraph.scene.world))
+    builder.warn_unsupported()
+    world = depsgraph.scene.world
+    builder.lights += world_lights(world, wait_for_world)
+    return builder.finish(world_from_blender(world, wait_for_world))
+
+
+#: Cycles' per-object ray visibility HybridGI does not follow (the object takes part as if on):
+#: property -> what it means, for the warning.
+IGNORED_VISIBILITY = {
+    "visible_shadow": "hidden from shadow rays",
+    "visible_diffuse": "hidden from diffuse rays",
+    "is_holdout": "a holdout",
+}
+
+
+def _collection_flags(view_layer) -> dict[str, set[str]]:
+    """Object name -> {"holdout", "indirect_only"} flags its view-layer collections set."""
+    flags: dict[str, set[str]] = {}
+
+    def walk(layer_collection, inherited):
+        own = set(inherited)
+        if layer_collection.holdout:
+            own.add("holdout")
+        if layer_collection.indirect_only:
+            own.add("indirect_only")
+        if own:
+            for obj in layer_collection.collection.objects:
+                flags.setdefault(obj.name, set()).update(own)
+        for child in layer_collection.children:
+            walk(child, own)
+
+    if view_layer is not None:
+        walk(view_layer.layer_collection, set())
+    return flags
 
 
 @dataclass(slots=True)
@@ -113,16 +149,20 @@ def transformed(local, matrix, slot_to_material, object_index):
     """`Geometry` of one instance of `local` placed by the (4, 4) `matrix`.
 
     slot_to_material : (S,) int32 global material index of each material slot (at least one).
-    Returns None when the matrix is singular (a zero scale leaves nothing to trace).
+    Returns None when the matrix is not finite. A zero scale on one axis flattens the object, as
+    in Cycles, which still renders it (a plane seen from both sides); on two axes its triangles
+    have no area and the snapshot drops them.
     """
     matrix = np.asarray(matrix, np.float64)
+    if not np.isfinite(matrix).all():
+        return None
     linear = matrix[:3, :3]
     det = np.linalg.det(linear)
-    if not np.isfinite(det) or abs(det) < 1e-30:
-        return None
     positions = (local.positions @ linear.T + matrix[:3, 3]).astype(np.float32)
-    # Normals transform with the inverse transpose so non-uniform scale keeps them perpendicular.
-    normals = local.normals @ np.linalg.inv(linear).astype(np.float32)
+    # Normals transform with the cofactor matrix (det x inverse transpose), so non-uniform scale
+    # keeps them perpendicular; unlike the inverse it exists for a flattened object, whose
+    # normals all turn along the squashed axis. Only their direction counts (renormalized below).
+    normals = (local.normals @ _cofactor(linear).T * np.sign(det or 1.0)).astype(np.float32)
     length = np.linalg.norm(normals, axis=1, keepdims=True)
     normals = np.divide(normals, length, out=np.zeros_like(normals), where=length > 0)
     triangles = local.triangles
@@ -141,9 +181,16 @@ def transformed(local, matrix, slot_to_material, object_index):
     )
 
 
+def _cofactor(m):
+    """(3, 3) cofactor matrix of `m` (det(m) inv(m).T where m is invertible)."""
+    return np.stack([np.cross(m[1], m[2]), np.cross(m[2], m[0]), np.cross(m[0], m[1])])
+
+
 class _SnapshotBuilder:
-    def __init__(self, dynamic_names):
+    def __init__(self, dynamic_names, collection_flags=None):
         self.dynamic_names = dynamic_names
+        self.collection_flags = collection_flags or {}
+        self.ignored: dict[str, set[str]] = {}  # what is approximated -> object names, warned once
         self.parts = []
         self.objects = []
         self.lights = []
@@ -173,8 +220,29 @@ class _SnapshotBuilder:
         # A curve's own mesh instance has the curve as its parent: keep its plain name.
         name = obj.name if parent is None or parent.name == obj.name else f"{parent.name}/{obj.name}"
         dynamic = obj.name in self.dynamic_names or (parent is not None and parent.name in self.dynamic_names)
-        self.objects.append(snap.ObjectInfo(name=name, dynamic=dynamic))
+        camera_visible = bool(getattr(obj, "visible_camera", True))
+        if parent is not None and parent.name != obj.name:
+            camera_visible = camera_visible and bool(getattr(parent, "visible_camera", True))
+        self._note_ignored(obj)
+        self.objects.append(snap.ObjectInfo(name=name, dynamic=dynamic, camera_visible=camera_visible))
         self.parts.append(geometry)
+
+    def _note_ignored(self, obj):
+        for prop, meaning in IGNORED_VISIBILITY.items():
+            hidden = not getattr(obj, prop, True) if prop.startswith("visible") else getattr(obj, prop, False)
+            if hidden:
+                self.ignored.setdefault(meaning, set()).add(obj.name)
+        for flag in self.collection_flags.get(obj.name, ()):
+            meaning = {"holdout": "in a holdout collection", "indirect_only": "in an indirect-only collection"}[flag]
+            self.ignored.setdefault(meaning, set()).add(obj.name)
+
+    def warn_unsupported(self):
+        """One warning per kind of setting HybridGI does not follow, naming the objects."""
+        for meaning, names in sorted(self.ignored.items()):
+            shown = ", ".join(sorted(names)[:5]) + (f" and {len(names) - 5} more" if len(names) > 5 else "")
+            objects = "object" if len(names) == 1 else "objects"
+            log.warning("%s %s %s %s; HybridGI renders it like any other object", objects, shown,
+                        "is" if len(names) == 1 else "are", meaning)
 
     def finish(self, world):
         geometry = snap.concat_geometry(self.parts)
@@ -216,20 +284,123 @@ def material_from_blender(material, textures=None):
     if shader is None:
         log.warning("material %r: no shader linked to an active output; using grey", name)
         return _grey(name)
-    if shader.type == "BSDF_PRINCIPLED":
+    surface = _shader_surface(shader, textures, name)
+    if surface is None:
+        log.warning("material %r: shader %s is not supported; using grey %.1f", name, shader.bl_idname, FALLBACK_GREY)
+        return _grey(name)
+    base, texture, emission = surface
+    return snap.Material(name=name, base_color=base.astype(np.float32), texture=texture,
+                         emission=emission.astype(np.float32))
+
+
+def _shader_surface(shader, textures, name, depth=0):
+    """(diffuse colour (3,), texture or None, emission radiance (3,)) of a shader node, or None
+    when it is not one this reader knows. The diffuse colour is what Cycles' Diffuse Color pass
+    shows: a Principled BSDF's base colour weighted by (1 - metallic) (1 - transmission), tinted
+    by its coat; Mix and Add Shader combine their inputs by their (constant) factor."""
+    zero = np.zeros(3, np.float32)
+    kind = shader.type
+    if kind == "BSDF_PRINCIPLED":
         base, texture = _color_socket(shader.inputs["Base Color"], textures, name)
-        emission = _rgb(shader.inputs["Emission Color"].default_value) * _value(shader.inputs["Emission Strength"])
-        if shader.inputs["Emission Color"].is_linked:
-            log.warning("material %r: linked emission colour is not supported; using its value", name)
-        return snap.Material(name=name, base_color=base, texture=texture, emission=emission.astype(np.float32))
-    if shader.type == "BSDF_DIFFUSE":
+        metallic = _constant_value(shader.inputs["Metallic"], name)
+        transmission = _constant_value(_input(shader, "Transmission Weight", "Transmission"), name)
+        coat = _constant_value(_input(shader, "Coat Weight"), name) if _input(shader, "Coat Weight") else 0.0
+        tint = _constant_color(_input(shader, "Coat Tint"), name) if _input(shader, "Coat Tint") else np.ones(3)
+        weight = (1.0 - np.clip(metallic, 0, 1)) * (1.0 - np.clip(transmission, 0, 1))
+        base = base * weight * (1.0 + np.clip(coat, 0, 1) * (tint - 1.0))
+        emission = _constant_color(shader.inputs["Emission Color"], name) * _constant_value(
+            shader.inputs["Emission Strength"], name)
+        return base, texture, emission
+    if kind == "BSDF_DIFFUSE":
         base, texture = _color_socket(shader.inputs["Color"], textures, name)
-        return snap.Material(name=name, base_color=base, texture=texture)
-    if shader.type == "EMISSION":
-        emission = _rgb(shader.inputs["Color"].default_value) * _value(shader.inputs["Strength"])
-        return snap.Material(name=name, base_color=np.zeros(3, np.float32), emission=emission.astype(np.float32))
-    log.warning("material %r: shader %s is not supported; using grey %.1f", name, shader.bl_idname, FALLBACK_GREY)
-    return _grey(name)
+        return base, texture, zero
+    if kind == "EMISSION":
+        emission = _constant_color(shader.inputs["Color"], name) * _constant_value(shader.inputs["Strength"], name)
+        return zero, None, emission
+    if kind in ("BSDF_TRANSPARENT", "BSDF_GLOSSY", "BSDF_ANISOTROPIC", "BSDF_REFRACTION", "BSDF_GLASS",
+                "HOLDOUT", "BSDF_TRANSLUCENT"):
+        # No diffuse reflection (Cycles' Diffuse Color pass is black there); HybridGI renders
+        # diffuse light only, so what these reflect or transmit is missing from Combined.
+        log.warning("material %r: %s reflects no diffuse light; its %s is not rendered", name, shader.bl_idname,
+                    "transparency" if kind == "BSDF_TRANSPARENT" else "glossy or transmitted light")
+        return zero, None, zero
+    if kind in ("MIX_SHADER", "ADD_SHADER") and depth < 8:
+        parts = []
+        for socket in shader.inputs[-2:] if kind == "MIX_SHADER" else shader.inputs[:2]:
+            node = _linked_node(socket)
+            part = _shader_surface(node, textures, name, depth + 1) if node is not None else (zero, None, zero)
+            if part is None:
+                return None
+            parts.append(part)
+        fac = np.clip(_constant_value(shader.inputs["Fac"], name), 0, 1) if kind == "MIX_SHADER" else None
+        weights = (1.0 - fac, fac) if fac is not None else (1.0, 1.0)
+        textured = [i for i, p in enumerate(parts) if p[1] is not None and weights[i] > 0]
+        if len(textured) > 1:
+            log.warning("material %r: a mix of two image textures keeps the stronger one", name)
+        texture = parts[max(textured, key=lambda i: weights[i])][1] if textured else None
+        # With a texture, colour = base x texture: the other parts' colours enter base divided by
+        # the texture's mean, so the mean albedo of the mix is right.
+        mean = texture.reshape(-1, 3).mean(axis=0) if texture is not None else np.ones(3)
+        base = sum(w * (p[0] if p[1] is texture else p[0] * (p[1].reshape(-1, 3).mean(axis=0) if p[1] is not None else 1.0)
+                        / np.maximum(mean, 1e-6)) for w, p in zip(weights, parts, strict=True))
+        emission = sum(w * p[2] for w, p in zip(weights, parts, strict=True))
+        return np.asarray(base, np.float32), texture, np.asarray(emission, np.float32)
+    return None
+
+
+def _input(node, *names):
+    """The first of `names` that `node` has as an input (socket names changed across versions)."""
+    for n in names:
+        socket = node.inputs.get(n)
+        if socket is not None:
+            return socket
+    return None
+
+
+def _constant_color(socket, material_name):
+    """(3,) colour of an input, following links to constant nodes (RGB, Value, a Mix of
+    constants); a socket fed by anything else keeps its own value, with a warning."""
+    value = _fold(socket, 0)
+    if value is None:
+        node = _linked_node(socket)
+        log.warning("material %r: %s from %s is not supported; using its value", material_name, socket.name,
+                    node.bl_idname if node is not None else "a muted link")
+        return _rgb(socket.default_value) if hasattr(socket.default_value, "__len__") else np.full(3, _value(socket), np.float32)
+    return np.broadcast_to(np.asarray(value, np.float32), (3,)).copy()
+
+
+def _constant_value(socket, material_name):
+    if socket is None:
+        return 0.0
+    value = _fold(socket, 0)
+    if value is None:
+        log.warning("material %r: %s from a node is not supported; using its value", material_name, socket.name)
+        return float(socket.default_value)
+    return float(np.mean(value))
+
+
+def _fold(socket, depth):
+    """The constant an input evaluates to (float or (3,) array), or None when it is not constant."""
+    if not socket.is_linked:
+        value = socket.default_value
+        return np.asarray(tuple(value)[:3], np.float64) if hasattr(value, "__len__") else float(value)
+    node, output = _source(socket)
+    if node is None or depth > 16:
+        return None
+    if node.type == "RGB":
+        return np.asarray(tuple(node.outputs[0].default_value)[:3], np.float64)
+    if node.type == "VALUE":
+        return float(node.outputs[0].default_value)
+    if node.type == "MIX" and getattr(node, "data_type", "") in ("RGBA", "FLOAT") and node.blend_type == "MIX":
+        names = ("A", "B")
+        sockets = [s for s in node.inputs if s.name in names and s.enabled]
+        fac = _fold(node.inputs[0], depth + 1)
+        values = [_fold(s, depth + 1) for s in sockets]
+        if fac is None or len(values) != 2 or any(v is None for v in values):
+            return None
+        fac = float(np.clip(np.mean(fac), 0, 1)) if getattr(node, "clamp_factor", True) else float(np.mean(fac))
+        return (1 - fac) * np.asarray(values[0]) + fac * np.asarray(values[1])
+    return None
 
 
 def _grey(name):
@@ -378,41 +549,177 @@ def light_from_blender(light, matrix_world, name=""):
     return snap.Light(kind=kind, color=color, power=power, matrix=matrix, name=name, **fields)
 
 
-def equirect_mean(pixels):
-    """(3,) float32 mean over the sphere of an (h, w, 3) equirectangular image (rows weighted by
-    the solid angle they cover, so the stretched poles do not dominate)."""
-    height = pixels.shape[0]
-    latitude = (np.arange(height) + 0.5) / height * np.pi - np.pi / 2
-    weight = np.cos(latitude)
-    rows = pixels.mean(axis=1)
-    return (weight @ rows / weight.sum()).astype(np.float32)
+#: Environment maps already split, by what they depend on (`_environment_key`): a world that did
+#: not change costs nothing on the next sync. A few entries: worlds are few and maps large.
+_SPLITS: dict = {}
+_SPLITS_KEPT = 4
 
 
-def world_from_blender(world):
-    """`World` of a Blender world: Background colour x strength (or the world colour)."""
+def _euler_matrix(euler):
+    """(3, 3) rotation of Blender's XYZ Euler angles (X applied first)."""
+    x, y, z = (float(a) for a in euler)
+    cx, sx, cy, sy, cz, sz = np.cos(x), np.sin(x), np.cos(y), np.sin(y), np.cos(z), np.sin(z)
+    rx = np.array([[1, 0, 0], [0, cx, -sx], [0, sx, cx]])
+    ry = np.array([[cy, 0, sy], [0, 1, 0], [-sy, 0, cy]])
+    rz = np.array([[cz, -sz, 0], [sz, cz, 0], [0, 0, 1]])
+    return rz @ ry @ rx
+
+
+def _texture_to_world(env_node, world_name):
+    """(3, 3) map from the Environment Texture's lookup directions to world directions, or None
+    when its Vector input is something this reader does not follow (a warning says what)."""
+    node, output = _source(env_node.inputs["Vector"])
+    if node is None:
+        return np.eye(3)  # unlinked: the world direction itself
+    if node.type == "TEX_COORD" and output in ("Generated", "Object"):
+        return np.eye(3)
+    if node.type != "MAPPING":
+        log.warning("world %r: environment vector from %s is not supported; read unrotated", world_name, node.bl_idname)
+        return np.eye(3)
+    inner, inner_out = _source(node.inputs["Vector"])
+    if inner is not None and not (inner.type == "TEX_COORD" and inner_out in ("Generated", "Object")):
+        log.warning("world %r: mapping of %s is not supported; read unrotated", world_name, inner.bl_idname)
+        return np.eye(3)
+    rotation = _euler_matrix(node.inputs["Rotation"].default_value)
+    scale = np.diag([float(v) or 1e-12 for v in node.inputs["Scale"].default_value])
+    forward = rotation @ scale  # POINT, VECTOR, NORMAL: texture = R (S d) (+ location)
+    if node.vector_type == "TEXTURE":
+        forward = np.linalg.inv(forward)  # the inverse transform
+    return np.linalg.inv(forward)
+
+
+def _environment_split(source, world_name):
+    """`EnvironmentSplit` of an Environment Texture node (cached), or None when it has no image."""
+    image = source.image
+    if image is None:
+        return None
+    if source.projection != "EQUIRECTANGULAR":
+        log.warning("world %r: %s projection is read as equirectangular", world_name, source.projection.lower())
+    to_world = _texture_to_world(source, world_name)
+    image = image.original
+    key = (image.name_full, image.filepath, tuple(image.size), image.is_dirty, to_world.round(6).tobytes(),
+           image.colorspace_settings.name)
+    split = _SPLITS.get(key)
+    if split is None:
+        pixels = image_pixels(image)
+        if pixels is None:
+            return None
+        split = _SPLITS[key] = environment.split_environment(pixels, to_world)
+        while len(_SPLITS) > _SPLITS_KEPT:
+            _SPLITS.pop(next(iter(_SPLITS)))
+    return split
+
+
+def _output_node(world):
+    tree = world.node_tree
+    return _linked_node(_surface_input(tree)) if tree is not None else None
+
+
+def _is_uniform(node) -> bool:
+    """Whether a world's output node gives the same radiance in every direction."""
+    return (node.type == "BACKGROUND" and not node.inputs["Color"].is_linked
+            and not node.inputs["Strength"].is_linked)
+
+
+def _world_split(world, wait=True):
+    """(`EnvironmentSplit`, strength still to apply) of a world whose light varies with
+    direction; None for a uniform or black world, or one that could not be read.
+
+    An Environment Texture on the Background's colour is read directly (exact, fast); any other
+    tree (Sky Texture, gradients, mixes) is baked by Blender itself (`world_bake`), both cached.
+    """
+    node = _output_node(world)
+    if node is None or _is_uniform(node):
+        return None
+    if node.type == "BACKGROUND" and not node.inputs["Strength"].is_linked:
+        source, output = _source(node.inputs["Color"])
+        if source is not None and source.type == "TEX_ENVIRONMENT" and output == "Color":
+            split = _environment_split(source, world.name)
+            if split is not None:
+                return split, float(_value(node.inputs["Strength"]))
+    key = ("baked", world_bake.world_key(world))
+    split = _SPLITS.get(key)
+    if split is None:
+        pixels = world_bake.bake_world(world, wait=wait)
+        if pixels is None:
+            return None
+        split = _SPLITS[key] = environment.split_environment(pixels)
+        while len(_SPLITS) > _SPLITS_KEPT:
+            _SPLITS.pop(next(iter(_SPLITS)))
+    return split, 1.0
+
+
+def world_lights(world, wait=True):
+    """The lamps a world brings: the sun of its map, as a shadowed SUN `Light` (wait=False: none
+    while its map bakes in the background)."""
+    if world is None or world.node_tree is None:
+        return []
+    found = _world_split(world, wait)
+    if found is None or found[0].sun_direction is None:
+        return []
+    split, strength = found
+    irradiance = split.sun_irradiance.astype(np.float64) * strength
+    power = float(irradiance.max())
+    if power <= 0.0:
+        return []
+    z = np.asarray(split.sun_direction, np.float64)  # the lamp's local +Z points at the sun
+    helper = np.array([1.0, 0.0, 0.0]) if abs(z[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    x = np.cross(helper, z)
+    x /= np.linalg.norm(x)
+    matrix = np.eye(4)
+    matrix[:3, 0], matrix[:3, 1], matrix[:3, 2] = x, np.cross(z, x), z
+    return [snap.Light(kind="SUN", color=(irradiance / power).astype(np.float32), power=power, matrix=matrix,
+                       angle=split.sun_angle, name=f"{world.name}/sun")]
+
+
+def world_from_blender(world, wait=True):
+    """`World` of a Blender world: a uniform Background colour x strength, or the sky of a world
+    that varies with direction (its sun goes to `world_lights`, see `environment.py`). wait=False
+    (the viewport): a world whose map still bakes reads as its uniform colour meanwhile."""
     if world is None:
         return snap.World()
     ao_distance = float(world.light_settings.distance)
-    tree = world.node_tree
-    if tree is None:
+    if world.node_tree is None:
         return snap.World(color=_rgb(world.color), ao_distance=ao_distance)
-    node = _linked_node(_surface_input(tree))
+    node = _output_node(world)
     if node is None:
         # Cycles renders a world with nothing linked to its output as black.
         return snap.World(color=np.zeros(3, np.float32), ao_distance=ao_distance)
+    found = _world_split(world, wait)
+    if found is not None:
+        split, strength = found
+        log.info("world %r: %s and a sky of L2 spherical harmonics", world.name,
+                 "a shadowed sun" if split.sun_direction is not None else "no sun")
+        return snap.World(color=(split.sky * strength).astype(np.float32), ao_distance=ao_distance,
+                          sky_sh=(split.sky_sh * strength).astype(np.float32))
     if node.type != "BACKGROUND":
-        log.warning("world %r: %s is not supported; using the viewport colour", world.name, node.bl_idname)
+        log.warning("world %r: %s could not be read; using the viewport colour", world.name, node.bl_idname)
         return snap.World(color=_rgb(world.color), ao_distance=ao_distance)
-    color_socket = node.inputs["Color"]
-    color = _rgb(color_socket.default_value)
-    if color_socket.is_linked:
-        source, output = _source(color_socket)
-        is_env = source is not None and source.type == "TEX_ENVIRONMENT" and output == "Color"
-        pixels = image_pixels(source.image.original) if is_env and source.image is not None else None
-        if pixels is not None:
-            log.warning("world %r: environment image approximated by its mean radiance", world.name)
-            color = equirect_mean(pixels)
-        else:
-            log.warning("world %r: linked background colour is not supported; using its value", world.name)
-    radiance = (color * _value(node.inputs["Strength"])).astype(np.float32)
+    if not _is_uniform(node) and not world_bake.pending():
+        log.warning("world %r: its background could not be read; using its colour value", world.name)
+    radiance = (_rgb(node.inputs["Color"].default_value) * _value(node.inputs["Strength"])).astype(np.float32)
     return snap.World(color=radiance, ao_distance=ao_distance)
+
+
+# --- partial re-reads (shading edits in the viewport) ---------------------------------------
+
+
+def scene_lights(depsgraph, wait_for_world=True) -> list:
+    """Every lamp instance of the depsgraph as a `Light`, then the world's (the snapshot's lamps,
+    read again)."""
+    lamps = [light_from_blender(inst.object.data, inst.matrix_world, inst.object.name)
+             for inst in depsgraph.object_instances if inst.object.type == "LIGHT"]
+    return lamps + world_lights(depsgraph.scene.world, wait_for_world)
+
+
+def scene_materials(snapshot, names=None) -> list:
+    """The snapshot's materials, those named (None: all) read again from Blender; same order, so
+    the triangles' material indices stay valid."""
+    import bpy  # noqa: PLC0415
+
+    out = []
+    textures = _TextureCache()
+    for material in snapshot.materials:
+        source = bpy.data.materials.get(material.name) if names is None or material.name in names else None
+        out.append(material if source is None else material_from_blender(source, textures))
+    return out

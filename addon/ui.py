@@ -9,6 +9,18 @@ from bpy.types import Panel
 ENGINE = "HYBRIDGI"
 
 
+def settings_column(layout, data, names):
+    """A split-layout column of `data`'s properties; `names` holds property names, or (name,
+    keyword arguments of `prop`) pairs. Panels are the lists they show."""
+    layout.use_property_split = True
+    layout.use_property_decorate = False
+    col = layout.column()
+    for item in names:
+        name, options = (item, {}) if isinstance(item, str) else item
+        col.prop(data, name, **options)
+    return col
+
+
 class HybridGIButtonsPanel:
     bl_space_type = "PROPERTIES"
     bl_region_type = "WINDOW"
@@ -24,19 +36,9 @@ class HYBRIDGI_PT_cache(HybridGIButtonsPanel, Panel):
     bl_label = "Irradiance Cache"
 
     def draw(self, context):
-        layout = self.layout
-        layout.use_property_split = True
-        layout.use_property_decorate = False
-        props = context.scene.hybridgi
-
-        col = layout.column()
-        col.prop(props, "resolution")
-        col.prop(props, "sh_order", expand=True)
-        col.prop(props, "rays_per_cell")
-        col.prop(props, "ray_length")
-        col.prop(props, "hysteresis")
-        col.prop(props, "warmup_iterations")
-        col.prop(props, "animation_mode")
+        col = settings_column(self.layout, context.scene.hybridgi, (
+            "resolution", ("sh_order", {"expand": True}), "rays_per_cell", "ray_length", "hysteresis",
+            "warmup_iterations", "animation_mode"))
         world = context.scene.world
         if world is not None:
             # The AO distance belongs to the World (Cycles reads it there too); shown here
@@ -49,32 +51,15 @@ class HYBRIDGI_PT_indirect(HybridGIButtonsPanel, Panel):
     bl_parent_id = "HYBRIDGI_PT_cache"
 
     def draw(self, context):
-        layout = self.layout
-        layout.use_property_split = True
-        layout.use_property_decorate = False
-        props = context.scene.hybridgi
-
-        col = layout.column()
-        col.prop(props, "indirect_quality")
-        col.prop(props, "light_samples")
-        col.prop(props, "lod_ratio")
-        col.prop(props, "seed")
+        settings_column(self.layout, context.scene.hybridgi, ("indirect_quality", "light_samples", "lod_ratio", "seed"))
 
 
 class HYBRIDGI_PT_screen_space(HybridGIButtonsPanel, Panel):
     bl_label = "Screen Space"
 
     def draw(self, context):
-        layout = self.layout
-        layout.use_property_split = True
-        layout.use_property_decorate = False
-        props = context.scene.hybridgi
-
-        col = layout.column()
-        col.prop(props, "downsample")
-        col.prop(props, "ssao_radius")
-        col.prop(props, "ssao_strength")
-        col.prop(props, "blend_mode", expand=True)
+        settings_column(self.layout, context.scene.hybridgi, (
+            "downsample", "ssao_radius", "ssao_strength", ("blend_mode", {"expand": True})))
 
 
 class HYBRIDGI_PT_debug(HybridGIButtonsPanel, Panel):
@@ -82,15 +67,7 @@ class HYBRIDGI_PT_debug(HybridGIButtonsPanel, Panel):
     bl_options = {"DEFAULT_CLOSED"}
 
     def draw(self, context):
-        layout = self.layout
-        layout.use_property_split = True
-        layout.use_property_decorate = False
-        props = context.scene.hybridgi
-
-        col = layout.column()
-        col.prop(props, "debug_view")
-        col.prop(props, "use_viewport_overlay")
-        col.prop(props, "use_gi_overlay")
+        settings_column(self.layout, context.scene.hybridgi, ("debug_view", "use_viewport_overlay", "use_gi_overlay"))
 
 
 class HYBRIDGI_PT_passes(HybridGIButtonsPanel, Panel):
@@ -152,17 +129,9 @@ class HYBRIDGI_PT_view3d_settings(HybridGIViewPanel, Panel):
     bl_parent_id = "HYBRIDGI_PT_view3d"
 
     def draw(self, context):
-        layout = self.layout
-        layout.use_property_split = True
-        layout.use_property_decorate = False
-        props = context.scene.hybridgi
-        col = layout.column()
-        col.prop(props, "resolution")
-        col.prop(props, "rays_per_cell")
-        col.prop(props, "hysteresis")
-        col.prop(props, "indirect_quality", text="Quality")
-        col.prop(props, "downsample")
-        col.prop(props, "ssao_strength", text="SSAO")
+        settings_column(self.layout, context.scene.hybridgi, (
+            "resolution", "rays_per_cell", "hysteresis", ("indirect_quality", {"text": "Quality"}), "downsample",
+            ("ssao_strength", {"text": "SSAO"})))
 
 
 class HYBRIDGI_PT_view3d_stats(HybridGIViewPanel, Panel):
@@ -201,13 +170,7 @@ class HYBRIDGI_PT_view3d_debug(HybridGIViewPanel, Panel):
     bl_options = {"DEFAULT_CLOSED"}
 
     def draw(self, context):
-        layout = self.layout
-        layout.use_property_split = True
-        layout.use_property_decorate = False
-        props = context.scene.hybridgi
-        col = layout.column()
-        col.prop(props, "debug_view")
-        col.prop(props, "use_viewport_overlay")
+        settings_column(self.layout, context.scene.hybridgi, ("debug_view", "use_viewport_overlay"))
 
 
 #: Properties-editor panels: shown for this engine only.

@@ -1,8 +1,9 @@
 """Real-time GI in the 3D viewport: the HYBRIDGI engine's `view_update` / `view_draw`, and the
 session the Solid-mode GI overlay (`overlay.py`) shares.
 
-Threads. The main thread (this module) reads Blender: it turns depsgraph updates into scene edits
-for the worker (`worker.py`), rasterizes the G-buffer with the viewport's camera, reads back the
+Threads. The main thread (this module) turns the depsgraph updates `updates.py` classifies into
+scene edits for the worker (`worker.py`; `sync.py` reads the snapshots, `viewport_mirror.py`
+keeps the main thread's copy of the scene), rasterizes the G-buffer with the viewport's camera, reads back the
 downsampled G-buffer when the camera or the geometry changed, uploads what the worker published,
 runs the GPU passes and draws. The worker does every CPU step of a frame (visible cells, corner
 visibility rays, direct light with shadow rays, cache updates) a frame or more behind, on numpy.
@@ -18,35 +19,39 @@ busy or has published something not drawn yet; an unchanged view with nothing ne
 last image without running the pipeline.
 """
 
-import dataclasses
 import logging
 import os
 import time
 import weakref
-from dataclasses import dataclass, field
 
 import numpy as np
 
-from . import sync, worker
-from ._core import errors, submodule
+from hybridgi_core import cache as _cache
+from hybridgi_core import errors
+from hybridgi_core import grid as _grid
+from hybridgi_core import settings as _settings
+from hybridgi_core.raster import downsample as _downsample
+from hybridgi_core.raster import frame as _frame
+from hybridgi_core.raster import gather as _gather
+from hybridgi_core.raster import passes as _passes
+from hybridgi_core.raster import readback as _readback
+from hybridgi_core.raster import settings as _raster_settings
+
+from . import sync, updates, viewport_stats, worker, world_bake
+from .viewport_mirror import SceneMirror
 from .viewport_passes import (
     PRESENT_CELLS,
     PRESENT_COLOR,
     DirectResolvePass,
+    DirectSource,
     PackedGatherPass,
     PresentPass,
-    _DirectSource,
     draw_texture_fullscreen,
 )
+from .viewport_stats import GPU_STEPS, DrawStats, LiveStats, ViewCamera  # noqa: F401  (GPU_STEPS: the benchmark's)
 
 log = logging.getLogger(__name__)
 
-_frame = submodule("raster.frame")
-_gather = submodule("raster.gather")
-_passes = submodule("raster.passes")
-_readback = submodule("raster.readback")
-_raster_settings = submodule("raster.settings")
-_downsample = submodule("raster.downsample")
 
 #: Full-res pixels per pixel of the direct light the worker traces (the GI itself runs at the
 #: `downsample` setting). 2 keeps shadow edges sharp enough to model by at a quarter of the rays.
@@ -55,14 +60,8 @@ DIRECT_FACTOR = 2
 DIRECT_PASSES = 16
 #: GI updates per second the worker aims at; it sizes each update's ray budget to the ray rate.
 UPDATE_HZ = 30.0
-#: Object types whose evaluated geometry the sync turns into triangles.
-GEOMETRY_TYPES = frozenset({"MESH", "CURVE", "CURVES", "SURFACE", "META", "FONT", "POINTCLOUD", "VOLUME",
-                            "GREASEPENCIL"})
 #: props.debug_view of the cells view (drawn here, not by the deferred pass).
 DEBUG_CELLS = "CELLS"
-#: Steps of `DrawStats` that only submit GPU work or wait for it (not main-thread CPU work).
-GPU_STEPS = frozenset({"gbuffer", "downsample", "readback", "resolve", "gather", "ssao", "bilateral", "deferred",
-                       "present", "display"})
 
 #: Scene name -> the latest `LiveStats` of a view of it, read by the sidebar panel.
 LIVE_STATS: dict = {}
@@ -81,71 +80,6 @@ def drawn_cache(scene_name: str):
         if session.scene_name == scene_name and session.gpu is not None and session.gpu.cache_frame is not None:
             return session.gpu.cache_frame
     return None
-
-
-# --- camera and statistics ---------------------------------------------------------------------
-
-
-@dataclass(frozen=True)
-class ViewCamera:
-    """A viewport camera: world->view and view->clip (4, 4) float64, as `region_data` gives them."""
-
-    view: np.ndarray
-    proj: np.ndarray
-
-    @classmethod
-    def from_region_data(cls, rv3d) -> "ViewCamera":
-        # window_matrix already frames the region as drawn: perspective, orthographic or the
-        # camera view with its zoom and offset (the passepartout area included).
-        return cls(np.array(rv3d.view_matrix, np.float64), np.array(rv3d.window_matrix, np.float64))
-
-    @property
-    def key(self) -> bytes:
-        return self.view.tobytes() + self.proj.tobytes()
-
-
-@dataclass
-class DrawStats:
-    """Main-thread milliseconds of one redraw, per step (GPU_STEPS submit or wait for the GPU)."""
-
-    steps_ms: dict = field(default_factory=dict)
-    total_ms: float = 0.0  # wall time of the whole redraw
-    redrawn: bool = False  # False: the last image was drawn again without running the pipeline
-    posted_view: bool = False
-    view_current: bool = False  # the direct light drawn was traced for this very view
-    low_res: tuple = (0, 0)  # FramePipeline.rasterize records the GI resolution here
-
-    def step(self, name: str):
-        return _Timer(self.steps_ms, name)
-
-    @property
-    def cpu_ms(self) -> float:
-        """Main-thread time that is not GPU work: the wall time minus the GPU steps."""
-        return max(self.total_ms - self.gpu_ms, 0.0)
-
-    @property
-    def gpu_ms(self) -> float:
-        return sum(v for k, v in self.steps_ms.items() if k in GPU_STEPS)
-
-
-class _Timer:
-    def __init__(self, out: dict, name: str):
-        self.out, self.name = out, name
-
-    def __enter__(self):
-        self.t0 = time.perf_counter()
-
-    def __exit__(self, *exc):
-        self.out[self.name] = self.out.get(self.name, 0.0) + (time.perf_counter() - self.t0) * 1e3
-
-
-@dataclass(frozen=True)
-class LiveStats:
-    """What the sidebar shows for one view: the last redraw and the worker's record."""
-
-    draw: DrawStats
-    worker: worker.WorkerStats
-    error: str | None
 
 
 # --- settings ----------------------------------------------------------------------------------
@@ -167,198 +101,6 @@ def debug_view_of(props) -> tuple[int, int]:
     return numbers.get(name, 0), PRESENT_COLOR
 
 
-# --- the main thread's copy of the scene --------------------------------------------------------
-
-
-@dataclass
-class _Changes:
-    """What one set of depsgraph updates asks for."""
-
-    full: bool = False
-    moved: dict = field(default_factory=dict)  # object name -> (4, 4) world matrix
-    lights: bool = False
-    world: bool = False
-    materials: bool = False
-    material_names: set | None = field(default_factory=set)  # which to read again; None = all
-
-
-def classify_updates(depsgraph, structure_key) -> _Changes:
-    """Read `depsgraph.updates` (only valid inside view_update / depsgraph handlers)."""
-    import bpy  # noqa: PLC0415
-
-    c = _Changes()
-    shading_only = False
-    structure = False
-    node_trees = False
-    for update in depsgraph.updates:
-        id_ = update.id
-        if isinstance(id_, bpy.types.Object):
-            if id_.type == "LIGHT":
-                c.lights = True
-            elif id_.type in GEOMETRY_TYPES:
-                if update.is_updated_geometry or id_.is_instancer:
-                    c.full = True
-                elif update.is_updated_transform:
-                    c.moved[id_.name] = np.array(id_.matrix_world, np.float64)
-                elif update.is_updated_shading:
-                    shading_only = True  # a material slot changed, or a material edit (below)
-            elif update.is_updated_transform and id_.is_instancer:
-                c.full = True  # a collection instance moved: its instances are not plain objects
-        elif isinstance(id_, bpy.types.Light):
-            c.lights = True
-        elif isinstance(id_, bpy.types.World):
-            c.world = True
-        elif isinstance(id_, bpy.types.Material):
-            c.materials = True
-            if c.material_names is not None:
-                c.material_names.add(id_.name)
-        elif isinstance(id_, bpy.types.Image):
-            c.materials, c.material_names = True, None
-            c.world = True  # an environment texture
-        elif isinstance(id_, bpy.types.NodeTree):
-            node_trees = True  # a material's or world's own tree comes with that ID's update
-        elif isinstance(id_, (bpy.types.Scene, bpy.types.Collection)):
-            structure = True
-        elif isinstance(id_, bpy.types.ID) and update.is_updated_geometry and not isinstance(id_, bpy.types.Camera):
-            c.full = True  # mesh, curve, text... data edited
-    if node_trees and not (c.materials or c.world):
-        c.materials, c.material_names, c.world = True, None, True  # a node group: any user may change
-    if shading_only and not c.materials:
-        c.full = True
-    if structure and not c.full and scene_structure(depsgraph) != structure_key:
-        c.full = True  # objects added, deleted, hidden or shown
-    return c
-
-
-def scene_structure(depsgraph) -> tuple:
-    """What a full snapshot depends on besides data edits: the instances and their visibility."""
-    return tuple(
-        (inst.object.name, inst.object.type, inst.is_instance, inst.show_self,
-         inst.parent.name if inst.is_instance and inst.parent is not None else "")
-        for inst in depsgraph.object_instances
-    )
-
-
-class SceneMirror:
-    """The scene as the main thread knows it: the last snapshot, and the vertex positions the
-    G-buffer draws (moved objects are updated in place here, never in a snapshot the worker holds).
-    """
-
-    def __init__(self):
-        self.snapshot = None
-        self.structure = None
-        self.geometry_gen = 0  # bumped whenever the G-buffer's geometry changes
-        self.gpu_dirty = None  # None | "positions" | "full": what the G-buffer must re-upload
-        self._matrices: dict = {}
-        self._local: dict = {}
-        self._positions = None
-        self._normals = None
-
-    def full_sync(self, depsgraph):
-        """Snapshot the whole scene; returns the worker edit."""
-        self.snapshot = sync.snapshot_from_depsgraph(depsgraph)
-        self.structure = scene_structure(depsgraph)
-        # Placement of every plain (non-instanced) object: moves are applied relative to it.
-        self._matrices = {
-            inst.object.name: np.array(inst.matrix_world, np.float64)
-            for inst in depsgraph.object_instances
-            if not inst.is_instance and inst.object.type in GEOMETRY_TYPES
-        }
-        self._local.clear()
-        self._positions = self._normals = None
-        self.geometry_gen += 1
-        self.gpu_dirty = "full"
-        return worker.FullScene(self.snapshot)
-
-    def move(self, name: str, matrix: np.ndarray):
-        """Edit for a plain object now placed by `matrix`: a MoveVertices, () when the object has
-        no triangles, or None when only a full sync can express the change (instances, mirroring)."""
-        if name not in self._matrices:
-            return None
-        local = self._local.get(name)
-        if local is None:
-            local = self._local[name] = self._object_local(name)
-        if local is None:
-            return ()  # no triangles in the snapshot: nothing to move
-        indices, pos_local, nrm_local, det_sign = local
-        linear = matrix[:3, :3]
-        det = np.linalg.det(linear)
-        if not np.isfinite(det) or abs(det) < 1e-30 or np.sign(det) != det_sign:
-            return None  # degenerate or mirrored: the winding changes, the full sync handles it
-        positions = (pos_local @ linear.T + matrix[:3, 3]).astype(np.float32)
-        normals = nrm_local @ np.linalg.inv(linear)
-        normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
-        normals = normals.astype(np.float32)
-        if self._positions is None:
-            self._positions = self.snapshot.geometry.positions.copy()
-            self._normals = self.snapshot.geometry.normals.copy()
-        rotated = not np.allclose(normals, self._normals[indices], atol=1e-6)
-        self._positions[indices] = positions
-        self._normals[indices] = normals
-        # The G-buffer can replace its positions alone; new normals need a full upload.
-        self.gpu_dirty = "full" if rotated or self.gpu_dirty == "full" else "positions"
-        self.geometry_gen += 1
-        return worker.MoveVertices(indices, positions.copy(), normals.copy())
-
-    def _object_local(self, name: str):
-        """(vertex indices, object-space positions and normals, det sign) of an object, from the
-        snapshot and the matrix of the full sync (so repeated moves never accumulate error)."""
-        snap = self.snapshot
-        names = [o.name for o in snap.objects]
-        if name not in names:
-            return None
-        g = snap.geometry
-        indices = np.unique(g.triangles[g.object_index == names.index(name)])
-        if indices.size == 0:
-            return None
-        m0 = self._matrices[name]
-        linear0 = m0[:3, :3]
-        pos_local = (g.positions[indices].astype(np.float64) - m0[:3, 3]) @ np.linalg.inv(linear0).T
-        # World normals are local normals times inv(linear0): undo it.
-        nrm_local = g.normals[indices].astype(np.float64) @ linear0
-        return indices, pos_local, nrm_local, np.sign(np.linalg.det(linear0))
-
-    def set_shading(self, lights=None, world=None, materials=None):
-        snap = self.snapshot
-        self.snapshot = dataclasses.replace(
-            snap,
-            lights=snap.lights if lights is None else lights,
-            world=snap.world if world is None else world,
-            materials=snap.materials if materials is None else materials,
-        )
-        if materials is not None:
-            self.gpu_dirty = "full"  # material colours are the G-buffer's per-draw constants
-        return worker.SetShading(lights=lights, world=world, materials=materials)
-
-    def gpu_snapshot(self):
-        """The snapshot with the positions and normals the G-buffer must draw."""
-        if self._positions is None:
-            return self.snapshot
-        geometry = dataclasses.replace(self.snapshot.geometry, positions=self._positions, normals=self._normals)
-        return dataclasses.replace(self.snapshot, geometry=geometry)
-
-    @property
-    def gpu_positions(self):
-        return self._positions if self._positions is not None else self.snapshot.geometry.positions
-
-
-def scene_lights(depsgraph) -> list:
-    return [sync.light_from_blender(inst.object.data, inst.matrix_world, inst.object.name)
-            for inst in depsgraph.object_instances if inst.object.type == "LIGHT"]
-
-
-def scene_materials(snapshot, names=None) -> list:
-    """The snapshot's materials, those named (None: all) read again from Blender; same order, so
-    the triangles' material indices stay valid."""
-    import bpy  # noqa: PLC0415
-
-    out = []
-    for material in snapshot.materials:
-        source = bpy.data.materials.get(material.name) if names is None or material.name in names else None
-        out.append(material if source is None else sync.material_from_blender(source))
-    return out
-
-
 # --- one live view -------------------------------------------------------------------------------
 
 
@@ -372,7 +114,7 @@ class _GPUState:
         self.resolve_full = DirectResolvePass("RGBA32F")
         self.resolve_low = DirectResolvePass("RGBA16F")
         self.present = PresentPass()
-        self.source = None  # _DirectSource of the last ViewResult uploaded
+        self.source = None  # DirectSource of the last ViewResult uploaded
         self.cells_source = None  # its Cache Cells colours, when drawn
         self.mask_tx = None
         self.mask_serial = None
@@ -418,6 +160,8 @@ class ViewportSession:
         self._drawn_key = None
         self._drawn_serials = None
         self.scene_name = None
+        self.settings_error: str | None = None  # the scene's settings are invalid: this message
+        self._world_bakes_seen = world_bake.completed
         _OPEN.add(self)
 
     # --- scene ----------------------------------------------------------------------------------
@@ -425,22 +169,33 @@ class ViewportSession:
     def sync(self, depsgraph, scene) -> None:
         """Bring the worker's scene up to `depsgraph`: the first call snapshots everything, later
         calls read `depsgraph.updates` and send only what changed."""
-        settings = viewport_cache_settings(scene)
         self.scene_name = scene.name
+        try:
+            settings = viewport_cache_settings(scene)
+            self.settings_error = None
+        except errors.HybridGIError as err:
+            # A setting out of range (a NaN typed in a field): say so on every redraw, and keep
+            # the worker in step with the scene under the settings it has until it is fixed.
+            if self.settings_error != str(err):
+                log.error("HybridGI viewport: %s", err)
+            self.settings_error = str(err)
+            if self.worker is None or not self.worker.alive:
+                return
+            settings = None
         if self.worker is None or not self.worker.alive:
             # A first sync, or a fresh start after the worker failed: it knows no scene, no view.
             self.worker = worker.ViewportWorker(settings, self.options)
             self.mirror = SceneMirror()
             self._posted_key = self._drawn_key = None
-        else:
+        elif settings is not None:
             self.worker.set_settings(settings)
         if self.mirror.snapshot is None:
             self._post(self.mirror.full_sync(depsgraph))
             return
-        changes = classify_updates(depsgraph, self.mirror.structure)
+        changes = updates.classify_updates(depsgraph, self.mirror.structure)
         self.apply_changes(depsgraph, changes)
 
-    def apply_changes(self, depsgraph, changes: _Changes) -> None:
+    def apply_changes(self, depsgraph, changes: updates.DepsgraphUpdates) -> None:
         mirror = self.mirror
         edits = []
         if not changes.full:
@@ -458,9 +213,10 @@ class ViewportSession:
             self._post(edit)
         if changes.lights or changes.world or changes.materials:
             self._post(mirror.set_shading(
-                lights=scene_lights(depsgraph) if changes.lights else None,
-                world=sync.world_from_blender(depsgraph.scene.world) if changes.world else None,
-                materials=scene_materials(mirror.snapshot, changes.material_names) if changes.materials else None,
+                # An environment map's sun is a lamp too: a world edit reads the lamps again.
+                lights=sync.scene_lights(depsgraph, wait_for_world=False) if changes.lights or changes.world else None,
+                world=sync.world_from_blender(depsgraph.scene.world, wait=False) if changes.world else None,
+                materials=sync.scene_materials(mirror.snapshot, changes.material_names) if changes.materials else None,
             ))
 
     def _post(self, edit) -> None:
@@ -519,7 +275,7 @@ class ViewportSession:
                 result = published.view
                 if result is not None and result.cells is not None:
                     if gpu_state.cells_source is None or gpu_state.cells_source.serial != result.serial:
-                        gpu_state.cells_source = _DirectSource.cells_of(result)
+                        gpu_state.cells_source = DirectSource.cells_of(result)
                     # The direct light's resolve is done with its target: reuse it for the colours.
                     cells = gpu_state.resolve_full.execute(gbuf.position, gbuf.normal, gpu_state.cells_source,
                                                            nearest=True)
@@ -530,10 +286,23 @@ class ViewportSession:
         LIVE_STATS[scene.name] = LiveStats(stats, published.stats, published.error)
         return out
 
+    def poll_world(self, depsgraph) -> None:
+        """Read the world again once a map it waited for has baked (`world_bake` runs it in the
+        background: the view showed the world's uniform colour meanwhile)."""
+        if self.mirror.snapshot is None or self.worker is None:
+            return
+        if world_bake.completed != self._world_bakes_seen:
+            self._world_bakes_seen = world_bake.completed
+            world = depsgraph.scene.world
+            self._post(self.mirror.set_shading(lights=sync.scene_lights(depsgraph, wait_for_world=False),
+                                               world=sync.world_from_blender(world, wait=False)))
+
     def needs_redraw(self) -> bool:
         """More to show: the worker is busy or published something not drawn yet."""
         if self.worker is None:
             return False
+        if world_bake.pending():
+            return True
         published = self.worker.latest()
         if published.error is not None:
             return False
@@ -597,9 +366,9 @@ class ViewportSession:
         result = published.view
         if result is None:
             if gpu_state.source is None or gpu_state.source.serial != -1:
-                gpu_state.source = _DirectSource.empty()
+                gpu_state.source = DirectSource.empty()
         elif gpu_state.source is None or gpu_state.source.serial != result.serial:
-            gpu_state.source = _DirectSource.upload(result)
+            gpu_state.source = DirectSource.upload(result)
         mask = None
         if result is not None and result.corner_mask is not None and result.key == view_key:
             if gpu_state.mask_serial != result.serial:
@@ -626,11 +395,8 @@ def _empty_cache_frame() -> worker.CacheFrame:
     """A one-cell cache with nothing valid: what the gather reads before the worker's first frame."""
     frame = _EMPTY.get("frame")
     if frame is None:
-        grid_mod = submodule("grid")
-        cache_mod = submodule("cache")
-        settings_mod = submodule("settings")
-        settings = settings_mod.CacheSettings(resolution=1)
-        cache = cache_mod.IrradianceCache(grid_mod.CacheGrid.from_bounds(np.zeros(3), np.ones(3), 1), settings)
+        settings = _settings.CacheSettings(resolution=1)
+        cache = _cache.IrradianceCache(_grid.CacheGrid.from_bounds(np.zeros(3), np.ones(3), 1), settings)
         sh_tex, depth_tex = _gather.pack_cache(cache)
         frame = _EMPTY["frame"] = worker.CacheFrame(0, cache.grid, settings, sh_tex, depth_tex)
     return frame
@@ -663,6 +429,7 @@ def view_draw(engine, context, depsgraph) -> None:
     pixel_size = max(int(engine.get_preview_pixel_size(scene)), 1)
     width, height = max(region.width // pixel_size, 1), max(region.height // pixel_size, 1)
     camera = ViewCamera.from_region_data(context.region_data)
+    session.poll_world(depsgraph)
     try:
         texture = session.draw(scene, camera, width, height, opaque=not scene.render.film_transparent)
     except errors.HybridGIError as err:
@@ -670,6 +437,7 @@ def view_draw(engine, context, depsgraph) -> None:
         engine.update_stats("HybridGI", f"Error: {err}")
         return
     if texture is None:
+        engine.update_stats("HybridGI", status_line(session))
         return
     with session.last_stats.step("display"):
         gpu.state.blend_set("ALPHA_PREMULT" if scene.render.film_transparent else "NONE")
@@ -685,12 +453,9 @@ def view_draw(engine, context, depsgraph) -> None:
 
 
 def status_line(session: ViewportSession) -> str:
-    published = session.worker.latest() if session.worker is not None else None
-    if published is None:
-        return ""
-    s = published.stats
-    state = "converged" if s.idle else f"converging {s.converged:.0%}"
-    return f"{state} | {s.visible_cells} cells | {s.updates_per_s:.0f} updates/s | {s.rays_per_s / 1e6:.1f} Mrays/s"
+    if session.settings_error is not None:
+        return f"Error: {session.settings_error}"
+    return viewport_stats.status_line(session.worker.latest() if session.worker is not None else None)
 
 
 def free(engine) -> None:

@@ -10,15 +10,15 @@ from pathlib import Path
 
 import numpy as np
 
+from hybridgi_core.raster import gather as _gather
+from hybridgi_core.raster import glsl as _glsl
+from hybridgi_core.raster import passes as _passes
+from hybridgi_core.raster import readback as _readback
+
 from . import worker
-from ._core import submodule
 
 log = logging.getLogger(__name__)
 
-_gather = submodule("raster.gather")
-_passes = submodule("raster.passes")
-_glsl = submodule("raster.glsl")
-_readback = submodule("raster.readback")
 
 #: Present-pass modes.
 PRESENT_COLOR, PRESENT_CELLS = 0, 1
@@ -37,15 +37,8 @@ class PackedGatherPass(_gather.GatherPass):
     def upload(self, cache) -> bool:
         if not isinstance(cache, worker.CacheFrame):
             return super().upload(cache)
-        key = ("frame", cache.serial)
-        if self._uploaded == key:
-            return False
-        self._cache_tx = _readback.upload_texture_2d(cache.sh_texels, "RGBA32F")
-        self._depth_tx = _readback.upload_texture_2d(cache.depth_texels, "RG32F")
-        self._grid = cache.grid
-        self._settings = cache.settings
-        self._uploaded = key
-        return True
+        return self.upload_packed(("frame", cache.serial), cache.grid, cache.settings,
+                                  cache.sh_texels, cache.depth_texels)
 
 
 
@@ -53,7 +46,7 @@ class PackedGatherPass(_gather.GatherPass):
 class DirectResolvePass(_passes.RasterPass):
     """`resize(w, h)`; `execute(position, normal, source) -> RGBA16F texture` (rgb W/m^2, a = trust).
 
-    source : `_DirectSource` (the worker's direct light, its positions and normals, its camera).
+    source : `DirectSource` (the worker's direct light, its positions and normals, its camera).
     """
 
     name = "direct resolve"
@@ -110,7 +103,7 @@ class DirectResolvePass(_passes.RasterPass):
 
 
 @dataclass
-class _DirectSource:
+class DirectSource:
     """Textures of one `worker.ViewResult` (uploaded once per result): its direct light, or
     (`cells_of`) its Cache Cells colours, with the positions and normals they were made at."""
 
@@ -125,22 +118,22 @@ class _DirectSource:
     footprint: tuple  # (a, b): a source pixel spans a * view depth + b world units
 
     @classmethod
-    def upload(cls, result: worker.ViewResult) -> "_DirectSource":
+    def upload(cls, result: worker.ViewResult) -> "DirectSource":
         return cls._of(result, result.direct, "RGBA32F", result.position, result.normal)
 
     @classmethod
-    def cells_of(cls, result: worker.ViewResult) -> "_DirectSource":
+    def cells_of(cls, result: worker.ViewResult) -> "DirectSource":
         return cls._of(result, result.cells, "RGBA16F", result.gi_position, result.gi_normal)
 
     @classmethod
-    def _of(cls, result, colour, colour_format, position, normal) -> "_DirectSource":
+    def _of(cls, result, colour, colour_format, position, normal) -> "DirectSource":
         h, w = colour.shape[:2]
         up = _readback.upload_texture_2d
         return cls(result.serial, up(colour, colour_format), up(position, "RGBA32F"), up(normal, "RGBA16F"),
                    result.view, result.proj, w, h, pixel_footprint(result.proj, h))
 
     @classmethod
-    def empty(cls) -> "_DirectSource":
+    def empty(cls) -> "DirectSource":
         up = _readback.upload_texture_2d
         zero = np.zeros((1, 1, 4), np.float32)
         eye = np.eye(4)

@@ -18,20 +18,33 @@ import dataclasses
 import logging
 import threading
 import time
-from collections.abc import Callable, Mapping
-from dataclasses import dataclass, field
+from collections.abc import Callable
 from types import MappingProxyType
 
 import numpy as np
 
-from ._core import errors, submodule
+from hybridgi_core import errors
+from hybridgi_core import visible as _visible
+from hybridgi_core.raster import gather as _gather_layout
+from hybridgi_core.session import GISession
+
+# The records exchanged with the main thread, importable from here as the worker's own API.
+from .worker_messages import (  # noqa: F401
+    CacheFrame,
+    FullScene,
+    MoveVertices,
+    Published,
+    SetShading,
+    ViewRequest,
+    ViewResult,
+    WorkerOptions,
+    WorkerStats,
+    frozen,
+)
+from .worker_view import DirectLevel, ViewState
 
 log = logging.getLogger(__name__)
 
-_session = submodule("session")
-_visible = submodule("visible")
-# The texture layout the GPU gather reads; pure numpy (the module imports gpu only inside methods).
-_gather_layout = submodule("raster.gather")
 
 #: A cell whose urgency exceeds this after an edit starts converging again (see `_settled`).
 URGENT = 0.01
@@ -44,137 +57,6 @@ MASK_CHUNK = 4096
 #: and uploading costs the main thread about 1 ms per 3 MB of texture data, and a display shows
 #: no more than about this rate anyway.
 PUBLISH_INTERVAL_S = 1.0 / 30.0
-
-
-# --- what the main thread posts -----------------------------------------------------------------
-
-
-@dataclass(frozen=True)
-class FullScene:
-    """A whole new snapshot (first sync, objects added or deleted, meshes edited)."""
-
-    snapshot: object  # SceneSnapshot
-
-
-@dataclass(frozen=True)
-class MoveVertices:
-    """New world positions and normals of some vertices of the current snapshot (objects moved).
-
-    indices : (k,) int64 rows of geometry.positions; positions, normals : (k, 3) float32
-    """
-
-    indices: np.ndarray
-    positions: np.ndarray
-    normals: np.ndarray
-
-
-@dataclass(frozen=True)
-class SetShading:
-    """Replaced lamps, world or materials (None keeps the current ones); geometry unchanged."""
-
-    lights: list | None = None
-    world: object | None = None
-    materials: list | None = None
-
-
-@dataclass(frozen=True)
-class ViewRequest:
-    """One frame's G-buffer read-backs to light, rows bottom-up.
-
-    key : identifies the camera, size and scene geometry of the frame; echoed by `ViewResult`
-    position, normal : (h, w, 4) float32 at the GI resolution (world position with w = 1 on
-        geometry; unit normal): visible cells and corner visibility
-    direct_position, direct_normal : the same at the direct light's resolution (may be the same arrays)
-    view, proj : (4, 4) float64 camera of the frame (the main thread reprojects results with them)
-    """
-
-    key: tuple
-    position: np.ndarray
-    normal: np.ndarray
-    direct_position: np.ndarray
-    direct_normal: np.ndarray
-    view: np.ndarray
-    proj: np.ndarray
-    debug_cells: bool = False  # also colour the GI pixels by cache cell (the Cache Cells view)
-
-
-@dataclass(frozen=True)
-class WorkerOptions:
-    update_hz: float = 30.0  # GI updates per second aimed at: each update's ray budget follows the
-    # measured ray rate so that one step (update + the view's own rays) takes about 1 / update_hz
-    rays_per_update: int = 262144  # most probe rays of one update (cells = budget / rays per cell)
-    min_cells_per_update: int = 32  # fewest cells of one update (per-update overhead stays small)
-    settle_updates: int = 24  # updates after a change before a cell counts as converged
-    direct_samples: int = 1  # shadow-ray samples per pixel and lamp in each direct-light pass
-    direct_passes: int = 16  # passes averaged while the view stays still (soft shadows converge)
-    background_cells: bool = True  # once the view converged, also converge every surface's cells
-
-
-# --- what the worker publishes ------------------------------------------------------------------
-
-
-@dataclass(frozen=True)
-class CacheFrame:
-    """The cache as GPU texture data (`raster.gather.pack_cache` layout), packed by the worker."""
-
-    serial: int
-    grid: object  # CacheGrid
-    settings: object  # CacheSettings
-    sh_texels: np.ndarray
-    depth_texels: np.ndarray
-
-
-@dataclass(frozen=True)
-class ViewResult:
-    """Light of one `ViewRequest`: arrays float32, rows bottom-up like the request.
-
-    direct : (h, w, 4) at the direct resolution, rgb = lamp irradiance W/m^2 (mean over `passes`
-        passes), a = 1 where computed; position, normal : the request's direct-resolution arrays
-    corner_mask : (h_gi, w_gi) float32 bit masks of the visible neighbour cells, None until traced
-    cells : (h_gi, w_gi, 4) `visible.cell_debug_colors` of the GI pixels (a = 1 on geometry) when
-        the request asked for them, with gi_position, gi_normal: the request's GI-resolution arrays
-    scene_gen : the scene edits the light was traced with
-    """
-
-    key: tuple
-    serial: int
-    scene_gen: int
-    position: np.ndarray
-    normal: np.ndarray
-    view: np.ndarray
-    proj: np.ndarray
-    direct: np.ndarray
-    passes: int
-    corner_mask: np.ndarray | None = None
-    cells: np.ndarray | None = None
-    gi_position: np.ndarray | None = None
-    gi_normal: np.ndarray | None = None
-
-
-@dataclass(frozen=True)
-class WorkerStats:
-    updates: int = 0  # GI updates since the worker started
-    updates_per_s: float = 0.0  # over the last RATE_WINDOW_S
-    rays_per_s: float = 0.0  # probe, shadow and visibility rays over the last RATE_WINDOW_S
-    visible_cells: int = 0
-    converged: float = 0.0  # share of the visible cells that settled since the last change
-    steps_ms: Mapping[str, float] = field(default_factory=lambda: MappingProxyType({}))
-    scene_gen: int = 0  # edits applied so far (compare with `post_edit`'s return value)
-    idle: bool = False
-
-
-@dataclass(frozen=True)
-class Published:
-    cache: CacheFrame | None = None
-    view: ViewResult | None = None
-    stats: WorkerStats = WorkerStats()
-    empty: bool = False  # the scene has no geometry (the world alone is drawn)
-    error: str | None = None  # the worker stopped on this error
-
-
-def _frozen(array: np.ndarray) -> np.ndarray:
-    array.flags.writeable = False
-    return array
 
 
 # --- the worker ---------------------------------------------------------------------------------
@@ -209,7 +91,7 @@ class ViewportWorker:
         self._serial = 0
         self._published_cache_key = None
         self._published_at = 0.0
-        self._view_state: _ViewState | None = None
+        self._view_state: ViewState | None = None
         self._rates: collections.deque = collections.deque()
         self._updates = 0
         self._ray_rate = 0.0  # probe rays per ms of update wall time (moving average)
@@ -334,7 +216,7 @@ class ViewportWorker:
     def _step(self, edits: list, edit_gen: int, view: ViewRequest | None, settings) -> None:
         t0 = time.perf_counter()
         if self._session is None:
-            self._session = _session.GISession(settings)
+            self._session = GISession(settings)
         resync = settings != self._session.settings
         if resync:
             self._session.set_settings(settings)
@@ -375,8 +257,7 @@ class ViewportWorker:
 
     def _apply(self, edits: list, resync: bool) -> None:
         t0 = time.perf_counter()
-        old = self._snapshot
-        snapshot = old
+        snapshot = self._snapshot
         positions = normals = None
         for edit in edits:
             if isinstance(edit, FullScene):
@@ -420,15 +301,8 @@ class ViewportWorker:
         if cache is not self._cache_ref:
             self._cache_ref = cache
             self._settled = np.zeros(cache.grid.count, np.int32)
-        if report.rebuilt and old is not None and cache.samples.any():
-            # GISession keeps the cache across a rebuild but raises no event for objects that
-            # appeared, vanished or changed topology, nor for light edits that came with them.
-            boxes = _changed_object_boxes(old, snapshot)
-            if boxes:
-                cache.on_geometry_changed(boxes)
-            if _shading_key(old) != _shading_key(snapshot):
-                cache.on_lights_changed()
-        if report.rebuilt or report.moved or report.lights_changed or resync:
+        # The session raised the cache's events; policy here: what they touched settles again.
+        if report.rebuilt or report.changes.any or resync:
             self._settled[cache.urgency > URGENT] = 0
             self._secondary = None
         self._steps["apply"] = (time.perf_counter() - t0) * 1e3
@@ -441,12 +315,12 @@ class ViewportWorker:
         t0 = time.perf_counter()
         points, normals, pix = _visible.pixels_to_points(view.position, view.normal)
         cells = system.visible_cells(points, normals)
-        state = _ViewState(view, self._scene_version, (points, normals, pix), cells)
+        state = ViewState(view, self._scene_version, (points, normals, pix), cells)
         self._steps["visible"] = (time.perf_counter() - t0) * 1e3
         self._view_state = state
         self._direct_pass(system, state, state.coarse)
 
-    def _direct_pass(self, system, state: _ViewState, level: _DirectLevel | None = None) -> None:
+    def _direct_pass(self, system, state: ViewState, level: DirectLevel | None = None) -> None:
         t0 = time.perf_counter()
         level = level or state.fine_level()
         self._frame += 1
@@ -459,7 +333,7 @@ class ViewportWorker:
         self._steps["direct"] = (time.perf_counter() - t0) * 1e3
         state.dirty = True
 
-    def _cell_colors(self, system, state: _ViewState, force: bool) -> None:
+    def _cell_colors(self, system, state: ViewState, force: bool) -> None:
         """The Cache Cells view of the GI pixels, as final renders draw it; again when the cache
         changed (at most every PUBLISH_INTERVAL_S while it converges)."""
         cache = system.cache
@@ -478,7 +352,7 @@ class ViewportWorker:
         self._steps["cells"] = (time.perf_counter() - t0) * 1e3
         state.dirty = True
 
-    def _trace_mask(self, system, state: _ViewState) -> None:
+    def _trace_mask(self, system, state: ViewState) -> None:
         t0 = time.perf_counter()
         h, w = state.request.position.shape[:2]
         points, normals, pix = state.gi_points
@@ -588,7 +462,7 @@ class ViewportWorker:
                 t0 = time.perf_counter()
                 sh_tex, depth_tex = _gather_layout.pack_cache(cache)
                 self._serial += 1
-                cache_frame = CacheFrame(self._serial, cache.grid, cache.settings, _frozen(sh_tex), _frozen(depth_tex))
+                cache_frame = CacheFrame(self._serial, cache.grid, cache.settings, frozen(sh_tex), frozen(depth_tex))
                 self._published_cache_key = key
                 self._published_at = time.perf_counter()
                 self._steps["pack"] = (time.perf_counter() - t0) * 1e3
@@ -609,83 +483,6 @@ class ViewportWorker:
             self._cond.notify_all()
 
 
-class _DirectLevel:
-    """Running sum of direct-light passes at one resolution (worker thread only)."""
-
-    def __init__(self, position: np.ndarray, normal: np.ndarray, points: tuple, samples: int = 1):
-        self.position, self.normal = position, normal
-        self.points = points  # (points, normals, flat pixels)
-        self.samples = samples  # shadow-ray samples per pixel and pass, in units of direct_samples
-        h, w = position.shape[:2]
-        self.sum = np.zeros((h * w, 4), np.float32)
-        self.sum[points[2], 3] = 1.0
-        self.passes = 0
-
-    @property
-    def samples_per_pixel(self) -> int:
-        return self.passes * self.samples
-
-    def mean(self) -> np.ndarray:
-        h, w = self.position.shape[:2]
-        out = self.sum.copy()
-        out[:, :3] /= max(self.passes, 1)
-        return out.reshape(h, w, 4)
-
-
-class _ViewState:
-    """The worker's running state for the latest view (worker thread only): visible cells, the
-    corner mask, and direct light at two levels, coarse (GI resolution, one pass, as soon as the
-    view arrives) and fine (the direct light's resolution, refined while the view holds still)."""
-
-    def __init__(self, request: ViewRequest, scene_gen: int, gi_points: tuple, cells: np.ndarray):
-        self.request = request
-        self.scene_gen = scene_gen
-        self.gi_points = gi_points  # (points, normals, flat pixels) at the GI resolution
-        self.cells = cells
-        # The coarse pass traces as many rays as one fine pass (more samples on fewer pixels), so
-        # soft shadows shimmer no more while the camera moves than once it stops.
-        ratio = request.direct_position.shape[0] * request.direct_position.shape[1] / max(
-            request.position.shape[0] * request.position.shape[1], 1)
-        self.coarse = _DirectLevel(request.position, request.normal, gi_points, int(np.clip(round(ratio), 1, 16)))
-        self._fine: _DirectLevel | None = None
-        self.mask: np.ndarray | None = None
-        self.cell_colors: np.ndarray | None = None  # Cache Cells view, when the request asks
-        self.cells_key = None
-        self.cells_at = 0.0
-        self.dirty = False
-
-    def fine_level(self) -> _DirectLevel:
-        if self._fine is None:
-            r = self.request
-            if r.direct_position is r.position:
-                self._fine = self.coarse  # one resolution: the coarse pass is the first fine one
-            else:
-                points = _visible.pixels_to_points(r.direct_position, r.direct_normal)
-                self._fine = _DirectLevel(r.direct_position, r.direct_normal, points)
-        return self._fine
-
-    @property
-    def passes(self) -> int:
-        """Passes of the light that is published: fine once it has one, else the coarse one."""
-        return self._fine.passes if self._fine is not None else 0
-
-    def current(self, request: ViewRequest, scene_gen: int) -> bool:
-        return request is self.request and scene_gen == self.scene_gen
-
-    def result(self, serial: int) -> ViewResult:
-        # The fine light replaces the coarse one once it is no noisier per pixel.
-        fine = self._fine
-        level = fine if fine is not None and fine.samples_per_pixel >= self.coarse.samples_per_pixel else self.coarse
-        r = self.request
-        return ViewResult(
-            key=r.key, serial=serial, scene_gen=self.scene_gen, position=level.position, normal=level.normal,
-            view=r.view, proj=r.proj, direct=_frozen(level.mean()), passes=level.passes,
-            corner_mask=None if self.mask is None else _frozen(self.mask.copy()),
-            cells=None if self.cell_colors is None else _frozen(self.cell_colors.copy()),
-            gi_position=r.position, gi_normal=r.normal,
-        )
-
-
 # --- snapshot helpers (pure numpy) ----------------------------------------------------------------
 
 
@@ -694,48 +491,3 @@ def _with_geometry(snapshot, positions, normals):
         return snapshot
     geometry = dataclasses.replace(snapshot.geometry, positions=positions, normals=normals)
     return dataclasses.replace(snapshot, geometry=geometry)
-
-
-def object_boxes(snapshot) -> dict[str, tuple[np.ndarray, np.ndarray, int]]:
-    """Object name -> (lo, hi, triangle count) of its triangles in `snapshot`."""
-    g = snapshot.geometry
-    out = {}
-    if g.triangle_count == 0:
-        return out
-    # Triangles are grouped by object (the sync appends objects one after the other).
-    order = np.argsort(g.object_index, kind="stable")
-    obj = g.object_index[order]
-    starts = np.flatnonzero(np.r_[True, obj[1:] != obj[:-1]])
-    corners = g.positions[g.triangles[order]]  # (T, 3, 3)
-    lo = np.minimum.reduceat(corners.min(axis=1), starts)
-    hi = np.maximum.reduceat(corners.max(axis=1), starts)
-    counts = np.diff(np.r_[starts, obj.size])
-    for i, s in enumerate(starts):
-        out[snapshot.objects[int(obj[s])].name] = (lo[i], hi[i], int(counts[i]))
-    return out
-
-
-def _changed_object_boxes(old, new) -> list[tuple[np.ndarray, np.ndarray]]:
-    """Boxes of objects that appeared, vanished or changed triangle count between two snapshots."""
-    a, b = object_boxes(old), object_boxes(new)
-    boxes = []
-    for name in a.keys() | b.keys():
-        if name in a and name in b and a[name][2] == b[name][2]:
-            continue
-        for rec in (a.get(name), b.get(name)):
-            if rec is not None:
-                boxes.append((rec[0], rec[1]))
-    return boxes
-
-
-def _shading_key(snapshot) -> tuple:
-    lights = tuple(
-        (lt.kind, lt.color.tobytes(), float(lt.power), lt.matrix.tobytes(), lt.radius, lt.spot_size,
-         lt.spot_blend, lt.angle, lt.shape, lt.size, lt.size_y)
-        for lt in snapshot.lights
-    )
-    materials = tuple(
-        (m.base_color.tobytes(), m.emission.tobytes(), None if m.texture is None else (m.texture.shape, float(m.texture.sum())))
-        for m in snapshot.materials
-    )
-    return lights, materials, snapshot.world.color.tobytes(), float(snapshot.world.ao_distance)

@@ -6,7 +6,9 @@
 
 stdout carries only JSON, one line per rendered frame (Blender's own messages are moved to
 stderr), so a caller can parse it line by line. Exit status: 0 on success, 1 when a scene cannot
-be loaded or a frame fails, 2 for bad arguments.
+be loaded, a setting is refused, the output cannot be written or a frame fails (one
+`hybridgi: error: ...` line on stderr, no traceback), 2 for bad arguments, 130 after Ctrl-C.
+Frames are written atomically (`output.py`): a failed or interrupted frame leaves no file.
 """
 
 from __future__ import annotations
@@ -16,6 +18,7 @@ import atexit
 import contextlib
 import importlib
 import json
+import math
 import os
 import re
 import shutil
@@ -24,7 +27,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from . import dev_install
+from . import dev_install, interrupt, output, tracebacks
 
 ENGINES = ("HYBRIDGI", "CYCLES", "BLENDER_EEVEE")
 
@@ -61,16 +64,53 @@ class CliError(Exception):
     """A failure to report on stderr with exit status 1."""
 
 
+#: Set (to anything) to print the traceback of an internal error after its one-line message.
+DEBUG_ENV = "HYBRIDGI_DEBUG"
+
+#: Folders this process created (the throw-away Blender user folder), removed on exit or signal.
+_OWN_FOLDERS: list[str] = []
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     if args.command == "render" and not args.blend.is_file():
         parser.error(f"scene not found: {args.blend}")
+    if argv is None:
+        # The process is this command: it owns the signals and stderr (a caller of main(argv)
+        # from Python keeps its own).
+        interrupt.install(cleanups=(_remove_own_folders,))
+        if not os.environ.get(DEBUG_ENV):
+            tracebacks.hold()
     try:
         return args.run(args)
-    except CliError as err:
-        print(f"hybridgi: error: {err}", file=sys.stderr)
-        return 1
+    except (CliError, output.OutputError) as err:
+        return fail(str(err))
+    except KeyboardInterrupt:
+        output.discard_pending()
+        return fail("interrupted; the unfinished frame was not written", 130)
+    except Exception as err:  # noqa: BLE001  (the one place any failure becomes one error line)
+        if os.environ.get(DEBUG_ENV):
+            import traceback  # noqa: PLC0415
+
+            traceback.print_exc()
+        hint = "" if os.environ.get(DEBUG_ENV) else f" ({DEBUG_ENV}=1 shows the traceback)"
+        return fail(f"internal error: {type(err).__name__}: {err}{hint}")
+
+
+def fail(message: str, status: int = 1) -> int:
+    """Print the one `hybridgi: error:` line (newlines folded) and return the exit status."""
+    print(f"hybridgi: error: {one_line(message)}", file=sys.stderr, flush=True)
+    return status
+
+
+def one_line(text: str) -> str:
+    return " | ".join(part.strip() for part in str(text).splitlines() if part.strip()) or "unknown error"
+
+
+def _remove_own_folders() -> None:
+    for folder in _OWN_FOLDERS:
+        shutil.rmtree(folder, ignore_errors=True)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -79,7 +119,11 @@ def build_parser() -> argparse.ArgumentParser:
 
     render = commands.add_parser("render", help="render frames of a .blend file to PNG + multilayer EXR")
     render.add_argument("blend", type=Path, metavar="SCENE.blend")
-    render.add_argument("--out", required=True, metavar="PREFIX", help="writes PREFIX_####.png and PREFIX_####.exr")
+    render.add_argument(
+        "--out", required=True, metavar="PREFIX",
+        help="writes PREFIX_####.png and PREFIX_####.exr; //PREFIX is relative to the .blend file's folder; "
+        "a folder (trailing slash or existing) gets <blend name>_####.*; # in the name marks the frame number",
+    )
     render.add_argument("--frames", type=frame_range, metavar="A[-B]", help="frames to render (default: current)")
     render.add_argument("--res", type=resolution, metavar="WxH", help="resolution at 100%% (default: the scene's)")
     render.add_argument("--engine", choices=ENGINES, default="HYBRIDGI")
@@ -138,22 +182,29 @@ def positive_int(text: str) -> int:
 
 
 def run_render(args) -> int:
+    # The output is checked before bpy loads: a path that cannot be written fails in milliseconds.
+    prefix = output.resolve_prefix(args.out, args.blend)
+    output.prepare_folder(prefix)
     with json_stdout() as out:
         bpy = import_bpy()
         uses_addon = args.engine == "HYBRIDGI" or any(name.startswith("hybridgi.") for name, _v in args.settings)
         addon = enable_addon() if uses_addon else None
         scene = open_scene(bpy, args.blend)
         configure(scene, args)
+        if addon is not None:
+            check_core_settings(scene)
         first, last = args.frames or (scene.frame_current, scene.frame_current)
-        prefix = Path(args.out).resolve()
-        prefix.parent.mkdir(parents=True, exist_ok=True)
         count = last - first + 1
         for i, frame in enumerate(range(first, last + 1), 1):
             progress(f"frame {frame} ({i}/{count}): rendering with {args.engine}")
-            record = render_frame(bpy, scene, frame, prefix, args.engine, addon)
+            png, exr = output.frame_paths(prefix, frame)
+            with output.FrameFiles(png, exr) as files:
+                record = render_frame(bpy, scene, frame, files, args.engine, addon)
+                with output.COMMIT_LOCK:
+                    files.commit()
+                    out.write(json.dumps(record) + "\n")
+                    out.flush()
             progress(f"frame {frame} ({i}/{count}): {record['seconds']:.2f} s -> {record['png']}")
-            out.write(json.dumps(record) + "\n")
-            out.flush()
     return 0
 
 
@@ -199,6 +250,7 @@ def import_bpy():
     if "bpy" not in sys.modules and "BLENDER_USER_RESOURCES" not in os.environ:
         folder = tempfile.mkdtemp(prefix="hybridgi_cli_")
         os.environ["BLENDER_USER_RESOURCES"] = folder
+        _OWN_FOLDERS.append(folder)
         # Registered before bpy's own exit handler, so it runs after it (atexit is LIFO).
         atexit.register(shutil.rmtree, folder, ignore_errors=True)
     import bpy  # noqa: PLC0415
@@ -258,9 +310,46 @@ def assign(scene, name: str, text: str, engine: str) -> None:
     if prop is None or prop.is_readonly:
         raise CliError(f"--set {name}: {owner_path} has no writable setting {attr!r}")
     try:
-        setattr(owner, attr, parse_value(prop, text))
+        value = parse_value(prop, text)
+        check_value(prop, value)
+        setattr(owner, attr, value)
     except (TypeError, ValueError) as err:
         raise CliError(f"--set {name}={text}: {err}") from None
+
+
+def check_value(prop, value) -> None:
+    """Refuse what Blender would clamp silently: non-finite numbers and values outside the
+    property's hard range (ValueError naming the range)."""
+    if prop.type not in ("INT", "FLOAT"):
+        return
+    for v in value if isinstance(value, list) else [value]:
+        if not math.isfinite(v):
+            raise ValueError(f"{v!r} is not a finite number (valid: {_range_text(prop)})")
+        if v < prop.hard_min or v > prop.hard_max:
+            raise ValueError(f"{v!r} is out of range (valid: {_range_text(prop)})")
+
+
+def _range_text(prop) -> str:
+    low = prop.hard_min if prop.hard_min > -1e30 else None
+    high = prop.hard_max if prop.hard_max < 1e30 and abs(prop.hard_max) < 2**31 - 1 else None
+    fmt = "{:d}" if prop.type == "INT" else "{:g}"
+    low, high = (None if v is None else fmt.format(v) for v in (low, high))
+    if low is not None and high is not None:
+        return f"{low} to {high}"
+    if low is not None:
+        return f">= {low}"
+    return f"<= {high}" if high is not None else "any finite number"
+
+
+def check_core_settings(scene) -> None:
+    """The add-on's settings as the core will see them: refused here, before anything renders,
+    with the core's message (the setting, its value and its valid range)."""
+    props = scene.hybridgi
+    try:
+        props.cache_settings(scene)
+        props.raster_settings()
+    except ValueError as err:  # SettingsError is a ValueError
+        raise CliError(f"--set: {err}") from None
 
 
 def parse_value(prop, text: str):
@@ -291,7 +380,7 @@ def _scalar(kind: str, text: str):
     raise ValueError(f"settings of type {kind} cannot be set from the command line")
 
 
-def render_frame(bpy, scene, frame: int, prefix: Path, engine: str, addon) -> dict:
+def render_frame(bpy, scene, frame: int, files: output.FrameFiles, engine: str, addon) -> dict:
     scene.frame_set(frame)
     start = time.perf_counter()
     try:
@@ -304,9 +393,8 @@ def render_frame(bpy, scene, frame: int, prefix: Path, engine: str, addon) -> di
     error = frame_error(addon) if addon is not None and engine == "HYBRIDGI" else None
     if error or failure:
         raise CliError(f"frame {frame}: {error or failure}")
-    png = Path(f"{prefix}_{frame:04d}.png")
-    exr = Path(f"{prefix}_{frame:04d}.exr")
-    save(bpy, scene, png, exr)
+    png, exr = files.paths
+    save(bpy, scene, files.temp[png], files.temp[exr])
     percent = scene.render.resolution_percentage / 100
     return {
         "frame": frame,

@@ -50,6 +50,7 @@ class IrradianceCache:
     def __init__(self, grid: CacheGrid, settings: CacheSettings):
         self.grid = grid
         self.settings = settings
+        settings.check_cell_count(grid.dims)  # LimitError before any array is allocated
         n, k = grid.count, settings.sh_coeffs
         t = settings.depth_texels**2
         self.sh_direct = np.zeros((n, k, 3), np.float32)

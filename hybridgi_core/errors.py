@@ -13,5 +13,10 @@ class InvalidGeometryError(HybridGIError):
     """Geometry arrays have wrong shapes, dtypes or non-finite values that cannot be dropped."""
 
 
-class SettingsError(HybridGIError):
-    """A setting is out of its documented range."""
+class SettingsError(HybridGIError, ValueError):
+    """A setting is not finite or out of its documented range (also a ValueError)."""
+
+
+class LimitError(HybridGIError):
+    """A size limit (cache memory, GPU texture size, texture resolution) would be exceeded; the
+    message names the limit and the setting to change. Raised before the allocation."""

@@ -1,7 +1,8 @@
 """Reference gather (step 6 on the CPU): cache irradiance at surface points, leak-free.
 
 Each point reads the 8 cells around it (trilinear), each weighted by whether the cell can see the
-point (GI_FACTS.md measured this as the largest single gain over plain trilinear interpolation):
+point (measured against Cycles as the largest single gain over plain trilinear interpolation:
+Diffuse Indirect error 0.12 -> 0.085 on the Cornell box, 0.13-0.28 -> 0.075 on the atrium):
 a soft back-face term, times either
 
 - exact visibility: an occlusion ray from the point to each cell centre (`corner_visibility`,

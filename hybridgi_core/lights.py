@@ -3,7 +3,7 @@
 One implementation shades both the probe-ray hits of the irradiance cache and the G-buffer pixels
 of the deferred pass, so the cache and the final image can never disagree about a lamp.
 
-Conventions (GI_FACTS.md, Cycles 4.x/5.0):
+Conventions (Cycles 4.x/5.0, each checked numerically against its Diffuse Direct pass):
 
 - POINT of power P: intensity P / (4 pi) W/sr; E = I cos / d^2. A radius only softens the
   shadow: shadow rays aim at a disc of that radius facing the receiver.

@@ -1,15 +1,19 @@
 """A GI state that lives across frames and edits (viewport, animation playback).
 
-`sync(snapshot)` compares the new snapshot with the last one and turns the difference into the
-cache's named events, doing the least work that keeps the cache right:
+`sync(snapshot)` diffs the new snapshot against the last one (`changes.diff_snapshots`) and raises
+every cache event itself, doing the least work that keeps the cache right:
 
 | what changed | what happens |
 |---|---|
 | nothing | nothing |
-| lamps, world, materials | shading inputs swapped; `cache.on_lights_changed()` |
-| vertices of dynamic objects | dynamic Embree scene rebuilt; `cache.on_geometry_changed(boxes)` |
+| lamps, world, materials | shading inputs swapped; `on_lights_changed()` |
+| vertices of dynamic objects | dynamic Embree scene rebuilt; `on_geometry_changed(boxes)` |
 | vertices of a static object | it becomes dynamic (one rebuild of the ray scene), then as above |
-| objects added/removed, topology, settings | ray scene rebuilt; the cache is kept when its settings are |
+| objects appeared, vanished, re-topologised | ray scene rebuilt, the cache kept when its settings and grid still fit; `on_geometry_changed(boxes)` where they were and are |
+| settings | a fresh system and cache |
+
+Owners (the viewport worker, incremental final renders) add only policy on top of the
+`SyncReport`: how urgent a change is for them, whether to warm up again.
 
 Pure numpy: it may run on a worker thread with snapshots made on the main thread.
 """
@@ -22,6 +26,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .changes import SceneChanges, diff_snapshots
 from .errors import EmptySceneError
 from .settings import CacheSettings
 from .snapshot import SceneSnapshot
@@ -32,36 +37,31 @@ log = logging.getLogger(__name__)
 
 @dataclass
 class SyncReport:
+    """What one `GISession.sync` found and did.
+
+    changes : the named changes from the previous snapshot (everything appeared on a first sync)
+    rebuilt : the ray scene was rebuilt; fresh : the cache is new (nothing converged in it)
+    touched : (k,) int64 flat cells `on_geometry_changed` raised
+    """
+
+    changes: SceneChanges = field(default_factory=SceneChanges)
     rebuilt: bool = False
-    moved: list[str] = field(default_factory=list)
-    lights_changed: bool = False
-    touched_cells: int = 0
+    fresh: bool = False
+    touched: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
     ms: float = 0.0
 
+    @property
+    def moved(self) -> list[str]:
+        """Objects whose vertices moved with their topology kept (rigidly or deformed)."""
+        return self.changes.displaced
 
-def _light_key(scene: SceneSnapshot) -> tuple:
-    lights = tuple(
-        (lt.kind, lt.color.tobytes(), float(lt.power), lt.matrix.tobytes(), lt.radius, lt.spot_size, lt.spot_blend,
-         lt.angle, lt.shape, lt.size, lt.size_y)
-        for lt in scene.lights
-    )
-    mats = tuple(
-        (m.base_color.tobytes(), m.emission.tobytes(), None if m.texture is None else (m.texture.shape, float(m.texture.sum())))
-        for m in scene.materials
-    )
-    return lights, mats, scene.world.color.tobytes(), float(scene.world.ao_distance)
+    @property
+    def lights_changed(self) -> bool:
+        return self.changes.shading_changed
 
-
-def _topology_key(scene: SceneSnapshot) -> tuple:
-    g = scene.geometry
-    return (
-        tuple(o.name for o in scene.objects),
-        g.positions.shape,
-        g.triangles.shape,
-        hash(g.triangles.tobytes()),
-        hash(g.object_index.tobytes()),
-        hash(g.material_index.tobytes()),
-    )
+    @property
+    def touched_cells(self) -> int:
+        return int(self.touched.size)
 
 
 class GISession:
@@ -73,8 +73,6 @@ class GISession:
         self.dynamic_names = set(dynamic_names)
         self.system: GISystem | None = None
         self.snapshot: SceneSnapshot | None = None
-        self._topology = None
-        self._lights = None
 
     def close(self) -> None:
         if self.system is not None:
@@ -82,50 +80,44 @@ class GISession:
             self.system = None
 
     def set_settings(self, settings: CacheSettings) -> None:
-        """New settings take effect at the next sync (with a fresh cache when they differ)."""
+        """New settings take effect at the next sync, with a fresh system and cache."""
         if settings != self.settings:
             self.settings = settings
-            self._topology = None
 
     def sync(self, snapshot: SceneSnapshot) -> SyncReport:
         """Bring the GI state up to `snapshot`. Raises EmptySceneError when it has no geometry."""
         t0 = time.perf_counter()
-        report = SyncReport()
         if snapshot.geometry.triangle_count == 0:
             self.close()
             self.snapshot = snapshot
-            self._topology = None
             raise EmptySceneError("the scene has no geometry")
-        topology = _topology_key(snapshot)
-        lights = _light_key(snapshot)
-        if self.system is None or topology != self._topology:
-            self._rebuild(snapshot, keep_cache=self.system is not None and self.system.settings == self.settings)
-            report.rebuilt = True
+        old = self.snapshot if self.system is not None else None
+        changes = diff_snapshots(old, snapshot)
+        report = SyncReport(changes=changes)
+        if old is None or self.system.settings != self.settings:
+            self._rebuild(snapshot, keep_cache=False)
+            report.rebuilt = report.fresh = True
         else:
-            moved = self._moved_objects(snapshot)
-            if moved:
-                names = {snapshot.objects[i].name for i in moved}
-                report.moved = sorted(names)
-                old = self.snapshot
-                if not names <= self.dynamic_names:
-                    self.dynamic_names |= names
-                    self._rebuild(snapshot, keep_cache=True)
-                    report.rebuilt = True
-                else:
-                    self.system.move_dynamic(snapshot)
-                boxes = [self._object_box(s, i) for s in (old, snapshot) for i in moved]
-                report.touched_cells = int(self.system.cache.on_geometry_changed(boxes).size)
-            if lights != self._lights:
-                self.system.set_lights(snapshot)
-                self.system.cache.on_lights_changed()
-                report.lights_changed = True
+            displaced = set(changes.displaced)
+            if changes.topology_changed or not displaced <= self.dynamic_names:
+                self.dynamic_names |= displaced
+                report.fresh = not self._rebuild(snapshot, keep_cache=True)
+                report.rebuilt = True
+            elif displaced:
+                self.system.move_dynamic(snapshot)
+            if not report.fresh:
+                if changes.boxes:
+                    report.touched = self.system.on_geometry_changed(changes.boxes)
+                if changes.shading_changed:
+                    if not report.rebuilt:
+                        self.system.set_lights(snapshot)
+                    self.system.on_lights_changed()
         self.snapshot = snapshot
-        self._topology = topology
-        self._lights = lights
         report.ms = (time.perf_counter() - t0) * 1e3
         return report
 
-    def _rebuild(self, snapshot: SceneSnapshot, keep_cache: bool) -> None:
+    def _rebuild(self, snapshot: SceneSnapshot, keep_cache: bool) -> bool:
+        """A new system for `snapshot`; returns whether it kept the old cache."""
         cache = self.system.cache if keep_cache and self.system is not None else None
         if cache is not None and not self._fits(cache, snapshot):
             cache = None  # the scene outgrew the grid: start over on a grid that covers it
@@ -134,24 +126,10 @@ class GISession:
             self.system.close()
         self.system = GISystem(snapshot, self.settings, dynamic, cache=cache)
         log.info("GI session rebuilt (%d dynamic objects, cache %s)", len(dynamic), "kept" if cache else "new")
+        return cache is not None
 
     @staticmethod
     def _fits(cache, snapshot: SceneSnapshot) -> bool:
         lo, hi = snapshot.focus_bounds()
         margin = cache.grid.cell_size
         return bool((lo >= cache.grid.lo - margin).all() and (hi <= cache.grid.hi + margin).all())
-
-    def _moved_objects(self, snapshot: SceneSnapshot) -> list[int]:
-        old = self.snapshot.geometry.positions
-        new = snapshot.geometry.positions
-        if np.array_equal(old, new):
-            return []
-        changed_vertices = np.flatnonzero((old != new).any(axis=1))
-        tri_changed = np.isin(snapshot.geometry.triangles, changed_vertices).any(axis=1)
-        return sorted(int(i) for i in np.unique(snapshot.geometry.object_index[tri_changed]))
-
-    @staticmethod
-    def _object_box(snapshot: SceneSnapshot, index: int) -> tuple[np.ndarray, np.ndarray]:
-        g = snapshot.geometry
-        verts = g.positions[g.triangles[g.object_index == index].ravel()]
-        return verts.min(axis=0), verts.max(axis=0)

@@ -1,15 +1,74 @@
-"""Frozen settings of the irradiance cache and its ray sampling (units in comments)."""
+"""Frozen settings of the irradiance cache and its ray sampling (units in comments).
+
+Every field is checked on construction (`check_ranges`): a value that is not finite or lies
+outside its documented range raises `SettingsError` naming the field and the range, never
+clamped, so a NaN typed into the viewport cannot reach the pixels.
+"""
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, replace
 
-from .errors import SettingsError
+from .errors import LimitError, SettingsError
 
 #: Indirect quality levels: what a probe ray's hit contributes.
 AO_ONLY = 0  # occlusion and depth only; no radiance at hits
 ONE_BOUNCE = 1  # hits shaded by lamps, emission and sky: one bounce of indirect light
 MULTI_BOUNCE = 2  # hits also read the cache itself: converges to the multi-bounce solution
+
+#: Default cap of the cache's CPU arrays (MiB). Resolution 128 on a cube-shaped scene needs ~1.6 GiB;
+#: the 512 maximum would need over 100 GiB, which no render should start allocating.
+DEFAULT_CACHE_MEMORY_MIB = 4096
+
+#: Texels of the largest 2D texture the GPU gather packs the cache into (raster/gather.py): 16384
+#: per side, the limit of llvmpipe, Apple and most desktop GPUs (gather checks the real one again).
+GPU_TEXTURE_TEXELS = 16384 * 16384
+
+#: Bytes per cell that do not depend on the SH order or the depth map: backface, samples,
+#: last_frame (int64), urgency, and the cell centres (3 float32).
+_CELL_FIXED_BYTES = 4 + 4 + 8 + 4 + 12
+
+
+def check_ranges(obj, ranges: dict, what: str) -> None:
+    """Raise SettingsError for the first fields of `obj` outside `ranges`.
+
+    ranges : {name: (low, high, low_open, high_open)} with None for an open end, or a frozenset
+    of the allowed values. Numbers must be finite.
+    """
+    problems = []
+    for name, rule in ranges.items():
+        value = getattr(obj, name)
+        if isinstance(rule, frozenset):
+            if value not in rule:
+                problems.append(f"{name}={value!r} is not one of {', '.join(map(repr, sorted(rule)))}")
+            continue
+        low, high, low_open, high_open = rule
+        if isinstance(value, bool) or not isinstance(value, int | float):
+            problems.append(f"{name}={value!r} is not a number")
+            continue
+        if not math.isfinite(value):
+            problems.append(f"{name}={value!r} is not a finite number (valid: {_range_text(rule)})")
+            continue
+        below = low is not None and (value <= low if low_open else value < low)
+        above = high is not None and (value >= high if high_open else value > high)
+        if below or above:
+            problems.append(f"{name}={value!r} is out of range (valid: {_range_text(rule)})")
+    if problems:
+        raise SettingsError(f"{what}: " + "; ".join(problems))
+
+
+def _range_text(rule) -> str:
+    low, high, low_open, high_open = rule
+    if low is not None and high is not None:
+        return f"{low} {'<' if low_open else '<='} value {'<' if high_open else '<='} {high}"
+    if low is not None:
+        return f"{'>' if low_open else '>='} {low}"
+    return f"{'<' if high_open else '<='} {high}"
+
+
+def _closed(low, high=None):
+    return (low, high, False, False)
 
 
 @dataclass(frozen=True)
@@ -28,32 +87,70 @@ class CacheSettings:
     light_samples: int = 1  # shadow-ray samples per area/sun light per hit
     seed: int = 0  # base seed; frame f rotates rays with seed + f
     threads: int = 2  # worker threads for tracing and shading
+    max_memory_mib: int = DEFAULT_CACHE_MEMORY_MIB  # cap of the cache arrays (check_cell_count)
+
+    #: Valid values of each field: (low, high, low_open, high_open) or a frozenset of choices
+    #: (a class attribute, not a field: it has no annotation).
+    RANGES = {
+        "resolution": _closed(1, 512),
+        "sh_order": frozenset((1, 2)),
+        "rays_per_cell": _closed(1, 65536),
+        "ray_length": _closed(0.0),
+        "hysteresis": (0.0, 1.0, False, True),
+        "indirect_quality": frozenset((AO_ONLY, ONE_BOUNCE, MULTI_BOUNCE)),
+        "ao_distance": (0.0, None, True, False),
+        "depth_texels": _closed(2, 32),
+        "normal_bias": _closed(0.0, 2.0),
+        "inside_threshold": (0.0, 1.0, True, False),
+        "lod_ratio": (0.0, 1.0, True, False),
+        "light_samples": _closed(1, 256),
+        "seed": _closed(0),
+        "threads": _closed(1, 64),
+        "max_memory_mib": _closed(1),
+    }
 
     def __post_init__(self) -> None:
-        checks = {
-            "resolution": 1 <= self.resolution <= 512,
-            "sh_order": self.sh_order in (1, 2),
-            "rays_per_cell": 1 <= self.rays_per_cell <= 65536,
-            "ray_length": self.ray_length >= 0.0,
-            "hysteresis": 0.0 <= self.hysteresis < 1.0,
-            "indirect_quality": self.indirect_quality in (AO_ONLY, ONE_BOUNCE, MULTI_BOUNCE),
-            "ao_distance": self.ao_distance > 0.0,
-            "depth_texels": 2 <= self.depth_texels <= 32,
-            "normal_bias": 0.0 <= self.normal_bias <= 2.0,
-            "inside_threshold": 0.0 < self.inside_threshold <= 1.0,
-            "lod_ratio": 0.0 < self.lod_ratio <= 1.0,
-            "light_samples": 1 <= self.light_samples <= 256,
-            "threads": 1 <= self.threads <= 64,
-        }
-        bad = [name for name, ok in checks.items() if not ok]
-        if bad:
-            values = ", ".join(f"{name}={getattr(self, name)!r}" for name in bad)
-            raise SettingsError(f"cache settings out of range: {values}")
+        check_ranges(self, self.RANGES, "cache settings")
 
     @property
     def sh_coeffs(self) -> int:
         """SH coefficients per channel: 4 for L1, 9 for L2."""
         return (self.sh_order + 1) ** 2
 
+    @property
+    def cell_bytes(self) -> int:
+        """CPU bytes of one cache cell (IrradianceCache's arrays, float32 unless noted)."""
+        k, t = self.sh_coeffs, self.depth_texels**2
+        return 2 * k * 3 * 4 + k * 4 + t * 2 * 4 + _CELL_FIXED_BYTES
+
+    def check_cell_count(self, dims: tuple[int, int, int]) -> None:
+        """Raise LimitError before allocating a cache of `dims` cells that would exceed
+        `max_memory_mib` or not fit the gather's GPU textures (GPU_TEXTURE_TEXELS).
+
+        The message names the limit, the estimate and the largest resolution that fits.
+        """
+        count = int(dims[0]) * int(dims[1]) * int(dims[2])
+        texels = count * max(2 * self.sh_coeffs, self.depth_texels**2)
+        need = count * self.cell_bytes
+        limit = self.max_memory_mib * 2**20
+        problems = []
+        if need > limit:
+            problems.append((need / limit, f"needs {need / 2**30:.1f} GiB, over the cache memory limit of "
+                                           f"{limit / 2**30:.1f} GiB"))
+        if texels > GPU_TEXTURE_TEXELS:
+            problems.append((texels / GPU_TEXTURE_TEXELS, f"needs {texels} texels, over the GPU's "
+                                                          "16384x16384 texture limit"))
+        if not problems:
+            return
+        # Cell count grows with the cube of the resolution: the tighter limit sets what fits.
+        ratio = max(r for r, _text in problems)
+        fits = max(1, int(self.resolution * ratio ** (-1 / 3)))
+        raise LimitError(
+            f"cache of {dims[0]}x{dims[1]}x{dims[2]} cells at resolution {self.resolution} "
+            + " and ".join(text for _r, text in problems)
+            + f": lower the HybridGI Resolution to {fits} or less"
+        )
+
     def with_(self, **changes) -> CacheSettings:
         return replace(self, **changes)
+

@@ -2,7 +2,7 @@
 
 The Blender side fills these from the depsgraph on the main thread; everything after that
 (tracing, shading, cache updates) reads only these arrays, so worker threads never touch `bpy`.
-Units and conventions follow Cycles (see GI_FACTS.md): lights in watts (sun: W/m^2), emission and
+Units and conventions follow Cycles (checked against its passes): lights in watts (sun: W/m^2), emission and
 world colour as radiance.
 """
 
@@ -23,6 +23,13 @@ AREA_SHAPES = ("SQUARE", "RECTANGLE", "DISK", "ELLIPSE")
 #: SceneSnapshot.focus_bounds); the grid then extends FOCUS_MARGIN of the rest's size around it.
 GROUND_RATIO = 2.5
 FOCUS_MARGIN = 0.6
+#: A triangle is degenerate when twice its area is below this share of its object's squared size
+#: (the diagonal of the object's box): the tolerance follows the object, so a micrometre cube and
+#: a sphere 100 km from the origin keep their triangles.
+ZERO_AREA_RELATIVE = 1e-14
+#: Textures larger than this many texels per side are box-filtered down on entry (a 16k texture
+#: would otherwise mean gigabytes of float32 copies and a GPU upload over the device's limit).
+MAX_TEXTURE_SIZE = 4096
 
 
 @dataclass
@@ -82,6 +89,13 @@ class Material:
     texture: np.ndarray | None = None
     emission: np.ndarray = field(default_factory=lambda: np.zeros(3, np.float32))
 
+    def __post_init__(self) -> None:
+        # Non-finite colours would reach every pixel that sees (or bounces off) this material.
+        self.base_color = _finite_color(self.base_color, 0.8, f"material {self.name!r} base colour")
+        self.emission = _finite_color(self.emission, 0.0, f"material {self.name!r} emission")
+        if self.texture is not None:
+            self.texture = fit_texture(self.texture, MAX_TEXTURE_SIZE, f"material {self.name!r}")
+
     @property
     def mean_albedo(self) -> np.ndarray:
         """(3,) albedo to use where no UV is known (decimated ray meshes)."""
@@ -121,8 +135,19 @@ class Light:
             raise InvalidGeometryError(f"unknown light kind {self.kind!r}")
         if self.kind == "AREA" and self.shape not in AREA_SHAPES:
             raise InvalidGeometryError(f"unknown area light shape {self.shape!r}")
-        self.color = np.asarray(self.color, np.float32).reshape(3)
+        what = f"light {self.name!r}"
+        self.color = _finite_color(self.color, 0.0, f"{what} colour")
         self.matrix = np.asarray(self.matrix, np.float64).reshape(4, 4)
+        if not np.isfinite(self.matrix).all():
+            raise InvalidGeometryError(f"{what}: its transform is not finite")
+        # A light that is not finite would put NaN in every pixel it reaches: it emits nothing.
+        for name in ("power", "radius", "spot_size", "spot_blend", "angle", "size", "size_y"):
+            value = float(getattr(self, name))
+            if not np.isfinite(value):
+                log.warning("%s: %s=%r is not finite; the light is switched off", what, name, value)
+                self.power = 0.0
+                value = 0.0
+            setattr(self, name, value)
 
     @property
     def position(self) -> np.ndarray:
@@ -137,16 +162,42 @@ class Light:
 
 @dataclass
 class World:
-    """Uniform sky: radiance = background colour x strength; AO distance from World settings."""
+    """The sky: radiance = background colour x strength; AO distance from World settings.
+
+    sky_sh : (9, 3) float32 L2 radiance SH of a sky that varies with direction (an environment
+        map without its sun, `environment.split_environment`), or None for a uniform `color`
+        (which then still holds its mean over the upper hemisphere, for the background).
+    """
 
     color: np.ndarray = field(default_factory=lambda: np.zeros(3, np.float32))
     ao_distance: float = 1.0
+    sky_sh: np.ndarray | None = None
+
+    @property
+    def any(self) -> bool:
+        """Whether the sky gives any light."""
+        return bool(self.color.any()) or (self.sky_sh is not None and bool(self.sky_sh.any()))
+
+    def radiance(self, directions: np.ndarray) -> np.ndarray:
+        """(n, 3) float32 sky radiance towards unit `directions` (n, 3)."""
+        if self.sky_sh is None:
+            return np.broadcast_to(self.color.astype(np.float32), (directions.shape[0], 3))
+        from .sh import basis  # noqa: PLC0415  (sh imports nothing from here; kept local for clarity)
+
+        return np.maximum(basis(directions, 2) @ self.sky_sh.astype(np.float32), np.float32(0.0))
+
+    def __post_init__(self) -> None:
+        self.color = _finite_color(self.color, 0.0, "world colour")
+        if not (np.isfinite(self.ao_distance) and self.ao_distance >= 0.0):
+            log.warning("world AO distance %r is not a finite distance; using 1 m", self.ao_distance)
+            self.ao_distance = 1.0
 
 
 @dataclass
 class ObjectInfo:
     name: str
     dynamic: bool = False  # moves or deforms over the animation: traced in the per-frame scene
+    camera_visible: bool = True  # seen by the camera (False: still casts shadows and bounces light)
 
 
 @dataclass
@@ -175,31 +226,77 @@ class SceneSnapshot:
         its extent on each side (bounce light from the floor around it), within the full bounds.
         """
         lo, hi = self.bounds()
-        g = self.geometry
-        boxes = []
-        for obj in np.unique(g.object_index):
-            verts = g.positions[g.triangles[g.object_index == obj].ravel()]
-            boxes.append((verts.min(axis=0), verts.max(axis=0)))
+        _ids, blo, bhi = object_boxes(self.geometry)
+        size = (bhi - blo).max(axis=1)
         extent = float((hi - lo).max())
-        flat = [float(b[1][2] - b[0][2]) <= 1e-3 * max(float((b[1] - b[0]).max()), 1e-9) for b in boxes]
-        at_bottom = [float(b[1][2]) <= float(lo[2]) + 1e-3 * extent for b in boxes]
-        candidates = [i for i in range(len(boxes)) if flat[i] and at_bottom[i]]
-        rest = [b for i, b in enumerate(boxes) if i not in candidates]
-        if not candidates or not rest:
+        flat = (bhi[:, 2] - blo[:, 2]) <= 1e-3 * np.maximum(size, 1e-9)
+        at_bottom = bhi[:, 2] <= float(lo[2]) + 1e-3 * extent
+        candidate = flat & at_bottom
+        if not candidate.any() or candidate.all():
             return lo, hi
-        rlo = np.min([b[0] for b in rest], axis=0)
-        rhi = np.max([b[1] for b in rest], axis=0)
-        rest_extent = float((rhi - rlo).max())
-        grounds = [i for i in candidates if float((boxes[i][1] - boxes[i][0]).max()) > GROUND_RATIO * rest_extent]
-        if not grounds:
+        rlo, rhi = blo[~candidate].min(axis=0), bhi[~candidate].max(axis=0)
+        ground = candidate & (size > GROUND_RATIO * float((rhi - rlo).max()))
+        if not ground.any():
             return lo, hi
-        kept = [b for i, b in enumerate(boxes) if i not in grounds]
-        flo = np.min([b[0] for b in kept], axis=0)
-        fhi = np.max([b[1] for b in kept], axis=0)
+        flo, fhi = blo[~ground].min(axis=0), bhi[~ground].max(axis=0)
         # The ground's own height still counts: cells must reach down to it.
         flo[2] = min(float(flo[2]), float(lo[2]))
         pad = margin * (fhi - flo).max()
         return np.maximum(flo - pad, lo).astype(np.float32), np.minimum(fhi + pad, hi).astype(np.float32)
+
+
+def object_boxes(geometry: Geometry, tri_mask: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Bounding boxes of each object's triangles in one pass over the triangles.
+
+    tri_mask : optional (T,) bool, triangles to count (others are ignored).
+    Returns ids (m,) int32 of the objects that have triangles, lo (m, 3) and hi (m, 3) float32.
+    """
+    tris, obj = geometry.triangles, geometry.object_index
+    if tri_mask is not None:
+        tris, obj = tris[tri_mask], obj[tri_mask]
+    if tris.shape[0] == 0:
+        empty = np.zeros((0, 3), np.float32)
+        return np.zeros(0, np.int32), empty, empty
+    corners = [geometry.positions[tris[:, c]] for c in range(3)]
+    tlo = np.minimum(np.minimum(corners[0], corners[1]), corners[2])
+    thi = np.maximum(np.maximum(corners[0], corners[1]), corners[2])
+    order = np.argsort(obj, kind="stable")
+    ids, starts = np.unique(obj[order], return_index=True)
+    lo = np.minimum.reduceat(tlo[order], starts, axis=0)
+    hi = np.maximum.reduceat(thi[order], starts, axis=0)
+    return ids.astype(np.int32), lo.astype(np.float32), hi.astype(np.float32)
+
+
+def fit_texture(texture: np.ndarray, max_size: int = MAX_TEXTURE_SIZE, what: str = "texture") -> np.ndarray:
+    """(h, w, 3) float32 finite texture, box-filtered by an integer factor until both sides are at
+    most `max_size` (logged); non-finite texels become 0 (logged)."""
+    tex = np.asarray(texture, np.float32)
+    if tex.ndim != 3 or tex.shape[2] != 3 or tex.shape[0] == 0 or tex.shape[1] == 0:
+        raise InvalidGeometryError(f"{what}: texture must be (h, w, 3), got {tex.shape}")
+    h, w = tex.shape[:2]
+    factor = -(-max(h, w) // max_size)
+    if factor > 1:
+        # Pad by edge repetition to a multiple of the factor, then average factor x factor blocks
+        # (a sum over one axis at a time: no float64 copy of the full texture).
+        ph, pw = -(-h // factor) * factor, -(-w // factor) * factor
+        if (ph, pw) != (h, w):
+            tex = np.pad(tex, ((0, ph - h), (0, pw - w), (0, 0)), mode="edge")
+        tex = tex.reshape(ph // factor, factor, pw, 3).mean(axis=1, dtype=np.float32)
+        tex = tex.reshape(ph // factor, pw // factor, factor, 3).mean(axis=2, dtype=np.float32)
+        log.warning("%s: %dx%d texture reduced to %dx%d (limit %d per side)", what, w, h, tex.shape[1], tex.shape[0], max_size)
+    bad = ~np.isfinite(tex)
+    if bad.any():
+        log.warning("%s: %d non-finite texel values replaced by 0", what, int(bad.sum()))
+        tex = np.where(bad, np.float32(0.0), tex)
+    return np.ascontiguousarray(tex, np.float32)
+
+
+def _finite_color(value, fallback: float, what: str) -> np.ndarray:
+    color = np.asarray(value, np.float32).reshape(3)
+    if not np.isfinite(color).all():
+        log.warning("%s %s is not finite; using %g", what, color.tolist(), fallback)
+        color = np.where(np.isfinite(color), color, np.float32(fallback)).astype(np.float32)
+    return color
 
 
 def sanitized(geometry: Geometry, n_materials: int, n_objects: int) -> Geometry:
@@ -230,13 +327,19 @@ def sanitized(geometry: Geometry, n_materials: int, n_objects: int) -> Geometry:
     if obj.size and (obj.min() < 0 or obj.max() >= max(n_objects, 1)):
         raise InvalidGeometryError("object_index out of range of the objects")
 
-    p = pos[tris]
+    p = pos[tris].astype(np.float64)
     finite = np.isfinite(p).all(axis=(1, 2))
     with np.errstate(invalid="ignore", over="ignore"):
-        cross = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
-        area2 = np.linalg.norm(cross.astype(np.float64), axis=1)
-        extent = np.abs(p).max(axis=(1, 2)).astype(np.float64)
-    keep = finite & (area2 > 1e-12 * np.maximum(extent, 1.0) ** 2)
+        area2 = np.linalg.norm(np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), axis=1)
+    # Relative to the object's own size, not the distance from the origin.
+    size2 = np.zeros(tris.shape[0])
+    if finite.any():
+        probe = Geometry(pos, tris, normals, uvs, mat, obj)
+        ids, blo, bhi = object_boxes(probe, finite)
+        diag2 = np.zeros(max(n_objects, int(obj.max(initial=0)) + 1))
+        diag2[ids] = np.sum((bhi.astype(np.float64) - blo) ** 2, axis=1)
+        size2 = diag2[obj]
+    keep = finite & (area2 > 0.0) & (area2 > ZERO_AREA_RELATIVE * size2)
     dropped = int((~keep).sum())
     if dropped:
         log.warning(

@@ -364,7 +364,11 @@ class GISolver:
         m, r = chunk.cells.size, chunk.r
         n = m * r
         values = np.empty((4, n), np.float32)
-        values[0:3] = self.scene.world.color[:, None]
+        world = self.scene.world
+        if world.sky_sh is None:
+            values[0:3] = world.color[:, None]
+        else:
+            values[0:3] = world.radiance(chunk.ray_dirs).T  # a sky that varies with direction
         h = chunk.hit
         if h.size:
             values[0:3, h] = self.scene.surfaces.emission_of(chunk.prim[h]).T

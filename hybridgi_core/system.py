@@ -239,20 +239,22 @@ class GISystem:
         return self.solver.invalidate_boxes(boxes)
 
     def on_geometry_changed(self, boxes: list[tuple[np.ndarray, np.ndarray]]) -> np.ndarray:
-        """Objects inside these world boxes moved, deformed, appeared, vanished or changed
-        topology: `cache.on_geometry_changed` (urgency with the quadratic fall-off over the
-        indirect range, for EMA updates) and `invalidate_boxes` (stored hits). Returns the
-        union of the cells given urgency and the cells whose stored hits were dropped.
-        `move_dynamic` already invalidates the stored hits its own moves reach."""
+        """Geometry changed inside these world (lo, hi) boxes (where it was and where it is):
+        objects moved, deformed, appeared, vanished or changed topology (raised by
+        GISession.sync from the snapshot diff). The cells within the indirect range re-converge
+        (`cache.on_geometry_changed`: urgency with the quadratic fall-off, for EMA updates), and
+        the stored hits whose rays reach a box are dropped (`invalidate_boxes`; `resolve()`
+        traces them again). Returns the touched flat cells (int64) of the fall-off."""
         touched = self.cache.on_geometry_changed(boxes)
-        dropped = self.invalidate_boxes(boxes)
-        return np.union1d(touched, dropped)
+        self.invalidate_boxes(boxes)
+        return touched
 
-    def on_lights_changed(self, resolve: bool = True) -> SolveStats:
+    def on_lights_changed(self, resolve: bool = False) -> SolveStats:
         """Lamps, the world or materials changed (call after `set_lights`, which already marks
-        every stored hit stale): raises the cache's urgency for EMA updates and, with stored
-        hits and `resolve`, re-converges right away from them: shadow rays at the stored hits,
-        no probe ray, then the fixed point."""
+        every stored hit stale): every cell re-converges (`cache.on_lights_changed`, for EMA
+        updates). With stored hits and `resolve`, the cache re-converges from them right away:
+        shadow rays at the stored hits, no probe ray, then the fixed point (else at the next
+        `resolve()`). GISession.sync calls it without `resolve`, keeping a sync cheap."""
         self.cache.on_lights_changed()
         self.solver.lights_changed()
         return self.resolve() if resolve else SolveStats()

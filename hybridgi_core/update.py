@@ -150,7 +150,11 @@ class CacheUpdater:
         # Channel-major rows per ray: direct RGB, indirect RGB, AO visibility; (7, n) reshapes to
         # the SH projection's (m, 7, r) blocks with one transposed copy.
         values = np.empty((7, n), np.float32)
-        values[0:3] = self.scene.world.color[:, None]
+        world = self.scene.world
+        if world.sky_sh is None:
+            values[0:3] = world.color[:, None]
+        else:
+            values[0:3] = world.radiance(ray_dirs).T  # a sky that varies with direction
         values[3:6] = 0.0
         np.greater(hits.t, s.ao_distance, out=values[6])  # misses have t = inf
         n_hit = int(np.count_nonzero(hit))
@@ -181,9 +185,9 @@ class CacheUpdater:
                 # Hits add their emission (a strided read: skipped where nothing emits); misses
                 # read a zero record and get the sky back below.
                 values[0:3, :n_s] = surf.emission.T if self.scene.surfaces.emissive else np.float32(0.0)
-                if n_hit < n_s and self.scene.world.color.any():
+                if n_hit < n_s and world.any:
                     miss = np.flatnonzero(~hit)
-                    values[0:3, miss] = self.scene.world.color[:, None]
+                    values[0:3, miss] = world.radiance(ray_dirs[miss]).T
                 values[3:6, :n_s] = e_in
             else:
                 values[0:3, idx] = surf.emission.T

@@ -3,12 +3,15 @@
 1. Wheels: every dependency pinned in pyproject.toml except the ones Blender ships (numpy), for each
    platform of manifest.toml and each Python of PYTHON_VERSIONS, from PyPI into a cache
    (build/wheels/<platform>/<python>/) that later builds reuse offline.
-2. A clean staged source folder, build/extension/hybridgi/: the add-on's files, a vendored copy of
-   `hybridgi_core/` inside it (where `addon/_core.py` looks first), `wheels/`, and
+2. The core as a wheel of its own (`core_wheel`: pure Python, built here from `hybridgi_core/`,
+   byte-for-byte reproducible), so the add-on imports it by its plain name `hybridgi_core` in
+   both layouts: a checkout installs it in the Python environment, Blender installs the zip's
+   wheel with the extension.
+3. A clean staged source folder, build/extension/hybridgi/: the add-on's files, `wheels/`, and
    `blender_manifest.toml` = manifest.toml plus the `wheels = [...]` list.
-3. Blender's own tool (it ships inside the bpy package): `blender_ext.py build --split-platforms`.
-4. Each zip: `blender_ext.py validate`, then a check that it holds exactly its platform's wheels,
-   the add-on, the vendored core with its .glsl files, and no __pycache__ or tests.
+4. Blender's own tool (it ships inside the bpy package): `blender_ext.py build --split-platforms`.
+5. Each zip: `blender_ext.py validate`, then a check that it holds exactly its platform's wheels
+   and the core's, the add-on, the core wheel with its .glsl files, and no __pycache__ or tests.
 
 A build whose inputs (sources, manifest, pins, this script) are unchanged since the last one only
 re-checks the zips in dist/.
@@ -17,9 +20,11 @@ re-checks the zips in dist/.
 from __future__ import annotations
 
 import argparse
+import base64
 import dataclasses
 import hashlib
 import importlib.util
+import io
 import json
 import logging
 import re
@@ -225,18 +230,62 @@ def generated_manifest(text: str, wheel_names: list[str]) -> str:
     return result
 
 
+#: Timestamp of every file in the core wheel (zip's earliest), so equal sources give equal bytes.
+WHEEL_DATE = (1980, 1, 1, 0, 0, 0)
+
+
+def core_version() -> str:
+    text = (CORE_DIR / "__init__.py").read_text(encoding="utf-8")
+    match = re.search(r'^__version__ = "([^"]+)"', text, flags=re.MULTILINE)
+    if match is None:
+        raise BuildError(f"{CORE_DIR.name}/__init__.py has no __version__")
+    return match.group(1)
+
+
+def core_files() -> list[Path]:
+    """The files of `hybridgi_core/` that ship: sources, shaders, READMEs (no caches)."""
+    return sorted(
+        p for p in CORE_DIR.rglob("*")
+        if p.is_file() and "__pycache__" not in p.parts and p.suffix in {".py", ".glsl", ".md"}
+    )
+
+
+def core_wheel(out_dir: Path) -> Path:
+    """`hybridgi_core-<version>-py3-none-any.whl` of `hybridgi_core/` (PEP 427), reproducible.
+
+    Its metadata names no dependencies: Blender installs none, and the extension bundles the
+    core's (embreex, fast-simplification) as wheels of their own; numpy ships with Blender.
+    """
+    version = core_version()
+    dist_info = f"{CORE_DIR.name}-{version}.dist-info"
+    entries = [(p.relative_to(CORE_DIR.parent).as_posix(), p.read_bytes()) for p in core_files()]
+    entries.append((f"{dist_info}/METADATA",
+                    f"Metadata-Version: 2.1\nName: {CORE_DIR.name}\nVersion: {version}\n".encode()))
+    entries.append((f"{dist_info}/WHEEL",
+                    b"Wheel-Version: 1.0\nGenerator: hybridgi build_extension\nRoot-Is-Purelib: true\nTag: py3-none-any\n"))
+    record = [
+        f"{name},sha256={base64.urlsafe_b64encode(hashlib.sha256(data).digest()).rstrip(b'=').decode()},{len(data)}"
+        for name, data in entries
+    ]
+    entries.append((f"{dist_info}/RECORD", ("\n".join(record + [f"{dist_info}/RECORD,,"]) + "\n").encode()))
+    out_dir.mkdir(parents=True, exist_ok=True)
+    path = out_dir / f"{CORE_DIR.name}-{version}-py3-none-any.whl"
+    with zipfile.ZipFile(path, "w", zipfile.ZIP_DEFLATED) as archive:
+        for name, data in entries:
+            info = zipfile.ZipInfo(name, WHEEL_DATE)
+            info.compress_type = zipfile.ZIP_DEFLATED
+            info.external_attr = 0o644 << 16
+            archive.writestr(info, data)
+    return path
+
+
 def stage(manifest_text: str, wheels: list[Path], stage_root: Path = STAGE_ROOT) -> Path:
-    """A clean build/extension/hybridgi/: the add-on, its vendored core, wheels/, the manifest."""
+    """A clean build/extension/hybridgi/: the add-on, wheels/ (the core's among them), the manifest."""
     source = stage_root / "hybridgi"
     if source.exists():
         shutil.rmtree(source)
     stage_root.mkdir(parents=True, exist_ok=True)
     shutil.copytree(ADDON_DIR, source, ignore=STAGE_IGNORE)
-    # `addon/_core.py` imports `f"{__package__}.hybridgi_core"` first: the vendored copy sits in
-    # the add-on package under its own name.
-    if (source / CORE_DIR.name).exists():
-        raise BuildError(f"addon/ already holds a {CORE_DIR.name}; the build would overwrite it")
-    shutil.copytree(CORE_DIR, source / CORE_DIR.name, ignore=STAGE_IGNORE)
     (source / "wheels").mkdir()
     for wheel in wheels:
         shutil.copy2(wheel, source / "wheels" / wheel.name)
@@ -277,13 +326,18 @@ def check_zip(item: PlatformZip, tool: Path) -> str:
         problems.append(f"[build.generated] platforms = {generated.get('platforms')}, not [{item.platform!r}]")
     if sorted(generated.get("wheels", [])) != sorted(f"./wheels/{w}" for w in item.wheels):
         problems.append(f"[build.generated] wheels = {generated.get('wheels')}")
-    required = ["__init__.py", "_core.py", "engine.py", f"{CORE_DIR.name}/__init__.py"]
-    required += [
-        f"{CORE_DIR.name}/{p.relative_to(CORE_DIR).as_posix()}"
-        for p in CORE_DIR.rglob("*.glsl")
-        if "__pycache__" not in p.parts
-    ]
+    required = ["__init__.py", "engine.py", "pipeline.py"]
     problems += [f"{name} is missing" for name in required if name not in names]
+    core = f"wheels/{CORE_DIR.name}-{core_version()}-py3-none-any.whl"
+    if core not in names:
+        problems.append(f"{core} is missing")
+    else:
+        with zipfile.ZipFile(io.BytesIO(zipfile.ZipFile(item.path).read(core))) as wheel:
+            inside = set(wheel.namelist())
+        expected = {p.relative_to(CORE_DIR.parent).as_posix() for p in core_files()}
+        problems += [f"{name} is missing from {core}" for name in sorted(expected - inside)]
+    if any(n.startswith(f"{CORE_DIR.name}/") for n in names):
+        problems.append(f"a loose {CORE_DIR.name}/ folder is packaged besides its wheel")
     problems += [
         f"{name} should not be packaged"
         for name in sorted(names)
@@ -311,6 +365,8 @@ def build(force: bool = False, dist: Path = DIST, cache: Path = WHEEL_CACHE, sta
     items = None if force else _reusable(stamp, digest, dist)
     if items is None:
         wheels = fetch_wheels(manifest["platforms"], cache)
+        core = core_wheel(stage_root / "core-wheel")
+        wheels = {platform: [*platform_wheels, core] for platform, platform_wheels in wheels.items()}
         every_wheel = sorted({w for platform_wheels in wheels.values() for w in platform_wheels})
         source = stage(manifest_text, every_wheel, stage_root)
         dist.mkdir(parents=True, exist_ok=True)

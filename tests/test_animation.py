@@ -221,7 +221,7 @@ def addon(bpy_module):
 
 @pytest.fixture
 def modules(addon):
-    names = ("animation", "pipeline", "engine")
+    names = ("animation", "pipeline", "engine", "updates")
     return type("Modules", (), {n: importlib.import_module(f"{addon.__name__}.{n}") for n in names})
 
 
@@ -353,7 +353,7 @@ def test_deforming_mesh_is_retraced_in_the_dynamic_scene(bpy_module, modules, tm
     key.keyframe_insert("value", frame=1)
     key.value = 1.0
     key.keyframe_insert("value", frame=2)
-    assert "tall_block" in modules.animation.animated_object_names(scene.objects)
+    assert "tall_block" in modules.updates.animated_object_names(scene.objects)
     before, _ = render(bpy, modules, scene, 1, tmp_path)
     after, stats = render(bpy, modules, scene, 2, tmp_path)
     assert stats["moved"] == ["tall_block"] and not stats["rebuilt"]
@@ -380,7 +380,7 @@ def test_animated_object_names_follow_parents_armatures_and_shape_keys(bpy_modul
     scene.collection.objects.link(rig)
     rig.keyframe_insert("rotation_euler", frame=1)
     rigged.modifiers.new("Armature", "ARMATURE").object = rig
-    names = modules.animation.animated_object_names(scene.objects)
+    names = modules.updates.animated_object_names(scene.objects)
     assert names == {"mover", "child", "keyed", "rig", "rigged"}
 
 
@@ -388,17 +388,16 @@ def test_handlers_feed_named_events_to_live_sessions(bpy_module, modules, tmp_pa
     bpy = bpy_module
     animation = modules.animation
     scene = open_scene(bpy, ANIMATED, "INDEPENDENT")
-    refreshed, dropped = [], []
-    animation.register_session("viewport", object(), scene=scene.name_full,
-                               refresh=lambda: refreshed.append(1), on_drop=lambda: dropped.append(1))
+    dropped = []
+    animation.register_session("viewport", object(), scene=scene.name_full, on_drop=lambda: dropped.append(1))
     animation.register_session("elsewhere", object(), scene="another scene")
     try:
         scene.frame_set(20)
         events = animation.take_events("viewport")
         assert events.frame == 20 and events.moved == {"ball", "bunny"} and events.lights
-        assert len(events.boxes) == 2 and refreshed
+        assert len(events.swept) == 2
         ball = procedural.ball_transform(20).location
-        assert any(((lo - 1e-3 <= ball) & (ball <= hi + 1e-3)).all() for lo, hi in events.boxes)
+        assert any(((lo - 1e-3 <= ball) & (ball <= hi + 1e-3)).all() for lo, hi in events.swept.values())
         assert not animation.take_events("viewport").dirty  # taken
         assert not animation.take_events("elsewhere").dirty  # another scene's session heard nothing
 

@@ -1,14 +1,15 @@
 """The installable extension zips of `make extension` (scripts/build_extension.py).
 
 Builds (or reuses) one zip per platform, checks each with Blender's validator and holds exactly its
-platform's wheels, then installs the linux-x64 zip into the bpy module in a fresh process, with a
-throw-away Blender user folder and the checkout's `hybridgi_core` unimportable, so what registers
-and renders is the zip's vendored core, and renders one small frame with the HYBRIDGI engine.
+platform's wheels plus the core's, then installs the linux-x64 zip into the bpy module in a fresh
+process, with a throw-away Blender user folder and the checkout's `hybridgi_core` hidden, so what
+registers and renders is the core wheel the zip brings, and renders one small frame with HYBRIDGI.
 """
 
 from __future__ import annotations
 
 import importlib.util
+import io
 import json
 import os
 import subprocess
@@ -32,6 +33,7 @@ WHEEL_TAGS = {
 BUNDLED = {"embreex": "4.4.0.post1", "fast_simplification": "0.2.0"}
 PYTHON_TAGS = {"cp311", "cp313"}
 RESOLUTION = (64, 48)
+CORE_VERSION = "0.1.0"  # hybridgi_core.__version__
 
 
 def _load_builder():
@@ -70,6 +72,9 @@ def test_one_valid_zip_per_platform_with_only_its_wheels(builder, zips):
             names = archive.namelist()
         wheels = [n.removeprefix("wheels/") for n in names if n.endswith(".whl")]
         # Both bundled packages for both Pythons, nothing else (no numpy: Blender ships it).
+        core = f"hybridgi_core-{CORE_VERSION}-py3-none-any.whl"
+        assert core in wheels, wheels  # the core, pure Python, in every zip
+        wheels.remove(core)
         found = {(w.split("-")[0], w.split("-")[1], w.split("-")[-3]) for w in wheels}
         assert found == {(n, v, py) for n, v in BUNDLED.items() for py in PYTHON_TAGS}, wheels
         assert len(wheels) == len(found)
@@ -77,10 +82,24 @@ def test_one_valid_zip_per_platform_with_only_its_wheels(builder, zips):
         for wheel in wheels:
             tag = wheel.removesuffix(".whl").split("-")[-1]
             assert tag.startswith(head) and tag.endswith(tail), f"{wheel} in the {platform} zip"
-        # The add-on at the zip's root, the vendored core inside it with its shaders.
-        assert "__init__.py" in names and "hybridgi_core/__init__.py" in names
-        assert any(n.startswith("hybridgi_core/raster/") and n.endswith(".glsl") for n in names)
-        assert not any("__pycache__" in n or n.startswith("tests/") for n in names)
+        # The add-on at the zip's root; the core only as its wheel, with its shaders inside.
+        assert "__init__.py" in names and not any(n.startswith("hybridgi_core/") for n in names)
+        with zipfile.ZipFile(item.path) as archive, zipfile.ZipFile(io.BytesIO(archive.read(f"wheels/{core}"))) as wheel:
+            inside = wheel.namelist()
+        assert "hybridgi_core/__init__.py" in inside and "hybridgi_core/session.py" in inside
+        assert any(n.startswith("hybridgi_core/raster/") and n.endswith(".glsl") for n in inside)
+        assert not any("__pycache__" in n or n.startswith("tests/") for n in names + inside)
+
+
+def test_core_wheel_is_reproducible(builder, tmp_path):
+    """Equal sources give byte-equal wheels (the zips' digests stay stable across machines)."""
+    first = builder.core_wheel(tmp_path / "a").read_bytes()
+    second = builder.core_wheel(tmp_path / "b").read_bytes()
+    assert first == second
+    with zipfile.ZipFile(io.BytesIO(first)) as wheel:
+        record = wheel.read(f"hybridgi_core-{CORE_VERSION}.dist-info/RECORD").decode()
+        assert wheel.testzip() is None
+    assert "hybridgi_core/changes.py,sha256=" in record
 
 
 #: Runs in a fresh Python: argv = zip, output folder. Writes result.json there.
@@ -97,17 +116,15 @@ WHEEL_SITE = (
     Path(os.environ["BLENDER_USER_RESOURCES"]) / "extensions" / ".local" / "lib"
     / f"python{sys.version_info[0]}.{sys.version_info[1]}" / "site-packages"
 )
-WHEEL_MODULES = {"embreex", "fast_simplification"}
+WHEEL_MODULES = {"embreex", "fast_simplification", "hybridgi_core"}
 
 
 class ExtensionOnly(importlib.abc.MetaPathFinder):
     """The venv holds the checkout's hybridgi_core (editable install), embreex and
-    fast_simplification: hide the first and take the others from the wheels Blender unpacked, so
-    what runs is what the zip brings, as in a Blender that has none of them."""
+    fast_simplification: take all three from the wheels Blender unpacked, so what runs is what
+    the zip brings, as in a Blender that has none of them."""
 
     def find_spec(self, name, path=None, target=None):
-        if name == "hybridgi_core" or name.startswith("hybridgi_core."):
-            raise ModuleNotFoundError(f"{name} is blocked in this test", name=name)
         if name in WHEEL_MODULES:
             spec = importlib.machinery.PathFinder.find_spec(name, [str(WHEEL_SITE)])
             if spec is None:
@@ -144,9 +161,7 @@ result["engine_registered"] = any(
     getattr(cls, "bl_idname", None) == "HYBRIDGI" and cls.is_registered
     for cls in bpy.types.RenderEngine.__subclasses__()
 )
-core_module = sys.modules.get(f"{module_name}._core")
-result["core_file"] = getattr(getattr(core_module, "core", None), "__file__", None)
-result["checkout_core_imported"] = "hybridgi_core" in sys.modules
+result["core_file"] = getattr(sys.modules.get("hybridgi_core"), "__file__", None)
 result["wheels_installed"] = sorted(p.name for p in site.glob("*") if not p.name.endswith(".dist-info")) if site.is_dir() else []
 result["has_pipeline"] = (ext_dir / "pipeline.py").is_file()
 save()
@@ -215,16 +230,14 @@ def installed(zips, tmp_path_factory):
     return result
 
 
-def test_installed_zip_registers_engine_with_vendored_core(installed):
+def test_installed_zip_registers_engine_with_the_core_wheel(installed):
     assert installed["enabled"], installed["stderr"]
     assert installed["engine_registered"], installed["stderr"]
-    ext_dir = Path(installed["ext_dir"])
+    # The add-on imported `hybridgi_core` by its plain name, from the wheel Blender unpacked.
     core_file = Path(installed["core_file"])
-    assert core_file.is_relative_to(ext_dir), f"core imported from {core_file}, not from {ext_dir}"
-    assert core_file == ext_dir / "hybridgi_core" / "__init__.py"
-    assert not installed["checkout_core_imported"]
+    assert core_file == Path(installed["wheel_site"]) / "hybridgi_core" / "__init__.py", core_file
     # Blender unpacked this platform's wheels for its Python into the extensions' site-packages.
-    assert {"embreex", "fast_simplification"} <= set(installed["wheels_installed"])
+    assert {"embreex", "fast_simplification", "hybridgi_core"} <= set(installed["wheels_installed"])
 
 
 def test_installed_zip_renders_a_frame(installed):

@@ -1,4 +1,4 @@
-"""Direct lighting from lamps against closed forms (Cycles' conventions, GI_FACTS.md)."""
+"""Direct lighting from lamps against closed forms (Cycles' conventions)."""
 
 from __future__ import annotations
 

@@ -202,7 +202,7 @@ def test_light_change_reshades_stored_hits_without_probe_rays(table):
         before = gi.gather(pts, up).indirect
         tracer = counted(gi)
         gi.set_lights(room_with_ball(energy=600.0))
-        stats = gi.on_lights_changed()
+        stats = gi.on_lights_changed(resolve=True)
         after = gi.gather(pts, up).indirect
         hits = sum(c.hit.size for c in gi.solver.chunks)
         first = sum(c.hit.size for c in gi.solver.chunks if c.batch == 0)
@@ -227,7 +227,7 @@ def test_material_change_reshades_the_stored_hits():
         gi.solve(batches=1)
         tracer = counted(gi)
         gi.set_lights(furnace(0.25))
-        gi.on_lights_changed()
+        gi.on_lights_changed(resolve=True)
         g = gi.gather(pts, up)
     assert tracer.intersect_rays == 0
     np.testing.assert_allclose(g.indirect, np.pi * LE * 0.25 / 0.75, rtol=5e-3)

@@ -199,8 +199,54 @@ def test_shader_kinds(bpy_module, scene, sync, caplog):
     np.testing.assert_allclose(by_name["lamp"].base_color, 0.0)
     np.testing.assert_allclose(by_name["matte"].base_color, [0.2, 0.3, 0.4], atol=1e-6)
     np.testing.assert_allclose(by_name["matte"].emission, 0.0)
-    np.testing.assert_allclose(by_name["shiny"].base_color, 0.8)
-    assert any("'shiny'" in r.getMessage() and "not supported" in r.getMessage() for r in caplog.records)
+    # A glossy BSDF reflects no diffuse light: Cycles' Diffuse Color pass is black there.
+    np.testing.assert_allclose(by_name["shiny"].base_color, 0.0)
+    assert any("'shiny'" in r.getMessage() and "not rendered" in r.getMessage() for r in caplog.records)
+
+
+def test_principled_weights_mixes_and_constant_nodes(bpy_module, scene, sync, caplog):
+    """What Cycles' Diffuse Color pass shows: base colour x (1 - metallic) x (1 - transmission),
+    tinted by the coat; Mix Shader by its factor; Emission Color from an RGB or Mix node."""
+    bpy = bpy_module
+    metal, m_bsdf = principled(bpy, "half_metal", (0.8, 0.4, 0.2))
+    m_bsdf.inputs["Metallic"].default_value = 0.75
+    glass, g_bsdf = principled(bpy, "glassy", (0.5, 0.5, 0.5))
+    g_bsdf.inputs["Transmission Weight"].default_value = 1.0
+    coated, c_bsdf = principled(bpy, "coated", (0.5, 0.5, 0.5))
+    c_bsdf.inputs["Coat Weight"].default_value = 1.0
+    c_bsdf.inputs["Coat Tint"].default_value = (1.0, 0.5, 0.5, 1.0)
+    panel, p_bsdf = principled(bpy, "panel", (0.1, 0.1, 0.1))
+    rgb = panel.node_tree.nodes.new("ShaderNodeRGB")
+    rgb.outputs[0].default_value = (1.0, 0.2, 0.1, 1.0)
+    mix = panel.node_tree.nodes.new("ShaderNodeMix")
+    mix.data_type = "RGBA"
+    mix.inputs["Factor"].default_value = 0.5
+    mix.inputs["B"].default_value = (0.0, 0.0, 1.0, 1.0)
+    panel.node_tree.links.new(rgb.outputs[0], mix.inputs["A"])
+    panel.node_tree.links.new(mix.outputs["Result"], p_bsdf.inputs["Emission Color"])
+    p_bsdf.inputs["Emission Strength"].default_value = 2.0
+    mixed = bpy.data.materials.new("mixed")
+    tree = mixed.node_tree
+    tree.nodes.remove(tree.nodes["Principled BSDF"])
+    shader_mix = tree.nodes.new("ShaderNodeMixShader")
+    shader_mix.inputs["Fac"].default_value = 0.25
+    red, white = tree.nodes.new("ShaderNodeBsdfDiffuse"), tree.nodes.new("ShaderNodeBsdfDiffuse")
+    red.inputs["Color"].default_value = (1.0, 0.0, 0.0, 1.0)
+    white.inputs["Color"].default_value = (1.0, 1.0, 1.0, 1.0)
+    tree.links.new(red.outputs[0], shader_mix.inputs[1])
+    tree.links.new(white.outputs[0], shader_mix.inputs[2])
+    tree.links.new(shader_mix.outputs[0], tree.nodes["Material Output"].inputs["Surface"])
+    cube = add_cube(bpy, scene)
+    for mat in (metal, glass, coated, panel, mixed):
+        cube.data.materials.append(mat)
+    for i, poly in enumerate(cube.data.polygons):
+        poly.material_index = min(i, 4)
+    by_name = {m.name: m for m in snapshot(sync, bpy).materials}
+    np.testing.assert_allclose(by_name["half_metal"].base_color, [0.2, 0.1, 0.05], rtol=1e-5)
+    np.testing.assert_allclose(by_name["glassy"].base_color, 0.0, atol=1e-7)
+    np.testing.assert_allclose(by_name["coated"].base_color, [0.5, 0.25, 0.25], rtol=1e-5)
+    np.testing.assert_allclose(by_name["panel"].emission, [1.0, 0.2, 1.1], rtol=1e-5)
+    np.testing.assert_allclose(by_name["mixed"].base_color, [1.0, 0.25, 0.25], rtol=1e-5)
 
 
 def add_light(bpy, scene, kind, **settings):

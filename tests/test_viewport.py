@@ -392,7 +392,8 @@ def test_deleting_an_object_while_the_worker_traces_is_safe(view, addon):
 # the worker never touches Blender, checked at run time
 # ----------------------------------------------------------------------------------------------
 BLENDER_MODULES = ("bpy", "gpu", "mathutils", "bmesh", "gpu_extras", "bpy_extras", "addon_utils", "_bpy", "_bpy_types")
-BPY_SIDE = (".viewport", ".overlay", ".engine", ".sync", ".ui", ".properties", ".pipeline")
+BPY_SIDE = (".viewport", ".viewport_mirror", ".viewport_stats", ".overlay", ".engine", ".sync", ".updates", ".ui",
+            ".properties", ".pipeline", ".animation")
 
 
 class BlenderAccessGuard:
@@ -603,3 +604,62 @@ def test_cache_cells_view_matches_the_final_render_colours(view, addon):
     assert colours.shape[0] > 10  # many cells, each its own colour
     on_geometry = result.cells[..., 3] > 0.5
     assert (result.cells[on_geometry, :3] >= 0.35 - 1e-6).all()  # the worker's colours, all converged
+
+
+def test_an_invalid_setting_is_shown_as_an_error_not_as_converged(view, addon):
+    """A NaN typed into a setting: every redraw says what is wrong (never "converged"), the view
+    keeps drawing, and fixing the value converges again."""
+    scene = addon.bpy.context.scene
+    view.update()
+    view.draw()
+    view.converge()
+    old = scene.hybridgi.hysteresis
+    scene.hybridgi.hysteresis = float("nan")
+    try:
+        view.update()  # raised on every update before
+        img = view.draw()
+        assert view.engine.status.startswith("Error:") and "hysteresis" in view.engine.status
+        assert np.isfinite(img).all()
+    finally:
+        scene.hybridgi.hysteresis = old
+    view.update()
+    view.draw()
+    view.converge()
+    view.draw()
+    assert not view.engine.status.startswith("Error") and "cells" in view.engine.status
+
+
+def test_a_sky_world_bakes_in_the_background_then_lights_the_view(view, addon, tmp_path, monkeypatch):
+    """The viewport never waits for a world bake: it draws with the world's uniform colour, the
+    map bakes on a thread, and the next redraw reads the world again: its sun becomes a lamp."""
+    import time  # noqa: PLC0415
+
+    bpy = addon.bpy
+    bake = sys.modules[addon.viewport.__name__.rsplit(".", 1)[0] + ".world_bake"]
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))  # no map from an earlier run
+    scene = bpy.context.scene
+    old = scene.world
+    world = bpy.data.worlds.new("sky")
+    world.use_nodes = True
+    sky = world.node_tree.nodes.new("ShaderNodeTexSky")
+    world.node_tree.links.new(sky.outputs["Color"], world.node_tree.nodes["Background"].inputs["Color"])
+    scene.world = world
+    try:
+        t0 = time.perf_counter()
+        view.update()
+        view.draw()
+        assert time.perf_counter() - t0 < 5.0  # no bake on the main thread
+        suns = lambda: [lt for lt in view.session.mirror.snapshot.lights if lt.name == "sky/sun"]  # noqa: E731
+        assert not suns() and bake.pending() and view.session.needs_redraw()
+        deadline = time.perf_counter() + 120
+        while bake.pending() and time.perf_counter() < deadline:
+            time.sleep(0.2)
+        assert not bake.pending()
+        view.draw()  # reads the baked world
+        assert len(suns()) == 1 and suns()[0].kind == "SUN"
+        assert view.session.mirror.snapshot.world.sky_sh is not None
+        view.converge()
+        assert np.isfinite(view.draw()).all()
+    finally:
+        scene.world = old
+        bpy.data.worlds.remove(world)

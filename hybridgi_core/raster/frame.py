@@ -133,10 +133,12 @@ class FramePipeline:
 
     def render(self, system, view: np.ndarray, proj: np.ndarray, frame: int, warmup: int = 0,
                update: bool = True, debug_view: int = DEBUG_FINAL, world_color=(0.0, 0.0, 0.0),
-               progress=None) -> tuple[ShadedFrame, FrameStats]:
+               progress=None, update_hook=None) -> tuple[ShadedFrame, FrameStats]:
         """Steps 1-9. warmup > 0 converges the cache first (final renders); update = False only
         reads the cache (a redraw while a worker owns the updates). progress(i, n) is called
-        after each warm-up iteration and may raise to cancel."""
+        after each warm-up iteration and may raise to cancel. update_hook(cells) -> UpdateStats
+        replaces the frame's `system.update(cells, frame)` of the visible cells (an incremental
+        render refreshes what changed around them too, with its own rays)."""
         stats = FrameStats()
         gbuf, low = self.rasterize(view, proj, stats)
         with stats.step("downsample"):
@@ -159,7 +161,7 @@ class FramePipeline:
                     stats.steps_ms[f"warmup_{k}"] = stats.steps_ms.get(f"warmup_{k}", 0.0) + v
         if update:
             with stats.step("update"):
-                run = system.update(cells, frame)
+                run = update_hook(cells) if update_hook is not None else system.update(cells, frame)
             stats.rays += run.rays
             for k, v in run.steps_ms.items():
                 stats.steps_ms[f"update_{k}"] = v

@@ -17,43 +17,84 @@ import logging
 
 import numpy as np
 
+from ..errors import LimitError
 from .glsl import load_glsl
 from .passes import RasterError, RasterPass, check_size, compile_spec, fullscreen_spec, make_target
 from .readback import read_framebuffer, upload_texture_2d
 
 log = logging.getLogger(__name__)
 
-#: Width of the packed cache textures (texels); well under every GPU's 2D limit (>= 8192).
+#: Width of the packed cache textures (texels) while the rows fit; larger caches widen them to the
+#: GPU's limit. OpenGL guarantees 8192 at least; desktop GPUs and llvmpipe allow 16384.
 PACK_WIDTH = 4096
+#: Texture size assumed when no GPU can be asked (bpy-free callers of check_cache_textures).
+DEFAULT_MAX_TEXTURE_SIZE = 16384
 
 MODE_PLAIN, MODE_CHEBYSHEV, MODE_MASK = 0, 1, 2
 
 
-def _pack_rows(texels: np.ndarray) -> np.ndarray:
-    """(n, c) texels -> (rows, PACK_WIDTH, c) zero-padded, linear index = row * width + column."""
+def max_texture_size() -> int:
+    """The GPU's 2D texture size limit (texels per side)."""
+    try:
+        import gpu  # noqa: PLC0415
+
+        return int(gpu.capabilities.max_texture_size_get())
+    except (ImportError, AttributeError, SystemError):
+        return DEFAULT_MAX_TEXTURE_SIZE
+
+
+def _layout(texels: int, max_size: int) -> tuple[int, int]:
+    """(rows, width) of a texture holding `texels` row-major; width PACK_WIDTH unless the rows
+    would not fit, then the GPU's maximum."""
+    texels = max(int(texels), 1)
+    width = min(PACK_WIDTH, texels, max_size)
+    if -(-texels // width) > max_size:
+        width = max_size
+    return -(-texels // width), width
+
+
+def check_cache_textures(cell_count: int, sh_coeffs: int, depth_texels: int, max_size: int | None = None) -> None:
+    """Raise LimitError when a cache of `cell_count` cells cannot be packed into textures of at
+    most `max_size` texels per side (the GPU's limit when None). Cheap: call it before the
+    cache is built or warmed up."""
+    max_size = max_size or max_texture_size()
+    for what, texels in (("SH", cell_count * 2 * sh_coeffs), ("depth", cell_count * depth_texels**2)):
+        rows, _width = _layout(texels, max_size)
+        if rows > max_size:
+            fits = int(cell_count * (max_size * max_size / texels)) if texels else 0
+            raise LimitError(
+                f"the cache's {what} texture needs {rows} rows of {max_size} texels, over the GPU's "
+                f"texture size limit of {max_size}: {cell_count} cells, at most about {fits} fit; "
+                "lower the HybridGI Resolution"
+            )
+
+
+def _pack_rows(texels: np.ndarray, max_size: int) -> np.ndarray:
+    """(n, c) texels -> (rows, width, c) zero-padded, linear index = row * width + column."""
     n, c = texels.shape
-    width = min(PACK_WIDTH, max(n, 1))
-    rows = -(-max(n, 1) // width)
+    rows, width = _layout(n, max_size)
     out = np.zeros((rows * width, c), np.float32)
     out[:n] = texels
     return out.reshape(rows, width, c)
 
 
-def pack_cache(cache) -> tuple[np.ndarray, np.ndarray]:
+def pack_cache(cache, max_size: int = DEFAULT_MAX_TEXTURE_SIZE) -> tuple[np.ndarray, np.ndarray]:
     """The cache arrays as texture data (see gather_frag.glsl for the layout).
 
     Returns sh (rows, w, 4) float32: per cell K texels (sh_direct rgb, ao_sh) then K texels
     (sh_indirect rgb, valid in the first one's alpha); depth (rows, w, 2) float32: per cell the
-    D*D octahedral (mean, mean square) distances.
+    D*D octahedral (mean, mean square) distances. Raises LimitError (before
+    packing) when the textures would exceed `max_size` texels per side.
     """
     n, k = cache.sh_direct.shape[:2]
+    check_cache_textures(n, k, cache.settings.depth_texels, max_size)
     sh_tex = np.zeros((n, 2 * k, 4), np.float32)
     sh_tex[:, :k, :3] = cache.sh_direct
     sh_tex[:, :k, 3] = cache.ao_sh
     sh_tex[:, k:, :3] = cache.sh_indirect
     sh_tex[:, k, 3] = cache.valid
     depth = np.ascontiguousarray(cache.depth, np.float32).reshape(-1, 2)
-    return _pack_rows(sh_tex.reshape(-1, 4)), _pack_rows(depth)
+    return _pack_rows(sh_tex.reshape(-1, 4), max_size), _pack_rows(depth, max_size)
 
 
 def pack_corner_mask(corner_visible: np.ndarray) -> np.ndarray:
@@ -118,11 +159,19 @@ class GatherPass(RasterPass):
         key = (id(cache), cache.version, id(cache.sh_direct))
         if self._uploaded == key:
             return False
-        sh_data, depth_data = pack_cache(cache)
-        self._cache_tx = upload_texture_2d(sh_data, "RGBA32F")
-        self._depth_tx = upload_texture_2d(depth_data, "RG32F")
-        self._grid = cache.grid
-        self._settings = cache.settings
+        sh_data, depth_data = pack_cache(cache, max_texture_size())
+        return self.upload_packed(key, cache.grid, cache.settings, sh_data, depth_data)
+
+    def upload_packed(self, key, grid, settings, sh_texels: np.ndarray, depth_texels: np.ndarray) -> bool:
+        """Upload textures already in the `pack_cache` layout (packed on another thread), unless
+        `key` (any hashable naming this version of the cache) is the one on the GPU already.
+        Returns True when it uploaded."""
+        if self._uploaded == key:
+            return False
+        self._cache_tx = upload_texture_2d(sh_texels, "RGBA32F")
+        self._depth_tx = upload_texture_2d(depth_texels, "RG32F")
+        self._grid = grid
+        self._settings = settings
         self._uploaded = key
         return True
 

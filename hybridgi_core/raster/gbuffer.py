@@ -169,9 +169,13 @@ class GBufferPass(RasterPass):
 
         tris = np.asarray(geo.triangles, np.int32).reshape(-1, 3)
         mat_index = np.asarray(geo.material_index, np.int32).reshape(-1)
+        # Objects hidden from the camera (Object > Visibility > Camera) are not drawn; the rays
+        # still see them, so they keep casting shadows and bouncing light, as in Cycles.
+        hidden = [i for i, o in enumerate(snapshot.objects) if not o.camera_visible]
+        drawn = ~np.isin(geo.object_index, hidden) if hidden else np.ones(tris.shape[0], bool)
         self._draws = []
         for m, material in enumerate(snapshot.materials):
-            sel = tris[mat_index == m]
+            sel = tris[(mat_index == m) & drawn]
             if sel.shape[0] == 0:
                 continue
             texture = None

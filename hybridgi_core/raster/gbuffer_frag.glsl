@@ -23,8 +23,39 @@ vec3 sample_repeat_bilinear(vec2 uv)
   return mix(mix(c00, c10, t.x), mix(c01, c11, t.x), t.y);
 }
 
+/* Texels seen through one pixel, as Cycles' pixel filter sees them: up to MAX_TAPS x MAX_TAPS
+ * bilinear taps spread over the pixel's footprint in UV (the screen derivatives of the UV,
+ * widened to Cycles' default 1.5-pixel filter), weighted by a Gaussian of about its shape. A
+ * texture minified k times gets k x k taps (capped), so a fine texture reads as its average
+ * instead of aliasing; a magnified one stays one bilinear tap. */
+#define MAX_TAPS 8
+#define FILTER_WIDTH 1.5
+vec3 sample_footprint(vec2 uv, vec2 du, vec2 dv)
+{
+  vec2 size = vec2(textureSize(albedo_tx, 0));
+  float texels = max(length(du * size), length(dv * size)) * FILTER_WIDTH;
+  int taps = int(clamp(ceil(texels), 1.0, float(MAX_TAPS)));
+  if (taps == 1) {
+    return sample_repeat_bilinear(uv);
+  }
+  vec3 sum = vec3(0.0);
+  float weight_sum = 0.0;
+  for (int i = 0; i < taps; i++) {
+    for (int j = 0; j < taps; j++) {
+      vec2 o = ((vec2(i, j) + 0.5) / float(taps) - 0.5) * FILTER_WIDTH;
+      float w = exp(-2.0 * dot(o, o));
+      sum += w * sample_repeat_bilinear(uv + o.x * du + o.y * dv);
+      weight_sum += w;
+    }
+  }
+  return sum / weight_sum;
+}
+
 void main()
 {
+  /* Derivatives before any branch: they are undefined in non-uniform control flow. */
+  vec2 du = dFdx(tex_uv);
+  vec2 dv = dFdy(tex_uv);
   vec3 n = normalize(world_nor);
   /* Cycles flips the shading normal of back faces so it faces the camera. */
   if (!gl_FrontFacing) {
@@ -33,7 +64,7 @@ void main()
   vec3 albedo = fallback_albedo.rgb;
   /* uv_ok interpolates to < 1 on triangles with any NaN-UV corner: no usable UV there. */
   if (has_texture != 0 && uv_ok > 0.999) {
-    albedo = base_color.rgb * sample_repeat_bilinear(tex_uv);
+    albedo = base_color.rgb * sample_footprint(tex_uv, du, dv);
   }
   out_albedo = vec4(albedo, 1.0);
   out_normal = vec4(n, 1.0);

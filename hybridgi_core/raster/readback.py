@@ -1,7 +1,7 @@
 """numpy <-> GPU texture transfers with the orientation and dtype traps handled.
 
 Read-back goes through `GPUFrameBuffer.read_color` into a `gpu.types.Buffer` that wraps a numpy
-array's memory (BLENDER_FACTS: ~0.1 ms for 640x360 once the GPU is idle, vs ~250 ms for
+array's memory (measured with bpy 5.0: ~0.1 ms for 640x360 once the GPU is idle, vs ~250 ms for
 `Buffer.to_list()`); the Buffer is flattened to 1D first because its multi-dimensional strides are
 Fortran-order over C-ordered memory. Rows come back bottom-up, the order of `RenderPass.rect`, and
 texture data is uploaded in the same order (row 0 = bottom = texture coordinate t = 0).
@@ -68,7 +68,7 @@ def read_texture(texture, channels: int | None = None) -> np.ndarray:
 def read_texture_3d(texture, depth: int, channels: int | None = None) -> np.ndarray:
     """A 3D texture as (depth, h, w, channels) float32, read layer by layer.
 
-    `GPUTexture.read()` returns one slice only for 3D textures (BLENDER_FACTS), and the texture
+    `GPUTexture.read()` returns one slice only for 3D textures (bpy 5.0), and the texture
     object does not expose its depth, so the caller passes it.
     """
     import gpu  # noqa: PLC0415

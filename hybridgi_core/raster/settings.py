@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, replace
 
-from ..errors import SettingsError
+from ..settings import check_ranges
 
 #: How ray-traced (cache) AO and screen-space AO combine (the seed's MIN and MUL blends).
 AO_BLEND_MODES = ("MUL", "MIN")  # index = BLEND_MUL / BLEND_MIN in deferred_frag.glsl
@@ -28,22 +28,21 @@ class RasterSettings:
     bilateral_plane_sigma: float = 0.02  # plane-distance tolerance as a share of the view depth
     bilateral_normal_power: float = 8.0  # exponent of max(0, n_p . n_q) in the range weight
 
+    #: Valid values of each field, as in CacheSettings.RANGES.
+    RANGES = {
+        "downsample": (1, 16, False, False),
+        "ssao_radius": (0.0, None, True, False),
+        "ssao_strength": (0.0, 4.0, False, False),
+        "ssao_samples": (1, 64, False, False),
+        "ao_blend": frozenset(AO_BLEND_MODES),
+        "bilateral_radius": (0, 8, False, False),
+        "bilateral_sigma": (0.0, None, True, False),
+        "bilateral_plane_sigma": (0.0, None, True, False),
+        "bilateral_normal_power": (0.0, None, False, False),
+    }
+
     def __post_init__(self) -> None:
-        checks = {
-            "downsample": 1 <= self.downsample <= 16,
-            "ssao_radius": self.ssao_radius > 0.0,
-            "ssao_strength": 0.0 <= self.ssao_strength <= 4.0,
-            "ssao_samples": 1 <= self.ssao_samples <= 64,
-            "ao_blend": self.ao_blend in AO_BLEND_MODES,
-            "bilateral_radius": 0 <= self.bilateral_radius <= 8,
-            "bilateral_sigma": self.bilateral_sigma > 0.0,
-            "bilateral_plane_sigma": self.bilateral_plane_sigma > 0.0,
-            "bilateral_normal_power": self.bilateral_normal_power >= 0.0,
-        }
-        bad = [name for name, ok in checks.items() if not ok]
-        if bad:
-            values = ", ".join(f"{name}={getattr(self, name)!r}" for name in bad)
-            raise SettingsError(f"raster settings out of range: {values}")
+        check_ranges(self, self.RANGES, "raster settings")
 
     def with_(self, **changes) -> RasterSettings:
         return replace(self, **changes)

@@ -1,0 +1,145 @@
+"""The records the viewport's main thread and its worker exchange: scene edits and view requests
+in, immutable published results out (`worker.py` runs the worker).
+
+Pure numpy dataclasses: nothing here imports bpy, gpu or mathutils, and every array a `Published`
+record holds is a copy marked read-only, so either thread may read it while the other goes on.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from types import MappingProxyType
+
+import numpy as np
+
+# --- what the main thread posts -----------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class FullScene:
+    """A whole new snapshot (first sync, objects added or deleted, meshes edited)."""
+
+    snapshot: object  # SceneSnapshot
+
+
+@dataclass(frozen=True)
+class MoveVertices:
+    """New world positions and normals of some vertices of the current snapshot (objects moved).
+
+    indices : (k,) int64 rows of geometry.positions; positions, normals : (k, 3) float32
+    """
+
+    indices: np.ndarray
+    positions: np.ndarray
+    normals: np.ndarray
+
+
+@dataclass(frozen=True)
+class SetShading:
+    """Replaced lamps, world or materials (None keeps the current ones); geometry unchanged."""
+
+    lights: list | None = None
+    world: object | None = None
+    materials: list | None = None
+
+
+@dataclass(frozen=True)
+class ViewRequest:
+    """One frame's G-buffer read-backs to light, rows bottom-up.
+
+    key : identifies the camera, size and scene geometry of the frame; echoed by `ViewResult`
+    position, normal : (h, w, 4) float32 at the GI resolution (world position with w = 1 on
+        geometry; unit normal): visible cells and corner visibility
+    direct_position, direct_normal : the same at the direct light's resolution (may be the same arrays)
+    view, proj : (4, 4) float64 camera of the frame (the main thread reprojects results with them)
+    """
+
+    key: tuple
+    position: np.ndarray
+    normal: np.ndarray
+    direct_position: np.ndarray
+    direct_normal: np.ndarray
+    view: np.ndarray
+    proj: np.ndarray
+    debug_cells: bool = False  # also colour the GI pixels by cache cell (the Cache Cells view)
+
+
+@dataclass(frozen=True)
+class WorkerOptions:
+    update_hz: float = 30.0  # GI updates per second aimed at: each update's ray budget follows the
+    # measured ray rate so that one step (update + the view's own rays) takes about 1 / update_hz
+    rays_per_update: int = 262144  # most probe rays of one update (cells = budget / rays per cell)
+    min_cells_per_update: int = 32  # fewest cells of one update (per-update overhead stays small)
+    settle_updates: int = 24  # updates after a change before a cell counts as converged
+    direct_samples: int = 1  # shadow-ray samples per pixel and lamp in each direct-light pass
+    direct_passes: int = 16  # passes averaged while the view stays still (soft shadows converge)
+    background_cells: bool = True  # once the view converged, also converge every surface's cells
+
+
+# --- what the worker publishes ------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class CacheFrame:
+    """The cache as GPU texture data (`raster.gather.pack_cache` layout), packed by the worker."""
+
+    serial: int
+    grid: object  # CacheGrid
+    settings: object  # CacheSettings
+    sh_texels: np.ndarray
+    depth_texels: np.ndarray
+
+
+@dataclass(frozen=True)
+class ViewResult:
+    """Light of one `ViewRequest`: arrays float32, rows bottom-up like the request.
+
+    direct : (h, w, 4) at the direct resolution, rgb = lamp irradiance W/m^2 (mean over `passes`
+        passes), a = 1 where computed; position, normal : the request's direct-resolution arrays
+    corner_mask : (h_gi, w_gi) float32 bit masks of the visible neighbour cells, None until traced
+    cells : (h_gi, w_gi, 4) `visible.cell_debug_colors` of the GI pixels (a = 1 on geometry) when
+        the request asked for them, with gi_position, gi_normal: the request's GI-resolution arrays
+    scene_gen : the scene edits the light was traced with
+    """
+
+    key: tuple
+    serial: int
+    scene_gen: int
+    position: np.ndarray
+    normal: np.ndarray
+    view: np.ndarray
+    proj: np.ndarray
+    direct: np.ndarray
+    passes: int
+    corner_mask: np.ndarray | None = None
+    cells: np.ndarray | None = None
+    gi_position: np.ndarray | None = None
+    gi_normal: np.ndarray | None = None
+
+
+@dataclass(frozen=True)
+class WorkerStats:
+    updates: int = 0  # GI updates since the worker started
+    updates_per_s: float = 0.0  # over the last RATE_WINDOW_S
+    rays_per_s: float = 0.0  # probe, shadow and visibility rays over the last RATE_WINDOW_S
+    visible_cells: int = 0
+    converged: float = 0.0  # share of the visible cells that settled since the last change
+    steps_ms: Mapping[str, float] = field(default_factory=lambda: MappingProxyType({}))
+    scene_gen: int = 0  # edits applied so far (compare with `post_edit`'s return value)
+    idle: bool = False
+
+
+@dataclass(frozen=True)
+class Published:
+    cache: CacheFrame | None = None
+    view: ViewResult | None = None
+    stats: WorkerStats = WorkerStats()
+    empty: bool = False  # the scene has no geometry (the world alone is drawn)
+    error: str | None = None  # the worker stopped on this error
+
+
+def frozen(array: np.ndarray) -> np.ndarray:
+    """`array`, made read-only: what the worker publishes is never written again."""
+    array.flags.writeable = False
+    return array

@@ -1,0 +1,88 @@
+"""The worker's running state for the latest view: its visible cells, the corner-visibility mask,
+and the direct light it refines while the view holds still (worker thread only, pure numpy).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from hybridgi_core import visible as _visible
+
+from .worker_messages import ViewRequest, ViewResult, frozen
+
+
+class DirectLevel:
+    """Running sum of direct-light passes at one resolution (worker thread only)."""
+
+    def __init__(self, position: np.ndarray, normal: np.ndarray, points: tuple, samples: int = 1):
+        self.position, self.normal = position, normal
+        self.points = points  # (points, normals, flat pixels)
+        self.samples = samples  # shadow-ray samples per pixel and pass, in units of direct_samples
+        h, w = position.shape[:2]
+        self.sum = np.zeros((h * w, 4), np.float32)
+        self.sum[points[2], 3] = 1.0
+        self.passes = 0
+
+    @property
+    def samples_per_pixel(self) -> int:
+        return self.passes * self.samples
+
+    def mean(self) -> np.ndarray:
+        h, w = self.position.shape[:2]
+        out = self.sum.copy()
+        out[:, :3] /= max(self.passes, 1)
+        return out.reshape(h, w, 4)
+
+
+class ViewState:
+    """The worker's running state for the latest view (worker thread only): visible cells, the
+    corner mask, and direct light at two levels, coarse (GI resolution, one pass, as soon as the
+    view arrives) and fine (the direct light's resolution, refined while the view holds still)."""
+
+    def __init__(self, request: ViewRequest, scene_gen: int, gi_points: tuple, cells: np.ndarray):
+        self.request = request
+        self.scene_gen = scene_gen
+        self.gi_points = gi_points  # (points, normals, flat pixels) at the GI resolution
+        self.cells = cells
+        # The coarse pass traces as many rays as one fine pass (more samples on fewer pixels), so
+        # soft shadows shimmer no more while the camera moves than once it stops.
+        ratio = request.direct_position.shape[0] * request.direct_position.shape[1] / max(
+            request.position.shape[0] * request.position.shape[1], 1)
+        self.coarse = DirectLevel(request.position, request.normal, gi_points, int(np.clip(round(ratio), 1, 16)))
+        self._fine: DirectLevel | None = None
+        self.mask: np.ndarray | None = None
+        self.cell_colors: np.ndarray | None = None  # Cache Cells view, when the request asks
+        self.cells_key = None
+        self.cells_at = 0.0
+        self.dirty = False
+
+    def fine_level(self) -> DirectLevel:
+        if self._fine is None:
+            r = self.request
+            if r.direct_position is r.position:
+                self._fine = self.coarse  # one resolution: the coarse pass is the first fine one
+            else:
+                points = _visible.pixels_to_points(r.direct_position, r.direct_normal)
+                self._fine = DirectLevel(r.direct_position, r.direct_normal, points)
+        return self._fine
+
+    @property
+    def passes(self) -> int:
+        """Passes of the light that is published: fine once it has one, else the coarse one."""
+        return self._fine.passes if self._fine is not None else 0
+
+    def current(self, request: ViewRequest, scene_gen: int) -> bool:
+        return request is self.request and scene_gen == self.scene_gen
+
+    def result(self, serial: int) -> ViewResult:
+        # The fine light replaces the coarse one once it is no noisier per pixel.
+        fine = self._fine
+        level = fine if fine is not None and fine.samples_per_pixel >= self.coarse.samples_per_pixel else self.coarse
+        r = self.request
+        return ViewResult(
+            key=r.key, serial=serial, scene_gen=self.scene_gen, position=level.position, normal=level.normal,
+            view=r.view, proj=r.proj, direct=frozen(level.mean()), passes=level.passes,
+            corner_mask=None if self.mask is None else frozen(self.mask.copy()),
+            cells=None if self.cell_colors is None else frozen(self.cell_colors.copy()),
+            gi_position=r.position, gi_normal=r.normal,
+        )

@@ -1,0 +1,256 @@
+"""Any world node tree as an equirectangular radiance map, evaluated by Blender itself.
+
+Sky Texture, gradients, mixes of environment maps: rather than re-implement Blender's nodes, the
+world is rendered by Cycles through a panoramic camera, in a separate process (a render cannot
+start inside another one, and the user's file must not change). The map then goes through the
+same split as an environment image (`hybridgi_core.environment`: a shadowed sun plus an SH sky).
+
+Baked maps are cached under a key of everything the world's output depends on (`world_key`), in
+memory and on disk, so a world that did not change costs nothing on the next sync. Final renders
+wait for a bake; the viewport does not (`bake_world(world, wait=False)`): the bake runs on a
+thread that only waits for the process, the view keeps its last world meanwhile, and `completed`
+counts finished bakes so that it can read the world again. Everything that touches `bpy` runs on
+the main thread; the bake process itself runs headless with the factory settings.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import logging
+import os
+import shutil
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+import bpy
+import numpy as np
+
+log = logging.getLogger(__name__)
+
+#: Size of the rendered map, and the factor it is box-filtered down by. A Sky Texture's sun disc
+#: (0.5 degrees) needs fine pixels: its energy came out 1.8x / 1.3x / 1.05x of what Cycles lights
+#: a surface with at 512 / 1024 / 2048 pixels across; the map the core reads stays 512 wide.
+BAKE_WIDTH, BAKE_HEIGHT = 2048, 1024
+BAKE_REDUCE = 4
+#: Cycles samples per pixel of the bake (only camera rays into the world: no noise but AA).
+BAKE_SAMPLES = 4
+#: Seconds the bake process may take before the world falls back to its mean colour.
+BAKE_TIMEOUT_S = 120
+#: Maps kept in memory (worlds are few, maps 1.5 MiB).
+KEPT = 8
+
+_CACHE: dict[str, np.ndarray] = {}
+#: Background bakes by key, and how many have finished (the viewport compares it).
+_JOBS: dict[str, threading.Thread] = {}
+_lock = threading.Lock()
+completed = 0
+
+#: Runs in the bake process: argv = the .blend holding the world, its name, the output .npy.
+_BAKE_SCRIPT = r"""
+import sys
+import bpy
+import numpy as np
+blend, name, out, width, height, samples, reduce = sys.argv[-7:]
+with bpy.data.libraries.load(blend) as (data_from, data_to):
+    data_to.worlds = [name]
+scene = bpy.context.scene
+for obj in list(scene.objects):
+    bpy.data.objects.remove(obj)
+scene.world = data_to.worlds[0]
+camera = bpy.data.objects.new("bake", bpy.data.cameras.new("bake"))
+scene.collection.objects.link(camera)
+scene.camera = camera
+camera.data.type = "PANO"
+if hasattr(camera.data, "panorama_type"):
+    camera.data.panorama_type = "EQUIRECTANGULAR"
+else:  # Blender before 4.0 keeps it in the Cycles settings
+    camera.data.cycles.panorama_type = "EQUIRECTANGULAR"
+# Facing +X at the horizon: rows from the nadir up, the middle column towards +X, as the core reads.
+camera.rotation_euler = (1.5707963267948966, 0.0, -1.5707963267948966)
+scene.render.engine = "CYCLES"
+scene.cycles.device = "CPU"
+scene.cycles.samples = int(samples)
+scene.cycles.use_denoising = False
+scene.cycles.use_adaptive_sampling = False
+scene.cycles.filter_width = 1.5
+scene.render.resolution_x, scene.render.resolution_y = int(width), int(height)
+scene.render.resolution_percentage = 100
+scene.render.film_transparent = False
+scene.view_settings.view_transform = "Standard"
+scene.render.image_settings.file_format = "OPEN_EXR"
+scene.render.image_settings.color_depth = "32"
+scene.render.filepath = out + ".exr"
+bpy.ops.render.render(write_still=True)
+image = bpy.data.images.load(out + ".exr")
+pixels = np.empty(int(width) * int(height) * image.channels, np.float32)
+image.pixels.foreach_get(pixels)
+k = int(reduce)
+rgb = pixels.reshape(int(height), int(width), image.channels)[..., :3]
+np.save(out, rgb.reshape(int(height) // k, k, int(width) // k, k, 3).mean(axis=(1, 3)))
+"""
+
+
+def _value_repr(value) -> str:
+    if isinstance(value, bpy.types.ID):
+        return f"ID:{value.name_full}:{getattr(value, 'filepath', '')}"
+    if hasattr(value, "__len__") and not isinstance(value, str):
+        try:
+            return repr(tuple(value))
+        except TypeError:
+            return repr(value)
+    return repr(value)
+
+
+def world_key(world) -> str:
+    """Hash of what a world's output depends on: its nodes' settings, socket values and links,
+    the images they read (by name, path and size), and the Blender version."""
+    digest = hashlib.sha256(bpy.app.version_string.encode())
+    tree = world.node_tree
+    for node in sorted(tree.nodes, key=lambda n: n.name):
+        digest.update(f"{node.bl_idname}|{node.name}|{node.mute}".encode())
+        for prop in node.bl_rna.properties:
+            if prop.identifier in {"rna_type", "location", "width", "height", "dimensions", "select", "name", "label",
+                                   "parent", "color", "use_custom_color", "show_options", "show_preview", "hide",
+                                   "show_texture", "location_absolute", "warning_propagation"}:
+                continue
+            try:
+                digest.update(f"{prop.identifier}={_value_repr(getattr(node, prop.identifier))}".encode())
+            except (AttributeError, TypeError):
+                continue
+        for socket in node.inputs:
+            value = getattr(socket, "default_value", None)
+            digest.update(f"in:{socket.identifier}={_value_repr(value)}".encode())
+        image = getattr(node, "image", None)
+        if image is not None:
+            path = bpy.path.abspath(image.filepath, library=image.library) if image.filepath else ""
+            mtime = os.path.getmtime(path) if path and os.path.isfile(path) else 0.0
+            digest.update(f"image:{tuple(image.size)}:{image.is_dirty}:{image.packed_file is not None}:{mtime}".encode())
+    for link in tree.links:
+        digest.update(f"{link.from_node.name}.{link.from_socket.identifier}->{link.to_node.name}."
+                      f"{link.to_socket.identifier}|{link.is_muted}".encode())
+    return digest.hexdigest()[:32]
+
+
+def _cache_dir() -> Path:
+    root = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    return Path(root) / "hybridgi" / "worlds"
+
+
+def bake_world(world, wait: bool = True) -> np.ndarray | None:
+    """(h, w, 3) float32 linear radiance of `world` in every direction (the core's equirect
+    layout), or None when the bake failed (logged; the caller falls back) or, with wait=False,
+    is still running in the background."""
+    key = world_key(world)
+    pixels = _cached(key)
+    if pixels is not None:
+        return pixels
+    if not wait:
+        _start(world, key)
+        return None
+    pixels = _finish(key, _bake(world))
+    return pixels
+
+
+def pending() -> bool:
+    """Whether a background bake is running."""
+    with _lock:
+        return any(job.is_alive() for job in _JOBS.values())
+
+
+def _cached(key: str) -> np.ndarray | None:
+    with _lock:
+        pixels = _CACHE.get(key)
+    if pixels is not None:
+        return pixels
+    disk = _cache_dir() / f"{key}.npy"
+    if disk.is_file():
+        try:
+            pixels = np.load(disk)
+        except (OSError, ValueError):
+            return None
+        with _lock:
+            _CACHE[key] = pixels
+    return pixels
+
+
+def _finish(key: str, pixels: np.ndarray | None) -> np.ndarray | None:
+    """Keep a finished bake in memory and on disk (any thread: numpy and files only)."""
+    if pixels is None:
+        return None
+    try:
+        disk = _cache_dir() / f"{key}.npy"
+        disk.parent.mkdir(parents=True, exist_ok=True)
+        np.save(disk, pixels)
+    except OSError as err:
+        log.debug("world map not cached on disk: %s", err)
+    with _lock:
+        _CACHE[key] = pixels
+        while len(_CACHE) > KEPT:
+            _CACHE.pop(next(iter(_CACHE)))
+    return pixels
+
+
+def _start(world, key: str) -> None:
+    """Bake on a thread (main thread: the world is written out here, the thread only waits)."""
+    with _lock:
+        job = _JOBS.get(key)
+        if job is not None and job.is_alive():
+            return
+    tmp = tempfile.mkdtemp(prefix="hybridgi_world_")
+    cmd, out = _command(world, tmp)
+    name = world.name
+
+    def run():
+        global completed
+        try:
+            _finish(key, _run(cmd, out, name))
+        finally:
+            with _lock:
+                completed += 1
+            shutil.rmtree(tmp, ignore_errors=True)
+
+    job = threading.Thread(target=run, name="hybridgi-world-bake", daemon=True)
+    with _lock:
+        _JOBS[key] = job
+    log.info("world %r: baking its map in the background", name)
+    job.start()
+
+
+def _command(world, tmp: str) -> tuple[list[str], str]:
+    """The bake process's command line for `world` (written to a .blend in `tmp`), and its output."""
+    blend = os.path.join(tmp, "world.blend")
+    out = os.path.join(tmp, "map")
+    # Only the world and what it uses; image paths made absolute so the bake finds them.
+    bpy.data.libraries.write(blend, {world}, path_remap="ABSOLUTE", fake_user=True)
+    args = [blend, world.name, out, str(BAKE_WIDTH), str(BAKE_HEIGHT), str(BAKE_SAMPLES), str(BAKE_REDUCE)]
+    if bpy.app.binary_path:  # inside Blender: its own binary, headless
+        return [bpy.app.binary_path, "-b", "--factory-startup", "--python-expr", _BAKE_SCRIPT, "--", *args], out
+    return [sys.executable, "-c", _BAKE_SCRIPT, *args], out  # the bpy module: this Python
+
+
+def _run(cmd: list[str], out: str, name: str) -> np.ndarray | None:
+    """Run the bake process and read its map (any thread: no bpy)."""
+    t0 = time.perf_counter()
+    try:
+        run = subprocess.run(cmd, capture_output=True, text=True, timeout=BAKE_TIMEOUT_S)
+    except (OSError, subprocess.TimeoutExpired) as err:
+        log.warning("world %r could not be baked (%s); using its mean colour", name, err)
+        return None
+    if run.returncode != 0 or not os.path.isfile(out + ".npy"):
+        tail = (run.stderr or run.stdout).strip().splitlines()[-3:]
+        log.warning("world %r could not be baked (exit %s: %s); using its mean colour", name, run.returncode,
+                    " | ".join(tail))
+        return None
+    pixels = np.load(out + ".npy").astype(np.float32)
+    log.info("world %r baked to a %dx%d map in %.1f s", name, pixels.shape[1], pixels.shape[0], time.perf_counter() - t0)
+    return pixels
+
+
+def _bake(world) -> np.ndarray | None:
+    with tempfile.TemporaryDirectory(prefix="hybridgi_world_") as tmp:
+        cmd, out = _command(world, tmp)
+        return _run(cmd, out, world.name)

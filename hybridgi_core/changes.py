@@ -1,0 +1,269 @@
+"""What changed between two scene snapshots, as named changes: the one diff every cache event
+comes from.
+
+`diff_snapshots(old, new)` compares two `SceneSnapshot`s and says, by name, which objects moved
+rigidly, deformed, appeared, vanished or changed topology, whether lamps, the world or materials
+changed, and how far the light jumped. `GISession.sync` turns these into the cache's events
+(`on_geometry_changed(boxes)`, `on_lights_changed()`); the viewport worker and incremental final
+renders only decide policy on top of them (urgency, warm-up). Pure numpy, no `bpy`: it runs on the
+worker thread and is tested with hand-made snapshots.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .snapshot import Light, Material, SceneSnapshot, World
+
+#: Vertices sampled per object to tell a rigid (affine) move from a deformation.
+RIGID_SAMPLES = 64
+#: Residual of the affine fit, relative to the object's size, under which a move counts as rigid.
+RIGID_TOLERANCE = 1e-4
+
+Box = tuple[np.ndarray, np.ndarray]
+
+
+@dataclass
+class SceneChanges:
+    """Named differences between two snapshots (object names as `ObjectInfo.name`).
+
+    moved : objects whose vertices all moved by one affine transform (same topology)
+    deformed : objects whose vertices moved in any other way (same topology)
+    appeared, vanished : objects only in the new / only in the old snapshot
+    retopologised : objects in both whose triangles differ (a modifier level, an edit)
+    lights_changed : a lamp was added, removed or edited
+    world_changed : the world's radiance or AO distance changed
+    materials_changed : names of materials whose shading inputs changed (added or removed count)
+    light_flux_change : largest relative change of a lamp's flux, the sky's or an emitter's
+        radiance (0 = none; 1 = doubled or gone); inf when lamps were added or removed
+    light_moved : metres, the farthest any lamp moved
+    boxes : world (lo, hi) boxes of every geometry change, where it was and where it is
+    """
+
+    moved: list[str] = field(default_factory=list)
+    deformed: list[str] = field(default_factory=list)
+    appeared: list[str] = field(default_factory=list)
+    vanished: list[str] = field(default_factory=list)
+    retopologised: list[str] = field(default_factory=list)
+    lights_changed: bool = False
+    world_changed: bool = False
+    materials_changed: list[str] = field(default_factory=list)
+    light_flux_change: float = 0.0
+    light_moved: float = 0.0
+    boxes: list[Box] = field(default_factory=list)
+
+    @property
+    def topology_changed(self) -> bool:
+        """The ray scene must be rebuilt: objects appeared, vanished or changed their triangles."""
+        return bool(self.appeared or self.vanished or self.retopologised)
+
+    @property
+    def geometry_changed(self) -> bool:
+        return self.topology_changed or bool(self.moved or self.deformed)
+
+    @property
+    def shading_changed(self) -> bool:
+        """Lamps, world or materials changed: the cache's `on_lights_changed`."""
+        return self.lights_changed or self.world_changed or bool(self.materials_changed)
+
+    @property
+    def displaced(self) -> list[str]:
+        """Objects whose vertices moved with the topology kept (rigidly or not)."""
+        return sorted(self.moved + self.deformed)
+
+    @property
+    def any(self) -> bool:
+        return self.geometry_changed or self.shading_changed
+
+    def light_jumped(self, reach: float, threshold: float) -> bool:
+        """Whether the light changed by more than `threshold` (relative flux) or a lamp moved
+        farther than `reach` metres (for example the cache's indirect range)."""
+        return self.light_flux_change > threshold or self.light_moved > reach
+
+
+def diff_snapshots(old: SceneSnapshot | None, new: SceneSnapshot) -> SceneChanges:
+    """The named changes from `old` to `new`; with no `old`, everything in `new` appeared."""
+    changes = SceneChanges()
+    if old is None:
+        changes.appeared = [o.name for o in new.objects]
+        changes.lights_changed = bool(new.lights)
+        changes.world_changed = True
+        changes.materials_changed = [m.name for m in new.materials]
+        changes.boxes = list(object_boxes(new).values())
+        return changes
+    _diff_geometry(old, new, changes)
+    _diff_shading(old, new, changes)
+    return changes
+
+
+def object_boxes(snapshot: SceneSnapshot) -> dict[str, Box]:
+    """Object name -> world (lo, hi) float32 box of its triangles, in one pass over all triangles
+    (objects without triangles are absent)."""
+    g = snapshot.geometry
+    if g.triangle_count == 0:
+        return {}
+    order = np.argsort(g.object_index, kind="stable")
+    obj = g.object_index[order]
+    starts = np.flatnonzero(np.r_[True, obj[1:] != obj[:-1]])
+    corners = g.positions[g.triangles[order]]  # (T, 3, 3)
+    lo = np.minimum.reduceat(corners.min(axis=1), starts)
+    hi = np.maximum.reduceat(corners.max(axis=1), starts)
+    return {snapshot.objects[int(obj[s])].name: (lo[i], hi[i]) for i, s in enumerate(starts)}
+
+
+# --- geometry ------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class _ObjectTopology:
+    """One object's triangles in a snapshot: vertex rows it uses and its triangles relative to them."""
+
+    vertices: np.ndarray  # (k,) int64 sorted rows of geometry.positions
+    triangles: np.ndarray  # (t, 3) int64 indices into `vertices`
+
+
+def _topologies(snapshot: SceneSnapshot) -> dict[str, _ObjectTopology]:
+    g = snapshot.geometry
+    out = {}
+    if g.triangle_count == 0:
+        return out
+    order = np.argsort(g.object_index, kind="stable")
+    obj = g.object_index[order]
+    starts = np.flatnonzero(np.r_[True, obj[1:] != obj[:-1]])
+    ends = np.r_[starts[1:], obj.size]
+    for s, e in zip(starts, ends, strict=True):
+        tris = g.triangles[order[s:e]]
+        vertices, inverse = np.unique(tris.ravel(), return_inverse=True)
+        out[snapshot.objects[int(obj[s])].name] = _ObjectTopology(vertices, inverse.reshape(-1, 3))
+    return out
+
+
+def _same_arrays(a, b) -> bool:
+    return a.shape == b.shape and np.array_equal(a, b)
+
+
+def _diff_geometry(old: SceneSnapshot, new: SceneSnapshot, changes: SceneChanges) -> None:
+    go, gn = old.geometry, new.geometry
+    same_layout = (
+        [o.name for o in old.objects] == [o.name for o in new.objects]
+        and _same_arrays(go.triangles, gn.triangles)
+        and _same_arrays(go.object_index, gn.object_index)
+        and go.positions.shape == gn.positions.shape
+    )
+    if same_layout:
+        if np.array_equal(go.positions, gn.positions):
+            return
+        # The common case (animation, a moved object): only vertex positions differ.
+        changed = np.flatnonzero((go.positions != gn.positions).any(axis=1))
+        tri_changed = np.isin(gn.triangles, changed).any(axis=1)
+        names = {new.objects[int(i)].name for i in np.unique(gn.object_index[tri_changed])}
+        old_topo = new_topo = None
+    else:
+        old_topo, new_topo = _topologies(old), _topologies(new)
+        changes.appeared = sorted(new_topo.keys() - old_topo.keys())
+        changes.vanished = sorted(old_topo.keys() - new_topo.keys())
+        names = set()
+        for name in old_topo.keys() & new_topo.keys():
+            a, b = old_topo[name], new_topo[name]
+            if not _same_arrays(a.triangles, b.triangles) or a.vertices.size != b.vertices.size:
+                changes.retopologised.append(name)
+            elif not np.array_equal(go.positions[a.vertices], gn.positions[b.vertices]):
+                names.add(name)
+        changes.retopologised.sort()
+    for name in sorted(names):
+        before = go.positions[old_topo[name].vertices] if old_topo else _object_positions(old, name)
+        after = gn.positions[new_topo[name].vertices] if new_topo else _object_positions(new, name)
+        (changes.moved if _is_affine(before, after) else changes.deformed).append(name)
+    touched = set(changes.displaced) | set(changes.retopologised)
+    old_boxes, new_boxes = object_boxes(old), object_boxes(new)
+    for name in sorted(touched | set(changes.vanished)):
+        if name in old_boxes:
+            changes.boxes.append(old_boxes[name])
+    for name in sorted(touched | set(changes.appeared)):
+        if name in new_boxes:
+            changes.boxes.append(new_boxes[name])
+
+
+def _object_positions(snapshot: SceneSnapshot, name: str) -> np.ndarray:
+    g = snapshot.geometry
+    index = next(i for i, o in enumerate(snapshot.objects) if o.name == name)
+    return g.positions[np.unique(g.triangles[g.object_index == index])]
+
+
+def _is_affine(before: np.ndarray, after: np.ndarray) -> bool:
+    """Whether one affine map takes the object's old vertices to its new ones (a rigid move, a
+    rotation or a scale), fitted on up to RIGID_SAMPLES vertices and checked on those."""
+    n = before.shape[0]
+    pick = np.linspace(0, n - 1, min(n, RIGID_SAMPLES)).astype(np.int64)
+    a = np.c_[before[pick].astype(np.float64), np.ones(pick.size)]
+    b = after[pick].astype(np.float64)
+    fit, *_ = np.linalg.lstsq(a, b, rcond=None)
+    size = max(float(np.ptp(b, axis=0).max(initial=0.0)), float(np.ptp(before[pick], axis=0).max(initial=0.0)), 1e-12)
+    return float(np.abs(a @ fit - b).max(initial=0.0)) <= RIGID_TOLERANCE * size
+
+
+# --- shading -------------------------------------------------------------------------------------
+
+
+def _light_key(light: Light) -> tuple:
+    return (light.kind, light.color.tobytes(), float(light.power), light.matrix.tobytes(), light.radius,
+            light.spot_size, light.spot_blend, light.angle, light.shape, light.size, light.size_y)
+
+
+def _material_key(material: Material) -> tuple:
+    texture = material.texture
+    # The sum, not the bytes: a hash of a 16k texture would copy it on every sync.
+    texture_key = None if texture is None else (texture.shape, float(texture.sum(dtype=np.float64)))
+    return material.base_color.tobytes(), material.emission.tobytes(), texture_key
+
+
+def _world_key(world: World) -> tuple:
+    return world.color.tobytes(), float(world.ao_distance), None if world.sky_sh is None else world.sky_sh.tobytes()
+
+
+def shading_key(snapshot: SceneSnapshot) -> tuple:
+    """Everything of a snapshot that lights and colours surfaces but does not move them."""
+    return (tuple(_light_key(lt) for lt in snapshot.lights), tuple(_material_key(m) for m in snapshot.materials),
+            _world_key(snapshot.world))
+
+
+def _relative_change(a, b) -> float:
+    a, b = np.asarray(a, np.float64), np.asarray(b, np.float64)
+    scale = max(np.abs(a).max(initial=0.0), np.abs(b).max(initial=0.0))
+    if scale == 0.0:
+        return 0.0
+    return float(np.abs(a - b).max(initial=0.0) / scale)
+
+
+def _diff_shading(old: SceneSnapshot, new: SceneSnapshot, changes: SceneChanges) -> None:
+    old_lights = [_light_key(lt) for lt in old.lights]
+    new_lights = [_light_key(lt) for lt in new.lights]
+    changes.lights_changed = old_lights != new_lights
+    flux = 0.0
+    if len(old.lights) != len(new.lights):
+        flux = float("inf")
+    elif changes.lights_changed:
+        for a, b in zip(old.lights, new.lights, strict=True):
+            if a.kind != b.kind:
+                flux = float("inf")
+                break
+            flux = max(flux, _relative_change(a.color * a.power, b.color * b.power))
+            changes.light_moved = max(changes.light_moved, float(np.linalg.norm(a.position - b.position)))
+    changes.world_changed = _world_key(old.world) != _world_key(new.world)
+    if changes.world_changed:
+        flux = max(flux, _relative_change(old.world.color, new.world.color))
+    old_materials = {m.name: m for m in old.materials}
+    for m in new.materials:
+        before = old_materials.pop(m.name, None)
+        if before is None or _material_key(before) != _material_key(m):
+            changes.materials_changed.append(m.name)
+            if before is not None:
+                flux = max(flux, _relative_change(before.emission, m.emission))
+            elif np.any(m.emission > 0):
+                flux = float("inf")
+    changes.materials_changed += sorted(old_materials)  # removed
+    if any(np.any(m.emission > 0) for m in old_materials.values()):
+        flux = float("inf")
+    changes.light_flux_change = flux

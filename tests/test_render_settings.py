@@ -1,0 +1,128 @@
+"""Render settings and object flags a user sets, through the real `hybridgi render` command: each
+either works as in Cycles (render border with and without crop, transparent film, objects hidden
+from the camera, a zero scale on one axis) or is refused with a clear message (panoramic camera)."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from hybridgi_cli import exr
+
+ROOT = Path(__file__).resolve().parents[1]
+HYBRIDGI = Path(sys.executable).parent / "hybridgi"
+RES = "64x48"
+QUICK = ("--set", "warmup_iterations=2", "--set", "resolution=12", "--set", "rays_per_cell=16")
+
+pytestmark = [pytest.mark.blender, pytest.mark.slow]
+
+
+@pytest.fixture(scope="module")
+def scenes(tmp_path_factory):
+    """The Cornell box, and variants edited in a bpy subprocess (the user's files stay untouched)."""
+    out = tmp_path_factory.mktemp("settings_scenes")
+    subprocess.run([sys.executable, str(ROOT / "blend_scenes" / "build.py"), "--only", "cornell", "--out", str(out)],
+                   check=True, capture_output=True)
+    script = textwrap.dedent(f"""
+        import bpy
+        src = {str(out / "cornell.blend")!r}
+        def variant(name, edit):
+            bpy.ops.wm.open_mainfile(filepath=src)
+            edit(bpy.data)
+            bpy.ops.wm.save_as_mainfile(filepath={str(out)!r} + "/" + name + ".blend")
+        variant("hidden_block", lambda d: setattr(d.objects["tall_block"], "visible_camera", False))
+        variant("flat_block", lambda d: setattr(d.objects["tall_block"], "scale", (1.0, 1.0, 0.0)))
+        variant("pano", lambda d: setattr(d.cameras[0], "type", "PANO"))
+    """)
+    subprocess.run([sys.executable, "-c", script], check=True, capture_output=True)
+    return out
+
+
+def render(blend, prefix, *extra):
+    run = subprocess.run([str(HYBRIDGI), "render", str(blend), "--out", str(prefix), "--res", RES, *QUICK, *extra],
+                         capture_output=True, text=True, timeout=600)
+    return run
+
+
+def rendered(blend, prefix, *extra):
+    run = render(blend, prefix, *extra)
+    assert run.returncode == 0, run.stderr[-3000:]
+    record = json.loads(run.stdout.strip().splitlines()[-1])
+    return record, exr.read_channels(record["exr"])
+
+
+def layer(channels, name):
+    keys = sorted((k for k in channels if k.startswith(f"ViewLayer.{name}.")), key=lambda k: "RGBAXYZ".find(k[-1]))
+    return np.stack([channels[k] for k in keys], axis=-1)
+
+
+@pytest.fixture(scope="module")
+def full(scenes, tmp_path_factory):
+    return rendered(scenes / "cornell.blend", tmp_path_factory.mktemp("full") / "f")[1]
+
+
+BORDER = ("--set", "render.use_border=true", "--set", "render.border_min_x=0.25", "--set", "render.border_max_x=0.75",
+          "--set", "render.border_min_y=0.5", "--set", "render.border_max_y=1.0")
+
+
+def test_render_border_fills_only_the_border_of_a_full_size_image(scenes, full, tmp_path):
+    _record, ch = rendered(scenes / "cornell.blend", tmp_path / "b", *BORDER, "--set", "render.use_crop_to_border=false")
+    combined, reference = layer(ch, "Combined"), layer(full, "Combined")
+    assert combined.shape == reference.shape == (48, 64, 4)
+    # EXR rows are top-down: the border's upper half of the frame is rows 0-23, columns 16-47.
+    inside = np.zeros((48, 64), bool)
+    inside[0:24, 16:48] = True
+    assert np.all(combined[~inside] == 0)  # outside the border: nothing rendered (alpha 0), as Cycles
+    np.testing.assert_allclose(combined[inside], reference[inside], atol=1e-4)
+
+
+def test_render_border_with_crop_writes_the_border_alone(scenes, full, tmp_path):
+    _record, ch = rendered(scenes / "cornell.blend", tmp_path / "c", *BORDER, "--set", "render.use_crop_to_border=true")
+    for name in ("Combined", "Diffuse Indirect", "Depth"):
+        cropped = layer(ch, name)
+        assert cropped.shape[:2] == (24, 32), name
+        np.testing.assert_allclose(cropped, layer(full, name)[0:24, 16:48], atol=1e-4, err_msg=name)
+
+
+def test_transparent_film_hides_the_world_but_keeps_its_light(scenes, full, tmp_path):
+    _record, ch = rendered(scenes / "cornell.blend", tmp_path / "t", "--set", "render.film_transparent=true")
+    combined, opaque = layer(ch, "Combined"), layer(full, "Combined")
+    background = layer(full, "Depth")[..., 0] > 1e9
+    assert background.any() and (~background).any()
+    assert np.all(combined[background] == 0)  # premultiplied: no world colour under alpha 0
+    np.testing.assert_allclose(combined[~background][:, 3], 1.0)
+    np.testing.assert_allclose(combined[~background][:, :3], opaque[~background][:, :3], atol=1e-4)
+
+
+def test_object_hidden_from_the_camera_still_casts_its_shadow(scenes, full, tmp_path):
+    _record, ch = rendered(scenes / "hidden_block.blend", tmp_path / "h")
+    depth, depth_full = layer(ch, "Depth")[..., 0], layer(full, "Depth")[..., 0]
+    behind = depth > depth_full * 1.05  # pixels that saw the tall block now see what is behind it
+    assert behind.mean() > 0.03
+    # The floor and wall behind the block stay shadowed by it: the lamp's light does not reach them
+    # more than in the render where the block is seen (a block removed from the rays would light them).
+    direct = layer(ch, "Diffuse Direct")[..., :3].mean(axis=-1)
+    visible_direct = layer(full, "Diffuse Direct")[..., :3].mean(axis=-1)
+    unseen = ~behind & (depth < 1e9)
+    np.testing.assert_allclose(direct[unseen].mean(), visible_direct[unseen].mean(), rtol=0.02)
+
+
+def test_zero_scale_on_one_axis_flattens_the_object_instead_of_dropping_it(scenes, full, tmp_path):
+    record, ch = rendered(scenes / "flat_block.blend", tmp_path / "z")
+    _full_record, _ = rendered(scenes / "cornell.blend", tmp_path / "zf")
+    # The flattened block lies on the floor (z = 0 in its own space): its top face remains.
+    assert record["triangles"] >= _full_record["triangles"] - 8  # only the side faces lost their area
+    assert np.isfinite(layer(ch, "Combined")).all()
+
+
+def test_panoramic_camera_is_refused_with_a_clear_message(scenes, tmp_path):
+    run = render(scenes / "pano.blend", tmp_path / "p")
+    assert run.returncode != 0
+    assert "panoramic" in run.stderr and "Traceback" not in run.stderr
+    assert not list(tmp_path.glob("p_*.exr")) and not list(tmp_path.glob("p_*.png"))

@@ -1,0 +1,93 @@
+"""HDRI worlds through the real engine against Cycles rendered in the same test: the map's sun
+casts the shadow it casts in Cycles, and the rest of the sky lights surfaces by direction."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from hybridgi_cli import exr
+
+HYBRIDGI = Path(sys.executable).parent / "hybridgi"
+RES = "80x60"
+
+pytestmark = [pytest.mark.blender, pytest.mark.slow]
+
+SCENE = textwrap.dedent("""
+    import os, sys, bpy
+    from mathutils import Vector
+    bpy.ops.wm.read_homefile(use_empty=True)
+    scene = bpy.context.scene
+    bpy.ops.mesh.primitive_plane_add(size=12.0)
+    bpy.ops.mesh.primitive_cube_add(size=1.0, location=(0.0, 0.0, 0.5))
+    bpy.ops.mesh.primitive_cube_add(size=0.6, location=(2.0, 1.0, 0.3))
+    cam = bpy.data.objects.new("camera", bpy.data.cameras.new("camera"))
+    cam.location = (5.0, -5.0, 4.5)
+    cam.rotation_euler = (Vector((0.3, 0.3, 0.0)) - cam.location).to_track_quat("-Z", "Y").to_euler()
+    scene.collection.objects.link(cam)
+    scene.camera = cam
+    world = bpy.data.worlds.new("hdri")
+    world.use_nodes = True
+    tree = world.node_tree
+    if sys.argv[-3] == "sky":
+        sky = tree.nodes.new("ShaderNodeTexSky")
+        sky.sun_elevation, sky.sun_rotation = 0.5, float(sys.argv[-1])
+        tree.links.new(sky.outputs["Color"], tree.nodes["Background"].inputs["Color"])
+        tree.nodes["Background"].inputs["Strength"].default_value = 0.3
+        scene.world = world
+        bpy.ops.wm.save_as_mainfile(filepath=sys.argv[-2])
+        sys.exit(0)
+    env = tree.nodes.new("ShaderNodeTexEnvironment")
+    env.image = bpy.data.images.load(os.path.join(bpy.utils.system_resource("DATAFILES"), "studiolights", "world", "sunrise.exr"))
+    mapping = tree.nodes.new("ShaderNodeMapping")
+    mapping.inputs["Rotation"].default_value = (0.0, 0.0, float(sys.argv[-1]))
+    coords = tree.nodes.new("ShaderNodeTexCoord")
+    tree.links.new(coords.outputs["Generated"], mapping.inputs["Vector"])
+    tree.links.new(mapping.outputs["Vector"], env.inputs["Vector"])
+    tree.links.new(env.outputs["Color"], tree.nodes["Background"].inputs["Color"])
+    scene.world = world
+    bpy.ops.wm.save_as_mainfile(filepath=sys.argv[-2])
+""")
+
+
+def layer(channels, name):
+    keys = sorted((k for k in channels if k.startswith(f"ViewLayer.{name}.")), key=lambda k: "RGBAXYZ".find(k[-1]))
+    return np.stack([channels[k] for k in keys], axis=-1)[..., :3]
+
+
+def render(blend, prefix, *extra):
+    # A cache folder of the test's own: the world bake runs, never read from an earlier run.
+    env = {**os.environ, "XDG_CACHE_HOME": str(Path(prefix).parent / "cache")}
+    run = subprocess.run([str(HYBRIDGI), "render", str(blend), "--out", str(prefix), "--res", RES, *extra],
+                         capture_output=True, text=True, timeout=600, env=env)
+    assert run.returncode == 0, run.stderr[-3000:]
+    return exr.read_channels(json.loads(run.stdout.strip().splitlines()[-1])["exr"])
+
+
+@pytest.mark.parametrize(("kind", "rotation"), [("hdri", 0.0), ("hdri", 2.0), ("sky", 1.0)])
+def test_world_sun_casts_its_shadow_as_in_cycles(tmp_path, kind, rotation):
+    """An HDRI (read directly) and a Sky Texture with its sun disc (baked by Cycles in a subprocess).
+    Measured Diffuse Direct errors: HDRI 0.064 at both rotations, sky 0.074 (the map's mean spread
+    over a uniform sky, as before: 0.33-0.36; the sky's unlinked colour: 0.79)."""
+    blend = tmp_path / "world.blend"
+    subprocess.run([sys.executable, "-c", SCENE, kind, str(blend), str(rotation)], check=True, capture_output=True)
+    ours = render(blend, tmp_path / "hg", "--set", "resolution=24", "--set", "warmup_iterations=8")
+    cycles = render(blend, tmp_path / "cy", "--engine", "CYCLES", "--samples", "128")
+    geometry = layer(cycles, "Depth")[..., 0] < 1e9
+    direct, reference = layer(ours, "Diffuse Direct"), layer(cycles, "Diffuse Direct")
+    error = float(np.abs(direct - reference)[geometry].sum() / np.abs(reference)[geometry].sum())
+    assert error < 0.25, error
+    # The shadows are where Cycles has them: its darkest tenth of the ground stays dark here.
+    luma, ref_luma = direct.mean(axis=-1), reference.mean(axis=-1)
+    shadow = geometry & (ref_luma < np.percentile(ref_luma[geometry], 10))
+    lit = geometry & (ref_luma > np.percentile(ref_luma[geometry], 60))
+    contrast, ref_contrast = luma[shadow].mean() / luma[lit].mean(), ref_luma[shadow].mean() / ref_luma[lit].mean()
+    print(f"{kind} rotation {rotation}: Diffuse Direct error {error:.3f}, shadow/lit {contrast:.2f} (Cycles {ref_contrast:.2f})")
+    assert contrast < ref_contrast + 0.25, (contrast, ref_contrast)
