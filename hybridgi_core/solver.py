@@ -315,7 +315,9 @@ class GISolver:
         chunk = StoredHits(batch, cells, ray_dirs, ybasis, hits.t, hits.prim, hits.u, hits.v)
         chunk.hit = np.flatnonzero(hits.prim >= 0)
         chunk.lamp_stale = np.ones(chunk.hit.size, bool)
+        tic = time.perf_counter()
         self._shade_materials(chunk, ray_dirs[chunk.hit])
+        times["materials"] = (time.perf_counter() - tic) * 1e3
         if not defer:
             tic = time.perf_counter()
             rng = frame_rng(s.seed, (WARMUP_FRAME_BASE + batch) * 7919 + index)
@@ -491,7 +493,9 @@ class GISolver:
         if not self.chunks or s.indirect_quality == AO_ONLY:
             self.converged = True
             return stats
+        tic = time.perf_counter()
         self._ensure_lookup()
+        stats.add("hit_cells", (time.perf_counter() - tic) * 1e3)
         self._ensure_sources(stats)
         src_cells, src = self._sources
         new = src.copy()

@@ -188,7 +188,9 @@ class GISystem:
                     _merge_stats(st, self.solver.relax())
             if i == total - 1:
                 self.solver.extrapolate()
+                tic = time.perf_counter()
                 st.shadow_points += self.solver.filter_cells()
+                st.add("filter", (time.perf_counter() - tic) * 1e3)
                 self._mark_warm(total)
             runs.append(st)
         return runs
