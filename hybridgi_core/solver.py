@@ -20,9 +20,9 @@ directions (frame `WARMUP_FRAME_BASE + b`, as the warm-up pass b of the updater 
 cell's estimate is the mean over its batches.
 
 Events (what `GISystem` forwards):
-- `invalidate_boxes(boxes)`: geometry changed inside world boxes: the stored rays of every cell
-  with a ray segment (cell centre to hit, or to the ray length) through a box are dropped, and the
-  lamp light of stored hits whose shadow rays could cross a box is re-traced at the next solve.
+- `invalidate_boxes(boxes)`: geometry changed inside world boxes: every stored ray whose segment
+  (cell centre to hit, or to the ray length) meets a box is marked stale, and so is the lamp light
+  of stored hits whose shadow rays could cross a box; `resolve()` traces exactly those again.
 - `lights_changed()`: lamps, world or materials changed: every stored hit is re-shaded (shadow
   rays only, no probe ray), then the fixed point is solved again.
 
@@ -114,6 +114,7 @@ class StoredHits:
     lamp_stale: np.ndarray = None
     backface: np.ndarray = None  # (h,) bool: the ray hit the triangle's back
     shadow_points: int = 0  # hits whose lamp light this batch traced (not read from the table)
+    ray_stale: np.ndarray | None = None  # (n,) bool rays a geometry change may have altered
     samples: CellSamples = None  # geometry bands of this batch (sh_indirect left zero)
 
     @property
@@ -137,27 +138,6 @@ class StoredHits:
         m, r = self.cells.size, self.r
         v = np.ascontiguousarray(values.reshape(c, m, r).transpose(1, 0, 2))  # (m, c, r)
         return np.matmul(v, self.ybasis).transpose(0, 2, 1)  # (m, K, c)
-
-    def select_cells(self, keep: np.ndarray) -> StoredHits | None:
-        """This batch restricted to the cells where keep (m,) bool; None when none is left."""
-        if keep.all():
-            return self
-        if not keep.any():
-            return None
-        r = self.r
-        ray_keep = np.repeat(keep, r)
-        new_index = np.cumsum(ray_keep) - 1
-        hit_keep = ray_keep[self.hit]
-        samples = _sample_rows(self.samples, keep)
-        def pick(a):
-            return (None if a is None else a[..., hit_keep])
-        return StoredHits(
-            batch=self.batch, cells=self.cells[keep], ray_dirs=self.ray_dirs[ray_keep], ybasis=self.ybasis[keep],
-            t=self.t[ray_keep], prim=self.prim[ray_keep], u=self.u[ray_keep], v=self.v[ray_keep],
-            hit=new_index[self.hit[hit_keep]], normal=self.normal[hit_keep], brdf=pick(self.brdf),
-            mono=pick(self.mono), e_lamp=pick(self.e_lamp), flat=pick(self.flat),
-            lamp_stale=self.lamp_stale[hit_keep], backface=self.backface[hit_keep], samples=samples,
-        )
 
 
 class GISolver:
@@ -624,10 +604,10 @@ class GISolver:
     def invalidate_boxes(self, boxes) -> np.ndarray:
         """Geometry changed inside these world boxes [(lo (3,), hi (3,)), ...] (old and new places).
 
-        Drops the stored rays of every cell with a ray whose segment (cell centre to its hit, or
-        to the ray length when it missed) meets a box: those cells must be traced again. Stored
-        hits that stay but whose shadow rays could cross a box get their lamp light re-traced at
-        the next `resolve`. Returns the flat cells whose rays were dropped (sorted, int64).
+        Marks stale every stored ray whose segment (cell centre to its hit, or to the ray length
+        when it missed) meets a box: `resolve` traces exactly those rays again, with the same
+        directions, and re-shades their cells. Stored hits whose shadow rays could cross a box get
+        their lamp light re-traced too. Returns the flat cells with a stale ray (sorted, int64).
         """
         boxes = [(np.asarray(lo, np.float32), np.asarray(hi, np.float32)) for lo, hi in boxes]
         if not boxes or not self.chunks:
@@ -635,30 +615,51 @@ class GISolver:
         s = self.cache.settings
         pad = np.float32(self.epsilon) * 4
         tfar = np.float32(s.ray_length) if s.ray_length > 0 else np.float32(np.inf)
-        dropped = []
-        kept = []
+        touched = []
         for chunk in self.chunks:
             m, r = chunk.cells.size, chunk.r
             origins = np.repeat(self.cache.centers[chunk.cells], r, axis=0)
-            ray_dirs = chunk.ray_dirs
             reach = np.minimum(chunk.t, tfar)
             crosses = np.zeros(m * r, bool)
             for lo, hi in boxes:
-                crosses |= segments_meet_box(origins, ray_dirs, reach, lo - pad, hi + pad)
-            bad = crosses.reshape(m, r).any(axis=1)
-            if bad.any():
-                dropped.append(chunk.cells[bad])
-            chunk = chunk.select_cells(~bad)
-            if chunk is None:
-                continue
+                crosses |= segments_meet_box(origins, chunk.ray_dirs, reach, lo - pad, hi + pad)
+            if crosses.any():
+                chunk.ray_stale = crosses if chunk.ray_stale is None else chunk.ray_stale | crosses
+                touched.append(chunk.cells[crosses.reshape(m, r).any(axis=1)])
             self._mark_shadows(chunk, boxes, pad)
-            kept.append(chunk)
-        self.chunks = kept
-        self._lookup_valid = None
-        self._sources = None
-        if not dropped:
+        if not touched:
             return np.zeros(0, np.int64)
-        return np.unique(np.concatenate(dropped))
+        return np.unique(np.concatenate(touched))
+
+    def stale_rays(self) -> int:
+        """Stored rays `resolve` will trace again."""
+        return sum(int(c.ray_stale.sum()) for c in self.chunks if c.ray_stale is not None)
+
+    def _retrace_chunk(self, chunk: StoredHits) -> int:
+        """Worker: trace the chunk's stale rays again (same directions), rebuild its hit list
+        (lamp light kept where a hit did not change) and its geometry bands. Returns the rays."""
+        s = self.cache.settings
+        idx = np.flatnonzero(chunk.ray_stale)
+        r = chunk.r
+        origins = self.cache.centers[chunk.cells[idx // r]]
+        tfar = np.float32(s.ray_length) if s.ray_length > 0 else np.float32(np.inf)
+        hits = self.tracer.intersect(origins, np.ascontiguousarray(chunk.ray_dirs[idx]), tfar, trusted=True)
+        for name in ("t", "prim", "u", "v"):
+            getattr(chunk, name)[idx] = getattr(hits, name)
+        n = chunk.rays
+        e_by_ray = np.zeros((3, n), np.float32)
+        stale_by_ray = np.zeros(n, bool)
+        if chunk.e_lamp is not None:
+            e_by_ray[:, chunk.hit] = chunk.e_lamp
+        stale_by_ray[chunk.hit] = chunk.lamp_stale
+        stale_by_ray[idx] = True
+        chunk.hit = np.flatnonzero(chunk.prim >= 0)
+        chunk.e_lamp = np.ascontiguousarray(e_by_ray[:, chunk.hit])
+        chunk.lamp_stale = stale_by_ray[chunk.hit]
+        self._shade_materials(chunk, chunk.ray_dirs[chunk.hit])
+        chunk.samples = self._geometry_bands(chunk)
+        chunk.ray_stale = None
+        return int(idx.size)
 
     def _mark_shadows(self, chunk: StoredHits, boxes, pad) -> None:
         """Flag hits whose shadow rays could pass through a box (conservatively: the segment to
@@ -690,13 +691,21 @@ class GISolver:
         self._relight_all = True
 
     def resolve(self, max_iterations: int = 16) -> SolveStats:
-        """After events: trace the dropped cells' batches again, re-shade stale hits (materials,
-        lamp light through shadow rays: no probe ray), refresh the geometry bands, solve."""
+        """After events: trace the stale rays again (same directions), and every batch of cells
+        added since (`extend`); re-shade stale hits (materials, lamp light through shadow rays);
+        refresh the geometry bands; solve."""
         stats = SolveStats()
         t0 = time.perf_counter()
         if not self.cells.size:
             return stats
         s = self.cache.settings
+        changed = [c for c in self.chunks if c.ray_stale is not None and c.ray_stale.any()]
+        if changed:
+            tic = time.perf_counter()
+            jobs = [self._pool.submit(self._retrace_chunk, c) for c in changed]
+            stats.rays += sum(j.result() for j in jobs)
+            stats.add("trace", (time.perf_counter() - tic) * 1e3)
+            self._blend_geometry(np.unique(np.concatenate([c.cells for c in changed])))
         if getattr(self, "_materials_stale", False):
             jobs = [self._pool.submit(self._reshade_chunk, c) for c in self.chunks]
             for j in jobs:

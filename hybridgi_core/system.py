@@ -232,11 +232,11 @@ class GISystem:
     def invalidate_boxes(self, boxes: list[tuple[np.ndarray, np.ndarray]]) -> np.ndarray:
         """Geometry changed inside these world boxes [(lo (3,), hi (3,)), ...], old and new places.
 
-        Drops the stored probe hits of every cell with a stored ray whose segment (cell centre to
-        its hit, or to the ray length when it missed) meets a box; stored hits whose shadow rays
-        may cross a box are marked for new lamp light. Nothing is traced until `resolve()`.
-        Returns the flat cells (int64) whose hits were dropped. The EMA path is untouched: call
-        `on_geometry_changed` for both.
+        Marks stale every stored probe ray whose segment (cell centre to its hit, or to the ray
+        length when it missed) meets a box, and the lamp light of stored hits whose shadow rays
+        may cross a box. Nothing is traced until `resolve()`, which traces exactly those rays
+        again (same directions). Returns the flat cells (int64) with a stale ray. The EMA path
+        is untouched: `on_geometry_changed` does both.
         """
         return self.solver.invalidate_boxes(boxes)
 
@@ -245,8 +245,8 @@ class GISystem:
         objects moved, deformed, appeared, vanished or changed topology (raised by
         GISession.sync from the snapshot diff). The cells within the indirect range re-converge
         (`cache.on_geometry_changed`: urgency with the quadratic fall-off, for EMA updates), and
-        the stored hits whose rays reach a box are dropped (`invalidate_boxes`; `resolve()`
-        traces them again). Returns the touched flat cells (int64) of the fall-off."""
+        the stored rays that reach a box turn stale (`invalidate_boxes`; `resolve()` traces them
+        again). Returns the touched flat cells (int64) of the fall-off."""
         touched = self.cache.on_geometry_changed(boxes)
         self.invalidate_boxes(boxes)
         return touched
@@ -262,8 +262,9 @@ class GISystem:
         return self.resolve() if resolve else SolveStats()
 
     def resolve(self, max_iterations: int = 16) -> SolveStats:
-        """Bring a solved cache up to date after events: re-trace the batches of dropped cells,
-        re-shade stale hits, solve again. No-op (empty stats) without stored hits."""
+        """Bring a solved cache up to date after events: trace the stale rays again (and the
+        batches of cells new surfaces read), re-shade stale hits, solve again, filter the indirect
+        band. No-op (empty stats) without stored hits."""
         if not self.solver.has_hits:
             return SolveStats()
         if self._surface_cells is not None:
