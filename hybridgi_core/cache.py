@@ -41,7 +41,7 @@ class CellSamples:
     sh_indirect: np.ndarray  # (m, K, 3)
     ao_sh: np.ndarray  # (m, K)
     depth_sum: np.ndarray  # (m, T, 2) sums of d and d^2 over this update's rays per texel
-    depth_count: np.ndarray  # (T,) rays per texel (directions are shared by every cell)
+    depth_count: np.ndarray  # (T,) rays per texel when every cell shares the directions, else (m, T)
     backface: np.ndarray  # (m,)
     shaded: np.ndarray | None = None  # (m,) bool: radiance bands estimated (None = all)
 
@@ -112,7 +112,7 @@ class IrradianceCache:
         self.backface[c] += a * (s.backface - self.backface[c])
         # Depth: only texels that received rays this update move, each towards its own mean
         # (whole rows, with a zero weight on empty texels: cheaper than indexing the subset).
-        count = np.repeat(s.depth_count, 2)  # matches the (T, 2) moment pairs, flattened
+        count = np.repeat(s.depth_count, 2, axis=-1)  # matches the (T, 2) moment pairs, flattened
         if (count > 0).any():
             old = self.depth[c].reshape(m, -1)
             delta = s.depth_sum.reshape(m, -1) / np.maximum(count, np.float32(1.0))

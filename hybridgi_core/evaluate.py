@@ -164,22 +164,17 @@ class HitLookup:
     (rows, N) structure-of-arrays rows so each term is one contiguous multiply-add per hit.
     """
 
-    def __init__(self, cache: IrradianceCache, bounced: bool):
+    def __init__(self, cache: IrradianceCache, bounced: bool, coeffs: np.ndarray | None = None):
+        """bounced : the table holds direct + indirect bands (else direct only); coeffs : (N, K, 3)
+        radiance SH to use instead of the cache's bands (the solver's iterates)."""
         grid = cache.grid
         self.valid = cache.valid
         self.inside = cache.inside
-        # Irradiance SH (cosine-convolved) times the basis constants, as flat (N, K*3) rows: one
-        # multiply by a (K*3,) factor (per-axis broadcasts over (N, K, 3) cost 3x more).
         k = cache.settings.sh_coeffs
-        coeffs = cache.sh_direct + cache.sh_indirect if bounced else cache.sh_direct.copy()
-        poly = coeffs.reshape(coeffs.shape[0], k * 3)
-        basis = np.array([sh.C0, sh.C1, sh.C1, sh.C1, sh.C2, sh.C2, 3.0 * sh.C3, sh.C2, sh.C4][:k], np.float32)
-        poly *= np.repeat(sh.cosine_scale(cache.settings.sh_order) * basis, 3)
-        if k == 9:
-            poly[:, 0:3] -= poly[:, 18:21] * np.float32(1.0 / 3.0)  # C3 (3 z^2 - 1): -1 joins the constant
-        poly[~self.valid] = 0.0
+        if coeffs is None:
+            coeffs = cache.sh_direct + cache.sh_indirect if bounced else cache.sh_direct
         self.terms = k
-        self.rows = np.ascontiguousarray(poly.T)  # (K*3, N)
+        self.rows = irradiance_rows(coeffs, self.valid)  # (K*3, N)
         self.origin = np.asarray(grid.lo, np.float32)
         self.inv_cell = np.float32(1.0 / grid.cell_size)
         self.bias = np.float32(HIT_LOOKUP_BIAS * grid.cell_size)
@@ -200,6 +195,13 @@ class HitLookup:
     def irradiance(self, points: np.ndarray, normals: np.ndarray) -> np.ndarray:
         """(3, n) float32 irradiance >= 0 (channel rows) at points (n, 3) with unit normals (n, 3);
         zero normals (missed rays) read a cell but get no special treatment: mask them yourself."""
+        return self.evaluate(self.cells(points, normals), monomials(normals, self.terms))
+
+    def cells(self, points: np.ndarray, normals: np.ndarray) -> np.ndarray:
+        """(n,) intp cell each hit reads: the one in front of it, else its best valid neighbour.
+
+        Depends only on the grid and on which cells are valid, so stored probe hits
+        (`solver.StoredHits`) keep it across fixed-point iterations."""
         origin, top = self._per_row(points.shape[0])
         g = normals * self.bias
         g += points
@@ -215,22 +217,51 @@ class HitLookup:
         bad = np.flatnonzero(~self.valid[flat])
         if bad.size:
             flat[bad] = _best_front_neighbour(self.grid, self.valid, g[bad] - np.float32(0.5), points[bad], normals[bad], flat[bad])
+        return flat
+
+    def evaluate(self, flat: np.ndarray, mono: np.ndarray) -> np.ndarray:
+        """(3, n) float32 irradiance >= 0 of cells flat (n,) at normals given as their
+        `monomials` (terms, n)."""
         c = np.take(self.rows, flat, axis=1)  # (K*3, n)
-        x, y, z = np.ascontiguousarray(normals.T)
-        e = c[0:3].copy()
-        e += c[3:6] * y
-        e += c[6:9] * z
-        e += c[9:12] * x
-        if self.terms == 9:
-            e += c[12:15] * (x * y)
-            e += c[15:18] * (y * z)
-            e += c[18:21] * (z * z)
-            e += c[21:24] * (x * z)
-            xx_yy = x * x
-            xx_yy -= y * y
-            e += c[24:27] * xx_yy
+        e = c[0:3] * mono[0]
+        for k in range(1, self.terms):
+            e += c[3 * k : 3 * k + 3] * mono[k]
         np.maximum(e, 0.0, out=e)
         return e
+
+
+def irradiance_rows(coeffs: np.ndarray, valid: np.ndarray | None = None) -> np.ndarray:
+    """(K*3, n) float32 irradiance polynomial of radiance SH coeffs (n, K, 3) on the `monomials`,
+    every SH and cosine constant folded in; rows where valid (n,) is False are zero.
+
+    Flat (n, K*3) rows take one multiply by a (K*3,) factor (per-axis broadcasts over (n, K, 3)
+    cost 3x more), then one transposed copy."""
+    n, k = coeffs.shape[0], coeffs.shape[1]
+    poly = np.array(coeffs, np.float32).reshape(n, k * 3)
+    basis = np.array([sh.C0, sh.C1, sh.C1, sh.C1, sh.C2, sh.C2, 3.0 * sh.C3, sh.C2, sh.C4][:k], np.float32)
+    poly *= np.repeat(sh.cosine_scale(1 if k == 4 else 2) * basis, 3)
+    if k == 9:
+        poly[:, 0:3] -= poly[:, 18:21] * np.float32(1.0 / 3.0)  # C3 (3 z^2 - 1): -1 joins the constant
+    if valid is not None:
+        poly[~valid] = 0.0
+    return np.ascontiguousarray(poly.T)
+
+
+def monomials(normals: np.ndarray, terms: int) -> np.ndarray:
+    """(terms, n) float32 monomials 1, y, z, x (, xy, yz, z^2, xz, x^2 - y^2) of unit normals
+    (n, 3): the irradiance polynomial's variables in `HitLookup.rows` order."""
+    x, y, z = np.ascontiguousarray(np.asarray(normals, np.float32).T)
+    out = np.empty((terms, x.shape[0]), np.float32)
+    out[0] = 1.0
+    out[1], out[2], out[3] = y, z, x
+    if terms == 9:
+        np.multiply(x, y, out=out[4])
+        np.multiply(y, z, out=out[5])
+        np.multiply(z, z, out=out[6])
+        np.multiply(x, z, out=out[7])
+        np.multiply(x, x, out=out[8])
+        out[8] -= y * y
+    return out
 
 
 def _best_front_neighbour(grid, valid, g, points, normals, fallback):

@@ -102,6 +102,10 @@ class SurfaceTable:
         nrm = r[:, _NG] * np.where(backface, np.float32(-1.0), np.float32(1.0))[:, None]
         return ProbeHits(nrm, self._brdf(r, prim, u, v), r[:, _EMIT], backface)
 
+    def emission_of(self, prim: np.ndarray) -> np.ndarray:
+        """(n, 3) float32 emission of triangles prim; 0 for -1."""
+        return np.take(self.records, prim, axis=0)[:, _EMIT]
+
     def face_normals(self, prim: np.ndarray) -> np.ndarray:
         """(n, 3) float32 unit geometric normals (winding order) of triangles prim; 0 for -1."""
         return np.take(self.records, prim, axis=0)[:, _NG]

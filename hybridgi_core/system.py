@@ -20,6 +20,7 @@ from .sampling import frame_rng
 from .settings import MULTI_BOUNCE, CacheSettings
 from .shading import SurfaceTable
 from .snapshot import SceneSnapshot, concat_geometry
+from .solver import WARMUP_FRAME_BASE, GISolver, SolveStats
 from .trace.embree import EmbreeTracer
 from .update import CacheUpdater, ShadingScene, UpdateStats
 from .visible import visible_cells
@@ -28,8 +29,15 @@ log = logging.getLogger(__name__)
 
 #: Points sampled on the ray mesh to find the cells any surface reads (warm-up set).
 SURFACE_SAMPLES = 2_000_000
-#: Warm-up iterations use frame numbers from here on, so warm-up rays never repeat a frame's rays.
-WARMUP_FRAME_BASE = -(2**20)
+#: Warm-up batches use frame numbers from WARMUP_FRAME_BASE on (defined in solver.py, re-exported
+#: here), so warm-up rays never repeat a frame's rays.
+__all__ = ["GISystem", "MAX_WARMUP_ITERATIONS", "SURFACE_SAMPLES", "UPDATES_PER_BATCH", "WARMUP_FRAME_BASE"]
+#: Warm-up updates per traced batch of directions: a warm-up of N updates traces
+#: max(1, round(N / UPDATES_PER_BATCH)) batches of rays_per_cell directions per cell and spends
+#: the rest of its steps on fixed-point iterations over the stored hits (no rays).
+UPDATES_PER_BATCH = 8
+#: Most fixed-point iterations of one warm-up (they stop earlier once converged).
+MAX_WARMUP_ITERATIONS = 16
 
 
 class GISystem:
@@ -53,6 +61,8 @@ class GISystem:
         self.surfaces = SurfaceTable(self.ray_geometry, scene.materials)
         self.cache = cache if cache is not None else IrradianceCache.for_scene(scene, settings)
         self.updater = CacheUpdater(self.cache, self.tracer, ShadingScene(self.surfaces, scene.lights, scene.world), self.tracer.epsilon)
+        #: Stored probe hits and the fixed-point solver of final renders (and of re-lighting).
+        self.solver = GISolver(self.cache, self.tracer, self.updater.scene, self.tracer.epsilon, self.updater.pool)
         self._surface_cells: np.ndarray | None = None
         self.build_ms = (time.perf_counter() - t0) * 1e3
         log.info(
@@ -80,12 +90,19 @@ class GISystem:
 
         Rebuilds only the small dynamic Embree scene and those triangles' surface records.
         """
+        old = self.ray_geometry
         self.scene = scene
         self.ray_geometry = self._with_dynamic(scene)
         self.tracer.update_dynamic(self.ray_geometry)
         self.tracer.set_cutouts(Cutouts(self.ray_geometry, scene.materials))
         rows = np.arange(self._static_rays.triangle_count, self.ray_geometry.triangle_count)
         self.surfaces.update_rows(self.ray_geometry, rows)
+        if self.solver.has_hits:
+            self.solver.invalidate_boxes(_moved_boxes(old, self.ray_geometry, rows))
+        if self._surface_cells is not None and rows.size:
+            # Surfaces that moved read new cells: further bounces need those converged too
+            # (`resolve` traces them).
+            self._surface_cells = np.union1d(self._surface_cells, self._cells_on(rows))
 
     def set_lights(self, scene: SceneSnapshot) -> None:
         """New lamps, world or materials (same geometry): the shading inputs change, rays do not."""
@@ -93,17 +110,8 @@ class GISystem:
         self.updater.scene = ShadingScene(self.surfaces, scene.lights, scene.world)
         self.surfaces.set_materials(scene.materials)
         self.tracer.set_cutouts(Cutouts(self.ray_geometry, scene.materials))
-
-    # --- cache events (raised by GISession.sync from the snapshot diff) --------------------------
-
-    def on_geometry_changed(self, boxes: list[tuple[np.ndarray, np.ndarray]]) -> np.ndarray:
-        """Geometry changed inside these world (lo, hi) boxes (where it was and where it is):
-        the cells within the indirect range re-converge. Returns the touched flat cells (int64)."""
-        return self.cache.on_geometry_changed(boxes)
-
-    def on_lights_changed(self) -> None:
-        """Lamps, the world or materials changed (call after `set_lights`): every cell re-converges."""
-        self.cache.on_lights_changed()
+        self.solver.scene = self.updater.scene
+        self.solver.lights_changed()
 
     def close(self) -> None:
         self.updater.close()
@@ -124,50 +132,150 @@ class GISystem:
     def surface_cells(self) -> np.ndarray:
         """Cells any surface of the scene reads: what further bounces need converged."""
         if self._surface_cells is None:
-            g = self.ray_geometry
-            p = g.positions[g.triangles]
-            area = np.linalg.norm(np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), axis=1)
-            rng = np.random.default_rng(12345)
-            # Enough points that every cell-sized patch of surface gets several, whatever the
-            # triangle count (34 large Cornell triangles need as many as 300k small ones).
-            cell_area = self.cache.grid.cell_size**2
-            n = int(np.clip(8.0 * area.sum() / cell_area, 1000, SURFACE_SAMPLES))
-            tri = rng.choice(g.triangle_count, size=n, p=area / area.sum())
-            a, b = rng.random((2, n, 1), dtype=np.float32)
-            flip = (a + b) > 1
-            a, b = np.where(flip, 1 - a, a), np.where(flip, 1 - b, b)
-            pts = p[tri, 0] + a * (p[tri, 1] - p[tri, 0]) + b * (p[tri, 2] - p[tri, 0])
-            fn = g.face_normals()[tri]
-            # Both sides: open meshes are seen from both.
-            cells = np.union1d(self.visible_cells(pts, fn), self.visible_cells(pts, -fn))
-            self._surface_cells = cells
+            self._surface_cells = self._cells_on(np.arange(self.ray_geometry.triangle_count))
         return self._surface_cells
+
+    def _cells_on(self, rows: np.ndarray) -> np.ndarray:
+        """Cells the surfaces of triangles `rows` of the ray geometry read (sampled points)."""
+        g = self.ray_geometry
+        p = g.positions[g.triangles[rows]]
+        area = np.linalg.norm(np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), axis=1)
+        if rows.size == 0 or area.sum() <= 0:
+            return np.zeros(0, np.int64)
+        rng = np.random.default_rng(12345)
+        # Enough points that every cell-sized patch of surface gets several, whatever the
+        # triangle count (34 large Cornell triangles need as many as 300k small ones).
+        cell_area = self.cache.grid.cell_size**2
+        n = int(np.clip(8.0 * area.sum() / cell_area, 1000, SURFACE_SAMPLES))
+        tri = rng.choice(rows.size, size=n, p=area / area.sum())
+        a, b = rng.random((2, n, 1), dtype=np.float32)
+        flip = (a + b) > 1
+        a, b = np.where(flip, 1 - a, a), np.where(flip, 1 - b, b)
+        pts = p[tri, 0] + a * (p[tri, 1] - p[tri, 0]) + b * (p[tri, 2] - p[tri, 0])
+        fn = g.face_normals()[rows[tri]]
+        # Both sides: open meshes are seen from both.
+        return np.union1d(self.visible_cells(pts, fn), self.visible_cells(pts, -fn))
 
     def update(self, cells: np.ndarray, frame: int, alpha: float | None = None) -> UpdateStats:
         """Steps 4-5 for these cells."""
         return self.updater.update(cells, frame, alpha)
 
-    def warm_up(self, iterations: int, cells: np.ndarray | None = None, start: int = 0, total: int | None = None) -> list[UpdateStats]:
-        """Converge the cache before a final render, deterministically.
+    def warm_up(self, iterations: int, cells: np.ndarray | None = None, start: int = 0, total: int | None = None) -> list[SolveStats]:
+        """Converge the cache before a final render, deterministically: trace once, re-shade many.
 
-        The first half of the `total` iterations propagates bounces: each replaces the cells'
-        values, so iteration k holds k bounces (a running mean would keep the early, darker
-        estimates: measured 30% low on the Cornell box). The second half averages for noise.
-        Iteration i always uses the same rays whatever frame is being rendered, so a static scene
-        renders identically on every frame and on any machine of a render farm. `start` and
-        `total` let a caller run the iterations one at a time (progress, cancelling).
+        A warm-up of `total` updates traces B = max(1, round(total / UPDATES_PER_BATCH)) batches of
+        directions (the steps 0..B-1), storing every probe hit with its lamp light
+        (`solver.StoredHits`), then solves the multi-bounce cache as a fixed point over the stored
+        hits: each later step runs its share of MAX_WARMUP_ITERATIONS iterations (each one more
+        bounce, no ray), none once converged; the last adds the geometric tail of the bounces still missing and filters each cell with
+        its visible neighbours (`GISolver.filter_cells`: every cell has its own ray rotation, so
+        neighbours' noise is independent). The same steps always use
+        the same rays, so a static scene renders identically on every frame and on any machine of
+        a render farm. `start` and `total` let a caller run the steps one at a time (progress,
+        cancelling), with the same `cells` each time. Returns one SolveStats per step.
         """
         cells = self.surface_cells() if cells is None else cells
         total = iterations if total is None else total
-        propagate = total // 2 if self.settings.indirect_quality == MULTI_BOUNCE else 0
+        batches = max(1, min(total, round(total / UPDATES_PER_BATCH)))
+        # The iterations (cheap) spread over the steps left, up to MAX_WARMUP_ITERATIONS in all:
+        # a short warm-up converges as far as a long one.
+        per_step = -(-MAX_WARMUP_ITERATIONS // max(1, total - batches))
         runs = []
         for i in range(start, start + iterations):
+            if i == 0:
+                self.solver.begin(cells)
+            st = self.solver.trace_batch(i) if i < batches else SolveStats()
+            if i >= batches or total == batches and i == batches - 1:
+                for _ in range(per_step):
+                    if self.solver.converged:
+                        break
+                    _merge_stats(st, self.solver.relax())
+            if i == total - 1:
+                self.solver.extrapolate()
+                tic = time.perf_counter()
+                st.shadow_points += self.solver.filter_cells()
+                st.add("filter", (time.perf_counter() - tic) * 1e3)
+                self._mark_warm(total)
+            runs.append(st)
+        return runs
+
+    def warm_up_retraced(self, iterations: int, cells: np.ndarray | None = None) -> list[UpdateStats]:
+        """The EMA warm-up that `warm_up` replaced, kept as the reference it is measured and
+        tested against: every update retraces all rays; the first half replaces the cells'
+        values (update k holds k bounces), the second half averages."""
+        cells = self.surface_cells() if cells is None else cells
+        propagate = iterations // 2 if self.settings.indirect_quality == MULTI_BOUNCE else 0
+        runs = []
+        for i in range(iterations):
             if i == propagate and propagate > 0:
-                # The averaging phase is a plain mean that starts from the propagated value (one
-                # sample's worth; 0 would mark the cells invalid for this update's hit lookups).
                 self.cache.samples[cells] = 1
             runs.append(self.update(cells, WARMUP_FRAME_BASE + i, alpha=1.0 if i < propagate else None))
         return runs
+
+    def _mark_warm(self, total: int) -> None:
+        """Sample counts of a finished warm-up: those of the EMA warm-up of `total` updates (its
+        averaging half plus one), so EMA updates after it blend in as they did after the old one."""
+        cells = self.solver.cells
+        count = 1 + total - total // 2 if self.settings.indirect_quality == MULTI_BOUNCE else total
+        self.cache.samples[cells] = np.where(self.cache.samples[cells] > 0, count, 0)
+
+    def solve(self, cells: np.ndarray | None = None, batches: int = 2, max_iterations: int = 16,
+              extrapolate: bool = True) -> SolveStats:
+        """Trace `batches` direction sets from `cells` (default: the surface cells), store the
+        hits and solve the fixed point: what `warm_up` does, in one call."""
+        self.solver.begin(self.surface_cells() if cells is None else cells)
+        stats = SolveStats()
+        for b in range(batches):
+            _merge_stats(stats, self.solver.trace_batch(b))
+        _merge_stats(stats, self.solver.solve(max_iterations, extrapolate))
+        stats.shadow_points += self.solver.filter_cells()
+        return stats
+
+    # --- cache events: what GISession.sync raises --------------------------------------------------
+
+    def invalidate_boxes(self, boxes: list[tuple[np.ndarray, np.ndarray]]) -> np.ndarray:
+        """Geometry changed inside these world boxes [(lo (3,), hi (3,)), ...], old and new places.
+
+        Marks stale every stored probe ray whose segment (cell centre to its hit, or to the ray
+        length when it missed) meets a box, and the lamp light of stored hits whose shadow rays
+        may cross a box. Nothing is traced until `resolve()`, which traces exactly those rays
+        again (same directions). Returns the flat cells (int64) with a stale ray. The EMA path
+        is untouched: `on_geometry_changed` does both.
+        """
+        return self.solver.invalidate_boxes(boxes)
+
+    def on_geometry_changed(self, boxes: list[tuple[np.ndarray, np.ndarray]]) -> np.ndarray:
+        """Geometry changed inside these world (lo, hi) boxes (where it was and where it is):
+        objects moved, deformed, appeared, vanished or changed topology (raised by
+        GISession.sync from the snapshot diff). The cells within the indirect range re-converge
+        (`cache.on_geometry_changed`: urgency with the quadratic fall-off, for EMA updates), and
+        the stored rays that reach a box turn stale (`invalidate_boxes`; `resolve()` traces them
+        again). Returns the touched flat cells (int64) of the fall-off."""
+        touched = self.cache.on_geometry_changed(boxes)
+        self.invalidate_boxes(boxes)
+        return touched
+
+    def on_lights_changed(self, resolve: bool = False) -> SolveStats:
+        """Lamps, the world or materials changed (call after `set_lights`, which already marks
+        every stored hit stale): every cell re-converges (`cache.on_lights_changed`, for EMA
+        updates). With stored hits and `resolve`, the cache re-converges from them right away:
+        shadow rays at the stored hits, no probe ray, then the fixed point (else at the next
+        `resolve()`). GISession.sync calls it without `resolve`, keeping a sync cheap."""
+        self.cache.on_lights_changed()
+        self.solver.lights_changed()
+        return self.resolve() if resolve else SolveStats()
+
+    def resolve(self, max_iterations: int = 16) -> SolveStats:
+        """Bring a solved cache up to date after events: trace the stale rays again (and the
+        batches of cells new surfaces read), re-shade stale hits, solve again, filter the indirect
+        band. No-op (empty stats) without stored hits."""
+        if not self.solver.has_hits:
+            return SolveStats()
+        if self._surface_cells is not None:
+            self.solver.extend(self._surface_cells)
+        stats = self.solver.resolve(max_iterations)
+        stats.shadow_points += self.solver.filter_cells(bands=("sh_indirect",))
+        return stats
 
     def corner_visibility(self, points: np.ndarray, normals: np.ndarray) -> np.ndarray:
         """(n, 8) bool exact visibility of the neighbouring cells (occlusion rays) for the gather."""
@@ -185,3 +293,31 @@ class GISystem:
             self.scene.lights, points, normals, self.tracer, rng,
             samples=samples or self.settings.light_samples, epsilon=float(self.tracer.epsilon),
         )
+
+
+def _merge_stats(into: SolveStats, other: SolveStats) -> None:
+    into.rays += other.rays
+    into.shadow_points += other.shadow_points
+    into.iterations += other.iterations
+    into.cells = max(into.cells, other.cells)
+    into.wall_ms += other.wall_ms
+    for k, v in other.steps_ms.items():
+        into.add(k, v)
+
+
+def _moved_boxes(old, new, rows: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
+    """World boxes, old and new, of each object whose triangles `rows` moved between two ray
+    geometries of the same topology."""
+    if rows.size == 0 or old.triangle_count != new.triangle_count:
+        return []
+    p_old = old.positions[old.triangles[rows]]
+    p_new = new.positions[new.triangles[rows]]
+    moved = (p_old != p_new).any(axis=(1, 2))
+    boxes = []
+    objs = new.object_index[rows]
+    for obj in np.unique(objs[moved]):
+        sel = objs == obj
+        for p in (p_old[sel], p_new[sel]):
+            pts = p.reshape(-1, 3)
+            boxes.append((pts.min(axis=0), pts.max(axis=0)))
+    return boxes

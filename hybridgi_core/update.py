@@ -71,6 +71,11 @@ class CacheUpdater:
         self.epsilon = np.float32(epsilon)
         self._pool = ThreadPoolExecutor(max_workers=cache.settings.threads, thread_name_prefix="hybridgi-update")
 
+    @property
+    def pool(self) -> ThreadPoolExecutor:
+        """The worker pool (the solver shares it)."""
+        return self._pool
+
     def close(self) -> None:
         self._pool.shutdown(wait=True)
 
