@@ -171,7 +171,12 @@ def render_frame(engine, depsgraph):
     warmup = props.warmup_iterations if fresh else 0
     # A job without warm-up updates from its first frame on (else its cache would stay empty).
     update = job is not None and warmup == 0
-    refresh = _IncrementalUpdate(system, job.near, job.inner, extra["lights_changed"]) if update else None
+    refresh = None
+    if update:
+        # A cache solved from stored hits refreshes by re-solving: only the rays the frame's
+        # changes reached are traced again, the rest re-shade (localized by construction).
+        refresh = (_SolvedRefresh(system) if system.solver.has_hits
+                   else _IncrementalUpdate(system, job.near, job.inner, extra["lights_changed"]))
     pipeline = FramePipeline(props.raster_settings(cell_size=system.cache.grid.cell_size))
     try:
         pipeline.resize(width, height)
@@ -192,7 +197,8 @@ def render_frame(engine, depsgraph):
         )
         steps.update(stats.steps_ms)
         if update:
-            extra.update(updated_cells=refresh.updated_cells, extra_cells=refresh.extra_cells)
+            extra.update(updated_cells=refresh.updated_cells, extra_cells=refresh.extra_cells,
+                         refresh="resolve" if isinstance(refresh, _SolvedRefresh) else "update")
         engine.update_stats("HybridGI", "Writing passes")
         ts = time.perf_counter()
         cells_view = props.debug_view == "CELLS"
@@ -310,6 +316,22 @@ def _close_job(key):
     job = _JOBS.pop(key, None)
     if job is not None:
         job.session.close()
+
+
+class _SolvedRefresh:
+    """The update hook of an incremental frame whose cache the solver converged from stored
+    hits: `GISystem.resolve()` traces the rays the session's events marked stale again (moved
+    objects, lamps' shadow rays where lamps changed) and solves the fixed point again."""
+
+    def __init__(self, system):
+        self._system = system
+        self.updated_cells = 0
+        self.extra_cells = 0
+
+    def __call__(self, cells, alpha=None):
+        stats = self._system.resolve()
+        self.updated_cells = int(stats.cells)
+        return stats
 
 
 class _IncrementalUpdate:
