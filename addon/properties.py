@@ -83,8 +83,9 @@ class HybridGISettings(bpy.types.PropertyGroup):
     )
     warmup_iterations: IntProperty(
         name="Warm-up Updates",
-        description="Cache updates before each final-render frame: the first half propagates bounces, "
-        "the second averages noise (16 converges the Cornell box to within 1% of path tracing)",
+        description="Convergence of the cache before each final-render frame, in updates: every 8 trace "
+        "one batch of probe rays per cell, kept and re-shaded; all bounces are then solved over the "
+        "stored hits without further rays (16 = 2 batches)",
         default=16, min=0, max=1024, soft_max=64,
     )
 
