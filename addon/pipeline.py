@@ -30,7 +30,7 @@ from hybridgi_core.session import GISession
 from hybridgi_core.settings import CacheSettings
 from hybridgi_core.system import GISystem
 
-from . import animation, properties, sync, updates
+from . import animation, compat, properties, sync, updates
 
 log = logging.getLogger(__name__)
 
@@ -333,8 +333,9 @@ def _record(scene, t0, steps, width, height, **extra):
 
 
 def _set_pass(layer, name, pixels):
-    """Write (h, w, c) float32 bottom-up pixels into a result pass, if the pass exists."""
-    rp = layer.passes.get(name)
+    """Write (h, w, c) float32 bottom-up pixels into a result pass (`name` as Blender 5.0 calls
+    it), if the pass exists."""
+    rp = layer.passes.get(compat.pass_name(name))
     if rp is None:
         return
     channels = rp.channels

@@ -2,7 +2,9 @@
 tests can use: bpy only exposes a multilayer image's first pass).
 
 Covers what Blender writes: single- or multi-part scanline files, compression NONE, ZIPS or ZIP,
-HALF / FLOAT / UINT channels. Channel names are Blender's `<ViewLayer>.<Pass>.<channel>`.
+HALF / FLOAT / UINT channels. Channel names are Blender's `<ViewLayer>.<Pass>.<channel>`;
+`read_channels` gives passes their Blender 5.0 names (Cycles and HybridGI before 5.0 write
+DiffDir, DiffInd, DiffCol, AO), so files from every version compare by name.
 """
 
 from __future__ import annotations
@@ -12,6 +14,8 @@ import zlib
 from pathlib import Path
 
 import numpy as np
+
+from .blender_compat import LEGACY_PASS_NAMES
 
 MAGIC = 20000630
 _MULTIPART = 0x1000
@@ -34,7 +38,8 @@ def channel_names(path: str | Path) -> list[str]:
 
 def read_channels(path: str | Path) -> dict[str, np.ndarray]:
     """Every channel as an (h, w) float32 array, row 0 at the top of the image (EXR order;
-    Blender's `RenderPass.rect` and `Image.pixels` are bottom-up)."""
+    Blender's `RenderPass.rect` and `Image.pixels` are bottom-up), by its name with Blender 5.0's
+    pass names (`channel_names` gives the names in the file)."""
     data = Path(path).read_bytes()
     headers, pos = _headers(data)
     tables = []
@@ -46,7 +51,15 @@ def read_channels(path: str | Path) -> dict[str, np.ndarray]:
     out = {}
     for header, table in zip(headers, tables, strict=True):
         out.update(_read_part(data, header, table, multipart))
-    return out
+    return {_current_name(name): plane for name, plane in out.items()}
+
+
+def _current_name(channel: str) -> str:
+    """`<ViewLayer>.DiffDir.R` -> `<ViewLayer>.Diffuse Direct.R`; other names unchanged."""
+    parts = channel.split(".")
+    if len(parts) >= 3 and parts[-2] in LEGACY_PASS_NAMES:
+        parts[-2] = LEGACY_PASS_NAMES[parts[-2]]
+    return ".".join(parts)
 
 
 def _headers(data: bytes):

@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from hybridgi_cli import exr
+from hybridgi_cli import blender_compat, exr
 
 ROOT = Path(__file__).resolve().parents[1]
 HYBRIDGI = Path(sys.executable).parent / "hybridgi"
@@ -59,17 +59,21 @@ def cornell_render(cornell, tmp_path_factory):
     return render(cornell, tmp_path_factory.mktemp("hg") / "cornell")
 
 
+@pytest.mark.smoke
 def test_all_passes_present_with_cycles_names_and_channels(cornell_render):
     record, ch = cornell_render
     expected = {
         "Combined": "RGBA", "Diffuse Direct": "RGB", "Diffuse Indirect": "RGB", "Diffuse Color": "RGB",
         "Ambient Occlusion": "RGB", "Depth": "Z", "Normal": "XYZ",
     }
+    in_file = set(exr.channel_names(record["exr"]))
     for name, chans in expected.items():
         for c in chans:
             key = f"ViewLayer.{name}.{c}"
             assert key in ch, key
             assert ch[key].shape == (72, 96) and np.isfinite(ch[key]).all(), key
+            # The file holds this Blender's Cycles names (DiffDir ... before 5.0).
+            assert f"ViewLayer.{blender_compat.cycles_pass_name(name)}.{c}" in in_file, key
     assert record["engine"] == "HYBRIDGI" and record["rays"] > 0
     for step in ("gbuffer", "downsample", "select", "warmup", "gather", "ssao", "bilateral", "deferred"):
         assert step in record["steps_ms"], step
@@ -80,6 +84,7 @@ def test_all_passes_present_with_cycles_names_and_channels(cornell_render):
     assert rel_l1(recon, comb, geo) < 1e-3
 
 
+@pytest.mark.smoke
 def test_cornell_red_wall_bleeds_onto_the_floor(cornell_render):
     """Floor pixels near the red (left) wall get redder indirect light than those near the green one."""
     _, ch = cornell_render
@@ -97,6 +102,7 @@ def test_cornell_red_wall_bleeds_onto_the_floor(cornell_render):
     assert red_left / red_right > 1.5, (red_left, red_right)
 
 
+@pytest.mark.smoke
 def test_cornell_indirect_close_to_cycles(cornell, cornell_render, tmp_path):
     """Diffuse Indirect within 0.20 relative L1 (3x3 blur, geometry pixels) of Cycles at 256 spp.
 

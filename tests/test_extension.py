@@ -230,6 +230,7 @@ def installed(zips, tmp_path_factory):
     return result
 
 
+@pytest.mark.smoke
 def test_installed_zip_registers_engine_with_the_core_wheel(installed):
     assert installed["enabled"], installed["stderr"]
     assert installed["engine_registered"], installed["stderr"]
@@ -240,6 +241,7 @@ def test_installed_zip_registers_engine_with_the_core_wheel(installed):
     assert {"embreex", "fast_simplification", "hybridgi_core"} <= set(installed["wheels_installed"])
 
 
+@pytest.mark.smoke
 def test_installed_zip_renders_a_frame(installed):
     if not installed["has_pipeline"]:
         pytest.skip("addon/pipeline.py is not written yet: the render assertion is pending")
