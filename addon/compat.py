@@ -1,15 +1,13 @@
 """What differs between the Blender versions the extension supports (4.2 LTS, 4.5 LTS, 5.0, 5.1+).
 
 Every version check of the add-on lives here; the CLI, the scene builder and the tests have theirs
-in `hybridgi_cli/blender_compat.py` (an installed extension ships without that package).
+in `hybridgi_cli/blender_compat.py` (an installed extension ships without that package). Importing
+this module does not import bpy (the worker's modules must stay importable without it).
 """
 
 from __future__ import annotations
 
-import bpy
-
-#: (major, minor, patch) of the running Blender.
-VERSION = tuple(bpy.app.version)
+import functools
 
 #: Blender 5.0 renamed four of Cycles' passes; HybridGI writes the names its Blender's Cycles uses,
 #: so the EXRs of both engines compare layer by layer.
@@ -21,9 +19,17 @@ _PASS_NAMES_BEFORE_5_0 = {
 }
 
 
+@functools.cache
+def version() -> tuple[int, int, int]:
+    """(major, minor, patch) of the running Blender."""
+    import bpy  # noqa: PLC0415
+
+    return tuple(bpy.app.version)
+
+
 def pass_name(name: str) -> str:
     """This Blender's name of the pass Blender 5.0 calls `name`."""
-    return name if VERSION >= (5, 0, 0) else _PASS_NAMES_BEFORE_5_0.get(name, name)
+    return name if version() >= (5, 0, 0) else _PASS_NAMES_BEFORE_5_0.get(name, name)
 
 
 def point_color_shader():
@@ -37,6 +43,13 @@ def point_color_shader():
         return gpu.shader.from_builtin("FLAT_COLOR")
 
 
+def light_options(light) -> tuple[bool, float, bool]:
+    """(use_temperature, exposure, normalize) of a Blender light. Blender 4.2's lights have none of
+    the three: no blackbody tint, exposure 0, area lights always normalized."""
+    return (bool(getattr(light, "use_temperature", False)), float(getattr(light, "exposure", 0.0)),
+            bool(getattr(light, "normalize", True)))
+
+
 def geometry_edited_objects(depsgraph) -> frozenset:
     """Names of the objects whose geometry this depsgraph update changed (`is_updated_geometry`),
     inside view_update / depsgraph handlers.
@@ -44,9 +57,11 @@ def geometry_edited_objects(depsgraph) -> frozenset:
     Blender 5.3 also flags the geometry of an object when one of its materials is edited; its data
     (mesh) is then in the same updates without the flag, while mesh and modifier edits flag both.
     """
+    import bpy  # noqa: PLC0415
+
     updates = list(depsgraph.updates)
     flagged = [u.id for u in updates if isinstance(u.id, bpy.types.Object) and u.is_updated_geometry]
-    if VERSION < (5, 3, 0) or not flagged:
+    if version() < (5, 3, 0) or not flagged:
         return frozenset(obj.name for obj in flagged)
     unchanged_data = {(type(u.id), u.id.name) for u in updates
                       if not isinstance(u.id, bpy.types.Object) and not u.is_updated_geometry}

@@ -118,3 +118,8 @@ def exit_now(status: int) -> None:
     if tempdir and os.path.basename(os.path.normpath(tempdir)).startswith("blender_"):
         shutil.rmtree(tempdir, ignore_errors=True)
     os._exit(status)
+
+
+def lights_have_exposure(bpy) -> bool:
+    """Whether lights have `exposure`, `normalize` and `use_temperature` (not in Blender 4.2)."""
+    return "exposure" in bpy.types.Light.bl_rna.properties

@@ -123,12 +123,13 @@ def _write_blend(path: Path, body: str) -> None:
     script = textwrap.dedent(
         """
         import bpy
+        from hybridgi_cli import blender_compat
         bpy.ops.wm.read_homefile(use_empty=True)
         scene = bpy.context.scene
         cam = bpy.data.objects.new("cam", bpy.data.cameras.new("cam"))
         cam.location = (0, -6, 2); cam.rotation_euler = (1.3, 0, 0)
         scene.collection.objects.link(cam); scene.camera = cam
-        scene.world = bpy.data.worlds.new("w"); scene.world.use_nodes = True
+        scene.world = blender_compat.new_world(bpy, "w")
         """
     ) + textwrap.dedent(body) + f"\nbpy.ops.wm.save_as_mainfile(filepath={str(path)!r})\n"
     subprocess.run([sys.executable, "-c", script], check=True, capture_output=True, timeout=120)
