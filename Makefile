@@ -2,8 +2,8 @@
 # Both set everything up on a fresh machine first (apt packages, .venv); re-running is cheap.
 # BLENDER=4.2|4.5|5.0|5.3 picks the Blender (bpy wheel, and the Python it needs); each version has
 # its own environment (.venv for the default, .venv-4.2 ...) and its own built scenes.
-BLENDER ?= 5.0
 DEFAULT_BLENDER := 5.0
+BLENDER ?= $(DEFAULT_BLENDER)
 ifeq ($(BLENDER),$(DEFAULT_BLENDER))
 VENV := .venv
 else
