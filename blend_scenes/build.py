@@ -92,12 +92,12 @@ def _append_bunny(material) -> bpy.types.Mesh | None:
     if not BUNNY_BLEND.exists():
         log.warning("%s not found: the animated scene uses the procedural bunny stand-in", BUNNY_BLEND)
         return None
-    try:
-        with bpy.data.libraries.load(str(BUNNY_BLEND), link=False) as (src, dst):
-            dst.objects = list(src.objects)
-    except OSError as err:  # Blender 4.2 cannot read files saved by 5.0
-        log.warning("%s: %s: the animated scene uses the procedural bunny stand-in", BUNNY_BLEND, str(err).strip())
+    if not blender_compat.opens_here(BUNNY_BLEND):
+        log.warning("%s was saved by Blender %d.%d, which this one cannot read: the animated scene uses the "
+                    "procedural bunny stand-in", BUNNY_BLEND, *blender_compat.saved_by(BUNNY_BLEND))
         return None
+    with bpy.data.libraries.load(str(BUNNY_BLEND), link=False) as (src, dst):
+        dst.objects = list(src.objects)
     meshes = [o for o in dst.objects if o is not None and o.type == "MESH"]
     if not meshes:
         log.warning("%s holds no mesh object: using the procedural bunny stand-in", BUNNY_BLEND)

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import importlib.metadata
 import os
+import re
 import shutil
 import sys
 from pathlib import Path
@@ -57,6 +58,36 @@ def cycles_pass_name(name: str, version: tuple[int, int] | None = None) -> str:
     if (version or blender_version()) >= (5, 0):
         return name
     return {new: old for old, new in LEGACY_PASS_NAMES.items()}.get(name, name)
+
+
+def saved_by(path: str | Path) -> tuple[int, int]:
+    """(major, minor) of the Blender that saved the .blend file (plain, gzip or zstd), from its
+    header: `BLENDER-v402...` up to 4.x, `BLENDER17-01v0500...` from 5.0."""
+    with open(path, "rb") as fh:
+        magic = fh.read(4)
+        fh.seek(0)
+        if magic == b"\x28\xb5\x2f\xfd":
+            import zstandard  # noqa: PLC0415  (a dependency of every bpy wheel)
+
+            header = zstandard.ZstdDecompressor().stream_reader(fh).read(17)
+        elif magic[:2] == b"\x1f\x8b":
+            import gzip  # noqa: PLC0415
+
+            header = gzip.GzipFile(fileobj=fh).read(17)
+        else:
+            header = fh.read(17)
+    match = re.match(rb"BLENDER(?:[-_][vV](\d)|\d\d-\d\d[vV](\d\d))(\d\d)", header)
+    if match is None:
+        raise ValueError(f"{path} is not a .blend file")
+    return int(match.group(1) or match.group(2)), int(match.group(3))
+
+
+def opens_here(path: str | Path) -> bool:
+    """Whether this Blender can open the file: any older one's, and from 4.5 on also 5.x files
+    (4.2 cannot read the file header 5.0 introduced)."""
+    saved = saved_by(path)
+    here = blender_version()
+    return saved <= here or (here >= (4, 5) and saved[0] <= 5)
 
 
 # --- data-block creation -------------------------------------------------------------------------
