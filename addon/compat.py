@@ -67,3 +67,11 @@ def geometry_edited_objects(depsgraph) -> frozenset:
                       if not isinstance(u.id, bpy.types.Object) and not u.is_updated_geometry}
     return frozenset(obj.name for obj in flagged
                      if obj.data is None or (type(obj.data), obj.data.name) not in unchanged_data)
+
+
+def set_file_format(settings, file_format: str) -> None:
+    """`ImageFormatSettings.file_format = file_format`. Blender 5.0 added `media_type`, which must
+    name the kind of file before a format of that kind can be chosen."""
+    if version() >= (5, 0, 0):
+        settings.media_type = {"OPEN_EXR_MULTILAYER": "MULTI_LAYER_IMAGE", "FFMPEG": "VIDEO"}.get(file_format, "IMAGE")
+    settings.file_format = file_format
