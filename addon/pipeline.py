@@ -152,8 +152,14 @@ def render_frame(engine, depsgraph):
         pipeline.upload(snapshot)
         steps["upload"] = (time.perf_counter() - ts) * 1e3
 
+        warmup_start = time.perf_counter()
+
         def progress(i, n):
-            engine.update_stats("HybridGI", f"Converging cache {i + 1}/{n}")
+            # In the status bar, and logged (the CLI prints the add-on's INFO records on stderr);
+            # the updates cost about the same each, so the rest takes as long per update.
+            eta = (time.perf_counter() - warmup_start) / (i + 1) * (n - i - 1)
+            engine.update_stats("HybridGI", f"Converging cache {i + 1}/{n}, {eta:.1f} s left")
+            log.info("frame %d: converging cache %d/%d, %.1f s left", depsgraph.scene.frame_current, i + 1, n, eta)
             engine.update_progress(0.9 * (i + 1) / max(n, 1))
             if engine.test_break():
                 raise RenderCancelled("render cancelled")

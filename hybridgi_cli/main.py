@@ -19,6 +19,7 @@ import atexit
 import contextlib
 import importlib
 import json
+import logging
 import math
 import os
 import re
@@ -269,9 +270,22 @@ def import_bpy():
 
 def enable_addon():
     try:
-        return dev_install.enable()
+        package = dev_install.enable()
     except dev_install.DevInstallError as err:
         raise CliError(str(err)) from err
+    log_to_stderr(package.__name__)
+    return package
+
+
+def log_to_stderr(package_name: str) -> None:
+    """The add-on's INFO records on stderr: warm-up progress with the time left, frame times."""
+    logger = logging.getLogger(package_name)
+    if not any(getattr(h, "hybridgi_cli", False) for h in logger.handlers):
+        handler = logging.StreamHandler(sys.stderr)
+        handler.setFormatter(logging.Formatter("hybridgi: %(message)s"))
+        handler.hybridgi_cli = True
+        logger.addHandler(handler)
+        logger.setLevel(logging.INFO)
 
 
 def open_scene(bpy, path: Path):

@@ -4,6 +4,7 @@ the pixels of the multilayer EXR it writes, and against Cycles rendered in the s
 from __future__ import annotations
 
 import json
+import re
 import subprocess
 import sys
 import textwrap
@@ -172,3 +173,13 @@ def test_scene_without_camera_fails_with_a_clear_message(tmp_path):
                          capture_output=True, text=True, timeout=300)
     assert run.returncode != 0
     assert "camera" in run.stderr.lower()
+
+
+def test_warm_up_progress_says_how_long_is_left(cornell, tmp_path):
+    """Each warm-up update's status (Blender's status bar; logged, so the CLI prints it on stderr)
+    carries an estimate of the time left."""
+    run = subprocess.run([str(HYBRIDGI), "render", str(cornell), "--out", str(tmp_path / "p"), "--res", "32x24",
+                          "--set", "warmup_iterations=3"], capture_output=True, text=True, timeout=600)
+    assert run.returncode == 0, run.stderr[-3000:]
+    left = [float(s) for s in re.findall(r"hybridgi: frame 1: converging cache \d/3, (\d+\.\d) s left", run.stderr)]
+    assert len(left) == 3 and left[-1] == 0.0 and left[0] > 0.0, run.stderr[-3000:]
