@@ -12,7 +12,7 @@ endif
 STAMP := $(VENV)/.setup-done
 OUT ?= out
 
-.PHONY: setup test smoke demo bench scenes lint extension clean
+.PHONY: setup test smoke demo bench plots scenes lint extension clean
 
 $(STAMP): pyproject.toml scripts/setup.sh
 	BLENDER=$(BLENDER) bash scripts/setup.sh $(VENV)
@@ -30,6 +30,12 @@ smoke: setup
 
 bench: setup
 	$(VENV)/bin/python bench/bench_core.py
+
+# docs/timings.png (per-step time against rays per cell, cache and image resolution: one atrium
+# render per point) and docs/accuracy.png (from bench/compare_cycles.py's report, when present).
+plots: setup scenes
+	$(VENV)/bin/python -m pip install -q -e ".[plots]"
+	$(VENV)/bin/python bench/plots.py
 
 # The bundled .blend files are build outputs of procedural.py + build.py (not kept in git), one
 # set per Blender (hybridgi_cli/blender_compat.py scenes_dir: no version opens a newer one's files).
