@@ -20,8 +20,9 @@ from pathlib import Path
 import bpy
 import numpy as np
 
+from hybridgi_core import exr
+
 from . import compat, engine
-from ._core import submodule
 
 log = logging.getLogger(__name__)
 
@@ -150,7 +151,7 @@ def _render(scene, view_layer, path: Path) -> tuple[dict, float]:
         bpy.data.images["Render Result"].save_render(str(path), scene=scene)
     if not path.is_file():
         raise CompareError(f"{scene.render.engine} wrote no image")
-    channels = submodule("exr").read_channels(path)
+    channels = exr.read_channels(path)
     passes = {}
     for name in (*COMPARED, "Depth"):
         prefix = f"{view_layer.name}.{compat.pass_name(name)}."
