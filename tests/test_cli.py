@@ -47,12 +47,23 @@ def png_size(path: Path) -> tuple[int, int]:
     return struct.unpack(">II", header[16:24])
 
 
-@pytest.mark.skipif(not CORNELL.exists(), reason="shared test scenes are not available")
-@pytest.mark.skipif(CORNELL.exists() and not blender_compat.opens_here(CORNELL),
-                    reason="the shared Cornell box was saved by a Blender this one cannot read")
-def test_cycles_render_writes_png_exr_and_json(tmp_path):
+@pytest.fixture(scope="module")
+def cornell(tmp_path_factory) -> tuple[Path, float]:
+    """(a Cornell box this Blender opens, its highest albedo): the shared one (McGuire's), else the
+    bundled one built here (Blender 4.2 cannot read files saved by 5.0; the shared ones may be absent)."""
+    if CORNELL.exists() and blender_compat.opens_here(CORNELL):
+        return CORNELL, 0.725
+    out = tmp_path_factory.mktemp("scenes")
+    env = {k: v for k, v in os.environ.items() if k != "BLENDER_USER_RESOURCES"}
+    subprocess.run([sys.executable, str(REPO / "blend_scenes" / "build.py"), "--only", "cornell", "--out", str(out)],
+                   check=True, capture_output=True, timeout=120, env=env, cwd=REPO)
+    return out / "cornell.blend", 0.8
+
+
+def test_cycles_render_writes_png_exr_and_json(tmp_path, cornell):
+    blend, albedo = cornell
     run = hybridgi(
-        "render", str(CORNELL), "--out", str(tmp_path / "cb"),
+        "render", str(blend), "--out", str(tmp_path / "cb"),
         "--engine", "CYCLES", "--samples", "4", "--res", "64x48", "--frames", "1",
     )
     assert run.returncode == 0, run.stderr[-2000:]
@@ -72,14 +83,17 @@ def test_cycles_render_writes_png_exr_and_json(tmp_path):
             assert key in channels, f"{key} missing from {sorted(channels)}"
             assert channels[key].shape == (48, 64)
     # The values are the passes', not placeholders: an opaque render lit by the ceiling, the box's
-    # albedos (<= 0.725) in Diffuse Color, unit normals, positive depth.
+    # albedos in Diffuse Color, unit normals, positive depth.
     assert np.all(channels["ViewLayer.Combined.A"] == 1.0)
     assert channels["ViewLayer.Diffuse Direct.R"].mean() > 0.1
     assert channels["ViewLayer.Diffuse Indirect.G"].mean() > 0.01
-    assert 0.0 <= channels["ViewLayer.Diffuse Color.R"].min() and channels["ViewLayer.Diffuse Color.R"].max() <= 0.73
+    assert 0.0 <= channels["ViewLayer.Diffuse Color.R"].min() and channels["ViewLayer.Diffuse Color.R"].max() <= albedo + 0.005
     normal = np.stack([channels[f"ViewLayer.Normal.{c}"] for c in "XYZ"], axis=-1)
-    # Unit length except where pixel filtering averages normals across an edge.
-    assert np.mean(np.abs(np.linalg.norm(normal, axis=-1) - 1.0) < 1e-3) > 0.8
+    # Unit length on geometry except where pixel filtering averages normals across an edge (or
+    # with the background: the bundled box is open towards the camera).
+    geometry = channels["ViewLayer.Depth.Z"] < 1e9
+    assert geometry.mean() > 0.3
+    assert np.mean(np.abs(np.linalg.norm(normal[geometry], axis=-1) - 1.0) < 1e-3) > 0.7
     assert channels["ViewLayer.Depth.Z"].min() > 0.0
 
 
@@ -110,11 +124,8 @@ def test_bad_arguments_exit_2_with_a_message(args, message):
     assert run.stdout == ""
 
 
-@pytest.mark.skipif(not CORNELL.exists(), reason="shared test scenes are not available")
-@pytest.mark.skipif(CORNELL.exists() and not blender_compat.opens_here(CORNELL),
-                    reason="the shared Cornell box was saved by a Blender this one cannot read")
-def test_unknown_setting_exits_1(tmp_path):
-    run = hybridgi("render", str(CORNELL), "--out", str(tmp_path / "x"), "--engine", "CYCLES", "--set", "bogus=1")
+def test_unknown_setting_exits_1(tmp_path, cornell):
+    run = hybridgi("render", str(cornell[0]), "--out", str(tmp_path / "x"), "--engine", "CYCLES", "--set", "bogus=1")
     assert run.returncode == 1
     assert "cycles has no writable setting 'bogus'" in run.stderr
     assert not list(tmp_path.iterdir())
