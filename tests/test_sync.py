@@ -226,7 +226,7 @@ def test_principled_weights_mixes_and_constant_nodes(bpy_module, scene, sync, ca
     panel.node_tree.links.new(rgb.outputs[0], mix.inputs["A"])
     panel.node_tree.links.new(mix.outputs["Result"], p_bsdf.inputs["Emission Color"])
     p_bsdf.inputs["Emission Strength"].default_value = 2.0
-    mixed = bpy.data.materials.new("mixed")
+    mixed = blender_compat.new_material(bpy, "mixed")
     tree = mixed.node_tree
     tree.nodes.remove(tree.nodes["Principled BSDF"])
     shader_mix = tree.nodes.new("ShaderNodeMixShader")
