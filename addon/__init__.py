@@ -5,11 +5,11 @@ in `hybridgi_core`, imported by its own name: the development checkout installs 
 environment, the extension zip ships it as a wheel that Blender installs with the extension.
 """
 
-from . import animation, engine, overlay, properties, ui
+from . import animation, compare, engine, overlay, properties, ui
 
 # Registration order: properties first (panels and the engine read `scene.hybridgi`); animation
 # last, so its handlers are removed first and any kept render cache is freed on unregister.
-_modules = (properties, engine, overlay, ui, animation)
+_modules = (properties, engine, overlay, ui, compare, animation)
 
 
 def register():

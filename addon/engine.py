@@ -6,6 +6,8 @@ import bpy
 
 from hybridgi_core import errors
 
+from . import compat
+
 log = logging.getLogger(__name__)
 
 #: Message of the last failed final render in this process; None after a successful one.
@@ -13,16 +15,17 @@ log = logging.getLogger(__name__)
 #: FINISHED), so headless callers such as the CLI read this to know a frame failed.
 LAST_ERROR = None
 
-#: Passes besides Combined, named like Cycles' so the EXRs of both engines compare layer by layer:
+#: Passes besides Combined, named like this Blender's Cycles names them (compat.pass_name) so the
+#: EXRs of both engines compare layer by layer:
 #: (pass name, channels, channel ids, type, the view-layer flag that enables it).
-PASSES = (
+PASSES = tuple((compat.pass_name(name), *rest) for name, *rest in (
     ("Depth", 1, "Z", "VALUE", "use_pass_z"),
     ("Normal", 3, "XYZ", "VECTOR", "use_pass_normal"),
     ("Diffuse Direct", 3, "RGB", "COLOR", "use_pass_diffuse_direct"),
     ("Diffuse Indirect", 3, "RGB", "COLOR", "use_pass_diffuse_indirect"),
     ("Diffuse Color", 3, "RGB", "COLOR", "use_pass_diffuse_color"),
     ("Ambient Occlusion", 3, "RGB", "COLOR", "use_pass_ambient_occlusion"),
-)
+))
 
 
 def enabled_passes(view_layer):

@@ -26,6 +26,7 @@ from bpy.app.handlers import persistent
 from hybridgi_core import errors
 from hybridgi_core.raster import passes as _passes
 
+from . import compat
 from .viewport_passes import load_addon_glsl
 
 log = logging.getLogger(__name__)
@@ -180,14 +181,17 @@ def draw_cells(scene) -> bool:
     frame = module.drawn_cache(scene.name) if module is not None else None
     if frame is None:
         return False
-    shader = gpu.shader.from_builtin("POINT_FLAT_COLOR")
+    shader = compat.point_color_shader()
     cached = _cell_batches.get(scene.name)
     if cached is None or cached[0] is not frame:
         centres, colours = cell_points(frame)
         cached = _cell_batches[scene.name] = (frame, batch_for_shader(shader, "POINTS", {"pos": centres, "color": colours}))
+    depth_test = gpu.state.depth_test_get()
+    gpu.state.depth_test_set("NONE")  # every cell shows (Blender 4.2 leaves a depth test on here)
     gpu.state.point_size_set(CELL_POINT_SIZE)
     cached[1].draw(shader)
     gpu.state.point_size_set(1.0)
+    gpu.state.depth_test_set(depth_test)
     return True
 
 

@@ -30,7 +30,7 @@ from hybridgi_core.session import GISession
 from hybridgi_core.settings import CacheSettings
 from hybridgi_core.system import GISystem
 
-from . import animation, properties, sync, updates
+from . import animation, compat, properties, sync, updates
 
 log = logging.getLogger(__name__)
 
@@ -184,8 +184,14 @@ def render_frame(engine, depsgraph):
         pipeline.upload(snapshot)
         steps["upload"] = (time.perf_counter() - ts) * 1e3
 
+        warmup_start = time.perf_counter()
+
         def progress(i, n):
-            engine.update_stats("HybridGI", f"Converging cache {i + 1}/{n}")
+            # In the status bar, and logged (the CLI prints the add-on's INFO records on stderr);
+            # the updates cost about the same each, so the rest takes as long per update.
+            eta = (time.perf_counter() - warmup_start) / (i + 1) * (n - i - 1)
+            engine.update_stats("HybridGI", f"Converging cache {i + 1}/{n}, {eta:.1f} s left")
+            log.info("frame %d: converging cache %d/%d, %.1f s left", depsgraph.scene.frame_current, i + 1, n, eta)
             engine.update_progress(0.9 * (i + 1) / max(n, 1))
             if engine.test_break():
                 raise RenderCancelled("render cancelled")
@@ -382,8 +388,9 @@ def _record(scene, t0, steps, width, height, **extra):
 
 
 def _set_pass(layer, name, pixels):
-    """Write (h, w, c) float32 bottom-up pixels into a result pass, if the pass exists."""
-    rp = layer.passes.get(name)
+    """Write (h, w, c) float32 bottom-up pixels into a result pass (`name` as Blender 5.0 calls
+    it), if the pass exists."""
+    rp = layer.passes.get(compat.pass_name(name))
     if rp is None:
         return
     channels = rp.channels

@@ -17,7 +17,7 @@ import numpy as np
 from hybridgi_core import environment
 from hybridgi_core import snapshot as snap
 
-from . import world_bake
+from . import compat, world_bake
 
 log = logging.getLogger(__name__)
 
@@ -585,12 +585,11 @@ def light_from_blender(light, matrix_world, name=""):
     placed area.
     """
     matrix = np.array(matrix_world, np.float64)
+    use_temperature, exposure, normalize = compat.light_options(light)
     color = _rgb(light.color)
-    if getattr(light, "use_temperature", False):
+    if use_temperature:
         color = color * _rgb(light.temperature_color)
-    exposure = float(getattr(light, "exposure", 0.0))
     power = float(light.energy) * 2.0**exposure * float(getattr(light, "diffuse_factor", 1.0))
-    normalize = getattr(light, "normalize", True)
     kind = light.type
     fields = {}
     if kind in ("POINT", "SPOT"):

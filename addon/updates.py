@@ -16,6 +16,8 @@ from dataclasses import dataclass, field
 import bpy
 import numpy as np
 
+from . import compat
+
 #: Object types whose evaluated geometry may become triangles (the sync converts the mesh
 #: instances they evaluate to; lamps and cameras never do).
 GEOMETRY_TYPES = frozenset({"MESH", "CURVE", "CURVES", "SURFACE", "META", "FONT", "POINTCLOUD", "VOLUME",
@@ -68,17 +70,18 @@ def classify_updates(depsgraph, structure_key=None) -> DepsgraphUpdates:
     shading_only = False
     structure = False
     node_trees = False
+    geometry_edited = compat.geometry_edited_objects(depsgraph)
     for update in depsgraph.updates:
         id_ = update.id
         if isinstance(id_, bpy.types.Object):
             if id_.type == "LIGHT":
                 c.lights = True
             elif id_.type in GEOMETRY_TYPES:
-                if update.is_updated_geometry or update.is_updated_transform:
+                if id_.name in geometry_edited or update.is_updated_transform:
                     box = world_box(id_)
                     if box is not None:
                         c.boxes[id_.name] = box
-                if update.is_updated_geometry or id_.is_instancer:
+                if id_.name in geometry_edited or id_.is_instancer:
                     c.full = True
                 elif update.is_updated_transform:
                     c.moved[id_.name] = np.array(id_.matrix_world, np.float64)

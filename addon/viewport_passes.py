@@ -204,7 +204,8 @@ _SCREEN_BATCH = {}
 
 def draw_texture_fullscreen(texture) -> None:
     """Draw `texture` over the whole bound framebuffer with Blender's IMAGE shader (the one
-    `bind_display_space_shader` binds), whatever the matrix stack holds."""
+    `bind_display_space_shader` binds), whatever the matrix stack and depth test hold (Blender 4.2
+    leaves a depth test on in an offscreen's framebuffer)."""
     import gpu  # noqa: PLC0415
     from gpu_extras.batch import batch_for_shader  # noqa: PLC0415
     from mathutils import Matrix  # noqa: PLC0415
@@ -219,4 +220,7 @@ def draw_texture_fullscreen(texture) -> None:
         gpu.matrix.load_identity()
         gpu.matrix.load_projection_matrix(Matrix.Identity(4))
         shader.uniform_sampler("image", texture)
+        depth_test = gpu.state.depth_test_get()
+        gpu.state.depth_test_set("NONE")
         batch.draw(shader)
+        gpu.state.depth_test_set(depth_test)

@@ -29,10 +29,10 @@ import imagediff  # noqa: E402
 from compare_cycles import cli_command  # noqa: E402
 from compare_cycles import render as cli_render  # noqa: E402
 
-from hybridgi_cli import exr  # noqa: E402
+from hybridgi_cli import blender_compat, exr  # noqa: E402
 from hybridgi_cli.main import frame_range, resolution  # noqa: E402
 
-SCENE = ROOT / "blend_scenes" / "animated.blend"
+SCENE = blender_compat.scenes_dir() / "animated.blend"
 GAP = 4  # pixels between tiles (white)
 
 

@@ -44,7 +44,7 @@ import gpu  # noqa: E402
 import numpy as np  # noqa: E402
 from mathutils import Matrix  # noqa: E402
 
-from hybridgi_cli import dev_install  # noqa: E402
+from hybridgi_cli import blender_compat, dev_install  # noqa: E402
 
 
 class FakeEngine:
@@ -70,7 +70,7 @@ class FakeEngine:
 
 
 def scene_file(name: str) -> Path:
-    path = REPO / "blend_scenes" / f"{name}.blend"
+    path = blender_compat.scenes_dir() / f"{name}.blend"
     if path.exists():
         return path
     out = Path(tempfile.mkdtemp(prefix="hybridgi_scenes_"))

@@ -48,7 +48,7 @@ sys.path.insert(0, str(ROOT / "bench"))
 
 import imagediff  # noqa: E402
 
-from hybridgi_cli import exr  # noqa: E402
+from hybridgi_cli import blender_compat, exr  # noqa: E402
 
 DEFAULT_SCENES = ("cornell", "atrium", "spheres", "car")
 DEFAULT_RES = (320, 180)
@@ -416,13 +416,14 @@ def reference_noise(sweep: list[dict], ref_spp: int) -> float | None:
 
 
 def run_scene(scene: str, args) -> dict:
-    blend = ROOT / "blend_scenes" / f"{scene}.blend"
+    blend = blender_compat.scenes_dir() / f"{scene}.blend"
     res = args.res or SCENE_RES.get(scene, DEFAULT_RES)
     result: dict = {"scene": scene, "res": list(res)}
     if not blend.is_file():
         progress(f"{scene}: {blend} missing; building it")
         subprocess.run(
-            [sys.executable, str(ROOT / "blend_scenes" / "build.py"), "--only", scene], cwd=ROOT, check=False
+            [sys.executable, str(ROOT / "blend_scenes" / "build.py"), "--only", scene, "--out", str(blend.parent)],
+            cwd=ROOT, check=False,
         )
         if not blend.is_file():
             result["error"] = f"{blend} missing and could not be built"

@@ -15,6 +15,9 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 BIN = Path(sys.executable).parent
+sys.path.insert(0, str(ROOT))
+
+from hybridgi_cli import blender_compat  # noqa: E402
 
 
 def main() -> int:
@@ -25,10 +28,11 @@ def main() -> int:
     ap.add_argument("--frames", default="1")
     args = ap.parse_args()
 
-    blend = ROOT / "blend_scenes" / f"{args.scene}.blend"
+    blend = blender_compat.scenes_dir() / f"{args.scene}.blend"
     if not blend.exists():
         print(f"demo: building {blend.name}", file=sys.stderr)
-        subprocess.run([sys.executable, str(ROOT / "blend_scenes" / "build.py"), "--only", args.scene], check=True)
+        subprocess.run([sys.executable, str(ROOT / "blend_scenes" / "build.py"), "--only", args.scene,
+                        "--out", str(blend.parent)], check=True)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     prefix = out / args.scene

@@ -2,7 +2,8 @@
 
     python blend_scenes/build.py [--only NAME] [--out DIR]
 
-writes DIR/NAME.blend (DIR defaults to blend_scenes/). Every object, material, light, camera and
+writes DIR/NAME.blend (DIR defaults to blend_scenes/ for the default Blender, blend_scenes/blender-X.Y/
+for the others: a Blender cannot open files a newer one saved). Every object, material, light, camera and
 world comes from `procedural.describe(NAME)`, so the .blend and `procedural.NAME()` hold the same
 triangles in the same order under the same names. The animated scene's ball, bunny and light are
 keyframed on every frame from the same analytic motion (LINEAR keys, so integer frames are exact).
@@ -29,6 +30,7 @@ import bpy  # noqa: E402
 from mathutils import Matrix  # noqa: E402
 
 from blend_scenes import procedural  # noqa: E402
+from hybridgi_cli import blender_compat  # noqa: E402
 
 log = logging.getLogger("blend_scenes.build")
 
@@ -39,7 +41,7 @@ LINEAR = 1  # enum value of 'LINEAR' in FCurve keyframe interpolation (foreach_s
 
 def _material(spec) -> bpy.types.Material:
     """Principled BSDF with no specular layer: Cycles then shades it as the core's Lambertian."""
-    mat = bpy.data.materials.new(spec.name)
+    mat = blender_compat.new_material(bpy, spec.name)
     bsdf = mat.node_tree.nodes["Principled BSDF"]
     rgba = (*map(float, spec.base_color), 1.0)
     bsdf.inputs["Base Color"].default_value = rgba
@@ -89,6 +91,10 @@ def _append_bunny(material) -> bpy.types.Mesh | None:
     BUNNY_HEIGHT tall, facing -Y), or None where the shared file is missing."""
     if not BUNNY_BLEND.exists():
         log.warning("%s not found: the animated scene uses the procedural bunny stand-in", BUNNY_BLEND)
+        return None
+    if not blender_compat.opens_here(BUNNY_BLEND):
+        log.warning("%s was saved by Blender %d.%d, which this one cannot read: the animated scene uses the "
+                    "procedural bunny stand-in", BUNNY_BLEND, *blender_compat.saved_by(BUNNY_BLEND))
         return None
     with bpy.data.libraries.load(str(BUNNY_BLEND), link=False) as (src, dst):
         dst.objects = list(src.objects)
@@ -147,7 +153,7 @@ def _camera(spec: procedural.Camera, name: str) -> bpy.types.Object:
 
 
 def _world(spec, name: str) -> bpy.types.World:
-    world = bpy.data.worlds.new(name)
+    world = blender_compat.new_world(bpy, name)
     background = world.node_tree.nodes["Background"]
     background.inputs["Color"].default_value = (*map(float, spec.color), 1.0)
     background.inputs["Strength"].default_value = 1.0
@@ -164,7 +170,7 @@ def _keyframe(obj, path: str, frames: np.ndarray, values: np.ndarray) -> None:
         obj.animation_data.action = bpy.data.actions.new(f"{obj.name}_motion")
     action = obj.animation_data.action
     for i in range(values.shape[1]):
-        fc = action.fcurve_ensure_for_datablock(obj, path, index=i)
+        fc = blender_compat.fcurve_ensure(bpy, action, obj, path, i)
         fc.keyframe_points.add(len(frames))
         fc.keyframe_points.foreach_set("co", np.stack([frames, values[:, i]], 1).astype(np.float32).ravel())
         fc.keyframe_points.foreach_set("interpolation", np.full(len(frames), LINEAR, np.int32))
@@ -241,7 +247,7 @@ def build(name: str, out_dir: Path) -> Path:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--only", choices=procedural.SCENE_NAMES, help="build just this scene")
-    parser.add_argument("--out", type=Path, default=Path(__file__).resolve().parent, help="output folder")
+    parser.add_argument("--out", type=Path, default=blender_compat.scenes_dir(), help="output folder")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
     for name in [args.only] if args.only else procedural.SCENE_NAMES:

@@ -5,7 +5,8 @@
     hybridgi check
 
 stdout carries only JSON, one line per rendered frame (Blender's own messages are moved to
-stderr), so a caller can parse it line by line. Exit status: 0 on success, 1 when a scene cannot
+stderr, and the command leaves without bpy's teardown, which prints on stdout in some versions),
+so a caller can parse it line by line. Exit status: 0 on success, 1 when a scene cannot
 be loaded, a setting is refused, the output cannot be written or a frame fails (one
 `hybridgi: error: ...` line on stderr, no traceback), 2 for bad arguments, 130 after Ctrl-C.
 Frames are written atomically (`output.py`): a failed or interrupted frame leaves no file.
@@ -18,6 +19,7 @@ import atexit
 import contextlib
 import importlib
 import json
+import logging
 import math
 import os
 import re
@@ -27,7 +29,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from . import dev_install, interrupt, output, tracebacks
+from . import blender_compat, dev_install, interrupt, output, tracebacks
 
 ENGINES = ("HYBRIDGI", "CYCLES", "BLENDER_EEVEE")
 
@@ -112,6 +114,14 @@ def one_line(text: str) -> str:
 def _remove_own_folders() -> None:
     for folder in _OWN_FOLDERS:
         shutil.rmtree(folder, ignore_errors=True)
+
+
+def console_main() -> None:
+    """The `hybridgi` command: main(), then leave without bpy's teardown (blender_compat.exit_now;
+    it skips atexit, so the command's own folders are removed here)."""
+    status = main()
+    _remove_own_folders()
+    blender_compat.exit_now(status)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -265,9 +275,22 @@ def import_bpy():
 
 def enable_addon():
     try:
-        return dev_install.enable()
+        package = dev_install.enable()
     except dev_install.DevInstallError as err:
         raise CliError(str(err)) from err
+    log_to_stderr(package.__name__)
+    return package
+
+
+def log_to_stderr(package_name: str) -> None:
+    """The add-on's INFO records on stderr: warm-up progress with the time left, frame times."""
+    logger = logging.getLogger(package_name)
+    if not any(getattr(h, "hybridgi_cli", False) for h in logger.handlers):
+        handler = logging.StreamHandler(sys.stderr)
+        handler.setFormatter(logging.Formatter("hybridgi: %(message)s"))
+        handler.hybridgi_cli = True
+        logger.addHandler(handler)
+        logger.setLevel(logging.INFO)
 
 
 def open_scene(bpy, path: Path):
@@ -437,14 +460,11 @@ def save(bpy, scene, png: Path, exr: Path) -> None:
     """8-bit colour-managed PNG, then every pass as 32-bit float multilayer EXR."""
     result = bpy.data.images["Render Result"]
     settings = scene.render.image_settings
-    settings.media_type = "IMAGE"
-    settings.file_format = "PNG"
+    blender_compat.set_file_format(bpy, settings, "PNG")
     settings.color_mode = "RGBA"
     settings.color_depth = "8"
     result.save_render(str(png), scene=scene)
-    # Blender 5.0: the media type must be chosen before a multilayer format can be.
-    settings.media_type = "MULTI_LAYER_IMAGE"
-    settings.file_format = "OPEN_EXR_MULTILAYER"
+    blender_compat.set_file_format(bpy, settings, "OPEN_EXR_MULTILAYER")
     settings.color_depth = "32"
     settings.exr_codec = "ZIP"
     result.save_render(str(exr), scene=scene)
@@ -458,4 +478,4 @@ def progress(message: str) -> None:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    console_main()

@@ -103,16 +103,20 @@ def read_manifest() -> tuple[str, dict]:
 
 
 def bundled_requirements() -> list[tuple[str, str]]:
-    """(name, version) of the dependencies the extension bundles: pyproject's pins minus numpy."""
+    """(name, version) of the dependencies the extension bundles: pyproject's pins minus numpy
+    (whose pins carry environment markers: each Blender's Python has its own numpy)."""
     dependencies = tomllib.loads(PYPROJECT.read_text(encoding="utf-8"))["project"]["dependencies"]
     pins = []
     for spec in dependencies:
-        match = re.fullmatch(r"\s*([A-Za-z0-9][A-Za-z0-9._-]*)\s*==\s*([^\s;]+)\s*", spec)
+        match = re.fullmatch(r"\s*([A-Za-z0-9][A-Za-z0-9._-]*)\s*==\s*([^\s;]+)\s*(;.*)?", spec)
         if match is None:
             raise BuildError(f"pyproject.toml: dependency {spec!r} is not pinned with == (wheels must be exact)")
-        name, version = match.groups()
-        if normalized(name) not in {normalized(n) for n in SHIPPED_WITH_BLENDER}:
-            pins.append((name, version))
+        name, version, marker = match.groups()
+        if normalized(name) in {normalized(n) for n in SHIPPED_WITH_BLENDER}:
+            continue
+        if marker:
+            raise BuildError(f"pyproject.toml: bundled dependency {spec!r} must hold for every Python (no marker)")
+        pins.append((name, version))
     return pins
 
 

@@ -19,13 +19,14 @@ import numpy as np
 import pytest
 
 from blend_scenes import procedural
-from hybridgi_cli import exr
+from hybridgi_cli import blender_compat, exr
 
 pytestmark = pytest.mark.blender
 
 REPO = Path(__file__).resolve().parents[1]
-ANIMATED = REPO / "blend_scenes" / "animated.blend"
-CORNELL = REPO / "blend_scenes" / "cornell.blend"
+SCENES = blender_compat.scenes_dir()  # this Blender's own build of the bundled scenes
+ANIMATED = SCENES / "animated.blend"
+CORNELL = SCENES / "cornell.blend"
 W, H = 96, 54
 FAST = ("--res", f"{W}x{H}", "--set", "warmup_iterations=4")
 
@@ -35,7 +36,7 @@ def bundled_scenes():
     """The bundled .blend files are build outputs (not in git): build the missing ones."""
     for blend in (ANIMATED, CORNELL):
         if not blend.exists():
-            subprocess.run([sys.executable, str(REPO / "blend_scenes" / "build.py"), "--only", blend.stem],
+            subprocess.run([sys.executable, str(REPO / "blend_scenes" / "build.py"), "--only", blend.stem, "--out", str(SCENES)],
                            check=True, capture_output=True, timeout=300)
 
 

@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from hybridgi_cli import exr
+from hybridgi_cli import blender_compat, exr
 
 REPO = Path(__file__).resolve().parents[1]
 SCENES = Path(__file__).resolve().parents[2] / "shared" / "scenes"
@@ -47,10 +47,23 @@ def png_size(path: Path) -> tuple[int, int]:
     return struct.unpack(">II", header[16:24])
 
 
-@pytest.mark.skipif(not CORNELL.exists(), reason="shared test scenes are not available")
-def test_cycles_render_writes_png_exr_and_json(tmp_path):
+@pytest.fixture(scope="module")
+def cornell(tmp_path_factory) -> tuple[Path, float]:
+    """(a Cornell box this Blender opens, its highest albedo): the shared one (McGuire's), else the
+    bundled one built here (Blender 4.2 cannot read files saved by 5.0; the shared ones may be absent)."""
+    if CORNELL.exists() and blender_compat.opens_here(CORNELL):
+        return CORNELL, 0.725
+    out = tmp_path_factory.mktemp("scenes")
+    env = {k: v for k, v in os.environ.items() if k != "BLENDER_USER_RESOURCES"}
+    subprocess.run([sys.executable, str(REPO / "blend_scenes" / "build.py"), "--only", "cornell", "--out", str(out)],
+                   check=True, capture_output=True, timeout=120, env=env, cwd=REPO)
+    return out / "cornell.blend", 0.8
+
+
+def test_cycles_render_writes_png_exr_and_json(tmp_path, cornell):
+    blend, albedo = cornell
     run = hybridgi(
-        "render", str(CORNELL), "--out", str(tmp_path / "cb"),
+        "render", str(blend), "--out", str(tmp_path / "cb"),
         "--engine", "CYCLES", "--samples", "4", "--res", "64x48", "--frames", "1",
     )
     assert run.returncode == 0, run.stderr[-2000:]
@@ -70,17 +83,21 @@ def test_cycles_render_writes_png_exr_and_json(tmp_path):
             assert key in channels, f"{key} missing from {sorted(channels)}"
             assert channels[key].shape == (48, 64)
     # The values are the passes', not placeholders: an opaque render lit by the ceiling, the box's
-    # albedos (<= 0.725) in Diffuse Color, unit normals, positive depth.
+    # albedos in Diffuse Color, unit normals, positive depth.
     assert np.all(channels["ViewLayer.Combined.A"] == 1.0)
     assert channels["ViewLayer.Diffuse Direct.R"].mean() > 0.1
     assert channels["ViewLayer.Diffuse Indirect.G"].mean() > 0.01
-    assert 0.0 <= channels["ViewLayer.Diffuse Color.R"].min() and channels["ViewLayer.Diffuse Color.R"].max() <= 0.73
+    assert 0.0 <= channels["ViewLayer.Diffuse Color.R"].min() and channels["ViewLayer.Diffuse Color.R"].max() <= albedo + 0.005
     normal = np.stack([channels[f"ViewLayer.Normal.{c}"] for c in "XYZ"], axis=-1)
-    # Unit length except where pixel filtering averages normals across an edge.
-    assert np.mean(np.abs(np.linalg.norm(normal, axis=-1) - 1.0) < 1e-3) > 0.8
+    # Unit length on geometry except where pixel filtering averages normals across an edge (or
+    # with the background: the bundled box is open towards the camera).
+    geometry = channels["ViewLayer.Depth.Z"] < 1e9
+    assert geometry.mean() > 0.3
+    assert np.mean(np.abs(np.linalg.norm(normal[geometry], axis=-1) - 1.0) < 1e-3) > 0.7
     assert channels["ViewLayer.Depth.Z"].min() > 0.0
 
 
+@pytest.mark.smoke
 def test_check_registers_the_engine_from_this_checkout():
     run = hybridgi("check")
     assert run.returncode == 0, run.stderr[-2000:]
@@ -107,9 +124,8 @@ def test_bad_arguments_exit_2_with_a_message(args, message):
     assert run.stdout == ""
 
 
-@pytest.mark.skipif(not CORNELL.exists(), reason="shared test scenes are not available")
-def test_unknown_setting_exits_1(tmp_path):
-    run = hybridgi("render", str(CORNELL), "--out", str(tmp_path / "x"), "--engine", "CYCLES", "--set", "bogus=1")
+def test_unknown_setting_exits_1(tmp_path, cornell):
+    run = hybridgi("render", str(cornell[0]), "--out", str(tmp_path / "x"), "--engine", "CYCLES", "--set", "bogus=1")
     assert run.returncode == 1
     assert "cycles has no writable setting 'bogus'" in run.stderr
     assert not list(tmp_path.iterdir())
@@ -199,14 +215,15 @@ def test_engine_registers_only_enabled_passes(addon, empty_scene):
     layer.use_pass_ambient_occlusion = True
     fake = FakeEngine()
     engine_mod.HybridGIRenderEngine.update_render_passes(fake, empty_scene, layer)
-    assert [p[0] for p in fake.passes] == ["Combined", "Diffuse Indirect", "Ambient Occlusion"]
-    assert fake.passes[2] == ("Ambient Occlusion", 3, "RGB", "COLOR")
+    name = blender_compat.cycles_pass_name  # DiffInd, AO ... before Blender 5.0
+    assert [p[0] for p in fake.passes] == ["Combined", name("Diffuse Indirect"), name("Ambient Occlusion")]
+    assert fake.passes[2] == (name("Ambient Occlusion"), 3, "RGB", "COLOR")
 
     for flag in ("use_pass_z", "use_pass_normal", "use_pass_diffuse_direct", "use_pass_diffuse_color"):
         setattr(layer, flag, True)
     fake = FakeEngine()
     engine_mod.HybridGIRenderEngine.update_render_passes(fake, empty_scene, layer)
-    assert {p[0]: (p[1], p[2]) for p in fake.passes} == {name: (len(ch), ch) for name, ch in PASSES.items()}
+    assert {p[0]: (p[1], p[2]) for p in fake.passes} == {name(n): (len(ch), ch) for n, ch in PASSES.items()}
 
 
 def test_set_assigns_typed_values(addon, empty_scene):
@@ -320,9 +337,10 @@ def test_engine_render_writes_registered_passes_to_exr(addon, fake_pipeline, emp
     assert importlib.import_module(f"{addon.__name__}.engine").LAST_ERROR is None
     cli.save(bpy, scene, tmp_path / "f.png", tmp_path / "f.exr")
 
-    channels = exr.read_channels(tmp_path / "f.exr")
-    assert set(filled) == set(PASSES)
+    channels = exr.read_channels(tmp_path / "f.exr")  # by Blender 5.0's pass names
+    current = {blender_compat.cycles_pass_name(name): name for name in PASSES}
+    assert set(filled) == set(current)
     for i, name in enumerate(filled):
-        for c in PASSES[name]:
-            assert np.all(channels[f"ViewLayer.{name}.{c}"] == i + 1), name
+        for c in PASSES[current[name]]:
+            assert np.all(channels[f"ViewLayer.{current[name]}.{c}"] == i + 1), name
     assert png_size(tmp_path / "f.png") == (8, 6)

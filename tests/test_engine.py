@@ -4,6 +4,7 @@ the pixels of the multilayer EXR it writes, and against Cycles rendered in the s
 from __future__ import annotations
 
 import json
+import re
 import subprocess
 import sys
 import textwrap
@@ -12,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from hybridgi_cli import exr
+from hybridgi_cli import blender_compat, exr
 
 ROOT = Path(__file__).resolve().parents[1]
 HYBRIDGI = Path(sys.executable).parent / "hybridgi"
@@ -59,17 +60,21 @@ def cornell_render(cornell, tmp_path_factory):
     return render(cornell, tmp_path_factory.mktemp("hg") / "cornell")
 
 
+@pytest.mark.smoke
 def test_all_passes_present_with_cycles_names_and_channels(cornell_render):
     record, ch = cornell_render
     expected = {
         "Combined": "RGBA", "Diffuse Direct": "RGB", "Diffuse Indirect": "RGB", "Diffuse Color": "RGB",
         "Ambient Occlusion": "RGB", "Depth": "Z", "Normal": "XYZ",
     }
+    in_file = set(exr.channel_names(record["exr"]))
     for name, chans in expected.items():
         for c in chans:
             key = f"ViewLayer.{name}.{c}"
             assert key in ch, key
             assert ch[key].shape == (72, 96) and np.isfinite(ch[key]).all(), key
+            # The file holds this Blender's Cycles names (DiffDir ... before 5.0).
+            assert f"ViewLayer.{blender_compat.cycles_pass_name(name)}.{c}" in in_file, key
     assert record["engine"] == "HYBRIDGI" and record["rays"] > 0
     for step in ("gbuffer", "downsample", "select", "warmup", "gather", "ssao", "bilateral", "deferred"):
         assert step in record["steps_ms"], step
@@ -80,6 +85,7 @@ def test_all_passes_present_with_cycles_names_and_channels(cornell_render):
     assert rel_l1(recon, comb, geo) < 1e-3
 
 
+@pytest.mark.smoke
 def test_cornell_red_wall_bleeds_onto_the_floor(cornell_render):
     """Floor pixels near the red (left) wall get redder indirect light than those near the green one."""
     _, ch = cornell_render
@@ -97,6 +103,7 @@ def test_cornell_red_wall_bleeds_onto_the_floor(cornell_render):
     assert red_left / red_right > 1.5, (red_left, red_right)
 
 
+@pytest.mark.smoke
 def test_cornell_indirect_close_to_cycles(cornell, cornell_render, tmp_path):
     """Diffuse Indirect within 0.20 relative L1 (3x3 blur, geometry pixels) of Cycles at 256 spp.
 
@@ -117,12 +124,13 @@ def _write_blend(path: Path, body: str) -> None:
     script = textwrap.dedent(
         """
         import bpy
+        from hybridgi_cli import blender_compat
         bpy.ops.wm.read_homefile(use_empty=True)
         scene = bpy.context.scene
         cam = bpy.data.objects.new("cam", bpy.data.cameras.new("cam"))
         cam.location = (0, -6, 2); cam.rotation_euler = (1.3, 0, 0)
         scene.collection.objects.link(cam); scene.camera = cam
-        scene.world = bpy.data.worlds.new("w"); scene.world.use_nodes = True
+        scene.world = blender_compat.new_world(bpy, "w")
         """
     ) + textwrap.dedent(body) + f"\nbpy.ops.wm.save_as_mainfile(filepath={str(path)!r})\n"
     subprocess.run([sys.executable, "-c", script], check=True, capture_output=True, timeout=120)
@@ -165,3 +173,13 @@ def test_scene_without_camera_fails_with_a_clear_message(tmp_path):
                          capture_output=True, text=True, timeout=300)
     assert run.returncode != 0
     assert "camera" in run.stderr.lower()
+
+
+def test_warm_up_progress_says_how_long_is_left(cornell, tmp_path):
+    """Each warm-up update's status (Blender's status bar; logged, so the CLI prints it on stderr)
+    carries an estimate of the time left."""
+    run = subprocess.run([str(HYBRIDGI), "render", str(cornell), "--out", str(tmp_path / "p"), "--res", "32x24",
+                          "--set", "warmup_iterations=3"], capture_output=True, text=True, timeout=600)
+    assert run.returncode == 0, run.stderr[-3000:]
+    left = [float(s) for s in re.findall(r"hybridgi: frame 1: converging cache \d/3, (\d+\.\d) s left", run.stderr)]
+    assert len(left) == 3 and left[-1] == 0.0 and left[0] > 0.0, run.stderr[-3000:]

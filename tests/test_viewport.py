@@ -265,6 +265,7 @@ def test_worker_runs_with_bpy_gpu_mathutils_blocked():
 # ----------------------------------------------------------------------------------------------
 # the engine's viewport
 # ----------------------------------------------------------------------------------------------
+@pytest.mark.smoke
 def test_viewport_frame_of_cornell_box_shows_colour_bleeding(view):
     img = _converged_image(view)
     assert np.isfinite(img).all()
@@ -494,6 +495,7 @@ def test_gi_overlay_multiplies_indirect_light_into_the_view(view, addon):
     assert overlay.session_for(scene) is None
 
 
+@pytest.mark.smoke
 def test_cells_overlay_draws_a_point_per_valid_cell(view, addon):
     import gpu  # noqa: PLC0415
 
@@ -565,6 +567,7 @@ def test_sidebar_tab_shows_settings_and_live_stats(view, addon):
     assert "Converged: 100%" in text and "GI updates" in text and "Main thread" in text, text
 
 
+@pytest.mark.smoke
 def test_material_edit_reaches_the_image_without_a_full_resync(view, addon):
     bpy = addon.bpy
     before = _converged_image(view)

@@ -65,19 +65,54 @@ def read_texture(texture, channels: int | None = None) -> np.ndarray:
     return read_framebuffer(fb, 0, texture.width, texture.height, channels)
 
 
+_LAYER_COPY = {}
+
+
 def read_texture_3d(texture, depth: int, channels: int | None = None) -> np.ndarray:
     """A 3D texture as (depth, h, w, channels) float32, read layer by layer.
 
     `GPUTexture.read()` returns one slice only for 3D textures (bpy 5.0), and the texture
-    object does not expose its depth, so the caller passes it.
+    object does not expose its depth, so the caller passes it. Each layer is copied texel by texel
+    (texelFetch) into a 2D RGBA32F target and read from there: attaching one layer of a 3D texture
+    to a framebuffer (`{"texture": t, "layer": z}`) fails to parse in Blender 4.2.
     """
     import gpu  # noqa: PLC0415
 
+    from .glsl import ShaderSpec, build_shader  # noqa: PLC0415
+
+    if not _LAYER_COPY:
+        _LAYER_COPY["shader"] = build_shader(ShaderSpec(
+            name="hybridgi_read_layer",
+            vertex="void main() { gl_Position = vec4(pos, 0.0, 1.0); }",
+            fragment="void main() { out_color = texelFetch(volume_tx, ivec3(ivec2(gl_FragCoord.xy), layer), 0); }",
+            vertex_in=((0, "VEC2", "pos"),), samplers=((0, "FLOAT_3D", "volume_tx"),), push=(("INT", "layer"),),
+            outputs=((0, "VEC4", "out_color"),),
+        ))
+        fmt = gpu.types.GPUVertFormat()
+        fmt.attr_add(id="pos", comp_type="F32", len=2, fetch_mode="FLOAT")
+        vbo = gpu.types.GPUVertBuf(fmt, 3)
+        vbo.attr_fill("pos", ((-1.0, -1.0), (3.0, -1.0), (-1.0, 3.0)))
+        _LAYER_COPY["batch"] = gpu.types.GPUBatch(type="TRIS", buf=vbo)
+    shader, batch = _LAYER_COPY["shader"], _LAYER_COPY["batch"]
     channels = channels or FORMAT_CHANNELS.get(texture.format, 4)
+    target = gpu.types.GPUTexture((texture.width, texture.height), format="RGBA32F")
+    fb = gpu.types.GPUFrameBuffer(color_slots=(target,))
     out = np.empty((depth, texture.height, texture.width, channels), np.float32)
+    layer = np.empty((texture.height, texture.width, 4), np.float32)
     for z in range(depth):
-        fb = gpu.types.GPUFrameBuffer(color_slots=({"texture": texture, "layer": z},))
-        read_framebuffer(fb, 0, texture.width, texture.height, channels, out=out[z])
+        with fb.bind():
+            gpu.state.viewport_set(0, 0, texture.width, texture.height)
+            depth_test, blend = gpu.state.depth_test_get(), gpu.state.blend_get()
+            gpu.state.depth_test_set("NONE")
+            gpu.state.blend_set("NONE")
+            shader.bind()
+            shader.uniform_sampler("volume_tx", texture)
+            shader.uniform_int("layer", z)
+            batch.draw(shader)
+            gpu.state.depth_test_set(depth_test)
+            gpu.state.blend_set(blend)
+        read_framebuffer(fb, 0, texture.width, texture.height, 4, out=layer)
+        out[z] = layer[..., :channels]
     return out
 
 
