@@ -4,7 +4,7 @@ VENV := .venv
 STAMP := $(VENV)/.setup-done
 OUT ?= out
 
-.PHONY: setup test demo bench scenes lint extension clean
+.PHONY: setup test demo bench compare scenes lint extension clean
 
 $(STAMP): pyproject.toml scripts/setup.sh
 	bash scripts/setup.sh
@@ -17,6 +17,11 @@ test: setup scenes
 
 bench: setup
 	$(VENV)/bin/python bench/bench_core.py
+
+# Time to quality (issue #10): HybridGI vs Cycles + OIDN vs EEVEE against cached Cycles references;
+# writes docs/time_to_quality.{md,png}; last stdout line is JSON. Dev runs: bench/time_to_quality.py --quick.
+compare: setup scenes
+	$(VENV)/bin/python bench/time_to_quality.py --docs docs
 
 # The bundled .blend files are build outputs of procedural.py + build.py (not kept in git).
 SCENES := $(addprefix blend_scenes/,$(addsuffix .blend,cornell atrium spheres car animated))

@@ -29,5 +29,5 @@ if [ -z "$PY" ]; then
 fi
 [ -x .venv/bin/python ] || "$PY" -m venv .venv
 .venv/bin/python -m pip install -q --upgrade pip
-.venv/bin/python -m pip install -q -e ".[blender,dev]"
+.venv/bin/python -m pip install -q -e ".[blender,dev,bench]"
 .venv/bin/python -c "import bpy, embreex, fast_simplification, numpy; print('setup: ok, bpy', bpy.app.version_string)"
