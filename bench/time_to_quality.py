@@ -333,12 +333,13 @@ def run_viewport(job: Job, args, ref: Reference) -> dict:
 
 
 def summarize(job: Job, res: dict) -> dict:
-    oidn = [e for e in res["cycles_oidn"] if e.get("combined") is not None]
+    peers = res["peers"]
+    oidn = [e for e in peers["cycles_oidn"] if e.get("combined") is not None]
     target_entry = next((e for e in oidn if e["spp"] == TARGET_SPP), None)
     if target_entry is None:
         return {"error": f"no Cycles {TARGET_SPP} spp + OIDN result: no target"}
     target = target_entry["combined"]
-    hyb = [e for e in res["hybridgi"] if e.get("combined") is not None]
+    hyb = [e for e in peers["hybridgi"] if e.get("combined") is not None]
     c = ql.time_to_error([(e["seconds"], e["combined"]) for e in oidn], target)
     h_wall = ql.time_to_error([(e["seconds"], e["combined"]) for e in hyb], target)
     h_gpu = ql.time_to_error([(e["seconds_minus_gpu"], e["combined"]) for e in hyb], target)
@@ -587,6 +588,8 @@ def parse_args(argv=None):
     parser.add_argument("--no-viewport", dest="viewport", action="store_false")
     parser.add_argument("--eevee", action=argparse.BooleanOptionalAction, default=None, help="default: on unless --quick")
     parser.add_argument("--references-only", action="store_true", help="render missing references, measure nothing")
+    parser.add_argument("--report-only", action="store_true",
+                        help="render nothing: summarize OUT/results.json again (table, plot, JSON)")
     parser.add_argument("--nice", type=int, default=0, help="niceness of the measured renders")
     parser.add_argument("--ref-nice", type=int, default=0, help="niceness of reference renders")
     parser.add_argument("--timeout", type=int, default=1200, help="seconds per measured render")
@@ -607,6 +610,15 @@ def parse_args(argv=None):
 
 def main(argv=None) -> int:
     args = parse_args(argv)
+    if args.report_only:
+        results = json.loads((args.out / "results.json").read_text())["results"]
+        for entry in results:
+            if "peers" in entry:
+                entry["summary"] = summarize(None, entry)
+        report = write_outputs(results, args)
+        print(report)
+        print(json.dumps(final_json(results, args)))
+        return 0
     jobs = scene_jobs(args)
     if args.references_only:
         for job in jobs:
@@ -634,6 +646,7 @@ def main(argv=None) -> int:
             entry["viewport"] = run_viewport(job, args, ref)
             if entry["viewport"].get("error"):
                 progress(f"{job.label}: viewport failed: {entry['viewport']['error']}")
+        write_outputs(results, args)  # the measurements are kept even if summarizing fails
         entry["summary"] = summarize(job, entry)
         progress(f"{job.label}: {json.dumps(entry['summary'])}")
         write_outputs(results, args)

@@ -58,7 +58,7 @@ from hybridgi_cli import dev_install  # noqa: E402
 
 #: How long the view may take to re-converge between timelines (the worker keeps refining a
 #: converged view for a long time; 99% of its cells converged is what bench_viewport.py waits for).
-CONVERGE_TIMEOUT_S = 30.0
+CONVERGE_TIMEOUT_S = 20.0
 #: Sleep of the wall timeline's loop when a redraw had nothing new to draw (Blender's redraw
 #: timer would not redraw either).
 IDLE_POLL_S = 0.005
