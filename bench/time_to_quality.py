@@ -322,11 +322,21 @@ def run_viewport(job: Job, args, ref: Reference) -> dict:
         tail = log_path.read_text(errors="replace").strip().splitlines()[-3:]
         return {"error": f"exit {proc.returncode}: {' | '.join(tail)} (log {log_path})"}
     record = json.loads(lines[-1])
-    for timeline in TIMELINES:
-        for shot in record.get("timelines", {}).get(timeline, []):
-            img = np.load(folder / shot.pop("file"))[::-1].astype(np.float32)  # GL rows are bottom-up
-            shot.update(score(ref, img))
+    record["folder"] = str(folder)
+    score_viewport(record, ref)
     return record
+
+
+def score_viewport(record: dict, ref: Reference) -> None:
+    """Score every shot that still names its image file (the file name is then dropped)."""
+    folder = Path(record["folder"])
+    for shots in record.get("timelines", {}).values():
+        for shot in shots:
+            if "file" in shot and (folder / shot["file"]).is_file():
+                img = np.load(folder / shot.pop("file"))[::-1].astype(np.float32)  # GL rows are bottom-up
+                shot.update(score(ref, img))
+            if shot.get("checkpoint") is not None and not math.isfinite(shot["checkpoint"]):
+                shot["checkpoint"] = None
 
 
 # --- summary ---------------------------------------------------------------------------------------------
@@ -474,6 +484,10 @@ def markdown(results: list[dict], args) -> str:
             if shots:
                 cells = ", ".join(f"{s['t']:.2f} s: {_fmt(s.get('combined'), '.3f')}" for s in shots)
                 lines.append(f"| {r['label']} | HybridGI viewport | {timeline} | {cells} | | | | |")
+        settled = ((vp.get("timelines") or {}).get("settled") or [{}])[0]
+        if settled.get("combined") is not None:
+            lines.append(f"| {r['label']} | HybridGI viewport | settled (after light move) | {settled['t']:.1f} | | "
+                         f"{_fmt(settled['combined'])} | n/a | {_fmt(settled.get('flip'))} |")
         if vp.get("error"):
             lines.append(f"| {r['label']} | HybridGI viewport | | failed: {vp['error'][:160]} | | | | |")
         if vp.get("notes"):
@@ -619,6 +633,10 @@ def main(argv=None) -> int:
         results = json.loads((args.out / "results.json").read_text())["results"]
         for entry in results:
             if "peers" in entry:
+                vp = entry.get("viewport") or {}
+                if "timelines" in vp:
+                    vp.setdefault("folder", str(args.out / "viewport" / f"{entry['scene']}_{entry['res'][0]}x{entry['res'][1]}"))
+                    score_viewport(vp, Reference(entry["reference"]["exr"]))
                 entry["summary"] = summarize(None, entry)
         report = write_outputs(results, args)
         print(report)

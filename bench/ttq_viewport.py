@@ -26,7 +26,10 @@ lamp moves 30% of the way towards the middle of the scene), the view re-converge
 moves back to where the reference has it; the timelines start at the first draw after that move,
 from a cache converged for the other position. So the image is compared with the one reference.
 
-Prints one JSON line: {"sync_s", "first_draw_ms", "timelines": {name: [{"t", "file"}]}, "notes"};
+Last, "settled": the worker session's view after a further settle (up to CONVERGE_TIMEOUT_S), the
+viewport's own converged error.
+
+Prints one JSON line: {"*_sync_s", "timelines": {name: [{"t", "file"}]}, "notes"};
 the images are DIR/<timeline>_<i>.npy (float16, (h, w, 4), rows bottom-up).
 """
 
@@ -217,8 +220,14 @@ def run_timelines(viewport, args, width, height, folder, checkpoints, timed, tim
         view.draw()
         view.settle()
         back()
+        t_light = time.perf_counter()
         out[f"{prefix}_light"] = timeline_fn(view, checkpoints, folder, f"{prefix}_light")
         timed["light"] = f"{light.name} ({light.data.type})"
+        if prefix == "worker":
+            # Where the view ends up: the light-move timeline's view after a further settle.
+            view.settle()
+            _, img = view.draw(read=True)
+            out["settled"] = [_save(folder, "settled", 0, img, time.perf_counter() - t_light, None)]
     finally:
         view.close()
     return out, notes
