@@ -3,7 +3,7 @@ converged path tracing, on the same CPU, measured in one run (issue #10, part 1)
 
     python bench/time_to_quality.py [--scenes cornell,atrium,...] [--res 640x360] [--quick]
         [--hd | --no-hd] [--ref-spp 1024] [--ref-cache DIR] [--out out/ttq] [--docs docs]
-        [--no-viewport] [--no-eevee] [--references-only]
+        [--no-viewport] [--no-eevee] [--references-only] [--report-only]
 
 `make compare` runs the full benchmark and writes docs/time_to_quality.{md,png}.
 
@@ -29,7 +29,8 @@ Per scene (every bundled scene in blend_scenes/, then ../shared/scenes/*.blend w
     * worker: the main thread draws once (posting the view) and then sleeps; the worker's
       publications are captured at the checkpoints and drawn afterwards. A real GPU rasterizes in
       milliseconds and asynchronously, so this is the timeline a machine with a GPU would show
-      (the GI itself runs on the CPU either way).
+      (the GI itself runs on the CPU either way);
+  plus the viewport's "settled" image (after a further settle), its own converged error.
 
 Errors, against the reference over its geometry pixels (Depth pass): relative L1 of Combined and of
 Diffuse Indirect (`imagediff.relative_l1`; Cycles' denoiser only denoises Combined, so the OIDN
@@ -45,7 +46,9 @@ Output: OUT/results.json, OUT/time_to_quality.{md,png} (and the same in --docs),
 stdout, and a last stdout line of JSON: per scene the target error (Cycles 16 spp + OIDN's
 Combined), the seconds HybridGI (wall and without GPU passes) and Cycles + OIDN need for it
 (`quality_ladder.time_to_error`, log-log along each ladder) and their ratios ("inf" with a reason
-where HybridGI never gets there, null where Cycles does not). Renders run one at a time; timings
+where HybridGI never gets there, null where Cycles does not). --references-only pre-renders the
+references; --report-only rebuilds table, plot and JSON from OUT/results.json (a run cut short
+keeps every finished scene there). Renders run one at a time; timings
 on a shared machine are noisy, which is why every peer is measured in the same run.
 """
 
