@@ -12,7 +12,7 @@ endif
 STAMP := $(VENV)/.setup-done
 OUT ?= out
 
-.PHONY: setup test smoke demo bench plots scenes lint extension clean
+.PHONY: setup test smoke demo bench compare plots scenes lint extension clean
 
 $(STAMP): pyproject.toml scripts/setup.sh
 	BLENDER=$(BLENDER) bash scripts/setup.sh $(VENV)
@@ -30,6 +30,12 @@ smoke: setup
 
 bench: setup
 	$(VENV)/bin/python bench/bench_core.py
+
+# Time to quality (issue #10): HybridGI vs Cycles + OIDN vs EEVEE against cached Cycles references;
+# writes docs/time_to_quality.{md,png}; last stdout line is JSON. Dev runs: bench/time_to_quality.py --quick.
+compare: setup scenes
+	$(VENV)/bin/python -m pip install -q -e ".[bench]"
+	$(VENV)/bin/python bench/time_to_quality.py --docs docs
 
 # docs/timings.png (per-step time against rays per cell, cache and image resolution: one atrium
 # render per point) and docs/accuracy.png (from bench/compare_cycles.py's report, when present).

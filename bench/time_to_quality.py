@@ -1,0 +1,686 @@
+"""Time to quality: how soon HybridGI, Cycles + OpenImageDenoise and EEVEE reach an image close to
+converged path tracing, on the same CPU, measured in one run (issue #10, part 1).
+
+    python bench/time_to_quality.py [--scenes cornell,atrium,...] [--res 640x360] [--quick]
+        [--hd | --no-hd] [--ref-spp 1024] [--ref-cache DIR] [--out out/ttq] [--docs docs]
+        [--no-viewport] [--no-eevee] [--references-only] [--report-only]
+
+`make compare` runs the full benchmark and writes docs/time_to_quality.{md,png}.
+
+Per scene (every bundled scene in blend_scenes/, then ../shared/scenes/*.blend when present, at
+640x360; with --hd also the atrium at 1280x720):
+
+- a Cycles reference: CPU, --ref-spp samples (1024; --quick 64), 32 bounces, no clamping, no
+  denoising or adaptive sampling (the CLI's CYCLES_REFERENCE). Cached under --ref-cache
+  (default out/ttq_refs/, gitignored) by `quality_ladder.reference_key`: the scene's content (the
+  procedural sources of a bundled scene, whose .blend bytes change with every build; the bytes of
+  any other .blend), the Blender version, the resolution, the samples and the settings. A later
+  run with the same key renders nothing.
+- peers in the same run: Cycles + OpenImageDenoise at 1, 4, 16, 64 spp (the reference's settings,
+  all CPU threads, denoising on, seed 1 so their noise is independent of the reference's), and
+  EEVEE at its defaults (it renders headless on llvmpipe here: its seconds are llvmpipe's, a real
+  GPU's would be far lower; it has no Diffuse Indirect pass).
+- HybridGI final renders along LADDER (cache resolution, rays per cell, warm-up updates).
+- the HybridGI viewport, driven headless with the scene camera by bench/ttq_viewport.py (see its
+  docstring): the displayed image at 0.1, 0.25, 0.5, 1, 2, 4 s after the first draw, and again
+  after a light move, in two timelines:
+    * wall: the main thread redraws continuously, as Blender does while the engine tags redraws,
+      so llvmpipe's raster passes take CPU from the worker (what a user of this machine sees);
+    * worker: the main thread draws once (posting the view) and then sleeps; the worker's
+      publications are captured at the checkpoints and drawn afterwards. A real GPU rasterizes in
+      milliseconds and asynchronously, so this is the timeline a machine with a GPU would show
+      (the GI itself runs on the CPU either way);
+  plus the viewport's "settled" image (after a further settle), its own converged error.
+
+Errors, against the reference over its geometry pixels (Depth pass): relative L1 of Combined and of
+Diffuse Indirect (`imagediff.relative_l1`; Cycles' denoiser only denoises Combined, so the OIDN
+peers' Diffuse Indirect is their noisy pass), and mean FLIP (NVIDIA's flip-evaluator, LDR) of
+Combined after `quality_ladder.tone_map` with the reference's exposure.
+
+Seconds: the CLI's render seconds (the render operator: scene sync, BVH or cache build, render,
+denoise; not the process start or the .blend load), the same for every engine. HybridGI's are also
+given without its GPU passes (GPU_PASS_STEPS of its per-step timings): llvmpipe rasterizes on the
+same two CPU cores, a GPU does those passes in milliseconds.
+
+Output: OUT/results.json, OUT/time_to_quality.{md,png} (and the same in --docs), the Markdown on
+stdout, and a last stdout line of JSON: per scene the target error (Cycles 16 spp + OIDN's
+Combined), the seconds HybridGI (wall and without GPU passes) and Cycles + OIDN need for it
+(`quality_ladder.time_to_error`, log-log along each ladder) and their ratios ("inf" with a reason
+where HybridGI never gets there, null where Cycles does not). --references-only pre-renders the
+references; --report-only rebuilds table, plot and JSON from OUT/results.json (a run cut short
+keeps every finished scene there). Renders run one at a time; timings
+on a shared machine are noisy, which is why every peer is measured in the same run.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib.metadata
+import json
+import math
+import os
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "bench"))
+
+import compare_cycles  # noqa: E402
+import imagediff  # noqa: E402
+import quality_ladder as ql  # noqa: E402
+
+from hybridgi_cli.main import CYCLES_REFERENCE  # noqa: E402
+
+BUNDLED = ("cornell", "atrium", "spheres", "car", "animated")
+SHARED_DIR = ROOT.parent / "shared" / "scenes"
+PROCEDURAL_SOURCES = (ROOT / "blend_scenes" / "procedural.py", ROOT / "blend_scenes" / "build.py")
+DEFAULT_RES = (640, 360)
+HD_SCENE, HD_RES = "atrium", (1280, 720)
+
+OIDN_SPP = (1, 4, 16, 64)
+QUICK_OIDN_SPP = (1, 4, 16)
+TARGET_SPP = 16
+OIDN_SETTINGS = ("cycles.use_denoising=true", "cycles.denoiser=OPENIMAGEDENOISE", "cycles.seed=1")
+
+#: HybridGI's quality ladder: (name, --set values). Names from addon/properties.py.
+LADDER = (
+    ("r16 x16 w4", ("resolution=16", "rays_per_cell=16", "warmup_iterations=4")),
+    ("r24 x32 w8", ("resolution=24", "rays_per_cell=32", "warmup_iterations=8")),
+    ("r32 x64 w12", ("resolution=32", "rays_per_cell=64", "warmup_iterations=12")),
+    ("r48 x64 w16 (default)", ()),
+    ("r48 x128 w24", ("resolution=48", "rays_per_cell=128", "warmup_iterations=24")),
+)
+QUICK_LADDER = LADDER[:4]
+
+#: Steps of a HybridGI final render's steps_ms that are GPU passes (llvmpipe here): G-buffer,
+#: downsample (+ its read-back), gather (+ the cache texture upload), SSAO, bilateral, deferred.
+#: Everything else (sync, build, warm-up, visibility, direct light, write) is CPU work.
+GPU_PASS_STEPS = ("gbuffer", "downsample", "gather", "ssao", "bilateral", "deferred")
+
+VIEWPORT_CHECKPOINTS = (0.1, 0.25, 0.5, 1.0, 2.0, 4.0)
+TIMELINES = ("wall", "worker", "wall_light", "worker_light")
+
+
+def progress(message: str) -> None:
+    print(f"time_to_quality: {time.strftime('%H:%M:%S')} {message}", file=sys.stderr, flush=True)
+
+
+# --- scenes and references ------------------------------------------------------------------------
+
+
+class Job:
+    """One scene at one resolution."""
+
+    def __init__(self, name: str, blend: Path, res, bundled: bool, work: Path):
+        self.name, self.res, self.bundled = name, tuple(res), bundled
+        self.label = name if self.res == DEFAULT_RES else f"{name} {res[0]}x{res[1]}"
+        self.slug = f"{name}_{res[0]}x{res[1]}"
+        if bundled:
+            self.blend = blend
+            self.digest = ql.scene_digest(blend, PROCEDURAL_SOURCES)
+        else:
+            # ../shared/scenes is read-only and others' files: render from a private copy.
+            copy = work / "scenes" / blend.name
+            copy.parent.mkdir(parents=True, exist_ok=True)
+            if not copy.is_file() or copy.stat().st_size != blend.stat().st_size:
+                shutil.copyfile(blend, copy)
+            self.blend = copy
+            self.digest = ql.scene_digest(blend)
+
+
+def scene_jobs(args) -> list[Job]:
+    available = {}
+    for name in BUNDLED:
+        path = ROOT / "blend_scenes" / f"{name}.blend"
+        if path.is_file():
+            available[name] = (path, True)
+        else:
+            progress(f"{name}: {path} missing (run `make scenes`); skipped")
+    if SHARED_DIR.is_dir():
+        for path in sorted(SHARED_DIR.glob("*.blend")):
+            available.setdefault(path.stem, (path, False))
+    wanted = [s.strip() for s in args.scenes.split(",") if s.strip()] if args.scenes else list(available)
+    jobs = []
+    for name in wanted:
+        if name not in available:
+            progress(f"{name}: no such scene (have {', '.join(available)}); skipped")
+            continue
+        path, bundled = available[name]
+        jobs.append(Job(name, path, args.res, bundled, args.out))
+    if args.hd and HD_SCENE in available and HD_RES != tuple(args.res):
+        path, bundled = available[HD_SCENE]
+        jobs.append(Job(HD_SCENE, path, HD_RES, bundled, args.out))
+    return jobs
+
+
+def blender_version() -> str:
+    return importlib.metadata.version("bpy")
+
+
+def reference(job: Job, args) -> dict:
+    """The cached reference of `job`, rendered first when no cache entry has its key."""
+    key = ql.reference_key(job.digest, blender_version(), job.res, args.ref_spp, CYCLES_REFERENCE)
+    name = f"{job.slug}_{args.ref_spp}spp_{key}"
+    prefix = args.ref_cache / name
+    meta = args.ref_cache / f"{name}.json"
+    with compare_cycles._lock(args.ref_cache / f"{name}.lock"):
+        record = _cached_reference(meta, prefix)
+        if record is None:
+            progress(f"{job.label}: Cycles reference {args.ref_spp} spp (key {key}, not cached: rendering)")
+            record = compare_cycles.render(job.blend, prefix, "CYCLES", job.res, samples=args.ref_spp,
+                                           nice=args.ref_nice, timeout=args.ref_timeout)
+            record.update(samples=args.ref_spp, key=key, blender=blender_version(),
+                          exr_name=Path(record["exr"]).name)
+            meta.write_text(json.dumps(record) + "\n")
+        else:
+            progress(f"{job.label}: Cycles reference {args.ref_spp} spp cached (key {key}, {record['seconds']:.0f} s)")
+    record["exr"] = str(args.ref_cache / record["exr_name"])
+    return record
+
+
+def _cached_reference(meta: Path, prefix: Path) -> dict | None:
+    if not meta.is_file():
+        return None
+    try:
+        record = json.loads(meta.read_text())
+    except json.JSONDecodeError:
+        return None
+    return record if (meta.parent / record.get("exr_name", "")).is_file() else None
+
+
+# --- scoring ----------------------------------------------------------------------------------------
+
+
+class Reference:
+    def __init__(self, exr_path):
+        self.passes = compare_cycles.read_passes(exr_path)
+        self.mask = compare_cycles.geometry_mask(self.passes)
+        self.combined = compare_cycles.rgb(self.passes["Combined"])
+        self.white = ql.exposure_white(self.combined, self.mask)
+        self.combined_ldr = ql.tone_map(self.combined, self.white)
+
+
+def score(ref: Reference, combined: np.ndarray, indirect: np.ndarray | None = None) -> dict:
+    """{combined, diffuse_indirect, flip} of a test image against the reference."""
+    import flip_evaluator  # noqa: PLC0415 (a bench extra)
+
+    combined = compare_cycles.rgb(combined)
+    finite = ref.mask & np.isfinite(combined).all(axis=-1)
+    out = {"combined": _num(imagediff.relative_l1(combined, ref.combined, finite))}
+    r_ind = ref.passes.get("Diffuse Indirect")
+    if indirect is not None and r_ind is not None:
+        ind = compare_cycles.rgb(indirect)
+        ok = finite & np.isfinite(ind).all(axis=-1)
+        out["diffuse_indirect"] = _num(imagediff.relative_l1(ind, compare_cycles.rgb(r_ind), ok))
+    else:
+        out["diffuse_indirect"] = None
+    test_ldr = ql.tone_map(combined, ref.white)
+    flip_map, _mean, _params = flip_evaluator.evaluate(ref.combined_ldr, test_ldr, "LDR", inputsRGB=True,
+                                                       applyMagma=False)
+    flip_map = np.asarray(flip_map, np.float64).reshape(ref.mask.shape)
+    out["flip"] = _num(float(flip_map[ref.mask].mean()) if ref.mask.any() else float("nan"))
+    if not finite.all() and (ref.mask & ~finite).any():
+        out["nonfinite_pixels"] = int((ref.mask & ~finite).sum())
+    return out
+
+
+def score_exr(ref: Reference, exr_path) -> dict:
+    passes = compare_cycles.read_passes(exr_path)
+    return score(ref, passes["Combined"], passes.get("Diffuse Indirect"))
+
+
+def _num(x: float, digits: int = 5):
+    return round(float(x), digits) if math.isfinite(x) else None
+
+
+# --- the measured renders ------------------------------------------------------------------------------
+
+
+def measured_render(job: Job, args, tag: str, engine: str, samples=None, settings=(), timeout=None) -> dict:
+    prefix = args.out / "renders" / job.slug / tag
+    try:
+        record = compare_cycles.render(job.blend, prefix, engine, job.res, samples=samples, settings=settings,
+                                       nice=args.nice, timeout=timeout or args.timeout)
+    except compare_cycles.RenderFailed as err:
+        progress(f"{job.label}: {tag} failed: {err}")
+        return {"error": str(err)}
+    return record
+
+
+def gpu_pass_ms(steps: dict) -> float:
+    return float(sum(steps.get(k, 0.0) for k in GPU_PASS_STEPS))
+
+
+def run_peers(job: Job, args, ref: Reference) -> dict:
+    out = {"cycles_oidn": [], "eevee": None, "hybridgi": []}
+    for spp in args.oidn_spp:
+        r = measured_render(job, args, f"cycles_oidn_{spp}spp", "CYCLES", samples=spp, settings=OIDN_SETTINGS)
+        entry = {"setting": f"{spp} spp", "spp": spp, **_timing(r)}
+        if "error" not in r:
+            entry.update(score_exr(ref, r["exr"]))
+        out["cycles_oidn"].append(entry)
+        progress(f"{job.label}: Cycles {spp} spp + OIDN {_brief(entry)}")
+    if args.eevee:
+        r = measured_render(job, args, "eevee", "BLENDER_EEVEE", timeout=args.eevee_timeout)
+        entry = {"setting": "defaults", **_timing(r)}
+        if "error" not in r:
+            entry.update(score_exr(ref, r["exr"]))
+        out["eevee"] = entry
+        progress(f"{job.label}: EEVEE {_brief(entry)}")
+    for name, settings in args.ladder:
+        r = measured_render(job, args, "hybridgi_" + name.split(" (")[0].replace(" ", "_"), "HYBRIDGI",
+                            settings=settings)
+        entry = {"setting": name, "set": list(settings), **_timing(r)}
+        if "error" not in r:
+            gpu_ms = gpu_pass_ms(r.get("steps_ms", {}))
+            entry.update(gpu_pass_s=round(gpu_ms / 1e3, 4), seconds_minus_gpu=round(r["seconds"] - gpu_ms / 1e3, 4),
+                         rays=r.get("rays"), steps_ms=r.get("steps_ms"))
+            entry.update(score_exr(ref, r["exr"]))
+        out["hybridgi"].append(entry)
+        progress(f"{job.label}: HybridGI {name} {_brief(entry)}")
+    return out
+
+
+def _timing(record: dict) -> dict:
+    if "error" in record:
+        return {"failed": record["error"]}
+    return {"seconds": record["seconds"], "wall_seconds": record["wall_seconds"], "exr": record["exr"]}
+
+
+def _brief(entry: dict) -> str:
+    if "failed" in entry:
+        return f"FAILED ({entry['failed'][:200]})"
+    return (f"{entry['seconds']:.2f} s, Combined {_fmt(entry.get('combined'))}, "
+            f"Diffuse Indirect {_fmt(entry.get('diffuse_indirect'))}, FLIP {_fmt(entry.get('flip'))}")
+
+
+# --- the viewport -------------------------------------------------------------------------------------
+
+
+def run_viewport(job: Job, args, ref: Reference) -> dict:
+    folder = args.out / "viewport" / job.slug
+    if folder.exists():
+        shutil.rmtree(folder)
+    folder.mkdir(parents=True)
+    cmd = [sys.executable, str(ROOT / "bench" / "ttq_viewport.py"), str(job.blend), "--res",
+           f"{job.res[0]}x{job.res[1]}", "--out", str(folder),
+           "--checkpoints", ",".join(str(c) for c in args.checkpoints)]
+    if args.nice > 0:
+        cmd = ["nice", "-n", str(args.nice)] + cmd
+    log_path = folder / "viewport.log"
+    try:
+        with open(log_path, "w") as log:
+            proc = subprocess.run(cmd, cwd=ROOT, stdout=subprocess.PIPE, stderr=log, text=True,
+                                  timeout=args.timeout, env=dict(os.environ, PYTHONPATH=str(ROOT)))
+    except subprocess.TimeoutExpired:
+        return {"error": f"timed out after {args.timeout} s (log {log_path})"}
+    lines = [ln for ln in proc.stdout.splitlines() if ln.startswith("{")]
+    if proc.returncode != 0 or not lines:
+        tail = log_path.read_text(errors="replace").strip().splitlines()[-3:]
+        return {"error": f"exit {proc.returncode}: {' | '.join(tail)} (log {log_path})"}
+    record = json.loads(lines[-1])
+    record["folder"] = str(folder)
+    score_viewport(record, ref)
+    return record
+
+
+def score_viewport(record: dict, ref: Reference) -> None:
+    """Score every shot that still names its image file (the file name is then dropped)."""
+    folder = Path(record["folder"])
+    for shots in record.get("timelines", {}).values():
+        for shot in shots:
+            if "file" in shot and (folder / shot["file"]).is_file():
+                img = np.load(folder / shot.pop("file"))[::-1].astype(np.float32)  # GL rows are bottom-up
+                shot.update(score(ref, img))
+            if shot.get("checkpoint") is not None and not math.isfinite(shot["checkpoint"]):
+                shot["checkpoint"] = None
+
+
+# --- summary ---------------------------------------------------------------------------------------------
+
+
+def summarize(job: Job, res: dict) -> dict:
+    peers = res["peers"]
+    oidn = [e for e in peers["cycles_oidn"] if e.get("combined") is not None]
+    target_entry = next((e for e in oidn if e["spp"] == TARGET_SPP), None)
+    if target_entry is None:
+        return {"error": f"no Cycles {TARGET_SPP} spp + OIDN result: no target"}
+    target = target_entry["combined"]
+    hyb = [e for e in peers["hybridgi"] if e.get("combined") is not None]
+    c = ql.time_to_error([(e["seconds"], e["combined"]) for e in oidn], target)
+    h_wall = ql.time_to_error([(e["seconds"], e["combined"]) for e in hyb], target)
+    h_gpu = ql.time_to_error([(e["seconds_minus_gpu"], e["combined"]) for e in hyb], target)
+    out = {
+        "target_combined": target,
+        "cycles_oidn": c.as_json(),
+        "hybridgi_wall": h_wall.as_json(),
+        "hybridgi_minus_gpu": h_gpu.as_json(),
+        "ratio_wall": _ratio(h_wall, c),
+        "ratio_minus_gpu": _ratio(h_gpu, c),
+    }
+    vp = res.get("viewport") or {}
+    if "timelines" in vp:
+        out["viewport"] = {}
+        for timeline in TIMELINES:
+            shots = vp["timelines"].get(timeline) or []
+            if not shots:
+                continue
+            tte = _first_shot_at(shots, target)
+            out["viewport"][timeline] = tte
+    elif vp.get("error"):
+        out["viewport"] = {"error": vp["error"]}
+    if h_wall.how == "never" and hyb:
+        best = min(hyb, key=lambda e: e["combined"])
+        last = sorted(hyb, key=lambda e: e["seconds"])[-2:]
+        flat = abs(last[-1]["combined"] - last[0]["combined"]) / max(last[0]["combined"], 1e-9)
+        out["why_never"] = (
+            f"best rung '{best['setting']}': Combined {best['combined']:.4f} > target {target:.4f} "
+            f"(Diffuse Indirect {_fmt(best.get('diffuse_indirect'))}); the two most expensive rungs differ by "
+            f"{flat:.1%} in Combined: more rays and warm-up updates barely lower it (the reference's own noise is part of every error)"
+        )
+    return out
+
+
+def _first_shot_at(shots, target) -> dict:
+    """Seconds after the first draw of the first displayed image at or below target (the shots are
+    discrete checkpoints: this is an upper bound to the checkpoint spacing)."""
+    for s in shots:
+        if s.get("combined") is not None and s["combined"] <= target:
+            return {"seconds": s["t"], "how": "at checkpoint"}
+    best = min((s["combined"] for s in shots if s.get("combined") is not None), default=None)
+    return {"seconds": None, "how": "never",
+            "reason": f"best displayed error {_fmt(best)} > target {target:.4f} within {shots[-1]['t']:.2f} s"}
+
+
+def _ratio(test: ql.TimeToError, peer: ql.TimeToError):
+    r = ql.speed_ratio(test, peer)
+    if r is None:
+        return {"value": None, "reason": f"Cycles + OIDN never reaches the target ({peer.reason})"}
+    if math.isinf(r):
+        return {"value": "inf", "reason": test.reason}
+    return {"value": round(r, 4), **({"bound": "at_most"} if test.how == "at_most" else {})}
+
+
+# --- report -------------------------------------------------------------------------------------------------
+
+
+def _fmt(x, spec=".4f") -> str:
+    if x is None:
+        return "n/a"
+    if isinstance(x, str):
+        return x
+    return format(x, spec) if math.isfinite(x) else "inf"
+
+
+def _fmt_tte(t: dict) -> str:
+    if t is None:
+        return "n/a"
+    if t.get("seconds") is None:
+        return "never"
+    return ("<= " if t.get("how") == "at_most" else "") + f"{t['seconds']:.2f}"
+
+
+def markdown(results: list[dict], args) -> str:
+    mode = "quick (development)" if args.quick else "full"
+    lines = [
+        f"# Time to quality ({mode} run, {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())})",
+        "",
+        f"Cycles reference: {args.ref_spp} spp, CPU, 32 bounces, no clamping, no denoising. Errors over "
+        "the reference's geometry pixels. Target: the Combined relative L1 of Cycles 16 spp + OIDN in the "
+        "same run. Seconds: render operator (sync + build + render), one render at a time on a shared "
+        "2-core machine without a GPU (Mesa llvmpipe); `-gpu`: minus HybridGI's GPU passes "
+        f"({', '.join(GPU_PASS_STEPS)}). Ratio = HybridGI seconds / Cycles + OIDN seconds to the "
+        "target (issue #10's goal: <= 0.25 on the `-gpu` seconds). Viewport: first checkpoint "
+        f"({', '.join(str(c) for c in args.checkpoints)} s after the first draw) whose displayed image is "
+        "within the target; `worker` = GPU-free timeline, `wall` = with llvmpipe's draws (see "
+        "bench/ttq_viewport.py).",
+        "",
+        "| scene | target | Cycles+OIDN s | HybridGI s | HybridGI -gpu s | ratio | ratio -gpu | viewport wall / worker s "
+        "| after light move wall / worker s |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    for r in results:
+        s = r.get("summary") or {}
+        if "target_combined" not in s:
+            lines.append(f"| {r['label']} | {s.get('error') or r.get('error', 'n/a')} | | | | | | | |")
+            continue
+        vp = s.get("viewport") or {}
+
+        def v(name, vp=vp):
+            return _fmt_tte(vp.get(name)) if name in vp else "n/a"
+
+        lines.append(
+            f"| {r['label']} | {s['target_combined']:.4f} | {_fmt_tte(s['cycles_oidn'])} | "
+            f"{_fmt_tte(s['hybridgi_wall'])} | {_fmt_tte(s['hybridgi_minus_gpu'])} | "
+            f"{_fmt(s['ratio_wall']['value'], '.2f')} | {_fmt(s['ratio_minus_gpu']['value'], '.2f')} | "
+            f"{v('wall')} / {v('worker')} | {v('wall_light')} / {v('worker_light')} |"
+        )
+    lines += ["", "## Every render", "",
+              "| scene | renderer | setting | s | -gpu s | Combined | Diffuse Indirect | FLIP |",
+              "|---|---|---|---|---|---|---|---|"]
+    for r in results:
+        if "peers" not in r:
+            continue
+        p = r["peers"]
+        rows = [("Cycles+OIDN", e) for e in p["cycles_oidn"]]
+        if p.get("eevee"):
+            rows.append(("EEVEE", p["eevee"]))
+        rows += [("HybridGI", e) for e in p["hybridgi"]]
+        for who, e in rows:
+            if "failed" in e:
+                lines.append(f"| {r['label']} | {who} | {e['setting']} | failed: {e['failed'][:120]} | | | | |")
+                continue
+            lines.append(
+                f"| {r['label']} | {who} | {e['setting']} | {e['seconds']:.2f} | "
+                f"{_fmt(e.get('seconds_minus_gpu'), '.2f')} | {_fmt(e.get('combined'))} | "
+                f"{_fmt(e.get('diffuse_indirect'))} | {_fmt(e.get('flip'))} |"
+            )
+        vp = r.get("viewport") or {}
+        for timeline in TIMELINES:
+            shots = (vp.get("timelines") or {}).get(timeline) or []
+            if shots:
+                cells = ", ".join(f"{s['t']:.2f} s: {_fmt(s.get('combined'), '.3f')}" for s in shots)
+                lines.append(f"| {r['label']} | HybridGI viewport | {timeline} | {cells} | | | | |")
+        settled = ((vp.get("timelines") or {}).get("settled") or [{}])[0]
+        if settled.get("combined") is not None:
+            lines.append(f"| {r['label']} | HybridGI viewport | settled (after light move) | {settled['t']:.1f} | | "
+                         f"{_fmt(settled['combined'])} | n/a | {_fmt(settled.get('flip'))} |")
+        if vp.get("error"):
+            lines.append(f"| {r['label']} | HybridGI viewport | | failed: {vp['error'][:160]} | | | | |")
+        if vp.get("notes"):
+            lines.append(f"| {r['label']} | HybridGI viewport | notes | {'; '.join(vp['notes'])} | | | | |")
+    notes = [f"- {r['label']}: {r['summary']['why_never']}" for r in results if (r.get("summary") or {}).get("why_never")]
+    if notes:
+        lines += ["", "Where HybridGI never reaches the target:", "", *notes]
+    return "\n".join(lines) + "\n"
+
+
+def plot(results: list[dict], path: Path) -> Path | None:
+    try:
+        import matplotlib  # noqa: PLC0415
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt  # noqa: PLC0415
+    except ImportError:
+        progress("matplotlib missing (pip install -e '.[bench]'): no plot")
+        return None
+    done = [r for r in results if "peers" in r]
+    if not done:
+        return None
+    cols = min(3, len(done))
+    rows = math.ceil(len(done) / cols)
+    fig, axes = plt.subplots(rows, cols, figsize=(5.2 * cols, 4.0 * rows), squeeze=False)
+    for ax, r in zip(axes.ravel(), done, strict=False):
+        p = r["peers"]
+
+        def curve(entries, key="seconds", ax=ax, **kw):
+            pts = sorted((e[key], e["combined"]) for e in entries
+                         if e.get("combined") and e.get(key) and e[key] > 0)
+            if pts:
+                ax.plot([t for t, _ in pts], [e for _, e in pts], **kw)
+
+        curve(p["cycles_oidn"], marker="o", color="tab:blue", label="Cycles + OIDN (1-64 spp)")
+        curve(p["hybridgi"], marker="s", color="tab:red", label="HybridGI final (wall)")
+        curve(p["hybridgi"], key="seconds_minus_gpu", marker="s", ls="--", color="tab:red", mfc="none",
+              label="HybridGI final (- GPU passes)")
+        if p.get("eevee") and p["eevee"].get("combined"):
+            ax.plot([p["eevee"]["seconds"]], [p["eevee"]["combined"]], marker="x", ms=9, ls="none",
+                    color="tab:green", label="EEVEE (llvmpipe)")
+        styles = {"wall": ("tab:purple", "-"), "worker": ("tab:orange", "-"),
+                  "wall_light": ("tab:purple", ":"), "worker_light": ("tab:orange", ":")}
+        for timeline, (color, ls) in styles.items():
+            shots = ((r.get("viewport") or {}).get("timelines") or {}).get(timeline) or []
+            pts = [(s["t"], s["combined"]) for s in shots if s.get("combined") and s["t"] > 0]
+            if pts:
+                ax.plot(*zip(*pts, strict=True), color=color, ls=ls, marker=".",
+                        label=f"viewport {timeline.replace('_light', ' after light move')}")
+        s = r.get("summary") or {}
+        if s.get("target_combined"):
+            ax.axhline(s["target_combined"], color="grey", lw=0.8, ls="--", label="target: Cycles 16 spp + OIDN")
+        ax.set_xscale("log")
+        ax.set_yscale("log")
+        ax.set_title(r["label"])
+        ax.set_xlabel("seconds")
+        ax.set_ylabel("Combined relative L1")
+        ax.grid(True, which="both", alpha=0.3)
+    for ax in axes.ravel()[len(done):]:
+        ax.axis("off")
+    handles, labels = axes.ravel()[0].get_legend_handles_labels()
+    fig.tight_layout()
+    # Below the panels; bbox_inches="tight" grows the picture to hold it.
+    fig.legend(handles, labels, loc="upper center", bbox_to_anchor=(0.5, 0.0), ncol=min(4, 2 * cols),
+               fontsize=8, frameon=False)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=90, bbox_inches="tight")
+    plt.close(fig)
+    return path
+
+
+def final_json(results: list[dict], args) -> dict:
+    return {
+        "mode": "quick" if args.quick else "full",
+        "reference_spp": args.ref_spp,
+        "blender": blender_version(),
+        "target": f"Combined relative L1 of Cycles {TARGET_SPP} spp + OIDN",
+        "scenes": {r["label"]: r.get("summary") or {"error": r.get("error")} for r in results},
+    }
+
+
+def write_outputs(results: list[dict], args) -> str:
+    report = markdown(results, args)
+    folders = [args.out] + ([args.docs] if args.docs else [])
+    for folder in folders:
+        folder.mkdir(parents=True, exist_ok=True)
+        (folder / "time_to_quality.md").write_text(report)
+        plot(results, folder / "time_to_quality.png")
+    (args.out / "results.json").write_text(json.dumps({"args": _args_json(args), "results": results}, indent=1) + "\n")
+    return report
+
+
+def _args_json(args) -> dict:
+    return {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()}
+
+
+# --- main -------------------------------------------------------------------------------------------------
+
+
+def _resolution(text: str):
+    w, _x, h = text.lower().partition("x")
+    return int(w), int(h)
+
+
+def parse_args(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--scenes", help="comma-separated names (default: every bundled and shared scene)")
+    parser.add_argument("--res", type=_resolution, default=DEFAULT_RES, help="WxH (default 640x360)")
+    parser.add_argument("--hd", action=argparse.BooleanOptionalAction, default=None,
+                        help=f"also {HD_SCENE} at {HD_RES[0]}x{HD_RES[1]} (default: on, off with --quick or --scenes)")
+    parser.add_argument("--quick", action="store_true",
+                        help="development run: 64-spp references, OIDN at 1/4/16 spp, a 4-rung ladder, no EEVEE")
+    parser.add_argument("--ref-spp", type=int, help="reference samples (default 1024, --quick 64)")
+    parser.add_argument("--ref-cache", type=Path, default=Path(os.environ.get("HYBRIDGI_REF_CACHE", ROOT / "out" / "ttq_refs")))
+    parser.add_argument("--out", type=Path, default=ROOT / "out" / "ttq")
+    parser.add_argument("--docs", type=Path, help="also write time_to_quality.{md,png} here (make compare: docs)")
+    parser.add_argument("--no-viewport", dest="viewport", action="store_false")
+    parser.add_argument("--eevee", action=argparse.BooleanOptionalAction, default=None, help="default: on unless --quick")
+    parser.add_argument("--references-only", action="store_true", help="render missing references, measure nothing")
+    parser.add_argument("--report-only", action="store_true",
+                        help="render nothing: summarize OUT/results.json again (table, plot, JSON)")
+    parser.add_argument("--nice", type=int, default=0, help="niceness of the measured renders")
+    parser.add_argument("--ref-nice", type=int, default=0, help="niceness of reference renders")
+    parser.add_argument("--timeout", type=int, default=1200, help="seconds per measured render")
+    parser.add_argument("--eevee-timeout", type=int, default=900)
+    parser.add_argument("--ref-timeout", type=int, default=4 * 3600)
+    args = parser.parse_args(argv)
+    args.ref_spp = args.ref_spp or (64 if args.quick else 1024)
+    args.hd = (not args.quick and not args.scenes) if args.hd is None else args.hd
+    args.eevee = (not args.quick) if args.eevee is None else args.eevee
+    args.oidn_spp = QUICK_OIDN_SPP if args.quick else OIDN_SPP
+    args.ladder = QUICK_LADDER if args.quick else LADDER
+    args.checkpoints = VIEWPORT_CHECKPOINTS
+    args.out = args.out.resolve()
+    args.ref_cache = args.ref_cache.resolve()
+    args.ref_cache.mkdir(parents=True, exist_ok=True)
+    return args
+
+
+def main(argv=None) -> int:
+    args = parse_args(argv)
+    if args.report_only:
+        results = json.loads((args.out / "results.json").read_text())["results"]
+        for entry in results:
+            if "peers" in entry:
+                vp = entry.get("viewport") or {}
+                if "timelines" in vp:
+                    vp.setdefault("folder", str(args.out / "viewport" / f"{entry['scene']}_{entry['res'][0]}x{entry['res'][1]}"))
+                    score_viewport(vp, Reference(entry["reference"]["exr"]))
+                entry["summary"] = summarize(None, entry)
+        report = write_outputs(results, args)
+        print(report)
+        print(json.dumps(final_json(results, args)))
+        return 0
+    jobs = scene_jobs(args)
+    if args.references_only:
+        for job in jobs:
+            try:
+                reference(job, args)
+            except compare_cycles.RenderFailed as err:
+                progress(f"{job.label}: reference failed: {err}")
+        return 0
+    results = []
+    for job in jobs:
+        entry = {"label": job.label, "scene": job.name, "res": list(job.res), "blend": str(job.blend)}
+        results.append(entry)
+        try:
+            ref_record = reference(job, args)
+        except compare_cycles.RenderFailed as err:
+            entry["error"] = f"reference failed: {err}"
+            progress(f"{job.label}: {entry['error']}")
+            write_outputs(results, args)
+            continue
+        entry["reference"] = {k: ref_record.get(k) for k in ("seconds", "samples", "key", "blender", "exr")}
+        ref = Reference(ref_record["exr"])
+        entry["peers"] = run_peers(job, args, ref)
+        if args.viewport:
+            progress(f"{job.label}: viewport timelines")
+            entry["viewport"] = run_viewport(job, args, ref)
+            if entry["viewport"].get("error"):
+                progress(f"{job.label}: viewport failed: {entry['viewport']['error']}")
+        write_outputs(results, args)  # the measurements are kept even if summarizing fails
+        entry["summary"] = summarize(job, entry)
+        progress(f"{job.label}: {json.dumps(entry['summary'])}")
+        write_outputs(results, args)
+    report = write_outputs(results, args)
+    print(report)
+    print(json.dumps(final_json(results, args)))
+    return 0 if all("error" not in r for r in results) else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
