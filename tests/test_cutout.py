@@ -4,11 +4,9 @@ them as in Cycles."""
 
 from __future__ import annotations
 
-import json
 import subprocess
 import sys
 import textwrap
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -16,8 +14,7 @@ import pytest
 from hybridgi_core.cutout import Cutouts
 from hybridgi_core.snapshot import Material, concat_geometry, geometry_from_arrays
 from hybridgi_core.trace.embree import EmbreeTracer
-
-HYBRIDGI = Path(sys.executable).parent / "hybridgi"
+from tests.cli_renders import layer, rendered
 
 
 def _quad(z, material, uv=True):
@@ -101,17 +98,8 @@ SCENE = textwrap.dedent("""
 """)
 
 
-def _layer(channels, name, components="RGB"):
-    return np.stack([channels[f"ViewLayer.{name}.{c}"] for c in components], axis=-1)
-
-
 def _render(blend, prefix, *extra):
-    run = subprocess.run([str(HYBRIDGI), "render", str(blend), "--out", str(prefix), "--res", "96x72", *extra],
-                         capture_output=True, text=True, timeout=600)
-    assert run.returncode == 0, run.stderr[-3000:]
-    from hybridgi_cli import exr  # noqa: PLC0415
-
-    return exr.read_channels(json.loads(run.stdout.strip().splitlines()[-1])["exr"])
+    return rendered(blend, prefix, "96x72", *extra)
 
 
 @pytest.mark.blender
@@ -121,17 +109,17 @@ def test_alpha_cutout_screen_against_cycles(tmp_path):
     subprocess.run([sys.executable, "-c", SCENE, str(blend)], check=True, capture_output=True)
     ours = _render(blend, tmp_path / "hg", "--set", "warmup_iterations=4", "--set", "resolution=16")
     cycles = _render(blend, tmp_path / "cy", "--engine", "CYCLES", "--samples", "64")
-    geometry = _layer(cycles, "Depth", "Z")[..., 0] < 1e9
+    geometry = layer(cycles, "Depth", "Z")[..., 0] < 1e9
     # The camera sees the floor through the holes: the orange screen covers what it covers in Cycles.
-    orange = lambda ch: np.abs(_layer(ch, "Diffuse Color") - np.array([0.8, 0.3, 0.1])).max(axis=-1) < 0.15  # noqa: E731
+    orange = lambda ch: np.abs(layer(ch, "Diffuse Color") - np.array([0.8, 0.3, 0.1])).max(axis=-1) < 0.15  # noqa: E731
     mine, theirs = orange(ours), orange(cycles)
     assert 0.05 < theirs.mean() < 0.6
     assert (mine & theirs).sum() / (mine | theirs).sum() > 0.7
     # Through the holes the floor shows, not the texture's black (a solid screen's transparent texels).
-    black = lambda ch: (_layer(ch, "Diffuse Color").max(axis=-1) < 0.1) & geometry  # noqa: E731
+    black = lambda ch: (layer(ch, "Diffuse Color").max(axis=-1) < 0.1) & geometry  # noqa: E731
     assert black(cycles).mean() < 0.01 and black(ours).mean() < 0.01, black(ours).mean()
     # The sun shines through the holes onto the floor: the checkered shadow matches.
-    direct, reference = _layer(ours, "Diffuse Direct"), _layer(cycles, "Diffuse Direct")
+    direct, reference = layer(ours, "Diffuse Direct"), layer(cycles, "Diffuse Direct")
     floor = geometry & ~theirs & ~mine
     error = float(np.abs(direct - reference)[floor].sum() / np.abs(reference)[floor].sum())
     # Measured 0.015 (the screen solid for the sun, before: 0.10).

@@ -14,9 +14,10 @@ import numpy as np
 import pytest
 
 from hybridgi_cli import exr
+from tests import cli_renders
+from tests.cli_renders import run_render
 
 ROOT = Path(__file__).resolve().parents[1]
-HYBRIDGI = Path(sys.executable).parent / "hybridgi"
 RES = "64x48"
 QUICK = ("--set", "warmup_iterations=2", "--set", "resolution=12", "--set", "rays_per_cell=16")
 
@@ -45,9 +46,7 @@ def scenes(tmp_path_factory):
 
 
 def render(blend, prefix, *extra):
-    run = subprocess.run([str(HYBRIDGI), "render", str(blend), "--out", str(prefix), "--res", RES, *QUICK, *extra],
-                         capture_output=True, text=True, timeout=600)
-    return run
+    return run_render(blend, prefix, RES, *QUICK, *extra)
 
 
 def rendered(blend, prefix, *extra):
@@ -58,8 +57,7 @@ def rendered(blend, prefix, *extra):
 
 
 def layer(channels, name):
-    keys = sorted((k for k in channels if k.startswith(f"ViewLayer.{name}.")), key=lambda k: "RGBAXYZ".find(k[-1]))
-    return np.stack([channels[k] for k in keys], axis=-1)
+    return cli_renders.layer(channels, name, "RGBA" if name == "Combined" else "Z" if name == "Depth" else "RGB")
 
 
 @pytest.fixture(scope="module")

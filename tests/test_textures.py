@@ -3,18 +3,15 @@ checker seen at a grazing angle reads as Cycles' pixel filter averages it, not a
 
 from __future__ import annotations
 
-import json
 import subprocess
 import sys
 import textwrap
-from pathlib import Path
 
 import numpy as np
 import pytest
 
-from hybridgi_cli import exr
+from tests.cli_renders import layer, rendered
 
-HYBRIDGI = Path(sys.executable).parent / "hybridgi"
 RES = "160x120"
 
 pytestmark = [pytest.mark.blender, pytest.mark.slow]
@@ -51,15 +48,8 @@ SCENE = textwrap.dedent("""
 """)
 
 
-def layer(channels, name, components="RGB"):
-    return np.stack([channels[f"ViewLayer.{name}.{c}"] for c in components], axis=-1)
-
-
 def render(blend, prefix, *extra):
-    run = subprocess.run([str(HYBRIDGI), "render", str(blend), "--out", str(prefix), "--res", RES, *extra],
-                         capture_output=True, text=True, timeout=600)
-    assert run.returncode == 0, run.stderr[-3000:]
-    return exr.read_channels(json.loads(run.stdout.strip().splitlines()[-1])["exr"])
+    return rendered(blend, prefix, RES, *extra)
 
 
 def test_a_minified_texture_is_filtered_like_cycles(tmp_path):
