@@ -642,8 +642,9 @@ def test_a_sky_world_bakes_in_the_background_then_lights_the_view(view, addon, t
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))  # no map from an earlier run
     scene = bpy.context.scene
     old = scene.world
-    world = bpy.data.worlds.new("sky")
-    world.use_nodes = True
+    from hybridgi_cli import blender_compat  # noqa: PLC0415
+
+    world = blender_compat.new_world(bpy, "sky")  # use_nodes only where needed (deprecated in 5.x)
     sky = world.node_tree.nodes.new("ShaderNodeTexSky")
     world.node_tree.links.new(sky.outputs["Color"], world.node_tree.nodes["Background"].inputs["Color"])
     scene.world = world
