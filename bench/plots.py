@@ -28,13 +28,13 @@ from compare_cycles import render  # noqa: E402
 
 from hybridgi_cli import blender_compat  # noqa: E402
 
-#: Stacked groups of the pipeline's steps (the JSON record's steps_ms keys), bottom to top.
+#: Stacked groups of the pipeline's top-level steps (the JSON record's steps_ms keys), bottom to
+#: top. The warm-up's own sub-steps (warmup_trace, warmup_shadow, ...) overlap in time (threads),
+#: so the warm-up is one block.
 STEP_GROUPS = (
     ("G-buffer + downsample", ("gbuffer", "downsample")),
     ("visible cells", ("select",)),
-    ("probe rays: trace", ("warmup_trace", "update_trace")),
-    ("probe rays: hit shading + shadows", ("warmup_shade", "update_shade")),
-    ("SH projection + blend", ("warmup_sh", "warmup_blend", "update_sh", "update_blend")),
+    ("cache warm-up (probe rays, shading, SH, bounces)", ("warmup", "update")),
     ("gather (+ visibility rays)", ("visibility", "gather")),
     ("direct light", ("direct", "direct_low")),
     ("SSAO", ("ssao",)),
@@ -76,7 +76,7 @@ def plot_timings(results: dict, path: Path, scene: str) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt  # noqa: PLC0415
 
-    fig, axes = plt.subplots(1, len(results), figsize=(5 * len(results), 4.2), sharey=True)
+    fig, axes = plt.subplots(1, len(results), figsize=(5 * len(results), 4.8), sharey=True)
     colours = plt.get_cmap("tab10").colors
     for ax, (name, points) in zip(axes, results.items(), strict=True):
         xs = [str(p["x"]) for p in points]
@@ -88,10 +88,11 @@ def plot_timings(results: dict, path: Path, scene: str) -> None:
         ax.set_xlabel(LABELS[name])
         ax.grid(axis="y", alpha=0.3)
     axes[0].set_ylabel("seconds per final frame (warm-up included)")
-    axes[-1].legend(fontsize=7, loc="upper left")
+    handles, labels = axes[0].get_legend_handles_labels()
+    fig.legend(handles[::-1], labels[::-1], fontsize=8, loc="lower center", ncol=4, frameon=False)
     others = ", ".join(f"{LABELS[k]} {v if k != 'image' else f'{v[0]}x{v[1]}'}" for k, v in DEFAULTS.items())
     fig.suptitle(f"HybridGI per-step time, {scene} (defaults: {others})", fontsize=10)
-    fig.tight_layout()
+    fig.tight_layout(rect=(0, 0.12, 1, 1))
     fig.savefig(path, dpi=110)
     plt.close(fig)
 
