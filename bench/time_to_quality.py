@@ -441,25 +441,29 @@ def markdown(results: list[dict], args) -> str:
         "within the target; `worker` = GPU-free timeline, `wall` = with llvmpipe's draws (see "
         "bench/ttq_viewport.py).",
         "",
-        "| scene | target | Cycles+OIDN s | HybridGI s | HybridGI -gpu s | ratio | ratio -gpu | viewport wall / worker s "
-        "| after light move wall / worker s |",
-        "|---|---|---|---|---|---|---|---|---|",
+        "| scene | target | Cycles+OIDN s | HybridGI s | HybridGI -gpu s | ratio | ratio -gpu | HybridGI best Combined (s) "
+        "| viewport wall / worker s | after light move wall / worker s | viewport settled |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in results:
         s = r.get("summary") or {}
         if "target_combined" not in s:
-            lines.append(f"| {r['label']} | {s.get('error') or r.get('error', 'n/a')} | | | | | | | |")
+            lines.append(f"| {r['label']} | {s.get('error') or r.get('error', 'n/a')} | | | | | | | | | |")
             continue
         vp = s.get("viewport") or {}
 
         def v(name, vp=vp):
             return _fmt_tte(vp.get(name)) if name in vp else "n/a"
 
+        hyb = [e for e in r["peers"]["hybridgi"] if e.get("combined") is not None]
+        best = min(hyb, key=lambda e: e["combined"]) if hyb else None
+        best_cell = f"{best['combined']:.4f} ({best['seconds']:.1f})" if best else "n/a"
+        settled = (((r.get("viewport") or {}).get("timelines") or {}).get("settled") or [{}])[0]
         lines.append(
             f"| {r['label']} | {s['target_combined']:.4f} | {_fmt_tte(s['cycles_oidn'])} | "
             f"{_fmt_tte(s['hybridgi_wall'])} | {_fmt_tte(s['hybridgi_minus_gpu'])} | "
-            f"{_fmt(s['ratio_wall']['value'], '.2f')} | {_fmt(s['ratio_minus_gpu']['value'], '.2f')} | "
-            f"{v('wall')} / {v('worker')} | {v('wall_light')} / {v('worker_light')} |"
+            f"{_fmt(s['ratio_wall']['value'], '.2f')} | {_fmt(s['ratio_minus_gpu']['value'], '.2f')} | {best_cell} | "
+            f"{v('wall')} / {v('worker')} | {v('wall_light')} / {v('worker_light')} | {_fmt(settled.get('combined'))} |"
         )
     lines += ["", "## Every render", "",
               "| scene | renderer | setting | s | -gpu s | Combined | Diffuse Indirect | FLIP |",
