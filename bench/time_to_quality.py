@@ -382,7 +382,10 @@ def summarize(job: Job, res: dict) -> dict:
         out["why_never"] = (
             f"best rung '{best['setting']}': Combined {best['combined']:.4f} > target {target:.4f} "
             f"(Diffuse Indirect {_fmt(best.get('diffuse_indirect'))}); the two most expensive rungs differ by "
-            f"{flat:.1%} in Combined: more rays and warm-up updates barely lower it (the reference's own noise is part of every error)"
+            f"{flat:.1%} in Combined: "
+            + ("more rays and warm-up updates barely lower it" if flat < 0.05 else
+               "the ladder is still falling, a richer rung would get closer")
+            + " (the reference's own noise is part of every error)"
         )
     return out
 
