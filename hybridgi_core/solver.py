@@ -84,6 +84,16 @@ class SolveStats:
     def add(self, name: str, ms: float) -> None:
         self.steps_ms[name] = self.steps_ms.get(name, 0.0) + ms
 
+    def merge(self, other: SolveStats) -> None:
+        """Add another step's counts and times into this one (cells: the larger)."""
+        self.rays += other.rays
+        self.shadow_points += other.shadow_points
+        self.iterations += other.iterations
+        self.cells = max(self.cells, other.cells)
+        self.wall_ms += other.wall_ms
+        for k, v in other.steps_ms.items():
+            self.add(k, v)
+
 
 @dataclass(eq=False)
 class StoredHits:
@@ -540,7 +550,7 @@ class GISolver:
         stats = SolveStats()
         self._reset_series()
         for _ in range(max_iterations):
-            _merge(stats, self.relax())
+            stats.merge(self.relax())
             if self.converged:
                 break
         if extrapolate:
@@ -738,11 +748,11 @@ class GISolver:
             have = np.concatenate([c.cells for c in self.chunks if c.batch == b] or [np.zeros(0, np.int64)])
             missing = np.setdiff1d(self.cells, have)
             if missing.size:
-                _merge(stats, self.trace_batch(b, missing, blend=False))
+                stats.merge(self.trace_batch(b, missing, blend=False))
                 retraced.append(missing)
         if retraced:
             self._blend_geometry(np.unique(np.concatenate(retraced)))
-        _merge(stats, self.solve(max_iterations))
+        stats.merge(self.solve(max_iterations))
         stats.wall_ms = (time.perf_counter() - t0) * 1e3
         return stats
 
@@ -789,16 +799,6 @@ def _sample_rows(s: CellSamples, rows: np.ndarray) -> CellSamples:
         backface=s.backface[rows],
         shaded=None if s.shaded is None else s.shaded[rows],
     )
-
-
-def _merge(into: SolveStats, other: SolveStats) -> None:
-    into.rays += other.rays
-    into.shadow_points += other.shadow_points
-    into.iterations += other.iterations
-    into.cells = max(into.cells, other.cells)
-    into.wall_ms += other.wall_ms
-    for k, v in other.steps_ms.items():
-        into.add(k, v)
 
 
 def _light_extent(light) -> float:

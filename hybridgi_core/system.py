@@ -189,7 +189,7 @@ class GISystem:
                 for _ in range(per_step):
                     if self.solver.converged:
                         break
-                    _merge_stats(st, self.solver.relax())
+                    st.merge(self.solver.relax())
             if i == total - 1:
                 self.solver.extrapolate()
                 tic = time.perf_counter()
@@ -226,8 +226,8 @@ class GISystem:
         self.solver.begin(self.surface_cells() if cells is None else cells)
         stats = SolveStats()
         for b in range(batches):
-            _merge_stats(stats, self.solver.trace_batch(b))
-        _merge_stats(stats, self.solver.solve(max_iterations, extrapolate))
+            stats.merge(self.solver.trace_batch(b))
+        stats.merge(self.solver.solve(max_iterations, extrapolate))
         stats.shadow_points += self.solver.filter_cells()
         return stats
 
@@ -293,16 +293,6 @@ class GISystem:
             self.scene.lights, points, normals, self.tracer, rng,
             samples=samples or self.settings.light_samples, epsilon=float(self.tracer.epsilon),
         )
-
-
-def _merge_stats(into: SolveStats, other: SolveStats) -> None:
-    into.rays += other.rays
-    into.shadow_points += other.shadow_points
-    into.iterations += other.iterations
-    into.cells = max(into.cells, other.cells)
-    into.wall_ms += other.wall_ms
-    for k, v in other.steps_ms.items():
-        into.add(k, v)
 
 
 def _moved_boxes(old, new, rows: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
