@@ -21,6 +21,7 @@ import bpy
 import numpy as np
 
 from hybridgi_core import exr
+from hybridgi_core.cycles_reference import CYCLES_REFERENCE
 
 from . import compat, engine
 
@@ -35,17 +36,6 @@ COMPARED = ("Diffuse Indirect", "Diffuse Direct", "Ambient Occlusion", "Combined
 PASS_FLAGS = ("use_pass_combined", "use_pass_z", "use_pass_diffuse_direct", "use_pass_diffuse_indirect",
               "use_pass_ambient_occlusion")
 
-#: Cycles as ground truth: converged diffuse transport without the defaults' bias (4 diffuse
-#: bounces, indirect clamped at 10), no denoiser or adaptive sampling to hide its noise level.
-CYCLES_REFERENCE = {
-    "device": "CPU",
-    "use_denoising": False,
-    "use_adaptive_sampling": False,
-    "max_bounces": 32,
-    "diffuse_bounces": 32,
-    "sample_clamp_direct": 0.0,
-    "sample_clamp_indirect": 0.0,
-}
 
 #: Per-pixel relative error drawn at the top of the heatmap's colour ramp.
 HEATMAP_FULL_SCALE = 0.5

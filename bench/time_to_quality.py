@@ -11,7 +11,7 @@ Per scene (every bundled scene in blend_scenes/, then ../shared/scenes/*.blend w
 640x360; with --hd also the atrium at 1280x720):
 
 - a Cycles reference: CPU, --ref-spp samples (1024; --quick 64), 32 bounces, no clamping, no
-  denoising or adaptive sampling (the CLI's CYCLES_REFERENCE). Cached under --ref-cache
+  denoising or adaptive sampling (hybridgi_core.cycles_reference). Cached under --ref-cache
   (default out/ttq_refs/, gitignored) by `quality_ladder.reference_key`: the scene's content (the
   procedural sources of a bundled scene, whose .blend bytes change with every build; the bytes of
   any other .blend), the Blender version, the resolution, the samples and the settings. A later
@@ -75,7 +75,7 @@ import compare_cycles  # noqa: E402
 import imagediff  # noqa: E402
 import quality_ladder as ql  # noqa: E402
 
-from hybridgi_cli.main import CYCLES_REFERENCE  # noqa: E402
+from hybridgi_core.cycles_reference import CYCLES_REFERENCE  # noqa: E402
 
 BUNDLED = ("cornell", "atrium", "spheres", "car", "animated")
 SHARED_DIR = ROOT.parent / "shared" / "scenes"

@@ -29,6 +29,8 @@ import tempfile
 import time
 from pathlib import Path
 
+from hybridgi_core.cycles_reference import CYCLES_REFERENCE
+
 from . import blender_compat, dev_install, interrupt, output, tracebacks
 
 ENGINES = ("HYBRIDGI", "CYCLES", "BLENDER_EEVEE")
@@ -47,16 +49,6 @@ PASS_FLAGS = (
 #: Where an undotted --set name lives, per engine.
 SETTINGS_OWNER = {"HYBRIDGI": "hybridgi", "CYCLES": "cycles", "BLENDER_EEVEE": "eevee"}
 
-#: Ground-truth Cycles: converged diffuse transport without the defaults' bias (BLENDER_FACTS.md).
-CYCLES_REFERENCE = {
-    "device": "CPU",
-    "use_denoising": False,
-    "use_adaptive_sampling": False,
-    "max_bounces": 32,
-    "diffuse_bounces": 32,
-    "sample_clamp_direct": 0.0,
-    "sample_clamp_indirect": 0.0,
-}
 
 _TRUE = {"1", "true", "yes", "on"}
 _FALSE = {"0", "false", "no", "off"}
