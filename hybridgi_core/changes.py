@@ -124,12 +124,18 @@ class _ObjectTopology:
     triangles: np.ndarray  # (t, 3) int64 indices into `vertices`
 
 
-def _topologies(snapshot: SceneSnapshot) -> dict[str, _ObjectTopology]:
+def _topologies(snapshot: SceneSnapshot, objects: np.ndarray | None = None) -> dict[str, _ObjectTopology]:
+    """Name -> `_ObjectTopology` of every object (or of the object indices `objects`), from one
+    sort of the triangles by object: no per-object scan of all triangles."""
     g = snapshot.geometry
     out = {}
     if g.triangle_count == 0:
         return out
     order = np.argsort(g.object_index, kind="stable")
+    if objects is not None:
+        order = order[np.isin(g.object_index[order], objects)]
+        if order.size == 0:
+            return out
     obj = g.object_index[order]
     starts = np.flatnonzero(np.r_[True, obj[1:] != obj[:-1]])
     ends = np.r_[starts[1:], obj.size]
@@ -158,8 +164,9 @@ def _diff_geometry(old: SceneSnapshot, new: SceneSnapshot, changes: SceneChanges
         # The common case (animation, a moved object): only vertex positions differ.
         changed = np.flatnonzero((go.positions != gn.positions).any(axis=1))
         tri_changed = np.isin(gn.triangles, changed).any(axis=1)
-        names = {new.objects[int(i)].name for i in np.unique(gn.object_index[tri_changed])}
-        old_topo = new_topo = None
+        # The same triangles in both: one topology of the changed objects serves old and new.
+        old_topo = new_topo = _topologies(new, np.unique(gn.object_index[tri_changed]))
+        names = set(new_topo)
     else:
         old_topo, new_topo = _topologies(old), _topologies(new)
         changes.appeared = sorted(new_topo.keys() - old_topo.keys())
@@ -173,8 +180,8 @@ def _diff_geometry(old: SceneSnapshot, new: SceneSnapshot, changes: SceneChanges
                 names.add(name)
         changes.retopologised.sort()
     for name in sorted(names):
-        before = go.positions[old_topo[name].vertices] if old_topo else _object_positions(old, name)
-        after = gn.positions[new_topo[name].vertices] if new_topo else _object_positions(new, name)
+        before = go.positions[old_topo[name].vertices]
+        after = gn.positions[new_topo[name].vertices]
         (changes.moved if _is_affine(before, after) else changes.deformed).append(name)
     touched = set(changes.displaced) | set(changes.retopologised)
     old_boxes, new_boxes = object_boxes(old), object_boxes(new)
@@ -184,12 +191,6 @@ def _diff_geometry(old: SceneSnapshot, new: SceneSnapshot, changes: SceneChanges
     for name in sorted(touched | set(changes.appeared)):
         if name in new_boxes:
             changes.boxes.append(new_boxes[name])
-
-
-def _object_positions(snapshot: SceneSnapshot, name: str) -> np.ndarray:
-    g = snapshot.geometry
-    index = next(i for i, o in enumerate(snapshot.objects) if o.name == name)
-    return g.positions[np.unique(g.triangles[g.object_index == index])]
 
 
 def _is_affine(before: np.ndarray, after: np.ndarray) -> bool:
@@ -221,12 +222,6 @@ def _material_key(material: Material) -> tuple:
 
 def _world_key(world: World) -> tuple:
     return world.color.tobytes(), float(world.ao_distance), None if world.sky_sh is None else world.sky_sh.tobytes()
-
-
-def shading_key(snapshot: SceneSnapshot) -> tuple:
-    """Everything of a snapshot that lights and colours surfaces but does not move them."""
-    return (tuple(_light_key(lt) for lt in snapshot.lights), tuple(_material_key(m) for m in snapshot.materials),
-            _world_key(snapshot.world))
 
 
 def _relative_change(a, b) -> float:
