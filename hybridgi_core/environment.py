@@ -73,12 +73,12 @@ def split_environment(pixels: np.ndarray, to_world: np.ndarray | None = None) ->
     luma = pixels @ LUMA
     weight = np.broadcast_to(solid[:, None], luma.shape)
     peak = np.unravel_index(int(np.argmax(luma)), luma.shape)
-    sun_dir = dirs[peak]
-    region = (dirs @ sun_dir > np.cos(SUN_SEARCH)) & (luma > SUN_THRESHOLD * luma[peak])
+    to_peak = dirs @ dirs[peak]  # cosine of each pixel's angle to the brightest one
+    region = (to_peak > np.cos(SUN_SEARCH)) & (luma > SUN_THRESHOLD * luma[peak])
     # Light from the region on a surface facing the peak, against the whole upper hemisphere of it.
-    facing = np.clip(dirs @ sun_dir, 0.0, None)
-    region_light = float((luma * weight * facing)[region].sum())
-    total_light = float((luma * weight * facing).sum())
+    facing_light = luma * weight * np.clip(to_peak, 0.0, None)
+    region_light = float(facing_light[region].sum())
+    total_light = float(facing_light.sum())
     sun = None
     irradiance = np.zeros(3)
     angle = 0.0
@@ -92,7 +92,7 @@ def split_environment(pixels: np.ndarray, to_world: np.ndarray | None = None) ->
         omega = float(weight[region].sum())
         angle = float(2.0 * np.sqrt(omega / np.pi))
         # The sky behind the sun: the ring around the region, not its glow.
-        ring = (dirs @ sun_dir > np.cos(2.0 * SUN_SEARCH)) & ~region
+        ring = (to_peak > np.cos(2.0 * SUN_SEARCH)) & ~region
         fill = (pixels[ring] * weight[ring][:, None]).sum(axis=0) / max(float(weight[ring].sum()), 1e-12)
         filled = pixels.copy()
         filled[region] = fill
