@@ -46,9 +46,9 @@ def snapshot_from_depsgraph(depsgraph, dynamic_names=frozenset(), wait_for_world
     for instance in depsgraph.object_instances:
         builder.add_instance(instance)
     builder.warn_unsupported()
-    world = depsgraph.scene.world
-    builder.lights += world_lights(world, wait_for_world)
-    return builder.finish(world_from_blender(world, wait_for_world))
+    world, world_lamps = read_world(depsgraph.scene.world, wait_for_world)
+    builder.lights += world_lamps
+    return builder.finish(world)
 
 
 #: Cycles' per-object ray visibility HybridGI does not follow (the object takes part as if on):
@@ -655,6 +655,19 @@ def _texture_to_world(env_node, world_name):
     return np.linalg.inv(forward)
 
 
+def _cached_split(key, read, to_world=None):
+    """The `EnvironmentSplit` cached under `key`, else of the map `read()` returns (None: none)."""
+    split = _SPLITS.get(key)
+    if split is None:
+        pixels = read()
+        if pixels is None:
+            return None
+        split = _SPLITS[key] = environment.split_environment(pixels, to_world)
+        while len(_SPLITS) > _SPLITS_KEPT:
+            _SPLITS.pop(next(iter(_SPLITS)))
+    return split
+
+
 def _environment_split(source, world_name):
     """`EnvironmentSplit` of an Environment Texture node (cached), or None when it has no image."""
     image = source.image
@@ -666,15 +679,7 @@ def _environment_split(source, world_name):
     image = image.original
     key = (image.name_full, image.filepath, tuple(image.size), image.is_dirty, to_world.round(6).tobytes(),
            image.colorspace_settings.name)
-    split = _SPLITS.get(key)
-    if split is None:
-        pixels = image_pixels(image)
-        if pixels is None:
-            return None
-        split = _SPLITS[key] = environment.split_environment(pixels, to_world)
-        while len(_SPLITS) > _SPLITS_KEPT:
-            _SPLITS.pop(next(iter(_SPLITS)))
-    return split
+    return _cached_split(key, lambda: image_pixels(image), to_world)
 
 
 def _output_node(world):
@@ -688,15 +693,14 @@ def _is_uniform(node) -> bool:
             and not node.inputs["Strength"].is_linked)
 
 
-def _world_split(world, wait=True):
-    """(`EnvironmentSplit`, strength still to apply) of a world whose light varies with
-    direction; None for a uniform or black world, or one that could not be read.
+def _world_split(world, node, wait=True):
+    """(`EnvironmentSplit`, strength still to apply) of a world whose output `node` varies with
+    direction; None for a uniform world, or one that could not be read (yet).
 
     An Environment Texture on the Background's colour is read directly (exact, fast); any other
     tree (Sky Texture, gradients, mixes) is baked by Blender itself (`world_bake`), both cached.
     """
-    node = _output_node(world)
-    if node is None or _is_uniform(node):
+    if _is_uniform(node):
         return None
     if node.type == "BACKGROUND" and not node.inputs["Strength"].is_linked:
         source, output = _source(node.inputs["Color"])
@@ -704,79 +708,70 @@ def _world_split(world, wait=True):
             split = _environment_split(source, world.name)
             if split is not None:
                 return split, float(_value(node.inputs["Strength"]))
-    key = ("baked", world_bake.world_key(world))
-    split = _SPLITS.get(key)
-    if split is None:
-        pixels = world_bake.bake_world(world, wait=wait)
-        if pixels is None:
-            return None
-        split = _SPLITS[key] = environment.split_environment(pixels)
-        while len(_SPLITS) > _SPLITS_KEPT:
-            _SPLITS.pop(next(iter(_SPLITS)))
-    return split, 1.0
+    key = world_bake.world_key(world)
+    split = _cached_split(("baked", key), lambda: world_bake.bake_world(world, wait=wait, key=key))
+    return None if split is None else (split, 1.0)
 
 
-def world_lights(world, wait=True):
-    """The lamps a world brings: the sun of its map, as a shadowed SUN `Light` (wait=False: none
-    while its map bakes in the background)."""
-    if world is None or world.node_tree is None:
-        return []
-    found = _world_split(world, wait)
-    if found is None or found[0].sun_direction is None:
-        return []
-    split, strength = found
+def _sun_light(split, strength, world_name):
+    """The SUN `Light` of a split map's sun (None without one or without light)."""
+    if split.sun_direction is None:
+        return None
     irradiance = split.sun_irradiance.astype(np.float64) * strength
     power = float(irradiance.max())
     if power <= 0.0:
-        return []
+        return None
     z = np.asarray(split.sun_direction, np.float64)  # the lamp's local +Z points at the sun
     helper = np.array([1.0, 0.0, 0.0]) if abs(z[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
     x = np.cross(helper, z)
     x /= np.linalg.norm(x)
     matrix = np.eye(4)
     matrix[:3, 0], matrix[:3, 1], matrix[:3, 2] = x, np.cross(z, x), z
-    return [snap.Light(kind="SUN", color=(irradiance / power).astype(np.float32), power=power, matrix=matrix,
-                       angle=split.sun_angle, name=f"{world.name}/sun")]
+    return snap.Light(kind="SUN", color=(irradiance / power).astype(np.float32), power=power, matrix=matrix,
+                      angle=split.sun_angle, name=f"{world_name}/sun")
 
 
-def world_from_blender(world, wait=True):
-    """`World` of a Blender world: a uniform Background colour x strength, or the sky of a world
-    that varies with direction (its sun goes to `world_lights`, see `environment.py`). wait=False
-    (the viewport): a world whose map still bakes reads as its uniform colour meanwhile."""
+def read_world(world, wait=True):
+    """(`World`, [the lamps it brings]) of a Blender world, read once: a uniform Background
+    colour x strength, or the sky of a world that varies with direction, whose sun becomes a
+    shadowed SUN `Light` (see `environment.py`). wait=False (the viewport): a world whose map
+    still bakes reads as its uniform colour, with no sun, meanwhile."""
     if world is None:
-        return snap.World()
+        return snap.World(), []
     ao_distance = float(world.light_settings.distance)
     if world.node_tree is None:
-        return snap.World(color=_rgb(world.color), ao_distance=ao_distance)
+        return snap.World(color=_rgb(world.color), ao_distance=ao_distance), []
     node = _output_node(world)
     if node is None:
         # Cycles renders a world with nothing linked to its output as black.
-        return snap.World(color=np.zeros(3, np.float32), ao_distance=ao_distance)
-    found = _world_split(world, wait)
+        return snap.World(color=np.zeros(3, np.float32), ao_distance=ao_distance), []
+    found = _world_split(world, node, wait)
     if found is not None:
         split, strength = found
         log.info("world %r: %s and a sky of L2 spherical harmonics", world.name,
                  "a shadowed sun" if split.sun_direction is not None else "no sun")
+        sun = _sun_light(split, strength, world.name)
         return snap.World(color=(split.sky * strength).astype(np.float32), ao_distance=ao_distance,
-                          sky_sh=(split.sky_sh * strength).astype(np.float32))
+                          sky_sh=(split.sky_sh * strength).astype(np.float32)), [sun] if sun is not None else []
     if node.type != "BACKGROUND":
         log.warning("world %r: %s could not be read; using the viewport colour", world.name, node.bl_idname)
-        return snap.World(color=_rgb(world.color), ao_distance=ao_distance)
+        return snap.World(color=_rgb(world.color), ao_distance=ao_distance), []
     if not _is_uniform(node) and not world_bake.pending():
         log.warning("world %r: its background could not be read; using its colour value", world.name)
     radiance = (_rgb(node.inputs["Color"].default_value) * _value(node.inputs["Strength"])).astype(np.float32)
-    return snap.World(color=radiance, ao_distance=ao_distance)
+    return snap.World(color=radiance, ao_distance=ao_distance), []
 
 
 # --- partial re-reads (shading edits in the viewport) ---------------------------------------
 
 
-def scene_lights(depsgraph, wait_for_world=True) -> list:
-    """Every lamp instance of the depsgraph as a `Light`, then the world's (the snapshot's lamps,
-    read again)."""
+def scene_shading(depsgraph, wait_for_world=True):
+    """(every lamp instance as a `Light`, then the world's; the `World`): the snapshot's lamps
+    and world read again, the world once."""
+    world, world_lamps = read_world(depsgraph.scene.world, wait_for_world)
     lamps = [light_from_blender(inst.object.data, inst.matrix_world, inst.object.name)
              for inst in depsgraph.object_instances if inst.object.type == "LIGHT"]
-    return lamps + world_lights(depsgraph.scene.world, wait_for_world)
+    return lamps + world_lamps, world
 
 
 def scene_materials(snapshot, names=None) -> list:

@@ -212,10 +212,13 @@ class ViewportSession:
         for edit in edits:
             self._post(edit)
         if changes.lights or changes.world or changes.materials:
+            # An environment map's sun is a lamp too: a world edit reads the lamps again.
+            lights = world = None
+            if changes.lights or changes.world:
+                lights, world = sync.scene_shading(depsgraph, wait_for_world=False)
             self._post(mirror.set_shading(
-                # An environment map's sun is a lamp too: a world edit reads the lamps again.
-                lights=sync.scene_lights(depsgraph, wait_for_world=False) if changes.lights or changes.world else None,
-                world=sync.world_from_blender(depsgraph.scene.world, wait=False) if changes.world else None,
+                lights=lights,
+                world=world if changes.world else None,
                 materials=sync.scene_materials(mirror.snapshot, changes.material_names) if changes.materials else None,
             ))
 
@@ -293,9 +296,8 @@ class ViewportSession:
             return
         if world_bake.completed != self._world_bakes_seen:
             self._world_bakes_seen = world_bake.completed
-            world = depsgraph.scene.world
-            self._post(self.mirror.set_shading(lights=sync.scene_lights(depsgraph, wait_for_world=False),
-                                               world=sync.world_from_blender(world, wait=False)))
+            lights, world = sync.scene_shading(depsgraph, wait_for_world=False)
+            self._post(self.mirror.set_shading(lights=lights, world=world))
 
     def needs_redraw(self) -> bool:
         """More to show: the worker is busy or published something not drawn yet."""

@@ -140,11 +140,11 @@ def _cache_dir() -> Path:
     return Path(root) / "hybridgi" / "worlds"
 
 
-def bake_world(world, wait: bool = True) -> np.ndarray | None:
+def bake_world(world, wait: bool = True, key: str | None = None) -> np.ndarray | None:
     """(h, w, 3) float32 linear radiance of `world` in every direction (the core's equirect
     layout), or None when the bake failed (logged; the caller falls back) or, with wait=False,
-    is still running in the background."""
-    key = world_key(world)
+    is still running in the background. key : `world_key(world)` when the caller has it."""
+    key = key or world_key(world)
     pixels = _cached(key)
     if pixels is not None:
         return pixels
