@@ -327,38 +327,48 @@ def _shader_surface(shader, textures, name, depth=0):
                         "rendered", name, shader.bl_idname)
         return zero, None, zero, None
     if kind in ("MIX_SHADER", "ADD_SHADER") and depth < 8:
-        parts = []
-        for socket in shader.inputs[-2:] if kind == "MIX_SHADER" else shader.inputs[:2]:
-            node = _linked_node(socket)
-            part = _shader_surface(node, textures, name, depth + 1) if node is not None else (zero, None, zero, None)
-            if part is None:
-                return None
-            parts.append(part)
-        fac = np.clip(_constant_value(shader.inputs["Fac"], name), 0, 1) if kind == "MIX_SHADER" else None
-        weights = (1.0 - fac, fac) if fac is not None else (1.0, 1.0)
-        textured = [i for i, p in enumerate(parts) if p[1] is not None and weights[i] > 0]
-        if len(textured) > 1:
-            log.warning("material %r: a mix of two image textures keeps the stronger one", name)
-        texture = parts[max(textured, key=lambda i: weights[i])][1] if textured else None
-        # With a texture, colour = base x texture: the other parts' colours enter base divided by
-        # the texture's mean, so the mean albedo of the mix is right.
-        mean = texture.reshape(-1, 3).mean(axis=0) if texture is not None else np.ones(3)
-        base = sum(w * (p[0] if p[1] is texture else p[0] * (p[1].reshape(-1, 3).mean(axis=0) if p[1] is not None else 1.0)
-                        / np.maximum(mean, 1e-6)) for w, p in zip(weights, parts, strict=True))
-        emission = sum(w * p[2] for w, p in zip(weights, parts, strict=True))
-        alpha = next((p[3] for p in parts if p[3] is not None), None)
-        if kind == "MIX_SHADER":
-            # The usual cutout: Mix(Fac = an image's alpha, Transparent BSDF, the surface).
-            kinds = [_linked_node(sk).type if _linked_node(sk) is not None else None for sk in shader.inputs[-2:]]
-            if "BSDF_TRANSPARENT" in kinds:
-                fac_map = _alpha_map(shader.inputs["Fac"], textures, name, constant_ok=False)
-                if fac_map is not None:
-                    alpha = fac_map if kinds[0] == "BSDF_TRANSPARENT" else 1.0 - fac_map
-                    # The transparent part's weight is the hole, not a darker surface.
-                    solid = parts[1] if kinds[0] == "BSDF_TRANSPARENT" else parts[0]
-                    base, texture, emission = solid[0], solid[1], solid[2]
-        return np.asarray(base, np.float32), texture, np.asarray(emission, np.float32), alpha
+        return _mix_surface(shader, kind, textures, name, depth)
     return None
+
+
+def _mix_surface(shader, kind, textures, name, depth):
+    """`_shader_surface` of a Mix or Add Shader: its parts weighted by the (constant) factor, or
+    the usual cutout, Mix(Fac = an image's alpha, Transparent BSDF, a surface)."""
+    nothing = (np.zeros(3, np.float32), None, np.zeros(3, np.float32), None)
+    nodes = [_linked_node(socket) for socket in (shader.inputs[-2:] if kind == "MIX_SHADER" else shader.inputs[:2])]
+    parts = [_shader_surface(node, textures, name, depth + 1) if node is not None else nothing for node in nodes]
+    if any(part is None for part in parts):
+        return None
+    weights = (1.0, 1.0)
+    if kind == "MIX_SHADER":
+        kinds = [node.type if node is not None else None for node in nodes]
+        if "BSDF_TRANSPARENT" in kinds and shader.inputs["Fac"].is_linked:
+            fac_map = _alpha_map(shader.inputs["Fac"], textures, name, constant_ok=False)
+            if fac_map is not None:
+                # The transparent part's weight is the hole, not a darker surface.
+                hole_first = kinds[0] == "BSDF_TRANSPARENT"
+                base, texture, emission, _alpha = parts[1] if hole_first else parts[0]
+                return base, texture, emission, fac_map if hole_first else 1.0 - fac_map
+        fac = float(np.clip(_constant_value(shader.inputs["Fac"], name), 0, 1))
+        weights = (1.0 - fac, fac)
+    textured = [i for i, part in enumerate(parts) if part[1] is not None and weights[i] > 0]
+    if len(textured) > 1:
+        log.warning("material %r: a mix of two image textures keeps the stronger one", name)
+    texture = parts[max(textured, key=lambda i: weights[i])][1] if textured else None
+    # With a texture, colour = base x texture: the other parts' mean colours enter base divided
+    # by the texture's mean, so the mean albedo of the mix is right.
+    mean = texture.reshape(-1, 3).mean(axis=0) if texture is not None else np.ones(3)
+    base = sum(w * (part[0] if part[1] is texture else _mean_colour(part) / np.maximum(mean, 1e-6))
+               for w, part in zip(weights, parts, strict=True))
+    emission = sum(w * part[2] for w, part in zip(weights, parts, strict=True))
+    alpha = next((part[3] for part in parts if part[3] is not None), None)
+    return np.asarray(base, np.float32), texture, np.asarray(emission, np.float32), alpha
+
+
+def _mean_colour(part):
+    """(3,) mean diffuse colour of a `_shader_surface` part (its base times its texture's mean)."""
+    base, texture = part[0], part[1]
+    return base if texture is None else base * texture.reshape(-1, 3).mean(axis=0)
 
 
 def _alpha_map(socket, textures, name, constant_ok=True):
