@@ -421,9 +421,14 @@ class GISolver:
         flats = [j.result() for j in jobs]
         # Hits read few of the grid's cells: index a table of those only (the grid's whole table
         # cost more to rebuild per iteration than the iteration's own gathers).
-        self._read_cells = np.unique(np.concatenate(flats)) if flats else np.zeros(0, np.intp)
+        # A mask over the grid, not np.unique / searchsorted: no sort of the ~2M hits' cells.
+        read = np.zeros(self.cache.grid.count, bool)
+        for flat in flats:
+            read[flat] = True
+        self._read_cells = np.flatnonzero(read)
+        slot = np.cumsum(read, dtype=np.intp) - 1
         for c, flat in zip(self.chunks, flats, strict=True):
-            c.flat = np.searchsorted(self._read_cells, flat)
+            c.flat = slot[flat]
         self._read_valid = valid[self._read_cells]
         self._lookup_valid = valid
         self._sources = None
