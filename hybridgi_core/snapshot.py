@@ -226,8 +226,11 @@ class SceneSnapshot:
         """(lo, hi) float32 corners of the geometry's bounding box."""
         if self.geometry.triangle_count == 0:
             raise EmptySceneError("the scene has no triangles")
-        used = self.geometry.positions[np.unique(self.geometry.triangles)]
-        return used.min(axis=0), used.max(axis=0)
+        g = self.geometry
+        used = np.zeros(g.positions.shape[0], bool)  # a mask, not np.unique's sort
+        used[g.triangles.ravel()] = True
+        p = g.positions if used.all() else g.positions[used]
+        return p.min(axis=0), p.max(axis=0)
 
     def focus_bounds(self, margin: float = FOCUS_MARGIN) -> tuple[np.ndarray, np.ndarray]:
         """Bounds the cache grid should cover: like `bounds`, but a ground plane much larger than
@@ -239,8 +242,10 @@ class SceneSnapshot:
         over GROUND_RATIO times the extent of the rest; the rest's box then grows by `margin` of
         its extent on each side (bounce light from the floor around it), within the full bounds.
         """
-        lo, hi = self.bounds()
+        if self.geometry.triangle_count == 0:
+            raise EmptySceneError("the scene has no triangles")
         _ids, blo, bhi = object_boxes(self.geometry)
+        lo, hi = blo.min(axis=0), bhi.max(axis=0)  # == bounds(): the boxes span every corner
         size = (bhi - blo).max(axis=1)
         extent = float((hi - lo).max())
         flat = (bhi[:, 2] - blo[:, 2]) <= 1e-3 * np.maximum(size, 1e-9)
