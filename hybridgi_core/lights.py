@@ -245,16 +245,6 @@ def spot_attenuation(light: Light, to_point: np.ndarray) -> np.ndarray:
 # --------------------------------------------------------------------------------------------
 
 
-def _unoccluded(tracer, ox, oy, oz, dx, dy, dz, tfar) -> np.ndarray:
-    """(k,) bool: nothing blocks the shadow rays (all true without a tracer or rays)."""
-    if tracer is None or ox.size == 0:
-        return np.ones(ox.shape, bool)
-    origins = np.ascontiguousarray(np.stack([ox, oy, oz], axis=1), dtype=_F32)
-    dirs = np.ascontiguousarray(np.stack([dx, dy, dz], axis=1), dtype=_F32)
-    tfar = tfar if np.isscalar(tfar) else np.ascontiguousarray(tfar, dtype=_F32)
-    return ~np.asarray(tracer.occluded(origins, dirs, tfar), bool)
-
-
 def _shadow_to_targets(tracer, p, nrm, idx, tx, ty, tz, epsilon):
     """Visibility of targets (tx, ty, tz) from receivers p[idx] (offset along their normals)."""
     ox = p[0][idx] + nrm[0][idx] * epsilon
@@ -262,9 +252,18 @@ def _shadow_to_targets(tracer, p, nrm, idx, tx, ty, tz, epsilon):
     oz = p[2][idx] + nrm[2][idx] * epsilon
     dx, dy, dz = tx - ox, ty - oy, tz - oz
     dist = np.sqrt(dx * dx + dy * dy + dz * dz)
-    inv = 1.0 / np.maximum(dist, 1e-30)
-    tfar = np.maximum(dist - epsilon, 0.0)
-    return _unoccluded(tracer, ox, oy, oz, dx * inv, dy * inv, dz * inv, tfar)
+    tfar = dist - epsilon
+    # Only rays with some reach can be blocked (0 < t <= tfar); those have a finite unit
+    # direction from finite receivers (checked by the caller) and lamp points: traced trusted.
+    ray = np.flatnonzero(tfar > 0)
+    vis = np.ones(dist.shape, bool)
+    if tracer is None or ray.size == 0:
+        return vis
+    inv = 1.0 / dist[ray]
+    origins = np.stack([ox[ray], oy[ray], oz[ray]], axis=1).astype(_F32, copy=False)
+    dirs = np.stack([dx[ray] * inv, dy[ray] * inv, dz[ray] * inv], axis=1).astype(_F32, copy=False)
+    vis[ray] = ~np.asarray(tracer.occluded(origins, dirs, tfar[ray].astype(_F32, copy=False), trusted=True), bool)
+    return vis
 
 
 def _point_chunk(light, p, nrm, tracer, rng, samples, epsilon):
