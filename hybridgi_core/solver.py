@@ -362,8 +362,10 @@ class GISolver:
         else:
             values[0:3] = world.radiance(chunk.ray_dirs).T  # a sky that varies with direction
         h = chunk.hit
-        if h.size:
+        if h.size and self.scene.surfaces.emissive:
             values[0:3, h] = self.scene.surfaces.emission_of(chunk.prim[h]).T
+        elif h.size:
+            values[0:3, h] = 0.0  # no emitter in the scene: skip gathering zero records
         if s.indirect_quality == AO_ONLY:
             values[0:3] = 0.0
         np.greater(chunk.t, s.ao_distance, out=values[3])
@@ -421,9 +423,14 @@ class GISolver:
         flats = [j.result() for j in jobs]
         # Hits read few of the grid's cells: index a table of those only (the grid's whole table
         # cost more to rebuild per iteration than the iteration's own gathers).
-        self._read_cells = np.unique(np.concatenate(flats)) if flats else np.zeros(0, np.intp)
+        # A mask over the grid, not np.unique / searchsorted: no sort of the ~2M hits' cells.
+        read = np.zeros(self.cache.grid.count, bool)
+        for flat in flats:
+            read[flat] = True
+        self._read_cells = np.flatnonzero(read)
+        slot = np.cumsum(read, dtype=np.intp) - 1
         for c, flat in zip(self.chunks, flats, strict=True):
-            c.flat = np.searchsorted(self._read_cells, flat)
+            c.flat = slot[flat]
         self._read_valid = valid[self._read_cells]
         self._lookup_valid = valid
         self._sources = None
