@@ -87,6 +87,7 @@ class ViewportWorker:
         self._frame = 0
         self._serial = 0
         self._published_cache_key = None
+        self._published_depth = None  # (key, depth texels) last packed: reused while it holds
         self._published_at = 0.0
         self._view_state: ViewState | None = None
         self._rates: collections.deque = collections.deque()
@@ -299,7 +300,9 @@ class ViewportWorker:
         # again from the stored hits (a new system starts over: `SolveSchedule.attach`).
         self._schedule.attach(self._session.system)
         if not report.rebuilt:
-            self._schedule.changed(shading=report.lights_changed, geometry=bool(report.changes.boxes))
+            ch = report.changes
+            self._schedule.changed(shading=ch.shading_changed, geometry=bool(ch.boxes) or resync,
+                                   materials=ch.world_changed or bool(ch.materials_changed))
         self._steps["apply"] = (time.perf_counter() - t0) * 1e3
 
     # --- view -----------------------------------------------------------------------------------
@@ -423,9 +426,18 @@ class ViewportWorker:
             due = force or new_cache or time.perf_counter() - self._published_at >= PUBLISH_INTERVAL_S
             if pack and key != old and due:
                 t0 = time.perf_counter()
-                sh_tex, depth_tex = _gather_layout.pack_cache(cache)
+                # Solver iterations change the radiance bands only: the depth moments (the larger
+                # texture) are packed again only after steps that blend traced rays.
+                size = _gather_layout.DEFAULT_MAX_TEXTURE_SIZE  # never ask the GPU from this thread
+                _gather_layout.check_cache_textures(cache.grid.count, cache.settings.sh_coeffs,
+                                                    cache.settings.depth_texels, size)
+                depth_key = (key[0], key[2], self._schedule.blends)
+                if self._published_depth is None or self._published_depth[0] != depth_key:
+                    self._published_depth = (depth_key, frozen(_gather_layout.pack_depth(cache, size)))
+                sh_tex = _gather_layout.pack_sh(cache, size)
+                depth_tex = self._published_depth[1]
                 self._serial += 1
-                cache_frame = CacheFrame(self._serial, cache.grid, cache.settings, frozen(sh_tex), frozen(depth_tex))
+                cache_frame = CacheFrame(self._serial, cache.grid, cache.settings, frozen(sh_tex), depth_tex)
                 self._published_cache_key = key
                 self._published_at = time.perf_counter()
                 self._steps["pack"] = (time.perf_counter() - t0) * 1e3

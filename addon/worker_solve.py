@@ -15,8 +15,10 @@ Every call of `step` does one unit of work, so that the worker looks at its inbo
     begin + trace batch 0  ->  relax ... relax (one iteration a step)  ->  tail + neighbour filter
     -> trace batch 1  ->  relax ...  -> ... until `batches` batches are traced: done
 
-Events restart the relax phase from the stored hits (`resolve`: stale rays retraced, stale hits
-re-shaded, then iterations as above).
+Events restart the relax phase from the stored hits. A lamp, material or world edit re-shades
+the stored hits one batch a step (`GISolver.relight_batch`: shadow rays only, batch 0 first, the
+sources from the batches done so far), solving after each; a geometry edit retraces the stale
+rays (`resolve`), then iterations as above.
 """
 
 from __future__ import annotations
@@ -29,7 +31,7 @@ import numpy as np
 MAX_ITERATIONS = 16
 
 # Phases of the schedule.
-BEGIN, RESOLVE, RELAX, MORE, DONE = "begin", "resolve", "relax", "more", "done"
+BEGIN, RESOLVE, RELIGHT, RELAX, MORE, DONE = "begin", "resolve", "relight", "relax", "more", "done"
 
 
 class SolveSchedule:
@@ -45,8 +47,13 @@ class SolveSchedule:
         self.phase = BEGIN
         self.iterations = 0
         self._filter_direct = True  # the direct band was re-blended: filter it with the next tail
+        self._relight_next: int | None = None  # next batch to re-shade after a shading edit
+        self._materials = False  # the re-shade includes materials and the world (not lamps only)
         self.solved_once = False  # a solve of the current hits converged (cells count as settled)
         self.steps_ms: dict[str, float] = {}
+        #: Steps that blended traced rays into the cache (depth moments, inside flags may have
+        #: moved); iterations and the filter change the radiance bands only.
+        self.blends = 0
 
     # --- events ---------------------------------------------------------------------------------
 
@@ -57,13 +64,24 @@ class SolveSchedule:
             self.phase = BEGIN
             self.solved_once = False
 
-    def changed(self, shading: bool, geometry: bool) -> None:
-        """The session raised events on the stored hits: solve again from them."""
-        if self.phase == BEGIN or self.system is None:
+    def changed(self, shading: bool, geometry: bool, materials: bool = True) -> None:
+        """The session raised events on the stored hits: solve again from them.
+
+        shading : lamps, world or materials changed; materials : the world or materials did
+            (the geometry bands and albedo re-shade too), else lamps only (shadow rays only)
+        geometry : stored rays turned stale (`invalidate_boxes`)
+        """
+        if self.phase == BEGIN or self.system is None or not (shading or geometry):
             return
-        if shading or geometry:
-            self.phase = RESOLVE
-            self.solved_once = False
+        self.solved_once = False
+        if shading:
+            self._materials = materials or (self._relight_next is not None and self._materials)
+            self._relight_next = 0
+            self._filter_direct = self._filter_direct or materials
+        # A geometry event re-shades every stale hit in one go (`resolve`), lamps included.
+        self.phase = RESOLVE if geometry or self.phase == RESOLVE else RELIGHT
+        if geometry:
+            self._relight_next = None
             self._filter_direct = self._filter_direct or shading
 
     def cover(self, cells: np.ndarray) -> None:
@@ -99,10 +117,17 @@ class SolveSchedule:
             solver.extend(system.surface_cells())  # moved surfaces read new cells (`move_dynamic`)
             # One iteration with the retrace / re-shade; the rest one per step.
             st = solver.resolve(max_iterations=1)
+            self._relight_next = None  # every stale hit re-shaded
             rays = st.rays
             self.phase, self.iterations = RELAX, 1
             if solver.converged:
                 self._finish()
+        elif phase == RELIGHT:
+            solver.relight_batch(self._relight_next, materials=self._materials)
+            self._relight_next += 1
+            if self._relight_next >= solver.batches:
+                self._relight_next = None
+            self.phase, self.iterations = RELAX, 0
         elif phase == RELAX:
             solver.relax()
             self.iterations += 1
@@ -112,6 +137,8 @@ class SolveSchedule:
             rays = solver.trace_batch(solver.batches).rays
             self._filter_direct = True  # the batches' mean replaced the filtered direct band
             self.phase, self.iterations = RELAX, 0
+        if phase != RELAX:
+            self.blends += 1
         self.steps_ms[phase] = (time.perf_counter() - t0) * 1e3
         return rays
 
@@ -131,4 +158,7 @@ class SolveSchedule:
         cache.samples[c] = np.where(cache.samples[c] > 0, np.maximum(cache.samples[c], window), 0)
         cache.version += 1
         self.solved_once = True
-        self.phase = MORE if solver.batches < self.batches else DONE
+        if self._relight_next is not None:
+            self.phase = RELIGHT
+        else:
+            self.phase = MORE if solver.batches < self.batches else DONE

@@ -392,12 +392,14 @@ class GISolver:
             backface=back.reshape(m, r).sum(axis=1, dtype=np.float32) * np.float32(1.0 / r),
         )
 
-    def _blend_geometry(self, cells: np.ndarray) -> None:
-        """Write the mean over stored batches of the geometry bands of `cells` into the cache
-        (a running mean: batch i enters with weight 1 / (i + 1)); sh_indirect keeps its value, the
-        fixed point's starting iterate."""
+    def _blend_geometry(self, cells: np.ndarray, batches=None, hits_moved: bool = True) -> None:
+        """Write the mean over stored batches (all, or the set `batches`) of the geometry bands of
+        `cells` into the cache (a running mean: batch i enters with weight 1 / (i + 1));
+        sh_indirect keeps its value, the fixed point's starting iterate. hits_moved=False: no hit
+        changed place (a re-shade), so the hits' cell lookup stays."""
         cache = self.cache
-        for i, b in enumerate(sorted({c.batch for c in self.chunks})):
+        chosen = {c.batch for c in self.chunks} if batches is None else set(batches)
+        for i, b in enumerate(sorted(chosen)):
             for c in self.chunks:
                 if c.batch != b:
                     continue
@@ -407,7 +409,8 @@ class GISolver:
                 part = _sample_rows(c.samples, rows)
                 part.sh_indirect = cache.sh_indirect[part.cells]
                 cache.blend(part, WARMUP_FRAME_BASE + b, alpha=1.0 / (i + 1))
-        self._lookup_valid = None
+        if hits_moved:
+            self._lookup_valid = None
         self._sources = None  # validity may have changed: look the hits' cells up again
 
     # --- the fixed point -----------------------------------------------------------------------
@@ -444,8 +447,11 @@ class GISolver:
             return
         tic = time.perf_counter()
         rows = self._rows(self.cache.sh_direct)
-        jobs = [self._pool.submit(self._project_hits, c, rows, True) for c in self.chunks]
-        self._sources = self._mean_over_batches([j.result() for j in jobs], self.chunks)
+        # Chunks whose lamp light is still to re-shade (`relight_batch` goes batch by batch) do
+        # not count yet; `resolve` re-shades every stale hit before it solves.
+        chunks = [c for c in self.chunks if c.e_lamp is not None and not c.lamp_stale.any()]
+        jobs = [self._pool.submit(self._project_hits, c, rows, True) for c in chunks]
+        self._sources = self._mean_over_batches([j.result() for j in jobs], chunks)
         stats.add("source", (time.perf_counter() - tic) * 1e3)
 
     def _mean_over_batches(self, coeffs: list[np.ndarray], chunks: list[StoredHits]):
@@ -753,6 +759,41 @@ class GISolver:
         if retraced:
             self._blend_geometry(np.unique(np.concatenate(retraced)))
         stats.merge(self.solve(max_iterations))
+        stats.wall_ms = (time.perf_counter() - t0) * 1e3
+        return stats
+
+    # --- progressive re-shading (the viewport worker's) ------------------------------------------
+
+    def relight_batch(self, batch: int, materials: bool = True) -> SolveStats:
+        """After `lights_changed`: re-shade the stored hits of one batch only (lamp light through
+        shadow rays; with `materials`, after a material or world edit, albedo and the geometry
+        bands too), no probe ray. Until the other batches follow, the fixed point's sources come
+        from the batches re-shaded so far, so a live view solves again after one batch of shadow
+        rays instead of all of them and refines as the rest arrive. Batch 0 (it carries the
+        bounces) must come first. Once every batch is done the state is `resolve`'s re-shade."""
+        t0 = time.perf_counter()
+        stats = SolveStats()
+        s = self.cache.settings
+        chunks = [c for c in self.chunks if c.batch == batch]
+        if materials:
+            for j in [self._pool.submit(self._reshade_chunk, c) for c in chunks]:
+                j.result()
+        tic = time.perf_counter()
+        for c in chunks:
+            c.lamp_stale[:] = True
+        jobs = [self._pool.submit(self._shade_lamps, c, frame_rng(s.seed, (WARMUP_FRAME_BASE + c.batch) * 7919 + i))
+                for i, c in enumerate(chunks)]
+        stats.shadow_points = sum(j.result() for j in jobs)
+        stats.add("shadow", (time.perf_counter() - tic) * 1e3)
+        done = {c.batch for c in self.chunks if c.e_lamp is not None and not c.lamp_stale.any()}
+        if materials:
+            self._blend_geometry(self.cells, batches=done, hits_moved=False)
+        if done >= {c.batch for c in self.chunks}:
+            self._materials_stale = False
+            self._relight_all = False
+        self._sources = None
+        self._reset_series()
+        stats.cells = int(sum(c.cells.size for c in chunks))
         stats.wall_ms = (time.perf_counter() - t0) * 1e3
         return stats
 
