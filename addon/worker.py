@@ -56,6 +56,10 @@ MASK_CHUNK = 4096
 #: and uploading costs the main thread about 1 ms per 3 MB of texture data, and a display shows
 #: no more than about this rate anyway.
 PUBLISH_INTERVAL_S = 1.0 / 30.0
+#: The same while the solver iterates towards a fixed point: each published iteration adds a
+#: bounce but costs a pack (~50-100 ms for a 48^3 grid here, a third of an iteration), so the
+#: intermediate ones go out at this rate; a finished solve is always published at once.
+SOLVE_PUBLISH_INTERVAL_S = 0.3
 
 
 # --- the worker ---------------------------------------------------------------------------------
@@ -237,10 +241,11 @@ class ViewportWorker:
             self._view_ms = ms if self._view_ms == 0 else 0.7 * self._view_ms + 0.3 * ms
             schedule.cover(self._view_state.cells)
         state = self._view_state
-        solved = False
+        finished = False
         if state is not None and schedule.has_work:
+            was_solved = schedule.solved_once
             self._solve_step(schedule, state)
-            solved = True
+            finished = schedule.solved_once and not was_solved or not schedule.has_work
         if state is not None and state.request.debug_cells:
             self._cell_colors(system, state, force=moving or not schedule.has_work)
         if state is not None and not moving:
@@ -249,8 +254,8 @@ class ViewportWorker:
                 self._trace_mask(system, state)
             elif state.passes < self.options.direct_passes:
                 self._direct_pass(system, state)
-        # The last solve step before a pause is always published; in between, at PUBLISH_INTERVAL_S.
-        self._publish(force=solved and not schedule.has_work)
+        # A finished solve is published at once; iterations in between at SOLVE_PUBLISH_INTERVAL_S.
+        self._publish(force=finished)
 
     # --- scene ----------------------------------------------------------------------------------
 
@@ -423,8 +428,12 @@ class ViewportWorker:
             key = (id(cache), cache.version, id(cache.sh_direct))
             old = self._published_cache_key
             new_cache = old is None or old[0] != key[0] or old[2] != key[2]
-            due = force or new_cache or time.perf_counter() - self._published_at >= PUBLISH_INTERVAL_S
-            if pack and key != old and due:
+            interval = SOLVE_PUBLISH_INTERVAL_S if self._schedule.has_work else PUBLISH_INTERVAL_S
+            due = force or new_cache or time.perf_counter() - self._published_at >= interval
+            # A cache nothing was traced into yet shows nothing: the main thread's empty frame
+            # stands in (packing a 48^3 grid's depth moments costs ~0.4 s before the first batch).
+            traced = bool(cache.samples.any())
+            if pack and key != old and due and traced:
                 t0 = time.perf_counter()
                 # Solver iterations change the radiance bands only: the depth moments (the larger
                 # texture) are packed again only after steps that blend traced rays.

@@ -248,7 +248,8 @@ class GISolver:
             stats.add("shadow", (time.perf_counter() - tl) * 1e3)
         if blend:
             tb = time.perf_counter()
-            self._blend_geometry(cells)
+            # Stored hits kept their places: only the new chunks need their cells looked up.
+            self._blend_geometry(cells, hits_moved=False)
             stats.add("blend", (time.perf_counter() - tb) * 1e3)
         self._reset_series()
         stats.wall_ms = (time.perf_counter() - t0) * 1e3
@@ -416,16 +417,31 @@ class GISolver:
     # --- the fixed point -----------------------------------------------------------------------
 
     def _ensure_lookup(self) -> None:
+        """The cell every stored hit reads (`chunk.flat`, an index into `_read_cells`). Again for
+        every chunk when the cache's validity changed; else only for chunks traced since (a new
+        batch: the viewport adds one while the view holds still), the others' indices remapped."""
         valid = self.cache.valid
-        if self._lookup_valid is not None and np.array_equal(valid, self._lookup_valid):
+        same = self._lookup_valid is not None and np.array_equal(valid, self._lookup_valid)
+        fresh = [c for c in self.chunks if c.flat is None]
+        if same and not fresh:
             return
+        todo = fresh if same else self.chunks
         lookup = HitLookup(self.cache, bounced=True)
-        jobs = [self._pool.submit(self._lookup_chunk, c, lookup) for c in self.chunks]
+        jobs = [self._pool.submit(self._lookup_chunk, c, lookup) for c in todo]
         flats = [j.result() for j in jobs]
-        # Hits read few of the grid's cells: index a table of those only (the grid's whole table
-        # cost more to rebuild per iteration than the iteration's own gathers).
-        self._read_cells = np.unique(np.concatenate(flats)) if flats else np.zeros(0, np.intp)
-        for c, flat in zip(self.chunks, flats, strict=True):
+        if same:
+            old = self._read_cells
+            self._read_cells = np.union1d(old, np.concatenate(flats)) if flats else old
+            if self._read_cells.size != old.size:
+                remap = np.searchsorted(self._read_cells, old)
+                for c in self.chunks:
+                    if c.flat is not None:
+                        c.flat = remap[c.flat]
+        else:
+            # Hits read few of the grid's cells: index a table of those only (the grid's whole
+            # table cost more to rebuild per iteration than the iteration's own gathers).
+            self._read_cells = np.unique(np.concatenate(flats)) if flats else np.zeros(0, np.intp)
+        for c, flat in zip(todo, flats, strict=True):
             c.flat = np.searchsorted(self._read_cells, flat)
         self._read_valid = valid[self._read_cells]
         self._lookup_valid = valid
@@ -670,6 +686,7 @@ class GISolver:
         stale_by_ray[chunk.hit] = chunk.lamp_stale
         stale_by_ray[idx] = True
         chunk.hit = np.flatnonzero(chunk.prim >= 0)
+        chunk.flat = None  # the hits moved: look their cells up again
         chunk.e_lamp = np.ascontiguousarray(e_by_ray[:, chunk.hit])
         chunk.lamp_stale = stale_by_ray[chunk.hit]
         self._shade_materials(chunk, chunk.ray_dirs[chunk.hit])

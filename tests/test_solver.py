@@ -281,3 +281,26 @@ def test_relight_batch_with_materials_reaches_the_new_furnace_answer():
         g = gi.gather(pts, up)
     assert tracer.intersect_rays == 0
     np.testing.assert_allclose(g.indirect, np.pi * LE * 0.25 / 0.75, rtol=5e-3)
+
+
+def test_a_batch_traced_after_a_solve_looks_up_only_its_own_hits():
+    """Batches added one by one between solves (the viewport's refinement) read the same cells
+    as a full lookup of every stored hit, and the solved cache is the same."""
+    s = CacheSettings(resolution=10, rays_per_cell=32)
+    with GISystem(room_with_ball(), s) as gi:
+        sol = gi.solver
+        sol.begin(gi.surface_cells())
+        sol.trace_batch(0)
+        sol.solve(16)
+        sol.trace_batch(1)
+        sol.solve(16)
+        incremental = [sol._read_cells[c.flat] for c in sol.chunks]
+        x = gi.cache.sh_indirect.copy()
+        sol._lookup_valid = None  # force the full lookup
+        sol._ensure_lookup()
+        full = [sol._read_cells[c.flat] for c in sol.chunks]
+        sol._sources = None
+        sol.relax()
+    for a, b in zip(incremental, full, strict=True):
+        np.testing.assert_array_equal(a, b)
+    np.testing.assert_allclose(gi.cache.sh_indirect, x, rtol=0, atol=2e-3 * np.abs(x).max())
