@@ -87,7 +87,7 @@ class ViewportWorker:
         self._applied_gen = 0
         self._scene_version = 0  # bumped by every sync that changed something: stale view light
         #: The cache's convergence from stored hits, one unit of work per step (`worker_solve.py`).
-        self._schedule = SolveSchedule(self.options.solver_batches)
+        self._schedule = SolveSchedule(self.options.solver_batches, self.options.first_batch_rays)
         self._frame = 0
         self._serial = 0
         self._published_cache_key = None

@@ -69,6 +69,9 @@ class ViewRequest:
 class WorkerOptions:
     solver_batches: int = 4  # batches of rays_per_cell directions per cell the cache refines to
     # while the scene holds still (the first converged image comes from one; `worker_solve.py`)
+    first_batch_rays: int | None = 32  # directions per cell of that first batch (at most
+    # rays_per_cell; None: rays_per_cell): half the rays and iterations half as costly before the
+    # first converged image, which the full batches that follow refine
     direct_samples: int = 1  # shadow-ray samples per pixel and lamp in each direct-light pass
     direct_passes: int = 16  # passes averaged while the view stays still (soft shadows converge)
 

@@ -39,10 +39,12 @@ class SolveSchedule:
 
     batches : traced direction batches to refine to while the view holds still (the first
         converged image comes from the first one)
+    first_rays : directions per cell of the first batch (None: rays_per_cell)
     """
 
-    def __init__(self, batches: int):
+    def __init__(self, batches: int, first_rays: int | None = None):
         self.batches = max(1, int(batches))
+        self.first_rays = first_rays
         self.system = None
         self.phase = BEGIN
         self.iterations = 0
@@ -110,7 +112,7 @@ class SolveSchedule:
         phase = self.phase
         if phase == BEGIN:
             solver.begin(np.union1d(system.surface_cells(), cells))
-            rays = solver.trace_batch(0).rays
+            rays = solver.trace_batch(0, rays=self.first_rays).rays
             self._filter_direct = True
             self.phase, self.iterations = RELAX, 0
         elif phase == RESOLVE:
@@ -123,7 +125,9 @@ class SolveSchedule:
             if solver.converged:
                 self._finish()
         elif phase == RELIGHT:
-            solver.relight_batch(self._relight_next, materials=self._materials)
+            # The batch that carries the bounces first, then the others in order.
+            order = [solver.bounce_from] + [b for b in range(solver.batches) if b != solver.bounce_from]
+            solver.relight_batch(order[self._relight_next], materials=self._materials)
             self._relight_next += 1
             if self._relight_next >= solver.batches:
                 self._relight_next = None
@@ -135,6 +139,9 @@ class SolveSchedule:
                 self._finish()
         elif phase == MORE:
             rays = solver.trace_batch(solver.batches).rays
+            if self.first_rays is not None and solver.bounce_from == 0:
+                # A full batch now carries the bounces (less noise in A than the first one's).
+                solver.bounce_from = solver.batches - 1
             self._filter_direct = True  # the batches' mean replaced the filtered direct band
             self.phase, self.iterations = RELAX, 0
         if phase != RELAX:

@@ -178,6 +178,9 @@ class GISolver:
         self._materials_stale = False
         self._relight_all = False  # every stored hit's lamp light is stale (lights_changed)
         self._sources = None  # (cells, b) of the fixed point; None: to compute
+        #: First of the BOUNCE_BATCHES batches whose hits carry A (the viewport moves it past a
+        #: first batch traced with fewer rays once a full one exists).
+        self.bounce_from = 0
         self._reset_series()
         self.stats = SolveStats()
 
@@ -188,6 +191,7 @@ class GISolver:
         self.cells = np.unique(np.asarray(cells, np.int64))
         self.chunks = []
         self.batches = 0
+        self.bounce_from = 0
         self._lookup_valid = None
         self._materials_stale = False
         self._relight_all = False
@@ -210,10 +214,13 @@ class GISolver:
     def has_hits(self) -> bool:
         return bool(self.chunks)
 
-    def trace_batch(self, batch: int, cells: np.ndarray | None = None, blend: bool = True) -> SolveStats:
+    def trace_batch(self, batch: int, cells: np.ndarray | None = None, blend: bool = True,
+                    rays: int | None = None) -> SolveStats:
         """Trace directions batch `batch` from `cells` (default: every solver cell), store the hits,
         shade their lamp light, and fold the geometry bands (direct light from sky and emitters, AO,
-        depth, back faces) into the cache as the mean over the batches traced so far."""
+        depth, back faces) into the cache as the mean over the batches traced so far.
+        rays : directions per cell of this batch (default rays_per_cell; the viewport's first
+        batch takes fewer, for a sooner first image that later batches refine)."""
         t0 = time.perf_counter()
         stats = SolveStats()
         cells = self.cells if cells is None else np.unique(np.asarray(cells, np.int64))
@@ -223,8 +230,9 @@ class GISolver:
         # Every cell turns the batch's spherical Fibonacci set by its own rotation: with one set
         # shared by all cells (the updater's), neighbouring cells make the same projection error,
         # which the gather's blend over 8 cells cannot average out.
-        dirs = cell_directions(s.rays_per_cell, s.seed, WARMUP_FRAME_BASE + batch, cells, self.cache.grid.count)
-        per_chunk = max(1, CHUNK_RAYS // s.rays_per_cell)
+        n_rays = s.rays_per_cell if rays is None else max(1, min(int(rays), s.rays_per_cell))
+        dirs = cell_directions(n_rays, s.seed, WARMUP_FRAME_BASE + batch, cells, self.cache.grid.count)
+        per_chunk = max(1, CHUNK_RAYS // n_rays)
         n_chunks = max(-(-cells.size // per_chunk), min(cells.size, max(1, s.threads)))
         bounds = np.cumsum([0] + [p.size for p in np.array_split(cells, n_chunks)])
         parts = [(cells[a:b], dirs[a:b]) for a, b in zip(bounds[:-1], bounds[1:], strict=True)]
@@ -240,7 +248,7 @@ class GISolver:
         self.chunks += new
         self.batches = max(self.batches, batch + 1)
         stats.cells = int(cells.size)
-        stats.rays = int(cells.size) * s.rays_per_cell
+        stats.rays = int(cells.size) * n_rays
         stats.shadow_points = sum(int(c.shadow_points) for c in new)
         if by_bins:
             tl = time.perf_counter()
@@ -517,7 +525,8 @@ class GISolver:
             rows = self._rows(cache.sh_indirect)
             stats.add("lookup", (time.perf_counter() - tl) * 1e3)
             tb = time.perf_counter()
-            chunks = [c for c in self.chunks if c.batch < BOUNCE_BATCHES]
+            first = self.bounce_from
+            chunks = [c for c in self.chunks if first <= c.batch < first + BOUNCE_BATCHES]
             jobs = [self._pool.submit(self._project_hits, c, rows, False) for c in chunks]
             b_cells, bounce = self._mean_over_batches([j.result() for j in jobs], chunks)
             new[np.searchsorted(src_cells, b_cells)] += bounce
@@ -786,8 +795,8 @@ class GISolver:
         shadow rays; with `materials`, after a material or world edit, albedo and the geometry
         bands too), no probe ray. Until the other batches follow, the fixed point's sources come
         from the batches re-shaded so far, so a live view solves again after one batch of shadow
-        rays instead of all of them and refines as the rest arrive. Batch 0 (it carries the
-        bounces) must come first. Once every batch is done the state is `resolve`'s re-shade."""
+        rays instead of all of them and refines as the rest arrive. The batch that carries the
+        bounces (`bounce_from`) must come first. Once every batch is done the state is `resolve`'s re-shade."""
         t0 = time.perf_counter()
         stats = SolveStats()
         s = self.cache.settings
