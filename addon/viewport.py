@@ -58,8 +58,6 @@ log = logging.getLogger(__name__)
 DIRECT_FACTOR = 2
 #: Shadow-ray passes averaged while the view holds still (each pass: 1 sample per pixel and lamp).
 DIRECT_PASSES = 16
-#: GI updates per second the worker aims at; it sizes each update's ray budget to the ray rate.
-UPDATE_HZ = 30.0
 #: props.debug_view of the cells view (drawn here, not by the deferred pass).
 DEBUG_CELLS = "CELLS"
 
@@ -149,7 +147,7 @@ class ViewportSession:
     """
 
     def __init__(self, options: worker.WorkerOptions | None = None):
-        self.options = options or worker.WorkerOptions(update_hz=UPDATE_HZ, direct_passes=DIRECT_PASSES)
+        self.options = options or worker.WorkerOptions(direct_passes=DIRECT_PASSES)
         self.mirror = SceneMirror()
         self.worker: worker.ViewportWorker | None = None
         self.gpu: _GPUState | None = None

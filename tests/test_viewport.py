@@ -233,7 +233,12 @@ WORKER_WITHOUT_BPY = textwrap.dedent("""
     p = wk.latest()
     wk.close()
     k = settings.sh_coeffs
-    valid = p.cache.sh_texels.reshape(-1, 4)[: p.cache.grid.count * 2 * k].reshape(-1, 2 * k, 4)[:, k, 3]
+    texels = p.cache.sh_texels.reshape(-1, 4)[: p.cache.grid.count * 2 * k].reshape(-1, 2 * k, 4)
+    valid = texels[:, k, 3]
+    with GISystem(scene, settings) as final:  # the final render's warm-up of the same settings
+        final.warm_up(16)
+        both = (valid > 0.5) & final.cache.valid
+        indirect_ratio = float(texels[both, k, :3].sum() / final.cache.sh_indirect[both, 0].sum())
     print(json.dumps({
         "idle": idle, "error": p.error, "scene_gen": p.stats.scene_gen, "gen": gen,
         "converged": p.stats.converged, "visible": p.stats.visible_cells,
@@ -241,7 +246,7 @@ WORKER_WITHOUT_BPY = textwrap.dedent("""
         "passes": p.view.passes, "has_mask": p.view.corner_mask is not None,
         "valid_cells": int(valid.sum()), "writeable": bool(p.cache.sh_texels.flags.writeable),
         "blocked": all(sys.modules.get(n) is None for n in ("bpy", "gpu", "mathutils")),
-        "threads_alive": wk.alive,
+        "threads_alive": wk.alive, "indirect_ratio": indirect_ratio,
     }))
 """)
 
@@ -260,6 +265,8 @@ def test_worker_runs_with_bpy_gpu_mathutils_blocked():
     assert r["direct_mean"] > 0.5 and r["passes"] == 4 and r["has_mask"]  # the box is lit by its lamp
     assert r["valid_cells"] > 0 and not r["writeable"]  # published arrays are read-only copies
     assert not r["threads_alive"]
+    # Converged means the final render's fixed point (the EMA updates it replaced stopped ~25% low).
+    assert 0.95 < r["indirect_ratio"] < 1.05, r["indirect_ratio"]
 
 
 # ----------------------------------------------------------------------------------------------
