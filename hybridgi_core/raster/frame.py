@@ -23,8 +23,13 @@ from .passes import low_res_size
 from .readback import upload_texture_2d
 from .settings import DEBUG_FINAL, RasterSettings
 from .ssao import SSAOPass
+from .subpixel import CentreSample, FilmAccumulator, jittered_projection, subframe_direct, subpixel_offsets
 
 log = logging.getLogger(__name__)
+
+#: Subframe s of a frame seeds its shadow rays with frame + s * this: other samples in every
+#: subframe, subframe 0 those of a frame without subframes.
+SUBFRAME_SEED_STRIDE = 1 << 24
 
 
 @dataclass
@@ -52,13 +57,23 @@ class FramePipeline:
     """
 
     def __init__(self, settings: RasterSettings | None = None, direct_samples: int = 16,
-                 gather: GatherPass | None = None):
+                 gather: GatherPass | None = None, subframes: int = 1, filter_size: float = 1.5):
         """gather : a GatherPass (subclass) to use instead of a plain one; the viewport's takes
-        cache textures its worker thread packed."""
+        cache textures its worker thread packed.
+        subframes : jittered subframes per `render` (the pixel filter, `subpixel.py`); 1 = one
+            sample at each pixel centre.
+        filter_size : pixels, Blender's Filter Size (Blackman-Harris, as Cycles)."""
         self.settings = settings or RasterSettings()
         #: Shadow-ray samples per pixel and lamp for the full-res direct light: soft shadows of area
-        #: lights and suns are visible noise at 1 sample; the viewport may use fewer.
+        #: lights and suns are visible noise at 1 sample; the viewport may use fewer. `render`
+        #: splits them over its subframes (the filter averages them anyway).
         self.direct_samples = direct_samples
+        if int(subframes) < 1:
+            raise ValueError(f"subframes must be >= 1, got {subframes}")
+        self.subframes = int(subframes)
+        self.filter_size = float(filter_size)
+        #: The last `render`'s passes, filtered over its subframes (FilmAccumulator).
+        self.film = None
         self.gbuffer = GBufferPass()
         self.downsample = DownsamplePass(self.settings.downsample)
         self.gather = gather if gather is not None else GatherPass()
@@ -183,8 +198,36 @@ class FramePipeline:
             p_full, n_full, pix_full = pixels_to_points(position, normal)
             direct = np.zeros((self.height * self.width, 4), np.float32)
             direct[pix_full, :3] = system.direct(p_full, n_full, frame, samples=self.direct_samples)
-            self._direct_tex = upload_texture_2d(direct.reshape(self.height, self.width, 4), "RGBA32F")
-        shaded = self.shade(gbuf, low, view, proj, self._direct_tex,
-                            corner_visible=mask.reshape(low.height, low.width, 8), irradiance=lit_tex,
-                            debug_view=debug_view, world_color=world_color, stats=stats)
+        film = FilmAccumulator()
+        offsets = subpixel_offsets(self.subframes, self.filter_size)
+        jittered = offsets.shape[0] > 1
+        film.set_depth(self.gbuffer.read("depth"))  # the centre sample, as Cycles' one sample
+        if jittered:
+            centre = CentreSample(direct, p_full, n_full, pix_full, film.read("depth").reshape(-1)[pix_full])
+        for s, offset in enumerate(offsets):
+            if jittered:
+                with stats.step("gbuffer"):
+                    gbuf = self.gbuffer.execute(view, jittered_projection(proj, offset, self.width, self.height))
+                with stats.step("direct"):
+                    normal = self.gbuffer.read("normal")
+                    direct = subframe_direct(system, centre, self.gbuffer.read("position"), normal,
+                                             frame + s * SUBFRAME_SEED_STRIDE,
+                                             max(1, self.direct_samples // offsets.shape[0]))
+            with stats.step("direct"):
+                self._direct_tex = upload_texture_2d(direct.reshape(self.height, self.width, 4), "RGBA32F")
+            shaded = self.shade(gbuf, low, view, proj, self._direct_tex,
+                                corner_visible=mask.reshape(low.height, low.width, 8), irradiance=lit_tex,
+                                debug_view=debug_view, world_color=world_color, stats=stats)
+            with stats.step("accumulate"):
+                film.add(self.read_passes(normal))
+        self.film = film
         return shaded, stats
+
+    def read_passes(self, normal: np.ndarray | None = None) -> dict[str, np.ndarray]:
+        """The current deferred targets plus the G-buffer's normal and depth, as numpy (h, w, c)
+        bottom-up (`normal`: the G-buffer's, already read)."""
+        passes = {name: self.deferred.read(name) for name in
+                  ("combined", "diffuse_direct", "diffuse_indirect", "diffuse_color", "ao")}
+        passes["normal"] = normal if normal is not None else self.gbuffer.read("normal")
+        passes["depth"] = self.gbuffer.read("depth")
+        return passes

@@ -1,0 +1,245 @@
+"""Pixel filter of final renders: jittered subframes placed as Cycles places its samples, and the
+accumulation of their passes into what Cycles writes.
+
+Cycles integrates every pixel over its pixel filter (`scene.render.filter_size`, Blackman-Harris
+by default) and importance-samples it (`scene/film.cpp: filter_table`): the filter is separable,
+each axis offset drawn from the inverse CDF of a Blackman-Harris window that spans twice the
+filter size (`width *= 2`), i.e. offsets in [-size, size] pixels around the pixel centre, and all
+samples then count with equal weight. A raster pass takes one sample per pixel; rendering K
+subframes whose projection is shifted by K such offsets, and averaging them, is the same
+estimator with one shared sample pattern for every pixel. The pattern is a deterministic
+low-discrepancy set (Hammersley, one point per stratum along each axis) pushed through the
+filter's inverse CDF, so K = 4 already covers the filter's quartiles on both axes.
+
+How each pass accumulates follows Cycles' film (`kernel/film/data_passes.h`, `film/read.h`):
+Combined, Diffuse Color, AO and Normal are sample averages (a background sample adds 0, or the
+world's radiance to Combined); Diffuse Direct and Indirect accumulate the reflected light
+(colour x irradiance / pi) and are divided by the accumulated Diffuse Color at the end (the
+passes' `divide_type`), so an edge pixel's light is weighted by each side's albedo and Combined =
+(Direct + Indirect) x Color holds for the filtered pixel too; Depth is not filtered: Cycles writes one sample's depth (its first), a
+point sample of the footprint, which here is the pixel centre's (the unjittered raster).
+
+The CPU work stays that of one sample per pixel: the cache steps run on the unjittered raster, and
+a subframe traces shadow rays (its share of the pixel's) only where its sample sees another
+surface than the centre's (`same_surface`): silhouettes and creases, a few % of the pixels.
+
+Pure numpy: the pipeline reads the targets and hands them in.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..visible import pixels_to_points
+
+#: Blackman-Harris coefficients as Cycles' `filter_func_blackman_harris` uses them.
+BH_COEFFS = (0.35875, -0.48829, 0.14128, -0.01168)
+
+#: Resolution of the tabulated inverse CDF (Cycles' FILTER_TABLE_SIZE is 1024; a finer table
+#: costs nothing here, the pattern is built once per frame).
+_TABLE_SIZE = 4097
+
+#: Passes averaged over the subframes (the deferred targets plus the G-buffer's normal).
+AVERAGED_PASSES = ("combined", "diffuse_direct", "diffuse_indirect", "diffuse_color", "ao")
+#: Light passes Cycles divides by the Diffuse Color pass after accumulating (colour x light).
+COLOR_DIVIDED_PASSES = ("diffuse_direct", "diffuse_indirect")
+
+
+def blackman_harris(v: np.ndarray, filter_size: float) -> np.ndarray:
+    """Cycles' filter weight at offset v (pixels) from the pixel centre: a Blackman-Harris
+    window over [-filter_size, filter_size], 0 outside."""
+    v = np.asarray(v, np.float64)
+    t = v / (2.0 * filter_size) + 0.5  # 0..1 across the window
+    a0, a1, a2, a3 = BH_COEFFS
+    x = 2.0 * np.pi * t
+    w = a0 + a1 * np.cos(x) + a2 * np.cos(2 * x) + a3 * np.cos(3 * x)
+    return np.where(np.abs(v) <= filter_size, w, 0.0)
+
+
+def blackman_harris_cdf(v: np.ndarray, filter_size: float) -> np.ndarray:
+    """The filter's normalised integral from -filter_size to v (closed form): P(offset <= v)."""
+    t = np.clip(np.asarray(v, np.float64) / (2.0 * filter_size) + 0.5, 0.0, 1.0)
+    a0, a1, a2, a3 = BH_COEFFS
+    x = 2.0 * np.pi * t
+    integral = a0 * t + (a1 * np.sin(x) + a2 * np.sin(2 * x) / 2 + a3 * np.sin(3 * x) / 3) / (2 * np.pi)
+    return integral / a0
+
+
+def filter_offsets(u: np.ndarray, filter_size: float) -> np.ndarray:
+    """Offsets (pixels) whose distribution is the filter's, for uniform u in [0, 1): the inverse
+    CDF, tabulated from the closed-form CDF (as Cycles tabulates its own)."""
+    u = np.asarray(u, np.float64)
+    if filter_size <= 0.0:
+        return np.zeros_like(u)
+    v = np.linspace(-filter_size, filter_size, _TABLE_SIZE)
+    return np.interp(u, blackman_harris_cdf(v, filter_size), v)
+
+
+def _radical_inverse2(i: np.ndarray) -> np.ndarray:
+    i = np.asarray(i, np.uint64)
+    out = np.zeros(i.shape, np.float64)
+    scale = 0.5
+    while np.any(i):
+        out += (i & np.uint64(1)).astype(np.float64) * scale
+        i = i >> np.uint64(1)
+        scale *= 0.5
+    return out
+
+
+def subpixel_offsets(count: int, filter_size: float) -> np.ndarray:
+    """(count, 2) float64 offsets (x, y) in pixels of the subframes of one final-render frame.
+
+    count = 1 is the pixel centre (one unfiltered sample, HybridGI without anti-aliasing). Else a
+    Hammersley set centred in its strata, x = (i + 0.5) / count, y = radical inverse of i shifted
+    by half a stratum, each axis mapped through the filter's inverse CDF: deterministic, every
+    frame the same.
+    """
+    count = int(count)
+    if count < 1:
+        raise ValueError(f"count must be >= 1, got {count}")
+    if count == 1:
+        return np.zeros((1, 2))
+    i = np.arange(count)
+    ux = (i + 0.5) / count
+    uy = np.mod(_radical_inverse2(i) + 0.5 / count, 1.0)
+    return np.stack([filter_offsets(ux, filter_size), filter_offsets(uy, filter_size)], axis=1)
+
+
+def jittered_projection(proj: np.ndarray, offset, width: int, height: int) -> np.ndarray:
+    """The projection that renders the image sampled at pixel centre + offset (pixels; x right,
+    y up as the G-buffer's rows go): clip x and y shift by -2 offset / size in NDC (times w,
+    so perspective and orthographic matrices alike)."""
+    p = np.array(proj, np.float64).reshape(4, 4)
+    dx, dy = float(offset[0]), float(offset[1])
+    p[0] -= (2.0 * dx / width) * p[3]
+    p[1] -= (2.0 * dy / height) * p[3]
+    return p.astype(np.float32)
+
+
+#: A jittered subframe's pixel that sees the centre raster's surface reuses its direct light (the
+#: full shadow-ray count, one stratified set) instead of tracing its share again: the normals agree
+#: to this cosine, the point lies within SAME_PLANE x view depth of the centre point's tangent
+#: plane and within SAME_REACH x view depth of the point itself (a 1.5 px offset moves a point by
+#: ~0.005 x depth at 640 px and 50 degrees, ~6x that at grazing angles).
+SAME_COS = 0.95
+SAME_PLANE = 0.005
+SAME_REACH = 0.05
+
+
+def same_surface(position0: np.ndarray, normal0: np.ndarray, position: np.ndarray,
+                 normal: np.ndarray, depth0: np.ndarray) -> np.ndarray:
+    """(n,) bool: pixels whose subframe sample (position, normal) lies on the centre sample's
+    surface (position0, normal0; view depth depth0). All (n, 3) float32 / (n,) float32, rows of
+    pixels holding geometry in both."""
+    d = position - position0
+    plane = np.abs(np.einsum("ij,ij->i", d, normal0))
+    reach = np.einsum("ij,ij->i", d, d)
+    return ((np.einsum("ij,ij->i", normal, normal0) >= SAME_COS) & (plane <= SAME_PLANE * depth0)
+            & (reach <= (SAME_REACH * depth0) ** 2))
+
+
+@dataclass
+class CentreSample:
+    """The unjittered raster's direct light and surfaces, which subframes reuse."""
+
+    direct: np.ndarray  # (h * w, 4) float32, rgb = lamp irradiance W/m^2
+    points: np.ndarray  # (n, 3) float32 of the pixels holding geometry
+    normals: np.ndarray  # (n, 3) float32 unit
+    pixels: np.ndarray  # (n,) flat pixel indices
+    depth: np.ndarray  # (n,) float32 view depth
+
+
+def subframe_direct(system, centre: CentreSample, position: np.ndarray, normal: np.ndarray,
+                    seed_frame: int, samples: int) -> np.ndarray:
+    """A jittered subframe's direct light, (h * w, 4) float32: the centre's where the subframe's
+    pixel sees the same surface, `samples` shadow rays per lamp (seeded by seed_frame) elsewhere.
+
+    position, normal : the subframe's G-buffer read-backs (h, w, 4) / (h, w, >= 3).
+    """
+    p, n, pix = pixels_to_points(position, normal)
+    direct = np.zeros_like(centre.direct)
+    row0 = np.full(centre.direct.shape[0], -1, np.int64)
+    row0[centre.pixels] = np.arange(centre.pixels.size)
+    r0 = row0[pix]
+    both = np.flatnonzero(r0 >= 0)  # geometry in both rasters: compare the surfaces
+    same = np.zeros(pix.size, bool)
+    c = r0[both]
+    same[both] = same_surface(centre.points[c], centre.normals[c], p[both], n[both], centre.depth[c])
+    direct[pix[same]] = centre.direct[pix[same]]
+    fresh = ~same
+    if fresh.any():
+        direct[pix[fresh], :3] = system.direct(p[fresh], n[fresh], seed_frame, samples=samples)
+    return direct
+
+
+class FilmAccumulator:
+    """Sums the subframes' passes with equal weights (the filter is importance-sampled).
+
+    `add(passes)` per subframe, `read(name)` at the end: the averaged passes of AVERAGED_PASSES,
+    "normal" (the average of hit normals, 0 where a subframe saw the background),
+    "combined_premultiplied" (rgb times alpha averaged: a transparent film's Combined, where the
+    background adds nothing) and "depth" (set once with `set_depth`).
+    """
+
+    def __init__(self) -> None:
+        self._sums: dict[str, np.ndarray] = {}
+        self.count = 0
+        self._depth = None
+
+    def add(self, passes: dict[str, np.ndarray]) -> None:
+        """passes : name -> (h, w, c) float32 of one subframe: AVERAGED_PASSES, "normal" and
+        "depth" (the subframe's, to mask its background normals)."""
+        color = passes["diffuse_color"]
+        for name in AVERAGED_PASSES:
+            value = passes[name]
+            if name in COLOR_DIVIDED_PASSES:
+                value = value.copy()
+                value[..., :3] *= color[..., :3]
+            self._accumulate(name, value)
+        combined = passes["combined"]
+        premultiplied = combined.copy()
+        premultiplied[..., :3] *= combined[..., 3:4]
+        self._accumulate("combined_premultiplied", premultiplied)
+        normal = passes["normal"][..., :3] * (passes["depth"] < 1e9)
+        self._accumulate("normal", normal)
+        self.count += 1
+
+    def set_depth(self, depth: np.ndarray) -> None:
+        """The Depth pass: one point sample per pixel, not filtered (see the module docstring)."""
+        self._depth = np.array(depth, np.float32)
+
+    def _accumulate(self, name: str, value: np.ndarray) -> None:
+        total = self._sums.get(name)
+        if total is None:
+            self._sums[name] = np.array(value, np.float64)
+        else:
+            total += value
+
+    def read(self, name: str) -> np.ndarray:
+        """The pass `name` as (h, w, c) float32, rows bottom-up."""
+        if name == "depth":
+            if self._depth is None:
+                raise KeyError("depth was never set")
+            return self._depth
+        if self.count == 0:
+            raise KeyError(f"{name}: no subframe was added")
+        if name in COLOR_DIVIDED_PASSES:
+            return _divide_even(self._sums[name], self._sums["diffuse_color"], self.count)
+        return (self._sums[name] / self.count).astype(np.float32)
+
+
+def _divide_even(light: np.ndarray, color: np.ndarray, count: int) -> np.ndarray:
+    """light / color per channel, as Cycles' `safe_divide_even_color`: a channel whose colour is 0
+    takes the mean ratio of the pixel's other channels, a black pixel 0. Alpha: the average."""
+    out = np.zeros(light.shape, np.float64)
+    c = color[..., :3]
+    ok = c > 0
+    ratio = np.divide(light[..., :3], c, out=np.zeros_like(c), where=ok)
+    valid = ok.sum(axis=-1, keepdims=True)
+    mean = np.divide(ratio.sum(axis=-1, keepdims=True), valid, out=np.zeros(valid.shape), where=valid > 0)
+    out[..., :3] = np.where(ok, ratio, mean)
+    if light.shape[-1] > 3:
+        out[..., 3:] = light[..., 3:] / count
+    return out.astype(np.float32)
