@@ -74,6 +74,16 @@ def result_rect(render, width, height):
     return x0, y0, x1 - x0, y1 - y0
 
 
+def pixel_filter(scene):
+    """(type, width in pixels) of the pixel filter final renders integrate: Cycles' own
+    (`scene.cycles`), so a scene renders with the filter Cycles would use; without the Cycles
+    add-on, Blender's Filter Size (`render.filter_size`) as a Blackman-Harris filter."""
+    cycles = getattr(scene, "cycles", None)
+    if cycles is not None and hasattr(cycles, "filter_width"):
+        return str(cycles.pixel_filter_type), float(cycles.filter_width)
+    return "BLACKMAN_HARRIS", float(scene.render.filter_size)
+
+
 def camera_matrices(depsgraph, scene, width, height):
     """(view, proj) numpy 4x4 of the scene camera, as Blender's own engines build them."""
     cam = scene.camera
@@ -179,9 +189,10 @@ def render_frame(engine, depsgraph):
                    else _IncrementalUpdate(system, job.near, job.inner, extra["lights_changed"]))
     cells_view = props.debug_view == "CELLS"
     # The pixel filter's subframes (one when Cache Cells colours each pixel by its centre's cell).
+    filter_type, filter_size = pixel_filter(scene)
     pipeline = FramePipeline(props.raster_settings(cell_size=system.cache.grid.cell_size),
                              subframes=1 if cells_view else props.pixel_samples,
-                             filter_size=scene.render.filter_size)
+                             filter_size=filter_size, filter_type=filter_type)
     try:
         pipeline.resize(width, height)
         ts = time.perf_counter()

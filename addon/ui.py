@@ -63,13 +63,19 @@ class HYBRIDGI_PT_screen_space(HybridGIButtonsPanel, Panel):
 
 
 class HYBRIDGI_PT_film(HybridGIButtonsPanel, Panel):
-    """Final renders' pixel filter: the subframes and Blender's Filter Size (Cycles reads it too)."""
+    """Final renders' pixel filter: the subframes, and Cycles' filter (the one they integrate)."""
 
     bl_label = "Film"
 
     def draw(self, context):
         col = settings_column(self.layout, context.scene.hybridgi, ("pixel_samples",))
-        col.prop(context.scene.render, "filter_size")
+        cycles = getattr(context.scene, "cycles", None)
+        if cycles is not None and hasattr(cycles, "filter_width"):
+            col.prop(cycles, "pixel_filter_type", text="Filter")
+            if cycles.pixel_filter_type != "BOX":
+                col.prop(cycles, "filter_width", text="Width")
+        else:
+            col.prop(context.scene.render, "filter_size")
 
 
 class HYBRIDGI_PT_debug(HybridGIButtonsPanel, Panel):

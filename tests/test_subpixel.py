@@ -10,6 +10,7 @@ from hybridgi_core.raster.subpixel import (
     blackman_harris,
     blackman_harris_cdf,
     filter_offsets,
+    filter_support,
     jittered_projection,
     subpixel_offsets,
 )
@@ -47,6 +48,20 @@ def test_offsets_are_distributed_as_the_filter(size):
     w = blackman_harris(v, size)
     var = float((w * v * v).sum() / w.sum())
     assert abs(float((d * d).mean()) - var) < 0.02 * var
+
+
+@pytest.mark.parametrize("kind, width, sigma", [("GAUSSIAN", 1.5, 0.375), ("BOX", 1.0, None)])
+def test_cycles_other_filters_are_sampled_too(kind, width, sigma):
+    """Gaussian: Cycles' exp(-2 (6 v / 3w)^2) is sigma = w / 4, cut at 1.5 w; box: uniform over w."""
+    d = filter_offsets(np.random.default_rng(2).random(100_000), width, kind)
+    reach = filter_support(kind, width)
+    assert np.abs(d).max() <= reach
+    if sigma is None:
+        assert np.histogram(d, np.linspace(-reach, reach, 11))[0].std() < 0.05 * 10_000
+    else:
+        assert float(d.std()) == pytest.approx(sigma, rel=0.02)
+    with pytest.raises(ValueError):
+        filter_offsets(0.5, 1.0, "MITCHELL")
 
 
 def test_the_pattern_is_stratified_through_the_filter():

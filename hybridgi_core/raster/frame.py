@@ -57,12 +57,13 @@ class FramePipeline:
     """
 
     def __init__(self, settings: RasterSettings | None = None, direct_samples: int = 16,
-                 gather: GatherPass | None = None, subframes: int = 1, filter_size: float = 1.5):
+                 gather: GatherPass | None = None, subframes: int = 1, filter_size: float = 1.5,
+                 filter_type: str = "BLACKMAN_HARRIS"):
         """gather : a GatherPass (subclass) to use instead of a plain one; the viewport's takes
         cache textures its worker thread packed.
         subframes : jittered subframes per `render` (the pixel filter, `subpixel.py`); 1 = one
             sample at each pixel centre.
-        filter_size : pixels, Blender's Filter Size (Blackman-Harris, as Cycles)."""
+        filter_size, filter_type : the pixel filter, as Cycles' Filter Width (pixels) and type."""
         self.settings = settings or RasterSettings()
         #: Shadow-ray samples per pixel and lamp for the full-res direct light: soft shadows of area
         #: lights and suns are visible noise at 1 sample; the viewport may use fewer. `render`
@@ -72,6 +73,7 @@ class FramePipeline:
             raise ValueError(f"subframes must be >= 1, got {subframes}")
         self.subframes = int(subframes)
         self.filter_size = float(filter_size)
+        self.filter_type = filter_type
         #: The last `render`'s passes, filtered over its subframes (FilmAccumulator).
         self.film = None
         self.gbuffer = GBufferPass()
@@ -199,7 +201,7 @@ class FramePipeline:
             direct = np.zeros((self.height * self.width, 4), np.float32)
             direct[pix_full, :3] = system.direct(p_full, n_full, frame, samples=self.direct_samples)
         film = FilmAccumulator()
-        offsets = subpixel_offsets(self.subframes, self.filter_size)
+        offsets = subpixel_offsets(self.subframes, self.filter_size, self.filter_type)
         jittered = offsets.shape[0] > 1
         film.set_depth(self.gbuffer.read("depth"))  # the centre sample, as Cycles' one sample
         if jittered:

@@ -1,8 +1,9 @@
 """Pixel filter of final renders: jittered subframes placed as Cycles places its samples, and the
 accumulation of their passes into what Cycles writes.
 
-Cycles integrates every pixel over its pixel filter (`scene.render.filter_size`, Blackman-Harris
-by default) and importance-samples it (`scene/film.cpp: filter_table`): the filter is separable,
+Cycles integrates every pixel over its pixel filter (`scene.cycles.pixel_filter_type` and
+`filter_width`: Blackman-Harris of 1.5 px by default; Gaussian and box are here too) and
+importance-samples it (`scene/film.cpp: filter_table`): the filter is separable,
 each axis offset drawn from the inverse CDF of a Blackman-Harris window that spans twice the
 filter size (`width *= 2`), i.e. offsets in [-size, size] pixels around the pixel centre, and all
 samples then count with equal weight. A raster pass takes one sample per pixel; rendering K
@@ -67,14 +68,47 @@ def blackman_harris_cdf(v: np.ndarray, filter_size: float) -> np.ndarray:
     return integral / a0
 
 
-def filter_offsets(u: np.ndarray, filter_size: float) -> np.ndarray:
+#: Cycles' pixel filters (`scene.cycles.pixel_filter_type`).
+FILTER_TYPES = ("BLACKMAN_HARRIS", "GAUSSIAN", "BOX")
+
+
+def filter_support(filter_type: str, width: float) -> float:
+    """Largest offset (pixels) the filter reaches, as Cycles' table spans it: Blackman-Harris
+    width (its window spans 2 x width), Gaussian 1.5 x width (sigma = width / 4), box width / 2."""
+    return {"BLACKMAN_HARRIS": 1.0, "GAUSSIAN": 1.5, "BOX": 0.5}[filter_type] * width
+
+
+def filter_weight(v: np.ndarray, filter_type: str, width: float) -> np.ndarray:
+    """Cycles' filter function at offset v (pixels), width its Filter Width; 0 outside."""
+    v = np.asarray(v, np.float64)
+    if filter_type == "BLACKMAN_HARRIS":
+        return blackman_harris(v, width)
+    inside = np.abs(v) <= filter_support(filter_type, width)
+    if filter_type == "GAUSSIAN":
+        # filter_func_gaussian(v, 3 width): exp(-2 (6 v / (3 width))^2)
+        return np.where(inside, np.exp(-8.0 * v * v / (width * width)), 0.0)
+    if filter_type == "BOX":
+        return inside.astype(np.float64)
+    raise ValueError(f"unknown pixel filter {filter_type!r}, expected one of {FILTER_TYPES}")
+
+
+def filter_offsets(u: np.ndarray, width: float, filter_type: str = "BLACKMAN_HARRIS") -> np.ndarray:
     """Offsets (pixels) whose distribution is the filter's, for uniform u in [0, 1): the inverse
-    CDF, tabulated from the closed-form CDF (as Cycles tabulates its own)."""
+    CDF tabulated as Cycles tabulates its own (Blackman-Harris from its closed-form integral)."""
     u = np.asarray(u, np.float64)
-    if filter_size <= 0.0:
+    if filter_type not in FILTER_TYPES:
+        raise ValueError(f"unknown pixel filter {filter_type!r}, expected one of {FILTER_TYPES}")
+    if width <= 0.0:
         return np.zeros_like(u)
-    v = np.linspace(-filter_size, filter_size, _TABLE_SIZE)
-    return np.interp(u, blackman_harris_cdf(v, filter_size), v)
+    reach = filter_support(filter_type, width)
+    v = np.linspace(-reach, reach, _TABLE_SIZE)
+    if filter_type == "BLACKMAN_HARRIS":
+        cdf = blackman_harris_cdf(v, width)
+    else:
+        w = filter_weight(v, filter_type, width)
+        cdf = np.concatenate([[0.0], np.cumsum((w[1:] + w[:-1]) * 0.5)])
+        cdf /= cdf[-1]
+    return np.interp(u, cdf, v)
 
 
 def _radical_inverse2(i: np.ndarray) -> np.ndarray:
@@ -88,7 +122,7 @@ def _radical_inverse2(i: np.ndarray) -> np.ndarray:
     return out
 
 
-def subpixel_offsets(count: int, filter_size: float) -> np.ndarray:
+def subpixel_offsets(count: int, filter_size: float, filter_type: str = "BLACKMAN_HARRIS") -> np.ndarray:
     """(count, 2) float64 offsets (x, y) in pixels of the subframes of one final-render frame.
 
     count = 1 is the pixel centre (one unfiltered sample, HybridGI without anti-aliasing). Else a
@@ -104,7 +138,8 @@ def subpixel_offsets(count: int, filter_size: float) -> np.ndarray:
     i = np.arange(count)
     ux = (i + 0.5) / count
     uy = np.mod(_radical_inverse2(i) + 0.5 / count, 1.0)
-    return np.stack([filter_offsets(ux, filter_size), filter_offsets(uy, filter_size)], axis=1)
+    return np.stack([filter_offsets(ux, filter_size, filter_type), filter_offsets(uy, filter_size, filter_type)],
+                    axis=1)
 
 
 def jittered_projection(proj: np.ndarray, offset, width: int, height: int) -> np.ndarray:
