@@ -23,7 +23,14 @@ from .passes import low_res_size
 from .readback import upload_texture_2d
 from .settings import DEBUG_FINAL, RasterSettings
 from .ssao import SSAOPass
-from .subpixel import CentreSample, FilmAccumulator, jittered_projection, subframe_direct, subpixel_offsets
+from .subpixel import (
+    CentreSample,
+    FilmAccumulator,
+    jittered_projection,
+    subframe_direct,
+    subframe_texture_filter,
+    subpixel_offsets,
+)
 
 log = logging.getLogger(__name__)
 
@@ -205,11 +212,13 @@ class FramePipeline:
         jittered = offsets.shape[0] > 1
         film.set_depth(self.gbuffer.read("depth"))  # the centre sample, as Cycles' one sample
         if jittered:
+            texture_filter = subframe_texture_filter(offsets.shape[0], self.filter_size)
             centre = CentreSample(direct, p_full, n_full, pix_full, film.read("depth").reshape(-1)[pix_full])
         for s, offset in enumerate(offsets):
             if jittered:
                 with stats.step("gbuffer"):
-                    gbuf = self.gbuffer.execute(view, jittered_projection(proj, offset, self.width, self.height))
+                    gbuf = self.gbuffer.execute(view, jittered_projection(proj, offset, self.width, self.height),
+                                                texture_filter=texture_filter)
                 with stats.step("direct"):
                     normal = self.gbuffer.read("normal")
                     direct = subframe_direct(system, centre, self.gbuffer.read("position"), normal,

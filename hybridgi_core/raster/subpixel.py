@@ -18,7 +18,8 @@ world's radiance to Combined); Diffuse Direct and Indirect accumulate the reflec
 (colour x irradiance / pi) and are divided by the accumulated Diffuse Color at the end (the
 passes' `divide_type`), so an edge pixel's light is weighted by each side's albedo and Combined =
 (Direct + Indirect) x Color holds for the filtered pixel too; Depth is not filtered: Cycles writes one sample's depth (its first), a
-point sample of the footprint, which here is the pixel centre's (the unjittered raster).
+point sample, its first, and Cycles places its first sample at the pixel centre
+(`rand_filter = 0.5` for sample 0): here the unjittered raster's.
 
 The CPU work stays that of one sample per pixel: the cache steps run on the unjittered raster, and
 a subframe traces shadow rays (its share of the pixel's) only where its sample sees another
@@ -140,6 +141,13 @@ def subpixel_offsets(count: int, filter_size: float, filter_type: str = "BLACKMA
     uy = np.mod(_radical_inverse2(i) + 0.5 / count, 1.0)
     return np.stack([filter_offsets(ux, filter_size, filter_type), filter_offsets(uy, filter_size, filter_type)],
                     axis=1)
+
+
+def subframe_texture_filter(count: int, filter_size: float) -> float:
+    """Pixels of footprint each subframe's texture taps cover (GBufferPass.execute): a single
+    raster pre-filters textures over the whole filter; of K subframes, each covers its stratum,
+    about filter_size / sqrt(K), so a texture is neither filtered twice nor aliased between them."""
+    return float(filter_size) / np.sqrt(max(int(count), 1))
 
 
 def jittered_projection(proj: np.ndarray, offset, width: int, height: int) -> np.ndarray:
