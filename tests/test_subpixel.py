@@ -143,3 +143,36 @@ def test_diffuse_light_is_divided_by_the_accumulated_colour_as_cycles_does():
     black.add({"combined": zero, "diffuse_direct": zero + 1, "diffuse_indirect": zero, "diffuse_color": zero,
                "ao": zero[..., :1], "normal": zero[..., :3], "depth": zero[..., :1]})
     assert black.read("diffuse_direct")[0, 0, :3].tolist() == [0.0, 0.0, 0.0]
+
+
+def test_a_subframe_traces_shadow_rays_only_where_it_sees_another_surface():
+    """Same plane, slightly shifted point: the centre's light (its full sample count) is reused;
+    a point on a surface behind (silhouette) or turned away (crease) is traced with the
+    subframe's share of the samples; background stays 0."""
+    from hybridgi_core.raster.subpixel import CentreSample, subframe_direct
+
+    class System:
+        def __init__(self):
+            self.calls = []
+
+        def direct(self, points, normals, frame, samples):
+            self.calls.append((points.shape[0], frame, samples))
+            return np.full((points.shape[0], 3), 7.0, np.float32)
+
+    h, w = 1, 4
+    position0 = np.array([[[0, 0, -5, 1], [1, 0, -5, 1], [2, 0, -5, 1], [0, 0, 0, 0]]], np.float32)
+    normal0 = np.tile(np.array([0, 0, 1, 0], np.float32), (h, w, 1))
+    depth0 = np.array([[[5.0], [5.0], [5.0], [1e10]]], np.float32)
+    direct0 = np.tile(np.array([1.0, 2.0, 3.0, 1.0], np.float32), (h * w, 1))
+    centre = CentreSample.from_gbuffer(direct0, position0, normal0, depth0)
+    position = position0.copy()
+    position[0, 0, 0] += 0.01  # same plane, a sub-pixel step along it
+    position[0, 1, 2] = -7.0  # a surface 2 m behind
+    normal = normal0.copy()
+    normal[0, 2] = (1.0, 0.0, 0.0, 0.0)  # the other side of a crease
+    system = System()
+    got = subframe_direct(system, centre, position, normal, seed_frame=3, samples=4)
+    assert got[0].tolist() == [1.0, 2.0, 3.0, 1.0]
+    assert got[1, :3].tolist() == [7.0] * 3 and got[2, :3].tolist() == [7.0] * 3
+    assert not got[3].any()
+    assert system.calls == [(2, 3, 4)]

@@ -14,6 +14,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..visible import pixels_to_points
+from .accumulate import AccumulatePass
 from .bilateral import BilateralPass
 from .deferred import DeferredPass, ShadedFrame
 from .downsample import DownsamplePass
@@ -89,7 +90,9 @@ class FramePipeline:
         self.ssao = SSAOPass(self.settings)
         self.bilateral = BilateralPass(self.settings)
         self.deferred = DeferredPass(self.settings)
-        self._passes = (self.gbuffer, self.downsample, self.gather, self.ssao, self.bilateral, self.deferred)
+        self.accumulate = AccumulatePass()
+        self._passes = (self.gbuffer, self.downsample, self.gather, self.ssao, self.bilateral, self.deferred,
+                        self.accumulate)
         self.width = self.height = 0
         self._direct_tex = None
 
@@ -97,7 +100,7 @@ class FramePipeline:
         if (width, height) == (self.width, self.height):
             return
         low = low_res_size(width, height, self.settings.downsample)
-        for p in (self.gbuffer, self.downsample, self.bilateral, self.deferred):
+        for p in (self.gbuffer, self.downsample, self.bilateral, self.deferred, self.accumulate):
             p.resize(width, height)
         for p in (self.gather, self.ssao):  # these run at the GI resolution
             p.resize(*low)
@@ -213,15 +216,16 @@ class FramePipeline:
         film.set_depth(self.gbuffer.read("depth"))  # the centre sample, as Cycles' one sample
         if jittered:
             texture_filter = subframe_texture_filter(offsets.shape[0], self.filter_size)
-            centre = CentreSample(direct, p_full, n_full, pix_full, film.read("depth").reshape(-1)[pix_full])
+            centre = CentreSample.from_gbuffer(direct, position, normal, film.read("depth"))
         for s, offset in enumerate(offsets):
             if jittered:
-                with stats.step("gbuffer"):
+                with stats.step("gbuffer"):  # the raster and its read-back, as "downsample" counts its own
                     gbuf = self.gbuffer.execute(view, jittered_projection(proj, offset, self.width, self.height),
                                                 texture_filter=texture_filter)
-                with stats.step("direct"):
                     normal = self.gbuffer.read("normal")
-                    direct = subframe_direct(system, centre, self.gbuffer.read("position"), normal,
+                    position = self.gbuffer.read("position")
+                with stats.step("direct"):
+                    direct = subframe_direct(system, centre, position, normal,
                                              frame + s * SUBFRAME_SEED_STRIDE,
                                              max(1, self.direct_samples // offsets.shape[0]))
             with stats.step("direct"):
@@ -230,15 +234,8 @@ class FramePipeline:
                                 corner_visible=mask.reshape(low.height, low.width, 8), irradiance=lit_tex,
                                 debug_view=debug_view, world_color=world_color, stats=stats)
             with stats.step("accumulate"):
-                film.add(self.read_passes(normal))
+                self.accumulate.execute(shaded, gbuf, first=s == 0)
+        with stats.step("film"):
+            film.set_sums(self.accumulate.read_all(), self.accumulate.count)
         self.film = film
         return shaded, stats
-
-    def read_passes(self, normal: np.ndarray | None = None) -> dict[str, np.ndarray]:
-        """The current deferred targets plus the G-buffer's normal and depth, as numpy (h, w, c)
-        bottom-up (`normal`: the G-buffer's, already read)."""
-        passes = {name: self.deferred.read(name) for name in
-                  ("combined", "diffuse_direct", "diffuse_indirect", "diffuse_color", "ao")}
-        passes["normal"] = normal if normal is not None else self.gbuffer.read("normal")
-        passes["depth"] = self.gbuffer.read("depth")
-        return passes

@@ -174,24 +174,29 @@ SAME_REACH = 0.05
 def same_surface(position0: np.ndarray, normal0: np.ndarray, position: np.ndarray,
                  normal: np.ndarray, depth0: np.ndarray) -> np.ndarray:
     """(n,) bool: pixels whose subframe sample (position, normal) lies on the centre sample's
-    surface (position0, normal0; view depth depth0). All (n, 3) float32 / (n,) float32, rows of
-    pixels holding geometry in both."""
-    d = position - position0
-    plane = np.abs(np.einsum("ij,ij->i", d, normal0))
-    reach = np.einsum("ij,ij->i", d, d)
-    return ((np.einsum("ij,ij->i", normal, normal0) >= SAME_COS) & (plane <= SAME_PLANE * depth0)
-            & (reach <= (SAME_REACH * depth0) ** 2))
+    surface (position0, normal0; view depth depth0). (n, >= 3) float32 arrays (xyz used) and (n,);
+    rows without geometry in either must be masked by the caller."""
+    d = [position[:, k] - position0[:, k] for k in range(3)]
+    cos = normal[:, 0] * normal0[:, 0] + normal[:, 1] * normal0[:, 1] + normal[:, 2] * normal0[:, 2]
+    plane = np.abs(d[0] * normal0[:, 0] + d[1] * normal0[:, 1] + d[2] * normal0[:, 2])
+    reach = d[0] * d[0] + d[1] * d[1] + d[2] * d[2]
+    return (cos >= SAME_COS) & (plane <= SAME_PLANE * depth0) & (reach <= (SAME_REACH * depth0) ** 2)
 
 
 @dataclass
 class CentreSample:
-    """The unjittered raster's direct light and surfaces, which subframes reuse."""
+    """The unjittered raster's direct light and surfaces, which subframes reuse. Flat per pixel."""
 
     direct: np.ndarray  # (h * w, 4) float32, rgb = lamp irradiance W/m^2
-    points: np.ndarray  # (n, 3) float32 of the pixels holding geometry
-    normals: np.ndarray  # (n, 3) float32 unit
-    pixels: np.ndarray  # (n,) flat pixel indices
-    depth: np.ndarray  # (n,) float32 view depth
+    position: np.ndarray  # (h * w, 4) float32 G-buffer position, w = 1 on geometry
+    normal: np.ndarray  # (h * w, >= 3) float32 unit (xyz)
+    depth: np.ndarray  # (h * w,) float32 view depth
+
+    @classmethod
+    def from_gbuffer(cls, direct, position, normal, depth) -> CentreSample:
+        """From the read-backs (h, w, 4) / (h, w, >= 3) / (h, w, 1) and the direct light."""
+        n = position.shape[0] * position.shape[1]
+        return cls(direct, position.reshape(n, -1), normal.reshape(n, -1), depth.reshape(n))
 
 
 def subframe_direct(system, centre: CentreSample, position: np.ndarray, normal: np.ndarray,
@@ -199,28 +204,28 @@ def subframe_direct(system, centre: CentreSample, position: np.ndarray, normal: 
     """A jittered subframe's direct light, (h * w, 4) float32: the centre's where the subframe's
     pixel sees the same surface, `samples` shadow rays per lamp (seeded by seed_frame) elsewhere.
 
-    position, normal : the subframe's G-buffer read-backs (h, w, 4) / (h, w, >= 3).
+    position, normal : the subframe's G-buffer read-backs (h, w, 4) / (h, w, >= 3); the
+    G-buffer's normals are unit (normalised in its fragment shader).
     """
-    p, n, pix = pixels_to_points(position, normal)
-    direct = np.zeros_like(centre.direct)
-    row0 = np.full(centre.direct.shape[0], -1, np.int64)
-    row0[centre.pixels] = np.arange(centre.pixels.size)
-    r0 = row0[pix]
-    both = np.flatnonzero(r0 >= 0)  # geometry in both rasters: compare the surfaces
-    same = np.zeros(pix.size, bool)
-    c = r0[both]
-    same[both] = same_surface(centre.points[c], centre.normals[c], p[both], n[both], centre.depth[c])
-    direct[pix[same]] = centre.direct[pix[same]]
-    fresh = ~same
-    if fresh.any():
-        direct[pix[fresh], :3] = system.direct(p[fresh], n[fresh], seed_frame, samples=samples)
+    n_pix = centre.direct.shape[0]
+    pos = position.reshape(n_pix, -1)
+    nrm = normal.reshape(n_pix, -1)
+    hit = pos[:, 3] > 0.5
+    # Whole-image arrays (no gathers): the comparison is the bulk of a subframe's CPU work.
+    same = hit & (centre.position[:, 3] > 0.5) & same_surface(centre.position, centre.normal, pos, nrm, centre.depth)
+    direct = np.where(same[:, None], centre.direct, np.float32(0.0))
+    fresh = np.flatnonzero(hit & ~same)
+    if fresh.size:
+        p, n, keep = pixels_to_points(pos[fresh][None], nrm[fresh][None])
+        direct[fresh[keep], :3] = system.direct(p, n, seed_frame, samples=samples)
     return direct
 
 
 class FilmAccumulator:
     """Sums the subframes' passes with equal weights (the filter is importance-sampled).
 
-    `add(passes)` per subframe, `read(name)` at the end: the averaged passes of AVERAGED_PASSES,
+    `add(passes)` per subframe (the numpy reference of `accumulate.AccumulatePass`, whose sums
+    `set_sums` takes), `read(name)` at the end: the averaged passes of AVERAGED_PASSES,
     "normal" (the average of hit normals, 0 where a subframe saw the background),
     "combined_premultiplied" (rgb times alpha averaged: a transparent film's Combined, where the
     background adds nothing) and "depth" (set once with `set_depth`).
@@ -248,6 +253,12 @@ class FilmAccumulator:
         normal = passes["normal"][..., :3] * (passes["depth"] < 1e9)
         self._accumulate("normal", normal)
         self.count += 1
+
+    def set_sums(self, sums: dict[str, np.ndarray], count: int) -> None:
+        """Take the sums of `count` subframes summed elsewhere (accumulate.AccumulatePass, the GPU
+        twin of `add`): the names `read` knows, except depth."""
+        self._sums = {name: np.asarray(v, np.float64) for name, v in sums.items()}
+        self.count = int(count)
 
     def set_depth(self, depth: np.ndarray) -> None:
         """The Depth pass: one point sample per pixel, not filtered (see the module docstring)."""
