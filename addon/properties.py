@@ -135,6 +135,16 @@ class HybridGISettings(bpy.types.PropertyGroup):
         items=BLEND_MODE_ITEMS, default="MIN",
     )
 
+    # Film (final renders).
+    pixel_samples: IntProperty(
+        name="Pixel Samples",
+        description="Jittered subframes per final-render pixel, placed by Cycles' pixel filter (its type "
+        "and width, Blackman-Harris 1.5 px by default, sampled as Cycles samples it) and averaged: anti-aliased edges and textures in every "
+        "pass. The cache is converged once per frame; the direct light's shadow rays are split over the "
+        "subframes. 1 = one sample at each pixel centre",
+        default=4, min=1, max=64, soft_max=16,
+    )
+
     # Debugging.
     debug_view: EnumProperty(
         name="View",

@@ -102,7 +102,7 @@ QUICK_LADDER = LADDER[:4]
 #: Steps of a HybridGI final render's steps_ms that are GPU passes (llvmpipe here): G-buffer,
 #: downsample (+ its read-back), gather (+ the cache texture upload), SSAO, bilateral, deferred.
 #: Everything else (sync, build, warm-up, visibility, direct light, write) is CPU work.
-GPU_PASS_STEPS = ("gbuffer", "downsample", "gather", "ssao", "bilateral", "deferred")
+GPU_PASS_STEPS = ("gbuffer", "downsample", "gather", "ssao", "bilateral", "deferred", "accumulate")
 
 VIEWPORT_CHECKPOINTS = (0.1, 0.25, 0.5, 1.0, 2.0, 4.0)
 TIMELINES = ("wall", "worker", "wall_light", "worker_light")
