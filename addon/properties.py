@@ -138,8 +138,9 @@ class HybridGISettings(bpy.types.PropertyGroup):
         name="Pixel Rays",
         description="Final-gather rays of each GI pixel: sky, emitters, the first bounce and AO get the pixel's "
         "own visibility (contacts, thin geometry), further bounces read the cache at the hits; replaces the "
-        "screen-space pass. 0 = off: the cache gather alone",
-        default=0, min=0, max=1024, soft_max=64,
+        "screen-space pass (final renders; the viewport keeps the cache gather). 0 = off: the cache gather alone "
+        "(16: Cornell box Combined error vs Cycles 0.031 -> 0.029, car 0.010 -> 0.006)",
+        default=16, min=0, max=1024, soft_max=64,
     )
     pixel_filter: IntProperty(
         name="Pixel Filter",

@@ -120,7 +120,13 @@ def trace_pixels(system, points: np.ndarray, normals: np.ndarray, rays: int, fra
     t0 = time.perf_counter()
     cache, s = system.cache, system.settings
     points = np.ascontiguousarray(points, np.float32)
-    normals = np.ascontiguousarray(normals, np.float32)
+    normals = np.array(normals, np.float32).reshape(-1, 3)
+    # Rays are built from the normal without checks (`trusted`): a pixel without a usable normal
+    # (a degenerate triangle's zero) gathers around +Z rather than sending zero directions.
+    length = np.linalg.norm(normals, axis=1)
+    bad = ~(np.abs(length - 1.0) < 0.1)
+    if bad.any():
+        normals[bad] = (0.0, 0.0, 1.0)
     n = points.shape[0]
     sh_d, sh_i, sh_a, covered = cache_sh_at(cache, points, normals, corner_visible)
     # The cache's own irradiance at the pixels: what the GPU gather reads (unclamped here: the

@@ -110,6 +110,14 @@ def test_deterministic_per_frame(wall_system):
     assert not np.array_equal(a.direct, c.direct)
 
 
+def test_a_pixel_without_a_usable_normal_still_gets_finite_light(wall_system):
+    p = np.array([[3.0, 0.0, 0.0], [4.0, 0.0, 0.0]], np.float32)
+    n = np.array([[0.0, 0.0, 0.0], [0.0, 0.0, 1.0]], np.float32)
+    g = pixel_gather.trace_pixels(wall_system, p, n, 16, frame=0)
+    assert np.isfinite(g.direct).all() and np.isfinite(g.ao).all()
+    np.testing.assert_allclose(g.direct[0], g.direct[1], rtol=0.2)
+
+
 def test_cosine_directions_are_cosine_distributed_and_stratified():
     rng = np.random.default_rng(0)
     nrm = np.tile(np.array([[0.0, 0.6, 0.8]], np.float32), (2000, 1))
@@ -247,7 +255,7 @@ def test_contacts_against_cycles_improve_with_pixel_rays(tmp_path):
     res = "160x120"
     fast = ("--set", "resolution=16", "--set", "warmup_iterations=8", "--set", "downsample=2")
     cycles = rendered(blend, tmp_path / "cy", res, "--engine", "CYCLES", "--samples", "256")
-    cache = rendered(blend, tmp_path / "c0", res, *fast)
+    cache = rendered(blend, tmp_path / "c0", res, *fast, "--set", "pixel_rays=0")
     rays = rendered(blend, tmp_path / "c16", res, *fast, "--set", "pixel_rays=16")
     geometry = layer(cycles, "Depth", "Z")[..., 0] < 1e9
     ref_ao = layer(cycles, "Ambient Occlusion", "R")[..., 0]
