@@ -181,8 +181,8 @@ def _chunk(system, lookup: HitLookup, p, nrm, sh_d, sh_i, sh_a, covered, rays, r
         if world.any:
             radiance[:, 0:3] = world.radiance(dirs)
         if hit.size:
-            radiance[hit, 0:3] = scene.surfaces.emission_of(hits.prim[hit])
             surf = scene.surfaces.probe_hits(hits.prim[hit], hits.u[hit], hits.v[hit], dirs[hit])
+            radiance[hit, 0:3] = surf.emission
             position = dirs[hit] * hits.t[hit, None]
             position += origins[hit]
             ts = time.perf_counter()
