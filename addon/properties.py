@@ -134,6 +134,20 @@ class HybridGISettings(bpy.types.PropertyGroup):
         description="How ray-traced and screen-space occlusion combine",
         items=BLEND_MODE_ITEMS, default="MIN",
     )
+    pixel_rays: IntProperty(
+        name="Pixel Rays",
+        description="Final-gather rays of each GI pixel: sky, emitters, the first bounce and AO get the pixel's "
+        "own visibility (contacts, thin geometry), further bounces read the cache at the hits; replaces the "
+        "screen-space pass (final renders; the viewport keeps the cache gather). 0 = off: the cache gather alone "
+        "(16: Cornell box Combined error vs Cycles 0.031 -> 0.029, car 0.010 -> 0.006)",
+        default=16, min=0, max=1024, soft_max=64,
+    )
+    pixel_filter: IntProperty(
+        name="Pixel Filter",
+        description="Edge-aware a-trous passes over the pixel rays' correction of the cache (taps 1, 2, 4 ... "
+        "GI pixels apart): more removes more noise, fewer keeps contacts sharper",
+        default=3, min=0, max=6,
+    )
 
     # Film (final renders).
     pixel_samples: IntProperty(
@@ -207,6 +221,8 @@ class HybridGISettings(bpy.types.PropertyGroup):
             ssao_radius=radius,
             ssao_strength=_f(self.ssao_strength),
             ao_blend=self.blend_mode,
+            pixel_rays=self.pixel_rays,
+            pixel_filter=self.pixel_filter,
         )
 
 
