@@ -747,7 +747,7 @@ def read_world(world, wait=True):
     shadowed SUN `Light` (see `environment.py`). wait=False (the viewport): a world whose map
     still bakes reads as its uniform colour, with no sun, meanwhile."""
     if world is None:
-        return snap.World(), []
+        return snap.World(ao_distance=snap.NO_WORLD_AO_DISTANCE), []
     ao_distance = float(world.light_settings.distance)
     if world.node_tree is None:
         return snap.World(color=_rgb(world.color), ao_distance=ao_distance), []

@@ -166,6 +166,11 @@ class Light:
         return (d / max(np.linalg.norm(d), 1e-30)).astype(np.float32)
 
 
+#: AO distance (m) Cycles uses when the scene has no World (blender/sync.cpp sets 10 then); a
+#: World's own Ambient Occlusion distance defaults to 1 m, so the two differ.
+NO_WORLD_AO_DISTANCE = 10.0
+
+
 @dataclass
 class World:
     """The sky: radiance = background colour x strength; AO distance from World settings.

@@ -308,7 +308,11 @@ def test_every_light_type(bpy_module, scene, sync):
 
 def test_world_radiance_and_ao_distance(bpy_module, scene, sync):
     bpy = bpy_module
-    assert snapshot(sync, bpy).world.color.tolist() == [0.0, 0.0, 0.0]  # no World: black
+    bare = snapshot(sync, bpy).world
+    assert bare.color.tolist() == [0.0, 0.0, 0.0]  # no World: black
+    # ... and AO reaches 10 m, as in Cycles (a World's own setting defaults to 1 m)
+    assert bare.ao_distance == pytest.approx(10.0)
+    assert scene.hybridgi.cache_settings(scene).ao_distance == pytest.approx(10.0)
     world = blender_compat.new_world(bpy, "sky")
     background = world.node_tree.nodes["Background"]
     background.inputs["Color"].default_value = (0.2, 0.4, 0.6, 1.0)
