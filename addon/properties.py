@@ -7,8 +7,8 @@ import bpy
 from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty, PointerProperty
 
 from hybridgi_core import settings as core_settings
-from hybridgi_core.snapshot import NO_WORLD_AO_DISTANCE
 from hybridgi_core.raster import settings as raster
+from hybridgi_core.snapshot import NO_WORLD_AO_DISTANCE
 
 SH_ORDER_ITEMS = (
     ("L1", "L1", "4 spherical-harmonic coefficients per colour channel: cheaper, broad light reads ~5% low", 1),
