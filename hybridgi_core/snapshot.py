@@ -87,6 +87,9 @@ class Material:
     emission : (3,) radiance in W/(m^2 sr) = emission colour x strength
     alpha : (h, w) float32 opacity from an image, row 0 at v = 0, or None (opaque): the surface is
         cut out where it is below ALPHA_CUTOFF, for the camera and for rays (`cutout.py`)
+    bake_id : the reader's name for a texture it had Blender bake over this material's own UV
+        atlas (one material per mesh then), so an edit of the material can bake it again; None
+        for materials read directly
     """
 
     name: str = "default"
@@ -94,6 +97,7 @@ class Material:
     texture: np.ndarray | None = None
     emission: np.ndarray = field(default_factory=lambda: np.zeros(3, np.float32))
     alpha: np.ndarray | None = None
+    bake_id: str | None = None
 
     def __post_init__(self) -> None:
         # Non-finite colours would reach every pixel that sees (or bounces off) this material.
