@@ -70,7 +70,8 @@ completed = 0
 class BakeJob:
     """One socket of one material over the triangles of one mesh slot.
 
-    positions : (3T, 3) float32 object-space corners, three per triangle
+    positions, normals : (3T, 3) float32 object-space corners, three per triangle, and their
+        shading normals
     uv_maps : name -> (3T, 2) float32; colors : name -> (3T, 4) float32 (corner domain)
     """
 
@@ -80,9 +81,15 @@ class BakeJob:
     positions: np.ndarray
     uv_maps: dict[str, np.ndarray] = field(default_factory=dict)
     render_uv: str | None = None
+    normals: np.ndarray | None = None  # (3T, 3) float32 object-space shading normals
     colors: dict[str, np.ndarray] = field(default_factory=dict)
     texspace: tuple = ((0.0, 0.0, 0.0), (1.0, 1.0, 1.0))
     key: str = ""
+    source: str = ""  # the node feeding the input, for messages
+
+    @property
+    def what(self) -> str:
+        return f"{self.socket} of {self.node!r}" + (f" (from {self.source!r})" if self.source else "")
 
     @property
     def triangles(self) -> int:
@@ -154,6 +161,8 @@ def job_key(job: BakeJob) -> str:
         digest.update(name.encode() + np.ascontiguousarray(job.uv_maps[name]).tobytes())
     for name in sorted(job.colors):
         digest.update(name.encode() + np.ascontiguousarray(job.colors[name]).tobytes())
+    if job.normals is not None:
+        digest.update(np.ascontiguousarray(job.normals).tobytes())
     digest.update(repr((job.render_uv, job.texspace)).encode())
     return digest.hexdigest()[:32]
 
@@ -229,7 +238,7 @@ def bake(jobs: list[BakeJob], wait: bool = True) -> dict[str, np.ndarray]:
         log.warning("materials %s could not be written for baking (%s); using their constant colours",
                     ", ".join(sorted({job.material.name for job in todo})), err)
         return out
-    described = [(job.key, job.material.name, job.node, job.size, job.triangles) for job in todo]
+    described = [(job.key, job.material.name, job.what, job.size, job.triangles) for job in todo]
     if not wait:
         _start(cmd, tmp, described)
         return out
@@ -279,6 +288,8 @@ def _command(jobs: list[BakeJob], tmp: str) -> list[str]:
     specs = []
     for job in jobs:
         arrays = {"positions": job.positions, "atlas": atlas_uvs(job.triangles, job.size).reshape(-1, 2)}
+        if job.normals is not None:
+            arrays["normals"] = job.normals
         for i, name in enumerate(job.uv_maps):
             arrays[f"uv{i}"] = job.uv_maps[name]
         for i, name in enumerate(job.colors):
@@ -311,9 +322,13 @@ def _run(cmd, tmp, described) -> dict[str, np.ndarray]:
         path = os.path.join(tmp, f"{key}.npy")
         if not os.path.isfile(path):
             reason = _reason(tmp, key, run)
-            log.warning("material %r: node %r could not be baked (%s); using its constant colour", material, node, reason)
+            log.warning("material %r: %s could not be baked (%s); using its constant value", material, node, reason)
             continue
         texture = np.load(path).astype(np.float32)
+        seconds = Path(path).with_suffix(".s")
+        if seconds.is_file():
+            log.info("material %r: %s baked (%dx%d, %d triangles) in %s s", material, node, size, size, n_tri,
+                     seconds.read_text().strip())
         used = used_texels(n_tri, size)
         if not used.all():
             texture[~used] = texture[used].mean(axis=0)  # the texture's mean stays the surface's
@@ -321,7 +336,8 @@ def _run(cmd, tmp, described) -> dict[str, np.ndarray]:
             texture = np.nan_to_num(texture, nan=0.0, posinf=0.0, neginf=0.0)
         _store(key, texture)
         out[key] = texture
-    log.info("baked %d material texture(s) (%s) in %.1f s", len(out), names, time.perf_counter() - t0)
+    log.info("baked %d material texture(s) (%s) in %.1f s, the process's start included", len(out), names,
+             time.perf_counter() - t0)
     return out
 
 

@@ -7,6 +7,7 @@ baked with type EMIT over the atlas UV map. A job that fails writes KEY.err and 
 import json
 import os
 import sys
+import time
 import traceback
 
 import bpy
@@ -56,6 +57,12 @@ def run(job):
     mesh.polygons.foreach_set("loop_start", np.arange(0, n, 3, dtype=np.int32))
     mesh.polygons.foreach_set("loop_total", np.full(n // 3, 3, np.int32))
     mesh.update()
+    if "normals" in arrays.files:  # shading normals: box mapping and Normal coordinates read them
+        try:
+            mesh.polygons.foreach_set("use_smooth", np.ones(n // 3, bool))
+            mesh.normals_split_custom_set(arrays["normals"].astype(np.float64).tolist())
+        except (AttributeError, RuntimeError, TypeError):
+            pass  # flat facet normals then
     for i, name in enumerate(job["uv_maps"]):
         layer = mesh.uv_layers.new(name=name)
         layer.uv.foreach_set("vector", arrays[f"uv{i}"].astype(np.float32).ravel())
@@ -103,7 +110,10 @@ def run(job):
 
 for job in spec["jobs"]:
     try:
+        t0 = time.perf_counter()
         run(job)
+        with open(os.path.join(folder, job["key"] + ".s"), "w") as f:
+            f.write(f"{time.perf_counter() - t0:.3f}")
     except Exception:  # noqa: BLE001  one job's failure is reported by its .err file, the next runs
         with open(os.path.join(folder, job["key"] + ".err"), "w") as f:
             f.write(traceback.format_exc())

@@ -124,7 +124,8 @@ def mesh_arrays(mesh):
     normals = np.empty(n_corner * 3, np.float32)
     mesh.corner_normals.foreach_get("vector", normals)
 
-    uv_layer = mesh.uv_layers.active
+    # Cycles' Image Textures without a Vector input read the UV map active for rendering.
+    uv_layer = next((layer for layer in mesh.uv_layers if layer.active_render), mesh.uv_layers.active)
     if uv_layer is not None:
         uvs = np.empty(n_corner * 2, np.float32)
         uv_layer.uv.foreach_get("vector", uvs)
@@ -571,7 +572,7 @@ def _color_socket(socket, textures, material_name):
     node, output = _source(socket)
     if node is None:
         return value, None  # a muted link: Cycles uses the socket's own value
-    if node.type == "TEX_IMAGE" and output == "Color" and node.image is not None:
+    if _direct_image(node, output):
         texture = textures.get(node.image, material_name)
         if texture is not None:
             # The texture is the colour; the base colour multiplies it (Material.mean_albedo).
@@ -587,6 +588,16 @@ def _color_socket(socket, textures, material_name):
         log.warning("material %r: %s from node %r (%s) could not be baked; using its value", material_name,
                     socket.name, node.name, node.bl_idname)
     return value, None
+
+
+def _direct_image(node, output) -> bool:
+    """Whether an Image Texture's colour is what the core samples itself: the mesh's default
+    UV map, flat projection, repeated (anything else, e.g. a UV Map node or box mapping, is
+    baked)."""
+    if node.type != "TEX_IMAGE" or output != "Color" or node.image is None:
+        return False
+    vector = node.inputs.get("Vector")
+    return (vector is None or _source(vector)[0] is None) and node.projection == "FLAT" and node.extension == "REPEAT"
 
 
 #: Shader inputs whose colour `material_bake` bakes when the reader cannot fold it.
@@ -617,7 +628,7 @@ def bake_sockets(material) -> list[tuple[str, str]]:
         source, output = _source(socket)
         if source is None:
             continue
-        if source.type == "TEX_IMAGE" and output == "Color" and source.image is not None:
+        if _direct_image(source, output):
             continue
         if _fold(socket, 0) is None:
             out.append((node.name, socket.identifier))
@@ -653,9 +664,12 @@ def bake_job(material, node, socket, mesh, local, triangles):
             values = values[corner_vert]
         colors[attr.name] = values[corners]
     texspace = (tuple(mesh.texspace_location), tuple(mesh.texspace_size))
-    return material_bake.BakeJob(material=material, node=node, socket=socket,
+    shader = material.node_tree.nodes[node]
+    source = _linked_node(next(s for s in shader.inputs if s.identifier == socket))
+    return material_bake.BakeJob(material=material, node=node, socket=socket, source=getattr(source, "name", ""),
                                  positions=np.ascontiguousarray(local.positions[corners], np.float32),
-                                 uv_maps=uv_maps, render_uv=render, colors=colors, texspace=texspace)
+                                 uv_maps=uv_maps, render_uv=render, colors=colors, texspace=texspace,
+                                 normals=np.ascontiguousarray(local.normals[corners], np.float32))
 
 
 def with_atlas(local, slots, baked_slots):
@@ -989,8 +1003,9 @@ def scene_materials(snapshot, names=None) -> list:
             continue
         # A baked material: bake its edited tree over the same triangles (in the background;
         # the old texture stays meanwhile).
-        jobs = [material_bake.BakeJob(material=source, node=j.node, socket=j.socket, positions=j.positions,
-                                      uv_maps=j.uv_maps, render_uv=j.render_uv, colors=j.colors, texspace=j.texspace)
+        jobs = [material_bake.BakeJob(material=source, node=j.node, socket=j.socket, source=j.source, positions=j.positions,
+                                      uv_maps=j.uv_maps, render_uv=j.render_uv, colors=j.colors, texspace=j.texspace,
+                                      normals=j.normals)
                 for j in jobs if (j.node, j.socket) in bake_sockets(source)]
         baked = material_bake.bake(jobs, wait=False)
         if jobs and not all(job.key in baked for job in jobs):

@@ -1,6 +1,6 @@
 """Colour inputs the reader cannot fold, baked by Blender (`addon/material_bake.py`): a room of
-node materials (checker, noise -> Color Ramp, a Mix by a wave, Hue/Saturation on an image, a
-Color Attribute on a mesh without UVs) through the real engine against Cycles rendered in the
+node materials (checker, noise -> Color Ramp, a Mix by a wave, Hue/Saturation on an image, an
+image through a non-active UV map, a Color Attribute on a mesh without UVs) through the real engine against Cycles rendered in the
 same test; the bake cache; bad input (a bake that fails, meshes without faces or UVs)."""
 
 from __future__ import annotations
@@ -77,10 +77,15 @@ ROOM = textwrap.dedent("""
     hue = nt.nodes.new("ShaderNodeHueSaturation"); hue.inputs["Hue"].default_value = 0.8
     nt.links.new(tex.outputs["Color"], hue.inputs["Color"]); nt.links.new(hue.outputs["Color"], b.inputs["Base Color"])
     box_face("right", [(3, 3, 0), (3, -3, 0), (3, -3, 3), (3, 3, 3)], m)
-    # ceiling: plain
-    m, nt, b = material("ceiling")
-    b.inputs["Base Color"].default_value = (0.8, 0.8, 0.8, 1)
-    box_face("ceiling", [(-3, -3, 3), (-3, 3, 3), (3, 3, 3), (3, -3, 3)], m)
+    # ceiling: the image through a UV Map node naming a second, non-active UV map (tiled 3x)
+    m, nt, b = material("second_uv")
+    tex = nt.nodes.new("ShaderNodeTexImage"); tex.image = image
+    uvnode = nt.nodes.new("ShaderNodeUVMap"); uvnode.uv_map = "tiled"
+    nt.links.new(uvnode.outputs["UV"], tex.inputs["Vector"]); nt.links.new(tex.outputs["Color"], b.inputs["Base Color"])
+    ceiling = box_face("ceiling", [(-3, -3, 3), (-3, 3, 3), (3, 3, 3), (3, -3, 3)], m)
+    tiled = ceiling.data.uv_layers.new(name="tiled")
+    tiled.uv.foreach_set("vector", [0, 0, 0, 3, 3, 3, 3, 0])
+    ceiling.data.uv_layers.active = ceiling.data.uv_layers["UVMap"]
     # a cube with vertex colours (Color Attribute node), no UV map
     bpy.ops.mesh.primitive_cube_add(size=1.2, location=(0.8, 1.0, 0.6))
     cube = bpy.context.active_object
@@ -197,6 +202,25 @@ def test_an_edited_ramp_bakes_again_an_unchanged_one_does_not(bpy_module, empty_
     assert edited.texture[..., 0].mean() == pytest.approx(first.texture[..., 0].mean(), abs=0.02)
 
 
+def test_a_viewport_edit_bakes_again_in_the_background(bpy_module, empty_scene, sync, material_bake, cache_home):
+    import time  # noqa: PLC0415
+
+    bpy = bpy_module
+    material, noise = _procedural(bpy, "edited")
+    _object(bpy, empty_scene, "quad", [(0, 0, 0), (1, 0, 0), (1, 1, 0), (0, 1, 0)], [], [(0, 1, 2, 3)], material)
+    snap = sync.snapshot_from_depsgraph(bpy.context.evaluated_depsgraph_get())
+    before = snap.materials[0]
+    noise.inputs["Scale"].default_value = 40.0  # a finer pattern: the same mean, more contrast per texel
+    (meanwhile,) = sync.scene_materials(snap, {"edited"})
+    assert meanwhile is before and material_bake.pending()  # the old texture until the bake is done
+    deadline = time.perf_counter() + 120
+    while material_bake.pending() and time.perf_counter() < deadline:
+        time.sleep(0.1)
+    (after,) = sync.scene_materials(snap, {"edited"})
+    assert after.bake_id != before.bake_id and after.texture.shape == before.texture.shape
+    assert not np.allclose(after.texture, before.texture, atol=0.05)
+
+
 def test_a_failed_bake_warns_and_keeps_the_constant(bpy_module, empty_scene, sync, material_bake, cache_home,
                                                     monkeypatch, caplog):
     bpy = bpy_module
@@ -209,9 +233,10 @@ def test_a_failed_bake_warns_and_keeps_the_constant(bpy_module, empty_scene, syn
     (got,) = snap.materials
     assert got.texture is None
     np.testing.assert_allclose(got.base_color, [0.2, 0.4, 0.6], rtol=1e-6)
-    warnings = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
-    assert len([w for w in warnings if "'broken'" in w]) == 1, warnings  # once, naming the material
-    assert "Principled BSDF" in warnings[0] and "exit 3" in warnings[0]
+    warnings = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING and "bake" in r.getMessage()]
+    assert len(warnings) == 1, warnings  # once, naming the material, the input and its node
+    assert "'broken'" in warnings[0] and "'Principled BSDF'" in warnings[0] and "'Noise Texture'" in warnings[0]
+    assert "exit 3" in warnings[0]
 
 
 def test_meshes_without_faces_or_uvs(bpy_module, empty_scene, sync, material_bake, cache_home):
@@ -241,7 +266,7 @@ def test_a_node_material_room_matches_cycles_diffuse_color(tmp_path):
     fast = ("--set", "warmup_iterations=2", "--set", "resolution=8")
     first = run_render(blend, tmp_path / "hg", RES, *fast, env=env)
     assert first.returncode == 0, first.stderr[-3000:]
-    assert "baked 5 material texture(s)" in first.stderr
+    assert "baked 6 material texture(s)" in first.stderr
     second = run_render(blend, tmp_path / "hg2", RES, *fast, env=env)
     assert second.returncode == 0 and "baked" not in second.stderr  # unchanged: from the cache
     cycles = run_render(blend, tmp_path / "cy", RES, "--engine", "CYCLES", "--samples", "16", env=env)
