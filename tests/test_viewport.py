@@ -674,3 +674,43 @@ def test_a_sky_world_bakes_in_the_background_then_lights_the_view(view, addon, t
     finally:
         scene.world = old
         bpy.data.worlds.remove(world)
+
+
+def test_a_procedural_material_bakes_in_the_background_then_textures_the_view(view, addon, tmp_path, monkeypatch):
+    """As a world bake: the view draws the material's constant colour at once, Blender bakes the
+    colour input on a thread, and the next redraw reads the materials again with the texture."""
+    import time  # noqa: PLC0415
+
+    from hybridgi_cli import blender_compat  # noqa: PLC0415
+
+    bpy = addon.bpy
+    bake = sys.modules[addon.viewport.__name__.rsplit(".", 1)[0] + ".material_bake"]
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))  # nothing baked by an earlier run
+    material = blender_compat.new_material(bpy, "viewport_checker")
+    checker = material.node_tree.nodes.new("ShaderNodeTexChecker")
+    material.node_tree.links.new(checker.outputs["Color"], material.node_tree.nodes["Principled BSDF"].inputs["Base Color"])
+    mesh = bpy.data.meshes.new("checker_quad")
+    mesh.from_pydata([(-1, -1, 0.01), (1, -1, 0.01), (1, 1, 0.01), (-1, 1, 0.01)], [], [(0, 1, 2, 3)])
+    mesh.materials.append(material)
+    obj = bpy.data.objects.new("checker_quad", mesh)
+    bpy.context.scene.collection.objects.link(obj)
+    baked = lambda: [m for m in view.session.mirror.snapshot.materials if m.name == "viewport_checker"]  # noqa: E731
+    try:
+        t0 = time.perf_counter()
+        view.update()
+        view.draw()
+        assert time.perf_counter() - t0 < 5.0  # no bake on the main thread
+        assert baked() and baked()[0].texture is None and bake.pending() and view.session.needs_redraw()
+        deadline = time.perf_counter() + 120
+        while bake.pending() and time.perf_counter() < deadline:
+            time.sleep(0.2)
+        assert not bake.pending()
+        view.draw()  # reads the baked material
+        (got,) = baked()
+        assert got.texture is not None and got.texture.std() > 0.1  # the checker's two colours
+        view.converge()
+        assert np.isfinite(view.draw()).all()
+    finally:
+        bpy.data.objects.remove(obj)
+        bpy.data.meshes.remove(mesh)
+        bpy.data.materials.remove(material)
