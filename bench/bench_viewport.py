@@ -233,7 +233,9 @@ def main(argv=None) -> int:
     light.data.energy *= 1.01
     bpy.context.view_layer.update()
     u0, t1 = session.worker.latest().stats.updates, time.perf_counter()
-    session.worker.wait(lambda p: p.stats.updates >= u0 + 30, 60.0)
+    # Solver steps (a re-shaded batch, an iteration): a relight may finish in fewer than 30.
+    gen = session.last_edit_gen
+    session.worker.wait(lambda p: p.stats.updates >= u0 + 30 or (p.stats.idle and p.stats.scene_gen >= gen), 60.0)
     still_rate = (session.worker.latest().stats.updates - u0) / (time.perf_counter() - t1)
     still_rays = session.worker.latest().stats.rays_per_s
     print(f"light edit, camera still: {still_rate:.1f} GI updates/s, {still_rays / 1e6:.2f} Mrays/s")
