@@ -231,8 +231,10 @@ def test_corner_visibility_split_over_workers_is_the_single_call(monkeypatch):
     snap = make_snapshot(concat_geometry([box([0, 0, 0], [2, 2, 2]), blocker]), [Material()],
                          objects=[ObjectInfo("room"), ObjectInfo("blocker")])
     rng = np.random.default_rng(2)
-    pts = np.column_stack([rng.uniform(0.05, 1.95, (1050, 2)), np.full(1050, 1e-3)]).astype(np.float32)
-    nrm = np.tile(np.float32([[0, 0, 1]]), (1050, 1))
+    # Points around the blocker, facing every way: some of their corner cells lie behind it.
+    pts = rng.uniform(0.6, 1.4, (1050, 3)).astype(np.float32)
+    nrm = rng.normal(size=(1050, 3)).astype(np.float32)
+    nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
     with GISystem(snap, CacheSettings(resolution=8, rays_per_cell=8)) as gi:
         split = gi.corner_visibility(pts, nrm)
         one = corner_visibility(gi.cache, gi.tracer, pts, nrm, float(gi.tracer.epsilon))
