@@ -428,7 +428,7 @@ class GISolver:
         valid = self.cache.valid
         if self._lookup_valid is not None and np.array_equal(valid, self._lookup_valid):
             return
-        lookup = HitLookup(self.cache, bounced=True)
+        lookup = HitLookup(self.cache, bounced=True, table=False)
         jobs = [self._pool.submit(self._lookup_chunk, c, lookup) for c in self.chunks]
         flats = [j.result() for j in jobs]
         # Hits read few of the grid's cells: index a table of those only (the grid's whole table
