@@ -95,6 +95,9 @@ class Material:
     emission : (3,) radiance in W/(m^2 sr) = emission colour x strength
     alpha : (h, w) float32 opacity from an image, row 0 at v = 0, or None (opaque): the surface is
         cut out where it is below ALPHA_CUTOFF, for the camera and for rays (`cutout.py`)
+    bake_id : the reader's name for a texture it had Blender bake over this material's own UV
+        atlas (one material per mesh then), so an edit of the material can bake it again; None
+        for materials read directly
     """
 
     name: str = "default"
@@ -102,6 +105,7 @@ class Material:
     texture: np.ndarray | None = None
     emission: np.ndarray = field(default_factory=lambda: np.zeros(3, np.float32))
     alpha: np.ndarray | None = None
+    bake_id: str | None = None
 
     def __post_init__(self) -> None:
         # Non-finite colours would reach every pixel that sees (or bounces off) this material.
@@ -172,6 +176,11 @@ class Light:
         """Unit emission axis in world space (local -Z)."""
         d = -self.matrix[:3, 2]
         return (d / max(np.linalg.norm(d), 1e-30)).astype(np.float32)
+
+
+#: AO distance (m) Cycles uses when the scene has no World (blender/sync.cpp sets 10 then); a
+#: World's own Ambient Occlusion distance defaults to 1 m, so the two differ.
+NO_WORLD_AO_DISTANCE = 10.0
 
 
 @dataclass
