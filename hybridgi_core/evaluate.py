@@ -164,17 +164,21 @@ class HitLookup:
     (rows, N) structure-of-arrays rows so each term is one contiguous multiply-add per hit.
     """
 
-    def __init__(self, cache: IrradianceCache, bounced: bool, coeffs: np.ndarray | None = None):
+    def __init__(self, cache: IrradianceCache, bounced: bool, coeffs: np.ndarray | None = None, table: bool = True):
         """bounced : the table holds direct + indirect bands (else direct only); coeffs : (N, K, 3)
-        radiance SH to use instead of the cache's bands (the solver's iterates)."""
+        radiance SH to use instead of the cache's bands (the solver's iterates); table : False
+        builds no irradiance table (`cells` only: the solver keeps its own table of the cells its
+        hits read, and the whole grid's cost ~50 ms on the Cornell box)."""
         grid = cache.grid
         self.valid = cache.valid
         self.inside = cache.inside
         k = cache.settings.sh_coeffs
-        if coeffs is None:
-            coeffs = cache.sh_direct + cache.sh_indirect if bounced else cache.sh_direct
         self.terms = k
-        self.rows = irradiance_rows(coeffs, self.valid)  # (K*3, N)
+        self.rows = None
+        if table:
+            if coeffs is None:
+                coeffs = cache.sh_direct + cache.sh_indirect if bounced else cache.sh_direct
+            self.rows = irradiance_rows(coeffs, self.valid)  # (K*3, N)
         self.origin = np.asarray(grid.lo, np.float32)
         self.inv_cell = np.float32(1.0 / grid.cell_size)
         self.bias = np.float32(HIT_LOOKUP_BIAS * grid.cell_size)

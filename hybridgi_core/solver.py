@@ -68,6 +68,12 @@ LAMP_SAMPLES_PER_BIN = 2
 FILTER_WEIGHT = 1.0
 #: Batches whose stored hits carry the further bounces (A of x = b + A x); every batch adds to b.
 BOUNCE_BATCHES = 1
+#: Hits that read the same cell off the same side of triangles of one normal have the same
+#: irradiance: the solver evaluates each such pair once per iteration when the bouncing batch's
+#: hits are at least this many per triangle (big flat walls: the Cornell box's 34 triangles) and a
+#: chunk's pairs are at most 1 / SHARED_HITS_PER_PAIR of its hits.
+SHARED_HITS_PER_TRIANGLE = 16
+SHARED_HITS_PER_PAIR = 4
 
 
 @dataclass
@@ -126,6 +132,10 @@ class StoredHits:
     shadow_points: int = 0  # hits whose lamp light this batch traced (not read from the table)
     ray_stale: np.ndarray | None = None  # (n,) bool rays a geometry change may have altered
     samples: CellSamples = None  # geometry bands of this batch (sh_indirect left zero)
+    #: Hits that read the same cell with the same normal share one irradiance evaluation:
+    #: (flat (u,), mono (K, u), inverse (h,)) of the distinct (cell, triangle, side) pairs, or
+    #: None (evaluate every hit). Set with `flat` (`GISolver._ensure_lookup`).
+    pairs: tuple | None = None
 
     @property
     def rays(self) -> int:
@@ -436,7 +446,7 @@ class GISolver:
         if same and not fresh:
             return
         todo = fresh if same else self.chunks
-        lookup = HitLookup(self.cache, bounced=True)
+        lookup = HitLookup(self.cache, bounced=True, table=False)
         jobs = [self._pool.submit(self._lookup_chunk, c, lookup) for c in todo]
         flats = [j.result() for j in jobs]
         # Hits read few of the grid's cells: index a table of those only (the grid's whole table
@@ -457,6 +467,18 @@ class GISolver:
         self._read_cells = cells
         for c, flat in zip(todo, flats, strict=True):
             c.flat = slot[flat]
+        for c in self.chunks:
+            c.pairs = None  # they hold slots, which may have moved: found again below
+        # Only the chunks every iteration reads (the others' first bounce is evaluated once).
+        bouncing = [c for c in self.chunks if self.bounce_from <= c.batch < self.bounce_from + BOUNCE_BATCHES]
+        records = self.scene.surfaces.records
+        if sum(int(c.hit.size) for c in bouncing) >= SHARED_HITS_PER_TRIANGLE * max(records.shape[0] - 1, 1):
+            # Triangles by their normal (the Cornell box's 34 face 12 ways): pairs key on that.
+            _, normal_id = np.unique(records[:-1, 0:3], axis=0, return_inverse=True)
+            normal_id = normal_id.reshape(-1).astype(np.intp)
+            kinds = int(normal_id.max(initial=0)) + 1
+            for c, pairs in zip(bouncing, self._pool.map(lambda c: _hit_pairs(c, normal_id, kinds), bouncing), strict=True):
+                c.pairs = pairs
         self._read_valid = valid[self._read_cells]
         self._lookup_valid = valid
         self._sources = None
@@ -498,7 +520,11 @@ class GISolver:
     def _project_hits(self, chunk: StoredHits, rows: np.ndarray, lamps: bool) -> np.ndarray:
         """Worker: (m, K, 3) SH of one chunk's rays: brdf * (irradiance table `rows` read at the
         hits [+ lamp light])."""
-        e = evaluate_rows(rows, chunk.flat, chunk.mono)  # (3, h)
+        if chunk.pairs is not None:
+            flat, mono, inverse = chunk.pairs
+            e = np.take(evaluate_rows(rows, flat, mono), inverse, axis=1)  # (3, h)
+        else:
+            e = evaluate_rows(rows, chunk.flat, chunk.mono)  # (3, h)
         if lamps:
             e += chunk.e_lamp
         e *= chunk.brdf
@@ -836,6 +862,36 @@ class GISolver:
 
     def stored_rays(self) -> int:
         return sum(c.rays for c in self.chunks)
+
+
+def _hit_pairs(chunk: StoredHits, normal_id: np.ndarray, kinds: int) -> tuple | None:
+    """Worker: the distinct (cell read, triangle normal, side) pairs of a chunk's hits, which
+    share their normal and so their irradiance: (flat (u,), mono (K, u), inverse (h,)), or None
+    when fewer than SHARED_HITS_PER_PAIR hits share a pair on average (nothing to gain).
+
+    normal_id (T,) : each triangle's normal among `kinds` distinct ones."""
+    h = chunk.hit.size
+    if h == 0:
+        return None
+    # Keys over the chunk's span of cells, unique by a mask (no sort).
+    lo = int(chunk.flat.min())
+    span = (int(chunk.flat.max()) - lo + 1) * 2 * kinds
+    if span > 16 * h:
+        return None
+    key = (chunk.flat - lo).astype(np.intp) * (2 * kinds)
+    key += normal_id[chunk.prim[chunk.hit]] * 2
+    key += chunk.backface
+    seen = np.zeros(span, bool)
+    seen[key] = True
+    rank = np.cumsum(seen, dtype=np.intp)
+    u = int(rank[-1])
+    if u * SHARED_HITS_PER_PAIR > h:
+        return None
+    rank -= 1
+    inverse = rank[key]
+    first = np.empty(u, np.intp)
+    first[inverse] = np.arange(h)  # any member stands for its pair: they share cell and normal
+    return chunk.flat[first], np.ascontiguousarray(chunk.mono[:, first]), inverse
 
 
 def cell_directions(n: int, seed: int, frame: int, cells: np.ndarray, grid_count: int) -> np.ndarray:

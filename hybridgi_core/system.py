@@ -41,6 +41,8 @@ MAX_WARMUP_ITERATIONS = 16
 #: Shadow rays per block of `GISystem.direct` (receivers x samples); larger calls are split over
 #: the worker pool (the full-res direct light of a 640x360 render at 16 samples: ~8 blocks).
 DIRECT_BLOCK_RAYS = 1 << 18
+#: G-buffer points per block of `GISystem.corner_visibility` (8 occlusion rays each).
+VISIBILITY_BLOCK = 8192
 
 
 class GISystem:
@@ -281,8 +283,20 @@ class GISystem:
         return stats
 
     def corner_visibility(self, points: np.ndarray, normals: np.ndarray) -> np.ndarray:
-        """(n, 8) bool exact visibility of the neighbouring cells (occlusion rays) for the gather."""
-        return corner_visibility(self.cache, self.tracer, points, normals, float(self.tracer.epsilon))
+        """(n, 8) bool exact visibility of the neighbouring cells (occlusion rays) for the gather.
+
+        Blocks of VISIBILITY_BLOCK points run on the worker pool (the tracer is single-threaded);
+        each point's rays are its own, so the answer does not depend on the split."""
+        eps = float(self.tracer.epsilon)
+        n = int(np.asarray(points).reshape(-1, 3).shape[0])
+        if n <= VISIBILITY_BLOCK:
+            return corner_visibility(self.cache, self.tracer, points, normals, eps)
+        points = np.asarray(points, np.float32).reshape(-1, 3)
+        normals = np.asarray(normals, np.float32).reshape(-1, 3)
+        jobs = [self.updater.pool.submit(corner_visibility, self.cache, self.tracer, points[a : a + VISIBILITY_BLOCK],
+                                         normals[a : a + VISIBILITY_BLOCK], eps)
+                for a in range(0, n, VISIBILITY_BLOCK)]
+        return np.concatenate([j.result() for j in jobs])
 
     def gather(self, points: np.ndarray, normals: np.ndarray, exact: bool = True) -> Gathered:
         """Step 6 on the CPU (the numpy reference of the GPU gather); exact = occlusion rays."""

@@ -218,3 +218,25 @@ def test_direct_light_split_over_workers_matches_one_call():
             else:
                 np.testing.assert_allclose(split.mean(), one.mean(), rtol=0.01)
                 np.testing.assert_array_equal(split, gi.direct(pts, nrm, frame=3, samples=4))
+
+
+def test_corner_visibility_split_over_workers_is_the_single_call(monkeypatch):
+    """`GISystem.corner_visibility` traces blocks of points on the worker pool: the same mask as
+    one call, occluded corners included."""
+    from hybridgi_core import system as system_mod
+    from hybridgi_core.evaluate import corner_visibility
+
+    monkeypatch.setattr(system_mod, "VISIBILITY_BLOCK", 100)
+    blocker = box([0.8, 0.8, 0.2], [1.2, 1.2, 1.6], inward=False, obj=1)
+    snap = make_snapshot(concat_geometry([box([0, 0, 0], [2, 2, 2]), blocker]), [Material()],
+                         objects=[ObjectInfo("room"), ObjectInfo("blocker")])
+    rng = np.random.default_rng(2)
+    # Points around the blocker, facing every way: some of their corner cells lie behind it.
+    pts = rng.uniform(0.6, 1.4, (1050, 3)).astype(np.float32)
+    nrm = rng.normal(size=(1050, 3)).astype(np.float32)
+    nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
+    with GISystem(snap, CacheSettings(resolution=8, rays_per_cell=8)) as gi:
+        split = gi.corner_visibility(pts, nrm)
+        one = corner_visibility(gi.cache, gi.tracer, pts, nrm, float(gi.tracer.epsilon))
+    assert split.shape == (1050, 8) and one.any() and not one.all()
+    np.testing.assert_array_equal(split, one)

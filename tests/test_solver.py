@@ -242,6 +242,26 @@ def test_segments_meet_box_slab_cases():
     np.testing.assert_array_equal(segments_meet_box(o, d, reach, lo, hi), [True, False, False, True, False, True])
 
 
+def test_hits_sharing_a_cell_and_normal_are_evaluated_once_with_the_same_result(monkeypatch):
+    """The solver evaluates hits that read one cell off one side of equally oriented triangles
+    once per iteration (`solver._hit_pairs`): a room with a lamp-lit ball solves bit for bit as
+    when every hit is evaluated, and the shared path is taken."""
+    def solved(share):
+        monkeypatch.setattr(solver_mod, "SHARED_HITS_PER_TRIANGLE", 16 if share else 10**12)
+        with GISystem(room_with_ball(), CacheSettings(resolution=6, rays_per_cell=32)) as gi:
+            gi.solve(batches=1)
+            pairs = [c.pairs for c in gi.solver.chunks]
+            return gi.cache.sh_indirect.copy(), pairs
+
+    shared, pairs = solved(True)
+    plain, none = solved(False)
+    assert all(p is None for p in none)
+    assert any(p is not None for p in pairs)
+    assert all(p[0].size < p[2].size for p in pairs if p is not None)
+    assert np.abs(plain).max() > 0
+    np.testing.assert_array_equal(shared, plain)
+
+
 def test_relight_batch_by_batch_equals_the_full_reshade_without_probe_rays():
     """The viewport's progressive re-shade (`relight_batch`): after batch 0 alone the fixed point
     solves from that batch's sources; once every batch is re-shaded a doubled point light has
