@@ -8,6 +8,7 @@ from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty, Po
 
 from hybridgi_core import settings as core_settings
 from hybridgi_core.raster import settings as raster
+from hybridgi_core.snapshot import NO_WORLD_AO_DISTANCE
 
 SH_ORDER_ITEMS = (
     ("L1", "L1", "4 spherical-harmonic coefficients per colour channel: cheaper, broad light reads ~5% low", 1),
@@ -134,6 +135,20 @@ class HybridGISettings(bpy.types.PropertyGroup):
         description="How ray-traced and screen-space occlusion combine",
         items=BLEND_MODE_ITEMS, default="MIN",
     )
+    pixel_rays: IntProperty(
+        name="Pixel Rays",
+        description="Final-gather rays of each GI pixel: sky, emitters, the first bounce and AO get the pixel's "
+        "own visibility (contacts, thin geometry), further bounces read the cache at the hits; replaces the "
+        "screen-space pass (final renders; the viewport keeps the cache gather). 0 = off: the cache gather alone "
+        "(16: Cornell box Combined error vs Cycles 0.031 -> 0.029, car 0.010 -> 0.006)",
+        default=16, min=0, max=1024, soft_max=64,
+    )
+    pixel_filter: IntProperty(
+        name="Pixel Filter",
+        description="Edge-aware a-trous passes over the pixel rays' correction of the cache (taps 1, 2, 4 ... "
+        "GI pixels apart): more removes more noise, fewer keeps contacts sharper",
+        default=3, min=0, max=6,
+    )
 
     # Film (final renders).
     pixel_samples: IntProperty(
@@ -174,13 +189,13 @@ class HybridGISettings(bpy.types.PropertyGroup):
     def cache_settings(self, scene=None):
         """The core's `CacheSettings` for these properties.
 
-        The AO distance is the World's (Cycles reads the same setting), threads follow the
+        The AO distance is the World's (Cycles reads the same setting; without a World, Cycles'
+        10 m, `snapshot.NO_WORLD_AO_DISTANCE`), threads follow the
         scene's render threads. Raises `SettingsError` if a value is out of the core's range.
         """
         scene = scene if scene is not None else self.id_data
-        defaults = core_settings.CacheSettings
         world = scene.world
-        ao_distance = world.light_settings.distance if world is not None else defaults.ao_distance
+        ao_distance = world.light_settings.distance if world is not None else NO_WORLD_AO_DISTANCE
         return core_settings.CacheSettings(
             resolution=self.resolution,
             sh_order=SH_ORDER[self.sh_order],
@@ -207,6 +222,8 @@ class HybridGISettings(bpy.types.PropertyGroup):
             ssao_radius=radius,
             ssao_strength=_f(self.ssao_strength),
             ao_blend=self.blend_mode,
+            pixel_rays=self.pixel_rays,
+            pixel_filter=self.pixel_filter,
         )
 
 

@@ -76,7 +76,8 @@ def test_all_passes_present_with_cycles_names_and_channels(cornell_render):
             # The file holds this Blender's Cycles names (DiffDir ... before 5.0).
             assert f"ViewLayer.{blender_compat.cycles_pass_name(name)}.{c}" in in_file, key
     assert record["engine"] == "HYBRIDGI" and record["rays"] > 0
-    for step in ("gbuffer", "downsample", "select", "warmup", "gather", "ssao", "bilateral", "deferred"):
+    # Per-pixel rays (the default) replace the screen-space pass.
+    for step in ("gbuffer", "downsample", "select", "warmup", "gather", "pixel_rays", "bilateral", "deferred"):
         assert step in record["steps_ms"], step
     # Combined = albedo x (direct + indirect) + emission, per Cycles' pass definitions.
     comb = layer(ch, "Combined")[..., :3]

@@ -13,6 +13,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .. import pixel_gather
 from ..visible import pixels_to_points
 from .accumulate import AccumulatePass
 from .bilateral import BilateralPass
@@ -138,19 +139,24 @@ class FramePipeline:
 
     def shade(self, gbuf, low, view: np.ndarray, proj: np.ndarray, direct, corner_visible=None,
               irradiance=None, debug_view: int = DEBUG_FINAL, world_color=(0.0, 0.0, 0.0),
-              stats: FrameStats | None = None) -> ShadedFrame:
+              stats: FrameStats | None = None, gi=None) -> ShadedFrame:
         """Steps 6-9 on the GPU, the cache already uploaded (`self.gather.upload`).
 
         direct : full-res RGBA texture of lamp irradiance (W/m^2) at the G-buffer's pixels
         corner_visible : None (Chebyshev test), (h, w, 8) bool or an R32F bit-mask texture at the
             low resolution (see GatherPass.execute)
         irradiance : low-res RGBA texture of the light the near-field bounce reflects, or None
+        gi : (gi_indirect, gi_direct, ssao) low-res textures that replace the gather and the
+            screen-space pass (pixel rays: `_pixel_gi`)
         """
         stats = stats if stats is not None else FrameStats()
-        with stats.step("gather"):
-            gi_indirect, gi_direct = self.gather.execute(low, corner_visible=corner_visible)
-        with stats.step("ssao"):
-            ssao = self.ssao.execute(low, view, proj, irradiance=irradiance)
+        if gi is not None:
+            gi_indirect, gi_direct, ssao = gi
+        else:
+            with stats.step("gather"):
+                gi_indirect, gi_direct = self.gather.execute(low, corner_visible=corner_visible)
+            with stats.step("ssao"):
+                ssao = self.ssao.execute(low, view, proj, irradiance=irradiance)
         with stats.step("bilateral"):
             filtered = self.bilateral.execute(gbuf, low, gi_indirect, gi_direct, ssao)
         with stats.step("deferred"):
@@ -194,16 +200,23 @@ class FramePipeline:
                 stats.steps_ms[f"update_{k}"] = v
         with stats.step("visibility"):
             visible = system.corner_visibility(points, normals)
+        gi = None
+        if self.settings.pixel_rays > 0:
+            with stats.step("pixel_rays"):
+                gi = self._pixel_gi(system, position_lo, normal_lo, pix, points, normals, visible, view, frame, stats)
         with stats.step("gather"):
             mask = np.zeros((low.height * low.width, 8), bool)
             mask[pix] = visible
-            self.gather.upload(system.cache)
+            if gi is None:
+                self.gather.upload(system.cache)
         with stats.step("direct_low"):
             # Lamp light at the low-res pixels: what the SSAO pass's near-field bounce reflects
             # (the far-field bounce of the cache's light is already in the gathered indirect).
-            lit = np.zeros((low.height * low.width, 4), np.float32)
-            lit[pix, :3] = system.direct(points, normals, frame, samples=1)
-            lit_tex = upload_texture_2d(lit.reshape(low.height, low.width, 4), "RGBA16F")
+            lit_tex = None
+            if gi is None:
+                lit = np.zeros((low.height * low.width, 4), np.float32)
+                lit[pix, :3] = system.direct(points, normals, frame, samples=1)
+                lit_tex = upload_texture_2d(lit.reshape(low.height, low.width, 4), "RGBA16F")
         with stats.step("direct"):
             normal = self.gbuffer.read("normal")
             position = self.gbuffer.read("position")
@@ -232,10 +245,26 @@ class FramePipeline:
                 self._direct_tex = upload_texture_2d(direct.reshape(self.height, self.width, 4), "RGBA32F")
             shaded = self.shade(gbuf, low, view, proj, self._direct_tex,
                                 corner_visible=mask.reshape(low.height, low.width, 8), irradiance=lit_tex,
-                                debug_view=debug_view, world_color=world_color, stats=stats)
+                                debug_view=debug_view, world_color=world_color, stats=stats, gi=gi)
             with stats.step("accumulate"):
                 self.accumulate.execute(shaded, gbuf, first=s == 0)
         with stats.step("film"):
             film.set_sums(self.accumulate.read_all(), self.accumulate.count)
         self.film = film
         return shaded, stats
+
+    def _pixel_gi(self, system, position_lo, normal_lo, pix, points, normals, visible, view, frame, stats):
+        """Per-pixel final gather (`pixel_gather.gi_images`) as the textures the gather and the
+        screen-space pass would give: the rays already see the near field, so the SSAO slot is
+        neutral (no occlusion, no bounce) and nothing is counted twice."""
+        s = self.settings
+        indirect, direct, pg = pixel_gather.gi_images(
+            system, position_lo, normal_lo, pix, points, normals, visible, view, frame, s.pixel_rays,
+            passes=s.pixel_filter, plane_sigma=s.bilateral_plane_sigma, normal_power=s.bilateral_normal_power)
+        stats.rays += pg.rays
+        for k, v in pg.steps_ms.items():
+            stats.steps_ms[f"pixel_{k}"] = stats.steps_ms.get(f"pixel_{k}", 0.0) + v
+        neutral = np.zeros(indirect.shape, np.float32)
+        neutral[..., 3] = 1.0
+        return (upload_texture_2d(indirect, "RGBA32F"), upload_texture_2d(direct, "RGBA32F"),
+                upload_texture_2d(neutral, "RGBA16F"))

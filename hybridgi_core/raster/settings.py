@@ -27,6 +27,11 @@ class RasterSettings:
     bilateral_sigma: float = 1.0  # spatial Gaussian sigma in low-res pixels
     bilateral_plane_sigma: float = 0.02  # plane-distance tolerance as a share of the view depth
     bilateral_normal_power: float = 8.0  # exponent of max(0, n_p . n_q) in the range weight
+    #: Per-pixel final-gather rays per GI pixel (`hybridgi_core/pixel_gather.py`); 0 = off: the
+    #: cache gather and the screen-space pass alone, as before. On, they replace the gather's
+    #: output and the screen-space AO / bounce (the rays see what that pass stood in for).
+    pixel_rays: int = 0
+    pixel_filter: int = 3  # a-trous passes over the pixel rays' residual (taps 1, 2, 4 .. apart)
 
     #: Valid values of each field, as in CacheSettings.RANGES.
     RANGES = {
@@ -39,6 +44,8 @@ class RasterSettings:
         "bilateral_sigma": (0.0, None, True, False),
         "bilateral_plane_sigma": (0.0, None, True, False),
         "bilateral_normal_power": (0.0, None, False, False),
+        "pixel_rays": (0, 1024, False, False),
+        "pixel_filter": (0, 6, False, False),
     }
 
     def __post_init__(self) -> None:
