@@ -86,6 +86,10 @@ class BakeJob:
     texspace: tuple = ((0.0, 0.0, 0.0), (1.0, 1.0, 1.0))
     key: str = ""
     source: str = ""  # the node feeding the input, for messages
+    #: The mesh deforms over the animation: its positions stay out of the key, so the texture of
+    #: the first frame serves every frame (UV and Generated coordinates do not move with the
+    #: surface; a texture in Object coordinates would, and is not baked again).
+    dynamic: bool = False
 
     @property
     def what(self) -> str:
@@ -156,12 +160,14 @@ def _tree_digest(digest, tree, seen) -> None:
 def job_key(job: BakeJob) -> str:
     digest = hashlib.sha256(f"{VERSION}|{bpy.app.version_string}|{job.node}|{job.socket}|{job.size}".encode())
     _tree_digest(digest, job.material.node_tree, set())
-    digest.update(np.ascontiguousarray(job.positions).tobytes())
+    if not job.dynamic:
+        digest.update(np.ascontiguousarray(job.positions).tobytes())
+    digest.update(f"{job.triangles}|{job.dynamic}".encode())
     for name in sorted(job.uv_maps):
         digest.update(name.encode() + np.ascontiguousarray(job.uv_maps[name]).tobytes())
     for name in sorted(job.colors):
         digest.update(name.encode() + np.ascontiguousarray(job.colors[name]).tobytes())
-    if job.normals is not None:
+    if job.normals is not None and not job.dynamic:
         digest.update(np.ascontiguousarray(job.normals).tobytes())
     digest.update(repr((job.render_uv, job.texspace)).encode())
     return digest.hexdigest()[:32]

@@ -226,15 +226,15 @@ class _SnapshotBuilder:
         local = self._local_mesh(obj)
         if local is None:
             return
-        slot_to_material, local = self._slot_materials(obj, local)
+        parent = instance.parent if instance.is_instance else None
+        dynamic = obj.name in self.dynamic_names or (parent is not None and parent.name in self.dynamic_names)
+        slot_to_material, local = self._slot_materials(obj, local, dynamic)
         geometry = transformed(local, instance.matrix_world, slot_to_material, len(self.objects))
         if geometry is None:
             log.debug("skipped %s: singular transform", obj.name)
             return
-        parent = instance.parent if instance.is_instance else None
         # A curve's own mesh instance has the curve as its parent: keep its plain name.
         name = obj.name if parent is None or parent.name == obj.name else f"{parent.name}/{obj.name}"
-        dynamic = obj.name in self.dynamic_names or (parent is not None and parent.name in self.dynamic_names)
         camera_visible = bool(getattr(obj, "visible_camera", True))
         if parent is not None and parent.name != obj.name:
             camera_visible = camera_visible and bool(getattr(parent, "visible_camera", True))
@@ -285,7 +285,7 @@ class _SnapshotBuilder:
             self._meshes[key] = mesh_arrays(obj.data)
         return self._meshes[key]
 
-    def _slot_materials(self, obj, local):
+    def _slot_materials(self, obj, local, dynamic=False):
         """(global material index of each slot, the local mesh): slots whose material needs a
         bake get a material of their own for this mesh, and its triangles the atlas UVs."""
         materials = [slot.material for slot in obj.material_slots]
@@ -300,7 +300,8 @@ class _SnapshotBuilder:
             sockets = bake_sockets(material) if material is not None else []
             if sockets and (slots == s).any():
                 baked[s] = sockets
-        indices = [self._material(material) if s not in baked else self._baked_material(material, obj, local, slots, s, baked[s])
+        indices = [self._material(material) if s not in baked
+                   else self._baked_material(material, obj, local, slots, s, baked[s], dynamic)
                    for s, material in enumerate(materials)]
         if baked:
             key = (obj.data.as_pointer(), tuple(sorted(baked)))
@@ -309,13 +310,15 @@ class _SnapshotBuilder:
             local = self._atlas_meshes[key]
         return indices, local
 
-    def _baked_material(self, material, obj, local, slots, slot, sockets):
+    def _baked_material(self, material, obj, local, slots, slot, sockets, dynamic=False):
         """Index of `material` on the triangles of `slot` of this mesh, its bake queued."""
         key = (material.name_full, obj.data.as_pointer(), slot)
         index = self._baked.get(key)
         if index is None:
             jobs = [bake_job(material, node, socket, obj.data, local, np.nonzero(slots == slot)[0])
                     for node, socket in sockets]
+            for job in jobs:
+                job.dynamic = dynamic
             index = self._baked[key] = len(self.materials)
             self.materials.append(snap.Material(name=material.name))  # replaced in bake_materials
             self._bakes.append((index, material, jobs))
@@ -1003,7 +1006,8 @@ def scene_materials(snapshot, names=None) -> list:
             continue
         # A baked material: bake its edited tree over the same triangles (in the background;
         # the old texture stays meanwhile).
-        jobs = [material_bake.BakeJob(material=source, node=j.node, socket=j.socket, source=j.source, positions=j.positions,
+        jobs = [material_bake.BakeJob(material=source, node=j.node, socket=j.socket, source=j.source, dynamic=j.dynamic,
+                                      positions=j.positions,
                                       uv_maps=j.uv_maps, render_uv=j.render_uv, colors=j.colors, texspace=j.texspace,
                                       normals=j.normals)
                 for j in jobs if (j.node, j.socket) in bake_sockets(source)]

@@ -202,6 +202,24 @@ def test_an_edited_ramp_bakes_again_an_unchanged_one_does_not(bpy_module, empty_
     assert edited.texture[..., 0].mean() == pytest.approx(first.texture[..., 0].mean(), abs=0.02)
 
 
+def test_a_deforming_mesh_keeps_its_bake(bpy_module, empty_scene, sync, material_bake, cache_home):
+    """A dynamic object's vertices move every frame: its texture (UV / Generated coordinates) is
+    baked once, not once per frame; a static mesh that changes bakes again."""
+    bpy = bpy_module
+    material, _ = _procedural(bpy)
+    quad = _object(bpy, empty_scene, "quad", [(0, 0, 0), (1, 0, 0), (1, 1, 0), (0, 1, 0)], [], [(0, 1, 2, 3)], material)
+
+    def bake_id(dynamic):
+        snap = sync.snapshot_from_depsgraph(bpy.context.evaluated_depsgraph_get(), {"quad"} if dynamic else ())
+        return snap.materials[0].bake_id
+
+    first, static = bake_id(True), bake_id(False)
+    quad.data.vertices[2].co = (0.8, 0.9, 0.0)  # inside the box: the texture space stays
+    quad.data.update()
+    assert bake_id(True) == first
+    assert bake_id(False) != static
+
+
 def test_a_viewport_edit_bakes_again_in_the_background(bpy_module, empty_scene, sync, material_bake, cache_home):
     import time  # noqa: PLC0415
 
