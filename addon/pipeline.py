@@ -74,6 +74,16 @@ def result_rect(render, width, height):
     return x0, y0, x1 - x0, y1 - y0
 
 
+def pixel_filter(scene):
+    """(type, width in pixels) of the pixel filter final renders integrate: Cycles' own
+    (`scene.cycles`), so a scene renders with the filter Cycles would use; without the Cycles
+    add-on, Blender's Filter Size (`render.filter_size`) as a Blackman-Harris filter."""
+    cycles = getattr(scene, "cycles", None)
+    if cycles is not None and hasattr(cycles, "filter_width"):
+        return str(cycles.pixel_filter_type), float(cycles.filter_width)
+    return "BLACKMAN_HARRIS", float(scene.render.filter_size)
+
+
 def camera_matrices(depsgraph, scene, width, height):
     """(view, proj) numpy 4x4 of the scene camera, as Blender's own engines build them."""
     cam = scene.camera
@@ -177,7 +187,12 @@ def render_frame(engine, depsgraph):
         # changes reached are traced again, the rest re-shade (localized by construction).
         refresh = (_SolvedRefresh(system) if system.solver.has_hits
                    else _IncrementalUpdate(system, job.near, job.inner, extra["lights_changed"]))
-    pipeline = FramePipeline(props.raster_settings(cell_size=system.cache.grid.cell_size))
+    cells_view = props.debug_view == "CELLS"
+    # The pixel filter's subframes (one when Cache Cells colours each pixel by its centre's cell).
+    filter_type, filter_size = pixel_filter(scene)
+    pipeline = FramePipeline(props.raster_settings(cell_size=system.cache.grid.cell_size),
+                             subframes=1 if cells_view else props.pixel_samples,
+                             filter_size=filter_size, filter_type=filter_type)
     try:
         pipeline.resize(width, height)
         ts = time.perf_counter()
@@ -207,7 +222,6 @@ def render_frame(engine, depsgraph):
                          refresh="resolve" if isinstance(refresh, _SolvedRefresh) else "update")
         engine.update_stats("HybridGI", "Writing passes")
         ts = time.perf_counter()
-        cells_view = props.debug_view == "CELLS"
         _write_result(engine, depsgraph, pipeline, width, height, world,
                       cache=system.cache if cells_view else None)
         steps["write"] = (time.perf_counter() - ts) * 1e3
@@ -420,11 +434,15 @@ class _Result:
 
 
 def _write_result(engine, depsgraph, pipeline, width, height, world, cache=None):
-    """Read the deferred targets back into the render result; with `cache`, Combined shows the
-    Cache Cells debug view instead (each pixel coloured by the cell it reads)."""
+    """Write the pipeline's filtered passes (`FramePipeline.film`) into the render result; with
+    `cache`, Combined shows the Cache Cells debug view instead (each pixel coloured by the cell it
+    reads)."""
     render = depsgraph.scene.render
     result = _Result(engine, render, width, height)
-    combined = pipeline.deferred.read("combined").copy()
+    film = pipeline.film
+    # A transparent film's background adds nothing to a pixel's colour: each subframe's colour
+    # counts with its alpha (premultiplied, as Cycles writes it).
+    combined = film.read("combined_premultiplied" if render.film_transparent else "combined").copy()
     if cache is not None:
         points, normals, pix = visible.pixels_to_points(pipeline.gbuffer.read("position"), pipeline.gbuffer.read("normal"))
         flat = combined.reshape(-1, 4)
@@ -432,19 +450,17 @@ def _write_result(engine, depsgraph, pipeline, width, height, world, cache=None)
         flat[pix, :3] = visible.cell_debug_colors(cache, points, normals)
     if render.film_transparent:
         # Cycles' transparent film: premultiplied, the world lights the scene but is not seen.
-        combined[..., :3] *= combined[..., 3:4]
+        if cache is not None:
+            combined[..., :3] *= combined[..., 3:4]
     else:
         combined[..., 3] = 1.0  # Cycles' alpha is 1 on the background unless the film is transparent
     result.set("Combined", combined)
-    result.set("Diffuse Direct", pipeline.deferred.read("diffuse_direct"))
-    result.set("Diffuse Indirect", pipeline.deferred.read("diffuse_indirect"))
-    result.set("Diffuse Color", pipeline.deferred.read("diffuse_color"))
-    ao = pipeline.deferred.read("ao")
-    result.set("Ambient Occlusion", np.repeat(ao, 3, axis=-1))
-    depth = pipeline.gbuffer.read("depth")
-    result.set("Depth", depth)
-    normal = pipeline.gbuffer.read("normal")
-    result.set("Normal", normal[..., :3] * (depth < 1e9))
+    result.set("Diffuse Direct", film.read("diffuse_direct"))
+    result.set("Diffuse Indirect", film.read("diffuse_indirect"))
+    result.set("Diffuse Color", film.read("diffuse_color"))
+    result.set("Ambient Occlusion", np.repeat(film.read("ao"), 3, axis=-1))
+    result.set("Depth", film.read("depth"))
+    result.set("Normal", film.read("normal"))  # the average of the hits' normals, 0 on the background
     result.end()
 
 

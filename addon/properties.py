@@ -8,6 +8,7 @@ from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty, Po
 
 from hybridgi_core import settings as core_settings
 from hybridgi_core.raster import settings as raster
+from hybridgi_core.snapshot import NO_WORLD_AO_DISTANCE
 
 SH_ORDER_ITEMS = (
     ("L1", "L1", "4 spherical-harmonic coefficients per colour channel: cheaper, broad light reads ~5% low", 1),
@@ -151,6 +152,16 @@ class HybridGISettings(bpy.types.PropertyGroup):
         default=3, min=0, max=6,
     )
 
+    # Film (final renders).
+    pixel_samples: IntProperty(
+        name="Pixel Samples",
+        description="Jittered subframes per final-render pixel, placed by Cycles' pixel filter (its type "
+        "and width, Blackman-Harris 1.5 px by default, sampled as Cycles samples it) and averaged: anti-aliased edges and textures in every "
+        "pass. The cache is converged once per frame; the direct light's shadow rays are split over the "
+        "subframes. 1 = one sample at each pixel centre",
+        default=4, min=1, max=64, soft_max=16,
+    )
+
     # Debugging.
     debug_view: EnumProperty(
         name="View",
@@ -180,13 +191,13 @@ class HybridGISettings(bpy.types.PropertyGroup):
     def cache_settings(self, scene=None):
         """The core's `CacheSettings` for these properties.
 
-        The AO distance is the World's (Cycles reads the same setting), threads follow the
+        The AO distance is the World's (Cycles reads the same setting; without a World, Cycles'
+        10 m, `snapshot.NO_WORLD_AO_DISTANCE`), threads follow the
         scene's render threads. Raises `SettingsError` if a value is out of the core's range.
         """
         scene = scene if scene is not None else self.id_data
-        defaults = core_settings.CacheSettings
         world = scene.world
-        ao_distance = world.light_settings.distance if world is not None else defaults.ao_distance
+        ao_distance = world.light_settings.distance if world is not None else NO_WORLD_AO_DISTANCE
         return core_settings.CacheSettings(
             resolution=self.resolution,
             sh_order=SH_ORDER[self.sh_order],

@@ -17,7 +17,7 @@ import numpy as np
 from hybridgi_core import environment
 from hybridgi_core import snapshot as snap
 
-from . import compat, world_bake
+from . import compat, material_bake, world_bake
 
 log = logging.getLogger(__name__)
 
@@ -41,11 +41,15 @@ def snapshot_from_depsgraph(depsgraph, dynamic_names=frozenset(), wait_for_world
 
     An empty scene gives a snapshot with no triangles (its `bounds()` raises EmptySceneError),
     so a scene lit only by the sky still syncs; the pipeline decides whether that is an error.
+    wait_for_world=False (the viewport) also lets colour inputs that need a bake
+    (`material_bake`) keep their constant value until the background bake is done.
     """
-    builder = _SnapshotBuilder(frozenset(dynamic_names), _collection_flags(depsgraph.view_layer))
+    builder = _SnapshotBuilder(frozenset(dynamic_names), _collection_flags(depsgraph.view_layer),
+                               wait=wait_for_world)
     for instance in depsgraph.object_instances:
         builder.add_instance(instance)
     builder.warn_unsupported()
+    builder.bake_materials()
     world, world_lamps = read_world(depsgraph.scene.world, wait_for_world)
     builder.lights += world_lamps
     return builder.finish(world)
@@ -120,7 +124,8 @@ def mesh_arrays(mesh):
     normals = np.empty(n_corner * 3, np.float32)
     mesh.corner_normals.foreach_get("vector", normals)
 
-    uv_layer = mesh.uv_layers.active
+    # Cycles' Image Textures without a Vector input read the UV map active for rendering.
+    uv_layer = next((layer for layer in mesh.uv_layers if layer.active_render), mesh.uv_layers.active)
     if uv_layer is not None:
         uvs = np.empty(n_corner * 2, np.float32)
         uv_layer.uv.foreach_get("vector", uvs)
@@ -181,14 +186,24 @@ def transformed(local, matrix, slot_to_material, object_index):
     )
 
 
+def _listed(names, shown=5) -> str:
+    names = sorted(names)
+    return ", ".join(repr(n) for n in names[:shown]) + (f" and {len(names) - shown} more" if len(names) > shown else "")
+
+
 def _cofactor(m):
     """(3, 3) cofactor matrix of `m` (det(m) inv(m).T where m is invertible)."""
     return np.stack([np.cross(m[1], m[2]), np.cross(m[2], m[0]), np.cross(m[0], m[1])])
 
 
 class _SnapshotBuilder:
-    def __init__(self, dynamic_names, collection_flags=None):
+    def __init__(self, dynamic_names, collection_flags=None, wait=True):
         self.dynamic_names = dynamic_names
+        self.wait = wait
+        self._baked = {}  # (material, mesh pointer, slot) -> material index
+        self._bakes = []  # (material index, bpy material, [BakeJob])
+        self._atlas_meshes = {}  # (mesh pointer, baked slots) -> _LocalMesh with atlas UVs
+        self.without_material = set()  # object names (Cycles gives them a glossy default)
         self.collection_flags = collection_flags or {}
         self.ignored: dict[str, set[str]] = {}  # what is approximated -> object names, warned once
         self.parts = []
@@ -211,7 +226,7 @@ class _SnapshotBuilder:
         local = self._local_mesh(obj)
         if local is None:
             return
-        slot_to_material = self._slot_materials(obj)
+        slot_to_material, local = self._slot_materials(obj, local)
         geometry = transformed(local, instance.matrix_world, slot_to_material, len(self.objects))
         if geometry is None:
             log.debug("skipped %s: singular transform", obj.name)
@@ -245,8 +260,24 @@ class _SnapshotBuilder:
                         "is" if len(names) == 1 else "are", meaning)
 
     def finish(self, world):
+        self._warn_glossy()
         geometry = snap.concat_geometry(self.parts)
         return snap.make_snapshot(geometry, self.materials, self.lights, world, self.objects)
+
+    def _warn_glossy(self):
+        """One warning for every surface whose glossy reflection Combined lacks (Cycles renders
+        an object without a material with Blender's default surface, a Principled BSDF with
+        Specular IOR Level 0.5: on the shared bunny scene that reflection is 19% of Combined)."""
+        parts = []
+        if self._textures.glossy:
+            parts.append("materials " + _listed(self._textures.glossy) + " have a specular layer (Metallic or "
+                         "Specular IOR Level above 0)")
+        if self.without_material:
+            parts.append("objects " + _listed(self.without_material) + " have no material (Cycles shows "
+                         "Blender's default surface, a Principled BSDF with a specular layer)")
+        if parts:
+            log.warning("%s: HybridGI renders their diffuse reflection only; Combined lacks the glossy part",
+                        "; ".join(parts))
 
     def _local_mesh(self, obj):
         key = obj.data.as_pointer()
@@ -254,11 +285,58 @@ class _SnapshotBuilder:
             self._meshes[key] = mesh_arrays(obj.data)
         return self._meshes[key]
 
-    def _slot_materials(self, obj):
+    def _slot_materials(self, obj, local):
+        """(global material index of each slot, the local mesh): slots whose material needs a
+        bake get a material of their own for this mesh, and its triangles the atlas UVs."""
         materials = [slot.material for slot in obj.material_slots]
         if not materials:
             materials = list(obj.data.materials)
-        return [self._material(material) for material in materials] or [self._material(None)]
+        if not materials:
+            self.without_material.add(obj.name)
+            return [self._material(None)], local
+        slots = np.clip(local.slot, 0, len(materials) - 1)
+        baked = {}
+        for s, material in enumerate(materials):
+            sockets = bake_sockets(material) if material is not None else []
+            if sockets and (slots == s).any():
+                baked[s] = sockets
+        indices = [self._material(material) if s not in baked else self._baked_material(material, obj, local, slots, s, baked[s])
+                   for s, material in enumerate(materials)]
+        if baked:
+            key = (obj.data.as_pointer(), tuple(sorted(baked)))
+            if key not in self._atlas_meshes:
+                self._atlas_meshes[key] = with_atlas(local, slots, sorted(baked))
+            local = self._atlas_meshes[key]
+        return indices, local
+
+    def _baked_material(self, material, obj, local, slots, slot, sockets):
+        """Index of `material` on the triangles of `slot` of this mesh, its bake queued."""
+        key = (material.name_full, obj.data.as_pointer(), slot)
+        index = self._baked.get(key)
+        if index is None:
+            jobs = [bake_job(material, node, socket, obj.data, local, np.nonzero(slots == slot)[0])
+                    for node, socket in sockets]
+            index = self._baked[key] = len(self.materials)
+            self.materials.append(snap.Material(name=material.name))  # replaced in bake_materials
+            self._bakes.append((index, material, jobs))
+        return index
+
+    def bake_materials(self):
+        """Bake every queued colour input (one process for all; cached ones cost nothing) and
+        read those materials with their textures."""
+        if not self._bakes:
+            return
+        textures = material_bake.bake([job for _, _, jobs in self._bakes for job in jobs], wait=self.wait)
+        for index, material, jobs in self._bakes:
+            bake_id = jobs[0].key
+            _BAKE_JOBS[bake_id] = jobs
+            while len(_BAKE_JOBS) > 256:
+                _BAKE_JOBS.pop(next(iter(_BAKE_JOBS)))
+            baked = {(job.node, job.socket): textures[job.key] for job in jobs if job.key in textures}
+            # quiet: a bake that failed warned itself, naming the material and the node.
+            converted = material_from_blender(material, self._textures, baked=baked, pending=True)
+            converted.bake_id = bake_id
+            self.materials[index] = converted
 
     def _material(self, material):
         key = None if material is None else material.name_full
@@ -273,9 +351,16 @@ class _SnapshotBuilder:
 # --- materials -----------------------------------------------------------------------------
 
 
-def material_from_blender(material, textures=None):
-    """Lambertian `Material` of a Blender material (see the module docstring for what is read)."""
+def material_from_blender(material, textures=None, baked=None, pending=False):
+    """Lambertian `Material` of a Blender material (see the module docstring for what is read).
+
+    baked : (node name, input identifier) -> (h, w, 3) texture Blender baked for a colour input
+        this reader cannot fold (`bake_sockets`); pending : such bakes were started, so an input
+        without its texture (still baking in the background, or failed: `material_bake` warned)
+        keeps its constant value without a second warning."""
     textures = textures if textures is not None else _TextureCache()
+    textures.baked = baked or {}
+    textures.pending = pending
     name = material.name
     tree = material.node_tree
     if tree is None:
@@ -308,6 +393,9 @@ def _shader_surface(shader, textures, name, depth=0):
         coat = _constant_value(_input(shader, "Coat Weight"), name) if _input(shader, "Coat Weight") else 0.0
         tint = _constant_color(_input(shader, "Coat Tint"), name) if _input(shader, "Coat Tint") else np.ones(3)
         weight = (1.0 - np.clip(metallic, 0, 1)) * (1.0 - np.clip(transmission, 0, 1))
+        specular = _input(shader, "Specular IOR Level", "Specular")
+        if metallic > 0 or (specular is not None and _constant_value(specular, name) > 0):
+            textures.glossy.add(name)
         base = base * weight * (1.0 + np.clip(coat, 0, 1) * (tint - 1.0))
         emission = _constant_color(shader.inputs["Emission Color"], name) * _constant_value(
             shader.inputs["Emission Strength"], name)
@@ -476,20 +564,130 @@ def _linked_node(socket):
 
 
 def _color_socket(socket, textures, material_name):
-    """(base colour (3,) float32, texture or None) of a colour input."""
+    """(base colour (3,) float32, texture or None) of a colour input: its value, a folded
+    constant, an image plugged in directly, or the texture Blender baked for it."""
     value = _rgb(socket.default_value)
     if not socket.is_linked:
         return value, None
     node, output = _source(socket)
-    if node is not None and node.type == "TEX_IMAGE" and output == "Color":
+    if node is None:
+        return value, None  # a muted link: Cycles uses the socket's own value
+    if _direct_image(node, output):
         texture = textures.get(node.image, material_name)
         if texture is not None:
             # The texture is the colour; the base colour multiplies it (Material.mean_albedo).
             return np.ones(3, np.float32), texture
         return value, None
-    what = "a muted link" if node is None else f"{node.bl_idname}"
-    log.warning("material %r: colour from %s is not supported; using its value", material_name, what)
+    folded = _fold(socket, 0)
+    if folded is not None:
+        return np.broadcast_to(np.asarray(folded, np.float32), (3,)).copy(), None
+    texture = textures.baked.get((socket.node.name, socket.identifier))
+    if texture is not None:
+        return np.ones(3, np.float32), texture
+    if not textures.pending:
+        log.warning("material %r: %s from node %r (%s) could not be baked; using its value", material_name,
+                    socket.name, node.name, node.bl_idname)
     return value, None
+
+
+def _direct_image(node, output) -> bool:
+    """Whether an Image Texture's colour is what the core samples itself: the mesh's default
+    UV map, flat projection, repeated (anything else, e.g. a UV Map node or box mapping, is
+    baked)."""
+    if node.type != "TEX_IMAGE" or output != "Color" or node.image is None:
+        return False
+    vector = node.inputs.get("Vector")
+    return (vector is None or _source(vector)[0] is None) and node.projection == "FLAT" and node.extension == "REPEAT"
+
+
+#: Shader inputs whose colour `material_bake` bakes when the reader cannot fold it.
+BAKED_INPUTS = {"BSDF_PRINCIPLED": "Base Color", "BSDF_DIFFUSE": "Color"}
+
+
+def bake_sockets(material) -> list[tuple[str, str]]:
+    """(node name, input identifier) of every diffuse colour input of `material`'s surface
+    (through Mix / Add Shaders) that needs Blender to evaluate it: linked to anything but a
+    readable image, a constant, or a muted link."""
+    tree = getattr(material, "node_tree", None)
+    if tree is None:
+        return []
+    out = []
+    stack, seen = [_linked_node(_surface_input(tree))], set()
+    while stack:
+        node = stack.pop()
+        if node is None or node.name in seen or len(seen) > 64:
+            continue
+        seen.add(node.name)
+        if node.type in ("MIX_SHADER", "ADD_SHADER"):
+            stack += [_linked_node(s) for s in node.inputs if s.type == "SHADER"]
+            continue
+        name = BAKED_INPUTS.get(node.type)
+        socket = node.inputs.get(name) if name else None
+        if socket is None or not socket.is_linked:
+            continue
+        source, output = _source(socket)
+        if source is None:
+            continue
+        if _direct_image(source, output):
+            continue
+        if _fold(socket, 0) is None:
+            out.append((node.name, socket.identifier))
+    return out
+
+
+#: bake_id -> the jobs a baked material was made of (the viewport re-bakes edited materials).
+_BAKE_JOBS: dict[str, list] = {}
+
+
+def bake_job(material, node, socket, mesh, local, triangles):
+    """`BakeJob` of one input over the triangles (indices into `local.triangles`) of a mesh:
+    their corners in object space, every UV map and colour attribute per corner."""
+    corners = local.triangles[triangles].ravel()
+    uv_maps = {}
+    for layer in mesh.uv_layers:
+        uv = np.empty(len(mesh.loops) * 2, np.float32)
+        layer.uv.foreach_get("vector", uv)
+        uv_maps[layer.name] = uv.reshape(-1, 2)[corners]
+    render = next((layer.name for layer in mesh.uv_layers if layer.active_render), None)
+    colors = {}
+    corner_vert = None
+    for attr in mesh.color_attributes:
+        if attr.domain not in ("POINT", "CORNER"):
+            continue
+        values = np.empty(len(attr.data) * 4, np.float32)
+        attr.data.foreach_get("color", values)
+        values = values.reshape(-1, 4)
+        if attr.domain == "POINT":
+            if corner_vert is None:
+                corner_vert = np.empty(len(mesh.loops), np.int32)
+                mesh.attributes[".corner_vert"].data.foreach_get("value", corner_vert)
+            values = values[corner_vert]
+        colors[attr.name] = values[corners]
+    texspace = (tuple(mesh.texspace_location), tuple(mesh.texspace_size))
+    shader = material.node_tree.nodes[node]
+    source = _linked_node(next(s for s in shader.inputs if s.identifier == socket))
+    return material_bake.BakeJob(material=material, node=node, socket=socket, source=getattr(source, "name", ""),
+                                 positions=np.ascontiguousarray(local.positions[corners], np.float32),
+                                 uv_maps=uv_maps, render_uv=render, colors=colors, texspace=texspace,
+                                 normals=np.ascontiguousarray(local.normals[corners], np.float32))
+
+
+def with_atlas(local, slots, baked_slots):
+    """`_LocalMesh` whose triangles in `baked_slots` have corners of their own (appended) with
+    the atlas UVs of their bake, in the order `bake_job` lists them."""
+    positions, normals, uvs = [local.positions], [local.normals], [local.uvs]
+    triangles = local.triangles.copy()
+    start = local.positions.shape[0]
+    for s in baked_slots:
+        sel = np.nonzero(slots == s)[0]
+        corners = local.triangles[sel].ravel()
+        positions.append(local.positions[corners])
+        normals.append(local.normals[corners])
+        uvs.append(material_bake.atlas_uvs(len(sel), material_bake.bake_size(len(sel))).reshape(-1, 2))
+        triangles[sel] = start + np.arange(corners.size, dtype=np.int32).reshape(-1, 3)
+        start += corners.size
+    return _LocalMesh(positions=np.concatenate(positions), normals=np.concatenate(normals),
+                      uvs=np.concatenate(uvs).astype(np.float32), triangles=triangles, slot=local.slot)
 
 
 def _rgb(color):
@@ -512,6 +710,9 @@ class _TextureCache:
 
     def __init__(self):
         self._images = {}
+        self.baked = {}  # (node name, input identifier) -> baked texture of the material being read
+        self.pending = False
+        self.glossy = set()  # materials with a specular layer HybridGI does not render
 
     def _read(self, image, material_name):
         if image is None:
@@ -747,7 +948,7 @@ def read_world(world, wait=True):
     shadowed SUN `Light` (see `environment.py`). wait=False (the viewport): a world whose map
     still bakes reads as its uniform colour, with no sun, meanwhile."""
     if world is None:
-        return snap.World(), []
+        return snap.World(ao_distance=snap.NO_WORLD_AO_DISTANCE), []
     ao_distance = float(world.light_settings.distance)
     if world.node_tree is None:
         return snap.World(color=_rgb(world.color), ao_distance=ao_distance), []
@@ -793,5 +994,26 @@ def scene_materials(snapshot, names=None) -> list:
     textures = _TextureCache()
     for material in snapshot.materials:
         source = bpy.data.materials.get(material.name) if names is None or material.name in names else None
-        out.append(material if source is None else material_from_blender(source, textures))
+        if source is None:
+            out.append(material)
+            continue
+        jobs = _BAKE_JOBS.get(material.bake_id) if material.bake_id else None
+        if jobs is None:
+            out.append(material_from_blender(source, textures))
+            continue
+        # A baked material: bake its edited tree over the same triangles (in the background;
+        # the old texture stays meanwhile).
+        jobs = [material_bake.BakeJob(material=source, node=j.node, socket=j.socket, source=j.source, positions=j.positions,
+                                      uv_maps=j.uv_maps, render_uv=j.render_uv, colors=j.colors, texspace=j.texspace,
+                                      normals=j.normals)
+                for j in jobs if (j.node, j.socket) in bake_sockets(source)]
+        baked = material_bake.bake(jobs, wait=False)
+        if jobs and not all(job.key in baked for job in jobs):
+            out.append(material)
+            continue
+        converted = material_from_blender(source, textures, baked={(j.node, j.socket): baked[j.key] for j in jobs})
+        converted.bake_id = jobs[0].key if jobs else None
+        if jobs:
+            _BAKE_JOBS[jobs[0].key] = jobs
+        out.append(converted)
     return out

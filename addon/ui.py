@@ -62,6 +62,22 @@ class HYBRIDGI_PT_screen_space(HybridGIButtonsPanel, Panel):
             "downsample", "pixel_rays", "pixel_filter", "ssao_radius", "ssao_strength", ("blend_mode", {"expand": True})))
 
 
+class HYBRIDGI_PT_film(HybridGIButtonsPanel, Panel):
+    """Final renders' pixel filter: the subframes, and Cycles' filter (the one they integrate)."""
+
+    bl_label = "Film"
+
+    def draw(self, context):
+        col = settings_column(self.layout, context.scene.hybridgi, ("pixel_samples",))
+        cycles = getattr(context.scene, "cycles", None)
+        if cycles is not None and hasattr(cycles, "filter_width"):
+            col.prop(cycles, "pixel_filter_type", text="Filter")
+            if cycles.pixel_filter_type != "BOX":
+                col.prop(cycles, "filter_width", text="Width")
+        else:
+            col.prop(context.scene.render, "filter_size")
+
+
 class HYBRIDGI_PT_debug(HybridGIButtonsPanel, Panel):
     bl_label = "Debug"
     bl_options = {"DEFAULT_CLOSED"}
@@ -178,6 +194,7 @@ classes = (
     HYBRIDGI_PT_cache,
     HYBRIDGI_PT_indirect,
     HYBRIDGI_PT_screen_space,
+    HYBRIDGI_PT_film,
     HYBRIDGI_PT_debug,
     HYBRIDGI_PT_passes,
 )

@@ -37,7 +37,7 @@ from hybridgi_core.raster import passes as _passes
 from hybridgi_core.raster import readback as _readback
 from hybridgi_core.raster import settings as _raster_settings
 
-from . import sync, updates, viewport_stats, worker, world_bake
+from . import material_bake, sync, updates, viewport_stats, worker, world_bake
 from .viewport_mirror import SceneMirror
 from .viewport_passes import (
     PRESENT_CELLS,
@@ -58,8 +58,6 @@ log = logging.getLogger(__name__)
 DIRECT_FACTOR = 2
 #: Shadow-ray passes averaged while the view holds still (each pass: 1 sample per pixel and lamp).
 DIRECT_PASSES = 16
-#: GI updates per second the worker aims at; it sizes each update's ray budget to the ray rate.
-UPDATE_HZ = 30.0
 #: props.debug_view of the cells view (drawn here, not by the deferred pass).
 DEBUG_CELLS = "CELLS"
 
@@ -149,7 +147,7 @@ class ViewportSession:
     """
 
     def __init__(self, options: worker.WorkerOptions | None = None):
-        self.options = options or worker.WorkerOptions(update_hz=UPDATE_HZ, direct_passes=DIRECT_PASSES)
+        self.options = options or worker.WorkerOptions(direct_passes=DIRECT_PASSES)
         self.mirror = SceneMirror()
         self.worker: worker.ViewportWorker | None = None
         self.gpu: _GPUState | None = None
@@ -162,6 +160,7 @@ class ViewportSession:
         self.scene_name = None
         self.settings_error: str | None = None  # the scene's settings are invalid: this message
         self._world_bakes_seen = world_bake.completed
+        self._material_bakes_seen = material_bake.completed
         _OPEN.add(self)
 
     # --- scene ----------------------------------------------------------------------------------
@@ -291,19 +290,24 @@ class ViewportSession:
 
     def poll_world(self, depsgraph) -> None:
         """Read the world again once a map it waited for has baked (`world_bake` runs it in the
-        background: the view showed the world's uniform colour meanwhile)."""
+        background: the view showed the world's uniform colour meanwhile); the materials, once
+        a colour input's texture has (`material_bake`)."""
         if self.mirror.snapshot is None or self.worker is None:
             return
         if world_bake.completed != self._world_bakes_seen:
             self._world_bakes_seen = world_bake.completed
             lights, world = sync.scene_shading(depsgraph, wait_for_world=False)
             self._post(self.mirror.set_shading(lights=lights, world=world))
+        if material_bake.completed != self._material_bakes_seen:
+            # Colour inputs baked in the background (`material_bake`): read the materials again.
+            self._material_bakes_seen = material_bake.completed
+            self._post(self.mirror.set_shading(materials=sync.scene_materials(self.mirror.snapshot)))
 
     def needs_redraw(self) -> bool:
         """More to show: the worker is busy or published something not drawn yet."""
         if self.worker is None:
             return False
-        if world_bake.pending():
+        if world_bake.pending() or material_bake.pending():
             return True
         published = self.worker.latest()
         if published.error is not None:

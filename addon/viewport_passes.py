@@ -34,11 +34,17 @@ class PackedGatherPass(_gather.GatherPass):
     """The gather pass fed with `worker.CacheFrame`s: the worker packed the textures already, the
     main thread only uploads them (a plain cache still works, for the final-render path)."""
 
+    _depth_texels = None  # the depth texels on the GPU (the worker reuses the array while they hold)
+
     def upload(self, cache) -> bool:
         if not isinstance(cache, worker.CacheFrame):
+            self._depth_texels = None
             return super().upload(cache)
-        return self.upload_packed(("frame", cache.serial), cache.grid, cache.settings,
-                                  cache.sh_texels, cache.depth_texels)
+        depth_tx = self._depth_tx if cache.depth_texels is self._depth_texels else None
+        uploaded = self.upload_packed(("frame", cache.serial), cache.grid, cache.settings,
+                                      cache.sh_texels, cache.depth_texels, depth_tx=depth_tx)
+        self._depth_texels = cache.depth_texels
+        return uploaded
 
 
 

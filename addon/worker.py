@@ -41,13 +41,12 @@ from .worker_messages import (  # noqa: F401
     WorkerStats,
     frozen,
 )
+from .worker_solve import SolveSchedule
 from .worker_view import DirectLevel, ViewState
 
 log = logging.getLogger(__name__)
 
 
-#: A cell whose urgency exceeds this after an edit starts converging again (see `_settled`).
-URGENT = 0.01
 #: Seconds over which updates and rays per second are counted.
 RATE_WINDOW_S = 1.0
 #: Points per chunk of the corner-visibility rays (8 rays each): between chunks the worker looks
@@ -57,6 +56,10 @@ MASK_CHUNK = 4096
 #: and uploading costs the main thread about 1 ms per 3 MB of texture data, and a display shows
 #: no more than about this rate anyway.
 PUBLISH_INTERVAL_S = 1.0 / 30.0
+#: The same while the solver iterates towards a fixed point: each published iteration adds a
+#: bounce but costs a pack (~50-100 ms for a 48^3 grid here, a third of an iteration), so the
+#: intermediate ones go out at this rate; a finished solve is always published at once.
+SOLVE_PUBLISH_INTERVAL_S = 0.3
 
 
 # --- the worker ---------------------------------------------------------------------------------
@@ -83,18 +86,16 @@ class ViewportWorker:
         self._empty = False
         self._applied_gen = 0
         self._scene_version = 0  # bumped by every sync that changed something: stale view light
-        self._more_updates = False
-        self._cache_ref = None
-        self._settled = np.zeros(0, np.int32)
-        self._secondary: np.ndarray | None = None
+        #: The cache's convergence from stored hits, one unit of work per step (`worker_solve.py`).
+        self._schedule = SolveSchedule(self.options.solver_batches, self.options.first_batch_rays)
         self._frame = 0
         self._serial = 0
         self._published_cache_key = None
+        self._published_depth = None  # (key, depth texels) last packed: reused while it holds
         self._published_at = 0.0
         self._view_state: ViewState | None = None
         self._rates: collections.deque = collections.deque()
         self._updates = 0
-        self._ray_rate = 0.0  # probe rays per ms of update wall time (moving average)
         self._view_ms = 0.0  # wall time of lighting a new view (moving average)
         self._steps: dict[str, float] = {}
         self._thread = threading.Thread(target=self._run, name=name, daemon=True)
@@ -211,7 +212,7 @@ class ViewportWorker:
             cache = self._session.system.cache
             if state.cells_key != (id(cache), cache.version):
                 return True  # the Cache Cells colours lag behind the cache
-        return self._more_updates
+        return self._view_state is not None and self._schedule.has_work
 
     def _step(self, edits: list, edit_gen: int, view: ViewRequest | None, settings) -> None:
         t0 = time.perf_counter()
@@ -226,9 +227,10 @@ class ViewportWorker:
         self._steps["sync"] = (time.perf_counter() - t0) * 1e3
         system = self._session.system
         if system is None:
-            self._more_updates = False
             self._publish()
             return
+        schedule = self._schedule
+        schedule.attach(system)
         state = self._view_state
         moving = view is not None and (state is None or not state.current(view, self._scene_version))
         if moving:
@@ -237,21 +239,23 @@ class ViewportWorker:
             self._publish()  # the new view's light first: the main thread reprojects it meanwhile
             ms = (time.perf_counter() - t_view) * 1e3
             self._view_ms = ms if self._view_ms == 0 else 0.7 * self._view_ms + 0.3 * ms
-        cells = self._cells_to_update(view_work=moving)
-        if cells.size:
-            self._update(system, cells)
+            schedule.cover(self._view_state.cells)
         state = self._view_state
+        finished = False
+        if state is not None and schedule.has_work:
+            was_solved = schedule.solved_once
+            self._solve_step(schedule, state)
+            finished = schedule.solved_once and not was_solved or not schedule.has_work
         if state is not None and state.request.debug_cells:
-            self._cell_colors(system, state, force=moving or not cells.size)
+            self._cell_colors(system, state, force=moving or not schedule.has_work)
         if state is not None and not moving:
             # Refinements of a view that held still for a whole step.
             if state.mask is None:
                 self._trace_mask(system, state)
             elif state.passes < self.options.direct_passes:
                 self._direct_pass(system, state)
-        self._more_updates = self._cells_to_update().size > 0
-        # The last update before a pause is always published; in between, at PUBLISH_INTERVAL_S.
-        self._publish(force=not self._more_updates)
+        # A finished solve is published at once; iterations in between at SOLVE_PUBLISH_INTERVAL_S.
+        self._publish(force=finished)
 
     # --- scene ----------------------------------------------------------------------------------
 
@@ -297,14 +301,13 @@ class ViewportWorker:
             self._cache_ref = None
             return
         self._empty = False
-        cache = self._session.system.cache
-        if cache is not self._cache_ref:
-            self._cache_ref = cache
-            self._settled = np.zeros(cache.grid.count, np.int32)
-        # The session raised the cache's events; policy here: what they touched settles again.
-        if report.rebuilt or report.changes.any or resync:
-            self._settled[cache.urgency > URGENT] = 0
-            self._secondary = None
+        # The session raised the cache's events (stored hits marked stale); policy here: solve
+        # again from the stored hits (a new system starts over: `SolveSchedule.attach`).
+        self._schedule.attach(self._session.system)
+        if not report.rebuilt:
+            ch = report.changes
+            self._schedule.changed(shading=ch.shading_changed, geometry=bool(ch.boxes) or resync,
+                                   materials=ch.world_changed or bool(ch.materials_changed))
         self._steps["apply"] = (time.perf_counter() - t0) * 1e3
 
     # --- view -----------------------------------------------------------------------------------
@@ -367,52 +370,16 @@ class ViewportWorker:
         self._steps["visibility"] = (time.perf_counter() - t0) * 1e3
         state.dirty = True
 
-    # --- cache ----------------------------------------------------------------------------------
+    # --- cache ---------------------------------------------------------------------------------
 
-    def _cells_to_update(self, view_work: bool = False) -> np.ndarray:
-        """Unsettled cells of the view first, then (option) of every surface; within the ray budget
-        (view_work: this step lit a new view too, which takes its share of the step's time)."""
-        system = getattr(self._session, "system", None)
-        if system is None or self._settled.size == 0:
-            return np.zeros(0, np.int64)
-        target = self.options.settle_updates
-        state = self._view_state
-        if state is None:
-            return np.zeros(0, np.int64)
-        cells = state.cells[self._settled[state.cells] < target]
-        if cells.size == 0 and self.options.background_cells:
-            if self._secondary is None:
-                self._secondary = system.surface_cells()
-            cells = self._secondary[self._settled[self._secondary] < target]
-        budget = self._cell_budget(system.settings.rays_per_cell, view_work)
-        if cells.size > budget:
-            # The least refreshed first: cells take turns, and a change's surroundings lead.
-            order = np.argsort(self._settled[cells], kind="stable")[:budget]
-            cells = np.sort(cells[order])
-        return cells
-
-    def _cell_budget(self, rays_per_cell: int, view_work: bool) -> int:
-        """Cells of the next update: what the measured ray rate traces in the part of a
-        1 / update_hz step that lighting the view leaves (at least a quarter of it)."""
-        o = self.options
-        step_ms = 1000.0 / o.update_hz
-        spare = step_ms - (self._view_ms if view_work else 0.25 * step_ms)
-        rays = o.rays_per_update
-        if self._ray_rate > 0:
-            rays = min(rays, int(self._ray_rate * max(spare, 0.25 * step_ms)))
-        return max(o.min_cells_per_update, rays // rays_per_cell)
-
-    def _update(self, system, cells: np.ndarray) -> None:
+    def _solve_step(self, schedule: SolveSchedule, state: ViewState) -> None:
         t0 = time.perf_counter()
-        self._frame += 1
-        run = system.update(cells, self._frame)
-        self._settled[cells] += 1
+        rays = schedule.step(state.cells)
         self._updates += 1
-        self._count_rays(run.rays, update=True)
-        ms = (time.perf_counter() - t0) * 1e3
-        self._steps["update"] = ms
-        rate = run.rays / max(ms, 1e-3)
-        self._ray_rate = rate if self._ray_rate == 0 else 0.7 * self._ray_rate + 0.3 * rate
+        self._count_rays(rays, update=True)
+        self._steps["update"] = (time.perf_counter() - t0) * 1e3
+        for k, v in schedule.steps_ms.items():
+            self._steps[f"solve_{k}"] = v
 
     # --- publishing -----------------------------------------------------------------------------
 
@@ -428,7 +395,11 @@ class ViewportWorker:
         span = max(now - recent[0][0], 1e-3) if len(recent) > 1 else RATE_WINDOW_S
         state = self._view_state
         visible = state.cells if state is not None else np.zeros(0, np.int64)
-        settled = self._settled[visible] >= self.options.settle_updates if self._settled.size else np.zeros(0, bool)
+        system = getattr(self._session, "system", None)
+        if self._schedule.solved_once and system is not None and self._schedule.system is system:
+            settled = np.isin(visible, system.solver.cells)
+        else:
+            settled = np.zeros(visible.size, bool)
         return WorkerStats(
             updates=self._updates,
             updates_per_s=sum(1 for r in recent if r[2]) / span,
@@ -457,12 +428,25 @@ class ViewportWorker:
             key = (id(cache), cache.version, id(cache.sh_direct))
             old = self._published_cache_key
             new_cache = old is None or old[0] != key[0] or old[2] != key[2]
-            due = force or new_cache or time.perf_counter() - self._published_at >= PUBLISH_INTERVAL_S
-            if pack and key != old and due:
+            interval = SOLVE_PUBLISH_INTERVAL_S if self._schedule.has_work else PUBLISH_INTERVAL_S
+            due = force or new_cache or time.perf_counter() - self._published_at >= interval
+            # A cache nothing was traced into yet shows nothing: the main thread's empty frame
+            # stands in (packing a 48^3 grid's depth moments costs ~0.4 s before the first batch).
+            traced = bool(cache.samples.any())
+            if pack and key != old and due and traced:
                 t0 = time.perf_counter()
-                sh_tex, depth_tex = _gather_layout.pack_cache(cache)
+                # Solver iterations change the radiance bands only: the depth moments (the larger
+                # texture) are packed again only after steps that blend traced rays.
+                size = _gather_layout.DEFAULT_MAX_TEXTURE_SIZE  # never ask the GPU from this thread
+                _gather_layout.check_cache_textures(cache.grid.count, cache.settings.sh_coeffs,
+                                                    cache.settings.depth_texels, size)
+                depth_key = (key[0], key[2], self._schedule.blends)
+                if self._published_depth is None or self._published_depth[0] != depth_key:
+                    self._published_depth = (depth_key, frozen(_gather_layout.pack_depth(cache, size)))
+                sh_tex = _gather_layout.pack_sh(cache, size)
+                depth_tex = self._published_depth[1]
                 self._serial += 1
-                cache_frame = CacheFrame(self._serial, cache.grid, cache.settings, frozen(sh_tex), frozen(depth_tex))
+                cache_frame = CacheFrame(self._serial, cache.grid, cache.settings, frozen(sh_tex), depth_tex)
                 self._published_cache_key = key
                 self._published_at = time.perf_counter()
                 self._steps["pack"] = (time.perf_counter() - t0) * 1e3

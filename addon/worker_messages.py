@@ -67,14 +67,13 @@ class ViewRequest:
 
 @dataclass(frozen=True)
 class WorkerOptions:
-    update_hz: float = 30.0  # GI updates per second aimed at: each update's ray budget follows the
-    # measured ray rate so that one step (update + the view's own rays) takes about 1 / update_hz
-    rays_per_update: int = 262144  # most probe rays of one update (cells = budget / rays per cell)
-    min_cells_per_update: int = 32  # fewest cells of one update (per-update overhead stays small)
-    settle_updates: int = 24  # updates after a change before a cell counts as converged
+    solver_batches: int = 4  # batches of rays_per_cell directions per cell the cache refines to
+    # while the scene holds still (the first converged image comes from one; `worker_solve.py`)
+    first_batch_rays: int | None = 32  # directions per cell of that first batch (at most
+    # rays_per_cell; None: rays_per_cell): half the rays and iterations half as costly before the
+    # first converged image, which the full batches that follow refine
     direct_samples: int = 1  # shadow-ray samples per pixel and lamp in each direct-light pass
     direct_passes: int = 16  # passes averaged while the view stays still (soft shadows converge)
-    background_cells: bool = True  # once the view converged, also converge every surface's cells
 
 
 # --- what the worker publishes ------------------------------------------------------------------
@@ -120,7 +119,7 @@ class ViewResult:
 
 @dataclass(frozen=True)
 class WorkerStats:
-    updates: int = 0  # GI updates since the worker started
+    updates: int = 0  # solver steps (a traced batch, a re-solve, an iteration) since the worker started
     updates_per_s: float = 0.0  # over the last RATE_WINDOW_S
     rays_per_s: float = 0.0  # probe, shadow and visibility rays over the last RATE_WINDOW_S
     visible_cells: int = 0

@@ -109,7 +109,13 @@ def world_key(world) -> str:
     """Hash of what a world's output depends on: its nodes' settings, socket values and links,
     the images they read (by name, path and size), and the Blender version."""
     digest = hashlib.sha256(bpy.app.version_string.encode())
-    tree = world.node_tree
+    tree_digest(digest, world.node_tree)
+    return digest.hexdigest()[:32]
+
+
+def tree_digest(digest, tree) -> None:
+    """Feed `digest` with one node tree's nodes (settings, socket values, images) and links
+    (`material_bake` keys material trees the same way)."""
     for node in sorted(tree.nodes, key=lambda n: n.name):
         digest.update(f"{node.bl_idname}|{node.name}|{node.mute}".encode())
         for prop in node.bl_rna.properties:
@@ -118,9 +124,14 @@ def world_key(world) -> str:
                                    "show_texture", "location_absolute", "warning_propagation"}:
                 continue
             try:
-                digest.update(f"{prop.identifier}={_value_repr(getattr(node, prop.identifier))}".encode())
+                value = getattr(node, prop.identifier)
             except (AttributeError, TypeError):
                 continue
+            # Sockets, ramps and other structs are read below or by the caller: their repr holds
+            # a memory address, which would change the key in every process.
+            if prop.type == "COLLECTION" or (prop.type == "POINTER" and not isinstance(value, bpy.types.ID)):
+                continue
+            digest.update(f"{prop.identifier}={_value_repr(value)}".encode())
         for socket in node.inputs:
             value = getattr(socket, "default_value", None)
             digest.update(f"in:{socket.identifier}={_value_repr(value)}".encode())
@@ -132,7 +143,6 @@ def world_key(world) -> str:
     for link in tree.links:
         digest.update(f"{link.from_node.name}.{link.from_socket.identifier}->{link.to_node.name}."
                       f"{link.to_socket.identifier}|{link.is_muted}".encode())
-    return digest.hexdigest()[:32]
 
 
 def _cache_dir() -> Path:

@@ -72,6 +72,7 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "bench"))
 
 import compare_cycles  # noqa: E402
+import error_breakdown  # noqa: E402
 import imagediff  # noqa: E402
 import quality_ladder as ql  # noqa: E402
 
@@ -101,7 +102,7 @@ QUICK_LADDER = LADDER[:4]
 #: Steps of a HybridGI final render's steps_ms that are GPU passes (llvmpipe here): G-buffer,
 #: downsample (+ its read-back), gather (+ the cache texture upload), SSAO, bilateral, deferred.
 #: Everything else (sync, build, warm-up, visibility, direct light, write) is CPU work.
-GPU_PASS_STEPS = ("gbuffer", "downsample", "gather", "ssao", "bilateral", "deferred")
+GPU_PASS_STEPS = ("gbuffer", "downsample", "gather", "ssao", "bilateral", "deferred", "accumulate")
 
 VIEWPORT_CHECKPOINTS = (0.1, 0.25, 0.5, 1.0, 2.0, 4.0)
 TIMELINES = ("wall", "worker", "wall_light", "worker_light")
@@ -387,7 +388,29 @@ def summarize(job: Job, res: dict) -> dict:
                "the ladder is still falling, a richer rung would get closer")
             + " (the reference's own noise is part of every error)"
         )
+        limits = _limits(best, res.get("reference", {}).get("exr"))
+        if limits:
+            out["best_rung_breakdown"] = limits
+            out["why_never"] += (
+                f"; alone in the reference's composition, Diffuse Indirect would cost Combined "
+                f"{_fmt(limits['combined_if_only'].get('Diffuse Indirect'))}, Diffuse Direct "
+                f"{_fmt(limits['combined_if_only'].get('Diffuse Direct'))}, Diffuse Color "
+                f"{_fmt(limits['combined_if_only'].get('Diffuse Color'))}; "
+                f"{limits['edge_error_share']:.0%} of the error sits on edge pixels")
     return out
+
+
+def _limits(entry: dict, ref_exr) -> dict | None:
+    """bench/error_breakdown.py's split of one render's Combined error (by pass, edges vs not)."""
+    if not ref_exr or not entry.get("exr") or not Path(entry["exr"]).is_file():
+        return None
+    try:
+        b = error_breakdown.breakdown(entry["exr"], ref_exr)
+    except (KeyError, ValueError, OSError) as err:  # a pass missing from either file
+        progress(f"error breakdown of {entry['exr']} failed: {err}")
+        return None
+    return {"combined_if_only": b["combined_if_only"], "edge_error_share": b["edge_error_share"],
+            "combined_without_edges": b["combined_without_edges"]}
 
 
 def _first_shot_at(shots, target) -> dict:

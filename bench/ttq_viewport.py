@@ -107,7 +107,11 @@ class Viewport:
         return self.session.last_stats.redrawn, out
 
     def settle(self):
-        ok = self.session.worker.wait(lambda p: p.stats.idle or p.stats.converged >= 0.99, CONVERGE_TIMEOUT_S)
+        # Stats of a publication from before the latest edit say nothing about it: wait for one
+        # that applied every edit posted so far.
+        gen = self.session.last_edit_gen
+        ok = self.session.worker.wait(
+            lambda p: p.stats.scene_gen >= gen and (p.stats.idle or p.stats.converged >= 0.99), CONVERGE_TIMEOUT_S)
         self.draw()
         return ok
 

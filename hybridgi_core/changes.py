@@ -249,16 +249,27 @@ def _diff_shading(old: SceneSnapshot, new: SceneSnapshot, changes: SceneChanges)
     changes.world_changed = _world_key(old.world) != _world_key(new.world)
     if changes.world_changed:
         flux = max(flux, _relative_change(old.world.color, new.world.color))
-    old_materials = {m.name: m for m in old.materials}
-    for m in new.materials:
-        before = old_materials.pop(m.name, None)
+    # A material baked per mesh (`Material.bake_id`) appears once per mesh under its one name:
+    # the k-th of a name pairs with the k-th before.
+    old_materials = _by_name(old.materials)
+    for key, m in _by_name(new.materials).items():
+        before = old_materials.pop(key, None)
         if before is None or _material_key(before) != _material_key(m):
             changes.materials_changed.append(m.name)
             if before is not None:
                 flux = max(flux, _relative_change(before.emission, m.emission))
             elif np.any(m.emission > 0):
                 flux = float("inf")
-    changes.materials_changed += sorted(old_materials)  # removed
+    changes.materials_changed += sorted({name for name, _k in old_materials})  # removed
     if any(np.any(m.emission > 0) for m in old_materials.values()):
         flux = float("inf")
     changes.light_flux_change = flux
+
+
+def _by_name(materials) -> dict:
+    """(name, k) -> the k-th material of that name, in snapshot order."""
+    out, seen = {}, {}
+    for m in materials:
+        k = seen[m.name] = seen.get(m.name, -1) + 1
+        out[(m.name, k)] = m
+    return out

@@ -48,14 +48,23 @@ def octahedral_texel(dirs: np.ndarray, size: int) -> np.ndarray:
     """(n,) int32 index ty * size + tx of the octahedral-map texel holding each unit direction.
 
     The same nearest-texel mapping is used when writing depth moments and in the gathers (numpy
-    and GLSL), so they agree exactly.
+    and GLSL), so they agree exactly. Column by column in float32 (the fold is exact there),
+    with the texel coordinate 0.5 + p / 2 in float64 as it always was.
     """
-    d = np.asarray(dirs, np.float32)
-    s = np.abs(d).sum(axis=1, keepdims=True)
-    p = d[:, :2] / np.maximum(s, 1e-20)
-    neg = d[:, 2] < 0
-    folded = (1.0 - np.abs(p[:, ::-1])) * np.where(p >= 0, 1.0, -1.0)
-    p = np.where(neg[:, None], folded, p)
-    uv = p * 0.5 + 0.5
-    t = np.clip(np.floor(uv * size), 0, size - 1).astype(np.int32)
-    return t[:, 1] * size + t[:, 0]
+    d = np.asarray(dirs, np.float32).reshape(-1, 3)
+    x, y, z = (np.ascontiguousarray(d[:, k]) for k in range(3))
+    s = np.abs(x)
+    s += np.abs(y)
+    s += np.abs(z)
+    np.maximum(s, np.float32(1e-20), out=s)
+    px, py = x / s, y / s
+    neg = np.flatnonzero(z < 0)
+    if neg.size:
+        qx, qy = px[neg], py[neg]
+        px[neg] = (np.float32(1.0) - np.abs(qy)) * np.where(qx >= 0, np.float32(1.0), np.float32(-1.0))
+        py[neg] = (np.float32(1.0) - np.abs(qx)) * np.where(qy >= 0, np.float32(1.0), np.float32(-1.0))
+    tx, ty = (np.clip(np.floor((q * 0.5 + 0.5) * size), 0, size - 1).astype(np.int32)
+              for q in (px.astype(np.float64), py.astype(np.float64)))
+    ty *= size
+    ty += tx
+    return ty

@@ -60,9 +60,18 @@ class SurfaceTable:
         rows = np.arange(geometry.triangle_count)
         self._normals = _pack_normals(geometry, rows)
         self._positions = _pack_positions(geometry, rows)
-        self._uvs = _pack_uvs(geometry, rows)
+        self._geometry = geometry
+        self._packed_uvs = None  # packed on first use: only textured materials read UVs
         self.material_index = np.asarray(geometry.material_index, np.int32)
         self.set_materials(materials)
+
+    @property
+    def _uvs(self) -> np.ndarray:
+        """(T, 6) packed corner UVs (`_pack_uvs`); moved rows keep theirs (same topology). Two
+        workers may both pack them the first time: the same array, once wasted."""
+        if self._packed_uvs is None:
+            self._packed_uvs = _pack_uvs(self._geometry, np.arange(self._geometry.triangle_count))
+        return self._packed_uvs
 
     def update_rows(self, geometry: Geometry, rows: np.ndarray) -> None:
         """Re-pack the triangles `rows` (moved or deformed) from `geometry` (same topology).

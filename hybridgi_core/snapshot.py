@@ -59,12 +59,20 @@ class Geometry:
         return int(self.triangles.shape[0])
 
     def subset(self, tri_mask: np.ndarray) -> Geometry:
-        """Triangles where tri_mask is true, vertices compacted."""
+        """Triangles where tri_mask is true, vertices compacted (new arrays; keeping every
+        triangle and vertex is a plain copy, far cheaper than the gathers)."""
         tris = self.triangles[tri_mask]
-        used, inverse = np.unique(tris.ravel(), return_inverse=True)
+        # np.unique(tris, return_inverse=True) without its sort: a mask over the vertices.
+        mask = np.zeros(self.positions.shape[0], bool)
+        mask[tris.ravel()] = True
+        if tris.shape[0] == self.triangle_count and mask.all():
+            return Geometry(self.positions.copy(), self.triangles.astype(np.int32), self.normals.copy(), self.uvs.copy(),
+                            self.material_index.copy(), self.object_index.copy())
+        used = np.flatnonzero(mask)
+        inverse = (np.cumsum(mask, dtype=np.int64) - 1).astype(np.int32)[tris]
         return Geometry(
             positions=self.positions[used],
-            triangles=inverse.reshape(-1, 3).astype(np.int32),
+            triangles=inverse.reshape(-1, 3),
             normals=self.normals[used],
             uvs=self.uvs[used],
             material_index=self.material_index[tri_mask],
@@ -87,6 +95,9 @@ class Material:
     emission : (3,) radiance in W/(m^2 sr) = emission colour x strength
     alpha : (h, w) float32 opacity from an image, row 0 at v = 0, or None (opaque): the surface is
         cut out where it is below ALPHA_CUTOFF, for the camera and for rays (`cutout.py`)
+    bake_id : the reader's name for a texture it had Blender bake over this material's own UV
+        atlas (one material per mesh then), so an edit of the material can bake it again; None
+        for materials read directly
     """
 
     name: str = "default"
@@ -94,6 +105,7 @@ class Material:
     texture: np.ndarray | None = None
     emission: np.ndarray = field(default_factory=lambda: np.zeros(3, np.float32))
     alpha: np.ndarray | None = None
+    bake_id: str | None = None
 
     def __post_init__(self) -> None:
         # Non-finite colours would reach every pixel that sees (or bounces off) this material.
@@ -166,6 +178,11 @@ class Light:
         return (d / max(np.linalg.norm(d), 1e-30)).astype(np.float32)
 
 
+#: AO distance (m) Cycles uses when the scene has no World (blender/sync.cpp sets 10 then); a
+#: World's own Ambient Occlusion distance defaults to 1 m, so the two differ.
+NO_WORLD_AO_DISTANCE = 10.0
+
+
 @dataclass
 class World:
     """The sky: radiance = background colour x strength; AO distance from World settings.
@@ -218,8 +235,11 @@ class SceneSnapshot:
         """(lo, hi) float32 corners of the geometry's bounding box."""
         if self.geometry.triangle_count == 0:
             raise EmptySceneError("the scene has no triangles")
-        used = self.geometry.positions[np.unique(self.geometry.triangles)]
-        return used.min(axis=0), used.max(axis=0)
+        g = self.geometry
+        used = np.zeros(g.positions.shape[0], bool)  # a mask, not np.unique's sort
+        used[g.triangles.ravel()] = True
+        p = g.positions if used.all() else g.positions[used]
+        return p.min(axis=0), p.max(axis=0)
 
     def focus_bounds(self, margin: float = FOCUS_MARGIN) -> tuple[np.ndarray, np.ndarray]:
         """Bounds the cache grid should cover: like `bounds`, but a ground plane much larger than
@@ -231,8 +251,10 @@ class SceneSnapshot:
         over GROUND_RATIO times the extent of the rest; the rest's box then grows by `margin` of
         its extent on each side (bounce light from the floor around it), within the full bounds.
         """
-        lo, hi = self.bounds()
+        if self.geometry.triangle_count == 0:
+            raise EmptySceneError("the scene has no triangles")
         _ids, blo, bhi = object_boxes(self.geometry)
+        lo, hi = blo.min(axis=0), bhi.max(axis=0)  # == bounds(): the boxes span every corner
         size = (bhi - blo).max(axis=1)
         extent = float((hi - lo).max())
         flat = (bhi[:, 2] - blo[:, 2]) <= 1e-3 * np.maximum(size, 1e-9)
@@ -333,10 +355,18 @@ def sanitized(geometry: Geometry, n_materials: int, n_objects: int) -> Geometry:
     if obj.size and (obj.min() < 0 or obj.max() >= max(n_objects, 1)):
         raise InvalidGeometryError("object_index out of range of the objects")
 
-    p = pos[tris].astype(np.float64)
-    finite = np.isfinite(p).all(axis=(1, 2))
+    # Per vertex first (a corner-split mesh has ~3 corners per triangle anyway), and the area in
+    # float64 component by component: np.cross and norm over (T, 3, 3) cost ~3x more.
+    finite = np.ones(tris.shape[0], bool)
+    if not np.isfinite(pos).all():  # the whole-array test first: the per-row reduction is slow
+        finite = np.isfinite(pos).all(axis=1)[tris].all(axis=1)
     with np.errstate(invalid="ignore", over="ignore"):
-        area2 = np.linalg.norm(np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), axis=1)
+        cols = [pos[:, k].astype(np.float64) for k in range(3)]
+        c0 = [col[tris[:, 0]] for col in cols]
+        e1 = [col[tris[:, 1]] - a for col, a in zip(cols, c0, strict=True)]
+        e2 = [col[tris[:, 2]] - a for col, a in zip(cols, c0, strict=True)]
+        area2 = np.sqrt((e1[1] * e2[2] - e1[2] * e2[1]) ** 2 + (e1[2] * e2[0] - e1[0] * e2[2]) ** 2
+                        + (e1[0] * e2[1] - e1[1] * e2[0]) ** 2)
     # Relative to the object's own size, not the distance from the origin.
     size2 = np.zeros(tris.shape[0])
     if finite.any():
@@ -352,17 +382,17 @@ def sanitized(geometry: Geometry, n_materials: int, n_objects: int) -> Geometry:
             "dropped %d of %d triangles (non-finite vertices: %d, zero area: %d)",
             dropped, tris.shape[0], int((~finite).sum()), dropped - int((~finite).sum()),
         )
-    bad_n = ~np.isfinite(normals).all(axis=1) | (np.linalg.norm(normals, axis=1) < 1e-6)
-    out = Geometry(pos, tris, normals.copy(), uvs, mat, obj).subset(keep)
-    if bad_n.any() and out.triangle_count:
+    out = Geometry(pos, tris, normals, uvs, mat, obj).subset(keep)
+    norm = np.sqrt(np.add.reduce(out.normals * out.normals, axis=1))  # np.linalg.norm's sums
+    fix = ~((norm >= 1e-6) & np.isfinite(norm))
+    if fix.any() and out.triangle_count:
         fn = out.face_normals()
-        fix = ~np.isfinite(out.normals).all(axis=1) | (np.linalg.norm(out.normals, axis=1) < 1e-6)
         # A vertex shared by several triangles takes the last face normal: good enough for a fallback.
         vert_fn = np.zeros_like(out.normals)
         vert_fn[out.triangles.ravel()] = np.repeat(fn, 3, axis=0)
         out.normals[fix] = vert_fn[fix]
-    norm = np.linalg.norm(out.normals, axis=1, keepdims=True)
-    out.normals = (out.normals / np.maximum(norm, 1e-12)).astype(np.float32)
+        norm = np.linalg.norm(out.normals, axis=1)
+    out.normals = (out.normals / np.maximum(norm, 1e-12)[:, None]).astype(np.float32)
     return out
 
 

@@ -178,6 +178,9 @@ class GISolver:
         self._materials_stale = False
         self._relight_all = False  # every stored hit's lamp light is stale (lights_changed)
         self._sources = None  # (cells, b) of the fixed point; None: to compute
+        #: First of the BOUNCE_BATCHES batches whose hits carry A (the viewport moves it past a
+        #: first batch traced with fewer rays once a full one exists).
+        self.bounce_from = 0
         self._reset_series()
         self.stats = SolveStats()
 
@@ -188,6 +191,7 @@ class GISolver:
         self.cells = np.unique(np.asarray(cells, np.int64))
         self.chunks = []
         self.batches = 0
+        self.bounce_from = 0
         self._lookup_valid = None
         self._materials_stale = False
         self._relight_all = False
@@ -210,10 +214,13 @@ class GISolver:
     def has_hits(self) -> bool:
         return bool(self.chunks)
 
-    def trace_batch(self, batch: int, cells: np.ndarray | None = None, blend: bool = True) -> SolveStats:
+    def trace_batch(self, batch: int, cells: np.ndarray | None = None, blend: bool = True,
+                    rays: int | None = None) -> SolveStats:
         """Trace directions batch `batch` from `cells` (default: every solver cell), store the hits,
         shade their lamp light, and fold the geometry bands (direct light from sky and emitters, AO,
-        depth, back faces) into the cache as the mean over the batches traced so far."""
+        depth, back faces) into the cache as the mean over the batches traced so far.
+        rays : directions per cell of this batch (default rays_per_cell; the viewport's first
+        batch takes fewer, for a sooner first image that later batches refine)."""
         t0 = time.perf_counter()
         stats = SolveStats()
         cells = self.cells if cells is None else np.unique(np.asarray(cells, np.int64))
@@ -223,8 +230,9 @@ class GISolver:
         # Every cell turns the batch's spherical Fibonacci set by its own rotation: with one set
         # shared by all cells (the updater's), neighbouring cells make the same projection error,
         # which the gather's blend over 8 cells cannot average out.
-        dirs = cell_directions(s.rays_per_cell, s.seed, WARMUP_FRAME_BASE + batch, cells, self.cache.grid.count)
-        per_chunk = max(1, CHUNK_RAYS // s.rays_per_cell)
+        n_rays = s.rays_per_cell if rays is None else max(1, min(int(rays), s.rays_per_cell))
+        dirs = cell_directions(n_rays, s.seed, WARMUP_FRAME_BASE + batch, cells, self.cache.grid.count)
+        per_chunk = max(1, CHUNK_RAYS // n_rays)
         n_chunks = max(-(-cells.size // per_chunk), min(cells.size, max(1, s.threads)))
         bounds = np.cumsum([0] + [p.size for p in np.array_split(cells, n_chunks)])
         parts = [(cells[a:b], dirs[a:b]) for a, b in zip(bounds[:-1], bounds[1:], strict=True)]
@@ -240,7 +248,7 @@ class GISolver:
         self.chunks += new
         self.batches = max(self.batches, batch + 1)
         stats.cells = int(cells.size)
-        stats.rays = int(cells.size) * s.rays_per_cell
+        stats.rays = int(cells.size) * n_rays
         stats.shadow_points = sum(int(c.shadow_points) for c in new)
         if by_bins:
             tl = time.perf_counter()
@@ -248,7 +256,8 @@ class GISolver:
             stats.add("shadow", (time.perf_counter() - tl) * 1e3)
         if blend:
             tb = time.perf_counter()
-            self._blend_geometry(cells)
+            # Stored hits kept their places: only the new chunks need their cells looked up.
+            self._blend_geometry(cells, hits_moved=False)
             stats.add("blend", (time.perf_counter() - tb) * 1e3)
         self._reset_series()
         stats.wall_ms = (time.perf_counter() - t0) * 1e3
@@ -362,8 +371,10 @@ class GISolver:
         else:
             values[0:3] = world.radiance(chunk.ray_dirs).T  # a sky that varies with direction
         h = chunk.hit
-        if h.size:
+        if h.size and self.scene.surfaces.emissive:
             values[0:3, h] = self.scene.surfaces.emission_of(chunk.prim[h]).T
+        elif h.size:
+            values[0:3, h] = 0.0  # no emitter in the scene: skip gathering zero records
         if s.indirect_quality == AO_ONLY:
             values[0:3] = 0.0
         np.greater(chunk.t, s.ao_distance, out=values[3])
@@ -392,12 +403,14 @@ class GISolver:
             backface=back.reshape(m, r).sum(axis=1, dtype=np.float32) * np.float32(1.0 / r),
         )
 
-    def _blend_geometry(self, cells: np.ndarray) -> None:
-        """Write the mean over stored batches of the geometry bands of `cells` into the cache
-        (a running mean: batch i enters with weight 1 / (i + 1)); sh_indirect keeps its value, the
-        fixed point's starting iterate."""
+    def _blend_geometry(self, cells: np.ndarray, batches=None, hits_moved: bool = True) -> None:
+        """Write the mean over stored batches (all, or the set `batches`) of the geometry bands of
+        `cells` into the cache (a running mean: batch i enters with weight 1 / (i + 1));
+        sh_indirect keeps its value, the fixed point's starting iterate. hits_moved=False: no hit
+        changed place (a re-shade), so the hits' cell lookup stays."""
         cache = self.cache
-        for i, b in enumerate(sorted({c.batch for c in self.chunks})):
+        chosen = {c.batch for c in self.chunks} if batches is None else set(batches)
+        for i, b in enumerate(sorted(chosen)):
             for c in self.chunks:
                 if c.batch != b:
                     continue
@@ -407,23 +420,43 @@ class GISolver:
                 part = _sample_rows(c.samples, rows)
                 part.sh_indirect = cache.sh_indirect[part.cells]
                 cache.blend(part, WARMUP_FRAME_BASE + b, alpha=1.0 / (i + 1))
-        self._lookup_valid = None
+        if hits_moved:
+            self._lookup_valid = None
         self._sources = None  # validity may have changed: look the hits' cells up again
 
     # --- the fixed point -----------------------------------------------------------------------
 
     def _ensure_lookup(self) -> None:
+        """The cell every stored hit reads (`chunk.flat`, an index into `_read_cells`). Again for
+        every chunk when the cache's validity changed; else only for chunks traced since (a new
+        batch: the viewport adds one while the view holds still), the others' indices remapped."""
         valid = self.cache.valid
-        if self._lookup_valid is not None and np.array_equal(valid, self._lookup_valid):
+        same = self._lookup_valid is not None and np.array_equal(valid, self._lookup_valid)
+        fresh = [c for c in self.chunks if c.flat is None]
+        if same and not fresh:
             return
+        todo = fresh if same else self.chunks
         lookup = HitLookup(self.cache, bounced=True)
-        jobs = [self._pool.submit(self._lookup_chunk, c, lookup) for c in self.chunks]
+        jobs = [self._pool.submit(self._lookup_chunk, c, lookup) for c in todo]
         flats = [j.result() for j in jobs]
         # Hits read few of the grid's cells: index a table of those only (the grid's whole table
-        # cost more to rebuild per iteration than the iteration's own gathers).
-        self._read_cells = np.unique(np.concatenate(flats)) if flats else np.zeros(0, np.intp)
-        for c, flat in zip(self.chunks, flats, strict=True):
-            c.flat = np.searchsorted(self._read_cells, flat)
+        # cost more to rebuild per iteration than the iteration's own gathers). A mask over the
+        # grid, not np.unique / searchsorted: no sort of the ~2M hits' cells.
+        read = np.zeros(self.cache.grid.count, bool)
+        old = self._read_cells if same else None
+        if old is not None:
+            read[old] = True
+        for flat in flats:
+            read[flat] = True
+        cells = np.flatnonzero(read)
+        slot = np.cumsum(read, dtype=np.intp) - 1
+        if old is not None and cells.size != old.size:
+            for c in self.chunks:  # kept chunks (fresh ones have none yet): their slots move
+                if c.flat is not None:
+                    c.flat = slot[old[c.flat]]
+        self._read_cells = cells
+        for c, flat in zip(todo, flats, strict=True):
+            c.flat = slot[flat]
         self._read_valid = valid[self._read_cells]
         self._lookup_valid = valid
         self._sources = None
@@ -444,8 +477,11 @@ class GISolver:
             return
         tic = time.perf_counter()
         rows = self._rows(self.cache.sh_direct)
-        jobs = [self._pool.submit(self._project_hits, c, rows, True) for c in self.chunks]
-        self._sources = self._mean_over_batches([j.result() for j in jobs], self.chunks)
+        # Chunks whose lamp light is still to re-shade (`relight_batch` goes batch by batch) do
+        # not count yet; `resolve` re-shades every stale hit before it solves.
+        chunks = [c for c in self.chunks if c.e_lamp is not None and not c.lamp_stale.any()]
+        jobs = [self._pool.submit(self._project_hits, c, rows, True) for c in chunks]
+        self._sources = self._mean_over_batches([j.result() for j in jobs], chunks)
         stats.add("source", (time.perf_counter() - tic) * 1e3)
 
     def _mean_over_batches(self, coeffs: list[np.ndarray], chunks: list[StoredHits]):
@@ -495,7 +531,8 @@ class GISolver:
             rows = self._rows(cache.sh_indirect)
             stats.add("lookup", (time.perf_counter() - tl) * 1e3)
             tb = time.perf_counter()
-            chunks = [c for c in self.chunks if c.batch < BOUNCE_BATCHES]
+            first = self.bounce_from
+            chunks = [c for c in self.chunks if first <= c.batch < first + BOUNCE_BATCHES]
             jobs = [self._pool.submit(self._project_hits, c, rows, False) for c in chunks]
             b_cells, bounce = self._mean_over_batches([j.result() for j in jobs], chunks)
             new[np.searchsorted(src_cells, b_cells)] += bounce
@@ -664,6 +701,7 @@ class GISolver:
         stale_by_ray[chunk.hit] = chunk.lamp_stale
         stale_by_ray[idx] = True
         chunk.hit = np.flatnonzero(chunk.prim >= 0)
+        chunk.flat = None  # the hits moved: look their cells up again
         chunk.e_lamp = np.ascontiguousarray(e_by_ray[:, chunk.hit])
         chunk.lamp_stale = stale_by_ray[chunk.hit]
         self._shade_materials(chunk, chunk.ray_dirs[chunk.hit])
@@ -753,6 +791,41 @@ class GISolver:
         if retraced:
             self._blend_geometry(np.unique(np.concatenate(retraced)))
         stats.merge(self.solve(max_iterations))
+        stats.wall_ms = (time.perf_counter() - t0) * 1e3
+        return stats
+
+    # --- progressive re-shading (the viewport worker's) ------------------------------------------
+
+    def relight_batch(self, batch: int, materials: bool = True) -> SolveStats:
+        """After `lights_changed`: re-shade the stored hits of one batch only (lamp light through
+        shadow rays; with `materials`, after a material or world edit, albedo and the geometry
+        bands too), no probe ray. Until the other batches follow, the fixed point's sources come
+        from the batches re-shaded so far, so a live view solves again after one batch of shadow
+        rays instead of all of them and refines as the rest arrive. The batch that carries the
+        bounces (`bounce_from`) must come first. Once every batch is done the state is `resolve`'s re-shade."""
+        t0 = time.perf_counter()
+        stats = SolveStats()
+        s = self.cache.settings
+        chunks = [c for c in self.chunks if c.batch == batch]
+        if materials:
+            for j in [self._pool.submit(self._reshade_chunk, c) for c in chunks]:
+                j.result()
+        tic = time.perf_counter()
+        for c in chunks:
+            c.lamp_stale[:] = True
+        jobs = [self._pool.submit(self._shade_lamps, c, frame_rng(s.seed, (WARMUP_FRAME_BASE + c.batch) * 7919 + i))
+                for i, c in enumerate(chunks)]
+        stats.shadow_points = sum(j.result() for j in jobs)
+        stats.add("shadow", (time.perf_counter() - tic) * 1e3)
+        done = {c.batch for c in self.chunks if c.e_lamp is not None and not c.lamp_stale.any()}
+        if materials:
+            self._blend_geometry(self.cells, batches=done, hits_moved=False)
+        if done >= {c.batch for c in self.chunks}:
+            self._materials_stale = False
+            self._relight_all = False
+        self._sources = None
+        self._reset_series()
+        stats.cells = int(sum(c.cells.size for c in chunks))
         stats.wall_ms = (time.perf_counter() - t0) * 1e3
         return stats
 

@@ -122,6 +122,9 @@ def test_world_and_material_changes_are_named():
     glowing = Material("lamp", emission=np.full(3, 4.0, np.float32))
     lit = diff_snapshots(base, _scene(geo, materials=[Material("grey"), glowing]))
     assert lit.materials_changed == ["lamp"] and lit.light_flux_change == 1.0
+    # One material baked on two meshes is two materials of one name: unchanged, it is no change.
+    twice = [Material("grey"), Material("noise", bake_id="a"), Material("noise", bake_id="b")]
+    assert diff_snapshots(_scene(geo, materials=twice), _scene(geo, materials=list(twice))).materials_changed == []
 
 
 def test_object_boxes_in_one_pass_match_per_object_boxes():

@@ -689,3 +689,44 @@ def test_gpu_gather_equals_evaluate(raster):
             assert ref.indirect.std() > 0.05  # the comparison is not between constants
             # ... and the three visibility modes really are different weightings.
             assert np.abs(results[0] - results[1]).max() > 0.1 and np.abs(results[1] - results[2]).max() > 0.1
+
+
+def test_gpu_accumulation_equals_the_numpy_film(gpu_context):
+    """The pixel filter's GPU sums (AccumulatePass, ping-pong over 3 subframes) read out as the
+    numpy reference FilmAccumulator.add computes them; a second frame starts new sums."""
+    from types import SimpleNamespace
+
+    from hybridgi_core.raster.accumulate import AccumulatePass
+    from hybridgi_core.raster.deferred import ShadedFrame
+    from hybridgi_core.raster.readback import upload_texture_2d
+    from hybridgi_core.raster.subpixel import FilmAccumulator
+
+    rng = np.random.default_rng(5)
+    acc = AccumulatePass()
+    acc.resize(W, H)
+    ref = FilmAccumulator()
+    try:
+        for s in range(3):
+            arrays = {name: rng.random((H, W, 4), dtype=np.float32) for name in
+                      ("combined", "diffuse_direct", "diffuse_indirect", "diffuse_color", "normal")}
+            arrays["ao"] = rng.random((H, W, 1), dtype=np.float32)
+            position = rng.random((H, W, 4), dtype=np.float32)
+            position[..., 3] = rng.random((H, W)) > 0.3  # w = 1 on geometry
+            arrays["depth"] = np.where(position[..., 3:] > 0.5, 2.0, 1e10).astype(np.float32)
+            tex = {n: upload_texture_2d(a, "R32F" if n == "ao" else "RGBA32F") for n, a in arrays.items()}
+            shaded = ShadedFrame(tex["combined"], tex["diffuse_direct"], tex["diffuse_indirect"],
+                                 tex["diffuse_color"], tex["ao"], W, H)
+            acc.execute(shaded, SimpleNamespace(normal=tex["normal"], position=upload_texture_2d(position)),
+                        first=s == 0)
+            ref.add(arrays)
+        assert acc.count == 3
+        film = FilmAccumulator()
+        film.set_sums(acc.read_all(), acc.count)
+        for name in ("combined", "combined_premultiplied", "diffuse_direct", "diffuse_indirect",
+                     "diffuse_color", "ao", "normal"):
+            np.testing.assert_allclose(film.read(name), ref.read(name), rtol=1e-5, atol=1e-6, err_msg=name)
+        acc.execute(shaded, SimpleNamespace(normal=tex["normal"], position=upload_texture_2d(position)), first=True)
+        assert acc.count == 1
+        np.testing.assert_allclose(acc.read("combined"), arrays["combined"], rtol=1e-6)
+    finally:
+        acc.free()

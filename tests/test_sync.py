@@ -308,7 +308,11 @@ def test_every_light_type(bpy_module, scene, sync):
 
 def test_world_radiance_and_ao_distance(bpy_module, scene, sync):
     bpy = bpy_module
-    assert snapshot(sync, bpy).world.color.tolist() == [0.0, 0.0, 0.0]  # no World: black
+    bare = snapshot(sync, bpy).world
+    assert bare.color.tolist() == [0.0, 0.0, 0.0]  # no World: black
+    # ... and AO reaches 10 m, as in Cycles (a World's own setting defaults to 1 m)
+    assert bare.ao_distance == pytest.approx(10.0)
+    assert scene.hybridgi.cache_settings(scene).ao_distance == pytest.approx(10.0)
     world = blender_compat.new_world(bpy, "sky")
     background = world.node_tree.nodes["Background"]
     background.inputs["Color"].default_value = (0.2, 0.4, 0.6, 1.0)
@@ -419,3 +423,18 @@ def test_nan_vertices_are_dropped(bpy_module, scene, sync):
     geo = snapshot(sync, bpy).geometry
     assert geo.triangle_count == 2
     assert np.isfinite(geo.positions).all()
+
+
+def test_surfaces_with_a_glossy_part_are_named_once(bpy_module, scene, sync, caplog):
+    bpy = bpy_module
+    add_cube(bpy, scene, "bare")  # no material: Cycles' default surface is a glossy Principled BSDF
+    shiny, bsdf = principled(bpy, "shiny")  # Specular IOR Level 0.5 by default
+    add_cube(bpy, scene, "painted").data.materials.append(shiny)
+    matte, bsdf = principled(bpy, "matte")
+    bsdf.inputs["Specular IOR Level"].default_value = 0.0
+    add_cube(bpy, scene, "plain").data.materials.append(matte)
+    with caplog.at_level(logging.WARNING):
+        snapshot(sync, bpy)
+    glossy = [r.getMessage() for r in caplog.records if "glossy" in r.getMessage()]
+    assert len(glossy) == 1, glossy
+    assert "'shiny'" in glossy[0] and "'bare'" in glossy[0] and "matte" not in glossy[0]

@@ -67,3 +67,29 @@ def test_a_minified_texture_is_filtered_like_cycles(tmp_path):
     far &= geometry
     # Far away the checker averages to its mean colour, as in Cycles, instead of flickering.
     assert np.abs(mine[far].std(axis=0) - reference[far].std(axis=0)).max() < 0.08
+
+
+def test_subframes_integrate_a_texture_as_cycles_pixel_filter(tmp_path):
+    """Without the Principled specular layer (whose Fresnel weight lowers Cycles' Diffuse Color at
+    grazing angles, a 0.15 error of its own on this floor that no filtering removes), jittered
+    subframes integrate the checker over the pixel filter as Cycles' samples do: each subframe
+    pre-filters its texture taps over its own share of the filter, not the whole of it again."""
+    blend = tmp_path / "checker.blend"
+    scene = SCENE.replace(
+        "plane.data.materials.append(material)",
+        'material.node_tree.nodes["Principled BSDF"].inputs["Specular IOR Level"].default_value = 0.0\n'
+        "plane.data.materials.append(material)")
+    subprocess.run([sys.executable, "-c", scene, str(blend)], check=True, capture_output=True)
+    cycles = render(blend, tmp_path / "cy", "--engine", "CYCLES", "--samples", "256")
+    geometry = layer(cycles, "Depth", "Z")[..., 0] < 1e9
+    reference = layer(cycles, "Diffuse Color")
+    errors = {}
+    for k in (1, 16):
+        ours = render(blend, tmp_path / f"k{k}", "--set", "warmup_iterations=2", "--set", "resolution=8",
+                      "--set", f"pixel_samples={k}")
+        mine = layer(ours, "Diffuse Color")
+        errors[k] = float(np.abs(mine - reference)[geometry].sum() / np.abs(reference)[geometry].sum())
+    # Measured against 1024 spp: 0.029 with one raster, 0.018 with 16 subframes (4: 0.034, as
+    # 4 point samples leave the magnified squares' edges in steps); double filtering made it 0.07.
+    assert errors[16] < 0.8 * errors[1], errors
+    assert errors[16] < 0.025, errors

@@ -322,3 +322,29 @@ def test_raw_throughput_is_a_positive_rate():
     with EmbreeTracer(soup(), threads=2) as tracer:
         rate = tracer.raw_throughput(n_rays=3 * MIN_CHUNK_RAYS)
     assert np.isfinite(rate) and rate > 1e4
+
+
+def test_weld_positions_merges_exact_duplicates_only():
+    """Corners repeated per triangle (as snapshots store them) weld to the distinct positions;
+    positions that differ in one bit (or only in the sign of zero) stay apart."""
+    from hybridgi_core.trace import embree
+    from hybridgi_core.trace.embree import weld_positions
+
+    rng = np.random.default_rng(3)
+    distinct = rng.integers(0, 6, (300, 3)).astype(np.float32)
+    distinct = np.unique(distinct, axis=0)
+    near = distinct[:1].copy()
+    near[0, 0] = np.nextafter(near[0, 0], np.float32(np.inf))
+    signed = np.array([[0.0, 0.0, 0.0], [-0.0, 0.0, 0.0]], np.float32)
+    v = np.concatenate([distinct[rng.integers(0, len(distinct), 5000)], near, signed])
+    expect = np.unique(v.view(np.uint32), axis=0).shape[0]
+    first, inverse = weld_positions(v)
+    assert np.array_equal(v[first][inverse], v)
+    assert np.all(np.diff(first) > 0)
+    assert first.size == expect
+    # The exact fallback a hash collision takes groups the same way.
+    order, group, head = embree._lexsort_groups(v.view(np.uint32))
+    assert head.size == expect
+    assert np.array_equal(v[head[group]], v[order])
+    empty_first, empty_inverse = weld_positions(np.zeros((0, 3), np.float32))
+    assert empty_first.size == 0 and empty_inverse.size == 0

@@ -15,6 +15,7 @@ import numpy as np
 
 from .. import pixel_gather
 from ..visible import pixels_to_points
+from .accumulate import AccumulatePass
 from .bilateral import BilateralPass
 from .deferred import DeferredPass, ShadedFrame
 from .downsample import DownsamplePass
@@ -24,8 +25,20 @@ from .passes import low_res_size
 from .readback import upload_texture_2d
 from .settings import DEBUG_FINAL, RasterSettings
 from .ssao import SSAOPass
+from .subpixel import (
+    CentreSample,
+    FilmAccumulator,
+    jittered_projection,
+    subframe_direct,
+    subframe_texture_filter,
+    subpixel_offsets,
+)
 
 log = logging.getLogger(__name__)
+
+#: Subframe s of a frame seeds its shadow rays with frame + s * this: other samples in every
+#: subframe, subframe 0 those of a frame without subframes.
+SUBFRAME_SEED_STRIDE = 1 << 24
 
 
 @dataclass
@@ -53,20 +66,34 @@ class FramePipeline:
     """
 
     def __init__(self, settings: RasterSettings | None = None, direct_samples: int = 16,
-                 gather: GatherPass | None = None):
+                 gather: GatherPass | None = None, subframes: int = 1, filter_size: float = 1.5,
+                 filter_type: str = "BLACKMAN_HARRIS"):
         """gather : a GatherPass (subclass) to use instead of a plain one; the viewport's takes
-        cache textures its worker thread packed."""
+        cache textures its worker thread packed.
+        subframes : jittered subframes per `render` (the pixel filter, `subpixel.py`); 1 = one
+            sample at each pixel centre.
+        filter_size, filter_type : the pixel filter, as Cycles' Filter Width (pixels) and type."""
         self.settings = settings or RasterSettings()
         #: Shadow-ray samples per pixel and lamp for the full-res direct light: soft shadows of area
-        #: lights and suns are visible noise at 1 sample; the viewport may use fewer.
+        #: lights and suns are visible noise at 1 sample; the viewport may use fewer. `render`
+        #: splits them over its subframes (the filter averages them anyway).
         self.direct_samples = direct_samples
+        if int(subframes) < 1:
+            raise ValueError(f"subframes must be >= 1, got {subframes}")
+        self.subframes = int(subframes)
+        self.filter_size = float(filter_size)
+        self.filter_type = filter_type
+        #: The last `render`'s passes, filtered over its subframes (FilmAccumulator).
+        self.film = None
         self.gbuffer = GBufferPass()
         self.downsample = DownsamplePass(self.settings.downsample)
         self.gather = gather if gather is not None else GatherPass()
         self.ssao = SSAOPass(self.settings)
         self.bilateral = BilateralPass(self.settings)
         self.deferred = DeferredPass(self.settings)
-        self._passes = (self.gbuffer, self.downsample, self.gather, self.ssao, self.bilateral, self.deferred)
+        self.accumulate = AccumulatePass()
+        self._passes = (self.gbuffer, self.downsample, self.gather, self.ssao, self.bilateral, self.deferred,
+                        self.accumulate)
         self.width = self.height = 0
         self._direct_tex = None
 
@@ -74,7 +101,7 @@ class FramePipeline:
         if (width, height) == (self.width, self.height):
             return
         low = low_res_size(width, height, self.settings.downsample)
-        for p in (self.gbuffer, self.downsample, self.bilateral, self.deferred):
+        for p in (self.gbuffer, self.downsample, self.bilateral, self.deferred, self.accumulate):
             p.resize(width, height)
         for p in (self.gather, self.ssao):  # these run at the GI resolution
             p.resize(*low)
@@ -196,10 +223,34 @@ class FramePipeline:
             p_full, n_full, pix_full = pixels_to_points(position, normal)
             direct = np.zeros((self.height * self.width, 4), np.float32)
             direct[pix_full, :3] = system.direct(p_full, n_full, frame, samples=self.direct_samples)
-            self._direct_tex = upload_texture_2d(direct.reshape(self.height, self.width, 4), "RGBA32F")
-        shaded = self.shade(gbuf, low, view, proj, self._direct_tex,
-                            corner_visible=mask.reshape(low.height, low.width, 8), irradiance=lit_tex,
-                            debug_view=debug_view, world_color=world_color, stats=stats, gi=gi)
+        film = FilmAccumulator()
+        offsets = subpixel_offsets(self.subframes, self.filter_size, self.filter_type)
+        jittered = offsets.shape[0] > 1
+        film.set_depth(self.gbuffer.read("depth"))  # the centre sample, as Cycles' one sample
+        if jittered:
+            texture_filter = subframe_texture_filter(offsets.shape[0], self.filter_size)
+            centre = CentreSample.from_gbuffer(direct, position, normal, film.read("depth"))
+        for s, offset in enumerate(offsets):
+            if jittered:
+                with stats.step("gbuffer"):  # the raster and its read-back, as "downsample" counts its own
+                    gbuf = self.gbuffer.execute(view, jittered_projection(proj, offset, self.width, self.height),
+                                                texture_filter=texture_filter)
+                    normal = self.gbuffer.read("normal")
+                    position = self.gbuffer.read("position")
+                with stats.step("direct"):
+                    direct = subframe_direct(system, centre, position, normal,
+                                             frame + s * SUBFRAME_SEED_STRIDE,
+                                             max(1, self.direct_samples // offsets.shape[0]))
+            with stats.step("direct"):
+                self._direct_tex = upload_texture_2d(direct.reshape(self.height, self.width, 4), "RGBA32F")
+            shaded = self.shade(gbuf, low, view, proj, self._direct_tex,
+                                corner_visible=mask.reshape(low.height, low.width, 8), irradiance=lit_tex,
+                                debug_view=debug_view, world_color=world_color, stats=stats, gi=gi)
+            with stats.step("accumulate"):
+                self.accumulate.execute(shaded, gbuf, first=s == 0)
+        with stats.step("film"):
+            film.set_sums(self.accumulate.read_all(), self.accumulate.count)
+        self.film = film
         return shaded, stats
 
     def _pixel_gi(self, system, position_lo, normal_lo, pix, points, normals, visible, view, frame, stats):

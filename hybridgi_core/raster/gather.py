@@ -95,12 +95,18 @@ def pack_cache(cache, max_size: int = DEFAULT_MAX_TEXTURE_SIZE) -> tuple[np.ndar
 def pack_sh(cache, max_size: int = DEFAULT_MAX_TEXTURE_SIZE) -> np.ndarray:
     """The SH texture data of `pack_cache` alone."""
     n, k = cache.sh_direct.shape[:2]
-    sh_tex = np.zeros((n, 2 * k, 4), np.float32)
+    # Written straight into the padded texture (one pass over the cache, no second copy); every
+    # texel of the n cells is set below, so only the padding is zeroed.
+    rows, width = _layout(n * 2 * k, max_size)
+    out = np.empty((rows * width, 4), np.float32)
+    out[n * 2 * k :] = 0.0
+    sh_tex = out[: n * 2 * k].reshape(n, 2 * k, 4)
     sh_tex[:, :k, :3] = cache.sh_direct
     sh_tex[:, :k, 3] = cache.ao_sh
     sh_tex[:, k:, :3] = cache.sh_indirect
     sh_tex[:, k, 3] = cache.valid
-    return _pack_rows(sh_tex.reshape(-1, 4), max_size)
+    sh_tex[:, k + 1 :, 3] = 0.0
+    return out.reshape(rows, width, 4)
 
 
 def pack_depth(cache, max_size: int = DEFAULT_MAX_TEXTURE_SIZE) -> np.ndarray:
@@ -189,14 +195,16 @@ class GatherPass(RasterPass):
         self._uploaded = key
         return True
 
-    def upload_packed(self, key, grid, settings, sh_texels: np.ndarray, depth_texels: np.ndarray) -> bool:
+    def upload_packed(self, key, grid, settings, sh_texels: np.ndarray, depth_texels: np.ndarray,
+                      depth_tx=None) -> bool:
         """Upload textures already in the `pack_cache` layout (packed on another thread), unless
         `key` (any hashable naming this version of the cache) is the one on the GPU already.
+        depth_tx : the texture of these depth texels, already uploaded (skips that upload).
         Returns True when it uploaded."""
         if self._uploaded == key:
             return False
         self._cache_tx = upload_texture_2d(sh_texels, "RGBA32F")
-        self._depth_tx = upload_texture_2d(depth_texels, "RG32F")
+        self._depth_tx = depth_tx if depth_tx is not None else upload_texture_2d(depth_texels, "RG32F")
         self._depth_source = None
         self._grid = grid
         self._settings = settings

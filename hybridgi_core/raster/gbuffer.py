@@ -60,6 +60,10 @@ class GBuffer:
 
 
 #: `has_texture` bits of the G-buffer shader: the texture's rgb is the colour / its alpha cuts.
+#: Pixels of screen footprint a pixel's texture taps cover in one unjittered raster: Cycles'
+#: default 1.5-pixel filter, which the single sample per pixel otherwise lacks.
+TEXTURE_FILTER = 1.5
+
 TEXTURE_COLOR = 1
 TEXTURE_ALPHA = 2
 
@@ -123,9 +127,9 @@ class GBufferPass(RasterPass):
             varyings=(("smooth", "VEC3", "world_pos"), ("smooth", "VEC3", "world_nor"),
                       ("smooth", "VEC2", "tex_uv"), ("smooth", "FLOAT", "uv_ok")),
             samplers=((0, "FLOAT_2D", "albedo_tx"),),
-            # 52 bytes of push constants per material; the camera (80 bytes) is a UBO.
+            # 56 bytes of push constants per material; the camera (80 bytes) is a UBO.
             push=(("VEC4", "base_color"), ("VEC4", "fallback_albedo"), ("VEC4", "emission"),
-                  ("INT", "has_texture")),
+                  ("INT", "has_texture"), ("FLOAT", "texture_filter")),
             typedefs=CAMERA_TYPEDEF,
             ubos=((0, "CameraBlock", "camera"),),
             outputs=tuple((slot, "FLOAT" if ch == 1 else "VEC4", f"out_{name}")
@@ -242,9 +246,10 @@ class GBufferPass(RasterPass):
             draw.batch.vertbuf_add(self._attr_vbo)
 
     # -- frame -------------------------------------------------------------------------------
-    def execute(self, view: np.ndarray, proj: np.ndarray) -> GBuffer:
+    def execute(self, view: np.ndarray, proj: np.ndarray, texture_filter: float = TEXTURE_FILTER) -> GBuffer:
         """Rasterize with camera `view` (4, 4) world->camera and `proj` (4, 4) camera->clip
-        (numpy or mathutils matrices, perspective or orthographic).
+        (numpy or mathutils matrices, perspective or orthographic). texture_filter : pixels of
+        screen footprint each pixel's texture taps cover (see gbuffer_frag.glsl).
 
         Returns the GBuffer textures at the size set by `resize` (background only before `upload`).
         """
@@ -272,6 +277,7 @@ class GBufferPass(RasterPass):
                     shader.uniform_float("fallback_albedo", draw.fallback_albedo)
                     shader.uniform_float("emission", draw.emission)
                     shader.uniform_int("has_texture", draw.flags)
+                    shader.uniform_float("texture_filter", float(texture_filter))
                     shader.uniform_sampler("albedo_tx", draw.texture or self._dummy_texture)
                     draw.batch.draw(shader)
         return self.outputs()

@@ -31,15 +31,15 @@ vec3 sample_repeat_bilinear(vec2 uv)
 
 /* Texels seen through one pixel, as Cycles' pixel filter sees them: up to MAX_TAPS x MAX_TAPS
  * bilinear taps spread over the pixel's footprint in UV (the screen derivatives of the UV,
- * widened to Cycles' default 1.5-pixel filter), weighted by a Gaussian of about its shape. A
- * texture minified k times gets k x k taps (capped), so a fine texture reads as its average
- * instead of aliasing; a magnified one stays one bilinear tap. */
+ * widened to `texture_filter` pixels: Cycles' default 1.5-pixel filter for a single raster, the
+ * share of one jittered subframe when several integrate the filter), weighted by a Gaussian of
+ * about its shape. A texture minified k times gets k x k taps (capped), so a fine texture reads as
+ * its average instead of aliasing; a magnified one stays one bilinear tap. */
 #define MAX_TAPS 8
-#define FILTER_WIDTH 1.5
 vec3 sample_footprint(vec2 uv, vec2 du, vec2 dv)
 {
   vec2 size = vec2(textureSize(albedo_tx, 0));
-  float texels = max(length(du * size), length(dv * size)) * FILTER_WIDTH;
+  float texels = max(length(du * size), length(dv * size)) * texture_filter;
   int taps = int(clamp(ceil(texels), 1.0, float(MAX_TAPS)));
   if (taps == 1) {
     return sample_repeat_bilinear(uv);
@@ -48,7 +48,7 @@ vec3 sample_footprint(vec2 uv, vec2 du, vec2 dv)
   float weight_sum = 0.0;
   for (int i = 0; i < taps; i++) {
     for (int j = 0; j < taps; j++) {
-      vec2 o = ((vec2(i, j) + 0.5) / float(taps) - 0.5) * FILTER_WIDTH;
+      vec2 o = ((vec2(i, j) + 0.5) / float(taps) - 0.5) * texture_filter;
       float w = exp(-2.0 * dot(o, o));
       sum += w * sample_repeat_bilinear(uv + o.x * du + o.y * dv);
       weight_sum += w;

@@ -1,0 +1,349 @@
+"""Colour inputs the reader cannot fold, evaluated by Blender itself into a texture per mesh.
+
+A Base Color fed by procedural textures, Color Ramps, mixes of textures, Color Attributes,
+image textures through colour nodes, a non-active UV map, box mapping... is not re-implemented:
+Cycles bakes the socket's value (an Emission shader fed by the socket, bake type EMIT: exactly
+the input's colour, with none of the BSDF's weights, which `sync` applies as for an image) over
+a UV layout of its own, one cell per pair of triangles (`atlas_uvs`), so overlapping or missing
+UV maps do not matter. The triangles of that material then carry the atlas UVs and the baked
+texture, through the same plumbing as an image texture (probe hits: `shading.SurfaceTable`; the
+G-buffer: `raster/gbuffer`).
+
+The bake runs Cycles in a separate process, like `world_bake` (a bake cannot run inside a
+render, and the user's data must not change): the mesh travels as arrays (the triangles of the
+material's slot, object-space corners, every UV map and colour attribute, the texture space), the
+material as a library file. One process bakes every job of a sync. Results are cached by a
+content key (the node tree, nested groups and images included; the socket; the mesh arrays; the
+bake size; the Blender version) in memory and on disk (`~/.cache/hybridgi/materials`), so an
+unchanged material costs nothing on the next sync and an edit bakes again.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import math
+import os
+import shutil
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import bpy
+import numpy as np
+
+from . import world_bake
+
+log = logging.getLogger(__name__)
+
+#: Texels along one atlas cell (two triangles) before the size is clamped, and the clamp: small
+#: meshes get detail, the largest (200k triangles) still the average colour of each triangle.
+TEXELS_PER_CELL = 24
+MIN_SIZE, MAX_SIZE = 512, 2048
+#: Texels kept free around each triangle of a cell, and between its two triangles: the bake's
+#: margin fills them, so bilinear lookups near an edge never read the neighbouring triangle.
+PAD, GAP = 1.5, 1.0
+#: Bake margin in texels (Blender's extend mode fills the pads from each triangle's edge).
+MARGIN = 4
+#: Cycles samples per texel (emission only: no noise, just antialiasing of fine patterns).
+BAKE_SAMPLES = 4
+#: Seconds one bake process (all of a sync's jobs) may take.
+BAKE_TIMEOUT_S = 300
+#: Baked textures kept in memory.
+KEPT = 64
+#: Bumped when the bake script or the layout changes (part of every key).
+VERSION = 1
+
+_CACHE: dict[str, np.ndarray] = {}
+_JOBS: dict[str, threading.Thread] = {}
+_lock = threading.Lock()
+#: Finished background bakes (the viewport compares it, as `world_bake.completed`).
+completed = 0
+
+
+@dataclass
+class BakeJob:
+    """One socket of one material over the triangles of one mesh slot.
+
+    positions, normals : (3T, 3) float32 object-space corners, three per triangle, and their
+        shading normals
+    uv_maps : name -> (3T, 2) float32; colors : name -> (3T, 4) float32 (corner domain)
+    """
+
+    material: object  # bpy.types.Material (main thread only)
+    node: str
+    socket: str
+    positions: np.ndarray
+    uv_maps: dict[str, np.ndarray] = field(default_factory=dict)
+    render_uv: str | None = None
+    normals: np.ndarray | None = None  # (3T, 3) float32 object-space shading normals
+    colors: dict[str, np.ndarray] = field(default_factory=dict)
+    texspace: tuple = ((0.0, 0.0, 0.0), (1.0, 1.0, 1.0))
+    key: str = ""
+    source: str = ""  # the node feeding the input, for messages
+
+    @property
+    def what(self) -> str:
+        return f"{self.socket} of {self.node!r}" + (f" (from {self.source!r})" if self.source else "")
+
+    @property
+    def triangles(self) -> int:
+        return self.positions.shape[0] // 3
+
+    @property
+    def size(self) -> int:
+        return bake_size(self.triangles)
+
+
+def bake_size(n_triangles: int) -> int:
+    """Texture side (a power of two) for an atlas of `n_triangles`."""
+    cells = max(1, math.ceil(math.sqrt(math.ceil(n_triangles / 2))))
+    return int(min(MAX_SIZE, max(MIN_SIZE, 2 ** math.ceil(math.log2(cells * TEXELS_PER_CELL)))))
+
+
+def atlas_uvs(n_triangles: int, size: int) -> np.ndarray:
+    """(n, 3, 2) float32 UVs in [0, 1]: triangle 2k and 2k+1 share cell k (row-major), the first
+    below the cell's diagonal, the second above it, each inset by PAD texels and GAP apart."""
+    cells = max(1, math.ceil(math.sqrt(math.ceil(n_triangles / 2))))
+    c = size / cells  # texels per cell
+    p, g = min(PAD, c / 8), min(GAP, c / 8)
+    lower = np.array([[p, p], [c - p - g, p], [p, c - p - g]], np.float64)
+    upper = np.array([[c - p, c - p], [p + g, c - p], [c - p, p + g]], np.float64)
+    i = np.arange(n_triangles)
+    cell = i // 2
+    origin = np.stack([cell % cells, cell // cells], axis=1).astype(np.float64) * c
+    shape = np.where((i % 2 == 0)[:, None, None], lower[None], upper[None])
+    return ((origin[:, None, :] + shape) / size).astype(np.float32)
+
+
+def used_texels(n_triangles: int, size: int) -> np.ndarray:
+    """(size, size) bool: texels of the cells the atlas uses (the rest is never looked up)."""
+    cells = max(1, math.ceil(math.sqrt(math.ceil(n_triangles / 2))))
+    n_cells = math.ceil(n_triangles / 2)
+    c = size / cells
+    idx = np.arange(size)
+    col = np.minimum((idx + 0.5) // c, cells - 1).astype(np.int64)
+    return (col[:, None] * cells + col[None, :]) < n_cells  # [row (v), column (u)]
+
+
+# --- content keys --------------------------------------------------------------------------
+
+
+def _tree_digest(digest, tree, seen) -> None:
+    """Everything a node tree's output depends on, node groups followed (world_bake's fields)."""
+    if tree is None or tree.name_full in seen:
+        return
+    seen.add(tree.name_full)
+    world_bake.tree_digest(digest, tree)
+    for node in tree.nodes:
+        ramp = getattr(node, "color_ramp", None)
+        if ramp is not None:  # its stops are not node properties the tree digest sees
+            digest.update(repr((ramp.interpolation, ramp.color_mode, ramp.hue_interpolation,
+                                [(e.position, tuple(e.color)) for e in ramp.elements])).encode())
+        mapping = getattr(node, "mapping", None)
+        if mapping is not None and hasattr(mapping, "curves"):
+            digest.update(repr([[tuple(p.location) for p in c.points] for c in mapping.curves]).encode())
+        group = getattr(node, "node_tree", None)
+        if group is not None:
+            _tree_digest(digest, group, seen)
+
+
+def job_key(job: BakeJob) -> str:
+    digest = hashlib.sha256(f"{VERSION}|{bpy.app.version_string}|{job.node}|{job.socket}|{job.size}".encode())
+    _tree_digest(digest, job.material.node_tree, set())
+    digest.update(np.ascontiguousarray(job.positions).tobytes())
+    for name in sorted(job.uv_maps):
+        digest.update(name.encode() + np.ascontiguousarray(job.uv_maps[name]).tobytes())
+    for name in sorted(job.colors):
+        digest.update(name.encode() + np.ascontiguousarray(job.colors[name]).tobytes())
+    if job.normals is not None:
+        digest.update(np.ascontiguousarray(job.normals).tobytes())
+    digest.update(repr((job.render_uv, job.texspace)).encode())
+    return digest.hexdigest()[:32]
+
+
+# --- cache ---------------------------------------------------------------------------------
+
+
+def _cache_dir() -> Path:
+    root = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    return Path(root) / "hybridgi" / "materials"
+
+
+def cached(key: str) -> np.ndarray | None:
+    """(size, size, 3) float32 texture of a finished bake, from memory or disk, or None."""
+    with _lock:
+        texture = _CACHE.get(key)
+    if texture is not None:
+        return texture
+    disk = _cache_dir() / f"{key}.npy"
+    if not disk.is_file():
+        return None
+    try:
+        texture = np.load(disk).astype(np.float32)
+    except (OSError, ValueError):
+        return None
+    _remember(key, texture)
+    return texture
+
+
+def _remember(key: str, texture: np.ndarray) -> None:
+    with _lock:
+        _CACHE[key] = texture
+        while len(_CACHE) > KEPT:
+            _CACHE.pop(next(iter(_CACHE)))
+
+
+def _store(key: str, texture: np.ndarray) -> None:
+    """Keep a finished bake in memory and on disk (float16 on disk: albedos need no more)."""
+    try:
+        disk = _cache_dir() / f"{key}.npy"
+        disk.parent.mkdir(parents=True, exist_ok=True)
+        tmp = disk.with_suffix(".tmp.npy")
+        np.save(tmp, texture.astype(np.float16))
+        os.replace(tmp, disk)
+    except OSError as err:
+        log.debug("material bake not cached on disk: %s", err)
+    _remember(key, texture)
+
+
+# --- baking --------------------------------------------------------------------------------
+
+
+def bake(jobs: list[BakeJob], wait: bool = True) -> dict[str, np.ndarray]:
+    """key -> (size, size, 3) float32 texture for every job baked or cached. Jobs not cached are
+    baked together in one process (wait=True) or in the background (wait=False: the caller keeps
+    its fallback until `completed` changes). A failed bake is logged and left out."""
+    out = {}
+    todo = []
+    for job in jobs:
+        job.key = job.key or job_key(job)
+        texture = cached(job.key)
+        if texture is not None:
+            out[job.key] = texture
+        elif all(job.key != other.key for other in todo):
+            todo.append(job)
+    if not todo:
+        return out
+    tmp = tempfile.mkdtemp(prefix="hybridgi_bake_")
+    try:
+        cmd = _command(todo, tmp)
+    except (OSError, RuntimeError) as err:
+        shutil.rmtree(tmp, ignore_errors=True)
+        log.warning("materials %s could not be written for baking (%s); using their constant colours",
+                    ", ".join(sorted({job.material.name for job in todo})), err)
+        return out
+    described = [(job.key, job.material.name, job.what, job.size, job.triangles) for job in todo]
+    if not wait:
+        _start(cmd, tmp, described)
+        return out
+    try:
+        out.update(_run(cmd, tmp, described))
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    return out
+
+
+def pending() -> bool:
+    with _lock:
+        return any(job.is_alive() for job in _JOBS.values())
+
+
+def _start(cmd, tmp, described) -> None:
+    name = ",".join(key for key, *_ in described)
+    with _lock:
+        job = _JOBS.get(name)
+        if job is not None and job.is_alive():
+            shutil.rmtree(tmp, ignore_errors=True)
+            return
+
+    def run():
+        global completed
+        try:
+            _run(cmd, tmp, described)
+        finally:
+            with _lock:
+                completed += 1
+            shutil.rmtree(tmp, ignore_errors=True)
+
+    thread = threading.Thread(target=run, name="hybridgi-material-bake", daemon=True)
+    with _lock:
+        _JOBS[name] = thread
+    thread.start()
+
+
+def _command(jobs: list[BakeJob], tmp: str) -> list[str]:
+    """Write the materials (a library .blend) and each job's mesh arrays; the process's command."""
+    # One library file per material: a partial write of several at once dropped all but one.
+    blends = {}
+    for job in jobs:
+        if job.material.name not in blends:
+            blends[job.material.name] = os.path.join(tmp, f"material{len(blends)}.blend")
+            bpy.data.libraries.write(blends[job.material.name], {job.material}, path_remap="ABSOLUTE", fake_user=True)
+    specs = []
+    for job in jobs:
+        arrays = {"positions": job.positions, "atlas": atlas_uvs(job.triangles, job.size).reshape(-1, 2)}
+        if job.normals is not None:
+            arrays["normals"] = job.normals
+        for i, name in enumerate(job.uv_maps):
+            arrays[f"uv{i}"] = job.uv_maps[name]
+        for i, name in enumerate(job.colors):
+            arrays[f"color{i}"] = job.colors[name]
+        np.savez(os.path.join(tmp, f"{job.key}.npz"), **arrays)
+        specs.append({"key": job.key, "material": job.material.name, "blend": blends[job.material.name],
+                      "node": job.node, "socket": job.socket,
+                      "size": job.size, "uv_maps": list(job.uv_maps), "render_uv": job.render_uv,
+                      "colors": list(job.colors), "texspace": [list(v) for v in job.texspace]})
+    with open(os.path.join(tmp, "jobs.json"), "w") as f:
+        json.dump({"samples": BAKE_SAMPLES, "margin": MARGIN, "jobs": specs}, f)
+    args = [os.path.join(tmp, "jobs.json"), tmp]
+    script = Path(__file__).with_name("material_bake_process.py").read_text()
+    if bpy.app.binary_path:  # inside Blender: its own binary, headless
+        return [bpy.app.binary_path, "-b", "--factory-startup", "--python-expr", script, "--", *args]
+    return [sys.executable, "-c", script, *args]
+
+
+def _run(cmd, tmp, described) -> dict[str, np.ndarray]:
+    """Run the bake process; read, fill and cache its textures (any thread: no bpy)."""
+    t0 = time.perf_counter()
+    names = ", ".join(sorted({name for _, name, *_ in described}))
+    try:
+        run = subprocess.run(cmd, capture_output=True, text=True, timeout=BAKE_TIMEOUT_S)
+    except (OSError, subprocess.TimeoutExpired) as err:
+        log.warning("materials %s could not be baked (%s); using their constant colours", names, err)
+        return {}
+    out = {}
+    for key, material, node, size, n_tri in described:
+        path = os.path.join(tmp, f"{key}.npy")
+        if not os.path.isfile(path):
+            reason = _reason(tmp, key, run)
+            log.warning("material %r: %s could not be baked (%s); using its constant value", material, node, reason)
+            continue
+        texture = np.load(path).astype(np.float32)
+        seconds = Path(path).with_suffix(".s")
+        if seconds.is_file():
+            log.info("material %r: %s baked (%dx%d, %d triangles) in %s s", material, node, size, size, n_tri,
+                     seconds.read_text().strip())
+        used = used_texels(n_tri, size)
+        if not used.all():
+            texture[~used] = texture[used].mean(axis=0)  # the texture's mean stays the surface's
+        if not np.isfinite(texture).all():
+            texture = np.nan_to_num(texture, nan=0.0, posinf=0.0, neginf=0.0)
+        _store(key, texture)
+        out[key] = texture
+    log.info("baked %d material texture(s) (%s) in %.1f s, the process's start included", len(out), names,
+             time.perf_counter() - t0)
+    return out
+
+
+def _reason(tmp, key, run) -> str:
+    err = os.path.join(tmp, f"{key}.err")
+    if os.path.isfile(err):
+        return Path(err).read_text().strip().splitlines()[-1][:300]
+    tail = (run.stderr or run.stdout or "").strip().splitlines()[-2:]
+    return f"exit {run.returncode}: " + " | ".join(tail)

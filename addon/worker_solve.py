@@ -1,0 +1,171 @@
+"""The viewport worker's cache convergence: the final renders' stored-hit solver
+(`hybridgi_core.solver.GISolver`), run one short step at a time (worker thread only, pure numpy).
+
+Why not the EMA updater: with hysteresis 0.9 every update adds one bounce but blends it in at a
+tenth, so a multi-bounce cache needs ~60 updates per cell to reach 97% of its light (Cornell box),
+and the viewport used to stop after 24 (Diffuse Indirect ~20-25% low, the image ~13% dark). The
+solver's fixed point over stored hits has no such lag: one traced batch and a handful of
+iterations give the converged cache, each later batch refines it, and a lamp, material or world
+edit re-shades the stored hits and solves again without a probe ray; a geometry edit retraces
+only the stored rays whose segments meet the changed boxes (`GISystem.invalidate_boxes`).
+
+Every call of `step` does one unit of work, so that the worker looks at its inbox between units
+(a new view or edit is never queued behind a whole convergence):
+
+    begin + trace batch 0  ->  relax ... relax (one iteration a step)  ->  tail + neighbour filter
+    -> trace batch 1  ->  relax ...  -> ... until `batches` batches are traced: done
+
+Events restart the relax phase from the stored hits. A lamp, material or world edit re-shades
+the stored hits one batch a step (`GISolver.relight_batch`: shadow rays only, batch 0 first, the
+sources from the batches done so far), solving after each; a geometry edit retraces the stale
+rays (`resolve`), then iterations as above.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+#: Iterations of one solve at most (the solver stops sooner once converged).
+MAX_ITERATIONS = 16
+
+# Phases of the schedule.
+BEGIN, RESOLVE, RELIGHT, RELAX, MORE, DONE = "begin", "resolve", "relight", "relax", "more", "done"
+
+
+class SolveSchedule:
+    """Where the worker's cache stands on its way to the converged fixed point.
+
+    batches : traced direction batches to refine to while the view holds still (the first
+        converged image comes from the first one)
+    first_rays : directions per cell of the first batch (None: rays_per_cell)
+    """
+
+    def __init__(self, batches: int, first_rays: int | None = None):
+        self.batches = max(1, int(batches))
+        self.first_rays = first_rays
+        self.system = None
+        self.phase = BEGIN
+        self.iterations = 0
+        self._filter_direct = True  # the direct band was re-blended: filter it with the next tail
+        self._relight_next: int | None = None  # next batch to re-shade after a shading edit
+        self._materials = False  # the re-shade includes materials and the world (not lamps only)
+        self.solved_once = False  # a solve of the current hits converged (cells count as settled)
+        self.steps_ms: dict[str, float] = {}
+        #: Steps that blended traced rays into the cache (depth moments, inside flags may have
+        #: moved); iterations and the filter change the radiance bands only.
+        self.blends = 0
+
+    # --- events ---------------------------------------------------------------------------------
+
+    def attach(self, system) -> None:
+        """A (new) system: a new one starts over from batch 0 (its solver has no hits)."""
+        if system is not self.system:
+            self.system = system
+            self.phase = BEGIN
+            self.solved_once = False
+
+    def changed(self, shading: bool, geometry: bool, materials: bool = True) -> None:
+        """The session raised events on the stored hits: solve again from them.
+
+        shading : lamps, world or materials changed; materials : the world or materials did
+            (the geometry bands and albedo re-shade too), else lamps only (shadow rays only)
+        geometry : stored rays turned stale (`invalidate_boxes`)
+        """
+        if self.phase == BEGIN or self.system is None or not (shading or geometry):
+            return
+        self.solved_once = False
+        if shading:
+            self._materials = materials or (self._relight_next is not None and self._materials)
+            self._relight_next = 0
+            self._filter_direct = self._filter_direct or materials
+        # A geometry event re-shades every stale hit in one go (`resolve`), lamps included.
+        self.phase = RESOLVE if geometry or self.phase == RESOLVE else RELIGHT
+        if geometry:
+            self._relight_next = None
+            self._filter_direct = self._filter_direct or shading
+
+    def cover(self, cells: np.ndarray) -> None:
+        """Make sure the solver holds `cells` (the view's): new ones are traced by a resolve."""
+        solver = self.system.solver if self.system is not None else None
+        if solver is None or self.phase == BEGIN or cells.size == 0:
+            return
+        missing = np.setdiff1d(cells, solver.cells, assume_unique=False)
+        if missing.size:
+            solver.extend(missing)
+            self.phase = RESOLVE
+
+    # --- work -----------------------------------------------------------------------------------
+
+    @property
+    def has_work(self) -> bool:
+        return self.system is not None and self.phase != DONE
+
+    def step(self, cells: np.ndarray) -> int:
+        """One unit of work towards the converged cache; `cells` the view's visible cells.
+        Returns the probe rays traced."""
+        system = self.system
+        solver = system.solver
+        t0 = time.perf_counter()
+        rays = 0
+        phase = self.phase
+        if phase == BEGIN:
+            solver.begin(np.union1d(system.surface_cells(), cells))
+            rays = solver.trace_batch(0, rays=self.first_rays).rays
+            self._filter_direct = True
+            self.phase, self.iterations = RELAX, 0
+        elif phase == RESOLVE:
+            solver.extend(system.surface_cells())  # moved surfaces read new cells (`move_dynamic`)
+            # One iteration with the retrace / re-shade; the rest one per step.
+            st = solver.resolve(max_iterations=1)
+            self._relight_next = None  # every stale hit re-shaded
+            rays = st.rays
+            self.phase, self.iterations = RELAX, 1
+            if solver.converged:
+                self._finish()
+        elif phase == RELIGHT:
+            # The batch that carries the bounces first, then the others in order.
+            order = [solver.bounce_from] + [b for b in range(solver.batches) if b != solver.bounce_from]
+            solver.relight_batch(order[self._relight_next], materials=self._materials)
+            self._relight_next += 1
+            if self._relight_next >= solver.batches:
+                self._relight_next = None
+            self.phase, self.iterations = RELAX, 0
+        elif phase == RELAX:
+            solver.relax()
+            self.iterations += 1
+            if solver.converged or self.iterations >= MAX_ITERATIONS:
+                self._finish()
+        elif phase == MORE:
+            rays = solver.trace_batch(solver.batches).rays
+            if self.first_rays is not None and solver.bounce_from == 0:
+                # A full batch now carries the bounces (less noise in A than the first one's).
+                solver.bounce_from = solver.batches - 1
+            self._filter_direct = True  # the batches' mean replaced the filtered direct band
+            self.phase, self.iterations = RELAX, 0
+        if phase != RELAX:
+            self.blends += 1
+        self.steps_ms[phase] = (time.perf_counter() - t0) * 1e3
+        return rays
+
+    def _finish(self) -> None:
+        """The geometric tail, the neighbour filter, sample counts; then more batches or done."""
+        system = self.system
+        solver = system.solver
+        solver.extrapolate()
+        bands = ("sh_indirect", "sh_direct") if self._filter_direct else ("sh_indirect",)
+        solver.filter_cells(bands=bands)
+        self._filter_direct = False
+        # Converged cells count as such for whatever reads the sample counts (the Cache Cells
+        # colours, an EMA update that follows): at least the EMA's window.
+        cache = system.cache
+        window = int(np.ceil(1.0 / max(1.0 - cache.settings.hysteresis, 1e-3)))
+        c = solver.cells
+        cache.samples[c] = np.where(cache.samples[c] > 0, np.maximum(cache.samples[c], window), 0)
+        cache.version += 1
+        self.solved_once = True
+        if self._relight_next is not None:
+            self.phase = RELIGHT
+        else:
+            self.phase = MORE if solver.batches < self.batches else DONE

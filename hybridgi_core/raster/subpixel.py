@@ -1,0 +1,299 @@
+"""Pixel filter of final renders: jittered subframes placed as Cycles places its samples, and the
+accumulation of their passes into what Cycles writes.
+
+Cycles integrates every pixel over its pixel filter (`scene.cycles.pixel_filter_type` and
+`filter_width`: Blackman-Harris of 1.5 px by default; Gaussian and box are here too) and
+importance-samples it (`scene/film.cpp: filter_table`): the filter is separable,
+each axis offset drawn from the inverse CDF of a Blackman-Harris window that spans twice the
+filter size (`width *= 2`), i.e. offsets in [-size, size] pixels around the pixel centre, and all
+samples then count with equal weight. A raster pass takes one sample per pixel; rendering K
+subframes whose projection is shifted by K such offsets, and averaging them, is the same
+estimator with one shared sample pattern for every pixel. The pattern is a deterministic
+low-discrepancy set (Hammersley, one point per stratum along each axis) pushed through the
+filter's inverse CDF, so K = 4 already covers the filter's quartiles on both axes.
+
+How each pass accumulates follows Cycles' film (`kernel/film/data_passes.h`, `film/read.h`):
+Combined, Diffuse Color, AO and Normal are sample averages (a background sample adds 0, or the
+world's radiance to Combined); Diffuse Direct and Indirect accumulate the reflected light
+(colour x irradiance / pi) and are divided by the accumulated Diffuse Color at the end (the
+passes' `divide_type`), so an edge pixel's light is weighted by each side's albedo and Combined =
+(Direct + Indirect) x Color holds for the filtered pixel too; Depth is not filtered: Cycles writes one sample's depth (its first), a
+point sample, its first, and Cycles places its first sample at the pixel centre
+(`rand_filter = 0.5` for sample 0): here the unjittered raster's.
+
+The CPU work stays that of one sample per pixel: the cache steps run on the unjittered raster, and
+a subframe traces shadow rays (its share of the pixel's) only where its sample sees another
+surface than the centre's (`same_surface`): silhouettes and creases, a few % of the pixels.
+
+Pure numpy: the pipeline reads the targets and hands them in.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..visible import pixels_to_points
+
+#: Blackman-Harris coefficients as Cycles' `filter_func_blackman_harris` uses them.
+BH_COEFFS = (0.35875, -0.48829, 0.14128, -0.01168)
+
+#: Resolution of the tabulated inverse CDF (Cycles' FILTER_TABLE_SIZE is 1024; a finer table
+#: costs nothing here, the pattern is built once per frame).
+_TABLE_SIZE = 4097
+
+#: Passes averaged over the subframes (the deferred targets plus the G-buffer's normal).
+AVERAGED_PASSES = ("combined", "diffuse_direct", "diffuse_indirect", "diffuse_color", "ao")
+#: Light passes Cycles divides by the Diffuse Color pass after accumulating (colour x light).
+COLOR_DIVIDED_PASSES = ("diffuse_direct", "diffuse_indirect")
+
+
+def blackman_harris(v: np.ndarray, filter_size: float) -> np.ndarray:
+    """Cycles' filter weight at offset v (pixels) from the pixel centre: a Blackman-Harris
+    window over [-filter_size, filter_size], 0 outside."""
+    v = np.asarray(v, np.float64)
+    t = v / (2.0 * filter_size) + 0.5  # 0..1 across the window
+    a0, a1, a2, a3 = BH_COEFFS
+    x = 2.0 * np.pi * t
+    w = a0 + a1 * np.cos(x) + a2 * np.cos(2 * x) + a3 * np.cos(3 * x)
+    return np.where(np.abs(v) <= filter_size, w, 0.0)
+
+
+def blackman_harris_cdf(v: np.ndarray, filter_size: float) -> np.ndarray:
+    """The filter's normalised integral from -filter_size to v (closed form): P(offset <= v)."""
+    t = np.clip(np.asarray(v, np.float64) / (2.0 * filter_size) + 0.5, 0.0, 1.0)
+    a0, a1, a2, a3 = BH_COEFFS
+    x = 2.0 * np.pi * t
+    integral = a0 * t + (a1 * np.sin(x) + a2 * np.sin(2 * x) / 2 + a3 * np.sin(3 * x) / 3) / (2 * np.pi)
+    return integral / a0
+
+
+#: Cycles' pixel filters (`scene.cycles.pixel_filter_type`).
+FILTER_TYPES = ("BLACKMAN_HARRIS", "GAUSSIAN", "BOX")
+
+
+def filter_support(filter_type: str, width: float) -> float:
+    """Largest offset (pixels) the filter reaches, as Cycles' table spans it: Blackman-Harris
+    width (its window spans 2 x width), Gaussian 1.5 x width (sigma = width / 4), box width / 2."""
+    return {"BLACKMAN_HARRIS": 1.0, "GAUSSIAN": 1.5, "BOX": 0.5}[filter_type] * width
+
+
+def filter_weight(v: np.ndarray, filter_type: str, width: float) -> np.ndarray:
+    """Cycles' filter function at offset v (pixels), width its Filter Width; 0 outside."""
+    v = np.asarray(v, np.float64)
+    if filter_type == "BLACKMAN_HARRIS":
+        return blackman_harris(v, width)
+    inside = np.abs(v) <= filter_support(filter_type, width)
+    if filter_type == "GAUSSIAN":
+        # filter_func_gaussian(v, 3 width): exp(-2 (6 v / (3 width))^2)
+        return np.where(inside, np.exp(-8.0 * v * v / (width * width)), 0.0)
+    if filter_type == "BOX":
+        return inside.astype(np.float64)
+    raise ValueError(f"unknown pixel filter {filter_type!r}, expected one of {FILTER_TYPES}")
+
+
+def filter_offsets(u: np.ndarray, width: float, filter_type: str = "BLACKMAN_HARRIS") -> np.ndarray:
+    """Offsets (pixels) whose distribution is the filter's, for uniform u in [0, 1): the inverse
+    CDF tabulated as Cycles tabulates its own (Blackman-Harris from its closed-form integral)."""
+    u = np.asarray(u, np.float64)
+    if filter_type not in FILTER_TYPES:
+        raise ValueError(f"unknown pixel filter {filter_type!r}, expected one of {FILTER_TYPES}")
+    if width <= 0.0:
+        return np.zeros_like(u)
+    reach = filter_support(filter_type, width)
+    v = np.linspace(-reach, reach, _TABLE_SIZE)
+    if filter_type == "BLACKMAN_HARRIS":
+        cdf = blackman_harris_cdf(v, width)
+    else:
+        w = filter_weight(v, filter_type, width)
+        cdf = np.concatenate([[0.0], np.cumsum((w[1:] + w[:-1]) * 0.5)])
+        cdf /= cdf[-1]
+    return np.interp(u, cdf, v)
+
+
+def _radical_inverse2(i: np.ndarray) -> np.ndarray:
+    i = np.asarray(i, np.uint64)
+    out = np.zeros(i.shape, np.float64)
+    scale = 0.5
+    while np.any(i):
+        out += (i & np.uint64(1)).astype(np.float64) * scale
+        i = i >> np.uint64(1)
+        scale *= 0.5
+    return out
+
+
+def subpixel_offsets(count: int, filter_size: float, filter_type: str = "BLACKMAN_HARRIS") -> np.ndarray:
+    """(count, 2) float64 offsets (x, y) in pixels of the subframes of one final-render frame.
+
+    count = 1 is the pixel centre (one unfiltered sample, HybridGI without anti-aliasing). Else a
+    Hammersley set centred in its strata, x = (i + 0.5) / count, y = radical inverse of i shifted
+    by half a stratum, each axis mapped through the filter's inverse CDF: deterministic, every
+    frame the same.
+    """
+    count = int(count)
+    if count < 1:
+        raise ValueError(f"count must be >= 1, got {count}")
+    if count == 1:
+        return np.zeros((1, 2))
+    i = np.arange(count)
+    ux = (i + 0.5) / count
+    uy = np.mod(_radical_inverse2(i) + 0.5 / count, 1.0)
+    return np.stack([filter_offsets(ux, filter_size, filter_type), filter_offsets(uy, filter_size, filter_type)],
+                    axis=1)
+
+
+def subframe_texture_filter(count: int, filter_size: float) -> float:
+    """Pixels of footprint each subframe's texture taps cover (GBufferPass.execute): a single
+    raster pre-filters textures over the whole filter; of K subframes, each covers its stratum,
+    about filter_size / sqrt(K), so a texture is neither filtered twice nor aliased between them."""
+    return float(filter_size) / np.sqrt(max(int(count), 1))
+
+
+def jittered_projection(proj: np.ndarray, offset, width: int, height: int) -> np.ndarray:
+    """The projection that renders the image sampled at pixel centre + offset (pixels; x right,
+    y up as the G-buffer's rows go): clip x and y shift by -2 offset / size in NDC (times w,
+    so perspective and orthographic matrices alike)."""
+    p = np.array(proj, np.float64).reshape(4, 4)
+    dx, dy = float(offset[0]), float(offset[1])
+    p[0] -= (2.0 * dx / width) * p[3]
+    p[1] -= (2.0 * dy / height) * p[3]
+    return p.astype(np.float32)
+
+
+#: A jittered subframe's pixel that sees the centre raster's surface reuses its direct light (the
+#: full shadow-ray count, one stratified set) instead of tracing its share again: the normals agree
+#: to this cosine, the point lies within SAME_PLANE x view depth of the centre point's tangent
+#: plane and within SAME_REACH x view depth of the point itself (a 1.5 px offset moves a point by
+#: ~0.005 x depth at 640 px and 50 degrees, ~6x that at grazing angles).
+SAME_COS = 0.95
+SAME_PLANE = 0.005
+SAME_REACH = 0.05
+
+
+def same_surface(position0: np.ndarray, normal0: np.ndarray, position: np.ndarray,
+                 normal: np.ndarray, depth0: np.ndarray) -> np.ndarray:
+    """(n,) bool: pixels whose subframe sample (position, normal) lies on the centre sample's
+    surface (position0, normal0; view depth depth0). (n, >= 3) float32 arrays (xyz used) and (n,);
+    rows without geometry in either must be masked by the caller."""
+    d = [position[:, k] - position0[:, k] for k in range(3)]
+    cos = normal[:, 0] * normal0[:, 0] + normal[:, 1] * normal0[:, 1] + normal[:, 2] * normal0[:, 2]
+    plane = np.abs(d[0] * normal0[:, 0] + d[1] * normal0[:, 1] + d[2] * normal0[:, 2])
+    reach = d[0] * d[0] + d[1] * d[1] + d[2] * d[2]
+    return (cos >= SAME_COS) & (plane <= SAME_PLANE * depth0) & (reach <= (SAME_REACH * depth0) ** 2)
+
+
+@dataclass
+class CentreSample:
+    """The unjittered raster's direct light and surfaces, which subframes reuse. Flat per pixel."""
+
+    direct: np.ndarray  # (h * w, 4) float32, rgb = lamp irradiance W/m^2
+    position: np.ndarray  # (h * w, 4) float32 G-buffer position, w = 1 on geometry
+    normal: np.ndarray  # (h * w, >= 3) float32 unit (xyz)
+    depth: np.ndarray  # (h * w,) float32 view depth
+
+    @classmethod
+    def from_gbuffer(cls, direct, position, normal, depth) -> CentreSample:
+        """From the read-backs (h, w, 4) / (h, w, >= 3) / (h, w, 1) and the direct light."""
+        n = position.shape[0] * position.shape[1]
+        return cls(direct, position.reshape(n, -1), normal.reshape(n, -1), depth.reshape(n))
+
+
+def subframe_direct(system, centre: CentreSample, position: np.ndarray, normal: np.ndarray,
+                    seed_frame: int, samples: int) -> np.ndarray:
+    """A jittered subframe's direct light, (h * w, 4) float32: the centre's where the subframe's
+    pixel sees the same surface, `samples` shadow rays per lamp (seeded by seed_frame) elsewhere.
+
+    position, normal : the subframe's G-buffer read-backs (h, w, 4) / (h, w, >= 3); the
+    G-buffer's normals are unit (normalised in its fragment shader).
+    """
+    n_pix = centre.direct.shape[0]
+    pos = position.reshape(n_pix, -1)
+    nrm = normal.reshape(n_pix, -1)
+    hit = pos[:, 3] > 0.5
+    # Whole-image arrays (no gathers): the comparison is the bulk of a subframe's CPU work.
+    same = hit & (centre.position[:, 3] > 0.5) & same_surface(centre.position, centre.normal, pos, nrm, centre.depth)
+    direct = np.where(same[:, None], centre.direct, np.float32(0.0))
+    fresh = np.flatnonzero(hit & ~same)
+    if fresh.size:
+        p, n, keep = pixels_to_points(pos[fresh][None], nrm[fresh][None])
+        direct[fresh[keep], :3] = system.direct(p, n, seed_frame, samples=samples)
+    return direct
+
+
+class FilmAccumulator:
+    """Sums the subframes' passes with equal weights (the filter is importance-sampled).
+
+    `add(passes)` per subframe (the numpy reference of `accumulate.AccumulatePass`, whose sums
+    `set_sums` takes), `read(name)` at the end: the averaged passes of AVERAGED_PASSES,
+    "normal" (the average of hit normals, 0 where a subframe saw the background),
+    "combined_premultiplied" (rgb times alpha averaged: a transparent film's Combined, where the
+    background adds nothing) and "depth" (set once with `set_depth`).
+    """
+
+    def __init__(self) -> None:
+        self._sums: dict[str, np.ndarray] = {}
+        self.count = 0
+        self._depth = None
+
+    def add(self, passes: dict[str, np.ndarray]) -> None:
+        """passes : name -> (h, w, c) float32 of one subframe: AVERAGED_PASSES, "normal" and
+        "depth" (the subframe's, to mask its background normals)."""
+        color = passes["diffuse_color"]
+        for name in AVERAGED_PASSES:
+            value = passes[name]
+            if name in COLOR_DIVIDED_PASSES:
+                value = value.copy()
+                value[..., :3] *= color[..., :3]
+            self._accumulate(name, value)
+        combined = passes["combined"]
+        premultiplied = combined.copy()
+        premultiplied[..., :3] *= combined[..., 3:4]
+        self._accumulate("combined_premultiplied", premultiplied)
+        normal = passes["normal"][..., :3] * (passes["depth"] < 1e9)
+        self._accumulate("normal", normal)
+        self.count += 1
+
+    def set_sums(self, sums: dict[str, np.ndarray], count: int) -> None:
+        """Take the sums of `count` subframes summed elsewhere (accumulate.AccumulatePass, the GPU
+        twin of `add`): the names `read` knows, except depth."""
+        self._sums = {name: np.asarray(v, np.float64) for name, v in sums.items()}
+        self.count = int(count)
+
+    def set_depth(self, depth: np.ndarray) -> None:
+        """The Depth pass: one point sample per pixel, not filtered (see the module docstring)."""
+        self._depth = np.array(depth, np.float32)
+
+    def _accumulate(self, name: str, value: np.ndarray) -> None:
+        total = self._sums.get(name)
+        if total is None:
+            self._sums[name] = np.array(value, np.float64)
+        else:
+            total += value
+
+    def read(self, name: str) -> np.ndarray:
+        """The pass `name` as (h, w, c) float32, rows bottom-up."""
+        if name == "depth":
+            if self._depth is None:
+                raise KeyError("depth was never set")
+            return self._depth
+        if self.count == 0:
+            raise KeyError(f"{name}: no subframe was added")
+        if name in COLOR_DIVIDED_PASSES:
+            return _divide_even(self._sums[name], self._sums["diffuse_color"], self.count)
+        return (self._sums[name] / self.count).astype(np.float32)
+
+
+def _divide_even(light: np.ndarray, color: np.ndarray, count: int) -> np.ndarray:
+    """light / color per channel, as Cycles' `safe_divide_even_color`: a channel whose colour is 0
+    takes the mean ratio of the pixel's other channels, a black pixel 0. Alpha: the average."""
+    out = np.zeros(light.shape, np.float64)
+    c = color[..., :3]
+    ok = c > 0
+    ratio = np.divide(light[..., :3], c, out=np.zeros_like(c), where=ok)
+    valid = ok.sum(axis=-1, keepdims=True)
+    mean = np.divide(ratio.sum(axis=-1, keepdims=True), valid, out=np.zeros(valid.shape), where=valid > 0)
+    out[..., :3] = np.where(ok, ratio, mean)
+    if light.shape[-1] > 3:
+        out[..., 3:] = light[..., 3:] / count
+    return out.astype(np.float32)

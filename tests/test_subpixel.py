@@ -1,0 +1,178 @@
+"""The pixel filter's sample pattern and accumulation (`hybridgi_core/raster/subpixel.py`): bpy-free."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from hybridgi_core.raster.subpixel import (
+    FilmAccumulator,
+    blackman_harris,
+    blackman_harris_cdf,
+    filter_offsets,
+    filter_support,
+    jittered_projection,
+    subpixel_offsets,
+)
+
+
+def test_the_cdf_is_the_integral_of_cycles_window():
+    # Cycles' filter_func_blackman_harris(v, width) with its table's width *= 2, integrated numerically.
+    size = 1.5
+    v = np.linspace(-size, size, 200001)
+    width = 2.0 * size
+    x = 2.0 * np.pi * (v / width + 0.5)
+    w = 0.35875 - 0.48829 * np.cos(x) + 0.14128 * np.cos(2 * x) - 0.01168 * np.cos(3 * x)
+    assert np.allclose(blackman_harris(v, size), w)
+    integral = np.concatenate([[0.0], np.cumsum((w[1:] + w[:-1]) * 0.5 * np.diff(v))])
+    assert np.abs(blackman_harris_cdf(v, size) - integral / integral[-1]).max() < 1e-6
+    assert blackman_harris(np.array([-1.6, 1.6]), size).tolist() == [0.0, 0.0]
+
+
+@pytest.mark.parametrize("size", [0.5, 1.5, 3.0])
+def test_offsets_are_distributed_as_the_filter(size):
+    """Uniform draws through the inverse CDF: their histogram is the Blackman-Harris window's mass
+    per bin (chi-square small), inside [-size, size] and symmetric."""
+    rng = np.random.default_rng(1)
+    n = 200_000
+    d = filter_offsets(rng.random(n), size)
+    assert np.abs(d).max() <= size
+    edges = np.linspace(-size, size, 31)
+    counts = np.histogram(d, edges)[0]
+    expected = n * np.diff(blackman_harris_cdf(edges, size))
+    keep = expected > 20
+    chi2 = float(((counts[keep] - expected[keep]) ** 2 / expected[keep]).sum())
+    assert chi2 < 2.0 * keep.sum(), chi2
+    # The second moment matches the window's (numerically integrated).
+    v = np.linspace(-size, size, 100001)
+    w = blackman_harris(v, size)
+    var = float((w * v * v).sum() / w.sum())
+    assert abs(float((d * d).mean()) - var) < 0.02 * var
+
+
+@pytest.mark.parametrize("kind, width, sigma", [("GAUSSIAN", 1.5, 0.375), ("BOX", 1.0, None)])
+def test_cycles_other_filters_are_sampled_too(kind, width, sigma):
+    """Gaussian: Cycles' exp(-2 (6 v / 3w)^2) is sigma = w / 4, cut at 1.5 w; box: uniform over w."""
+    d = filter_offsets(np.random.default_rng(2).random(100_000), width, kind)
+    reach = filter_support(kind, width)
+    assert np.abs(d).max() <= reach
+    if sigma is None:
+        assert np.histogram(d, np.linspace(-reach, reach, 11))[0].std() < 0.05 * 10_000
+    else:
+        assert float(d.std()) == pytest.approx(sigma, rel=0.02)
+    with pytest.raises(ValueError):
+        filter_offsets(0.5, 1.0, "MITCHELL")
+
+
+def test_the_pattern_is_stratified_through_the_filter():
+    """K offsets: one per quantile stratum of the filter on each axis (Hammersley), deterministic,
+    mean zero; K = 1 is the pixel centre; a larger Filter Size spreads them proportionally."""
+    assert subpixel_offsets(1, 1.5).tolist() == [[0.0, 0.0]]
+    for k in (4, 8, 16):
+        off = subpixel_offsets(k, 1.5)
+        assert off.shape == (k, 2)
+        for axis in (0, 1):
+            strata = np.floor(blackman_harris_cdf(off[:, axis], 1.5) * k + 1e-9).astype(int)
+            assert sorted(strata.tolist()) == list(range(k))
+        assert np.abs(off.mean(axis=0)).max() < 0.1
+        assert np.array_equal(off, subpixel_offsets(k, 1.5))
+    assert np.allclose(subpixel_offsets(8, 3.0), 2.0 * subpixel_offsets(8, 1.5))
+    assert not subpixel_offsets(4, 0.0).any()
+    with pytest.raises(ValueError):
+        subpixel_offsets(0, 1.5)
+
+
+@pytest.mark.parametrize("ortho", [False, True])
+def test_the_jittered_projection_moves_the_image_by_the_offset(ortho):
+    w, h = 64, 32
+    if ortho:
+        proj = np.diag([0.5, 1.0, -0.1, 1.0]).astype(np.float32)
+    else:
+        proj = np.array([[1.2, 0, 0, 0], [0, 2.4, 0, 0], [0, 0, -1.0, -0.2], [0, 0, -1.0, 0]], np.float32)
+    p = np.array([0.3, -0.2, -4.0, 1.0])
+
+    def pixel(m):
+        c = m.astype(np.float64) @ p
+        return (c[0] / c[3] * 0.5 + 0.5) * w, (c[1] / c[3] * 0.5 + 0.5) * h
+
+    x0, y0 = pixel(proj)
+    x1, y1 = pixel(jittered_projection(proj, (0.25, -0.5), w, h))
+    # Sampling at centre + d: what lay at d lands on the centre, so the image moves by -d.
+    assert x1 - x0 == pytest.approx(-0.25, abs=1e-4)
+    assert y1 - y0 == pytest.approx(0.5, abs=1e-4)
+
+
+def test_the_film_averages_passes_and_keeps_one_depth():
+    acc = FilmAccumulator()
+    geo = np.ones((1, 2, 4), np.float32) * np.array([0.8, 0.4, 0.2, 1.0], np.float32)
+    bg = np.array([[[0.1, 0.1, 0.1, 0.0], [0.8, 0.4, 0.2, 1.0]]], np.float32)
+    ones = np.ones((1, 2, 4), np.float32)
+    for combined, depth in ((geo, np.full((1, 2, 1), 2.0, np.float32)),
+                            (bg, np.array([[[1e10], [2.0]]], np.float32))):
+        acc.add({"combined": combined, "diffuse_direct": ones, "diffuse_indirect": ones,
+                 "diffuse_color": combined, "ao": ones[..., :1], "normal": ones[..., :3], "depth": depth})
+    acc.set_depth(np.full((1, 2, 1), 2.0, np.float32))
+    c = acc.read("combined")
+    # Half the samples saw the background (world 0.1, alpha 0): an edge pixel mixes both.
+    assert np.allclose(c[0, 0], [0.45, 0.25, 0.15, 0.5])
+    assert np.allclose(acc.read("combined_premultiplied")[0, 0], [0.4, 0.2, 0.1, 0.5])
+    assert np.allclose(acc.read("normal")[0, 0], 0.5) and np.allclose(acc.read("normal")[0, 1], 1.0)
+    assert acc.read("depth").tolist() == [[[2.0], [2.0]]]
+    with pytest.raises(KeyError):
+        FilmAccumulator().read("combined")
+
+
+def test_diffuse_light_is_divided_by_the_accumulated_colour_as_cycles_does():
+    """An edge pixel half red wall (E = 2), half white floor (E = 4): Cycles' Diffuse Direct is
+    sum(colour x E) / sum(colour) per channel, so Combined = Direct x Color holds for the filtered
+    pixel; a channel without colour takes the other channels' ratio (safe_divide_even_color)."""
+    acc = FilmAccumulator()
+    red, white = np.array([1.0, 0.0, 0.0, 1.0]), np.array([1.0, 1.0, 1.0, 1.0])
+    for color, e in ((red, 2.0), (white, 4.0)):
+        c = np.array(color, np.float32).reshape(1, 1, 4)
+        light = np.full((1, 1, 4), e, np.float32)
+        light[..., 3] = 1.0
+        acc.add({"combined": c * e, "diffuse_direct": light, "diffuse_indirect": np.zeros_like(light),
+                 "diffuse_color": c, "ao": np.ones((1, 1, 1), np.float32), "normal": np.ones((1, 1, 3), np.float32),
+                 "depth": np.ones((1, 1, 1), np.float32)})
+    direct, color, combined = acc.read("diffuse_direct")[0, 0], acc.read("diffuse_color")[0, 0], acc.read("combined")[0, 0]
+    assert np.allclose(direct[:3], [3.0, 4.0, 4.0])
+    assert np.allclose(direct[:3] * color[:3], combined[:3])
+    black = FilmAccumulator()
+    zero = np.zeros((1, 1, 4), np.float32)
+    black.add({"combined": zero, "diffuse_direct": zero + 1, "diffuse_indirect": zero, "diffuse_color": zero,
+               "ao": zero[..., :1], "normal": zero[..., :3], "depth": zero[..., :1]})
+    assert black.read("diffuse_direct")[0, 0, :3].tolist() == [0.0, 0.0, 0.0]
+
+
+def test_a_subframe_traces_shadow_rays_only_where_it_sees_another_surface():
+    """Same plane, slightly shifted point: the centre's light (its full sample count) is reused;
+    a point on a surface behind (silhouette) or turned away (crease) is traced with the
+    subframe's share of the samples; background stays 0."""
+    from hybridgi_core.raster.subpixel import CentreSample, subframe_direct
+
+    class System:
+        def __init__(self):
+            self.calls = []
+
+        def direct(self, points, normals, frame, samples):
+            self.calls.append((points.shape[0], frame, samples))
+            return np.full((points.shape[0], 3), 7.0, np.float32)
+
+    h, w = 1, 4
+    position0 = np.array([[[0, 0, -5, 1], [1, 0, -5, 1], [2, 0, -5, 1], [0, 0, 0, 0]]], np.float32)
+    normal0 = np.tile(np.array([0, 0, 1, 0], np.float32), (h, w, 1))
+    depth0 = np.array([[[5.0], [5.0], [5.0], [1e10]]], np.float32)
+    direct0 = np.tile(np.array([1.0, 2.0, 3.0, 1.0], np.float32), (h * w, 1))
+    centre = CentreSample.from_gbuffer(direct0, position0, normal0, depth0)
+    position = position0.copy()
+    position[0, 0, 0] += 0.01  # same plane, a sub-pixel step along it
+    position[0, 1, 2] = -7.0  # a surface 2 m behind
+    normal = normal0.copy()
+    normal[0, 2] = (1.0, 0.0, 0.0, 0.0)  # the other side of a crease
+    system = System()
+    got = subframe_direct(system, centre, position, normal, seed_frame=3, samples=4)
+    assert got[0].tolist() == [1.0, 2.0, 3.0, 1.0]
+    assert got[1, :3].tolist() == [7.0] * 3 and got[2, :3].tolist() == [7.0] * 3
+    assert not got[3].any()
+    assert system.calls == [(2, 3, 4)]
