@@ -117,7 +117,6 @@ def trace_pixels(system, points: np.ndarray, normals: np.ndarray, rays: int, fra
     `rays` rays each, the cache's SH as control variate (module docstring). corner_visible :
     (n, 8) bool occlusion of the 8 neighbour cells (`GISystem.corner_visibility`), as the image
     gather reads the cache."""
-    t0 = time.perf_counter()
     cache, s = system.cache, system.settings
     points = np.ascontiguousarray(points, np.float32)
     normals = np.array(normals, np.float32).reshape(-1, 3)
@@ -128,20 +127,17 @@ def trace_pixels(system, points: np.ndarray, normals: np.ndarray, rays: int, fra
     if bad.any():
         normals[bad] = (0.0, 0.0, 1.0)
     n = points.shape[0]
-    sh_d, sh_i, sh_a, covered = cache_sh_at(cache, points, normals, corner_visible)
-    # The cache's own irradiance at the pixels: what the GPU gather reads (unclamped here: the
-    # control variate must be the exact integral of the SH used below).
-    e_cd = sh.irradiance(sh_d, normals)
-    e_ci = sh.irradiance(sh_i, normals)
-    ao_c = np.where(covered, sh.irradiance(sh_a[..., None], normals)[:, 0] / np.float32(np.pi), np.float32(1.0))
-    steps = {"cache_sh": (time.perf_counter() - t0) * 1e3}
-    out = np.zeros((n, 9), np.float32)
-    if n and rays > 0:
-        lookup = HitLookup(cache, bounced=s.indirect_quality == MULTI_BOUNCE)
-        per = max(1, CHUNK_RAYS // rays)
+    steps: dict[str, float] = {}
+    # Columns: residual direct rgb, indirect rgb, AO | luminance and AO variances | the cache's
+    # direct rgb, indirect rgb, AO. Everything per chunk of pixels on the worker pool, so no
+    # per-pixel (n, 8, K, 3) temporaries exist for the whole image at once.
+    out = np.zeros((n, 16), np.float32)
+    if n:
+        lookup = HitLookup(cache, bounced=s.indirect_quality == MULTI_BOUNCE) if rays > 0 else None
+        per = max(1, CHUNK_RAYS // max(rays, 8))
         starts = range(0, n, per)
-        jobs = [system.updater.pool.submit(_chunk, system, lookup, points[a:a + per], normals[a:a + per],
-                                           sh_d[a:a + per], sh_i[a:a + per], sh_a[a:a + per], covered[a:a + per],
+        vis = (lambda a: None) if corner_visible is None else (lambda a: corner_visible[a:a + per])
+        jobs = [system.updater.pool.submit(_chunk, system, lookup, points[a:a + per], normals[a:a + per], vis(a),
                                            rays, frame_rng(s.seed + SEED_OFFSET, frame * 7919 + i))
                 for i, a in enumerate(starts)]
         for a, job in zip(starts, jobs, strict=True):
@@ -149,22 +145,33 @@ def trace_pixels(system, points: np.ndarray, normals: np.ndarray, rays: int, fra
             out[a:a + per] = values
             for k, v in times.items():
                 steps[k] = steps.get(k, 0.0) + v
-    # Residual means (est - cache band sums) plus the cache's exact integrals.
-    direct = out[:, 0:3] + e_cd
-    indirect = out[:, 3:6] + e_ci
-    ao = out[:, 6] + ao_c
-    return PixelGI(direct, indirect, ao, e_cd, e_ci, ao_c, variance=out[:, 7:9], rays=n * rays, steps_ms=steps)
+    # Residual means (estimate - the cache along the same rays) plus the cache's exact integrals.
+    cd, ci, ca = out[:, 9:12], out[:, 12:15], out[:, 15]
+    return PixelGI(out[:, 0:3] + cd, out[:, 3:6] + ci, out[:, 6] + ca, cd, ci, ca, variance=out[:, 7:9],
+                   rays=n * rays, steps_ms=steps)
 
 
-def _chunk(system, lookup: HitLookup, p, nrm, sh_d, sh_i, sh_a, covered, rays, rng):
-    """Worker: (m, 9) mean residuals pi/N sum (L - L_cache) of m pixels (direct rgb, indirect rgb,
-    AO as 1/N sum (v - V_cache)), the variances of the luminance and AO means, and step times."""
+def _chunk(system, lookup: HitLookup | None, p, nrm, corner_visible, rays, rng):
+    """Worker: (m, 16) of m pixels: mean residuals pi/N sum (L - L_cache) (direct rgb, indirect
+    rgb, AO as 1/N sum (v - V_cache)), the variances of the luminance and AO means, and the
+    cache gather's direct rgb, indirect rgb and AO; and step times."""
     times = {}
     s = system.settings
+    tic = time.perf_counter()
+    m = p.shape[0]
+    res = np.zeros((m, 16), np.float32)
+    sh_d, sh_i, sh_a, covered = cache_sh_at(system.cache, p, nrm, corner_visible)
+    # The cache's own irradiance at the pixels, what the GPU gather reads (unclamped here: the
+    # control variate must be the exact integral of the SH used below).
+    res[:, 9:12] = sh.irradiance(sh_d, nrm)
+    res[:, 12:15] = sh.irradiance(sh_i, nrm)
+    res[:, 15] = np.where(covered, sh.irradiance(sh_a[..., None], nrm)[:, 0] / np.float32(np.pi), np.float32(1.0))
+    times["cache_sh"] = (time.perf_counter() - tic) * 1e3
+    if rays <= 0:
+        return res, times
     scene = system.updater.scene
     tracer = system.tracer
     eps = np.float32(tracer.epsilon)
-    m = p.shape[0]
     tic = time.perf_counter()
     dirs = cosine_directions(nrm, rays, rng).reshape(-1, 3)
     origins = np.repeat(p + nrm * eps, rays, axis=0)
@@ -200,7 +207,6 @@ def _chunk(system, lookup: HitLookup, p, nrm, sh_d, sh_i, sh_a, covered, rays, r
     cv_d = np.einsum("mk,mkc->mc", y_mean, sh_d)
     cv_i = np.einsum("mk,mkc->mc", y_mean, sh_i)
     cv_a = np.where(covered, np.einsum("mk,mk->m", y_mean, sh_a), np.float32(1.0))  # uncovered: ao_c = 1
-    res = np.empty((m, 9), np.float32)
     r = radiance.reshape(m, rays, 6)
     res[:, 0:3] = (r[..., 0:3].mean(axis=1) - cv_d) * np.float32(np.pi)
     res[:, 3:6] = (r[..., 3:6].mean(axis=1) - cv_i) * np.float32(np.pi)
