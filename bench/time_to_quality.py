@@ -20,7 +20,8 @@ Per scene (every bundled scene in blend_scenes/, then ../shared/scenes/*.blend w
   all CPU threads, denoising on, seed 1 so their noise is independent of the reference's), and
   EEVEE at its defaults (it renders headless on llvmpipe here: its seconds are llvmpipe's, a real
   GPU's would be far lower; it has no Diffuse Indirect pass).
-- HybridGI final renders along LADDER (cache resolution, rays per cell, warm-up updates).
+- HybridGI final renders along LADDER (cache resolution r, rays per cell x, warm-up updates w, pixel
+  rays p per GI pixel, anti-aliasing subframes s).
 - the HybridGI viewport, driven headless with the scene camera by bench/ttq_viewport.py (see its
   docstring): the displayed image at 0.1, 0.25, 0.5, 1, 2, 4 s after the first draw, and again
   after a light move, in two timelines:
@@ -91,11 +92,15 @@ OIDN_SETTINGS = ("cycles.use_denoising=true", "cycles.denoiser=OPENIMAGEDENOISE"
 
 #: HybridGI's quality ladder: (name, --set values). Names from addon/properties.py.
 LADDER = (
-    ("r16 x16 w4", ("resolution=16", "rays_per_cell=16", "warmup_iterations=4")),
-    ("r24 x32 w8", ("resolution=24", "rays_per_cell=32", "warmup_iterations=8")),
-    ("r32 x64 w12", ("resolution=32", "rays_per_cell=64", "warmup_iterations=12")),
-    ("r48 x64 w16 (default)", ()),
-    ("r48 x128 w24", ("resolution=48", "rays_per_cell=128", "warmup_iterations=24")),
+    ("r16 x16 w2 p8 s1", ("resolution=16", "rays_per_cell=16", "warmup_iterations=2", "pixel_rays=8",
+                          "pixel_samples=1")),
+    ("r24 x32 w4 p16 s2", ("resolution=24", "rays_per_cell=32", "warmup_iterations=4", "pixel_rays=16",
+                           "pixel_samples=2")),
+    ("r32 x32 w8 p32 s4", ("resolution=32", "rays_per_cell=32", "warmup_iterations=8")),
+    ("r48 x64 w8 p32 s4 (default)", ()),
+    ("r48 x128 w16 p64 s8", ("rays_per_cell=128", "warmup_iterations=16", "pixel_rays=64", "pixel_samples=8")),
+    ("r48 x256 w24 p128 s16", ("rays_per_cell=256", "warmup_iterations=24", "pixel_rays=128",
+                               "pixel_samples=16")),
 )
 QUICK_LADDER = LADDER[:4]
 
