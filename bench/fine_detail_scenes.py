@@ -209,7 +209,51 @@ def trusses():
     _camera(scene, (2.2, -5.7, 0.7), (-0.8, 3.0, 0.9), lens=18.0)
 
 
-SCENES = {f.__name__: f for f in (yard, contact, trusses)}
+def _studio_hdri(scene, name="sunrise.exr", rotation_z=1.2, strength=1.0):
+    """The world of Blender's bundled CC0 studio HDRI `name`, turned about Z by a Mapping node."""
+    path = Path(bpy.utils.system_resource("DATAFILES")) / "studiolights" / "world" / name
+    world = bpy.data.worlds.new("hdri")
+    world.use_nodes = True
+    nodes, links = world.node_tree.nodes, world.node_tree.links
+    coord = nodes.new("ShaderNodeTexCoord")
+    mapping = nodes.new("ShaderNodeMapping")
+    mapping.inputs["Rotation"].default_value = (0.0, 0.0, rotation_z)
+    env = nodes.new("ShaderNodeTexEnvironment")
+    env.image = bpy.data.images.load(str(path))
+    links.new(coord.outputs["Generated"], mapping.inputs["Vector"])
+    links.new(mapping.outputs["Vector"], env.inputs["Vector"])
+    bg = nodes["Background"]
+    bg.inputs["Strength"].default_value = strength
+    links.new(env.outputs["Color"], bg.inputs["Color"])
+    scene.world = world
+
+
+def hdri_yard():
+    """The yard lit only by the bundled sunrise HDRI (its sun casts the shadows)."""
+    yard()
+    scene = bpy.context.scene
+    bpy.data.objects.remove(bpy.data.objects["sun"])
+    _studio_hdri(scene)
+
+
+def sky_yard():
+    """The yard under Blender's Sky Texture (its default type) plus the sun lamp."""
+    yard()
+    scene = bpy.context.scene
+    world = scene.world
+    sky = world.node_tree.nodes.new("ShaderNodeTexSky")
+    world.node_tree.links.new(sky.outputs["Color"], world.node_tree.nodes["Background"].inputs["Color"])
+    world.node_tree.nodes["Background"].inputs["Strength"].default_value = 0.3
+
+
+def hdri_room():
+    """The contact room opened to the sunrise HDRI: no lamps, the sky through the missing walls."""
+    contact()
+    bpy.data.objects.remove(bpy.data.objects["lamp"])
+    _studio_hdri(bpy.context.scene, rotation_z=2.4)
+
+
+SCENES = {f.__name__: f for f in (yard, contact, trusses, hdri_yard, sky_yard, hdri_room)}
 
 
 def build(out_dir: Path, names=None) -> dict[str, Path]:
