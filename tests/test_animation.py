@@ -133,9 +133,12 @@ def _floor_maps(record, frame):
 def test_bounce_light_follows_the_ball(ball_frames, mode):
     """Metric, per frame f of 10-16, on floor pixels of Diffuse Indirect (irradiance / pi):
 
-    1. where: the reddest floor spot (3x3-blurred chromaticity R / (R + G + B); only the ball is
-       orange, the floor is grey, the lamp warm white, a wall blue) lies within 0.5 m of the
-       ball's analytic floor contact point (the floor is 6 m x 6 m);
+    1. where: the floor within 0.5 m of the ball's analytic floor contact point is redder on
+       average (3x3-blurred chromaticity R / (R + G + B); only the ball is orange, the floor is
+       grey, the lamp warm white, a wall blue) than 99% of the floor more than 1.5 m from the ball
+       and 1.2 m from the bunny (the floor is 6 m x 6 m). A mean against a percentile, not the
+       single reddest pixel: at 96x54 one noisy far pixel could outrank the whole contact
+       (Cycles at 256 spp, frame 13: 0.39 near against 0.31; HybridGI 0.32 against 0.31);
     2. what changes: the mean 3x3-blurred |L_f - L_f-1| (L = mean of R, G, B) over floor pixels
        within 0.8 m of the ball is at least 1.5x the mean over floor pixels more than 1.5 m from
        the ball and 1.2 m from the bunny: frame to frame, the bounce changes where the ball moves.
@@ -144,13 +147,14 @@ def test_bounce_light_follows_the_ball(ball_frames, mode):
     for frame, record in ball_frames[mode]:
         indirect, floor, to_ball, to_bunny = _floor_maps(record, frame)
         red = blur3(indirect[..., 0] / np.maximum(indirect.sum(-1), 1e-6))
-        spot = np.unravel_index(np.argmax(np.where(floor, red, -1.0)), red.shape)
-        assert to_ball[spot] < 0.5, f"frame {frame}: the reddest floor spot is {to_ball[spot]:.2f} m from the ball"
+        far = floor & (to_ball > 1.5) & (to_bunny > 1.2)
+        contact = red[floor & (to_ball < 0.5)].mean()
+        elsewhere = np.percentile(red[far], 99)
+        assert contact > elsewhere, f"frame {frame}: floor redness at the ball {contact:.3f} <= 99th percentile far from it {elsewhere:.3f}"
         lum = indirect.mean(-1)
         if prev is not None:
             change = blur3(np.abs(lum - prev))
             near = floor & (to_ball < 0.8)
-            far = floor & (to_ball > 1.5) & (to_bunny > 1.2)
             ratio = change[near].mean() / change[far].mean()
             assert ratio > 1.5, f"frames {frame - 1}-{frame}: change near the ball / far = {ratio:.2f}"
         prev = lum
