@@ -29,7 +29,6 @@ import shutil
 import subprocess
 import sys
 import tempfile
-import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -38,6 +37,7 @@ import bpy
 import numpy as np
 
 from . import world_bake
+from .bake_store import BakeStore
 
 log = logging.getLogger(__name__)
 
@@ -59,11 +59,9 @@ KEPT = 64
 #: Bumped when the bake script or the layout changes (part of every key).
 VERSION = 1
 
-_CACHE: dict[str, np.ndarray] = {}
-_JOBS: dict[str, threading.Thread] = {}
-_lock = threading.Lock()
-#: Finished background bakes (the viewport compares it, as `world_bake.completed`).
-completed = 0
+#: Finished textures (memory and ~/.cache/hybridgi/materials, float16 on disk: albedos need no
+#: more) and the background bakes.
+STORE = BakeStore("materials", KEPT, disk_dtype=np.float16)
 
 
 @dataclass
@@ -176,46 +174,9 @@ def job_key(job: BakeJob) -> str:
 # --- cache ---------------------------------------------------------------------------------
 
 
-def _cache_dir() -> Path:
-    root = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
-    return Path(root) / "hybridgi" / "materials"
-
-
 def cached(key: str) -> np.ndarray | None:
     """(size, size, 3) float32 texture of a finished bake, from memory or disk, or None."""
-    with _lock:
-        texture = _CACHE.get(key)
-    if texture is not None:
-        return texture
-    disk = _cache_dir() / f"{key}.npy"
-    if not disk.is_file():
-        return None
-    try:
-        texture = np.load(disk).astype(np.float32)
-    except (OSError, ValueError):
-        return None
-    _remember(key, texture)
-    return texture
-
-
-def _remember(key: str, texture: np.ndarray) -> None:
-    with _lock:
-        _CACHE[key] = texture
-        while len(_CACHE) > KEPT:
-            _CACHE.pop(next(iter(_CACHE)))
-
-
-def _store(key: str, texture: np.ndarray) -> None:
-    """Keep a finished bake in memory and on disk (float16 on disk: albedos need no more)."""
-    try:
-        disk = _cache_dir() / f"{key}.npy"
-        disk.parent.mkdir(parents=True, exist_ok=True)
-        tmp = disk.with_suffix(".tmp.npy")
-        np.save(tmp, texture.astype(np.float16))
-        os.replace(tmp, disk)
-    except OSError as err:
-        log.debug("material bake not cached on disk: %s", err)
-    _remember(key, texture)
+    return STORE.get(key)
 
 
 # --- baking --------------------------------------------------------------------------------
@@ -224,7 +185,7 @@ def _store(key: str, texture: np.ndarray) -> None:
 def bake(jobs: list[BakeJob], wait: bool = True) -> dict[str, np.ndarray]:
     """key -> (size, size, 3) float32 texture for every job baked or cached. Jobs not cached are
     baked together in one process (wait=True) or in the background (wait=False: the caller keeps
-    its fallback until `completed` changes). A failed bake is logged and left out."""
+    its fallback until `STORE.completed` changes). A failed bake is logged and left out."""
     out = {}
     todo = []
     for job in jobs:
@@ -256,31 +217,22 @@ def bake(jobs: list[BakeJob], wait: bool = True) -> dict[str, np.ndarray]:
 
 
 def pending() -> bool:
-    with _lock:
-        return any(job.is_alive() for job in _JOBS.values())
+    return STORE.pending()
 
 
 def _start(cmd, tmp, described) -> None:
     name = ",".join(key for key, *_ in described)
-    with _lock:
-        job = _JOBS.get(name)
-        if job is not None and job.is_alive():
-            shutil.rmtree(tmp, ignore_errors=True)
-            return
+    if STORE.running(name):
+        shutil.rmtree(tmp, ignore_errors=True)
+        return
 
-    def run():
-        global completed
+    def work():
         try:
             _run(cmd, tmp, described)
         finally:
-            with _lock:
-                completed += 1
             shutil.rmtree(tmp, ignore_errors=True)
 
-    thread = threading.Thread(target=run, name="hybridgi-material-bake", daemon=True)
-    with _lock:
-        _JOBS[name] = thread
-    thread.start()
+    STORE.start(name, work, "hybridgi-material-bake")
 
 
 def _command(jobs: list[BakeJob], tmp: str) -> list[str]:
@@ -340,7 +292,7 @@ def _run(cmd, tmp, described) -> dict[str, np.ndarray]:
             texture[~used] = texture[used].mean(axis=0)  # the texture's mean stays the surface's
         if not np.isfinite(texture).all():
             texture = np.nan_to_num(texture, nan=0.0, posinf=0.0, neginf=0.0)
-        _store(key, texture)
+        STORE.put(key, texture)
         out[key] = texture
     log.info("baked %d material texture(s) (%s) in %.1f s, the process's start included", len(out), names,
              time.perf_counter() - t0)

@@ -159,8 +159,8 @@ class ViewportSession:
         self._drawn_serials = None
         self.scene_name = None
         self.settings_error: str | None = None  # the scene's settings are invalid: this message
-        self._world_bakes_seen = world_bake.completed
-        self._material_bakes_seen = material_bake.completed
+        self._world_bakes_seen = world_bake.STORE.completed
+        self._material_bakes_seen = material_bake.STORE.completed
         _OPEN.add(self)
 
     # --- scene ----------------------------------------------------------------------------------
@@ -294,13 +294,13 @@ class ViewportSession:
         a colour input's texture has (`material_bake`)."""
         if self.mirror.snapshot is None or self.worker is None:
             return
-        if world_bake.completed != self._world_bakes_seen:
-            self._world_bakes_seen = world_bake.completed
+        if world_bake.STORE.completed != self._world_bakes_seen:
+            self._world_bakes_seen = world_bake.STORE.completed
             lights, world = sync.scene_shading(depsgraph, wait_for_world=False)
             self._post(self.mirror.set_shading(lights=lights, world=world))
-        if material_bake.completed != self._material_bakes_seen:
+        if material_bake.STORE.completed != self._material_bakes_seen:
             # Colour inputs baked in the background (`material_bake`): read the materials again.
-            self._material_bakes_seen = material_bake.completed
+            self._material_bakes_seen = material_bake.STORE.completed
             self._post(self.mirror.set_shading(materials=sync.scene_materials(self.mirror.snapshot)))
 
     def needs_redraw(self) -> bool:

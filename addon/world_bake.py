@@ -8,7 +8,7 @@ same split as an environment image (`hybridgi_core.environment`: a shadowed sun 
 Baked maps are cached under a key of everything the world's output depends on (`world_key`), in
 memory and on disk, so a world that did not change costs nothing on the next sync. Final renders
 wait for a bake; the viewport does not (`bake_world(world, wait=False)`): the bake runs on a
-thread that only waits for the process, the view keeps its last world meanwhile, and `completed`
+thread that only waits for the process, the view keeps its last world meanwhile, and `STORE.completed`
 counts finished bakes so that it can read the world again. Everything that touches `bpy` runs on
 the main thread; the bake process itself runs headless with the factory settings.
 """
@@ -22,12 +22,12 @@ import shutil
 import subprocess
 import sys
 import tempfile
-import threading
 import time
-from pathlib import Path
 
 import bpy
 import numpy as np
+
+from .bake_store import BakeStore
 
 log = logging.getLogger(__name__)
 
@@ -43,11 +43,8 @@ BAKE_TIMEOUT_S = 120
 #: Maps kept in memory (worlds are few, maps 1.5 MiB).
 KEPT = 8
 
-_CACHE: dict[str, np.ndarray] = {}
-#: Background bakes by key, and how many have finished (the viewport compares it).
-_JOBS: dict[str, threading.Thread] = {}
-_lock = threading.Lock()
-completed = 0
+#: Finished maps (memory and ~/.cache/hybridgi/worlds) and the background bakes.
+STORE = BakeStore("worlds", KEPT)
 
 #: Runs in the bake process: argv = the .blend holding the world, its name, the output .npy.
 _BAKE_SCRIPT = r"""
@@ -145,89 +142,46 @@ def tree_digest(digest, tree) -> None:
                       f"{link.to_socket.identifier}|{link.is_muted}".encode())
 
 
-def _cache_dir() -> Path:
-    root = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
-    return Path(root) / "hybridgi" / "worlds"
-
-
 def bake_world(world, wait: bool = True, key: str | None = None) -> np.ndarray | None:
     """(h, w, 3) float32 linear radiance of `world` in every direction (the core's equirect
     layout), or None when the bake failed (logged; the caller falls back) or, with wait=False,
     is still running in the background. key : `world_key(world)` when the caller has it."""
     key = key or world_key(world)
-    pixels = _cached(key)
+    pixels = STORE.get(key)
     if pixels is not None:
         return pixels
     if not wait:
         _start(world, key)
         return None
-    pixels = _finish(key, _bake(world))
-    return pixels
+    return _finish(key, _bake(world))
 
 
 def pending() -> bool:
     """Whether a background bake is running."""
-    with _lock:
-        return any(job.is_alive() for job in _JOBS.values())
-
-
-def _cached(key: str) -> np.ndarray | None:
-    with _lock:
-        pixels = _CACHE.get(key)
-    if pixels is not None:
-        return pixels
-    disk = _cache_dir() / f"{key}.npy"
-    if disk.is_file():
-        try:
-            pixels = np.load(disk)
-        except (OSError, ValueError):
-            return None
-        with _lock:
-            _CACHE[key] = pixels
-    return pixels
+    return STORE.pending()
 
 
 def _finish(key: str, pixels: np.ndarray | None) -> np.ndarray | None:
-    """Keep a finished bake in memory and on disk (any thread: numpy and files only)."""
-    if pixels is None:
-        return None
-    try:
-        disk = _cache_dir() / f"{key}.npy"
-        disk.parent.mkdir(parents=True, exist_ok=True)
-        np.save(disk, pixels)
-    except OSError as err:
-        log.debug("world map not cached on disk: %s", err)
-    with _lock:
-        _CACHE[key] = pixels
-        while len(_CACHE) > KEPT:
-            _CACHE.pop(next(iter(_CACHE)))
-    return pixels
+    """Keep a finished bake (any thread: numpy and files only); None passes through."""
+    return None if pixels is None else STORE.put(key, pixels)
 
 
 def _start(world, key: str) -> None:
     """Bake on a thread (main thread: the world is written out here, the thread only waits)."""
-    with _lock:
-        job = _JOBS.get(key)
-        if job is not None and job.is_alive():
-            return
+    if STORE.running(key):
+        return
     tmp = tempfile.mkdtemp(prefix="hybridgi_world_")
     cmd, out = _command(world, tmp)
     name = world.name
 
-    def run():
-        global completed
+    def work():
         try:
             _finish(key, _run(cmd, out, name))
         finally:
-            with _lock:
-                completed += 1
             shutil.rmtree(tmp, ignore_errors=True)
 
-    job = threading.Thread(target=run, name="hybridgi-world-bake", daemon=True)
-    with _lock:
-        _JOBS[key] = job
     log.info("world %r: baking its map in the background", name)
-    job.start()
+    STORE.start(key, work, "hybridgi-world-bake")
 
 
 def _command(world, tmp: str) -> tuple[list[str], str]:

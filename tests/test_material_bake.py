@@ -190,7 +190,7 @@ def test_an_edited_ramp_bakes_again_an_unchanged_one_does_not(bpy_module, empty_
     first = sync.snapshot_from_depsgraph(depsgraph).materials[0]
     assert first.texture is not None and first.bake_id is not None
     assert material_bake.cached(first.bake_id) is not None
-    material_bake._CACHE.clear()  # the disk copy alone must serve the next sync
+    material_bake.STORE.forget_memory()  # the disk copy alone must serve the next sync
     again = sync.snapshot_from_depsgraph(bpy.context.evaluated_depsgraph_get()).materials[0]
     assert again.bake_id == first.bake_id
     np.testing.assert_allclose(again.texture, first.texture, atol=1e-3)  # float16 on disk
