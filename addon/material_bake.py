@@ -136,28 +136,9 @@ def used_texels(n_triangles: int, size: int) -> np.ndarray:
 # --- content keys --------------------------------------------------------------------------
 
 
-def _tree_digest(digest, tree, seen) -> None:
-    """Everything a node tree's output depends on, node groups followed (world_bake's fields)."""
-    if tree is None or tree.name_full in seen:
-        return
-    seen.add(tree.name_full)
-    world_bake.tree_digest(digest, tree)
-    for node in tree.nodes:
-        ramp = getattr(node, "color_ramp", None)
-        if ramp is not None:  # its stops are not node properties the tree digest sees
-            digest.update(repr((ramp.interpolation, ramp.color_mode, ramp.hue_interpolation,
-                                [(e.position, tuple(e.color)) for e in ramp.elements])).encode())
-        mapping = getattr(node, "mapping", None)
-        if mapping is not None and hasattr(mapping, "curves"):
-            digest.update(repr([[tuple(p.location) for p in c.points] for c in mapping.curves]).encode())
-        group = getattr(node, "node_tree", None)
-        if group is not None:
-            _tree_digest(digest, group, seen)
-
-
 def job_key(job: BakeJob) -> str:
     digest = hashlib.sha256(f"{VERSION}|{bpy.app.version_string}|{job.node}|{job.socket}|{job.size}".encode())
-    _tree_digest(digest, job.material.node_tree, set())
+    world_bake.tree_digest(digest, job.material.node_tree)
     if not job.dynamic:
         digest.update(np.ascontiguousarray(job.positions).tobytes())
     digest.update(f"{job.triangles}|{job.dynamic}".encode())

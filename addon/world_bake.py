@@ -110,9 +110,14 @@ def world_key(world) -> str:
     return digest.hexdigest()[:32]
 
 
-def tree_digest(digest, tree) -> None:
-    """Feed `digest` with one node tree's nodes (settings, socket values, images) and links
-    (`material_bake` keys material trees the same way)."""
+def tree_digest(digest, tree, seen: set | None = None) -> None:
+    """Feed `digest` with everything a node tree's output depends on: its nodes (settings, socket
+    values, images, Color Ramp stops and curve points, which are not node properties) and links,
+    node groups followed once each (`material_bake` keys material trees the same way)."""
+    seen = set() if seen is None else seen
+    if tree is None or tree.name_full in seen:
+        return
+    seen.add(tree.name_full)
     for node in sorted(tree.nodes, key=lambda n: n.name):
         digest.update(f"{node.bl_idname}|{node.name}|{node.mute}".encode())
         for prop in node.bl_rna.properties:
@@ -140,6 +145,17 @@ def tree_digest(digest, tree) -> None:
     for link in tree.links:
         digest.update(f"{link.from_node.name}.{link.from_socket.identifier}->{link.to_node.name}."
                       f"{link.to_socket.identifier}|{link.is_muted}".encode())
+    for node in tree.nodes:
+        ramp = getattr(node, "color_ramp", None)
+        if ramp is not None:
+            digest.update(repr((ramp.interpolation, ramp.color_mode, ramp.hue_interpolation,
+                                [(e.position, tuple(e.color)) for e in ramp.elements])).encode())
+        mapping = getattr(node, "mapping", None)
+        if mapping is not None and hasattr(mapping, "curves"):
+            digest.update(repr([[tuple(p.location) for p in c.points] for c in mapping.curves]).encode())
+        group = getattr(node, "node_tree", None)
+        if group is not None:
+            tree_digest(digest, group, seen)
 
 
 def bake_world(world, wait: bool = True, key: str | None = None) -> np.ndarray | None:
