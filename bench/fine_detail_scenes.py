@@ -45,48 +45,44 @@ def _material(name, color):
     return mat
 
 
-def _box(scene, name, lo, hi, material, rot_z=0.0):
-    """An axis-aligned box from corner lo to corner hi (metres), optionally turned about Z."""
+def _mesh_object(scene, name, build, material, location, smooth=False):
+    """An object of a mesh that `build(bm)` makes with bmesh, in `material`, at `location`."""
     bm = bmesh.new()
-    bmesh.ops.create_cube(bm, size=1.0)
+    build(bm)
     mesh = bpy.data.meshes.new(name)
     bm.to_mesh(mesh)
     bm.free()
-    mesh.materials.append(material)
-    obj = bpy.data.objects.new(name, mesh)
-    obj.location = [(a + b) / 2 for a, b in zip(lo, hi, strict=True)]
-    obj.scale = [max(b - a, 1e-4) for a, b in zip(lo, hi, strict=True)]
-    obj.rotation_euler = (0.0, 0.0, rot_z)
-    scene.collection.objects.link(obj)
-    return obj
-
-
-def _cylinder(scene, name, x, y, radius, height, material, z0=0.0, segments=16):
-    bm = bmesh.new()
-    bmesh.ops.create_cone(bm, cap_ends=True, segments=segments, radius1=radius, radius2=radius, depth=height)
-    mesh = bpy.data.meshes.new(name)
-    bm.to_mesh(mesh)
-    bm.free()
-    mesh.materials.append(material)
-    obj = bpy.data.objects.new(name, mesh)
-    obj.location = (x, y, z0 + height / 2)
-    scene.collection.objects.link(obj)
-    return obj
-
-
-def _sphere(scene, name, location, radius, material):
-    bm = bmesh.new()
-    bmesh.ops.create_uvsphere(bm, u_segments=32, v_segments=16, radius=radius)
-    mesh = bpy.data.meshes.new(name)
-    bm.to_mesh(mesh)
-    bm.free()
-    for poly in mesh.polygons:
-        poly.use_smooth = True
+    if smooth:
+        for poly in mesh.polygons:
+            poly.use_smooth = True
     mesh.materials.append(material)
     obj = bpy.data.objects.new(name, mesh)
     obj.location = location
     scene.collection.objects.link(obj)
     return obj
+
+
+def _box(scene, name, lo, hi, material, rot_z=0.0):
+    """An axis-aligned box from corner lo to corner hi (metres), optionally turned about Z."""
+    centre = [(a + b) / 2 for a, b in zip(lo, hi, strict=True)]
+    obj = _mesh_object(scene, name, lambda bm: bmesh.ops.create_cube(bm, size=1.0), material, centre)
+    obj.scale = [max(b - a, 1e-4) for a, b in zip(lo, hi, strict=True)]
+    obj.rotation_euler = (0.0, 0.0, rot_z)
+    return obj
+
+
+def _cylinder(scene, name, x, y, radius, height, material, z0=0.0, segments=16):
+    def build(bm):
+        bmesh.ops.create_cone(bm, cap_ends=True, segments=segments, radius1=radius, radius2=radius, depth=height)
+
+    return _mesh_object(scene, name, build, material, (x, y, z0 + height / 2))
+
+
+def _sphere(scene, name, location, radius, material):
+    def build(bm):
+        bmesh.ops.create_uvsphere(bm, u_segments=32, v_segments=16, radius=radius)
+
+    return _mesh_object(scene, name, build, material, location, smooth=True)
 
 
 def _camera(scene, location, target, lens=24.0):
