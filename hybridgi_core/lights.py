@@ -30,6 +30,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from . import polygon_light
 from .snapshot import Light
 from .trace import Tracer
 
@@ -42,6 +43,11 @@ CHUNK_RAYS = 1 << 14
 #: Sheared area lamps only (area sampling): a sample closer than this fraction of its patch size,
 #: sqrt(A / samples), counts as that far away, keeping the 1/d^2 estimate finite on the lamp.
 AREA_MIN_DISTANCE_FRACTION = 1e-2
+#: Fewest shadow samples per receiver for which an area lamp's direct light is the closed-form
+#: unshadowed irradiance times the samples' visibility ratio (`polygon_light`). With fewer (probe
+#: hits take one), a sample that misses a disc or falls behind the horizon would leave no
+#: visibility to scale by: the plain estimate stays.
+RATIO_MIN_SAMPLES = 4
 
 _F32 = np.float32
 
@@ -410,6 +416,7 @@ def _area_chunk(light, shape, p, nrm, tracer, rng, samples, epsilon):
         a = (xu - x0.astype(_F32)[:, None]) * _F32(2.0 / shape.len_u) - _F32(1.0)
         b = (yv - y0.astype(_F32)[:, None]) * _F32(2.0 / shape.len_v) - _F32(1.0)
         f *= a * a + b * b <= 1.0
+    unshadowed = f.sum(axis=1) if samples >= RATIO_MIN_SAMPLES else None
     if tracer is not None:
         lit = np.flatnonzero(f > 0)
         if lit.size:
@@ -433,10 +440,27 @@ def _area_chunk(light, shape, p, nrm, tracer, rng, samples, epsilon):
                 f.ravel()[lit[ray[blocked]]] = 0.0
     # Solid-angle sampling: each sample estimates L * S * cos_r, bounded by 2 pi L.
     total = f.sum(axis=1) * (solid_angle * (radiance / samples)).astype(_F32)
+    if unshadowed is not None:
+        total = _analytic_times_visibility(shape, radiance, p, nrm, live, every, total, f.sum(axis=1), unshadowed)
     if every:
         return total
     e[live] = total
     return e
+
+
+def _analytic_times_visibility(shape, radiance, p, nrm, live, every, estimate, shadowed, unshadowed):
+    """The ratio estimator of `polygon_light` (Heitz et al. 2018): the lamp's exact unshadowed
+    irradiance times the share of the samples' unshadowed contribution that reached it. Where
+    no sample saw the lamp unshadowed (all behind the horizon or outside an ellipse) the plain
+    estimate stays."""
+    rows = live if not every else slice(None)
+    points = np.stack([q[rows] for q in p], axis=1)
+    normals = np.stack([q[rows] for q in nrm], axis=1)
+    polygon = polygon_light.lamp_polygon(shape.centre, shape.half_u, shape.half_v, shape.round)
+    exact = polygon_light.cosine_solid_angle(polygon, points, normals) * radiance
+    seen = unshadowed > 0
+    ratio = np.divide(shadowed, unshadowed, out=np.zeros_like(shadowed), where=seen)
+    return np.where(seen, exact * ratio, estimate).astype(_F32)
 
 
 def _sample_spherical_rectangle(x0, y0, z0, len_x, len_y, u, v):
