@@ -52,6 +52,8 @@ SEED_OFFSET = 2
 NOISE_SIGMA = 2.0
 #: B3-spline taps of one a-trous pass (5 x 5, Dammertz et al. 2010).
 _B3 = np.array([1.0, 4.0, 6.0, 4.0, 1.0], np.float32) / 16.0
+#: Fewest rows of own pixels a band must add to its halos for the filter to split the image.
+BAND_MIN_ROWS = 32
 
 
 @dataclass
@@ -226,7 +228,7 @@ def _chunk(system, lookup: HitLookup | None, p, nrm, corner_visible, rays, rng):
 def filter_residual(residual: np.ndarray, position: np.ndarray, normal: np.ndarray, valid: np.ndarray,
                     camera: np.ndarray, passes: int = 3, plane_sigma: float = 0.02,
                     normal_power: float = 8.0, variance: np.ndarray | None = None,
-                    noise_sigma: float = NOISE_SIGMA) -> np.ndarray:
+                    noise_sigma: float = NOISE_SIGMA, pool=None) -> np.ndarray:
     """Edge-aware a-trous filter of an (h, w, 7) image of residuals (direct rgb, indirect rgb, AO)
     at the GI resolution.
 
@@ -242,11 +244,18 @@ def filter_residual(residual: np.ndarray, position: np.ndarray, normal: np.ndarr
     deviations of the noise (SVGF, Schied et al. 2017; the variance filtered along with the
     image): a contact's correction on a plane stays at the contact instead of spreading over
     the plane, while the noise around it averages out.
+
+    pool : an executor; given, bands of rows are filtered on it side by side (each with a halo
+    of the rows the passes reach, so the result is the same as in one piece).
     """
+    h, w = valid.shape
+    halo = 2 * ((1 << max(passes, 0)) - 1)
+    if pool is not None and passes > 0 and h >= 4 * halo + BAND_MIN_ROWS:
+        return _filter_in_bands(pool, halo, residual, position, normal, valid, camera, passes, plane_sigma,
+                                normal_power, variance, noise_sigma)
     out = np.where(valid[..., None], residual, 0.0).astype(np.float32)
     if passes <= 0:
         return out
-    h, w = valid.shape
     # Channel-first planes: every tap is a few whole-image multiply-adds on contiguous rows.
     pos = np.ascontiguousarray(np.moveaxis(np.asarray(position, np.float32), -1, 0))
     nrm = np.ascontiguousarray(np.moveaxis(np.asarray(normal, np.float32), -1, 0))
@@ -279,15 +288,17 @@ def filter_residual(residual: np.ndarray, position: np.ndarray, normal: np.ndarr
                 qp, qn = pp[:, ys, xs], pn[:, ys, xs]
                 plane = (qp[0] * nrm[0] + qp[1] * nrm[1] + qp[2] * nrm[2] - own) * inv_sigma
                 cos = np.maximum(qn[0] * nrm[0] + qn[1] * nrm[1] + qn[2] * nrm[2], 0.0)
-                wt = np.exp(-plane * plane) * cos**normal_power
+                wt = _power(cos, normal_power)
                 wt *= pv[ys, xs] * np.float32(_B3[dy] * _B3[dx])
                 if var is None:
+                    wt *= np.exp(-plane * plane)
                     acc += wt * pr[:, ys, xs]
                     wsum += wt
                     continue
-                # One weight for the colour channels (luminance guide), one for AO.
+                # One weight for the colour channels (luminance guide), one for AO; the plane
+                # and range terms share one exp.
                 diff = pg[:, ys, xs] - guide
-                wt2 = wt * np.exp(-(diff * diff) / (k2 * (var + pvar[:, ys, xs]) + np.float32(1e-12)))
+                wt2 = wt * np.exp(-(diff * diff) / (k2 * (var + pvar[:, ys, xs]) + np.float32(1e-12)) - plane * plane)
                 acc[0:6] += wt2[0] * pr[0:6, ys, xs]
                 acc[6] += wt2[1] * pr[6, ys, xs]
                 acc_var += wt2 * wt2 * pvar[:, ys, xs]
@@ -299,6 +310,33 @@ def filter_residual(residual: np.ndarray, position: np.ndarray, normal: np.ndarr
         if var is not None:
             var = acc_var / (total * total) * vf
     return np.ascontiguousarray(np.moveaxis(img, 0, -1))
+
+
+def _power(x: np.ndarray, exponent: float) -> np.ndarray:
+    """x ** exponent, by squarings when the exponent is a power of two (the default 8: three
+    multiplies instead of a transcendental pow per tap)."""
+    e = float(exponent)
+    if e >= 1 and e == int(e) and int(e) & (int(e) - 1) == 0:
+        y = x
+        for _ in range(int(e).bit_length() - 1):
+            y = y * y
+        return y
+    return x**e
+
+
+def _filter_in_bands(pool, halo, residual, position, normal, valid, camera, passes, plane_sigma, normal_power,
+                     variance, noise_sigma):
+    """`filter_residual` over two bands of rows on the pool, each with `halo` extra rows."""
+    h = valid.shape[0]
+    cuts = [0, h // 2, h]
+    jobs = []
+    for a, b in zip(cuts[:-1], cuts[1:], strict=True):
+        lo, hi = max(a - halo, 0), min(b + halo, h)
+        rows = slice(lo, hi)
+        jobs.append((a - lo, b - lo, pool.submit(
+            filter_residual, residual[rows], position[rows], normal[rows], valid[rows], camera, passes,
+            plane_sigma, normal_power, None if variance is None else variance[rows], noise_sigma)))
+    return np.concatenate([job.result()[i:j] for i, j, job in jobs], axis=0)
 
 
 def gi_images(system, position_lo: np.ndarray, normal_lo: np.ndarray, pix: np.ndarray, points: np.ndarray,
@@ -324,7 +362,7 @@ def gi_images(system, position_lo: np.ndarray, normal_lo: np.ndarray, pix: np.nd
     var[pix] = gi.variance
     filtered = filter_residual(res.reshape(h, w, 7), pos.reshape(h, w, 3), nrm.reshape(h, w, 3),
                                valid.reshape(h, w), camera, passes, plane_sigma, normal_power,
-                               variance=var.reshape(h, w, 2)).reshape(h * w, 7)
+                               variance=var.reshape(h, w, 2), pool=system.updater.pool).reshape(h * w, 7)
     gi.steps_ms["filter"] = (time.perf_counter() - tic) * 1e3
     value = np.zeros((h * w, 7), np.float32)
     value[pix] = cache + filtered[pix]
