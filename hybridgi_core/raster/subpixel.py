@@ -257,7 +257,8 @@ class FilmAccumulator:
     def set_sums(self, sums: dict[str, np.ndarray], count: int) -> None:
         """Take the sums of `count` subframes summed elsewhere (accumulate.AccumulatePass, the GPU
         twin of `add`): the names `read` knows, except depth."""
-        self._sums = {name: np.asarray(v, np.float64) for name, v in sums.items()}
+        # float32 as the GPU summed them: no copies of every full-resolution pass.
+        self._sums = {name: np.asarray(v, np.float32) for name, v in sums.items()}
         self.count = int(count)
 
     def set_depth(self, depth: np.ndarray) -> None:
@@ -287,13 +288,14 @@ class FilmAccumulator:
 def _divide_even(light: np.ndarray, color: np.ndarray, count: int) -> np.ndarray:
     """light / color per channel, as Cycles' `safe_divide_even_color`: a channel whose colour is 0
     takes the mean ratio of the pixel's other channels, a black pixel 0. Alpha: the average."""
-    out = np.zeros(light.shape, np.float64)
+    out = np.zeros(light.shape, np.float32)
     c = color[..., :3]
     ok = c > 0
-    ratio = np.divide(light[..., :3], c, out=np.zeros_like(c), where=ok)
-    valid = ok.sum(axis=-1, keepdims=True)
-    mean = np.divide(ratio.sum(axis=-1, keepdims=True), valid, out=np.zeros(valid.shape), where=valid > 0)
+    ratio = np.divide(light[..., :3], c, out=np.zeros(c.shape, np.float32), where=ok)
+    valid = ok.sum(axis=-1, keepdims=True, dtype=np.float32)
+    mean = np.divide(ratio.sum(axis=-1, keepdims=True), valid, out=np.zeros(valid.shape, np.float32),
+                     where=valid > 0)
     out[..., :3] = np.where(ok, ratio, mean)
     if light.shape[-1] > 3:
-        out[..., 3:] = light[..., 3:] / count
-    return out.astype(np.float32)
+        out[..., 3:] = light[..., 3:] / np.float32(count)
+    return out
