@@ -962,11 +962,15 @@ def read_world(world, wait=True):
     found = _world_split(world, node, wait)
     if found is not None:
         split, strength = found
-        log.info("world %r: %s and a sky of L2 spherical harmonics", world.name,
+        log.info("world %r: %s and a sky map", world.name,
                  "a shadowed sun" if split.sun_direction is not None else "no sun")
         sun = _sun_light(split, strength, world.name)
+        sky_map = None
+        if split.sky_map is not None:
+            sky_map = environment.SkyMap(split.sky_map * np.float32(strength), split.to_world)
         return snap.World(color=(split.sky * strength).astype(np.float32), ao_distance=ao_distance,
-                          sky_sh=(split.sky_sh * strength).astype(np.float32)), [sun] if sun is not None else []
+                          sky_sh=(split.sky_sh * strength).astype(np.float32),
+                          sky_map=sky_map), [sun] if sun is not None else []
     if node.type != "BACKGROUND":
         log.warning("world %r: %s could not be read; using the viewport colour", world.name, node.bl_idname)
         return snap.World(color=_rgb(world.color), ao_distance=ao_distance), []

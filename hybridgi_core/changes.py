@@ -221,7 +221,9 @@ def _material_key(material: Material) -> tuple:
 
 
 def _world_key(world: World) -> tuple:
-    return world.color.tobytes(), float(world.ao_distance), None if world.sky_sh is None else world.sky_sh.tobytes()
+    sky_map = getattr(world.sky_map, "pixels", None)
+    return (world.color.tobytes(), float(world.ao_distance), None if world.sky_sh is None else world.sky_sh.tobytes(),
+            None if sky_map is None else hash(sky_map.tobytes()))
 
 
 def _relative_change(a, b) -> float:

@@ -29,6 +29,8 @@ SUN_THRESHOLD = 0.02
 SUN_MIN_SHARE = 0.2
 #: Rec.709 luminance weights.
 LUMA = np.array([0.2126, 0.7152, 0.0722], np.float64)
+#: Rows of the equirectangular sky map rays read (columns: twice as many); ~2.8 degrees a texel.
+SKY_MAP_ROWS = 64
 
 
 @dataclass(frozen=True)
@@ -38,7 +40,10 @@ class EnvironmentSplit:
     sun_angle : radians, angular diameter of the region (the SUN lamp's angle)
     sky : (3,) radiance of the uniform sky that stands for the rest of the map (the mean a
         surface facing up receives)
-    sky_sh : (9, 3) L2 radiance SH of the rest of the map (what probe rays that escape read)
+    sky_sh : (9, 3) L2 radiance SH of the rest of the map
+    sky_map : (SKY_MAP_ROWS, 2 SKY_MAP_ROWS, 3) float32 the rest of the map (the sun region
+        filled), area-averaged down (maps no larger keep their pixels): what rays that escape read
+        (`SkyMap`)
     """
 
     sun_direction: np.ndarray | None
@@ -46,6 +51,8 @@ class EnvironmentSplit:
     sun_angle: float
     sky: np.ndarray
     sky_sh: np.ndarray
+    sky_map: np.ndarray | None = None
+    to_world: np.ndarray | None = None  # (3, 3) the map's texture -> world directions, as given
 
 
 def equirect_directions(height: int, width: int) -> tuple[np.ndarray, np.ndarray]:
@@ -102,4 +109,63 @@ def split_environment(pixels: np.ndarray, to_world: np.ndarray | None = None) ->
     sky = (filled * up[..., None]).sum(axis=(0, 1)) / max(float(up.sum()), 1e-12)
     flat = dirs.reshape(-1, 3)
     sky_sh = basis(flat, 2).astype(np.float64).T @ (filled.reshape(-1, 3) * weight.reshape(-1, 1))
-    return EnvironmentSplit(sun, irradiance.astype(np.float32), angle, sky.astype(np.float32), sky_sh.astype(np.float32))
+    return EnvironmentSplit(sun, irradiance.astype(np.float32), angle, sky.astype(np.float32), sky_sh.astype(np.float32),
+                            sky_map=downsample_equirect(filled, solid, SKY_MAP_ROWS),
+                            to_world=None if to_world is None else np.asarray(to_world, np.float64))
+
+
+def downsample_equirect(pixels: np.ndarray, solid: np.ndarray, rows: int) -> np.ndarray:
+    """(rows, 2 rows, 3) float32 solid-angle-weighted means of an (h, w, 3) equirectangular map
+    (solid (h,): a pixel's solid angle in each row) over the coarser map's texels, in the same
+    layout; maps smaller than that keep their own pixels."""
+    h, w = pixels.shape[:2]
+    if h <= rows:
+        return np.asarray(pixels, np.float32)
+    r = (np.arange(h) * rows) // h
+    c = (np.arange(w) * 2 * rows) // w
+    cell = (r[:, None] * 2 * rows + c[None, :]).ravel()
+    wt = np.broadcast_to(solid[:, None], (h, w)).ravel()
+    count = rows * 2 * rows
+    total = np.bincount(cell, weights=wt, minlength=count)
+    out = np.stack([np.bincount(cell, weights=pixels[..., k].ravel() * wt, minlength=count) for k in range(3)], axis=1)
+    return (out / np.maximum(total, 1e-30)[:, None]).reshape(rows, 2 * rows, 3).astype(np.float32)
+
+
+class SkyMap:
+    """An equirectangular radiance map read bilinearly in world directions.
+
+    Why not the L2 SH alone: a room sees the sky through a window or a door, and an outdoor
+    scene's ground sees the bright horizon, directions where nine coefficients ring or clip; rays
+    (probe and pixel) that escape read the map itself, as Cycles does.
+
+    pixels : (h, w, 3) float32 in Blender's layout (`equirect_directions`); to_world : (3, 3)
+    texture -> world directions (a Mapping node's inverse), or None.
+    """
+
+    def __init__(self, pixels: np.ndarray, to_world: np.ndarray | None = None):
+        self.pixels = np.ascontiguousarray(pixels, np.float32)
+        self.to_texture = None if to_world is None else np.linalg.inv(np.asarray(to_world, np.float64)).astype(np.float32)
+
+    def radiance(self, directions: np.ndarray) -> np.ndarray:
+        """(n, 3) float32 radiance towards unit world directions (n, 3)."""
+        d = np.asarray(directions, np.float32).reshape(-1, 3)
+        if self.to_texture is not None:
+            d = d @ self.to_texture.T
+        h, w = self.pixels.shape[:2]
+        x, y, z = d[:, 0], d[:, 1], d[:, 2]
+        norm = np.sqrt(x * x + y * y + z * z)
+        u = (np.float32(np.pi) - np.arctan2(y, x)) * np.float32(0.5 / np.pi)
+        v = np.float32(0.5) + np.arcsin(np.clip(z / np.maximum(norm, np.float32(1e-30)), -1.0, 1.0)) * np.float32(1.0 / np.pi)
+        fx = u * np.float32(w) - np.float32(0.5)
+        fy = np.clip(v * np.float32(h) - np.float32(0.5), 0.0, np.float32(h - 1))
+        x0 = np.floor(fx)
+        y0 = np.minimum(np.floor(fy), np.float32(max(h - 2, 0)))
+        tx, ty = (fx - x0)[:, None], (fy - y0)[:, None]
+        c0 = x0.astype(np.int64) % w
+        c1 = (c0 + 1) % w
+        r0 = y0.astype(np.int64)
+        r1 = np.minimum(r0 + 1, h - 1)
+        p = self.pixels
+        top = p[r0, c0] * (1 - tx) + p[r0, c1] * tx
+        bottom = p[r1, c0] * (1 - tx) + p[r1, c1] * tx
+        return (top * (1 - ty) + bottom * ty).astype(np.float32)

@@ -190,11 +190,14 @@ class World:
     sky_sh : (9, 3) float32 L2 radiance SH of a sky that varies with direction (an environment
         map without its sun, `environment.split_environment`), or None for a uniform `color`
         (which then still holds its mean over the upper hemisphere, for the background).
+    sky_map : `environment.SkyMap` of the same sky, or None: rays read it where given (the SH
+        stays for what needs a smooth sky).
     """
 
     color: np.ndarray = field(default_factory=lambda: np.zeros(3, np.float32))
     ao_distance: float = 1.0
     sky_sh: np.ndarray | None = None
+    sky_map: object | None = None
 
     @property
     def any(self) -> bool:
@@ -203,6 +206,8 @@ class World:
 
     def radiance(self, directions: np.ndarray) -> np.ndarray:
         """(n, 3) float32 sky radiance towards unit `directions` (n, 3)."""
+        if self.sky_map is not None:
+            return self.sky_map.radiance(directions)
         if self.sky_sh is None:
             return np.broadcast_to(self.color.astype(np.float32), (directions.shape[0], 3))
         from .sh import basis  # noqa: PLC0415  (sh imports nothing from here; kept local for clarity)
