@@ -159,7 +159,7 @@ class HybridGISettings(bpy.types.PropertyGroup):
         "and width, Blackman-Harris 1.5 px by default, sampled as Cycles samples it) and averaged: anti-aliased edges and textures in every "
         "pass. The cache is converged once per frame; the direct light's shadow rays are split over the "
         "subframes. 1 = one sample at each pixel centre",
-        default=4, min=1, max=64, soft_max=16,
+        default=8, min=1, max=64, soft_max=16,
     )
 
     # Debugging.

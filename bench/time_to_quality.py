@@ -96,9 +96,9 @@ LADDER = (
                           "pixel_samples=1")),
     ("r24 x32 w4 p16 s2", ("resolution=24", "rays_per_cell=32", "warmup_iterations=4", "pixel_rays=16",
                            "pixel_samples=2")),
-    ("r32 x32 w8 p32 s4", ("resolution=32", "rays_per_cell=32", "warmup_iterations=8")),
-    ("r48 x64 w8 p32 s4 (default)", ()),
-    ("r48 x128 w16 p64 s8", ("rays_per_cell=128", "warmup_iterations=16", "pixel_rays=64", "pixel_samples=8")),
+    ("r32 x32 w8 p32 s4", ("resolution=32", "rays_per_cell=32", "warmup_iterations=8", "pixel_samples=4")),
+    ("r48 x64 w8 p32 s8 (default)", ()),
+    ("r48 x128 w16 p64 s16", ("rays_per_cell=128", "warmup_iterations=16", "pixel_rays=64", "pixel_samples=16")),
     ("r48 x256 w24 p128 s16", ("rays_per_cell=256", "warmup_iterations=24", "pixel_rays=128",
                                "pixel_samples=16")),
 )

@@ -14,6 +14,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .. import pixel_gather
+from ..lights import RATIO_MIN_SAMPLES
 from ..visible import pixels_to_points
 from .accumulate import AccumulatePass
 from .bilateral import BilateralPass
@@ -240,7 +241,8 @@ class FramePipeline:
                 with stats.step("direct"):
                     direct = subframe_direct(system, centre, position, normal,
                                              frame + s * SUBFRAME_SEED_STRIDE,
-                                             max(1, self.direct_samples // offsets.shape[0]))
+                                             max(min(self.direct_samples, RATIO_MIN_SAMPLES),
+                                                 self.direct_samples // offsets.shape[0]))
             with stats.step("direct"):
                 self._direct_tex = upload_texture_2d(direct.reshape(self.height, self.width, 4), "RGBA32F")
             shaded = self.shade(gbuf, low, view, proj, self._direct_tex,
