@@ -176,3 +176,28 @@ def test_a_subframe_traces_shadow_rays_only_where_it_sees_another_surface():
     assert got[1, :3].tolist() == [7.0] * 3 and got[2, :3].tolist() == [7.0] * 3
     assert not got[3].any()
     assert system.calls == [(2, 3, 4)]
+
+
+def test_a_shadow_boundary_on_one_surface_is_traced_again_in_every_subframe():
+    """A sun's shadow edge across one plane: the pixels on both sides of the step are light edges
+    and get their own shadow rays in a subframe; pixels away from it reuse the centre's light."""
+    from hybridgi_core.raster.subpixel import CentreSample, light_edges, subframe_direct
+
+    class System:
+        def direct(self, points, normals, frame, samples):
+            return np.full((points.shape[0], 3), 0.5, np.float32)
+
+    h, w = 1, 6
+    position0 = np.zeros((h, w, 4), np.float32)
+    position0[0, :, 0] = np.arange(w)
+    position0[0, :, 2] = -5.0
+    position0[..., 3] = 1.0
+    normal0 = np.tile(np.array([0, 0, 1, 0], np.float32), (h, w, 1))
+    depth0 = np.full((h, w, 1), 5.0, np.float32)
+    lit = np.array([1.0, 1.0, 1.0, 0.0, 0.0, 0.0], np.float32)  # the shadow starts at pixel 3
+    direct0 = np.zeros((h * w, 4), np.float32)
+    direct0[:, :3] = lit[:, None]
+    assert light_edges(lit.reshape(h, w)).ravel().tolist() == [False, False, True, True, False, False]
+    centre = CentreSample.from_gbuffer(direct0, position0, normal0, depth0)
+    got = subframe_direct(System(), centre, position0.copy(), normal0.copy(), seed_frame=1, samples=4)
+    assert got[:, 0].tolist() == [1.0, 1.0, 0.5, 0.5, 0.0, 0.0]

@@ -169,6 +169,8 @@ def jittered_projection(proj: np.ndarray, offset, width: int, height: int) -> np
 SAME_COS = 0.95
 SAME_PLANE = 0.005
 SAME_REACH = 0.05
+#: Relative lamp-light step between neighbouring centre pixels that marks a light edge (`light_edges`).
+LIGHT_EDGE_CONTRAST = 0.25
 
 
 def same_surface(position0: np.ndarray, normal0: np.ndarray, position: np.ndarray,
@@ -191,12 +193,37 @@ class CentreSample:
     position: np.ndarray  # (h * w, 4) float32 G-buffer position, w = 1 on geometry
     normal: np.ndarray  # (h * w, >= 3) float32 unit (xyz)
     depth: np.ndarray  # (h * w,) float32 view depth
+    light_edge: np.ndarray | None = None  # (h * w,) bool: a shadow or light boundary crosses the pixel
 
     @classmethod
     def from_gbuffer(cls, direct, position, normal, depth) -> CentreSample:
         """From the read-backs (h, w, 4) / (h, w, >= 3) / (h, w, 1) and the direct light."""
-        n = position.shape[0] * position.shape[1]
-        return cls(direct, position.reshape(n, -1), normal.reshape(n, -1), depth.reshape(n))
+        h, w = position.shape[:2]
+        n = h * w
+        return cls(direct, position.reshape(n, -1), normal.reshape(n, -1), depth.reshape(n),
+                   light_edges(np.asarray(direct)[:, :3].sum(axis=1).reshape(h, w)).reshape(n))
+
+
+def light_edges(light: np.ndarray, contrast: float = LIGHT_EDGE_CONTRAST) -> np.ndarray:
+    """(h, w) bool: pixels whose lamp light differs from a 4-neighbour's by more than `contrast`
+    of the larger of the two: a shadow's or a light's boundary crosses the pixel's footprint.
+
+    Why: a subframe that sees the centre's surface reuses the centre's light, which is right on a
+    smooth surface but leaves a sun's shadow on a floor as aliased as one sample per pixel (the
+    atrium's jagged column shadows held most of its Diffuse Direct error); these pixels are
+    traced again in every subframe, as silhouettes are.
+    """
+    light = np.asarray(light, np.float32)
+    edge = np.zeros(light.shape, bool)
+    for axis in (0, 1):
+        a = np.delete(light, -1, axis=axis)
+        b = np.delete(light, 0, axis=axis)
+        jump = np.abs(a - b) > np.float32(contrast) * np.maximum(np.maximum(a, b), np.float32(1e-12))
+        lo = [(0, 0), (0, 0)]
+        hi = [(0, 0), (0, 0)]
+        lo[axis], hi[axis] = (1, 0), (0, 1)
+        edge |= np.pad(jump, lo) | np.pad(jump, hi)
+    return edge
 
 
 def subframe_direct(system, centre: CentreSample, position: np.ndarray, normal: np.ndarray,
@@ -213,6 +240,8 @@ def subframe_direct(system, centre: CentreSample, position: np.ndarray, normal: 
     hit = pos[:, 3] > 0.5
     # Whole-image arrays (no gathers): the comparison is the bulk of a subframe's CPU work.
     same = hit & (centre.position[:, 3] > 0.5) & same_surface(centre.position, centre.normal, pos, nrm, centre.depth)
+    if centre.light_edge is not None:
+        same &= ~centre.light_edge
     direct = np.where(same[:, None], centre.direct, np.float32(0.0))
     fresh = np.flatnonzero(hit & ~same)
     if fresh.size:
