@@ -6,7 +6,8 @@ values (no bpy object survives in the snapshot), so the core's worker threads ca
 Conventions (Cycles', checked against its Diffuse Direct pass to < 1%): geometry in world space with modifiers, instances and
 geometry nodes applied; lights in Blender's units with colour x temperature, exposure and the
 diffuse factor folded into `color`/`power`, area-light sizes unscaled (the object's scale stays
-in the matrix); materials reduced to a Lambertian base colour (optionally an image) plus emission radiance.
+in the matrix); materials reduced to a Lambertian base colour (optionally an image) plus emission radiance, with
+a Principled BSDF's dielectric specular layer (`hybridgi_core.specular`) that weights the diffuse part.
 """
 
 import logging
@@ -16,6 +17,7 @@ import numpy as np
 
 from hybridgi_core import environment
 from hybridgi_core import snapshot as snap
+from hybridgi_core.specular import SpecularLayer
 
 from . import compat, material_bake, world_bake
 
@@ -276,8 +278,8 @@ class _SnapshotBuilder:
             parts.append("objects " + _listed(self.without_material) + " have no material (Cycles shows "
                          "Blender's default surface, a Principled BSDF with a specular layer)")
         if parts:
-            log.warning("%s: HybridGI renders their diffuse reflection only; Combined lacks the glossy part",
-                        "; ".join(parts))
+            log.warning("%s: HybridGI renders their diffuse reflection only (weighted by the specular layer as "
+                        "in Cycles); Combined lacks the glossy part", "; ".join(parts))
 
     def _local_mesh(self, obj):
         key = obj.data.as_pointer()
@@ -345,7 +347,9 @@ class _SnapshotBuilder:
         key = None if material is None else material.name_full
         index = self._material_index.get(key)
         if index is None:
-            converted = snap.Material() if material is None else material_from_blender(material, self._textures)
+            # No material: Cycles' default surface, a Principled BSDF (base 0.8, specular 0.5).
+            converted = (snap.Material(specular=SpecularLayer()) if material is None
+                         else material_from_blender(material, self._textures))
             index = self._material_index[key] = len(self.materials)
             self.materials.append(converted)
         return index
@@ -364,6 +368,7 @@ def material_from_blender(material, textures=None, baked=None, pending=False):
     textures = textures if textures is not None else _TextureCache()
     textures.baked = baked or {}
     textures.pending = pending
+    textures.specular = None
     name = material.name
     tree = material.node_tree
     if tree is None:
@@ -378,7 +383,7 @@ def material_from_blender(material, textures=None, baked=None, pending=False):
         return _grey(name)
     base, texture, emission, alpha = surface
     return snap.Material(name=name, base_color=base.astype(np.float32), texture=texture,
-                         emission=emission.astype(np.float32), alpha=alpha)
+                         emission=emission.astype(np.float32), alpha=alpha, specular=textures.specular)
 
 
 def _shader_surface(shader, textures, name, depth=0):
@@ -399,6 +404,10 @@ def _shader_surface(shader, textures, name, depth=0):
         specular = _input(shader, "Specular IOR Level", "Specular")
         if metallic > 0 or (specular is not None and _constant_value(specular, name) > 0):
             textures.glossy.add(name)
+        if textures.specular is None:
+            # The first Principled BSDF of a material layers the diffuse part of all of it (a Mix
+            # with a Diffuse BSDF then weights that part too: an approximation).
+            textures.specular = _specular_layer(shader, name, base, texture, metallic, transmission)
         base = base * weight * (1.0 + np.clip(coat, 0, 1) * (tint - 1.0))
         emission = _constant_color(shader.inputs["Emission Color"], name) * _constant_value(
             shader.inputs["Emission Strength"], name)
@@ -420,6 +429,23 @@ def _shader_surface(shader, textures, name, depth=0):
     if kind in ("MIX_SHADER", "ADD_SHADER") and depth < 8:
         return _mix_surface(shader, kind, textures, name, depth)
     return None
+
+
+def _specular_layer(shader, name, base, texture, metallic, transmission):
+    """`SpecularLayer` of a Principled BSDF: its roughness, IOR, Specular IOR Level and Tint and
+    its distribution (constant inputs; a linked one keeps its value, with a warning), weighted as
+    Cycles weights the dielectric layer; the metallic lobe's F0 is the (mean) base colour."""
+    metal = base if texture is None else base * texture.reshape(-1, 3).mean(axis=0)
+    metallic, transmission = float(np.clip(metallic, 0, 1)), float(np.clip(transmission, 0, 1))
+    level = _input(shader, "Specular IOR Level", "Specular")
+    tint = _input(shader, "Specular Tint")
+    colour_tint = tint is not None and hasattr(tint.default_value, "__len__")
+    return SpecularLayer(roughness=_constant_value(_input(shader, "Roughness"), name),
+                         ior=_constant_value(_input(shader, "IOR"), name) if _input(shader, "IOR") else 1.5,
+                         level=_constant_value(level, name) if level is not None else 0.5,
+                         tint=_constant_color(tint, name) if colour_tint else np.ones(3, np.float32),
+                         multiscatter=getattr(shader, "distribution", "MULTI_GGX") == "MULTI_GGX",
+                         weight=(1.0 - metallic) * (1.0 - transmission), metallic=metallic, metal_color=metal)
 
 
 def _mix_surface(shader, kind, textures, name, depth):
@@ -716,6 +742,7 @@ class _TextureCache:
         self.baked = {}  # (node name, input identifier) -> baked texture of the material being read
         self.pending = False
         self.glossy = set()  # materials with a specular layer HybridGI does not render
+        self.specular = None  # the specular layer of the material being read (SpecularLayer)
 
     def _read(self, image, material_name):
         if image is None:
