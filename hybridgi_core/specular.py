@@ -140,6 +140,53 @@ def tables():
     return np.clip(e, 0.0, 1.0), np.clip(e_avg, 0.0, 1.0), np.clip(s, 0.0, 1.0)
 
 
+@lru_cache(maxsize=1)
+def schlick_table() -> np.ndarray:
+    """(rough, mu) lobe-weighted mean of (1 - cos(h, i))^5, Cycles' ggx_gen_schlick_s at exponent
+    5: the metallic lobe's albedo is mix(F0, 1, this) (F82 tint's extra term ignored, as Cycles does)."""
+    s5 = np.zeros((S_SIZE, S_SIZE))
+    for i, r in enumerate(_grid(S_SIZE)):
+        for j, mu in enumerate(_grid(S_SIZE)):
+            w, cos_hi = _lobe_samples(r, mu)
+            s5[i, j] = (w * (1.0 - cos_hi) ** 5).sum() / max(w.sum(), 1e-30)
+    return np.clip(s5, 0.0, 1.0)
+
+
+def multiscatter_factor(fss, e, e_avg):
+    """Kulla & Conty's multiple-scattering factor as Cycles' microfacet_ggx_preserve_energy
+    applies it to a lobe of single-scattering albedo e: the BRDF's 1 + Fms (1 - E) / E and its
+    albedo's E + Fms (1 - E) are this factor times the single-scattering ones."""
+    fms = fss * e_avg / (1.0 - fss * (1.0 - e_avg))
+    return 1.0 + fms * (1.0 - e) / np.maximum(e, 1e-6)
+
+
+def metal_albedo(layer: SpecularLayer, mu) -> np.ndarray:
+    """(..., 3) directional albedo of the metallic lobe (F82 with a white tint: Schlick on F0 =
+    the base colour), not times its weight."""
+    mu = np.clip(np.asarray(mu, np.float64), 0.0, 1.0)
+    f0 = layer.metal_color.astype(np.float64)
+    s5 = _lerp_table(schlick_table(), [layer.roughness, mu])[..., None]
+    albedo = f0 + (1.0 - f0) * s5
+    if layer.multiscatter:
+        e_table, e_avg_table, _ = tables()
+        e = _lerp_table(e_table, [layer.roughness, mu])[..., None]
+        e_avg = float(_lerp_table(e_avg_table, [layer.roughness]))
+        albedo = albedo * e * multiscatter_factor(f0 + (1.0 - f0) / 21.0, e, e_avg)
+    return albedo
+
+
+def glossy_color(layer: SpecularLayer | None, mu) -> np.ndarray:
+    """(..., 3) Cycles' Glossy Color at cosines mu: the glossy closures' albedos times their
+    weights (the dielectric layer's and the metallic lobe's)."""
+    mu = np.asarray(mu, np.float64)
+    if layer is None:
+        return np.zeros((*mu.shape, 3))
+    out = layer.weight * layer_albedo(layer, mu)
+    if layer.metallic > 0:
+        out = out + layer.metallic * metal_albedo(layer, mu)
+    return out
+
+
 def _lerp_table(table: np.ndarray, coords: list) -> np.ndarray:
     """Multilinear lookup of a table over [0, 1]^d (coordinates clamped, as Cycles' lookup_table_read)."""
     coords = [np.clip(np.asarray(c, np.float64), 0.0, 1.0) for c in coords]
@@ -241,8 +288,7 @@ def layer_albedo(layer: SpecularLayer, mu) -> np.ndarray:
         f0_real = float(f0_from_ior(eta))
         s_avg = float(np.clip((fresnel_dielectric_fss(eta) - f0_real) / max(1.0 - f0_real, 1e-12), 0.0, 1.0))
         fss = f0 + (1.0 - f0) * s_avg
-        fms = fss * e_avg / (1.0 - fss * (1.0 - e_avg))
-        albedo = albedo * (e + fms * (1.0 - e))
+        albedo = albedo * e * multiscatter_factor(fss, e, e_avg)
     return albedo
 
 

@@ -14,6 +14,7 @@ import numpy as np
 from .cache import IrradianceCache
 from .cutout import Cutouts
 from .evaluate import Gathered, corner_visibility, gather
+from .glossy import GlossyMaterials, glossy_direct
 from .lights import direct_irradiance
 from .lod import decimate
 from .sampling import frame_rng
@@ -325,6 +326,17 @@ class GISystem:
                                          self.tracer, child, samples, eps)
                 for a, child in zip(starts, rng.spawn(len(starts)), strict=True)]
         return np.concatenate([j.result() for j in jobs])
+
+    def glossy(self, points: np.ndarray, normals: np.ndarray, to_eye: np.ndarray, rows: np.ndarray, frame: int,
+               samples: int | None = None) -> np.ndarray:
+        """Lamp radiance (n, 3) the glossy lobes of materials `rows` reflect towards the eye, with
+        shadow rays (`glossy.glossy_direct`; its own samples, seeded apart from `direct`'s)."""
+        materials = self.scene.materials
+        if getattr(self, "_glossy_key", None) is not materials:
+            self._glossy_materials, self._glossy_key = GlossyMaterials.from_materials(materials), materials
+        rng = frame_rng(self.settings.seed + 2, frame)
+        return glossy_direct(self.scene.lights, points, normals, to_eye, rows, self._glossy_materials, self.tracer,
+                             rng, samples=samples or self.settings.light_samples, epsilon=float(self.tracer.epsilon))
 
 
 def _moved_boxes(old, new, rows: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:

@@ -10,6 +10,7 @@ Targets (all bottom-up rows, world space, scene-linear):
 | 2    | position | RGBA32F | world position xyz, w = 1 on geometry, 0 on the background   |
 | 3    | emission | RGBA16F | emitted radiance W/(m^2 sr), a = 1                           |
 | 4    | depth    | R32F    | view-axis distance (Cycles' Depth pass), 1e10 on background  |
+| 5    | material | R32F    | material index + 1 (0 on the background): the CPU's glossy lobes |
 
 Everything else is 0 on the background. Geometry is uploaded once (`upload`); animated vertices
 replace only the position buffer (`update_positions`). One draw call per material.
@@ -45,6 +46,7 @@ GBUFFER_TARGETS = (
     ("position", "RGBA32F", 4),
     ("emission", "RGBA16F", 4),
     ("depth", "R32F", 1),
+    ("material", "R32F", 1),
 )
 
 
@@ -59,6 +61,7 @@ class GBuffer:
     depth: object
     width: int
     height: int
+    material: object = None
 
 
 #: `has_texture` bits of the G-buffer shader: the texture's rgb is the colour / its alpha cuts.
@@ -319,10 +322,10 @@ class GBufferPass(RasterPass):
         if t is None:
             raise RasterError("gbuffer: no targets (resize first)")
         return GBuffer(t["albedo"], t["normal"], t["position"], t["emission"], t["depth"],
-                       self.width, self.height)
+                       self.width, self.height, t["material"])
 
     def read(self, name: str, out: np.ndarray | None = None) -> np.ndarray:
-        """Target `name` (albedo|normal|position|emission|depth) as (h, w, c) float32, bottom-up."""
+        """Target `name` (albedo|normal|position|emission|depth|material) as (h, w, c) float32, bottom-up."""
         for slot, (tname, _fmt, ch) in enumerate(GBUFFER_TARGETS):
             if tname == name:
                 return read_framebuffer(self._fb, slot, self.width, self.height, ch, out=out)

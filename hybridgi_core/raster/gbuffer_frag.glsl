@@ -96,4 +96,5 @@ void main()
   out_position = vec4(world_pos, 1.0);
   out_emission = vec4(emission.rgb, 1.0);
   out_depth = view_depth(camera.view_z, world_pos);
+  out_material = float(material_row + 1);
 }

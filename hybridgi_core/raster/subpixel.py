@@ -260,6 +260,19 @@ class FilmAccumulator:
         self._sums = {name: np.asarray(v, np.float64) for name, v in sums.items()}
         self.count = int(count)
 
+    def set_glossy(self, radiance, colour, height: int, width: int) -> None:
+        """The glossy passes, from (h w, 4) radiance and Glossy Color of the centre raster (None:
+        no glossy lobes, both 0): "glossy_color" and "glossy_direct" (radiance / colour, Cycles'
+        division, 0 where the colour is), and radiance in "glossy" (part of Combined)."""
+        shape = (height, width, 3)
+        if radiance is None:
+            self._extra = {name: np.zeros(shape, np.float32) for name in ("glossy", "glossy_color", "glossy_direct")}
+            return
+        radiance = radiance[:, :3].reshape(shape)
+        colour = colour[:, :3].reshape(shape)
+        direct = np.divide(radiance, colour, out=np.zeros(shape, np.float32), where=colour > 1e-8)
+        self._extra = {"glossy": radiance, "glossy_color": colour, "glossy_direct": direct.astype(np.float32)}
+
     def set_depth(self, depth: np.ndarray) -> None:
         """The Depth pass: one point sample per pixel, not filtered (see the module docstring)."""
         self._depth = np.array(depth, np.float32)
@@ -273,6 +286,8 @@ class FilmAccumulator:
 
     def read(self, name: str) -> np.ndarray:
         """The pass `name` as (h, w, c) float32, rows bottom-up."""
+        if name in getattr(self, "_extra", {}):
+            return self._extra[name]
         if name == "depth":
             if self._depth is None:
                 raise KeyError("depth was never set")

@@ -1,0 +1,243 @@
+"""Glossy Direct: the lamps reflected by a Principled BSDF's GGX lobes at image pixels.
+
+Cycles' Glossy Direct is the lamp light its glossy closures reflect towards the camera, divided by
+Glossy Color (their albedo at the view angle, `specular.glossy_color`). The lobes are Cycles':
+the dielectric specular layer (Fresnel of the adjusted IOR remapped to F0..1, weight
+(1 - metallic)(1 - transmission)) and the metallic lobe (Schlick on F0 = base colour, the F82
+tint's white default), both GGX with height-correlated Smith masking and, for Multiscatter GGX,
+the multiple-scattering factor 1 + Fms (1 - E) / E of `microfacet_ggx_preserve_energy`.
+
+The lamps are sampled as `lights.direct_irradiance` samples them for the diffuse light, with shadow
+rays of their own: area lamps uniformly over their area, point and spot lamps over the disc of
+their radius facing the receiver, suns over their cone. Surfaces smoother than MIN_ROUGHNESS are
+not evaluated: Cycles finds their mirror images of lamps only through BSDF sampling.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from . import specular as sp
+from .lights import (
+    _area_points,
+    _area_shape,
+    _onb,
+    _shadow_to_targets,
+    concentric_disk,
+    spot_attenuation,
+    stratified_uv,
+)
+from .snapshot import Light
+
+_F32 = np.float32
+#: Receivers x samples per block (bounds the temporaries).
+CHUNK = 1 << 15
+#: Below this roughness a lobe is too sharp to meet a sampled lamp point (Cycles evaluates none).
+MIN_ROUGHNESS = 0.02
+
+
+@dataclass
+class GlossyMaterials:
+    """Per-material constants of the glossy lobes, indexed by material (row -1 = none).
+
+    rough, alpha2 : (m,) roughness and alpha^2; eta, f0_real : (m,) the layer's IOR and its F0;
+    f0 : (m, 3) the layer's tinted F0; weight, metallic : (m,) the lobes' weights; metal_f0 :
+    (m, 3); ms : (m,) Multiscatter GGX; fss, fss_metal : (m, 3) average Fresnels; e_avg : (m,).
+    """
+
+    rough: np.ndarray
+    alpha2: np.ndarray
+    eta: np.ndarray
+    f0_real: np.ndarray
+    f0: np.ndarray
+    weight: np.ndarray
+    metallic: np.ndarray
+    metal_f0: np.ndarray
+    ms: np.ndarray
+    fss: np.ndarray
+    fss_metal: np.ndarray
+    e_avg: np.ndarray
+    layers: list
+
+    @classmethod
+    def from_materials(cls, materials) -> GlossyMaterials:
+        layers = [getattr(m, "specular", None) for m in materials]
+        n = len(layers)
+        out = cls(*(np.zeros(n) for _ in range(4)), np.zeros((n, 3)), np.zeros(n), np.zeros(n), np.zeros((n, 3)),
+                  np.zeros(n, bool), np.zeros((n, 3)), np.zeros((n, 3)), np.ones(n), layers)
+        _, e_avg_table, _ = sp.tables()
+        for i, layer in enumerate(layers):
+            if layer is None or layer.roughness < MIN_ROUGHNESS:
+                continue
+            out.rough[i] = layer.roughness
+            out.alpha2[i] = layer.roughness**4
+            out.eta[i] = layer.eta if layer.eta >= 1.0 else 1.0 / layer.eta
+            out.f0_real[i] = float(sp.f0_from_ior(out.eta[i]))
+            out.weight[i] = layer.weight if layer.active else 0.0
+            out.f0[i] = layer.f0
+            out.metallic[i] = layer.metallic
+            out.metal_f0[i] = layer.metal_color
+            out.ms[i] = layer.multiscatter
+            s_avg = np.clip((sp.fresnel_dielectric_fss(out.eta[i]) - out.f0_real[i]) / max(1.0 - out.f0_real[i], 1e-12), 0, 1)
+            out.fss[i] = out.f0[i] + (1.0 - out.f0[i]) * s_avg
+            out.fss_metal[i] = out.metal_f0[i] + (1.0 - out.metal_f0[i]) / 21.0
+            out.e_avg[i] = float(sp._lerp_table(e_avg_table, [layer.roughness]))
+        return out
+
+    @property
+    def any(self) -> bool:
+        return bool(np.any((self.weight > 0) | (self.metallic > 0)))
+
+
+def lobes(mats: GlossyMaterials, rows, n, v, lx, ly, lz) -> np.ndarray:
+    """(m, s, 3) BRDF x cos(n, l) of the glossy lobes at m receivers towards s unit directions each.
+
+    rows : (m,) material index; n, v : (m, 3) unit normal and direction to the eye; lx, ly, lz :
+    (m, s) unit directions to the light. 0 where either direction is below the surface."""
+    a2 = mats.alpha2[rows][:, None]
+    mu_i = np.einsum("ij,ij->i", n, v)[:, None]
+    mu_o = lx * n[:, 0:1] + ly * n[:, 1:2] + lz * n[:, 2:3]
+    hx, hy, hz = lx + v[:, 0:1], ly + v[:, 1:2], lz + v[:, 2:3]
+    inv = 1.0 / np.maximum(np.sqrt(hx * hx + hy * hy + hz * hz), 1e-12)
+    hx, hy, hz = hx * inv, hy * inv, hz * inv
+    cos_nh = hx * n[:, 0:1] + hy * n[:, 1:2] + hz * n[:, 2:3]
+    cos_hi = np.clip(hx * v[:, 0:1] + hy * v[:, 1:2] + hz * v[:, 2:3], 0.0, 1.0)
+    ok = (mu_i > 1e-4) & (mu_o > 0) & (a2 > 0)
+    mu_i = np.maximum(mu_i, 1e-4)
+    mu_o_safe = np.where(ok, mu_o, 1.0)
+    d = a2 / (np.pi * (cos_nh * cos_nh * (a2 - 1.0) + 1.0) ** 2)
+    g2 = 1.0 / (1.0 + sp._lambda(a2, mu_i) + sp._lambda(a2, mu_o_safe))
+    common = np.where(ok, d * g2 / (4.0 * mu_i), 0.0)[..., None]  # f x cos(o) without Fresnel
+    e_table = sp.tables()[0]
+    e = sp._lerp_table(e_table, [mats.rough[rows], mu_i[:, 0]])[:, None]
+    ms = mats.ms[rows][:, None]
+    e_avg = mats.e_avg[rows][:, None]
+    f0, weight = mats.f0[rows][:, None, :], mats.weight[rows][:, None, None]
+    f0_real = mats.f0_real[rows][:, None]
+    remap = np.clip((sp.fresnel_dielectric(cos_hi, mats.eta[rows][:, None]) - f0_real)
+                    / np.maximum(1.0 - f0_real, 1e-12), 0.0, 1.0)
+    dielectric = f0 + (1.0 - f0) * remap[..., None]
+    scale = np.where(ms, sp.multiscatter_factor(mats.fss[rows], e, e_avg), 1.0)[:, None, :]
+    out = common * weight * scale * dielectric
+    metallic = mats.metallic[rows]
+    if np.any(metallic > 0):
+        fm0 = mats.metal_f0[rows][:, None, :]
+        schlick = fm0 + (1.0 - fm0) * ((1.0 - cos_hi) ** 5)[..., None]
+        scale_m = np.where(ms, sp.multiscatter_factor(mats.fss_metal[rows], e, e_avg), 1.0)[:, None, :]
+        out = out + common * metallic[:, None, None] * scale_m * schlick
+    return out
+
+
+def glossy_color(mats: GlossyMaterials, rows, mu) -> np.ndarray:
+    """(n, 3) float32 Glossy Color at receivers of materials `rows` seen at cosines `mu`."""
+    rows = np.asarray(rows)
+    out = np.zeros((rows.shape[0], 3))
+    for m, layer in enumerate(mats.layers):
+        sel = np.flatnonzero(rows == m)
+        if sel.size and layer is not None:
+            out[sel] = sp.glossy_color(layer, mu[sel])
+    return out.astype(_F32)
+
+
+def _lamp_samples(light: Light, p, rng, samples):
+    """(dirs (m, s, 3) unit receiver -> lamp, weight (m, s) radiance-to-radiance factor per sample
+    without the BRDF (L x dw / s, lamp colour aside), targets (m, s, 3) or None for a sun)."""
+    m = p.shape[0]
+    if light.kind == "AREA":
+        shape = _area_shape(light)
+        if shape.area <= 0:
+            return None
+        u, v = stratified_uv(rng, m, samples)
+        qx, qy, qz = _area_points(shape, u, v)
+        w = np.stack([qx - p[:, 0:1], qy - p[:, 1:2], qz - p[:, 2:3]], axis=-1)
+        d2 = np.maximum((w * w).sum(-1), 1e-8)
+        dirs = w / np.sqrt(d2)[..., None]
+        cos_l = -(dirs @ shape.normal.astype(np.float64))
+        radiance = float(light.power) / (np.pi * shape.area)
+        weight = radiance * np.maximum(cos_l, 0.0) * shape.area / (d2 * samples)
+        return dirs, weight, np.stack([qx, qy, qz], axis=-1)
+    if light.kind in ("POINT", "SPOT"):
+        c = light.position.astype(np.float64)
+        to = c[None, :] - p
+        dist = np.maximum(np.linalg.norm(to, axis=1), 1e-6)
+        axis = -to / dist[:, None]
+        radius = float(light.radius)
+        s = samples if radius > 0 else 1
+        if radius > 0:
+            u, v = stratified_uv(rng, m, s)
+            a, b = concentric_disk(u, v)
+            t1, t2 = _onb(axis[:, 0:1], axis[:, 1:2], axis[:, 2:3])
+            q = np.stack([c[k] + radius * (a * t1[k] + b * t2[k]) for k in range(3)], axis=-1)
+        else:
+            q = np.broadcast_to(c, (m, 1, 3)).copy()
+        w = q - p[:, None, :]
+        d2 = np.maximum((w * w).sum(-1), max(radius * radius, 1e-8))
+        dirs = w / np.sqrt((w * w).sum(-1).clip(1e-16))[..., None]
+        weight = (float(light.power) / (4.0 * np.pi)) / (d2 * s)
+        if light.kind == "SPOT":
+            weight = weight * spot_attenuation(light, -to.astype(_F32))[:, None]
+        return dirs, weight, q
+    to_sun = -light.direction.astype(np.float64)
+    half = 0.5 * float(light.angle)
+    if half <= 0:
+        return np.broadcast_to(to_sun, (m, 1, 3)).copy(), np.full((m, 1), float(light.power)), None
+    one_minus_cos = 2.0 * np.sin(0.5 * half) ** 2
+    u, v = stratified_uv(rng, m, samples)
+    a, b = concentric_disk(u, v)
+    r2 = a * a + b * b
+    cos_t = 1.0 - r2 * one_minus_cos
+    scale = np.sqrt(np.maximum(one_minus_cos * (2.0 - r2 * one_minus_cos), 0.0))
+    t1, t2 = _onb(np.asarray([to_sun[0]]), np.asarray([to_sun[1]]), np.asarray([to_sun[2]]))
+    dirs = np.stack([a * scale * t1[k] + b * scale * t2[k] + cos_t * to_sun[k] for k in range(3)], axis=-1)
+    weight = np.full((m, samples), float(light.power) / ((1.0 - 0.5 * one_minus_cos) * samples))
+    return dirs, weight, None
+
+
+def glossy_direct(lights, points, normals, to_eye, rows, mats: GlossyMaterials, tracer, rng, samples: int = 4,
+                  epsilon: float = 1e-4) -> np.ndarray:
+    """(n, 3) float32 lamp radiance the glossy lobes reflect towards the eye (Cycles' Glossy Direct
+    times Glossy Color), with shadow rays.
+
+    points, normals, to_eye : (n, 3) float32 receivers, unit normals facing the eye and unit
+    directions to the eye; rows : (n,) int32 material index (-1: none)."""
+    pts = np.asarray(points, np.float64).reshape(-1, 3)
+    nrm = np.asarray(normals, np.float64).reshape(-1, 3)
+    eye = np.asarray(to_eye, np.float64).reshape(-1, 3)
+    rows = np.asarray(rows, np.int64).reshape(-1)
+    out = np.zeros((pts.shape[0], 3), _F32)
+    active = [lt for lt in lights if float(lt.power) != 0.0 and np.any(lt.color != 0)]
+    if not active or not mats.any or pts.shape[0] == 0:
+        return out
+    valid = (rows >= 0) & np.isfinite(pts).all(1) & np.isfinite(nrm).all(1) & np.isfinite(eye).all(1)
+    valid[valid] &= (mats.weight[rows[valid]] > 0) | (mats.metallic[rows[valid]] > 0)
+    sel = np.flatnonzero(valid)
+    step = max(1, CHUNK // max(samples, 1))
+    for start in range(0, sel.size, step):
+        idx = sel[start:start + step]
+        p, n, v, r = pts[idx], nrm[idx], eye[idx], rows[idx]
+        acc = np.zeros((idx.size, 3))
+        for light in active:
+            drawn = _lamp_samples(light, p, rng, samples)
+            if drawn is None:
+                continue
+            dirs, weight, targets = drawn
+            f = lobes(mats, r, n, v, dirs[..., 0], dirs[..., 1], dirs[..., 2])
+            contrib = f * weight[..., None]
+            lit = contrib.max(axis=-1) > 0
+            if tracer is not None and lit.any():
+                ri, si = np.nonzero(lit)
+                p32 = tuple(np.ascontiguousarray(p[:, k], _F32) for k in range(3))
+                n32 = tuple(np.ascontiguousarray(n[:, k], _F32) for k in range(3))
+                if targets is not None:
+                    t = targets[ri, si].astype(_F32)
+                    vis = _shadow_to_targets(tracer, p32, n32, ri, t[:, 0], t[:, 1], t[:, 2], epsilon)
+                else:
+                    origins = (p[ri] + n[ri] * epsilon).astype(_F32)
+                    d = dirs[ri, si].astype(_F32)
+                    vis = ~np.asarray(tracer.occluded(origins, d, np.inf, trusted=True), bool)
+                contrib[ri[~vis], si[~vis]] = 0.0
+            acc += contrib.sum(axis=1) * light.color[None, :]
+        out[idx] = acc
+    return out
