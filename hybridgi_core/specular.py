@@ -74,41 +74,46 @@ def _lambda(alpha2, cos_n):
     return 0.5 * (np.sqrt(1.0 + alpha2 * np.maximum(1.0 / cos2 - 1.0, 0.0)) - 1.0)
 
 
-def _lobe_samples(rough: float, mu: float):
-    """(weights, cos(h, i)) of the GGX reflection lobe (F = 1) seen from cos theta = mu: the
-    weights sum to its directional albedo E, so sum(w F(cos_hi)) is the albedo with Fresnel F.
+def _lobe_samples(rough, mu):
+    """(weights, cos(h, i)) of the GGX reflection lobe (F = 1) seen from cos theta = mu, for K
+    (rough, mu) pairs at once ((K, N) arrays; scalars give (N,)): the weights sum to the lobe's
+    directional albedo E, so sum(w F(cos_hi)) is the albedo with Fresnel F.
 
     Half vectors are the visible normals of Heitz (JCGT 2018) at a midpoint grid of its two
     random numbers; each weighs G2 / G1(i), which falls to 0 as the reflection reaches the
     horizon, so the integrand is continuous and the grid converges fast at every roughness."""
-    alpha = max(rough, 1e-4) ** 2
+    scalar = np.ndim(rough) == 0 and np.ndim(mu) == 0
+    rough, mu = np.broadcast_arrays(np.atleast_1d(np.asarray(rough, np.float64)), np.atleast_1d(np.asarray(mu, np.float64)))
+    alpha = (np.maximum(rough, 1e-4) ** 2)[:, None, None]
     alpha2 = alpha * alpha
-    mu = min(max(mu, 1e-4), 1.0)
+    mu = np.clip(mu, 1e-4, 1.0)[:, None, None]
     sin_i = np.sqrt(1.0 - mu * mu)
-    vh = np.array([alpha * sin_i, 0.0, mu])
-    vh /= np.linalg.norm(vh)
-    t1_axis = np.array([0.0, 1.0, 0.0])  # (-vh.y, vh.x, 0) normalised; any basis at normal incidence
-    t2_axis = np.cross(vh, t1_axis)
+    # The view stretched by the roughness; its tangent frame: t1 = y, t2 = vh x y.
+    length = np.sqrt((alpha * sin_i) ** 2 + mu * mu)
+    vx, vz = alpha * sin_i / length, mu / length
     u1 = (np.arange(_QUAD_U) + 0.5) / _QUAD_U
     u2 = (np.arange(_QUAD_PHI) + 0.5) / _QUAD_PHI
-    r = np.sqrt(u1)[:, None]
-    phi = 2.0 * np.pi * u2[None, :]
+    r = np.sqrt(u1)[None, :, None]
+    phi = 2.0 * np.pi * u2[None, None, :]
     t1 = r * np.cos(phi)
     t2 = r * np.sin(phi)
-    s = 0.5 * (1.0 + vh[2])
+    s = 0.5 * (1.0 + vz)
     t2 = (1.0 - s) * np.sqrt(np.maximum(1.0 - t1 * t1, 0.0)) + s * t2
     tn = np.sqrt(np.maximum(1.0 - t1 * t1 - t2 * t2, 0.0))
-    nh = [t1 * t1_axis[k] + t2 * t2_axis[k] + tn * vh[k] for k in range(3)]
-    hx, hy, hz = alpha * nh[0], alpha * nh[1], np.maximum(nh[2], 0.0)
-    length = np.sqrt(hx * hx + hy * hy + hz * hz)
-    hx, hz = hx / length, hz / length
+    # nh = t1 (0, 1, 0) + t2 (-vz, 0, vx) + tn (vx, 0, vz), then unstretched.
+    hx = alpha * (-t2 * vz + tn * vx)
+    hy = alpha * t1
+    hz = np.maximum(t2 * vx + tn * vz, 0.0)
+    inv = 1.0 / np.sqrt(hx * hx + hy * hy + hz * hz)
+    hx, hz = hx * inv, hz * inv
     cos_hi = hx * sin_i + hz * mu
     mu_o = 2.0 * cos_hi * hz - mu
     ok = (cos_hi > 0) & (mu_o > 0)
     lam_i = _lambda(alpha2, mu)
     g2 = 1.0 / (1.0 + lam_i + _lambda(alpha2, np.where(ok, mu_o, 1.0)))
-    w = np.where(ok, g2 * (1.0 + lam_i), 0.0) / hx.size
-    return w.ravel(), np.where(ok, cos_hi, 1.0).ravel()
+    w = np.where(ok, g2 * (1.0 + lam_i), 0.0) / (_QUAD_U * _QUAD_PHI)
+    w, cos_hi = w.reshape(w.shape[0], -1), np.where(ok, cos_hi, 1.0).reshape(w.shape[0], -1)
+    return (w[0], cos_hi[0]) if scalar else (w, cos_hi)
 
 
 def _grid(n: int) -> np.ndarray:
@@ -118,10 +123,8 @@ def _grid(n: int) -> np.ndarray:
 @lru_cache(maxsize=1)
 def tables():
     """(E (rough, mu), E_avg (rough,), s (z, rough, mu)) float64, computed once per process."""
-    e = np.zeros((E_SIZE, E_SIZE))
-    for i, r in enumerate(_grid(E_SIZE)):
-        for j, mu in enumerate(_grid(E_SIZE)):
-            e[i, j] = _lobe_samples(r, mu)[0].sum()
+    r, mu = np.meshgrid(_grid(E_SIZE), _grid(E_SIZE), indexing="ij")
+    e = _lobe_samples(r.ravel(), mu.ravel())[0].sum(axis=1).reshape(E_SIZE, E_SIZE)
     # E_avg = 2 int E(mu) mu dmu, trapezoids over the table's own cosines.
     mus = _grid(E_SIZE)
     f = 2.0 * e * mus[None, :]
@@ -129,27 +132,24 @@ def tables():
     z = np.clip(_grid(S_SIZE), 1e-4, 0.99)
     iors = ior_from_f0(z**4)
     f0 = f0_from_ior(iors)
-    s = np.zeros((S_SIZE, S_SIZE, S_SIZE))
-    for i, r in enumerate(_grid(S_SIZE)):
-        for j, mu in enumerate(_grid(S_SIZE)):
-            w, cos_hi = _lobe_samples(r, mu)
-            total = max(w.sum(), 1e-30)
-            for k in range(S_SIZE):
-                remap = np.clip((fresnel_dielectric(cos_hi, iors[k]) - f0[k]) / (1.0 - f0[k]), 0.0, 1.0)
-                s[k, i, j] = (w * remap).sum() / total
-    return np.clip(e, 0.0, 1.0), np.clip(e_avg, 0.0, 1.0), np.clip(s, 0.0, 1.0)
+    r, mu = np.meshgrid(_grid(S_SIZE), _grid(S_SIZE), indexing="ij")
+    w, cos_hi = _lobe_samples(r.ravel(), mu.ravel())
+    total = np.maximum(w.sum(axis=1), 1e-30)
+    s = np.zeros((S_SIZE, S_SIZE * S_SIZE))
+    for k in range(S_SIZE):
+        remap = np.clip((fresnel_dielectric(cos_hi, iors[k]) - f0[k]) / (1.0 - f0[k]), 0.0, 1.0)
+        s[k] = (w * remap).sum(axis=1) / total
+    return np.clip(e, 0.0, 1.0), np.clip(e_avg, 0.0, 1.0), np.clip(s.reshape(S_SIZE, S_SIZE, S_SIZE), 0.0, 1.0)
 
 
 @lru_cache(maxsize=1)
 def schlick_table() -> np.ndarray:
     """(rough, mu) lobe-weighted mean of (1 - cos(h, i))^5, Cycles' ggx_gen_schlick_s at exponent
     5: the metallic lobe's albedo is mix(F0, 1, this) (F82 tint's extra term ignored, as Cycles does)."""
-    s5 = np.zeros((S_SIZE, S_SIZE))
-    for i, r in enumerate(_grid(S_SIZE)):
-        for j, mu in enumerate(_grid(S_SIZE)):
-            w, cos_hi = _lobe_samples(r, mu)
-            s5[i, j] = (w * (1.0 - cos_hi) ** 5).sum() / max(w.sum(), 1e-30)
-    return np.clip(s5, 0.0, 1.0)
+    r, mu = np.meshgrid(_grid(S_SIZE), _grid(S_SIZE), indexing="ij")
+    w, cos_hi = _lobe_samples(r.ravel(), mu.ravel())
+    s5 = (w * (1.0 - cos_hi) ** 5).sum(axis=1) / np.maximum(w.sum(axis=1), 1e-30)
+    return np.clip(s5.reshape(S_SIZE, S_SIZE), 0.0, 1.0)
 
 
 def multiscatter_factor(fss, e, e_avg):
