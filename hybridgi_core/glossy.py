@@ -11,6 +11,15 @@ The lamps are sampled as `lights.direct_irradiance` samples them for the diffuse
 rays of their own: area lamps uniformly over their area, point and spot lamps over the disc of
 their radius facing the receiver, suns over their cone. Surfaces smoother than MIN_ROUGHNESS are
 not evaluated: Cycles finds their mirror images of lamps only through BSDF sampling.
+
+The cache's light (`cache_reflection`) is added split-sum: Glossy Color times the incident
+radiance averaged over the hemisphere (the cache's irradiance / pi at the pixel, L2 SH blended
+over the 8 cells as the diffuse gather blends them), the sky's and emitters' as part of Glossy
+Direct (Cycles counts light straight from the world as direct), the bounced light's as Glossy
+Indirect. The lobe's direction is not followed: read about the mirror direction, L2 SH leak the
+surface's own radiance from below its plane into grazing reflections (10x Cycles' Glossy Indirect
+on a floor), so the hemisphere's mean is the better estimate for rough lobes; sharp reflections
+of the surroundings are missing.
 """
 
 from __future__ import annotations
@@ -19,7 +28,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from . import sh as shmod
 from . import specular as sp
+from .evaluate import corner_weights
 from .lights import (
     _area_points,
     _area_shape,
@@ -241,3 +252,22 @@ def glossy_direct(lights, points, normals, to_eye, rows, mats: GlossyMaterials, 
             acc += contrib.sum(axis=1) * light.color[None, :]
         out[idx] = acc
     return out
+
+
+def cache_reflection(cache, points, normals, to_eye, rough):
+    """((n, 3), (n, 3)) float32 the cache's incident radiance reflected by a lobe of roughness
+    `rough` (n,) about the normals: from the sky and emitters (part of Cycles' Glossy Direct) and
+    from other surfaces (its Glossy Indirect), each before its Glossy Color.
+
+    points, normals, to_eye : (n, 3) float32 receivers, unit normals facing the eye and unit
+    directions to the eye (the lobe's direction is not used yet: see the module docstring)."""
+    pts = np.asarray(points, np.float32).reshape(-1, 3)
+    nrm = np.asarray(normals, np.float32).reshape(-1, 3)
+    if pts.shape[0] == 0:
+        return np.zeros((0, 3), np.float32), np.zeros((0, 3), np.float32)
+    flats, w = corner_weights(cache, pts, nrm, visibility=True)
+    out = []
+    for band in (cache.sh_direct, cache.sh_indirect):
+        coeffs = np.einsum("nc,nckl->nkl", w, band[flats])
+        out.append((np.maximum(shmod.irradiance(coeffs, nrm), 0.0) / np.pi).astype(np.float32))
+    return out[0], out[1]

@@ -45,7 +45,7 @@ SCENE = textwrap.dedent("""
     scene.collection.objects.link(lamp)
     scene.world = bpy.data.worlds.new("world")
     scene.world.color = (0.0, 0.0, 0.0)
-    for flag in ("use_pass_glossy_direct", "use_pass_glossy_color"):
+    for flag in ("use_pass_glossy_direct", "use_pass_glossy_indirect", "use_pass_glossy_color"):
         setattr(scene.view_layers[0], flag, True)
     bpy.ops.wm.save_as_mainfile(filepath=sys.argv[-1])
 """)
@@ -72,3 +72,6 @@ def test_diffuse_weight_and_glossy_direct_match_cycles(tmp_path):
     assert errors["Glossy Color"] < 0.08, errors
     assert errors["Glossy Direct"] < 0.15, errors
     assert errors["Combined"] < 0.06, errors
+    # Glossy Indirect: the floor and ball reflect each other's bounced light (the cache's).
+    bounced = layer(ours, "Glossy Indirect")
+    assert np.isfinite(bounced).all() and bounced.min() >= 0.0 and bounced[geometry].max() > 0.0

@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .. import pixel_gather
-from ..glossy import glossy_color
+from ..glossy import cache_reflection, glossy_color
 from ..visible import pixels_to_points
 from .accumulate import AccumulatePass
 from .bilateral import BilateralPass
@@ -229,7 +229,7 @@ class FramePipeline:
             direct = np.zeros((self.height * self.width, 4), np.float32)
             direct[pix_full, :3] = system.direct(p_full, n_full, frame, samples=self.direct_samples)
         with stats.step("glossy"):
-            glossy, glossy_col = self._glossy(system, view, proj, p_full, n_full, pix_full, frame)
+            glossy, glossy_col, glossy_ind = self._glossy(system, view, proj, p_full, n_full, pix_full, frame)
         film = FilmAccumulator()
         offsets = subpixel_offsets(self.subframes, self.filter_size, self.filter_type)
         jittered = offsets.shape[0] > 1
@@ -258,17 +258,19 @@ class FramePipeline:
                 self.accumulate.execute(shaded, gbuf, first=s == 0)
         with stats.step("film"):
             film.set_sums(self.accumulate.read_all(), self.accumulate.count)
-            film.set_glossy(glossy, glossy_col, self.height, self.width)
+            film.set_glossy(glossy, glossy_col, self.height, self.width, indirect=glossy_ind)
         self.film = film
         return shaded, stats
 
     def _glossy(self, system, view, proj, points, normals, pix, frame):
-        """(radiance, Glossy Color), each (h w, 4) float32 or None without glossy lobes: the lamps'
-        reflection by the glossy lobes at the centre raster's pixels (`glossy.glossy_direct`),
-        uploaded for the deferred pass. Subframes reuse it: a highlight is smooth at the pixel
-        scale, and silhouettes are where its share is least."""
+        """(direct radiance, Glossy Color, bounced light), each (h w, 4) float32 or None without
+        glossy lobes: the lamps', sky's and emitters' reflection by the glossy lobes at the centre
+        raster's pixels (`glossy.glossy_direct`, `glossy.cache_reflection`) and the light of other
+        surfaces they reflect (Glossy Indirect before its colour); direct + colour x bounced is
+        uploaded for the deferred pass. Subframes reuse
+        it: a highlight is smooth at the pixel scale, and silhouettes are where its share is least."""
         if not hasattr(system, "glossy") or all(getattr(m, "specular", None) is None for m in system.scene.materials):
-            return None, None
+            return None, None, None
         rows = np.rint(self.gbuffer.read("material").reshape(-1)[pix]).astype(np.int64) - 1
         eye = np.asarray(camera_eye(view, proj), np.float64)
         to_eye = eye[:3] - points * eye[3] if eye[3] > 0.5 else np.broadcast_to(eye[:3], points.shape)
@@ -278,8 +280,16 @@ class FramePipeline:
         glossy[pix, :3] = system.glossy(points, normals, to_eye, rows, frame, samples=self.direct_samples)
         mu = np.clip(np.einsum("ij,ij->i", normals, to_eye), 0.0, 1.0)
         colour[pix, :3] = glossy_color(system._glossy_materials, rows, mu)
-        self._glossy_tex = upload_texture_2d(glossy.reshape(self.height, self.width, 4), "RGBA32F")
-        return glossy, colour
+        indirect = np.zeros((self.height * self.width, 4), np.float32)
+        lit = np.flatnonzero(colour[pix, :3].max(axis=1) > 0)
+        if lit.size:
+            rough = system._glossy_materials.rough[rows[lit]]
+            sky, bounced = cache_reflection(system.cache, points[lit], normals[lit], to_eye[lit], rough)
+            glossy[pix[lit], :3] += colour[pix[lit], :3] * sky
+            indirect[pix[lit], :3] = bounced
+        total = glossy + colour * indirect
+        self._glossy_tex = upload_texture_2d(total.reshape(self.height, self.width, 4), "RGBA32F")
+        return glossy, colour, indirect
 
     def _pixel_gi(self, system, position_lo, normal_lo, pix, points, normals, visible, view, frame, stats):
         """Per-pixel final gather (`pixel_gather.gi_images`) as the textures the gather and the
