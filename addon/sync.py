@@ -17,6 +17,7 @@ import numpy as np
 
 from hybridgi_core import environment
 from hybridgi_core import snapshot as snap
+from hybridgi_core.glossy import MIN_ROUGHNESS
 from hybridgi_core.specular import SpecularLayer
 
 from . import compat, material_bake, world_bake
@@ -267,19 +268,15 @@ class _SnapshotBuilder:
         return snap.make_snapshot(geometry, self.materials, self.lights, world, self.objects)
 
     def _warn_glossy(self):
-        """One warning for every surface whose glossy reflection Combined lacks (Cycles renders
-        an object without a material with Blender's default surface, a Principled BSDF with
-        Specular IOR Level 0.5: on the shared bunny scene that reflection is 19% of Combined)."""
-        parts = []
-        if self._textures.glossy:
-            parts.append("materials " + _listed(self._textures.glossy) + " have a specular layer (Metallic or "
-                         "Specular IOR Level above 0)")
-        if self.without_material:
-            parts.append("objects " + _listed(self.without_material) + " have no material (Cycles shows "
-                         "Blender's default surface, a Principled BSDF with a specular layer)")
-        if parts:
-            log.warning("%s: HybridGI renders their diffuse reflection only (weighted by the specular layer as "
-                        "in Cycles); Combined lacks the glossy part", "; ".join(parts))
+        """One warning per sync for the Principled BSDF features HybridGI still approximates,
+        naming each material and node (the glossy lobes themselves are rendered: `glossy.py`)."""
+        notes = self._textures.approximated
+        if not notes:
+            return
+        names = sorted(notes)
+        listed = "; ".join(f"material {name!r} {', '.join(sorted(notes[name]))}" for name in names[:5])
+        more = f" (and {len(names) - 5} more materials)" if len(names) > 5 else ""
+        log.warning("Principled BSDF features approximated: %s%s", listed, more)
 
     def _local_mesh(self, obj):
         key = obj.data.as_pointer()
@@ -404,6 +401,7 @@ def _shader_surface(shader, textures, name, depth=0):
         specular = _input(shader, "Specular IOR Level", "Specular")
         if metallic > 0 or (specular is not None and _constant_value(specular, name) > 0):
             textures.glossy.add(name)
+        _note_approximations(shader, textures, name, metallic, transmission, coat)
         if textures.specular is None:
             # The first Principled BSDF of a material layers the diffuse part of all of it (a Mix
             # with a Diffuse BSDF then weights that part too: an approximation).
@@ -429,6 +427,36 @@ def _shader_surface(shader, textures, name, depth=0):
     if kind in ("MIX_SHADER", "ADD_SHADER") and depth < 8:
         return _mix_surface(shader, kind, textures, name, depth)
     return None
+
+
+def _note_approximations(shader, textures, name, metallic, transmission, coat):
+    """Record what of a Principled BSDF HybridGI renders only approximately (`_warn_glossy`)."""
+    notes = []
+    if coat > 0:
+        notes.append("coat (only its tint: its reflection and layering are not rendered)")
+    sheen = _input(shader, "Sheen Weight")
+    if sheen is not None and _constant_value(sheen, name) > 0:
+        notes.append("sheen (not rendered)")
+    aniso = _input(shader, "Anisotropic")
+    if aniso is not None and _constant_value(aniso, name) > 0:
+        notes.append("anisotropy (rendered isotropic)")
+    if transmission > 0:
+        notes.append("transmission (the transmitted light is not rendered)")
+    film = _input(shader, "Thin Film Thickness")
+    if film is not None and _constant_value(film, name) > 0:
+        notes.append("thin film (not rendered)")
+    subsurface = _input(shader, "Subsurface Weight")
+    if subsurface is not None and _constant_value(subsurface, name) > 0:
+        notes.append("subsurface (rendered as diffuse)")
+    roughness = _input(shader, "Roughness")
+    level = _input(shader, "Specular IOR Level", "Specular")
+    glossy = metallic > 0 or (level is not None and _constant_value(level, name) > 0)
+    if glossy and roughness is not None and _constant_value(roughness, name) < MIN_ROUGHNESS:
+        notes.append(f"a mirror-like specular (roughness under {MIN_ROUGHNESS}: lamps' reflections are not rendered)")
+    if textures.specular is not None:
+        notes.append("a second Principled BSDF (the first one's specular layer weights the whole surface)")
+    if notes:
+        textures.approximated.setdefault(name, set()).add(f"node {shader.name!r}: " + ", ".join(notes))
 
 
 def _specular_layer(shader, name, base, texture, metallic, transmission):
@@ -741,7 +769,8 @@ class _TextureCache:
         self._images = {}
         self.baked = {}  # (node name, input identifier) -> baked texture of the material being read
         self.pending = False
-        self.glossy = set()  # materials with a specular layer HybridGI does not render
+        self.glossy = set()  # materials with a specular layer (dielectric or metallic)
+        self.approximated: dict[str, set[str]] = {}  # material -> what of its Principled BSDF is approximated
         self.specular = None  # the specular layer of the material being read (SpecularLayer)
 
     def _read(self, image, material_name):

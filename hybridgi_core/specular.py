@@ -92,7 +92,9 @@ def _lobe_samples(rough, mu):
     length = np.sqrt((alpha * sin_i) ** 2 + mu * mu)
     vx, vz = alpha * sin_i / length, mu / length
     u1 = (np.arange(_QUAD_U) + 0.5) / _QUAD_U
-    u2 = (np.arange(_QUAD_PHI) + 0.5) / _QUAD_PHI
+    # The lobe is mirror-symmetric about the plane of incidence (t1 <-> -t1, phi <-> pi - phi):
+    # the half of the midpoints with t1 <= 0, each counted twice.
+    u2 = (np.arange(_QUAD_PHI // 4, 3 * _QUAD_PHI // 4) + 0.5) / _QUAD_PHI
     r = np.sqrt(u1)[None, :, None]
     phi = 2.0 * np.pi * u2[None, None, :]
     t1 = r * np.cos(phi)
@@ -111,7 +113,7 @@ def _lobe_samples(rough, mu):
     ok = (cos_hi > 0) & (mu_o > 0)
     lam_i = _lambda(alpha2, mu)
     g2 = 1.0 / (1.0 + lam_i + _lambda(alpha2, np.where(ok, mu_o, 1.0)))
-    w = np.where(ok, g2 * (1.0 + lam_i), 0.0) / (_QUAD_U * _QUAD_PHI)
+    w = np.where(ok, g2 * (1.0 + lam_i), 0.0) * (2.0 / (_QUAD_U * _QUAD_PHI))
     w, cos_hi = w.reshape(w.shape[0], -1), np.where(ok, cos_hi, 1.0).reshape(w.shape[0], -1)
     return (w[0], cos_hi[0]) if scalar else (w, cos_hi)
 
