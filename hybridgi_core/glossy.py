@@ -236,7 +236,8 @@ def glossy_direct(lights, points, normals, to_eye, rows, mats: GlossyMaterials, 
             dirs, weight, targets = drawn
             f = lobes(mats, r, n, v, dirs[..., 0], dirs[..., 1], dirs[..., 2])
             contrib = f * weight[..., None]
-            lit = contrib.max(axis=-1) > 0
+            # Every lobe's Fresnel is positive: a sample is lit where its geometric term is.
+            lit = (weight > 0) & (np.einsum("ij,ikj->ik", n, dirs) > 0) & (np.einsum("ij,ij->i", n, v) > 1e-4)[:, None]
             if tracer is not None and lit.any():
                 ri, si = np.nonzero(lit)
                 p32 = tuple(np.ascontiguousarray(p[:, k], _F32) for k in range(3))

@@ -335,8 +335,21 @@ class GISystem:
         if getattr(self, "_glossy_key", None) is not materials:
             self._glossy_materials, self._glossy_key = GlossyMaterials.from_materials(materials), materials
         rng = frame_rng(self.settings.seed + 2, frame)
-        return glossy_direct(self.scene.lights, points, normals, to_eye, rows, self._glossy_materials, self.tracer,
-                             rng, samples=samples or self.settings.light_samples, epsilon=float(self.tracer.epsilon))
+        samples = samples or self.settings.light_samples
+        eps = float(self.tracer.epsilon)
+        n = int(np.asarray(points).reshape(-1, 3).shape[0])
+        per_block = max(1, DIRECT_BLOCK_RAYS // samples)
+        lights, mats = self.scene.lights, self._glossy_materials
+        if n <= per_block or not lights:
+            return glossy_direct(lights, points, normals, to_eye, rows, mats, self.tracer, rng, samples, eps)
+        # Blocks on the worker pool, each with its own child generator (as `direct`).
+        per_pixel = [np.asarray(a).reshape(n, -1) for a in (points, normals, to_eye)]
+        rows = np.asarray(rows).reshape(-1)
+        starts = range(0, n, per_block)
+        jobs = [self.updater.pool.submit(glossy_direct, lights, *(a[b : b + per_block] for a in per_pixel),
+                                         rows[b : b + per_block], mats, self.tracer, child, samples, eps)
+                for b, child in zip(starts, rng.spawn(len(starts)), strict=True)]
+        return np.concatenate([j.result() for j in jobs])
 
 
 def _moved_boxes(old, new, rows: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
