@@ -35,6 +35,7 @@ from .lights import (
     _area_points,
     _area_shape,
     _onb,
+    _sample_spherical_rectangle,
     _shadow_to_targets,
     concentric_disk,
     spot_attenuation,
@@ -161,6 +162,8 @@ def _lamp_samples(light: Light, p, rng, samples):
         if shape.area <= 0:
             return None
         u, v = stratified_uv(rng, m, samples)
+        if shape.rectangular:
+            return _rectangle_samples(shape, float(light.power) / (np.pi * shape.area), p, u, v, samples)
         qx, qy, qz = _area_points(shape, u, v)
         w = np.stack([qx - p[:, 0:1], qy - p[:, 1:2], qz - p[:, 2:3]], axis=-1)
         d2 = np.maximum((w * w).sum(-1), 1e-8)
@@ -204,6 +207,30 @@ def _lamp_samples(light: Light, p, rng, samples):
     dirs = np.stack([a * scale * t1[k] + b * scale * t2[k] + cos_t * to_sun[k] for k in range(3)], axis=-1)
     weight = np.full((m, samples), float(light.power) / ((1.0 - 0.5 * one_minus_cos) * samples))
     return dirs, weight, None
+
+
+def _rectangle_samples(shape, radiance, p, u, v, samples):
+    """`_lamp_samples` of a rectangular (or round, in its bounding rectangle) area lamp drawn
+    uniformly in its solid angle (Urena et al. 2013, as the diffuse light samples it): every
+    sample weighs radiance x solid angle / samples, so receivers near a large lamp stay quiet."""
+    m = p.shape[0]
+    ex, ey, ez = shape.frame
+    d = shape.corner[None, :] - p
+    z0 = d @ ez
+    live = z0 < -1e-9 * shape.extent  # the emitting side only
+    z0 = np.where(live, z0, -1.0)
+    x0, y0 = d @ ex, d @ ey
+    xu, yv, inside, solid_angle = _sample_spherical_rectangle(x0, y0, z0, shape.len_u, shape.len_v, u, v)
+    xu, yv = xu.astype(np.float64), yv.astype(np.float64)
+    w = xu[..., None] * ex + yv[..., None] * ey + z0[:, None, None] * ez
+    dist = np.maximum(np.linalg.norm(w, axis=-1), 1e-12)
+    dirs = w / dist[..., None]
+    weight = np.where(live, radiance * solid_angle / samples, 0.0)[:, None] * inside
+    if shape.round:
+        a = (xu - x0[:, None]) * (2.0 / shape.len_u) - 1.0
+        b = (yv - y0[:, None]) * (2.0 / shape.len_v) - 1.0
+        weight = weight * (a * a + b * b <= 1.0)
+    return dirs, np.broadcast_to(weight, (m, samples)).copy(), p[:, None, :] + w
 
 
 def glossy_direct(lights, points, normals, to_eye, rows, mats: GlossyMaterials, tracer, rng, samples: int = 4,
