@@ -327,19 +327,24 @@ class GISystem:
                 for a, child in zip(starts, rng.spawn(len(starts)), strict=True)]
         return np.concatenate([j.result() for j in jobs])
 
+    @property
+    def glossy_materials(self) -> GlossyMaterials:
+        """The scene's materials' glossy lobes (`glossy.GlossyMaterials`), rebuilt when they change."""
+        materials = self.scene.materials
+        if getattr(self, "_glossy_key", None) is not materials:
+            self._glossy_materials, self._glossy_key = GlossyMaterials.from_materials(materials), materials
+        return self._glossy_materials
+
     def glossy(self, points: np.ndarray, normals: np.ndarray, to_eye: np.ndarray, rows: np.ndarray, frame: int,
                samples: int | None = None) -> np.ndarray:
         """Lamp radiance (n, 3) the glossy lobes of materials `rows` reflect towards the eye, with
         shadow rays (`glossy.glossy_direct`; its own samples, seeded apart from `direct`'s)."""
-        materials = self.scene.materials
-        if getattr(self, "_glossy_key", None) is not materials:
-            self._glossy_materials, self._glossy_key = GlossyMaterials.from_materials(materials), materials
         rng = frame_rng(self.settings.seed + 2, frame)
         samples = samples or self.settings.light_samples
         eps = float(self.tracer.epsilon)
         n = int(np.asarray(points).reshape(-1, 3).shape[0])
         per_block = max(1, DIRECT_BLOCK_RAYS // samples)
-        lights, mats = self.scene.lights, self._glossy_materials
+        lights, mats = self.scene.lights, self.glossy_materials
         if n <= per_block or not lights:
             return glossy_direct(lights, points, normals, to_eye, rows, mats, self.tracer, rng, samples, eps)
         # Blocks on the worker pool, each with its own child generator (as `direct`).

@@ -78,3 +78,22 @@ def test_an_area_lamp_matches_its_solid_angle_integral():
                      np.zeros((1, 1)), np.zeros((1, 1)), np.ones((1, 1)))[0, 0]
     radiance = 100.0 / (np.pi * 0.04)
     assert np.allclose(out, radiance * f * 0.04 / 25.0, rtol=0.01)
+
+
+def test_the_cache_reflects_the_sky_as_direct_and_nothing_as_bounced():
+    """An open glossy floor under a uniform sky of radiance L: its lobes reflect L (the split-sum
+    light before Glossy Color), all of it from the sky (Glossy Direct's share), none bounced."""
+    from hybridgi_core.settings import CacheSettings
+    from hybridgi_core.snapshot import World, geometry_from_arrays, make_snapshot
+    from hybridgi_core.system import GISystem
+
+    floor = geometry_from_arrays([[-5, -5, 0], [5, -5, 0], [5, 5, 0], [-5, 5, 0]], [[0, 1, 2], [0, 2, 3]])
+    snap = make_snapshot(floor, [Material(specular=sp.SpecularLayer())], [], World(np.full(3, 0.5, np.float32)))
+    with GISystem(snap, CacheSettings(resolution=8, rays_per_cell=256, hysteresis=0.0)) as gi:
+        gi.warm_up(1)
+        pts = np.array([[0, 0, 0], [1, 2, 0], [-3, 1, 0]], np.float32)
+        up = np.tile([[0, 0, 1.0]], (3, 1)).astype(np.float32)
+        eye = np.tile([[0.0, -0.6, 0.8]], (3, 1)).astype(np.float32)
+        sky, bounced = glossy.cache_reflection(gi.cache, pts, up, eye, np.full(3, 0.5))
+    np.testing.assert_allclose(sky, 0.5, rtol=0.04)
+    assert bounced.max() < 0.01

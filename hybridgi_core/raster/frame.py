@@ -267,8 +267,8 @@ class FramePipeline:
         glossy lobes: the lamps', sky's and emitters' reflection by the glossy lobes at the centre
         raster's pixels (`glossy.glossy_direct`, `glossy.cache_reflection`) and the light of other
         surfaces they reflect (Glossy Indirect before its colour); direct + colour x bounced is
-        uploaded for the deferred pass. Subframes reuse
-        it: a highlight is smooth at the pixel scale, and silhouettes are where its share is least."""
+        uploaded for the deferred pass. Subframes reuse it: a highlight is smooth at the pixel
+        scale, and silhouettes are where its share is least."""
         if not hasattr(system, "glossy") or all(getattr(m, "specular", None) is None for m in system.scene.materials):
             return None, None, None
         rows = np.rint(self.gbuffer.read("material").reshape(-1)[pix]).astype(np.int64) - 1
@@ -279,11 +279,11 @@ class FramePipeline:
         colour = np.zeros((self.height * self.width, 4), np.float32)
         glossy[pix, :3] = system.glossy(points, normals, to_eye, rows, frame, samples=self.direct_samples)
         mu = np.clip(np.einsum("ij,ij->i", normals, to_eye), 0.0, 1.0)
-        colour[pix, :3] = glossy_color(system._glossy_materials, rows, mu)
+        colour[pix, :3] = glossy_color(system.glossy_materials, rows, mu)
         indirect = np.zeros((self.height * self.width, 4), np.float32)
         lit = np.flatnonzero(colour[pix, :3].max(axis=1) > 0)
         if lit.size:
-            rough = system._glossy_materials.rough[rows[lit]]
+            rough = system.glossy_materials.rough[rows[lit]]
             sky, bounced = cache_reflection(system.cache, points[lit], normals[lit], to_eye[lit], rough)
             glossy[pix[lit], :3] += colour[pix[lit], :3] * sky
             indirect[pix[lit], :3] = bounced
