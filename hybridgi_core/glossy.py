@@ -103,43 +103,52 @@ class GlossyMaterials:
         return bool(np.any((self.weight > 0) | (self.metallic > 0)))
 
 
+def _lobe_terms(mats: GlossyMaterials, rows, n, v, lx, ly, lz):
+    """The glossy lobes at m receivers towards s unit directions each, factored so that no
+    (m, s, 3) array is needed: BRDF x cos = common (A + B remap + C + D schlick) per channel.
+
+    Returns common (m, s) (D G2 / (4 cos_i), 0 below either horizon), remap (m, s) (the
+    dielectric Fresnel remapped to 0..1), schlick (m, s) ((1 - cos(h, i))^5) and k (m, 4, 3):
+    A, B the dielectric layer's weight x multiscatter factor x F0 and x (1 - F0); C, D the
+    metallic lobe's."""
+    a2 = mats.alpha2[rows][:, None].astype(_F32)
+    mu_i = np.einsum("ij,ij->i", n, v)[:, None]
+    nx, ny, nz = n[:, 0:1], n[:, 1:2], n[:, 2:3]
+    mu_o = lx * nx + ly * ny + lz * nz
+    hx, hy, hz = lx + v[:, 0:1], ly + v[:, 1:2], lz + v[:, 2:3]
+    inv = _F32(1.0) / np.maximum(np.sqrt(hx * hx + hy * hy + hz * hz), _F32(1e-12))
+    cos_nh = (hx * nx + hy * ny + hz * nz) * inv
+    cos_hi = np.clip((hx * v[:, 0:1] + hy * v[:, 1:2] + hz * v[:, 2:3]) * inv, 0.0, 1.0)
+    ok = (mu_i > 1e-4) & (mu_o > 0) & (a2 > 0)
+    mu_i = np.maximum(mu_i, _F32(1e-4))
+    x = cos_nh * cos_nh * (a2 - _F32(1.0)) + _F32(1.0)
+    d = a2 / (_F32(np.pi) * x * x)
+    g2 = _F32(1.0) / (_F32(1.0) + sp._lambda(a2, mu_i) + sp._lambda(a2, np.where(ok, mu_o, _F32(1.0))))
+    common = np.where(ok, d * g2 / (_F32(4.0) * mu_i), _F32(0.0)).astype(_F32)
+    f0_real = mats.f0_real[rows][:, None].astype(_F32)
+    remap = (sp.fresnel_dielectric(cos_hi, mats.eta[rows][:, None]).astype(_F32) - f0_real) / np.maximum(
+        _F32(1.0) - f0_real, _F32(1e-12))
+    remap = np.clip(remap, 0.0, 1.0)
+    one_minus = _F32(1.0) - cos_hi
+    schlick = (one_minus * one_minus) ** 2 * one_minus
+    e = sp._lerp_table(sp.tables()[0], [mats.rough[rows], mu_i[:, 0]])[:, None]
+    ms, e_avg = mats.ms[rows][:, None], mats.e_avg[rows][:, None]
+    scale = np.where(ms, sp.multiscatter_factor(mats.fss[rows], e, e_avg), 1.0) * mats.weight[rows][:, None]
+    scale_m = np.where(ms, sp.multiscatter_factor(mats.fss_metal[rows], e, e_avg), 1.0) * mats.metallic[rows][:, None]
+    f0, fm0 = mats.f0[rows], mats.metal_f0[rows]
+    k = np.stack([scale * f0, scale * (1.0 - f0), scale_m * fm0, scale_m * (1.0 - fm0)], axis=1).astype(_F32)
+    return common, remap, schlick, k
+
+
 def lobes(mats: GlossyMaterials, rows, n, v, lx, ly, lz) -> np.ndarray:
     """(m, s, 3) BRDF x cos(n, l) of the glossy lobes at m receivers towards s unit directions each.
 
     rows : (m,) material index; n, v : (m, 3) unit normal and direction to the eye; lx, ly, lz :
     (m, s) unit directions to the light. 0 where either direction is below the surface."""
-    a2 = mats.alpha2[rows][:, None]
-    mu_i = np.einsum("ij,ij->i", n, v)[:, None]
-    mu_o = lx * n[:, 0:1] + ly * n[:, 1:2] + lz * n[:, 2:3]
-    hx, hy, hz = lx + v[:, 0:1], ly + v[:, 1:2], lz + v[:, 2:3]
-    inv = 1.0 / np.maximum(np.sqrt(hx * hx + hy * hy + hz * hz), 1e-12)
-    hx, hy, hz = hx * inv, hy * inv, hz * inv
-    cos_nh = hx * n[:, 0:1] + hy * n[:, 1:2] + hz * n[:, 2:3]
-    cos_hi = np.clip(hx * v[:, 0:1] + hy * v[:, 1:2] + hz * v[:, 2:3], 0.0, 1.0)
-    ok = (mu_i > 1e-4) & (mu_o > 0) & (a2 > 0)
-    mu_i = np.maximum(mu_i, 1e-4)
-    mu_o_safe = np.where(ok, mu_o, 1.0)
-    d = a2 / (np.pi * (cos_nh * cos_nh * (a2 - 1.0) + 1.0) ** 2)
-    g2 = 1.0 / (1.0 + sp._lambda(a2, mu_i) + sp._lambda(a2, mu_o_safe))
-    common = np.where(ok, d * g2 / (4.0 * mu_i), 0.0)[..., None]  # f x cos(o) without Fresnel
-    e_table = sp.tables()[0]
-    e = sp._lerp_table(e_table, [mats.rough[rows], mu_i[:, 0]])[:, None]
-    ms = mats.ms[rows][:, None]
-    e_avg = mats.e_avg[rows][:, None]
-    f0, weight = mats.f0[rows][:, None, :], mats.weight[rows][:, None, None]
-    f0_real = mats.f0_real[rows][:, None]
-    remap = np.clip((sp.fresnel_dielectric(cos_hi, mats.eta[rows][:, None]) - f0_real)
-                    / np.maximum(1.0 - f0_real, 1e-12), 0.0, 1.0)
-    dielectric = f0 + (1.0 - f0) * remap[..., None]
-    scale = np.where(ms, sp.multiscatter_factor(mats.fss[rows], e, e_avg), 1.0)[:, None, :]
-    out = common * weight * scale * dielectric
-    metallic = mats.metallic[rows]
-    if np.any(metallic > 0):
-        fm0 = mats.metal_f0[rows][:, None, :]
-        schlick = fm0 + (1.0 - fm0) * ((1.0 - cos_hi) ** 5)[..., None]
-        scale_m = np.where(ms, sp.multiscatter_factor(mats.fss_metal[rows], e, e_avg), 1.0)[:, None, :]
-        out = out + common * metallic[:, None, None] * scale_m * schlick
-    return out
+    common, remap, schlick, k = _lobe_terms(mats, rows, *(np.asarray(a, _F32) for a in (n, v, lx, ly, lz)))
+    k = k[:, None]
+    return common[..., None] * (k[..., 0, :] + k[..., 1, :] * remap[..., None] + k[..., 2, :]
+                                + k[..., 3, :] * schlick[..., None])
 
 
 def glossy_color(mats: GlossyMaterials, rows, mu) -> np.ndarray:
@@ -221,16 +230,19 @@ def _rectangle_samples(shape, radiance, p, u, v, samples):
     z0 = np.where(live, z0, -1.0)
     x0, y0 = d @ ex, d @ ey
     xu, yv, inside, solid_angle = _sample_spherical_rectangle(x0, y0, z0, shape.len_u, shape.len_v, u, v)
-    xu, yv = xu.astype(np.float64), yv.astype(np.float64)
-    w = xu[..., None] * ex + yv[..., None] * ey + z0[:, None, None] * ez
-    dist = np.maximum(np.linalg.norm(w, axis=-1), 1e-12)
-    dirs = w / dist[..., None]
-    weight = np.where(live, radiance * solid_angle / samples, 0.0)[:, None] * inside
+    # Receiver-relative sample vectors per component in float32 (a relative vector, as the
+    # diffuse light computes them): (m, s, 3) float64 temporaries were most of the cost.
+    z32 = z0.astype(_F32)[:, None]
+    w = [xu * _F32(ex[k]) + yv * _F32(ey[k]) + z32 * _F32(ez[k]) for k in range(3)]
+    inv = _F32(1.0) / np.maximum(np.sqrt(w[0] * w[0] + w[1] * w[1] + w[2] * w[2]), _F32(1e-12))
+    dirs = np.stack([c * inv for c in w], axis=-1)
+    weight = np.where(live, radiance * solid_angle / samples, 0.0).astype(_F32)[:, None] * inside
     if shape.round:
-        a = (xu - x0[:, None]) * (2.0 / shape.len_u) - 1.0
-        b = (yv - y0[:, None]) * (2.0 / shape.len_v) - 1.0
+        a = (xu - x0.astype(_F32)[:, None]) * _F32(2.0 / shape.len_u) - _F32(1.0)
+        b = (yv - y0.astype(_F32)[:, None]) * _F32(2.0 / shape.len_v) - _F32(1.0)
         weight = weight * (a * a + b * b <= 1.0)
-    return dirs, np.broadcast_to(weight, (m, samples)).copy(), p[:, None, :] + w
+    targets = np.stack([p[:, k].astype(_F32)[:, None] + w[k] for k in range(3)], axis=-1)
+    return dirs, np.broadcast_to(weight, (m, samples)).copy(), targets
 
 
 def glossy_direct(lights, points, normals, to_eye, rows, mats: GlossyMaterials, tracer, rng, samples: int = 4,
@@ -255,29 +267,31 @@ def glossy_direct(lights, points, normals, to_eye, rows, mats: GlossyMaterials, 
     for start in range(0, sel.size, step):
         idx = sel[start:start + step]
         p, n, v, r = pts[idx], nrm[idx], eye[idx], rows[idx]
+        n32, v32 = n.astype(_F32), v.astype(_F32)
+        p32 = tuple(np.ascontiguousarray(p[:, k], _F32) for k in range(3))
+        ncols = tuple(np.ascontiguousarray(n[:, k], _F32) for k in range(3))
         acc = np.zeros((idx.size, 3))
         for light in active:
             drawn = _lamp_samples(light, p, rng, samples)
             if drawn is None:
                 continue
             dirs, weight, targets = drawn
-            f = lobes(mats, r, n, v, dirs[..., 0], dirs[..., 1], dirs[..., 2])
-            contrib = f * weight[..., None]
-            # Every lobe's Fresnel is positive: a sample is lit where its geometric term is.
-            lit = (weight > 0) & (np.einsum("ij,ikj->ik", n, dirs) > 0) & (np.einsum("ij,ij->i", n, v) > 1e-4)[:, None]
-            if tracer is not None and lit.any():
-                ri, si = np.nonzero(lit)
-                p32 = tuple(np.ascontiguousarray(p[:, k], _F32) for k in range(3))
-                n32 = tuple(np.ascontiguousarray(n[:, k], _F32) for k in range(3))
-                if targets is not None:
-                    t = targets[ri, si].astype(_F32)
-                    vis = _shadow_to_targets(tracer, p32, n32, ri, t[:, 0], t[:, 1], t[:, 2], epsilon)
-                else:
-                    origins = (p[ri] + n[ri] * epsilon).astype(_F32)
-                    d = dirs[ri, si].astype(_F32)
-                    vis = ~np.asarray(tracer.occluded(origins, d, np.inf, trusted=True), bool)
-                contrib[ri[~vis], si[~vis]] = 0.0
-            acc += contrib.sum(axis=1) * light.color[None, :]
+            d32 = dirs.astype(_F32)
+            common, remap, schlick, k = _lobe_terms(mats, r, n32, v32, d32[..., 0], d32[..., 1], d32[..., 2])
+            c = common * weight.astype(_F32)
+            if tracer is not None:
+                ri, si = np.nonzero(c > 0)
+                if ri.size:
+                    if targets is not None:
+                        t = targets[ri, si].astype(_F32)
+                        vis = _shadow_to_targets(tracer, p32, ncols, ri, t[:, 0], t[:, 1], t[:, 2], epsilon)
+                    else:
+                        origins = (p[ri] + n[ri] * epsilon).astype(_F32)
+                        vis = ~np.asarray(tracer.occluded(origins, d32[ri, si], np.inf, trusted=True), bool)
+                    c[ri[~vis], si[~vis]] = 0.0
+            # Per channel: sum_s c (A + B remap + C + D schlick), without an (m, s, 3) array.
+            s0, s1, s2 = c.sum(axis=1), (c * remap).sum(axis=1), (c * schlick).sum(axis=1)
+            acc += ((k[:, 0] + k[:, 2]) * s0[:, None] + k[:, 1] * s1[:, None] + k[:, 3] * s2[:, None]) * light.color
         out[idx] = acc
     return out
 
