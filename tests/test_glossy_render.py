@@ -65,11 +65,11 @@ def test_diffuse_weight_and_glossy_direct_match_cycles(tmp_path):
               for name in ("Diffuse Color", "Glossy Color", "Glossy Direct", "Combined")}
     glossy = layer(cycles, "Glossy Direct") * layer(cycles, "Glossy Color")
     share = float(glossy[geometry].sum() / layer(cycles, "Combined")[geometry][:, :3].sum())
-    # Measured against 512 spp: Diffuse Color 0.0044 (0.092 without the layer's weight), Glossy
-    # Color 0.037, Glossy Direct 0.068, Combined 0.026 (0.161 without the glossy light, 17% of it).
+    # Measured against 512 spp: Diffuse Color 0.0025 (0.092 without the layer's weight), Glossy
+    # Color 0.0094, Glossy Direct 0.047, Combined 0.0245 (0.161 without the glossy light, 17% of it).
     assert share > 0.1, share
-    assert errors["Diffuse Color"] < 0.02, errors
-    assert errors["Glossy Color"] < 0.08, errors
+    assert errors["Diffuse Color"] < 0.015, errors
+    assert errors["Glossy Color"] < 0.03, errors
     assert errors["Glossy Direct"] < 0.15, errors
     assert errors["Combined"] < 0.06, errors
     # Glossy Indirect: the floor and ball reflect each other's bounced light (the cache's).
