@@ -16,6 +16,9 @@ _PASS_NAMES_BEFORE_5_0 = {
     "Diffuse Indirect": "DiffInd",
     "Diffuse Color": "DiffCol",
     "Ambient Occlusion": "AO",
+    "Glossy Direct": "GlossDir",
+    "Glossy Indirect": "GlossInd",
+    "Glossy Color": "GlossCol",
 }
 
 

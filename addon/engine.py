@@ -25,6 +25,9 @@ PASSES = tuple((compat.pass_name(name), *rest) for name, *rest in (
     ("Diffuse Indirect", 3, "RGB", "COLOR", "use_pass_diffuse_indirect"),
     ("Diffuse Color", 3, "RGB", "COLOR", "use_pass_diffuse_color"),
     ("Ambient Occlusion", 3, "RGB", "COLOR", "use_pass_ambient_occlusion"),
+    ("Glossy Direct", 3, "RGB", "COLOR", "use_pass_glossy_direct"),
+    ("Glossy Indirect", 3, "RGB", "COLOR", "use_pass_glossy_indirect"),
+    ("Glossy Color", 3, "RGB", "COLOR", "use_pass_glossy_color"),
 ))
 
 

@@ -106,8 +106,7 @@ def camera_matrices(depsgraph, scene, width, height):
 
 #: View-layer passes Cycles writes and HybridGI does not (the flag, its name in the warning).
 UNWRITTEN_PASSES = (
-    ("use_pass_glossy_direct", "Glossy Direct"), ("use_pass_glossy_indirect", "Glossy Indirect"),
-    ("use_pass_glossy_color", "Glossy Color"), ("use_pass_transmission_direct", "Transmission Direct"),
+    ("use_pass_transmission_direct", "Transmission Direct"),
     ("use_pass_transmission_indirect", "Transmission Indirect"), ("use_pass_transmission_color", "Transmission Color"),
     ("use_pass_emit", "Emission"), ("use_pass_environment", "Environment"), ("use_pass_shadow", "Shadow"),
     ("use_pass_mist", "Mist"), ("use_pass_position", "Position"), ("use_pass_vector", "Vector"),
@@ -461,6 +460,9 @@ def _write_result(engine, depsgraph, pipeline, width, height, world, cache=None)
     result.set("Ambient Occlusion", np.repeat(film.read("ao"), 3, axis=-1))
     result.set("Depth", film.read("depth"))
     result.set("Normal", film.read("normal"))  # the average of the hits' normals, 0 on the background
+    result.set("Glossy Direct", film.read("glossy_direct"))
+    result.set("Glossy Indirect", film.read("glossy_indirect"))
+    result.set("Glossy Color", film.read("glossy_color"))
     result.end()
 
 
@@ -471,7 +473,8 @@ def _write_background(engine, depsgraph, width, height, world):
     if not render.film_transparent:
         bg[...] = (*np.asarray(world, np.float32).tolist(), 1.0)
     result.set("Combined", bg)
-    for name in ("Diffuse Direct", "Diffuse Indirect", "Diffuse Color", "Ambient Occlusion", "Normal"):
+    for name in ("Diffuse Direct", "Diffuse Indirect", "Diffuse Color", "Ambient Occlusion", "Normal", "Glossy Direct",
+                 "Glossy Indirect", "Glossy Color"):
         result.set(name, np.zeros((height, width, 3), np.float32))
     result.set("Depth", np.full((height, width, 1), 1e10, np.float32))
     result.end()

@@ -6,7 +6,8 @@ values (no bpy object survives in the snapshot), so the core's worker threads ca
 Conventions (Cycles', checked against its Diffuse Direct pass to < 1%): geometry in world space with modifiers, instances and
 geometry nodes applied; lights in Blender's units with colour x temperature, exposure and the
 diffuse factor folded into `color`/`power`, area-light sizes unscaled (the object's scale stays
-in the matrix); materials reduced to a Lambertian base colour (optionally an image) plus emission radiance.
+in the matrix); materials reduced to a Lambertian base colour (optionally an image) plus emission radiance, with
+a Principled BSDF's dielectric specular layer (`hybridgi_core.specular`) that weights the diffuse part.
 """
 
 import logging
@@ -16,6 +17,8 @@ import numpy as np
 
 from hybridgi_core import environment
 from hybridgi_core import snapshot as snap
+from hybridgi_core.glossy import MIN_ROUGHNESS
+from hybridgi_core.specular import SpecularLayer
 
 from . import compat, material_bake, world_bake
 
@@ -265,19 +268,15 @@ class _SnapshotBuilder:
         return snap.make_snapshot(geometry, self.materials, self.lights, world, self.objects)
 
     def _warn_glossy(self):
-        """One warning for every surface whose glossy reflection Combined lacks (Cycles renders
-        an object without a material with Blender's default surface, a Principled BSDF with
-        Specular IOR Level 0.5: on the shared bunny scene that reflection is 19% of Combined)."""
-        parts = []
-        if self._textures.glossy:
-            parts.append("materials " + _listed(self._textures.glossy) + " have a specular layer (Metallic or "
-                         "Specular IOR Level above 0)")
-        if self.without_material:
-            parts.append("objects " + _listed(self.without_material) + " have no material (Cycles shows "
-                         "Blender's default surface, a Principled BSDF with a specular layer)")
-        if parts:
-            log.warning("%s: HybridGI renders their diffuse reflection only; Combined lacks the glossy part",
-                        "; ".join(parts))
+        """One warning per sync for the Principled BSDF features HybridGI still approximates,
+        naming each material and node (the glossy lobes themselves are rendered: `glossy.py`)."""
+        notes = self._textures.approximated
+        if not notes:
+            return
+        names = sorted(notes)
+        listed = "; ".join(f"material {name!r} {', '.join(sorted(notes[name]))}" for name in names[:5])
+        more = f" (and {len(names) - 5} more materials)" if len(names) > 5 else ""
+        log.warning("Principled BSDF features approximated: %s%s", listed, more)
 
     def _local_mesh(self, obj):
         key = obj.data.as_pointer()
@@ -345,7 +344,9 @@ class _SnapshotBuilder:
         key = None if material is None else material.name_full
         index = self._material_index.get(key)
         if index is None:
-            converted = snap.Material() if material is None else material_from_blender(material, self._textures)
+            # No material: Cycles' default surface, a Principled BSDF (base 0.8, specular 0.5).
+            converted = (snap.Material(specular=SpecularLayer()) if material is None
+                         else material_from_blender(material, self._textures))
             index = self._material_index[key] = len(self.materials)
             self.materials.append(converted)
         return index
@@ -364,6 +365,7 @@ def material_from_blender(material, textures=None, baked=None, pending=False):
     textures = textures if textures is not None else _TextureCache()
     textures.baked = baked or {}
     textures.pending = pending
+    textures.specular = None
     name = material.name
     tree = material.node_tree
     if tree is None:
@@ -378,7 +380,7 @@ def material_from_blender(material, textures=None, baked=None, pending=False):
         return _grey(name)
     base, texture, emission, alpha = surface
     return snap.Material(name=name, base_color=base.astype(np.float32), texture=texture,
-                         emission=emission.astype(np.float32), alpha=alpha)
+                         emission=emission.astype(np.float32), alpha=alpha, specular=textures.specular)
 
 
 def _shader_surface(shader, textures, name, depth=0):
@@ -399,6 +401,11 @@ def _shader_surface(shader, textures, name, depth=0):
         specular = _input(shader, "Specular IOR Level", "Specular")
         if metallic > 0 or (specular is not None and _constant_value(specular, name) > 0):
             textures.glossy.add(name)
+        _note_approximations(shader, textures, name, metallic, transmission, coat)
+        if textures.specular is None:
+            # The first Principled BSDF of a material layers the diffuse part of all of it (a Mix
+            # with a Diffuse BSDF then weights that part too: an approximation).
+            textures.specular = _specular_layer(shader, name, base, texture, metallic, transmission)
         base = base * weight * (1.0 + np.clip(coat, 0, 1) * (tint - 1.0))
         emission = _constant_color(shader.inputs["Emission Color"], name) * _constant_value(
             shader.inputs["Emission Strength"], name)
@@ -420,6 +427,53 @@ def _shader_surface(shader, textures, name, depth=0):
     if kind in ("MIX_SHADER", "ADD_SHADER") and depth < 8:
         return _mix_surface(shader, kind, textures, name, depth)
     return None
+
+
+def _note_approximations(shader, textures, name, metallic, transmission, coat):
+    """Record what of a Principled BSDF HybridGI renders only approximately (`_warn_glossy`)."""
+    notes = []
+    if coat > 0:
+        notes.append("coat (only its tint: its reflection and layering are not rendered)")
+    sheen = _input(shader, "Sheen Weight")
+    if sheen is not None and _constant_value(sheen, name) > 0:
+        notes.append("sheen (not rendered)")
+    aniso = _input(shader, "Anisotropic")
+    if aniso is not None and _constant_value(aniso, name) > 0:
+        notes.append("anisotropy (rendered isotropic)")
+    if transmission > 0:
+        notes.append("transmission (the transmitted light is not rendered)")
+    film = _input(shader, "Thin Film Thickness")
+    if film is not None and _constant_value(film, name) > 0:
+        notes.append("thin film (not rendered)")
+    subsurface = _input(shader, "Subsurface Weight")
+    if subsurface is not None and _constant_value(subsurface, name) > 0:
+        notes.append("subsurface (rendered as diffuse)")
+    roughness = _input(shader, "Roughness")
+    level = _input(shader, "Specular IOR Level", "Specular")
+    glossy = metallic > 0 or (level is not None and _constant_value(level, name) > 0)
+    if glossy and roughness is not None and _constant_value(roughness, name) < MIN_ROUGHNESS:
+        notes.append(f"a mirror-like specular (roughness under {MIN_ROUGHNESS}: lamps' reflections are not rendered)")
+    if textures.specular is not None:
+        notes.append("a second Principled BSDF (the first one's specular layer weights the whole surface)")
+    if notes:
+        textures.approximated.setdefault(name, set()).add(f"node {shader.name!r}: " + ", ".join(notes))
+
+
+def _specular_layer(shader, name, base, texture, metallic, transmission):
+    """`SpecularLayer` of a Principled BSDF: its roughness, IOR, Specular IOR Level and Tint and
+    its distribution (constant inputs; a linked one keeps its value, with a warning), weighted as
+    Cycles weights the dielectric layer; the metallic lobe's F0 is the (mean) base colour."""
+    metal = base if texture is None else base * texture.reshape(-1, 3).mean(axis=0)
+    metallic, transmission = float(np.clip(metallic, 0, 1)), float(np.clip(transmission, 0, 1))
+    level = _input(shader, "Specular IOR Level", "Specular")
+    tint = _input(shader, "Specular Tint")
+    colour_tint = tint is not None and hasattr(tint.default_value, "__len__")
+    return SpecularLayer(roughness=_constant_value(_input(shader, "Roughness"), name),
+                         ior=_constant_value(_input(shader, "IOR"), name) if _input(shader, "IOR") else 1.5,
+                         level=_constant_value(level, name) if level is not None else 0.5,
+                         tint=_constant_color(tint, name) if colour_tint else np.ones(3, np.float32),
+                         multiscatter=getattr(shader, "distribution", "MULTI_GGX") == "MULTI_GGX",
+                         weight=(1.0 - metallic) * (1.0 - transmission), metallic=metallic, metal_color=metal)
 
 
 def _mix_surface(shader, kind, textures, name, depth):
@@ -715,7 +769,9 @@ class _TextureCache:
         self._images = {}
         self.baked = {}  # (node name, input identifier) -> baked texture of the material being read
         self.pending = False
-        self.glossy = set()  # materials with a specular layer HybridGI does not render
+        self.glossy = set()  # materials with a specular layer (dielectric or metallic)
+        self.approximated: dict[str, set[str]] = {}  # material -> what of its Principled BSDF is approximated
+        self.specular = None  # the specular layer of the material being read (SpecularLayer)
 
     def _read(self, image, material_name):
         if image is None:

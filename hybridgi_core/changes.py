@@ -217,7 +217,8 @@ def _material_key(material: Material) -> tuple:
     texture = material.texture
     # The sum, not the bytes: a hash of a 16k texture would copy it on every sync.
     texture_key = None if texture is None else (texture.shape, float(texture.sum(dtype=np.float64)))
-    return material.base_color.tobytes(), material.emission.tobytes(), texture_key
+    specular = None if material.specular is None else material.specular.key()
+    return material.base_color.tobytes(), material.emission.tobytes(), texture_key, specular
 
 
 def _world_key(world: World) -> tuple:

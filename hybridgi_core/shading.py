@@ -87,8 +87,13 @@ class SurfaceTable:
 
     def set_materials(self, materials: list[Material]) -> None:
         self.materials = materials
-        self.albedo = np.array([m.base_color for m in materials], np.float32).reshape(-1, 3)
-        self.mean_albedo = np.array([m.mean_albedo for m in materials], np.float32).reshape(-1, 3)
+        # Hits reflect the diffuse base under the specular layer by its hemispherical mean
+        # weight, and the glossy lobes' mean albedo as if it were diffuse (untextured): the cache
+        # cannot hold a lobe's direction, but Cycles' bounce light carries its energy.
+        weight = np.array([[m.hit_diffuse_weight] for m in materials], np.float32).reshape(-1, 1)
+        self.glossy = np.array([m.hit_glossy_albedo for m in materials], np.float32).reshape(-1, 3)
+        self.albedo = np.array([m.base_color for m in materials], np.float32).reshape(-1, 3) * weight
+        self.mean_albedo = np.array([m.mean_albedo for m in materials], np.float32).reshape(-1, 3) * weight
         self.emission = np.array([m.emission for m in materials], np.float32).reshape(-1, 3)
         self.textured = [i for i, m in enumerate(materials) if m.texture is not None]
         self.emissive = bool(self.emission.any())
@@ -97,7 +102,7 @@ class SurfaceTable:
         records[:-1, _NG] = _face_normals(self._positions)
         if len(materials):
             mat = np.clip(self.material_index, 0, len(materials) - 1)
-            records[:-1, _BRDF] = self.albedo[mat] * _INV_PI
+            records[:-1, _BRDF] = (self.albedo[mat] + self.glossy[mat]) * _INV_PI
             records[:-1, _EMIT] = self.emission[mat]
         self.records = records
 
@@ -154,8 +159,9 @@ class SurfaceTable:
             t = np.take(self._uvs, prim[sel], axis=0)
             uv = t[:, 0:2] + u[sel, None] * t[:, 2:4] + v[sel, None] * t[:, 4:6]
             known = np.isfinite(uv).all(axis=1)
-            col = np.tile(self.mean_albedo[m] * _INV_PI, (sel.size, 1))
+            col = np.tile((self.mean_albedo[m] + self.glossy[m]) * _INV_PI, (sel.size, 1))
             col[known] = (self.albedo[m] * _INV_PI) * sample_texture(self.materials[m].texture, uv[known])
+            col[known] += self.glossy[m] * _INV_PI
             brdf[sel] = col
         return brdf
 

@@ -14,6 +14,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .errors import EmptySceneError, InvalidGeometryError
+from .specular import SpecularLayer, hemispherical_diffuse_weight, hemispherical_glossy_albedo
 
 log = logging.getLogger(__name__)
 
@@ -98,6 +99,10 @@ class Material:
     bake_id : the reader's name for a texture it had Blender bake over this material's own UV
         atlas (one material per mesh then), so an edit of the material can bake it again; None
         for materials read directly
+    specular : the Principled BSDF's dielectric specular layer over the diffuse base
+        (`specular.SpecularLayer`), or None for a plain Lambertian surface. base_color is the
+        diffuse colour before the layer's view-dependent weight, which the G-buffer applies per
+        pixel and probe hits as its hemispherical mean (`specular.diffuse_weight`)
     """
 
     name: str = "default"
@@ -106,6 +111,7 @@ class Material:
     emission: np.ndarray = field(default_factory=lambda: np.zeros(3, np.float32))
     alpha: np.ndarray | None = None
     bake_id: str | None = None
+    specular: SpecularLayer | None = None
 
     def __post_init__(self) -> None:
         # Non-finite colours would reach every pixel that sees (or bounces off) this material.
@@ -120,6 +126,17 @@ class Material:
         if self.texture is None:
             return self.base_color
         return (self.base_color * self.texture.reshape(-1, 3).mean(axis=0)).astype(np.float32)
+
+    @property
+    def hit_diffuse_weight(self) -> float:
+        """Share of the diffuse base a probe-ray hit reflects under the specular layer (its
+        cosine-weighted mean over the hemisphere; 1 without a layer)."""
+        return hemispherical_diffuse_weight(self.specular)
+
+    @property
+    def hit_glossy_albedo(self) -> np.ndarray:
+        """(3,) albedo a probe-ray hit adds for its glossy lobes (`specular.hemispherical_glossy_albedo`)."""
+        return hemispherical_glossy_albedo(self.specular)
 
 
 @dataclass

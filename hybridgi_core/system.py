@@ -14,6 +14,7 @@ import numpy as np
 from .cache import IrradianceCache
 from .cutout import Cutouts
 from .evaluate import Gathered, corner_visibility, gather
+from .glossy import GlossyMaterials, glossy_direct
 from .lights import direct_irradiance
 from .lod import decimate
 from .sampling import frame_rng
@@ -324,6 +325,35 @@ class GISystem:
         jobs = [self.updater.pool.submit(direct_irradiance, lights, points[a : a + per_block], normals[a : a + per_block],
                                          self.tracer, child, samples, eps)
                 for a, child in zip(starts, rng.spawn(len(starts)), strict=True)]
+        return np.concatenate([j.result() for j in jobs])
+
+    @property
+    def glossy_materials(self) -> GlossyMaterials:
+        """The scene's materials' glossy lobes (`glossy.GlossyMaterials`), rebuilt when they change."""
+        materials = self.scene.materials
+        if getattr(self, "_glossy_key", None) is not materials:
+            self._glossy_materials, self._glossy_key = GlossyMaterials.from_materials(materials), materials
+        return self._glossy_materials
+
+    def glossy(self, points: np.ndarray, normals: np.ndarray, to_eye: np.ndarray, rows: np.ndarray, frame: int,
+               samples: int | None = None) -> np.ndarray:
+        """Lamp radiance (n, 3) the glossy lobes of materials `rows` reflect towards the eye, with
+        shadow rays (`glossy.glossy_direct`; its own samples, seeded apart from `direct`'s)."""
+        rng = frame_rng(self.settings.seed + 2, frame)
+        samples = samples or self.settings.light_samples
+        eps = float(self.tracer.epsilon)
+        n = int(np.asarray(points).reshape(-1, 3).shape[0])
+        per_block = max(1, DIRECT_BLOCK_RAYS // samples)
+        lights, mats = self.scene.lights, self.glossy_materials
+        if n <= per_block or not lights:
+            return glossy_direct(lights, points, normals, to_eye, rows, mats, self.tracer, rng, samples, eps)
+        # Blocks on the worker pool, each with its own child generator (as `direct`).
+        per_pixel = [np.asarray(a).reshape(n, -1) for a in (points, normals, to_eye)]
+        rows = np.asarray(rows).reshape(-1)
+        starts = range(0, n, per_block)
+        jobs = [self.updater.pool.submit(glossy_direct, lights, *(a[b : b + per_block] for a in per_pixel),
+                                         rows[b : b + per_block], mats, self.tracer, child, samples, eps)
+                for b, child in zip(starts, rng.spawn(len(starts)), strict=True)]
         return np.concatenate([j.result() for j in jobs])
 
 

@@ -425,16 +425,28 @@ def test_nan_vertices_are_dropped(bpy_module, scene, sync):
     assert np.isfinite(geo.positions).all()
 
 
-def test_surfaces_with_a_glossy_part_are_named_once(bpy_module, scene, sync, caplog):
+def test_principled_specular_layers_are_read_and_approximations_named_once(bpy_module, scene, sync, caplog):
     bpy = bpy_module
-    add_cube(bpy, scene, "bare")  # no material: Cycles' default surface is a glossy Principled BSDF
+    add_cube(bpy, scene, "bare")  # no material: Cycles' default surface, a glossy Principled BSDF
     shiny, bsdf = principled(bpy, "shiny")  # Specular IOR Level 0.5 by default
+    bsdf.inputs["Roughness"].default_value = 0.3
+    bsdf.inputs["IOR"].default_value = 1.45
     add_cube(bpy, scene, "painted").data.materials.append(shiny)
     matte, bsdf = principled(bpy, "matte")
     bsdf.inputs["Specular IOR Level"].default_value = 0.0
     add_cube(bpy, scene, "plain").data.materials.append(matte)
+    coated, bsdf = principled(bpy, "coated")
+    bsdf.inputs["Coat Weight"].default_value = 0.5
+    bsdf.inputs["Sheen Weight"].default_value = 0.2
+    add_cube(bpy, scene, "lacquered").data.materials.append(coated)
     with caplog.at_level(logging.WARNING):
-        snapshot(sync, bpy)
-    glossy = [r.getMessage() for r in caplog.records if "glossy" in r.getMessage()]
-    assert len(glossy) == 1, glossy
-    assert "'shiny'" in glossy[0] and "'bare'" in glossy[0] and "matte" not in glossy[0]
+        snap = snapshot(sync, bpy)
+    layers = {m.name: m.specular for m in snap.materials}
+    assert layers["shiny"].roughness == pytest.approx(0.3) and layers["shiny"].ior == pytest.approx(1.45)
+    assert not layers["matte"].active  # Specular IOR Level 0: no layer over the diffuse base
+    assert layers["default"] is not None and layers["default"].active  # Blender's default surface
+    notes = [r.getMessage() for r in caplog.records if "approximated" in r.getMessage()]
+    assert len(notes) == 1, notes
+    assert "'coated'" in notes[0] and "coat" in notes[0] and "sheen" in notes[0] and "'Principled BSDF'" in notes[0]
+    assert "shiny" not in notes[0] and "matte" not in notes[0]
+    assert not [r for r in caplog.records if "lacks the glossy part" in r.getMessage()]

@@ -8,7 +8,7 @@ Outputs (full res, rows bottom-up), following Cycles' pass definitions:
 
 | slot | name             | format  | content                                                   |
 |------|------------------|---------|-----------------------------------------------------------|
-| 0    | combined         | RGBA32F | albedo (E_dir + E_ind) / pi + emission; a = 1 geometry, background = world radiance, a = 0 |
+| 0    | combined         | RGBA32F | albedo (E_dir + E_ind) / pi + glossy + emission; a = 1 geometry, background = world radiance, a = 0 |
 | 1    | diffuse_direct   | RGBA32F | (E_lamps + E_cache_direct) / pi                            |
 | 2    | diffuse_indirect | RGBA32F | E_indirect / pi                                            |
 | 3    | diffuse_color    | RGBA32F | albedo                                                     |
@@ -25,7 +25,7 @@ import numpy as np
 from .bilateral import BILATERAL_PUSH, FilteredGI, set_bilateral_uniforms
 from .glsl import load_glsl
 from .passes import RasterError, RasterPass, check_size, compile_spec, fullscreen_spec, low_res_size, make_target
-from .readback import read_framebuffer
+from .readback import read_framebuffer, upload_texture_2d
 from .settings import AO_BLEND_MODES, DEBUG_AO_SPLIT, DEBUG_FINAL, RasterSettings
 
 log = logging.getLogger(__name__)
@@ -62,6 +62,7 @@ class DeferredPass(RasterPass):
         self.settings = settings or RasterSettings()
         self._targets = None
         self._fb = None
+        self._no_glossy = None
 
     def _build_shaders(self) -> dict:
         spec = fullscreen_spec(
@@ -72,9 +73,9 @@ class DeferredPass(RasterPass):
                       (2, "FLOAT_2D", "full_position_tx"), (3, "FLOAT_2D", "emission_tx"),
                       (4, "FLOAT_2D", "full_depth_tx"), (5, "FLOAT_2D", "direct_tx"),
                       (6, "FLOAT_2D", "h_indirect_tx"), (7, "FLOAT_2D", "h_direct_tx"),
-                      (8, "FLOAT_2D", "h_ssao_tx")),
+                      (8, "FLOAT_2D", "h_ssao_tx"), (9, "FLOAT_2D", "glossy_tx")),
             push=BILATERAL_PUSH + (("VEC4", "world_color"), ("INT", "blend_mode"),
-                                   ("INT", "debug_view"), ("INT", "relative_bounce")),
+                                   ("INT", "debug_view"), ("INT", "relative_bounce"), ("INT", "has_glossy")),
             outputs=tuple((slot, "FLOAT" if ch == 1 else "VEC4", f"out_{name}")
                           for slot, (name, _f, ch) in enumerate(DEFERRED_TARGETS)),
         )
@@ -90,10 +91,11 @@ class DeferredPass(RasterPass):
     def _release_targets(self) -> None:
         self._targets = None
         self._fb = None
+        self._no_glossy = None
 
     def execute(self, gbuffer, direct, filtered: FilteredGI, world_color=(0.0, 0.0, 0.0),
                 blend_mode: str | None = None, debug_view: int = DEBUG_FINAL,
-                relative_bounce: bool = False) -> ShadedFrame:
+                relative_bounce: bool = False, glossy=None) -> ShadedFrame:
         """Shade one frame.
 
         gbuffer : GBuffer of the resize size
@@ -103,6 +105,8 @@ class DeferredPass(RasterPass):
         blend_mode : "MUL" | "MIN"; None = settings.ao_blend
         debug_view : settings.DEBUG_FINAL | DEBUG_INDIRECT | DEBUG_AO | DEBUG_AO_SPLIT (Combined only)
         relative_bounce : SSAOPass.relative_bounce of the frame (bounce without irradiance input)
+        glossy : full-res RGBA texture, rgb = the lamps' glossy reflection (radiance, added to
+            Combined; `glossy.glossy_direct`), or None
         """
         self._require()
         mode = blend_mode or self.settings.ao_blend
@@ -125,6 +129,12 @@ class DeferredPass(RasterPass):
         shader.uniform_sampler("h_indirect_tx", filtered.indirect)
         shader.uniform_sampler("h_direct_tx", filtered.direct)
         shader.uniform_sampler("h_ssao_tx", filtered.ssao)
+        if glossy is not None:
+            check_size(glossy, self.width, self.height, "glossy radiance")
+        elif self._no_glossy is None:
+            self._no_glossy = upload_texture_2d(np.zeros((1, 1, 4), np.float32), "RGBA16F")
+        shader.uniform_sampler("glossy_tx", glossy if glossy is not None else self._no_glossy)
+        shader.uniform_int("has_glossy", 1 if glossy is not None else 0)
         set_bilateral_uniforms(shader, self.settings, filtered.factor)
         shader.uniform_float("world_color", (*wc.tolist(), 1.0))
         shader.uniform_int("blend_mode", AO_BLEND_MODES.index(mode))

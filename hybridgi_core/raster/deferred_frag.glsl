@@ -64,6 +64,9 @@ void main()
   out_ao = ao;
 
   vec3 color = albedo * (e_direct + e_indirect) / M_PI + emission;
+  if (has_glossy != 0) {
+    color += texelFetch(glossy_tx, px, 0).rgb; /* the lamps' glossy reflection (CPU, glossy.py) */
+  }
   if (debug_view == 1) {
     color = albedo * e_indirect / M_PI;
   }

@@ -14,6 +14,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .. import pixel_gather
+from ..glossy import cache_reflection, glossy_color
 from ..lights import RATIO_MIN_SAMPLES
 from ..visible import pixels_to_points
 from .accumulate import AccumulatePass
@@ -21,7 +22,7 @@ from .bilateral import BilateralPass
 from .deferred import DeferredPass, ShadedFrame
 from .downsample import DownsamplePass
 from .gather import GatherPass
-from .gbuffer import GBufferPass
+from .gbuffer import GBufferPass, camera_eye
 from .passes import low_res_size
 from .readback import upload_texture_2d
 from .settings import DEBUG_FINAL, RasterSettings
@@ -97,6 +98,7 @@ class FramePipeline:
                         self.accumulate)
         self.width = self.height = 0
         self._direct_tex = None
+        self._glossy_tex = None
 
     def resize(self, width: int, height: int) -> None:
         if (width, height) == (self.width, self.height):
@@ -140,7 +142,7 @@ class FramePipeline:
 
     def shade(self, gbuf, low, view: np.ndarray, proj: np.ndarray, direct, corner_visible=None,
               irradiance=None, debug_view: int = DEBUG_FINAL, world_color=(0.0, 0.0, 0.0),
-              stats: FrameStats | None = None, gi=None) -> ShadedFrame:
+              stats: FrameStats | None = None, gi=None, glossy=None) -> ShadedFrame:
         """Steps 6-9 on the GPU, the cache already uploaded (`self.gather.upload`).
 
         direct : full-res RGBA texture of lamp irradiance (W/m^2) at the G-buffer's pixels
@@ -149,6 +151,8 @@ class FramePipeline:
         irradiance : low-res RGBA texture of the light the near-field bounce reflects, or None
         gi : (gi_indirect, gi_direct, ssao) low-res textures that replace the gather and the
             screen-space pass (pixel rays: `_pixel_gi`)
+        glossy : full-res RGBA texture of the lamps' glossy reflection (radiance, added to
+            Combined), or None
         """
         stats = stats if stats is not None else FrameStats()
         if gi is not None:
@@ -162,7 +166,8 @@ class FramePipeline:
             filtered = self.bilateral.execute(gbuf, low, gi_indirect, gi_direct, ssao)
         with stats.step("deferred"):
             shaded = self.deferred.execute(gbuf, direct, filtered, world_color=world_color,
-                                           debug_view=debug_view, relative_bounce=self.ssao.relative_bounce)
+                                           debug_view=debug_view, relative_bounce=self.ssao.relative_bounce,
+                                           glossy=glossy)
         return shaded
 
     def render(self, system, view: np.ndarray, proj: np.ndarray, frame: int, warmup: int = 0,
@@ -224,6 +229,8 @@ class FramePipeline:
             p_full, n_full, pix_full = pixels_to_points(position, normal)
             direct = np.zeros((self.height * self.width, 4), np.float32)
             direct[pix_full, :3] = system.direct(p_full, n_full, frame, samples=self.direct_samples)
+        with stats.step("glossy"):
+            glossy, glossy_col, glossy_ind = self._glossy(system, view, proj, p_full, n_full, pix_full, frame)
         film = FilmAccumulator()
         offsets = subpixel_offsets(self.subframes, self.filter_size, self.filter_type)
         jittered = offsets.shape[0] > 1
@@ -247,13 +254,44 @@ class FramePipeline:
                 self._direct_tex = upload_texture_2d(direct.reshape(self.height, self.width, 4), "RGBA32F")
             shaded = self.shade(gbuf, low, view, proj, self._direct_tex,
                                 corner_visible=mask.reshape(low.height, low.width, 8), irradiance=lit_tex,
-                                debug_view=debug_view, world_color=world_color, stats=stats, gi=gi)
+                                debug_view=debug_view, world_color=world_color, stats=stats, gi=gi,
+                                glossy=self._glossy_tex if glossy is not None else None)
             with stats.step("accumulate"):
                 self.accumulate.execute(shaded, gbuf, first=s == 0)
         with stats.step("film"):
             film.set_sums(self.accumulate.read_all(), self.accumulate.count)
+            film.set_glossy(glossy, glossy_col, self.height, self.width, indirect=glossy_ind)
         self.film = film
         return shaded, stats
+
+    def _glossy(self, system, view, proj, points, normals, pix, frame):
+        """(direct radiance, Glossy Color, bounced light), each (h w, 4) float32 or None without
+        glossy lobes: the lamps', sky's and emitters' reflection by the glossy lobes at the centre
+        raster's pixels (`glossy.glossy_direct`, `glossy.cache_reflection`) and the light of other
+        surfaces they reflect (Glossy Indirect before its colour); direct + colour x bounced is
+        uploaded for the deferred pass. Subframes reuse it: a highlight is smooth at the pixel
+        scale, and silhouettes are where its share is least."""
+        if not hasattr(system, "glossy") or all(getattr(m, "specular", None) is None for m in system.scene.materials):
+            return None, None, None
+        rows = np.rint(self.gbuffer.read("material").reshape(-1)[pix]).astype(np.int64) - 1
+        eye = np.asarray(camera_eye(view, proj), np.float64)
+        to_eye = eye[:3] - points * eye[3] if eye[3] > 0.5 else np.broadcast_to(eye[:3], points.shape)
+        to_eye = to_eye / np.maximum(np.linalg.norm(to_eye, axis=1, keepdims=True), 1e-30)
+        glossy = np.zeros((self.height * self.width, 4), np.float32)
+        colour = np.zeros((self.height * self.width, 4), np.float32)
+        glossy[pix, :3] = system.glossy(points, normals, to_eye, rows, frame, samples=self.direct_samples)
+        mu = np.clip(np.einsum("ij,ij->i", normals, to_eye), 0.0, 1.0)
+        colour[pix, :3] = glossy_color(system.glossy_materials, rows, mu)
+        indirect = np.zeros((self.height * self.width, 4), np.float32)
+        lit = np.flatnonzero(colour[pix, :3].max(axis=1) > 0)
+        if lit.size:
+            rough = system.glossy_materials.rough[rows[lit]]
+            sky, bounced = cache_reflection(system.cache, points[lit], normals[lit], to_eye[lit], rough)
+            glossy[pix[lit], :3] += colour[pix[lit], :3] * sky
+            indirect[pix[lit], :3] = bounced
+        total = glossy + colour * indirect
+        self._glossy_tex = upload_texture_2d(total.reshape(self.height, self.width, 4), "RGBA32F")
+        return glossy, colour, indirect
 
     def _pixel_gi(self, system, position_lo, normal_lo, pix, points, normals, visible, view, frame, stats):
         """Per-pixel final gather (`pixel_gather.gi_images`) as the textures the gather and the

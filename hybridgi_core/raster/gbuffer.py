@@ -4,11 +4,13 @@ Targets (all bottom-up rows, world space, scene-linear):
 
 | slot | name     | format  | content                                                      |
 |------|----------|---------|--------------------------------------------------------------|
-| 0    | albedo   | RGBA16F | linear base colour x texture, a = 1 on geometry              |
+| 0    | albedo   | RGBA16F | diffuse colour (base x texture x the specular layer's        |
+|      |          |         | diffuse weight at the view angle), a = 1 on geometry         |
 | 1    | normal   | RGBA16F | unit shading normal, flipped to face the camera, a = 1       |
 | 2    | position | RGBA32F | world position xyz, w = 1 on geometry, 0 on the background   |
 | 3    | emission | RGBA16F | emitted radiance W/(m^2 sr), a = 1                           |
 | 4    | depth    | R32F    | view-axis distance (Cycles' Depth pass), 1e10 on background  |
+| 5    | material | R32F    | material index + 1 (0 on the background): the CPU's glossy lobes |
 
 Everything else is 0 on the background. Geometry is uploaded once (`upload`); animated vertices
 replace only the position buffer (`update_positions`). One draw call per material.
@@ -21,6 +23,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..specular import WEIGHT_SAMPLES, diffuse_weight_row
 from .glsl import ShaderSpec, load_glsl
 from .passes import (
     BACKGROUND_DEPTH,
@@ -43,6 +46,7 @@ GBUFFER_TARGETS = (
     ("position", "RGBA32F", 4),
     ("emission", "RGBA16F", 4),
     ("depth", "R32F", 1),
+    ("material", "R32F", 1),
 )
 
 
@@ -57,6 +61,7 @@ class GBuffer:
     depth: object
     width: int
     height: int
+    material: object = None
 
 
 #: `has_texture` bits of the G-buffer shader: the texture's rgb is the colour / its alpha cuts.
@@ -93,6 +98,27 @@ class _MaterialDraw:
     emission: tuple
     texture: object  # GPUTexture or None
     flags: int = 0  # TEXTURE_COLOR | TEXTURE_ALPHA: what `texture` holds
+    row: int = 0  # the material's row of the diffuse weight table
+
+
+def camera_eye(view: np.ndarray, proj: np.ndarray) -> tuple:
+    """(x, y, z, w) the G-buffer derives view directions from: the camera's position with w = 1
+    (perspective), or the unit direction towards the camera with w = 0 (orthographic)."""
+    view = np.asarray(view, np.float64).reshape(4, 4)
+    proj = np.asarray(proj, np.float64).reshape(4, 4)
+    if abs(proj[3, 3] - 1.0) < 1e-9 and abs(proj[3, 2]) < 1e-9:
+        back = view[2, :3] / max(np.linalg.norm(view[2, :3]), 1e-30)
+        return (*back.tolist(), 0.0)
+    return (*np.linalg.inv(view)[:3, 3].tolist(), 1.0)
+
+
+def weight_table(materials) -> np.ndarray:
+    """(n_materials, WEIGHT_SAMPLES, 4) float32: row m holds material m's diffuse weight under its
+    specular layer at cosines i / (WEIGHT_SAMPLES - 1) (1 without a layer), in red."""
+    rows = [diffuse_weight_row(getattr(m, "specular", None)) for m in materials] or [np.ones(WEIGHT_SAMPLES, np.float32)]
+    table = np.ones((len(rows), WEIGHT_SAMPLES, 4), np.float32)
+    table[:, :, 0] = np.stack(rows)
+    return table
 
 
 class GBufferPass(RasterPass):
@@ -115,6 +141,7 @@ class GBufferPass(RasterPass):
         self._attr_vbo = None
         self._draws: list[_MaterialDraw] = []
         self._dummy_texture = None
+        self._weight_texture = None
         self._vertex_count = 0
 
     # -- lifecycle ---------------------------------------------------------------------------
@@ -126,10 +153,10 @@ class GBufferPass(RasterPass):
             vertex_in=((0, "VEC3", "pos"), (1, "VEC3", "nor"), (2, "VEC2", "uv"), (3, "FLOAT", "uv_valid")),
             varyings=(("smooth", "VEC3", "world_pos"), ("smooth", "VEC3", "world_nor"),
                       ("smooth", "VEC2", "tex_uv"), ("smooth", "FLOAT", "uv_ok")),
-            samplers=((0, "FLOAT_2D", "albedo_tx"),),
-            # 56 bytes of push constants per material; the camera (80 bytes) is a UBO.
-            push=(("VEC4", "base_color"), ("VEC4", "fallback_albedo"), ("VEC4", "emission"),
-                  ("INT", "has_texture"), ("FLOAT", "texture_filter")),
+            samplers=((0, "FLOAT_2D", "albedo_tx"), (1, "FLOAT_2D", "weight_tx")),
+            # 76 bytes of push constants per material; the camera (80 bytes) is a UBO.
+            push=(("VEC4", "base_color"), ("VEC4", "fallback_albedo"), ("VEC4", "emission"), ("VEC4", "eye"),
+                  ("INT", "has_texture"), ("FLOAT", "texture_filter"), ("INT", "material_row")),
             typedefs=CAMERA_TYPEDEF,
             ubos=((0, "CameraBlock", "camera"),),
             outputs=tuple((slot, "FLOAT" if ch == 1 else "VEC4", f"out_{name}")
@@ -163,6 +190,7 @@ class GBufferPass(RasterPass):
         self._attr_vbo = None
         self._draws = []
         self._dummy_texture = None
+        self._weight_texture = None
         self._vertex_count = 0
 
     # -- geometry ----------------------------------------------------------------------------
@@ -200,6 +228,7 @@ class GBufferPass(RasterPass):
         hidden = [i for i, o in enumerate(snapshot.objects) if not o.camera_visible]
         drawn = ~np.isin(geo.object_index, hidden) if hidden else np.ones(tris.shape[0], bool)
         self._draws = []
+        self._weight_texture = upload_texture_2d(weight_table(snapshot.materials), "RGBA16F")
         for m, material in enumerate(snapshot.materials):
             sel = tris[(mat_index == m) & drawn]
             if sel.shape[0] == 0:
@@ -218,6 +247,7 @@ class GBufferPass(RasterPass):
                 emission=(*np.asarray(material.emission, np.float32).reshape(3).tolist(), 1.0),
                 texture=texture,
                 flags=flags,
+                row=m,
             ))
         self.update_positions(geo.positions)
         log.debug("gbuffer upload: %d vertices, %d triangles, %d material draws",
@@ -262,6 +292,7 @@ class GBufferPass(RasterPass):
         else:
             self._ubo.update(data)
         shader = self._shader()
+        eye = camera_eye(view, proj)
         with self._fb.bind():
             gpu.state.viewport_set(0, 0, self.width, self.height)
             self._fb.clear(color=(0.0, 0.0, 0.0, 0.0), depth=1.0)
@@ -276,9 +307,12 @@ class GBufferPass(RasterPass):
                     shader.uniform_float("base_color", draw.base_color)
                     shader.uniform_float("fallback_albedo", draw.fallback_albedo)
                     shader.uniform_float("emission", draw.emission)
+                    shader.uniform_float("eye", eye)
                     shader.uniform_int("has_texture", draw.flags)
                     shader.uniform_float("texture_filter", float(texture_filter))
+                    shader.uniform_int("material_row", draw.row)
                     shader.uniform_sampler("albedo_tx", draw.texture or self._dummy_texture)
+                    shader.uniform_sampler("weight_tx", self._weight_texture)
                     draw.batch.draw(shader)
         return self.outputs()
 
@@ -288,10 +322,10 @@ class GBufferPass(RasterPass):
         if t is None:
             raise RasterError("gbuffer: no targets (resize first)")
         return GBuffer(t["albedo"], t["normal"], t["position"], t["emission"], t["depth"],
-                       self.width, self.height)
+                       self.width, self.height, t["material"])
 
     def read(self, name: str, out: np.ndarray | None = None) -> np.ndarray:
-        """Target `name` (albedo|normal|position|emission|depth) as (h, w, c) float32, bottom-up."""
+        """Target `name` (albedo|normal|position|emission|depth|material) as (h, w, c) float32, bottom-up."""
         for slot, (tname, _fmt, ch) in enumerate(GBUFFER_TARGETS):
             if tname == name:
                 return read_framebuffer(self._fb, slot, self.width, self.height, ch, out=out)

@@ -1,6 +1,19 @@
 /* G-buffer MRT. One draw per material: the material's constants are push constants and its
  * texture (or a 1x1 dummy) is `albedo_tx`; `has_texture` bit 1: its rgb is the colour, bit 2:
- * its alpha cuts the surface out below one half (gbuffer.py TEXTURE_COLOR / TEXTURE_ALPHA). */
+ * its alpha cuts the surface out below one half (gbuffer.py TEXTURE_COLOR / TEXTURE_ALPHA).
+ * `weight_tx` row `material_row` holds the diffuse weight under the material's specular layer
+ * against cos(normal, view) (specular.py: Cycles' closure_layering_weight). */
+
+/* The diffuse weight at cosine mu, linear between the table's samples at i / (n - 1). */
+float diffuse_weight(float mu)
+{
+  int n = textureSize(weight_tx, 0).x;
+  float x = clamp(mu, 0.0, 1.0) * float(n - 1);
+  int i0 = min(int(x), n - 2);
+  float a = texelFetch(weight_tx, ivec2(i0, material_row), 0).r;
+  float b = texelFetch(weight_tx, ivec2(i0 + 1, material_row), 0).r;
+  return mix(a, b, x - float(i0));
+}
 
 ivec2 wrap_texel(ivec2 i, ivec2 n)
 {
@@ -75,9 +88,13 @@ void main()
   if ((has_texture & 1) != 0 && uv_ok > 0.999) {
     albedo = base_color.rgb * sample_footprint(tex_uv, du, dv);
   }
+  /* Towards the camera: from the point to the eye, or the orthographic camera's back axis. */
+  vec3 to_eye = (eye.w > 0.5) ? normalize(eye.xyz - world_pos) : eye.xyz;
+  albedo *= diffuse_weight(dot(n, to_eye));
   out_albedo = vec4(albedo, 1.0);
   out_normal = vec4(n, 1.0);
   out_position = vec4(world_pos, 1.0);
   out_emission = vec4(emission.rgb, 1.0);
   out_depth = view_depth(camera.view_z, world_pos);
+  out_material = float(material_row + 1);
 }

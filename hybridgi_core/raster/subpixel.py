@@ -290,6 +290,22 @@ class FilmAccumulator:
         self._sums = {name: np.asarray(v, np.float32) for name, v in sums.items()}
         self.count = int(count)
 
+    def set_glossy(self, radiance, colour, height: int, width: int, indirect=None) -> None:
+        """The glossy passes, from (h w, 4) lamp radiance and Glossy Color of the centre raster
+        (None: no glossy lobes, all 0): "glossy_color", "glossy_direct" (radiance / colour,
+        Cycles' division, 0 where the colour is) and "glossy_indirect" (`indirect`, the light
+        before its colour, 0 where the colour is)."""
+        shape = (height, width, 3)
+        if radiance is None:
+            self._extra = {name: np.zeros(shape, np.float32) for name in ("glossy_color", "glossy_direct", "glossy_indirect")}
+            return
+        radiance = radiance[:, :3].reshape(shape)
+        colour = colour[:, :3].reshape(shape)
+        direct = np.divide(radiance, colour, out=np.zeros(shape, np.float32), where=colour > 1e-8)
+        light = np.zeros(shape, np.float32) if indirect is None else indirect[:, :3].reshape(shape)
+        self._extra = {"glossy_color": colour, "glossy_direct": direct.astype(np.float32),
+                       "glossy_indirect": np.where(colour > 1e-8, light, 0.0).astype(np.float32)}
+
     def set_depth(self, depth: np.ndarray) -> None:
         """The Depth pass: one point sample per pixel, not filtered (see the module docstring)."""
         self._depth = np.array(depth, np.float32)
@@ -303,6 +319,8 @@ class FilmAccumulator:
 
     def read(self, name: str) -> np.ndarray:
         """The pass `name` as (h, w, c) float32, rows bottom-up."""
+        if name in getattr(self, "_extra", {}):
+            return self._extra[name]
         if name == "depth":
             if self._depth is None:
                 raise KeyError("depth was never set")

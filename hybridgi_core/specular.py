@@ -1,0 +1,334 @@
+"""The Principled BSDF's dielectric specular layer as Cycles 4.x/5.x layers it over the diffuse base.
+
+Cycles (svm/closure.h, CLOSURE_BSDF_PRINCIPLED_ID) allocates the specular GGX closure first and
+weights every closure below it by `closure_layering_weight`: 1 - max over channels of the layer's
+directional albedo at the view angle. That albedo (closure/bsdf_microfacet.h,
+`bsdf_microfacet_estimate_albedo` times the multiscatter darkening of
+`microfacet_ggx_preserve_energy`) is
+
+    albedo(mu) = (E + Fms (1 - E)) * mix(f0, 1, s(rough, mu, z))
+
+with E(rough, mu) the single-scattering albedo of GGX without Fresnel, E_avg its cosine-weighted
+mean, s the remapped dielectric Fresnel (F - F0) / (1 - F0) averaged over the visible normals as
+Cycles' precompute averages it (plain mean, a normal reflecting below the horizon counting 0;
+the masking-weighted mean made Glossy Color 3% low: 0.037 -> 0.009 L1 on a test scene), Fss the
+average Fresnel and Fms = Fss E_avg / (1 - Fss (1 - E_avg)) (Kulla & Conty 2017). So the Diffuse
+Color pass of a Principled BSDF is base x (1 - metallic)(1 - transmission)(1 - albedo(mu)): at
+the default IOR 1.5, roughness 0.5, a few percent facing the camera and far more at grazing
+angles.
+
+The tables are computed here by deterministic quadrature (a midpoint grid over the two random
+numbers of visible-normal sampling, so sharp lobes are integrated as well as rough ones) on the
+grids of Cycles' own tables: rough = i / (n - 1), mu = j / (n - 1), and z = F0^(1/4) for the IOR.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from functools import lru_cache
+
+import numpy as np
+
+#: Grid sizes: (rough, mu) of the GGX albedo, (z, rough, mu) of the Fresnel average (Cycles: 32, 16).
+E_SIZE = 32
+S_SIZE = 16
+#: Quadrature points per table entry: a midpoint grid over the two numbers of VNDF sampling.
+_QUAD_U = 48
+_QUAD_PHI = 48
+#: Cosines at which a material's diffuse weight is tabulated for the G-buffer (0..1, inclusive).
+WEIGHT_SAMPLES = 32
+
+
+def f0_from_ior(ior):
+    """Normal-incidence reflectance of a dielectric interface of relative IOR `ior`."""
+    ior = np.asarray(ior, np.float64)
+    return ((ior - 1.0) / (ior + 1.0)) ** 2
+
+
+def ior_from_f0(f0):
+    """Inverse of `f0_from_ior` (for f0 < 1)."""
+    r = np.sqrt(np.clip(np.asarray(f0, np.float64), 0.0, 0.99999))
+    return (1.0 + r) / (1.0 - r)
+
+
+def fresnel_dielectric(cos_i, eta):
+    """Unpolarised Fresnel reflectance of a dielectric (Cycles' fresnel_dielectric_cos)."""
+    c = np.abs(np.asarray(cos_i, np.float64))
+    g2 = eta * eta - 1.0 + c * c
+    g = np.sqrt(np.maximum(g2, 0.0))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        a = (g - c) / (g + c)
+        b = (c * (g + c) - 1.0) / (c * (g - c) + 1.0)
+        f = 0.5 * a * a * (1.0 + b * b)
+    return np.where(g2 > 0.0, np.nan_to_num(f, nan=1.0), 1.0)
+
+
+def fresnel_dielectric_fss(eta: float) -> float:
+    """Cosine-weighted mean of the dielectric Fresnel (Kulla & Conty's fit, as Cycles uses it)."""
+    if eta < 1.0:
+        return 0.997118 + eta * (0.1014 - eta * (0.965241 + eta * 0.130607))
+    return (eta - 1.0) / (4.08567 + 1.00071 * eta)
+
+
+def _lambda(alpha2, cos_n):
+    """Smith Lambda of GGX."""
+    cos2 = np.maximum(cos_n * cos_n, 1e-30)
+    return 0.5 * (np.sqrt(1.0 + alpha2 * np.maximum(1.0 / cos2 - 1.0, 0.0)) - 1.0)
+
+
+def _lobe_samples(rough, mu):
+    """(weights, cos(h, i)) of the GGX reflection lobe (F = 1) seen from cos theta = mu, for K
+    (rough, mu) pairs at once ((K, N) arrays; scalars give (N,)): the weights sum to the lobe's
+    directional albedo E, so sum(w F(cos_hi)) is the albedo with Fresnel F.
+
+    Half vectors are the visible normals of Heitz (JCGT 2018) at a midpoint grid of its two
+    random numbers; each weighs G2 / G1(i), which falls to 0 as the reflection reaches the
+    horizon, so the integrand is continuous and the grid converges fast at every roughness."""
+    scalar = np.ndim(rough) == 0 and np.ndim(mu) == 0
+    rough, mu = np.broadcast_arrays(np.atleast_1d(np.asarray(rough, np.float64)), np.atleast_1d(np.asarray(mu, np.float64)))
+    alpha = (np.maximum(rough, 1e-4) ** 2)[:, None, None]
+    alpha2 = alpha * alpha
+    mu = np.clip(mu, 1e-4, 1.0)[:, None, None]
+    sin_i = np.sqrt(1.0 - mu * mu)
+    # The view stretched by the roughness; its tangent frame: t1 = y, t2 = vh x y.
+    length = np.sqrt((alpha * sin_i) ** 2 + mu * mu)
+    vx, vz = alpha * sin_i / length, mu / length
+    u1 = (np.arange(_QUAD_U) + 0.5) / _QUAD_U
+    # The lobe is mirror-symmetric about the plane of incidence (t1 <-> -t1, phi <-> pi - phi):
+    # the half of the midpoints with t1 <= 0, each counted twice.
+    u2 = (np.arange(_QUAD_PHI // 4, 3 * _QUAD_PHI // 4) + 0.5) / _QUAD_PHI
+    r = np.sqrt(u1)[None, :, None]
+    phi = 2.0 * np.pi * u2[None, None, :]
+    t1 = r * np.cos(phi)
+    t2 = r * np.sin(phi)
+    s = 0.5 * (1.0 + vz)
+    t2 = (1.0 - s) * np.sqrt(np.maximum(1.0 - t1 * t1, 0.0)) + s * t2
+    tn = np.sqrt(np.maximum(1.0 - t1 * t1 - t2 * t2, 0.0))
+    # nh = t1 (0, 1, 0) + t2 (-vz, 0, vx) + tn (vx, 0, vz), then unstretched.
+    hx = alpha * (-t2 * vz + tn * vx)
+    hy = alpha * t1
+    hz = np.maximum(t2 * vx + tn * vz, 0.0)
+    inv = 1.0 / np.sqrt(hx * hx + hy * hy + hz * hz)
+    hx, hz = hx * inv, hz * inv
+    cos_hi = hx * sin_i + hz * mu
+    mu_o = 2.0 * cos_hi * hz - mu
+    ok = (cos_hi > 0) & (mu_o > 0)
+    lam_i = _lambda(alpha2, mu)
+    g2 = 1.0 / (1.0 + lam_i + _lambda(alpha2, np.where(ok, mu_o, 1.0)))
+    w = np.where(ok, g2 * (1.0 + lam_i), 0.0) * (2.0 / (_QUAD_U * _QUAD_PHI))
+    w, cos_hi = w.reshape(w.shape[0], -1), np.where(ok, cos_hi, 1.0).reshape(w.shape[0], -1)
+    return (w[0], cos_hi[0]) if scalar else (w, cos_hi)
+
+
+def _grid(n: int) -> np.ndarray:
+    return np.arange(n) / (n - 1)
+
+
+@lru_cache(maxsize=1)
+def tables():
+    """(E (rough, mu), E_avg (rough,), s (z, rough, mu)) float64, computed once per process."""
+    r, mu = np.meshgrid(_grid(E_SIZE), _grid(E_SIZE), indexing="ij")
+    e = _lobe_samples(r.ravel(), mu.ravel())[0].sum(axis=1).reshape(E_SIZE, E_SIZE)
+    # E_avg = 2 int E(mu) mu dmu, trapezoids over the table's own cosines.
+    mus = _grid(E_SIZE)
+    f = 2.0 * e * mus[None, :]
+    e_avg = ((f[:, 1:] + f[:, :-1]) * 0.5 * np.diff(mus)[None, :]).sum(axis=1)
+    z = np.clip(_grid(S_SIZE), 1e-4, 0.99)
+    iors = ior_from_f0(z**4)
+    f0 = f0_from_ior(iors)
+    r, mu = np.meshgrid(_grid(S_SIZE), _grid(S_SIZE), indexing="ij")
+    w, cos_hi = _lobe_samples(r.ravel(), mu.ravel())
+    # As Cycles' precompute: the plain mean over visible-normal samples of the remapped Fresnel,
+    # a sample reflected below the horizon counting 0 (not weighted by its masking).
+    valid = (w > 0) / w.shape[1]
+    s = np.zeros((S_SIZE, S_SIZE * S_SIZE))
+    for k in range(S_SIZE):
+        remap = np.clip((fresnel_dielectric(cos_hi, iors[k]) - f0[k]) / (1.0 - f0[k]), 0.0, 1.0)
+        s[k] = (valid * remap).sum(axis=1)
+    return np.clip(e, 0.0, 1.0), np.clip(e_avg, 0.0, 1.0), np.clip(s.reshape(S_SIZE, S_SIZE, S_SIZE), 0.0, 1.0)
+
+
+@lru_cache(maxsize=1)
+def schlick_table() -> np.ndarray:
+    """(rough, mu) visible-normal mean of (1 - cos(h, i))^5, Cycles' ggx_gen_schlick_s at exponent
+    5: the metallic lobe's albedo is mix(F0, 1, this) (F82 tint's extra term ignored, as Cycles does)."""
+    r, mu = np.meshgrid(_grid(S_SIZE), _grid(S_SIZE), indexing="ij")
+    w, cos_hi = _lobe_samples(r.ravel(), mu.ravel())
+    s5 = ((w > 0) * (1.0 - cos_hi) ** 5).sum(axis=1) / w.shape[1]  # as the Fresnel table above
+    return np.clip(s5.reshape(S_SIZE, S_SIZE), 0.0, 1.0)
+
+
+def multiscatter_factor(fss, e, e_avg):
+    """Kulla & Conty's multiple-scattering factor as Cycles' microfacet_ggx_preserve_energy
+    applies it to a lobe of single-scattering albedo e: the BRDF's 1 + Fms (1 - E) / E and its
+    albedo's E + Fms (1 - E) are this factor times the single-scattering ones."""
+    fms = fss * e_avg / (1.0 - fss * (1.0 - e_avg))
+    return 1.0 + fms * (1.0 - e) / np.maximum(e, 1e-6)
+
+
+def metal_albedo(layer: SpecularLayer, mu) -> np.ndarray:
+    """(..., 3) directional albedo of the metallic lobe (F82 with a white tint: Schlick on F0 =
+    the base colour), not times its weight."""
+    mu = np.clip(np.asarray(mu, np.float64), 0.0, 1.0)
+    f0 = layer.metal_color.astype(np.float64)
+    s5 = _lerp_table(schlick_table(), [layer.roughness, mu])[..., None]
+    albedo = f0 + (1.0 - f0) * s5
+    if layer.multiscatter:
+        e_table, e_avg_table, _ = tables()
+        e = _lerp_table(e_table, [layer.roughness, mu])[..., None]
+        e_avg = float(_lerp_table(e_avg_table, [layer.roughness]))
+        albedo = albedo * e * multiscatter_factor(f0 + (1.0 - f0) / 21.0, e, e_avg)
+    return albedo
+
+
+def glossy_color(layer: SpecularLayer | None, mu) -> np.ndarray:
+    """(..., 3) Cycles' Glossy Color at cosines mu: the glossy closures' albedos times their
+    weights (the dielectric layer's and the metallic lobe's)."""
+    mu = np.asarray(mu, np.float64)
+    if layer is None:
+        return np.zeros((*mu.shape, 3))
+    out = layer.weight * layer_albedo(layer, mu)
+    if layer.metallic > 0:
+        out = out + layer.metallic * metal_albedo(layer, mu)
+    return out
+
+
+def _lerp_table(table: np.ndarray, coords: list) -> np.ndarray:
+    """Multilinear lookup of a table over [0, 1]^d (coordinates clamped, as Cycles' lookup_table_read)."""
+    coords = [np.clip(np.asarray(c, np.float64), 0.0, 1.0) for c in coords]
+    shape = np.broadcast_shapes(*(c.shape for c in coords))
+    coords = [np.broadcast_to(c, shape) for c in coords]
+    out = np.zeros(shape)
+    lo, frac = [], []
+    for axis, c in enumerate(coords):
+        x = c * (table.shape[axis] - 1)
+        i0 = np.minimum(np.floor(x).astype(np.int64), table.shape[axis] - 2)
+        lo.append(i0)
+        frac.append(x - i0)
+    for corner in range(1 << len(coords)):
+        idx, weight = [], np.ones(shape)
+        for axis in range(len(coords)):
+            bit = (corner >> axis) & 1
+            idx.append(lo[axis] + bit)
+            weight = weight * (frac[axis] if bit else 1.0 - frac[axis])
+        out += weight * table[tuple(idx)]
+    return out
+
+
+@dataclass
+class SpecularLayer:
+    """A Principled BSDF's dielectric specular layer (its inputs as Blender names them).
+
+    roughness : 0..1 (alpha = roughness^2); ior : the IOR input; level : Specular IOR Level
+    (0.5 keeps the IOR's own F0, 0 switches the layer off); tint : (3,) Specular Tint;
+    multiscatter : the node's distribution is Multiscatter GGX (Cycles' default), whose energy
+    compensation darkens the layer by E + Fms (1 - E).
+    weight : the layer's share of the surface, (1 - metallic)(1 - transmission) as Cycles weights
+    it; metallic, metal_color : the metallic lobe's weight and F0 (the clamped base colour).
+    """
+
+    roughness: float = 0.5
+    ior: float = 1.5
+    level: float = 0.5
+    tint: np.ndarray = field(default_factory=lambda: np.ones(3, np.float32))
+    multiscatter: bool = True
+    weight: float = 1.0
+    metallic: float = 0.0
+    metal_color: np.ndarray = field(default_factory=lambda: np.zeros(3, np.float32))
+
+    def __post_init__(self) -> None:
+        def finite(value, default, lo, hi):
+            value = float(value)
+            return float(np.clip(value, lo, hi)) if np.isfinite(value) else default
+
+        self.roughness = finite(self.roughness, 0.5, 0.0, 1.0)
+        self.ior = finite(self.ior, 1.5, 1e-5, 1e6)
+        self.level = finite(self.level, 0.5, 0.0, 1e6)
+        tint = np.asarray(self.tint, np.float32).reshape(-1)[:3]
+        self.tint = np.where(np.isfinite(tint), np.maximum(tint, 0.0), 1.0).astype(np.float32)
+        self.weight = finite(self.weight, 1.0, 0.0, 1.0)
+        self.metallic = finite(self.metallic, 0.0, 0.0, 1.0)
+        metal = np.asarray(self.metal_color, np.float32).reshape(-1)[:3]
+        self.metal_color = np.clip(np.where(np.isfinite(metal), metal, 0.0), 0.0, 1.0).astype(np.float32)
+
+    @property
+    def eta(self) -> float:
+        """The IOR the layer's Fresnel uses: Specular IOR Level scales F0 (Cycles' IOR adjustment)."""
+        ior = self.ior
+        if self.level == 0.5:
+            return ior
+        eta = float(ior_from_f0(f0_from_ior(ior) * 2.0 * self.level))
+        return 1.0 / eta if ior < 1.0 else eta
+
+    @property
+    def f0(self) -> np.ndarray:
+        """(3,) reflectance at normal incidence, tinted and clamped as Cycles' setup does."""
+        return np.clip(float(f0_from_ior(self.eta)) * self.tint.astype(np.float64), 0.0, 1.0)
+
+    @property
+    def active(self) -> bool:
+        """Cycles allocates no specular closure when the adjusted IOR is 1."""
+        return self.eta != 1.0 and bool(np.any(self.f0 > 0.0))
+
+    def key(self) -> bytes:
+        return np.array([self.roughness, self.ior, self.level, *self.tint, self.multiscatter, self.weight,
+                         self.metallic, *self.metal_color], np.float64).tobytes()
+
+
+def layer_albedo(layer: SpecularLayer, mu) -> np.ndarray:
+    """(..., 3) directional albedo of the layer (what Cycles' layering subtracts) at cosines mu."""
+    mu = np.clip(np.asarray(mu, np.float64), 0.0, 1.0)
+    if not layer.active:
+        return np.zeros((*mu.shape, 3))
+    e_table, e_avg_table, s_table = tables()
+    eta = layer.eta
+    eta_up = 1.0 / eta if eta < 1.0 else eta
+    z = np.sqrt(abs(eta_up - 1.0) / (eta_up + 1.0))
+    rough = layer.roughness
+    s = _lerp_table(s_table, [z, rough, mu])
+    f0 = layer.f0
+    albedo = f0 + (1.0 - f0) * s[..., None]
+    if layer.multiscatter:
+        e = _lerp_table(e_table, [rough, mu])[..., None]
+        e_avg = float(_lerp_table(e_avg_table, [rough]))
+        f0_real = float(f0_from_ior(eta))
+        s_avg = float(np.clip((fresnel_dielectric_fss(eta) - f0_real) / max(1.0 - f0_real, 1e-12), 0.0, 1.0))
+        fss = f0 + (1.0 - f0) * s_avg
+        albedo = albedo * e * multiscatter_factor(fss, e, e_avg)
+    return albedo
+
+
+def diffuse_weight(layer: SpecularLayer | None, mu) -> np.ndarray:
+    """(...) weight of the diffuse base under the layer at cosines mu: Cycles'
+    closure_layering_weight, 1 - max over channels of the layer's albedo (1 without a layer)."""
+    mu = np.asarray(mu, np.float64)
+    if layer is None or not layer.active:
+        return np.ones(mu.shape)
+    return np.clip(1.0 - layer_albedo(layer, mu).max(axis=-1), 0.0, 1.0)
+
+
+def diffuse_weight_row(layer: SpecularLayer | None, n: int = WEIGHT_SAMPLES) -> np.ndarray:
+    """(n,) float32 diffuse weight at cosines i / (n - 1): one row of the G-buffer's table."""
+    return diffuse_weight(layer, _grid(n)).astype(np.float32)
+
+
+def hemispherical_glossy_albedo(layer: SpecularLayer | None) -> np.ndarray:
+    """(3,) cosine-weighted mean albedo of the glossy lobes: the dielectric layer's (times its
+    weight) and the metallic lobe's (its average Fresnel, F0 + (1 - F0) / 21, times its weight).
+    Probe-ray hits reflect this share of their light as if it were diffuse: a cache of
+    irradiance cannot hold the lobe's direction, but Cycles' bounce light carries its energy."""
+    if layer is None:
+        return np.zeros(3, np.float32)
+    mu = (np.arange(64) + 0.5) / 64
+    dielectric = np.mean(2.0 * layer_albedo(layer, mu) * mu[:, None], axis=0) if layer.active else np.zeros(3)
+    metal = layer.metal_color + (1.0 - layer.metal_color) / 21.0
+    return (layer.weight * dielectric + layer.metallic * metal).astype(np.float32)
+
+
+def hemispherical_diffuse_weight(layer: SpecularLayer | None) -> float:
+    """Cosine-weighted mean of the diffuse weight over the hemisphere, 2 int w(mu) mu dmu: what
+    a probe-ray hit, seen from every direction at once, reflects of its diffuse base."""
+    if layer is None or not layer.active:
+        return 1.0
+    mu = (np.arange(64) + 0.5) / 64
+    return float(np.mean(2.0 * diffuse_weight(layer, mu) * mu))

@@ -1,0 +1,99 @@
+"""The lamps' glossy reflection (hybridgi_core/glossy.py): the lobes' BRDF integrates to the albedo
+that Glossy Color and the diffuse layering use, and lamps light it as their radiometry says."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from hybridgi_core import glossy
+from hybridgi_core import specular as sp
+from hybridgi_core.snapshot import Light, Material
+
+
+def _integrated_lobes(layer, mu, n=400_000, seed=3):
+    """Monte-Carlo integral over the hemisphere of the lobes' BRDF x cos (uniform directions)."""
+    mats = glossy.GlossyMaterials.from_materials([Material(specular=layer)])
+    rng = np.random.default_rng(seed)
+    z = rng.random(n)
+    phi = 2.0 * np.pi * rng.random(n)
+    s = np.sqrt(1.0 - z * z)
+    normal = np.array([[0.0, 0.0, 1.0]])
+    view = np.array([[np.sqrt(1.0 - mu * mu), 0.0, mu]])
+    f = glossy.lobes(mats, np.zeros(1, np.int64), normal, view, (s * np.cos(phi))[None], (s * np.sin(phi))[None], z[None])
+    return f[0].mean(axis=0) * 2.0 * np.pi
+
+
+@pytest.mark.parametrize("layer", [sp.SpecularLayer(), sp.SpecularLayer(roughness=0.8, level=1.0),
+                                   sp.SpecularLayer(roughness=0.4, weight=0.5, metallic=0.5, metal_color=(0.9, 0.6, 0.2))])
+@pytest.mark.parametrize("mu", [0.9, 0.4])
+def test_lobes_integrate_to_the_glossy_color(layer, mu):
+    integral = _integrated_lobes(layer, mu)
+    expected = sp.glossy_color(layer, mu)
+    # The tables interpolate between their samples (16 x 16): a percent or two of the albedo.
+    assert np.allclose(integral, expected, rtol=0.06, atol=3e-3), (integral, expected)
+
+
+def test_single_scattering_ggx_keeps_cycles_albedo_estimate():
+    """Plain GGX loses the energy of its multiple bounces (the integral is E x the Fresnel
+    average), while Cycles' albedo estimate (Glossy Color, the layering) assumes none is lost:
+    both are kept as Cycles has them."""
+    layer = sp.SpecularLayer(roughness=0.6, multiscatter=False)
+    e = sp._lerp_table(sp.tables()[0], [0.6, 0.5])
+    integral = _integrated_lobes(layer, 0.5)
+    assert np.allclose(integral, e * sp.glossy_color(layer, 0.5), rtol=0.06)
+    assert np.all(integral < 0.9 * sp.glossy_color(layer, 0.5))
+
+
+def test_a_sun_lights_the_lobe_by_its_strength():
+    layer = sp.SpecularLayer(roughness=0.3)
+    mats = glossy.GlossyMaterials.from_materials([Material(specular=layer)])
+    sun = Light(kind="SUN", color=np.array([1.0, 0.5, 0.25], np.float32), power=3.0,
+                matrix=np.eye(4))  # shines along -Z: onto a floor facing +Z
+    view = np.array([[0.0, 0.0, 1.0]])
+    out = glossy.glossy_direct([sun], np.zeros((1, 3)), np.array([[0.0, 0.0, 1.0]]), view, np.zeros(1, np.int32),
+                               mats, None, np.random.default_rng(0))
+    f = glossy.lobes(mats, np.zeros(1, np.int64), np.array([[0.0, 0.0, 1.0]]), view,
+                     np.zeros((1, 1)), np.zeros((1, 1)), np.ones((1, 1)))[0, 0]
+    assert np.allclose(out[0], 3.0 * f * sun.color, rtol=1e-5)
+    # Seen from behind its normal, or without a layer, nothing.
+    none = glossy.glossy_direct([sun], np.zeros((1, 3)), np.array([[0.0, 0.0, 1.0]]), view, np.full(1, -1, np.int32),
+                                mats, None, np.random.default_rng(0))
+    assert not none.any()
+
+
+def test_an_area_lamp_matches_its_solid_angle_integral():
+    """A small square lamp straight above a rough floor, seen from above: the estimate against the
+    lobe times the lamp's radiance times its solid angle."""
+    layer = sp.SpecularLayer(roughness=0.6)
+    mats = glossy.GlossyMaterials.from_materials([Material(specular=layer)])
+    matrix = np.eye(4)
+    matrix[:3, 3] = (0.0, 0.0, 5.0)
+    lamp = Light(kind="AREA", color=np.ones(3, np.float32), power=100.0, matrix=matrix, size=0.2)
+    out = glossy.glossy_direct([lamp], np.zeros((4, 3)), np.tile([[0.0, 0.0, 1.0]], (4, 1)),
+                               np.tile([[0.0, 0.6, 0.8]], (4, 1)), np.zeros(4, np.int32), mats, None,
+                               np.random.default_rng(1), samples=64)
+    to_lamp = np.array([0.0, 0.0, 1.0])
+    f = glossy.lobes(mats, np.zeros(1, np.int64), to_lamp[None], np.array([[0.0, 0.6, 0.8]]),
+                     np.zeros((1, 1)), np.zeros((1, 1)), np.ones((1, 1)))[0, 0]
+    radiance = 100.0 / (np.pi * 0.04)
+    assert np.allclose(out, radiance * f * 0.04 / 25.0, rtol=0.01)
+
+
+def test_the_cache_reflects_the_sky_as_direct_and_nothing_as_bounced():
+    """An open glossy floor under a uniform sky of radiance L: its lobes reflect L (the split-sum
+    light before Glossy Color), all of it from the sky (Glossy Direct's share), none bounced."""
+    from hybridgi_core.settings import CacheSettings
+    from hybridgi_core.snapshot import World, geometry_from_arrays, make_snapshot
+    from hybridgi_core.system import GISystem
+
+    floor = geometry_from_arrays([[-5, -5, 0], [5, -5, 0], [5, 5, 0], [-5, 5, 0]], [[0, 1, 2], [0, 2, 3]])
+    snap = make_snapshot(floor, [Material(specular=sp.SpecularLayer())], [], World(np.full(3, 0.5, np.float32)))
+    with GISystem(snap, CacheSettings(resolution=8, rays_per_cell=256, hysteresis=0.0)) as gi:
+        gi.warm_up(1)
+        pts = np.array([[0, 0, 0], [1, 2, 0], [-3, 1, 0]], np.float32)
+        up = np.tile([[0, 0, 1.0]], (3, 1)).astype(np.float32)
+        eye = np.tile([[0.0, -0.6, 0.8]], (3, 1)).astype(np.float32)
+        sky, bounced = glossy.cache_reflection(gi.cache, pts, up, eye, np.full(3, 0.5))
+    np.testing.assert_allclose(sky, 0.5, rtol=0.04)
+    assert bounced.max() < 0.01
