@@ -50,8 +50,13 @@ log = logging.getLogger(__name__)
 #: Seconds over which updates and rays per second are counted.
 RATE_WINDOW_S = 1.0
 #: Points per chunk of the corner-visibility rays (8 rays each): between chunks the worker looks
-#: for a newer view and drops a mask that would be stale before it is done.
-MASK_CHUNK = 4096
+#: for a newer view and drops a mask that would be stale before it is done. Two of
+#: `system.VISIBILITY_BLOCK`: each chunk is split over both threads of a 2-core pool (4096 ran
+#: on the worker thread alone).
+MASK_CHUNK = 16384
+#: Direct-light points per pool job of a direct pass (`_direct_split`), and the most jobs.
+DIRECT_BLOCK_POINTS = 16384
+MAX_DIRECT_BLOCKS = 64
 #: Shortest time between two published caches while updates continue: packing costs the worker
 #: and uploading costs the main thread about 1 ms per 3 MB of texture data, and a display shows
 #: no more than about this rate anyway.
@@ -60,6 +65,12 @@ PUBLISH_INTERVAL_S = 1.0 / 30.0
 #: bounce but costs a pack (~50-100 ms for a 48^3 grid here, a third of an iteration), so the
 #: intermediate ones go out at this rate; a finished solve is always published at once.
 SOLVE_PUBLISH_INTERVAL_S = 0.3
+#: A fresh cache's first solve publishes no intermediate iteration before this long after its
+#: first batch: an iterate with a bounce or two is far darker than the fixed point (Cornell box:
+#: Combined error 0.49 vs 0.04), and packing it (the depth moments and SH of every cell, 50-200 ms
+#: on 2 busy cores) delayed the converged image that follows within ~0.5 s. A scene whose solve
+#: takes longer still shows its iterations after this hold.
+FIRST_SOLVE_HOLD_S = 1.5
 
 
 # --- the worker ---------------------------------------------------------------------------------
@@ -330,7 +341,7 @@ class ViewportWorker:
         samples = self.options.direct_samples * level.samples
         points, normals, pix = level.points
         if points.shape[0]:
-            level.sum[pix, :3] += system.direct(points, normals, self._frame, samples=samples)
+            level.sum[pix, :3] += _direct_split(system, points, normals, self._frame, samples)
         level.passes += 1
         self._count_rays(points.shape[0] * samples * max(len(system.scene.lights), 1))
         self._steps["direct"] = (time.perf_counter() - t0) * 1e3
@@ -433,6 +444,8 @@ class ViewportWorker:
             # A cache nothing was traced into yet shows nothing: the main thread's empty frame
             # stands in (packing a 48^3 grid's depth moments costs ~0.4 s before the first batch).
             traced = bool(cache.samples.any())
+            if not force and self._schedule.holding(FIRST_SOLVE_HOLD_S):
+                due = False
             if pack and key != old and due and traced:
                 t0 = time.perf_counter()
                 # Solver iterations change the radiance bands only: the depth moments (the larger
@@ -468,6 +481,23 @@ class ViewportWorker:
 
 
 # --- snapshot helpers (pure numpy) ----------------------------------------------------------------
+
+
+def _direct_split(system, points: np.ndarray, normals: np.ndarray, frame: int, samples: int) -> np.ndarray:
+    """`system.direct` of a direct pass in blocks of DIRECT_BLOCK_POINTS points on the worker
+    pool, block i with frame number frame * MAX_DIRECT_BLOCKS + i (its own samples). The blocks
+    are fixed, so the light does not depend on the pool's thread count. `system.direct` itself
+    splits only above 2^18 shadow rays, so a viewport pass (57,600 GI pixels at 4 samples) ran on
+    the worker thread alone."""
+    n = points.shape[0]
+    blocks = min(-(-n // DIRECT_BLOCK_POINTS), MAX_DIRECT_BLOCKS)
+    if blocks <= 1:
+        return system.direct(points, normals, frame * MAX_DIRECT_BLOCKS, samples=samples)
+    bounds = np.linspace(0, n, blocks + 1).astype(np.intp)
+    pool = system.updater.pool
+    jobs = [pool.submit(system.direct, points[a:b], normals[a:b], frame * MAX_DIRECT_BLOCKS + i, samples)
+            for i, (a, b) in enumerate(zip(bounds[:-1], bounds[1:], strict=True))]
+    return np.concatenate([j.result() for j in jobs])
 
 
 def _with_geometry(snapshot, positions, normals):

@@ -29,6 +29,9 @@ import numpy as np
 
 #: Iterations of one solve at most (the solver stops sooner once converged).
 MAX_ITERATIONS = 16
+#: Fewest chunks of a traced batch (`GISolver.min_chunks`): fixed, so the viewport's cache is the
+#: same whatever its pool's thread count, and a small batch still feeds up to this many threads.
+MIN_CHUNKS = 4
 
 # Phases of the schedule.
 BEGIN, RESOLVE, RELIGHT, RELAX, MORE, DONE = "begin", "resolve", "relight", "relax", "more", "done"
@@ -52,6 +55,7 @@ class SolveSchedule:
         self._relight_next: int | None = None  # next batch to re-shade after a shading edit
         self._materials = False  # the re-shade includes materials and the world (not lamps only)
         self.solved_once = False  # a solve of the current hits converged (cells count as settled)
+        self._fresh_at: float | None = None  # when a fresh cache's first batch began (till solved)
         self.steps_ms: dict[str, float] = {}
         #: Steps that blended traced rays into the cache (depth moments, inside flags may have
         #: moved); iterations and the filter change the radiance bands only.
@@ -63,8 +67,11 @@ class SolveSchedule:
         """A (new) system: a new one starts over from batch 0 (its solver has no hits)."""
         if system is not self.system:
             self.system = system
+            if system is not None:
+                system.solver.min_chunks = MIN_CHUNKS
             self.phase = BEGIN
             self.solved_once = False
+            self._fresh_at = None
 
     def changed(self, shading: bool, geometry: bool, materials: bool = True) -> None:
         """The session raised events on the stored hits: solve again from them.
@@ -98,6 +105,11 @@ class SolveSchedule:
 
     # --- work -----------------------------------------------------------------------------------
 
+    def holding(self, hold_s: float) -> bool:
+        """Whether a fresh cache's first solve (batch 0 traced, not yet converged) began less than
+        hold_s ago: its iterates are too dark to be worth publishing (`worker.FIRST_SOLVE_HOLD_S`)."""
+        return self._fresh_at is not None and time.perf_counter() - self._fresh_at < hold_s
+
     @property
     def has_work(self) -> bool:
         return self.system is not None and self.phase != DONE
@@ -113,6 +125,7 @@ class SolveSchedule:
         if phase == BEGIN:
             solver.begin(np.union1d(system.surface_cells(), cells))
             rays = solver.trace_batch(0, rays=self.first_rays).rays
+            self._fresh_at = time.perf_counter()
             self._filter_direct = True
             self.phase, self.iterations = RELAX, 0
         elif phase == RESOLVE:
@@ -165,6 +178,7 @@ class SolveSchedule:
         cache.samples[c] = np.where(cache.samples[c] > 0, np.maximum(cache.samples[c], window), 0)
         cache.version += 1
         self.solved_once = True
+        self._fresh_at = None
         if self._relight_next is not None:
             self.phase = RELIGHT
         else:

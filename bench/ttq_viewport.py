@@ -160,6 +160,7 @@ def worker_timeline(view: Viewport, checkpoints, folder: Path, name: str) -> lis
             _, img = view.draw(read=True)
             shot = _save(folder, name, i, img, t, c)
             shot["updates"] = published.stats.updates
+            shot["steps_ms"] = {k: round(v, 1) for k, v in published.stats.steps_ms.items()}
             shots.append(shot)
     finally:
         worker.latest = latest
@@ -243,6 +244,8 @@ def main(argv=None) -> int:
     parser.add_argument("--res", default="640x360")
     parser.add_argument("--out", type=Path, required=True)
     parser.add_argument("--checkpoints", default="0.1,0.25,0.5,1,2,4")
+    parser.add_argument("--timelines", default="wall,worker",
+                        help="which timelines to run (wall, worker; the worker one is llvmpipe-free)")
     args = parser.parse_args(argv)
     width, height = (int(v) for v in args.res.lower().split("x"))
     checkpoints = sorted(float(c) for c in args.checkpoints.split(","))
@@ -260,7 +263,10 @@ def main(argv=None) -> int:
     warm.update()
     warm.draw()
     warm.close()
+    wanted = {t.strip() for t in args.timelines.split(",")}
     for prefix, fn in (("wall", wall_timeline), ("worker", worker_timeline)):
+        if prefix not in wanted:
+            continue
         log(f"{prefix} timelines")
         timelines, notes = run_timelines(viewport, args, width, height, args.out, checkpoints, record, fn, prefix)
         record["timelines"].update(timelines)

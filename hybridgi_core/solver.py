@@ -191,6 +191,10 @@ class GISolver:
         #: First of the BOUNCE_BATCHES batches whose hits carry A (the viewport moves it past a
         #: first batch traced with fewer rays once a full one exists).
         self.bounce_from = 0
+        #: Fewest chunks a traced batch is cut into (None: the settings' threads, so a small batch
+        #: still uses every thread). The viewport fixes it, so that its cache does not depend on
+        #: how many threads its pool has (each chunk draws its own shadow-ray samples).
+        self.min_chunks: int | None = None
         self._reset_series()
         self.stats = SolveStats()
 
@@ -243,7 +247,8 @@ class GISolver:
         n_rays = s.rays_per_cell if rays is None else max(1, min(int(rays), s.rays_per_cell))
         dirs = cell_directions(n_rays, s.seed, WARMUP_FRAME_BASE + batch, cells, self.cache.grid.count)
         per_chunk = max(1, CHUNK_RAYS // n_rays)
-        n_chunks = max(-(-cells.size // per_chunk), min(cells.size, max(1, s.threads)))
+        fewest = max(1, s.threads) if self.min_chunks is None else max(1, self.min_chunks)
+        n_chunks = max(-(-cells.size // per_chunk), min(cells.size, fewest))
         bounds = np.cumsum([0] + [p.size for p in np.array_split(cells, n_chunks)])
         parts = [(cells[a:b], dirs[a:b]) for a, b in zip(bounds[:-1], bounds[1:], strict=True)]
         table = self.lamps if self.use_lamp_table and batch > 0 and not self.lamps.empty else None
