@@ -23,9 +23,10 @@ from types import MappingProxyType
 
 import numpy as np
 
-from hybridgi_core import errors
+from hybridgi_core import errors, pixel_gather
 from hybridgi_core import visible as _visible
 from hybridgi_core.raster import gather as _gather_layout
+from hybridgi_core.raster import settings as _raster_settings
 from hybridgi_core.session import GISession
 
 # The records exchanged with the main thread, importable from here as the worker's own API.
@@ -54,6 +55,8 @@ RATE_WINDOW_S = 1.0
 #: `system.VISIBILITY_BLOCK`: each chunk is split over both threads of a 2-core pool (4096 ran
 #: on the worker thread alone).
 MASK_CHUNK = 16384
+#: Frame numbers of the pixel-ray passes (pass k: this + k), apart from the direct passes'.
+PIXEL_FRAME_BASE = 1 << 24
 #: Direct-light points per pool job of a direct pass (`_direct_split`), and the most jobs.
 DIRECT_BLOCK_POINTS = 16384
 MAX_DIRECT_BLOCKS = 64
@@ -219,6 +222,8 @@ class ViewportWorker:
             return True
         if state is not None and (state.mask is None or state.passes < self.options.direct_passes):
             return True
+        if state is not None and self._pixels_due(state):
+            return True
         if state is not None and state.request.debug_cells:
             cache = self._session.system.cache
             if state.cells_key != (id(cache), cache.version):
@@ -232,8 +237,9 @@ class ViewportWorker:
         resync = settings != self._session.settings
         if resync:
             self._session.set_settings(settings)
+        lamps_only = False
         if edits or resync:
-            self._apply(edits, resync)
+            lamps_only = self._apply(edits, resync)
         self._applied_gen = edit_gen
         self._steps["sync"] = (time.perf_counter() - t0) * 1e3
         system = self._session.system
@@ -243,6 +249,13 @@ class ViewportWorker:
         schedule = self._schedule
         schedule.attach(system)
         state = self._view_state
+        if lamps_only and state is not None and view is state.request:
+            # Same view, same geometry: keep its cells and mask, light it again at once.
+            t_view = time.perf_counter()
+            state.relit(self._scene_version)
+            self._direct_pass(system, state, state.coarse)
+            self._publish()
+            self._steps["relit_view"] = (time.perf_counter() - t_view) * 1e3
         moving = view is not None and (state is None or not state.current(view, self._scene_version))
         if moving:
             t_view = time.perf_counter()
@@ -265,12 +278,16 @@ class ViewportWorker:
                 self._trace_mask(system, state)
             elif state.passes < self.options.direct_passes:
                 self._direct_pass(system, state)
+            elif self._pixels_due(state):
+                self._pixel_pass(system, state)
         # A finished solve is published at once; iterations in between at SOLVE_PUBLISH_INTERVAL_S.
         self._publish(force=finished)
 
     # --- scene ----------------------------------------------------------------------------------
 
-    def _apply(self, edits: list, resync: bool) -> None:
+    def _apply(self, edits: list, resync: bool) -> bool:
+        """Apply the edits to the session. Returns whether only lamps changed (the view's cells
+        and corner mask still hold)."""
         t0 = time.perf_counter()
         snapshot = self._snapshot
         positions = normals = None
@@ -300,7 +317,7 @@ class ViewportWorker:
             else:
                 raise TypeError(f"unknown scene edit {type(edit).__name__}")
         if snapshot is None:
-            return
+            return False
         snapshot = _with_geometry(snapshot, positions, normals)
         self._snapshot = snapshot
         self._scene_version += 1
@@ -310,16 +327,20 @@ class ViewportWorker:
             self._empty = True
             self._view_state = None
             self._cache_ref = None
-            return
+            return False
         self._empty = False
         # The session raised the cache's events (stored hits marked stale); policy here: solve
         # again from the stored hits (a new system starts over: `SolveSchedule.attach`).
         self._schedule.attach(self._session.system)
+        lamps_only = False
         if not report.rebuilt:
             ch = report.changes
             self._schedule.changed(shading=ch.shading_changed, geometry=bool(ch.boxes) or resync,
                                    materials=ch.world_changed or bool(ch.materials_changed))
+            lamps_only = (ch.lights_changed and not resync and not ch.geometry_changed and not ch.boxes
+                          and not ch.world_changed and not ch.materials_changed)
         self._steps["apply"] = (time.perf_counter() - t0) * 1e3
+        return lamps_only
 
     # --- view -----------------------------------------------------------------------------------
 
@@ -377,9 +398,39 @@ class ViewportWorker:
             chunk = slice(start, start + MASK_CHUNK)
             mask[pix[chunk]] = system.corner_visibility(points[chunk], normals[chunk])
         state.mask = _gather_layout.pack_corner_mask(mask.reshape(h, w, 8))
+        state.visible = mask[pix]
         self._count_rays(8 * points.shape[0])
         self._steps["visibility"] = (time.perf_counter() - t0) * 1e3
         state.dirty = True
+
+    def _pixels_due(self, state: ViewState) -> bool:
+        """A pixel-ray pass is due: the cache is done (no solver work: its passes would start over
+        with every refinement), the mask traced, and fewer passes than asked over this cache."""
+        if self.options.pixel_rays <= 0 or state.visible is None or self._schedule.has_work:
+            return False
+        system = getattr(self._session, "system", None)
+        if system is None:
+            return False
+        key = (id(system.cache), system.cache.version)
+        return state.pixel_key != key or state.pixel_passes < self.options.pixel_passes
+
+    def _pixel_pass(self, system, state: ViewState) -> None:
+        """One pass of per-pixel final-gather rays at the GI pixels (`pixel_gather.gi_images`,
+        the final renders' algorithm and filter settings), averaged into the view's running sum."""
+        t0 = time.perf_counter()
+        r = state.request
+        points, normals, pix = state.gi_points
+        key = (id(system.cache), system.cache.version)
+        if state.pixel_key != key:
+            state.reset_pixels()
+        raster = _raster_settings.RasterSettings()
+        indirect, direct, pg = pixel_gather.gi_images(
+            system, r.position, r.normal, pix, points, normals, state.visible, r.view,
+            PIXEL_FRAME_BASE + state.pixel_passes, self.options.pixel_rays, passes=raster.pixel_filter,
+            plane_sigma=raster.bilateral_plane_sigma, normal_power=raster.bilateral_normal_power)
+        state.add_pixels(indirect, direct, key)
+        self._count_rays(pg.rays)
+        self._steps["pixel_rays"] = (time.perf_counter() - t0) * 1e3
 
     # --- cache ---------------------------------------------------------------------------------
 

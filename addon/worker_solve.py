@@ -29,12 +29,30 @@ import numpy as np
 
 #: Iterations of one solve at most (the solver stops sooner once converged).
 MAX_ITERATIONS = 16
+#: Probe rays of one step of a refining batch (`MORE`, traced in parts of this many rays, so a
+#: lamp or camera edit waits for one part, ~0.1-0.3 s on 2 cores, not for a whole batch's 1-2 s).
+MORE_PART_RAYS = 2 * 98304
 #: Fewest chunks of a traced batch (`GISolver.min_chunks`): fixed, so the viewport's cache is the
 #: same whatever its pool's thread count, and a small batch still feeds up to this many threads.
 MIN_CHUNKS = 4
 
 # Phases of the schedule.
 BEGIN, RESOLVE, RELIGHT, RELAX, MORE, DONE = "begin", "resolve", "relight", "relax", "more", "done"
+
+
+def relight_order(solver) -> list[int]:
+    """The order `relight_batch` re-shades a solver's batches in: the one with the fewest stored
+    rays first (the viewport's short first batch: half the shadow rays of a full one before the
+    first re-lit image), then the batch that carries the bounces, then the rest in order. Any
+    batch may come first: the bounces (A x) read the cache at the bouncing batch's hits, not
+    their lamp light, and every batch stores the same cells."""
+    rays = {}
+    for c in solver.chunks:
+        rays[c.batch] = rays.get(c.batch, 0) + c.rays
+    batches = list(range(solver.batches))
+    first = min(batches, key=lambda b: (rays.get(b, 0), b != solver.bounce_from, b))
+    rest = [solver.bounce_from] if solver.bounce_from != first else []
+    return [first] + rest + [b for b in batches if b not in (first, solver.bounce_from)]
 
 
 class SolveSchedule:
@@ -56,9 +74,13 @@ class SolveSchedule:
         self._materials = False  # the re-shade includes materials and the world (not lamps only)
         self.solved_once = False  # a solve of the current hits converged (cells count as settled)
         self._fresh_at: float | None = None  # when a fresh cache's first batch began (till solved)
+        #: The refining batch traced in parts: (batch, its cells, cells traced so far), or None.
+        self._pending: tuple[int, np.ndarray, int] | None = None
         self.steps_ms: dict[str, float] = {}
-        #: Steps that blended traced rays into the cache (depth moments, inside flags may have
-        #: moved); iterations and the filter change the radiance bands only.
+        #: Steps that may have moved the depth moments: those that trace or retrace batch 0's rays
+        #: (`_geometry_bands` takes depth from the first batch only). Re-shades, refining batches,
+        #: iterations and the filter change the SH texture only, so its depth is not packed again
+        #: (~0.1-0.2 s a pack on 2 busy cores, after every refining batch before).
         self.blends = 0
 
     # --- events ---------------------------------------------------------------------------------
@@ -72,6 +94,7 @@ class SolveSchedule:
             self.phase = BEGIN
             self.solved_once = False
             self._fresh_at = None
+            self._pending = None
 
     def changed(self, shading: bool, geometry: bool, materials: bool = True) -> None:
         """The session raised events on the stored hits: solve again from them.
@@ -133,13 +156,13 @@ class SolveSchedule:
             # One iteration with the retrace / re-shade; the rest one per step.
             st = solver.resolve(max_iterations=1)
             self._relight_next = None  # every stale hit re-shaded
+            self._pending = None  # resolve traced the rest of a batch in parts too (its missing cells)
             rays = st.rays
             self.phase, self.iterations = RELAX, 1
             if solver.converged:
                 self._finish()
         elif phase == RELIGHT:
-            # The batch that carries the bounces first, then the others in order.
-            order = [solver.bounce_from] + [b for b in range(solver.batches) if b != solver.bounce_from]
+            order = relight_order(solver)
             solver.relight_batch(order[self._relight_next], materials=self._materials)
             self._relight_next += 1
             if self._relight_next >= solver.batches:
@@ -151,13 +174,22 @@ class SolveSchedule:
             if solver.converged or self.iterations >= MAX_ITERATIONS:
                 self._finish()
         elif phase == MORE:
-            rays = solver.trace_batch(solver.batches).rays
-            if self.first_rays is not None and solver.bounce_from == 0:
-                # A full batch now carries the bounces (less noise in A than the first one's).
-                solver.bounce_from = solver.batches - 1
+            if self._pending is None:
+                self._pending = (solver.batches, solver.cells, 0)
+            batch, todo, done = self._pending
+            per_part = max(1, MORE_PART_RAYS // max(1, system.cache.settings.rays_per_cell))
+            rays = solver.trace_batch(batch, todo[done : done + per_part], first_chunk=done).rays
+            done += per_part
             self._filter_direct = True  # the batches' mean replaced the filtered direct band
-            self.phase, self.iterations = RELAX, 0
-        if phase != RELAX:
+            if done < todo.size:
+                self._pending = (batch, todo, done)
+            else:
+                self._pending = None
+                if self.first_rays is not None and solver.bounce_from == 0:
+                    # A full batch now carries the bounces (less noise in A than the first one's).
+                    solver.bounce_from = batch
+                self.phase, self.iterations = RELAX, 0
+        if phase in (BEGIN, RESOLVE):
             self.blends += 1
         self.steps_ms[phase] = (time.perf_counter() - t0) * 1e3
         return rays
@@ -182,4 +214,4 @@ class SolveSchedule:
         if self._relight_next is not None:
             self.phase = RELIGHT
         else:
-            self.phase = MORE if solver.batches < self.batches else DONE
+            self.phase = MORE if self._pending is not None or solver.batches < self.batches else DONE

@@ -26,7 +26,7 @@ lamp moves 30% of the way towards the middle of the scene), the view re-converge
 moves back to where the reference has it; the timelines start at the first draw after that move,
 from a cache converged for the other position. So the image is compared with the one reference.
 
-Last, "settled": the worker session's view after a further settle (up to CONVERGE_TIMEOUT_S), the
+Last, "settled": the worker session's view once it is idle (up to CONVERGE_TIMEOUT_S), the
 viewport's own converged error.
 
 Prints one JSON line: {"*_sync_s", "timelines": {name: [{"t", "file"}]}, "notes"};
@@ -106,12 +106,13 @@ class Viewport:
                 fb.read_color(0, 0, self.width, self.height, 4, 0, "FLOAT", data=gpu.types.Buffer("FLOAT", out.size, out))
         return self.session.last_stats.redrawn, out
 
-    def settle(self):
+    def settle(self, idle: bool = False):
         # Stats of a publication from before the latest edit say nothing about it: wait for one
-        # that applied every edit posted so far.
+        # that applied every edit posted so far (idle: and for the worker to have nothing left).
         gen = self.session.last_edit_gen
         ok = self.session.worker.wait(
-            lambda p: p.stats.scene_gen >= gen and (p.stats.idle or p.stats.converged >= 0.99), CONVERGE_TIMEOUT_S)
+            lambda p: p.stats.scene_gen >= gen and (p.stats.idle or (not idle and p.stats.converged >= 0.99)),
+            CONVERGE_TIMEOUT_S)
         self.draw()
         return ok
 
@@ -229,8 +230,9 @@ def run_timelines(viewport, args, width, height, folder, checkpoints, timed, tim
         out[f"{prefix}_light"] = timeline_fn(view, checkpoints, folder, f"{prefix}_light")
         timed["light"] = f"{light.name} ({light.data.type})"
         if prefix == "worker":
-            # Where the view ends up: the light-move timeline's view after a further settle.
-            view.settle()
+            # Where the view ends up: the light-move timeline's view once the worker is idle (every
+            # refinement done), or after CONVERGE_TIMEOUT_S.
+            view.settle(idle=True)
             _, img = view.draw(read=True)
             out["settled"] = [_save(folder, "settled", 0, img, time.perf_counter() - t_light, None)]
     finally:

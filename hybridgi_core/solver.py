@@ -229,12 +229,14 @@ class GISolver:
         return bool(self.chunks)
 
     def trace_batch(self, batch: int, cells: np.ndarray | None = None, blend: bool = True,
-                    rays: int | None = None) -> SolveStats:
+                    rays: int | None = None, first_chunk: int = 0) -> SolveStats:
         """Trace directions batch `batch` from `cells` (default: every solver cell), store the hits,
         shade their lamp light, and fold the geometry bands (direct light from sky and emitters, AO,
         depth, back faces) into the cache as the mean over the batches traced so far.
         rays : directions per cell of this batch (default rays_per_cell; the viewport's first
-        batch takes fewer, for a sooner first image that later batches refine)."""
+        batch takes fewer, for a sooner first image that later batches refine).
+        first_chunk : number of this call's first chunk in the batch (each chunk's shadow rays draw
+        from its own stream): a batch traced in parts (the viewport's) passes each part's offset."""
         t0 = time.perf_counter()
         stats = SolveStats()
         cells = self.cells if cells is None else np.unique(np.asarray(cells, np.int64))
@@ -253,7 +255,8 @@ class GISolver:
         parts = [(cells[a:b], dirs[a:b]) for a, b in zip(bounds[:-1], bounds[1:], strict=True)]
         table = self.lamps if self.use_lamp_table and batch > 0 and not self.lamps.empty else None
         by_bins = self.use_lamp_table and table is None and bool(self.scene.lights)
-        jobs = [self._pool.submit(self._trace_chunk, part, d, batch, i, table, by_bins) for i, (part, d) in enumerate(parts)]
+        jobs = [self._pool.submit(self._trace_chunk, part, d, batch, first_chunk + i, table, by_bins)
+                for i, (part, d) in enumerate(parts)]
         new = []
         for job in jobs:
             chunk, times = job.result()

@@ -1,6 +1,7 @@
-"""The viewport worker on both cores: its pool's thread count changes how fast it converges, never
-what it converges to (the cache, the direct light and the visibility mask are bit-identical with
-one thread and with two), so a view looks the same on any machine.
+"""How the viewport worker refines a still view: on both cores (its pool's thread count changes
+how fast it converges, never what it converges to: the cache, the direct light and the
+visibility mask are bit-identical with one thread and with two), the short first batch re-shaded
+first after a lamp edit, and per-pixel final-gather passes once the cache is done.
 
 bpy-free: the add-on's worker modules are imported as a plain package (as the structural guard in
 test_viewport.py does in a subprocess)."""
@@ -52,9 +53,10 @@ def pinhole_gbuffer(scene, settings, w=32, h=24):
     return pos.reshape(h, w, 4), nrm.reshape(h, w, 4), np.linalg.inv(m), ok
 
 
-def converge(worker, scene, settings, view):
+def converge(worker, scene, settings, view, **options):
     pos, nrm, view_matrix, _ = view
-    wk = worker.ViewportWorker(settings, worker.WorkerOptions(direct_passes=3, solver_batches=2, first_batch_rays=8))
+    options = dict(dict(direct_passes=3, solver_batches=2, first_batch_rays=8, pixel_rays=0), **options)
+    wk = worker.ViewportWorker(settings, worker.WorkerOptions(**options))
     try:
         wk.post_edit(worker.FullScene(scene))
         wk.post_view(worker.ViewRequest(("k",), pos, nrm, pos, nrm, view_matrix, np.eye(4)))
@@ -99,3 +101,51 @@ def test_direct_pass_blocks_cover_every_point_once(worker):
             alone = gi.direct(pts[a:b], up[a:b], 5 * worker.MAX_DIRECT_BLOCKS + i, samples=4)
             np.testing.assert_array_equal(split[a:b], alone)
     assert split.shape == (n, 3) and np.isfinite(split).all() and split.mean() > 0
+
+
+def test_relight_order_starts_with_the_short_first_batch(worker):
+    """After a lamp edit the viewport re-shades the batch with the fewest stored rays first, then
+    the one carrying the bounces, then the rest; each batch once."""
+    solve = sys.modules[worker.__name__.rsplit(".", 1)[0] + ".worker_solve"]
+    s = CacheSettings(resolution=6, rays_per_cell=16, threads=1)
+    with GISystem(procedural.cornell(), s) as gi:
+        sol = gi.solver
+        sol.begin(gi.surface_cells())
+        sol.trace_batch(0, rays=4)
+        for b in (1, 2, 3):
+            sol.trace_batch(b)
+        sol.bounce_from = 3
+        assert solve.relight_order(sol) == [0, 3, 1, 2]
+        sol.bounce_from = 0
+        assert solve.relight_order(sol) == [0, 1, 2, 3]
+        sol.begin(gi.surface_cells())
+        for b in (0, 1, 2):
+            sol.trace_batch(b)  # equal batches: the bouncing one first
+        sol.bounce_from = 2
+        assert solve.relight_order(sol) == [2, 0, 1]
+
+
+def test_pixel_passes_of_a_still_view_agree_with_the_converged_cache(worker):
+    """Once the cache is done the worker traces per-pixel final-gather passes for the still view
+    and publishes their mean (the textures that replace the gather and SSAO): finite, AO in
+    [0, 1], background as the GPU gather writes it, and the same light on average as the
+    final render's converged cache gathered at those pixels (both estimate the irradiance there;
+    the rays add what the cache's cells smear, a few percent of the mean)."""
+    scene = procedural.cornell()
+    settings = CacheSettings(resolution=10, rays_per_cell=32, threads=2)
+    view = pinhole_gbuffer(scene, settings, 40, 30)
+    pos, nrm, _, ok = view
+    p = converge(worker, scene, settings, view, pixel_rays=16, pixel_passes=2)
+    assert p.error is None and p.view.pixel_passes == 2
+    ind, dirc = p.view.gi_indirect.reshape(-1, 4), p.view.gi_direct.reshape(-1, 4)
+    assert np.isfinite(ind).all() and np.isfinite(dirc).all()
+    assert (ind[ok, 3] >= 0).all() and (ind[ok, 3] <= 1).all() and (ind[ok, :3] >= 0).all()
+    np.testing.assert_array_equal(ind[~ok], np.tile([0.0, 0.0, 0.0, 1.0], ((~ok).sum(), 1)))
+    with GISystem(scene, settings) as final:
+        final.warm_up(16)
+        g = final.gather(pos.reshape(-1, 4)[ok, :3], nrm.reshape(-1, 4)[ok, :3])
+    ratio = float(ind[ok, :3].sum() / g.indirect.sum())
+    assert 0.85 < ratio < 1.15, ratio
+    # Without pixel rays nothing is published in their place.
+    q = converge(worker, scene, settings, view, pixel_rays=0)
+    assert q.view.gi_indirect is None and q.view.pixel_passes == 0
