@@ -71,6 +71,7 @@ class SolveSchedule:
         self.iterations = 0
         self._filter_direct = True  # the direct band was re-blended: filter it with the next tail
         self._relight_next: int | None = None  # next batch to re-shade after a shading edit
+        self._relight_part = 0  # its next part (`relight_batch(part=)`)
         self._materials = False  # the re-shade includes materials and the world (not lamps only)
         self.solved_once = False  # a solve of the current hits converged (cells count as settled)
         self._fresh_at: float | None = None  # when a fresh cache's first batch began (till solved)
@@ -109,6 +110,7 @@ class SolveSchedule:
         if shading:
             self._materials = materials or (self._relight_next is not None and self._materials)
             self._relight_next = 0
+            self._relight_part = 0
             self._filter_direct = self._filter_direct or materials
         # A geometry event re-shades every stale hit in one go (`resolve`), lamps included.
         self.phase = RESOLVE if geometry or self.phase == RESOLVE else RELIGHT
@@ -162,12 +164,18 @@ class SolveSchedule:
             if solver.converged:
                 self._finish()
         elif phase == RELIGHT:
-            order = relight_order(solver)
-            solver.relight_batch(order[self._relight_next], materials=self._materials)
-            self._relight_next += 1
-            if self._relight_next >= solver.batches:
-                self._relight_next = None
-            self.phase, self.iterations = RELAX, 0
+            # One part of a batch a step (an edit waits for a part); a solve after each batch.
+            batch = relight_order(solver)[self._relight_next]
+            rays = sum(c.rays for c in solver.chunks if c.batch == batch)
+            parts = max(1, -(-rays // MORE_PART_RAYS))
+            solver.relight_batch(batch, materials=self._materials, part=(self._relight_part, parts))
+            self._relight_part += 1
+            if self._relight_part >= parts:
+                self._relight_part = 0
+                self._relight_next += 1
+                if self._relight_next >= solver.batches:
+                    self._relight_next = None
+                self.phase, self.iterations = RELAX, 0
         elif phase == RELAX:
             solver.relax()
             self.iterations += 1
@@ -189,6 +197,7 @@ class SolveSchedule:
                     # A full batch now carries the bounces (less noise in A than the first one's).
                     solver.bounce_from = batch
                 self.phase, self.iterations = RELAX, 0
+            solver.prepare()  # this part's lookups now, not all of them in the next iteration
         if phase in (BEGIN, RESOLVE):
             self.blends += 1
         self.steps_ms[phase] = (time.perf_counter() - t0) * 1e3

@@ -352,3 +352,30 @@ def test_relight_may_start_with_a_batch_that_does_not_carry_the_bounces():
     # Each solve stops at its convergence tolerance from a different start: 0.65-0.7% here,
     # with the same magnitude (opposite sign) when the bouncing batch is re-shaded first.
     np.testing.assert_allclose(after, 2.0 * before, rtol=1e-2)
+
+
+@pytest.mark.parametrize("materials", [False, True])
+def test_relight_batch_in_parts_equals_the_whole_batch(materials):
+    """The viewport re-shades a batch over several steps (`relight_batch(part=)`): the parts
+    together store exactly the lamp light (and materials) of one whole-batch re-shade, and the
+    solve from them is the same."""
+    s = CacheSettings(resolution=12, rays_per_cell=32, threads=2)
+    results = []
+    for parts in (1, 3):
+        with GISystem(room_with_ball(), s) as gi:
+            sol = gi.solver
+            sol.min_chunks = 5  # several chunks per batch to split
+            sol.begin(gi.surface_cells())
+            sol.trace_batch(0)
+            sol.trace_batch(1)
+            sol.solve(16)
+            gi.set_lights(room_with_ball(energy=450.0))
+            for b in range(2):
+                for i in range(parts):
+                    sol.relight_batch(b, materials=materials, part=(i, parts) if parts > 1 else None)
+            sol.solve(16)
+            results.append(([c.e_lamp.copy() for c in sol.chunks], gi.cache.sh_indirect.copy()))
+    assert len(results[0][0]) >= 10
+    for a, b in zip(results[0][0], results[1][0], strict=True):
+        np.testing.assert_array_equal(a, b)
+    np.testing.assert_array_equal(results[0][1], results[1][1])
