@@ -41,16 +41,19 @@ BEGIN, RESOLVE, RELIGHT, RELAX, MORE, DONE = "begin", "resolve", "relight", "rel
 
 
 def relight_order(solver) -> list[int]:
-    """The order `relight_batch` re-shades a solver's batches in: the one with the fewest stored
-    rays first (the viewport's short first batch: half the shadow rays of a full one before the
-    first re-lit image), then the batch that carries the bounces, then the rest in order. Any
-    batch may come first: the bounces (A x) read the cache at the bouncing batch's hits, not
-    their lamp light, and every batch stores the same cells."""
-    rays = {}
+    """The order `relight_batch` re-shades a solver's batches in: the complete batch (one that
+    holds every solver cell) with the fewest stored rays first (the viewport's short first
+    batch: half the shadow rays of a full one before the first re-lit image), then the batch that
+    carries the bounces, then the rest in order. The first must be complete: the first solve's
+    sources come from it alone, and the bounces (A x, read at the bouncing batch's hits, not their
+    lamp light) need a source for each of their cells; a batch still being traced in parts is not."""
+    rays, cells = {}, {}
     for c in solver.chunks:
         rays[c.batch] = rays.get(c.batch, 0) + c.rays
+        cells[c.batch] = cells.get(c.batch, 0) + c.cells.size
     batches = list(range(solver.batches))
-    first = min(batches, key=lambda b: (rays.get(b, 0), b != solver.bounce_from, b))
+    complete = [b for b in batches if cells.get(b, 0) >= solver.cells.size] or [solver.bounce_from]
+    first = min(complete, key=lambda b: (rays.get(b, 0), b != solver.bounce_from, b))
     rest = [solver.bounce_from] if solver.bounce_from != first else []
     return [first] + rest + [b for b in batches if b not in (first, solver.bounce_from)]
 

@@ -8,6 +8,7 @@ test_viewport.py does in a subprocess)."""
 
 from __future__ import annotations
 
+import dataclasses
 import importlib
 import sys
 import types
@@ -123,6 +124,41 @@ def test_relight_order_starts_with_the_short_first_batch(worker):
             sol.trace_batch(b)  # equal batches: the bouncing one first
         sol.bounce_from = 2
         assert solve.relight_order(sol) == [2, 0, 1]
+        # A batch traced in part only (a refinement cut short by the edit) never comes first,
+        # however few its rays: the first solve needs a source in every cell.
+        sol.trace_batch(3, gi.surface_cells()[:5])
+        sol.bounce_from = 0
+        assert solve.relight_order(sol) == [0, 1, 2, 3]
+
+
+def test_a_lamp_edit_during_a_refining_batch_keeps_solving(worker):
+    """A lamp edit that arrives while a refining batch is traced in parts: the re-shade and the
+    solves that follow run (no step may fail on the partial batch) and the view settles lit."""
+    solve = sys.modules[worker.__name__.rsplit(".", 1)[0] + ".worker_solve"]
+    scene = procedural.cornell()
+    settings = CacheSettings(resolution=12, rays_per_cell=32, threads=2)
+    with GISystem(scene, settings) as gi:
+        sched = solve.SolveSchedule(3, first_rays=8)
+        sched.attach(gi)
+        cells = gi.surface_cells()
+        while sched.phase != solve.MORE:
+            sched.step(cells)
+        old = solve.MORE_PART_RAYS
+        solve.MORE_PART_RAYS = 32 * 64  # many parts: the edit lands mid-batch
+        try:
+            sched.step(cells)
+            assert sched._pending is not None
+            lamps = [dataclasses.replace(lt, power=2.0 * lt.power) for lt in scene.lights]
+            gi.set_lights(dataclasses.replace(scene, lights=lamps))
+            sched.changed(shading=True, geometry=False, materials=False)
+            for _ in range(400):
+                if not sched.has_work:
+                    break
+                sched.step(cells)
+        finally:
+            solve.MORE_PART_RAYS = old
+        assert not sched.has_work and gi.solver.batches == 3
+        assert np.isfinite(gi.cache.sh_indirect).all() and gi.cache.sh_indirect[cells, 0].sum() > 0
 
 
 def test_pixel_passes_of_a_still_view_agree_with_the_converged_cache(worker):
