@@ -23,11 +23,13 @@ from types import MappingProxyType
 
 import numpy as np
 
-from hybridgi_core import errors, pixel_gather
+from hybridgi_core import errors
 from hybridgi_core import visible as _visible
 from hybridgi_core.raster import gather as _gather_layout
 from hybridgi_core.raster import settings as _raster_settings
 from hybridgi_core.session import GISession
+
+from . import worker_pixels as _pixels
 
 # The records exchanged with the main thread, importable from here as the worker's own API.
 from .worker_messages import (  # noqa: F401
@@ -55,8 +57,6 @@ RATE_WINDOW_S = 1.0
 #: `system.VISIBILITY_BLOCK`: each chunk is split over both threads of a 2-core pool (4096 ran
 #: on the worker thread alone).
 MASK_CHUNK = 16384
-#: Frame numbers of the pixel-ray passes (pass k: this + k), apart from the direct passes'.
-PIXEL_FRAME_BASE = 1 << 24
 #: Direct-light points per pool job of a direct pass (`_direct_split`), and the most jobs.
 DIRECT_BLOCK_POINTS = 16384
 MAX_DIRECT_BLOCKS = 64
@@ -416,22 +416,27 @@ class ViewportWorker:
         return state.pixel_key != key or state.pixel_passes < self.options.pixel_passes
 
     def _pixel_pass(self, system, state: ViewState) -> None:
-        """One pass of per-pixel final-gather rays at the GI pixels (`pixel_gather.gi_images`,
-        the final renders' algorithm and filter settings), averaged into the view's running sum."""
+        """One slice of a pass of per-pixel final-gather rays at the GI pixels (`worker_pixels`:
+        the final renders' algorithm and filter settings); a finished pass is averaged into the
+        view's running sum. A pass over another cache version starts over."""
         t0 = time.perf_counter()
         r = state.request
         points, normals, pix = state.gi_points
         key = (id(system.cache), system.cache.version)
-        if state.pixel_key != key:
-            state.reset_pixels()
-        raster = _raster_settings.RasterSettings()
-        indirect, direct, pg = pixel_gather.gi_images(
-            system, r.position, r.normal, pix, points, normals, state.visible, r.view,
-            PIXEL_FRAME_BASE + state.pixel_passes, self.options.pixel_rays, passes=raster.pixel_filter,
-            plane_sigma=raster.bilateral_plane_sigma, normal_power=raster.bilateral_normal_power)
-        state.add_pixels(indirect, direct, key)
-        self._count_rays(pg.rays)
+        if state.pixel_key is not None and state.pixel_key != key:
+            state.reset_pixels()  # passes over an older cache (the pass in progress too)
+        if state.pixel_pass is None or state.pixel_pass.key != key:
+            state.pixel_pass = _pixels.PixelPass(key, points.shape[0], state.pixel_passes)
+        pass_ = state.pixel_pass
+        self._count_rays(pass_.trace_next(system, points, normals, state.visible, self.options.pixel_rays))
         self._steps["pixel_rays"] = (time.perf_counter() - t0) * 1e3
+        if pass_.done:
+            t1 = time.perf_counter()
+            indirect, direct = _pixels.images(pass_.gathered(), r.position, pix, points, normals, r.view,
+                                              _raster_settings.RasterSettings())
+            state.pixel_pass = None
+            state.add_pixels(indirect, direct, key)
+            self._steps["pixel_filter"] = (time.perf_counter() - t1) * 1e3
 
     # --- cache ---------------------------------------------------------------------------------
 

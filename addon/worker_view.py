@@ -57,6 +57,7 @@ class ViewState:
         self.pixel_sum: list | None = None
         self.pixel_passes = 0
         self.pixel_key = None
+        self.pixel_pass = None  # `worker_pixels.PixelPass` in progress
         self.cell_colors: np.ndarray | None = None  # Cache Cells view, when the request asks
         self.cells_key = None
         self.cells_at = 0.0
@@ -89,7 +90,7 @@ class ViewState:
         self.dirty = True
 
     def reset_pixels(self) -> None:
-        self.pixel_sum, self.pixel_passes, self.pixel_key = None, 0, None
+        self.pixel_sum, self.pixel_passes, self.pixel_key, self.pixel_pass = None, 0, None, None
 
     def add_pixels(self, indirect: np.ndarray, direct: np.ndarray, key) -> None:
         """One pixel-ray pass over the cache `key`; a pass over another cache starts over."""
