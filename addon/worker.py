@@ -276,8 +276,7 @@ class ViewportWorker:
             # Refinements of a view that held still for a whole step.
             if state.mask is None:
                 self._trace_mask(system, state)
-            elif state.passes < self.options.direct_passes and not schedule.holding(FIRST_SOLVE_HOLD_S):
-                # (A fresh cache's first solve goes first: its image is the one that matters.)
+            elif state.passes < self.options.direct_passes:
                 self._direct_pass(system, state)
             elif self._pixels_due(state):
                 self._pixel_pass(system, state)
