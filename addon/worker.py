@@ -500,7 +500,9 @@ class ViewportWorker:
             # A cache nothing was traced into yet shows nothing: the main thread's empty frame
             # stands in (packing a 48^3 grid's depth moments costs ~0.4 s before the first batch).
             traced = bool(cache.samples.any())
-            if not force and self._schedule.holding(FIRST_SOLVE_HOLD_S):
+            if not force and (self._schedule.holding(FIRST_SOLVE_HOLD_S) or self._schedule.refining):
+                # (A batch traced in part has replaced its cells' filtered direct band with the
+                # raw mean: the cache is shown again once that batch is solved and filtered.)
                 due = False
             if pack and key != old and due and traced:
                 t0 = time.perf_counter()

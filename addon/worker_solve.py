@@ -139,6 +139,11 @@ class SolveSchedule:
         return self._fresh_at is not None and time.perf_counter() - self._fresh_at < hold_s
 
     @property
+    def refining(self) -> bool:
+        """A refining batch is traced in part (`MORE`), or traced and not yet solved."""
+        return self._pending is not None or (self.phase == RELAX and self._filter_direct and self.solved_once)
+
+    @property
     def has_work(self) -> bool:
         return self.system is not None and self.phase != DONE
 
