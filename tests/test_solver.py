@@ -379,3 +379,21 @@ def test_relight_batch_in_parts_equals_the_whole_batch(materials):
     for a, b in zip(results[0][0], results[1][0], strict=True):
         np.testing.assert_array_equal(a, b)
     np.testing.assert_array_equal(results[0][1], results[1][1])
+
+
+def test_a_lamp_edit_sharing_the_materials_keeps_the_surface_table():
+    """`set_lights` with a snapshot that shares the current materials list (a lamp edit) keeps
+    the surface table's arrays; a new list (a material edit) replaces them and is shaded with."""
+    import dataclasses  # noqa: PLC0415
+
+    s = CacheSettings(resolution=6, rays_per_cell=16)
+    snap = room_with_ball()
+    with GISystem(snap, s) as gi:
+        albedo = gi.surfaces.albedo
+        lamp = dataclasses.replace(snap, lights=room_with_ball(energy=600.0).lights)
+        gi.set_lights(lamp)
+        assert gi.surfaces.albedo is albedo and gi.updater.scene.lights[0].power == 600.0
+        dark = [dataclasses.replace(m, base_color=np.full(3, 0.1, np.float32)) for m in snap.materials]
+        gi.set_lights(dataclasses.replace(lamp, materials=dark))
+        assert gi.surfaces.albedo is not albedo
+        np.testing.assert_allclose(gi.surfaces.albedo, 0.1)
