@@ -84,10 +84,12 @@ def drawn_cache(scene_name: str):
 
 
 def viewport_cache_settings(scene):
-    """The scene's cache settings with one core left to Blender's own thread (UI, drawing)."""
+    """The scene's cache settings with the worker's pool on every core (at most the scene's
+    render threads). The main thread only waits on the GPU between redraws, so leaving it a core
+    left half of a 2-core machine idle while the worker traced (embreex releases the GIL)."""
     settings = scene.hybridgi.cache_settings(scene)
     cores = os.cpu_count() or 2
-    return settings.with_(threads=max(1, min(settings.threads, cores - 1)))
+    return settings.with_(threads=max(1, min(settings.threads, cores)))
 
 
 def debug_view_of(props) -> tuple[int, int]:
@@ -116,6 +118,8 @@ class _GPUState:
         self.cells_source = None  # its Cache Cells colours, when drawn
         self.mask_tx = None
         self.mask_serial = None
+        self.pixel_tx = None  # (indirect, direct, SSAO) textures of the worker's pixel rays
+        self.pixel_serial = None
         self.cache_frame = None  # the CacheFrame on the GPU
         self.width = self.height = 0
 
@@ -136,7 +140,7 @@ class _GPUState:
             p.free()
         if self.direct_down is not None:
             self.direct_down.free()
-        self.source = self.cells_source = self.mask_tx = self.cache_frame = None
+        self.source = self.cells_source = self.mask_tx = self.cache_frame = self.pixel_tx = None
 
 
 class ViewportSession:
@@ -269,8 +273,10 @@ class ViewportSession:
             direct = gpu_state.resolve_full.execute(gbuf.position, gbuf.normal, source)
             lit = gpu_state.resolve_low.execute(low.position, low.normal, source)
         world = self.mirror.snapshot.world.color
+        with stats.step("upload_results"):
+            gi = self._pixel_textures(gpu_state, published, view_key)
         shaded = pipeline.shade(gbuf, low, view, proj, direct, corner_visible=mask, irradiance=lit,
-                                debug_view=debug_view, world_color=world, stats=stats)
+                                debug_view=debug_view, world_color=world, stats=stats, gi=gi)
         with stats.step("present"):
             cells = None
             if debug_cells:
@@ -360,6 +366,23 @@ class ViewportSession:
             self.worker.post_view(request)
         self._posted_key = view_key
         stats.posted_view = True
+
+    def _pixel_textures(self, gpu_state: _GPUState, published, view_key):
+        """The worker's per-pixel final gather of this very view as the (indirect, direct, SSAO)
+        textures `FramePipeline.shade` takes in place of the gather and the screen-space pass
+        (final renders' `_pixel_gi`), uploaded once per serial; None when it has none (a moving
+        or new view, a cache still converging): the cache gather stands in."""
+        result = published.view
+        if result is None or result.gi_indirect is None or result.key != view_key:
+            return None
+        if gpu_state.pixel_serial != result.serial:
+            neutral = np.zeros(result.gi_indirect.shape, np.float32)
+            neutral[..., 3] = 1.0  # no occlusion, no near-field bounce: the rays saw the near field
+            gpu_state.pixel_tx = (_readback.upload_texture_2d(result.gi_indirect, "RGBA32F"),
+                                  _readback.upload_texture_2d(result.gi_direct, "RGBA32F"),
+                                  _readback.upload_texture_2d(neutral, "RGBA16F"))
+            gpu_state.pixel_serial = result.serial
+        return gpu_state.pixel_tx
 
     def _upload_results(self, gpu_state: _GPUState, published, view_key):
         """Cache textures and the view's light, each uploaded once per published serial."""

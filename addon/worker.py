@@ -26,7 +26,10 @@ import numpy as np
 from hybridgi_core import errors
 from hybridgi_core import visible as _visible
 from hybridgi_core.raster import gather as _gather_layout
+from hybridgi_core.raster import settings as _raster_settings
 from hybridgi_core.session import GISession
+
+from . import worker_pixels as _pixels
 
 # The records exchanged with the main thread, importable from here as the worker's own API.
 from .worker_messages import (  # noqa: F401
@@ -50,8 +53,13 @@ log = logging.getLogger(__name__)
 #: Seconds over which updates and rays per second are counted.
 RATE_WINDOW_S = 1.0
 #: Points per chunk of the corner-visibility rays (8 rays each): between chunks the worker looks
-#: for a newer view and drops a mask that would be stale before it is done.
-MASK_CHUNK = 4096
+#: for a newer view and drops a mask that would be stale before it is done. Two of
+#: `system.VISIBILITY_BLOCK`: each chunk is split over both threads of a 2-core pool (4096 ran
+#: on the worker thread alone).
+MASK_CHUNK = 16384
+#: Direct-light points per pool job of a direct pass (`_direct_split`), and the most jobs.
+DIRECT_BLOCK_POINTS = 16384
+MAX_DIRECT_BLOCKS = 64
 #: Shortest time between two published caches while updates continue: packing costs the worker
 #: and uploading costs the main thread about 1 ms per 3 MB of texture data, and a display shows
 #: no more than about this rate anyway.
@@ -60,6 +68,12 @@ PUBLISH_INTERVAL_S = 1.0 / 30.0
 #: bounce but costs a pack (~50-100 ms for a 48^3 grid here, a third of an iteration), so the
 #: intermediate ones go out at this rate; a finished solve is always published at once.
 SOLVE_PUBLISH_INTERVAL_S = 0.3
+#: A fresh cache's first solve publishes no intermediate iteration before this long after its
+#: first batch: an iterate with a bounce or two is far darker than the fixed point (Cornell box:
+#: Combined error 0.49 vs 0.04), and packing it (the depth moments and SH of every cell, 50-200 ms
+#: on 2 busy cores) delayed the converged image that follows within ~0.5 s. A scene whose solve
+#: takes longer still shows its iterations after this hold.
+FIRST_SOLVE_HOLD_S = 1.5
 
 
 # --- the worker ---------------------------------------------------------------------------------
@@ -208,6 +222,8 @@ class ViewportWorker:
             return True
         if state is not None and (state.mask is None or state.passes < self.options.direct_passes):
             return True
+        if state is not None and self._pixels_due(state):
+            return True
         if state is not None and state.request.debug_cells:
             cache = self._session.system.cache
             if state.cells_key != (id(cache), cache.version):
@@ -221,8 +237,9 @@ class ViewportWorker:
         resync = settings != self._session.settings
         if resync:
             self._session.set_settings(settings)
+        lamps_only = False
         if edits or resync:
-            self._apply(edits, resync)
+            lamps_only = self._apply(edits, resync)
         self._applied_gen = edit_gen
         self._steps["sync"] = (time.perf_counter() - t0) * 1e3
         system = self._session.system
@@ -232,6 +249,13 @@ class ViewportWorker:
         schedule = self._schedule
         schedule.attach(system)
         state = self._view_state
+        if lamps_only and state is not None and view is state.request:
+            # Same view, same geometry: keep its cells and mask, light it again at once.
+            t_view = time.perf_counter()
+            state.relit(self._scene_version)
+            self._direct_pass(system, state, state.coarse)
+            self._publish()
+            self._steps["relit_view"] = (time.perf_counter() - t_view) * 1e3
         moving = view is not None and (state is None or not state.current(view, self._scene_version))
         if moving:
             t_view = time.perf_counter()
@@ -254,12 +278,16 @@ class ViewportWorker:
                 self._trace_mask(system, state)
             elif state.passes < self.options.direct_passes:
                 self._direct_pass(system, state)
+            elif self._pixels_due(state):
+                self._pixel_pass(system, state)
         # A finished solve is published at once; iterations in between at SOLVE_PUBLISH_INTERVAL_S.
         self._publish(force=finished)
 
     # --- scene ----------------------------------------------------------------------------------
 
-    def _apply(self, edits: list, resync: bool) -> None:
+    def _apply(self, edits: list, resync: bool) -> bool:
+        """Apply the edits to the session. Returns whether only lamps changed (the view's cells
+        and corner mask still hold)."""
         t0 = time.perf_counter()
         snapshot = self._snapshot
         positions = normals = None
@@ -289,7 +317,7 @@ class ViewportWorker:
             else:
                 raise TypeError(f"unknown scene edit {type(edit).__name__}")
         if snapshot is None:
-            return
+            return False
         snapshot = _with_geometry(snapshot, positions, normals)
         self._snapshot = snapshot
         self._scene_version += 1
@@ -299,16 +327,20 @@ class ViewportWorker:
             self._empty = True
             self._view_state = None
             self._cache_ref = None
-            return
+            return False
         self._empty = False
         # The session raised the cache's events (stored hits marked stale); policy here: solve
         # again from the stored hits (a new system starts over: `SolveSchedule.attach`).
         self._schedule.attach(self._session.system)
+        lamps_only = False
         if not report.rebuilt:
             ch = report.changes
             self._schedule.changed(shading=ch.shading_changed, geometry=bool(ch.boxes) or resync,
                                    materials=ch.world_changed or bool(ch.materials_changed))
+            lamps_only = (ch.lights_changed and not resync and not ch.geometry_changed and not ch.boxes
+                          and not ch.world_changed and not ch.materials_changed)
         self._steps["apply"] = (time.perf_counter() - t0) * 1e3
+        return lamps_only
 
     # --- view -----------------------------------------------------------------------------------
 
@@ -330,7 +362,7 @@ class ViewportWorker:
         samples = self.options.direct_samples * level.samples
         points, normals, pix = level.points
         if points.shape[0]:
-            level.sum[pix, :3] += system.direct(points, normals, self._frame, samples=samples)
+            level.sum[pix, :3] += _direct_split(system, points, normals, self._frame, samples)
         level.passes += 1
         self._count_rays(points.shape[0] * samples * max(len(system.scene.lights), 1))
         self._steps["direct"] = (time.perf_counter() - t0) * 1e3
@@ -366,9 +398,44 @@ class ViewportWorker:
             chunk = slice(start, start + MASK_CHUNK)
             mask[pix[chunk]] = system.corner_visibility(points[chunk], normals[chunk])
         state.mask = _gather_layout.pack_corner_mask(mask.reshape(h, w, 8))
+        state.visible = mask[pix]
         self._count_rays(8 * points.shape[0])
         self._steps["visibility"] = (time.perf_counter() - t0) * 1e3
         state.dirty = True
+
+    def _pixels_due(self, state: ViewState) -> bool:
+        """A pixel-ray pass is due: the cache is done (no solver work: its passes would start over
+        with every refinement), the mask traced, and fewer passes than asked over this cache."""
+        if self.options.pixel_rays <= 0 or state.visible is None or self._schedule.has_work:
+            return False
+        system = getattr(self._session, "system", None)
+        if system is None:
+            return False
+        key = (id(system.cache), system.cache.version)
+        return state.pixel_key != key or state.pixel_passes < self.options.pixel_passes
+
+    def _pixel_pass(self, system, state: ViewState) -> None:
+        """One slice of a pass of per-pixel final-gather rays at the GI pixels (`worker_pixels`:
+        the final renders' algorithm and filter settings); a finished pass is averaged into the
+        view's running sum. A pass over another cache version starts over."""
+        t0 = time.perf_counter()
+        r = state.request
+        points, normals, pix = state.gi_points
+        key = (id(system.cache), system.cache.version)
+        if state.pixel_key is not None and state.pixel_key != key:
+            state.reset_pixels()  # passes over an older cache (the pass in progress too)
+        if state.pixel_pass is None or state.pixel_pass.key != key:
+            state.pixel_pass = _pixels.PixelPass(key, points.shape[0], state.pixel_passes)
+        pass_ = state.pixel_pass
+        self._count_rays(pass_.trace_next(system, points, normals, state.visible, self.options.pixel_rays))
+        self._steps["pixel_rays"] = (time.perf_counter() - t0) * 1e3
+        if pass_.done:
+            t1 = time.perf_counter()
+            indirect, direct = _pixels.images(pass_.gathered(), r.position, pix, points, normals, r.view,
+                                              _raster_settings.RasterSettings())
+            state.pixel_pass = None
+            state.add_pixels(indirect, direct, key)
+            self._steps["pixel_filter"] = (time.perf_counter() - t1) * 1e3
 
     # --- cache ---------------------------------------------------------------------------------
 
@@ -433,6 +500,10 @@ class ViewportWorker:
             # A cache nothing was traced into yet shows nothing: the main thread's empty frame
             # stands in (packing a 48^3 grid's depth moments costs ~0.4 s before the first batch).
             traced = bool(cache.samples.any())
+            if not force and (self._schedule.holding(FIRST_SOLVE_HOLD_S) or self._schedule.refining):
+                # (A batch traced in part has replaced its cells' filtered direct band with the
+                # raw mean: the cache is shown again once that batch is solved and filtered.)
+                due = False
             if pack and key != old and due and traced:
                 t0 = time.perf_counter()
                 # Solver iterations change the radiance bands only: the depth moments (the larger
@@ -468,6 +539,23 @@ class ViewportWorker:
 
 
 # --- snapshot helpers (pure numpy) ----------------------------------------------------------------
+
+
+def _direct_split(system, points: np.ndarray, normals: np.ndarray, frame: int, samples: int) -> np.ndarray:
+    """`system.direct` of a direct pass in blocks of DIRECT_BLOCK_POINTS points on the worker
+    pool, block i with frame number frame * MAX_DIRECT_BLOCKS + i (its own samples). The blocks
+    are fixed, so the light does not depend on the pool's thread count. `system.direct` itself
+    splits only above 2^18 shadow rays, so a viewport pass (57,600 GI pixels at 4 samples) ran on
+    the worker thread alone."""
+    n = points.shape[0]
+    blocks = min(-(-n // DIRECT_BLOCK_POINTS), MAX_DIRECT_BLOCKS)
+    if blocks <= 1:
+        return system.direct(points, normals, frame * MAX_DIRECT_BLOCKS, samples=samples)
+    bounds = np.linspace(0, n, blocks + 1).astype(np.intp)
+    pool = system.updater.pool
+    jobs = [pool.submit(system.direct, points[a:b], normals[a:b], frame * MAX_DIRECT_BLOCKS + i, samples)
+            for i, (a, b) in enumerate(zip(bounds[:-1], bounds[1:], strict=True))]
+    return np.concatenate([j.result() for j in jobs])
 
 
 def _with_geometry(snapshot, positions, normals):

@@ -29,9 +29,33 @@ import numpy as np
 
 #: Iterations of one solve at most (the solver stops sooner once converged).
 MAX_ITERATIONS = 16
+#: Probe rays of one step of a refining batch (`MORE`, traced in parts of this many rays, so a
+#: lamp or camera edit waits for one part, ~0.1-0.3 s on 2 cores, not for a whole batch's 1-2 s).
+MORE_PART_RAYS = 2 * 98304
+#: Fewest chunks of a traced batch (`GISolver.min_chunks`): fixed, so the viewport's cache is the
+#: same whatever its pool's thread count, and a small batch still feeds up to this many threads.
+MIN_CHUNKS = 4
 
 # Phases of the schedule.
 BEGIN, RESOLVE, RELIGHT, RELAX, MORE, DONE = "begin", "resolve", "relight", "relax", "more", "done"
+
+
+def relight_order(solver) -> list[int]:
+    """The order `relight_batch` re-shades a solver's batches in: the complete batch (one that
+    holds every solver cell) with the fewest stored rays first (the viewport's short first
+    batch: half the shadow rays of a full one before the first re-lit image), then the batch that
+    carries the bounces, then the rest in order. The first must be complete: the first solve's
+    sources come from it alone, and the bounces (A x, read at the bouncing batch's hits, not their
+    lamp light) need a source for each of their cells; a batch still being traced in parts is not."""
+    rays, cells = {}, {}
+    for c in solver.chunks:
+        rays[c.batch] = rays.get(c.batch, 0) + c.rays
+        cells[c.batch] = cells.get(c.batch, 0) + c.cells.size
+    batches = list(range(solver.batches))
+    complete = [b for b in batches if cells.get(b, 0) >= solver.cells.size] or [solver.bounce_from]
+    first = min(complete, key=lambda b: (rays.get(b, 0), b != solver.bounce_from, b))
+    rest = [solver.bounce_from] if solver.bounce_from != first else []
+    return [first] + rest + [b for b in batches if b not in (first, solver.bounce_from)]
 
 
 class SolveSchedule:
@@ -50,11 +74,17 @@ class SolveSchedule:
         self.iterations = 0
         self._filter_direct = True  # the direct band was re-blended: filter it with the next tail
         self._relight_next: int | None = None  # next batch to re-shade after a shading edit
+        self._relight_part = 0  # its next part (`relight_batch(part=)`)
         self._materials = False  # the re-shade includes materials and the world (not lamps only)
         self.solved_once = False  # a solve of the current hits converged (cells count as settled)
+        self._fresh_at: float | None = None  # when a fresh cache's first batch began (till solved)
+        #: The refining batch traced in parts: (batch, its cells, cells traced so far), or None.
+        self._pending: tuple[int, np.ndarray, int] | None = None
         self.steps_ms: dict[str, float] = {}
-        #: Steps that blended traced rays into the cache (depth moments, inside flags may have
-        #: moved); iterations and the filter change the radiance bands only.
+        #: Steps that may have moved the depth moments: those that trace or retrace batch 0's rays
+        #: (`_geometry_bands` takes depth from the first batch only). Re-shades, refining batches,
+        #: iterations and the filter change the SH texture only, so its depth is not packed again
+        #: (~0.1-0.2 s a pack on 2 busy cores, after every refining batch before).
         self.blends = 0
 
     # --- events ---------------------------------------------------------------------------------
@@ -63,8 +93,12 @@ class SolveSchedule:
         """A (new) system: a new one starts over from batch 0 (its solver has no hits)."""
         if system is not self.system:
             self.system = system
+            if system is not None:
+                system.solver.min_chunks = MIN_CHUNKS
             self.phase = BEGIN
             self.solved_once = False
+            self._fresh_at = None
+            self._pending = None
 
     def changed(self, shading: bool, geometry: bool, materials: bool = True) -> None:
         """The session raised events on the stored hits: solve again from them.
@@ -79,6 +113,7 @@ class SolveSchedule:
         if shading:
             self._materials = materials or (self._relight_next is not None and self._materials)
             self._relight_next = 0
+            self._relight_part = 0
             self._filter_direct = self._filter_direct or materials
         # A geometry event re-shades every stale hit in one go (`resolve`), lamps included.
         self.phase = RESOLVE if geometry or self.phase == RESOLVE else RELIGHT
@@ -98,6 +133,16 @@ class SolveSchedule:
 
     # --- work -----------------------------------------------------------------------------------
 
+    def holding(self, hold_s: float) -> bool:
+        """Whether a fresh cache's first solve (batch 0 traced, not yet converged) began less than
+        hold_s ago: its iterates are too dark to be worth publishing (`worker.FIRST_SOLVE_HOLD_S`)."""
+        return self._fresh_at is not None and time.perf_counter() - self._fresh_at < hold_s
+
+    @property
+    def refining(self) -> bool:
+        """A refining batch is traced in part (`MORE`), or traced and not yet solved."""
+        return self._pending is not None or (self.phase == RELAX and self._filter_direct and self.solved_once)
+
     @property
     def has_work(self) -> bool:
         return self.system is not None and self.phase != DONE
@@ -113,6 +158,7 @@ class SolveSchedule:
         if phase == BEGIN:
             solver.begin(np.union1d(system.surface_cells(), cells))
             rays = solver.trace_batch(0, rays=self.first_rays).rays
+            self._fresh_at = time.perf_counter()
             self._filter_direct = True
             self.phase, self.iterations = RELAX, 0
         elif phase == RESOLVE:
@@ -120,31 +166,47 @@ class SolveSchedule:
             # One iteration with the retrace / re-shade; the rest one per step.
             st = solver.resolve(max_iterations=1)
             self._relight_next = None  # every stale hit re-shaded
+            self._pending = None  # resolve traced the rest of a batch in parts too (its missing cells)
             rays = st.rays
             self.phase, self.iterations = RELAX, 1
             if solver.converged:
                 self._finish()
         elif phase == RELIGHT:
-            # The batch that carries the bounces first, then the others in order.
-            order = [solver.bounce_from] + [b for b in range(solver.batches) if b != solver.bounce_from]
-            solver.relight_batch(order[self._relight_next], materials=self._materials)
-            self._relight_next += 1
-            if self._relight_next >= solver.batches:
-                self._relight_next = None
-            self.phase, self.iterations = RELAX, 0
+            # One part of a batch a step (an edit waits for a part); a solve after each batch.
+            batch = relight_order(solver)[self._relight_next]
+            rays = sum(c.rays for c in solver.chunks if c.batch == batch)
+            parts = max(1, -(-rays // MORE_PART_RAYS))
+            solver.relight_batch(batch, materials=self._materials, part=(self._relight_part, parts))
+            self._relight_part += 1
+            if self._relight_part >= parts:
+                self._relight_part = 0
+                self._relight_next += 1
+                if self._relight_next >= solver.batches:
+                    self._relight_next = None
+                self.phase, self.iterations = RELAX, 0
         elif phase == RELAX:
             solver.relax()
             self.iterations += 1
             if solver.converged or self.iterations >= MAX_ITERATIONS:
                 self._finish()
         elif phase == MORE:
-            rays = solver.trace_batch(solver.batches).rays
-            if self.first_rays is not None and solver.bounce_from == 0:
-                # A full batch now carries the bounces (less noise in A than the first one's).
-                solver.bounce_from = solver.batches - 1
+            if self._pending is None:
+                self._pending = (solver.batches, solver.cells, 0)
+            batch, todo, done = self._pending
+            per_part = max(1, MORE_PART_RAYS // max(1, system.cache.settings.rays_per_cell))
+            rays = solver.trace_batch(batch, todo[done : done + per_part], first_chunk=done).rays
+            done += per_part
             self._filter_direct = True  # the batches' mean replaced the filtered direct band
-            self.phase, self.iterations = RELAX, 0
-        if phase != RELAX:
+            if done < todo.size:
+                self._pending = (batch, todo, done)
+            else:
+                self._pending = None
+                if self.first_rays is not None and solver.bounce_from == 0:
+                    # A full batch now carries the bounces (less noise in A than the first one's).
+                    solver.bounce_from = batch
+                self.phase, self.iterations = RELAX, 0
+            solver.prepare()  # this part's lookups now, not all of them in the next iteration
+        if phase in (BEGIN, RESOLVE):
             self.blends += 1
         self.steps_ms[phase] = (time.perf_counter() - t0) * 1e3
         return rays
@@ -165,7 +227,8 @@ class SolveSchedule:
         cache.samples[c] = np.where(cache.samples[c] > 0, np.maximum(cache.samples[c], window), 0)
         cache.version += 1
         self.solved_once = True
+        self._fresh_at = None
         if self._relight_next is not None:
             self.phase = RELIGHT
         else:
-            self.phase = MORE if solver.batches < self.batches else DONE
+            self.phase = MORE if self._pending is not None or solver.batches < self.batches else DONE

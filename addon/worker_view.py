@@ -51,6 +51,13 @@ class ViewState:
         self.coarse = DirectLevel(request.position, request.normal, gi_points, int(np.clip(round(ratio), 1, 16)))
         self._fine: DirectLevel | None = None
         self.mask: np.ndarray | None = None
+        self.visible: np.ndarray | None = None  # (n, 8) bool corner visibility of the GI points
+        #: Running sums of the pixel-ray passes: [indirect, direct] (h, w, 4), the passes, and the
+        #: cache key they were traced over (another cache: they start over).
+        self.pixel_sum: list | None = None
+        self.pixel_passes = 0
+        self.pixel_key = None
+        self.pixel_pass = None  # `worker_pixels.PixelPass` in progress
         self.cell_colors: np.ndarray | None = None  # Cache Cells view, when the request asks
         self.cells_key = None
         self.cells_at = 0.0
@@ -71,6 +78,33 @@ class ViewState:
         """Passes of the light that is published: fine once it has one, else the coarse one."""
         return self._fine.passes if self._fine is not None else 0
 
+    def relit(self, scene_gen: int) -> None:
+        """Lamps changed and nothing else: the visible cells and the corner mask (geometry alone)
+        stay; the direct light starts over (the worker traces its coarse pass at once). Saves
+        the light move a new view's visible cells and mask (~0.1-0.2 s on 2 busy cores)."""
+        self.scene_gen = scene_gen
+        r = self.request
+        self.coarse = DirectLevel(r.position, r.normal, self.gi_points, self.coarse.samples)
+        self._fine = None
+        self.reset_pixels()
+        self.dirty = True
+
+    def reset_pixels(self) -> None:
+        self.pixel_sum, self.pixel_passes, self.pixel_key, self.pixel_pass = None, 0, None, None
+
+    def add_pixels(self, indirect: np.ndarray, direct: np.ndarray, key) -> None:
+        """One pixel-ray pass over the cache `key`; a pass over another cache starts over."""
+        if key != self.pixel_key:
+            self.reset_pixels()
+        if self.pixel_sum is None:
+            self.pixel_sum = [indirect.copy(), direct.copy()]
+        else:
+            self.pixel_sum[0] += indirect
+            self.pixel_sum[1] += direct
+        self.pixel_passes += 1
+        self.pixel_key = key
+        self.dirty = True
+
     def current(self, request: ViewRequest, scene_gen: int) -> bool:
         return request is self.request and scene_gen == self.scene_gen
 
@@ -85,4 +119,7 @@ class ViewState:
             corner_mask=None if self.mask is None else frozen(self.mask.copy()),
             cells=None if self.cell_colors is None else frozen(self.cell_colors.copy()),
             gi_position=r.position, gi_normal=r.normal,
+            gi_indirect=None if self.pixel_sum is None else frozen(self.pixel_sum[0] / self.pixel_passes),
+            gi_direct=None if self.pixel_sum is None else frozen(self.pixel_sum[1] / self.pixel_passes),
+            pixel_passes=self.pixel_passes,
         )

@@ -26,7 +26,7 @@ lamp moves 30% of the way towards the middle of the scene), the view re-converge
 moves back to where the reference has it; the timelines start at the first draw after that move,
 from a cache converged for the other position. So the image is compared with the one reference.
 
-Last, "settled": the worker session's view after a further settle (up to CONVERGE_TIMEOUT_S), the
+Last, "settled": the worker session's view once it is idle (up to CONVERGE_TIMEOUT_S), the
 viewport's own converged error.
 
 Prints one JSON line: {"*_sync_s", "timelines": {name: [{"t", "file"}]}, "notes"};
@@ -106,12 +106,13 @@ class Viewport:
                 fb.read_color(0, 0, self.width, self.height, 4, 0, "FLOAT", data=gpu.types.Buffer("FLOAT", out.size, out))
         return self.session.last_stats.redrawn, out
 
-    def settle(self):
+    def settle(self, idle: bool = False):
         # Stats of a publication from before the latest edit say nothing about it: wait for one
-        # that applied every edit posted so far.
+        # that applied every edit posted so far (idle: and for the worker to have nothing left).
         gen = self.session.last_edit_gen
         ok = self.session.worker.wait(
-            lambda p: p.stats.scene_gen >= gen and (p.stats.idle or p.stats.converged >= 0.99), CONVERGE_TIMEOUT_S)
+            lambda p: p.stats.scene_gen >= gen and (p.stats.idle or (not idle and p.stats.converged >= 0.99)),
+            CONVERGE_TIMEOUT_S)
         self.draw()
         return ok
 
@@ -160,6 +161,7 @@ def worker_timeline(view: Viewport, checkpoints, folder: Path, name: str) -> lis
             _, img = view.draw(read=True)
             shot = _save(folder, name, i, img, t, c)
             shot["updates"] = published.stats.updates
+            shot["steps_ms"] = {k: round(v, 1) for k, v in published.stats.steps_ms.items()}
             shots.append(shot)
     finally:
         worker.latest = latest
@@ -228,8 +230,9 @@ def run_timelines(viewport, args, width, height, folder, checkpoints, timed, tim
         out[f"{prefix}_light"] = timeline_fn(view, checkpoints, folder, f"{prefix}_light")
         timed["light"] = f"{light.name} ({light.data.type})"
         if prefix == "worker":
-            # Where the view ends up: the light-move timeline's view after a further settle.
-            view.settle()
+            # Where the view ends up: the light-move timeline's view once the worker is idle (every
+            # refinement done), or after CONVERGE_TIMEOUT_S.
+            view.settle(idle=True)
             _, img = view.draw(read=True)
             out["settled"] = [_save(folder, "settled", 0, img, time.perf_counter() - t_light, None)]
     finally:
@@ -243,6 +246,8 @@ def main(argv=None) -> int:
     parser.add_argument("--res", default="640x360")
     parser.add_argument("--out", type=Path, required=True)
     parser.add_argument("--checkpoints", default="0.1,0.25,0.5,1,2,4")
+    parser.add_argument("--timelines", default="wall,worker",
+                        help="which timelines to run (wall, worker; the worker one is llvmpipe-free)")
     args = parser.parse_args(argv)
     width, height = (int(v) for v in args.res.lower().split("x"))
     checkpoints = sorted(float(c) for c in args.checkpoints.split(","))
@@ -260,7 +265,10 @@ def main(argv=None) -> int:
     warm.update()
     warm.draw()
     warm.close()
+    wanted = {t.strip() for t in args.timelines.split(",")}
     for prefix, fn in (("wall", wall_timeline), ("worker", worker_timeline)):
+        if prefix not in wanted:
+            continue
         log(f"{prefix} timelines")
         timelines, notes = run_timelines(viewport, args, width, height, args.out, checkpoints, record, fn, prefix)
         record["timelines"].update(timelines)

@@ -111,11 +111,16 @@ class GISystem:
             self._surface_cells = np.union1d(self._surface_cells, self._cells_on(rows))
 
     def set_lights(self, scene: SceneSnapshot) -> None:
-        """New lamps, world or materials (same geometry): the shading inputs change, rays do not."""
+        """New lamps, world or materials (same geometry): the shading inputs change, rays do not.
+        A snapshot that shares the materials list of the current one (a lamp or world edit: the
+        viewport's `SetShading` keeps it) keeps the surface table and cutouts (re-building them
+        was 58 of a lamp edit's 60 ms on the atrium's 320k triangles)."""
+        same_materials = scene.materials is self.scene.materials
         self.scene = scene
         self.updater.scene = ShadingScene(self.surfaces, scene.lights, scene.world)
-        self.surfaces.set_materials(scene.materials)
-        self.tracer.set_cutouts(Cutouts(self.ray_geometry, scene.materials))
+        if not same_materials:
+            self.surfaces.set_materials(scene.materials)
+            self.tracer.set_cutouts(Cutouts(self.ray_geometry, scene.materials))
         self.solver.scene = self.updater.scene
         self.solver.lights_changed()
 

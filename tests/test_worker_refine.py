@@ -1,0 +1,244 @@
+"""How the viewport worker refines a still view: on both cores (its pool's thread count changes
+how fast it converges, never what it converges to: the cache, the direct light and the
+visibility mask are bit-identical with one thread and with two), the short first batch re-shaded
+first after a lamp edit, and per-pixel final-gather passes once the cache is done.
+
+bpy-free: the add-on's worker modules are imported as a plain package (as the structural guard in
+test_viewport.py does in a subprocess)."""
+
+from __future__ import annotations
+
+import dataclasses
+import importlib
+import sys
+import types
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from blend_scenes import procedural
+from hybridgi_core.settings import CacheSettings
+from hybridgi_core.system import GISystem
+
+ADDON = Path(__file__).resolve().parents[1] / "addon"
+
+
+@pytest.fixture(scope="module")
+def worker():
+    name = "hybridgi_addon_threads_probe"
+    if name not in sys.modules:
+        package = types.ModuleType(name)
+        package.__path__ = [str(ADDON)]  # the add-on folder, without its __init__ (bpy)
+        sys.modules[name] = package
+    return importlib.import_module(f"{name}.worker")
+
+
+def pinhole_gbuffer(scene, settings, w=32, h=24):
+    """(position, normal, view) of the Cornell camera, traced as the GPU would rasterize them."""
+    cam = procedural.describe("cornell").camera
+    m = cam.matrix()
+    half_w = 0.5 * cam.sensor_width_mm / cam.lens_mm
+    x = ((np.arange(w) + 0.5) / w * 2 - 1) * half_w
+    y = ((np.arange(h) + 0.5) / h * 2 - 1) * half_w * h / w
+    xx, yy = np.meshgrid(x, y)
+    d = np.stack([xx.ravel(), yy.ravel(), -np.ones(xx.size)], 1) @ m[:3, :3].T
+    d = (d / np.linalg.norm(d, axis=1, keepdims=True)).astype(np.float32)
+    with GISystem(scene, settings) as primary:
+        hits = primary.tracer.intersect(np.repeat(m[None, :3, 3], d.shape[0], 0).astype(np.float32), d)
+        ok = hits.prim >= 0
+        surf = primary.surfaces.surface(hits.prim[ok], hits.u[ok], hits.v[ok], d[ok])
+    pos = np.zeros((h * w, 4), np.float32)
+    nrm = np.zeros((h * w, 4), np.float32)
+    pos[ok, :3], pos[ok, 3], nrm[ok, :3] = surf.position, 1.0, surf.normal
+    return pos.reshape(h, w, 4), nrm.reshape(h, w, 4), np.linalg.inv(m), ok
+
+
+def converge(worker, scene, settings, view, **options):
+    pos, nrm, view_matrix, _ = view
+    options = dict(dict(direct_passes=3, solver_batches=2, first_batch_rays=8, pixel_rays=0), **options)
+    wk = worker.ViewportWorker(settings, worker.WorkerOptions(**options))
+    try:
+        wk.post_edit(worker.FullScene(scene))
+        wk.post_view(worker.ViewRequest(("k",), pos, nrm, pos, nrm, view_matrix, np.eye(4)))
+        assert wk.wait_idle(120)
+        return wk.latest()
+    finally:
+        wk.close()
+
+
+def test_two_threads_converge_to_the_single_thread_result(worker):
+    scene = procedural.cornell()
+    one = CacheSettings(resolution=12, rays_per_cell=16, threads=1)
+    view = pinhole_gbuffer(scene, one)
+    a = converge(worker, scene, one, view)
+    b = converge(worker, scene, one.with_(threads=2), view)
+    assert a.error is None and b.error is None
+    ok = view[3].reshape(a.view.direct.shape[:2])
+    assert a.view.direct[ok, :3].mean() > 0.1  # lit: the comparison below is not of zeros
+    assert a.view.passes == b.view.passes == 3
+    np.testing.assert_array_equal(a.view.direct, b.view.direct)
+    np.testing.assert_array_equal(a.view.corner_mask, b.view.corner_mask)
+    np.testing.assert_array_equal(a.cache.sh_texels, b.cache.sh_texels)
+    np.testing.assert_array_equal(a.cache.depth_texels, b.cache.depth_texels)
+
+
+def test_direct_pass_blocks_cover_every_point_once(worker):
+    """The pool's blocks of a direct pass: every point lit once, in order (a point lit by two
+    blocks, or left out, would double or drop its light); the blocks' samples differ."""
+    scene = procedural.cornell()
+    settings = CacheSettings(resolution=8, rays_per_cell=8, threads=2)
+    rng = np.random.default_rng(3)
+    n = 3 * worker.DIRECT_BLOCK_POINTS + 17
+    with GISystem(scene, settings) as gi:
+        lo, hi = gi.cache.grid.lo, gi.cache.grid.lo + np.asarray(gi.cache.grid.dims) * gi.cache.grid.cell_size
+        pts = (lo + rng.random((n, 3)) * (hi - lo) * 0.5).astype(np.float32)
+        pts[:, 2] = lo[2] + 1e-3  # on the floor, facing up to the lamp
+        up = np.tile(np.array([[0.0, 0.0, 1.0]], np.float32), (n, 1))
+        split = worker._direct_split(gi, pts, up, 5, 4)
+        # Each block equals the same call on that block alone (its own frame number).
+        bounds = np.linspace(0, n, 5).astype(np.intp)
+        for i, (a, b) in enumerate(zip(bounds[:-1], bounds[1:], strict=True)):
+            alone = gi.direct(pts[a:b], up[a:b], 5 * worker.MAX_DIRECT_BLOCKS + i, samples=4)
+            np.testing.assert_array_equal(split[a:b], alone)
+    assert split.shape == (n, 3) and np.isfinite(split).all() and split.mean() > 0
+
+
+def test_relight_order_starts_with_the_short_first_batch(worker):
+    """After a lamp edit the viewport re-shades the batch with the fewest stored rays first, then
+    the one carrying the bounces, then the rest; each batch once."""
+    solve = sys.modules[worker.__name__.rsplit(".", 1)[0] + ".worker_solve"]
+    s = CacheSettings(resolution=6, rays_per_cell=16, threads=1)
+    with GISystem(procedural.cornell(), s) as gi:
+        sol = gi.solver
+        sol.begin(gi.surface_cells())
+        sol.trace_batch(0, rays=4)
+        for b in (1, 2, 3):
+            sol.trace_batch(b)
+        sol.bounce_from = 3
+        assert solve.relight_order(sol) == [0, 3, 1, 2]
+        sol.bounce_from = 0
+        assert solve.relight_order(sol) == [0, 1, 2, 3]
+        sol.begin(gi.surface_cells())
+        for b in (0, 1, 2):
+            sol.trace_batch(b)  # equal batches: the bouncing one first
+        sol.bounce_from = 2
+        assert solve.relight_order(sol) == [2, 0, 1]
+        # A batch traced in part only (a refinement cut short by the edit) never comes first,
+        # however few its rays: the first solve needs a source in every cell.
+        sol.trace_batch(3, gi.surface_cells()[:5])
+        sol.bounce_from = 0
+        assert solve.relight_order(sol) == [0, 1, 2, 3]
+
+
+def test_a_lamp_edit_during_a_refining_batch_keeps_solving(worker):
+    """A lamp edit that arrives while a refining batch is traced in parts: the re-shade and the
+    solves that follow run (no step may fail on the partial batch) and the view settles lit."""
+    solve = sys.modules[worker.__name__.rsplit(".", 1)[0] + ".worker_solve"]
+    scene = procedural.cornell()
+    settings = CacheSettings(resolution=12, rays_per_cell=32, threads=2)
+    with GISystem(scene, settings) as gi:
+        sched = solve.SolveSchedule(3, first_rays=8)
+        sched.attach(gi)
+        cells = gi.surface_cells()
+        while sched.phase != solve.MORE:
+            sched.step(cells)
+        old = solve.MORE_PART_RAYS
+        solve.MORE_PART_RAYS = 32 * 64  # many parts: the edit lands mid-batch
+        try:
+            sched.step(cells)
+            assert sched._pending is not None
+            lamps = [dataclasses.replace(lt, power=2.0 * lt.power) for lt in scene.lights]
+            gi.set_lights(dataclasses.replace(scene, lights=lamps))
+            sched.changed(shading=True, geometry=False, materials=False)
+            for _ in range(400):
+                if not sched.has_work:
+                    break
+                sched.step(cells)
+        finally:
+            solve.MORE_PART_RAYS = old
+        assert not sched.has_work and gi.solver.batches == 3
+        assert np.isfinite(gi.cache.sh_indirect).all() and gi.cache.sh_indirect[cells, 0].sum() > 0
+
+
+def test_pixel_passes_of_a_still_view_agree_with_the_converged_cache(worker):
+    """Once the cache is done the worker traces per-pixel final-gather passes for the still view
+    and publishes their mean (the textures that replace the gather and SSAO): finite, AO in
+    [0, 1], background as the GPU gather writes it, and the same light on average as the
+    final render's converged cache gathered at those pixels (both estimate the irradiance there;
+    the rays add what the cache's cells smear, a few percent of the mean)."""
+    scene = procedural.cornell()
+    settings = CacheSettings(resolution=10, rays_per_cell=32, threads=2)
+    view = pinhole_gbuffer(scene, settings, 40, 30)
+    pos, nrm, _, ok = view
+    p = converge(worker, scene, settings, view, pixel_rays=16, pixel_passes=2)
+    assert p.error is None and p.view.pixel_passes == 2
+    ind, dirc = p.view.gi_indirect.reshape(-1, 4), p.view.gi_direct.reshape(-1, 4)
+    assert np.isfinite(ind).all() and np.isfinite(dirc).all()
+    assert (ind[ok, 3] >= 0).all() and (ind[ok, 3] <= 1).all() and (ind[ok, :3] >= 0).all()
+    np.testing.assert_array_equal(ind[~ok], np.tile([0.0, 0.0, 0.0, 1.0], ((~ok).sum(), 1)))
+    with GISystem(scene, settings) as final:
+        final.warm_up(16)
+        g = final.gather(pos.reshape(-1, 4)[ok, :3], nrm.reshape(-1, 4)[ok, :3])
+    ratio = float(ind[ok, :3].sum() / g.indirect.sum())
+    assert 0.85 < ratio < 1.15, ratio
+    # Without pixel rays nothing is published in their place.
+    q = converge(worker, scene, settings, view, pixel_rays=0)
+    assert q.view.gi_indirect is None and q.view.pixel_passes == 0
+
+
+def test_sliced_pixel_pass_makes_the_final_renders_textures(worker):
+    """A pixel pass traced slice by slice (`worker_pixels`) and filtered at the end is exactly
+    `pixel_gather.gi_images` when one slice holds every pixel (the same rays), and with slices its
+    light agrees with it to the rays' noise: the slices only draw other random numbers."""
+    from hybridgi_core import pixel_gather  # noqa: PLC0415
+    from hybridgi_core.raster.settings import RasterSettings  # noqa: PLC0415
+    from hybridgi_core.visible import pixels_to_points  # noqa: PLC0415
+
+    pixels = sys.modules[worker.__name__.rsplit(".", 1)[0] + ".worker_pixels"]
+    scene = procedural.cornell()
+    settings = CacheSettings(resolution=10, rays_per_cell=32, threads=2)
+    pos, nrm, view_matrix, _ = pinhole_gbuffer(scene, settings, 64, 48)
+    raster = RasterSettings()
+    with GISystem(scene, settings) as gi:
+        gi.warm_up(8)
+        points, normals, pix = pixels_to_points(pos, nrm)
+        visible = gi.corner_visibility(points, normals)
+        ref_ind, ref_dir, _ = pixel_gather.gi_images(
+            gi, pos, nrm, pix, points, normals, visible, view_matrix, pixels.FRAME_BASE, 16,
+            passes=raster.pixel_filter, plane_sigma=raster.bilateral_plane_sigma,
+            normal_power=raster.bilateral_normal_power)
+        out = []
+        for slice_points in (points.shape[0], 500):
+            old = pixels.SLICE_POINTS
+            pixels.SLICE_POINTS = slice_points
+            try:
+                p = pixels.PixelPass("k", points.shape[0], 0)
+                while not p.done:
+                    p.trace_next(gi, points, normals, visible, 16)
+            finally:
+                pixels.SLICE_POINTS = old
+            assert len(p.parts) == -(-points.shape[0] // slice_points)
+            out.append(pixels.images(p.gathered(), pos, pix, points, normals, view_matrix, raster))
+    np.testing.assert_array_equal(out[0][0], ref_ind)
+    np.testing.assert_array_equal(out[0][1], ref_dir)
+    sliced = out[1][0][..., :3].reshape(-1, 3)[pix]
+    whole = ref_ind[..., :3].reshape(-1, 3)[pix]
+    assert not np.array_equal(sliced, whole)
+    assert abs(sliced.sum() / whole.sum() - 1.0) < 0.03
+
+
+def test_a_still_view_finishes_its_pixel_passes_and_goes_idle(worker):
+    """Sliced pixel passes end: with many slices per pass the worker still completes the passes
+    asked for and then has nothing left to do."""
+    pixels = sys.modules[worker.__name__.rsplit(".", 1)[0] + ".worker_pixels"]
+    scene = procedural.cornell()
+    settings = CacheSettings(resolution=8, rays_per_cell=16, threads=2)
+    view = pinhole_gbuffer(scene, settings, 40, 30)
+    old = pixels.SLICE_POINTS
+    pixels.SLICE_POINTS = 100  # ~10 slices a pass
+    try:
+        p = converge(worker, scene, settings, view, pixel_rays=4, pixel_passes=3)
+    finally:
+        pixels.SLICE_POINTS = old
+    assert p.stats.idle and p.view.pixel_passes == 3 and p.view.gi_indirect is not None
