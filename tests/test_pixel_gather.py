@@ -273,3 +273,134 @@ def test_contacts_against_cycles_improve_with_pixel_rays(tmp_path):
     contact[:] = geometry
     before, after = error(cache, "Combined"), error(rays, "Combined")
     assert after < 0.6 * before, (before, after)
+
+
+# --- resolving the GI per full-res pixel (full_res_images, upsample_full) ------------------------
+
+
+def _plane_grid(w, h, factor, pick=(0, 0), normal=(0.0, 0.0, 1.0), step=0.01):
+    """A full-res w x h grid of points on the plane z = 0 (pixel (x, y) at ((x + .5) step, (y + .5)
+    step)), its factor-downsampled GI pixels taking the block's pixel `pick` (as the nearest-depth
+    pick takes one corner on a slope): (full points, full pix, low positions (h_lo, w_lo, 3))."""
+    xs, ys = np.meshgrid(np.arange(w), np.arange(h))
+    pts = np.stack([(xs + 0.5) * step, (ys + 0.5) * step, np.zeros_like(xs, float)], -1).astype(np.float32)
+    low = pts[pick[1]::factor, pick[0]::factor]
+    return pts.reshape(-1, 3), np.arange(w * h), np.ascontiguousarray(low)
+
+
+def test_sample_pixels_finds_the_downsample_pick():
+    w, h, f = 12, 8, 2
+    full, pix, low = _plane_grid(w, h, f, pick=(1, 0))
+    xy = pixel_gather.sample_pixels(low, full, pix, w, h, f)
+    lw = w // f
+    grid = np.arange(lw * (h // f))
+    np.testing.assert_array_equal(xy[:, 0], (grid % lw) * f + 1)
+    np.testing.assert_array_equal(xy[:, 1], (grid // lw) * f)
+
+
+def _upsample(full, pix, low, w, f, sh_lo=None, cache_lo=None, residual=None, normals=None, low_normals=None,
+              rep_xy=None):
+    hl, wl = low.shape[:2]
+    k = 9
+    sh_lo = np.zeros((hl * wl, k, 7), np.float32) if sh_lo is None else sh_lo
+    cache_lo = np.zeros((hl * wl, 7), np.float32) if cache_lo is None else cache_lo
+    residual = np.zeros((hl * wl, 7), np.float32) if residual is None else residual
+    up = np.tile(UP, (full.shape[0], 1))
+    normals = up if normals is None else normals
+    low_normals = np.tile(UP, (hl, wl, 1)) if low_normals is None else low_normals
+    camera = np.array([0.06, 0.04, 5.0], np.float32)
+    return pixel_gather.upsample_full(sh_lo, cache_lo, residual, low, low_normals, np.ones((hl, wl), bool), full,
+                                      normals, pix, w, f, camera, rep_xy=rep_xy)
+
+
+def test_upsampling_a_linear_correction_is_unbiased_from_the_picked_pixels():
+    """A correction linear in x, sampled at the pixel each block's nearest-depth pick took (here
+    always the same corner, as on a slope): with the taps placed at those pixels the picked pixels
+    get their own value back and the mean shift over the image is less than half of what placing
+    them at the block centres gives (a half-pixel shift of the slope, the same way everywhere)."""
+    w, h, f = 24, 16, 2
+    full, pix, low = _plane_grid(w, h, f, pick=(1, 1))
+    slope = 3.0
+    residual = np.zeros((low.shape[0] * low.shape[1], 7), np.float32)
+    residual[:, 3] = slope * low.reshape(-1, 3)[:, 0]
+    xy = pixel_gather.sample_pixels(low, full, pix, w, h, f)
+    inner = (full[:, 0] > 0.03) & (full[:, 0] < 0.2) & (full[:, 1] > 0.03) & (full[:, 1] < 0.12)
+    exact = slope * full[:, 0]
+    good = _upsample(full, pix, low, w, f, residual=residual, rep_xy=xy).residual[:, 3]
+    shifted = _upsample(full, pix, low, w, f, residual=residual).residual[:, 3]
+    shift = float((shifted - exact)[inner].mean())
+    assert shift == pytest.approx(slope * 0.005, rel=0.1)  # half a pixel (step 0.01) of the slope
+    picked = inner & (pix % w % f == 1) & (pix // w % f == 1)
+    np.testing.assert_allclose(good[picked], exact[picked], atol=1e-5)
+    assert abs(float((good - exact)[inner].mean())) < 0.5 * abs(shift)
+
+
+def test_upsampling_evaluates_the_cache_at_each_pixels_own_normal():
+    """The taps' cache SH (a directional radiance lobe) is evaluated at every full-res pixel's own
+    normal: on a curved surface each pixel gets sh.irradiance(SH, its normal), which the plain
+    interpolation of the taps' irradiance (at their normals) does not."""
+    from hybridgi_core import sh  # noqa: PLC0415
+
+    w, h, f = 12, 8, 2
+    full, pix, low = _plane_grid(w, h, f)
+    hl, wl = low.shape[:2]
+    rng = np.random.default_rng(3)
+    # Normals that turn by up to ~15 degrees from pixel to pixel (a bevel), all within the taps' reach.
+    tilt = rng.uniform(-0.25, 0.25, (full.shape[0], 2)).astype(np.float32)
+    normals = np.concatenate([tilt, np.ones((full.shape[0], 1), np.float32)], 1)
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    low_normals = normals.reshape(h, w, 3)[0::f, 0::f]
+    one = np.zeros((9, 7), np.float32)
+    one[:, 3] = sh.basis(np.array([[0.6, 0.0, 0.8]], np.float32), 2)[0] * 4.0  # a lobe towards +x+z
+    sh_lo = np.tile(one, (hl * wl, 1, 1))
+    cache_lo = sh.irradiance(sh_lo, low_normals.reshape(-1, 3))
+    up = _upsample(full, pix, low, w, f, sh_lo=sh_lo, cache_lo=cache_lo, normals=normals, low_normals=low_normals)
+    own = sh.irradiance(sh_lo[:1].repeat(full.shape[0], 0), normals)[:, 3]
+    np.testing.assert_allclose(up.cache[:, 3], own, rtol=1e-4)
+    interp = np.abs(up.cache[:, 3] - own).max()
+    assert interp < 1e-3 * own.max()
+    plain = _upsample(full, pix, low, w, f, cache_lo=cache_lo, normals=np.tile(UP, (full.shape[0], 1)),
+                      low_normals=np.tile(UP, (hl, wl, 1))).cache[:, 3]
+    assert np.abs(plain - own).max() > 0.05 * own.max()  # the irradiance interpolation misses it
+
+
+def test_a_pixel_on_a_surface_no_gi_pixel_sampled_is_an_orphan():
+    w, h, f = 12, 8, 2
+    full, pix, low = _plane_grid(w, h, f)
+    normals = np.tile(UP, (full.shape[0], 1))
+    normals[40] = (1.0, 0.0, 0.0)  # a post's side among floor pixels
+    full = full.copy()
+    full[41, 2] = 0.5  # a rail half a metre above the floor, facing up
+    up = _upsample(full, pix, low, w, f, normals=normals)
+    assert up.best[40] == 0.0 and up.best[41] < 1e-6
+    others = np.delete(np.arange(full.shape[0]), [40, 41])
+    assert (up.best[others] > 0.5).all()
+
+
+def test_full_res_images_trace_own_rays_on_thin_geometry(wall_system):
+    """Through `full_res_images` on the ground-and-wall scene: GI pixels on the open ground, one
+    full-res pixel on the wall's face among them (narrower than a GI pixel). The ground pixels get
+    the open sky (pi); the wall pixel gets its own rays' estimate, half the sky (a vertical wall
+    facing +x sees the sky above and the ground below), not the ground's pi."""
+    w, h, f = 8, 8, 2
+    xs, ys = np.meshgrid(np.arange(w), np.arange(h))
+    full = np.stack([40.0 + xs * 0.05, ys * 0.05, np.zeros_like(xs, float)], -1).astype(np.float32).reshape(-1, 3)
+    normals = np.tile(UP, (full.shape[0], 1))
+    wall = 3 * w + 3
+    full[wall] = (0.01, 0.0, 1.0)
+    normals[wall] = (1.0, 0.0, 0.0)
+    pix = np.arange(w * h)
+    low_full = full.reshape(h, w, 3)[0::f, 0::f]
+    hl, wl = low_full.shape[:2]
+    position_lo = np.concatenate([low_full, np.ones((hl, wl, 1), np.float32)], -1)
+    normal_lo = np.concatenate([np.tile(UP, (hl, wl, 1)), np.ones((hl, wl, 1), np.float32)], -1)
+    points, lo_normals = low_full.reshape(-1, 3), np.tile(UP, (hl * wl, 1))
+    view = np.eye(4, dtype=np.float32)
+    view[:3, 3] = (-40.2, -0.2, -5.0)  # the camera 5 m above the patch
+    vis = wall_system.corner_visibility(points, lo_normals)
+    out = pixel_gather.full_res_images(wall_system, position_lo, normal_lo, np.arange(hl * wl), points, lo_normals,
+                                       vis, view, 0, 256, full, normals, pix, (w, h))
+    direct = out.direct.reshape(-1, 4)[:, 0]
+    assert out.detail >= 1
+    np.testing.assert_allclose(np.delete(direct, wall), np.pi, rtol=0.01)
+    assert direct[wall] == pytest.approx(np.pi / 2, rel=0.1), direct[wall]
