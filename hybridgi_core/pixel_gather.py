@@ -451,41 +451,42 @@ def upsample_full(sh_lo: np.ndarray, cache_lo: np.ndarray, residual_lo: np.ndarr
     inv_sigma = (1.0 / np.maximum(plane_sigma * dist, 1e-12)).astype(np.float32)
     own_plane = nx * points[:, 0] + ny * points[:, 1] + nz * points[:, 2]
     lum_lo = (residual_lo[:, 0:3] + residual_lo[:, 3:6]) @ LUMA
+    # One record per GI pixel, gathered once per tap: position, normal, sample pixel, validity,
+    # cache (7), residual (7), residual luminance and its square, AO residual squared.
+    rec = np.concatenate([pos_lo, nrm_lo, rep_xy, flat_valid[:, None].astype(np.float32),
+                          np.asarray(cache_lo, np.float32), np.asarray(residual_lo, np.float32),
+                          lum_lo[:, None], (lum_lo * lum_lo)[:, None], np.square(residual_lo[:, 6:7])],
+                         axis=1).astype(np.float32)
     taps, weights = [], []
     best = np.zeros(n, np.float32)
     turned = np.zeros(n, bool)  # some tap's normal differs from the pixel's
-    cache = np.zeros((n, 7), np.float32)
-    res = np.zeros((n, 7), np.float32)
-    moments = np.zeros((n, 4), np.float32)  # sums of w x (luminance, luminance^2, AO, AO^2)
+    acc = np.zeros((n, 17), np.float32)  # weighted sums of cache (7), residual (7), lum, lum^2, AO^2
     total = np.zeros(n, np.float32)
+    power = np.float32(normal_power)
     for dj in (-1, 0, 1):
         for di in (-1, 0, 1):
             qi, qj = i0 + di, j0 + dj
             inside = (qi >= 0) & (qi < w) & (qj >= 0) & (qj < h)
             q = np.where(inside, qi + w * qj, 0)
-            ok = inside & flat_valid[q]
-            rxy = rep_xy[q]
-            ws = np.exp(-((rxy[:, 0] - xf) ** 2 + (rxy[:, 1] - yf) ** 2) * inv2s2)
-            qp, qn = pos_lo[q], nrm_lo[q]
-            plane = (nx * qp[:, 0] + ny * qp[:, 1] + nz * qp[:, 2] - own_plane) * inv_sigma
-            cos = np.maximum(nx * qn[:, 0] + ny * qn[:, 1] + nz * qn[:, 2], np.float32(0.0))
-            wr = np.where(ok, np.exp(-plane * plane) * cos**np.float32(normal_power), np.float32(0.0))
-            best = np.maximum(best, wr)
+            r = rec[q]
+            ws = np.exp(-(np.square(r[:, 6] - xf) + np.square(r[:, 7] - yf)) * inv2s2)
+            plane = (nx * r[:, 0] + ny * r[:, 1] + nz * r[:, 2] - own_plane) * inv_sigma
+            cos = np.maximum(nx * r[:, 3] + ny * r[:, 4] + nz * r[:, 5], np.float32(0.0))
+            wr = np.exp(-plane * plane) * cos**power
+            wr *= inside * r[:, 8]
+            np.maximum(best, wr, out=best)
             turned |= (wr > 0) & (cos < np.float32(FLAT_COS))
             wt = ws * wr
             taps.append(q)
             weights.append(wt)
-            cache += wt[:, None] * cache_lo[q]
-            res += wt[:, None] * residual_lo[q]
-            lq, aq = lum_lo[q], residual_lo[q, 6]
-            moments += wt[:, None] * np.stack([lq, lq * lq, aq, aq * aq], axis=1)
+            acc += wt[:, None] * r[:, 9:26]
             total += wt
     inv = np.where(total > 0, np.float32(1.0) / np.maximum(total, np.float32(1e-30)), np.float32(0.0))
-    cache *= inv[:, None]
-    res *= inv[:, None]
-    moments *= inv[:, None]
-    spread = np.maximum(np.stack([moments[:, 1] - moments[:, 0] ** 2, moments[:, 3] - moments[:, 2] ** 2], axis=1),
-                        np.float32(0.0))
+    acc *= inv[:, None]
+    cache = np.ascontiguousarray(acc[:, 0:7])
+    res = np.ascontiguousarray(acc[:, 7:14])
+    ao_mean = res[:, 6]
+    spread = np.maximum(np.stack([acc[:, 15] - acc[:, 14] ** 2, acc[:, 16] - ao_mean**2], axis=1), np.float32(0.0))
     # Where some tap's normal differs from the pixel's (curved surfaces, creases), the cache's part
     # is the taps' SH evaluated at the pixel's own normal, one tap at a time (a (n, 9, K, 7) gather
     # would be ~20x the image's SH in memory); elsewhere it equals the taps' own cache irradiance.
