@@ -375,6 +375,25 @@ def test_a_pixel_on_a_surface_no_gi_pixel_sampled_is_an_orphan():
     assert up.best[40] == 0.0 and up.best[41] < 1e-6
     others = np.delete(np.arange(full.shape[0]), [40, 41])
     assert (up.best[others] > 0.5).all()
+    np.testing.assert_allclose(up.cover[others], 1.0, atol=1e-5)  # every tap on their surface
+    assert not up.turned[others].any()
+
+
+def test_cover_drops_next_to_a_step_and_turned_marks_a_bend():
+    """GI pixels of the right half lie on a step 0.5 m up: floor pixels next to it keep only part
+    of their spatial tap weight (cover < 1, refinement candidates), floor pixels away from it all;
+    a pixel whose normal is turned from its taps' is `turned`."""
+    w, h, f = 16, 8, 2
+    full, pix, low = _plane_grid(w, h, f)
+    low = low.copy()
+    low[:, low.shape[1] // 2:, 2] = 0.5
+    normals = np.tile(UP, (full.shape[0], 1))
+    normals[3] = (0.0, 0.6, 0.8)
+    up = _upsample(full, pix, low, w, f, normals=normals)
+    x = pix % w
+    assert (up.cover[(x == 6) | (x == 7)] < 0.85).all()
+    np.testing.assert_allclose(up.cover[(x <= 3) & (pix != 3)], 1.0, atol=1e-5)
+    assert up.turned[3] and not np.delete(up.turned, 3)[(np.delete(x, 3) <= 3)].any()
 
 
 def test_full_res_images_trace_own_rays_on_thin_geometry(wall_system):
