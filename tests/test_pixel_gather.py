@@ -7,6 +7,7 @@ from __future__ import annotations
 import subprocess
 import sys
 import textwrap
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -423,3 +424,36 @@ def test_full_res_images_trace_own_rays_on_thin_geometry(wall_system):
     assert out.detail >= 1
     np.testing.assert_allclose(np.delete(direct, wall), np.pi, rtol=0.01)
     assert direct[wall] == pytest.approx(np.pi / 2, rel=0.1), direct[wall]
+
+
+@pytest.mark.blender
+@pytest.mark.slow
+def test_full_res_gi_against_cycles_on_the_car(tmp_path):
+    """The bundled car (rounded red body on a floor under a sun and sky) at downsample 2: with the
+    GI resolved per full-res pixel (Full-Res GI) the Diffuse Indirect is closer to Cycles than with
+    the bilateral upsampling of GI-resolution light, on the body (whose bevels turn the normal
+    within a GI pixel) and over the image; Combined too. Measured at 200x150 against Cycles 256 spp
+    (upsampled -> full-res): body 0.174 -> 0.094, image 0.179 -> 0.128, Combined 0.0081 -> 0.0071."""
+    from tests.cli_renders import layer, rendered  # noqa: PLC0415
+
+    root = Path(__file__).resolve().parent.parent
+    subprocess.run([sys.executable, str(root / "blend_scenes" / "build.py"), "--only", "car", "--out", str(tmp_path)],
+                   check=True, capture_output=True)
+    blend = tmp_path / "car.blend"
+    res = "200x150"
+    fast = ("--set", "downsample=2", "--set", "pixel_rays=32")
+    cycles = rendered(blend, tmp_path / "cy", res, "--engine", "CYCLES", "--samples", "256")
+    old = rendered(blend, tmp_path / "up", res, *fast, "--set", "pixel_full_res=0")
+    new = rendered(blend, tmp_path / "full", res, *fast, "--set", "pixel_full_res=1")
+    geometry = layer(cycles, "Depth", "Z")[..., 0] < 1e9
+    body = geometry & (layer(cycles, "Diffuse Color")[..., 0] > 0.5) & (layer(cycles, "Diffuse Color")[..., 1] < 0.2)
+    assert body.sum() > 300
+
+    def error(channels, mask, name="Diffuse Indirect"):
+        ours, ref = layer(channels, name), layer(cycles, name)
+        return float(np.abs(ours - ref)[mask].sum() / np.abs(ref)[mask].sum())
+
+    for mask, name, share in ((body, "Diffuse Indirect", 0.75), (geometry, "Diffuse Indirect", 0.85),
+                              (geometry, "Combined", 0.95)):
+        before, after = error(old, mask, name), error(new, mask, name)
+        assert after < share * before, (name, before, after)
