@@ -79,6 +79,10 @@ DETAIL_FRAME = 1 << 20
 #: Cycles: car Diffuse Indirect 0.091 -> 0.083, contact AO 0.013 -> 0.011, trusses AO 0.058 ->
 #: 0.057, yard and the others equal or better; 0.6 was better on the car, worse on trusses and yard).
 FULL_RES_NOISE_SIGMA = 1.0
+#: Adaptive AO sampling (`_more_ao_rays`): pixels whose AO's relative standard error exceeds
+#: AO_RELATIVE_NOISE trace AO_EXTRA x their rays again as occlusion-only AO rays.
+AO_EXTRA = 1.0
+AO_RELATIVE_NOISE = 0.15
 #: B3-spline taps of one a-trous pass (5 x 5, Dammertz et al. 2010).
 _B3 = np.array([1.0, 4.0, 6.0, 4.0, 1.0], np.float32) / 16.0
 
@@ -253,7 +257,8 @@ def _chunk(system, lookup: HitLookup | None, p, nrm, corner_visible, rays, rng):
     r = radiance.reshape(m, rays, 6)
     res[:, 0:3] = (r[..., 0:3].mean(axis=1) - cv_d) * np.float32(np.pi)
     res[:, 3:6] = (r[..., 3:6].mean(axis=1) - cv_i) * np.float32(np.pi)
-    res[:, 6] = visible.reshape(m, rays).mean(axis=1) - cv_a
+    ao_mean = visible.reshape(m, rays).mean(axis=1)
+    res[:, 6] = ao_mean - cv_a
     # Variance of the two filter guides' means (luminance of all light, AO), from the rays' own
     # spread around their control variate: what the filter may average away as noise.
     luma = LUMA.astype(np.float32)
@@ -262,8 +267,35 @@ def _chunk(system, lookup: HitLookup | None, p, nrm, corner_visible, rays, rng):
     of_mean = np.float32(1.0 / max(rays - 1, 1))  # sample variance / N
     res[:, 7] = lum.var(axis=1) * np.float32(np.pi**2) * of_mean
     res[:, 8] = ao.var(axis=1) * of_mean
+    _more_ao_rays(system, res, p, nrm, ao_mean, sh_a, covered, rays, rng, times)
     times["shade"] = (time.perf_counter() - tic) * 1e3 - times.get("shadow", 0.0)
     return res, coeffs, times
+
+
+def _more_ao_rays(system, res, p, nrm, ao_mean, sh_a, covered, rays, rng, times) -> None:
+    """Adaptive AO sampling: pixels whose AO estimate is noisy relative to its value (the rays'
+    standard error over the AO above AO_RELATIVE_NOISE: low, partly occluded AO, what a relative
+    error weighs most; open pixels are left alone) trace AO_EXTRA x rays more occlusion-only rays
+    (short, no shading); their AO residual and its variance become those of all their rays."""
+    extra = int(round(AO_EXTRA * rays))
+    rel = np.sqrt(np.maximum(res[:, 8], 0.0)) / np.maximum(ao_mean, np.float32(1e-3))
+    sel = np.flatnonzero((rel > AO_RELATIVE_NOISE) & (ao_mean > 0.0))
+    if extra <= 0 or sel.size == 0:
+        return
+    tic = time.perf_counter()
+    tracer, s = system.tracer, system.settings
+    k = sh_a.shape[1]
+    eps = np.float32(tracer.epsilon)
+    dirs = cosine_directions(nrm[sel], extra, rng)
+    origins = np.repeat(p[sel] + nrm[sel] * eps, extra, axis=0)
+    blocked = tracer.occluded(origins, dirs.reshape(-1, 3), np.float32(s.ao_distance), trusted=True)
+    vis = (~np.asarray(blocked, bool)).astype(np.float32).reshape(sel.size, extra)
+    y = sh.basis(dirs.reshape(-1, 3), 2 if k == 9 else 1).reshape(sel.size, extra, k)
+    cv = np.where(covered[sel], np.einsum("mk,mk->m", y.mean(axis=1), sh_a[sel]), np.float32(1.0))
+    share = np.float32(extra / (rays + extra))
+    res[sel, 6] = (1 - share) * res[sel, 6] + share * (vis.mean(axis=1) - cv)
+    res[sel, 8] *= 1 - share  # the variance of a mean over rays + extra rays
+    times["ao_rays"] = (time.perf_counter() - tic) * 1e3
 
 
 def filter_residual(residual: np.ndarray, position: np.ndarray, normal: np.ndarray, valid: np.ndarray,

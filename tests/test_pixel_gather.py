@@ -90,6 +90,27 @@ def test_control_variate_is_unbiased_whatever_the_cache_holds(wall_system):
     assert not np.allclose(b.cache_direct, a.cache_direct)
 
 
+def test_partly_occluded_pixels_trace_more_ao_rays_and_stay_unbiased(wall_system):
+    """At the black wall's foot (AO 1/2, a noisy estimate relative to its value) the AO takes extra
+    occlusion-only rays: its spread over frames shrinks against the same rays without them, its
+    mean stays the analytic 1/2; open ground (AO 1, no noise) traces none."""
+    p, n = points_up(*[[0.01, y, 0.0] for y in np.linspace(-5.0, 5.0, 64)])
+    vis = wall_system.corner_visibility(p, n)
+    with_more = np.array([pixel_gather.trace_pixels(wall_system, p, n, 32, frame=f, corner_visible=vis).ao
+                          for f in range(8)])
+    saved = pixel_gather.AO_EXTRA
+    try:
+        pixel_gather.AO_EXTRA = 0.0
+        without = np.array([pixel_gather.trace_pixels(wall_system, p, n, 32, frame=f, corner_visible=vis).ao
+                            for f in range(8)])
+    finally:
+        pixel_gather.AO_EXTRA = saved
+    assert with_more.mean() == pytest.approx(0.5, abs=0.01)
+    assert with_more.std() < 0.85 * without.std(), (with_more.std(), without.std())
+    open_p, open_n = points_up([80.0, 5.0, 0.0])
+    assert "ao_rays" not in pixel_gather.trace_pixels(wall_system, open_p, open_n, 32, frame=0).steps_ms
+
+
 def test_wall_bounce_is_indirect_light_and_corner_is_darker_than_open():
     """A white wall reflects the sky onto its foot: indirect light appears there, none far away."""
     with GISystem(ground_and_wall(albedo=0.8), CacheSettings(resolution=8, rays_per_cell=64)) as gi:
