@@ -156,8 +156,8 @@ class HybridGISettings(bpy.types.PropertyGroup):
         name="Full-Res GI",
         description="With Pixel Rays and Downsample above 1: resolve the GI at every full-resolution pixel (the "
         "cache's light at the pixel's own normal, own rays on thin geometry and where the correction changes "
-        "within a GI pixel) instead of upsampling the GI resolution's light (car Diffuse Indirect error vs "
-        "Cycles 0.124 -> 0.091, yard 0.172 -> 0.136 at 320x240)",
+        "within a GI pixel) instead of upsampling the GI resolution's light (Diffuse Indirect error vs Cycles at "
+        "320x240: car 0.123 -> 0.081, yard 0.172 -> 0.139)",
         default=True,
     )
 
