@@ -61,8 +61,9 @@ DETAIL_MATCH = 0.25
 #: 0.05 (car Diffuse Indirect error 0.094 at 0.1 -> 0.091, 2.7% of its pixels refined; 0.02 gained
 #: 0.003 more for twice the pixels, and on the trusses 4x the pixels for nothing).
 REFINE_SPREAD = 0.05
-#: Normals closer than this cosine count as the same in `upsample_full` (no SH re-evaluation).
-FLAT_COS = 0.9995
+#: Normals closer than this cosine (8 degrees) count as the same in `upsample_full`: no SH re-evaluation,
+#: no refinement for the bend (0.9995 -> 0.99: car and atrium DI equal to 0.0001, fewer SH taps).
+FLAT_COS = 0.99
 #: At most this share of the GI pixels' count of full-res pixels refine (the atrium's busy surfaces
 #: have refinement candidates at a quarter of its GI pixels' count: 0.25 -> 0.15 cost DI 0.0523 ->
 #: 0.0525 there for 40% fewer detail rays; the car's 1819 stay under it).
