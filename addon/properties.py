@@ -152,6 +152,15 @@ class HybridGISettings(bpy.types.PropertyGroup):
         default=3, min=0, max=6,
     )
 
+    pixel_full_res: BoolProperty(
+        name="Full-Res GI",
+        description="With Pixel Rays and Downsample above 1: resolve the GI at every full-resolution pixel (the "
+        "cache's light at the pixel's own normal, own rays on thin geometry and where the correction changes "
+        "within a GI pixel) instead of upsampling the GI resolution's light (Diffuse Indirect error vs Cycles at "
+        "320x240: car 0.123 -> 0.081, yard 0.172 -> 0.139)",
+        default=True,
+    )
+
     # Film (final renders).
     pixel_samples: IntProperty(
         name="Pixel Samples",
@@ -226,6 +235,7 @@ class HybridGISettings(bpy.types.PropertyGroup):
             ao_blend=self.blend_mode,
             pixel_rays=self.pixel_rays,
             pixel_filter=self.pixel_filter,
+            pixel_full_res=bool(self.pixel_full_res),
         )
 
 

@@ -51,6 +51,20 @@ def edge_pixels(passes: dict[str, np.ndarray], mask: np.ndarray) -> np.ndarray:
     return edge & mask
 
 
+def boundary_pixels(passes: dict[str, np.ndarray], mask: np.ndarray) -> np.ndarray:
+    """(h, w) bool: geometry pixels whose Diffuse Color differs (> 0.01) from a 4-neighbour's or
+    that touch the background: pixels a thin object or a material boundary shares, where the
+    film's Diffuse Indirect (sum of colour x light over the summed colour) depends on how much of
+    each side the pixel's samples saw. Unlike `edge_pixels` it ignores depth jumps along a
+    grazing floor, which are not boundaries."""
+    col = passes["Diffuse Color"][..., :3]
+    pure = mask.copy()
+    for axis in (0, 1):
+        for shift in (1, -1):
+            pure &= (np.abs(np.roll(col, shift, axis) - col).max(-1) < 0.01) & np.roll(mask, shift, axis)
+    return mask & ~pure
+
+
 def breakdown(test_exr, ref_exr, heat: Path | None = None) -> dict:
     test, ref = compare_cycles.read_passes(test_exr), compare_cycles.read_passes(ref_exr)
     mask = compare_cycles.geometry_mask(ref)
@@ -83,6 +97,15 @@ def breakdown(test_exr, ref_exr, heat: Path | None = None) -> dict:
     out["edge_pixels"] = int(edges.sum())
     out["edge_error_share"] = round(float(err[edges].sum()) / total, 4) if total else 0.0
     den = float(np.abs(r_comb[mask]).sum())
+    boundary = boundary_pixels(ref, mask)
+    out["boundary_pixels"] = int(boundary.sum())
+    if "Diffuse Indirect" in test:
+        t_di, r_di = rgb(test["Diffuse Indirect"]).astype(np.float64), rgb(ref["Diffuse Indirect"]).astype(np.float64)
+        di_err = np.abs(t_di - r_di).sum(-1)
+        di_den = max(float(np.abs(r_di[mask]).sum()), 1e-30)
+        # Diffuse Indirect's relative L1 split into its boundary and interior parts (they sum to it).
+        out["di_boundary_l1"] = round(float(di_err[boundary].sum()) / di_den, 5)
+        out["di_interior_l1"] = round(float(di_err[mask & ~boundary].sum()) / di_den, 5)
     out["combined_without_edges"] = round(float(err[mask & ~edges].sum()) / den, 5) if den else 0.0
     return out
 

@@ -49,6 +49,7 @@ class FrameStats:
     visible_cells: int = 0
     rays: int = 0
     low_res: tuple[int, int] = (0, 0)
+    detail_pixels: int = 0  # full-res pixels that traced their own pixel rays (`_pixel_gi_full`)
 
     @contextmanager
     def step(self, name: str):
@@ -96,6 +97,12 @@ class FramePipeline:
         self.accumulate = AccumulatePass()
         self._passes = (self.gbuffer, self.downsample, self.gather, self.ssao, self.bilateral, self.deferred,
                         self.accumulate)
+        #: Final renders with pixel rays resolve the GI at full resolution on the CPU
+        #: (`pixel_gather.full_res_images`): a copy of the centre raster's G-buffer (the guide of
+        #: those full-res GI samples, as the downsampled G-buffer guides the low-res ones; the
+        #: subframes overwrite the G-buffer) and a factor-1 bilateral pass. Made on first use.
+        self._full_copy = None
+        self._bilateral_full = None
         self.width = self.height = 0
         self._direct_tex = None
         self._glossy_tex = None
@@ -125,7 +132,7 @@ class FramePipeline:
         self.gbuffer.upload(snapshot)
 
     def free(self) -> None:
-        for p in self._passes:
+        for p in self._passes + tuple(p for p in (self._full_copy, self._bilateral_full) if p is not None):
             p.free()
         self._direct_tex = None
         self.width = self.height = 0
@@ -142,7 +149,7 @@ class FramePipeline:
 
     def shade(self, gbuf, low, view: np.ndarray, proj: np.ndarray, direct, corner_visible=None,
               irradiance=None, debug_view: int = DEBUG_FINAL, world_color=(0.0, 0.0, 0.0),
-              stats: FrameStats | None = None, gi=None, glossy=None) -> ShadedFrame:
+              stats: FrameStats | None = None, gi=None, glossy=None, bilateral=None) -> ShadedFrame:
         """Steps 6-9 on the GPU, the cache already uploaded (`self.gather.upload`).
 
         direct : full-res RGBA texture of lamp irradiance (W/m^2) at the G-buffer's pixels
@@ -153,6 +160,7 @@ class FramePipeline:
             screen-space pass (pixel rays: `_pixel_gi`)
         glossy : full-res RGBA texture of the lamps' glossy reflection (radiance, added to
             Combined), or None
+        bilateral : the BilateralPass to use (of `low`'s factor); None = the pipeline's own
         """
         stats = stats if stats is not None else FrameStats()
         if gi is not None:
@@ -163,7 +171,7 @@ class FramePipeline:
             with stats.step("ssao"):
                 ssao = self.ssao.execute(low, view, proj, irradiance=irradiance)
         with stats.step("bilateral"):
-            filtered = self.bilateral.execute(gbuf, low, gi_indirect, gi_direct, ssao)
+            filtered = (bilateral or self.bilateral).execute(gbuf, low, gi_indirect, gi_direct, ssao)
         with stats.step("deferred"):
             shaded = self.deferred.execute(gbuf, direct, filtered, world_color=world_color,
                                            debug_view=debug_view, relative_bounce=self.ssao.relative_bounce,
@@ -206,10 +214,21 @@ class FramePipeline:
                 stats.steps_ms[f"update_{k}"] = v
         with stats.step("visibility"):
             visible = system.corner_visibility(points, normals)
+        with stats.step("direct"):
+            normal = self.gbuffer.read("normal")
+            position = self.gbuffer.read("position")
+            p_full, n_full, pix_full = pixels_to_points(position, normal)
         gi = None
+        gi_low, gi_bilateral = low, None
         if self.settings.pixel_rays > 0:
             with stats.step("pixel_rays"):
-                gi = self._pixel_gi(system, position_lo, normal_lo, pix, points, normals, visible, view, frame, stats)
+                if self.settings.downsample > 1 and self.settings.pixel_full_res:
+                    gi, gi_low, gi_bilateral = self._pixel_gi_full(
+                        system, gbuf, position_lo, normal_lo, pix, points, normals, visible, view, frame,
+                        (p_full, n_full, pix_full), stats)
+                else:
+                    gi = self._pixel_gi(system, position_lo, normal_lo, pix, points, normals, visible, view, frame,
+                                        stats)
         with stats.step("gather"):
             mask = np.zeros((low.height * low.width, 8), bool)
             mask[pix] = visible
@@ -224,9 +243,6 @@ class FramePipeline:
                 lit[pix, :3] = system.direct(points, normals, frame, samples=1)
                 lit_tex = upload_texture_2d(lit.reshape(low.height, low.width, 4), "RGBA16F")
         with stats.step("direct"):
-            normal = self.gbuffer.read("normal")
-            position = self.gbuffer.read("position")
-            p_full, n_full, pix_full = pixels_to_points(position, normal)
             direct = np.zeros((self.height * self.width, 4), np.float32)
             direct[pix_full, :3] = system.direct(p_full, n_full, frame, samples=self.direct_samples)
         with stats.step("glossy"):
@@ -252,10 +268,10 @@ class FramePipeline:
                                                  self.direct_samples // offsets.shape[0]))
             with stats.step("direct"):
                 self._direct_tex = upload_texture_2d(direct.reshape(self.height, self.width, 4), "RGBA32F")
-            shaded = self.shade(gbuf, low, view, proj, self._direct_tex,
+            shaded = self.shade(gbuf, gi_low, view, proj, self._direct_tex,
                                 corner_visible=mask.reshape(low.height, low.width, 8), irradiance=lit_tex,
                                 debug_view=debug_view, world_color=world_color, stats=stats, gi=gi,
-                                glossy=self._glossy_tex if glossy is not None else None)
+                                glossy=self._glossy_tex if glossy is not None else None, bilateral=gi_bilateral)
             with stats.step("accumulate"):
                 self.accumulate.execute(shaded, gbuf, first=s == 0)
         with stats.step("film"):
@@ -292,6 +308,35 @@ class FramePipeline:
         total = glossy + colour * indirect
         self._glossy_tex = upload_texture_2d(total.reshape(self.height, self.width, 4), "RGBA32F")
         return glossy, colour, indirect
+
+    def _pixel_gi_full(self, system, gbuf, position_lo, normal_lo, pix, points, normals, visible, view, frame,
+                       full, stats):
+        """Pixel rays at the GI resolution resolved per full-res pixel (`pixel_gather.full_res_images`):
+        (the three full-res textures, the centre G-buffer's copy that guides them, the factor-1
+        bilateral pass that reads them)."""
+        s = self.settings
+        if self._full_copy is None:
+            self._full_copy = DownsamplePass(1)
+            self._bilateral_full = BilateralPass(s.with_(downsample=1))
+        self._bilateral_full.settings = s.with_(downsample=1)
+        for p in (self._full_copy, self._bilateral_full):
+            p.resize(self.width, self.height)
+        guide = self._full_copy.execute(gbuf)
+        p_full, n_full, pix_full = full
+        out = pixel_gather.full_res_images(
+            system, position_lo, normal_lo, pix, points, normals, visible, view, frame, s.pixel_rays,
+            p_full, n_full, pix_full, (self.width, self.height), passes=s.pixel_filter,
+            plane_sigma=s.bilateral_plane_sigma, normal_power=s.bilateral_normal_power)
+        stats.rays += out.gi.rays
+        for k, v in out.steps_ms.items():
+            stats.steps_ms[f"pixel_{k}"] = stats.steps_ms.get(f"pixel_{k}", 0.0) + v
+        stats.detail_pixels = out.detail
+        log.debug("pixel rays: %d full-res pixels traced their own rays", out.detail)
+        neutral = np.zeros(out.indirect.shape, np.float32)
+        neutral[..., 3] = 1.0
+        textures = (upload_texture_2d(out.indirect, "RGBA32F"), upload_texture_2d(out.direct, "RGBA32F"),
+                    upload_texture_2d(neutral, "RGBA16F"))
+        return textures, guide, self._bilateral_full
 
     def _pixel_gi(self, system, position_lo, normal_lo, pix, points, normals, visible, view, frame, stats):
         """Per-pixel final gather (`pixel_gather.gi_images`) as the textures the gather and the

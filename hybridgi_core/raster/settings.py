@@ -32,6 +32,11 @@ class RasterSettings:
     #: output and the screen-space AO / bounce (the rays see what that pass stood in for).
     pixel_rays: int = 0
     pixel_filter: int = 3  # a-trous passes over the pixel rays' residual (taps 1, 2, 4 .. apart)
+    #: Final renders with pixel rays and downsample > 1: resolve the GI per full-res pixel on the CPU
+    #: (`pixel_gather.full_res_images`: the cache's SH at every pixel's own normal, own rays where
+    #: no GI pixel shares the pixel's surface or the correction varies) instead of the bilateral
+    #: upsampling of GI-resolution irradiance.
+    pixel_full_res: bool = True
 
     #: Valid values of each field, as in CacheSettings.RANGES.
     RANGES = {
@@ -46,6 +51,7 @@ class RasterSettings:
         "bilateral_normal_power": (0.0, None, False, False),
         "pixel_rays": (0, 1024, False, False),
         "pixel_filter": (0, 6, False, False),
+        "pixel_full_res": frozenset((False, True)),
     }
 
     def __post_init__(self) -> None:
