@@ -674,7 +674,8 @@ def full_res_images(system, position_lo: np.ndarray, normal_lo: np.ndarray, pix:
     est_img[pix] = est
     smooth = filter_residual(est_img.reshape(h, w, 7), pos.reshape(h, w, 3), nrm.reshape(h, w, 3),
                              valid.reshape(h, w), camera, passes, plane_sigma, normal_power,
-                             variance=var.reshape(h, w, 2), noise_sigma=FULL_RES_NOISE_SIGMA).reshape(h * w, 7)
+                             variance=var.reshape(h, w, 2), noise_sigma=FULL_RES_NOISE_SIGMA,
+                             pool=system.updater.pool).reshape(h * w, 7)
     filtered = (smooth - (est_img - res)) * valid[:, None]  # as a residual of each GI pixel's own cache
     steps = {"filter": (time.perf_counter() - tic) * 1e3}
     tic = time.perf_counter()
