@@ -58,27 +58,9 @@ def images(gi, position_lo: np.ndarray, pix: np.ndarray, points: np.ndarray, nor
     """(gi_indirect, gi_direct) (h, w, 4) textures from a whole image's rays: the filtered
     residual over the cache's value, as `pixel_gather.gi_images` makes them (keep in step)."""
     h, w = position_lo.shape[:2]
-    est, cache = gi.channels()
-    valid = np.zeros(h * w, bool)
-    valid[pix] = True
-    res = np.zeros((h * w, 7), np.float32)
-    res[pix] = est - cache
-    pos = np.zeros((h * w, 3), np.float32)
-    pos[pix] = points
-    nrm = np.zeros((h * w, 3), np.float32)
-    nrm[pix] = normals
-    camera = np.linalg.inv(np.asarray(view, np.float64))[:3, 3].astype(np.float32)
-    var = np.zeros((h * w, 2), np.float32)
-    var[pix] = gi.variance
+    _est, cache, valid, res, pos, nrm, camera, var = pixel_gather.image_planes(gi, pix, points, normals, view, h, w)
     filtered = pixel_gather.filter_residual(
         res.reshape(h, w, 7), pos.reshape(h, w, 3), nrm.reshape(h, w, 3), valid.reshape(h, w), camera,
         raster.pixel_filter, raster.bilateral_plane_sigma, raster.bilateral_normal_power,
         variance=var.reshape(h, w, 2)).reshape(h * w, 7)
-    value = cache + filtered[pix]
-    indirect = np.zeros((h * w, 4), np.float32)
-    indirect[:, 3] = 1.0
-    indirect[pix, 0:3] = np.maximum(value[:, 3:6], 0.0)
-    indirect[pix, 3] = np.clip(value[:, 6], 0.0, 1.0)
-    direct = np.zeros((h * w, 4), np.float32)
-    direct[pix, 0:3] = np.maximum(value[:, 0:3], 0.0)
-    return indirect.reshape(h, w, 4), direct.reshape(h, w, 4)
+    return pixel_gather.textures(cache + filtered[pix], pix, h, w)

@@ -424,6 +424,20 @@ def gi_images(system, position_lo: np.ndarray, normal_lo: np.ndarray, pix: np.nd
     h, w = position_lo.shape[:2]
     gi = trace_pixels(system, points, normals, rays, frame, corner_visible)
     tic = time.perf_counter()
+    est, cache, valid, res, pos, nrm, camera, var = image_planes(gi, pix, points, normals, view, h, w)
+    filtered = filter_residual(res.reshape(h, w, 7), pos.reshape(h, w, 3), nrm.reshape(h, w, 3),
+                               valid.reshape(h, w), camera, passes, plane_sigma, normal_power,
+                               variance=var.reshape(h, w, 2), pool=system.updater.pool).reshape(h * w, 7)
+    gi.steps_ms["filter"] = (time.perf_counter() - tic) * 1e3
+    indirect, direct = textures(cache + filtered[pix], pix, h, w)
+    return indirect, direct, gi
+
+
+def image_planes(gi: PixelGI, pix: np.ndarray, points: np.ndarray, normals: np.ndarray, view: np.ndarray,
+                 h: int, w: int):
+    """The GI pixels' rays scattered into (h * w, .) image planes for the filter: (estimate (n, 7),
+    cache (n, 7), valid, residual, position, normal, camera eye (3,), variance); pix indexes the
+    flattened image."""
     est, cache = gi.channels()
     valid = np.zeros(h * w, bool)
     valid[pix] = True
@@ -436,19 +450,19 @@ def gi_images(system, position_lo: np.ndarray, normal_lo: np.ndarray, pix: np.nd
     camera = np.linalg.inv(np.asarray(view, np.float64))[:3, 3].astype(np.float32)
     var = np.zeros((h * w, 2), np.float32)
     var[pix] = gi.variance
-    filtered = filter_residual(res.reshape(h, w, 7), pos.reshape(h, w, 3), nrm.reshape(h, w, 3),
-                               valid.reshape(h, w), camera, passes, plane_sigma, normal_power,
-                               variance=var.reshape(h, w, 2), pool=system.updater.pool).reshape(h * w, 7)
-    gi.steps_ms["filter"] = (time.perf_counter() - tic) * 1e3
-    value = np.zeros((h * w, 7), np.float32)
-    value[pix] = cache + filtered[pix]
+    return est, cache, valid, res, pos, nrm, camera, var
+
+
+def textures(value: np.ndarray, pix: np.ndarray, h: int, w: int) -> tuple[np.ndarray, np.ndarray]:
+    """(gi_indirect, gi_direct) (h, w, 4) from the GI pixels' values (n, 7: direct rgb, indirect
+    rgb, AO), background as the GPU gather writes it (indirect 0 with AO 1)."""
     indirect = np.zeros((h * w, 4), np.float32)
     indirect[:, 3] = 1.0
-    indirect[pix, 0:3] = np.maximum(value[pix, 3:6], 0.0)
-    indirect[pix, 3] = np.clip(value[pix, 6], 0.0, 1.0)
+    indirect[pix, 0:3] = np.maximum(value[:, 3:6], 0.0)
+    indirect[pix, 3] = np.clip(value[:, 6], 0.0, 1.0)
     direct = np.zeros((h * w, 4), np.float32)
-    direct[pix, 0:3] = np.maximum(value[pix, 0:3], 0.0)
-    return indirect.reshape(h, w, 4), direct.reshape(h, w, 4), gi
+    direct[pix, 0:3] = np.maximum(value[:, 0:3], 0.0)
+    return indirect.reshape(h, w, 4), direct.reshape(h, w, 4)
 
 
 @dataclass
@@ -654,18 +668,7 @@ def full_res_images(system, position_lo: np.ndarray, normal_lo: np.ndarray, pix:
     lookup = HitLookup(system.cache, bounced=system.settings.indirect_quality == MULTI_BOUNCE) if rays > 0 else None
     gi = trace_pixels(system, points, normals, rays, frame, corner_visible, lookup=lookup)
     tic = time.perf_counter()
-    est, cache = gi.channels()
-    valid = np.zeros(h * w, bool)
-    valid[pix] = True
-    res = np.zeros((h * w, 7), np.float32)
-    res[pix] = est - cache
-    pos = np.zeros((h * w, 3), np.float32)
-    pos[pix] = points
-    nrm = np.zeros((h * w, 3), np.float32)
-    nrm[pix] = normals
-    camera = np.linalg.inv(np.asarray(view, np.float64))[:3, 3].astype(np.float32)
-    var = np.zeros((h * w, 2), np.float32)
-    var[pix] = gi.variance
+    est, cache, valid, res, pos, nrm, camera, var = image_planes(gi, pix, points, normals, view, h, w)
     # The estimate itself is filtered, not only its residual: the cache's own structure finer than
     # the filter (cell seams and streaks where cells are a few pixels across, the far field) would
     # otherwise pass through untouched (cache + F(residual) = F(estimate) + cache - F(cache)).
