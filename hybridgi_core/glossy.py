@@ -40,6 +40,7 @@ from .lights import (
     concentric_disk,
     spot_attenuation,
     stratified_uv,
+    uniform_cone,
 )
 from .snapshot import Light
 
@@ -206,14 +207,9 @@ def _lamp_samples(light: Light, p, rng, samples):
     half = 0.5 * float(light.angle)
     if half <= 0:
         return np.broadcast_to(to_sun, (m, 1, 3)).copy(), np.full((m, 1), float(light.power)), None
-    one_minus_cos = 2.0 * np.sin(0.5 * half) ** 2
     u, v = stratified_uv(rng, m, samples)
-    a, b = concentric_disk(u, v)
-    r2 = a * a + b * b
-    cos_t = 1.0 - r2 * one_minus_cos
-    scale = np.sqrt(np.maximum(one_minus_cos * (2.0 - r2 * one_minus_cos), 0.0))
-    t1, t2 = _onb(np.asarray([to_sun[0]]), np.asarray([to_sun[1]]), np.asarray([to_sun[2]]))
-    dirs = np.stack([a * scale * t1[k] + b * scale * t2[k] + cos_t * to_sun[k] for k in range(3)], axis=-1)
+    components, one_minus_cos = uniform_cone(to_sun, half, u.astype(np.float64), v.astype(np.float64))
+    dirs = np.stack(components, axis=-1)
     weight = np.full((m, samples), float(light.power) / ((1.0 - 0.5 * one_minus_cos) * samples))
     return dirs, weight, None
 

@@ -338,23 +338,26 @@ def _sun_axis(light, pts, nrm, tracer, epsilon):
     return e
 
 
-def _sun_chunk(light, p, nrm, tracer, rng, samples, epsilon):
-    """A sun with a disc (angle > 0), sampled; `_sun_axis` shades suns traced along their axis."""
-    lx, ly, lz = (-light.direction).astype(_F32)  # receiver -> sun
-    half = 0.5 * float(light.angle)
-    m = p[0].shape[0]
-    # Uniform directions in the cone (concentric map, as Cycles' sample_uniform_cone_concentric).
-    one_minus_cos = 2.0 * np.sin(0.5 * half) ** 2
-    u, v = stratified_uv(rng, m, samples)
+def uniform_cone(axis, half_angle: float, u: np.ndarray, v: np.ndarray):
+    """Directions uniform in the cone of `half_angle` (radians) around the unit `axis` (3,), from
+    sample coordinates u, v in [0, 1): the concentric map, as Cycles' sample_uniform_cone_concentric.
+    Returns ((dx, dy, dz) arrays shaped as u, in u's dtype, and 1 - cos(half_angle))."""
+    one_minus_cos = 2.0 * np.sin(0.5 * half_angle) ** 2
     a, b = concentric_disk(u, v)
     r2 = a * a + b * b
     cos_t = 1.0 - r2 * one_minus_cos
     # Scale the disc point (radius sqrt(r2)) to the cone's sine: sin_t / sqrt(r2).
     scale = np.sqrt(np.maximum(one_minus_cos * (2.0 - r2 * one_minus_cos), 0.0))
-    t1, t2 = _onb(np.asarray([lx]), np.asarray([ly]), np.asarray([lz]))
-    dx = a * scale * t1[0] + b * scale * t2[0] + cos_t * lx
-    dy = a * scale * t1[1] + b * scale * t2[1] + cos_t * ly
-    dz = a * scale * t1[2] + b * scale * t2[2] + cos_t * lz
+    ax = np.asarray(axis, u.dtype)
+    t1, t2 = _onb(ax[0:1], ax[1:2], ax[2:3])
+    return tuple(a * scale * t1[k] + b * scale * t2[k] + cos_t * ax[k] for k in range(3)), one_minus_cos
+
+
+def _sun_chunk(light, p, nrm, tracer, rng, samples, epsilon):
+    """A sun with a disc (angle > 0), sampled; `_sun_axis` shades suns traced along their axis."""
+    m = p[0].shape[0]
+    u, v = stratified_uv(rng, m, samples)
+    (dx, dy, dz), one_minus_cos = uniform_cone((-light.direction).astype(_F32), 0.5 * float(light.angle), u, v)
     cos_r = np.maximum(dx * nrm[0][:, None] + dy * nrm[1][:, None] + dz * nrm[2][:, None], 0.0)
     # Strength is the irradiance on a facing surface: the cone's mean cosine is divided out.
     weight = float(light.power) / ((1.0 - 0.5 * one_minus_cos) * samples)
