@@ -434,20 +434,17 @@ def _note_approximations(shader, textures, name, metallic, transmission, coat):
     notes = []
     if coat > 0:
         notes.append("coat (only its tint: its reflection and layering are not rendered)")
-    sheen = _input(shader, "Sheen Weight")
-    if sheen is not None and _constant_value(sheen, name) > 0:
-        notes.append("sheen (not rendered)")
-    aniso = _input(shader, "Anisotropic")
-    if aniso is not None and _constant_value(aniso, name) > 0:
-        notes.append("anisotropy (rendered isotropic)")
+    for socket, note in (("Sheen Weight", "sheen (not rendered)"), ("Anisotropic", "anisotropy (rendered isotropic)")):
+        value = _input(shader, socket)
+        if value is not None and _constant_value(value, name) > 0:
+            notes.append(note)
     if transmission > 0:
         notes.append("transmission (the transmitted light is not rendered)")
-    film = _input(shader, "Thin Film Thickness")
-    if film is not None and _constant_value(film, name) > 0:
-        notes.append("thin film (not rendered)")
-    subsurface = _input(shader, "Subsurface Weight")
-    if subsurface is not None and _constant_value(subsurface, name) > 0:
-        notes.append("subsurface (rendered as diffuse)")
+    for socket, note in (("Thin Film Thickness", "thin film (not rendered)"),
+                         ("Subsurface Weight", "subsurface (rendered as diffuse)")):
+        value = _input(shader, socket)
+        if value is not None and _constant_value(value, name) > 0:
+            notes.append(note)
     roughness = _input(shader, "Roughness")
     level = _input(shader, "Specular IOR Level", "Specular")
     glossy = metallic > 0 or (level is not None and _constant_value(level, name) > 0)
