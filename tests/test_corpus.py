@@ -428,7 +428,9 @@ def test_corpus(case: Case, corpus: Path, tmp_path: Path, tmp_path_factory):
     try:
         if "signal" in case.notes:
             run, seconds = _run_interrupted(args, case.notes["signal"], tmp_path_factory.mktemp("tmpdir") / "t")
-            assert seconds < 1.0, f"stopped {seconds:.2f} s after the signal"
+            # The render asked for runs for minutes: stopping within a few seconds is the signal
+            # taken (0.1 s on a quiet host; over 1 s seen with both cores busy), not a time budget.
+            assert seconds < 5.0, f"stopped {seconds:.2f} s after the signal"
         else:
             run, seconds = run_cli(*args)
         ctx.run, ctx.seconds = run, seconds
