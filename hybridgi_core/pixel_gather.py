@@ -728,11 +728,6 @@ def full_res_images(system, position_lo: np.ndarray, normal_lo: np.ndarray, pix:
         for key, v in own.steps_ms.items():
             steps[f"detail_{key}"] = v
         gi.rays += own.rays
-    indirect = np.zeros((height * width, 4), np.float32)
-    indirect[:, 3] = 1.0
-    indirect[full_pix, 0:3] = np.maximum(value[:, 3:6], 0.0)
-    indirect[full_pix, 3] = np.clip(value[:, 6], 0.0, 1.0)
-    direct = np.zeros((height * width, 4), np.float32)
-    direct[full_pix, 0:3] = np.maximum(value[:, 0:3], 0.0)
+    indirect, direct = textures(value, full_pix, height, width)
     steps.update(gi.steps_ms)
-    return FullResGI(indirect.reshape(height, width, 4), direct.reshape(height, width, 4), gi, int(detail.size), steps)
+    return FullResGI(indirect, direct, gi, int(detail.size), steps)
