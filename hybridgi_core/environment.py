@@ -1,12 +1,13 @@
 """An environment map (an HDRI world) split into what the renderer can light with: a shadowed sun
-plus a uniform sky.
+plus the sky without it.
 
-HybridGI's sky is uniform radiance (`World.color`). Spreading an HDRI's mean over the whole sky
-puts its sun's energy on surfaces the sun never reaches (an atrium lit by `sunrise.exr` came out
-2.3x too bright against Cycles). `split_environment` finds the map's brightest compact region
-(the sun disc and its glow), turns it into a SUN lamp (direction, irradiance, angular diameter,
-shadowed by the lamp code like any other), and keeps the rest as the sky's radiance: the mean a
-surface facing up receives from the upper hemisphere, where the open sky of most scenes is.
+Spreading an HDRI's mean over the whole sky puts its sun's energy on surfaces the sun never
+reaches (an atrium lit by `sunrise.exr` came out 2.3x too bright against Cycles).
+`split_environment` finds the map's brightest compact region (the sun disc and its glow), turns
+it into a SUN lamp (direction, irradiance, angular diameter, shadowed by the lamp code like any
+other), and keeps the rest three ways: a coarse map that escaping rays read by direction
+(`SkyMap`), its L2 SH, and its uniform mean (what a surface facing up receives from the upper
+hemisphere; the background colour).
 
 Equirectangular maps follow Blender's convention (`equirect_directions`): row 0 at the bottom
 (the nadir), the middle column facing +X, u growing clockwise seen from above; `to_world` maps
