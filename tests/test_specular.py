@@ -12,17 +12,24 @@ from hybridgi_core.shading import SurfaceTable
 from hybridgi_core.snapshot import Geometry, Material
 
 
-def _monte_carlo(rough, mu, n=400_000, eta=None, seed=0):
-    """(mean, standard error) of the GGX (F = 1) directional albedo, or with eta of the lobe-
-    weighted remapped Fresnel: outgoing directions uniform over the hemisphere, the BRDF evaluated
-    in closed form (D, height-correlated Smith G2)."""
+def _setup(rough, mu, n, seed):
+    """GGX alpha^2 of a roughness, the incoming direction at cosine mu, and n directions uniform
+    over the upper hemisphere (z = cosine uniform in [0, 1))."""
     rng = np.random.default_rng(seed)
     alpha2 = (max(rough, 1e-4) ** 2) ** 2
     wi = np.array([np.sqrt(1.0 - mu * mu), 0.0, mu])
     z = rng.random(n)
     phi = 2.0 * np.pi * rng.random(n)
     s = np.sqrt(1.0 - z * z)
-    wo = np.stack([s * np.cos(phi), s * np.sin(phi), z], axis=1)
+    return alpha2, wi, np.stack([s * np.cos(phi), s * np.sin(phi), z], axis=1)
+
+
+def _monte_carlo(rough, mu, n=400_000, eta=None, seed=0):
+    """(mean, standard error) of the GGX (F = 1) directional albedo, or with eta of the lobe-
+    weighted remapped Fresnel: outgoing directions uniform over the hemisphere, the BRDF evaluated
+    in closed form (D, height-correlated Smith G2)."""
+    alpha2, wi, wo = _setup(rough, mu, n, seed)
+    z = wo[:, 2]
     h = wo + wi
     h /= np.linalg.norm(h, axis=1, keepdims=True)
     c = h[:, 2]
@@ -52,13 +59,8 @@ def _visible_normal_mean(rough, mu, g, n=400_000, seed=1):
     goes below the horizon counting 0 (how Cycles' precompute averages its Fresnel tables):
     half vectors uniform over the hemisphere, weighted by the visible-normal density
     G1(i) max(0, h.i) D(h) / cos(i)."""
-    rng = np.random.default_rng(seed)
-    alpha2 = (max(rough, 1e-4) ** 2) ** 2
-    wi = np.array([np.sqrt(1.0 - mu * mu), 0.0, mu])
-    z = rng.random(n)
-    phi = 2.0 * np.pi * rng.random(n)
-    s = np.sqrt(1.0 - z * z)
-    h = np.stack([s * np.cos(phi), s * np.sin(phi), z], axis=1)
+    alpha2, wi, h = _setup(rough, mu, n, seed)
+    z = h[:, 2]
     cos_hi = h @ wi
     d = alpha2 / (np.pi * (z * z * (alpha2 - 1.0) + 1.0) ** 2)
     g1 = 1.0 / (1.0 + sp._lambda(alpha2, mu))
