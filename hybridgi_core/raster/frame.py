@@ -16,6 +16,7 @@ import numpy as np
 from .. import pixel_gather
 from ..glossy import cache_reflection, glossy_color
 from ..lights import RATIO_MIN_SAMPLES
+from ..penumbra import adaptive_direct
 from ..visible import pixels_to_points
 from .accumulate import AccumulatePass
 from .bilateral import BilateralPass
@@ -244,7 +245,8 @@ class FramePipeline:
                 lit_tex = upload_texture_2d(lit.reshape(low.height, low.width, 4), "RGBA16F")
         with stats.step("direct"):
             direct = np.zeros((self.height * self.width, 4), np.float32)
-            direct[pix_full, :3] = system.direct(p_full, n_full, frame, samples=self.direct_samples)
+            direct[pix_full, :3] = adaptive_direct(system.direct, p_full, n_full, pix_full, (self.height, self.width),
+                                                   frame, self.direct_samples)[0]
         with stats.step("glossy"):
             glossy, glossy_col, glossy_ind = self._glossy(system, view, proj, p_full, n_full, pix_full, frame)
         film = FilmAccumulator()
