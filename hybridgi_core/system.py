@@ -43,8 +43,10 @@ UPDATES_PER_BATCH = 8
 #: Most fixed-point iterations of one warm-up (they stop earlier once converged).
 MAX_WARMUP_ITERATIONS = 16
 #: Shadow rays per block of `GISystem.direct` (receivers x samples); larger calls are split over
-#: the worker pool (the full-res direct light of a 640x360 render at 16 samples: ~8 blocks).
-DIRECT_BLOCK_RAYS = 1 << 18
+#: the worker pool. Small enough that an anti-aliasing subframe's few fresh pixels (Cornell
+#: 640x360: ~8k receivers x 4 samples) use both cores, not the main thread alone: a receiver's
+#: area-lamp set-up costs more than its rays.
+DIRECT_BLOCK_RAYS = 1 << 15
 #: G-buffer points per block of `GISystem.corner_visibility` (8 occlusion rays each).
 VISIBILITY_BLOCK = 8192
 
