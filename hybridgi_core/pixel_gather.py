@@ -258,12 +258,15 @@ def _chunk(system, lookup: HitLookup | None, p, nrm, corner_visible, rays, rng):
 
 
 def hit_radiance(system, lookup: HitLookup | None, origins: np.ndarray, dirs: np.ndarray, hits, rng,
-                 times: dict | None = None) -> np.ndarray:
+                 times: dict | None = None, glossy_lamps: bool = True) -> np.ndarray:
     """(N, 6) float32 radiance coming back along rays (origins, dirs (N, 3)) from their `hits`:
     rgb straight from the world or an emitter (what Cycles counts as direct light) | rgb the hit
     surface reflects (its lamp light through shadow rays, plus the cache read at the hit for the
     further bounces), as probe-ray hits are shaded (`update.py`). Zero with AO-only quality.
-    times : step times to add the shadow rays' ("shadow") to."""
+    times : step times to add the shadow rays' ("shadow") to. glossy_lamps : False lights a hit's
+    glossy share (which the cache reflects as diffuse, `shading.SurfaceTable.set_materials`) by
+    the cache's light only, not the lamps': a reflection ray sees a glossy surface from one
+    direction, where a lamp shows only in the highlight, not spread over the surface."""
     s, scene, tracer = system.settings, system.updater.scene, system.tracer
     radiance = np.zeros((dirs.shape[0], 6), np.float32)
     if s.indirect_quality == AO_ONLY:
@@ -281,10 +284,14 @@ def hit_radiance(system, lookup: HitLookup | None, origins: np.ndarray, dirs: np
                                  samples=s.light_samples, epsilon=float(np.float32(tracer.epsilon)), sun_disc=False)
         if times is not None:
             times["shadow"] = times.get("shadow", 0.0) + (time.perf_counter() - ts) * 1e3
+        brdf = surf.brdf
+        if not glossy_lamps:
+            radiance[hit, 3:6] = e_in * (brdf - scene.surfaces.glossy_brdf(hits.prim[hit]))
+            e_in = np.zeros_like(e_in)
         # Further bounces read the cache at the hit, as probe-ray hits do.
         if lookup is not None:
             e_in += lookup.irradiance(position, surf.normal).T
-        radiance[hit, 3:6] = e_in * surf.brdf
+        radiance[hit, 3:6] += e_in * brdf
     return radiance
 
 

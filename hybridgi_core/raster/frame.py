@@ -14,9 +14,12 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .. import pixel_gather
+from ..evaluate import HitLookup
 from ..glossy import cache_reflection, glossy_color
 from ..lights import RATIO_MIN_SAMPLES
 from ..penumbra import adaptive_direct
+from ..reflection import filter_reflections, traced_reflection, traced_share
+from ..settings import MULTI_BOUNCE
 from ..visible import pixels_to_points
 from .accumulate import AccumulatePass
 from .bilateral import BilateralPass
@@ -305,11 +308,32 @@ class FramePipeline:
         if lit.size:
             rough = system.glossy_materials.rough[rows[lit]]
             sky, bounced = cache_reflection(system.cache, points[lit], normals[lit], to_eye[lit], rough)
+            self._trace_reflections(system, points[lit], normals[lit], to_eye[lit], rough, frame, sky, bounced,
+                                    pix[lit], view)
             glossy[pix[lit], :3] += colour[pix[lit], :3] * sky
             indirect[pix[lit], :3] = bounced
         total = glossy + colour * indirect
         self._glossy_tex = upload_texture_2d(total.reshape(self.height, self.width, 4), "RGBA32F")
         return glossy, colour, indirect
+
+    def _trace_reflections(self, system, points, normals, to_eye, rough, frame, sky, bounced, pix, view) -> None:
+        """Blend reflection rays' light (`reflection.traced_reflection`, filtered edge-aware over the
+        image: `reflection.filter_reflections`) into the cache's split-sum estimates `sky` and
+        `bounced` (n, 3), in place, where the lobes are smooth enough; pix : the receivers' flat
+        pixels."""
+        rays = self.settings.reflection_rays
+        share = traced_share(rough)
+        sel = np.flatnonzero(share > 0)
+        if rays <= 0 or sel.size == 0:
+            return
+        lookup = HitLookup(system.cache, bounced=system.settings.indirect_quality == MULTI_BOUNCE)
+        direct, indirect, total = traced_reflection(system, lookup, points[sel], normals[sel], to_eye[sel],
+                                                    rough[sel], rays, frame)
+        direct, indirect = filter_reflections(direct, indirect, total, points[sel], normals[sel], pix[sel],
+                                              (self.height, self.width), view, pool=system.updater.pool)
+        t = (share[sel] * (total > 0)).astype(np.float32)[:, None]
+        sky[sel] += t * (direct - sky[sel])
+        bounced[sel] += t * (indirect - bounced[sel])
 
     def _pixel_gi_full(self, system, gbuf, position_lo, normal_lo, pix, points, normals, visible, view, frame,
                        full, stats):
