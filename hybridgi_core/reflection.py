@@ -15,6 +15,13 @@ between them is Cycles': light straight from the world or an emitter is direct, 
 surfaces indirect. Between TRACE_ROUGHNESS / 2 and TRACE_ROUGHNESS the traced estimate blends
 into the cache's (a rough lobe's many rays would cost much for what the mean already gives).
 
+Area lamps in sharp lobes: sampling the lamp (`glossy.glossy_direct`) finds a lobe much narrower
+than the lamp only rarely, and then with a huge BRDF value (a chrome ball's highlight is speckled,
+pixels 20x too bright beside black ones). Where a lamp's solid angle exceeds BSDF_LAMP_RATIO times
+the lobe's, the reflection rays that meet the lamp (unblocked: nearer than their geometry hit)
+bring its radiance instead, and lamp sampling skips that lamp at that pixel (`bsdf_lamps`,
+`lamp_glossy_without`): each lamp is estimated once per pixel, by whichever sampling suits it.
+
 numpy + embreex only (bpy-free); `raster/frame.py` calls it for the centre raster's pixels.
 """
 
@@ -22,7 +29,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .lights import _onb, stratified_uv
+from .lights import _area_shape, _onb, stratified_uv
 from .pixel_gather import filter_residual, hit_radiance
 from .sampling import frame_rng
 from .specular import _lambda
@@ -34,6 +41,9 @@ TRACE_ROUGHNESS = 0.4
 SEED_OFFSET = 3
 #: Pixels x rays per work item (fixed: the result does not depend on the thread count).
 CHUNK_RAYS = 32768
+#: An area lamp is sampled by the reflection rays (not by lamp sampling) at pixels where its solid
+#: angle exceeds this many times the lobe's (~4 pi alpha^2: the reflected cone of the GGX lobe).
+BSDF_LAMP_RATIO = 2.0
 #: A-trous passes over the traced light (`filter_reflections`): 1 averages a 5 x 5 neighbourhood
 #: of the same surface, about 25 x `rays` samples, at ~1.5 pixels of blur.
 FILTER_PASSES = 1
@@ -90,33 +100,105 @@ def sample_reflections(normals: np.ndarray, to_eye: np.ndarray, rough: np.ndarra
     return world.astype(_F32), weight.astype(_F32)
 
 
+def bsdf_lamps(lights, points: np.ndarray, normals: np.ndarray, rough: np.ndarray) -> np.ndarray:
+    """(n, L) bool: which of the L lamps the reflection rays of each receiver estimate (area lamps
+    facing it whose solid angle exceeds BSDF_LAMP_RATIO x its lobe's; the module docstring)."""
+    pts = np.asarray(points, np.float64).reshape(-1, 3)
+    nrm = np.asarray(normals, np.float64).reshape(-1, 3)
+    out = np.zeros((pts.shape[0], len(lights)), bool)
+    alpha = np.asarray(rough, np.float64).reshape(-1) ** 2
+    lobe = 4.0 * np.pi * alpha * alpha
+    for j, light in enumerate(lights):
+        if light.kind != "AREA" or float(light.power) == 0.0:
+            continue
+        shape = _area_shape(light)
+        if shape.area <= 0:
+            continue
+        to = shape.centre.astype(np.float64)[None, :] - pts
+        d2 = np.maximum((to * to).sum(1), 1e-12)
+        cos_l = -(to @ shape.normal.astype(np.float64)) / np.sqrt(d2)  # > 0: the receiver faces its front
+        facing = (cos_l > 0) & ((to * nrm).sum(1) > -np.sqrt(shape.area))
+        out[:, j] = facing & (shape.area * np.maximum(cos_l, 0.0) / d2 > BSDF_LAMP_RATIO * lobe)
+    return out
+
+
+def lamp_glossy_without(system, points, normals, to_eye, rows, frame: int, samples: int,
+                        skip: np.ndarray) -> np.ndarray:
+    """(n, 3) the lamps' glossy radiance by lamp sampling (`GISystem.glossy`), each receiver
+    without the lamps `skip` (n, L) marks for it (the reflection rays estimate those)."""
+    n = np.asarray(points).reshape(-1, 3).shape[0]
+    plain = ~skip.any(axis=1)
+    if plain.all():
+        return system.glossy(points, normals, to_eye, rows, frame, samples=samples)
+    out = np.zeros((n, 3), _F32)
+    parts = [(np.flatnonzero(plain), None)]
+    parts += [(np.flatnonzero(~plain & ~skip[:, j]), [light]) for j, light in enumerate(system.scene.lights)]
+    for sel, lights in parts:
+        if sel.size:
+            out[sel] += system.glossy(points[sel], normals[sel], to_eye[sel], rows[sel], frame, samples=samples,
+                                      lights=lights)
+    return out
+
+
 def traced_reflection(system, lookup, points: np.ndarray, normals: np.ndarray, to_eye: np.ndarray,
-                      rough: np.ndarray, rays: int, frame: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(direct (n, 3), indirect (n, 3), weight sum (n,)) float32: the mean radiance `rays`
-    reflection rays per receiver bring from the world or emitters and from other surfaces (the
-    module docstring), on the worker pool. A receiver whose samples all went below the horizon
-    has weight sum 0 (its estimate is 0: keep the cache's there)."""
+                      rough: np.ndarray, rays: int, frame: int, lamps: np.ndarray | None = None
+                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(direct (n, 3), indirect (n, 3), weight sum (n,), lamp (n, 3)) float32: the mean radiance
+    `rays` reflection rays per receiver bring from the world or emitters, from other surfaces and
+    from the area lamps `lamps` (n, L) marks for it (`bsdf_lamps`; None: none), on the worker
+    pool. A receiver whose samples all went below the horizon has weight sum 0 (its estimate is
+    0: keep the cache's there)."""
     pts = np.ascontiguousarray(points, _F32).reshape(-1, 3)
     n = pts.shape[0]
-    out = np.zeros((n, 7), _F32)
+    out = np.zeros((n, 10), _F32)
     if n == 0 or rays <= 0:
-        return out[:, 0:3], out[:, 3:6], out[:, 6]
+        return out[:, 0:3], out[:, 3:6], out[:, 6], out[:, 7:10]
     nrm = np.ascontiguousarray(normals, _F32).reshape(-1, 3)
     eye = np.ascontiguousarray(to_eye, _F32).reshape(-1, 3)
     rough = np.asarray(rough, np.float64).reshape(-1)
     per = max(1, CHUNK_RAYS // rays)
     starts = range(0, n, per)
     seed = system.settings.seed + SEED_OFFSET
+    lights = system.scene.lights
+    if lamps is None or not lamps.any():
+        lamps = None
     jobs = [system.updater.pool.submit(_chunk, system, lookup, pts[a:a + per], nrm[a:a + per], eye[a:a + per],
-                                       rough[a:a + per], rays, frame_rng(seed, frame * 7919 + i))
+                                       rough[a:a + per], rays, frame_rng(seed, frame * 7919 + i),
+                                       None if lamps is None else lamps[a:a + per], lights)
             for i, a in enumerate(starts)]
     for a, job in zip(starts, jobs, strict=True):
         out[a:a + per] = job.result()
-    return out[:, 0:3], out[:, 3:6], out[:, 6]
+    return out[:, 0:3], out[:, 3:6], out[:, 6], out[:, 7:10]
 
 
-def _chunk(system, lookup, p, nrm, eye, rough, rays, rng):
-    """Worker: (m, 7) weighted mean direct rgb, indirect rgb and the weight sum of m receivers."""
+def _lamp_radiance(lights, lamps: np.ndarray, origins: np.ndarray, dirs: np.ndarray, reach: np.ndarray) -> np.ndarray:
+    """(N, 3) radiance of the marked area lamps (lamps (N, L) bool per ray) that rays (origins,
+    dirs) meet on their emitting side nearer than `reach` (N,) (their geometry hit, or inf)."""
+    out = np.zeros((dirs.shape[0], 3), _F32)
+    for j in np.flatnonzero(lamps.any(axis=0)):
+        light = lights[j]
+        shape = _area_shape(light)
+        rows = np.flatnonzero(lamps[:, j])
+        o, d = origins[rows].astype(np.float64), dirs[rows].astype(np.float64)
+        nl = shape.normal.astype(np.float64)
+        facing = d @ nl
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t = ((shape.centre.astype(np.float64)[None, :] - o) @ nl) / facing
+        r = o + d * t[:, None] - shape.centre.astype(np.float64)[None, :]
+        hu, hv = shape.half_u.astype(np.float64), shape.half_v.astype(np.float64)
+        # Coordinates on the (possibly sheared) parallelogram: r = a hu + b hv.
+        g = np.array([[hu @ hu, hu @ hv], [hu @ hv, hv @ hv]])
+        ab = np.linalg.solve(g, np.stack([r @ hu, r @ hv]))
+        a, b = ab[0], ab[1]
+        inside = (a * a + b * b <= 1.0) if shape.round else ((np.abs(a) <= 1.0) & (np.abs(b) <= 1.0))
+        hit = (facing < 0) & (t > 0) & (t < reach[rows]) & inside
+        out[rows[hit]] += _F32(float(light.power) / (np.pi * shape.area)) * light.color.astype(_F32)
+    return out
+
+
+def _chunk(system, lookup, p, nrm, eye, rough, rays, rng, lamps=None, lights=()):
+    """Worker: (m, 10) weighted mean direct rgb, indirect rgb, the weight sum and the marked
+    area lamps' rgb of m receivers."""
     m = p.shape[0]
     u, v = stratified_uv(rng, m, rays)
     dirs, weight = sample_reflections(nrm, eye, rough, u, v)
@@ -125,16 +207,21 @@ def _chunk(system, lookup, p, nrm, eye, rough, rays, rng):
     origins = np.repeat(p + nrm * eps, rays, axis=0)
     flat_dirs = dirs.reshape(-1, 3)
     live = np.flatnonzero(weight.reshape(-1) > 0)
-    radiance = np.zeros((m * rays, 6), _F32)
+    radiance = np.zeros((m * rays, 9), _F32)
     if live.size:
         s = system.settings
         tfar = _F32(s.ray_length) if s.ray_length > 0 else _F32(np.inf)
         hits = tracer.intersect(origins[live], flat_dirs[live], tfar, trusted=True)
-        radiance[live] = hit_radiance(system, lookup, origins[live], flat_dirs[live], hits, rng, glossy_lamps=False)
+        radiance[live, 0:6] = hit_radiance(system, lookup, origins[live], flat_dirs[live], hits, rng,
+                                           glossy_lamps=False)
+        if lamps is not None:
+            reach = np.where(hits.prim >= 0, hits.t, np.inf)
+            radiance[live, 6:9] = _lamp_radiance(lights, np.repeat(lamps, rays, axis=0)[live], origins[live],
+                                                 flat_dirs[live], reach)
     w = weight.reshape(m, rays, 1)
     total = w.sum(axis=1)
-    mean = (radiance.reshape(m, rays, 6) * w).sum(axis=1) / np.maximum(total, _F32(1e-12))
-    return np.concatenate([mean, total], axis=1)
+    mean = (radiance.reshape(m, rays, 9) * w).sum(axis=1) / np.maximum(total, _F32(1e-12))
+    return np.concatenate([mean[:, 0:6], total, mean[:, 6:9]], axis=1)
 
 
 def filter_reflections(direct: np.ndarray, indirect: np.ndarray, total: np.ndarray, points: np.ndarray,

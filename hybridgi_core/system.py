@@ -352,15 +352,16 @@ class GISystem:
         return self._glossy_materials
 
     def glossy(self, points: np.ndarray, normals: np.ndarray, to_eye: np.ndarray, rows: np.ndarray, frame: int,
-               samples: int | None = None) -> np.ndarray:
+               samples: int | None = None, lights: list | None = None) -> np.ndarray:
         """Lamp radiance (n, 3) the glossy lobes of materials `rows` reflect towards the eye, with
-        shadow rays (`glossy.glossy_direct`; its own samples, seeded apart from `direct`'s)."""
+        shadow rays (`glossy.glossy_direct`; its own samples, seeded apart from `direct`'s), of
+        the scene's lamps or of `lights`, a subset of them."""
         rng = frame_rng(self.settings.seed + 2, frame)
         samples = samples or self.settings.light_samples
         eps = float(self.tracer.epsilon)
         n = int(np.asarray(points).reshape(-1, 3).shape[0])
         per_block = max(1, DIRECT_BLOCK_RAYS // samples)
-        lights, mats = self.scene.lights, self.glossy_materials
+        lights, mats = self.scene.lights if lights is None else lights, self.glossy_materials
         if n <= per_block or not lights:
             return glossy_direct(lights, points, normals, to_eye, rows, mats, self.tracer, rng, samples, eps)
         # Blocks on the worker pool, each with its own child generator (as `direct`).
