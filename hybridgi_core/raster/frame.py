@@ -16,6 +16,7 @@ import numpy as np
 from .. import pixel_gather
 from ..glossy import cache_reflection, glossy_color
 from ..lights import RATIO_MIN_SAMPLES
+from ..system import UPDATES_PER_BATCH
 from ..visible import pixels_to_points
 from .accumulate import AccumulatePass
 from .bilateral import BilateralPass
@@ -212,6 +213,8 @@ class FramePipeline:
             stats.rays += run.rays
             for k, v in run.steps_ms.items():
                 stats.steps_ms[f"update_{k}"] = v
+        if hasattr(system, "build_levels"):
+            self._levels(system, points, normals, view, warmup, stats)
         with stats.step("visibility"):
             visible = system.corner_visibility(points, normals)
         with stats.step("direct"):
@@ -231,7 +234,7 @@ class FramePipeline:
                                         stats)
         with stats.step("gather"):
             mask = np.zeros((low.height * low.width, 8), bool)
-            mask[pix] = visible
+            mask[pix] = visible[:, :8]
             if gi is None:
                 self.gather.upload(system.cache)
         with stats.step("direct_low"):
@@ -242,6 +245,9 @@ class FramePipeline:
                 lit = np.zeros((low.height * low.width, 4), np.float32)
                 lit[pix, :3] = system.direct(points, normals, frame, samples=1)
                 lit_tex = upload_texture_2d(lit.reshape(low.height, low.width, 4), "RGBA16F")
+        if gi is None and getattr(system, "levels", None) is not None:
+            with stats.step("gather"):
+                gi = self._gather_levels(system.levels, low, points, normals, pix, visible, view, proj, lit_tex)
         with stats.step("direct"):
             direct = np.zeros((self.height * self.width, 4), np.float32)
             direct[pix_full, :3] = system.direct(p_full, n_full, frame, samples=self.direct_samples)
@@ -279,6 +285,45 @@ class FramePipeline:
             film.set_glossy(glossy, glossy_col, self.height, self.width, indirect=glossy_ind)
         self.film = film
         return shaded, stats
+
+    def _gather_levels(self, levels, low, points, normals, pix, visible, view, proj, lit_tex):
+        """The GPU gather of each cache level (its own corner mask: columns 8k .. 8k + 7 of
+        `visible`), read back and joined by `CacheLevels.blend` (the numpy reference is
+        `CacheLevels.gather`), as the (indirect, direct, ssao) textures `shade` takes."""
+        h, w = low.height, low.width
+        parts = []
+        for k, cache in enumerate(levels.caches):
+            mask = np.zeros((h * w, 8), bool)
+            mask[pix] = visible[:, 8 * k:8 * k + 8]
+            self.gather.upload(cache)
+            self.gather.execute(low, corner_visible=mask.reshape(h, w, 8))
+            ind = self.gather.read(0).reshape(-1, 4)[pix]
+            dr = self.gather.read(1).reshape(-1, 4)[pix]
+            parts.append((dr[:, :3], ind[:, :3], ind[:, 3]))
+        g = levels.blend(parts, levels.level_shares(points, normals, visible))
+        indirect = np.zeros((h * w, 4), np.float32)
+        indirect[..., 3] = 1.0
+        direct = np.zeros((h * w, 4), np.float32)
+        indirect[pix, :3], indirect[pix, 3], direct[pix, :3] = g.indirect, g.ao, g.direct
+        ssao = self.ssao.execute(low, view, proj, irradiance=lit_tex)
+        return (upload_texture_2d(indirect.reshape(h, w, 4), "RGBA32F"),
+                upload_texture_2d(direct.reshape(h, w, 4), "RGBA32F"), ssao)
+
+    def _levels(self, system, points, normals, view, warmup, stats) -> None:
+        """The finer camera-centred cache levels (`levels.py`) for this view's visible points,
+        with as many traced batches as the warm-up gave level 0; with cache_levels = 1 the
+        system keeps none (and every reader takes the single-grid path)."""
+        if system.settings.cache_levels <= 1:
+            system.levels = None
+            return
+        with stats.step("levels"):
+            v = np.asarray(view, np.float32).reshape(4, 4)
+            depth = -(points @ v[2, :3] + v[2, 3])
+            batches = max(1, round(warmup / UPDATES_PER_BATCH)) if warmup > 0 else 1
+            run = system.build_levels(points, normals, depth, batches)
+        stats.rays += run.rays
+        for k, v_ms in run.steps_ms.items():
+            stats.steps_ms[f"levels_{k}"] = stats.steps_ms.get(f"levels_{k}", 0.0) + v_ms
 
     def _glossy(self, system, view, proj, points, normals, pix, frame):
         """(direct radiance, Glossy Color, bounced light), each (h w, 4) float32 or None without
