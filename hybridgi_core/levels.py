@@ -7,7 +7,7 @@ a grid of half the cells of level k - 1 over a box fitted to the G-buffer points
 camera (`fit_level_grids`), filled by the same solver code from its visible cells only.
 
 - Layout: the box holds the visible points up to a quantile of their view depth (LEVEL_QUANTILE,
-  then its square ...), snapped outward to the coarser level's cell boundaries, with one cell of
+  then its square ...), snapped outward to the coarser level's cell boundaries, with MARGIN_CELLS of
   margin, shrunk towards the points' median until the level holds no more cells than the one it
   refines. Pure arithmetic on the frame's points: deterministic, the same
   on every machine of a farm, and stable under small camera moves (it moves in whole cells).
@@ -49,6 +49,9 @@ log = logging.getLogger(__name__)
 LEVEL_QUANTILE = 1.0
 #: Finer cells over which a level's weight ramps from 0 to 1 inside its box (after half a cell).
 BLEND_CELLS = 2.0
+#: Coarser cells a level's box reaches past its points: more than its blend ramp (half a finer
+#: cell plus BLEND_CELLS of them), so the points it was fitted to read it alone.
+MARGIN_CELLS = 2
 #: Level k's cell is level k - 1's divided by this.
 REFINE = 2
 #: A level holds at most this many times the cells of the one it refines (memory; only the cells
@@ -71,8 +74,8 @@ def fit_level_grids(base: CacheGrid, points: np.ndarray, depth: np.ndarray, leve
         c = float(parent.cell_size)
         plo = np.asarray(parent.lo, np.float64)
         dims = np.asarray(parent.dims, np.int64)
-        a = np.floor((near.min(axis=0) - plo) / c).astype(np.int64) - 1
-        b = np.ceil((near.max(axis=0) - plo) / c).astype(np.int64) + 1
+        a = np.floor((near.min(axis=0) - plo) / c).astype(np.int64) - MARGIN_CELLS
+        b = np.ceil((near.max(axis=0) - plo) / c).astype(np.int64) + MARGIN_CELLS
         a, b = np.clip(a, 0, dims), np.clip(b, 0, dims)
         b = np.maximum(b, a + 1)
         # At most as many finer cells as the coarser level has: the longest span shrinks, one
@@ -92,11 +95,19 @@ def fit_level_grids(base: CacheGrid, points: np.ndarray, depth: np.ndarray, leve
     return grids
 
 
-def level_weight(grid: CacheGrid, points: np.ndarray) -> np.ndarray:
-    """(n,) float32 in 0..1: how much a finer level's answer replaces the coarser one at points."""
+def level_weight(grid: CacheGrid, points: np.ndarray, bounds: CacheGrid | None = None) -> np.ndarray:
+    """(n,) float32 in 0..1: how much a finer level's answer replaces the coarser one at points.
+
+    bounds : level 0's grid; faces of `grid` that lie on its border ramp nothing (there is no
+    coarser cell beyond them to blend towards, and a room's walls and floor lie there)."""
     p = np.asarray(points, np.float32)
-    d = np.minimum(p - grid.lo, grid.hi - p).min(axis=1)
     cell = np.float32(grid.cell_size)
+    below, above = p - grid.lo, grid.hi - p
+    if bounds is not None:
+        tol = np.float32(1e-3) * cell
+        below = np.where(np.abs(grid.lo - bounds.lo) <= tol, np.where(below >= -tol, np.inf, below), below)
+        above = np.where(np.abs(grid.hi - bounds.hi) <= tol, np.where(above >= -tol, np.inf, above), above)
+    d = np.minimum(below, above).min(axis=1)
     return np.clip((d - np.float32(0.5) * cell) / (np.float32(BLEND_CELLS) * cell), 0.0, 1.0).astype(np.float32)
 
 
@@ -113,7 +124,7 @@ class CacheLevels:
 
     def weights(self, points: np.ndarray) -> list[np.ndarray]:
         """Per finer level k = 1.. its (n,) weight at points (geometric: before coverage)."""
-        return [level_weight(c.grid, points) for c in self.caches[1:]]
+        return [level_weight(c.grid, points, self.caches[0].grid) for c in self.caches[1:]]
 
     def corner_visibility(self, tracer, points: np.ndarray, normals: np.ndarray, epsilon: float) -> np.ndarray:
         """(n, 8 x levels) bool: `evaluate.corner_visibility` of each level, columns 8k .. 8k + 7
@@ -260,7 +271,7 @@ def build_levels(system, points: np.ndarray, normals: np.ndarray, depth: np.ndar
     fine = []
     for grid in grids:
         cache = IrradianceCache(grid, s)
-        t = level_weight(grid, points)
+        t = level_weight(grid, points, base.grid)
         rows = np.flatnonzero(t > 0)
         cells = visible_cells(grid, points[rows], normals[rows], s.normal_bias)
         if cells.size == 0:

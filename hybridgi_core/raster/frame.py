@@ -22,7 +22,7 @@ from .accumulate import AccumulatePass
 from .bilateral import BilateralPass
 from .deferred import DeferredPass, ShadedFrame
 from .downsample import DownsamplePass
-from .gather import GatherPass
+from .gather import GatherPass, gather_levels
 from .gbuffer import GBufferPass, camera_eye
 from .passes import low_res_size
 from .readback import upload_texture_2d
@@ -291,16 +291,7 @@ class FramePipeline:
         `visible`), read back and joined by `CacheLevels.blend` (the numpy reference is
         `CacheLevels.gather`), as the (indirect, direct, ssao) textures `shade` takes."""
         h, w = low.height, low.width
-        parts = []
-        for k, cache in enumerate(levels.caches):
-            mask = np.zeros((h * w, 8), bool)
-            mask[pix] = visible[:, 8 * k:8 * k + 8]
-            self.gather.upload(cache)
-            self.gather.execute(low, corner_visible=mask.reshape(h, w, 8))
-            ind = self.gather.read(0).reshape(-1, 4)[pix]
-            dr = self.gather.read(1).reshape(-1, 4)[pix]
-            parts.append((dr[:, :3], ind[:, :3], ind[:, 3]))
-        g = levels.blend(parts, levels.level_shares(points, normals, visible))
+        g = gather_levels(self.gather, levels, low, points, normals, pix, visible)
         indirect = np.zeros((h * w, 4), np.float32)
         indirect[..., 3] = 1.0
         direct = np.zeros((h * w, 4), np.float32)
