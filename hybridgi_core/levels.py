@@ -44,9 +44,12 @@ from .visible import visible_cells
 
 log = logging.getLogger(__name__)
 
-#: Share of the visible points (nearest first, by view depth) level 1's box holds; level k's
-#: holds LEVEL_QUANTILE ** k.
+#: Share of the visible points (nearest first, by view depth) a level's box holds at most ...
 LEVEL_QUANTILE = 1.0
+#: ... halved while the cells they read in it exceed LEVEL_BUDGET x those they read in level 0
+#: (down to this share).
+LEVEL_BUDGET = 1.0
+MIN_QUANTILE = 1.0 / 64
 #: Finer cells over which a level's weight ramps from 0 to 1 inside its box (after half a cell).
 BLEND_CELLS = 2.0
 #: Coarser cells a level's box reaches past its points: more than its blend ramp (half a finer
@@ -56,42 +59,62 @@ MARGIN_CELLS = 2
 REFINE = 2
 #: A level holds at most this many times the cells of the one it refines (memory; only the cells
 #: the camera sees are traced).
-LEVEL_CELLS = 8
+LEVEL_CELLS = 4
 
 
-def fit_level_grids(base: CacheGrid, points: np.ndarray, depth: np.ndarray, levels: int) -> list[CacheGrid]:
-    """Grids of levels 1 .. levels - 1 (fewer when the points run out) for visible points (n, 3)
-    at view depths (n,): see the module docstring. Deterministic in its inputs."""
+def fit_level(parent: CacheGrid, points: np.ndarray, depth: np.ndarray, quantile: float) -> CacheGrid | None:
+    """The grid of half `parent`'s cell size over the points (n, 3) up to `quantile` of their view
+    depths (n,) (see the module docstring); None for fewer than 8 points."""
     points = np.asarray(points, np.float64).reshape(-1, 3)
     depth = np.asarray(depth, np.float64).reshape(-1)
+    if points.shape[0] < 8:
+        return None
+    near = points[depth <= np.quantile(depth, quantile)]
+    c = float(parent.cell_size)
+    plo = np.asarray(parent.lo, np.float64)
+    dims = np.asarray(parent.dims, np.int64)
+    a = np.floor((near.min(axis=0) - plo) / c).astype(np.int64) - MARGIN_CELLS
+    b = np.ceil((near.max(axis=0) - plo) / c).astype(np.int64) + MARGIN_CELLS
+    a, b = np.clip(a, 0, dims), np.clip(b, 0, dims)
+    b = np.maximum(b, a + 1)
+    # At most LEVEL_CELLS x the coarser level's cells (memory, GPU textures): the longest span
+    # shrinks, one coarse cell at a time, towards the points' median (thin axes keep).
+    mid = (np.median(near, axis=0) - plo) / c
+    while int(np.prod(b - a)) * REFINE**3 > LEVEL_CELLS * parent.count and (b - a).max() > 1:
+        axis = int(np.argmax(b - a))
+        if mid[axis] - a[axis] > b[axis] - mid[axis]:
+            a[axis] += 1
+        else:
+            b[axis] -= 1
+    return CacheGrid((plo + a * c).astype(np.float32), c / REFINE, tuple(int(x) for x in (b - a) * REFINE))
+
+
+def fit_level_grids(base: CacheGrid, points: np.ndarray, normals: np.ndarray, depth: np.ndarray, levels: int,
+                    normal_bias: float, budget: float = LEVEL_BUDGET) -> list[CacheGrid]:
+    """Grids of levels 1 .. levels - 1 (fewer when the points run out) for visible points (n, 3)
+    with unit normals (n, 3) at view depths (n,): each holds the points up to a depth quantile,
+    LEVEL_QUANTILE first, halved (down to MIN_QUANTILE) while the cells the points read in it
+    exceed `budget` x the cells they read in level 0 (what the level costs to trace and solve).
+    Deterministic in its inputs."""
+    points = np.asarray(points, np.float32).reshape(-1, 3)
+    normals = np.asarray(normals, np.float32).reshape(-1, 3)
+    depth = np.asarray(depth, np.float32).reshape(-1)
+    limit = budget * max(visible_cells(base, points, normals, normal_bias).size, 1)
     grids: list[CacheGrid] = []
-    parent = base
-    for k in range(1, levels):
-        if points.shape[0] < 8:
-            break
-        limit = np.quantile(depth, LEVEL_QUANTILE**k)
-        near = points[depth <= limit]
-        c = float(parent.cell_size)
-        plo = np.asarray(parent.lo, np.float64)
-        dims = np.asarray(parent.dims, np.int64)
-        a = np.floor((near.min(axis=0) - plo) / c).astype(np.int64) - MARGIN_CELLS
-        b = np.ceil((near.max(axis=0) - plo) / c).astype(np.int64) + MARGIN_CELLS
-        a, b = np.clip(a, 0, dims), np.clip(b, 0, dims)
-        b = np.maximum(b, a + 1)
-        # At most as many finer cells as the coarser level has: the longest span shrinks, one
-        # coarse cell at a time, towards the points' median (thin axes, a yard's height, keep).
-        mid = (np.median(near, axis=0) - plo) / c
-        while int(np.prod(b - a)) * REFINE**3 > LEVEL_CELLS * parent.count and (b - a).max() > 1:
-            axis = int(np.argmax(b - a))
-            if mid[axis] - a[axis] > b[axis] - mid[axis]:
-                a[axis] += 1
-            else:
-                b[axis] -= 1
-        lo = (plo + a * c).astype(np.float32)
-        grid = CacheGrid(lo, c / REFINE, tuple(int(x) for x in (b - a) * REFINE))
+    parent, sel = base, np.arange(points.shape[0])
+    for _ in range(1, levels):
+        q = LEVEL_QUANTILE
+        while True:
+            grid = fit_level(parent, points[sel], depth[sel], q)
+            if grid is None:
+                return grids
+            rows = np.flatnonzero(level_weight(grid, points, base) > 0)
+            if visible_cells(grid, points[rows], normals[rows], normal_bias).size <= limit or q <= MIN_QUANTILE:
+                break
+            q *= 0.5
         grids.append(grid)
-        inside = np.all((points >= grid.lo) & (points <= grid.hi), axis=1)
-        points, depth, parent = points[inside], depth[inside], grid
+        inside = np.all((points[sel] >= grid.lo) & (points[sel] <= grid.hi), axis=1)
+        parent, sel = grid, sel[inside]
     return grids
 
 
@@ -262,7 +285,7 @@ def build_levels(system, points: np.ndarray, normals: np.ndarray, depth: np.ndar
 
     s = system.settings
     stats = stats if stats is not None else SolveStats()
-    grids = fit_level_grids(system.cache.grid, points, depth, s.cache_levels)
+    grids = fit_level_grids(system.cache.grid, points, normals, depth, s.cache_levels, s.normal_bias)
     if not grids:
         return None
     base = system.cache

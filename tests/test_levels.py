@@ -26,8 +26,9 @@ def floor_points(n=4000, seed=3, size=40.0):
 def test_layout_is_deterministic_snapped_and_nested():
     base = CacheGrid.from_bounds(np.array([-30, -30, -1.0]), np.array([30, 30, 4.0]), 48)
     p, depth = floor_points()
-    a = lv.fit_level_grids(base, p, depth, 3)
-    b = lv.fit_level_grids(base, p.copy(), depth.copy(), 3)
+    up = np.tile(np.float32([[0.0, 0.0, 1.0]]), (p.shape[0], 1))
+    a = lv.fit_level_grids(base, p, up, depth, 3, 0.1)
+    b = lv.fit_level_grids(base, p.copy(), up.copy(), depth.copy(), 3, 0.1)
     assert len(a) == 2
     for ga, gb in zip(a, b, strict=True):
         np.testing.assert_array_equal(ga.lo, gb.lo)
@@ -41,14 +42,22 @@ def test_layout_is_deterministic_snapped_and_nested():
         assert (g.lo >= parent.lo - 1e-4).all() and (g.hi <= parent.hi + 1e-4).all()
         assert g.count <= lv.LEVEL_CELLS * parent.count
         parent = g
+    # The budget: the cells the points read in level 1 are no more than in level 0 ...
+    level0 = lv.visible_cells(base, p, up, 0.1).size
+    rows = lv.level_weight(a[0], p, base) > 0
+    assert lv.visible_cells(a[0], p[rows], up[rows], 0.1).size <= lv.LEVEL_BUDGET * level0
+    # ... so level 1 holds the nearest points, not all: a camera-centred box.
+    assert a[0].count * a[0].cell_size**3 < 0.5 * base.count * base.cell_size**3
+    inside = np.all((p >= a[0].lo) & (p <= a[0].hi), axis=1)
+    assert depth[inside].mean() < 0.7 * depth.mean()
     # A camera move of a tenth of a cell moves the points a little: the box moves by whole
     # coarse cells or not at all.
-    moved = lv.fit_level_grids(base, p + np.float32(0.1 * base.cell_size), depth, 2)[0]
+    moved = lv.fit_level_grids(base, p + np.float32(0.1 * base.cell_size), up, depth, 2, 0.1)[0]
     k = (moved.lo - a[0].lo) / base.cell_size
     np.testing.assert_allclose(k, np.round(k), atol=1e-4)
-    # The nearest share of the points lies inside level 1.
-    near = p[depth <= np.quantile(depth, lv.LEVEL_QUANTILE)]
-    assert ((near >= a[0].lo - 1e-4) & (near <= a[0].hi + 1e-4)).all()
+    # Without a budget, every point lies inside level 1 (the quantile is 1).
+    whole = lv.fit_level_grids(base, p, up, depth, 2, 0.1, budget=np.inf)[0]
+    assert ((p >= whole.lo - 1e-4) & (p <= whole.hi + 1e-4)).all()
 
 
 def test_settings_range():
