@@ -11,7 +11,7 @@ from hybridgi_core.grid import CacheGrid
 from hybridgi_core.settings import CacheSettings
 from hybridgi_core.snapshot import Material, make_snapshot
 from hybridgi_core.system import GISystem
-from hybridgi_core.visible import cell_debug_colors
+from hybridgi_core.visible import LEVEL_TINTS, cell_debug_colors
 from tests.shapes import box
 
 
@@ -27,8 +27,8 @@ def test_layout_is_deterministic_snapped_and_nested():
     base = CacheGrid.from_bounds(np.array([-30, -30, -1.0]), np.array([30, 30, 4.0]), 48)
     p, depth = floor_points()
     up = np.tile(np.float32([[0.0, 0.0, 1.0]]), (p.shape[0], 1))
-    a = lv.fit_level_grids(base, p, up, depth, 3, 0.1)
-    b = lv.fit_level_grids(base, p.copy(), up.copy(), depth.copy(), 3, 0.1)
+    a = lv.fit_level_grids(base, p, up, depth, 3, 0.1, budget=1.0)
+    b = lv.fit_level_grids(base, p.copy(), up.copy(), depth.copy(), 3, 0.1, budget=1.0)
     assert len(a) == 2
     for ga, gb in zip(a, b, strict=True):
         np.testing.assert_array_equal(ga.lo, gb.lo)
@@ -45,14 +45,14 @@ def test_layout_is_deterministic_snapped_and_nested():
     # The budget: the cells the points read in level 1 are no more than in level 0 ...
     level0 = lv.visible_cells(base, p, up, 0.1).size
     rows = lv.level_weight(a[0], p, base) > 0
-    assert lv.visible_cells(a[0], p[rows], up[rows], 0.1).size <= lv.LEVEL_BUDGET * level0
+    assert lv.visible_cells(a[0], p[rows], up[rows], 0.1).size <= level0
     # ... so level 1 holds the nearest points, not all: a camera-centred box.
     assert a[0].count * a[0].cell_size**3 < 0.5 * base.count * base.cell_size**3
     inside = np.all((p >= a[0].lo) & (p <= a[0].hi), axis=1)
     assert depth[inside].mean() < 0.7 * depth.mean()
     # A camera move of a tenth of a cell moves the points a little: the box moves by whole
     # coarse cells or not at all.
-    moved = lv.fit_level_grids(base, p + np.float32(0.1 * base.cell_size), up, depth, 2, 0.1)[0]
+    moved = lv.fit_level_grids(base, p + np.float32(0.1 * base.cell_size), up, depth, 2, 0.1, budget=1.0)[0]
     k = (moved.lo - a[0].lo) / base.cell_size
     np.testing.assert_allclose(k, np.round(k), atol=1e-4)
     # Without a budget, every point lies inside level 1 (the quantile is 1).
@@ -170,3 +170,42 @@ def test_debug_view_shows_levels():
     assert not np.allclose(shown[1], plain[1])
     # Level 1's colour carries its tint: its hue differs from every level-0 colour's range.
     assert shown[1, 2] > shown[1, 0] and shown[2, 2] > shown[2, 0]
+
+
+@pytest.mark.blender
+@pytest.mark.slow
+def test_render_with_levels_and_their_debug_view(tmp_path):
+    """Through `hybridgi render`: Cache Levels 2 renders the Cornell box close to the single grid
+    (not identically: the finer level is read), and the Cache Cells debug view shows level 1's
+    cells in its own hue (the nearest part of the room), which the single grid never shows."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    from tests import cli_renders
+
+    root = Path(__file__).resolve().parents[1]
+    subprocess.run([sys.executable, str(root / "blend_scenes" / "build.py"), "--only", "cornell", "--out", str(tmp_path)],
+                   check=True, capture_output=True, timeout=300)
+    blend = tmp_path / "cornell.blend"
+    quick = ("--set", "warmup_iterations=2", "--set", "resolution=12", "--set", "rays_per_cell=16",
+             "--set", "pixel_samples=1")
+
+    def combined(tag, *extra):
+        ch = cli_renders.rendered(blend, tmp_path / tag, "96x72", *quick, *extra)
+        return cli_renders.layer(ch, "Combined")
+
+    one, two = combined("one"), combined("two", "--set", "cache_levels=2")
+    rel = np.abs(two - one).sum() / np.abs(one).sum()
+    assert 0 < rel < 0.05
+    tint = np.asarray(LEVEL_TINTS[0], np.float32)
+
+    def tinted(img):
+        b = np.maximum(img[..., 2], 1e-6)
+        return (img[..., 2] > 0.1) & np.all(np.abs(img[..., :3] / b[..., None] - tint / tint[2]) < 1e-3, axis=-1)
+
+    cells1 = combined("cells1", "--set", "debug_view=CELLS")
+    cells2 = combined("cells2", "--set", "debug_view=CELLS", "--set", "cache_levels=2")
+    geo = cells1[..., :3].max(axis=-1) > 0.06
+    assert not tinted(cells1).any()
+    assert tinted(cells2).sum() > 0.05 * geo.sum()
