@@ -245,6 +245,7 @@ class HybridGISettings(bpy.types.PropertyGroup):
             pixel_rays=self.pixel_rays,
             pixel_filter=self.pixel_filter,
             pixel_full_res=bool(self.pixel_full_res),
+            ssao_auto=not _f(self.ssao_radius),
         )
 
 

@@ -296,7 +296,15 @@ class FramePipeline:
         indirect[..., 3] = 1.0
         direct = np.zeros((h * w, 4), np.float32)
         indirect[pix, :3], indirect[pix, 3], direct[pix, :3] = g.indirect, g.ao, g.direct
-        ssao = self.ssao.execute(low, view, proj, irradiance=lit_tex)
+        kept = self.ssao.settings
+        if kept.ssao_auto:
+            # The automatic radius is one cell: the finest level's here (cache gather at 320x240
+            # vs Cycles, Combined: atrium 0.0398 -> 0.0386, car 0.0057 -> 0.0056, yard 0.0236 -> 0.0137).
+            self.ssao.settings = kept.with_(ssao_radius=float(levels.caches[-1].grid.cell_size))
+        try:
+            ssao = self.ssao.execute(low, view, proj, irradiance=lit_tex)
+        finally:
+            self.ssao.settings = kept
         return (upload_texture_2d(indirect.reshape(h, w, 4), "RGBA32F"),
                 upload_texture_2d(direct.reshape(h, w, 4), "RGBA32F"), ssao)
 

@@ -37,6 +37,10 @@ class RasterSettings:
     #: no GI pixel shares the pixel's surface or the correction varies) instead of the bilateral
     #: upsampling of GI-resolution irradiance.
     pixel_full_res: bool = True
+    #: The SSAO radius is the automatic one (one level-0 cache cell): with finer cache levels
+    #: (`levels.py`) the cache gather's near field is their cell, so the pass searches that far
+    #: (`FramePipeline._gather_levels`).
+    ssao_auto: bool = False
 
     #: Valid values of each field, as in CacheSettings.RANGES.
     RANGES = {
@@ -52,6 +56,7 @@ class RasterSettings:
         "pixel_rays": (0, 1024, False, False),
         "pixel_filter": (0, 6, False, False),
         "pixel_full_res": frozenset((False, True)),
+        "ssao_auto": frozenset((False, True)),
     }
 
     def __post_init__(self) -> None:
