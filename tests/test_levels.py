@@ -209,3 +209,37 @@ def test_render_with_levels_and_their_debug_view(tmp_path):
     geo = cells1[..., :3].max(axis=-1) > 0.06
     assert not tinted(cells1).any()
     assert tinted(cells2).sum() > 0.05 * geo.sum()
+
+
+def test_cache_gather_ssao_follows_the_finest_level(monkeypatch):
+    """Without pixel rays and with the automatic SSAO radius (one cell), the screen-space pass of
+    a levelled gather searches the finest level's cell; a radius the user set stays; the pass's
+    own settings are restored after."""
+    from types import SimpleNamespace
+
+    from hybridgi_core.evaluate import Gathered
+    from hybridgi_core.raster import frame
+    from hybridgi_core.raster.settings import RasterSettings
+
+    s = CacheSettings(resolution=8)
+    base = CacheGrid(np.zeros(3, np.float32), 1.0, (8, 8, 8))
+    fine_grid = CacheGrid(np.array([2, 2, 2], np.float32), 0.5, (8, 8, 8))
+    levels = lv.CacheLevels(constant_cache(base, s, 1.0), [constant_cache(fine_grid, s, 3.0)])
+    z = np.zeros((1, 3), np.float32)
+    monkeypatch.setattr(frame, "gather_levels", lambda *a: Gathered(z, z, np.ones(1, np.float32)))
+    monkeypatch.setattr(frame, "upload_texture_2d", lambda array, fmt: array)
+    class SSAO:
+        def __init__(self, settings):
+            self.settings, self.seen = settings, []
+
+        def execute(self, *a, **k):
+            self.seen.append(self.settings.ssao_radius)
+            return "ssao"
+
+    for auto, radius, want in ((True, 1.0, 0.5), (False, 0.8, 0.8)):
+        pipe = SimpleNamespace(gather=None, ssao=SSAO(RasterSettings(ssao_radius=radius, ssao_auto=auto)))
+        low = SimpleNamespace(height=1, width=1)
+        out = frame.FramePipeline._gather_levels(pipe, levels, low, z, z + [0, 0, 1], np.zeros(1, np.int64),
+                                                 np.ones((1, 16), bool), None, None, None)
+        assert pipe.ssao.seen == [want] and out[2] == "ssao"
+        assert pipe.ssao.settings.ssao_radius == radius
