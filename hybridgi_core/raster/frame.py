@@ -299,7 +299,7 @@ class FramePipeline:
         kept = self.ssao.settings
         if kept.ssao_auto:
             # The automatic radius is one cell: the finest level's here (cache gather at 320x240
-            # vs Cycles, Combined: atrium 0.0398 -> 0.0386, car 0.0057 -> 0.0056, yard 0.0236 -> 0.0137).
+            # vs Cycles, Combined: atrium 0.0398 -> 0.0386, car 0.0057 -> 0.0056, yard 0.0236 -> 0.0134).
             self.ssao.settings = kept.with_(ssao_radius=float(levels.caches[-1].grid.cell_size))
         try:
             ssao = self.ssao.execute(low, view, proj, irradiance=lit_tex)
