@@ -222,7 +222,7 @@ def render_frame(engine, depsgraph):
         engine.update_stats("HybridGI", "Writing passes")
         ts = time.perf_counter()
         _write_result(engine, depsgraph, pipeline, width, height, world,
-                      cache=system.cache if cells_view else None)
+                      cache=system.cache if cells_view else None, levels=system.levels)
         steps["write"] = (time.perf_counter() - ts) * 1e3
         if job is not None:
             job.finish(scene.frame_current)
@@ -432,10 +432,10 @@ class _Result:
         self.engine.end_result(self.result)
 
 
-def _write_result(engine, depsgraph, pipeline, width, height, world, cache=None):
+def _write_result(engine, depsgraph, pipeline, width, height, world, cache=None, levels=None):
     """Write the pipeline's filtered passes (`FramePipeline.film`) into the render result; with
     `cache`, Combined shows the Cache Cells debug view instead (each pixel coloured by the cell it
-    reads)."""
+    reads; with `levels`, the system's finer cache levels, in each level's hue)."""
     render = depsgraph.scene.render
     result = _Result(engine, render, width, height)
     film = pipeline.film
@@ -446,7 +446,7 @@ def _write_result(engine, depsgraph, pipeline, width, height, world, cache=None)
         points, normals, pix = visible.pixels_to_points(pipeline.gbuffer.read("position"), pipeline.gbuffer.read("normal"))
         flat = combined.reshape(-1, 4)
         flat[:, :3] = 0.0
-        flat[pix, :3] = visible.cell_debug_colors(cache, points, normals)
+        flat[pix, :3] = visible.cell_debug_colors(cache, points, normals, levels=levels)
     if render.film_transparent:
         # Cycles' transparent film: premultiplied, the world lights the scene but is not seen.
         if cache is not None:

@@ -62,6 +62,14 @@ class HybridGISettings(bpy.types.PropertyGroup):
         description="Cache cells along the longest axis of the scene's bounding box",
         default=48, min=1, max=512, soft_min=4, soft_max=128,
     )
+    cache_levels: IntProperty(
+        name="Cache Levels",
+        description="Camera-centred cache levels for final renders with Pixel Rays: each level above 1 adds a "
+        "grid of half the cell size over the geometry nearest the camera (fitted to what the camera sees, "
+        "in whole cells of the coarser level: the same on every machine), finer where detail is seen. "
+        "1 = the one grid over the scene",
+        default=1, min=1, max=3,
+    )
     sh_order: EnumProperty(
         name="SH Order",
         description="Spherical-harmonic order of the radiance stored per cell",
@@ -228,6 +236,7 @@ class HybridGISettings(bpy.types.PropertyGroup):
             light_samples=self.light_samples,
             seed=self.seed,
             threads=min(max(scene.render.threads, 1), 64),
+            cache_levels=self.cache_levels,
         )
 
     def raster_settings(self, cell_size=None):
@@ -245,6 +254,7 @@ class HybridGISettings(bpy.types.PropertyGroup):
             pixel_filter=self.pixel_filter,
             pixel_full_res=bool(self.pixel_full_res),
             reflection_rays=self.reflection_rays,
+            ssao_auto=not _f(self.ssao_radius),
         )
 
 

@@ -37,8 +37,8 @@ class HYBRIDGI_PT_cache(HybridGIButtonsPanel, Panel):
 
     def draw(self, context):
         col = settings_column(self.layout, context.scene.hybridgi, (
-            "resolution", ("sh_order", {"expand": True}), "rays_per_cell", "ray_length", "hysteresis",
-            "warmup_iterations", "animation_mode"))
+            "resolution", "cache_levels", ("sh_order", {"expand": True}), "rays_per_cell", "ray_length",
+            "hysteresis", "warmup_iterations", "animation_mode"))
         world = context.scene.world
         if world is not None:
             # The AO distance belongs to the World (Cycles reads it there too); shown here

@@ -37,6 +37,7 @@ import numpy as np
 
 from . import sh
 from .evaluate import HitLookup, corner_weights
+from .levels import hit_lookup
 from .lights import _onb, concentric_disk, direct_irradiance, stratified_uv
 from .sampling import frame_rng
 from .settings import AO_ONLY, MULTI_BOUNCE
@@ -179,7 +180,7 @@ def trace_pixels(system, points: np.ndarray, normals: np.ndarray, rays: int, fra
     sh_all = np.zeros((n, k, 7), np.float32)
     if n:
         if lookup is None and rays > 0:
-            lookup = HitLookup(cache, bounced=s.indirect_quality == MULTI_BOUNCE)
+            lookup = hit_lookup(system, bounced=s.indirect_quality == MULTI_BOUNCE)
         per = max(1, chunk_rays // max(rays, 8))
         starts = range(0, n, per)
         vis = (lambda a: None) if corner_visible is None else (lambda a: corner_visible[a:a + per])
@@ -207,7 +208,9 @@ def _chunk(system, lookup: HitLookup | None, p, nrm, corner_visible, rays, rng):
     tic = time.perf_counter()
     m = p.shape[0]
     res = np.zeros((m, 16), np.float32)
-    sh_d, sh_i, sh_a, covered = cache_sh_at(system.cache, p, nrm, corner_visible)
+    levels = getattr(system, "levels", None)
+    sh_d, sh_i, sh_a, covered = (cache_sh_at(system.cache, p, nrm, corner_visible) if levels is None
+                                 else levels.sh_at(p, nrm, corner_visible))
     # The cache's own irradiance at the pixels, what the GPU gather reads (unclamped here: the
     # control variate must be the exact integral of the SH used below).
     res[:, 9:12] = sh.irradiance(sh_d, nrm)
@@ -685,7 +688,7 @@ def full_res_images(system, position_lo: np.ndarray, normal_lo: np.ndarray, pix:
     width, height = full_size
     h, w = position_lo.shape[:2]
     factor = max(1, int(round(width / w)))
-    lookup = HitLookup(system.cache, bounced=system.settings.indirect_quality == MULTI_BOUNCE) if rays > 0 else None
+    lookup = hit_lookup(system, bounced=system.settings.indirect_quality == MULTI_BOUNCE) if rays > 0 else None
     gi = trace_pixels(system, points, normals, rays, frame, corner_visible, lookup=lookup)
     tic = time.perf_counter()
     est, cache, valid, res, pos, nrm, camera, var = image_planes(gi, pix, points, normals, view, h, w)

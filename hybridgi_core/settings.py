@@ -88,6 +88,9 @@ class CacheSettings:
     seed: int = 0  # base seed; frame f rotates rays with seed + f
     threads: int = 2  # worker threads for tracing and shading
     max_memory_mib: int = DEFAULT_CACHE_MEMORY_MIB  # cap of the cache arrays (check_cell_count)
+    #: Camera-centred levels (`levels.py`): 1 = the one grid over the scene; 2-3 add grids of half
+    #: the cell size over the nearest visible geometry (final renders with pixel rays)
+    cache_levels: int = 1
 
     #: Valid values of each field: (low, high, low_open, high_open) or a frozenset of choices
     #: (a class attribute, not a field: it has no annotation).
@@ -107,6 +110,7 @@ class CacheSettings:
         "seed": _closed(0),
         "threads": _closed(1, 64),
         "max_memory_mib": _closed(1),
+        "cache_levels": _closed(1, 3),
     }
 
     def __post_init__(self) -> None:

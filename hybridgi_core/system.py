@@ -15,6 +15,7 @@ from .cache import IrradianceCache
 from .cutout import Cutouts
 from .evaluate import Gathered, corner_visibility, gather
 from .glossy import GlossyMaterials, glossy_direct
+from .levels import CacheLevels, build_levels
 from .lights import direct_irradiance
 from .lod import decimate
 from .sampling import frame_rng
@@ -75,6 +76,9 @@ class GISystem:
         #: Stored probe hits and the fixed-point solver of final renders (and of re-lighting).
         self.solver = GISolver(self.cache, self.tracer, self.updater.scene, self.tracer.epsilon, self.updater.pool)
         self._surface_cells: np.ndarray | None = None
+        #: Finer camera-centred levels over level 0 (`levels.CacheLevels`), built per frame by
+        #: `build_levels`; None: level 0 alone (every reader then takes the single-grid path).
+        self.levels: CacheLevels | None = None
         self.build_ms = (time.perf_counter() - t0) * 1e3
         log.info(
             "GI system: %d triangles (%d traced), grid %s (%d cells), built in %.0f ms",
@@ -295,18 +299,35 @@ class GISystem:
         stats.shadow_points += self.solver.filter_cells(bands=("sh_indirect",))
         return stats
 
+    def build_levels(self, points: np.ndarray, normals: np.ndarray, depth: np.ndarray, batches: int) -> SolveStats:
+        """Fit and solve the finer cache levels for a frame's visible points (n, 3), normals and
+        view depths (n,) (`levels.build_levels`; level 0 converged first). With cache_levels = 1
+        (the default) there are none and nothing is traced."""
+        stats = SolveStats()
+        self.levels = None
+        if self.settings.cache_levels > 1 and np.asarray(points).size:
+            self.levels = build_levels(self, points, normals, depth, batches, stats)
+        return stats
+
     def corner_visibility(self, points: np.ndarray, normals: np.ndarray) -> np.ndarray:
-        """(n, 8) bool exact visibility of the neighbouring cells (occlusion rays) for the gather.
+        """(n, 8) bool exact visibility of the neighbouring cells (occlusion rays) for the gather;
+        (n, 8 x levels) with finer levels (`CacheLevels.corner_visibility`).
 
         Blocks of VISIBILITY_BLOCK points run on the worker pool (the tracer is single-threaded);
         each point's rays are its own, so the answer does not depend on the split."""
         eps = float(self.tracer.epsilon)
+        if self.levels is None:
+            def of(cache, tracer, p, nrm, e):
+                return corner_visibility(cache, tracer, p, nrm, e)
+        else:
+            def of(cache, tracer, p, nrm, e):
+                return self.levels.corner_visibility(tracer, p, nrm, e)
         n = int(np.asarray(points).reshape(-1, 3).shape[0])
         if n <= VISIBILITY_BLOCK:
-            return corner_visibility(self.cache, self.tracer, points, normals, eps)
+            return of(self.cache, self.tracer, points, normals, eps)
         points = np.asarray(points, np.float32).reshape(-1, 3)
         normals = np.asarray(normals, np.float32).reshape(-1, 3)
-        jobs = [self.updater.pool.submit(corner_visibility, self.cache, self.tracer, points[a : a + VISIBILITY_BLOCK],
+        jobs = [self.updater.pool.submit(of, self.cache, self.tracer, points[a : a + VISIBILITY_BLOCK],
                                          normals[a : a + VISIBILITY_BLOCK], eps)
                 for a in range(0, n, VISIBILITY_BLOCK)]
         return np.concatenate([j.result() for j in jobs])
@@ -314,6 +335,8 @@ class GISystem:
     def gather(self, points: np.ndarray, normals: np.ndarray, exact: bool = True) -> Gathered:
         """Step 6 on the CPU (the numpy reference of the GPU gather); exact = occlusion rays."""
         vis = self.corner_visibility(points, normals) if exact else None
+        if self.levels is not None:
+            return self.levels.gather(points, normals, corner_visible=vis)
         return gather(self.cache, points, normals, corner_visible=vis)
 
     def direct(self, points: np.ndarray, normals: np.ndarray, frame: int, samples: int | None = None,

@@ -58,11 +58,33 @@ def pixels_to_points(position_rgba: np.ndarray, normal_rgb: np.ndarray) -> tuple
     return pos[idx, :3].astype(np.float32), n, idx
 
 
-def cell_debug_colors(cache, points: np.ndarray, normals: np.ndarray) -> np.ndarray:
+#: Cache Cells debug view: the hue of each finer cache level (`levels.py`) from level 1 on
+#: (level 0 keeps its pastel hash colours); cells of a level vary in brightness only.
+LEVEL_TINTS = ((0.25, 0.5, 1.0), (0.3, 1.0, 0.35))
+
+
+def cell_debug_colors(cache, points: np.ndarray, normals: np.ndarray, levels=None) -> np.ndarray:
     """(n, 3) float32 debug colours: a stable hash colour per cell, the neighbour with the largest
     gather weight at each point; full brightness where it is converged (>= 1 / (1 - hysteresis)
     samples), dim while converging, dark grey where no valid cell is near, dark red where the
-    nearest cell is disabled inside geometry."""
+    nearest cell is disabled inside geometry. levels : the system's `CacheLevels` or None; given,
+    points whose finest covering level (`CacheLevels.level_at`) is k >= 1 show that level's cells
+    in its hue (LEVEL_TINTS[k - 1]), so the levels' boxes and cell sizes can be seen."""
+    rgb, _ = _cell_colors(cache, points, normals)
+    if levels is None:
+        return rgb
+    level = levels.level_at(points, normals)
+    for k in range(1, levels.count):
+        rows = np.flatnonzero(level == k)
+        if rows.size:
+            _, h = _cell_colors(levels.caches[k], points[rows], normals[rows])
+            shade = 0.45 + 0.55 * (h & np.uint64(0xFF)).astype(np.float32) / 255.0
+            rgb[rows] = np.asarray(LEVEL_TINTS[(k - 1) % len(LEVEL_TINTS)], np.float32) * shade[:, None]
+    return rgb
+
+
+def _cell_colors(cache, points: np.ndarray, normals: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """`cell_debug_colors` of one cache, and the (n,) uint64 hash of each point's cell."""
     from .evaluate import corner_weights  # noqa: PLC0415 (evaluate imports this module's siblings)
 
     flats, w = corner_weights(cache, points, normals)
@@ -76,4 +98,4 @@ def cell_debug_colors(cache, points: np.ndarray, normals: np.ndarray) -> np.ndar
     rgb *= np.where(converged, 1.0, 0.5)[:, None]
     rgb[none] = (0.05, 0.05, 0.05)
     rgb[none & cache.inside[flats[:, 0]]] = (0.4, 0.0, 0.0)
-    return rgb.astype(np.float32)
+    return rgb.astype(np.float32), h

@@ -691,6 +691,54 @@ def test_gpu_gather_equals_evaluate(raster):
             assert np.abs(results[0] - results[1]).max() > 0.1 and np.abs(results[1] - results[2]).max() > 0.1
 
 
+def test_gpu_gather_of_two_levels_equals_the_numpy_reference(raster):
+    """Cache levels without pixel rays: the GPU gather of each level with its own corner mask,
+    joined by CacheLevels.blend (`gather_levels`), equals CacheLevels.gather in numpy; level 1
+    (half the cells, over part of the room) really changes part of the image and not the rest."""
+    from hybridgi_core.cache import IrradianceCache
+    from hybridgi_core.evaluate import gather
+    from hybridgi_core.grid import CacheGrid
+    from hybridgi_core.levels import CacheLevels
+    from hybridgi_core.raster.gather import GatherPass, gather_levels
+    from hybridgi_core.visible import pixels_to_points
+
+    snap = box_snapshot()
+    room = make_snapshot(box((-2.0, -2.0, 0.0), (2.0, 2.0, 2.5), material_of_axis=(0, 0, 0)),
+                         [Material()] + snap.materials[1:])
+    scene = make_snapshot(concat_geometry([room.geometry, snap.geometry]), snap.materials)
+    view = look_at((1.6, -1.7, 1.9), (-0.5, 0.6, 0.5))
+    gbuf, _ = render_gbuffer(raster, scene, view, perspective(70.0))
+    low = raster["downsample"].execute(gbuf)
+    normal, position = (a.copy() for a in raster["downsample"].read_normal_position())
+    pts, nrm, pix = pixels_to_points(position, normal)
+    base = random_cache(scene, 2)
+    g0 = base.grid
+    # Level 1: half the cell size over the coarse cells 1..3 of each axis (part of the room).
+    fine_grid = CacheGrid((g0.lo + g0.cell_size).astype(np.float32), g0.cell_size / 2, (6, 6, 6))
+    donor = random_cache(scene, 2, seed=23)
+    fine = IrradianceCache(fine_grid, base.settings)
+    rng = np.random.default_rng(8)
+    for name in ("sh_direct", "sh_indirect", "ao_sh"):
+        src = getattr(donor, name)
+        getattr(fine, name)[:] = src[rng.integers(0, src.shape[0], fine_grid.count)]
+    fine.samples[:] = 1
+    fine.samples[rng.random(fine_grid.count) < 0.1] = 0
+    levels = CacheLevels(base, [fine])
+    visible = rng.random((pts.shape[0], 16)) < 0.7
+    with GatherPass() as gp:
+        gp.resize(W // F, H // F)
+        got = gather_levels(gp, levels, low, pts, nrm, pix, visible)
+    ref = levels.gather(pts, nrm, visible)
+    for a, b in ((got.direct, ref.direct), (got.indirect, ref.indirect), (got.ao, ref.ao)):
+        np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-4 * max(float(np.abs(b).max()), 1e-6))
+    plain = gather(base, pts, nrm, corner_visible=visible[:, :8])
+    share = levels.level_shares(pts, nrm, visible)[0]
+    changed = np.abs(ref.indirect - plain.indirect).max(axis=1) > 1e-3
+    assert changed.any() and (share > 0).sum() < pts.shape[0]
+    assert not changed[share == 0].any()
+    np.testing.assert_array_equal(ref.indirect[share == 0], plain.indirect[share == 0])
+
+
 def test_gpu_accumulation_equals_the_numpy_film(gpu_context):
     """The pixel filter's GPU sums (AccumulatePass, ping-pong over 3 subframes) read out as the
     numpy reference FilmAccumulator.add computes them; a second frame starts new sums."""

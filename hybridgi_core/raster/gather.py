@@ -272,3 +272,22 @@ class GatherPass(RasterPass):
     def read(self, slot: int, out: np.ndarray | None = None) -> np.ndarray:
         """Output `slot` (0 gi_indirect, 1 gi_direct) as (h, w, 4) float32, rows bottom-up."""
         return read_framebuffer(self._fb, slot, self.width, self.height, 4, out=out)
+
+
+def gather_levels(gather: GatherPass, levels, low, points: np.ndarray, normals: np.ndarray, pix: np.ndarray,
+                  visible: np.ndarray):
+    """The gather of each cache level on the GPU (each with its own corner mask: columns
+    8k .. 8k + 7 of `visible`, (n, 8 x levels) at the low-res pixels `pix`), read back at `pix`
+    and joined by `CacheLevels.blend` -> `evaluate.Gathered` at the n points (the numpy reference
+    is `CacheLevels.gather`). `gather` is left holding the finest level's textures."""
+    h, w = low.height, low.width
+    parts = []
+    for k, cache in enumerate(levels.caches):
+        mask = np.zeros((h * w, 8), bool)
+        mask[pix] = visible[:, 8 * k:8 * k + 8]
+        gather.upload(cache)
+        gather.execute(low, corner_visible=mask.reshape(h, w, 8))
+        ind = gather.read(0).reshape(-1, 4)[pix]
+        direct = gather.read(1).reshape(-1, 4)[pix]
+        parts.append((direct[:, :3], ind[:, :3], ind[:, 3]))
+    return levels.blend(parts, levels.level_shares(points, normals, visible))

@@ -41,6 +41,10 @@ class RasterSettings:
     #: `reflection.TRACE_ROUGHNESS` (`hybridgi_core/reflection.py`); 0 = the cache's hemisphere
     #: mean for every lobe (no image of the surroundings in polished surfaces).
     reflection_rays: int = 4
+    #: The SSAO radius is the automatic one (one level-0 cache cell): with finer cache levels
+    #: (`levels.py`) the cache gather's near field is their cell, so the pass searches that far
+    #: (`FramePipeline._gather_levels`).
+    ssao_auto: bool = False
 
     #: Valid values of each field, as in CacheSettings.RANGES.
     RANGES = {
@@ -57,6 +61,7 @@ class RasterSettings:
         "pixel_filter": (0, 6, False, False),
         "pixel_full_res": frozenset((False, True)),
         "reflection_rays": (0, 256, False, False),
+        "ssao_auto": frozenset((False, True)),
     }
 
     def __post_init__(self) -> None:
