@@ -11,9 +11,8 @@ import logging
 import numpy as np
 import pytest
 
-from hybridgi_core import glossy
+from hybridgi_core import glossy, surface_mix
 from hybridgi_core import specular as sp
-from hybridgi_core import surface_mix
 from hybridgi_core.snapshot import Material
 from tests import glossy_node_scenes
 from tests.cli_renders import layer, rendered
