@@ -121,8 +121,8 @@ def _lobe_terms(mats: GlossyMaterials, rows, n, v, lx, ly, lz):
     k3 c s6) per channel.
 
     Returns a list over lobe slots of (common (m, s): D G2 / (4 cos_i), 0 below either horizon;
-    terms (m, s, 3): remap (the dielectric Fresnel mapped to 0..1), (1 - c)^5 and c (1 - c)^6 of
-    c = cos(h, i); k (m, 4, 3): the slot's coefficients times its multiscatter factor and view
+    terms [3 x (m, s)]: remap (the dielectric Fresnel mapped to 0..1), (1 - c)^5 and c (1 - c)^6 of
+    c = cos(h, i), each None where the slot's coefficient of it is 0; k (m, 4, 3): the slot's coefficients times its multiscatter factor and view
     factor at the receiver's view angle)."""
     mu_i = np.einsum("ij,ij->i", n, v)[:, None]
     nx, ny, nz = n[:, 0:1], n[:, 1:2], n[:, 2:3]
@@ -154,16 +154,18 @@ def _lobe_terms(mats: GlossyMaterials, rows, n, v, lx, ly, lz):
             g2 = np.where(beck[:, None], _F32(1.0) / (_F32(1.0) + _beckmann_lambda(a2, mu_i)
                                                       + _beckmann_lambda(a2, mu_o_ok)), g2)
         common = np.where(ok, d * g2 / (_F32(4.0) * mu_i), _F32(0.0)).astype(_F32)
-        f0_real = mats.f0_real[slot, rows][:, None].astype(_F32)
-        remap = (sp.fresnel_dielectric(cos_hi, mats.eta[slot, rows][:, None]).astype(_F32) - f0_real) / np.maximum(
-            _F32(1.0) - f0_real, _F32(1e-12))
-        terms = np.stack([np.clip(remap, 0.0, 1.0), s5, s6c], axis=-1)
+        terms = [None, s5 if np.any(k[:, 2]) else None, s6c if np.any(k[:, 3]) else None]
+        if np.any(k[:, 1]):
+            f0_real = mats.f0_real[slot, rows][:, None].astype(_F32)
+            remap = (sp.fresnel_dielectric(cos_hi, mats.eta[slot, rows][:, None]).astype(_F32) - f0_real) / np.maximum(
+                _F32(1.0) - f0_real, _F32(1e-12))
+            terms[0] = np.clip(remap, 0.0, 1.0).astype(_F32)
         rough = mats.lobe_rough[slot, rows]
         e = sp._lerp_table(sp.tables()[0], [rough, mu_i[:, 0]])[:, None]
         e_avg = mats.e_avg[slot, rows][:, None]
         scale = np.where(mats.ms[slot, rows][:, None], sp.multiscatter_factor(mats.fss[slot, rows], e, e_avg), 1.0)
         view = _view_factor(mats.view[slot, rows], mu_view)
-        out.append((common, terms.astype(_F32), (k * (scale * view[:, None])[:, None, :]).astype(_F32)))
+        out.append((common, terms, (k * (scale * view[:, None])[:, None, :]).astype(_F32)))
     return out
 
 
@@ -204,8 +206,11 @@ def lobes(mats: GlossyMaterials, rows, n, v, lx, ly, lz) -> np.ndarray:
     out = np.zeros((*np.shape(lx), 3), _F32)
     for common, terms, k in _lobe_terms(mats, rows, *(np.asarray(a, _F32) for a in (n, v, lx, ly, lz))):
         k = k[:, None]
-        out += common[..., None] * (k[..., 0, :] + k[..., 1, :] * terms[..., 0:1] + k[..., 2, :] * terms[..., 1:2]
-                                    + k[..., 3, :] * terms[..., 2:3])
+        f = np.broadcast_to(k[..., 0, :], out.shape).copy()
+        for j, term in enumerate(terms):
+            if term is not None:
+                f += k[..., j + 1, :] * term[..., None]
+        out += common[..., None] * f
     return out
 
 
@@ -351,8 +356,11 @@ def glossy_direct(lights, points, normals, to_eye, rows, mats: GlossyMaterials, 
             for common, terms, k in slots:
                 # Per channel: sum_s c (k0 + k1 remap + k2 s5 + k3 c s6), without an (m, s, 3) array.
                 c = common * w32
-                sums = [c.sum(axis=1)] + [(c * terms[..., j]).sum(axis=1) for j in range(3)]
-                acc += sum(k[:, j] * sums[j][:, None] for j in range(4)) * light.color
+                total = k[:, 0] * c.sum(axis=1)[:, None]
+                for j, term in enumerate(terms):
+                    if term is not None:
+                        total += k[:, j + 1] * (c * term).sum(axis=1)[:, None]
+                acc += total * light.color
         out[idx] = acc
     return out
 
