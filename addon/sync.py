@@ -19,6 +19,7 @@ import numpy as np
 
 from hybridgi_core import environment, surface_mix
 from hybridgi_core import snapshot as snap
+from hybridgi_core import specular as sp
 from hybridgi_core.glossy import MIN_ROUGHNESS
 from hybridgi_core.specular import SpecularLayer
 
@@ -381,7 +382,7 @@ def material_from_blender(material, textures=None, baked=None, pending=False):
         log.warning("material %r: shader %s is not supported; using grey %.1f", name, shader.bl_idname, FALLBACK_GREY)
         return _grey(name)
     specular = part.surface()
-    if specular is not None and surface_mix.sp.surface_lobes(specular):
+    if specular is not None and sp.surface_lobes(specular):
         textures.glossy.add(name)
     return snap.Material(name=name, base_color=part.base.astype(np.float32), texture=part.texture,
                          emission=part.emission.astype(np.float32), alpha=part.alpha, specular=specular)
@@ -408,10 +409,10 @@ def _shader_surface(shader, textures, name, depth=0):
         base = base * weight * (1.0 + np.clip(coat, 0, 1) * (tint - 1.0))
         emission = _constant_color(shader.inputs["Emission Color"], name) * _constant_value(
             shader.inputs["Emission Strength"], name)
-        diffuse = surface_mix.sp.diffuse_weight(layer, surface_mix.sp.view_grid())
+        diffuse = sp.diffuse_weight(layer, sp.view_grid())
         return surface_mix.SurfacePart(base=base, texture=texture, emission=emission,
                                        alpha=_alpha_map(shader.inputs["Alpha"], textures, name), diffuse=diffuse,
-                                       lobes=surface_mix.sp.layer_lobes(layer), layer=layer)
+                                       lobes=sp.layer_lobes(layer), layer=layer)
     if kind == "BSDF_DIFFUSE":
         base, texture = _color_socket(shader.inputs["Color"], textures, name)
         return surface_mix.SurfacePart(base=base, texture=texture)
@@ -457,15 +458,15 @@ def _glossy_lobe(shader, kind, textures, name):
         notes.append("thin film (not rendered)")
     if kind == "BSDF_METALLIC":
         if getattr(shader, "fresnel_type", "F82") == "PHYSICAL_CONDUCTOR":
-            lobe = surface_mix.sp.GlossyLobe(
+            lobe = sp.GlossyLobe(
                 roughness=roughness, distribution=distribution, fresnel="conductor",
                 n=np.maximum(_constant_color(shader.inputs["IOR"], name), 0.0),
                 k=np.maximum(_constant_color(shader.inputs["Extinction"], name), 0.0))
         else:
             f0 = np.clip(_mean_colour_input(shader.inputs["Base Color"], textures, name, node=shader, notes=notes), 0, 1)
             tint = np.clip(_constant_color(shader.inputs["Edge Tint"], name), 0.0, 1.0)
-            b = np.zeros(3) if np.all(tint == 1.0) else surface_mix.sp.f82_b_from_tint(f0, tint)
-            lobe = surface_mix.sp.GlossyLobe(roughness=roughness, distribution=distribution, fresnel="f82", f0=f0, b=b)
+            b = np.zeros(3) if np.all(tint == 1.0) else sp.f82_b_from_tint(f0, tint)
+            lobe = sp.GlossyLobe(roughness=roughness, distribution=distribution, fresnel="f82", f0=f0, b=b)
     else:
         colour = np.maximum(_mean_colour_input(shader.inputs["Color"], textures, name, node=shader, notes=notes), 0.0)
         if kind == "BSDF_GLASS":
@@ -473,10 +474,10 @@ def _glossy_lobe(shader, kind, textures, name):
             notes.append("Glass BSDF: only its reflection is rendered (the transmitted light is not)")
             if distribution == "MULTI_GGX":
                 distribution = "GGX"  # Cycles compensates the glass's energy with tables of its own
-            lobe = surface_mix.sp.GlossyLobe(weight=colour, roughness=roughness, distribution=distribution,
-                                             fresnel="dielectric", ior=ior, f0=np.full(3, surface_mix.sp.f0_from_ior(ior)))
+            lobe = sp.GlossyLobe(weight=colour, roughness=roughness, distribution=distribution,
+                                             fresnel="dielectric", ior=ior, f0=np.full(3, sp.f0_from_ior(ior)))
         else:
-            lobe = surface_mix.sp.GlossyLobe(weight=colour, roughness=roughness, distribution=distribution,
+            lobe = sp.GlossyLobe(weight=colour, roughness=roughness, distribution=distribution,
                                              fresnel="none", fss=colour if distribution == "MULTI_GGX" else None)
     if lobe.roughness < MIN_ROUGHNESS:
         notes.append(f"a mirror-like reflection (roughness under {MIN_ROUGHNESS}: lamps' reflections are not rendered)")
@@ -555,7 +556,7 @@ def _mix_surface(shader, kind, textures, name, depth):
                 # The transparent part's weight is the hole, not a darker surface.
                 hole_first = kinds[0] == "BSDF_TRANSPARENT"
                 part = parts[1] if hole_first else parts[0]
-                return replace(part, alpha=fac_map if hole_first else 1.0 - fac_map, layer=part.layer)
+                return replace(part, alpha=fac_map if hole_first else 1.0 - fac_map)
         fac = _view_factor(shader.inputs["Fac"], name)
         weights = [1.0 - fac, fac]
     part, notes = surface_mix.mix(parts, weights, name)
