@@ -51,6 +51,18 @@ def test_multiscatter_lobes_integrate_to_their_glossy_color(name, mu):
     assert np.allclose(integral, expected, rtol=0.06, atol=3e-3), (integral, expected)
 
 
+def test_a_principled_layer_as_lobes_keeps_its_glossy_color():
+    """The Principled BSDF's layer through the general lobes: the dielectric layer's albedo times
+    its weight plus the metallic lobe's, as `layer_albedo` and `metal_albedo` define them."""
+    mu = np.linspace(0.0, 1.0, 23)
+    for principled in (sp.SpecularLayer(), sp.SpecularLayer(roughness=0.3, weight=0.4, metallic=0.6, metal_color=(0.9, 0.5, 0.2)),
+                  sp.SpecularLayer(ior=1.33, level=0.8, tint=(1.0, 0.6, 0.6), multiscatter=False)):
+        expected = principled.weight * sp.layer_albedo(principled, mu) + principled.metallic * sp.metal_albedo(principled, mu)
+        np.testing.assert_allclose(sp.glossy_color(principled, mu), expected, rtol=1e-12, atol=1e-12)
+        lobes = sp.layer_lobes(principled)
+        assert [lobe.fresnel for lobe in lobes] == ["dielectric"] + (["f82"] if principled.metallic else [])
+
+
 def test_beckmann_and_single_scattering_ggx_lose_their_multiple_bounces():
     """Without Multiscatter GGX's compensation the lobe reflects less than Cycles' albedo
     estimate, which counts none lost (Glossy Color = the colour for a bare Glossy BSDF)."""
@@ -195,7 +207,18 @@ def test_glossy_nodes_are_read_as_cycles_sets_them_up(bpy_module, sync, caplog):
         node.inputs["Roughness"].default_value = 0.2
         return node
 
-    builders = {"plastic": plastic, "brushed": brushed, "glass": glass}
+    def lacquer(tree):
+        mix = tree.nodes.new("ShaderNodeMixShader")
+        mix.inputs["Fac"].default_value = 0.25
+        base = tree.nodes.new("ShaderNodeBsdfPrincipled")
+        base.inputs["Base Color"].default_value = (0.8, 0.2, 0.1, 1.0)
+        coat = tree.nodes.new("ShaderNodeBsdfGlossy")
+        coat.inputs["Roughness"].default_value = 0.1
+        tree.links.new(base.outputs[0], mix.inputs[1])
+        tree.links.new(coat.outputs[0], mix.inputs[2])
+        return mix
+
+    builders = {"plastic": plastic, "brushed": brushed, "glass": glass, "lacquer": lacquer}
     if hasattr(bpy.types, "ShaderNodeBsdfMetallic"):  # Blender 4.3 and later
         builders["conductor"] = conductor
     mats = [_material(bpy, name, build) for name, build in builders.items()]
@@ -214,6 +237,15 @@ def test_glossy_nodes_are_read_as_cycles_sets_them_up(bpy_module, sync, caplog):
     np.testing.assert_allclose(sp.glossy_color(plastic_surface, mu)[:, 0], 0.8 * f * albedo, rtol=0.01)
     np.testing.assert_allclose(by_name["plastic"].base_color[2] * sp.diffuse_weight(plastic_surface, mu),
                                0.8 * (1.0 - f), rtol=0.01)
+    # Mix(Principled, Glossy, 0.25): the Principled's lobes at 0.75, the Glossy's at 0.25, and the
+    # diffuse colour under the Principled's own layering, at 0.75.
+    lacquer = by_name["lacquer"].specular
+    alone = sp.SpecularLayer(roughness=0.5)
+    assert [lobe.fresnel for lobe in lacquer.lobes] == ["dielectric", "none"]
+    np.testing.assert_allclose(lacquer.lobes[0].weight, 0.75)
+    np.testing.assert_allclose(lacquer.lobes[1].weight, 0.25 * 0.8, rtol=1e-6)
+    np.testing.assert_allclose(by_name["lacquer"].base_color[0] * sp.diffuse_weight(lacquer, mu),
+                               0.75 * 0.8 * sp.diffuse_weight(alone, mu), rtol=2e-3)
     (brushed,) = by_name["brushed"].specular.lobes
     assert brushed.distribution == "BECKMANN" and brushed.fresnel == "none"
     (glass_lobe,) = by_name["glass"].specular.lobes
