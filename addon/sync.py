@@ -566,14 +566,62 @@ def _mix_surface(shader, kind, textures, name, depth):
 
 
 def _view_factor(socket, name):
-    """(V,) a Mix Shader's Fac over the view cosine: a Fresnel or Layer Weight node's output
-    (their IOR / Blend constant), else its constant value (`_constant_value` warns for others)."""
+    """(V,) a Mix Shader's Fac over the view cosine (`_factor_table`), clamped as the Mix Shader
+    clamps it; a factor from anything else keeps its own value (`_constant_value` warns)."""
+    table = _factor_table(socket, name)
+    if table is None:
+        return surface_mix.constant_factor(_constant_value(socket, name))
+    return np.clip(np.broadcast_to(np.asarray(table, np.float64), (sp.VIEW_SAMPLES,)), 0.0, 1.0)
+
+
+def _factor_table(socket, name, depth=0):
+    """(V,) or a float: what a float input evaluates to over the view cosine, through the nodes
+    tutorials put between a Fresnel or Layer Weight node and a Mix Shader (Math, Invert, Color
+    Ramp, Map Range) and constants; None for anything else. A colour reads as its luminance."""
     node, output = _source(socket)
-    if node is not None and node.type == "FRESNEL":
+    if node is None:  # unlinked or muted: the socket's own value
+        value = socket.default_value
+        return float(np.dot(tuple(value)[:3], surface_mix.GRAY)) if hasattr(value, "__len__") else float(value)
+    if depth > 16:
+        return None
+    kind = node.type
+    if kind == "FRESNEL":
         return surface_mix.fresnel_factor(_constant_value(node.inputs["IOR"], name))
-    if node is not None and node.type == "LAYER_WEIGHT":
+    if kind == "LAYER_WEIGHT":
         return surface_mix.layer_weight_factor(_constant_value(node.inputs["Blend"], name), output)
-    return surface_mix.constant_factor(_constant_value(socket, name))
+    if kind == "MATH":
+        a, b = (_factor_table(node.inputs[i], name, depth + 1) for i in (0, 1))
+        if a is None or b is None:
+            return None
+        return surface_mix.math_factor(node.operation, a, b, bool(node.use_clamp))
+    if kind == "INVERT":
+        fac, colour = (_factor_table(node.inputs[key], name, depth + 1) for key in ("Fac", "Color"))
+        if fac is None or colour is None:
+            return None
+        return (1.0 - np.asarray(fac)) * np.asarray(colour) + np.asarray(fac) * (1.0 - np.asarray(colour))
+    if kind == "VALTORGB":
+        fac = _factor_table(node.inputs["Fac"], name, depth + 1)
+        ramp = node.color_ramp
+        rgba = None if fac is None else surface_mix.ramp_factor(
+            np.broadcast_to(np.asarray(fac, np.float64), (sp.VIEW_SAMPLES,)), [e.position for e in ramp.elements],
+            [tuple(e.color) for e in ramp.elements], ramp.interpolation)
+        if rgba is None:
+            return None
+        return rgba[:, 3] if output == "Alpha" else rgba[:, :3] @ surface_mix.GRAY
+    if kind == "MAP_RANGE" and getattr(node, "data_type", "FLOAT") == "FLOAT" and node.interpolation_type == "LINEAR":
+        values = [_factor_table(node.inputs[key], name, depth + 1)
+                  for key in ("Value", "From Min", "From Max", "To Min", "To Max")]
+        if any(v is None for v in values):
+            return None
+        x, lo, hi, to_lo, to_hi = (np.asarray(v, np.float64) for v in values)
+        span = hi - lo
+        t = np.where(span != 0.0, (x - lo) / np.where(span != 0.0, span, 1.0), 0.0)
+        out = to_lo + t * (to_hi - to_lo)
+        return np.clip(out, np.minimum(to_lo, to_hi), np.maximum(to_lo, to_hi)) if node.clamp else out
+    folded = _fold(socket, 0)
+    return None if folded is None else float(np.dot(np.broadcast_to(folded, (3,)), surface_mix.GRAY)
+                                             if np.ndim(folded) else folded)
+
 
 
 def _alpha_map(socket, textures, name, constant_ok=True):

@@ -6,7 +6,8 @@ view cosine mu, emission, alpha, and glossy closures (`specular.GlossyLobe`). Cy
 multiplies every closure of its first input by 1 - Fac and of its second by Fac (svm_node_mix_closure),
 the Add Shader by 1; Fac is evaluated per shading point, so a Fresnel or Layer Weight factor makes
 the weights functions of mu (`fresnel_factor`, `layer_weight_factor`, the nodes' svm/fresnel.h):
-a glossy closure keeps it as its view factor, and the diffuse part's weight is the sum of its
+(also through Math, Color Ramp and the like: `math_factor`, `ramp_factor`, the add-on's
+`_factor_table`); a glossy closure keeps it as its view factor, and the diffuse part's weight is the sum of its
 inputs' weights, so Diffuse Color = base x (1 - F(mu)) under Mix(Diffuse, Glossy, Fresnel), as
 Cycles' pass shows per pixel. Weights are tables over `specular.view_grid`.
 """
@@ -138,3 +139,49 @@ def mix(parts: list[SurfacePart], weights: list[np.ndarray], name: str = "") -> 
     part = SurfacePart(base=np.asarray(base, np.float32), texture=texture, emission=np.asarray(emission, np.float32),
                        alpha=alpha, diffuse=None if np.allclose(diffuse, 1.0) else diffuse, lobes=lobes)
     return part, notes
+
+
+#: Math node operations a factor table goes through (Cycles' svm_math, safe division and power).
+MATH_OPERATIONS = ("ADD", "SUBTRACT", "MULTIPLY", "DIVIDE", "POWER", "MINIMUM", "MAXIMUM")
+#: Rec.709 luminance: how Cycles turns a colour into a float input (linear_rgb_to_gray).
+GRAY = np.array([0.2126, 0.7152, 0.0722])
+
+
+def math_factor(operation: str, a: np.ndarray, b: np.ndarray, clamp: bool) -> np.ndarray | None:
+    """(V,) a Math node's output over factor tables (or constants) a and b; None for an
+    operation this reader does not follow."""
+    a, b = np.broadcast_arrays(np.asarray(a, np.float64), np.asarray(b, np.float64))
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        if operation == "ADD":
+            out = a + b
+        elif operation == "SUBTRACT":
+            out = a - b
+        elif operation == "MULTIPLY":
+            out = a * b
+        elif operation == "DIVIDE":
+            out = np.where(b != 0.0, a / np.where(b != 0.0, b, 1.0), 0.0)
+        elif operation == "POWER":
+            out = np.where((a >= 0.0) | (b == np.round(b)), np.power(a, b), 0.0)
+        elif operation == "MINIMUM":
+            out = np.minimum(a, b)
+        elif operation == "MAXIMUM":
+            out = np.maximum(a, b)
+        else:
+            return None
+    out = np.nan_to_num(out, nan=0.0, posinf=0.0, neginf=0.0)
+    return np.clip(out, 0.0, 1.0) if clamp else out
+
+
+def ramp_factor(fac: np.ndarray, positions, colours, interpolation: str) -> np.ndarray | None:
+    """(V, 4) a Color Ramp's RGBA over a factor table: linear between its stops or constant
+    (the stop at or below), the factor clamped to 0..1; None for its other interpolations."""
+    positions = np.asarray(positions, np.float64)
+    colours = np.asarray(colours, np.float64).reshape(-1, 4)
+    order = np.argsort(positions, kind="stable")
+    positions, colours = positions[order], colours[order]
+    f = np.clip(np.asarray(fac, np.float64), 0.0, 1.0)
+    if interpolation == "LINEAR":
+        return np.stack([np.interp(f, positions, colours[:, c]) for c in range(4)], axis=-1)
+    if interpolation == "CONSTANT":
+        return colours[np.clip(np.searchsorted(positions, f, side="right") - 1, 0, len(positions) - 1)]
+    return None

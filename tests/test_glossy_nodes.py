@@ -144,6 +144,19 @@ def test_layer_weight_outputs_and_constant_mixes():
     assert notes
 
 
+def test_factor_nodes_follow_cycles_math_and_ramps():
+    a = np.array([-0.5, 0.0, 0.5, 2.0])
+    np.testing.assert_allclose(surface_mix.math_factor("DIVIDE", a, np.array([1.0, 0.0, 0.25, 4.0]), False),
+                               [-0.5, 0.0, 2.0, 0.5])  # safe division: x / 0 = 0
+    np.testing.assert_allclose(surface_mix.math_factor("POWER", a, 0.5, True), [0.0, 0.0, np.sqrt(0.5), 1.0])
+    assert surface_mix.math_factor("SINE", a, 0.0, False) is None
+    fac = np.array([0.0, 0.3, 0.5, 0.8, 1.5])
+    stops, colours = [0.6, 0.2], [(1.0, 1.0, 1.0, 1.0), (0.0, 0.0, 0.0, 0.5)]
+    np.testing.assert_allclose(surface_mix.ramp_factor(fac, stops, colours, "LINEAR")[:, 0], [0, 0.25, 0.75, 1, 1])
+    np.testing.assert_allclose(surface_mix.ramp_factor(fac, stops, colours, "CONSTANT")[:, 3], [0.5, 0.5, 0.5, 1, 1])
+    assert surface_mix.ramp_factor(fac, stops, colours, "B_SPLINE") is None
+
+
 def test_bad_lobe_inputs_stay_finite():
     lobe = sp.GlossyLobe(weight=(np.nan, -1.0, 2.0), roughness=np.inf, distribution="PHONG", ior=np.nan,
                          f0=(2.0, np.nan, -1.0), view=np.array([np.nan, 0.5, 2.0]))
@@ -218,7 +231,26 @@ def test_glossy_nodes_are_read_as_cycles_sets_them_up(bpy_module, sync, caplog):
         tree.links.new(coat.outputs[0], mix.inputs[2])
         return mix
 
-    builders = {"plastic": plastic, "brushed": brushed, "glass": glass, "lacquer": lacquer}
+    def ramped(tree):
+        # A tutorial's factor: Layer Weight (Facing) -> Color Ramp (0.2: black, 0.9: white) ->
+        # Math (power 2) -> Fac.
+        mix = tree.nodes.new("ShaderNodeMixShader")
+        weight = tree.nodes.new("ShaderNodeLayerWeight")
+        weight.inputs["Blend"].default_value = 0.5
+        ramp = tree.nodes.new("ShaderNodeValToRGB")
+        ramp.color_ramp.elements[0].position = 0.2
+        ramp.color_ramp.elements[1].position = 0.9
+        power = tree.nodes.new("ShaderNodeMath")
+        power.operation = "POWER"
+        power.inputs[1].default_value = 2.0
+        tree.links.new(weight.outputs["Facing"], ramp.inputs["Fac"])
+        tree.links.new(ramp.outputs["Color"], power.inputs[0])
+        tree.links.new(power.outputs[0], mix.inputs["Fac"])
+        tree.links.new(tree.nodes.new("ShaderNodeBsdfDiffuse").outputs[0], mix.inputs[1])
+        tree.links.new(tree.nodes.new("ShaderNodeBsdfGlossy").outputs[0], mix.inputs[2])
+        return mix
+
+    builders = {"plastic": plastic, "brushed": brushed, "glass": glass, "lacquer": lacquer, "ramped": ramped}
     if hasattr(bpy.types, "ShaderNodeBsdfMetallic"):  # Blender 4.3 and later
         builders["conductor"] = conductor
     mats = [_material(bpy, name, build) for name, build in builders.items()]
@@ -246,6 +278,11 @@ def test_glossy_nodes_are_read_as_cycles_sets_them_up(bpy_module, sync, caplog):
     np.testing.assert_allclose(lacquer.lobes[1].weight, 0.25 * 0.8, rtol=1e-6)
     np.testing.assert_allclose(by_name["lacquer"].base_color[0] * sp.diffuse_weight(lacquer, mu),
                                0.75 * 0.8 * sp.diffuse_weight(alone, mu), rtol=2e-3)
+    (ramped,) = by_name["ramped"].specular.lobes
+    facing = 1.0 - mu
+    # Tabulated over 64 cosines: a percent off at the ramp's kink (mu = 0.1).
+    np.testing.assert_allclose(sp.sample_view(ramped.view, mu), np.clip((facing - 0.2) / 0.7, 0.0, 1.0) ** 2,
+                               atol=0.01)
     (brushed,) = by_name["brushed"].specular.lobes
     assert brushed.distribution == "BECKMANN" and brushed.fresnel == "none"
     (glass_lobe,) = by_name["glass"].specular.lobes
