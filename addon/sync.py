@@ -535,7 +535,8 @@ def _specular_layer(shader, name, base, texture, metallic, transmission):
                          level=_constant_value(level, name) if level is not None else 0.5,
                          tint=_constant_color(tint, name) if colour_tint else np.ones(3, np.float32),
                          multiscatter=getattr(shader, "distribution", "MULTI_GGX") == "MULTI_GGX",
-                         weight=(1.0 - metallic) * (1.0 - transmission), metallic=metallic, metal_color=metal)
+                         weight=(1.0 - metallic) * (1.0 - transmission), metallic=metallic, metal_color=metal,
+                         transmission=transmission)
 
 
 def _mix_surface(shader, kind, textures, name, depth):

@@ -222,7 +222,9 @@ class SpecularLayer:
     multiscatter : the node's distribution is Multiscatter GGX (Cycles' default), whose energy
     compensation darkens the layer by E + Fms (1 - E).
     weight : the layer's share of the surface, (1 - metallic)(1 - transmission) as Cycles weights
-    it; metallic, metal_color : the metallic lobe's weight and F0 (the clamped base colour).
+    it; metallic, metal_color : the metallic lobe's weight and F0 (the clamped base colour);
+    transmission : the Transmission Weight, whose glass closure (weight transmission x
+    (1 - metallic)) reflects with the real Fresnel of the IOR (not level-adjusted) and the tint.
     """
 
     roughness: float = 0.5
@@ -233,6 +235,7 @@ class SpecularLayer:
     weight: float = 1.0
     metallic: float = 0.0
     metal_color: np.ndarray = field(default_factory=lambda: np.zeros(3, np.float32))
+    transmission: float = 0.0
 
     def __post_init__(self) -> None:
         def finite(value, default, lo, hi):
@@ -248,6 +251,7 @@ class SpecularLayer:
         self.metallic = finite(self.metallic, 0.0, 0.0, 1.0)
         metal = np.asarray(self.metal_color, np.float32).reshape(-1)[:3]
         self.metal_color = np.clip(np.where(np.isfinite(metal), metal, 0.0), 0.0, 1.0).astype(np.float32)
+        self.transmission = finite(self.transmission, 0.0, 0.0, 1.0)
 
     @property
     def eta(self) -> float:
@@ -270,7 +274,7 @@ class SpecularLayer:
 
     def key(self) -> bytes:
         return np.array([self.roughness, self.ior, self.level, *self.tint, self.multiscatter, self.weight,
-                         self.metallic, *self.metal_color], np.float64).tobytes()
+                         self.metallic, *self.metal_color, self.transmission], np.float64).tobytes()
 
 
 def layer_albedo(layer: SpecularLayer, mu) -> np.ndarray:
@@ -325,7 +329,9 @@ def hemispherical_glossy_albedo(layer) -> np.ndarray:
         return np.mean(2.0 * glossy_color(layer, mu) * mu[:, None], axis=0).astype(np.float32)
     dielectric = np.mean(2.0 * layer_albedo(layer, mu) * mu[:, None], axis=0) if layer.active else np.zeros(3)
     metal = layer.metal_color + (1.0 - layer.metal_color) / 21.0
-    return (layer.weight * dielectric + layer.metallic * metal).astype(np.float32)
+    glass = sum((np.mean(2.0 * lobe_color(lobe, mu) * mu[:, None], axis=0) for lobe in _transmission_lobes(layer)),
+                np.zeros(3))
+    return (layer.weight * dielectric + layer.metallic * metal + glass).astype(np.float32)
 
 
 def hemispherical_diffuse_weight(layer) -> float:
@@ -563,12 +569,25 @@ def layer_lobes(layer: SpecularLayer) -> list:
     if layer.active and layer.weight > 0:
         out.append(GlossyLobe(weight=np.full(3, layer.weight), roughness=layer.roughness, distribution=distribution,
                               fresnel="dielectric", ior=layer.eta, f0=layer.f0))
+    out += _transmission_lobes(layer)
     if layer.metallic > 0:
         tint = np.minimum(layer.tint, 1.0)
         b = np.zeros(3) if np.all(tint == 1.0) else f82_b_from_tint(layer.metal_color, tint)
         out.append(GlossyLobe(weight=np.full(3, layer.metallic), roughness=layer.roughness, distribution=distribution,
                               fresnel="f82", f0=layer.metal_color, b=b))
     return out
+
+
+def _transmission_lobes(layer: SpecularLayer) -> list:
+    """The reflection of a Principled BSDF's transmission (Cycles' glass closure of weight
+    transmission x (1 - metallic), F0 of the IOR times the Specular Tint; its multiscatter glass
+    compensation is not modelled: rendered as GGX). Its transmitted light is not rendered."""
+    weight = layer.transmission * (1.0 - layer.metallic)
+    if weight <= 0 or layer.ior == 1.0:
+        return []
+    f0 = np.clip(float(f0_from_ior(layer.ior)) * layer.tint.astype(np.float64), 0.0, 1.0)
+    return [GlossyLobe(weight=np.full(3, weight), roughness=layer.roughness, distribution="GGX",
+                       fresnel="dielectric", ior=layer.ior, f0=f0)]
 
 
 def surface_lobes(surface) -> list:

@@ -1,6 +1,6 @@
 """Small scenes of the glossy shader nodes real Blender assets use (a bare Glossy BSDF, the classic
 Mix(Diffuse, Glossy) plastic with a Fresnel or Layer Weight factor, Add Shader, the Metallic
-BSDF, Glass; a Principled metal with an edge tint), built by a bpy subprocess: a smooth sphere on a floor under an area lamp in a black
+BSDF, Glass; a Principled metal with an edge tint, a Principled glass), built by a bpy subprocess: a smooth sphere on a floor under an area lamp in a black
 world, so every glossy light is the lamp's. Shared by tests/test_glossy_nodes.py and
 bench/glossy_nodes.py (which measures them against Cycles)."""
 
@@ -10,7 +10,7 @@ import subprocess
 import sys
 import textwrap
 
-KINDS = ("glossy", "mix_fresnel", "mix_layer_weight", "add", "metallic", "glass", "tinted_metal")
+KINDS = ("glossy", "mix_fresnel", "mix_layer_weight", "add", "metallic", "glass", "tinted_metal", "principled_glass")
 
 SCENE = textwrap.dedent("""
     import sys, bpy
@@ -79,6 +79,10 @@ SCENE = textwrap.dedent("""
                                               **{"Base Color": (0.9, 0.6, 0.3, 1.0), "Edge Tint": (0.9, 0.8, 0.7, 1.0)}))
         floor = single("floor", lambda t: node(t, "ShaderNodeBsdfMetallic", Roughness=0.5,
                                                _fresnel_type="PHYSICAL_CONDUCTOR"))
+    elif kind == "principled_glass":
+        ball = single("ball", lambda t: node(t, "ShaderNodeBsdfPrincipled", Roughness=0.3,
+                                              **{"Transmission Weight": 1.0}))
+        floor = single("floor", lambda t: diffuse(t, (0.6, 0.5, 0.4)))
     elif kind == "tinted_metal":
         ball = single("ball", lambda t: node(t, "ShaderNodeBsdfPrincipled", Metallic=1.0, Roughness=0.35,
                                               **{"Base Color": (0.9, 0.6, 0.3, 1.0),

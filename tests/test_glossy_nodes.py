@@ -63,6 +63,22 @@ def test_a_principled_layer_as_lobes_keeps_its_glossy_color():
         assert [lobe.fresnel for lobe in lobes] == ["dielectric"] + (["f82"] if principled.metallic else [])
 
 
+def test_a_principled_transmission_reflects_as_its_glass_closure():
+    """Transmission 1: no specular layer (its weight is 0) but the glass closure's reflection,
+    the real Fresnel of the IOR (not the level-adjusted one) times the tint."""
+    glass = sp.SpecularLayer(roughness=0.3, ior=1.5, level=1.0, weight=0.0, transmission=1.0)
+    (lobe,) = sp.layer_lobes(glass)
+    assert lobe.fresnel == "dielectric" and lobe.ior == 1.5
+    np.testing.assert_allclose(lobe.f0, sp.f0_from_ior(1.5))
+    mu = np.array([0.2, 0.6, 1.0])
+    same = sp.GlossySurface(lobes=[sp.GlossyLobe(roughness=0.3, distribution="GGX", fresnel="dielectric", ior=1.5,
+                                                 f0=np.full(3, sp.f0_from_ior(1.5)))])
+    np.testing.assert_allclose(sp.glossy_color(glass, mu), sp.glossy_color(same, mu))
+    assert np.all(sp.hemispherical_glossy_albedo(glass) > 0.04)
+    half_metal = sp.SpecularLayer(weight=0.0, metallic=0.5, metal_color=(0.9, 0.9, 0.9), transmission=1.0)
+    np.testing.assert_allclose(sp.layer_lobes(half_metal)[0].weight, 0.5)
+
+
 def test_beckmann_and_single_scattering_ggx_lose_their_multiple_bounces():
     """Without Multiscatter GGX's compensation the lobe reflects less than Cycles' albedo
     estimate, which counts none lost (Glossy Color = the colour for a bare Glossy BSDF)."""
