@@ -550,11 +550,6 @@ class GlossySurface:
             d = np.asarray(self.diffuse, np.float64).reshape(-1)
             self.diffuse = np.clip(np.where(np.isfinite(d), d, 1.0), 0.0, None)
 
-    @property
-    def roughness(self) -> float:
-        """The smoothest lobe's roughness (what the mirror-like check of a material reads)."""
-        return min((lobe.roughness for lobe in self.lobes), default=1.0)
-
     def key(self) -> bytes:
         parts = [lobe.key() for lobe in self.lobes]
         parts.append(b"" if self.diffuse is None else np.asarray(self.diffuse, np.float64).tobytes())
