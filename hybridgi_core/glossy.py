@@ -120,10 +120,11 @@ def _lobe_terms(mats: GlossyMaterials, rows, n, v, lx, ly, lz):
     (m, s, 3) array is needed: BRDF x cos = sum over slots of common (k0 + k1 remap + k2 s5 +
     k3 c s6) per channel.
 
-    Returns a list over lobe slots of (common (m, s): D G2 / (4 cos_i), 0 below either horizon;
-    terms [3 x (m, s)]: remap (the dielectric Fresnel mapped to 0..1), (1 - c)^5 and c (1 - c)^6 of
-    c = cos(h, i), each None where the slot's coefficient of it is 0; k (m, 4, 3): the slot's coefficients times its multiscatter factor and view
-    factor at the receiver's view angle)."""
+    Returns a list over the lobe slots in use of (common (m, s): D G2 / (4 cos_i), 0 below
+    either horizon; terms, 3 x (m, s) or None where the slot's coefficient of it is 0: remap (the
+    dielectric Fresnel mapped to 0..1), (1 - c)^5 and c (1 - c)^6 of c = cos(h, i); k (m, 4, 3):
+    the slot's coefficients times its multiscatter factor and view factor at the receiver's view
+    angle)."""
     mu_i = np.einsum("ij,ij->i", n, v)[:, None]
     nx, ny, nz = n[:, 0:1], n[:, 1:2], n[:, 2:3]
     mu_o = lx * nx + ly * ny + lz * nz
