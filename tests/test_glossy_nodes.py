@@ -356,6 +356,10 @@ BOUNDS = {
     "mix_layer_weight": {"Diffuse Color": 0.01, "Glossy Color": 0.05, "Glossy Direct": 0.2, "Combined": 0.12},
     "add": {"Diffuse Color": 0.01, "Glossy Color": 0.05, "Glossy Direct": 0.2, "Combined": 0.06},
     "metallic": {"Glossy Color": 0.02, "Glossy Direct": 0.12, "Combined": 0.15},
+    # Principled BSDFs: a metal's Specular Tint is its F82 edge tint; a glass's reflection (its
+    # transmitted light is not rendered: Combined is not compared).
+    "tinted_metal": {"Glossy Color": 0.05, "Glossy Direct": 0.22, "Combined": 0.1},
+    "principled_glass": {"Glossy Color": 0.25, "Glossy Direct": 0.3},
 }
 
 
@@ -385,6 +389,12 @@ def test_glossy_nodes_match_cycles(kind, tmp_path):
     errors = {name: _error(passed(ours, name), passed(cycles, name), geometry) for name in BOUNDS[kind]}
     share = float((passed(cycles, "Glossy Direct") * passed(cycles, "Glossy Color"))[geometry].sum()
                   / layer(cycles, "Combined")[geometry][:, :3].sum())
-    assert share > 0.05, share  # the glossy light is a good part of the picture
+    assert share > (0.01 if kind == "principled_glass" else 0.05), share  # the glossy light counts
     for name, bound in BOUNDS[kind].items():
         assert errors[name] < bound, (name, errors)
+    if kind == "tinted_metal":
+        # The edge tint darkens the metal's grazing highlights (measured at 128x96: Glossy Direct
+        # bias +0.090 without it, +0.021 with it).
+        ours_gd, cycles_gd = passed(ours, "Glossy Direct")[geometry], passed(cycles, "Glossy Direct")[geometry]
+        bias = float((ours_gd - cycles_gd).sum() / cycles_gd.sum())
+        assert abs(bias) < 0.05, bias
