@@ -405,7 +405,7 @@ def _shader_surface(shader, textures, name, depth=0):
         tint = _constant_color(_input(shader, "Coat Tint"), name) if _input(shader, "Coat Tint") else np.ones(3)
         weight = (1.0 - np.clip(metallic, 0, 1)) * (1.0 - np.clip(transmission, 0, 1))
         _note_approximations(shader, textures, name, metallic, transmission, coat)
-        layer = _specular_layer(shader, name, base, texture, metallic, transmission)
+        layer = _specular_layer(shader, textures, name, base, texture, metallic, transmission)
         base = base * weight * (1.0 + np.clip(coat, 0, 1) * (tint - 1.0))
         emission = _constant_color(shader.inputs["Emission Color"], name) * _constant_value(
             shader.inputs["Emission Strength"], name)
@@ -449,7 +449,7 @@ def _glossy_lobe(shader, kind, textures, name):
     if distribution == "ASHIKHMIN_SHIRLEY":
         notes.append("Ashikhmin-Shirley distribution (rendered as GGX)")
         distribution = "GGX"
-    roughness = _constant_value(_input(shader, "Roughness"), name) if _input(shader, "Roughness") else 0.5
+    roughness = _roughness(shader, textures, name)
     anisotropy = _input(shader, "Anisotropy")
     if anisotropy is not None and abs(_constant_value(anisotropy, name)) > 1e-4:
         notes.append("anisotropy (rendered isotropic)")
@@ -512,16 +512,31 @@ def _note_approximations(shader, textures, name, metallic, transmission, coat):
         value = _input(shader, socket)
         if value is not None and _constant_value(value, name) > 0:
             notes.append(note)
-    roughness = _input(shader, "Roughness")
     level = _input(shader, "Specular IOR Level", "Specular")
     glossy = metallic > 0 or (level is not None and _constant_value(level, name) > 0)
-    if glossy and roughness is not None and _constant_value(roughness, name) < MIN_ROUGHNESS:
+    if glossy and _input(shader, "Roughness") is not None and _roughness(shader, textures, name) < MIN_ROUGHNESS:
         notes.append(f"a mirror-like specular (roughness under {MIN_ROUGHNESS}: lamps' reflections are not rendered)")
     if notes:
         _note(textures, name, shader, ", ".join(notes))
 
 
-def _specular_layer(shader, name, base, texture, metallic, transmission):
+def _roughness(shader, textures, name, default=0.5):
+    """A closure's Roughness: its constant, or the mean of an image it reads directly (a lobe has
+    one roughness: noted), else its own value (`_constant_value` warns)."""
+    socket = _input(shader, "Roughness")
+    if socket is None:
+        return default
+    node, output = _source(socket)
+    if node is not None and node.type == "TEX_IMAGE" and output in ("Color", "Alpha"):
+        pixels = textures.alpha(node.image, name) if output == "Alpha" else textures.get(node.image, name)
+        if pixels is not None:
+            _note(textures, name, shader, "Roughness from an image (its mean)")
+            mean = pixels.mean() if output == "Alpha" else pixels.reshape(-1, 3).mean(axis=0) @ surface_mix.GRAY
+            return float(np.clip(mean, 0.0, 1.0))
+    return _constant_value(socket, name)
+
+
+def _specular_layer(shader, textures, name, base, texture, metallic, transmission):
     """`SpecularLayer` of a Principled BSDF: its roughness, IOR, Specular IOR Level and Tint and
     its distribution (constant inputs; a linked one keeps its value, with a warning), weighted as
     Cycles weights the dielectric layer; the metallic lobe's F0 is the (mean) base colour."""
@@ -530,7 +545,7 @@ def _specular_layer(shader, name, base, texture, metallic, transmission):
     level = _input(shader, "Specular IOR Level", "Specular")
     tint = _input(shader, "Specular Tint")
     colour_tint = tint is not None and hasattr(tint.default_value, "__len__")
-    return SpecularLayer(roughness=_constant_value(_input(shader, "Roughness"), name),
+    return SpecularLayer(roughness=_roughness(shader, textures, name),
                          ior=_constant_value(_input(shader, "IOR"), name) if _input(shader, "IOR") else 1.5,
                          level=_constant_value(level, name) if level is not None else 0.5,
                          tint=_constant_color(tint, name) if colour_tint else np.ones(3, np.float32),

@@ -266,7 +266,22 @@ def test_glossy_nodes_are_read_as_cycles_sets_them_up(bpy_module, sync, caplog):
         tree.links.new(tree.nodes.new("ShaderNodeBsdfGlossy").outputs[0], mix.inputs[2])
         return mix
 
-    builders = {"plastic": plastic, "brushed": brushed, "glass": glass, "lacquer": lacquer, "ramped": ramped}
+    def mapped(tree):
+        # A Glossy BSDF whose Roughness reads a (non-colour) image directly: its mean, 0.35.
+        image = bpy.data.images.new("roughness map", 2, 2, float_buffer=True)
+        image.colorspace_settings.name = "Non-Color"
+        rgba = np.repeat(np.array([0.1, 0.2, 0.5, 0.6], np.float32)[:, None], 4, axis=1)
+        rgba[:, 3] = 1.0
+        image.pixels.foreach_set(rgba.ravel())
+        texture = tree.nodes.new("ShaderNodeTexImage")
+        texture.image = image
+        node = tree.nodes.new("ShaderNodeBsdfGlossy")
+        node.name = "Mapped"
+        tree.links.new(texture.outputs["Color"], node.inputs["Roughness"])
+        return node
+
+    builders = {"plastic": plastic, "brushed": brushed, "glass": glass, "lacquer": lacquer, "ramped": ramped,
+                "mapped": mapped}
     if hasattr(bpy.types, "ShaderNodeBsdfMetallic"):  # Blender 4.3 and later
         builders["conductor"] = conductor
     mats = [_material(bpy, name, build) for name, build in builders.items()]
@@ -299,6 +314,8 @@ def test_glossy_nodes_are_read_as_cycles_sets_them_up(bpy_module, sync, caplog):
     # Tabulated over 64 cosines: a percent off at the ramp's kink (mu = 0.1).
     np.testing.assert_allclose(sp.sample_view(ramped.view, mu), np.clip((facing - 0.2) / 0.7, 0.0, 1.0) ** 2,
                                atol=0.01)
+    (mapped,) = by_name["mapped"].specular.lobes
+    assert mapped.roughness == pytest.approx(0.35, abs=1e-3)
     (brushed,) = by_name["brushed"].specular.lobes
     assert brushed.distribution == "BECKMANN" and brushed.fresnel == "none"
     (glass_lobe,) = by_name["glass"].specular.lobes
