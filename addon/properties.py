@@ -161,6 +161,14 @@ class HybridGISettings(bpy.types.PropertyGroup):
         default=True,
     )
 
+    reflection_rays: IntProperty(
+        name="Reflection Rays",
+        description="Rays per pixel that a smooth glossy surface (roughness under 0.4: polished floors, metals, "
+        "lacquer) reflects, shaded at their hits, so it mirrors the room rather than its average colour "
+        "(final renders). 0 = the cache's mean light for every glossy surface",
+        default=4, min=0, max=256, soft_max=16,
+    )
+
     # Film (final renders).
     pixel_samples: IntProperty(
         name="Pixel Samples",
@@ -236,6 +244,7 @@ class HybridGISettings(bpy.types.PropertyGroup):
             pixel_rays=self.pixel_rays,
             pixel_filter=self.pixel_filter,
             pixel_full_res=bool(self.pixel_full_res),
+            reflection_rays=self.reflection_rays,
         )
 
 

@@ -59,7 +59,8 @@ class HYBRIDGI_PT_screen_space(HybridGIButtonsPanel, Panel):
 
     def draw(self, context):
         settings_column(self.layout, context.scene.hybridgi, (
-            "downsample", "pixel_rays", "pixel_filter", "pixel_full_res", "ssao_radius", "ssao_strength", ("blend_mode", {"expand": True})))
+            "downsample", "pixel_rays", "pixel_filter", "pixel_full_res", "reflection_rays", "ssao_radius",
+            "ssao_strength", ("blend_mode", {"expand": True})))
 
 
 class HYBRIDGI_PT_film(HybridGIButtonsPanel, Panel):

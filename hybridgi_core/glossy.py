@@ -59,7 +59,8 @@ class GlossyMaterials:
     and by lobe slot: arrays (L, m, ...) for the scene's most lobes per material L (unused slots
     weigh 0).
 
-    rough : (m,) the material's smoothest evaluated lobe's roughness; alpha2, e_avg : (L, m);
+    rough : (m,) the material's smoothest lobe's roughness, mirror-like ones included (what the
+    reflection rays trace: `reflection.py`; 1 without lobes); alpha2, e_avg : (L, m);
     beckmann, ms : (L, m) the Beckmann distribution, Multiscatter GGX; eta, f0_real : (L, m) the
     dielectric Fresnel's IOR (above 1) and its F0; k : (L, m, 4, 3) the weight times the
     Fresnel's coefficients (`GlossyLobe.coefficients`); fss : (L, m, 3); view : (L, m, V) the
@@ -82,15 +83,16 @@ class GlossyMaterials:
     @classmethod
     def from_materials(cls, materials) -> GlossyMaterials:
         layers = [getattr(m, "specular", None) for m in materials]
-        per = [[lobe for lobe in sp.surface_lobes(layer) if lobe.roughness >= MIN_ROUGHNESS] for layer in layers]
+        every = [sp.surface_lobes(layer) for layer in layers]
+        per = [[lobe for lobe in lobes if lobe.roughness >= MIN_ROUGHNESS] for lobes in every]
         n, slots = len(layers), max((len(p) for p in per), default=0)
         out = cls(np.ones(n), np.zeros((slots, n)), np.zeros((slots, n)), np.zeros((slots, n), bool),
                   np.zeros((slots, n), bool), np.full((slots, n), 1.5), np.zeros((slots, n)), np.zeros((slots, n, 4, 3)),
                   np.ones((slots, n, 3)), np.ones((slots, n)), np.ones((slots, n, sp.VIEW_SAMPLES)), layers)
         _, e_avg_table, _ = sp.tables()
         for i, lobes in enumerate(per):
-            if lobes:
-                out.rough[i] = min(lobe.roughness for lobe in lobes)
+            if every[i]:
+                out.rough[i] = min(lobe.roughness for lobe in every[i])
             for j, lobe in enumerate(lobes):
                 out.lobe_rough[j, i] = lobe.roughness
                 out.alpha2[j, i] = lobe.roughness**4

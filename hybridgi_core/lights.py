@@ -272,7 +272,17 @@ def _shadow_to_targets(tracer, p, nrm, idx, tx, ty, tz, epsilon):
     return vis
 
 
-def _point_chunk(light, p, nrm, tracer, rng, samples, epsilon):
+def _mark_partial(partial, rows, blocked, m):
+    """partial (m,) |= receivers among whose traced samples (rows (k,) receiver of each) some
+    were blocked and some not: the ones a penumbra crosses (`penumbra.adaptive_direct`)."""
+    if partial is None or rows.size == 0:
+        return
+    traced = np.bincount(rows, minlength=m)
+    hidden = np.bincount(rows[blocked], minlength=m)
+    partial |= (hidden > 0) & (hidden < traced)
+
+
+def _point_chunk(light, p, nrm, tracer, rng, samples, epsilon, partial=None):
     c = light.position
     wx, wy, wz = c[0] - p[0], c[1] - p[1], c[2] - p[2]  # receiver -> lamp
     # I / d^2 is exact for a facing receiver outside a Lambertian sphere of that radius and its
@@ -310,6 +320,7 @@ def _point_chunk(light, p, nrm, tracer, rng, samples, epsilon):
     rows = np.repeat(live, s)
     vis = _shadow_to_targets(tracer, p, nrm, rows, tx.ravel(), ty.ravel(), tz.ravel(), epsilon)
     e[live] *= vis.reshape(-1, s).mean(axis=1, dtype=_F32)
+    _mark_partial(partial, rows, ~vis, e.shape[0])
     return e
 
 
@@ -353,7 +364,7 @@ def uniform_cone(axis, half_angle: float, u: np.ndarray, v: np.ndarray):
     return tuple(a * scale * t1[k] + b * scale * t2[k] + cos_t * ax[k] for k in range(3)), one_minus_cos
 
 
-def _sun_chunk(light, p, nrm, tracer, rng, samples, epsilon):
+def _sun_chunk(light, p, nrm, tracer, rng, samples, epsilon, partial=None):
     """A sun with a disc (angle > 0), sampled; `_sun_axis` shades suns traced along their axis."""
     m = p[0].shape[0]
     u, v = stratified_uv(rng, m, samples)
@@ -371,17 +382,18 @@ def _sun_chunk(light, p, nrm, tracer, rng, samples, epsilon):
             # Finite receivers (checked by the caller) and unit cone directions: no ray checks.
             blocked = np.asarray(tracer.occluded(origins, dirs, np.inf, trusted=True), bool)
             contrib.ravel()[lit[blocked]] = 0.0
+            _mark_partial(partial, rows, blocked, m)
     return contrib.sum(axis=1)
 
 
-def _area_chunk(light, shape, p, nrm, tracer, rng, samples, epsilon):
+def _area_chunk(light, shape, p, nrm, tracer, rng, samples, epsilon, partial=None, solid_angle=True):
     m = p[0].shape[0]
     # Drawn for every receiver so the rng stream does not depend on which ones face the lamp.
     u, v = stratified_uv(rng, m, samples)
     e = np.zeros(m, _F32)
     radiance = float(light.power) / (np.pi * shape.area)
-    if not shape.rectangular:
-        return _area_chunk_by_area(shape, radiance, p, nrm, tracer, u, v, samples, epsilon)
+    if not shape.rectangular or not solid_angle:
+        return _area_chunk_by_area(shape, radiance, p, nrm, tracer, u, v, samples, epsilon, partial)
     # Receiver-relative coordinates of the lamp's bounding rectangle in its frame (x, y, normal).
     # float64 per receiver: the solid angle is a small difference of angles that sum to ~2 pi;
     # the per-sample work below is float32 (`_sample_spherical_rectangle`).
@@ -441,6 +453,7 @@ def _area_chunk(light, shape, p, nrm, tracer, rng, samples, epsilon):
                 # Finite receivers (checked by the caller), unit directions, positive reach.
                 blocked = np.asarray(tracer.occluded(origins, dirs, tfar[ray], trusted=True), bool)
                 f.ravel()[lit[ray[blocked]]] = 0.0
+                _mark_partial(partial, src, blocked, m)
     # Solid-angle sampling: each sample estimates L * S * cos_r, bounded by 2 pi L.
     total = f.sum(axis=1) * (solid_angle * (radiance / samples)).astype(_F32)
     if unshadowed is not None:
@@ -536,7 +549,7 @@ def _sample_spherical_rectangle(x0, y0, z0, len_x, len_y, u, v):
     return xu, yv, valid, solid_angle
 
 
-def _area_chunk_by_area(shape, radiance, p, nrm, tracer, u, v, samples, epsilon):
+def _area_chunk_by_area(shape, radiance, p, nrm, tracer, u, v, samples, epsilon, partial=None):
     """Uniform area sampling, for sheared (non-rectangular) lamps that Urena's method cannot take."""
     qx, qy, qz = _area_points(shape, u, v)
     wx, wy, wz = qx - p[0][:, None], qy - p[1][:, None], qz - p[2][:, None]  # receiver -> sample
@@ -552,6 +565,7 @@ def _area_chunk_by_area(shape, radiance, p, nrm, tracer, u, v, samples, epsilon)
         if rows.size:
             vis = _shadow_to_targets(tracer, p, nrm, rows, qx[rows, cols], qy[rows, cols], qz[rows, cols], epsilon)
             g[rows[~vis], cols[~vis]] = 0.0
+            _mark_partial(partial, rows, ~vis, g.shape[0])
     return g.sum(axis=1) * _F32(radiance * shape.area / samples)
 
 
@@ -569,6 +583,8 @@ def direct_irradiance(
     samples: int = 1,
     epsilon: float = 1e-4,
     sun_disc: bool = True,
+    partial: np.ndarray | None = None,
+    solid_angle: bool = True,
 ) -> np.ndarray:
     """Irradiance from the lamps at one-sided Lambertian receivers, with shadow rays.
 
@@ -587,6 +603,12 @@ def direct_irradiance(
     epsilon : metres; shadow rays start this far along the normal and stop this short of the lamp.
     sun_disc : sample the sun's angular disc (soft shadows); False traces one ray along its axis,
         enough where the result is averaged anyway (probe-ray hits of the low-frequency cache).
+    partial : optional (n,) bool output: set True at receivers where some of a sampled lamp's
+        shadow rays were blocked and some were not (a penumbra; hard lamps never set it).
+    solid_angle : sample rectangular area lamps uniformly in their solid angle (Urena et al.:
+        quiet near a large lamp, ~3 us of float64 set-up per receiver); False samples them
+        uniformly over their area (~5x cheaper per receiver, noisier close to the lamp), enough
+        for ray hits whose light is averaged anyway (probe rays into the cache, pixel rays).
 
     Returns
     -------
@@ -601,6 +623,8 @@ def direct_irradiance(
         raise ValueError(f"points {pts.shape} and normals {nrm.shape} differ in shape")
     n = pts.shape[0]
     out = np.zeros((n, 3), _F32)
+    if partial is not None:
+        partial[:] = False
     active = [lt for lt in lights if float(lt.power) != 0.0 and np.any(lt.color != 0)]
     if n == 0 or not active:
         return out
@@ -620,6 +644,7 @@ def direct_irradiance(
     if sel is not None:
         pts, nrm = pts[sel], nrm[sel]
     acc = np.zeros((pts.shape[0], 3), _F32)
+    found = np.zeros(pts.shape[0], bool) if partial is not None else None
     # Suns traced along their axis need no sample patterns: whole arrays at once, row-major.
     axial = [lt.kind == "SUN" and (not sun_disc or float(lt.angle) <= 0.0) for lt in active]
     for lt, ax in zip(active, axial, strict=True):
@@ -631,16 +656,19 @@ def direct_irradiance(
         stop = min(start + step, pts.shape[0])
         p = tuple(np.ascontiguousarray(pts[start:stop, k]) for k in range(3))
         q = tuple(np.ascontiguousarray(nrm[start:stop, k]) for k in range(3))
+        mark = found[start:stop] if found is not None else None
         for i, lt in sampled:
             if lt.kind in ("POINT", "SPOT"):
-                e = _point_chunk(lt, p, q, tracer, rng, samples, epsilon)
+                e = _point_chunk(lt, p, q, tracer, rng, samples, epsilon, mark)
             elif lt.kind == "SUN":
-                e = _sun_chunk(lt, p, q, tracer, rng, samples, epsilon)
+                e = _sun_chunk(lt, p, q, tracer, rng, samples, epsilon, mark)
             elif i in shapes:
-                e = _area_chunk(lt, shapes[i], p, q, tracer, rng, samples, epsilon)
+                e = _area_chunk(lt, shapes[i], p, q, tracer, rng, samples, epsilon, mark, solid_angle)
             else:
                 continue
             acc[start:stop] += e[:, None] * lt.color[None, :]
+    if partial is not None:
+        partial[slice(None) if sel is None else sel] = found
     if sel is None:
         return acc
     out[sel] = acc

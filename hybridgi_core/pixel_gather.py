@@ -219,7 +219,6 @@ def _chunk(system, lookup: HitLookup | None, p, nrm, corner_visible, rays, rng):
     times["cache_sh"] = (time.perf_counter() - tic) * 1e3
     if rays <= 0:
         return res, coeffs, times
-    scene = system.updater.scene
     tracer = system.tracer
     eps = np.float32(tracer.epsilon)
     tic = time.perf_counter()
@@ -231,24 +230,7 @@ def _chunk(system, lookup: HitLookup | None, p, nrm, corner_visible, rays, rng):
 
     tic = time.perf_counter()
     k = sh_d.shape[1]
-    hit = np.flatnonzero(hits.prim >= 0)
-    radiance = np.zeros((m * rays, 6), np.float32)  # direct rgb (sky, emitters) | reflected rgb
-    world = scene.world
-    if s.indirect_quality != AO_ONLY:
-        if world.any:
-            radiance[:, 0:3] = world.radiance(dirs)
-        if hit.size:
-            surf = scene.surfaces.probe_hits(hits.prim[hit], hits.u[hit], hits.v[hit], dirs[hit])
-            radiance[hit, 0:3] = surf.emission
-            position = dirs[hit] * hits.t[hit, None]
-            position += origins[hit]
-            ts = time.perf_counter()
-            e_in = direct_irradiance(scene.lights, position, surf.normal, tracer, rng,
-                                     samples=s.light_samples, epsilon=float(eps), sun_disc=False)
-            times["shadow"] = (time.perf_counter() - ts) * 1e3
-            # Further bounces read the cache at the hit, as probe-ray hits do.
-            e_in += lookup.irradiance(position, surf.normal).T
-            radiance[hit, 3:6] = e_in * surf.brdf
+    radiance = hit_radiance(system, lookup, origins, dirs, hits, rng, times)
     visible = (hits.t > s.ao_distance).astype(np.float32)
     # Control variate: the cache's radiance SH along the same rays. Linear in the SH, so its mean
     # over a pixel's rays is the SH of the pixel's mean basis vector (no per-ray products).
@@ -273,6 +255,44 @@ def _chunk(system, lookup: HitLookup | None, p, nrm, corner_visible, rays, rng):
     _more_ao_rays(system, res, p, nrm, ao_mean, sh_a, covered, rays, rng, times)
     times["shade"] = (time.perf_counter() - tic) * 1e3 - times.get("shadow", 0.0)
     return res, coeffs, times
+
+
+def hit_radiance(system, lookup: HitLookup | None, origins: np.ndarray, dirs: np.ndarray, hits, rng,
+                 times: dict | None = None, glossy_lamps: bool = True) -> np.ndarray:
+    """(N, 6) float32 radiance coming back along rays (origins, dirs (N, 3)) from their `hits`:
+    rgb straight from the world or an emitter (what Cycles counts as direct light) | rgb the hit
+    surface reflects (its lamp light through shadow rays, plus the cache read at the hit for the
+    further bounces), as probe-ray hits are shaded (`update.py`). Zero with AO-only quality.
+    times : step times to add the shadow rays' ("shadow") to. glossy_lamps : False lights a hit's
+    glossy share (which the cache reflects as diffuse, `shading.SurfaceTable.set_materials`) by
+    the cache's light only, not the lamps': a reflection ray sees a glossy surface from one
+    direction, where a lamp shows only in the highlight, not spread over the surface."""
+    s, scene, tracer = system.settings, system.updater.scene, system.tracer
+    radiance = np.zeros((dirs.shape[0], 6), np.float32)
+    if s.indirect_quality == AO_ONLY:
+        return radiance
+    hit = np.flatnonzero(hits.prim >= 0)
+    if scene.world.any:
+        radiance[:, 0:3] = scene.world.radiance(dirs)
+    if hit.size:
+        surf = scene.surfaces.probe_hits(hits.prim[hit], hits.u[hit], hits.v[hit], dirs[hit])
+        radiance[hit, 0:3] = surf.emission
+        position = dirs[hit] * hits.t[hit, None]
+        position += origins[hit]
+        ts = time.perf_counter()
+        e_in = direct_irradiance(scene.lights, position, surf.normal, tracer, rng,
+                                 samples=s.light_samples, epsilon=float(np.float32(tracer.epsilon)), sun_disc=False)
+        if times is not None:
+            times["shadow"] = times.get("shadow", 0.0) + (time.perf_counter() - ts) * 1e3
+        brdf = surf.brdf
+        if not glossy_lamps:
+            radiance[hit, 3:6] = e_in * (brdf - scene.surfaces.glossy_brdf(hits.prim[hit]))
+            e_in = np.zeros_like(e_in)
+        # Further bounces read the cache at the hit, as probe-ray hits do.
+        if lookup is not None:
+            e_in += lookup.irradiance(position, surf.normal).T
+        radiance[hit, 3:6] += e_in * brdf
+    return radiance
 
 
 def _more_ao_rays(system, res, p, nrm, ao_mean, sh_a, covered, rays, rng, times) -> None:

@@ -116,6 +116,12 @@ class SurfaceTable:
         nrm = r[:, _NG] * np.where(backface, np.float32(-1.0), np.float32(1.0))[:, None]
         return ProbeHits(nrm, self._brdf(r, prim, u, v), r[:, _EMIT], backface)
 
+    def glossy_brdf(self, prim: np.ndarray) -> np.ndarray:
+        """(n, 3) float32 the part of the hits' brdf (prim (n,) >= 0) that stands for their glossy
+        lobes (`set_materials`): what a ray seeing the surface from one direction should not
+        take as lamp light reflected towards it (a lobe shows a lamp only in its highlight)."""
+        return self.glossy[np.take(self.material_index, prim)] * _INV_PI
+
     def emission_of(self, prim: np.ndarray) -> np.ndarray:
         """(n, 3) float32 emission of triangles prim; 0 for -1."""
         return np.take(self.records, prim, axis=0)[:, _EMIT]

@@ -368,9 +368,11 @@ class GISolver:
                 found, e = table.lookup(table.key(pos, chunk.normal[stale]))
                 chunk.e_lamp[:, stale[found]] = e[:, found]
                 stale, pos = stale[~found], pos[~found]
-            # One shadow ray along a sun's axis per hit, as the updater's: the cache is low frequency.
+            # One shadow ray along a sun's axis per hit, area lamps sampled over their area (cheap per
+            # receiver), as the updater's: the cache is low frequency.
             e = direct_irradiance(self.scene.lights, pos, chunk.normal[stale], self.tracer, rng,
-                                  samples=s.light_samples, epsilon=float(self.epsilon), sun_disc=False)
+                                  samples=s.light_samples, epsilon=float(self.epsilon), sun_disc=False,
+                                  solid_angle=False)
             chunk.e_lamp[:, stale] = e.T
         elif stale.size:
             chunk.e_lamp[:, stale] = 0.0

@@ -26,6 +26,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from functools import lru_cache
+from pathlib import Path
 
 import numpy as np
 
@@ -124,9 +125,36 @@ def _grid(n: int) -> np.ndarray:
     return np.arange(n) / (n - 1)
 
 
+#: The tables as `compute_tables` makes them, shipped so that a render does not spend ~0.6 s of a
+#: core on quadrature in every process (a one-frame headless render pays it each time). Rebuild
+#: with `python -m hybridgi_core.specular`; tests/test_specular checks that it matches.
+TABLES_FILE = Path(__file__).with_name("specular_tables.npz")
+#: What the shipped file was computed from: a file of other sizes is ignored (then computed here).
+TABLES_KEY = np.array([E_SIZE, S_SIZE, _QUAD_U, _QUAD_PHI])
+
+
 @lru_cache(maxsize=1)
 def tables():
-    """(E (rough, mu), E_avg (rough,), s (z, rough, mu)) float64, computed once per process."""
+    """(E (rough, mu), E_avg (rough,), s (z, rough, mu)) float64: the shipped `TABLES_FILE` when
+    it was made for these grid sizes, else `compute_tables()`; once per process."""
+    try:
+        with np.load(TABLES_FILE) as data:
+            if np.array_equal(data["key"], TABLES_KEY):
+                return data["e"], data["e_avg"], data["s"]
+    except (OSError, KeyError, ValueError):
+        pass
+    return compute_tables()
+
+
+def write_tables(path: Path = TABLES_FILE) -> None:
+    """Write `compute_tables()` to `path` (the shipped file), keyed by the grid sizes."""
+    e, e_avg, s = compute_tables()
+    with open(path, "wb") as f:
+        np.savez_compressed(f, key=TABLES_KEY, e=e, e_avg=e_avg, s=s)
+
+
+def compute_tables():
+    """(E (rough, mu), E_avg (rough,), s (z, rough, mu)) float64 by quadrature (~0.6 s)."""
     r, mu = np.meshgrid(_grid(E_SIZE), _grid(E_SIZE), indexing="ij")
     e = _lobe_samples(r.ravel(), mu.ravel())[0].sum(axis=1).reshape(E_SIZE, E_SIZE)
     # E_avg = 2 int E(mu) mu dmu, trapezoids over the table's own cosines.
@@ -592,3 +620,8 @@ def surface_lobes(surface) -> list:
     if isinstance(surface, GlossySurface):
         return surface.lobes
     return layer_lobes(surface)
+
+
+if __name__ == "__main__":
+    write_tables()
+    print(f"wrote {TABLES_FILE}")  # noqa: T201 (a developer command)

@@ -30,6 +30,9 @@ log = logging.getLogger(__name__)
 
 #: Points sampled on the ray mesh to find the cells any surface reads (warm-up set).
 SURFACE_SAMPLES = 2_000_000
+#: Surface samples per cell area (`_cells_on`). 8 found 0.3-0.7% more cells than 2 (cells barely
+#: read: the same 640x360 Cornell, car and atrium images) at 4x the cost: Cornell 0.25 -> 0.05 s.
+SURFACE_DENSITY = 2.0
 #: Warm-up batches use frame numbers from WARMUP_FRAME_BASE on (defined in solver.py, re-exported
 #: here), so warm-up rays never repeat a frame's rays.
 __all__ = ["GISystem", "MAX_WARMUP_ITERATIONS", "SURFACE_SAMPLES", "UPDATES_PER_BATCH", "WARMUP_FRAME_BASE"]
@@ -40,8 +43,10 @@ UPDATES_PER_BATCH = 8
 #: Most fixed-point iterations of one warm-up (they stop earlier once converged).
 MAX_WARMUP_ITERATIONS = 16
 #: Shadow rays per block of `GISystem.direct` (receivers x samples); larger calls are split over
-#: the worker pool (the full-res direct light of a 640x360 render at 16 samples: ~8 blocks).
-DIRECT_BLOCK_RAYS = 1 << 18
+#: the worker pool. Small enough that an anti-aliasing subframe's few fresh pixels (Cornell
+#: 640x360: ~8k receivers x 4 samples) use both cores, not the main thread alone: a receiver's
+#: area-lamp set-up costs more than its rays.
+DIRECT_BLOCK_RAYS = 1 << 15
 #: G-buffer points per block of `GISystem.corner_visibility` (8 occlusion rays each).
 VISIBILITY_BLOCK = 8192
 
@@ -154,10 +159,12 @@ class GISystem:
         if rows.size == 0 or area.sum() <= 0:
             return np.zeros(0, np.int64)
         rng = np.random.default_rng(12345)
-        # Enough points that every cell-sized patch of surface gets several, whatever the
-        # triangle count (34 large Cornell triangles need as many as 300k small ones).
+        # Enough points that every cell-sized patch of surface gets some, whatever the triangle
+        # count (34 large Cornell triangles need as many as 300k small ones). A point reads the
+        # 8 cells around it, so a cell is read by ~8 cell areas of surface: SURFACE_DENSITY
+        # points per cell area leave a cell missed with odds ~exp(-8 SURFACE_DENSITY).
         cell_area = self.cache.grid.cell_size**2
-        n = int(np.clip(8.0 * area.sum() / cell_area, 1000, SURFACE_SAMPLES))
+        n = int(np.clip(SURFACE_DENSITY * area.sum() / cell_area, 1000, SURFACE_SAMPLES))
         tri = rng.choice(rows.size, size=n, p=area / area.sum())
         a, b = rng.random((2, n, 1), dtype=np.float32)
         flip = (a + b) > 1
@@ -309,13 +316,15 @@ class GISystem:
         vis = self.corner_visibility(points, normals) if exact else None
         return gather(self.cache, points, normals, corner_visible=vis)
 
-    def direct(self, points: np.ndarray, normals: np.ndarray, frame: int, samples: int | None = None) -> np.ndarray:
+    def direct(self, points: np.ndarray, normals: np.ndarray, frame: int, samples: int | None = None,
+               partial: np.ndarray | None = None) -> np.ndarray:
         """Lamp irradiance (n, 3) W/m^2 with shadow rays at points: the deferred pass's direct light.
 
         Up to DIRECT_BLOCK_RAYS shadow rays run in one call on this thread; more (the full-res
         image at 16 samples: 2M rays) are cut into blocks of that many rays shared by the worker
         pool, block i drawing its samples from child i of the frame's generator: deterministic
-        and independent of the thread count (the tracer itself is single-threaded)."""
+        and independent of the thread count (the tracer itself is single-threaded). partial : an
+        optional (n,) bool output, True where a penumbra crosses (`lights.direct_irradiance`)."""
         rng = frame_rng(self.settings.seed + 1, frame)
         samples = samples or self.settings.light_samples
         eps = float(self.tracer.epsilon)
@@ -323,12 +332,14 @@ class GISystem:
         n = int(np.asarray(points).reshape(-1, 3).shape[0])
         per_block = max(1, DIRECT_BLOCK_RAYS // samples)
         if n <= per_block or not lights:
-            return direct_irradiance(lights, points, normals, self.tracer, rng, samples=samples, epsilon=eps)
+            return direct_irradiance(lights, points, normals, self.tracer, rng, samples=samples, epsilon=eps,
+                                     partial=partial)
         points = np.asarray(points, np.float32).reshape(-1, 3)
         normals = np.asarray(normals, np.float32).reshape(-1, 3)
         starts = range(0, n, per_block)
         jobs = [self.updater.pool.submit(direct_irradiance, lights, points[a : a + per_block], normals[a : a + per_block],
-                                         self.tracer, child, samples, eps)
+                                         self.tracer, child, samples, eps,
+                                         partial=None if partial is None else partial[a : a + per_block])
                 for a, child in zip(starts, rng.spawn(len(starts)), strict=True)]
         return np.concatenate([j.result() for j in jobs])
 
@@ -341,15 +352,16 @@ class GISystem:
         return self._glossy_materials
 
     def glossy(self, points: np.ndarray, normals: np.ndarray, to_eye: np.ndarray, rows: np.ndarray, frame: int,
-               samples: int | None = None) -> np.ndarray:
+               samples: int | None = None, lights: list | None = None) -> np.ndarray:
         """Lamp radiance (n, 3) the glossy lobes of materials `rows` reflect towards the eye, with
-        shadow rays (`glossy.glossy_direct`; its own samples, seeded apart from `direct`'s)."""
+        shadow rays (`glossy.glossy_direct`; its own samples, seeded apart from `direct`'s), of
+        the scene's lamps or of `lights`, a subset of them."""
         rng = frame_rng(self.settings.seed + 2, frame)
         samples = samples or self.settings.light_samples
         eps = float(self.tracer.epsilon)
         n = int(np.asarray(points).reshape(-1, 3).shape[0])
         per_block = max(1, DIRECT_BLOCK_RAYS // samples)
-        lights, mats = self.scene.lights, self.glossy_materials
+        lights, mats = self.scene.lights if lights is None else lights, self.glossy_materials
         if n <= per_block or not lights:
             return glossy_direct(lights, points, normals, to_eye, rows, mats, self.tracer, rng, samples, eps)
         # Blocks on the worker pool, each with its own child generator (as `direct`).

@@ -174,7 +174,7 @@ class CacheUpdater:
             # (image pixels keep the sun's soft disc).
             e_in = direct_irradiance(
                 self.scene.lights, position, surf.normal, self.tracer, rng,
-                samples=s.light_samples, epsilon=float(self.epsilon), sun_disc=False,
+                samples=s.light_samples, epsilon=float(self.epsilon), sun_disc=False, solid_angle=False,
             ).T
             shadow_ms = (time.perf_counter() - ts) * 1e3
             # Further bounces read the cache at the hit: the sky/emission band gives the second

@@ -247,10 +247,10 @@ def core_version() -> str:
 
 
 def core_files() -> list[Path]:
-    """The files of `hybridgi_core/` that ship: sources, shaders, READMEs (no caches)."""
+    """The files of `hybridgi_core/` that ship: sources, shaders, precomputed tables, READMEs (no caches)."""
     return sorted(
         p for p in CORE_DIR.rglob("*")
-        if p.is_file() and "__pycache__" not in p.parts and p.suffix in {".py", ".glsl", ".md"}
+        if p.is_file() and "__pycache__" not in p.parts and p.suffix in {".py", ".glsl", ".md", ".npz"}
     )
 
 

@@ -88,6 +88,7 @@ def test_one_valid_zip_per_platform_with_only_its_wheels(builder, zips):
             inside = wheel.namelist()
         assert "hybridgi_core/__init__.py" in inside and "hybridgi_core/session.py" in inside
         assert any(n.startswith("hybridgi_core/raster/") and n.endswith(".glsl") for n in inside)
+        assert "hybridgi_core/specular_tables.npz" in inside  # else every render computes them (~0.6 s)
         assert not any("__pycache__" in n or n.startswith("tests/") for n in names + inside)
 
 

@@ -82,6 +82,26 @@ def test_fresnel_table_matches_cycles_definition(i, j, k):
     assert abs(sp.schlick_table()[i, j] - schlick) < 0.05 * schlick + 2e-3
 
 
+def test_shipped_tables_are_the_computed_ones(tmp_path):
+    """The render loads `specular_tables.npz` instead of computing; it must be what
+    `compute_tables` gives now (rebuild it with `python -m hybridgi_core.specular`), and a file
+    made for other grid sizes must be ignored, not read."""
+    for shipped, computed in zip(sp.tables(), sp.compute_tables(), strict=True):
+        np.testing.assert_allclose(shipped, computed, rtol=0, atol=1e-12)
+    stale = tmp_path / "stale.npz"
+    sp.write_tables(stale)
+    with np.load(stale) as data:
+        np.savez(stale, key=data["key"] + 1, e=data["e"] * 0, e_avg=data["e_avg"], s=data["s"])
+    old = sp.TABLES_FILE
+    try:
+        sp.TABLES_FILE = stale
+        sp.tables.cache_clear()
+        np.testing.assert_allclose(sp.tables()[0], sp.compute_tables()[0], rtol=0, atol=1e-12)
+    finally:
+        sp.TABLES_FILE = old
+        sp.tables.cache_clear()
+
+
 def test_average_albedo_falls_with_roughness():
     _, e_avg, _ = sp.tables()
     assert e_avg[0] == pytest.approx(1.0, abs=2e-3)  # a mirror loses nothing to masking

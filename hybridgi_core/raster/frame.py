@@ -14,8 +14,12 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .. import pixel_gather
+from ..evaluate import HitLookup
 from ..glossy import cache_reflection, glossy_color
 from ..lights import RATIO_MIN_SAMPLES
+from ..penumbra import adaptive_direct
+from ..reflection import bsdf_lamps, filter_reflections, lamp_glossy_without, traced_reflection, traced_share
+from ..settings import MULTI_BOUNCE
 from ..visible import pixels_to_points
 from .accumulate import AccumulatePass
 from .bilateral import BilateralPass
@@ -244,7 +248,8 @@ class FramePipeline:
                 lit_tex = upload_texture_2d(lit.reshape(low.height, low.width, 4), "RGBA16F")
         with stats.step("direct"):
             direct = np.zeros((self.height * self.width, 4), np.float32)
-            direct[pix_full, :3] = system.direct(p_full, n_full, frame, samples=self.direct_samples)
+            direct[pix_full, :3] = adaptive_direct(system.direct, p_full, n_full, pix_full, (self.height, self.width),
+                                                   frame, self.direct_samples)[0]
         with stats.step("glossy"):
             glossy, glossy_col, glossy_ind = self._glossy(system, view, proj, p_full, n_full, pix_full, frame)
         film = FilmAccumulator()
@@ -295,19 +300,48 @@ class FramePipeline:
         to_eye = to_eye / np.maximum(np.linalg.norm(to_eye, axis=1, keepdims=True), 1e-30)
         glossy = np.zeros((self.height * self.width, 4), np.float32)
         colour = np.zeros((self.height * self.width, 4), np.float32)
-        glossy[pix, :3] = system.glossy(points, normals, to_eye, rows, frame, samples=self.direct_samples)
         mu = np.clip(np.einsum("ij,ij->i", normals, to_eye), 0.0, 1.0)
         colour[pix, :3] = glossy_color(system.glossy_materials, rows, mu)
         indirect = np.zeros((self.height * self.width, 4), np.float32)
         lit = np.flatnonzero(colour[pix, :3].max(axis=1) > 0)
+        rough = system.glossy_materials.rough[rows[lit]]
+        # Area lamps in lobes much narrower than they are: the reflection rays estimate them.
+        skip = np.zeros((points.shape[0], len(system.scene.lights)), bool)
+        if self.settings.reflection_rays > 0 and lit.size:
+            skip[lit] = bsdf_lamps(system.scene.lights, points[lit], normals[lit], rough) & (traced_share(rough) > 0)[:, None]
+        glossy[pix, :3] = lamp_glossy_without(system, points, normals, to_eye, rows, frame, self.direct_samples, skip)
         if lit.size:
-            rough = system.glossy_materials.rough[rows[lit]]
             sky, bounced = cache_reflection(system.cache, points[lit], normals[lit], to_eye[lit], rough)
-            glossy[pix[lit], :3] += colour[pix[lit], :3] * sky
+            lamp = self._trace_reflections(system, points[lit], normals[lit], to_eye[lit], rough, frame, sky,
+                                           bounced, pix[lit], view, skip[lit])
+            glossy[pix[lit], :3] += colour[pix[lit], :3] * (sky + lamp)
             indirect[pix[lit], :3] = bounced
         total = glossy + colour * indirect
         self._glossy_tex = upload_texture_2d(total.reshape(self.height, self.width, 4), "RGBA32F")
         return glossy, colour, indirect
+
+    def _trace_reflections(self, system, points, normals, to_eye, rough, frame, sky, bounced, pix, view,
+                           lamps) -> np.ndarray:
+        """Blend reflection rays' light (`reflection.traced_reflection`, filtered edge-aware over the
+        image: `reflection.filter_reflections`) into the cache's split-sum estimates `sky` and
+        `bounced` (n, 3), in place, where the lobes are smooth enough; pix : the receivers' flat
+        pixels. Returns (n, 3) the radiance of the area lamps `lamps` (n, L) marks, as the rays
+        met them (`reflection.bsdf_lamps`; lamp sampling skipped them), before Glossy Color."""
+        rays = self.settings.reflection_rays
+        share = traced_share(rough)
+        sel = np.flatnonzero(share > 0)
+        lamp = np.zeros((points.shape[0], 3), np.float32)
+        if rays <= 0 or sel.size == 0:
+            return lamp
+        lookup = HitLookup(system.cache, bounced=system.settings.indirect_quality == MULTI_BOUNCE)
+        direct, indirect, total, lamp[sel] = traced_reflection(system, lookup, points[sel], normals[sel],
+                                                               to_eye[sel], rough[sel], rays, frame, lamps[sel])
+        direct, indirect = filter_reflections(direct, indirect, total, points[sel], normals[sel], pix[sel],
+                                              (self.height, self.width), view, pool=system.updater.pool)
+        t = (share[sel] * (total > 0)).astype(np.float32)[:, None]
+        sky[sel] += t * (direct - sky[sel])
+        bounced[sel] += t * (indirect - bounced[sel])
+        return lamp
 
     def _pixel_gi_full(self, system, gbuf, position_lo, normal_lo, pix, points, normals, visible, view, frame,
                        full, stats):

@@ -37,6 +37,10 @@ class RasterSettings:
     #: no GI pixel shares the pixel's surface or the correction varies) instead of the bilateral
     #: upsampling of GI-resolution irradiance.
     pixel_full_res: bool = True
+    #: Reflection rays per full-res pixel whose glossy lobe is smoother than
+    #: `reflection.TRACE_ROUGHNESS` (`hybridgi_core/reflection.py`); 0 = the cache's hemisphere
+    #: mean for every lobe (no image of the surroundings in polished surfaces).
+    reflection_rays: int = 4
 
     #: Valid values of each field, as in CacheSettings.RANGES.
     RANGES = {
@@ -52,6 +56,7 @@ class RasterSettings:
         "pixel_rays": (0, 1024, False, False),
         "pixel_filter": (0, 6, False, False),
         "pixel_full_res": frozenset((False, True)),
+        "reflection_rays": (0, 256, False, False),
     }
 
     def __post_init__(self) -> None:

@@ -1,0 +1,250 @@
+"""Glossy reflections by rays: what a smooth glossy lobe mirrors, per pixel.
+
+`glossy.cache_reflection` reflects the hemisphere's mean incident radiance (split sum): right for
+rough lobes, but a polished floor or a metal then shows no image of the room, only its average
+colour. Here a pixel whose lobe is smoother than TRACE_ROUGHNESS traces `rays` reflection rays,
+sampled from the GGX distribution of visible normals (Heitz, JCGT 2018) about its view
+direction, and shades their hits as the pixel rays shade theirs (`pixel_gather.hit_radiance`:
+the world or an emitter straight along the ray; else the hit's lamp light through shadow rays
+plus the cache read there, times its albedo).
+
+Each sample weighs G2(v, l) / G1(v) (the VNDF estimator of the lobe's reflectance without its
+Fresnel term), and the two returned radiances are the weighted means: Cycles' Glossy Color holds
+the lobe's albedo, so Glossy Direct / Indirect are the lobe's mean incident light. The split
+between them is Cycles': light straight from the world or an emitter is direct, light of other
+surfaces indirect. Between TRACE_ROUGHNESS / 2 and TRACE_ROUGHNESS the traced estimate blends
+into the cache's (a rough lobe's many rays would cost much for what the mean already gives).
+
+Area lamps in sharp lobes: sampling the lamp (`glossy.glossy_direct`) finds a lobe much narrower
+than the lamp only rarely, and then with a huge BRDF value (a chrome ball's highlight is speckled,
+pixels 20x too bright beside black ones). Where a lamp's solid angle exceeds BSDF_LAMP_RATIO times
+the lobe's, the reflection rays that meet the lamp (unblocked: nearer than their geometry hit)
+bring its radiance instead, and lamp sampling skips that lamp at that pixel (`bsdf_lamps`,
+`lamp_glossy_without`): each lamp is estimated once per pixel, by whichever sampling suits it.
+
+numpy + embreex only (bpy-free); `raster/frame.py` calls it for the centre raster's pixels.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .lights import _area_shape, _onb, stratified_uv
+from .pixel_gather import filter_residual, hit_radiance
+from .sampling import frame_rng
+from .specular import _lambda
+
+_F32 = np.float32
+#: Lobes at least this rough keep the cache's hemisphere mean (`glossy.cache_reflection`).
+TRACE_ROUGHNESS = 0.4
+#: Seed offset of the reflection rays' stream (pixel rays use 2, the direct light 1).
+SEED_OFFSET = 3
+#: Pixels x rays per work item (fixed: the result does not depend on the thread count).
+CHUNK_RAYS = 32768
+#: An area lamp is sampled by the reflection rays (not by lamp sampling) at pixels where its solid
+#: angle exceeds this many times the lobe's (~4 pi alpha^2: the reflected cone of the GGX lobe).
+BSDF_LAMP_RATIO = 2.0
+#: A-trous passes over the traced light (`filter_reflections`): 1 averages a 5 x 5 neighbourhood
+#: of the same surface, about 25 x `rays` samples, at ~1.5 pixels of blur.
+FILTER_PASSES = 1
+
+
+def traced_share(rough: np.ndarray) -> np.ndarray:
+    """(n,) weight of the traced estimate against the cache's: 1 up to TRACE_ROUGHNESS / 2,
+    falling linearly to 0 at TRACE_ROUGHNESS."""
+    half = 0.5 * TRACE_ROUGHNESS
+    return np.clip((TRACE_ROUGHNESS - np.asarray(rough, np.float64)) / half, 0.0, 1.0)
+
+
+def sample_reflections(normals: np.ndarray, to_eye: np.ndarray, rough: np.ndarray, u: np.ndarray,
+                       v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Reflection directions (m, s, 3) float32 and weights G2 / G1 (m, s) (0 below the horizon)
+    of GGX lobes of roughness `rough` (m,) (alpha = rough^2, as Cycles maps it) at unit normals
+    and view directions (m, 3), from uniform numbers u, v (m, s): Heitz's visible-normal sampling."""
+    n = np.asarray(normals, np.float64)
+    e = np.asarray(to_eye, np.float64)
+    t1, t2 = _onb(n[:, 0:1], n[:, 1:2], n[:, 2:3])
+    t1 = np.concatenate(t1, axis=1)
+    t2 = np.concatenate(t2, axis=1)
+    # The view in the pixel's frame (z = normal), stretched by the roughness.
+    alpha = np.maximum(np.asarray(rough, np.float64), 1e-3) ** 2
+    vx, vy, vz = (e * t1).sum(1), (e * t2).sum(1), np.maximum((e * n).sum(1), 1e-4)
+    sx, sy = alpha * vx, alpha * vy
+    length = np.sqrt(sx * sx + sy * sy + vz * vz)
+    hx, hy, hz = sx / length, sy / length, vz / length
+    lensq = hx * hx + hy * hy
+    inv = np.where(lensq > 0, 1.0 / np.sqrt(np.maximum(lensq, 1e-30)), 0.0)
+    ax, ay = np.where(lensq > 0, -hy * inv, 1.0), np.where(lensq > 0, hx * inv, 0.0)  # T1 (z = 0)
+    bx, by, bz = -hz * ay, hz * ax, hx * ay - hy * ax  # T2 = Vh x T1
+    col = lambda a: a[:, None]  # noqa: E731
+    r = np.sqrt(np.asarray(u, np.float64))
+    phi = 2.0 * np.pi * np.asarray(v, np.float64)
+    p1, p2 = r * np.cos(phi), r * np.sin(phi)
+    s = col(0.5 * (1.0 + hz))
+    p2 = (1.0 - s) * np.sqrt(np.maximum(1.0 - p1 * p1, 0.0)) + s * p2
+    p3 = np.sqrt(np.maximum(1.0 - p1 * p1 - p2 * p2, 0.0))
+    mx = p1 * col(ax) + p2 * col(bx) + p3 * col(hx)
+    my = p1 * col(ay) + p2 * col(by) + p3 * col(hy)
+    mz = p2 * col(bz) + p3 * col(hz)
+    # Unstretch: the microfacet normal in the pixel's frame.
+    mx, my, mz = col(alpha) * mx, col(alpha) * my, np.maximum(mz, 0.0)
+    norm = np.sqrt(mx * mx + my * my + mz * mz)
+    mx, my, mz = mx / norm, my / norm, mz / norm
+    cos_vm = col(vx) * mx + col(vy) * my + col(vz) * mz
+    lx, ly, lz = 2.0 * cos_vm * mx - col(vx), 2.0 * cos_vm * my - col(vy), 2.0 * cos_vm * mz - col(vz)
+    alpha2 = col(alpha * alpha)
+    lam_v = _lambda(alpha2, col(vz))
+    weight = np.where(lz > 0, (1.0 + lam_v) / (1.0 + lam_v + _lambda(alpha2, np.maximum(lz, 1e-6))), 0.0)
+    world = (lx[..., None] * t1[:, None, :] + ly[..., None] * t2[:, None, :] + lz[..., None] * n[:, None, :])
+    world /= np.maximum(np.linalg.norm(world, axis=-1, keepdims=True), 1e-30)
+    return world.astype(_F32), weight.astype(_F32)
+
+
+def bsdf_lamps(lights, points: np.ndarray, normals: np.ndarray, rough: np.ndarray) -> np.ndarray:
+    """(n, L) bool: which of the L lamps the reflection rays of each receiver estimate (area lamps
+    facing it whose solid angle exceeds BSDF_LAMP_RATIO x its lobe's; the module docstring)."""
+    pts = np.asarray(points, np.float64).reshape(-1, 3)
+    nrm = np.asarray(normals, np.float64).reshape(-1, 3)
+    out = np.zeros((pts.shape[0], len(lights)), bool)
+    alpha = np.asarray(rough, np.float64).reshape(-1) ** 2
+    lobe = 4.0 * np.pi * alpha * alpha
+    for j, light in enumerate(lights):
+        if light.kind != "AREA" or float(light.power) == 0.0:
+            continue
+        shape = _area_shape(light)
+        if shape.area <= 0:
+            continue
+        to = shape.centre.astype(np.float64)[None, :] - pts
+        d2 = np.maximum((to * to).sum(1), 1e-12)
+        cos_l = -(to @ shape.normal.astype(np.float64)) / np.sqrt(d2)  # > 0: the receiver faces its front
+        facing = (cos_l > 0) & ((to * nrm).sum(1) > -np.sqrt(shape.area))
+        out[:, j] = facing & (shape.area * np.maximum(cos_l, 0.0) / d2 > BSDF_LAMP_RATIO * lobe)
+    return out
+
+
+def lamp_glossy_without(system, points, normals, to_eye, rows, frame: int, samples: int,
+                        skip: np.ndarray) -> np.ndarray:
+    """(n, 3) the lamps' glossy radiance by lamp sampling (`GISystem.glossy`), each receiver
+    without the lamps `skip` (n, L) marks for it (the reflection rays estimate those)."""
+    n = np.asarray(points).reshape(-1, 3).shape[0]
+    plain = ~skip.any(axis=1)
+    if plain.all():
+        return system.glossy(points, normals, to_eye, rows, frame, samples=samples)
+    out = np.zeros((n, 3), _F32)
+    parts = [(np.flatnonzero(plain), None)]
+    parts += [(np.flatnonzero(~plain & ~skip[:, j]), [light]) for j, light in enumerate(system.scene.lights)]
+    for sel, lights in parts:
+        if sel.size:
+            out[sel] += system.glossy(points[sel], normals[sel], to_eye[sel], rows[sel], frame, samples=samples,
+                                      lights=lights)
+    return out
+
+
+def traced_reflection(system, lookup, points: np.ndarray, normals: np.ndarray, to_eye: np.ndarray,
+                      rough: np.ndarray, rays: int, frame: int, lamps: np.ndarray | None = None
+                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(direct (n, 3), indirect (n, 3), weight sum (n,), lamp (n, 3)) float32: the mean radiance
+    `rays` reflection rays per receiver bring from the world or emitters, from other surfaces and
+    from the area lamps `lamps` (n, L) marks for it (`bsdf_lamps`; None: none), on the worker
+    pool. A receiver whose samples all went below the horizon has weight sum 0 (its estimate is
+    0: keep the cache's there)."""
+    pts = np.ascontiguousarray(points, _F32).reshape(-1, 3)
+    n = pts.shape[0]
+    out = np.zeros((n, 10), _F32)
+    if n == 0 or rays <= 0:
+        return out[:, 0:3], out[:, 3:6], out[:, 6], out[:, 7:10]
+    nrm = np.ascontiguousarray(normals, _F32).reshape(-1, 3)
+    eye = np.ascontiguousarray(to_eye, _F32).reshape(-1, 3)
+    rough = np.asarray(rough, np.float64).reshape(-1)
+    per = max(1, CHUNK_RAYS // rays)
+    starts = range(0, n, per)
+    seed = system.settings.seed + SEED_OFFSET
+    lights = system.scene.lights
+    if lamps is None or not lamps.any():
+        lamps = None
+    jobs = [system.updater.pool.submit(_chunk, system, lookup, pts[a:a + per], nrm[a:a + per], eye[a:a + per],
+                                       rough[a:a + per], rays, frame_rng(seed, frame * 7919 + i),
+                                       None if lamps is None else lamps[a:a + per], lights)
+            for i, a in enumerate(starts)]
+    for a, job in zip(starts, jobs, strict=True):
+        out[a:a + per] = job.result()
+    return out[:, 0:3], out[:, 3:6], out[:, 6], out[:, 7:10]
+
+
+def _lamp_radiance(lights, lamps: np.ndarray, origins: np.ndarray, dirs: np.ndarray, reach: np.ndarray) -> np.ndarray:
+    """(N, 3) radiance of the marked area lamps (lamps (N, L) bool per ray) that rays (origins,
+    dirs) meet on their emitting side nearer than `reach` (N,) (their geometry hit, or inf)."""
+    out = np.zeros((dirs.shape[0], 3), _F32)
+    for j in np.flatnonzero(lamps.any(axis=0)):
+        light = lights[j]
+        shape = _area_shape(light)
+        rows = np.flatnonzero(lamps[:, j])
+        o, d = origins[rows].astype(np.float64), dirs[rows].astype(np.float64)
+        nl = shape.normal.astype(np.float64)
+        facing = d @ nl
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t = ((shape.centre.astype(np.float64)[None, :] - o) @ nl) / facing
+        r = o + d * t[:, None] - shape.centre.astype(np.float64)[None, :]
+        hu, hv = shape.half_u.astype(np.float64), shape.half_v.astype(np.float64)
+        # Coordinates on the (possibly sheared) parallelogram: r = a hu + b hv.
+        g = np.array([[hu @ hu, hu @ hv], [hu @ hv, hv @ hv]])
+        ab = np.linalg.solve(g, np.stack([r @ hu, r @ hv]))
+        a, b = ab[0], ab[1]
+        inside = (a * a + b * b <= 1.0) if shape.round else ((np.abs(a) <= 1.0) & (np.abs(b) <= 1.0))
+        hit = (facing < 0) & (t > 0) & (t < reach[rows]) & inside
+        out[rows[hit]] += _F32(float(light.power) / (np.pi * shape.area)) * light.color.astype(_F32)
+    return out
+
+
+def _chunk(system, lookup, p, nrm, eye, rough, rays, rng, lamps=None, lights=()):
+    """Worker: (m, 10) weighted mean direct rgb, indirect rgb, the weight sum and the marked
+    area lamps' rgb of m receivers."""
+    m = p.shape[0]
+    u, v = stratified_uv(rng, m, rays)
+    dirs, weight = sample_reflections(nrm, eye, rough, u, v)
+    tracer = system.tracer
+    eps = _F32(tracer.epsilon)
+    origins = np.repeat(p + nrm * eps, rays, axis=0)
+    flat_dirs = dirs.reshape(-1, 3)
+    live = np.flatnonzero(weight.reshape(-1) > 0)
+    radiance = np.zeros((m * rays, 9), _F32)
+    if live.size:
+        s = system.settings
+        tfar = _F32(s.ray_length) if s.ray_length > 0 else _F32(np.inf)
+        hits = tracer.intersect(origins[live], flat_dirs[live], tfar, trusted=True)
+        radiance[live, 0:6] = hit_radiance(system, lookup, origins[live], flat_dirs[live], hits, rng,
+                                           glossy_lamps=False)
+        if lamps is not None:
+            reach = np.where(hits.prim >= 0, hits.t, np.inf)
+            radiance[live, 6:9] = _lamp_radiance(lights, np.repeat(lamps, rays, axis=0)[live], origins[live],
+                                                 flat_dirs[live], reach)
+    w = weight.reshape(m, rays, 1)
+    total = w.sum(axis=1)
+    mean = (radiance.reshape(m, rays, 9) * w).sum(axis=1) / np.maximum(total, _F32(1e-12))
+    return np.concatenate([mean[:, 0:6], total, mean[:, 6:9]], axis=1)
+
+
+def filter_reflections(direct: np.ndarray, indirect: np.ndarray, total: np.ndarray, points: np.ndarray,
+                       normals: np.ndarray, pix: np.ndarray, shape: tuple[int, int], view: np.ndarray,
+                       passes: int = FILTER_PASSES, pool=None) -> tuple[np.ndarray, np.ndarray]:
+    """The traced light (n, 3) x 2 of receivers at flat pixels `pix` of an image of `shape`,
+    averaged edge-aware (`pixel_gather.filter_residual`: taps on the same plane and facing the
+    same way) over the receivers whose rays found light (total > 0). A few rays per pixel leave
+    a polished floor's reflection of a bright edge speckled; the neighbours on its surface see
+    nearly the same reflection."""
+    if passes <= 0 or pix.size == 0:
+        return direct, indirect
+    h, w = shape
+    image = np.zeros((h * w, 7), _F32)
+    image[pix, 0:3], image[pix, 3:6] = direct, indirect
+    valid = np.zeros(h * w, bool)
+    valid[pix] = total > 0
+    pos = np.zeros((h * w, 3), _F32)
+    pos[pix] = points
+    nrm = np.zeros((h * w, 3), _F32)
+    nrm[pix] = normals
+    camera = np.linalg.inv(np.asarray(view, np.float64))[:3, 3].astype(_F32)
+    out = filter_residual(image.reshape(h, w, 7), pos.reshape(h, w, 3), nrm.reshape(h, w, 3), valid.reshape(h, w),
+                          camera, passes, pool=pool).reshape(h * w, 7)
+    keep = (total > 0)[:, None]
+    return np.where(keep, out[pix, 0:3], direct), np.where(keep, out[pix, 3:6], indirect)

@@ -1,0 +1,88 @@
+"""Penumbra-adaptive shadow rays (hybridgi_core/penumbra.py): the full sample count where a
+shadow is soft, few rays elsewhere, and the same light as the full count everywhere."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from hybridgi_core.lights import direct_irradiance
+from hybridgi_core.penumbra import FIRST_SAMPLES, adaptive_direct, dilate
+from tests.test_lights import TriangleTracer, area_light, point_light, quad, sun_light, translation
+
+# A floor image of 48 x 48 pixels over [-4, 4]^2, a 1 m square lamp 2 m up, a blocker that
+# shadows the middle: a hard core with soft rims (penumbrae) and open floor around them.
+H = W = 48
+
+
+def _floor():
+    ys, xs = np.meshgrid(np.linspace(-4, 4, H), np.linspace(-4, 4, W), indexing="ij")
+    pts = np.column_stack([xs.ravel(), ys.ravel(), np.zeros(H * W)]).astype(np.float32)
+    return pts, np.tile(np.float32([0, 0, 1]), (H * W, 1))
+
+
+def _direct(lights, tracer, seed=0):
+    def direct(points, normals, frame, samples=1, partial=None):
+        rng = np.random.default_rng([seed, frame])
+        return direct_irradiance(lights, points, normals, tracer, rng, samples=samples, partial=partial)
+    return direct
+
+
+def test_dilate_grows_by_the_radius_without_wrapping():
+    mask = np.zeros((7, 9), bool)
+    mask[0, 0] = mask[4, 5] = True
+    grown = dilate(mask, 2)
+    assert grown.sum() == 9 + 25
+    assert grown[2, 2] and grown[3, 3] and not grown[3, 2] and grown[6, 7] and not grown[6, 8]
+    assert not grown[:, -1].any() and not grown[-1, :3].any()  # no wrap-around to the far side
+
+
+def test_partial_marks_penumbrae_only():
+    lamp = area_light(translation(0.0, 0.0, 2.0), power=200.0)
+    tracer = TriangleTracer(quad((0.0, 0.0, 1.0), (0.4, 0, 0), (0, 0.4, 0)))
+    pts, nrm = _floor()
+    partial = np.zeros(H * W, bool)
+    direct_irradiance([lamp], pts, nrm, tracer, np.random.default_rng(0), samples=16, partial=partial)
+    v = direct_irradiance([lamp], pts, nrm, tracer, np.random.default_rng(1), samples=1024) / np.maximum(
+        direct_irradiance([lamp], pts, nrm, None, np.random.default_rng(1), samples=1024), 1e-9)
+    v = v[:, 0]
+    assert partial.any() and not partial[v > 0.999].any() and not partial[v < 0.001].any()
+    assert partial[(v > 0.2) & (v < 0.8)].mean() > 0.95
+    # Hard shadows (one ray per receiver) have no penumbra; the flag is cleared, not accumulated.
+    partial[:] = True
+    direct_irradiance([point_light((0, 0, 2))], pts, nrm, tracer, np.random.default_rng(0), samples=16, partial=partial)
+    assert not partial.any()
+
+
+def test_adaptive_direct_matches_the_full_count_with_fewer_rays():
+    lamp = area_light(translation(0.0, 0.0, 2.0), power=200.0)
+    sun = sun_light((0.3, 0.2, -1.0), strength=2.0, angle=0.1)
+    tracer = TriangleTracer(quad((0.0, 0.0, 1.0), (0.4, 0, 0), (0, 0.4, 0)))
+    pts, nrm = _floor()
+    pix = np.arange(H * W)
+    ref = direct_irradiance([lamp, sun], pts, nrm, tracer, np.random.default_rng(7), samples=1024)
+    tracer.rays = 0
+    light, full = adaptive_direct(_direct([lamp, sun], tracer), pts, nrm, pix, (H, W), frame=3, samples=16)
+    adaptive_rays = tracer.rays
+    tracer.rays = 0
+    plain = _direct([lamp, sun], tracer)(pts, nrm, 3, samples=16)
+    plain_rays = tracer.rays
+    # Far fewer rays: open floor and the umbra's core get FIRST_SAMPLES only.
+    assert 0.05 < full.mean() < 0.6
+    assert adaptive_rays < 0.75 * plain_rays
+    # As close to the converged light as 16 rays everywhere, and exact on the open floor.
+    err_adaptive = np.abs(light - ref).sum() / ref.sum()
+    err_plain = np.abs(plain - ref).sum() / ref.sum()
+    assert err_adaptive < 1.1 * err_plain, (err_adaptive, err_plain)
+    # Pixels left at the first count saw their lamps wholly or not at all.
+    open_floor = ~full
+    assert np.abs(light[open_floor] - ref[open_floor]).max() < 0.1 * ref.max()
+
+
+def test_few_samples_skip_the_second_pass():
+    lamp = area_light(translation(0.0, 0.0, 2.0), power=200.0)
+    tracer = TriangleTracer(quad((0.0, 0.0, 1.0), (0.4, 0, 0), (0, 0.4, 0)))
+    pts, nrm = _floor()
+    light, full = adaptive_direct(_direct([lamp], tracer), pts, nrm, np.arange(H * W), (H, W), frame=0,
+                                  samples=FIRST_SAMPLES)
+    assert full.all()
+    np.testing.assert_array_equal(light, _direct([lamp], tracer)(pts, nrm, 0, samples=FIRST_SAMPLES))
