@@ -7,16 +7,19 @@ Conventions (Cycles', checked against its Diffuse Direct pass to < 1%): geometry
 geometry nodes applied; lights in Blender's units with colour x temperature, exposure and the
 diffuse factor folded into `color`/`power`, area-light sizes unscaled (the object's scale stays
 in the matrix); materials reduced to a Lambertian base colour (optionally an image) plus emission radiance, with
-a Principled BSDF's dielectric specular layer (`hybridgi_core.specular`) that weights the diffuse part.
+glossy closures (`hybridgi_core.specular`: a Principled BSDF's specular layer and metallic lobe, Glossy,
+Metallic and Glass BSDFs, mixed by constant, Fresnel or Layer Weight factors: `hybridgi_core.surface_mix`)
+and the view-dependent weight they leave the diffuse part.
 """
 
 import logging
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
-from hybridgi_core import environment
+from hybridgi_core import environment, surface_mix
 from hybridgi_core import snapshot as snap
+from hybridgi_core import specular as sp
 from hybridgi_core.glossy import MIN_ROUGHNESS
 from hybridgi_core.specular import SpecularLayer
 
@@ -268,15 +271,16 @@ class _SnapshotBuilder:
         return snap.make_snapshot(geometry, self.materials, self.lights, world, self.objects)
 
     def _warn_glossy(self):
-        """One warning per sync for the Principled BSDF features HybridGI still approximates,
-        naming each material and node (the glossy lobes themselves are rendered: `glossy.py`)."""
+        """One warning per sync for the shader features HybridGI still approximates (Principled,
+        Glossy, Metallic and Glass BSDFs, mixes), naming each material and node (the glossy lobes
+        themselves are rendered: `glossy.py`)."""
         notes = self._textures.approximated
         if not notes:
             return
         names = sorted(notes)
         listed = "; ".join(f"material {name!r} {', '.join(sorted(notes[name]))}" for name in names[:5])
         more = f" (and {len(names) - 5} more materials)" if len(names) > 5 else ""
-        log.warning("Principled BSDF features approximated: %s%s", listed, more)
+        log.warning("Shader features approximated: %s%s", listed, more)
 
     def _local_mesh(self, obj):
         key = obj.data.as_pointer()
@@ -365,7 +369,6 @@ def material_from_blender(material, textures=None, baked=None, pending=False):
     textures = textures if textures is not None else _TextureCache()
     textures.baked = baked or {}
     textures.pending = pending
-    textures.specular = None
     name = material.name
     tree = material.node_tree
     if tree is None:
@@ -374,21 +377,24 @@ def material_from_blender(material, textures=None, baked=None, pending=False):
     if shader is None:
         log.warning("material %r: no shader linked to an active output; using grey", name)
         return _grey(name)
-    surface = _shader_surface(shader, textures, name)
-    if surface is None:
+    part = _shader_surface(shader, textures, name)
+    if part is None:
         log.warning("material %r: shader %s is not supported; using grey %.1f", name, shader.bl_idname, FALLBACK_GREY)
         return _grey(name)
-    base, texture, emission, alpha = surface
-    return snap.Material(name=name, base_color=base.astype(np.float32), texture=texture,
-                         emission=emission.astype(np.float32), alpha=alpha, specular=textures.specular)
+    specular = part.surface()
+    if specular is not None and sp.surface_lobes(specular):
+        textures.glossy.add(name)
+    return snap.Material(name=name, base_color=part.base.astype(np.float32), texture=part.texture,
+                         emission=part.emission.astype(np.float32), alpha=part.alpha, specular=specular)
 
 
 def _shader_surface(shader, textures, name, depth=0):
-    """(diffuse colour (3,), texture or None, emission radiance (3,), alpha (h, w) or None) of a
-    shader node, or None
-    when it is not one this reader knows. The diffuse colour is what Cycles' Diffuse Color pass
-    shows: a Principled BSDF's base colour weighted by (1 - metallic) (1 - transmission), tinted
-    by its coat; Mix and Add Shader combine their inputs by their (constant) factor."""
+    """`surface_mix.SurfacePart` of a shader node, or None when it is not one this reader knows.
+    The diffuse colour is what Cycles' Diffuse Color pass shows: a Principled BSDF's base colour
+    weighted by (1 - metallic) (1 - transmission), tinted by its coat, and by its specular
+    layer's view-dependent layering; Mix and Add Shader combine their inputs by their factor (a
+    constant, or a Fresnel / Layer Weight node's output over the view angle). Glossy, Metallic
+    and Glass BSDFs give glossy closures (`specular.GlossyLobe`)."""
     zero = np.zeros(3, np.float32)
     kind = shader.type
     if kind == "BSDF_PRINCIPLED":
@@ -398,35 +404,96 @@ def _shader_surface(shader, textures, name, depth=0):
         coat = _constant_value(_input(shader, "Coat Weight"), name) if _input(shader, "Coat Weight") else 0.0
         tint = _constant_color(_input(shader, "Coat Tint"), name) if _input(shader, "Coat Tint") else np.ones(3)
         weight = (1.0 - np.clip(metallic, 0, 1)) * (1.0 - np.clip(transmission, 0, 1))
-        specular = _input(shader, "Specular IOR Level", "Specular")
-        if metallic > 0 or (specular is not None and _constant_value(specular, name) > 0):
-            textures.glossy.add(name)
         _note_approximations(shader, textures, name, metallic, transmission, coat)
-        if textures.specular is None:
-            # The first Principled BSDF of a material layers the diffuse part of all of it (a Mix
-            # with a Diffuse BSDF then weights that part too: an approximation).
-            textures.specular = _specular_layer(shader, name, base, texture, metallic, transmission)
+        layer = _specular_layer(shader, textures, name, base, texture, metallic, transmission)
         base = base * weight * (1.0 + np.clip(coat, 0, 1) * (tint - 1.0))
         emission = _constant_color(shader.inputs["Emission Color"], name) * _constant_value(
             shader.inputs["Emission Strength"], name)
-        return base, texture, emission, _alpha_map(shader.inputs["Alpha"], textures, name)
+        diffuse = sp.diffuse_weight(layer, sp.view_grid())
+        return surface_mix.SurfacePart(base=base, texture=texture, emission=emission,
+                                       alpha=_alpha_map(shader.inputs["Alpha"], textures, name), diffuse=diffuse,
+                                       lobes=sp.layer_lobes(layer), layer=layer)
     if kind == "BSDF_DIFFUSE":
         base, texture = _color_socket(shader.inputs["Color"], textures, name)
-        return base, texture, zero, None
+        return surface_mix.SurfacePart(base=base, texture=texture)
     if kind == "EMISSION":
         emission = _constant_color(shader.inputs["Color"], name) * _constant_value(shader.inputs["Strength"], name)
-        return zero, None, emission, None
-    if kind in ("BSDF_TRANSPARENT", "BSDF_GLOSSY", "BSDF_ANISOTROPIC", "BSDF_REFRACTION", "BSDF_GLASS",
-                "HOLDOUT", "BSDF_TRANSLUCENT"):
+        return surface_mix.SurfacePart(emission=emission)
+    if kind in ("BSDF_GLOSSY", "BSDF_ANISOTROPIC", "BSDF_METALLIC", "BSDF_GLASS"):
+        return surface_mix.SurfacePart(lobes=[_glossy_lobe(shader, kind, textures, name)])
+    if kind in ("BSDF_TRANSPARENT", "BSDF_REFRACTION", "HOLDOUT", "BSDF_TRANSLUCENT"):
         # No diffuse reflection (Cycles' Diffuse Color pass is black there); HybridGI renders
-        # diffuse light only, so what these reflect or transmit is missing from Combined.
+        # no transmitted light, so what these transmit is missing from Combined.
         if kind != "BSDF_TRANSPARENT":
-            log.warning("material %r: %s reflects no diffuse light; its glossy or transmitted light is not "
-                        "rendered", name, shader.bl_idname)
-        return zero, None, zero, None
+            log.warning("material %r: %s reflects no diffuse light; its transmitted light is not rendered",
+                        name, shader.bl_idname)
+        return surface_mix.SurfacePart(base=zero)
     if kind in ("MIX_SHADER", "ADD_SHADER") and depth < 8:
         return _mix_surface(shader, kind, textures, name, depth)
     return None
+
+
+def _note(textures, name, node, text):
+    """Record what of a node HybridGI renders only approximately (`_warn_glossy`: one warning a sync)."""
+    textures.approximated.setdefault(name, set()).add(f"node {node.name!r}: {text}")
+
+
+def _glossy_lobe(shader, kind, textures, name):
+    """`specular.GlossyLobe` of a Glossy (Anisotropic), Metallic or Glass BSDF, set up as Cycles'
+    svm_node_closure_bsdf sets up its closure: a Glossy BSDF's colour is the closure weight with
+    no Fresnel (Multiscatter GGX's darkening uses it as the average Fresnel); a Metallic BSDF
+    weighs 1 with the F82-tint or the physical conductor's Fresnel; a Glass BSDF's reflection is
+    its colour times the real dielectric Fresnel of its IOR (its transmission is not rendered)."""
+    notes = []
+    distribution = getattr(shader, "distribution", "GGX")
+    if distribution == "ASHIKHMIN_SHIRLEY":
+        notes.append("Ashikhmin-Shirley distribution (rendered as GGX)")
+        distribution = "GGX"
+    roughness = _roughness(shader, textures, name)
+    anisotropy = _input(shader, "Anisotropy")
+    if anisotropy is not None and abs(_constant_value(anisotropy, name)) > 1e-4:
+        notes.append("anisotropy (rendered isotropic)")
+    film = _input(shader, "Thin Film Thickness")
+    if film is not None and _constant_value(film, name) > 0:
+        notes.append("thin film (not rendered)")
+    if kind == "BSDF_METALLIC":
+        if getattr(shader, "fresnel_type", "F82") == "PHYSICAL_CONDUCTOR":
+            lobe = sp.GlossyLobe(
+                roughness=roughness, distribution=distribution, fresnel="conductor",
+                n=np.maximum(_constant_color(shader.inputs["IOR"], name), 0.0),
+                k=np.maximum(_constant_color(shader.inputs["Extinction"], name), 0.0))
+        else:
+            f0 = np.clip(_mean_colour_input(shader.inputs["Base Color"], textures, name, node=shader, notes=notes), 0, 1)
+            tint = np.clip(_constant_color(shader.inputs["Edge Tint"], name), 0.0, 1.0)
+            b = np.zeros(3) if np.all(tint == 1.0) else sp.f82_b_from_tint(f0, tint)
+            lobe = sp.GlossyLobe(roughness=roughness, distribution=distribution, fresnel="f82", f0=f0, b=b)
+    else:
+        colour = np.maximum(_mean_colour_input(shader.inputs["Color"], textures, name, node=shader, notes=notes), 0.0)
+        if kind == "BSDF_GLASS":
+            ior = max(_constant_value(shader.inputs["IOR"], name), 1e-5)
+            notes.append("Glass BSDF: only its reflection is rendered (the transmitted light is not)")
+            if distribution == "MULTI_GGX":
+                distribution = "GGX"  # Cycles compensates the glass's energy with tables of its own
+            lobe = sp.GlossyLobe(weight=colour, roughness=roughness, distribution=distribution,
+                                             fresnel="dielectric", ior=ior, f0=np.full(3, sp.f0_from_ior(ior)))
+        else:
+            lobe = sp.GlossyLobe(weight=colour, roughness=roughness, distribution=distribution,
+                                             fresnel="none", fss=colour if distribution == "MULTI_GGX" else None)
+    if lobe.roughness < MIN_ROUGHNESS:
+        notes.append(f"a mirror-like reflection (roughness under {MIN_ROUGHNESS}: lamps' reflections are not rendered)")
+    if notes:
+        _note(textures, name, shader, ", ".join(notes))
+    return lobe
+
+
+def _mean_colour_input(socket, textures, name, node, notes):
+    """(3,) a glossy closure's colour input: its constant, or the mean of the image or baked
+    texture it reads (a glossy lobe has one colour), noted."""
+    base, texture = _color_socket(socket, textures, name)
+    if texture is None:
+        return np.asarray(base, np.float64)
+    notes.append(f"{socket.name} from a texture (its mean colour)")
+    return np.asarray(base, np.float64) * texture.reshape(-1, 3).mean(axis=0)
 
 
 def _note_approximations(shader, textures, name, metallic, transmission, coat):
@@ -445,18 +512,31 @@ def _note_approximations(shader, textures, name, metallic, transmission, coat):
         value = _input(shader, socket)
         if value is not None and _constant_value(value, name) > 0:
             notes.append(note)
-    roughness = _input(shader, "Roughness")
     level = _input(shader, "Specular IOR Level", "Specular")
     glossy = metallic > 0 or (level is not None and _constant_value(level, name) > 0)
-    if glossy and roughness is not None and _constant_value(roughness, name) < MIN_ROUGHNESS:
+    if glossy and _input(shader, "Roughness") is not None and _roughness(shader, textures, name) < MIN_ROUGHNESS:
         notes.append(f"a mirror-like specular (roughness under {MIN_ROUGHNESS}: lamps' reflections are not rendered)")
-    if textures.specular is not None:
-        notes.append("a second Principled BSDF (the first one's specular layer weights the whole surface)")
     if notes:
-        textures.approximated.setdefault(name, set()).add(f"node {shader.name!r}: " + ", ".join(notes))
+        _note(textures, name, shader, ", ".join(notes))
 
 
-def _specular_layer(shader, name, base, texture, metallic, transmission):
+def _roughness(shader, textures, name, default=0.5):
+    """A closure's Roughness: its constant, or the mean of an image it reads directly (a lobe has
+    one roughness: noted), else its own value (`_constant_value` warns)."""
+    socket = _input(shader, "Roughness")
+    if socket is None:
+        return default
+    node, output = _source(socket)
+    if node is not None and node.type == "TEX_IMAGE" and output in ("Color", "Alpha"):
+        pixels = textures.alpha(node.image, name) if output == "Alpha" else textures.get(node.image, name)
+        if pixels is not None:
+            _note(textures, name, shader, "Roughness from an image (its mean)")
+            mean = pixels.mean() if output == "Alpha" else pixels.reshape(-1, 3).mean(axis=0) @ surface_mix.GRAY
+            return float(np.clip(mean, 0.0, 1.0))
+    return _constant_value(socket, name)
+
+
+def _specular_layer(shader, textures, name, base, texture, metallic, transmission):
     """`SpecularLayer` of a Principled BSDF: its roughness, IOR, Specular IOR Level and Tint and
     its distribution (constant inputs; a linked one keeps its value, with a warning), weighted as
     Cycles weights the dielectric layer; the metallic lobe's F0 is the (mean) base colour."""
@@ -465,23 +545,25 @@ def _specular_layer(shader, name, base, texture, metallic, transmission):
     level = _input(shader, "Specular IOR Level", "Specular")
     tint = _input(shader, "Specular Tint")
     colour_tint = tint is not None and hasattr(tint.default_value, "__len__")
-    return SpecularLayer(roughness=_constant_value(_input(shader, "Roughness"), name),
+    return SpecularLayer(roughness=_roughness(shader, textures, name),
                          ior=_constant_value(_input(shader, "IOR"), name) if _input(shader, "IOR") else 1.5,
                          level=_constant_value(level, name) if level is not None else 0.5,
                          tint=_constant_color(tint, name) if colour_tint else np.ones(3, np.float32),
                          multiscatter=getattr(shader, "distribution", "MULTI_GGX") == "MULTI_GGX",
-                         weight=(1.0 - metallic) * (1.0 - transmission), metallic=metallic, metal_color=metal)
+                         weight=(1.0 - metallic) * (1.0 - transmission), metallic=metallic, metal_color=metal,
+                         transmission=transmission)
 
 
 def _mix_surface(shader, kind, textures, name, depth):
-    """`_shader_surface` of a Mix or Add Shader: its parts weighted by the (constant) factor, or
-    the usual cutout, Mix(Fac = an image's alpha, Transparent BSDF, a surface)."""
-    nothing = (np.zeros(3, np.float32), None, np.zeros(3, np.float32), None)
+    """`_shader_surface` of a Mix or Add Shader: its parts weighted by the factor (a constant, or
+    a Fresnel / Layer Weight node's output over the view angle), or the usual cutout,
+    Mix(Fac = an image's alpha, Transparent BSDF, a surface)."""
     nodes = [_linked_node(socket) for socket in (shader.inputs[-2:] if kind == "MIX_SHADER" else shader.inputs[:2])]
-    parts = [_shader_surface(node, textures, name, depth + 1) if node is not None else nothing for node in nodes]
+    parts = [_shader_surface(node, textures, name, depth + 1) if node is not None else surface_mix.SurfacePart()
+             for node in nodes]
     if any(part is None for part in parts):
         return None
-    weights = (1.0, 1.0)
+    weights = [surface_mix.constant_factor(1.0)] * 2
     if kind == "MIX_SHADER":
         kinds = [node.type if node is not None else None for node in nodes]
         if "BSDF_TRANSPARENT" in kinds and shader.inputs["Fac"].is_linked:
@@ -489,28 +571,73 @@ def _mix_surface(shader, kind, textures, name, depth):
             if fac_map is not None:
                 # The transparent part's weight is the hole, not a darker surface.
                 hole_first = kinds[0] == "BSDF_TRANSPARENT"
-                base, texture, emission, _alpha = parts[1] if hole_first else parts[0]
-                return base, texture, emission, fac_map if hole_first else 1.0 - fac_map
-        fac = float(np.clip(_constant_value(shader.inputs["Fac"], name), 0, 1))
-        weights = (1.0 - fac, fac)
-    textured = [i for i, part in enumerate(parts) if part[1] is not None and weights[i] > 0]
-    if len(textured) > 1:
-        log.warning("material %r: a mix of two image textures keeps the stronger one", name)
-    texture = parts[max(textured, key=lambda i: weights[i])][1] if textured else None
-    # With a texture, colour = base x texture: the other parts' mean colours enter base divided
-    # by the texture's mean, so the mean albedo of the mix is right.
-    mean = texture.reshape(-1, 3).mean(axis=0) if texture is not None else np.ones(3)
-    base = sum(w * (part[0] if part[1] is texture else _mean_colour(part) / np.maximum(mean, 1e-6))
-               for w, part in zip(weights, parts, strict=True))
-    emission = sum(w * part[2] for w, part in zip(weights, parts, strict=True))
-    alpha = next((part[3] for part in parts if part[3] is not None), None)
-    return np.asarray(base, np.float32), texture, np.asarray(emission, np.float32), alpha
+                part = parts[1] if hole_first else parts[0]
+                return replace(part, alpha=fac_map if hole_first else 1.0 - fac_map)
+        fac = _view_factor(shader.inputs["Fac"], name)
+        weights = [1.0 - fac, fac]
+    part, notes = surface_mix.mix(parts, weights, name)
+    for note in notes:
+        _note(textures, name, shader, note)
+    return part
 
 
-def _mean_colour(part):
-    """(3,) mean diffuse colour of a `_shader_surface` part (its base times its texture's mean)."""
-    base, texture = part[0], part[1]
-    return base if texture is None else base * texture.reshape(-1, 3).mean(axis=0)
+def _view_factor(socket, name):
+    """(V,) a Mix Shader's Fac over the view cosine (`_factor_table`), clamped as the Mix Shader
+    clamps it; a factor from anything else keeps its own value (`_constant_value` warns)."""
+    table = _factor_table(socket, name)
+    if table is None:
+        return surface_mix.constant_factor(_constant_value(socket, name))
+    return np.clip(np.broadcast_to(np.asarray(table, np.float64), (sp.VIEW_SAMPLES,)), 0.0, 1.0)
+
+
+def _factor_table(socket, name, depth=0):
+    """(V,) or a float: what a float input evaluates to over the view cosine, through the nodes
+    tutorials put between a Fresnel or Layer Weight node and a Mix Shader (Math, Invert, Color
+    Ramp, Map Range) and constants; None for anything else. A colour reads as its luminance."""
+    node, output = _source(socket)
+    if node is None:  # unlinked or muted: the socket's own value
+        value = socket.default_value
+        return float(np.dot(tuple(value)[:3], surface_mix.GRAY)) if hasattr(value, "__len__") else float(value)
+    if depth > 16:
+        return None
+    kind = node.type
+    if kind == "FRESNEL":
+        return surface_mix.fresnel_factor(_constant_value(node.inputs["IOR"], name))
+    if kind == "LAYER_WEIGHT":
+        return surface_mix.layer_weight_factor(_constant_value(node.inputs["Blend"], name), output)
+    if kind == "MATH":
+        a, b = (_factor_table(node.inputs[i], name, depth + 1) for i in (0, 1))
+        if a is None or b is None:
+            return None
+        return surface_mix.math_factor(node.operation, a, b, bool(node.use_clamp))
+    if kind == "INVERT":
+        fac, colour = (_factor_table(node.inputs[key], name, depth + 1) for key in ("Fac", "Color"))
+        if fac is None or colour is None:
+            return None
+        return (1.0 - np.asarray(fac)) * np.asarray(colour) + np.asarray(fac) * (1.0 - np.asarray(colour))
+    if kind == "VALTORGB":
+        fac = _factor_table(node.inputs["Fac"], name, depth + 1)
+        ramp = node.color_ramp
+        rgba = None if fac is None else surface_mix.ramp_factor(
+            np.broadcast_to(np.asarray(fac, np.float64), (sp.VIEW_SAMPLES,)), [e.position for e in ramp.elements],
+            [tuple(e.color) for e in ramp.elements], ramp.interpolation)
+        if rgba is None:
+            return None
+        return rgba[:, 3] if output == "Alpha" else rgba[:, :3] @ surface_mix.GRAY
+    if kind == "MAP_RANGE" and getattr(node, "data_type", "FLOAT") == "FLOAT" and node.interpolation_type == "LINEAR":
+        values = [_factor_table(node.inputs[key], name, depth + 1)
+                  for key in ("Value", "From Min", "From Max", "To Min", "To Max")]
+        if any(v is None for v in values):
+            return None
+        x, lo, hi, to_lo, to_hi = (np.asarray(v, np.float64) for v in values)
+        span = hi - lo
+        t = np.where(span != 0.0, (x - lo) / np.where(span != 0.0, span, 1.0), 0.0)
+        out = to_lo + t * (to_hi - to_lo)
+        return np.clip(out, np.minimum(to_lo, to_hi), np.maximum(to_lo, to_hi)) if node.clamp else out
+    folded = _fold(socket, 0)
+    return None if folded is None else float(np.dot(np.broadcast_to(folded, (3,)), surface_mix.GRAY)
+                                             if np.ndim(folded) else folded)
+
 
 
 def _alpha_map(socket, textures, name, constant_ok=True):
@@ -766,9 +893,8 @@ class _TextureCache:
         self._images = {}
         self.baked = {}  # (node name, input identifier) -> baked texture of the material being read
         self.pending = False
-        self.glossy = set()  # materials with a specular layer (dielectric or metallic)
-        self.approximated: dict[str, set[str]] = {}  # material -> what of its Principled BSDF is approximated
-        self.specular = None  # the specular layer of the material being read (SpecularLayer)
+        self.glossy = set()  # materials with glossy lobes
+        self.approximated: dict[str, set[str]] = {}  # material -> what of its nodes is approximated
 
     def _read(self, image, material_name):
         if image is None:

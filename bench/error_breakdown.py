@@ -23,7 +23,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import compare_cycles  # noqa: E402
 import imagediff  # noqa: E402
 
-PASSES = ("Combined", "Diffuse Direct", "Diffuse Indirect", "Diffuse Color", "Ambient Occlusion")
+PASSES = ("Combined", "Diffuse Direct", "Diffuse Indirect", "Diffuse Color", "Ambient Occlusion", "Glossy Direct",
+          "Glossy Indirect", "Glossy Color")
 
 
 def edge_pixels(passes: dict[str, np.ndarray], mask: np.ndarray) -> np.ndarray:

@@ -1,11 +1,13 @@
-"""Glossy Direct: the lamps reflected by a Principled BSDF's GGX lobes at image pixels.
+"""Glossy Direct: the lamps reflected by the materials' glossy lobes at image pixels.
 
 Cycles' Glossy Direct is the lamp light its glossy closures reflect towards the camera, divided by
-Glossy Color (their albedo at the view angle, `specular.glossy_color`). The lobes are Cycles':
-the dielectric specular layer (Fresnel of the adjusted IOR remapped to F0..1, weight
-(1 - metallic)(1 - transmission)) and the metallic lobe (Schlick on F0 = base colour, the F82
-tint's white default), both GGX with height-correlated Smith masking and, for Multiscatter GGX,
-the multiple-scattering factor 1 + Fms (1 - E) / E of `microfacet_ggx_preserve_energy`.
+Glossy Color (their albedo at the view angle, `specular.glossy_color`). The lobes are Cycles'
+(`specular.GlossyLobe`): a Principled BSDF's dielectric specular layer (Fresnel of the adjusted
+IOR remapped to F0..1, weight (1 - metallic)(1 - transmission)) and metallic lobe (F82 tint), a
+Glossy BSDF's (no Fresnel, its colour), a Metallic BSDF's (F82 tint or a conductor's Fresnel), a
+Glass BSDF's reflection (its real Fresnel), each under the weights and view factors of the mixes
+above it: GGX or Beckmann with height-correlated Smith masking and, for Multiscatter GGX, the
+multiple-scattering factor 1 + Fms (1 - E) / E of `microfacet_ggx_preserve_energy`.
 
 The lamps are sampled as `lights.direct_irradiance` samples them for the diffuse light, with shadow
 rays of their own: area lamps uniformly over their area, point and spot lamps over the disc of
@@ -53,66 +55,78 @@ MIN_ROUGHNESS = 0.02
 
 @dataclass
 class GlossyMaterials:
-    """Per-material constants of the glossy lobes, indexed by material (row -1 = none).
+    """Per-material constants of the glossy lobes (`specular.GlossyLobe`), indexed by material
+    and by lobe slot: arrays (L, m, ...) for the scene's most lobes per material L (unused slots
+    weigh 0).
 
-    rough, alpha2 : (m,) roughness and alpha^2; eta, f0_real : (m,) the layer's IOR and its F0;
-    f0 : (m, 3) the layer's tinted F0; weight, metallic : (m,) the lobes' weights; metal_f0 :
-    (m, 3); ms : (m,) Multiscatter GGX; fss, fss_metal : (m, 3) average Fresnels; e_avg : (m,).
+    rough : (m,) the material's smoothest lobe's roughness, mirror-like ones included (what the
+    reflection rays trace: `reflection.py`; 1 without lobes); alpha2, e_avg : (L, m);
+    beckmann, ms : (L, m) the Beckmann distribution, Multiscatter GGX; eta, f0_real : (L, m) the
+    dielectric Fresnel's IOR (above 1) and its F0; k : (L, m, 4, 3) the weight times the
+    Fresnel's coefficients (`GlossyLobe.coefficients`); fss : (L, m, 3); view : (L, m, V) the
+    view factor over `specular.view_grid` (ones without one); layers : each material's `specular`.
     """
 
     rough: np.ndarray
+    lobe_rough: np.ndarray
     alpha2: np.ndarray
+    beckmann: np.ndarray
+    ms: np.ndarray
     eta: np.ndarray
     f0_real: np.ndarray
-    f0: np.ndarray
-    weight: np.ndarray
-    metallic: np.ndarray
-    metal_f0: np.ndarray
-    ms: np.ndarray
+    k: np.ndarray
     fss: np.ndarray
-    fss_metal: np.ndarray
     e_avg: np.ndarray
+    view: np.ndarray
     layers: list
 
     @classmethod
     def from_materials(cls, materials) -> GlossyMaterials:
         layers = [getattr(m, "specular", None) for m in materials]
-        n = len(layers)
-        out = cls(*(np.zeros(n) for _ in range(4)), np.zeros((n, 3)), np.zeros(n), np.zeros(n), np.zeros((n, 3)),
-                  np.zeros(n, bool), np.zeros((n, 3)), np.zeros((n, 3)), np.ones(n), layers)
+        every = [sp.surface_lobes(layer) for layer in layers]
+        per = [[lobe for lobe in lobes if lobe.roughness >= MIN_ROUGHNESS] for lobes in every]
+        n, slots = len(layers), max((len(p) for p in per), default=0)
+        out = cls(np.ones(n), np.zeros((slots, n)), np.zeros((slots, n)), np.zeros((slots, n), bool),
+                  np.zeros((slots, n), bool), np.full((slots, n), 1.5), np.zeros((slots, n)), np.zeros((slots, n, 4, 3)),
+                  np.ones((slots, n, 3)), np.ones((slots, n)), np.ones((slots, n, sp.VIEW_SAMPLES)), layers)
         _, e_avg_table, _ = sp.tables()
-        for i, layer in enumerate(layers):
-            if layer is None or layer.roughness < MIN_ROUGHNESS:
-                continue
-            out.rough[i] = layer.roughness
-            out.alpha2[i] = layer.roughness**4
-            out.eta[i] = layer.eta if layer.eta >= 1.0 else 1.0 / layer.eta
-            out.f0_real[i] = float(sp.f0_from_ior(out.eta[i]))
-            out.weight[i] = layer.weight if layer.active else 0.0
-            out.f0[i] = layer.f0
-            out.metallic[i] = layer.metallic
-            out.metal_f0[i] = layer.metal_color
-            out.ms[i] = layer.multiscatter
-            s_avg = np.clip((sp.fresnel_dielectric_fss(out.eta[i]) - out.f0_real[i]) / max(1.0 - out.f0_real[i], 1e-12), 0, 1)
-            out.fss[i] = out.f0[i] + (1.0 - out.f0[i]) * s_avg
-            out.fss_metal[i] = out.metal_f0[i] + (1.0 - out.metal_f0[i]) / 21.0
-            out.e_avg[i] = float(sp._lerp_table(e_avg_table, [layer.roughness]))
+        for i, lobes in enumerate(per):
+            if every[i]:
+                out.rough[i] = min(lobe.roughness for lobe in every[i])
+            for j, lobe in enumerate(lobes):
+                out.lobe_rough[j, i] = lobe.roughness
+                out.alpha2[j, i] = lobe.roughness**4
+                out.beckmann[j, i] = lobe.distribution == "BECKMANN"
+                out.ms[j, i] = lobe.distribution == "MULTI_GGX"
+                out.eta[j, i] = lobe.eta
+                out.f0_real[j, i] = float(sp.f0_from_ior(lobe.eta))
+                out.k[j, i] = lobe.weight[None, :] * lobe.coefficients()
+                out.fss[j, i] = lobe.average_fresnel()
+                out.e_avg[j, i] = float(sp._lerp_table(e_avg_table, [lobe.roughness]))
+                if lobe.view is not None:
+                    out.view[j, i] = sp.sample_view(lobe.view, sp.view_grid())
         return out
 
     @property
+    def live(self) -> np.ndarray:
+        """(m,) whether a material has a lobe to evaluate."""
+        return np.abs(self.k).sum(axis=(0, 2, 3)) > 0
+
+    @property
     def any(self) -> bool:
-        return bool(np.any((self.weight > 0) | (self.metallic > 0)))
+        return bool(self.live.any())
 
 
 def _lobe_terms(mats: GlossyMaterials, rows, n, v, lx, ly, lz):
     """The glossy lobes at m receivers towards s unit directions each, factored so that no
-    (m, s, 3) array is needed: BRDF x cos = common (A + B remap + C + D schlick) per channel.
+    (m, s, 3) array is needed: BRDF x cos = sum over slots of common (k0 + k1 remap + k2 s5 +
+    k3 c s6) per channel.
 
-    Returns common (m, s) (D G2 / (4 cos_i), 0 below either horizon), remap (m, s) (the
-    dielectric Fresnel remapped to 0..1), schlick (m, s) ((1 - cos(h, i))^5) and k (m, 4, 3):
-    A, B the dielectric layer's weight x multiscatter factor x F0 and x (1 - F0); C, D the
-    metallic lobe's."""
-    a2 = mats.alpha2[rows][:, None].astype(_F32)
+    Returns a list over the lobe slots in use of (common (m, s): D G2 / (4 cos_i), 0 below
+    either horizon; terms, 3 x (m, s) or None where the slot's coefficient of it is 0: remap (the
+    dielectric Fresnel mapped to 0..1), (1 - c)^5 and c (1 - c)^6 of c = cos(h, i); k (m, 4, 3):
+    the slot's coefficients times its multiscatter factor and view factor at the receiver's view
+    angle)."""
     mu_i = np.einsum("ij,ij->i", n, v)[:, None]
     nx, ny, nz = n[:, 0:1], n[:, 1:2], n[:, 2:3]
     mu_o = lx * nx + ly * ny + lz * nz
@@ -120,25 +134,70 @@ def _lobe_terms(mats: GlossyMaterials, rows, n, v, lx, ly, lz):
     inv = _F32(1.0) / np.maximum(np.sqrt(hx * hx + hy * hy + hz * hz), _F32(1e-12))
     cos_nh = (hx * nx + hy * ny + hz * nz) * inv
     cos_hi = np.clip((hx * v[:, 0:1] + hy * v[:, 1:2] + hz * v[:, 2:3]) * inv, 0.0, 1.0)
-    ok = (mu_i > 1e-4) & (mu_o > 0) & (a2 > 0)
+    facing = (mu_i > 1e-4) & (mu_o > 0)
     mu_i = np.maximum(mu_i, _F32(1e-4))
-    x = cos_nh * cos_nh * (a2 - _F32(1.0)) + _F32(1.0)
-    d = a2 / (_F32(np.pi) * x * x)
-    g2 = _F32(1.0) / (_F32(1.0) + sp._lambda(a2, mu_i) + sp._lambda(a2, np.where(ok, mu_o, _F32(1.0))))
-    common = np.where(ok, d * g2 / (_F32(4.0) * mu_i), _F32(0.0)).astype(_F32)
-    f0_real = mats.f0_real[rows][:, None].astype(_F32)
-    remap = (sp.fresnel_dielectric(cos_hi, mats.eta[rows][:, None]).astype(_F32) - f0_real) / np.maximum(
-        _F32(1.0) - f0_real, _F32(1e-12))
-    remap = np.clip(remap, 0.0, 1.0)
     one_minus = _F32(1.0) - cos_hi
-    schlick = (one_minus * one_minus) ** 2 * one_minus
-    e = sp._lerp_table(sp.tables()[0], [mats.rough[rows], mu_i[:, 0]])[:, None]
-    ms, e_avg = mats.ms[rows][:, None], mats.e_avg[rows][:, None]
-    scale = np.where(ms, sp.multiscatter_factor(mats.fss[rows], e, e_avg), 1.0) * mats.weight[rows][:, None]
-    scale_m = np.where(ms, sp.multiscatter_factor(mats.fss_metal[rows], e, e_avg), 1.0) * mats.metallic[rows][:, None]
-    f0, fm0 = mats.f0[rows], mats.metal_f0[rows]
-    k = np.stack([scale * f0, scale * (1.0 - f0), scale_m * fm0, scale_m * (1.0 - fm0)], axis=1).astype(_F32)
-    return common, remap, schlick, k
+    s5 = (one_minus * one_minus) ** 2 * one_minus
+    s6c = s5 * one_minus * cos_hi
+    mu_view = np.clip(mu_i[:, 0], 0.0, 1.0)
+    out = []
+    for slot in range(mats.alpha2.shape[0]):
+        k = mats.k[slot, rows]
+        if not np.any(k):
+            continue
+        a2 = mats.alpha2[slot, rows][:, None].astype(_F32)
+        ok = facing & (a2 > 0)
+        mu_o_ok = np.where(ok, mu_o, _F32(1.0))
+        x = cos_nh * cos_nh * (a2 - _F32(1.0)) + _F32(1.0)
+        d = a2 / (_F32(np.pi) * x * x)
+        g2 = _F32(1.0) / (_F32(1.0) + sp._lambda(a2, mu_i) + sp._lambda(a2, mu_o_ok))
+        beck = mats.beckmann[slot, rows]
+        if beck.any():
+            d = np.where(beck[:, None], _beckmann_d(a2, cos_nh), d)
+            g2 = np.where(beck[:, None], _F32(1.0) / (_F32(1.0) + _beckmann_lambda(a2, mu_i)
+                                                      + _beckmann_lambda(a2, mu_o_ok)), g2)
+        common = np.where(ok, d * g2 / (_F32(4.0) * mu_i), _F32(0.0)).astype(_F32)
+        terms = [None, s5 if np.any(k[:, 2]) else None, s6c if np.any(k[:, 3]) else None]
+        if np.any(k[:, 1]):
+            f0_real = mats.f0_real[slot, rows][:, None].astype(_F32)
+            remap = (sp.fresnel_dielectric(cos_hi, mats.eta[slot, rows][:, None]).astype(_F32) - f0_real) / np.maximum(
+                _F32(1.0) - f0_real, _F32(1e-12))
+            terms[0] = np.clip(remap, 0.0, 1.0).astype(_F32)
+        rough = mats.lobe_rough[slot, rows]
+        e = sp._lerp_table(sp.tables()[0], [rough, mu_i[:, 0]])[:, None]
+        e_avg = mats.e_avg[slot, rows][:, None]
+        scale = np.where(mats.ms[slot, rows][:, None], sp.multiscatter_factor(mats.fss[slot, rows], e, e_avg), 1.0)
+        view = _view_factor(mats.view[slot, rows], mu_view)
+        out.append((common, terms, (k * (scale * view[:, None])[:, None, :]).astype(_F32)))
+    return out
+
+
+def _view_factor(tables, mu) -> np.ndarray:
+    """(m,) each receiver's view factor: its row of (m, V) tables over `specular.view_grid`
+    linearly interpolated at its view cosine."""
+    if np.all(tables == 1.0):
+        return np.ones(tables.shape[0])
+    x = np.clip(mu, 0.0, 1.0) * (tables.shape[1] - 1)
+    i0 = np.minimum(np.floor(x).astype(np.int64), tables.shape[1] - 2)
+    frac = x - i0
+    at = np.arange(tables.shape[0])
+    return tables[at, i0] * (1.0 - frac) + tables[at, i0 + 1] * frac
+
+
+def _beckmann_d(a2, cos_nh):
+    """Beckmann's normal distribution (Cycles' bsdf_D<BECKMANN>)."""
+    c2 = np.clip(cos_nh * cos_nh, 1e-12, 1.0)
+    with np.errstate(over="ignore"):
+        return _F32(1.0) / (np.exp((_F32(1.0) - c2) / (c2 * a2)) * _F32(np.pi) * a2 * c2 * c2)
+
+
+def _beckmann_lambda(a2, cos_n):
+    """Smith Lambda of Beckmann, the rational approximation Cycles uses."""
+    cos2 = np.maximum(cos_n * cos_n, 1e-30)
+    t = a2 * np.maximum(1.0 / cos2 - 1.0, 0.0)
+    a = 1.0 / np.sqrt(np.maximum(t, 1e-30))
+    lam = ((0.396 * a - 1.259) * a + 1.0) / ((2.181 * a + 3.535) * a)
+    return np.where(t < 0.39, 0.0, lam).astype(_F32)
 
 
 def lobes(mats: GlossyMaterials, rows, n, v, lx, ly, lz) -> np.ndarray:
@@ -146,10 +205,16 @@ def lobes(mats: GlossyMaterials, rows, n, v, lx, ly, lz) -> np.ndarray:
 
     rows : (m,) material index; n, v : (m, 3) unit normal and direction to the eye; lx, ly, lz :
     (m, s) unit directions to the light. 0 where either direction is below the surface."""
-    common, remap, schlick, k = _lobe_terms(mats, rows, *(np.asarray(a, _F32) for a in (n, v, lx, ly, lz)))
-    k = k[:, None]
-    return common[..., None] * (k[..., 0, :] + k[..., 1, :] * remap[..., None] + k[..., 2, :]
-                                + k[..., 3, :] * schlick[..., None])
+    rows = np.asarray(rows)
+    out = np.zeros((*np.shape(lx), 3), _F32)
+    for common, terms, k in _lobe_terms(mats, rows, *(np.asarray(a, _F32) for a in (n, v, lx, ly, lz))):
+        k = k[:, None]
+        f = np.broadcast_to(k[..., 0, :], out.shape).copy()
+        for j, term in enumerate(terms):
+            if term is not None:
+                f += k[..., j + 1, :] * term[..., None]
+        out += common[..., None] * f
+    return out
 
 
 def glossy_color(mats: GlossyMaterials, rows, mu) -> np.ndarray:
@@ -257,7 +322,7 @@ def glossy_direct(lights, points, normals, to_eye, rows, mats: GlossyMaterials, 
     if not active or not mats.any or pts.shape[0] == 0:
         return out
     valid = (rows >= 0) & np.isfinite(pts).all(1) & np.isfinite(nrm).all(1) & np.isfinite(eye).all(1)
-    valid[valid] &= (mats.weight[rows[valid]] > 0) | (mats.metallic[rows[valid]] > 0)
+    valid[valid] &= mats.live[rows[valid]]
     sel = np.flatnonzero(valid)
     step = max(1, CHUNK // max(samples, 1))
     for start in range(0, sel.size, step):
@@ -273,10 +338,15 @@ def glossy_direct(lights, points, normals, to_eye, rows, mats: GlossyMaterials, 
                 continue
             dirs, weight, targets = drawn
             d32 = dirs.astype(_F32)
-            common, remap, schlick, k = _lobe_terms(mats, r, n32, v32, d32[..., 0], d32[..., 1], d32[..., 2])
-            c = common * weight.astype(_F32)
+            slots = _lobe_terms(mats, r, n32, v32, d32[..., 0], d32[..., 1], d32[..., 2])
+            if not slots:
+                continue
+            w32 = weight.astype(_F32)
+            lit = np.zeros(w32.shape, bool)
+            for common, _, _ in slots:
+                lit |= (common * w32) > 0
             if tracer is not None:
-                ri, si = np.nonzero(c > 0)
+                ri, si = np.nonzero(lit)
                 if ri.size:
                     if targets is not None:
                         t = targets[ri, si].astype(_F32)
@@ -284,10 +354,16 @@ def glossy_direct(lights, points, normals, to_eye, rows, mats: GlossyMaterials, 
                     else:
                         origins = (p[ri] + n[ri] * epsilon).astype(_F32)
                         vis = ~np.asarray(tracer.occluded(origins, d32[ri, si], np.inf, trusted=True), bool)
-                    c[ri[~vis], si[~vis]] = 0.0
-            # Per channel: sum_s c (A + B remap + C + D schlick), without an (m, s, 3) array.
-            s0, s1, s2 = c.sum(axis=1), (c * remap).sum(axis=1), (c * schlick).sum(axis=1)
-            acc += ((k[:, 0] + k[:, 2]) * s0[:, None] + k[:, 1] * s1[:, None] + k[:, 3] * s2[:, None]) * light.color
+                    w32 = w32.copy()
+                    w32[ri[~vis], si[~vis]] = 0.0
+            for common, terms, k in slots:
+                # Per channel: sum_s c (k0 + k1 remap + k2 s5 + k3 c s6), without an (m, s, 3) array.
+                c = common * w32
+                total = k[:, 0] * c.sum(axis=1)[:, None]
+                for j, term in enumerate(terms):
+                    if term is not None:
+                        total += k[:, j + 1] * (c * term).sum(axis=1)[:, None]
+                acc += total * light.color
         out[idx] = acc
     return out
 

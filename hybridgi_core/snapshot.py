@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .errors import EmptySceneError, InvalidGeometryError
-from .specular import SpecularLayer, hemispherical_diffuse_weight, hemispherical_glossy_albedo
+from .specular import GlossySurface, SpecularLayer, hemispherical_diffuse_weight, hemispherical_glossy_albedo
 
 log = logging.getLogger(__name__)
 
@@ -100,9 +100,10 @@ class Material:
         atlas (one material per mesh then), so an edit of the material can bake it again; None
         for materials read directly
     specular : the Principled BSDF's dielectric specular layer over the diffuse base
-        (`specular.SpecularLayer`), or None for a plain Lambertian surface. base_color is the
-        diffuse colour before the layer's view-dependent weight, which the G-buffer applies per
-        pixel and probe hits as its hemispherical mean (`specular.diffuse_weight`)
+        (`specular.SpecularLayer`), the glossy closures of any other node tree with the diffuse
+        weight they leave (`specular.GlossySurface`), or None for a plain Lambertian surface.
+        base_color is the diffuse colour before the view-dependent weight, which the G-buffer
+        applies per pixel and probe hits as its hemispherical mean (`specular.diffuse_weight`)
     """
 
     name: str = "default"
@@ -111,7 +112,7 @@ class Material:
     emission: np.ndarray = field(default_factory=lambda: np.zeros(3, np.float32))
     alpha: np.ndarray | None = None
     bake_id: str | None = None
-    specular: SpecularLayer | None = None
+    specular: SpecularLayer | GlossySurface | None = None
 
     def __post_init__(self) -> None:
         # Non-finite colours would reach every pixel that sees (or bounces off) this material.

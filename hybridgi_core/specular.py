@@ -209,15 +209,13 @@ def metal_albedo(layer: SpecularLayer, mu) -> np.ndarray:
     return albedo
 
 
-def glossy_color(layer: SpecularLayer | None, mu) -> np.ndarray:
+def glossy_color(layer, mu) -> np.ndarray:
     """(..., 3) Cycles' Glossy Color at cosines mu: the glossy closures' albedos times their
-    weights (the dielectric layer's and the metallic lobe's)."""
+    weights (a `SpecularLayer`'s dielectric layer and metallic lobe, a `GlossySurface`'s lobes)."""
     mu = np.asarray(mu, np.float64)
-    if layer is None:
-        return np.zeros((*mu.shape, 3))
-    out = layer.weight * layer_albedo(layer, mu)
-    if layer.metallic > 0:
-        out = out + layer.metallic * metal_albedo(layer, mu)
+    out = np.zeros((*mu.shape, 3))
+    for lobe in surface_lobes(layer):
+        out = out + lobe_color(lobe, mu)
     return out
 
 
@@ -252,7 +250,9 @@ class SpecularLayer:
     multiscatter : the node's distribution is Multiscatter GGX (Cycles' default), whose energy
     compensation darkens the layer by E + Fms (1 - E).
     weight : the layer's share of the surface, (1 - metallic)(1 - transmission) as Cycles weights
-    it; metallic, metal_color : the metallic lobe's weight and F0 (the clamped base colour).
+    it; metallic, metal_color : the metallic lobe's weight and F0 (the clamped base colour);
+    transmission : the Transmission Weight, whose glass closure (weight transmission x
+    (1 - metallic)) reflects with the real Fresnel of the IOR (not level-adjusted) and the tint.
     """
 
     roughness: float = 0.5
@@ -263,6 +263,7 @@ class SpecularLayer:
     weight: float = 1.0
     metallic: float = 0.0
     metal_color: np.ndarray = field(default_factory=lambda: np.zeros(3, np.float32))
+    transmission: float = 0.0
 
     def __post_init__(self) -> None:
         def finite(value, default, lo, hi):
@@ -278,6 +279,7 @@ class SpecularLayer:
         self.metallic = finite(self.metallic, 0.0, 0.0, 1.0)
         metal = np.asarray(self.metal_color, np.float32).reshape(-1)[:3]
         self.metal_color = np.clip(np.where(np.isfinite(metal), metal, 0.0), 0.0, 1.0).astype(np.float32)
+        self.transmission = finite(self.transmission, 0.0, 0.0, 1.0)
 
     @property
     def eta(self) -> float:
@@ -300,7 +302,7 @@ class SpecularLayer:
 
     def key(self) -> bytes:
         return np.array([self.roughness, self.ior, self.level, *self.tint, self.multiscatter, self.weight,
-                         self.metallic, *self.metal_color], np.float64).tobytes()
+                         self.metallic, *self.metal_color, self.transmission], np.float64).tobytes()
 
 
 def layer_albedo(layer: SpecularLayer, mu) -> np.ndarray:
@@ -326,21 +328,24 @@ def layer_albedo(layer: SpecularLayer, mu) -> np.ndarray:
     return albedo
 
 
-def diffuse_weight(layer: SpecularLayer | None, mu) -> np.ndarray:
+def diffuse_weight(layer, mu) -> np.ndarray:
     """(...) weight of the diffuse base under the layer at cosines mu: Cycles'
-    closure_layering_weight, 1 - max over channels of the layer's albedo (1 without a layer)."""
+    closure_layering_weight, 1 - max over channels of the layer's albedo (1 without a layer);
+    a `GlossySurface`'s own table of it."""
     mu = np.asarray(mu, np.float64)
+    if isinstance(layer, GlossySurface):
+        return np.ones(mu.shape) if layer.diffuse is None else sample_view(layer.diffuse, mu)
     if layer is None or not layer.active:
         return np.ones(mu.shape)
     return np.clip(1.0 - layer_albedo(layer, mu).max(axis=-1), 0.0, 1.0)
 
 
-def diffuse_weight_row(layer: SpecularLayer | None, n: int = WEIGHT_SAMPLES) -> np.ndarray:
+def diffuse_weight_row(layer, n: int = WEIGHT_SAMPLES) -> np.ndarray:
     """(n,) float32 diffuse weight at cosines i / (n - 1): one row of the G-buffer's table."""
     return diffuse_weight(layer, _grid(n)).astype(np.float32)
 
 
-def hemispherical_glossy_albedo(layer: SpecularLayer | None) -> np.ndarray:
+def hemispherical_glossy_albedo(layer) -> np.ndarray:
     """(3,) cosine-weighted mean albedo of the glossy lobes: the dielectric layer's (times its
     weight) and the metallic lobe's (its average Fresnel, F0 + (1 - F0) / 21, times its weight).
     Probe-ray hits reflect this share of their light as if it were diffuse: a cache of
@@ -348,18 +353,273 @@ def hemispherical_glossy_albedo(layer: SpecularLayer | None) -> np.ndarray:
     if layer is None:
         return np.zeros(3, np.float32)
     mu = (np.arange(64) + 0.5) / 64
+    if isinstance(layer, GlossySurface):
+        return np.mean(2.0 * glossy_color(layer, mu) * mu[:, None], axis=0).astype(np.float32)
     dielectric = np.mean(2.0 * layer_albedo(layer, mu) * mu[:, None], axis=0) if layer.active else np.zeros(3)
     metal = layer.metal_color + (1.0 - layer.metal_color) / 21.0
-    return (layer.weight * dielectric + layer.metallic * metal).astype(np.float32)
+    glass = sum((np.mean(2.0 * lobe_color(lobe, mu) * mu[:, None], axis=0) for lobe in _transmission_lobes(layer)),
+                np.zeros(3))
+    return (layer.weight * dielectric + layer.metallic * metal + glass).astype(np.float32)
 
 
-def hemispherical_diffuse_weight(layer: SpecularLayer | None) -> float:
+def hemispherical_diffuse_weight(layer) -> float:
     """Cosine-weighted mean of the diffuse weight over the hemisphere, 2 int w(mu) mu dmu: what
     a probe-ray hit, seen from every direction at once, reflects of its diffuse base."""
-    if layer is None or not layer.active:
+    if layer is None or (not isinstance(layer, GlossySurface) and not layer.active):
         return 1.0
     mu = (np.arange(64) + 0.5) / 64
     return float(np.mean(2.0 * diffuse_weight(layer, mu) * mu))
+
+
+# --- glossy closures of any shader node ---------------------------------------------------------
+
+#: Cosines at which a lobe's view-dependent factor (a Mix Shader's Fresnel / Layer Weight Fac) and a
+#: `GlossySurface`'s diffuse weight are tabulated (0..1, inclusive; finer than the G-buffer's row:
+#: the Fresnel factor is steep at grazing angles).
+VIEW_SAMPLES = 64
+DISTRIBUTIONS = ("GGX", "MULTI_GGX", "BECKMANN")
+FRESNELS = ("none", "dielectric", "f82", "conductor")
+
+
+def view_grid(n: int = VIEW_SAMPLES) -> np.ndarray:
+    """(n,) the cosines i / (n - 1) the view-dependent tables are sampled at."""
+    return _grid(n)
+
+
+def sample_view(table, mu) -> np.ndarray:
+    """A (n,) table over the view cosine (`view_grid`) linearly interpolated at cosines mu."""
+    table = np.asarray(table, np.float64)
+    return np.interp(np.clip(np.asarray(mu, np.float64), 0.0, 1.0), _grid(table.shape[0]), table)
+
+
+def fresnel_conductor(cos_i, n, k) -> np.ndarray:
+    """(..., 3) unpolarised reflectance of a conductor of complex IOR n + ik (Cycles' fresnel_conductor)."""
+    c = np.clip(np.asarray(cos_i, np.float64), 0.0, 1.0)[..., None]
+    n, k = np.asarray(n, np.float64), np.asarray(k, np.float64)
+    t1 = n * n - k * k - (1.0 - c * c)
+    t2 = np.sqrt(t1 * t1 + (2.0 * n * k) ** 2)
+    u2, v2 = np.maximum(0.5 * (t2 + t1), 0.0), np.maximum(0.5 * (t2 - t1), 0.0)
+    u, v = np.sqrt(u2), np.sqrt(v2)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        rs = np.nan_to_num(((c - u) ** 2 + v2) / ((c + u) ** 2 + v2))
+        t3, t4 = (n * n - k * k) * c, 2.0 * n * k * c
+        rp = np.nan_to_num(((t3 - u) ** 2 + (t4 - v) ** 2) / ((t3 + u) ** 2 + (t4 + v) ** 2))
+    return 0.5 * (rs + rp)
+
+
+_F82_F = 6.0 / 7.0
+_F82_F5 = _F82_F**5
+
+
+def f82_b_from_tint(f0, tint) -> np.ndarray:
+    """Cycles' fresnel_f82tint_B: the B that makes the F82 model Schlick x tint at cos = 1/7."""
+    f0 = np.asarray(f0, np.float64)
+    return (f0 + (1.0 - f0) * _F82_F5) * (7.0 / (_F82_F5 * _F82_F)) * (1.0 - np.asarray(tint, np.float64))
+
+
+def f82_b_from_value(f0, f82) -> np.ndarray:
+    """Cycles' fresnel_f82_B: the B that makes the F82 model equal f82 at cos = 1/7."""
+    f0 = np.asarray(f0, np.float64)
+    return (7.0 / (_F82_F5 * _F82_F)) * (f0 + (1.0 - f0) * _F82_F5 - np.asarray(f82, np.float64))
+
+
+@dataclass
+class GlossyLobe:
+    """One glossy closure as Cycles sets it up (svm/closure.h): its BRDF is
+    weight x view(mu) x F(cos(h, i)) x the microfacet lobe (x the multiscatter factor of
+    Multiscatter GGX), its Glossy Color weight x view(mu) x Cycles' albedo estimate.
+
+    weight : (3,) the closure weight: a Glossy BSDF's colour, a Glass BSDF's reflection tint, a
+        Principled lobe's share, times the constant factors of the Mix / Add Shaders above it
+    roughness : 0..1 (alpha = roughness^2); distribution : one of DISTRIBUTIONS
+    fresnel : 'none' (F = 1: Glossy BSDF), 'dielectric' (the real Fresnel of `ior` remapped from
+        its own F0..1 to f0..1: Principled specular, Glass), 'f82' (Schlick on f0 less
+        b cos (1 - cos)^6: Principled metallic, Metallic BSDF's F82), 'conductor' (n + ik:
+        the Metallic BSDF's Physical Conductor; its BRDF uses the F82 model fitted at 0 and 82
+        degrees, as Cycles fits it for the conductor's average Fresnel, its Glossy Color the
+        exact Fresnel at the view angle, as Cycles estimates it)
+    ior, f0, b, n, k : the Fresnel's parameters (f0, b, n, k (3,))
+    fss : (3,) average Fresnel of Multiscatter GGX's darkening, or None for the model's own (a
+        Glossy BSDF's is its colour: Cycles' bsdf_microfacet_setup_fresnel_constant)
+    view : (VIEW_SAMPLES,) factor over the view cosine (`view_grid`) or None (1): the Fac of a
+        Mix Shader read from a Fresnel or Layer Weight node
+    """
+
+    weight: np.ndarray = field(default_factory=lambda: np.ones(3))
+    roughness: float = 0.5
+    distribution: str = "MULTI_GGX"
+    fresnel: str = "none"
+    ior: float = 1.5
+    f0: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    b: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    n: np.ndarray = field(default_factory=lambda: np.ones(3))
+    k: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    fss: np.ndarray | None = None
+    view: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        def colour(value, default, lo=0.0, hi=np.inf):
+            c = np.broadcast_to(np.asarray(value, np.float64).reshape(-1)[:3], (3,))
+            return np.clip(np.where(np.isfinite(c), c, default), lo, hi)
+
+        self.weight = colour(self.weight, 0.0)
+        rough = float(self.roughness)
+        self.roughness = float(np.clip(rough, 0.0, 1.0)) if np.isfinite(rough) else 0.5
+        if self.distribution not in DISTRIBUTIONS:
+            self.distribution = "GGX"
+        if self.fresnel not in FRESNELS:
+            raise ValueError(f"unknown Fresnel mode {self.fresnel!r}")
+        ior = float(self.ior)
+        self.ior = float(np.clip(ior, 1e-5, 1e6)) if np.isfinite(ior) else 1.5
+        self.f0 = colour(self.f0, 0.0, 0.0, 1.0)
+        self.b = colour(self.b, 0.0, -np.inf)
+        self.n, self.k = colour(self.n, 1.0), colour(self.k, 0.0)
+        if self.fresnel == "conductor":
+            # The F82 model through the conductor's values at 0 and ~82 degrees (Cycles' fit).
+            self.f0 = fresnel_conductor(1.0, self.n, self.k)
+            self.b = f82_b_from_value(self.f0, fresnel_conductor(1.0 / 7.0, self.n, self.k))
+        if self.fss is not None:
+            self.fss = colour(self.fss, 1.0, 0.0, 1.0)
+        if self.view is not None:
+            view = np.asarray(self.view, np.float64).reshape(-1)
+            self.view = np.clip(np.where(np.isfinite(view), view, 0.0), 0.0, None)
+
+    @property
+    def eta(self) -> float:
+        """The dielectric IOR above 1 (a relative IOR below 1 reflects as its inverse)."""
+        return 1.0 / self.ior if self.ior < 1.0 else self.ior
+
+    @property
+    def active(self) -> bool:
+        if not np.any(self.weight > 0) or (self.view is not None and not np.any(self.view > 0)):
+            return False
+        return not (self.fresnel == "dielectric" and self.ior == 1.0)
+
+    def coefficients(self) -> np.ndarray:
+        """(4, 3) the Fresnel as k0 + k1 remap(cos) + k2 (1 - cos)^5 + k3 cos (1 - cos)^6, remap
+        the real dielectric Fresnel of `eta` mapped from its F0..1 to 0..1."""
+        k = np.zeros((4, 3))
+        if self.fresnel == "none":
+            k[0] = 1.0
+        elif self.fresnel == "dielectric":
+            k[0], k[1] = self.f0, 1.0 - self.f0
+        else:
+            k[0], k[2], k[3] = self.f0, 1.0 - self.f0, -self.b
+        return k
+
+    def average_fresnel(self) -> np.ndarray:
+        """(3,) Fss of Multiscatter GGX's darkening, as Cycles computes it for each model."""
+        if self.fss is not None:
+            return self.fss
+        if self.fresnel == "none":
+            return np.ones(3)
+        if self.fresnel == "dielectric":
+            f0_real = float(f0_from_ior(self.ior))
+            s = float(np.clip((fresnel_dielectric_fss(self.ior) - f0_real) / max(1.0 - f0_real, 1e-12), 0.0, 1.0))
+            return self.f0 + (1.0 - self.f0) * s
+        return np.clip(self.f0 + (1.0 - self.f0) / 21.0 - self.b / 126.0, 0.0, 1.0)
+
+    def key(self) -> bytes:
+        parts = [self.weight, [self.roughness, DISTRIBUTIONS.index(self.distribution), FRESNELS.index(self.fresnel),
+                               self.ior], self.f0, self.b, self.n, self.k,
+                 self.fss if self.fss is not None else [-1.0], self.view if self.view is not None else [-1.0]]
+        return np.concatenate([np.asarray(p, np.float64).reshape(-1) for p in parts]).tobytes()
+
+
+def lobe_albedo(lobe: GlossyLobe, mu) -> np.ndarray:
+    """(..., 3) Cycles' albedo estimate of a lobe at cosines mu (bsdf_microfacet_estimate_albedo
+    times Multiscatter GGX's darkening E + Fms (1 - E)), before its weight and view factor."""
+    mu = np.clip(np.asarray(mu, np.float64), 0.0, 1.0)
+    rough = lobe.roughness
+    if lobe.fresnel == "none":
+        albedo = np.ones((*mu.shape, 3))
+    elif lobe.fresnel == "dielectric":
+        eta = lobe.eta
+        z = np.sqrt(abs(eta - 1.0) / (eta + 1.0))
+        s = _lerp_table(tables()[2], [z, rough, mu])[..., None]
+        albedo = lobe.f0 + (1.0 - lobe.f0) * s
+    elif lobe.fresnel == "f82":
+        albedo = lobe.f0 + (1.0 - lobe.f0) * _lerp_table(schlick_table(), [rough, mu])[..., None]
+    else:
+        albedo = fresnel_conductor(mu, lobe.n, lobe.k)  # Cycles: "assume smooth surface"
+    if lobe.distribution == "MULTI_GGX":
+        e_table, e_avg_table, _ = tables()
+        e = _lerp_table(e_table, [rough, mu])[..., None]
+        e_avg = float(_lerp_table(e_avg_table, [rough]))
+        albedo = albedo * e * multiscatter_factor(lobe.average_fresnel(), e, e_avg)
+    return albedo
+
+
+def lobe_color(lobe: GlossyLobe, mu) -> np.ndarray:
+    """(..., 3) the lobe's share of Cycles' Glossy Color at cosines mu."""
+    mu = np.asarray(mu, np.float64)
+    out = lobe.weight * lobe_albedo(lobe, mu)
+    return out if lobe.view is None else out * sample_view(lobe.view, mu)[..., None]
+
+
+@dataclass
+class GlossySurface:
+    """A surface of glossy closures over a diffuse part whose weight depends on the view angle:
+    what a node tree other than one Principled BSDF makes (Glossy, Metallic and Glass BSDFs, Mix
+    and Add Shaders, a Fresnel or Layer Weight factor). `Material.specular` holds it where it
+    holds a `SpecularLayer` for a lone Principled BSDF; the functions of this module take both.
+
+    lobes : the glossy closures; diffuse : (VIEW_SAMPLES,) weight of the material's diffuse
+    colour over the view cosine (`view_grid`), None for 1 (Cycles' Diffuse Color is
+    base_color x this: 1 - F at the pixel's view angle under a Mix with a Fresnel factor).
+    """
+
+    lobes: list = field(default_factory=list)
+    diffuse: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        self.lobes = [lobe for lobe in self.lobes if lobe.active]
+        if self.diffuse is not None:
+            d = np.asarray(self.diffuse, np.float64).reshape(-1)
+            self.diffuse = np.clip(np.where(np.isfinite(d), d, 1.0), 0.0, None)
+
+    def key(self) -> bytes:
+        parts = [lobe.key() for lobe in self.lobes]
+        parts.append(b"" if self.diffuse is None else np.asarray(self.diffuse, np.float64).tobytes())
+        return b"|".join(parts)
+
+
+def layer_lobes(layer: SpecularLayer) -> list:
+    """The `GlossyLobe`s of a Principled BSDF's layer: the dielectric specular (when Cycles
+    allocates it) and the metallic F82 lobe (its edge tint is the Specular Tint, as in Cycles)."""
+    distribution = "MULTI_GGX" if layer.multiscatter else "GGX"
+    out = []
+    if layer.active and layer.weight > 0:
+        out.append(GlossyLobe(weight=np.full(3, layer.weight), roughness=layer.roughness, distribution=distribution,
+                              fresnel="dielectric", ior=layer.eta, f0=layer.f0))
+    out += _transmission_lobes(layer)
+    if layer.metallic > 0:
+        tint = np.minimum(layer.tint, 1.0)
+        b = np.zeros(3) if np.all(tint == 1.0) else f82_b_from_tint(layer.metal_color, tint)
+        out.append(GlossyLobe(weight=np.full(3, layer.metallic), roughness=layer.roughness, distribution=distribution,
+                              fresnel="f82", f0=layer.metal_color, b=b))
+    return out
+
+
+def _transmission_lobes(layer: SpecularLayer) -> list:
+    """The reflection of a Principled BSDF's transmission (Cycles' glass closure of weight
+    transmission x (1 - metallic), F0 of the IOR times the Specular Tint; its multiscatter glass
+    compensation is not modelled: rendered as GGX). Its transmitted light is not rendered."""
+    weight = layer.transmission * (1.0 - layer.metallic)
+    if weight <= 0 or layer.ior == 1.0:
+        return []
+    f0 = np.clip(float(f0_from_ior(layer.ior)) * layer.tint.astype(np.float64), 0.0, 1.0)
+    return [GlossyLobe(weight=np.full(3, weight), roughness=layer.roughness, distribution="GGX",
+                       fresnel="dielectric", ior=layer.ior, f0=f0)]
+
+
+def surface_lobes(surface) -> list:
+    """The `GlossyLobe`s of a material's `specular` (a SpecularLayer, a GlossySurface or None)."""
+    if surface is None:
+        return []
+    if isinstance(surface, GlossySurface):
+        return surface.lobes
+    return layer_lobes(surface)
 
 
 if __name__ == "__main__":

@@ -200,9 +200,13 @@ def test_shader_kinds(bpy_module, scene, sync, caplog):
     np.testing.assert_allclose(by_name["lamp"].base_color, 0.0)
     np.testing.assert_allclose(by_name["matte"].base_color, [0.2, 0.3, 0.4], atol=1e-6)
     np.testing.assert_allclose(by_name["matte"].emission, 0.0)
-    # A glossy BSDF reflects no diffuse light: Cycles' Diffuse Color pass is black there.
+    # A Glossy BSDF reflects no diffuse light (Cycles' Diffuse Color pass is black there): its
+    # light is one glossy lobe of its colour, rendered (no warning that it is missing).
     np.testing.assert_allclose(by_name["shiny"].base_color, 0.0)
-    assert any("'shiny'" in r.getMessage() and "not rendered" in r.getMessage() for r in caplog.records)
+    (lobe,) = by_name["shiny"].specular.lobes
+    assert lobe.fresnel == "none" and lobe.distribution == "MULTI_GGX"
+    np.testing.assert_allclose(lobe.weight, [0.8, 0.8, 0.8], atol=1e-6)
+    assert not any("'shiny'" in r.getMessage() for r in caplog.records)
 
 
 def test_principled_weights_mixes_and_constant_nodes(bpy_module, scene, sync, caplog):

@@ -1,0 +1,187 @@
+"""Mix and Add Shaders of diffuse and glossy closures, as Cycles' SVM weighs them (bpy-free: the
+add-on's sync reads the nodes and builds the parts; this module combines them).
+
+A shader node becomes a `SurfacePart`: a diffuse colour (base x texture) times a weight over the
+view cosine mu, emission, alpha, and glossy closures (`specular.GlossyLobe`). Cycles' Mix Shader
+multiplies every closure of its first input by 1 - Fac and of its second by Fac (svm_node_mix_closure),
+the Add Shader by 1; Fac is evaluated per shading point, so a Fresnel or Layer Weight factor makes
+the weights functions of mu (`fresnel_factor`, `layer_weight_factor`, the nodes' svm/fresnel.h):
+(also through Math, Color Ramp and the like: `math_factor`, `ramp_factor`, the add-on's
+`_factor_table`); a glossy closure keeps it as its view factor, and the diffuse part's weight is the sum of its
+inputs' weights, so Diffuse Color = base x (1 - F(mu)) under Mix(Diffuse, Glossy, Fresnel), as
+Cycles' pass shows per pixel. Weights are tables over `specular.view_grid`.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from . import specular as sp
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class SurfacePart:
+    """What a shader node contributes to a material.
+
+    base : (3,) diffuse colour (times `texture` where there is one); texture : (h, w, 3) or None;
+    emission : (3,) radiance; alpha : (h, w) opacity or None; diffuse : (V,) weight of the diffuse
+    colour over the view cosine, or None (1); lobes : the glossy closures; layer : the
+    `SpecularLayer` of a Principled BSDF read on its own (its layering, exactly as Cycles'),
+    dropped once the part is mixed (its lobes and diffuse weight carry it on).
+    """
+
+    base: np.ndarray = field(default_factory=lambda: np.zeros(3, np.float32))
+    texture: np.ndarray | None = None
+    emission: np.ndarray = field(default_factory=lambda: np.zeros(3, np.float32))
+    alpha: np.ndarray | None = None
+    diffuse: np.ndarray | None = None
+    lobes: list = field(default_factory=list)
+    layer: sp.SpecularLayer | None = None
+
+    def diffuse_table(self) -> np.ndarray:
+        """(V,) the diffuse weight over `specular.view_grid`."""
+        return np.ones(sp.VIEW_SAMPLES) if self.diffuse is None else sp.sample_view(self.diffuse, sp.view_grid())
+
+    def mean_colour(self) -> np.ndarray:
+        """(3,) the diffuse colour (base times its texture's mean)."""
+        return self.base if self.texture is None else self.base * self.texture.reshape(-1, 3).mean(axis=0)
+
+    def surface(self):
+        """`Material.specular` of a material made of this part: the lone Principled BSDF's layer,
+        a `specular.GlossySurface`, or None for a plain diffuse surface."""
+        if self.layer is not None:
+            return self.layer
+        live = [lobe for lobe in self.lobes if lobe.active]
+        diffuse = None if self.diffuse is None or np.all(self.diffuse == 1.0) else self.diffuse
+        if not live and diffuse is None:
+            return None
+        return sp.GlossySurface(lobes=live, diffuse=diffuse)
+
+
+def constant_factor(value: float) -> np.ndarray:
+    """(V,) a constant Fac, clamped as the Mix Shader clamps it."""
+    return np.full(sp.VIEW_SAMPLES, float(np.clip(value, 0.0, 1.0)))
+
+
+def fresnel_factor(ior: float) -> np.ndarray:
+    """(V,) the Fresnel node's output over the view cosine on front faces: the dielectric
+    Fresnel of IOR max(ior, 1e-5) (Cycles' svm_node_fresnel)."""
+    return np.clip(sp.fresnel_dielectric(sp.view_grid(), max(float(ior), 1e-5)), 0.0, 1.0)
+
+
+def layer_weight_factor(blend: float, output: str) -> np.ndarray:
+    """(V,) the Layer Weight node's output ('Fresnel' or 'Facing') over the view cosine on front
+    faces (Cycles' svm_node_layer_weight): Fresnel is the dielectric Fresnel of IOR
+    1 / max(1 - blend, 1e-5); Facing is 1 - mu^p, p = 2 blend below 0.5, 0.5 / (1 - blend) above."""
+    mu = sp.view_grid()
+    blend = float(blend)
+    if output == "Fresnel":
+        return np.clip(sp.fresnel_dielectric(mu, 1.0 / max(1.0 - blend, 1e-5)), 0.0, 1.0)
+    if blend == 0.5:
+        return 1.0 - mu
+    b = float(np.clip(blend, 0.0, 1.0 - 1e-5))
+    p = 2.0 * b if b < 0.5 else 0.5 / (1.0 - b)
+    with np.errstate(divide="ignore"):
+        return 1.0 - np.power(mu, p)
+
+
+def _cosine_mean(table: np.ndarray) -> np.ndarray:
+    """Cosine-weighted mean over the hemisphere, 2 int f(mu) mu dmu, of (V, ...) values."""
+    mu = sp.view_grid()
+    f = 2.0 * table * mu.reshape(-1, *([1] * (table.ndim - 1)))
+    return ((f[1:] + f[:-1]) * 0.5 * np.diff(mu).reshape(-1, *([1] * (table.ndim - 1)))).sum(axis=0)
+
+
+def _weighted_lobe(lobe: sp.GlossyLobe, weight: np.ndarray) -> sp.GlossyLobe:
+    """A lobe under a mix weight (V,): a constant scales its weight, anything else its view factor."""
+    if np.all(weight == weight[0]):
+        return replace(lobe, weight=lobe.weight * weight[0])
+    view = weight if lobe.view is None else sp.sample_view(lobe.view, sp.view_grid()) * weight
+    return replace(lobe, view=view)
+
+
+def mix(parts: list[SurfacePart], weights: list[np.ndarray], name: str = "") -> tuple[SurfacePart, list[str]]:
+    """(the part of Mix / Add Shader over `parts` with weights (V,) each, notes on what it
+    approximates).
+
+    Lobes keep their weights (a view factor where the weight depends on mu). The diffuse light
+    D(mu) = sum w_i(mu) d_i(mu) c_i must be one colour times one weight: its cosine-weighted mean
+    colour times D's relative brightness, exact where the parts' diffuse weights are proportional
+    (one diffuse input, or constant factors), noted where they are not. With a texture, colour =
+    base x texture: the other parts' mean colours enter divided by the texture's mean."""
+    notes = []
+    lobes = [_weighted_lobe(lobe, w) for part, w in zip(parts, weights, strict=True) for lobe in part.lobes]
+    textured = [i for i, part in enumerate(parts) if part.texture is not None and np.any(weights[i] > 0)]
+    if len(textured) > 1:
+        log.warning("material %r: a mix of two image textures keeps the stronger one", name)
+    texture = parts[max(textured, key=lambda i: float(weights[i].mean()))].texture if textured else None
+    mean = texture.reshape(-1, 3).mean(axis=0) if texture is not None else np.ones(3)
+    colours = [part.base if part.texture is texture else part.mean_colour() / np.maximum(mean, 1e-6) for part in parts]
+    light = sum(w[:, None] * part.diffuse_table()[:, None] * np.asarray(c, np.float64)[None, :]
+                for part, w, c in zip(parts, weights, colours, strict=True))  # (V, 3)
+    base = _cosine_mean(light)
+    brightness = light.mean(axis=1)
+    scale = float(base.mean())
+    if scale > 0:
+        diffuse = brightness / scale
+        residual = np.abs(light - diffuse[:, None] * base[None, :]).max()
+        if residual > 0.02 * max(float(light.max()), 1e-6):
+            notes.append("diffuse inputs of different colours mixed by a view-dependent factor (one colour kept)")
+    else:
+        diffuse = np.ones(sp.VIEW_SAMPLES)
+    emission = sum(float(_cosine_mean(w)) * part.emission for part, w in zip(parts, weights, strict=True))
+    alpha = next((part.alpha for part in parts if part.alpha is not None), None)
+    part = SurfacePart(base=np.asarray(base, np.float32), texture=texture, emission=np.asarray(emission, np.float32),
+                       alpha=alpha, diffuse=None if np.allclose(diffuse, 1.0) else diffuse, lobes=lobes)
+    return part, notes
+
+
+#: Math node operations a factor table goes through (Cycles' svm_math, safe division and power).
+MATH_OPERATIONS = ("ADD", "SUBTRACT", "MULTIPLY", "DIVIDE", "POWER", "MINIMUM", "MAXIMUM")
+#: Rec.709 luminance: how Cycles turns a colour into a float input (linear_rgb_to_gray).
+GRAY = np.array([0.2126, 0.7152, 0.0722])
+
+
+def math_factor(operation: str, a: np.ndarray, b: np.ndarray, clamp: bool) -> np.ndarray | None:
+    """(V,) a Math node's output over factor tables (or constants) a and b; None for an
+    operation this reader does not follow."""
+    a, b = np.broadcast_arrays(np.asarray(a, np.float64), np.asarray(b, np.float64))
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        if operation == "ADD":
+            out = a + b
+        elif operation == "SUBTRACT":
+            out = a - b
+        elif operation == "MULTIPLY":
+            out = a * b
+        elif operation == "DIVIDE":
+            out = np.where(b != 0.0, a / np.where(b != 0.0, b, 1.0), 0.0)
+        elif operation == "POWER":
+            out = np.where((a >= 0.0) | (b == np.round(b)), np.power(a, b), 0.0)
+        elif operation == "MINIMUM":
+            out = np.minimum(a, b)
+        elif operation == "MAXIMUM":
+            out = np.maximum(a, b)
+        else:
+            return None
+    out = np.nan_to_num(out, nan=0.0, posinf=0.0, neginf=0.0)
+    return np.clip(out, 0.0, 1.0) if clamp else out
+
+
+def ramp_factor(fac: np.ndarray, positions, colours, interpolation: str) -> np.ndarray | None:
+    """(V, 4) a Color Ramp's RGBA over a factor table: linear between its stops or constant
+    (the stop at or below), the factor clamped to 0..1; None for its other interpolations."""
+    positions = np.asarray(positions, np.float64)
+    colours = np.asarray(colours, np.float64).reshape(-1, 4)
+    order = np.argsort(positions, kind="stable")
+    positions, colours = positions[order], colours[order]
+    f = np.clip(np.asarray(fac, np.float64), 0.0, 1.0)
+    if interpolation == "LINEAR":
+        return np.stack([np.interp(f, positions, colours[:, c]) for c in range(4)], axis=-1)
+    if interpolation == "CONSTANT":
+        return colours[np.clip(np.searchsorted(positions, f, side="right") - 1, 0, len(positions) - 1)]
+    return None
