@@ -43,7 +43,10 @@ SEED_OFFSET = 3
 CHUNK_RAYS = 32768
 #: An area lamp is sampled by the reflection rays (not by lamp sampling) at pixels where its solid
 #: angle exceeds this many times the lobe's (~4 pi alpha^2: the reflected cone of the GGX lobe).
-BSDF_LAMP_RATIO = 2.0
+#: 2 gave roughness-0.3 lobes under a 2 m lamp to 4 rays (glass Glossy Direct 0.17 -> 0.49 vs
+#: Cycles); 16 keeps those to lamp sampling (0.16) and still sends a roughness-0.1 chrome ball's
+#: lamp (ratio ~150) to the rays.
+BSDF_LAMP_RATIO = 16.0
 #: A-trous passes over the traced light (`filter_reflections`): 1 averages a 5 x 5 neighbourhood
 #: of the same surface, about 25 x `rays` samples, at ~1.5 pixels of blur.
 FILTER_PASSES = 1
