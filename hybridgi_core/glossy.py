@@ -53,6 +53,10 @@ CHUNK = 1 << 15
 MIN_ROUGHNESS = 0.02
 
 
+#: View cosines at which `GlossyMaterials.reflects` looks for a Glossy Color above 0.
+_REFLECT_COSINES = np.array([0.1, 0.5, 1.0])
+
+
 @dataclass
 class GlossyMaterials:
     """Per-material constants of the glossy lobes (`specular.GlossyLobe`), indexed by material
@@ -64,7 +68,9 @@ class GlossyMaterials:
     beckmann, ms : (L, m) the Beckmann distribution, Multiscatter GGX; eta, f0_real : (L, m) the
     dielectric Fresnel's IOR (above 1) and its F0; k : (L, m, 4, 3) the weight times the
     Fresnel's coefficients (`GlossyLobe.coefficients`); fss : (L, m, 3); view : (L, m, V) the
-    view factor over `specular.view_grid` (ones without one); layers : each material's `specular`.
+    view factor over `specular.view_grid` (ones without one); layers : each material's `specular`;
+    reflects : (m,) whether a material's glossy lobes reflect anything at all (a Glossy Color
+    above 0 at some view angle, mirror-like lobes included): a scene without is skipped whole.
     """
 
     rough: np.ndarray
@@ -79,6 +85,7 @@ class GlossyMaterials:
     e_avg: np.ndarray
     view: np.ndarray
     layers: list
+    reflects: np.ndarray | None = None
 
     @classmethod
     def from_materials(cls, materials) -> GlossyMaterials:
@@ -105,6 +112,8 @@ class GlossyMaterials:
                 out.e_avg[j, i] = float(sp._lerp_table(e_avg_table, [lobe.roughness]))
                 if lobe.view is not None:
                     out.view[j, i] = sp.sample_view(lobe.view, sp.view_grid())
+        out.reflects = np.array([layer is not None and float(np.max(sp.glossy_color(layer, _REFLECT_COSINES))) > 0
+                                 for layer in layers], bool)
         return out
 
     @property

@@ -336,7 +336,7 @@ class FramePipeline:
         surfaces they reflect (Glossy Indirect before its colour); direct + colour x bounced is
         uploaded for the deferred pass. Subframes reuse it: a highlight is smooth at the pixel
         scale, and silhouettes are where its share is least."""
-        if not hasattr(system, "glossy") or all(getattr(m, "specular", None) is None for m in system.scene.materials):
+        if not hasattr(system, "glossy") or not system.glossy_materials.reflects.any():
             return None, None, None
         rows = np.rint(self.gbuffer.read("material").reshape(-1)[pix]).astype(np.int64) - 1
         eye = np.asarray(camera_eye(view, proj), np.float64)
