@@ -36,8 +36,9 @@ from hybridgi_core.raster import gather as _gather
 from hybridgi_core.raster import passes as _passes
 from hybridgi_core.raster import readback as _readback
 from hybridgi_core.raster import settings as _raster_settings
+from hybridgi_core.raster import subpixel as _subpixel
 
-from . import material_bake, sync, updates, viewport_stats, worker, world_bake
+from . import material_bake, pipeline, sync, updates, viewport_aa, viewport_stats, worker, world_bake
 from .viewport_mirror import SceneMirror
 from .viewport_passes import (
     PRESENT_CELLS,
@@ -47,6 +48,7 @@ from .viewport_passes import (
     PackedGatherPass,
     PresentPass,
     draw_texture_fullscreen,
+    software_renderer,
 )
 from .viewport_stats import GPU_STEPS, DrawStats, LiveStats, ViewCamera  # noqa: F401  (GPU_STEPS: the benchmark's)
 
@@ -113,8 +115,10 @@ class _GPUState:
         self.direct_down = _downsample.DownsamplePass(factor) if factor else None
         self.resolve_full = DirectResolvePass("RGBA32F")
         self.resolve_low = DirectResolvePass("RGBA16F")
+        self.resolve_glossy = DirectResolvePass("RGBA32F")
         self.present = PresentPass()
         self.source = None  # DirectSource of the last ViewResult uploaded
+        self.glossy_source = None  # its glossy light (DirectSource), None without glossy layers
         self.cells_source = None  # its Cache Cells colours, when drawn
         self.mask_tx = None
         self.mask_serial = None
@@ -132,15 +136,17 @@ class _GPUState:
             self.direct_down.resize(width, height)
         self.resolve_full.resize(width, height)
         self.resolve_low.resize(*low)
+        self.resolve_glossy.resize(width, height)
         self.present.resize(width, height)
         self.width, self.height = width, height
 
     def free(self) -> None:
-        for p in (self.pipeline, self.resolve_full, self.resolve_low, self.present):
+        for p in (self.pipeline, self.resolve_full, self.resolve_low, self.resolve_glossy, self.present):
             p.free()
         if self.direct_down is not None:
             self.direct_down.free()
         self.source = self.cells_source = self.mask_tx = self.cache_frame = self.pixel_tx = None
+        self.glossy_source = None
 
 
 class ViewportSession:
@@ -165,6 +171,10 @@ class ViewportSession:
         self.settings_error: str | None = None  # the scene's settings are invalid: this message
         self._world_bakes_seen = world_bake.STORE.completed
         self._material_bakes_seen = material_bake.STORE.completed
+        self.aa = viewport_aa.Accumulation()
+        #: Add anti-aliasing subframes while the worker is still busy (hardware GPUs); a software
+        #: renderer waits for it to be idle (`viewport_aa`). None: decided on the first draw.
+        self.aa_while_busy: bool | None = None
         _OPEN.add(self)
 
     # --- scene ----------------------------------------------------------------------------------
@@ -245,13 +255,16 @@ class ViewportSession:
         debug_view, present_mode = debug_view_of(props)
         with stats.step("settings"):
             gpu_state = self._ensure_gpu(props, published, width, height)
+            aa = self._aa_pattern(scene, present_mode)
         serials = (
             None if published.cache is None else published.cache.serial,
             None if published.view is None else published.view.serial,
         )
         key = (camera.key, width, height, self.mirror.geometry_gen, debug_view, present_mode, opaque,
-               self._raster, published.empty)
+               self._raster, published.empty, aa.config)
         if key == self._drawn_key and serials == self._drawn_serials and self.mirror.gpu_dirty is None:
+            if self._aa_due(published):
+                return self._draw_subframe(gpu_state, stats, t0)
             stats.total_ms = (time.perf_counter() - t0) * 1e3
             self.last_stats = stats
             return gpu_state.present.output
@@ -275,8 +288,19 @@ class ViewportSession:
         world = self.mirror.snapshot.world.color
         with stats.step("upload_results"):
             gi = self._pixel_textures(gpu_state, published, view_key)
+        with stats.step("resolve"):
+            glossy = None
+            if gpu_state.glossy_source is not None:
+                glossy = gpu_state.resolve_glossy.execute(gbuf.position, gbuf.normal, gpu_state.glossy_source)
         shaded = pipeline.shade(gbuf, low, view, proj, direct, corner_visible=mask, irradiance=lit,
-                                debug_view=debug_view, world_color=world, stats=stats, gi=gi)
+                                debug_view=debug_view, world_color=world, stats=stats, gi=gi, glossy=glossy)
+        if not debug_cells and aa.offsets.shape[0]:
+            with stats.step("accumulate"):
+                pipeline.accumulate.execute(shaded, gbuf, first=True)
+            aa.start(dict(view=view, proj=proj, mask=mask, lit=lit, gi=gi, world=world, debug_view=debug_view,
+                          present_mode=present_mode, opaque=opaque))
+        else:
+            aa.reset()
         with stats.step("present"):
             cells = None
             if debug_cells:
@@ -292,6 +316,56 @@ class ViewportSession:
         stats.total_ms = (time.perf_counter() - t0) * 1e3
         self.last_stats = stats
         LIVE_STATS[scene.name] = LiveStats(stats, published.stats, published.error)
+        return out
+
+    # --- anti-aliasing (`viewport_aa`) -------------------------------------------------------------
+
+    def _aa_pattern(self, scene, present_mode: int) -> viewport_aa.Accumulation:
+        """The session's `Accumulation`, remade when the scene's pixel samples or filter changed;
+        none in the Cache Cells view (a cell colour per pixel centre, as final renders draw it)."""
+        count = 1 if present_mode == PRESENT_CELLS else int(getattr(scene.hybridgi, "pixel_samples", 1))
+        filter_type, filter_size = pipeline.pixel_filter(scene)
+        wanted = viewport_aa.Accumulation.pattern(count, filter_size, filter_type)
+        if wanted.config != self.aa.config:
+            self.aa = wanted
+        return self.aa
+
+    def _aa_due(self, published) -> bool:
+        """A jittered subframe is to be drawn now: the sum is not complete, and the worker is idle
+        unless subframes may run while it is busy."""
+        if not self.aa.pending:
+            return False
+        if self.aa_while_busy is None:
+            self.aa_while_busy = not software_renderer()
+        return bool(self.aa_while_busy or published.stats.idle)
+
+    def _draw_subframe(self, gpu_state: _GPUState, stats: DrawStats, t0: float):
+        """Add the next jittered subframe to the running sum and show the mean: the centre redraw's
+        light, GI and glossy textures, resolved at the subframe's G-buffer."""
+        aa, inputs, pipeline_ = self.aa, self.aa.inputs, gpu_state.pipeline
+        stats.redrawn = True
+        stats.subframe = aa.drawn
+        view, proj = inputs["view"], inputs["proj"]
+        with stats.step("gbuffer"):
+            jittered = _subpixel.jittered_projection(proj, aa.next_offset(), gpu_state.width, gpu_state.height)
+            gbuf = pipeline_.gbuffer.execute(view, jittered, texture_filter=aa.texture_filter)
+        low = pipeline_.downsample.outputs()  # still the centre's (the GI's guide, as final renders keep it)
+        with stats.step("resolve"):
+            direct = gpu_state.resolve_full.execute(gbuf.position, gbuf.normal, gpu_state.source)
+            glossy = None
+            if gpu_state.glossy_source is not None:
+                glossy = gpu_state.resolve_glossy.execute(gbuf.position, gbuf.normal, gpu_state.glossy_source)
+        shaded = pipeline_.shade(gbuf, low, view, proj, direct, corner_visible=inputs["mask"],
+                                 irradiance=inputs["lit"], debug_view=inputs["debug_view"],
+                                 world_color=inputs["world"], stats=stats, gi=inputs["gi"], glossy=glossy)
+        with stats.step("accumulate"):
+            pipeline_.accumulate.execute(shaded, gbuf, first=False)
+        aa.drawn += 1
+        with stats.step("present"):
+            out = gpu_state.present.execute(pipeline_.accumulate.texture("combined"), gbuf, inputs["present_mode"],
+                                            inputs["opaque"], None, scale=1.0 / pipeline_.accumulate.count)
+        stats.total_ms = (time.perf_counter() - t0) * 1e3
+        self.last_stats = stats
         return out
 
     def poll_world(self, depsgraph) -> None:
@@ -322,7 +396,8 @@ class ViewportSession:
             None if published.cache is None else published.cache.serial,
             None if published.view is None else published.view.serial,
         )
-        return not published.stats.idle or serials != self._drawn_serials or self.mirror.gpu_dirty is not None
+        return (not published.stats.idle or serials != self._drawn_serials or self.mirror.gpu_dirty is not None
+                or self._aa_due(published))
 
     def _ensure_gpu(self, props, published, width: int, height: int) -> _GPUState:
         cell = published.cache.grid.cell_size if published.cache is not None else None
@@ -357,11 +432,15 @@ class ViewportSession:
                 d_normal, d_position = gpu_state.direct_down.read_normal_position()
             else:
                 d_normal, d_position = normal, position
+            material = None
+            if any(getattr(m, "specular", None) is not None for m in self.mirror.snapshot.materials):
+                down = gpu_state.direct_down or gpu_state.pipeline.downsample
+                material = down.read("material")[..., 0]  # a new array: the worker keeps it
         with stats.step("post"):
             request = worker.ViewRequest(
                 key=view_key, position=position.copy(), normal=normal.copy(),
                 direct_position=d_position.copy(), direct_normal=d_normal.copy(),
-                view=camera.view, proj=camera.proj, debug_cells=debug_cells,
+                view=camera.view, proj=camera.proj, debug_cells=debug_cells, direct_material=material,
             )
             self.worker.post_view(request)
         self._posted_key = view_key
@@ -398,6 +477,10 @@ class ViewportSession:
                 gpu_state.source = DirectSource.empty()
         elif gpu_state.source is None or gpu_state.source.serial != result.serial:
             gpu_state.source = DirectSource.upload(result)
+        if result is None or result.glossy is None:
+            gpu_state.glossy_source = None
+        elif gpu_state.glossy_source is None or gpu_state.glossy_source.serial != result.serial:
+            gpu_state.glossy_source = DirectSource.glossy_of(result, gpu_state.source)
         mask = None
         if result is not None and result.corner_mask is not None and result.key == view_key:
             if gpu_state.mask_serial != result.serial:

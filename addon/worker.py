@@ -24,9 +24,11 @@ from types import MappingProxyType
 import numpy as np
 
 from hybridgi_core import errors
+from hybridgi_core import glossy_image as _glossy
 from hybridgi_core import visible as _visible
 from hybridgi_core.raster import gather as _gather_layout
 from hybridgi_core.raster import settings as _raster_settings
+from hybridgi_core.raster.gbuffer import camera_eye
 from hybridgi_core.session import GISession
 
 from . import worker_pixels as _pixels
@@ -45,7 +47,7 @@ from .worker_messages import (  # noqa: F401
     frozen,
 )
 from .worker_solve import SolveSchedule
-from .worker_view import DirectLevel, ViewState
+from .worker_view import DirectLevel, GlossyLevel, ViewState
 
 log = logging.getLogger(__name__)
 
@@ -74,6 +76,9 @@ SOLVE_PUBLISH_INTERVAL_S = 0.3
 #: on 2 busy cores) delayed the converged image that follows within ~0.5 s. A scene whose solve
 #: takes longer still shows its iterations after this hold.
 FIRST_SOLVE_HOLD_S = 1.5
+#: Shortest time between two readings of the cache's split-sum glossy light while the cache
+#: converges (a finished solve is read at once): each costs a corner lookup per glossy pixel.
+GLOSSY_CACHE_INTERVAL_S = 0.3
 
 
 # --- the worker ---------------------------------------------------------------------------------
@@ -224,6 +229,10 @@ class ViewportWorker:
             return True
         if state is not None and self._pixels_due(state):
             return True
+        if state is not None and state.glossy is not None:
+            cache = self._session.system.cache
+            if state.glossy.cache_key != (id(cache), cache.version):
+                return True  # the glossy light's cache part lags behind the cache
         if state is not None and state.request.debug_cells:
             cache = self._session.system.cache
             if state.cells_key != (id(cache), cache.version):
@@ -272,6 +281,8 @@ class ViewportWorker:
             finished = schedule.solved_once and not was_solved or not schedule.has_work
         if state is not None and state.request.debug_cells:
             self._cell_colors(system, state, force=moving or not schedule.has_work)
+        if state is not None and state.glossy is not None:
+            self._glossy_cache(system, state, force=moving or finished or not schedule.has_work)
         if state is not None and not moving:
             # Refinements of a view that held still for a whole step.
             if state.mask is None:
@@ -351,9 +362,14 @@ class ViewportWorker:
         points, normals, pix = _visible.pixels_to_points(view.position, view.normal)
         cells = system.visible_cells(points, normals)
         state = ViewState(view, self._scene_version, (points, normals, pix), cells)
+        if view.direct_material is not None and _glossy.has_glossy(system):
+            state.glossy = GlossyLevel(state.fine_level(), view.direct_material, camera_eye(view.view, view.proj),
+                                       system.scene.materials)
         self._steps["visible"] = (time.perf_counter() - t0) * 1e3
         self._view_state = state
         self._direct_pass(system, state, state.coarse)
+        if state.glossy is not None:
+            self._glossy_cache(system, state, force=True)
 
     def _direct_pass(self, system, state: ViewState, level: DirectLevel | None = None) -> None:
         t0 = time.perf_counter()
@@ -366,6 +382,32 @@ class ViewportWorker:
         level.passes += 1
         self._count_rays(points.shape[0] * samples * max(len(system.scene.lights), 1))
         self._steps["direct"] = (time.perf_counter() - t0) * 1e3
+        glossy = state.glossy
+        if glossy is not None and level.position.shape == glossy.position.shape and glossy.pix.size:
+            # The lamps' glossy reflection with the direct light's samples, at its pixels (the
+            # coarse pass's too when it has the direct resolution: a lamp edit shows it at once).
+            t1 = time.perf_counter()
+            glossy.lamp_sum += _split(system.glossy, (glossy.points, glossy.normals, glossy.to_eye, glossy.rows),
+                                      self._frame, samples, system.updater.pool)
+            glossy.passes += 1
+            self._count_rays(glossy.pix.size * samples * max(len(system.scene.lights), 1))
+            self._steps["glossy"] = (time.perf_counter() - t1) * 1e3
+        state.dirty = True
+
+    def _glossy_cache(self, system, state: ViewState, force: bool) -> None:
+        """The cache's split-sum glossy light at the view's glossy pixels, again when the cache
+        changed (at most every GLOSSY_CACHE_INTERVAL_S while it converges)."""
+        glossy = state.glossy
+        cache = system.cache
+        key = (id(cache), cache.version)
+        if glossy.cache_key == key or not (force or time.perf_counter() - glossy.cache_at >= GLOSSY_CACHE_INTERVAL_S):
+            return
+        t0 = time.perf_counter()
+        if glossy.pix.size:
+            glossy.cache_part = _glossy.cache_glossy(system, glossy.points, glossy.normals, glossy.to_eye,
+                                                     glossy.rows).radiance
+        glossy.cache_key, glossy.cache_at = key, time.perf_counter()
+        self._steps["glossy_cache"] = (time.perf_counter() - t0) * 1e3
         state.dirty = True
 
     def _cell_colors(self, system, state: ViewState, force: bool) -> None:
@@ -555,6 +597,19 @@ def _direct_split(system, points: np.ndarray, normals: np.ndarray, frame: int, s
     pool = system.updater.pool
     jobs = [pool.submit(system.direct, points[a:b], normals[a:b], frame * MAX_DIRECT_BLOCKS + i, samples)
             for i, (a, b) in enumerate(zip(bounds[:-1], bounds[1:], strict=True))]
+    return np.concatenate([j.result() for j in jobs])
+
+
+def _split(fn, arrays: tuple, frame: int, samples: int, pool) -> np.ndarray:
+    """fn(*arrays, frame, samples) in blocks of DIRECT_BLOCK_POINTS rows on the pool, block i
+    with frame number frame * MAX_DIRECT_BLOCKS + i (as `_direct_split`)."""
+    n = arrays[0].shape[0]
+    blocks = min(-(-n // DIRECT_BLOCK_POINTS), MAX_DIRECT_BLOCKS)
+    if blocks <= 1:
+        return fn(*arrays, frame * MAX_DIRECT_BLOCKS, samples)
+    bounds = np.linspace(0, n, blocks + 1).astype(np.intp)
+    jobs = [pool.submit(fn, *(a[lo:hi] for a in arrays), frame * MAX_DIRECT_BLOCKS + i, samples)
+            for i, (lo, hi) in enumerate(zip(bounds[:-1], bounds[1:], strict=True))]
     return np.concatenate([j.result() for j in jobs])
 
 

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from hybridgi_core import glossy_image as _glossy
 from hybridgi_core import visible as _visible
 
 from .worker_messages import ViewRequest, ViewResult, frozen
@@ -31,6 +32,42 @@ class DirectLevel:
         h, w = self.position.shape[:2]
         out = self.sum.copy()
         out[:, :3] /= max(self.passes, 1)
+        return out.reshape(h, w, 4)
+
+
+class GlossyLevel:
+    """The glossy layers' light at a direct level's pixels (worker thread only): the lamps' part
+    summed over passes (shadow rays, noisy) and the cache's split-sum part, read again when the
+    cache changes (`cache_key`). Only pixels of materials with a glossy layer are computed."""
+
+    def __init__(self, level: DirectLevel, material: np.ndarray, eye, materials):
+        points, normals, pix = level.points
+        self.position, self.normal = level.position, level.normal
+        h, w = level.position.shape[:2]
+        self.shape = (h, w)
+        rows = _glossy.material_rows(np.asarray(material).reshape(-1)[pix])
+        layered = np.array([getattr(m, "specular", None) is not None for m in materials] + [False])
+        sel = np.flatnonzero(layered[np.where(rows >= 0, rows, len(materials))])
+        self.points, self.normals, self.rows = points[sel], normals[sel], rows[sel]
+        self.pix = pix[sel]
+        self.all_pix = pix  # every geometry pixel of the level (a = 1: glossy-free ones show 0)
+        self.to_eye = _glossy.directions_to_eye(self.points, eye).astype(np.float32)
+        self.lamp_sum = np.zeros((self.pix.size, 3), np.float32)
+        self.passes = 0
+        self.cache_part = np.zeros((self.pix.size, 3), np.float32)
+        self.cache_key = None
+        self.cache_at = 0.0
+
+    def reset_lamps(self) -> None:
+        self.lamp_sum[:] = 0.0
+        self.passes = 0
+
+    def image(self) -> np.ndarray:
+        """(h, w, 4) float32 lamp mean + cache part, a = 1 on every geometry pixel of the level."""
+        h, w = self.shape
+        out = np.zeros((h * w, 4), np.float32)
+        out[self.all_pix, 3] = 1.0
+        out[self.pix, :3] = self.lamp_sum / max(self.passes, 1) + self.cache_part
         return out.reshape(h, w, 4)
 
 
@@ -61,6 +98,7 @@ class ViewState:
         self.cell_colors: np.ndarray | None = None  # Cache Cells view, when the request asks
         self.cells_key = None
         self.cells_at = 0.0
+        self.glossy: GlossyLevel | None = None  # made by the worker with the first fine pass
         self.dirty = False
 
     def fine_level(self) -> DirectLevel:
@@ -86,6 +124,8 @@ class ViewState:
         r = self.request
         self.coarse = DirectLevel(r.position, r.normal, self.gi_points, self.coarse.samples)
         self._fine = None
+        if self.glossy is not None:
+            self.glossy.reset_lamps()  # the cache's part stays until the cache re-solves
         self.reset_pixels()
         self.dirty = True
 
@@ -122,4 +162,8 @@ class ViewState:
             gi_indirect=None if self.pixel_sum is None else frozen(self.pixel_sum[0] / self.pixel_passes),
             gi_direct=None if self.pixel_sum is None else frozen(self.pixel_sum[1] / self.pixel_passes),
             pixel_passes=self.pixel_passes,
+            glossy=None if self.glossy is None else frozen(self.glossy.image()),
+            glossy_position=None if self.glossy is None else self.glossy.position,
+            glossy_normal=None if self.glossy is None else self.glossy.normal,
+            glossy_passes=0 if self.glossy is None else self.glossy.passes,
         )
