@@ -353,8 +353,8 @@ class ViewportWorker:
         points, normals, pix = _visible.pixels_to_points(view.position, view.normal)
         cells = system.visible_cells(points, normals)
         state = ViewState(view, self._scene_version, (points, normals, pix), cells)
-        if view.direct_material is not None and _glossy.has_glossy(system):
-            state.glossy = GlossyLevel(state.fine_level(), view.direct_material, camera_eye(view.view, view.proj),
+        if view.material is not None and _glossy.has_glossy(system):
+            state.glossy = GlossyLevel(state.coarse, view.material, camera_eye(view.view, view.proj),
                                        system.scene.materials)
         self._steps["visible"] = (time.perf_counter() - t0) * 1e3
         self._view_state = state
@@ -374,9 +374,9 @@ class ViewportWorker:
         self._count_rays(points.shape[0] * samples * max(len(system.scene.lights), 1))
         self._steps["direct"] = (time.perf_counter() - t0) * 1e3
         glossy = state.glossy
-        if glossy is not None and level.position.shape == glossy.position.shape and glossy.pix.size:
-            # The lamps' glossy reflection with the direct light's samples, at its pixels (the
-            # coarse pass's too when it has the direct resolution: a lamp edit shows it at once).
+        if glossy is not None and glossy.pix.size:
+            # The lamps' glossy reflection with this pass's samples, at the GI pixels (the
+            # coarse pass's too: a new view or a lamp edit shows it at once).
             t1 = time.perf_counter()
             glossy.lamp_sum += _split(system.glossy, (glossy.points, glossy.normals, glossy.to_eye, glossy.rows),
                                       self._frame, samples, system.updater.pool)

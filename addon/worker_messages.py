@@ -53,8 +53,8 @@ class ViewRequest:
         geometry; unit normal): visible cells and corner visibility
     direct_position, direct_normal : the same at the direct light's resolution (may be the same arrays)
     view, proj : (4, 4) float64 camera of the frame (the main thread reprojects results with them)
-    direct_material : (h, w) float32 G-buffer material index + 1 at the direct light's pixels (the
-        glossy lobes' materials), or None: no glossy light
+    material : (h, w) float32 G-buffer material index + 1 at the GI pixels (the glossy lobes'
+        materials: the glossy light is made there), or None: no glossy light
     """
 
     key: tuple
@@ -65,7 +65,7 @@ class ViewRequest:
     view: np.ndarray
     proj: np.ndarray
     debug_cells: bool = False  # also colour the GI pixels by cache cell (the Cache Cells view)
-    direct_material: np.ndarray | None = None
+    material: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -133,7 +133,8 @@ class ViewResult:
     #: The glossy layers' light towards this view's camera (`glossy_image`: the lamps' part, the
     #: mean over `glossy_passes` passes, plus the cache's split-sum part): (h, w, 4) rgb radiance
     #: added to Combined, a = 1 where computed, at glossy_position / glossy_normal (the request's
-    #: direct-resolution arrays); None when no material has a glossy layer.
+    #: GI-resolution arrays: a highlight is smooth at the pixel scale); None when no material
+    #: has a glossy layer.
     glossy: np.ndarray | None = None
     glossy_position: np.ndarray | None = None
     glossy_normal: np.ndarray | None = None

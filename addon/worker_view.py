@@ -36,7 +36,7 @@ class DirectLevel:
 
 
 class GlossyLevel:
-    """The glossy layers' light at a direct level's pixels (worker thread only): the lamps' part
+    """The glossy layers' light at a level's pixels (the GI's; worker thread only): the lamps' part
     summed over passes (shadow rays, noisy) and the cache's split-sum part, read again when the
     cache changes (`cache_key`). Only pixels of materials with a glossy layer are computed."""
 
