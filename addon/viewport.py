@@ -60,6 +60,10 @@ log = logging.getLogger(__name__)
 #: renders trace it: at 2, the upsampled shadow edges held most of the settled atrium's error vs
 #: Cycles (Combined 0.034 at 2, 0.028 at 1; the final render's is 0.025).
 DIRECT_FACTOR = 1
+#: A moving view's coarse direct pass traces the rays of one pass at half the full resolution
+#: (as when the direct light was refined there): 1 sample per GI pixel at the default downsample
+#: 2, not the 4 a full-resolution pass's rays would give (~3x the first light's cost of a view).
+COARSE_SHARE = 1.0 / (DIRECT_FACTOR * 2) ** 2
 #: Shadow-ray passes averaged while the view holds still (each pass: 1 sample per pixel and lamp).
 DIRECT_PASSES = 16
 #: props.debug_view of the cells view (drawn here, not by the deferred pass).
@@ -159,7 +163,7 @@ class ViewportSession:
     """
 
     def __init__(self, options: worker.WorkerOptions | None = None):
-        self.options = options or worker.WorkerOptions(direct_passes=DIRECT_PASSES)
+        self.options = options or worker.WorkerOptions(direct_passes=DIRECT_PASSES, coarse_share=COARSE_SHARE)
         self.mirror = SceneMirror()
         self.worker: worker.ViewportWorker | None = None
         self.gpu: _GPUState | None = None

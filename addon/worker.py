@@ -278,7 +278,9 @@ class ViewportWorker:
             # Refinements of a view that held still for a whole step.
             if state.mask is None:
                 self._trace_mask(system, state)
-            elif state.passes < self.options.direct_passes:
+            elif state.passes < self.options.direct_passes and not schedule.first_solve:
+                # (Not during a fresh cache's first solve: the full-resolution passes would
+                # delay the first converged image, and the coarse pass's light shows meanwhile.)
                 self._direct_pass(system, state)
             elif self._pixels_due(state):
                 self._pixel_pass(system, state)
@@ -352,7 +354,7 @@ class ViewportWorker:
         t0 = time.perf_counter()
         points, normals, pix = _visible.pixels_to_points(view.position, view.normal)
         cells = system.visible_cells(points, normals)
-        state = ViewState(view, self._scene_version, (points, normals, pix), cells)
+        state = ViewState(view, self._scene_version, (points, normals, pix), cells, self.options.coarse_share)
         if view.material is not None and _glossy.has_glossy(system):
             state.glossy = GlossyLevel(state.coarse, view.material, camera_eye(view.view, view.proj),
                                        system.scene.materials)

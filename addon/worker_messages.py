@@ -77,6 +77,9 @@ class WorkerOptions:
     # first converged image, which the full batches that follow refine
     direct_samples: int = 1  # shadow-ray samples per pixel and lamp in each direct-light pass
     direct_passes: int = 16  # passes averaged while the view stays still (soft shadows converge)
+    # Rays of a new view's first, coarse direct pass (at the GI pixels) as a share of one pass at
+    # the direct light's resolution (more samples per pixel on fewer pixels; 1 to 16 samples)
+    coarse_share: float = 1.0
     # Per-pixel final-gather rays per GI pixel and pass once the cache is done and the view holds
     # still (0: off), and the passes averaged (their frames differ): final renders' default is 32
     # rays, which cut Cornell's Combined error 0.0337 -> 0.0286 (one pass costs about as much as

@@ -76,14 +76,15 @@ class ViewState:
     corner mask, and direct light at two levels, coarse (GI resolution, one pass, as soon as the
     view arrives) and fine (the direct light's resolution, refined while the view holds still)."""
 
-    def __init__(self, request: ViewRequest, scene_gen: int, gi_points: tuple, cells: np.ndarray):
+    def __init__(self, request: ViewRequest, scene_gen: int, gi_points: tuple, cells: np.ndarray,
+                 coarse_share: float = 1.0):
         self.request = request
         self.scene_gen = scene_gen
         self.gi_points = gi_points  # (points, normals, flat pixels) at the GI resolution
         self.cells = cells
-        # The coarse pass traces as many rays as one fine pass (more samples on fewer pixels), so
-        # soft shadows shimmer no more while the camera moves than once it stops.
-        ratio = request.direct_position.shape[0] * request.direct_position.shape[1] / max(
+        # The coarse pass traces `coarse_share` of the rays of one fine pass (more samples on fewer
+        # pixels), so soft shadows shimmer no more while the camera moves than once it stops.
+        ratio = coarse_share * request.direct_position.shape[0] * request.direct_position.shape[1] / max(
             request.position.shape[0] * request.position.shape[1], 1)
         self.coarse = DirectLevel(request.position, request.normal, gi_points, int(np.clip(round(ratio), 1, 16)))
         self._fine: DirectLevel | None = None

@@ -113,12 +113,14 @@ class Viewport:
         """Redraw while the session adds anti-aliasing subframes (Blender redraws while the engine
         tags redraws); returns the last image when read."""
         img = None
+        self.aa_ms = []  # llvmpipe milliseconds of each subframe's redraw
         for _ in range(limit):
             session = self.session
             aa = getattr(session, "aa", None)
             if aa is None or not session._aa_due(session.worker.latest()):
                 break
             self.draw()
+            self.aa_ms.append(session.last_stats.total_ms)
         if read:
             _, img = self.draw(read=True)
         return img
@@ -180,8 +182,13 @@ def worker_timeline(view: Viewport, checkpoints, folder: Path, name: str) -> lis
             session._drawn_key = None  # the centre image of this publication, even if the last one had it
             _, img = view.draw(read=True)
             centre.append(_save(folder, f"{name}_centre", i, img, t, c))
+            draw_ms = session.last_stats.total_ms
             img = view.finish_aa(read=True)
             shot = _save(folder, name, i, img, t, c)
+            # llvmpipe's share, apart from the worker's timeline: the centre redraw of this
+            # publication and its anti-aliasing subframes' redraws.
+            shot["draw_ms"] = round(draw_ms, 1)
+            shot["aa_draw_ms"] = [round(v, 1) for v in view.aa_ms]
             shot["updates"] = published.stats.updates
             shot["steps_ms"] = {k: round(v, 1) for k, v in published.stats.steps_ms.items()}
             shots.append(shot)
