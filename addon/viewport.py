@@ -16,7 +16,12 @@ Chebyshev test of the depth moments stands in meanwhile).
 
 Redraws: `view_draw` asks Blender for another redraw (`engine.tag_redraw()`) while the worker is
 busy or has published something not drawn yet; an unchanged view with nothing new redraws the
-last image without running the pipeline.
+last image without running the pipeline, or, until its anti-aliasing sum is complete, adds one
+jittered subframe to it (`viewport_aa.py`: the final render's pixel filter over redraws).
+
+Glossy light: the worker's (`ViewResult.glossy`, the lamps' GGX lobes and the cache's split sum
+at the GI pixels, `hybridgi_core/glossy_image.py` as final renders compute it) is resolved onto
+the frame's pixels like the direct light and added to Combined by the deferred pass.
 """
 
 import logging

@@ -1,5 +1,5 @@
-"""The viewport's CPU half on a background thread: cache updates, visible cells, corner visibility
-and direct light at the pixels, all on numpy snapshots.
+"""The viewport's CPU half on a background thread: cache updates, visible cells, corner visibility,
+direct light and the glossy layers' light at the pixels, all on numpy snapshots.
 
 The main thread posts scene edits (applied in order) and view requests (the latest wins) and reads
 what the worker published: one immutable `Published` record, swapped under a lock, holding
