@@ -306,10 +306,10 @@ class ViewportSession:
         shaded = pipeline.shade(gbuf, low, view, proj, direct, corner_visible=mask, irradiance=lit,
                                 debug_view=debug_view, world_color=world, stats=stats, gi=gi, glossy=glossy)
         if not debug_cells and aa.offsets.shape[0]:
-            with stats.step("accumulate"):
-                pipeline.accumulate.execute(shaded, gbuf, first=True)
+            # The sum starts from this centre image with the first subframe (its targets hold it
+            # until then): a redraw the worker's next result replaces costs no accumulate pass.
             aa.start(dict(view=view, proj=proj, mask=mask, lit=lit, gi=gi, world=world, debug_view=debug_view,
-                          present_mode=present_mode, opaque=opaque))
+                          present_mode=present_mode, opaque=opaque, shaded=shaded, gbuf=gbuf))
         else:
             aa.reset()
         with stats.step("present"):
@@ -357,6 +357,9 @@ class ViewportSession:
         stats.redrawn = True
         stats.subframe = aa.drawn
         view, proj = inputs["view"], inputs["proj"]
+        if aa.drawn == 1:
+            with stats.step("accumulate"):  # the centre image, still in the targets
+                pipeline_.accumulate.execute(inputs["shaded"], inputs["gbuf"], first=True)
         with stats.step("gbuffer"):
             jittered = _subpixel.jittered_projection(proj, aa.next_offset(), gpu_state.width, gpu_state.height)
             gbuf = pipeline_.gbuffer.execute(view, jittered, texture_filter=aa.texture_filter)

@@ -2,7 +2,7 @@
 accumulate theirs within a frame (`hybridgi_core.raster.subpixel`, the same offsets and pixel filter).
 
 A redraw that runs the pipeline (a new view, new light from the worker, a scene edit) draws the
-pixel-centre image and starts a new running sum with it. Each later redraw of the same view and
+pixel-centre image, the first sample of a new running sum (added to it with the first subframe). Each later redraw of the same view and
 the same worker results adds one jittered subframe (its G-buffer rasterized with a shifted
 projection, shaded from the same GI, light and glossy textures) until the sum holds the centre
 and all `count` subframes of the final render's pattern; the view shows the running mean, so the

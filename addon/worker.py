@@ -76,6 +76,10 @@ SOLVE_PUBLISH_INTERVAL_S = 0.3
 #: on 2 busy cores) delayed the converged image that follows within ~0.5 s. A scene whose solve
 #: takes longer still shows its iterations after this hold.
 FIRST_SOLVE_HOLD_S = 1.5
+#: While the solver still works, the glossy light's cache part is read again with a packed cache
+#: at most this often (each reading: a corner lookup per glossy GI pixel, 0.1-0.25 s on 2 busy
+#: cores for bunny_npm's 50k); the cache of a finished solve is always read.
+GLOSSY_CACHE_INTERVAL_S = 1.0
 
 
 # --- the worker ---------------------------------------------------------------------------------
@@ -108,6 +112,7 @@ class ViewportWorker:
         self._serial = 0
         self._published_cache_key = None
         self._published_depth = None  # (key, depth texels) last packed: reused while it holds
+        self._glossy_cache_due = False  # a packed cache's glossy light is to be read (`_publish`)
         self._published_at = 0.0
         self._view_state: ViewState | None = None
         self._rates: collections.deque = collections.deque()
@@ -224,6 +229,8 @@ class ViewportWorker:
             return True
         if state is not None and (state.mask is None or state.passes < self.options.direct_passes):
             return True
+        if state is not None and self._glossy_due(state):
+            return True
         if state is not None and self._pixels_due(state):
             return True
         if state is not None and state.request.debug_cells:
@@ -278,6 +285,8 @@ class ViewportWorker:
             # Refinements of a view that held still for a whole step.
             if state.mask is None:
                 self._trace_mask(system, state)
+            elif self._glossy_due(state) and not schedule.first_solve:
+                self._glossy_pass(system, state, self.options.direct_samples)
             elif state.passes < self.options.direct_passes and not schedule.first_solve:
                 # (Not during a fresh cache's first solve: the full-resolution passes would
                 # delay the first converged image, and the coarse pass's light shows meanwhile.)
@@ -357,7 +366,9 @@ class ViewportWorker:
         state = ViewState(view, self._scene_version, (points, normals, pix), cells, self.options.coarse_share)
         if view.material is not None and _glossy.has_glossy(system):
             state.glossy = GlossyLevel(state.coarse, view.material, camera_eye(view.view, view.proj),
-                                       system.scene.materials)
+                                       system.glossy_materials)
+            if not state.glossy.pix.size:
+                state.glossy = None  # no pixel reflects glossy light: nothing to show
         self._steps["visible"] = (time.perf_counter() - t0) * 1e3
         self._view_state = state
         self._direct_pass(system, state, state.coarse)
@@ -375,24 +386,37 @@ class ViewportWorker:
         level.passes += 1
         self._count_rays(points.shape[0] * samples * max(len(system.scene.lights), 1))
         self._steps["direct"] = (time.perf_counter() - t0) * 1e3
+        if level is state.coarse:
+            # A new view or a lamp edit: its glossy light at once, with the coarse pass's samples.
+            self._glossy_pass(system, state, samples)
+        state.dirty = True
+
+    def _glossy_due(self, state: ViewState) -> bool:
+        """A glossy pass of a still view is due: fewer than its direct passes (they alternate,
+        so that neither makes a step, and the wait of an edit for it, longer)."""
         glossy = state.glossy
-        if glossy is not None and glossy.pix.size:
-            # The lamps' glossy reflection with this pass's samples, at the GI pixels (the
-            # coarse pass's too: a new view or a lamp edit shows it at once).
-            t1 = time.perf_counter()
-            glossy.lamp_sum += _split(system.glossy, (glossy.points, glossy.normals, glossy.to_eye, glossy.rows),
-                                      self._frame, samples, system.updater.pool)
-            glossy.passes += 1
-            self._count_rays(glossy.pix.size * samples * max(len(system.scene.lights), 1))
-            self._steps["glossy"] = (time.perf_counter() - t1) * 1e3
+        return (glossy is not None and glossy.pix.size > 0 and glossy.passes < self.options.direct_passes
+                and glossy.passes <= state.passes)
+
+    def _glossy_pass(self, system, state: ViewState, samples: int) -> None:
+        """The lamps' glossy reflection at the GI pixels, one pass of `samples` shadow rays each."""
+        glossy = state.glossy
+        if glossy is None or not glossy.pix.size:
+            return
+        t0 = time.perf_counter()
+        self._frame += 1
+        glossy.lamp_sum += _split(system.glossy, (glossy.points, glossy.normals, glossy.to_eye, glossy.rows),
+                                  self._frame, samples, system.updater.pool)
+        glossy.passes += 1
+        self._count_rays(glossy.pix.size * samples * max(len(system.scene.lights), 1))
+        self._steps["glossy"] = (time.perf_counter() - t0) * 1e3
         state.dirty = True
 
     def _glossy_cache(self, system, state: ViewState) -> None:
         """The cache's split-sum glossy light at the view's glossy pixels from the cache as it is
-        now: when a view begins, and with every cache that is packed (`_build_published`), so
-        the published glossy light reads the cache the gather reads (not the dark iterates of a
-        first solve that are held back, nor every iteration: ~0.1 s a reading on 2 busy cores
-        for 50k glossy pixels)."""
+        now: when a view begins, and with a packed cache (`_build_published`, at most every
+        GLOSSY_CACHE_INTERVAL_S while the solver works), so the published glossy light reads a
+        cache the gather reads (not the dark iterates of a first solve that are held back)."""
         glossy = state.glossy
         cache = system.cache
         key = (id(cache), cache.version)
@@ -521,6 +545,15 @@ class ViewportWorker:
         with self._cond:
             self._published = published
             self._cond.notify_all()
+        if self._glossy_cache_due and self._view_state is not None and self._view_state.glossy is not None:
+            # The glossy light of the cache just published, in a second publication: the first
+            # converged image is not held back by it (0.1-0.25 s on bunny_npm, 2 busy cores).
+            self._glossy_cache_due = False
+            self._glossy_cache(self._session.system, self._view_state)
+            published = self._build_published(idle=False, force=False)
+            with self._cond:
+                self._published = published
+                self._cond.notify_all()
 
     def _build_published(self, idle: bool, pack: bool = True, force: bool = True) -> Published:
         """A new `Published` from the worker's state; arrays handed out are copies never written
@@ -560,8 +593,10 @@ class ViewportWorker:
                 self._published_cache_key = key
                 self._published_at = time.perf_counter()
                 self._steps["pack"] = (time.perf_counter() - t0) * 1e3
-                if self._view_state is not None and self._view_state.glossy is not None:
-                    self._glossy_cache(system, self._view_state)  # the glossy light of this very cache
+                glossy = self._view_state.glossy if self._view_state is not None else None
+                if glossy is not None and (not self._schedule.has_work
+                                           or time.perf_counter() - glossy.cache_at >= GLOSSY_CACHE_INTERVAL_S):
+                    self._glossy_cache_due = True  # read this very cache once it is out (`_publish`)
             state = self._view_state
             if state is None:
                 view_result = None

@@ -8,6 +8,7 @@ import numpy as np
 
 from hybridgi_core import glossy_image as _glossy
 from hybridgi_core import visible as _visible
+from hybridgi_core.glossy import glossy_color as _glossy_color
 
 from .worker_messages import ViewRequest, ViewResult, frozen
 
@@ -38,20 +39,25 @@ class DirectLevel:
 class GlossyLevel:
     """The glossy layers' light at a level's pixels (the GI's; worker thread only): the lamps' part
     summed over passes (shadow rays, noisy) and the cache's split-sum part, read again when the
-    cache changes (`cache_key`). Only pixels of materials with a glossy layer are computed."""
+    cache changes (`cache_key`). Only pixels whose material reflects some glossy light are
+    computed (a layer of weight 0, as a Principled BSDF with Specular IOR Level 0, reflects none)."""
 
-    def __init__(self, level: DirectLevel, material: np.ndarray, eye, materials):
+    def __init__(self, level: DirectLevel, material: np.ndarray, eye, glossy_materials):
         points, normals, pix = level.points
         self.position, self.normal = level.position, level.normal
         h, w = level.position.shape[:2]
         self.shape = (h, w)
         rows = _glossy.material_rows(np.asarray(material).reshape(-1)[pix])
-        layered = np.array([getattr(m, "specular", None) is not None for m in materials] + [False])
-        sel = np.flatnonzero(layered[np.where(rows >= 0, rows, len(materials))])
-        self.points, self.normals, self.rows = points[sel], normals[sel], rows[sel]
+        to_eye = _glossy.directions_to_eye(points, eye).astype(np.float32)
+        lobes = np.append((glossy_materials.weight > 0) | (glossy_materials.metallic > 0), False)
+        safe = np.where((rows >= 0) & (rows < len(glossy_materials.layers)), rows, -1)
+        mu = np.clip(np.einsum("ij,ij->i", normals, to_eye), 0.0, 1.0)
+        coloured = _glossy_color(glossy_materials, safe, mu).max(axis=1) > 0
+        sel = np.flatnonzero(lobes[safe] | coloured)
+        self.points, self.normals, self.rows = points[sel], normals[sel], safe[sel]
         self.pix = pix[sel]
         self.all_pix = pix  # every geometry pixel of the level (a = 1: glossy-free ones show 0)
-        self.to_eye = _glossy.directions_to_eye(self.points, eye).astype(np.float32)
+        self.to_eye = to_eye[sel]
         self.lamp_sum = np.zeros((self.pix.size, 3), np.float32)
         self.passes = 0
         self.cache_part = np.zeros((self.pix.size, 3), np.float32)
