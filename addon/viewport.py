@@ -183,6 +183,7 @@ class ViewportSession:
         self._world_bakes_seen = world_bake.STORE.completed
         self._material_bakes_seen = material_bake.STORE.completed
         self.aa = viewport_aa.Accumulation()
+        self._aa_source = None  # (pixel samples, filter size, filter type) of self.aa
         #: Add anti-aliasing subframes while the worker is still busy (hardware GPUs); a software
         #: renderer waits for it to be idle (`viewport_aa`). None: decided on the first draw.
         self.aa_while_busy: bool | None = None
@@ -336,19 +337,23 @@ class ViewportSession:
         none in the Cache Cells view (a cell colour per pixel centre, as final renders draw it)."""
         count = 1 if present_mode == PRESENT_CELLS else int(getattr(scene.hybridgi, "pixel_samples", 1))
         filter_type, filter_size = pipeline.pixel_filter(scene)
-        wanted = viewport_aa.Accumulation.pattern(count, filter_size, filter_type)
-        if wanted.config != self.aa.config:
-            self.aa = wanted
+        if (count, filter_size, filter_type) != self._aa_source:
+            self.aa = viewport_aa.Accumulation.pattern(count, filter_size, filter_type)
+            self._aa_source = (count, filter_size, filter_type)
         return self.aa
 
     def _aa_due(self, published) -> bool:
         """A jittered subframe is to be drawn now: the sum is not complete, and the worker is idle
-        unless subframes may run while it is busy."""
+        unless subframes may run while it is busy. Idle now (`worker.idle`: a view or edit posted
+        since is work), not only in its last record: the idle record a worker publishes before its
+        first view let llvmpipe's subframes take the cores the first view's light needed."""
         if not self.aa.pending:
             return False
         if self.aa_while_busy is None:
             self.aa_while_busy = not software_renderer()
-        return bool(self.aa_while_busy or published.stats.idle)
+        if self.aa_while_busy:
+            return True
+        return bool(published.stats.idle and self.worker is not None and self.worker.idle)
 
     def _draw_subframe(self, gpu_state: _GPUState, stats: DrawStats, t0: float):
         """Add the next jittered subframe to the running sum and show the mean: the centre redraw's
