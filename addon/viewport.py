@@ -122,7 +122,8 @@ class _GPUState:
 
     def __init__(self, raster_settings):
         self.pipeline = _frame.FramePipeline(raster_settings, gather=PackedGatherPass())
-        factor = DIRECT_FACTOR if DIRECT_FACTOR != raster_settings.downsample else None
+        # (1: the G-buffer's own targets are read back, no copy pass.)
+        factor = DIRECT_FACTOR if DIRECT_FACTOR not in (1, raster_settings.downsample) else None
         self.direct_down = _downsample.DownsamplePass(factor) if factor else None
         self.resolve_full = DirectResolvePass("RGBA32F")
         self.resolve_low = DirectResolvePass("RGBA16F")
@@ -167,7 +168,11 @@ class ViewportSession:
     overlay); `draw(scene, camera, width, height)` on every redraw; `close()` at the end.
     """
 
-    def __init__(self, options: worker.WorkerOptions | None = None):
+    def __init__(self, options: worker.WorkerOptions | None = None, antialias: bool = True):
+        """antialias : accumulate jittered subframes while the view holds still (`viewport_aa`);
+        the Solid-mode overlay does not (it multiplies the last redraw's passes over Blender's
+        own, unjittered image)."""
+        self.antialias = antialias
         self.options = options or worker.WorkerOptions(direct_passes=DIRECT_PASSES, coarse_share=COARSE_SHARE)
         self.mirror = SceneMirror()
         self.worker: worker.ViewportWorker | None = None
@@ -335,7 +340,9 @@ class ViewportSession:
     def _aa_pattern(self, scene, present_mode: int) -> viewport_aa.Accumulation:
         """The session's `Accumulation`, remade when the scene's pixel samples or filter changed;
         none in the Cache Cells view (a cell colour per pixel centre, as final renders draw it)."""
-        count = 1 if present_mode == PRESENT_CELLS else int(getattr(scene.hybridgi, "pixel_samples", 1))
+        count = int(getattr(scene.hybridgi, "pixel_samples", 1))
+        if present_mode == PRESENT_CELLS or not self.antialias:
+            count = 1
         filter_type, filter_size = pipeline.pixel_filter(scene)
         if (count, filter_size, filter_type) != self._aa_source:
             self.aa = viewport_aa.Accumulation.pattern(count, filter_size, filter_type)
@@ -448,9 +455,14 @@ class ViewportSession:
             normal, position = gpu_state.pipeline.downsample.read_normal_position()
             if gpu_state.direct_down is not None:
                 gpu_state.direct_down.execute(gbuf)
-                d_normal, d_position = gpu_state.direct_down.read_normal_position()
+                d_normal, d_position = (a.copy() for a in gpu_state.direct_down.read_normal_position())
+            elif DIRECT_FACTOR == 1 and gpu_state.pipeline.settings.downsample != 1:
+                # New arrays (no copies to make): the full-res targets as a factor-1 downsample
+                # would copy them (one sample per block), without its fullscreen pass.
+                d_normal = gpu_state.pipeline.gbuffer.read("normal")
+                d_position = gpu_state.pipeline.gbuffer.read("position")
             else:
-                d_normal, d_position = normal, position
+                d_normal, d_position = normal.copy(), position.copy()
             material = None
             if any(getattr(m, "specular", None) is not None for m in self.mirror.snapshot.materials):
                 # At the GI pixels (the glossy light's): a new array, the worker keeps it.
@@ -458,7 +470,7 @@ class ViewportSession:
         with stats.step("post"):
             request = worker.ViewRequest(
                 key=view_key, position=position.copy(), normal=normal.copy(),
-                direct_position=d_position.copy(), direct_normal=d_normal.copy(),
+                direct_position=d_position, direct_normal=d_normal,
                 view=camera.view, proj=camera.proj, debug_cells=debug_cells, material=material,
             )
             self.worker.post_view(request)

@@ -364,12 +364,13 @@ class ViewportWorker:
         points, normals, pix = _visible.pixels_to_points(view.position, view.normal)
         cells = system.visible_cells(points, normals)
         state = ViewState(view, self._scene_version, (points, normals, pix), cells, self.options.coarse_share)
+        self._steps["visible"] = (time.perf_counter() - t0) * 1e3
         if view.material is not None and _glossy.has_glossy(system):
             state.glossy = GlossyLevel(state.coarse, view.material, camera_eye(view.view, view.proj),
                                        system.glossy_materials)
             if not state.glossy.pix.size:
                 state.glossy = None  # no pixel reflects glossy light: nothing to show
-        self._steps["visible"] = (time.perf_counter() - t0) * 1e3
+            self._steps["glossy_level"] = (time.perf_counter() - t0) * 1e3 - self._steps["visible"]
         self._view_state = state
         self._direct_pass(system, state, state.coarse)
         if state.glossy is not None:

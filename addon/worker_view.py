@@ -36,6 +36,17 @@ class DirectLevel:
         return out.reshape(h, w, 4)
 
 
+def reflecting(glossy_materials) -> np.ndarray:
+    """(m,) bool: materials whose glossy layer reflects light, by lamps (a lobe of weight > 0) or
+    by the cache (a Glossy Color above 0 at some view angle)."""
+    lobes = (glossy_materials.weight > 0) | (glossy_materials.metallic > 0)
+    mu = np.array([0.05, 0.5, 1.0])
+    for m, layer in enumerate(glossy_materials.layers):
+        if layer is not None and not lobes[m]:
+            lobes[m] = bool(_glossy_color(glossy_materials, np.full(mu.size, m), mu).max() > 0)
+    return lobes
+
+
 class GlossyLevel:
     """The glossy layers' light at a level's pixels (the GI's; worker thread only): the lamps' part
     summed over passes (shadow rays, noisy) and the cache's split-sum part, read again when the
@@ -48,16 +59,12 @@ class GlossyLevel:
         h, w = level.position.shape[:2]
         self.shape = (h, w)
         rows = _glossy.material_rows(np.asarray(material).reshape(-1)[pix])
-        to_eye = _glossy.directions_to_eye(points, eye).astype(np.float32)
-        lobes = np.append((glossy_materials.weight > 0) | (glossy_materials.metallic > 0), False)
         safe = np.where((rows >= 0) & (rows < len(glossy_materials.layers)), rows, -1)
-        mu = np.clip(np.einsum("ij,ij->i", normals, to_eye), 0.0, 1.0)
-        coloured = _glossy_color(glossy_materials, safe, mu).max(axis=1) > 0
-        sel = np.flatnonzero(lobes[safe] | coloured)
+        sel = np.flatnonzero(np.append(reflecting(glossy_materials), False)[safe])
         self.points, self.normals, self.rows = points[sel], normals[sel], safe[sel]
         self.pix = pix[sel]
         self.all_pix = pix  # every geometry pixel of the level (a = 1: glossy-free ones show 0)
-        self.to_eye = to_eye[sel]
+        self.to_eye = _glossy.directions_to_eye(self.points, eye).astype(np.float32)
         self.lamp_sum = np.zeros((self.pix.size, 3), np.float32)
         self.passes = 0
         self.cache_part = np.zeros((self.pix.size, 3), np.float32)
