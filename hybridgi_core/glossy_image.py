@@ -1,11 +1,12 @@
-"""The glossy light of an image's pixels, in the two parts final renders and the viewport share.
+"""The glossy light of an image's pixels in two parts, as final renders compute it
+(`FramePipeline._glossy`: the same `GISystem.glossy`, `glossy_color` and `cache_reflection` calls).
 
-Final renders (`raster/frame.py`) compute both parts once per frame at the centre raster's pixels.
-The viewport's worker computes them at its direct-light pixels and refreshes each on its own
-clock: the lamps' part (`lamp_glossy`, shadow rays, noisy: averaged over passes while the view
-holds still, traced again at once after a lamp edit) and the cache's split-sum part
-(`cache_glossy`, no rays: read again whenever the cache changes). Keeping the arithmetic here
-means the viewport's settled glossy light is the final render's.
+Final renders compute both parts once per frame at the centre raster's pixels. The viewport's
+worker computes them at its GI pixels and refreshes each on its own clock: the lamps' part
+(`lamp_glossy`, shadow rays, noisy: averaged over passes while the view holds still, traced again
+at once after a lamp edit) and the cache's split-sum part (`cache_glossy`, no rays: read again
+when the cache changes). `FramePipeline._glossy` keeps its own copy of these steps (main has
+since added traced reflections there, which the viewport does not compute yet).
 
 Pure numpy (no bpy, no gpu): the worker thread calls it.
 """

@@ -13,7 +13,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .. import glossy_image, pixel_gather
+from .. import pixel_gather
+from ..glossy import cache_reflection, glossy_color
 from ..lights import RATIO_MIN_SAMPLES
 from ..visible import pixels_to_points
 from .accumulate import AccumulatePass
@@ -286,18 +287,24 @@ class FramePipeline:
         surfaces they reflect (Glossy Indirect before its colour); direct + colour x bounced is
         uploaded for the deferred pass. Subframes reuse it: a highlight is smooth at the pixel
         scale, and silhouettes are where its share is least."""
-        if not glossy_image.has_glossy(system):
+        if not hasattr(system, "glossy") or all(getattr(m, "specular", None) is None for m in system.scene.materials):
             return None, None, None
-        rows = glossy_image.material_rows(self.gbuffer.read("material").reshape(-1)[pix])
-        to_eye = glossy_image.directions_to_eye(points, camera_eye(view, proj))
+        rows = np.rint(self.gbuffer.read("material").reshape(-1)[pix]).astype(np.int64) - 1
+        eye = np.asarray(camera_eye(view, proj), np.float64)
+        to_eye = eye[:3] - points * eye[3] if eye[3] > 0.5 else np.broadcast_to(eye[:3], points.shape)
+        to_eye = to_eye / np.maximum(np.linalg.norm(to_eye, axis=1, keepdims=True), 1e-30)
         glossy = np.zeros((self.height * self.width, 4), np.float32)
         colour = np.zeros((self.height * self.width, 4), np.float32)
+        glossy[pix, :3] = system.glossy(points, normals, to_eye, rows, frame, samples=self.direct_samples)
+        mu = np.clip(np.einsum("ij,ij->i", normals, to_eye), 0.0, 1.0)
+        colour[pix, :3] = glossy_color(system.glossy_materials, rows, mu)
         indirect = np.zeros((self.height * self.width, 4), np.float32)
-        glossy[pix, :3] = glossy_image.lamp_glossy(system, points, normals, to_eye, rows, frame, self.direct_samples)
-        part = glossy_image.cache_glossy(system, points, normals, to_eye, rows)
-        glossy[pix, :3] += part.sky
-        colour[pix, :3] = part.colour
-        indirect[pix, :3] = part.bounced
+        lit = np.flatnonzero(colour[pix, :3].max(axis=1) > 0)
+        if lit.size:
+            rough = system.glossy_materials.rough[rows[lit]]
+            sky, bounced = cache_reflection(system.cache, points[lit], normals[lit], to_eye[lit], rough)
+            glossy[pix[lit], :3] += colour[pix[lit], :3] * sky
+            indirect[pix[lit], :3] = bounced
         total = glossy + colour * indirect
         self._glossy_tex = upload_texture_2d(total.reshape(self.height, self.width, 4), "RGBA32F")
         return glossy, colour, indirect
