@@ -119,7 +119,7 @@ def draw_overlay(context) -> bool:
     session = _sessions.get(scene.name)
     if session is None or session.worker is None or not session.worker.alive:
         close_session(scene.name)
-        session = _sessions[scene.name] = _viewport().ViewportSession()
+        session = _sessions[scene.name] = _viewport().ViewportSession(antialias=False)
         session.sync(context.evaluated_depsgraph_get(), scene)
     region = context.region
     camera = _viewport().ViewCamera.from_region_data(context.region_data)

@@ -16,7 +16,12 @@ Chebyshev test of the depth moments stands in meanwhile).
 
 Redraws: `view_draw` asks Blender for another redraw (`engine.tag_redraw()`) while the worker is
 busy or has published something not drawn yet; an unchanged view with nothing new redraws the
-last image without running the pipeline.
+last image without running the pipeline, or, until its anti-aliasing sum is complete, adds one
+jittered subframe to it (`viewport_aa.py`: the final render's pixel filter over redraws).
+
+Glossy light: the worker's (`ViewResult.glossy`, the lamps' GGX lobes and the cache's split sum
+at the GI pixels, `hybridgi_core/glossy_image.py` as final renders compute it) is resolved onto
+the frame's pixels like the direct light and added to Combined by the deferred pass.
 """
 
 import logging
@@ -36,8 +41,9 @@ from hybridgi_core.raster import gather as _gather
 from hybridgi_core.raster import passes as _passes
 from hybridgi_core.raster import readback as _readback
 from hybridgi_core.raster import settings as _raster_settings
+from hybridgi_core.raster import subpixel as _subpixel
 
-from . import material_bake, sync, updates, viewport_stats, worker, world_bake
+from . import material_bake, pipeline, sync, updates, viewport_aa, viewport_stats, worker, world_bake
 from .viewport_mirror import SceneMirror
 from .viewport_passes import (
     PRESENT_CELLS,
@@ -47,15 +53,22 @@ from .viewport_passes import (
     PackedGatherPass,
     PresentPass,
     draw_texture_fullscreen,
+    software_renderer,
 )
 from .viewport_stats import GPU_STEPS, DrawStats, LiveStats, ViewCamera  # noqa: F401  (GPU_STEPS: the benchmark's)
 
 log = logging.getLogger(__name__)
 
 
-#: Full-res pixels per pixel of the direct light the worker traces (the GI itself runs at the
-#: `downsample` setting). 2 keeps shadow edges sharp enough to model by at a quarter of the rays.
-DIRECT_FACTOR = 2
+#: Full-res pixels per pixel of the direct light the worker refines while the view holds still
+#: (the GI itself runs at the `downsample` setting; a moving view's first pass too). 1, as final
+#: renders trace it: at 2, the upsampled shadow edges held most of the settled atrium's error vs
+#: Cycles (Combined 0.034 at 2, 0.028 at 1; the final render's is 0.025).
+DIRECT_FACTOR = 1
+#: A moving view's coarse direct pass traces the rays of one pass at half the full resolution
+#: (as when the direct light was refined there): 1 sample per GI pixel at the default downsample
+#: 2, not the 4 a full-resolution pass's rays would give (~3x the first light's cost of a view).
+COARSE_SHARE = 1.0 / (DIRECT_FACTOR * 2) ** 2
 #: Shadow-ray passes averaged while the view holds still (each pass: 1 sample per pixel and lamp).
 DIRECT_PASSES = 16
 #: props.debug_view of the cells view (drawn here, not by the deferred pass).
@@ -109,12 +122,15 @@ class _GPUState:
 
     def __init__(self, raster_settings):
         self.pipeline = _frame.FramePipeline(raster_settings, gather=PackedGatherPass())
-        factor = DIRECT_FACTOR if DIRECT_FACTOR != raster_settings.downsample else None
+        # (1: the G-buffer's own targets are read back, no copy pass.)
+        factor = DIRECT_FACTOR if DIRECT_FACTOR not in (1, raster_settings.downsample) else None
         self.direct_down = _downsample.DownsamplePass(factor) if factor else None
         self.resolve_full = DirectResolvePass("RGBA32F")
         self.resolve_low = DirectResolvePass("RGBA16F")
+        self.resolve_glossy = DirectResolvePass("RGBA32F")
         self.present = PresentPass()
         self.source = None  # DirectSource of the last ViewResult uploaded
+        self.glossy_source = None  # its glossy light (DirectSource), None without glossy layers
         self.cells_source = None  # its Cache Cells colours, when drawn
         self.mask_tx = None
         self.mask_serial = None
@@ -132,15 +148,17 @@ class _GPUState:
             self.direct_down.resize(width, height)
         self.resolve_full.resize(width, height)
         self.resolve_low.resize(*low)
+        self.resolve_glossy.resize(width, height)
         self.present.resize(width, height)
         self.width, self.height = width, height
 
     def free(self) -> None:
-        for p in (self.pipeline, self.resolve_full, self.resolve_low, self.present):
+        for p in (self.pipeline, self.resolve_full, self.resolve_low, self.resolve_glossy, self.present):
             p.free()
         if self.direct_down is not None:
             self.direct_down.free()
         self.source = self.cells_source = self.mask_tx = self.cache_frame = self.pixel_tx = None
+        self.glossy_source = None
 
 
 class ViewportSession:
@@ -150,8 +168,12 @@ class ViewportSession:
     overlay); `draw(scene, camera, width, height)` on every redraw; `close()` at the end.
     """
 
-    def __init__(self, options: worker.WorkerOptions | None = None):
-        self.options = options or worker.WorkerOptions(direct_passes=DIRECT_PASSES)
+    def __init__(self, options: worker.WorkerOptions | None = None, antialias: bool = True):
+        """antialias : accumulate jittered subframes while the view holds still (`viewport_aa`);
+        the Solid-mode overlay does not (it multiplies the last redraw's passes over Blender's
+        own, unjittered image)."""
+        self.antialias = antialias
+        self.options = options or worker.WorkerOptions(direct_passes=DIRECT_PASSES, coarse_share=COARSE_SHARE)
         self.mirror = SceneMirror()
         self.worker: worker.ViewportWorker | None = None
         self.gpu: _GPUState | None = None
@@ -165,6 +187,11 @@ class ViewportSession:
         self.settings_error: str | None = None  # the scene's settings are invalid: this message
         self._world_bakes_seen = world_bake.STORE.completed
         self._material_bakes_seen = material_bake.STORE.completed
+        self.aa = viewport_aa.Accumulation()
+        self._aa_source = None  # (pixel samples, filter size, filter type) of self.aa
+        #: Add anti-aliasing subframes while the worker is still busy (hardware GPUs); a software
+        #: renderer waits for it to be idle (`viewport_aa`). None: decided on the first draw.
+        self.aa_while_busy: bool | None = None
         _OPEN.add(self)
 
     # --- scene ----------------------------------------------------------------------------------
@@ -245,13 +272,16 @@ class ViewportSession:
         debug_view, present_mode = debug_view_of(props)
         with stats.step("settings"):
             gpu_state = self._ensure_gpu(props, published, width, height)
+            aa = self._aa_pattern(scene, present_mode)
         serials = (
             None if published.cache is None else published.cache.serial,
             None if published.view is None else published.view.serial,
         )
         key = (camera.key, width, height, self.mirror.geometry_gen, debug_view, present_mode, opaque,
-               self._raster, published.empty)
+               self._raster, published.empty, aa.config)
         if key == self._drawn_key and serials == self._drawn_serials and self.mirror.gpu_dirty is None:
+            if self._aa_due(published):
+                return self._draw_subframe(gpu_state, stats, t0)
             stats.total_ms = (time.perf_counter() - t0) * 1e3
             self.last_stats = stats
             return gpu_state.present.output
@@ -275,8 +305,19 @@ class ViewportSession:
         world = self.mirror.snapshot.world.color
         with stats.step("upload_results"):
             gi = self._pixel_textures(gpu_state, published, view_key)
+        with stats.step("resolve"):
+            glossy = None
+            if gpu_state.glossy_source is not None:
+                glossy = gpu_state.resolve_glossy.execute(gbuf.position, gbuf.normal, gpu_state.glossy_source)
         shaded = pipeline.shade(gbuf, low, view, proj, direct, corner_visible=mask, irradiance=lit,
-                                debug_view=debug_view, world_color=world, stats=stats, gi=gi)
+                                debug_view=debug_view, world_color=world, stats=stats, gi=gi, glossy=glossy)
+        if not debug_cells and aa.offsets.shape[0]:
+            # The sum starts from this centre image with the first subframe (its targets hold it
+            # until then): a redraw the worker's next result replaces costs no accumulate pass.
+            aa.start(dict(view=view, proj=proj, mask=mask, lit=lit, gi=gi, world=world, debug_view=debug_view,
+                          present_mode=present_mode, opaque=opaque, shaded=shaded, gbuf=gbuf))
+        else:
+            aa.reset()
         with stats.step("present"):
             cells = None
             if debug_cells:
@@ -292,6 +333,65 @@ class ViewportSession:
         stats.total_ms = (time.perf_counter() - t0) * 1e3
         self.last_stats = stats
         LIVE_STATS[scene.name] = LiveStats(stats, published.stats, published.error)
+        return out
+
+    # --- anti-aliasing (`viewport_aa`) -------------------------------------------------------------
+
+    def _aa_pattern(self, scene, present_mode: int) -> viewport_aa.Accumulation:
+        """The session's `Accumulation`, remade when the scene's pixel samples or filter changed;
+        none in the Cache Cells view (a cell colour per pixel centre, as final renders draw it)."""
+        count = int(getattr(scene.hybridgi, "pixel_samples", 1))
+        if present_mode == PRESENT_CELLS or not self.antialias:
+            count = 1
+        filter_type, filter_size = pipeline.pixel_filter(scene)
+        if (count, filter_size, filter_type) != self._aa_source:
+            self.aa = viewport_aa.Accumulation.pattern(count, filter_size, filter_type)
+            self._aa_source = (count, filter_size, filter_type)
+        return self.aa
+
+    def _aa_due(self, published) -> bool:
+        """A jittered subframe is to be drawn now: the sum is not complete, and the worker is idle
+        unless subframes may run while it is busy. Idle now (`worker.idle`: a view or edit posted
+        since is work), not only in its last record: the idle record a worker publishes before its
+        first view let llvmpipe's subframes take the cores the first view's light needed."""
+        if not self.aa.pending:
+            return False
+        if self.aa_while_busy is None:
+            self.aa_while_busy = not software_renderer()
+        if self.aa_while_busy:
+            return True
+        return bool(published.stats.idle and self.worker is not None and self.worker.idle)
+
+    def _draw_subframe(self, gpu_state: _GPUState, stats: DrawStats, t0: float):
+        """Add the next jittered subframe to the running sum and show the mean: the centre redraw's
+        light, GI and glossy textures, resolved at the subframe's G-buffer."""
+        aa, inputs, pipeline_ = self.aa, self.aa.inputs, gpu_state.pipeline
+        stats.redrawn = True
+        stats.subframe = aa.drawn
+        view, proj = inputs["view"], inputs["proj"]
+        if aa.drawn == 1:
+            with stats.step("accumulate"):  # the centre image, still in the targets
+                pipeline_.accumulate.execute(inputs["shaded"], inputs["gbuf"], first=True)
+        with stats.step("gbuffer"):
+            jittered = _subpixel.jittered_projection(proj, aa.next_offset(), gpu_state.width, gpu_state.height)
+            gbuf = pipeline_.gbuffer.execute(view, jittered, texture_filter=aa.texture_filter)
+        low = pipeline_.downsample.outputs()  # still the centre's (the GI's guide, as final renders keep it)
+        with stats.step("resolve"):
+            direct = gpu_state.resolve_full.execute(gbuf.position, gbuf.normal, gpu_state.source)
+            glossy = None
+            if gpu_state.glossy_source is not None:
+                glossy = gpu_state.resolve_glossy.execute(gbuf.position, gbuf.normal, gpu_state.glossy_source)
+        shaded = pipeline_.shade(gbuf, low, view, proj, direct, corner_visible=inputs["mask"],
+                                 irradiance=inputs["lit"], debug_view=inputs["debug_view"],
+                                 world_color=inputs["world"], stats=stats, gi=inputs["gi"], glossy=glossy)
+        with stats.step("accumulate"):
+            pipeline_.accumulate.execute(shaded, gbuf, first=False)
+        aa.drawn += 1
+        with stats.step("present"):
+            out = gpu_state.present.execute(pipeline_.accumulate.texture("combined"), gbuf, inputs["present_mode"],
+                                            inputs["opaque"], None, scale=1.0 / pipeline_.accumulate.count)
+        stats.total_ms = (time.perf_counter() - t0) * 1e3
+        self.last_stats = stats
         return out
 
     def poll_world(self, depsgraph) -> None:
@@ -322,7 +422,8 @@ class ViewportSession:
             None if published.cache is None else published.cache.serial,
             None if published.view is None else published.view.serial,
         )
-        return not published.stats.idle or serials != self._drawn_serials or self.mirror.gpu_dirty is not None
+        return (not published.stats.idle or serials != self._drawn_serials or self.mirror.gpu_dirty is not None
+                or self._aa_due(published))
 
     def _ensure_gpu(self, props, published, width: int, height: int) -> _GPUState:
         cell = published.cache.grid.cell_size if published.cache is not None else None
@@ -354,14 +455,23 @@ class ViewportSession:
             normal, position = gpu_state.pipeline.downsample.read_normal_position()
             if gpu_state.direct_down is not None:
                 gpu_state.direct_down.execute(gbuf)
-                d_normal, d_position = gpu_state.direct_down.read_normal_position()
+                d_normal, d_position = (a.copy() for a in gpu_state.direct_down.read_normal_position())
+            elif DIRECT_FACTOR == 1 and gpu_state.pipeline.settings.downsample != 1:
+                # New arrays (no copies to make): the full-res targets as a factor-1 downsample
+                # would copy them (one sample per block), without its fullscreen pass.
+                d_normal = gpu_state.pipeline.gbuffer.read("normal")
+                d_position = gpu_state.pipeline.gbuffer.read("position")
             else:
-                d_normal, d_position = normal, position
+                d_normal, d_position = normal.copy(), position.copy()
+            material = None
+            if any(getattr(m, "specular", None) is not None for m in self.mirror.snapshot.materials):
+                # At the GI pixels (the glossy light's): a new array, the worker keeps it.
+                material = gpu_state.pipeline.downsample.read("material")[..., 0]
         with stats.step("post"):
             request = worker.ViewRequest(
                 key=view_key, position=position.copy(), normal=normal.copy(),
-                direct_position=d_position.copy(), direct_normal=d_normal.copy(),
-                view=camera.view, proj=camera.proj, debug_cells=debug_cells,
+                direct_position=d_position, direct_normal=d_normal,
+                view=camera.view, proj=camera.proj, debug_cells=debug_cells, material=material,
             )
             self.worker.post_view(request)
         self._posted_key = view_key
@@ -398,6 +508,10 @@ class ViewportSession:
                 gpu_state.source = DirectSource.empty()
         elif gpu_state.source is None or gpu_state.source.serial != result.serial:
             gpu_state.source = DirectSource.upload(result)
+        if result is None or result.glossy is None:
+            gpu_state.glossy_source = None
+        elif gpu_state.glossy_source is None or gpu_state.glossy_source.serial != result.serial:
+            gpu_state.glossy_source = DirectSource.glossy_of(result, gpu_state.source)
         mask = None
         if result is not None and result.corner_mask is not None and result.key == view_key:
             if gpu_state.mask_serial != result.serial:

@@ -128,6 +128,16 @@ class DirectSource:
         return cls._of(result, result.direct, "RGBA32F", result.position, result.normal)
 
     @classmethod
+    def glossy_of(cls, result: worker.ViewResult, direct: "DirectSource | None" = None) -> "DirectSource":
+        """The result's glossy light; reuses `direct`'s position and normal textures when they
+        were uploaded from the same arrays of the same result."""
+        if direct is not None and direct.serial == result.serial and result.glossy_position is result.position:
+            h, w = result.glossy.shape[:2]
+            return cls(result.serial, _readback.upload_texture_2d(result.glossy, "RGBA32F"), direct.position,
+                       direct.normal, result.view, result.proj, w, h, direct.footprint)
+        return cls._of(result, result.glossy, "RGBA32F", result.glossy_position, result.glossy_normal)
+
+    @classmethod
     def cells_of(cls, result: worker.ViewResult) -> "DirectSource":
         return cls._of(result, result.cells, "RGBA16F", result.gi_position, result.gi_normal)
 
@@ -171,7 +181,7 @@ class PresentPass(_passes.RasterPass):
             "hybridgi_present",
             load_addon_glsl("present_frag.glsl"),
             samplers=((0, "FLOAT_2D", "combined_tx"), (1, "FLOAT_2D", "position_tx"), (2, "FLOAT_2D", "cells_tx")),
-            push=(("INT", "mode"), ("INT", "opaque")),
+            push=(("INT", "mode"), ("INT", "opaque"), ("FLOAT", "scale")),
             outputs=((0, "VEC4", "out_color"),),
         )
         return {"main": _passes.compile_spec(spec)}
@@ -185,8 +195,9 @@ class PresentPass(_passes.RasterPass):
     def _release_targets(self) -> None:
         self._target = self._fb = None
 
-    def execute(self, combined, gbuf, mode: int, opaque: bool, cells=None):
-        """cells : full-res RGBA texture of Cache Cells colours (mode PRESENT_CELLS)."""
+    def execute(self, combined, gbuf, mode: int, opaque: bool, cells=None, scale: float = 1.0):
+        """cells : full-res RGBA texture of Cache Cells colours (mode PRESENT_CELLS); scale :
+        multiplies Combined (1 / count of a sum of anti-aliasing subframes)."""
         self._require()
         shader = self._shader()
         shader.uniform_sampler("combined_tx", combined)
@@ -194,6 +205,7 @@ class PresentPass(_passes.RasterPass):
         shader.uniform_sampler("cells_tx", cells if cells is not None else combined)
         shader.uniform_int("mode", int(mode) if cells is not None else PRESENT_COLOR)
         shader.uniform_int("opaque", 1 if opaque else 0)
+        shader.uniform_float("scale", float(scale))
         self._draw_fullscreen(self._fb, shader, (self.width, self.height))
         return self._target
 
@@ -206,6 +218,18 @@ class PresentPass(_passes.RasterPass):
 
 
 _SCREEN_BATCH = {}
+
+
+def software_renderer() -> bool:
+    """Whether the GPU module draws on the CPU (Mesa's llvmpipe or softpipe, SwiftShader): its
+    raster passes then take the worker's cores, so extra redraws are not free."""
+    import gpu  # noqa: PLC0415
+
+    try:
+        name = gpu.platform.renderer_get().lower()
+    except Exception:  # noqa: BLE001  (a backend without the query: assume real hardware)
+        return False
+    return any(s in name for s in ("llvmpipe", "softpipe", "swiftshader", "software"))
 
 
 def draw_texture_fullscreen(texture) -> None:

@@ -13,7 +13,7 @@ from .worker_messages import WorkerStats
 
 #: Steps of `DrawStats` that only submit GPU work or wait for it (not main-thread CPU work).
 GPU_STEPS = frozenset({"gbuffer", "downsample", "readback", "resolve", "gather", "ssao", "bilateral", "deferred",
-                       "present", "display"})
+                       "accumulate", "present", "display"})
 
 
 @dataclass(frozen=True)
@@ -44,6 +44,7 @@ class DrawStats:
     posted_view: bool = False
     view_current: bool = False  # the direct light drawn was traced for this very view
     low_res: tuple = (0, 0)  # FramePipeline.rasterize records the GI resolution here
+    subframe: int = 0  # the anti-aliasing subframe this redraw added (0: a centre redraw)
 
     def step(self, name: str):
         return _Timer(self.steps_ms, name)

@@ -1,5 +1,5 @@
-"""The viewport's CPU half on a background thread: cache updates, visible cells, corner visibility
-and direct light at the pixels, all on numpy snapshots.
+"""The viewport's CPU half on a background thread: cache updates, visible cells, corner visibility,
+direct light and the glossy layers' light at the pixels, all on numpy snapshots.
 
 The main thread posts scene edits (applied in order) and view requests (the latest wins) and reads
 what the worker published: one immutable `Published` record, swapped under a lock, holding
@@ -24,9 +24,11 @@ from types import MappingProxyType
 import numpy as np
 
 from hybridgi_core import errors
+from hybridgi_core import glossy_image as _glossy
 from hybridgi_core import visible as _visible
 from hybridgi_core.raster import gather as _gather_layout
 from hybridgi_core.raster import settings as _raster_settings
+from hybridgi_core.raster.gbuffer import camera_eye
 from hybridgi_core.session import GISession
 
 from . import worker_pixels as _pixels
@@ -45,7 +47,7 @@ from .worker_messages import (  # noqa: F401
     frozen,
 )
 from .worker_solve import SolveSchedule
-from .worker_view import DirectLevel, ViewState
+from .worker_view import DirectLevel, GlossyLevel, ViewState
 
 log = logging.getLogger(__name__)
 
@@ -74,6 +76,10 @@ SOLVE_PUBLISH_INTERVAL_S = 0.3
 #: on 2 busy cores) delayed the converged image that follows within ~0.5 s. A scene whose solve
 #: takes longer still shows its iterations after this hold.
 FIRST_SOLVE_HOLD_S = 1.5
+#: While the solver still works, the glossy light's cache part is read again with a packed cache
+#: at most this often (each reading: a corner lookup per glossy GI pixel, 0.1-0.25 s on 2 busy
+#: cores for bunny_npm's 50k); the cache of a finished solve is always read.
+GLOSSY_CACHE_INTERVAL_S = 1.0
 
 
 # --- the worker ---------------------------------------------------------------------------------
@@ -106,6 +112,7 @@ class ViewportWorker:
         self._serial = 0
         self._published_cache_key = None
         self._published_depth = None  # (key, depth texels) last packed: reused while it holds
+        self._glossy_cache_due = False  # a packed cache's glossy light is to be read (`_publish`)
         self._published_at = 0.0
         self._view_state: ViewState | None = None
         self._rates: collections.deque = collections.deque()
@@ -114,6 +121,7 @@ class ViewportWorker:
         self._steps: dict[str, float] = {}
         self._thread = threading.Thread(target=self._run, name=name, daemon=True)
         self._thread.start()
+        _prefetch_glossy_tables()
 
     # --- main-thread API ------------------------------------------------------------------------
 
@@ -222,6 +230,8 @@ class ViewportWorker:
             return True
         if state is not None and (state.mask is None or state.passes < self.options.direct_passes):
             return True
+        if state is not None and self._glossy_due(state):
+            return True
         if state is not None and self._pixels_due(state):
             return True
         if state is not None and state.request.debug_cells:
@@ -276,7 +286,11 @@ class ViewportWorker:
             # Refinements of a view that held still for a whole step.
             if state.mask is None:
                 self._trace_mask(system, state)
-            elif state.passes < self.options.direct_passes:
+            elif self._glossy_due(state) and not schedule.first_solve:
+                self._glossy_pass(system, state, self.options.direct_samples)
+            elif state.passes < self.options.direct_passes and not schedule.first_solve:
+                # (Not during a fresh cache's first solve: the full-resolution passes would
+                # delay the first converged image, and the coarse pass's light shows meanwhile.)
                 self._direct_pass(system, state)
             elif self._pixels_due(state):
                 self._pixel_pass(system, state)
@@ -350,10 +364,18 @@ class ViewportWorker:
         t0 = time.perf_counter()
         points, normals, pix = _visible.pixels_to_points(view.position, view.normal)
         cells = system.visible_cells(points, normals)
-        state = ViewState(view, self._scene_version, (points, normals, pix), cells)
+        state = ViewState(view, self._scene_version, (points, normals, pix), cells, self.options.coarse_share)
         self._steps["visible"] = (time.perf_counter() - t0) * 1e3
+        if view.material is not None and _glossy.has_glossy(system):
+            state.glossy = GlossyLevel(state.coarse, view.material, camera_eye(view.view, view.proj),
+                                       system.glossy_materials)
+            if not state.glossy.pix.size:
+                state.glossy = None  # no pixel reflects glossy light: nothing to show
+            self._steps["glossy_level"] = (time.perf_counter() - t0) * 1e3 - self._steps["visible"]
         self._view_state = state
         self._direct_pass(system, state, state.coarse)
+        if state.glossy is not None:
+            self._glossy_cache(system, state)
 
     def _direct_pass(self, system, state: ViewState, level: DirectLevel | None = None) -> None:
         t0 = time.perf_counter()
@@ -366,6 +388,49 @@ class ViewportWorker:
         level.passes += 1
         self._count_rays(points.shape[0] * samples * max(len(system.scene.lights), 1))
         self._steps["direct"] = (time.perf_counter() - t0) * 1e3
+        if level is state.coarse:
+            # A new view or a lamp edit: its glossy light at once, with the coarse pass's samples.
+            self._glossy_pass(system, state, samples)
+        state.dirty = True
+
+    def _glossy_due(self, state: ViewState) -> bool:
+        """A glossy pass of a still view is due: fewer than its direct passes (they alternate,
+        so that neither makes a step, and the wait of an edit for it, longer)."""
+        glossy = state.glossy
+        return (glossy is not None and glossy.pix.size > 0 and glossy.passes < self.options.direct_passes
+                and glossy.passes <= state.passes)
+
+    def _glossy_pass(self, system, state: ViewState, samples: int) -> None:
+        """The lamps' glossy reflection at the GI pixels, one pass of `samples` shadow rays each."""
+        glossy = state.glossy
+        if glossy is None or not glossy.pix.size:
+            return
+        t0 = time.perf_counter()
+        self._frame += 1
+        glossy.lamp_sum += _split(system.glossy, (glossy.points, glossy.normals, glossy.to_eye, glossy.rows),
+                                  self._frame, samples, system.updater.pool)
+        glossy.passes += 1
+        self._count_rays(glossy.pix.size * samples * max(len(system.scene.lights), 1))
+        self._steps["glossy"] = (time.perf_counter() - t0) * 1e3
+        state.dirty = True
+
+    def _glossy_cache(self, system, state: ViewState) -> None:
+        """The cache's split-sum glossy light at the view's glossy pixels from the cache as it is
+        now: when a view begins, and with a packed cache (`_build_published`, at most every
+        GLOSSY_CACHE_INTERVAL_S while the solver works), so the published glossy light reads a
+        cache the gather reads (not the dark iterates of a first solve that are held back)."""
+        glossy = state.glossy
+        cache = system.cache
+        key = (id(cache), cache.version)
+        if glossy.cache_key == key:
+            return
+        t0 = time.perf_counter()
+        if glossy.pix.size:
+            part = _split_rows(lambda *a: _glossy.cache_glossy(system, *a).radiance,
+                               (glossy.points, glossy.normals, glossy.to_eye, glossy.rows), system.updater.pool)
+            glossy.cache_part = part
+        glossy.cache_key, glossy.cache_at = key, time.perf_counter()
+        self._steps["glossy_cache"] = (time.perf_counter() - t0) * 1e3
         state.dirty = True
 
     def _cell_colors(self, system, state: ViewState, force: bool) -> None:
@@ -482,6 +547,15 @@ class ViewportWorker:
         with self._cond:
             self._published = published
             self._cond.notify_all()
+        if self._glossy_cache_due and self._view_state is not None and self._view_state.glossy is not None:
+            # The glossy light of the cache just published, in a second publication: the first
+            # converged image is not held back by it (0.1-0.25 s on bunny_npm, 2 busy cores).
+            self._glossy_cache_due = False
+            self._glossy_cache(self._session.system, self._view_state)
+            published = self._build_published(idle=False, force=False)
+            with self._cond:
+                self._published = published
+                self._cond.notify_all()
 
     def _build_published(self, idle: bool, pack: bool = True, force: bool = True) -> Published:
         """A new `Published` from the worker's state; arrays handed out are copies never written
@@ -521,6 +595,10 @@ class ViewportWorker:
                 self._published_cache_key = key
                 self._published_at = time.perf_counter()
                 self._steps["pack"] = (time.perf_counter() - t0) * 1e3
+                glossy = self._view_state.glossy if self._view_state is not None else None
+                if glossy is not None and (not self._schedule.has_work
+                                           or time.perf_counter() - glossy.cache_at >= GLOSSY_CACHE_INTERVAL_S):
+                    self._glossy_cache_due = True  # read this very cache once it is out (`_publish`)
             state = self._view_state
             if state is None:
                 view_result = None
@@ -555,6 +633,46 @@ def _direct_split(system, points: np.ndarray, normals: np.ndarray, frame: int, s
     pool = system.updater.pool
     jobs = [pool.submit(system.direct, points[a:b], normals[a:b], frame * MAX_DIRECT_BLOCKS + i, samples)
             for i, (a, b) in enumerate(zip(bounds[:-1], bounds[1:], strict=True))]
+    return np.concatenate([j.result() for j in jobs])
+
+
+_TABLES_PREFETCHED = threading.Event()
+
+
+def _prefetch_glossy_tables() -> None:
+    """Compute the GGX tables (`specular.tables`, once per process, 0.15-0.35 s) on a thread of
+    their own while the worker syncs its first scene, so that a new view's glossy light does not
+    wait for them (they held the atrium's first light back by 0.36 s)."""
+    if _TABLES_PREFETCHED.is_set():
+        return
+    _TABLES_PREFETCHED.set()
+    from hybridgi_core import specular  # noqa: PLC0415
+
+    threading.Thread(target=specular.tables, name="hybridgi-ggx-tables", daemon=True).start()
+
+
+def _split(fn, arrays: tuple, frame: int, samples: int, pool) -> np.ndarray:
+    """fn(*arrays, frame, samples) in blocks of DIRECT_BLOCK_POINTS rows on the pool, block i
+    with frame number frame * MAX_DIRECT_BLOCKS + i (as `_direct_split`)."""
+    n = arrays[0].shape[0]
+    blocks = min(-(-n // DIRECT_BLOCK_POINTS), MAX_DIRECT_BLOCKS)
+    if blocks <= 1:
+        return fn(*arrays, frame * MAX_DIRECT_BLOCKS, samples)
+    bounds = np.linspace(0, n, blocks + 1).astype(np.intp)
+    jobs = [pool.submit(fn, *(a[lo:hi] for a in arrays), frame * MAX_DIRECT_BLOCKS + i, samples)
+            for i, (lo, hi) in enumerate(zip(bounds[:-1], bounds[1:], strict=True))]
+    return np.concatenate([j.result() for j in jobs])
+
+
+def _split_rows(fn, arrays: tuple, pool) -> np.ndarray:
+    """fn(*arrays) in blocks of DIRECT_BLOCK_POINTS rows on the pool (numpy work that releases
+    the GIL for most of its time: both cores of a 2-core pool)."""
+    n = arrays[0].shape[0]
+    blocks = min(-(-n // DIRECT_BLOCK_POINTS), MAX_DIRECT_BLOCKS)
+    if blocks <= 1:
+        return fn(*arrays)
+    bounds = np.linspace(0, n, blocks + 1).astype(np.intp)
+    jobs = [pool.submit(fn, *(a[lo:hi] for a in arrays)) for lo, hi in zip(bounds[:-1], bounds[1:], strict=True)]
     return np.concatenate([j.result() for j in jobs])
 
 

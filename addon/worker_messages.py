@@ -53,6 +53,8 @@ class ViewRequest:
         geometry; unit normal): visible cells and corner visibility
     direct_position, direct_normal : the same at the direct light's resolution (may be the same arrays)
     view, proj : (4, 4) float64 camera of the frame (the main thread reprojects results with them)
+    material : (h, w) float32 G-buffer material index + 1 at the GI pixels (the glossy lobes'
+        materials: the glossy light is made there), or None: no glossy light
     """
 
     key: tuple
@@ -63,6 +65,7 @@ class ViewRequest:
     view: np.ndarray
     proj: np.ndarray
     debug_cells: bool = False  # also colour the GI pixels by cache cell (the Cache Cells view)
+    material: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -74,6 +77,9 @@ class WorkerOptions:
     # first converged image, which the full batches that follow refine
     direct_samples: int = 1  # shadow-ray samples per pixel and lamp in each direct-light pass
     direct_passes: int = 16  # passes averaged while the view stays still (soft shadows converge)
+    # Rays of a new view's first, coarse direct pass (at the GI pixels) as a share of one pass at
+    # the direct light's resolution (more samples per pixel on fewer pixels; 1 to 16 samples)
+    coarse_share: float = 1.0
     # Per-pixel final-gather rays per GI pixel and pass once the cache is done and the view holds
     # still (0: off), and the passes averaged (their frames differ): final renders' default is 32
     # rays, which cut Cornell's Combined error 0.0337 -> 0.0286 (one pass costs about as much as
@@ -127,6 +133,15 @@ class ViewResult:
     gi_indirect: np.ndarray | None = None
     gi_direct: np.ndarray | None = None
     pixel_passes: int = 0
+    #: The glossy layers' light towards this view's camera (`glossy_image`: the lamps' part, the
+    #: mean over `glossy_passes` passes, plus the cache's split-sum part): (h, w, 4) rgb radiance
+    #: added to Combined, a = 1 where computed, at glossy_position / glossy_normal (the request's
+    #: GI-resolution arrays: a highlight is smooth at the pixel scale); None when no material
+    #: has a glossy layer.
+    glossy: np.ndarray | None = None
+    glossy_position: np.ndarray | None = None
+    glossy_normal: np.ndarray | None = None
+    glossy_passes: int = 0
 
 
 @dataclass(frozen=True)

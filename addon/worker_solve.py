@@ -139,6 +139,12 @@ class SolveSchedule:
         return self._fresh_at is not None and time.perf_counter() - self._fresh_at < hold_s
 
     @property
+    def first_solve(self) -> bool:
+        """A fresh cache's first solve is under way (batch 0 traced or being traced, not yet
+        converged): the first converged image is what the view waits for."""
+        return self.system is not None and not self.solved_once and (self._fresh_at is not None or self.phase == BEGIN)
+
+    @property
     def refining(self) -> bool:
         """A refining batch is traced in part (`MORE`), or traced and not yet solved."""
         return self._pending is not None or (self.phase == RELAX and self._filter_direct and self.solved_once)

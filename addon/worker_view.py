@@ -6,7 +6,9 @@ from __future__ import annotations
 
 import numpy as np
 
+from hybridgi_core import glossy_image as _glossy
 from hybridgi_core import visible as _visible
+from hybridgi_core.glossy import glossy_color as _glossy_color
 
 from .worker_messages import ViewRequest, ViewResult, frozen
 
@@ -34,19 +36,68 @@ class DirectLevel:
         return out.reshape(h, w, 4)
 
 
+def reflecting(glossy_materials) -> np.ndarray:
+    """(m,) bool: materials whose glossy layer reflects light, by lamps (a lobe of weight > 0) or
+    by the cache (a Glossy Color above 0 at some view angle)."""
+    lobes = (glossy_materials.weight > 0) | (glossy_materials.metallic > 0)
+    mu = np.array([0.05, 0.5, 1.0])
+    for m, layer in enumerate(glossy_materials.layers):
+        if layer is not None and not lobes[m]:
+            lobes[m] = bool(_glossy_color(glossy_materials, np.full(mu.size, m), mu).max() > 0)
+    return lobes
+
+
+class GlossyLevel:
+    """The glossy layers' light at a level's pixels (the GI's; worker thread only): the lamps' part
+    summed over passes (shadow rays, noisy) and the cache's split-sum part, read again when the
+    cache changes (`cache_key`). Only pixels whose material reflects some glossy light are
+    computed (a layer of weight 0, as a Principled BSDF with Specular IOR Level 0, reflects none)."""
+
+    def __init__(self, level: DirectLevel, material: np.ndarray, eye, glossy_materials):
+        points, normals, pix = level.points
+        self.position, self.normal = level.position, level.normal
+        h, w = level.position.shape[:2]
+        self.shape = (h, w)
+        rows = _glossy.material_rows(np.asarray(material).reshape(-1)[pix])
+        safe = np.where((rows >= 0) & (rows < len(glossy_materials.layers)), rows, -1)
+        sel = np.flatnonzero(np.append(reflecting(glossy_materials), False)[safe])
+        self.points, self.normals, self.rows = points[sel], normals[sel], safe[sel]
+        self.pix = pix[sel]
+        self.all_pix = pix  # every geometry pixel of the level (a = 1: glossy-free ones show 0)
+        self.to_eye = _glossy.directions_to_eye(self.points, eye).astype(np.float32)
+        self.lamp_sum = np.zeros((self.pix.size, 3), np.float32)
+        self.passes = 0
+        self.cache_part = np.zeros((self.pix.size, 3), np.float32)
+        self.cache_key = None
+        self.cache_at = 0.0
+
+    def reset_lamps(self) -> None:
+        self.lamp_sum[:] = 0.0
+        self.passes = 0
+
+    def image(self) -> np.ndarray:
+        """(h, w, 4) float32 lamp mean + cache part, a = 1 on every geometry pixel of the level."""
+        h, w = self.shape
+        out = np.zeros((h * w, 4), np.float32)
+        out[self.all_pix, 3] = 1.0
+        out[self.pix, :3] = self.lamp_sum / max(self.passes, 1) + self.cache_part
+        return out.reshape(h, w, 4)
+
+
 class ViewState:
     """The worker's running state for the latest view (worker thread only): visible cells, the
     corner mask, and direct light at two levels, coarse (GI resolution, one pass, as soon as the
     view arrives) and fine (the direct light's resolution, refined while the view holds still)."""
 
-    def __init__(self, request: ViewRequest, scene_gen: int, gi_points: tuple, cells: np.ndarray):
+    def __init__(self, request: ViewRequest, scene_gen: int, gi_points: tuple, cells: np.ndarray,
+                 coarse_share: float = 1.0):
         self.request = request
         self.scene_gen = scene_gen
         self.gi_points = gi_points  # (points, normals, flat pixels) at the GI resolution
         self.cells = cells
-        # The coarse pass traces as many rays as one fine pass (more samples on fewer pixels), so
-        # soft shadows shimmer no more while the camera moves than once it stops.
-        ratio = request.direct_position.shape[0] * request.direct_position.shape[1] / max(
+        # The coarse pass traces `coarse_share` of the rays of one fine pass (more samples on fewer
+        # pixels), so soft shadows shimmer no more while the camera moves than once it stops.
+        ratio = coarse_share * request.direct_position.shape[0] * request.direct_position.shape[1] / max(
             request.position.shape[0] * request.position.shape[1], 1)
         self.coarse = DirectLevel(request.position, request.normal, gi_points, int(np.clip(round(ratio), 1, 16)))
         self._fine: DirectLevel | None = None
@@ -61,6 +112,7 @@ class ViewState:
         self.cell_colors: np.ndarray | None = None  # Cache Cells view, when the request asks
         self.cells_key = None
         self.cells_at = 0.0
+        self.glossy: GlossyLevel | None = None  # made by the worker with the first fine pass
         self.dirty = False
 
     def fine_level(self) -> DirectLevel:
@@ -86,6 +138,8 @@ class ViewState:
         r = self.request
         self.coarse = DirectLevel(r.position, r.normal, self.gi_points, self.coarse.samples)
         self._fine = None
+        if self.glossy is not None:
+            self.glossy.reset_lamps()  # the cache's part stays until the cache re-solves
         self.reset_pixels()
         self.dirty = True
 
@@ -122,4 +176,8 @@ class ViewState:
             gi_indirect=None if self.pixel_sum is None else frozen(self.pixel_sum[0] / self.pixel_passes),
             gi_direct=None if self.pixel_sum is None else frozen(self.pixel_sum[1] / self.pixel_passes),
             pixel_passes=self.pixel_passes,
+            glossy=None if self.glossy is None else frozen(self.glossy.image()),
+            glossy_position=None if self.glossy is None else self.glossy.position,
+            glossy_normal=None if self.glossy is None else self.glossy.normal,
+            glossy_passes=0 if self.glossy is None else self.glossy.passes,
         )

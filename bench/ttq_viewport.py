@@ -19,7 +19,10 @@ posts the view to the worker; the scene sync in view_update comes before and is 
   latest publication (`worker.latest()`: read-only arrays, no GPU work). When the timeline is over,
   each captured publication is drawn (the session's `worker.latest` is pointed at it for that one
   draw) and read back. So llvmpipe's cost stays out of the worker's timeline, and what is drawn is
-  exactly what a GPU would have shown at that moment.
+  exactly what a GPU would have shown at that moment. A GPU also adds the anti-aliasing subframes
+  of a still view (`viewport_aa.py`) within milliseconds: each publication is drawn with all its
+  subframes (the "worker" images); "worker_centre" keeps the pixel-centre image of the same
+  publication (what a GPU shows before its first subframe).
 
 Then the same after a light move: the first lamp moves (a sun turns 25 degrees about Z, any other
 lamp moves 30% of the way towards the middle of the scene), the view re-converges, and the lamp
@@ -106,6 +109,22 @@ class Viewport:
                 fb.read_color(0, 0, self.width, self.height, 4, 0, "FLOAT", data=gpu.types.Buffer("FLOAT", out.size, out))
         return self.session.last_stats.redrawn, out
 
+    def finish_aa(self, read: bool = False, limit: int = 256):
+        """Redraw while the session adds anti-aliasing subframes (Blender redraws while the engine
+        tags redraws); returns the last image when read."""
+        img = None
+        self.aa_ms = []  # llvmpipe milliseconds of each subframe's redraw
+        for _ in range(limit):
+            session = self.session
+            aa = getattr(session, "aa", None)
+            if aa is None or not session._aa_due(session.worker.latest()):
+                break
+            self.draw()
+            self.aa_ms.append(session.last_stats.total_ms)
+        if read:
+            _, img = self.draw(read=True)
+        return img
+
     def settle(self, idle: bool = False):
         # Stats of a publication from before the latest edit say nothing about it: wait for one
         # that applied every edit posted so far (idle: and for the worker to have nothing left).
@@ -154,18 +173,30 @@ def worker_timeline(view: Viewport, checkpoints, folder: Path, name: str) -> lis
     # Draw what the worker had published at each checkpoint (no more worker time is measured).
     worker = session.worker
     latest = worker.latest
-    shots = []
+    shots, centre = [], []
+    busy = getattr(session, "aa_while_busy", None)
     try:
+        session.aa_while_busy = True  # a GPU's subframes cost the worker nothing
         for i, (t, c, published) in enumerate(captured):
             worker.latest = lambda p=published: p
+            session._drawn_key = None  # the centre image of this publication, even if the last one had it
             _, img = view.draw(read=True)
+            centre.append(_save(folder, f"{name}_centre", i, img, t, c))
+            draw_ms = session.last_stats.total_ms
+            img = view.finish_aa(read=True)
             shot = _save(folder, name, i, img, t, c)
+            # llvmpipe's share, apart from the worker's timeline: the centre redraw of this
+            # publication and its anti-aliasing subframes' redraws.
+            shot["draw_ms"] = round(draw_ms, 1)
+            shot["aa_draw_ms"] = [round(v, 1) for v in view.aa_ms]
             shot["updates"] = published.stats.updates
             shot["steps_ms"] = {k: round(v, 1) for k, v in published.stats.steps_ms.items()}
             shots.append(shot)
     finally:
         worker.latest = latest
+        session.aa_while_busy = busy
     shots[0]["first_draw_ms"] = round(first_ms, 1)
+    view.centre_shots = centre
     return shots
 
 
@@ -215,6 +246,8 @@ def run_timelines(viewport, args, width, height, folder, checkpoints, timed, tim
         view.update()
         timed[f"{prefix}_sync_s"] = round(time.perf_counter() - t0, 3)
         out[prefix] = timeline_fn(view, checkpoints, folder, prefix)
+        if getattr(view, "centre_shots", None):
+            out[f"{prefix}_centre"], view.centre_shots = view.centre_shots, None
         if not view.settle():
             notes.append(f"{prefix}: the view did not converge within {CONVERGE_TIMEOUT_S:.0f} s")
         light = next((o for o in bpy.context.scene.objects if o.type == "LIGHT"), None)
@@ -228,12 +261,14 @@ def run_timelines(viewport, args, width, height, folder, checkpoints, timed, tim
         back()
         t_light = time.perf_counter()
         out[f"{prefix}_light"] = timeline_fn(view, checkpoints, folder, f"{prefix}_light")
+        if getattr(view, "centre_shots", None):
+            out[f"{prefix}_light_centre"], view.centre_shots = view.centre_shots, None
         timed["light"] = f"{light.name} ({light.data.type})"
         if prefix == "worker":
             # Where the view ends up: the light-move timeline's view once the worker is idle (every
             # refinement done), or after CONVERGE_TIMEOUT_S.
             view.settle(idle=True)
-            _, img = view.draw(read=True)
+            img = view.finish_aa(read=True)  # the anti-aliasing subframes of the idle view
             out["settled"] = [_save(folder, "settled", 0, img, time.perf_counter() - t_light, None)]
     finally:
         view.close()

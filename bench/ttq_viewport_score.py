@@ -61,6 +61,10 @@ def main(argv=None) -> int:
             row.append((shot["checkpoint"], shot["t"], err))
             if args.steps and shot.get("steps_ms"):
                 print(f"  {name} @{shot['checkpoint']}: updates {shot.get('updates')} {shot['steps_ms']}")
+            if args.steps and "draw_ms" in shot:
+                aa = shot.get("aa_draw_ms", [])
+                print(f"  {name} @{shot['checkpoint']}: llvmpipe redraw {shot['draw_ms']} ms, {len(aa)} subframes "
+                      f"{sum(aa):.0f} ms")
         out[name] = row
         print(f"{name:14s} " + "  ".join(f"{c}:{e:.4f}" if c is not None else f"({t:.1f}s):{e:.4f}" for c, t, e in row))
     print(json.dumps({k: [e for _, _, e in v] for k, v in out.items()}))

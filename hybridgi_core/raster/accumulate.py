@@ -93,6 +93,12 @@ class AccumulatePass(RasterPass):
         self._current = target
         self.count = 1 if first else self.count + 1
 
+    def texture(self, name: str):
+        """The GPU texture of sum `name` so far (the viewport draws the running Combined from it)."""
+        if self._sets is None or self.count == 0:
+            raise RasterError("accumulate: nothing accumulated")
+        return self._sets[self._current][0][name]
+
     def read(self, name: str) -> np.ndarray:
         """Sum `name` over the subframes so far, (h, w, c) float32, rows bottom-up."""
         if self._sets is None or self.count == 0:

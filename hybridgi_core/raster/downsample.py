@@ -27,6 +27,7 @@ DOWNSAMPLE_TARGETS = (
     ("normal", "RGBA16F", 4),
     ("position", "RGBA32F", 4),
     ("depth", "R32F", 1),
+    ("material", "R32F", 1),  # the same sample's material index + 1: the viewport's glossy lobes
 )
 
 
@@ -65,7 +66,8 @@ class DownsamplePass(RasterPass):
             "hybridgi_downsample",
             load_glsl("common_lib.glsl", "downsample_frag.glsl"),
             samplers=((0, "FLOAT_2D", "albedo_tx"), (1, "FLOAT_2D", "normal_tx"),
-                      (2, "FLOAT_2D", "position_tx"), (3, "FLOAT_2D", "depth_tx")),
+                      (2, "FLOAT_2D", "position_tx"), (3, "FLOAT_2D", "depth_tx"),
+                      (4, "FLOAT_2D", "material_tx")),
             push=(("INT", "factor"),),
             outputs=tuple((slot, "FLOAT" if ch == 1 else "VEC4", f"out_{name}")
                           for slot, (name, _f, ch) in enumerate(DOWNSAMPLE_TARGETS)),
@@ -99,6 +101,7 @@ class DownsamplePass(RasterPass):
         shader.uniform_sampler("normal_tx", gbuffer.normal)
         shader.uniform_sampler("position_tx", gbuffer.position)
         shader.uniform_sampler("depth_tx", gbuffer.depth)
+        shader.uniform_sampler("material_tx", gbuffer.material)
         shader.uniform_int("factor", self.factor)
         self._draw_fullscreen(self._fb, shader, (self.low_width, self.low_height))
         return self.outputs()
