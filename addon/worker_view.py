@@ -8,7 +8,6 @@ import numpy as np
 
 from hybridgi_core import glossy_image as _glossy
 from hybridgi_core import visible as _visible
-from hybridgi_core.glossy import glossy_color as _glossy_color
 
 from .worker_messages import ViewRequest, ViewResult, frozen
 
@@ -37,14 +36,9 @@ class DirectLevel:
 
 
 def reflecting(glossy_materials) -> np.ndarray:
-    """(m,) bool: materials whose glossy layer reflects light, by lamps (a lobe of weight > 0) or
-    by the cache (a Glossy Color above 0 at some view angle)."""
-    lobes = (glossy_materials.weight > 0) | (glossy_materials.metallic > 0)
-    mu = np.array([0.05, 0.5, 1.0])
-    for m, layer in enumerate(glossy_materials.layers):
-        if layer is not None and not lobes[m]:
-            lobes[m] = bool(_glossy_color(glossy_materials, np.full(mu.size, m), mu).max() > 0)
-    return lobes
+    """(m,) bool: materials whose glossy lobes reflect light (a Glossy Color above 0 at some view
+    angle: `GlossyMaterials.reflects`, which the final render's glossy step checks too)."""
+    return np.asarray(glossy_materials.reflects, bool).copy()
 
 
 class GlossyLevel:

@@ -360,11 +360,19 @@ class GISystem:
         points = np.asarray(points, np.float32).reshape(-1, 3)
         normals = np.asarray(normals, np.float32).reshape(-1, 3)
         starts = range(0, n, per_block)
-        jobs = [self.updater.pool.submit(direct_irradiance, lights, points[a : a + per_block], normals[a : a + per_block],
-                                         self.tracer, child, samples, eps,
-                                         partial=None if partial is None else partial[a : a + per_block])
-                for a, child in zip(starts, rng.spawn(len(starts)), strict=True)]
-        return np.concatenate([j.result() for j in jobs])
+        return np.concatenate(self._blocks([
+            (direct_irradiance, (lights, points[a : a + per_block], normals[a : a + per_block], self.tracer, child,
+                                 samples, eps), {"partial": None if partial is None else partial[a : a + per_block]})
+            for a, child in zip(starts, rng.spawn(len(starts)), strict=True)]))
+
+    def _blocks(self, calls: list) -> list:
+        """Results of calls [(fn, args, kwargs)] in order: on the worker pool, or one after another
+        when the caller is itself one of its workers (the same blocks and generators either way,
+        so the result does not depend on who asks)."""
+        if self.updater.on_pool_thread():
+            return [fn(*args, **kwargs) for fn, args, kwargs in calls]
+        jobs = [self.updater.pool.submit(fn, *args, **kwargs) for fn, args, kwargs in calls]
+        return [j.result() for j in jobs]
 
     @property
     def glossy_materials(self) -> GlossyMaterials:
@@ -391,10 +399,10 @@ class GISystem:
         per_pixel = [np.asarray(a).reshape(n, -1) for a in (points, normals, to_eye)]
         rows = np.asarray(rows).reshape(-1)
         starts = range(0, n, per_block)
-        jobs = [self.updater.pool.submit(glossy_direct, lights, *(a[b : b + per_block] for a in per_pixel),
-                                         rows[b : b + per_block], mats, self.tracer, child, samples, eps)
-                for b, child in zip(starts, rng.spawn(len(starts)), strict=True)]
-        return np.concatenate([j.result() for j in jobs])
+        return np.concatenate(self._blocks([
+            (glossy_direct, (lights, *(a[b : b + per_block] for a in per_pixel), rows[b : b + per_block], mats,
+                             self.tracer, child, samples, eps), {})
+            for b, child in zip(starts, rng.spawn(len(starts)), strict=True)]))
 
 
 def _moved_boxes(old, new, rows: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:

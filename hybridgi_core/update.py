@@ -8,6 +8,7 @@ blended on the calling thread afterwards, so results do not depend on thread tim
 
 from __future__ import annotations
 
+import threading
 import time
 from concurrent.futures import ThreadPoolExecutor, as_completed
 from dataclasses import dataclass, field
@@ -61,6 +62,10 @@ class ShadingScene:
     world: World
 
 
+#: Thread-name prefix of the worker pools (`CacheUpdater.on_pool_thread`).
+POOL_PREFIX = "hybridgi-update"
+
+
 class CacheUpdater:
     """Owns the worker pool; `update(cells, frame)` is one EMA step for those cells."""
 
@@ -69,12 +74,18 @@ class CacheUpdater:
         self.tracer = tracer
         self.scene = scene
         self.epsilon = np.float32(epsilon)
-        self._pool = ThreadPoolExecutor(max_workers=cache.settings.threads, thread_name_prefix="hybridgi-update")
+        self._pool = ThreadPoolExecutor(max_workers=cache.settings.threads, thread_name_prefix=POOL_PREFIX)
 
     @property
     def pool(self) -> ThreadPoolExecutor:
         """The worker pool (the solver shares it)."""
         return self._pool
+
+    @staticmethod
+    def on_pool_thread() -> bool:
+        """Whether the caller runs on a worker of such a pool: work it would split over the pool
+        must run inline there (a worker waiting on jobs queued behind itself deadlocks)."""
+        return threading.current_thread().name.startswith(POOL_PREFIX)
 
     def close(self) -> None:
         self._pool.shutdown(wait=True)
