@@ -21,7 +21,7 @@ from .glossy import cache_reflection, glossy_color
 
 
 def has_glossy(system) -> bool:
-    """Whether any material of the system's scene has a glossy layer (else nothing to compute)."""
+    """Whether any material's glossy lobes reflect anything (`GlossyMaterials.reflects`; else nothing to compute)."""
     return hasattr(system, "glossy") and bool(system.glossy_materials.reflects.any())
 
 
