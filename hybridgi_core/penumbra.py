@@ -24,6 +24,8 @@ FIRST_SAMPLES = 8
 DILATE = 2
 #: Added to the frame number of the second pass's samples: a stream of its own.
 SEED_OFFSET = 1 << 20
+#: A-trous passes over the penumbra pixels' visibility (`filter_penumbra`); 0 = none.
+FILTER_PASSES = 1
 
 
 def dilate(mask: np.ndarray, radius: int) -> np.ndarray:
@@ -42,12 +44,14 @@ def dilate(mask: np.ndarray, radius: int) -> np.ndarray:
 
 
 def adaptive_direct(direct, points: np.ndarray, normals: np.ndarray, pix: np.ndarray, shape: tuple[int, int],
-                    frame: int, samples: int) -> tuple[np.ndarray, np.ndarray]:
+                    frame: int, samples: int, camera=None, pool=None) -> tuple[np.ndarray, np.ndarray]:
     """Lamp irradiance (n, 3) at the pixels `pix` (flat indices into an image of `shape` (h, w))
     with `samples` shadow rays per lamp in penumbrae and FIRST_SAMPLES elsewhere, and the (n,)
     bool mask of the pixels that got the full count.
 
-    direct(points, normals, frame, samples=, partial=) -> (n, 3): `GISystem.direct`."""
+    direct(points, normals, frame, samples=, partial=, shadows=) -> (n, 3): `GISystem.direct`.
+    camera : (3,) the eye; given, the penumbra pixels' visibility (their light over the
+    unshadowed light) is filtered edge-aware on their surfaces (`filter_penumbra`)."""
     first = min(FIRST_SAMPLES, samples)
     if samples <= first:
         return direct(points, normals, frame, samples=samples), np.ones(points.shape[0], bool)
@@ -62,4 +66,33 @@ def adaptive_direct(direct, points: np.ndarray, normals: np.ndarray, pix: np.nda
     redo = np.flatnonzero(full)
     more = direct(points[redo], normals[redo], frame + SEED_OFFSET, samples=samples)
     light[redo] = (first * light[redo] + samples * more) / np.float32(first + samples)
+    if camera is not None and FILTER_PASSES > 0:
+        open_light = direct(points[redo], normals[redo], frame, samples=samples, shadows=False)
+        light[redo] = filter_penumbra(light[redo], open_light, points[redo], normals[redo], pix[redo], shape,
+                                      camera, pool)
     return light, full
+
+
+def filter_penumbra(light: np.ndarray, open_light: np.ndarray, points: np.ndarray, normals: np.ndarray,
+                    pix: np.ndarray, shape: tuple[int, int], camera, pool=None) -> np.ndarray:
+    """(n, 3) the penumbra pixels' light with its visibility (light / the unshadowed light)
+    averaged over their neighbours on the same surface (`pixel_gather.filter_residual`: plane and
+    normal guided a-trous passes), times their own unshadowed light: 24 shadow rays leave a
+    large lamp's soft shadow grainy (Cycles' image is denoised); the shading's own detail (the
+    unshadowed term) is kept per pixel."""
+    from .pixel_gather import filter_residual  # noqa: PLC0415  (pixel_gather imports lights; kept local)
+
+    h, w = shape
+    seen = open_light.max(axis=1) > 0
+    visibility = np.where(seen[:, None], light / np.maximum(open_light, np.float32(1e-30)), 0.0).astype(np.float32)
+    image = np.zeros((h * w, 7), np.float32)
+    image[pix, 0:3] = visibility
+    valid = np.zeros(h * w, bool)
+    valid[pix] = seen
+    pos = np.zeros((h * w, 3), np.float32)
+    pos[pix] = points
+    nrm = np.zeros((h * w, 3), np.float32)
+    nrm[pix] = normals
+    out = filter_residual(image.reshape(h, w, 7), pos.reshape(h, w, 3), nrm.reshape(h, w, 3), valid.reshape(h, w),
+                          np.asarray(camera, np.float32), FILTER_PASSES, pool=pool).reshape(h * w, 7)
+    return np.where(seen[:, None], open_light * np.clip(out[pix, 0:3], 0.0, 1.0), light).astype(np.float32)

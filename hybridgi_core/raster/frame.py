@@ -254,8 +254,13 @@ class FramePipeline:
                 gi = self._gather_levels(system.levels, low, points, normals, pix, visible, view, proj, lit_tex)
         with stats.step("direct"):
             direct = np.zeros((self.height * self.width, 4), np.float32)
+            eye = np.asarray(camera_eye(view, proj), np.float64)
+            # A sun disc's penumbra is a pixel or two wide: a filter over 5 x 5 pixels would blur it
+            # (car Diffuse Direct 0.0028 -> 0.0029, atrium 0.0185 -> 0.0189); area lamps' are wide.
+            filtered = eye[3] > 0.5 and not any(lt.kind == "SUN" and float(lt.angle) > 0 for lt in system.scene.lights)
             direct[pix_full, :3] = adaptive_direct(system.direct, p_full, n_full, pix_full, (self.height, self.width),
-                                                   frame, self.direct_samples)[0]
+                                                   frame, self.direct_samples, camera=eye[:3] if filtered else None,
+                                                   pool=system.updater.pool)[0]
         with stats.step("glossy"):
             glossy, glossy_col, glossy_ind = self._glossy(system, view, proj, p_full, n_full, pix_full, frame)
         film = FilmAccumulator()
