@@ -17,6 +17,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from .pixel_gather import filter_at_pixels
+
 #: Shadow rays per pixel and lamp of the first pass, which finds the penumbrae (>= the ratio
 #: estimator's minimum, so that wholly lit pixels are exact).
 FIRST_SAMPLES = 8
@@ -76,23 +78,11 @@ def adaptive_direct(direct, points: np.ndarray, normals: np.ndarray, pix: np.nda
 def filter_penumbra(light: np.ndarray, open_light: np.ndarray, points: np.ndarray, normals: np.ndarray,
                     pix: np.ndarray, shape: tuple[int, int], camera, pool=None) -> np.ndarray:
     """(n, 3) the penumbra pixels' light with its visibility (light / the unshadowed light)
-    averaged over their neighbours on the same surface (`pixel_gather.filter_residual`: plane and
+    averaged over their neighbours on the same surface (`pixel_gather.filter_at_pixels`: plane and
     normal guided a-trous passes), times their own unshadowed light: 24 shadow rays leave a
     large lamp's soft shadow grainy (Cycles' image is denoised); the shading's own detail (the
     unshadowed term) is kept per pixel."""
-    from .pixel_gather import filter_residual  # noqa: PLC0415  (pixel_gather imports lights; kept local)
-
-    h, w = shape
     seen = open_light.max(axis=1) > 0
     visibility = np.where(seen[:, None], light / np.maximum(open_light, np.float32(1e-30)), 0.0).astype(np.float32)
-    image = np.zeros((h * w, 7), np.float32)
-    image[pix, 0:3] = visibility
-    valid = np.zeros(h * w, bool)
-    valid[pix] = seen
-    pos = np.zeros((h * w, 3), np.float32)
-    pos[pix] = points
-    nrm = np.zeros((h * w, 3), np.float32)
-    nrm[pix] = normals
-    out = filter_residual(image.reshape(h, w, 7), pos.reshape(h, w, 3), nrm.reshape(h, w, 3), valid.reshape(h, w),
-                          np.asarray(camera, np.float32), FILTER_PASSES, pool=pool).reshape(h * w, 7)
-    return np.where(seen[:, None], open_light * np.clip(out[pix, 0:3], 0.0, 1.0), light).astype(np.float32)
+    out = filter_at_pixels(visibility, seen, points, normals, pix, shape, camera, FILTER_PASSES, pool)
+    return np.where(seen[:, None], open_light * np.clip(out, 0.0, 1.0), light).astype(np.float32)

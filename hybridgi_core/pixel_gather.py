@@ -411,6 +411,26 @@ def filter_residual(residual: np.ndarray, position: np.ndarray, normal: np.ndarr
     return np.ascontiguousarray(np.moveaxis(img, 0, -1))
 
 
+def filter_at_pixels(values: np.ndarray, keep: np.ndarray, points: np.ndarray, normals: np.ndarray, pix: np.ndarray,
+                     shape: tuple[int, int], camera, passes: int, pool=None) -> np.ndarray:
+    """`filter_residual` of per-pixel values (n, c <= 7) at flat pixels `pix` of an image of
+    `shape`, only the pixels `keep` (n,) read and written (others keep their value); points,
+    normals : (n, 3) the pixels' surfaces, camera (3,) the eye. Returns (n, c) float32."""
+    h, w = shape
+    c = values.shape[1]
+    image = np.zeros((h * w, 7), np.float32)
+    image[pix, :c] = values
+    valid = np.zeros(h * w, bool)
+    valid[pix] = keep
+    pos = np.zeros((h * w, 3), np.float32)
+    pos[pix] = points
+    nrm = np.zeros((h * w, 3), np.float32)
+    nrm[pix] = normals
+    out = filter_residual(image.reshape(h, w, 7), pos.reshape(h, w, 3), nrm.reshape(h, w, 3), valid.reshape(h, w),
+                          np.asarray(camera, np.float32), passes, pool=pool).reshape(h * w, 7)
+    return np.where(keep[:, None], out[pix, :c], values).astype(np.float32)
+
+
 def _power(x: np.ndarray, exponent: float) -> np.ndarray:
     """x ** exponent, by squarings when the exponent is a power of two (the default 8: three
     multiplies instead of a transcendental pow per tap)."""

@@ -30,7 +30,7 @@ from __future__ import annotations
 import numpy as np
 
 from .lights import _area_shape, _onb, stratified_uv
-from .pixel_gather import filter_residual, hit_radiance
+from .pixel_gather import filter_at_pixels, hit_radiance
 from .sampling import frame_rng
 from .specular import _lambda
 
@@ -231,23 +231,13 @@ def filter_reflections(direct: np.ndarray, indirect: np.ndarray, total: np.ndarr
                        normals: np.ndarray, pix: np.ndarray, shape: tuple[int, int], view: np.ndarray,
                        passes: int = FILTER_PASSES, pool=None) -> tuple[np.ndarray, np.ndarray]:
     """The traced light (n, 3) x 2 of receivers at flat pixels `pix` of an image of `shape`,
-    averaged edge-aware (`pixel_gather.filter_residual`: taps on the same plane and facing the
+    averaged edge-aware (`pixel_gather.filter_at_pixels`: taps on the same plane and facing the
     same way) over the receivers whose rays found light (total > 0). A few rays per pixel leave
     a polished floor's reflection of a bright edge speckled; the neighbours on its surface see
     nearly the same reflection."""
     if passes <= 0 or pix.size == 0:
         return direct, indirect
-    h, w = shape
-    image = np.zeros((h * w, 7), _F32)
-    image[pix, 0:3], image[pix, 3:6] = direct, indirect
-    valid = np.zeros(h * w, bool)
-    valid[pix] = total > 0
-    pos = np.zeros((h * w, 3), _F32)
-    pos[pix] = points
-    nrm = np.zeros((h * w, 3), _F32)
-    nrm[pix] = normals
-    camera = np.linalg.inv(np.asarray(view, np.float64))[:3, 3].astype(_F32)
-    out = filter_residual(image.reshape(h, w, 7), pos.reshape(h, w, 3), nrm.reshape(h, w, 3), valid.reshape(h, w),
-                          camera, passes, pool=pool).reshape(h * w, 7)
-    keep = (total > 0)[:, None]
-    return np.where(keep, out[pix, 0:3], direct), np.where(keep, out[pix, 3:6], indirect)
+    camera = np.linalg.inv(np.asarray(view, np.float64))[:3, 3]
+    out = filter_at_pixels(np.concatenate([direct, indirect], axis=1), total > 0, points, normals, pix, shape,
+                           camera, passes, pool)
+    return out[:, 0:3], out[:, 3:6]

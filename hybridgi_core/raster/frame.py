@@ -13,7 +13,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .. import pixel_gather
+from .. import glossy_image, pixel_gather
 from ..evaluate import HitLookup
 from ..glossy import cache_reflection, glossy_color
 from ..lights import RATIO_MIN_SAMPLES
@@ -341,12 +341,10 @@ class FramePipeline:
         surfaces they reflect (Glossy Indirect before its colour); direct + colour x bounced is
         uploaded for the deferred pass. Subframes reuse it: a highlight is smooth at the pixel
         scale, and silhouettes are where its share is least."""
-        if not hasattr(system, "glossy") or not system.glossy_materials.reflects.any():
+        if not glossy_image.has_glossy(system):
             return None, None, None
-        rows = np.rint(self.gbuffer.read("material").reshape(-1)[pix]).astype(np.int64) - 1
-        eye = np.asarray(camera_eye(view, proj), np.float64)
-        to_eye = eye[:3] - points * eye[3] if eye[3] > 0.5 else np.broadcast_to(eye[:3], points.shape)
-        to_eye = to_eye / np.maximum(np.linalg.norm(to_eye, axis=1, keepdims=True), 1e-30)
+        rows = glossy_image.material_rows(self.gbuffer.read("material").reshape(-1)[pix])
+        to_eye = glossy_image.directions_to_eye(points, camera_eye(view, proj))
         glossy = np.zeros((self.height * self.width, 4), np.float32)
         colour = np.zeros((self.height * self.width, 4), np.float32)
         mu = np.clip(np.einsum("ij,ij->i", normals, to_eye), 0.0, 1.0)
