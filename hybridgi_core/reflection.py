@@ -36,7 +36,7 @@ from .specular import _lambda
 
 _F32 = np.float32
 #: Lobes at least this rough keep the cache's hemisphere mean (`glossy.cache_reflection`).
-TRACE_ROUGHNESS = 0.4
+TRACE_ROUGHNESS = 1.0
 #: Seed offset of the reflection rays' stream (pixel rays use 2, the direct light 1).
 SEED_OFFSET = 3
 #: Pixels x rays per work item (fixed: the result does not depend on the thread count).
@@ -50,6 +50,9 @@ BSDF_LAMP_RATIO = 16.0
 #: A-trous passes over the traced light (`filter_reflections`): 1 averages a 5 x 5 neighbourhood
 #: of the same surface, about 25 x `rays` samples, at ~1.5 pixels of blur.
 FILTER_PASSES = 1
+#: Lobes at least this rough have their lamp-sampled Glossy Direct filtered (`filter_lamp_glossy`):
+#: their highlights span many pixels; a smoother lobe's small sharp highlight keeps its pixels.
+LAMP_FILTER_ROUGHNESS = 0.45
 
 
 def traced_share(rough: np.ndarray) -> np.ndarray:
@@ -241,3 +244,18 @@ def filter_reflections(direct: np.ndarray, indirect: np.ndarray, total: np.ndarr
     out = filter_at_pixels(np.concatenate([direct, indirect], axis=1), total > 0, points, normals, pix, shape,
                            camera, passes, pool)
     return out[:, 0:3], out[:, 3:6]
+
+
+def filter_lamp_glossy(light: np.ndarray, rough: np.ndarray, points: np.ndarray, normals: np.ndarray,
+                       pix: np.ndarray, shape: tuple[int, int], camera: np.ndarray, pool=None) -> np.ndarray:
+    """(n, 3) the lamps' glossy radiance `light` of receivers at flat pixels `pix` (lamp sampling,
+    `lamp_glossy_without`), averaged one a-trous pass over each receiver's surface (same plane,
+    normal within the filter's cos^8) where the lobe is at least LAMP_FILTER_ROUGHNESS rough.
+
+    Why: 16 lamp samples of a roughness-0.5 lobe under an area lamp larger than the lobe speckle
+    the highlight (the default Principled BSDF's Glossy Direct on the Stanford dragon: 0.035 of
+    Combined against Cycles, 0.018 filtered); Cycles' denoised image has none of it."""
+    keep = np.asarray(rough) >= LAMP_FILTER_ROUGHNESS
+    if not keep.any():
+        return light
+    return filter_at_pixels(light, keep, points, normals, pix, shape, camera, 1, pool)

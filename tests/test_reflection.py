@@ -11,7 +11,13 @@ import numpy as np
 import pytest
 
 from hybridgi_core import specular as sp
-from hybridgi_core.reflection import TRACE_ROUGHNESS, sample_reflections, traced_share
+from hybridgi_core.reflection import (
+    LAMP_FILTER_ROUGHNESS,
+    TRACE_ROUGHNESS,
+    filter_lamp_glossy,
+    sample_reflections,
+    traced_share,
+)
 from tests.cli_renders import layer, rendered
 
 RES = "96x72"
@@ -46,8 +52,31 @@ def test_a_near_mirror_reflects_about_the_normal_and_rotates_with_it():
     assert np.allclose(w, 1.0, atol=1e-3)
 
 
+def test_lamp_glossy_is_filtered_on_its_surface_only_where_the_lobe_is_rough():
+    """A speckled highlight (mean 1, noise 0.5) on a floor of a rough lobe loses most of its noise;
+    a smooth lobe's pixels keep their values exactly; a wall meeting the floor does not mix in."""
+    h, w = 40, 60
+    ys, xs = np.mgrid[0:h, 0:w]
+    wall = xs >= 40  # a vertical wall at x = 4 m beside a floor z = 0
+    points = np.stack([np.where(wall, 4.0, xs * 0.1), 5.0 + ys * 0.1, np.where(wall, (xs - 40) * 0.1, 0.0)], -1)
+    normals = np.where(wall[..., None], [-1.0, 0.0, 0.0], [0.0, 0.0, 1.0])
+    rng = np.random.default_rng(3)
+    light = np.where(wall[..., None], 10.0, 1.0) * (1.0 + 0.5 * rng.standard_normal((h, w, 1))) * np.ones(3)
+    smooth = ys < 10
+    rough = np.where(smooth, 0.5 * LAMP_FILTER_ROUGHNESS, 0.5)
+    pix = np.arange(h * w)
+    out = filter_lamp_glossy(light.reshape(-1, 3).astype(np.float32), rough.reshape(-1),
+                             points.reshape(-1, 3).astype(np.float32), normals.reshape(-1, 3).astype(np.float32),
+                             pix, (h, w), np.array([3.0, 0.0, 2.0])).reshape(h, w, 3)
+    floor = ~wall & ~smooth & (xs < 38) & (ys >= 12)
+    assert np.abs(out[floor] - 1.0).mean() < 0.5 * np.abs(light[floor] - 1.0).mean()
+    np.testing.assert_array_equal(out[smooth], light[smooth].astype(np.float32))
+    assert abs(out[~wall & ~smooth].mean() - 1.0) < 0.05  # no wall light leaks onto the floor
+    assert abs(out[wall & ~smooth].mean() / 10.0 - 1.0) < 0.05
+
+
 def test_rough_lobes_keep_the_cache_estimate():
-    share = traced_share(np.array([0.0, 0.5 * TRACE_ROUGHNESS, 0.75 * TRACE_ROUGHNESS, TRACE_ROUGHNESS, 0.9]))
+    share = traced_share(np.array([0.0, 0.5 * TRACE_ROUGHNESS, 0.75 * TRACE_ROUGHNESS, TRACE_ROUGHNESS, 1.0]))
     np.testing.assert_allclose(share, [1.0, 1.0, 0.5, 0.0, 0.0])
 
 

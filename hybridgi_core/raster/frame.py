@@ -18,7 +18,14 @@ from ..evaluate import HitLookup
 from ..glossy import cache_reflection, glossy_color
 from ..lights import RATIO_MIN_SAMPLES
 from ..penumbra import adaptive_direct
-from ..reflection import bsdf_lamps, filter_reflections, lamp_glossy_without, traced_reflection, traced_share
+from ..reflection import (
+    bsdf_lamps,
+    filter_lamp_glossy,
+    filter_reflections,
+    lamp_glossy_without,
+    traced_reflection,
+    traced_share,
+)
 from ..settings import MULTI_BOUNCE
 from ..system import UPDATES_PER_BATCH
 from ..visible import pixels_to_points
@@ -358,37 +365,52 @@ class FramePipeline:
             skip[lit] = bsdf_lamps(system.scene.lights, points[lit], normals[lit], rough) & (traced_share(rough) > 0)[:, None]
         glossy[pix, :3] = lamp_glossy_without(system, points, normals, to_eye, rows, frame, self.direct_samples, skip)
         if lit.size:
-            sky, bounced = cache_reflection(system.cache, points[lit], normals[lit], to_eye[lit], rough)
-            lamp = self._trace_reflections(system, points[lit], normals[lit], to_eye[lit], rough, frame, sky,
-                                           bounced, pix[lit], view, skip[lit])
+            q = pix[lit]
+            glossy[q, :3] = filter_lamp_glossy(glossy[q, :3], rough, points[lit], normals[lit], q,
+                                               (self.height, self.width),
+                                               np.linalg.inv(np.asarray(view, np.float64))[:3, 3],
+                                               pool=system.updater.pool)
+            sky, bounced, lamp = self._reflections(system, points[lit], normals[lit], to_eye[lit], rough, frame,
+                                                   pix[lit], view, skip[lit])
             glossy[pix[lit], :3] += colour[pix[lit], :3] * (sky + lamp)
             indirect[pix[lit], :3] = bounced
         total = glossy + colour * indirect
         self._glossy_tex = upload_texture_2d(total.reshape(self.height, self.width, 4), "RGBA32F")
         return glossy, colour, indirect
 
-    def _trace_reflections(self, system, points, normals, to_eye, rough, frame, sky, bounced, pix, view,
-                           lamps) -> np.ndarray:
-        """Blend reflection rays' light (`reflection.traced_reflection`, filtered edge-aware over the
-        image: `reflection.filter_reflections`) into the cache's split-sum estimates `sky` and
-        `bounced` (n, 3), in place, where the lobes are smooth enough; pix : the receivers' flat
-        pixels. Returns (n, 3) the radiance of the area lamps `lamps` (n, L) marks, as the rays
-        met them (`reflection.bsdf_lamps`; lamp sampling skipped them), before Glossy Color."""
+    def _reflections(self, system, points, normals, to_eye, rough, frame, pix, view, lamps):
+        """(sky, bounced, lamp), each (n, 3): what the lobes at the receivers reflect, the
+        world's and emitters' light (Glossy Direct), other surfaces' (Glossy Indirect) and the
+        area lamps `lamps` (n, L) marks as the rays met them (`reflection.bsdf_lamps`; lamp
+        sampling skipped them), before Glossy Color. Reflection rays (`reflection.traced_reflection`,
+        filtered edge-aware over the image: `reflection.filter_reflections`) where the lobes are
+        smooth enough, blended into the cache's split-sum estimates (`glossy.cache_reflection`)
+        as they grow rough; the cache is read only where its estimate counts (rough lobes, rays
+        that found no light). pix : the receivers' flat pixels."""
         rays = self.settings.reflection_rays
-        share = traced_share(rough)
+        n = points.shape[0]
+        share = traced_share(rough) if rays > 0 else np.zeros(n)
         sel = np.flatnonzero(share > 0)
-        lamp = np.zeros((points.shape[0], 3), np.float32)
-        if rays <= 0 or sel.size == 0:
-            return lamp
-        lookup = HitLookup(system.cache, bounced=system.settings.indirect_quality == MULTI_BOUNCE)
-        direct, indirect, total, lamp[sel] = traced_reflection(system, lookup, points[sel], normals[sel],
-                                                               to_eye[sel], rough[sel], rays, frame, lamps[sel])
-        direct, indirect = filter_reflections(direct, indirect, total, points[sel], normals[sel], pix[sel],
-                                              (self.height, self.width), view, pool=system.updater.pool)
-        t = (share[sel] * (total > 0)).astype(np.float32)[:, None]
-        sky[sel] += t * (direct - sky[sel])
-        bounced[sel] += t * (indirect - bounced[sel])
-        return lamp
+        lamp = np.zeros((n, 3), np.float32)
+        traced = np.zeros(n, np.float32)
+        if sel.size:
+            lookup = HitLookup(system.cache, bounced=system.settings.indirect_quality == MULTI_BOUNCE)
+            direct, indirect, total, lamp[sel] = traced_reflection(system, lookup, points[sel], normals[sel],
+                                                                   to_eye[sel], rough[sel], rays, frame, lamps[sel])
+            direct, indirect = filter_reflections(direct, indirect, total, points[sel], normals[sel], pix[sel],
+                                                  (self.height, self.width), view, pool=system.updater.pool)
+            traced[sel] = share[sel] * (total > 0)
+        sky = np.zeros((n, 3), np.float32)
+        bounced = np.zeros((n, 3), np.float32)
+        need = np.flatnonzero(traced < 1.0)
+        if need.size:
+            sky[need], bounced[need] = cache_reflection(system.cache, points[need], normals[need], to_eye[need],
+                                                        rough[need])
+        if sel.size:
+            t = traced[sel, None]
+            sky[sel] += t * (direct - sky[sel])
+            bounced[sel] += t * (indirect - bounced[sel])
+        return sky, bounced, lamp
 
     def _pixel_gi_full(self, system, gbuf, position_lo, normal_lo, pix, points, normals, visible, view, frame,
                        full, stats):
