@@ -1,8 +1,8 @@
 """Shadow rays where a shadow is uncertain: the full-resolution lamp light of a frame.
 
-Why: the deferred pass's lamp light traces `samples` (16) shadow rays per pixel and soft lamp,
-~3.7 M rays at 640x360 for the Cornell box's one area lamp, yet most pixels see a lamp wholly or
-not at all, and there one ray says what 16 say (the ratio estimator of `polygon_light` makes a
+Why: the deferred pass's lamp light traces `samples` (48) shadow rays per pixel and soft lamp,
+~11 M rays at 640x360 for the Cornell box's one area lamp, yet most pixels see a lamp wholly or
+not at all, and there one ray says what 48 say (the ratio estimator of `polygon_light` makes a
 wholly lit pixel exact). So a first pass traces FIRST_SAMPLES rays per pixel and lamp and marks
 the pixels whose rays disagreed (`lights.direct_irradiance(partial=)`). The penumbra is the
 region around them, dilated by DILATE pixels: a pixel in a penumbra whose few rays happened to
