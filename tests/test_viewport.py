@@ -753,8 +753,9 @@ def _make_glossy(m, roughness: float = 0.35) -> None:
                 node.inputs["Roughness"].default_value = roughness
 
 
-def _final_render(m, view, subframes: int) -> dict:
-    """The final render's filtered passes for the viewport's camera and the scene it synced."""
+def _final_render(m, view, subframes: int, reflection_rays: int | None = None) -> dict:
+    """The final render's filtered passes for the viewport's camera and the scene it synced
+    (with `reflection_rays` instead of the scene's setting when given)."""
     from hybridgi_core.raster.frame import FramePipeline  # noqa: PLC0415
     from hybridgi_core.system import GISystem  # noqa: PLC0415
 
@@ -764,7 +765,10 @@ def _final_render(m, view, subframes: int) -> dict:
     snapshot = view.session.mirror.snapshot
     camera = viewport_stats.ViewCamera.from_region_data(view.region_data)
     with GISystem(snapshot, props.cache_settings(scene)) as system:
-        pipe = FramePipeline(props.raster_settings(cell_size=system.cache.grid.cell_size), subframes=subframes)
+        raster = props.raster_settings(cell_size=system.cache.grid.cell_size)
+        if reflection_rays is not None:
+            raster = raster.with_(reflection_rays=reflection_rays)
+        pipe = FramePipeline(raster, subframes=subframes)
         try:
             pipe.resize(W, H)
             pipe.upload(snapshot)
@@ -796,7 +800,9 @@ def test_settled_view_has_the_final_renders_glossy_light(view, addon):
     shown = _finish_redraws(view)
     result = view.session.worker.latest().view
     assert result.glossy is not None and result.glossy_passes >= 16
-    final = _final_render(addon, view, subframes=addon.bpy.context.scene.hybridgi.pixel_samples)
+    # The viewport traces no reflection rays (the final render traces them for lobes up to
+    # roughness 0.5, `reflection.TRACE_ROUGHNESS`): its glossy light is the final render's without.
+    final = _final_render(addon, view, subframes=addon.bpy.context.scene.hybridgi.pixel_samples, reflection_rays=0)
     glossy_final = final["glossy_color"] * (final["glossy_direct"] + final["glossy_indirect"])
     factor = W // result.glossy.shape[1]
     reference = _blocks(glossy_final, factor)
