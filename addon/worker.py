@@ -25,6 +25,7 @@ import numpy as np
 
 from hybridgi_core import errors
 from hybridgi_core import glossy_image as _glossy
+from hybridgi_core import penumbra as _penumbra
 from hybridgi_core import visible as _visible
 from hybridgi_core.raster import gather as _gather_layout
 from hybridgi_core.raster import settings as _raster_settings
@@ -378,15 +379,32 @@ class ViewportWorker:
             self._glossy_cache(system, state)
 
     def _direct_pass(self, system, state: ViewState, level: DirectLevel | None = None) -> None:
+        """A pass of direct light: the coarse one of a new view or a lamp edit (`level` =
+        state.coarse: `direct_samples` x its samples per pixel, in blocks), or a still view's
+        full-resolution one, traced as final renders trace theirs (`fine_samples`)."""
         t0 = time.perf_counter()
+        coarse = level is not None
         level = level or state.fine_level()
         self._frame += 1
-        samples = self.options.direct_samples * level.samples
         points, normals, pix = level.points
-        if points.shape[0]:
-            level.sum[pix, :3] += _direct_split(system, points, normals, self._frame, samples)
-        level.passes += 1
-        self._count_rays(points.shape[0] * samples * max(len(system.scene.lights), 1))
+        samples = self.options.direct_samples * level.samples
+        rays = points.shape[0] * samples
+        if coarse or self.options.fine_samples <= 0:
+            light = _direct_split(system, points, normals, self._frame, samples) if points.shape[0] else None
+        else:
+            samples = self.options.fine_samples
+            r = state.request
+            shape = level.position.shape[:2]
+            camera = _penumbra.filter_camera(system.scene.lights, camera_eye(r.view, r.proj))
+            light, full = (_penumbra.adaptive_direct(
+                system.direct, points, normals, pix, shape, self._frame * MAX_DIRECT_BLOCKS, samples,
+                camera=camera, pool=system.updater.pool) if points.shape[0] else (None, np.zeros(0, bool)))
+            rays = points.shape[0] * min(samples, _penumbra.FIRST_SAMPLES) + int(full.sum()) * samples
+        if light is not None:
+            level.add(light, samples)
+        else:
+            level.passes += 1
+        self._count_rays(rays * max(len(system.scene.lights), 1))
         self._steps["direct"] = (time.perf_counter() - t0) * 1e3
         if level is state.coarse:
             # A new view or a lamp edit: its glossy light at once, with the coarse pass's samples.
@@ -394,11 +412,12 @@ class ViewportWorker:
         state.dirty = True
 
     def _glossy_due(self, state: ViewState) -> bool:
-        """A glossy pass of a still view is due: fewer than its direct passes (they alternate,
-        so that neither makes a step, and the wait of an edit for it, longer)."""
+        """A glossy pass of a still view is due: fewer than `glossy_passes`, alternating with the
+        direct passes while they last (so that neither makes a step, and the wait of an edit for
+        it, longer)."""
         glossy = state.glossy
-        return (glossy is not None and glossy.pix.size > 0 and glossy.passes < self.options.direct_passes
-                and glossy.passes <= state.passes)
+        return (glossy is not None and glossy.pix.size > 0 and glossy.passes < self.options.glossy_passes
+                and (glossy.passes <= state.passes or state.passes >= self.options.direct_passes))
 
     def _glossy_pass(self, system, state: ViewState, samples: int) -> None:
         """The lamps' glossy reflection at the GI pixels, one pass of `samples` shadow rays each."""
@@ -496,8 +515,15 @@ class ViewportWorker:
         self._steps["pixel_rays"] = (time.perf_counter() - t0) * 1e3
         if pass_.done:
             t1 = time.perf_counter()
-            indirect, direct = _pixels.images(pass_.gathered(), r.position, pix, points, normals, r.view,
-                                              _raster_settings.RasterSettings())
+            raster = _raster_settings.RasterSettings()
+            if r.full_res and r.direct_position.shape[:2] != r.position.shape[:2]:
+                full = _pixels.full_res(system, pass_, r.position, pix, points, normals, r.view,
+                                        self.options.pixel_rays, state.fine_level().points,
+                                        r.direct_position.shape[:2], raster)
+                indirect, direct = full.indirect, full.direct
+                self._count_rays(full.gi.rays - sum(p.rays for p in pass_.parts))  # the detail pixels' rays
+            else:
+                indirect, direct = _pixels.images(pass_.gathered(), r.position, pix, points, normals, r.view, raster)
             state.pixel_pass = None
             state.add_pixels(indirect, direct, key)
             self._steps["pixel_filter"] = (time.perf_counter() - t1) * 1e3

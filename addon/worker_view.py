@@ -18,20 +18,27 @@ class DirectLevel:
     def __init__(self, position: np.ndarray, normal: np.ndarray, points: tuple, samples: int = 1):
         self.position, self.normal = position, normal
         self.points = points  # (points, normals, flat pixels)
-        self.samples = samples  # shadow-ray samples per pixel and pass, in units of direct_samples
+        self.samples = samples  # shadow-ray samples per pixel and coarse pass, in units of direct_samples
         h, w = position.shape[:2]
         self.sum = np.zeros((h * w, 4), np.float32)
         self.sum[points[2], 3] = 1.0
         self.passes = 0
+        self.weight = 0  # the passes' samples (a pass's light counts by its samples)
+
+    def add(self, light: np.ndarray, samples: int) -> None:
+        """One pass's light (n, 3) at the level's points, traced with `samples` rays per pixel."""
+        self.sum[self.points[2], :3] += light * np.float32(samples)
+        self.passes += 1
+        self.weight += samples
 
     @property
     def samples_per_pixel(self) -> int:
-        return self.passes * self.samples
+        return self.weight
 
     def mean(self) -> np.ndarray:
         h, w = self.position.shape[:2]
         out = self.sum.copy()
-        out[:, :3] /= max(self.passes, 1)
+        out[:, :3] /= max(self.weight, 1)
         return out.reshape(h, w, 4)
 
 
