@@ -277,10 +277,25 @@ class ViewportWorker:
             schedule.cover(self._view_state.cells)
         state = self._view_state
         finished = False
-        if state is not None and schedule.has_work:
+        # A converged cache refines (more batches) once the still view it lights is complete: its
+        # direct passes, glossy light and pixel passes first. With pixel rays the cache carries
+        # only the control variate and further bounces (Cornell 640x360 final render, 32 rays a
+        # cell instead of 64: Combined 0.0218 -> 0.0219 vs Cycles), so the view's own light is
+        # what the image waits for; the refined cache serves the views that follow.
+        hold = (not moving and state is not None and schedule.refinable and self._view_refinement_due(state))
+        # A still view's first full-resolution direct pass comes before the steps of a re-solve
+        # (after a lamp edit: the lamps' own light is most of the image; not during a fresh
+        # cache's first solve, whose converged image comes first).
+        hold = hold or (not moving and state is not None and state.mask is not None and state.passes == 0
+                        and self.options.direct_passes > 0 and not schedule.first_solve)
+        if state is not None and schedule.has_work and not hold:
             was_solved = schedule.solved_once
             self._solve_step(schedule, state)
             finished = schedule.solved_once and not was_solved or not schedule.has_work
+            if finished and not moving:
+                # The converged cache goes out now, not after the refinement below.
+                self._publish(force=True)
+                finished = False
         if state is not None and state.request.debug_cells:
             self._cell_colors(system, state, force=moving or not schedule.has_work)
         if state is not None and not moving:
@@ -487,16 +502,25 @@ class ViewportWorker:
         self._steps["visibility"] = (time.perf_counter() - t0) * 1e3
         state.dirty = True
 
+    def _view_refinement_due(self, state: ViewState) -> bool:
+        """A still view's own light is not complete: its mask, glossy or direct passes, or pixel passes."""
+        return (state.mask is None or self._glossy_due(state) or state.passes < self.options.direct_passes
+                or self._pixels_due(state))
+
+    def _pixel_key(self, system) -> tuple:
+        """What a view's pixel passes were traced over: the cache and its lighting epoch (events
+        change it; refining batches do not: a refined cache estimates the same light)."""
+        return (id(system.cache), self._schedule.epoch)
+
     def _pixels_due(self, state: ViewState) -> bool:
-        """A pixel-ray pass is due: the cache is done (no solver work: its passes would start over
-        with every refinement), the mask traced, and fewer passes than asked over this cache."""
-        if self.options.pixel_rays <= 0 or state.visible is None or self._schedule.has_work:
+        """A pixel-ray pass is due: the cache has converged and no solve is under way
+        (`SolveSchedule.stable`), the mask traced, and fewer passes than asked over this cache."""
+        if self.options.pixel_rays <= 0 or state.visible is None or not self._schedule.stable:
             return False
         system = getattr(self._session, "system", None)
         if system is None:
             return False
-        key = (id(system.cache), system.cache.version)
-        return state.pixel_key != key or state.pixel_passes < self.options.pixel_passes
+        return state.pixel_key != self._pixel_key(system) or state.pixel_passes < self.options.pixel_passes
 
     def _pixel_pass(self, system, state: ViewState) -> None:
         """One slice of a pass of per-pixel final-gather rays at the GI pixels (`worker_pixels`:
@@ -505,7 +529,7 @@ class ViewportWorker:
         t0 = time.perf_counter()
         r = state.request
         points, normals, pix = state.gi_points
-        key = (id(system.cache), system.cache.version)
+        key = self._pixel_key(system)
         if state.pixel_key is not None and state.pixel_key != key:
             state.reset_pixels()  # passes over an older cache (the pass in progress too)
         if state.pixel_pass is None or state.pixel_pass.key != key:

@@ -8,6 +8,7 @@ import numpy as np
 
 from hybridgi_core import glossy_image as _glossy
 from hybridgi_core import visible as _visible
+from hybridgi_core.lights import RATIO_MIN_SAMPLES
 
 from .worker_messages import ViewRequest, ViewResult, frozen
 
@@ -100,7 +101,11 @@ class ViewState:
         # pixels), so soft shadows shimmer no more while the camera moves than once it stops.
         ratio = coarse_share * request.direct_position.shape[0] * request.direct_position.shape[1] / max(
             request.position.shape[0] * request.position.shape[1], 1)
-        self.coarse = DirectLevel(request.position, request.normal, gi_points, int(np.clip(round(ratio), 1, 16)))
+        # At least the ratio estimator's samples (`lights.RATIO_MIN_SAMPLES`): a wholly lit pixel's
+        # area lamp is then exact, not a one-ray guess (Cornell 640x360, the re-lit image after a
+        # light move, 0.1 s after it: Combined 0.085 -> 0.073 vs Cycles).
+        self.coarse = DirectLevel(request.position, request.normal, gi_points,
+                                  int(np.clip(round(ratio), RATIO_MIN_SAMPLES, 16)))
         self._fine: DirectLevel | None = None
         self.mask: np.ndarray | None = None
         self.visible: np.ndarray | None = None  # (n, 8) bool corner visibility of the GI points
