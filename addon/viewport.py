@@ -69,8 +69,9 @@ DIRECT_FACTOR = 1
 #: (as when the direct light was refined there): 1 sample per GI pixel at the default downsample
 #: 2, not the 4 a full-resolution pass's rays would give (~3x the first light's cost of a view).
 COARSE_SHARE = 1.0 / (DIRECT_FACTOR * 2) ** 2
-#: Shadow-ray passes averaged while the view holds still (each pass: 1 sample per pixel and lamp).
-DIRECT_PASSES = 16
+#: Full-resolution direct-light passes averaged while the view holds still (each as final
+#: renders trace theirs: `WorkerOptions.fine_samples`).
+DIRECT_PASSES = 2
 #: props.debug_view of the cells view (drawn here, not by the deferred pass).
 DEBUG_CELLS = "CELLS"
 
@@ -293,7 +294,8 @@ class ViewportSession:
         proj = camera.proj.astype(np.float32)
         gbuf, low = pipeline.rasterize(view, proj, stats)
         debug_cells = present_mode == PRESENT_CELLS
-        view_key = (camera.key, width, height, self.mirror.geometry_gen, self._raster.downsample, debug_cells)
+        view_key = (camera.key, width, height, self.mirror.geometry_gen, self._raster.downsample, debug_cells,
+                    self._raster.pixel_full_res)
         if view_key != self._posted_key and not published.empty:
             self._post_view(gpu_state, gbuf, camera, view_key, stats, debug_cells)
         with stats.step("upload_results"):
@@ -305,17 +307,23 @@ class ViewportSession:
         world = self.mirror.snapshot.world.color
         with stats.step("upload_results"):
             gi = self._pixel_textures(gpu_state, published, view_key)
+        gi_low, gi_bilateral = low, None
+        if gi is not None and published.view.gi_indirect.shape[:2] != (low.height, low.width):
+            with stats.step("resolve"):  # full-res GI (`ViewRequest.full_res`): its guide, a copy of this G-buffer
+                gi_low, gi_bilateral = pipeline.full_res_guide(gbuf)
         with stats.step("resolve"):
             glossy = None
             if gpu_state.glossy_source is not None:
                 glossy = gpu_state.resolve_glossy.execute(gbuf.position, gbuf.normal, gpu_state.glossy_source)
-        shaded = pipeline.shade(gbuf, low, view, proj, direct, corner_visible=mask, irradiance=lit,
-                                debug_view=debug_view, world_color=world, stats=stats, gi=gi, glossy=glossy)
+        shaded = pipeline.shade(gbuf, gi_low, view, proj, direct, corner_visible=mask, irradiance=lit,
+                                debug_view=debug_view, world_color=world, stats=stats, gi=gi, glossy=glossy,
+                                bilateral=gi_bilateral)
         if not debug_cells and aa.offsets.shape[0]:
             # The sum starts from this centre image with the first subframe (its targets hold it
             # until then): a redraw the worker's next result replaces costs no accumulate pass.
             aa.start(dict(view=view, proj=proj, mask=mask, lit=lit, gi=gi, world=world, debug_view=debug_view,
-                          present_mode=present_mode, opaque=opaque, shaded=shaded, gbuf=gbuf))
+                          present_mode=present_mode, opaque=opaque, shaded=shaded, gbuf=gbuf,
+                          gi_low=gi_low if gi_bilateral is not None else None, bilateral=gi_bilateral))
         else:
             aa.reset()
         with stats.step("present"):
@@ -375,7 +383,9 @@ class ViewportSession:
         with stats.step("gbuffer"):
             jittered = _subpixel.jittered_projection(proj, aa.next_offset(), gpu_state.width, gpu_state.height)
             gbuf = pipeline_.gbuffer.execute(view, jittered, texture_filter=aa.texture_filter)
-        low = pipeline_.downsample.outputs()  # still the centre's (the GI's guide, as final renders keep it)
+        # Still the centre's (the GI's guide, as final renders keep it): the downsampled G-buffer,
+        # or the full-res GI's copy of the centre's.
+        low = inputs["gi_low"] if inputs.get("gi_low") is not None else pipeline_.downsample.outputs()
         with stats.step("resolve"):
             direct = gpu_state.resolve_full.execute(gbuf.position, gbuf.normal, gpu_state.source)
             glossy = None
@@ -383,7 +393,8 @@ class ViewportSession:
                 glossy = gpu_state.resolve_glossy.execute(gbuf.position, gbuf.normal, gpu_state.glossy_source)
         shaded = pipeline_.shade(gbuf, low, view, proj, direct, corner_visible=inputs["mask"],
                                  irradiance=inputs["lit"], debug_view=inputs["debug_view"],
-                                 world_color=inputs["world"], stats=stats, gi=inputs["gi"], glossy=glossy)
+                                 world_color=inputs["world"], stats=stats, gi=inputs["gi"], glossy=glossy,
+                                 bilateral=inputs.get("bilateral"))
         with stats.step("accumulate"):
             pipeline_.accumulate.execute(shaded, gbuf, first=False)
         aa.drawn += 1
@@ -463,6 +474,9 @@ class ViewportSession:
                 d_position = gpu_state.pipeline.gbuffer.read("position")
             else:
                 d_normal, d_position = normal.copy(), position.copy()
+            # The pixel rays' GI resolved at every full-res pixel, as final renders do (`full_res_images`).
+            full_res = (d_position.shape[:2] != position.shape[:2] and d_position.shape[:2] == (gbuf.height, gbuf.width)
+                        and gpu_state.pipeline.settings.pixel_full_res)
             material = None
             if any(getattr(m, "specular", None) is not None for m in self.mirror.snapshot.materials):
                 # At the GI pixels (the glossy light's): a new array, the worker keeps it.
@@ -472,6 +486,7 @@ class ViewportSession:
                 key=view_key, position=position.copy(), normal=normal.copy(),
                 direct_position=d_position, direct_normal=d_normal,
                 view=camera.view, proj=camera.proj, debug_cells=debug_cells, material=material,
+                full_res=bool(full_res),
             )
             self.worker.post_view(request)
         self._posted_key = view_key

@@ -14,6 +14,8 @@ from __future__ import annotations
 import numpy as np
 
 from hybridgi_core import pixel_gather
+from hybridgi_core.levels import hit_lookup
+from hybridgi_core.settings import MULTI_BOUNCE
 
 #: GI pixels per step of a pass (2 of `pixel_gather`'s work items at 32 rays, one per thread of
 #: a 2-core pool: ~0.2 s a step on 2 busy cores; 8192 took 0.35-0.45 s).
@@ -31,17 +33,27 @@ class PixelPass:
         self.index = index  # the pass's number among the view's passes (its frames)
         self.bounds = list(range(0, n_points, SLICE_POINTS)) + [n_points]
         self.parts: list[pixel_gather.PixelGI] = []
+        #: The cache as the slices' hits read it, built once per pass (one per slice cost ~17 ms
+        #: each on the Cornell box's 48^3 grid, a fifth of a slice).
+        self.lookup = None
 
     @property
     def done(self) -> bool:
         return len(self.parts) >= len(self.bounds) - 1
 
+    @property
+    def frame(self) -> int:
+        """The frame number of the pass's first slice (its detail pixels draw from frame + DETAIL_FRAME)."""
+        return FRAME_BASE + self.index * FRAMES_PER_PASS
+
     def trace_next(self, system, points, normals, visible, rays: int) -> int:
         """Trace the next slice; returns its rays."""
         i = len(self.parts)
         a, b = self.bounds[i], self.bounds[i + 1]
-        frame = FRAME_BASE + self.index * FRAMES_PER_PASS + i
-        gi = pixel_gather.trace_pixels(system, points[a:b], normals[a:b], rays, frame, visible[a:b])
+        if self.lookup is None and rays > 0:
+            self.lookup = hit_lookup(system, bounced=system.settings.indirect_quality == MULTI_BOUNCE)
+        gi = pixel_gather.trace_pixels(system, points[a:b], normals[a:b], rays, self.frame + i, visible[a:b],
+                                       lookup=self.lookup)
         self.parts.append(gi)
         return gi.rays
 
@@ -50,7 +62,7 @@ class PixelPass:
         cat = lambda name: np.concatenate([getattr(p, name) for p in self.parts])  # noqa: E731
         return pixel_gather.PixelGI(cat("direct"), cat("indirect"), cat("ao"), cat("cache_direct"),
                                     cat("cache_indirect"), cat("cache_ao"), variance=cat("variance"),
-                                    rays=sum(p.rays for p in self.parts))
+                                    sh=cat("sh"), rays=sum(p.rays for p in self.parts))
 
 
 def images(gi, position_lo: np.ndarray, pix: np.ndarray, points: np.ndarray, normals: np.ndarray,
@@ -64,3 +76,16 @@ def images(gi, position_lo: np.ndarray, pix: np.ndarray, points: np.ndarray, nor
         raster.pixel_filter, raster.bilateral_plane_sigma, raster.bilateral_normal_power,
         variance=var.reshape(h, w, 2)).reshape(h * w, 7)
     return pixel_gather.textures(cache + filtered[pix], pix, h, w)
+
+
+def full_res(system, pass_: PixelPass, position_lo: np.ndarray, pix: np.ndarray, points: np.ndarray,
+             normals: np.ndarray, view: np.ndarray, rays: int, full: tuple, full_shape: tuple[int, int],
+             raster) -> pixel_gather.FullResGI:
+    """A whole image's rays resolved at every full-res pixel as final renders resolve theirs
+    (`pixel_gather.full_res_resolve`); full : (points, normals, flat pixels) of the full-res
+    G-buffer of shape full_shape (h, w). The detail pixels' rays are traced here."""
+    h, w = full_shape
+    return pixel_gather.full_res_resolve(
+        system, pass_.gathered(), position_lo, pix, points, normals, view, pass_.frame, rays, full[0], full[1],
+        full[2], (w, h), passes=raster.pixel_filter, plane_sigma=raster.bilateral_plane_sigma,
+        normal_power=raster.bilateral_normal_power, lookup=pass_.lookup)

@@ -86,6 +86,10 @@ class SolveSchedule:
         #: iterations and the filter change the SH texture only, so its depth is not packed again
         #: (~0.1-0.2 s a pack on 2 busy cores, after every refining batch before).
         self.blends = 0
+        #: Bumped by every event that changes the light the cache estimates (a new system, a
+        #: shading or geometry event, new cells to cover), not by refining batches: the viewport's
+        #: pixel passes over one epoch stay valid while the cache refines.
+        self.epoch = 0
 
     # --- events ---------------------------------------------------------------------------------
 
@@ -93,6 +97,7 @@ class SolveSchedule:
         """A (new) system: a new one starts over from batch 0 (its solver has no hits)."""
         if system is not self.system:
             self.system = system
+            self.epoch += 1
             if system is not None:
                 system.solver.min_chunks = MIN_CHUNKS
             self.phase = BEGIN
@@ -110,6 +115,7 @@ class SolveSchedule:
         if self.phase == BEGIN or self.system is None or not (shading or geometry):
             return
         self.solved_once = False
+        self.epoch += 1
         if shading:
             self._materials = materials or (self._relight_next is not None and self._materials)
             self._relight_next = 0
@@ -130,6 +136,7 @@ class SolveSchedule:
         if missing.size:
             solver.extend(missing)
             self.phase = RESOLVE
+            self.epoch += 1
 
     # --- work -----------------------------------------------------------------------------------
 
@@ -148,6 +155,17 @@ class SolveSchedule:
     def refining(self) -> bool:
         """A refining batch is traced in part (`MORE`), or traced and not yet solved."""
         return self._pending is not None or (self.phase == RELAX and self._filter_direct and self.solved_once)
+
+    @property
+    def stable(self) -> bool:
+        """The cache has converged over its current hits and no solve is under way: what it
+        estimates holds until the next event (refining batches may follow: `refinable`)."""
+        return self.system is not None and self.solved_once and self._pending is None and self.phase in (MORE, DONE)
+
+    @property
+    def refinable(self) -> bool:
+        """Converged, with a refining batch still to trace and none begun: it may wait."""
+        return self.stable and self.phase == MORE
 
     @property
     def has_work(self) -> bool:

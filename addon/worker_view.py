@@ -8,6 +8,7 @@ import numpy as np
 
 from hybridgi_core import glossy_image as _glossy
 from hybridgi_core import visible as _visible
+from hybridgi_core.lights import RATIO_MIN_SAMPLES
 
 from .worker_messages import ViewRequest, ViewResult, frozen
 
@@ -18,20 +19,27 @@ class DirectLevel:
     def __init__(self, position: np.ndarray, normal: np.ndarray, points: tuple, samples: int = 1):
         self.position, self.normal = position, normal
         self.points = points  # (points, normals, flat pixels)
-        self.samples = samples  # shadow-ray samples per pixel and pass, in units of direct_samples
+        self.samples = samples  # shadow-ray samples per pixel and coarse pass, in units of direct_samples
         h, w = position.shape[:2]
         self.sum = np.zeros((h * w, 4), np.float32)
         self.sum[points[2], 3] = 1.0
         self.passes = 0
+        self.weight = 0  # the passes' samples (a pass's light counts by its samples)
+
+    def add(self, light: np.ndarray, samples: int) -> None:
+        """One pass's light (n, 3) at the level's points, traced with `samples` rays per pixel."""
+        self.sum[self.points[2], :3] += light * np.float32(samples)
+        self.passes += 1
+        self.weight += samples
 
     @property
     def samples_per_pixel(self) -> int:
-        return self.passes * self.samples
+        return self.weight
 
     def mean(self) -> np.ndarray:
         h, w = self.position.shape[:2]
         out = self.sum.copy()
-        out[:, :3] /= max(self.passes, 1)
+        out[:, :3] /= max(self.weight, 1)
         return out.reshape(h, w, 4)
 
 
@@ -93,7 +101,11 @@ class ViewState:
         # pixels), so soft shadows shimmer no more while the camera moves than once it stops.
         ratio = coarse_share * request.direct_position.shape[0] * request.direct_position.shape[1] / max(
             request.position.shape[0] * request.position.shape[1], 1)
-        self.coarse = DirectLevel(request.position, request.normal, gi_points, int(np.clip(round(ratio), 1, 16)))
+        # At least the ratio estimator's samples (`lights.RATIO_MIN_SAMPLES`): a wholly lit pixel's
+        # area lamp is then exact, not a one-ray guess (Cornell 640x360, the re-lit image after a
+        # light move, 0.1 s after it: Combined 0.085 -> 0.073 vs Cycles).
+        self.coarse = DirectLevel(request.position, request.normal, gi_points,
+                                  int(np.clip(round(ratio), RATIO_MIN_SAMPLES, 16)))
         self._fine: DirectLevel | None = None
         self.mask: np.ndarray | None = None
         self.visible: np.ndarray | None = None  # (n, 8) bool corner visibility of the GI points

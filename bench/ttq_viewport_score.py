@@ -1,7 +1,7 @@
 """Score bench/ttq_viewport.py output against a cached Cycles reference (the quick loop of issue
 #10's viewport work; bench/time_to_quality.py runs the same scoring inside its full run).
 
-    python bench/ttq_viewport_score.py OUT_DIR/record.json --scene cornell [--ref-cache DIR]
+    python bench/ttq_viewport_score.py OUT_DIR/record.json --scene cornell [--ref-cache DIR | --ref-exr EXR]
 
 OUT_DIR/record.json is ttq_viewport.py's stdout JSON line. Prints, per timeline, the Combined
 relative L1 at each checkpoint (and the worker step timings of the publication shown there).
@@ -47,11 +47,13 @@ def main(argv=None) -> int:
     parser.add_argument("--scene", required=True)
     parser.add_argument("--ref-cache", type=Path,
                         default=Path(os.environ.get("HYBRIDGI_REF_CACHE", "/work/main/out/ttq_refs")))
+    parser.add_argument("--ref-exr", type=Path,
+                        help="score against this EXR instead (a final render or a Cycles render of the same camera)")
     parser.add_argument("--steps", action="store_true", help="also print the worker step timings")
     args = parser.parse_args(argv)
     record = json.loads(args.record.read_text().strip().splitlines()[-1])
     folder = args.record.parent
-    ref = ttq.Reference(find_reference(args.ref_cache, args.scene, f"{record['width']}x{record['height']}"))
+    ref = ttq.Reference(args.ref_exr or find_reference(args.ref_cache, args.scene, f"{record['width']}x{record['height']}"))
     out = {}
     for name, shots in record["timelines"].items():
         row = []

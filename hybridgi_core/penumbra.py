@@ -30,6 +30,17 @@ SEED_OFFSET = 1 << 20
 FILTER_PASSES = 1
 
 
+def filter_camera(lights, eye) -> np.ndarray | None:
+    """The eye (3,) to hand `adaptive_direct` as `camera` (its penumbrae filtered), or None: an
+    orthographic view (eye[3] = 0), or a scene with a sun disc, whose penumbra is a pixel or two
+    wide (a filter over 5 x 5 pixels would blur it: car Diffuse Direct 0.0028 -> 0.0029, atrium
+    0.0185 -> 0.0189); area lamps' are wide. eye : `gbuffer.camera_eye`'s (x, y, z, w)."""
+    eye = np.asarray(eye, np.float64)
+    if eye[3] <= 0.5 or any(lt.kind == "SUN" and float(lt.angle) > 0 for lt in lights):
+        return None
+    return eye[:3]
+
+
 def dilate(mask: np.ndarray, radius: int) -> np.ndarray:
     """(h, w) bool: mask grown by `radius` pixels (a square neighbourhood), no wrap-around."""
     out = mask.copy()

@@ -705,11 +705,26 @@ def full_res_images(system, position_lo: np.ndarray, normal_lo: np.ndarray, pix:
       the refinement adds detail where the taps disagree and little noise where they do not. At
       most REFINE_BUDGET x the GI pixels' count refine, the most disagreeing first.
     """
+    lookup = hit_lookup(system, bounced=system.settings.indirect_quality == MULTI_BOUNCE) if rays > 0 else None
+    gi = trace_pixels(system, points, normals, rays, frame, corner_visible, lookup=lookup)
+    return full_res_resolve(system, gi, position_lo, pix, points, normals, view, frame, rays, full_points,
+                            full_normals, full_pix, full_size, passes, plane_sigma, normal_power, refine, lookup)
+
+
+def full_res_resolve(system, gi: PixelGI, position_lo: np.ndarray, pix: np.ndarray, points: np.ndarray,
+                     normals: np.ndarray, view: np.ndarray, frame: int, rays: int, full_points: np.ndarray,
+                     full_normals: np.ndarray, full_pix: np.ndarray, full_size: tuple[int, int], passes: int = 3,
+                     plane_sigma: float = 0.02, normal_power: float = 8.0, refine: float = REFINE_SPREAD,
+                     lookup: HitLookup | None = None) -> FullResGI:
+    """`full_res_images` after its GI pixels' rays `gi` (`trace_pixels` at points, frame, rays):
+    the filter, the per-pixel resolve and the detail pixels' own rays (frame + DETAIL_FRAME; lookup:
+    the HitLookup the GI pixels' rays read, None builds one). The viewport's worker traces `gi` in
+    slices over several steps and resolves it here."""
     width, height = full_size
     h, w = position_lo.shape[:2]
     factor = max(1, int(round(width / w)))
-    lookup = hit_lookup(system, bounced=system.settings.indirect_quality == MULTI_BOUNCE) if rays > 0 else None
-    gi = trace_pixels(system, points, normals, rays, frame, corner_visible, lookup=lookup)
+    if lookup is None and rays > 0:
+        lookup = hit_lookup(system, bounced=system.settings.indirect_quality == MULTI_BOUNCE)
     tic = time.perf_counter()
     est, cache, valid, res, pos, nrm, camera, var = image_planes(gi, pix, points, normals, view, h, w)
     # The estimate itself is filtered, not only its residual: the cache's own structure finer than

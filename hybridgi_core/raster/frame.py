@@ -17,7 +17,7 @@ from .. import glossy_image, pixel_gather
 from ..evaluate import HitLookup
 from ..glossy import cache_reflection, glossy_color
 from ..lights import RATIO_MIN_SAMPLES
-from ..penumbra import adaptive_direct
+from ..penumbra import adaptive_direct, filter_camera
 from ..reflection import (
     bsdf_lamps,
     filter_lamp_glossy,
@@ -266,12 +266,9 @@ class FramePipeline:
                 gi = self._gather_levels(system.levels, low, points, normals, pix, visible, view, proj, lit_tex)
         with stats.step("direct"):
             direct = np.zeros((self.height * self.width, 4), np.float32)
-            eye = np.asarray(camera_eye(view, proj), np.float64)
-            # A sun disc's penumbra is a pixel or two wide: a filter over 5 x 5 pixels would blur it
-            # (car Diffuse Direct 0.0028 -> 0.0029, atrium 0.0185 -> 0.0189); area lamps' are wide.
-            filtered = eye[3] > 0.5 and not any(lt.kind == "SUN" and float(lt.angle) > 0 for lt in system.scene.lights)
+            camera = filter_camera(system.scene.lights, camera_eye(view, proj))
             direct[pix_full, :3] = adaptive_direct(system.direct, p_full, n_full, pix_full, (self.height, self.width),
-                                                   frame, self.direct_samples, camera=eye[:3] if filtered else None,
+                                                   frame, self.direct_samples, camera=camera,
                                                    pool=system.updater.pool)[0]
         with stats.step("glossy"):
             glossy, glossy_col, glossy_ind = self._glossy(system, view, proj, p_full, n_full, pix_full, frame)
@@ -423,13 +420,7 @@ class FramePipeline:
         (the three full-res textures, the centre G-buffer's copy that guides them, the factor-1
         bilateral pass that reads them)."""
         s = self.settings
-        if self._full_copy is None:
-            self._full_copy = DownsamplePass(1)
-            self._bilateral_full = BilateralPass(s.with_(downsample=1))
-        self._bilateral_full.settings = s.with_(downsample=1)
-        for p in (self._full_copy, self._bilateral_full):
-            p.resize(self.width, self.height)
-        guide = self._full_copy.execute(gbuf)
+        guide, bilateral = self.full_res_guide(gbuf)
         p_full, n_full, pix_full = full
         out = pixel_gather.full_res_images(
             system, position_lo, normal_lo, pix, points, normals, visible, view, frame, s.pixel_rays,
@@ -444,7 +435,22 @@ class FramePipeline:
         neutral[..., 3] = 1.0
         textures = (upload_texture_2d(out.indirect, "RGBA32F"), upload_texture_2d(out.direct, "RGBA32F"),
                     upload_texture_2d(neutral, "RGBA16F"))
-        return textures, guide, self._bilateral_full
+        return textures, guide, bilateral
+
+    def full_res_guide(self, gbuf):
+        """(guide, bilateral) for GI textures at the full resolution (`pixel_gather.full_res_images`):
+        a copy of `gbuf`'s targets as a factor-1 "low-res" G-buffer (the guide of those samples,
+        as the downsampled G-buffer guides the GI resolution's; jittered subframes overwrite the
+        G-buffer, not the copy) and the factor-1 bilateral pass that reads them (`shade(gbuf,
+        guide, ..., gi=, bilateral=)`). Made on first use."""
+        s = self.settings
+        if self._full_copy is None:
+            self._full_copy = DownsamplePass(1)
+            self._bilateral_full = BilateralPass(s.with_(downsample=1))
+        self._bilateral_full.settings = s.with_(downsample=1)
+        for p in (self._full_copy, self._bilateral_full):
+            p.resize(self.width, self.height)
+        return self._full_copy.execute(gbuf), self._bilateral_full
 
     def _pixel_gi(self, system, position_lo, normal_lo, pix, points, normals, visible, view, frame, stats):
         """Per-pixel final gather (`pixel_gather.gi_images`) as the textures the gather and the
