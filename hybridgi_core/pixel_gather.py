@@ -518,6 +518,10 @@ class FullResGI:
     gi: PixelGI
     detail: int = 0
     steps_ms: dict[str, float] = field(default_factory=dict)
+    #: (H * W, 7) the resolved values (direct rgb, indirect rgb, AO) per flat full-res pixel, and
+    #: what resolves them again at other samples (a jittered subframe's surfaces).
+    value: np.ndarray | None = None
+    resolver: GIResolver | None = None
 
 
 def sample_pixels(position_lo: np.ndarray, full_points: np.ndarray, full_pix: np.ndarray, width: int, height: int,
@@ -548,7 +552,7 @@ def sample_pixels(position_lo: np.ndarray, full_points: np.ndarray, full_pix: np
 def upsample_full(sh_lo: np.ndarray, cache_lo: np.ndarray, residual_lo: np.ndarray, position_lo: np.ndarray,
                   normal_lo: np.ndarray, valid_lo: np.ndarray, points: np.ndarray, normals: np.ndarray, pix: np.ndarray, width: int,
                   factor: int, camera: np.ndarray, plane_sigma: float = 0.02, normal_power: float = 8.0,
-                  sigma: float = 1.0, rep_xy: np.ndarray | None = None) -> Upsampled:
+                  sigma: float = 1.0, rep_xy: np.ndarray | None = None, offset=(0.0, 0.0)) -> Upsampled:
     """Interpolate the GI resolution at the full-res pixels `pix` (flat, rows of `width`) with
     points / unit normals (n, 3), from the GI pixels' blended cache SH sh_lo (h*w, K, 7), its
     irradiance at their own normals cache_lo (h*w, 7) and their filtered residuals residual_lo
@@ -566,6 +570,8 @@ def upsample_full(sh_lo: np.ndarray, cache_lo: np.ndarray, residual_lo: np.ndarr
     the spatial weight measures from there. None = the block centres; the downsample's
     nearest-depth pick is not the centre, and on a slope it is the same corner in every block, which
     shifts a gradient by half a full-res pixel the same way everywhere (a bias, not noise).
+    offset : (x, y) full-res pixels from the pixel centres to where the points were sampled (a
+    jittered subframe's, `GIResolver`); the spatial weights measure from there.
     """
     h, w = valid_lo.shape
     n = points.shape[0]
@@ -573,7 +579,7 @@ def upsample_full(sh_lo: np.ndarray, cache_lo: np.ndarray, residual_lo: np.ndarr
     x = (pix % width).astype(np.int64)
     y = (pix // width).astype(np.int64)
     i0, j0 = x // factor, y // factor
-    xf, yf = x.astype(np.float32), y.astype(np.float32)
+    xf, yf = x.astype(np.float32) + np.float32(offset[0]), y.astype(np.float32) + np.float32(offset[1])
     if rep_xy is None:
         grid = np.arange(h * w)
         rep_xy = np.stack([(grid % w + 0.5) * factor - 0.5, (grid // w + 0.5) * factor - 0.5], axis=1)
@@ -666,18 +672,18 @@ UPSAMPLE_CHUNK = 16384
 
 
 def _upsample_parallel(system, sh_lo, cache_lo, residual_lo, position_lo, normal_lo, valid_lo, points, normals, pix,
-                       width, factor, camera, plane_sigma, normal_power, rep_xy) -> Upsampled:
+                       width, factor, camera, plane_sigma, normal_power, rep_xy, offset=(0.0, 0.0)) -> Upsampled:
     """`upsample_full` over chunks of pixels on the system's worker pool (numpy releases the GIL)."""
     starts = range(0, points.shape[0], UPSAMPLE_CHUNK)
     jobs = [system.updater.pool.submit(upsample_full, sh_lo, cache_lo, residual_lo, position_lo, normal_lo, valid_lo,
                                        points[a:a + UPSAMPLE_CHUNK], normals[a:a + UPSAMPLE_CHUNK],
                                        pix[a:a + UPSAMPLE_CHUNK], width, factor, camera, plane_sigma, normal_power,
-                                       rep_xy=rep_xy)
+                                       rep_xy=rep_xy, offset=offset)
             for a in starts]
     parts = [job.result() for job in jobs]
     if not parts:
         return upsample_full(sh_lo, cache_lo, residual_lo, position_lo, normal_lo, valid_lo, points, normals, pix,
-                             width, factor, camera, plane_sigma, normal_power, rep_xy=rep_xy)
+                             width, factor, camera, plane_sigma, normal_power, rep_xy=rep_xy, offset=offset)
     return Upsampled(*(np.concatenate([getattr(p, f) for p in parts])
                        for f in ("cache", "residual", "spread", "best", "cover", "turned")))
 
@@ -735,6 +741,8 @@ def full_res_images(system, position_lo: np.ndarray, normal_lo: np.ndarray, pix:
     up = _upsample_parallel(system, sh_lo, cache_lo, filtered, pos.reshape(h, w, 3), nrm.reshape(h, w, 3),
                             valid.reshape(h, w), full_points, full_normals, full_pix, width, factor, camera,
                             plane_sigma, normal_power, rep_xy)
+    resolver = GIResolver(system, sh_lo, cache_lo, filtered, pos.reshape(h, w, 3), nrm.reshape(h, w, 3),
+                          valid.reshape(h, w), rep_xy, width, factor, camera, plane_sigma, normal_power, lookup, rays)
     value = up.cache + up.residual
     orphan = up.best < DETAIL_MATCH
     light = np.maximum((value[:, 0:3] + value[:, 3:6]) @ LUMA, np.float32(1e-6))
@@ -773,4 +781,60 @@ def full_res_images(system, position_lo: np.ndarray, normal_lo: np.ndarray, pix:
         gi.rays += own.rays
     indirect, direct = textures(value, full_pix, height, width)
     steps.update(gi.steps_ms)
-    return FullResGI(indirect, direct, gi, int(detail.size), steps)
+    flat = np.zeros((height * width, 7), np.float32)
+    flat[full_pix] = value
+    return FullResGI(indirect, direct, gi, int(detail.size), steps, flat, resolver)
+
+
+@dataclass
+class GIResolver:
+    """The GI resolution's filtered state (`full_res_images`), kept to resolve the GI at other
+    full-res samples than the centre raster's: a jittered subframe's pixels that see another
+    surface than the pixel centre (a thin post's edge, the ground behind it, a bar the centre
+    missed).
+
+    Why: Cycles' Diffuse Indirect is sum(colour x light) / sum(colour) over a pixel's samples, so
+    each sample's surface must bring its own light; the centre's GI, upsampled to the subframe's
+    surface, has no tap on a surface the centre raster did not see (a 4 cm bar between pixel
+    centres) and takes a neighbour's light, or none."""
+
+    system: object
+    sh_lo: np.ndarray
+    cache_lo: np.ndarray
+    residual_lo: np.ndarray
+    position_lo: np.ndarray
+    normal_lo: np.ndarray
+    valid_lo: np.ndarray
+    rep_xy: np.ndarray
+    width: int
+    factor: int
+    camera: np.ndarray
+    plane_sigma: float
+    normal_power: float
+    lookup: HitLookup | None
+    rays: int
+
+    def at(self, points: np.ndarray, normals: np.ndarray, pix: np.ndarray, offset, frame: int,
+           rays: int | None = None) -> tuple[np.ndarray, int]:
+        """((n, 7) GI values, rays traced) at samples (points, unit normals (n, 3)) of full-res
+        pixels pix taken at pixel centre + offset (pixels): the interpolated cache SH and residual,
+        as `full_res_images` resolves every pixel; samples no GI pixel near shares a surface with
+        take their own estimate from `rays` rays (default: the GI pixels' count)."""
+        points = np.ascontiguousarray(points, np.float32)
+        normals = np.ascontiguousarray(normals, np.float32)
+        if points.shape[0] == 0:
+            return np.zeros((0, 7), np.float32), 0
+        up = _upsample_parallel(self.system, self.sh_lo, self.cache_lo, self.residual_lo, self.position_lo,
+                                self.normal_lo, self.valid_lo, points, normals, pix, self.width, self.factor,
+                                self.camera, self.plane_sigma, self.normal_power, self.rep_xy, offset=offset)
+        value = up.cache + up.residual
+        orphan = np.flatnonzero(up.best < DETAIL_MATCH)
+        rays = self.rays if rays is None else int(rays)
+        traced = 0
+        if orphan.size and rays > 0:
+            dp, dn = points[orphan], normals[orphan]
+            own = trace_pixels(self.system, dp, dn, rays, frame + DETAIL_FRAME, self.system.corner_visibility(dp, dn),
+                               lookup=self.lookup, chunk_rays=DETAIL_CHUNK_RAYS)
+            value[orphan] = own.channels()[0]
+            traced = own.rays
+        return value, traced
