@@ -108,6 +108,9 @@ class PixelGI:
     cache_indirect: np.ndarray
     cache_ao: np.ndarray
     variance: np.ndarray | None = None  # (n, 2) of the means of luminance (direct + indirect) and AO
+    #: (n, 2) variances of the means of the direct and of the indirect light's luminance (the
+    #: split guides of `full_res_images`' filter).
+    light_variance: np.ndarray | None = None
     #: (n, K, 7) the cache gather's blended radiance SH at the points (direct rgb | indirect rgb |
     #: AO visibility; a point no valid cell covers holds the constant 1 in AO): what
     #: `upsample_full` re-evaluates at the full-res normals.
@@ -175,7 +178,7 @@ def trace_pixels(system, points: np.ndarray, normals: np.ndarray, rays: int, fra
     # Columns: residual direct rgb, indirect rgb, AO | luminance and AO variances | the cache's
     # direct rgb, indirect rgb, AO. Everything per chunk of pixels on the worker pool, so no
     # per-pixel (n, 8, K, 3) temporaries exist for the whole image at once.
-    out = np.zeros((n, 16), np.float32)
+    out = np.zeros((n, 18), np.float32)
     k = cache.settings.sh_coeffs
     sh_all = np.zeros((n, k, 7), np.float32)
     if n:
@@ -196,18 +199,19 @@ def trace_pixels(system, points: np.ndarray, normals: np.ndarray, rays: int, fra
     # Residual means (estimate - the cache along the same rays) plus the cache's exact integrals.
     cd, ci, ca = out[:, 9:12], out[:, 12:15], out[:, 15]
     return PixelGI(out[:, 0:3] + cd, out[:, 3:6] + ci, out[:, 6] + ca, cd, ci, ca, variance=out[:, 7:9],
-                   sh=sh_all, rays=n * rays, steps_ms=steps)
+                   light_variance=out[:, 16:18], sh=sh_all, rays=n * rays, steps_ms=steps)
 
 
 def _chunk(system, lookup: HitLookup | None, p, nrm, corner_visible, rays, rng):
-    """Worker: (m, 16) of m pixels: mean residuals pi/N sum (L - L_cache) (direct rgb, indirect
-    rgb, AO as 1/N sum (v - V_cache)), the variances of the luminance and AO means, and the
-    cache gather's direct rgb, indirect rgb and AO; (m, K, 7) the blended SH; and step times."""
+    """Worker: (m, 18) of m pixels: mean residuals pi/N sum (L - L_cache) (direct rgb, indirect
+    rgb, AO as 1/N sum (v - V_cache)), the variances of the luminance and AO means, the cache
+    gather's direct rgb, indirect rgb and AO, the variances of the direct and of the indirect
+    luminance means; (m, K, 7) the blended SH; and step times."""
     times = {}
     s = system.settings
     tic = time.perf_counter()
     m = p.shape[0]
-    res = np.zeros((m, 16), np.float32)
+    res = np.zeros((m, 18), np.float32)
     levels = getattr(system, "levels", None)
     sh_d, sh_i, sh_a, covered = (cache_sh_at(system.cache, p, nrm, corner_visible) if levels is None
                                  else levels.sh_at(p, nrm, corner_visible))
@@ -250,10 +254,13 @@ def _chunk(system, lookup: HitLookup | None, p, nrm, corner_visible, rays, rng):
     # Variance of the two filter guides' means (luminance of all light, AO), from the rays' own
     # spread around their control variate: what the filter may average away as noise.
     luma = LUMA.astype(np.float32)
-    lum = (r[..., 0:3] + r[..., 3:6]) @ luma - np.matmul(y, ((sh_d + sh_i) @ luma)[..., None])[..., 0]
+    lum_d = r[..., 0:3] @ luma - np.matmul(y, (sh_d @ luma)[..., None])[..., 0]
+    lum_i = r[..., 3:6] @ luma - np.matmul(y, (sh_i @ luma)[..., None])[..., 0]
     ao = visible.reshape(m, rays) - np.where(covered[:, None], np.matmul(y, sh_a[..., None])[..., 0], np.float32(1.0))
     of_mean = np.float32(1.0 / max(rays - 1, 1))  # sample variance / N
-    res[:, 7] = lum.var(axis=1) * np.float32(np.pi**2) * of_mean
+    res[:, 7] = (lum_d + lum_i).var(axis=1) * np.float32(np.pi**2) * of_mean
+    res[:, 16] = lum_d.var(axis=1) * np.float32(np.pi**2) * of_mean
+    res[:, 17] = lum_i.var(axis=1) * np.float32(np.pi**2) * of_mean
     res[:, 8] = ao.var(axis=1) * of_mean
     _more_ao_rays(system, res, p, nrm, ao_mean, sh_a, covered, rays, rng, times)
     times["shade"] = (time.perf_counter() - tic) * 1e3 - times.get("shadow", 0.0)
@@ -339,8 +346,10 @@ def filter_residual(residual: np.ndarray, position: np.ndarray, normal: np.ndarr
     side of a crease, does not count.
 
     variance : (h, w, 2) variances of the pixels' luminance (of direct + indirect) and AO, or
-    None. Given, taps also stop where the residual differs by more than noise_sigma standard
-    deviations of the noise (SVGF, Schied et al. 2017; the variance filtered along with the
+    (h, w, 3) of the direct's luminance, the indirect's luminance and AO (split guides: each
+    group of channels stops at its own differences, so a contact's faint bounce light is not
+    averaged away as noise of the far brighter sky light beside it), or None. Given, taps also
+    stop where the residual differs by more than noise_sigma standard deviations of the noise (SVGF, Schied et al. 2017; the variance filtered along with the
     image): a contact's correction on a plane stays at the contact instead of spreading over
     the plane, while the noise around it averages out.
 
@@ -375,9 +384,13 @@ def filter_residual(residual: np.ndarray, position: np.ndarray, normal: np.ndarr
         pr, pp, pn = (np.pad(a, widths) for a in (img, pos, nrm))
         pv = np.pad(vf, pad)
         acc = np.zeros_like(img)
-        wsum = np.zeros((2, h, w), np.float32)
+        split = var is not None and var.shape[0] == 3
+        wsum = np.zeros((3 if split else 2, h, w), np.float32)
         if var is not None:
-            guide = np.stack([(img[0:3] + img[3:6]).transpose(1, 2, 0) @ LUMA, img[6]])
+            if split:
+                guide = np.stack([img[0:3].transpose(1, 2, 0) @ LUMA, img[3:6].transpose(1, 2, 0) @ LUMA, img[6]])
+            else:
+                guide = np.stack([(img[0:3] + img[3:6]).transpose(1, 2, 0) @ LUMA, img[6]])
             pg, pvar = np.pad(guide, widths), np.pad(var, widths)
             acc_var = np.zeros_like(var)
         for dy in range(5):
@@ -398,13 +411,21 @@ def filter_residual(residual: np.ndarray, position: np.ndarray, normal: np.ndarr
                 # and range terms share one exp.
                 diff = pg[:, ys, xs] - guide
                 wt2 = wt * np.exp(-(diff * diff) / (k2 * (var + pvar[:, ys, xs]) + np.float32(1e-12)) - plane * plane)
-                acc[0:6] += wt2[0] * pr[0:6, ys, xs]
-                acc[6] += wt2[1] * pr[6, ys, xs]
+                if split:
+                    acc[0:3] += wt2[0] * pr[0:3, ys, xs]
+                    acc[3:6] += wt2[1] * pr[3:6, ys, xs]
+                else:
+                    acc[0:6] += wt2[0] * pr[0:6, ys, xs]
+                acc[6] += wt2[-1] * pr[6, ys, xs]
                 acc_var += wt2 * wt2 * pvar[:, ys, xs]
                 wsum += wt2
         total = np.maximum(wsum, np.float32(1e-12))
-        img[0:6] = acc[0:6] / total[0]
-        img[6] = acc[6] / total[1]
+        if split:
+            img[0:3] = acc[0:3] / total[0]
+            img[3:6] = acc[3:6] / total[1]
+        else:
+            img[0:6] = acc[0:6] / total[0]
+        img[6] = acc[6] / total[-1]
         img *= vf
         if var is not None:
             var = acc_var / (total * total) * vf
@@ -724,9 +745,13 @@ def full_res_images(system, position_lo: np.ndarray, normal_lo: np.ndarray, pix:
     # At 320x240 vs Cycles: trusses AO 0.057 -> 0.053, contact AO 0.011 -> 0.010, car DI 0.083 -> 0.081.
     est_img = np.zeros((h * w, 7), np.float32)
     est_img[pix] = est
+    guides = np.zeros((h * w, 3), np.float32)  # split guides: direct, indirect, AO
+    if gi.light_variance is not None:
+        guides[pix, 0:2] = gi.light_variance
+    guides[:, 2] = var[:, 1]
     smooth = filter_residual(est_img.reshape(h, w, 7), pos.reshape(h, w, 3), nrm.reshape(h, w, 3),
                              valid.reshape(h, w), camera, passes, plane_sigma, normal_power,
-                             variance=var.reshape(h, w, 2), noise_sigma=FULL_RES_NOISE_SIGMA,
+                             variance=guides.reshape(h, w, 3), noise_sigma=FULL_RES_NOISE_SIGMA,
                              pool=system.updater.pool).reshape(h * w, 7)
     filtered = (smooth - (est_img - res)) * valid[:, None]  # as a residual of each GI pixel's own cache
     steps = {"filter": (time.perf_counter() - tic) * 1e3}
