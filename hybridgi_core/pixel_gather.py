@@ -109,7 +109,7 @@ class PixelGI:
     cache_ao: np.ndarray
     variance: np.ndarray | None = None  # (n, 2) of the means of luminance (direct + indirect) and AO
     #: (n, 2) variances of the means of the direct and of the indirect light's luminance (the
-    #: split guides of `full_res_images`' filter).
+    #: indirect one is the second guide of `full_res_images`' filter).
     light_variance: np.ndarray | None = None
     #: (n, K, 7) the cache gather's blended radiance SH at the points (direct rgb | indirect rgb |
     #: AO visibility; a point no valid cell covers holds the constant 1 in AO): what
@@ -346,10 +346,11 @@ def filter_residual(residual: np.ndarray, position: np.ndarray, normal: np.ndarr
     side of a crease, does not count.
 
     variance : (h, w, 2) variances of the pixels' luminance (of direct + indirect) and AO, or
-    (h, w, 3) of the direct's luminance, the indirect's luminance and AO (split guides: each
-    group of channels stops at its own differences, so a contact's faint bounce light is not
-    averaged away as noise of the far brighter sky light beside it), or None. Given, taps also
-    stop where the residual differs by more than noise_sigma standard deviations of the noise (SVGF, Schied et al. 2017; the variance filtered along with the
+    (h, w, 3) of the luminance of all light, of the indirect light alone and AO (a second guide
+    for the colour channels: a tap must agree in both, so a contact's faint bounce light is not
+    averaged away as noise of the far brighter sky light beside it, while direct and indirect
+    still share one weight: their noise is anticorrelated, a ray that sees the sky sees no wall,
+    and split weights would leave Combined noisier), or None. Given, taps also stop where the residual differs by more than noise_sigma standard deviations of the noise (SVGF, Schied et al. 2017; the variance filtered along with the
     image): a contact's correction on a plane stays at the contact instead of spreading over
     the plane, while the noise around it averages out.
 
@@ -388,7 +389,8 @@ def filter_residual(residual: np.ndarray, position: np.ndarray, normal: np.ndarr
         wsum = np.zeros((3 if split else 2, h, w), np.float32)
         if var is not None:
             if split:
-                guide = np.stack([img[0:3].transpose(1, 2, 0) @ LUMA, img[3:6].transpose(1, 2, 0) @ LUMA, img[6]])
+                guide = np.stack([(img[0:3] + img[3:6]).transpose(1, 2, 0) @ LUMA, img[3:6].transpose(1, 2, 0) @ LUMA,
+                                  img[6]])
             else:
                 guide = np.stack([(img[0:3] + img[3:6]).transpose(1, 2, 0) @ LUMA, img[6]])
             pg, pvar = np.pad(guide, widths), np.pad(var, widths)
@@ -412,19 +414,14 @@ def filter_residual(residual: np.ndarray, position: np.ndarray, normal: np.ndarr
                 diff = pg[:, ys, xs] - guide
                 wt2 = wt * np.exp(-(diff * diff) / (k2 * (var + pvar[:, ys, xs]) + np.float32(1e-12)) - plane * plane)
                 if split:
-                    acc[0:3] += wt2[0] * pr[0:3, ys, xs]
-                    acc[3:6] += wt2[1] * pr[3:6, ys, xs]
-                else:
-                    acc[0:6] += wt2[0] * pr[0:6, ys, xs]
+                    both = wt2[0] * wt2[1]
+                    wt2 = np.stack([both, both, wt2[2]])
+                acc[0:6] += wt2[0] * pr[0:6, ys, xs]
                 acc[6] += wt2[-1] * pr[6, ys, xs]
                 acc_var += wt2 * wt2 * pvar[:, ys, xs]
                 wsum += wt2
         total = np.maximum(wsum, np.float32(1e-12))
-        if split:
-            img[0:3] = acc[0:3] / total[0]
-            img[3:6] = acc[3:6] / total[1]
-        else:
-            img[0:6] = acc[0:6] / total[0]
+        img[0:6] = acc[0:6] / total[0]
         img[6] = acc[6] / total[-1]
         img *= vf
         if var is not None:
@@ -745,9 +742,10 @@ def full_res_images(system, position_lo: np.ndarray, normal_lo: np.ndarray, pix:
     # At 320x240 vs Cycles: trusses AO 0.057 -> 0.053, contact AO 0.011 -> 0.010, car DI 0.083 -> 0.081.
     est_img = np.zeros((h * w, 7), np.float32)
     est_img[pix] = est
-    guides = np.zeros((h * w, 3), np.float32)  # split guides: direct, indirect, AO
+    guides = np.zeros((h * w, 3), np.float32)  # guides: all light, indirect light, AO
     if gi.light_variance is not None:
-        guides[pix, 0:2] = gi.light_variance
+        guides[pix, 1] = gi.light_variance[:, 1]
+    guides[:, 0] = var[:, 0]
     guides[:, 2] = var[:, 1]
     smooth = filter_residual(est_img.reshape(h, w, 7), pos.reshape(h, w, 3), nrm.reshape(h, w, 3),
                              valid.reshape(h, w), camera, passes, plane_sigma, normal_power,

@@ -198,12 +198,12 @@ def test_variance_guided_filter_keeps_a_contact_sharp_on_one_plane():
     assert guided[outside].std() < 0.5 * res[outside].std()
 
 
-def test_split_guides_keep_a_faint_bounce_beside_noisy_sky_light():
+def test_an_indirect_guide_keeps_a_faint_bounce_beside_noisy_sky_light():
     """Sky light of ~3 with noise of standard deviation 0.3 (the direct channels) and a faint
     bounce (+0.2 over a strip, a post's foot on sunlit ground) on indirect light of 0.05 with noise
     0.02, on one plane. One guide for all light (luminance of direct + indirect, its variance
-    dominated by the sky's) averages the strip away as noise; split guides (the direct's and the
-    indirect's own luminance and variance) keep it, and still smooth the sky's noise."""
+    dominated by the sky's) averages the strip away as noise; with the indirect light's own
+    luminance and variance as a second guide it stays, and the sky's noise is still smoothed."""
     pos, nrm = _plane_image()
     h, w = pos.shape[:2]
     rng = np.random.default_rng(3)
@@ -220,17 +220,17 @@ def test_split_guides_keep_a_faint_bounce_beside_noisy_sky_light():
     # indirect, of AO.
     d, i = 0.3**2, 0.02**2
     joint = np.stack([np.full((h, w), d + i), np.zeros((h, w))], -1).astype(np.float32)
-    split = np.stack([np.full((h, w), d), np.full((h, w), i), np.zeros((h, w))], -1).astype(np.float32)
+    split = np.stack([np.full((h, w), d + i), np.full((h, w), i), np.zeros((h, w))], -1).astype(np.float32)
     one = pixel_gather.filter_residual(res, pos, nrm, valid, eye, variance=joint, noise_sigma=1.0)
     two = pixel_gather.filter_residual(res, pos, nrm, valid, eye, variance=split, noise_sigma=1.0)
     bump = {k: float(v[strip, 4].mean() - 0.05) for k, v in (("one", one), ("two", two))}
-    # Measured: the strip keeps 0.20 of its 0.2 with split guides, 0.10 with one; the sky's noise
-    # drops to 0.61 of its standard deviation.
+    # Measured: the strip keeps 0.20 of its 0.2 with both guides, 0.10 with one; the sky's noise
+    # drops to 0.75 of its standard deviation (0.61 with one guide: a tap must agree in both).
     assert bump["two"] > 0.17, bump
     assert bump["one"] < 0.12, bump
     outside = ~strip
     outside[:, 26:37] = False
-    assert two[outside, 0].std() < 0.7 * res[outside, 0].std()
+    assert two[outside, 0].std() < 0.8 * res[outside, 0].std()
 
 
 def test_filter_keeps_a_correction_on_its_own_surface():
