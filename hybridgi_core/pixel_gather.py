@@ -108,6 +108,9 @@ class PixelGI:
     cache_indirect: np.ndarray
     cache_ao: np.ndarray
     variance: np.ndarray | None = None  # (n, 2) of the means of luminance (direct + indirect) and AO
+    #: (n, 2) variances of the means of the direct and of the indirect light's luminance (the
+    #: indirect one is the second guide of `full_res_images`' filter).
+    light_variance: np.ndarray | None = None
     #: (n, K, 7) the cache gather's blended radiance SH at the points (direct rgb | indirect rgb |
     #: AO visibility; a point no valid cell covers holds the constant 1 in AO): what
     #: `upsample_full` re-evaluates at the full-res normals.
@@ -175,7 +178,7 @@ def trace_pixels(system, points: np.ndarray, normals: np.ndarray, rays: int, fra
     # Columns: residual direct rgb, indirect rgb, AO | luminance and AO variances | the cache's
     # direct rgb, indirect rgb, AO. Everything per chunk of pixels on the worker pool, so no
     # per-pixel (n, 8, K, 3) temporaries exist for the whole image at once.
-    out = np.zeros((n, 16), np.float32)
+    out = np.zeros((n, 18), np.float32)
     k = cache.settings.sh_coeffs
     sh_all = np.zeros((n, k, 7), np.float32)
     if n:
@@ -196,18 +199,19 @@ def trace_pixels(system, points: np.ndarray, normals: np.ndarray, rays: int, fra
     # Residual means (estimate - the cache along the same rays) plus the cache's exact integrals.
     cd, ci, ca = out[:, 9:12], out[:, 12:15], out[:, 15]
     return PixelGI(out[:, 0:3] + cd, out[:, 3:6] + ci, out[:, 6] + ca, cd, ci, ca, variance=out[:, 7:9],
-                   sh=sh_all, rays=n * rays, steps_ms=steps)
+                   light_variance=out[:, 16:18], sh=sh_all, rays=n * rays, steps_ms=steps)
 
 
 def _chunk(system, lookup: HitLookup | None, p, nrm, corner_visible, rays, rng):
-    """Worker: (m, 16) of m pixels: mean residuals pi/N sum (L - L_cache) (direct rgb, indirect
-    rgb, AO as 1/N sum (v - V_cache)), the variances of the luminance and AO means, and the
-    cache gather's direct rgb, indirect rgb and AO; (m, K, 7) the blended SH; and step times."""
+    """Worker: (m, 18) of m pixels: mean residuals pi/N sum (L - L_cache) (direct rgb, indirect
+    rgb, AO as 1/N sum (v - V_cache)), the variances of the luminance and AO means, the cache
+    gather's direct rgb, indirect rgb and AO, the variances of the direct and of the indirect
+    luminance means; (m, K, 7) the blended SH; and step times."""
     times = {}
     s = system.settings
     tic = time.perf_counter()
     m = p.shape[0]
-    res = np.zeros((m, 16), np.float32)
+    res = np.zeros((m, 18), np.float32)
     levels = getattr(system, "levels", None)
     sh_d, sh_i, sh_a, covered = (cache_sh_at(system.cache, p, nrm, corner_visible) if levels is None
                                  else levels.sh_at(p, nrm, corner_visible))
@@ -250,10 +254,13 @@ def _chunk(system, lookup: HitLookup | None, p, nrm, corner_visible, rays, rng):
     # Variance of the two filter guides' means (luminance of all light, AO), from the rays' own
     # spread around their control variate: what the filter may average away as noise.
     luma = LUMA.astype(np.float32)
-    lum = (r[..., 0:3] + r[..., 3:6]) @ luma - np.matmul(y, ((sh_d + sh_i) @ luma)[..., None])[..., 0]
+    lum_d = r[..., 0:3] @ luma - np.matmul(y, (sh_d @ luma)[..., None])[..., 0]
+    lum_i = r[..., 3:6] @ luma - np.matmul(y, (sh_i @ luma)[..., None])[..., 0]
     ao = visible.reshape(m, rays) - np.where(covered[:, None], np.matmul(y, sh_a[..., None])[..., 0], np.float32(1.0))
     of_mean = np.float32(1.0 / max(rays - 1, 1))  # sample variance / N
-    res[:, 7] = lum.var(axis=1) * np.float32(np.pi**2) * of_mean
+    res[:, 7] = (lum_d + lum_i).var(axis=1) * np.float32(np.pi**2) * of_mean
+    res[:, 16] = lum_d.var(axis=1) * np.float32(np.pi**2) * of_mean
+    res[:, 17] = lum_i.var(axis=1) * np.float32(np.pi**2) * of_mean
     res[:, 8] = ao.var(axis=1) * of_mean
     _more_ao_rays(system, res, p, nrm, ao_mean, sh_a, covered, rays, rng, times)
     times["shade"] = (time.perf_counter() - tic) * 1e3 - times.get("shadow", 0.0)
@@ -339,8 +346,11 @@ def filter_residual(residual: np.ndarray, position: np.ndarray, normal: np.ndarr
     side of a crease, does not count.
 
     variance : (h, w, 2) variances of the pixels' luminance (of direct + indirect) and AO, or
-    None. Given, taps also stop where the residual differs by more than noise_sigma standard
-    deviations of the noise (SVGF, Schied et al. 2017; the variance filtered along with the
+    (h, w, 3) of the luminance of all light, of the indirect light alone and AO (a second guide
+    for the colour channels: a tap must agree in both, so a contact's faint bounce light is not
+    averaged away as noise of the far brighter sky light beside it, while direct and indirect
+    still share one weight: their noise is anticorrelated, a ray that sees the sky sees no wall,
+    and split weights would leave Combined noisier), or None. Given, taps also stop where the residual differs by more than noise_sigma standard deviations of the noise (SVGF, Schied et al. 2017; the variance filtered along with the
     image): a contact's correction on a plane stays at the contact instead of spreading over
     the plane, while the noise around it averages out.
 
@@ -375,9 +385,14 @@ def filter_residual(residual: np.ndarray, position: np.ndarray, normal: np.ndarr
         pr, pp, pn = (np.pad(a, widths) for a in (img, pos, nrm))
         pv = np.pad(vf, pad)
         acc = np.zeros_like(img)
-        wsum = np.zeros((2, h, w), np.float32)
+        split = var is not None and var.shape[0] == 3
+        wsum = np.zeros((3 if split else 2, h, w), np.float32)
         if var is not None:
-            guide = np.stack([(img[0:3] + img[3:6]).transpose(1, 2, 0) @ LUMA, img[6]])
+            if split:
+                guide = np.stack([(img[0:3] + img[3:6]).transpose(1, 2, 0) @ LUMA, img[3:6].transpose(1, 2, 0) @ LUMA,
+                                  img[6]])
+            else:
+                guide = np.stack([(img[0:3] + img[3:6]).transpose(1, 2, 0) @ LUMA, img[6]])
             pg, pvar = np.pad(guide, widths), np.pad(var, widths)
             acc_var = np.zeros_like(var)
         for dy in range(5):
@@ -398,13 +413,16 @@ def filter_residual(residual: np.ndarray, position: np.ndarray, normal: np.ndarr
                 # and range terms share one exp.
                 diff = pg[:, ys, xs] - guide
                 wt2 = wt * np.exp(-(diff * diff) / (k2 * (var + pvar[:, ys, xs]) + np.float32(1e-12)) - plane * plane)
+                if split:
+                    both = wt2[0] * wt2[1]
+                    wt2 = np.stack([both, both, wt2[2]])
                 acc[0:6] += wt2[0] * pr[0:6, ys, xs]
-                acc[6] += wt2[1] * pr[6, ys, xs]
+                acc[6] += wt2[-1] * pr[6, ys, xs]
                 acc_var += wt2 * wt2 * pvar[:, ys, xs]
                 wsum += wt2
         total = np.maximum(wsum, np.float32(1e-12))
         img[0:6] = acc[0:6] / total[0]
-        img[6] = acc[6] / total[1]
+        img[6] = acc[6] / total[-1]
         img *= vf
         if var is not None:
             var = acc_var / (total * total) * vf
@@ -518,6 +536,10 @@ class FullResGI:
     gi: PixelGI
     detail: int = 0
     steps_ms: dict[str, float] = field(default_factory=dict)
+    #: (H * W, 7) the resolved values (direct rgb, indirect rgb, AO) per flat full-res pixel, and
+    #: what resolves them again at other samples (a jittered subframe's surfaces).
+    value: np.ndarray | None = None
+    resolver: GIResolver | None = None
 
 
 def sample_pixels(position_lo: np.ndarray, full_points: np.ndarray, full_pix: np.ndarray, width: int, height: int,
@@ -548,7 +570,7 @@ def sample_pixels(position_lo: np.ndarray, full_points: np.ndarray, full_pix: np
 def upsample_full(sh_lo: np.ndarray, cache_lo: np.ndarray, residual_lo: np.ndarray, position_lo: np.ndarray,
                   normal_lo: np.ndarray, valid_lo: np.ndarray, points: np.ndarray, normals: np.ndarray, pix: np.ndarray, width: int,
                   factor: int, camera: np.ndarray, plane_sigma: float = 0.02, normal_power: float = 8.0,
-                  sigma: float = 1.0, rep_xy: np.ndarray | None = None) -> Upsampled:
+                  sigma: float = 1.0, rep_xy: np.ndarray | None = None, offset=(0.0, 0.0)) -> Upsampled:
     """Interpolate the GI resolution at the full-res pixels `pix` (flat, rows of `width`) with
     points / unit normals (n, 3), from the GI pixels' blended cache SH sh_lo (h*w, K, 7), its
     irradiance at their own normals cache_lo (h*w, 7) and their filtered residuals residual_lo
@@ -566,6 +588,8 @@ def upsample_full(sh_lo: np.ndarray, cache_lo: np.ndarray, residual_lo: np.ndarr
     the spatial weight measures from there. None = the block centres; the downsample's
     nearest-depth pick is not the centre, and on a slope it is the same corner in every block, which
     shifts a gradient by half a full-res pixel the same way everywhere (a bias, not noise).
+    offset : (x, y) full-res pixels from the pixel centres to where the points were sampled (a
+    jittered subframe's, `GIResolver`); the spatial weights measure from there.
     """
     h, w = valid_lo.shape
     n = points.shape[0]
@@ -573,7 +597,7 @@ def upsample_full(sh_lo: np.ndarray, cache_lo: np.ndarray, residual_lo: np.ndarr
     x = (pix % width).astype(np.int64)
     y = (pix // width).astype(np.int64)
     i0, j0 = x // factor, y // factor
-    xf, yf = x.astype(np.float32), y.astype(np.float32)
+    xf, yf = x.astype(np.float32) + np.float32(offset[0]), y.astype(np.float32) + np.float32(offset[1])
     if rep_xy is None:
         grid = np.arange(h * w)
         rep_xy = np.stack([(grid % w + 0.5) * factor - 0.5, (grid // w + 0.5) * factor - 0.5], axis=1)
@@ -666,18 +690,18 @@ UPSAMPLE_CHUNK = 16384
 
 
 def _upsample_parallel(system, sh_lo, cache_lo, residual_lo, position_lo, normal_lo, valid_lo, points, normals, pix,
-                       width, factor, camera, plane_sigma, normal_power, rep_xy) -> Upsampled:
+                       width, factor, camera, plane_sigma, normal_power, rep_xy, offset=(0.0, 0.0)) -> Upsampled:
     """`upsample_full` over chunks of pixels on the system's worker pool (numpy releases the GIL)."""
     starts = range(0, points.shape[0], UPSAMPLE_CHUNK)
     jobs = [system.updater.pool.submit(upsample_full, sh_lo, cache_lo, residual_lo, position_lo, normal_lo, valid_lo,
                                        points[a:a + UPSAMPLE_CHUNK], normals[a:a + UPSAMPLE_CHUNK],
                                        pix[a:a + UPSAMPLE_CHUNK], width, factor, camera, plane_sigma, normal_power,
-                                       rep_xy=rep_xy)
+                                       rep_xy=rep_xy, offset=offset)
             for a in starts]
     parts = [job.result() for job in jobs]
     if not parts:
         return upsample_full(sh_lo, cache_lo, residual_lo, position_lo, normal_lo, valid_lo, points, normals, pix,
-                             width, factor, camera, plane_sigma, normal_power, rep_xy=rep_xy)
+                             width, factor, camera, plane_sigma, normal_power, rep_xy=rep_xy, offset=offset)
     return Upsampled(*(np.concatenate([getattr(p, f) for p in parts])
                        for f in ("cache", "residual", "spread", "best", "cover", "turned")))
 
@@ -733,9 +757,14 @@ def full_res_resolve(system, gi: PixelGI, position_lo: np.ndarray, pix: np.ndarr
     # At 320x240 vs Cycles: trusses AO 0.057 -> 0.053, contact AO 0.011 -> 0.010, car DI 0.083 -> 0.081.
     est_img = np.zeros((h * w, 7), np.float32)
     est_img[pix] = est
+    guides = np.zeros((h * w, 3), np.float32)  # guides: all light, indirect light, AO
+    if gi.light_variance is not None:
+        guides[pix, 1] = gi.light_variance[:, 1]
+    guides[:, 0] = var[:, 0]
+    guides[:, 2] = var[:, 1]
     smooth = filter_residual(est_img.reshape(h, w, 7), pos.reshape(h, w, 3), nrm.reshape(h, w, 3),
                              valid.reshape(h, w), camera, passes, plane_sigma, normal_power,
-                             variance=var.reshape(h, w, 2), noise_sigma=FULL_RES_NOISE_SIGMA,
+                             variance=guides.reshape(h, w, 3), noise_sigma=FULL_RES_NOISE_SIGMA,
                              pool=system.updater.pool).reshape(h * w, 7)
     filtered = (smooth - (est_img - res)) * valid[:, None]  # as a residual of each GI pixel's own cache
     steps = {"filter": (time.perf_counter() - tic) * 1e3}
@@ -750,6 +779,8 @@ def full_res_resolve(system, gi: PixelGI, position_lo: np.ndarray, pix: np.ndarr
     up = _upsample_parallel(system, sh_lo, cache_lo, filtered, pos.reshape(h, w, 3), nrm.reshape(h, w, 3),
                             valid.reshape(h, w), full_points, full_normals, full_pix, width, factor, camera,
                             plane_sigma, normal_power, rep_xy)
+    resolver = GIResolver(system, sh_lo, cache_lo, filtered, pos.reshape(h, w, 3), nrm.reshape(h, w, 3),
+                          valid.reshape(h, w), rep_xy, width, factor, camera, plane_sigma, normal_power, lookup, rays)
     value = up.cache + up.residual
     orphan = up.best < DETAIL_MATCH
     light = np.maximum((value[:, 0:3] + value[:, 3:6]) @ LUMA, np.float32(1e-6))
@@ -788,4 +819,60 @@ def full_res_resolve(system, gi: PixelGI, position_lo: np.ndarray, pix: np.ndarr
         gi.rays += own.rays
     indirect, direct = textures(value, full_pix, height, width)
     steps.update(gi.steps_ms)
-    return FullResGI(indirect, direct, gi, int(detail.size), steps)
+    flat = np.zeros((height * width, 7), np.float32)
+    flat[full_pix] = value
+    return FullResGI(indirect, direct, gi, int(detail.size), steps, flat, resolver)
+
+
+@dataclass
+class GIResolver:
+    """The GI resolution's filtered state (`full_res_images`), kept to resolve the GI at other
+    full-res samples than the centre raster's: a jittered subframe's pixels that see another
+    surface than the pixel centre (a thin post's edge, the ground behind it, a bar the centre
+    missed).
+
+    Why: Cycles' Diffuse Indirect is sum(colour x light) / sum(colour) over a pixel's samples, so
+    each sample's surface must bring its own light; the centre's GI, upsampled to the subframe's
+    surface, has no tap on a surface the centre raster did not see (a 4 cm bar between pixel
+    centres) and takes a neighbour's light, or none."""
+
+    system: object
+    sh_lo: np.ndarray
+    cache_lo: np.ndarray
+    residual_lo: np.ndarray
+    position_lo: np.ndarray
+    normal_lo: np.ndarray
+    valid_lo: np.ndarray
+    rep_xy: np.ndarray
+    width: int
+    factor: int
+    camera: np.ndarray
+    plane_sigma: float
+    normal_power: float
+    lookup: HitLookup | None
+    rays: int
+
+    def at(self, points: np.ndarray, normals: np.ndarray, pix: np.ndarray, offset, frame: int,
+           rays: int | None = None) -> tuple[np.ndarray, int]:
+        """((n, 7) GI values, rays traced) at samples (points, unit normals (n, 3)) of full-res
+        pixels pix taken at pixel centre + offset (pixels): the interpolated cache SH and residual,
+        as `full_res_images` resolves every pixel; samples no GI pixel near shares a surface with
+        take their own estimate from `rays` rays (default: the GI pixels' count)."""
+        points = np.ascontiguousarray(points, np.float32)
+        normals = np.ascontiguousarray(normals, np.float32)
+        if points.shape[0] == 0:
+            return np.zeros((0, 7), np.float32), 0
+        up = _upsample_parallel(self.system, self.sh_lo, self.cache_lo, self.residual_lo, self.position_lo,
+                                self.normal_lo, self.valid_lo, points, normals, pix, self.width, self.factor,
+                                self.camera, self.plane_sigma, self.normal_power, self.rep_xy, offset=offset)
+        value = up.cache + up.residual
+        orphan = np.flatnonzero(up.best < DETAIL_MATCH)
+        rays = self.rays if rays is None else int(rays)
+        traced = 0
+        if orphan.size and rays > 0:
+            dp, dn = points[orphan], normals[orphan]
+            own = trace_pixels(self.system, dp, dn, rays, frame + DETAIL_FRAME, self.system.corner_visibility(dp, dn),
+                               lookup=self.lookup, chunk_rays=DETAIL_CHUNK_RAYS)
+            value[orphan] = own.channels()[0]
+            traced = own.rays
+        return value, traced

@@ -198,6 +198,41 @@ def test_variance_guided_filter_keeps_a_contact_sharp_on_one_plane():
     assert guided[outside].std() < 0.5 * res[outside].std()
 
 
+def test_an_indirect_guide_keeps_a_faint_bounce_beside_noisy_sky_light():
+    """Sky light of ~3 with noise of standard deviation 0.3 (the direct channels) and a faint
+    bounce (+0.2 over a strip, a post's foot on sunlit ground) on indirect light of 0.05 with noise
+    0.02, on one plane. One guide for all light (luminance of direct + indirect, its variance
+    dominated by the sky's) averages the strip away as noise; with the indirect light's own
+    luminance and variance as a second guide it stays, and the sky's noise is still smoothed."""
+    pos, nrm = _plane_image()
+    h, w = pos.shape[:2]
+    rng = np.random.default_rng(3)
+    res = np.zeros((h, w, 7), np.float32)
+    res[..., 0:3] = 3.0 + 0.3 * rng.normal(size=(h, w, 1))
+    res[..., 3:6] = 0.05 + 0.02 * rng.normal(size=(h, w, 1))
+    res[..., 6] = 1.0
+    strip = np.zeros((h, w), bool)
+    strip[:, 30:33] = True
+    res[strip, 3:6] += 0.2
+    valid = np.ones((h, w), bool)
+    eye = np.array([0.6, 0.5, 3.0], np.float32)
+    # Variances of the means as the rays give them: luminance of all light, of the direct, of the
+    # indirect, of AO.
+    d, i = 0.3**2, 0.02**2
+    joint = np.stack([np.full((h, w), d + i), np.zeros((h, w))], -1).astype(np.float32)
+    split = np.stack([np.full((h, w), d + i), np.full((h, w), i), np.zeros((h, w))], -1).astype(np.float32)
+    one = pixel_gather.filter_residual(res, pos, nrm, valid, eye, variance=joint, noise_sigma=1.0)
+    two = pixel_gather.filter_residual(res, pos, nrm, valid, eye, variance=split, noise_sigma=1.0)
+    bump = {k: float(v[strip, 4].mean() - 0.05) for k, v in (("one", one), ("two", two))}
+    # Measured: the strip keeps 0.20 of its 0.2 with both guides, 0.10 with one; the sky's noise
+    # drops to 0.75 of its standard deviation (0.61 with one guide: a tap must agree in both).
+    assert bump["two"] > 0.17, bump
+    assert bump["one"] < 0.12, bump
+    outside = ~strip
+    outside[:, 26:37] = False
+    assert two[outside, 0].std() < 0.8 * res[outside, 0].std()
+
+
 def test_filter_keeps_a_correction_on_its_own_surface():
     """A contact's correction (-1 on the floor) must not spread onto the wall meeting it at a
     right angle, nor onto a parallel surface 20 cm in front."""
@@ -445,6 +480,51 @@ def test_full_res_images_trace_own_rays_on_thin_geometry(wall_system):
     assert out.detail >= 1
     np.testing.assert_allclose(np.delete(direct, wall), np.pi, rtol=0.01)
     assert direct[wall] == pytest.approx(np.pi / 2, rel=0.1), direct[wall]
+
+
+def test_a_subframe_sample_on_a_surface_the_centre_missed_gets_its_own_light(wall_system):
+    """A jittered subframe (`subpixel.subframe_gi`) over the open ground of
+    `test_full_res_images_trace_own_rays_on_thin_geometry`, the centre raster seeing only ground:
+    where the subframe sees the ground too it keeps the centre's resolved GI; the pixel where it
+    sees the wall's face (a bar between pixel centres) gets that face's light, half the sky, not
+    the ground's pi that the centre's GI upsampled onto it gave before (Cycles' film weights each
+    sample's light by its own colour, so an edge pixel needs each surface's own)."""
+    from hybridgi_core.raster.subpixel import CentreSample, subframe_gi, subframe_surfaces  # noqa: PLC0415
+
+    w, h, f = 8, 8, 2
+    xs, ys = np.meshgrid(np.arange(w), np.arange(h))
+    full = np.stack([40.0 + xs * 0.05, ys * 0.05, np.zeros_like(xs, float)], -1).astype(np.float32).reshape(-1, 3)
+    normals = np.tile(UP, (full.shape[0], 1))
+    pix = np.arange(w * h)
+    low_full = full.reshape(h, w, 3)[0::f, 0::f]
+    hl, wl = low_full.shape[:2]
+    position_lo = np.concatenate([low_full, np.ones((hl, wl, 1), np.float32)], -1)
+    normal_lo = np.concatenate([np.tile(UP, (hl, wl, 1)), np.ones((hl, wl, 1), np.float32)], -1)
+    points, lo_normals = low_full.reshape(-1, 3), np.tile(UP, (hl * wl, 1))
+    view = np.eye(4, dtype=np.float32)
+    view[:3, 3] = (-40.2, -0.2, -5.0)
+    vis = wall_system.corner_visibility(points, lo_normals)
+    out = pixel_gather.full_res_images(wall_system, position_lo, normal_lo, np.arange(hl * wl), points, lo_normals,
+                                       vis, view, 0, 256, full, normals, pix, (w, h))
+    assert out.detail == 0  # the centre raster saw nothing but ground
+    centre_pos = np.concatenate([full, np.ones((w * h, 1), np.float32)], 1)
+    centre = CentreSample(np.zeros((w * h, 4), np.float32), centre_pos, normals, np.full(w * h, 5.0, np.float32))
+    offset = (0.3, -0.2)
+    sub_pos = centre_pos.copy()
+    sub_pos[:, 0] += 0.05 * offset[0]
+    sub_pos[:, 1] += 0.05 * offset[1]
+    sub_nrm = normals.copy()
+    wall = 3 * w + 3
+    sub_pos[wall, :3] = (0.01, 0.0, 1.0)
+    sub_nrm[wall] = (1.0, 0.0, 0.0)
+    hit, same = subframe_surfaces(centre, sub_pos.reshape(h, w, 4), sub_nrm.reshape(h, w, 3))
+    assert hit.all() and np.flatnonzero(~same).tolist() == [wall]
+    value, traced = subframe_gi(out.resolver, out.value, hit, same, sub_pos.reshape(h, w, 4),
+                                sub_nrm.reshape(h, w, 3), offset, 5, 256)
+    assert traced == 256
+    np.testing.assert_array_equal(np.delete(value, wall, axis=0), np.delete(out.value, wall, axis=0))
+    assert out.value[wall, 0] == pytest.approx(np.pi, rel=0.01)  # what the subframe reused before
+    assert value[wall, 0] == pytest.approx(np.pi / 2, rel=0.1), value[wall]
 
 
 @pytest.mark.blender

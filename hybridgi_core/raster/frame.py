@@ -44,6 +44,8 @@ from .subpixel import (
     FilmAccumulator,
     jittered_projection,
     subframe_direct,
+    subframe_gi,
+    subframe_surfaces,
     subframe_texture_filter,
     subpixel_offsets,
 )
@@ -238,11 +240,11 @@ class FramePipeline:
             position = self.gbuffer.read("position")
             p_full, n_full, pix_full = pixels_to_points(position, normal)
         gi = None
-        gi_low, gi_bilateral = low, None
+        gi_low, gi_bilateral, full_gi = low, None, None
         if self.settings.pixel_rays > 0:
             with stats.step("pixel_rays"):
                 if self.settings.downsample > 1 and self.settings.pixel_full_res:
-                    gi, gi_low, gi_bilateral = self._pixel_gi_full(
+                    gi, gi_low, gi_bilateral, full_gi = self._pixel_gi_full(
                         system, gbuf, position_lo, normal_lo, pix, points, normals, visible, view, frame,
                         (p_full, n_full, pix_full), stats)
                 else:
@@ -287,10 +289,15 @@ class FramePipeline:
                     normal = self.gbuffer.read("normal")
                     position = self.gbuffer.read("position")
                 with stats.step("direct"):
+                    hit, same = subframe_surfaces(centre, position, normal)
                     direct = subframe_direct(system, centre, position, normal,
                                              frame + s * SUBFRAME_SEED_STRIDE,
                                              max(min(self.direct_samples, RATIO_MIN_SAMPLES),
-                                                 self.direct_samples // offsets.shape[0]))
+                                                 self.direct_samples // offsets.shape[0]), surfaces=(hit, same))
+                if full_gi is not None and full_gi.resolver is not None:
+                    with stats.step("subframe_gi"):
+                        gi, gi_low = self._subframe_gi(full_gi, gbuf, hit, same, position, normal, offset,
+                                                       frame + s * SUBFRAME_SEED_STRIDE, offsets.shape[0], stats)
             with stats.step("direct"):
                 self._direct_tex = upload_texture_2d(direct.reshape(self.height, self.width, 4), "RGBA32F")
             shaded = self.shade(gbuf, gi_low, view, proj, self._direct_tex,
@@ -433,9 +440,10 @@ class FramePipeline:
         log.debug("pixel rays: %d full-res pixels traced their own rays", out.detail)
         neutral = np.zeros(out.indirect.shape, np.float32)
         neutral[..., 3] = 1.0
+        self._neutral_tex = upload_texture_2d(neutral, "RGBA16F")
         textures = (upload_texture_2d(out.indirect, "RGBA32F"), upload_texture_2d(out.direct, "RGBA32F"),
-                    upload_texture_2d(neutral, "RGBA16F"))
-        return textures, guide, bilateral
+                    self._neutral_tex)
+        return textures, guide, bilateral, out
 
     def full_res_guide(self, gbuf):
         """(guide, bilateral) for GI textures at the full resolution (`pixel_gather.full_res_images`):
@@ -451,6 +459,18 @@ class FramePipeline:
         for p in (self._full_copy, self._bilateral_full):
             p.resize(self.width, self.height)
         return self._full_copy.execute(gbuf), self._bilateral_full
+
+    def _subframe_gi(self, full_gi, gbuf, hit, same, position, normal, offset, seed_frame, count, stats):
+        """A jittered subframe's full-res GI textures (`subpixel.subframe_gi`: the centre's where it
+        sees the centre's surface, resolved at its own samples elsewhere) and their guide, a copy of
+        the subframe's own G-buffer: (gi textures, guide)."""
+        value, traced = subframe_gi(full_gi.resolver, full_gi.value, hit, same, position, normal, offset,
+                                    seed_frame, max(RATIO_MIN_SAMPLES, self.settings.pixel_rays // count))
+        stats.rays += traced
+        indirect, direct = pixel_gather.textures(value[hit], np.flatnonzero(hit), self.height, self.width)
+        guide = self._full_copy.execute(gbuf)
+        return (upload_texture_2d(indirect, "RGBA32F"), upload_texture_2d(direct, "RGBA32F"),
+                self._neutral_tex), guide
 
     def _pixel_gi(self, system, position_lo, normal_lo, pix, points, normals, visible, view, frame, stats):
         """Per-pixel final gather (`pixel_gather.gi_images`) as the textures the gather and the

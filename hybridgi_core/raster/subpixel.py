@@ -226,8 +226,41 @@ def light_edges(light: np.ndarray, contrast: float = LIGHT_EDGE_CONTRAST) -> np.
     return edge
 
 
+def subframe_surfaces(centre: CentreSample, position: np.ndarray, normal: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """((h * w,) bool, (h * w,) bool): pixels where the subframe (read-backs (h, w, 4) /
+    (h, w, >= 3)) sees geometry, and where it sees the centre sample's surface (`same_surface`)."""
+    n_pix = centre.position.shape[0]
+    pos = position.reshape(n_pix, -1)
+    nrm = normal.reshape(n_pix, -1)
+    hit = pos[:, 3] > 0.5
+    # Whole-image arrays (no gathers): the comparison is the bulk of a subframe's CPU work.
+    same = hit & (centre.position[:, 3] > 0.5) & same_surface(centre.position, centre.normal, pos, nrm, centre.depth)
+    return hit, same
+
+
+def subframe_gi(resolver, centre_value: np.ndarray, hit: np.ndarray, same: np.ndarray, position: np.ndarray,
+                normal: np.ndarray, offset, seed_frame: int, rays: int) -> tuple[np.ndarray, int]:
+    """A jittered subframe's full-res GI values, ((h * w, 7) float32, rays traced): the centre's
+    (`centre_value`, `pixel_gather.FullResGI.value`) where the subframe sees the centre's surface,
+    resolved at the subframe's own sample elsewhere (`pixel_gather.GIResolver.at`, `rays` rays
+    where no GI pixel shares its surface), 0 on the background. hit, same : `subframe_surfaces`.
+
+    Why: the film weights each sample's light by its own colour; a post's edge pixel whose
+    subframe sees the ground behind it (or a bar the centre raster missed) must bring that
+    surface's light, not the centre surface's."""
+    n_pix = centre_value.shape[0]
+    value = np.where(same[:, None], centre_value, np.float32(0.0))
+    fresh = np.flatnonzero(hit & ~same)
+    traced = 0
+    if fresh.size:
+        p, n, keep = pixels_to_points(position.reshape(n_pix, -1)[fresh][None], normal.reshape(n_pix, -1)[fresh][None])
+        rows = fresh[keep]
+        value[rows], traced = resolver.at(p, n, rows, offset, seed_frame, rays)
+    return value, traced
+
+
 def subframe_direct(system, centre: CentreSample, position: np.ndarray, normal: np.ndarray,
-                    seed_frame: int, samples: int) -> np.ndarray:
+                    seed_frame: int, samples: int, surfaces=None) -> np.ndarray:
     """A jittered subframe's direct light, (h * w, 4) float32: the centre's where the subframe's
     pixel sees the same surface, `samples` shadow rays per lamp (seeded by seed_frame) elsewhere.
 
@@ -237,9 +270,8 @@ def subframe_direct(system, centre: CentreSample, position: np.ndarray, normal: 
     n_pix = centre.direct.shape[0]
     pos = position.reshape(n_pix, -1)
     nrm = normal.reshape(n_pix, -1)
-    hit = pos[:, 3] > 0.5
-    # Whole-image arrays (no gathers): the comparison is the bulk of a subframe's CPU work.
-    same = hit & (centre.position[:, 3] > 0.5) & same_surface(centre.position, centre.normal, pos, nrm, centre.depth)
+    hit, same = subframe_surfaces(centre, position, normal) if surfaces is None else surfaces
+    same = same.copy()
     if centre.light_edge is not None:
         same &= ~centre.light_edge
     direct = np.where(same[:, None], centre.direct, np.float32(0.0))
