@@ -453,19 +453,16 @@ def test_cover_drops_next_to_a_step_and_turned_marks_a_bend():
     assert up.turned[3] and not np.delete(up.turned, 3)[(np.delete(x, 3) <= 3)].any()
 
 
-def test_full_res_images_trace_own_rays_on_thin_geometry(wall_system):
-    """Through `full_res_images` on the ground-and-wall scene: GI pixels on the open ground, one
-    full-res pixel on the wall's face among them (narrower than a GI pixel). The ground pixels get
-    the open sky (pi); the wall pixel gets its own rays' estimate, half the sky (a vertical wall
-    facing +x sees the sky above and the ground below), not the ground's pi."""
-    w, h, f = 8, 8, 2
+def _patch_full_res(wall_system, wall: int | None = None, w: int = 8, h: int = 8, f: int = 2):
+    """A w x h patch of the ground-and-wall scene's open ground, 5 cm pixels seen from 5 m above,
+    GI pixels every `f` (one of them never the `wall` pixel, which lies on the wall's face), through
+    `full_res_images`: (full-res points, normals, its result)."""
     xs, ys = np.meshgrid(np.arange(w), np.arange(h))
     full = np.stack([40.0 + xs * 0.05, ys * 0.05, np.zeros_like(xs, float)], -1).astype(np.float32).reshape(-1, 3)
     normals = np.tile(UP, (full.shape[0], 1))
-    wall = 3 * w + 3
-    full[wall] = (0.01, 0.0, 1.0)
-    normals[wall] = (1.0, 0.0, 0.0)
-    pix = np.arange(w * h)
+    if wall is not None:
+        full[wall] = (0.01, 0.0, 1.0)
+        normals[wall] = (1.0, 0.0, 0.0)
     low_full = full.reshape(h, w, 3)[0::f, 0::f]
     hl, wl = low_full.shape[:2]
     position_lo = np.concatenate([low_full, np.ones((hl, wl, 1), np.float32)], -1)
@@ -475,7 +472,18 @@ def test_full_res_images_trace_own_rays_on_thin_geometry(wall_system):
     view[:3, 3] = (-40.2, -0.2, -5.0)  # the camera 5 m above the patch
     vis = wall_system.corner_visibility(points, lo_normals)
     out = pixel_gather.full_res_images(wall_system, position_lo, normal_lo, np.arange(hl * wl), points, lo_normals,
-                                       vis, view, 0, 256, full, normals, pix, (w, h))
+                                       vis, view, 0, 256, full, normals, np.arange(w * h), (w, h))
+    return full, normals, out
+
+
+def test_full_res_images_trace_own_rays_on_thin_geometry(wall_system):
+    """Through `full_res_images` on the ground-and-wall scene: GI pixels on the open ground, one
+    full-res pixel on the wall's face among them (narrower than a GI pixel). The ground pixels get
+    the open sky (pi); the wall pixel gets its own rays' estimate, half the sky (a vertical wall
+    facing +x sees the sky above and the ground below), not the ground's pi."""
+    w = 8
+    wall = 3 * w + 3
+    _, _, out = _patch_full_res(wall_system, wall, w=w)
     direct = out.direct.reshape(-1, 4)[:, 0]
     assert out.detail >= 1
     np.testing.assert_allclose(np.delete(direct, wall), np.pi, rtol=0.01)
@@ -491,21 +499,8 @@ def test_a_subframe_sample_on_a_surface_the_centre_missed_gets_its_own_light(wal
     sample's light by its own colour, so an edge pixel needs each surface's own)."""
     from hybridgi_core.raster.subpixel import CentreSample, subframe_gi, subframe_surfaces  # noqa: PLC0415
 
-    w, h, f = 8, 8, 2
-    xs, ys = np.meshgrid(np.arange(w), np.arange(h))
-    full = np.stack([40.0 + xs * 0.05, ys * 0.05, np.zeros_like(xs, float)], -1).astype(np.float32).reshape(-1, 3)
-    normals = np.tile(UP, (full.shape[0], 1))
-    pix = np.arange(w * h)
-    low_full = full.reshape(h, w, 3)[0::f, 0::f]
-    hl, wl = low_full.shape[:2]
-    position_lo = np.concatenate([low_full, np.ones((hl, wl, 1), np.float32)], -1)
-    normal_lo = np.concatenate([np.tile(UP, (hl, wl, 1)), np.ones((hl, wl, 1), np.float32)], -1)
-    points, lo_normals = low_full.reshape(-1, 3), np.tile(UP, (hl * wl, 1))
-    view = np.eye(4, dtype=np.float32)
-    view[:3, 3] = (-40.2, -0.2, -5.0)
-    vis = wall_system.corner_visibility(points, lo_normals)
-    out = pixel_gather.full_res_images(wall_system, position_lo, normal_lo, np.arange(hl * wl), points, lo_normals,
-                                       vis, view, 0, 256, full, normals, pix, (w, h))
+    w = h = 8
+    full, normals, out = _patch_full_res(wall_system, w=w, h=h)
     assert out.detail == 0  # the centre raster saw nothing but ground
     centre_pos = np.concatenate([full, np.ones((w * h, 1), np.float32)], 1)
     centre = CentreSample(np.zeros((w * h, 4), np.float32), centre_pos, normals, np.full(w * h, 5.0, np.float32))
