@@ -20,8 +20,12 @@ pytestmark = [pytest.mark.blender, pytest.mark.slow, pytest.mark.smoke]
 REPO = Path(__file__).resolve().parents[1]
 #: The default Blender's environment; HYBRIDGI_REFERENCE_VENV points elsewhere.
 REFERENCE_VENV = Path(os.environ.get("HYBRIDGI_REFERENCE_VENV", REPO / ".venv"))
-#: Largest difference of any pass at any geometry pixel (the versions measured 6e-5 apart).
+#: Largest difference of any pass at any geometry pixel (the versions measured 6e-5 apart), plus
+#: RELATIVE of the pixel's value: numpy 1.26 (Blender 4.2-5.0) and 2.3 (5.1+) round float32
+#: exp / pow and sums differently, and the image passes through a few filters (Blender 5.3 vs 5.0,
+#: stop 19: Diffuse Indirect 0.56257 vs 0.56270, 2.2e-4 of the value).
 TOLERANCE = 1e-4
+RELATIVE = 5e-4
 RENDER = ("--res", "96x72", "--set", "warmup_iterations=4")
 
 
@@ -64,7 +68,8 @@ def test_cornell_render_matches_the_default_blender(reference_bin, tmp_path):
     geometry = reference["ViewLayer.Depth.Z"] < 1e9
     assert geometry.mean() > 0.3  # the box fills ~40% of the frame
     np.testing.assert_array_equal(here["ViewLayer.Depth.Z"] < 1e9, geometry)
-    worst = {name: float(np.abs(here[name] - reference[name])[geometry].max()) for name in reference}
+    worst = {name: float((np.abs(here[name] - reference[name]) - RELATIVE * np.abs(reference[name]))[geometry].max())
+             for name in reference}
     name = max(worst, key=worst.get)
     assert worst[name] <= TOLERANCE, (name, worst[name])
     for name in reference:  # the background: the world colour, no passes
