@@ -247,9 +247,9 @@ def filter_reflections(direct: np.ndarray, indirect: np.ndarray, total: np.ndarr
 
 
 def filter_lamp_glossy(light: np.ndarray, rough: np.ndarray, points: np.ndarray, normals: np.ndarray,
-                       pix: np.ndarray, shape: tuple[int, int], camera: np.ndarray, pool=None) -> np.ndarray:
-    """(n, 3) the lamps' glossy radiance `light` of receivers at flat pixels `pix` (lamp sampling,
-    `lamp_glossy_without`), averaged one a-trous pass over each receiver's surface (same plane,
+                       pix: np.ndarray, shape: tuple[int, int], view: np.ndarray, pool=None) -> np.ndarray:
+    """(n, 3) the lamps' glossy radiance `light` of receivers at flat pixels `pix` of an image of
+    `shape` seen through `view` (lamp sampling, `lamp_glossy_without`), averaged one a-trous pass over each receiver's surface (same plane,
     normal within the filter's cos^8) where the lobe is at least LAMP_FILTER_ROUGHNESS rough.
 
     Why: 16 lamp samples of a roughness-0.5 lobe under an area lamp larger than the lobe speckle
@@ -258,4 +258,5 @@ def filter_lamp_glossy(light: np.ndarray, rough: np.ndarray, points: np.ndarray,
     keep = np.asarray(rough) >= LAMP_FILTER_ROUGHNESS
     if not keep.any():
         return light
+    camera = np.linalg.inv(np.asarray(view, np.float64))[:3, 3]
     return filter_at_pixels(light, keep, points, normals, pix, shape, camera, 1, pool)

@@ -65,9 +65,11 @@ def test_lamp_glossy_is_filtered_on_its_surface_only_where_the_lobe_is_rough():
     smooth = ys < 10
     rough = np.where(smooth, 0.5 * LAMP_FILTER_ROUGHNESS, 0.5)
     pix = np.arange(h * w)
+    view = np.eye(4)
+    view[:3, 3] = (-3.0, 0.0, -2.0)  # the camera at (3, 0, 2)
     out = filter_lamp_glossy(light.reshape(-1, 3).astype(np.float32), rough.reshape(-1),
                              points.reshape(-1, 3).astype(np.float32), normals.reshape(-1, 3).astype(np.float32),
-                             pix, (h, w), np.array([3.0, 0.0, 2.0])).reshape(h, w, 3)
+                             pix, (h, w), view).reshape(h, w, 3)
     floor = ~wall & ~smooth & (xs < 38) & (ys >= 12)
     assert np.abs(out[floor] - 1.0).mean() < 0.5 * np.abs(light[floor] - 1.0).mean()
     np.testing.assert_array_equal(out[smooth], light[smooth].astype(np.float32))

@@ -376,9 +376,7 @@ class FramePipeline:
         if lit.size:
             q = pix[lit]
             glossy[q, :3] = filter_lamp_glossy(glossy[q, :3], rough, points[lit], normals[lit], q,
-                                               (self.height, self.width),
-                                               np.linalg.inv(np.asarray(view, np.float64))[:3, 3],
-                                               pool=system.updater.pool)
+                                               (self.height, self.width), view, pool=system.updater.pool)
             sky, bounced, lamp = self._reflections(system, points[lit], normals[lit], to_eye[lit], rough, frame,
                                                    pix[lit], view, skip[lit])
             glossy[pix[lit], :3] += colour[pix[lit], :3] * (sky + lamp)

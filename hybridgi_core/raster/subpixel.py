@@ -271,9 +271,8 @@ def subframe_direct(system, centre: CentreSample, position: np.ndarray, normal: 
     pos = position.reshape(n_pix, -1)
     nrm = normal.reshape(n_pix, -1)
     hit, same = subframe_surfaces(centre, position, normal) if surfaces is None else surfaces
-    same = same.copy()
     if centre.light_edge is not None:
-        same &= ~centre.light_edge
+        same = same & ~centre.light_edge  # a new array: the caller's `surfaces` stay as they are
     direct = np.where(same[:, None], centre.direct, np.float32(0.0))
     fresh = np.flatnonzero(hit & ~same)
     if fresh.size:
