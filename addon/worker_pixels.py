@@ -62,7 +62,8 @@ class PixelPass:
         cat = lambda name: np.concatenate([getattr(p, name) for p in self.parts])  # noqa: E731
         return pixel_gather.PixelGI(cat("direct"), cat("indirect"), cat("ao"), cat("cache_direct"),
                                     cat("cache_indirect"), cat("cache_ao"), variance=cat("variance"),
-                                    sh=cat("sh"), rays=sum(p.rays for p in self.parts))
+                                    indirect_variance=cat("indirect_variance"), sh=cat("sh"),
+                                    rays=sum(p.rays for p in self.parts))
 
 
 def images(gi, position_lo: np.ndarray, pix: np.ndarray, points: np.ndarray, normals: np.ndarray,

@@ -108,9 +108,9 @@ class PixelGI:
     cache_indirect: np.ndarray
     cache_ao: np.ndarray
     variance: np.ndarray | None = None  # (n, 2) of the means of luminance (direct + indirect) and AO
-    #: (n, 2) variances of the means of the direct and of the indirect light's luminance (the
-    #: indirect one is the second guide of `full_res_images`' filter).
-    light_variance: np.ndarray | None = None
+    #: (n,) variance of the mean of the indirect light's luminance (the second guide of
+    #: `full_res_images`' filter; None: one guide).
+    indirect_variance: np.ndarray | None = None
     #: (n, K, 7) the cache gather's blended radiance SH at the points (direct rgb | indirect rgb |
     #: AO visibility; a point no valid cell covers holds the constant 1 in AO): what
     #: `upsample_full` re-evaluates at the full-res normals.
@@ -178,7 +178,7 @@ def trace_pixels(system, points: np.ndarray, normals: np.ndarray, rays: int, fra
     # Columns: residual direct rgb, indirect rgb, AO | luminance and AO variances | the cache's
     # direct rgb, indirect rgb, AO. Everything per chunk of pixels on the worker pool, so no
     # per-pixel (n, 8, K, 3) temporaries exist for the whole image at once.
-    out = np.zeros((n, 18), np.float32)
+    out = np.zeros((n, 17), np.float32)
     k = cache.settings.sh_coeffs
     sh_all = np.zeros((n, k, 7), np.float32)
     if n:
@@ -199,19 +199,19 @@ def trace_pixels(system, points: np.ndarray, normals: np.ndarray, rays: int, fra
     # Residual means (estimate - the cache along the same rays) plus the cache's exact integrals.
     cd, ci, ca = out[:, 9:12], out[:, 12:15], out[:, 15]
     return PixelGI(out[:, 0:3] + cd, out[:, 3:6] + ci, out[:, 6] + ca, cd, ci, ca, variance=out[:, 7:9],
-                   light_variance=out[:, 16:18], sh=sh_all, rays=n * rays, steps_ms=steps)
+                   indirect_variance=out[:, 16], sh=sh_all, rays=n * rays, steps_ms=steps)
 
 
 def _chunk(system, lookup: HitLookup | None, p, nrm, corner_visible, rays, rng):
-    """Worker: (m, 18) of m pixels: mean residuals pi/N sum (L - L_cache) (direct rgb, indirect
+    """Worker: (m, 17) of m pixels: mean residuals pi/N sum (L - L_cache) (direct rgb, indirect
     rgb, AO as 1/N sum (v - V_cache)), the variances of the luminance and AO means, the cache
-    gather's direct rgb, indirect rgb and AO, the variances of the direct and of the indirect
-    luminance means; (m, K, 7) the blended SH; and step times."""
+    gather's direct rgb, indirect rgb and AO, the variance of the indirect luminance mean;
+    (m, K, 7) the blended SH; and step times."""
     times = {}
     s = system.settings
     tic = time.perf_counter()
     m = p.shape[0]
-    res = np.zeros((m, 18), np.float32)
+    res = np.zeros((m, 17), np.float32)
     levels = getattr(system, "levels", None)
     sh_d, sh_i, sh_a, covered = (cache_sh_at(system.cache, p, nrm, corner_visible) if levels is None
                                  else levels.sh_at(p, nrm, corner_visible))
@@ -259,8 +259,7 @@ def _chunk(system, lookup: HitLookup | None, p, nrm, corner_visible, rays, rng):
     ao = visible.reshape(m, rays) - np.where(covered[:, None], np.matmul(y, sh_a[..., None])[..., 0], np.float32(1.0))
     of_mean = np.float32(1.0 / max(rays - 1, 1))  # sample variance / N
     res[:, 7] = (lum_d + lum_i).var(axis=1) * np.float32(np.pi**2) * of_mean
-    res[:, 16] = lum_d.var(axis=1) * np.float32(np.pi**2) * of_mean
-    res[:, 17] = lum_i.var(axis=1) * np.float32(np.pi**2) * of_mean
+    res[:, 16] = lum_i.var(axis=1) * np.float32(np.pi**2) * of_mean
     res[:, 8] = ao.var(axis=1) * of_mean
     _more_ao_rays(system, res, p, nrm, ao_mean, sh_a, covered, rays, rng, times)
     times["shade"] = (time.perf_counter() - tic) * 1e3 - times.get("shadow", 0.0)
@@ -763,14 +762,15 @@ def full_res_resolve(system, gi: PixelGI, position_lo: np.ndarray, pix: np.ndarr
     # At 320x240 vs Cycles: trusses AO 0.057 -> 0.053, contact AO 0.011 -> 0.010, car DI 0.083 -> 0.081.
     est_img = np.zeros((h * w, 7), np.float32)
     est_img[pix] = est
-    guides = np.zeros((h * w, 3), np.float32)  # guides: all light, indirect light, AO
-    if gi.light_variance is not None:
-        guides[pix, 1] = gi.light_variance[:, 1]
-    guides[:, 0] = var[:, 0]
-    guides[:, 2] = var[:, 1]
+    guides = var  # all light, AO; with the indirect light's variance: all light, indirect light, AO
+    if gi.indirect_variance is not None:
+        guides = np.zeros((h * w, 3), np.float32)
+        guides[pix, 1] = gi.indirect_variance
+        guides[:, 0] = var[:, 0]
+        guides[:, 2] = var[:, 1]
     smooth = filter_residual(est_img.reshape(h, w, 7), pos.reshape(h, w, 3), nrm.reshape(h, w, 3),
                              valid.reshape(h, w), camera, passes, plane_sigma, normal_power,
-                             variance=guides.reshape(h, w, 3), noise_sigma=FULL_RES_NOISE_SIGMA,
+                             variance=guides.reshape(h, w, -1), noise_sigma=FULL_RES_NOISE_SIGMA,
                              pool=system.updater.pool).reshape(h * w, 7)
     filtered = (smooth - (est_img - res)) * valid[:, None]  # as a residual of each GI pixel's own cache
     steps = {"filter": (time.perf_counter() - tic) * 1e3}
