@@ -104,10 +104,11 @@ LADDER = (
 )
 QUICK_LADDER = LADDER[:4]
 
-#: Steps of a HybridGI final render's steps_ms that are GPU passes (llvmpipe here): G-buffer,
-#: downsample (+ its read-back), gather (+ the cache texture upload), SSAO, bilateral, deferred.
+#: Steps of a HybridGI final render's steps_ms that are GPU work (llvmpipe here): the render
+#: targets' allocation, G-buffer, downsample (+ its read-back), gather (+ the cache texture
+#: upload), SSAO, bilateral, deferred, the film's accumulation.
 #: Everything else (sync, build, warm-up, visibility, direct light, write) is CPU work.
-GPU_PASS_STEPS = ("gbuffer", "downsample", "gather", "ssao", "bilateral", "deferred", "accumulate")
+GPU_PASS_STEPS = ("targets", "gbuffer", "downsample", "gather", "ssao", "bilateral", "deferred", "accumulate")
 
 VIEWPORT_CHECKPOINTS = (0.1, 0.25, 0.5, 1.0, 2.0, 4.0)
 TIMELINES = ("wall", "worker", "wall_light", "worker_light")
