@@ -96,13 +96,16 @@ LADDER = (
                           "pixel_samples=1")),
     ("r24 x32 w4 p16 s2", ("resolution=24", "rays_per_cell=32", "warmup_iterations=4", "pixel_rays=16",
                            "pixel_samples=2")),
-    ("r32 x32 w8 p32 s4", ("resolution=32", "rays_per_cell=32", "warmup_iterations=8", "pixel_samples=4")),
-    ("r48 x64 w8 p32 s8 (default)", ()),
-    ("r48 x128 w16 p64 s16", ("rays_per_cell=128", "warmup_iterations=16", "pixel_rays=64", "pixel_samples=16")),
-    ("r48 x256 w24 p128 s16", ("rays_per_cell=256", "warmup_iterations=24", "pixel_rays=128",
+    ("r32 x32 w8 p32 s4", ("resolution=32", "rays_per_cell=32", "warmup_iterations=8", "pixel_rays=32",
+                           "pixel_samples=4")),
+    ("r24 x32 w8 p48 s8", ("resolution=24", "rays_per_cell=32", "warmup_iterations=8", "pixel_rays=48",
+                           "pixel_samples=8")),
+    ("r48 x32 w8 p48 s8 (default)", ()),
+    ("r48 x64 w16 p96 s16", ("rays_per_cell=64", "warmup_iterations=16", "pixel_rays=96", "pixel_samples=16")),
+    ("r48 x128 w24 p160 s16", ("rays_per_cell=128", "warmup_iterations=24", "pixel_rays=160",
                                "pixel_samples=16")),
 )
-QUICK_LADDER = LADDER[:4]
+QUICK_LADDER = LADDER[:3] + LADDER[4:5]  # the three cheapest rungs and the default
 
 #: Steps of a HybridGI final render's steps_ms that are GPU work (llvmpipe here): the render
 #: targets' allocation, G-buffer, downsample (+ its read-back), gather (+ the cache texture
