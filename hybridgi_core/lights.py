@@ -282,7 +282,7 @@ def _mark_partial(partial, rows, blocked, m):
     partial |= (hidden > 0) & (hidden < traced)
 
 
-def _point_chunk(light, p, nrm, tracer, rng, samples, epsilon, partial=None):
+def _point_chunk(light, p, nrm, tracer, rng, samples, epsilon, partial=None, opened=None):
     c = light.position
     wx, wy, wz = c[0] - p[0], c[1] - p[1], c[2] - p[2]  # receiver -> lamp
     # I / d^2 is exact for a facing receiver outside a Lambertian sphere of that radius and its
@@ -299,6 +299,8 @@ def _point_chunk(light, p, nrm, tracer, rng, samples, epsilon, partial=None):
     s = samples if radius > 0.0 else 1
     if radius > 0.0:
         u, v = stratified_uv(rng, p[0].shape[0], s)
+    if opened is not None:
+        opened.append(e.copy())
     if tracer is None:
         return e
     live = np.nonzero(e != 0)[0]
@@ -324,7 +326,7 @@ def _point_chunk(light, p, nrm, tracer, rng, samples, epsilon, partial=None):
     return e
 
 
-def _sun_axis(light, pts, nrm, tracer, epsilon):
+def _sun_axis(light, pts, nrm, tracer, epsilon, opened=None):
     """(n,) irradiance of a sun traced along its axis (one shadow ray per receiver facing it).
 
     Same expected irradiance as the disc (the cone's mean cosine is cos(n, axis) times the factor
@@ -337,6 +339,8 @@ def _sun_axis(light, pts, nrm, tracer, epsilon):
     cos_r += nrm[:, 2] * to_sun[2]
     live = np.flatnonzero(cos_r > 0)
     e = np.zeros(pts.shape[0], _F32)
+    if opened is not None:
+        opened.append(np.maximum(cos_r, _F32(0.0)) * _F32(light.power))
     if live.size == 0:
         return e
     if tracer is not None:
@@ -364,7 +368,7 @@ def uniform_cone(axis, half_angle: float, u: np.ndarray, v: np.ndarray):
     return tuple(a * scale * t1[k] + b * scale * t2[k] + cos_t * ax[k] for k in range(3)), one_minus_cos
 
 
-def _sun_chunk(light, p, nrm, tracer, rng, samples, epsilon, partial=None):
+def _sun_chunk(light, p, nrm, tracer, rng, samples, epsilon, partial=None, opened=None):
     """A sun with a disc (angle > 0), sampled; `_sun_axis` shades suns traced along their axis."""
     m = p[0].shape[0]
     u, v = stratified_uv(rng, m, samples)
@@ -373,6 +377,8 @@ def _sun_chunk(light, p, nrm, tracer, rng, samples, epsilon, partial=None):
     # Strength is the irradiance on a facing surface: the cone's mean cosine is divided out.
     weight = float(light.power) / ((1.0 - 0.5 * one_minus_cos) * samples)
     contrib = cos_r.astype(_F32) * _F32(weight)
+    if opened is not None:
+        opened.append(contrib.sum(axis=1))
     if tracer is not None:
         lit = np.flatnonzero(cos_r > 0)  # flat indices: (rows, cols) fancy indexing costs ~2x
         if lit.size:
@@ -386,14 +392,14 @@ def _sun_chunk(light, p, nrm, tracer, rng, samples, epsilon, partial=None):
     return contrib.sum(axis=1)
 
 
-def _area_chunk(light, shape, p, nrm, tracer, rng, samples, epsilon, partial=None, solid_angle=True):
+def _area_chunk(light, shape, p, nrm, tracer, rng, samples, epsilon, partial=None, solid_angle=True, opened=None):
     m = p[0].shape[0]
     # Drawn for every receiver so the rng stream does not depend on which ones face the lamp.
     u, v = stratified_uv(rng, m, samples)
     e = np.zeros(m, _F32)
     radiance = float(light.power) / (np.pi * shape.area)
     if not shape.rectangular or not solid_angle:
-        return _area_chunk_by_area(shape, radiance, p, nrm, tracer, u, v, samples, epsilon, partial)
+        return _area_chunk_by_area(shape, radiance, p, nrm, tracer, u, v, samples, epsilon, partial, opened)
     # Receiver-relative coordinates of the lamp's bounding rectangle in its frame (x, y, normal).
     # float64 per receiver: the solid angle is a small difference of angles that sum to ~2 pi;
     # the per-sample work below is float32 (`_sample_spherical_rectangle`).
@@ -404,6 +410,8 @@ def _area_chunk(light, shape, p, nrm, tracer, rng, samples, epsilon, partial=Non
     # One-sided: only receivers strictly on the emitting side (z0 < 0 in Urena's convention).
     live = np.flatnonzero(z0 < -1e-9 * shape.extent)
     if live.size == 0:
+        if opened is not None:
+            opened.append(e.copy())
         return e
     every = live.size == m
     if not every:
@@ -431,7 +439,9 @@ def _area_chunk(light, shape, p, nrm, tracer, rng, samples, epsilon, partial=Non
         a = (xu - x0.astype(_F32)[:, None]) * _F32(2.0 / shape.len_u) - _F32(1.0)
         b = (yv - y0.astype(_F32)[:, None]) * _F32(2.0 / shape.len_v) - _F32(1.0)
         f *= a * a + b * b <= 1.0
-    unshadowed = f.sum(axis=1) if samples >= RATIO_MIN_SAMPLES else None
+    open_sum = f.sum(axis=1)
+    unshadowed = open_sum if samples >= RATIO_MIN_SAMPLES else None
+    scale = (solid_angle * (radiance / samples)).astype(_F32)
     if tracer is not None:
         lit = np.flatnonzero(f > 0)
         if lit.size:
@@ -455,25 +465,40 @@ def _area_chunk(light, shape, p, nrm, tracer, rng, samples, epsilon, partial=Non
                 f.ravel()[lit[ray[blocked]]] = 0.0
                 _mark_partial(partial, src, blocked, m)
     # Solid-angle sampling: each sample estimates L * S * cos_r, bounded by 2 pi L.
-    total = f.sum(axis=1) * (solid_angle * (radiance / samples)).astype(_F32)
+    total = f.sum(axis=1) * scale
+    open_total = open_sum * scale if opened is not None else None
     if unshadowed is not None:
-        total = _analytic_times_visibility(shape, radiance, p, nrm, live, every, total, f.sum(axis=1), unshadowed)
+        exact = _analytic(shape, radiance, p, nrm, live, every)
+        total = _times_visibility(exact, total, f.sum(axis=1), unshadowed)
+        if open_total is not None:
+            open_total = np.where(unshadowed > 0, exact, open_total).astype(_F32)
+    if opened is not None:
+        if every:
+            opened.append(open_total)
+        else:
+            o = np.zeros(m, _F32)
+            o[live] = open_total
+            opened.append(o)
     if every:
         return total
     e[live] = total
     return e
 
 
-def _analytic_times_visibility(shape, radiance, p, nrm, live, every, estimate, shadowed, unshadowed):
-    """The ratio estimator of `polygon_light` (Heitz et al. 2018): the lamp's exact unshadowed
-    irradiance times the share of the samples' unshadowed contribution that reached it. Where
-    no sample saw the lamp unshadowed (all behind the horizon or outside an ellipse) the plain
-    estimate stays."""
+def _analytic(shape, radiance, p, nrm, live, every):
+    """The lamp's exact unshadowed irradiance at the live receivers (Lambert's polygon formula)."""
     rows = live if not every else slice(None)
     points = np.stack([q[rows] for q in p], axis=1)
     normals = np.stack([q[rows] for q in nrm], axis=1)
     polygon = polygon_light.lamp_polygon(shape.centre, shape.half_u, shape.half_v, shape.round)
-    exact = polygon_light.cosine_solid_angle(polygon, points, normals) * radiance
+    return polygon_light.cosine_solid_angle(polygon, points, normals) * radiance
+
+
+def _times_visibility(exact, estimate, shadowed, unshadowed):
+    """The ratio estimator of `polygon_light` (Heitz et al. 2018): the lamp's exact unshadowed
+    irradiance times the share of the samples' unshadowed contribution that reached it. Where
+    no sample saw the lamp unshadowed (all behind the horizon or outside an ellipse) the plain
+    estimate stays."""
     seen = unshadowed > 0
     ratio = np.divide(shadowed, unshadowed, out=np.zeros_like(shadowed), where=seen)
     return np.where(seen, exact * ratio, estimate).astype(_F32)
@@ -549,7 +574,7 @@ def _sample_spherical_rectangle(x0, y0, z0, len_x, len_y, u, v):
     return xu, yv, valid, solid_angle
 
 
-def _area_chunk_by_area(shape, radiance, p, nrm, tracer, u, v, samples, epsilon, partial=None):
+def _area_chunk_by_area(shape, radiance, p, nrm, tracer, u, v, samples, epsilon, partial=None, opened=None):
     """Uniform area sampling, for sheared (non-rectangular) lamps that Urena's method cannot take."""
     qx, qy, qz = _area_points(shape, u, v)
     wx, wy, wz = qx - p[0][:, None], qy - p[1][:, None], qz - p[2][:, None]  # receiver -> sample
@@ -560,6 +585,8 @@ def _area_chunk_by_area(shape, radiance, p, nrm, tracer, u, v, samples, epsilon,
     ln = shape.normal
     cos_l = -(wx * ln[0] + wy * ln[1] + wz * ln[2]) * inv_d
     g = np.maximum(cos_r, 0.0) * np.maximum(cos_l, 0.0) / d2
+    if opened is not None:
+        opened.append(g.sum(axis=1) * _F32(radiance * shape.area / samples))
     if tracer is not None:
         rows, cols = np.nonzero(g > 0)
         if rows.size:
@@ -585,6 +612,7 @@ def direct_irradiance(
     sun_disc: bool = True,
     partial: np.ndarray | None = None,
     solid_angle: bool = True,
+    unshadowed: np.ndarray | None = None,
 ) -> np.ndarray:
     """Irradiance from the lamps at one-sided Lambertian receivers, with shadow rays.
 
@@ -609,6 +637,9 @@ def direct_irradiance(
         quiet near a large lamp, ~3 us of float64 set-up per receiver); False samples them
         uniformly over their area (~5x cheaper per receiver, noisier close to the lamp), enough
         for ray hits whose light is averaged anyway (probe rays into the cache, pixel rays).
+    unshadowed : optional (n, 3) float32 output: the same samples' light without shadows (the
+        exact unshadowed irradiance where the ratio estimator applies), at no extra sampling:
+        a penumbra's visibility is the ratio of the two (`penumbra.filter_penumbra`).
 
     Returns
     -------
@@ -625,6 +656,8 @@ def direct_irradiance(
     out = np.zeros((n, 3), _F32)
     if partial is not None:
         partial[:] = False
+    if unshadowed is not None:
+        unshadowed[:] = 0.0
     active = [lt for lt in lights if float(lt.power) != 0.0 and np.any(lt.color != 0)]
     if n == 0 or not active:
         return out
@@ -645,11 +678,15 @@ def direct_irradiance(
         pts, nrm = pts[sel], nrm[sel]
     acc = np.zeros((pts.shape[0], 3), _F32)
     found = np.zeros(pts.shape[0], bool) if partial is not None else None
+    acc_open = np.zeros((pts.shape[0], 3), _F32) if unshadowed is not None else None
     # Suns traced along their axis need no sample patterns: whole arrays at once, row-major.
     axial = [lt.kind == "SUN" and (not sun_disc or float(lt.angle) <= 0.0) for lt in active]
     for lt, ax in zip(active, axial, strict=True):
         if ax:
-            acc += _sun_axis(lt, pts, nrm, tracer, epsilon)[:, None] * lt.color[None, :]
+            opened = [] if acc_open is not None else None
+            acc += _sun_axis(lt, pts, nrm, tracer, epsilon, opened)[:, None] * lt.color[None, :]
+            if opened:
+                acc_open += opened[0][:, None] * lt.color[None, :]
     sampled = [(i, lt) for i, (lt, ax) in enumerate(zip(active, axial, strict=True)) if not ax]
     step = max(1, CHUNK_RAYS // samples)
     for start in range(0, pts.shape[0] if sampled else 0, step):
@@ -658,17 +695,22 @@ def direct_irradiance(
         q = tuple(np.ascontiguousarray(nrm[start:stop, k]) for k in range(3))
         mark = found[start:stop] if found is not None else None
         for i, lt in sampled:
+            opened = [] if acc_open is not None else None
             if lt.kind in ("POINT", "SPOT"):
-                e = _point_chunk(lt, p, q, tracer, rng, samples, epsilon, mark)
+                e = _point_chunk(lt, p, q, tracer, rng, samples, epsilon, mark, opened)
             elif lt.kind == "SUN":
-                e = _sun_chunk(lt, p, q, tracer, rng, samples, epsilon, mark)
+                e = _sun_chunk(lt, p, q, tracer, rng, samples, epsilon, mark, opened)
             elif i in shapes:
-                e = _area_chunk(lt, shapes[i], p, q, tracer, rng, samples, epsilon, mark, solid_angle)
+                e = _area_chunk(lt, shapes[i], p, q, tracer, rng, samples, epsilon, mark, solid_angle, opened)
             else:
                 continue
             acc[start:stop] += e[:, None] * lt.color[None, :]
+            if opened:
+                acc_open[start:stop] += opened[0][:, None] * lt.color[None, :]
     if partial is not None:
         partial[slice(None) if sel is None else sel] = found
+    if unshadowed is not None:
+        unshadowed[slice(None) if sel is None else sel] = acc_open
     if sel is None:
         return acc
     out[sel] = acc

@@ -77,10 +77,12 @@ def adaptive_direct(direct, points: np.ndarray, normals: np.ndarray, pix: np.nda
     image[pix[partial]] = True
     full = dilate(image.reshape(h, w), DILATE).reshape(-1)[pix]
     redo = np.flatnonzero(full)
-    more = direct(points[redo], normals[redo], frame + SEED_OFFSET, samples=samples)
+    # The same samples' unshadowed light comes with them (exact where the ratio estimator applies):
+    # no second sampling pass for the filter's visibility.
+    open_light = np.zeros((redo.size, 3), np.float32)
+    more = direct(points[redo], normals[redo], frame + SEED_OFFSET, samples=samples, unshadowed=open_light)
     light[redo] = (first * light[redo] + samples * more) / np.float32(first + samples)
     if camera is not None and FILTER_PASSES > 0:
-        open_light = direct(points[redo], normals[redo], frame, samples=samples, shadows=False)
         light[redo] = filter_penumbra(light[redo], open_light, points[redo], normals[redo], pix[redo], shape,
                                       camera, pool)
     return light, full

@@ -21,10 +21,10 @@ def _floor():
 
 
 def _direct(lights, tracer, seed=0):
-    def direct(points, normals, frame, samples=1, partial=None, shadows=True):
+    def direct(points, normals, frame, samples=1, partial=None, shadows=True, unshadowed=None):
         rng = np.random.default_rng([seed, frame])
         return direct_irradiance(lights, points, normals, tracer if shadows else None, rng, samples=samples,
-                                 partial=partial)
+                                 partial=partial, unshadowed=unshadowed)
     return direct
 
 
@@ -52,6 +52,22 @@ def test_partial_marks_penumbrae_only():
     partial[:] = True
     direct_irradiance([point_light((0, 0, 2))], pts, nrm, tracer, np.random.default_rng(0), samples=16, partial=partial)
     assert not partial.any()
+
+
+def test_unshadowed_output_is_the_same_samples_without_shadows():
+    """direct_irradiance's unshadowed output: what the same call without a tracer returns, for
+    every lamp kind (the penumbra filter's visibility is the ratio of the two)."""
+    lamps = [area_light(translation(0.0, 0.0, 2.0), power=200.0), sun_light((0.3, 0.2, -1.0), strength=2.0, angle=0.1),
+             sun_light((-0.2, 0.1, -1.0), strength=1.0), point_light((1.0, 0.5, 1.5), radius=0.2)]
+    tracer = TriangleTracer(quad((0.0, 0.0, 1.0), (0.4, 0, 0), (0, 0.4, 0)))
+    pts, nrm = _floor()
+    for samples in (1, 16):
+        opened = np.full((H * W, 3), np.nan, np.float32)
+        shadowed = direct_irradiance(lamps, pts, nrm, tracer, np.random.default_rng(5), samples=samples,
+                                     unshadowed=opened)
+        free = direct_irradiance(lamps, pts, nrm, None, np.random.default_rng(5), samples=samples)
+        np.testing.assert_array_equal(opened, free)
+        assert (shadowed <= opened + 1e-6).all() and (shadowed < opened - 1e-3).any()
 
 
 def test_adaptive_direct_matches_the_full_count_with_fewer_rays():
