@@ -104,6 +104,65 @@ def test_direct_pass_blocks_cover_every_point_once(worker):
     assert split.shape == (n, 3) and np.isfinite(split).all() and split.mean() > 0
 
 
+def test_interruptible_direct_is_fixed_blocks_and_stops_when_superseded(worker):
+    """A still view's full-res direct pass calls `system.direct` block by block (block i with its
+    own frame number, the penumbra flags written through), so that an edit drops it between two
+    blocks; a superseded pass raises before it traces another block."""
+    scene = procedural.cornell()
+    settings = CacheSettings(resolution=8, rays_per_cell=8, threads=2)
+    rng = np.random.default_rng(4)
+    n = 2 * worker.DIRECT_BLOCK_POINTS + 5
+    with GISystem(scene, settings) as gi:
+        lo, hi = gi.cache.grid.lo, gi.cache.grid.lo + np.asarray(gi.cache.grid.dims) * gi.cache.grid.cell_size
+        pts = (lo + rng.random((n, 3)) * (hi - lo)).astype(np.float32)
+        pts[:, 2] = lo[2] + 1e-3
+        up = np.tile(np.array([[0.0, 0.0, 1.0]], np.float32), (n, 1))
+        partial = np.zeros(n, bool)
+        light = worker._interruptible(gi, lambda: False)(pts, up, 7, samples=8, partial=partial)
+        bounds = np.linspace(0, n, 4).astype(np.intp)
+        for i, (a, b) in enumerate(zip(bounds[:-1], bounds[1:], strict=True)):
+            flags = np.zeros(b - a, bool)
+            alone = gi.direct(pts[a:b], up[a:b], 7 * worker.MAX_DIRECT_BLOCKS + i, samples=8, partial=flags)
+            np.testing.assert_array_equal(light[a:b], alone)
+            np.testing.assert_array_equal(partial[a:b], flags)
+        assert partial.any() and not partial.all()  # the box's walls shadow part of the floor
+        calls = iter([False, True])
+        with pytest.raises(worker._Superseded):
+            worker._interruptible(gi, lambda: next(calls))(pts, up, 7, samples=8)
+
+
+def test_a_lamp_edit_relights_the_cache_before_the_full_res_direct_pass(worker, monkeypatch):
+    """After a lamp edit of a still view the re-shaded cache solves first (the old cache's GI is
+    the image's largest error, the coarse pass shows the lamp's new light meanwhile); the
+    full-resolution direct passes follow the solve."""
+    scene = procedural.cornell()
+    settings = CacheSettings(resolution=10, rays_per_cell=16, threads=2)
+    pos, nrm, view_matrix, _ = pinhole_gbuffer(scene, settings)
+    full_pos, full_nrm, _, _ = pinhole_gbuffer(scene, settings, 64, 48)  # the direct light's resolution
+    fine = []
+    original = worker.ViewportWorker._direct_pass
+
+    def record(self, system, state, level=None):
+        if level is None:
+            fine.append(self._schedule.solved_once)
+        return original(self, system, state, level)
+
+    monkeypatch.setattr(worker.ViewportWorker, "_direct_pass", record)
+    options = worker.WorkerOptions(direct_passes=2, solver_batches=1, first_batch_rays=8, pixel_rays=0)
+    wk = worker.ViewportWorker(settings, options)
+    try:
+        wk.post_edit(worker.FullScene(scene))
+        wk.post_view(worker.ViewRequest(("k",), pos, nrm, full_pos, full_nrm, view_matrix, np.eye(4)))
+        assert wk.wait_idle(120)
+        assert len(fine) == 2
+        lamps = [dataclasses.replace(lt, power=2.0 * lt.power) for lt in scene.lights]
+        wk.post_edit(worker.SetShading(lights=lamps))
+        assert wk.wait_idle(120)
+    finally:
+        wk.close()
+    assert fine == [True] * 4
+
+
 def test_relight_order_starts_with_the_short_first_batch(worker):
     """After a lamp edit the viewport re-shades the batch with the fewest stored rays first, then
     the one carrying the bounces, then the rest; each batch once."""
