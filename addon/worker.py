@@ -306,10 +306,7 @@ class ViewportWorker:
                 self._trace_mask(system, state)
             elif self._glossy_due(state) and schedule.solved_once:
                 self._glossy_pass(system, state, self.options.direct_samples)
-            elif state.passes < self.options.direct_passes and schedule.solved_once:
-                # (Not before the cache has solved over its current hits, a fresh cache's or a
-                # re-shaded one's: the full-resolution passes would delay the converged GI, and
-                # the coarse pass's light shows meanwhile.)
+            elif self._direct_due(state):
                 self._direct_pass(system, state)
             elif self._pixels_due(state):
                 self._pixel_pass(system, state)
@@ -435,6 +432,17 @@ class ViewportWorker:
             # A new view or a lamp edit: its glossy light at once, with the coarse pass's samples.
             self._glossy_pass(system, state, samples)
         state.dirty = True
+
+    def _direct_due(self, state: ViewState) -> bool:
+        """A still view's next full-resolution direct pass is due: not before the cache has solved
+        over its current hits (a fresh cache's or a re-shaded one's: the coarse pass's light shows
+        meanwhile), and each after a pixel pass while those are due. The pixel rays' GI removes
+        far more error than a sharper lamp light (Cornell 640x360 vs Cycles 1024 spp, a re-lit
+        cache's image: 0.040 with the coarse pass, 0.037 with a full-res pass, 0.021 with the
+        full-res pass and a pixel pass), so the image waits for neither behind the other."""
+        if state.passes >= self.options.direct_passes or not self._schedule.solved_once:
+            return False
+        return state.passes < state.pixel_passes or not self._pixels_due(state)
 
     def _glossy_due(self, state: ViewState) -> bool:
         """A glossy pass of a still view is due: fewer than `glossy_passes`, alternating with the

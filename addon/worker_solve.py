@@ -159,13 +159,17 @@ class SolveSchedule:
     @property
     def stable(self) -> bool:
         """The cache has converged over its current hits and no solve is under way: what it
-        estimates holds until the next event (refining batches may follow: `refinable`)."""
-        return self.system is not None and self.solved_once and self._pending is None and self.phase in (MORE, DONE)
+        estimates holds until the next event (refining batches may follow: `refinable`). After a
+        shading edit that is once the first re-shaded batch has solved: the batches still to
+        re-shade refine that estimate as refining batches do (the first view's pixel passes are
+        traced over its first batch's solve too)."""
+        return (self.system is not None and self.solved_once and self._pending is None
+                and self.phase in (MORE, DONE, RELIGHT))
 
     @property
     def refinable(self) -> bool:
-        """Converged, with a refining batch still to trace and none begun: it may wait."""
-        return self.stable and self.phase == MORE
+        """Converged, with a refining batch still to trace (or to re-shade) and none begun: it may wait."""
+        return self.stable and self.phase in (MORE, RELIGHT) and self._relight_part == 0
 
     @property
     def has_work(self) -> bool:

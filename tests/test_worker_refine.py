@@ -163,6 +163,69 @@ def test_a_lamp_edit_relights_the_cache_before_the_full_res_direct_pass(worker, 
     assert fine == [True] * 4
 
 
+def test_a_still_view_alternates_pixel_passes_and_full_res_direct_passes(worker, monkeypatch):
+    """Once the cache has solved, a still view's pixel passes and full-res direct passes take
+    turns, a pixel pass first: the pixel rays' GI removes the larger error."""
+    scene = procedural.cornell()
+    settings = CacheSettings(resolution=10, rays_per_cell=16, threads=2)
+    pos, nrm, view_matrix, _ = pinhole_gbuffer(scene, settings)
+    full_pos, full_nrm, _, _ = pinhole_gbuffer(scene, settings, 64, 48)
+    order = []
+    direct_pass, pixel_pass = worker.ViewportWorker._direct_pass, worker.ViewportWorker._pixel_pass
+
+    def record_direct(self, system, state, level=None):
+        direct_pass(self, system, state, level)
+        if level is None:
+            order.append("d")
+
+    def record_pixels(self, system, state):
+        done = state.pixel_passes
+        pixel_pass(self, system, state)
+        if state.pixel_passes > done:
+            order.append("p")
+
+    monkeypatch.setattr(worker.ViewportWorker, "_direct_pass", record_direct)
+    monkeypatch.setattr(worker.ViewportWorker, "_pixel_pass", record_pixels)
+    options = worker.WorkerOptions(direct_passes=2, solver_batches=1, first_batch_rays=8, pixel_rays=4,
+                                   pixel_passes=2)
+    wk = worker.ViewportWorker(settings, options)
+    try:
+        wk.post_edit(worker.FullScene(scene))
+        wk.post_view(worker.ViewRequest(("k",), pos, nrm, full_pos, full_nrm, view_matrix, np.eye(4)))
+        assert wk.wait_idle(120)
+    finally:
+        wk.close()
+    assert order == ["p", "d", "p", "d"]
+
+
+def test_after_a_lamp_edit_the_other_batches_reshade_as_a_refinement(worker):
+    """After a lamp edit the first re-shaded batch's solve is the view's cache (stable: pixel
+    passes may be traced over it) and the other batches' re-shade may wait for the view's own
+    light (refinable), as a refining batch does; each re-shaded batch is solved again."""
+    solve = sys.modules[worker.__name__.rsplit(".", 1)[0] + ".worker_solve"]
+    scene = procedural.cornell()
+    settings = CacheSettings(resolution=8, rays_per_cell=16, threads=2)
+    with GISystem(scene, settings) as gi:
+        sched = solve.SolveSchedule(2, first_rays=8)
+        sched.attach(gi)
+        cells = gi.surface_cells()
+        while sched.has_work:
+            sched.step(cells)
+        assert gi.solver.batches == 2 and sched.stable and not sched.refinable
+        epoch = sched.epoch
+        lamps = [dataclasses.replace(lt, power=2.0 * lt.power) for lt in scene.lights]
+        gi.set_lights(dataclasses.replace(scene, lights=lamps))
+        sched.changed(shading=True, geometry=False, materials=False)
+        assert not sched.stable
+        while not sched.solved_once:
+            sched.step(cells)
+        assert sched.phase == solve.RELIGHT and sched.stable and sched.refinable
+        version = gi.cache.version
+        while sched.has_work:
+            sched.step(cells)
+        assert gi.cache.version > version and sched.epoch == epoch + 1 and sched.stable
+
+
 def test_relight_order_starts_with_the_short_first_batch(worker):
     """After a lamp edit the viewport re-shades the batch with the fewest stored rays first, then
     the one carrying the bounces, then the rest; each batch once."""
