@@ -40,11 +40,19 @@ class PackedGatherPass(_gather.GatherPass):
         if not isinstance(cache, worker.CacheFrame):
             self._depth_texels = None
             return super().upload(cache)
-        depth_tx = self._depth_tx if cache.depth_texels is self._depth_texels else None
+        same = cache.depth_texels is not None and cache.depth_texels is self._depth_texels
         uploaded = self.upload_packed(("frame", cache.serial), cache.grid, cache.settings,
-                                      cache.sh_texels, cache.depth_texels, depth_tx=depth_tx)
+                                      cache.sh_texels, cache.depth_texels, depth_tx=self._depth_tx if same else None)
         self._depth_texels = cache.depth_texels
         return uploaded
+
+    def execute(self, low, visibility: bool = True, corner_visible=None):
+        """As `GatherPass.execute`; a frame the worker sent without depth moments (a still view
+        with its corner mask does not read them: `ViewportWorker._depth_wanted`) is read without
+        the Chebyshev test by a view without its mask, until the moments follow (a worker step)."""
+        if visibility and corner_visible is None and not self.has_depth:
+            visibility = False
+        return super().execute(low, visibility=visibility, corner_visible=corner_visible)
 
 
 

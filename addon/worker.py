@@ -646,25 +646,32 @@ class ViewportWorker:
                 # (A batch traced in part has replaced its cells' filtered direct band with the
                 # raw mean: the cache is shown again once that batch is solved and filtered.)
                 due = False
-            if pack and key != old and due and traced:
+            depth_key = (key[0], key[2], self._schedule.blends)
+            fresh = self._published_depth is not None and self._published_depth[0] == depth_key
+            sh_due = key != old and due
+            # (The depth alone may join the published frame of this very cache.)
+            depth_due = not fresh and self._depth_wanted() and (sh_due or cache_frame is not None and not new_cache)
+            if pack and (sh_due or depth_due) and traced:
                 t0 = time.perf_counter()
-                # Solver iterations change the radiance bands only: the depth moments (the larger
-                # texture) are packed again only after steps that blend traced rays.
                 size = _gather_layout.DEFAULT_MAX_TEXTURE_SIZE  # never ask the GPU from this thread
                 _gather_layout.check_cache_textures(cache.grid.count, cache.settings.sh_coeffs,
                                                     cache.settings.depth_texels, size)
-                depth_key = (key[0], key[2], self._schedule.blends)
-                if self._published_depth is None or self._published_depth[0] != depth_key:
+                # Solver iterations change the radiance bands only: the depth moments (the larger
+                # texture) are packed again only after steps that blend traced rays, and only once
+                # a view reads them (`_depth_wanted`).
+                if depth_due:
                     self._published_depth = (depth_key, frozen(_gather_layout.pack_depth(cache, size)))
-                sh_tex = _gather_layout.pack_sh(cache, size)
-                depth_tex = self._published_depth[1]
+                    fresh = True
+                sh_tex = frozen(_gather_layout.pack_sh(cache, size)) if sh_due else cache_frame.sh_texels
+                depth_tex = self._published_depth[1] if fresh else None
                 self._serial += 1
-                cache_frame = CacheFrame(self._serial, cache.grid, cache.settings, frozen(sh_tex), depth_tex)
-                self._published_cache_key = key
-                self._published_at = time.perf_counter()
+                cache_frame = CacheFrame(self._serial, cache.grid, cache.settings, sh_tex, depth_tex)
                 self._steps["pack"] = (time.perf_counter() - t0) * 1e3
                 glossy = self._view_state.glossy if self._view_state is not None else None
-                if glossy is not None and (not self._schedule.has_work
+                if sh_due:
+                    self._published_cache_key = key
+                    self._published_at = time.perf_counter()
+                if sh_due and glossy is not None and (not self._schedule.has_work
                                            or time.perf_counter() - glossy.cache_at >= GLOSSY_CACHE_INTERVAL_S):
                     self._glossy_cache_due = True  # read this very cache once it is out (`_publish`)
             state = self._view_state
@@ -676,6 +683,16 @@ class ViewportWorker:
                 state.dirty = False
         stats = dataclasses.replace(self._stats(), idle=idle)
         return Published(cache=cache_frame, view=view_result, stats=stats, empty=self._empty)
+
+    def _depth_wanted(self) -> bool:
+        """Whether a published cache should carry its depth moments. Only the gather's Chebyshev
+        test reads them, and a still view with its corner mask never does: the first converged
+        cache goes out without them (packing 57 MB of moments for a 48^3 grid took 0.25-0.3 s of
+        the Cornell box's first GI image on 2 busy cores), and they follow once a view lacks
+        its mask (a camera move) or the still view's own light is complete. A view drawn without
+        its mask meanwhile reads the cache without the test (`PackedGatherPass`)."""
+        state = self._view_state
+        return state is None or state.mask is None or not self._view_refinement_due(state)
 
     def _fail(self, message: str) -> None:
         with self._cond:

@@ -110,7 +110,7 @@ class CacheFrame:
     grid: object  # CacheGrid
     settings: object  # CacheSettings
     sh_texels: np.ndarray
-    depth_texels: np.ndarray
+    depth_texels: np.ndarray | None  # None: not packed (a still view with its corner mask reads none)
 
 
 @dataclass(frozen=True)

@@ -77,6 +77,7 @@ class SolveSchedule:
         self._relight_part = 0  # its next part (`relight_batch(part=)`)
         self._materials = False  # the re-shade includes materials and the world (not lamps only)
         self.solved_once = False  # a solve of the current hits converged (cells count as settled)
+        self._clean = False  # nothing changed the cache since it was last solved and filtered
         self._fresh_at: float | None = None  # when a fresh cache's first batch began (till solved)
         #: The refining batch traced in parts: (batch, its cells, cells traced so far), or None.
         self._pending: tuple[int, np.ndarray, int] | None = None
@@ -101,7 +102,7 @@ class SolveSchedule:
             if system is not None:
                 system.solver.min_chunks = MIN_CHUNKS
             self.phase = BEGIN
-            self.solved_once = False
+            self.solved_once = self._clean = False
             self._fresh_at = None
             self._pending = None
 
@@ -158,17 +159,18 @@ class SolveSchedule:
 
     @property
     def stable(self) -> bool:
-        """The cache has converged over its current hits and no solve is under way: what it
+        """The cache has converged over its current hits and nothing changed it since: what it
         estimates holds until the next event (refining batches may follow: `refinable`). After a
         shading edit that is once the first re-shaded batch has solved: the batches still to
         re-shade refine that estimate as refining batches do (the first view's pixel passes are
-        traced over its first batch's solve too)."""
-        return (self.system is not None and self.solved_once and self._pending is None
-                and self.phase in (MORE, DONE, RELIGHT))
+        traced over its first batch's solve too), and so does the rest of a refining batch the
+        edit cut short (its traced part is in the solved, filtered cache)."""
+        return self.system is not None and self.solved_once and self._clean and self.phase in (MORE, DONE, RELIGHT)
 
     @property
     def refinable(self) -> bool:
-        """Converged, with a refining batch still to trace (or to re-shade) and none begun: it may wait."""
+        """Converged, with refining work left (a batch to trace or the rest of one, batches to
+        re-shade) and no re-shade half done: it may wait for the view's own light."""
         return self.stable and self.phase in (MORE, RELIGHT) and self._relight_part == 0
 
     @property
@@ -183,6 +185,9 @@ class SolveSchedule:
         t0 = time.perf_counter()
         rays = 0
         phase = self.phase
+        # Every step but a lamps-only re-shade (stored hits only) changes the cache; `_finish`
+        # leaves it solved and filtered again.
+        self._clean = self._clean and phase == RELIGHT and not self._materials
         if phase == BEGIN:
             solver.begin(np.union1d(system.surface_cells(), cells))
             rays = solver.trace_batch(0, rays=self.first_rays).rays
@@ -255,6 +260,7 @@ class SolveSchedule:
         cache.samples[c] = np.where(cache.samples[c] > 0, np.maximum(cache.samples[c], window), 0)
         cache.version += 1
         self.solved_once = True
+        self._clean = True
         self._fresh_at = None
         if self._relight_next is not None:
             self.phase = RELIGHT

@@ -80,7 +80,39 @@ def test_two_threads_converge_to_the_single_thread_result(worker):
     np.testing.assert_array_equal(a.view.direct, b.view.direct)
     np.testing.assert_array_equal(a.view.corner_mask, b.view.corner_mask)
     np.testing.assert_array_equal(a.cache.sh_texels, b.cache.sh_texels)
+    assert a.cache.depth_texels is not None  # packed once the view's own light was complete
     np.testing.assert_array_equal(a.cache.depth_texels, b.cache.depth_texels)
+
+
+def test_the_first_converged_cache_goes_out_without_the_depth_moments(worker, monkeypatch):
+    """A still view with its corner mask reads no depth moments: the first converged cache is
+    published without them, and they join the same cache's frame once the view's own light is
+    complete (the larger texture: it held back the first GI image)."""
+    scene = procedural.cornell()
+    settings = CacheSettings(resolution=12, rays_per_cell=16, threads=2)
+    pos, nrm, view_matrix, _ = pinhole_gbuffer(scene, settings)
+    frames = []
+    publish = worker.ViewportWorker._publish
+
+    def record(self, force=True):
+        publish(self, force)
+        frame = self._published.cache
+        if frame is not None and (not frames or frames[-1][0] is not frame):
+            frames.append((frame, self._view_state.mask is not None))
+
+    monkeypatch.setattr(worker.ViewportWorker, "_publish", record)
+    options = worker.WorkerOptions(direct_passes=1, solver_batches=1, first_batch_rays=8, pixel_rays=4,
+                                   pixel_passes=1)
+    wk = worker.ViewportWorker(settings, options)
+    try:
+        wk.post_edit(worker.FullScene(scene))
+        wk.post_view(worker.ViewRequest(("k",), pos, nrm, pos, nrm, view_matrix, np.eye(4)))
+        assert wk.wait_idle(120)
+        assert frames[0][1] and frames[0][0].depth_texels is None
+    finally:
+        wk.close()
+    assert frames[-1][0].depth_texels is not None
+    np.testing.assert_array_equal(frames[-1][0].sh_texels, frames[-2][0].sh_texels)  # the depth alone joined
 
 
 def test_direct_pass_blocks_cover_every_point_once(worker):
@@ -224,6 +256,32 @@ def test_after_a_lamp_edit_the_other_batches_reshade_as_a_refinement(worker):
         while sched.has_work:
             sched.step(cells)
         assert gi.cache.version > version and sched.epoch == epoch + 1 and sched.stable
+        # An edit that cuts a refining batch short: its traced part is in the re-lit solve, whose
+        # cache is stable while the rest of the batch waits; each part traced leaves it unstable
+        # until the batch is solved.
+        old = solve.MORE_PART_RAYS
+        solve.MORE_PART_RAYS = 16 * 64  # many parts
+        try:
+            sched.batches = 3
+            sched.phase = solve.MORE
+            sched.step(cells)
+            assert sched._pending is not None and not sched.stable
+            gi.set_lights(scene)
+            sched.changed(shading=True, geometry=False, materials=False)
+            while not sched.solved_once:
+                sched.step(cells)
+            assert sched._pending is not None and sched.stable and sched.refinable
+            while sched.phase == solve.RELIGHT:
+                sched.step(cells)
+            while sched.phase != solve.MORE:
+                sched.step(cells)
+            sched.step(cells)
+            assert not sched.stable
+            while sched.has_work:
+                sched.step(cells)
+        finally:
+            solve.MORE_PART_RAYS = old
+        assert sched.stable and gi.solver.batches == 3
 
 
 def test_relight_order_starts_with_the_short_first_batch(worker):

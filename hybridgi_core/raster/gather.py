@@ -195,21 +195,29 @@ class GatherPass(RasterPass):
         self._uploaded = key
         return True
 
-    def upload_packed(self, key, grid, settings, sh_texels: np.ndarray, depth_texels: np.ndarray,
+    def upload_packed(self, key, grid, settings, sh_texels: np.ndarray, depth_texels: np.ndarray | None,
                       depth_tx=None) -> bool:
         """Upload textures already in the `pack_cache` layout (packed on another thread), unless
         `key` (any hashable naming this version of the cache) is the one on the GPU already.
         depth_tx : the texture of these depth texels, already uploaded (skips that upload).
+        depth_texels None: no depth moments (only a corner mask may test visibility: `has_depth`).
         Returns True when it uploaded."""
         if self._uploaded == key:
             return False
         self._cache_tx = upload_texture_2d(sh_texels, "RGBA32F")
-        self._depth_tx = depth_tx if depth_tx is not None else upload_texture_2d(depth_texels, "RG32F")
+        if depth_tx is None and depth_texels is not None:
+            depth_tx = upload_texture_2d(depth_texels, "RG32F")
+        self._depth_tx = depth_tx
         self._depth_source = None
         self._grid = grid
         self._settings = settings
         self._uploaded = key
         return True
+
+    @property
+    def has_depth(self) -> bool:
+        """Whether the Chebyshev test can read depth moments (uploaded, or to pack from the cache)."""
+        return self._depth_tx is not None or self._depth_source is not None
 
     @staticmethod
     def _key(cache):
