@@ -526,9 +526,11 @@ class ViewportWorker:
                 or self._pixels_due(state))
 
     def _pixel_key(self, system) -> tuple:
-        """What a view's pixel passes were traced over: the cache and its lighting epoch (events
-        change it; refining batches do not: a refined cache estimates the same light)."""
-        return (id(system.cache), self._schedule.epoch)
+        """What a view's pixel passes were traced over: the cache, its lighting epoch (events
+        change it; refining batches do not: a refined cache estimates the same light) and whether
+        every batch is re-shaded since the last shading edit (the passes traced over the first
+        re-shaded batch's solve are traced again once the rest is: `ViewState.refines`)."""
+        return (id(system.cache), self._schedule.epoch, self._schedule.reshaded)
 
     def _pixels_due(self, state: ViewState) -> bool:
         """A pixel-ray pass is due: the cache has converged and no solve is under way
@@ -548,10 +550,10 @@ class ViewportWorker:
         r = state.request
         points, normals, pix = state.gi_points
         key = self._pixel_key(system)
-        if state.pixel_key is not None and state.pixel_key != key:
+        if state.pixel_key is not None and state.pixel_key != key and not state.refines(key):
             state.reset_pixels()  # passes over an older cache (the pass in progress too)
         if state.pixel_pass is None or state.pixel_pass.key != key:
-            state.pixel_pass = _pixels.PixelPass(key, points.shape[0], state.pixel_passes)
+            state.pixel_pass = _pixels.PixelPass(key, points.shape[0], state.passes_over(key))
         pass_ = state.pixel_pass
         self._count_rays(pass_.trace_next(system, points, normals, state.visible, self.options.pixel_rays))
         self._steps["pixel_rays"] = (time.perf_counter() - t0) * 1e3

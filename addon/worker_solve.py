@@ -174,6 +174,13 @@ class SolveSchedule:
         return self.stable and self.phase in (MORE, RELIGHT) and self._relight_part == 0
 
     @property
+    def reshaded(self) -> bool:
+        """Every batch is re-shaded since the last shading edit (or none came): the batches after
+        the first re-shaded one re-shade as a refinement (`stable`), which the viewport's pixel
+        passes are traced again over."""
+        return self._relight_next is None
+
+    @property
     def has_work(self) -> bool:
         return self.system is not None and self.phase != DONE
 

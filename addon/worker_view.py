@@ -115,6 +115,7 @@ class ViewState:
         self.pixel_passes = 0
         self.pixel_key = None
         self.pixel_pass = None  # `worker_pixels.PixelPass` in progress
+        self.pixel_next: list | None = None  # [sum, passes, key] over a refined cache (`refines`)
         self.cell_colors: np.ndarray | None = None  # Cache Cells view, when the request asks
         self.cells_key = None
         self.cells_at = 0.0
@@ -151,9 +152,34 @@ class ViewState:
 
     def reset_pixels(self) -> None:
         self.pixel_sum, self.pixel_passes, self.pixel_key, self.pixel_pass = None, 0, None, None
+        self.pixel_next = None
+
+    def refines(self, key) -> bool:
+        """Whether passes over `key` refine the shown ones: the same cache and lighting epoch,
+        re-shaded further since (`ViewportWorker._pixel_key`). They are summed apart and
+        replace the shown passes once there are as many, so the image never falls back to the
+        gather meanwhile."""
+        return (self.pixel_key is not None and self.pixel_sum is not None and key != self.pixel_key
+                and key[:2] == self.pixel_key[:2])
+
+    def passes_over(self, key) -> int:
+        """Passes summed so far over `key` (the next pass's number: its frames)."""
+        if self.refines(key):
+            return self.pixel_next[1] if self.pixel_next is not None and self.pixel_next[2] == key else 0
+        return self.pixel_passes
 
     def add_pixels(self, indirect: np.ndarray, direct: np.ndarray, key) -> None:
-        """One pixel-ray pass over the cache `key`; a pass over another cache starts over."""
+        """One pixel-ray pass over the cache `key`; a pass over another cache starts over, one
+        over a refined cache is summed apart until it replaces the shown ones (`refines`)."""
+        if self.refines(key):
+            nxt = self.pixel_next if self.pixel_next is not None and self.pixel_next[2] == key else [None, 0, key]
+            nxt[0] = [indirect.copy(), direct.copy()] if nxt[0] is None else [nxt[0][0] + indirect, nxt[0][1] + direct]
+            nxt[1] += 1
+            self.pixel_next = nxt
+            if nxt[1] >= self.pixel_passes:
+                self.pixel_sum, self.pixel_passes, self.pixel_key, self.pixel_next = nxt[0], nxt[1], key, None
+                self.dirty = True
+            return
         if key != self.pixel_key:
             self.reset_pixels()
         if self.pixel_sum is None:

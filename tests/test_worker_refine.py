@@ -284,6 +284,65 @@ def test_after_a_lamp_edit_the_other_batches_reshade_as_a_refinement(worker):
         assert sched.stable and gi.solver.batches == 3
 
 
+def test_pixel_passes_over_a_further_reshaded_cache_replace_the_shown_ones_when_as_many(worker):
+    """Pixel passes over the same cache and epoch, re-shaded further since (a lamp edit's later
+    batches), are summed apart: the shown mean stays until they are as many, then they replace it;
+    passes over another epoch start over at once."""
+    view = sys.modules[worker.__name__.rsplit(".", 1)[0] + ".worker_view"]
+    pos = np.zeros((2, 2, 4), np.float32)
+    request = worker.ViewRequest(("k",), pos, pos, pos, pos, np.eye(4), np.eye(4))
+    state = view.ViewState(request, 0, (np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0, np.intp)), np.zeros(0))
+    img = lambda v: np.full((2, 2, 4), v, np.float32)  # noqa: E731
+    first, later = (1, 5, False), (1, 5, True)
+    state.add_pixels(img(1.0), img(1.0), first)
+    state.add_pixels(img(3.0), img(3.0), first)
+    assert state.refines(later) and state.passes_over(later) == 0 and state.passes_over(first) == 2
+    state.add_pixels(img(10.0), img(10.0), later)
+    assert state.pixel_key == first and state.pixel_passes == 2 and state.passes_over(later) == 1
+    np.testing.assert_array_equal(state.result(0).gi_indirect, img(2.0))
+    state.add_pixels(img(20.0), img(20.0), later)
+    assert state.pixel_key == later and state.pixel_passes == 2 and state.pixel_next is None
+    np.testing.assert_array_equal(state.result(1).gi_indirect, img(15.0))
+    state.add_pixels(img(7.0), img(7.0), (1, 6, True))  # a new epoch: the passes start over
+    assert state.pixel_passes == 1
+    np.testing.assert_array_equal(state.result(2).gi_indirect, img(7.0))
+
+
+def test_a_lamp_edit_traces_pixel_passes_over_the_first_reshaded_batch_then_over_all(worker, monkeypatch):
+    """After a lamp edit of a view whose cache holds two batches, the pixel passes are traced
+    over the first re-shaded batch's solve, and again once the other batch is re-shaded; the
+    settled view shows the latter."""
+    scene = procedural.cornell()
+    settings = CacheSettings(resolution=10, rays_per_cell=16, threads=2)
+    pos, nrm, view_matrix, _ = pinhole_gbuffer(scene, settings)
+    keys = []
+    pixel_pass = worker.ViewportWorker._pixel_pass
+
+    def record(self, system, state):
+        pixel_pass(self, system, state)
+        if state.pixel_pass is None:
+            keys.append(self._pixel_key(system)[1:])
+
+    monkeypatch.setattr(worker.ViewportWorker, "_pixel_pass", record)
+    options = worker.WorkerOptions(direct_passes=1, solver_batches=2, first_batch_rays=8, pixel_rays=4,
+                                   pixel_passes=1)
+    wk = worker.ViewportWorker(settings, options)
+    try:
+        wk.post_edit(worker.FullScene(scene))
+        wk.post_view(worker.ViewRequest(("k",), pos, nrm, pos, nrm, view_matrix, np.eye(4)))
+        assert wk.wait_idle(120)
+        assert wk._session.system.solver.batches == 2
+        keys.clear()
+        lamps = [dataclasses.replace(lt, power=2.0 * lt.power) for lt in scene.lights]
+        wk.post_edit(worker.SetShading(lights=lamps))
+        assert wk.wait_idle(120)
+        shown = wk._view_state.pixel_key
+    finally:
+        wk.close()
+    epoch = keys[0][0]
+    assert keys == [(epoch, False), (epoch, True)] and shown[1:] == (epoch, True)
+
+
 def test_relight_order_starts_with_the_short_first_batch(worker):
     """After a lamp edit the viewport re-shades the batch with the fewest stored rays first, then
     the one carrying the bounces, then the rest; each batch once."""
