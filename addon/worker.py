@@ -732,7 +732,9 @@ def _interruptible(system, superseded: Callable[[], bool]):
     frame * MAX_DIRECT_BLOCKS + i, raising `_Superseded` before a block once superseded() holds.
     The blocks are fixed, so the light does not depend on the pool's thread count or on timing."""
 
-    def direct(points, normals, frame, samples=None, partial=None, shadows=True):
+    def direct(points, normals, frame, samples=None, shadows=True, **outputs):
+        # outputs : `system.direct`'s per-point output arrays (partial, unshadowed), written
+        # block by block through views of them.
         n = points.shape[0]
         blocks = min(-(-n // DIRECT_BLOCK_POINTS), MAX_DIRECT_BLOCKS)
         bounds = np.linspace(0, n, blocks + 1).astype(np.intp)
@@ -740,8 +742,9 @@ def _interruptible(system, superseded: Callable[[], bool]):
         for i, (a, b) in enumerate(zip(bounds[:-1], bounds[1:], strict=True)):
             if superseded():
                 raise _Superseded
+            views = {k: None if v is None else v[a:b] for k, v in outputs.items()}
             out.append(system.direct(points[a:b], normals[a:b], frame * MAX_DIRECT_BLOCKS + i, samples=samples,
-                                     partial=None if partial is None else partial[a:b], shadows=shadows))
+                                     shadows=shadows, **views))
         return np.concatenate(out) if out else np.zeros((0, 3), np.float32)
 
     return direct

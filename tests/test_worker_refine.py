@@ -149,14 +149,17 @@ def test_interruptible_direct_is_fixed_blocks_and_stops_when_superseded(worker):
         pts = (lo + rng.random((n, 3)) * (hi - lo)).astype(np.float32)
         pts[:, 2] = lo[2] + 1e-3
         up = np.tile(np.array([[0.0, 0.0, 1.0]], np.float32), (n, 1))
-        partial = np.zeros(n, bool)
-        light = worker._interruptible(gi, lambda: False)(pts, up, 7, samples=8, partial=partial)
+        partial, unshadowed = np.zeros(n, bool), np.zeros((n, 3), np.float32)
+        light = worker._interruptible(gi, lambda: False)(pts, up, 7, samples=8, partial=partial,
+                                                         unshadowed=unshadowed)
         bounds = np.linspace(0, n, 4).astype(np.intp)
         for i, (a, b) in enumerate(zip(bounds[:-1], bounds[1:], strict=True)):
-            flags = np.zeros(b - a, bool)
-            alone = gi.direct(pts[a:b], up[a:b], 7 * worker.MAX_DIRECT_BLOCKS + i, samples=8, partial=flags)
+            flags, open_light = np.zeros(b - a, bool), np.zeros((b - a, 3), np.float32)
+            alone = gi.direct(pts[a:b], up[a:b], 7 * worker.MAX_DIRECT_BLOCKS + i, samples=8, partial=flags,
+                              unshadowed=open_light)
             np.testing.assert_array_equal(light[a:b], alone)
             np.testing.assert_array_equal(partial[a:b], flags)
+            np.testing.assert_array_equal(unshadowed[a:b], open_light)
         assert partial.any() and not partial.all()  # the box's walls shadow part of the floor
         calls = iter([False, True])
         with pytest.raises(worker._Superseded):
