@@ -71,6 +71,11 @@ PUBLISH_INTERVAL_S = 1.0 / 30.0
 #: bounce but costs a pack (~50-100 ms for a 48^3 grid here, a third of an iteration), so the
 #: intermediate ones go out at this rate; a finished solve is always published at once.
 SOLVE_PUBLISH_INTERVAL_S = 0.3
+#: ... and at least this many times the last pack's time (with the glossy light read from it)
+#: after the previous one or the event that began the solve: a re-solve's iterates cost it at
+#: most a fifth (bunny_npm 640x360 after a lamp move, 2 busy cores: two iterates at 0.16-0.5 s a
+#: pack and glossy read held the converged cache back by 0.5 s of a 0.45 s solve).
+SOLVE_PUBLISH_PACKS = 4.0
 #: A fresh cache's first solve publishes no intermediate iteration before this long after its
 #: first batch: an iterate with a bounce or two is far darker than the fixed point (Cornell box:
 #: Combined error 0.49 vs 0.04), and packing it (the depth moments and SH of every cell, 50-200 ms
@@ -115,6 +120,7 @@ class ViewportWorker:
         self._published_depth = None  # (key, depth texels) last packed: reused while it holds
         self._glossy_cache_due = False  # a packed cache's glossy light is to be read (`_publish`)
         self._published_at = 0.0
+        self._pack_s = 0.0  # seconds of the last SH texture pack and the glossy light read with it
         self._view_state: ViewState | None = None
         self._rates: collections.deque = collections.deque()
         self._updates = 0
@@ -621,7 +627,9 @@ class ViewportWorker:
             # The glossy light of the cache just published, in a second publication: the first
             # converged image is not held back by it (0.1-0.25 s on bunny_npm, 2 busy cores).
             self._glossy_cache_due = False
+            t0 = time.perf_counter()
             self._glossy_cache(self._session.system, self._view_state)
+            self._pack_s += time.perf_counter() - t0  # a cost of that publication too
             published = self._build_published(idle=False, force=False)
             with self._cond:
                 self._published = published
@@ -639,8 +647,13 @@ class ViewportWorker:
             key = (id(cache), cache.version, id(cache.sh_direct))
             old = self._published_cache_key
             new_cache = old is None or old[0] != key[0] or old[2] != key[2]
-            interval = SOLVE_PUBLISH_INTERVAL_S if self._schedule.has_work else PUBLISH_INTERVAL_S
-            due = force or new_cache or time.perf_counter() - self._published_at >= interval
+            since = self._published_at
+            if self._schedule.has_work:
+                interval = max(SOLVE_PUBLISH_INTERVAL_S, SOLVE_PUBLISH_PACKS * self._pack_s)
+                since = max(since, self._schedule.changed_at)
+            else:
+                interval = PUBLISH_INTERVAL_S
+            due = force or new_cache or time.perf_counter() - since >= interval
             # A cache nothing was traced into yet shows nothing: the main thread's empty frame
             # stands in (packing a 48^3 grid's depth moments costs ~0.4 s before the first batch).
             traced = bool(cache.samples.any())
@@ -664,7 +677,12 @@ class ViewportWorker:
                 if depth_due:
                     self._published_depth = (depth_key, frozen(_gather_layout.pack_depth(cache, size)))
                     fresh = True
-                sh_tex = frozen(_gather_layout.pack_sh(cache, size)) if sh_due else cache_frame.sh_texels
+                if sh_due:
+                    t_sh = time.perf_counter()
+                    sh_tex = frozen(_gather_layout.pack_sh(cache, size))
+                    self._pack_s = time.perf_counter() - t_sh
+                else:
+                    sh_tex = cache_frame.sh_texels
                 depth_tex = self._published_depth[1] if fresh else None
                 self._serial += 1
                 cache_frame = CacheFrame(self._serial, cache.grid, cache.settings, sh_tex, depth_tex)

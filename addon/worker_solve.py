@@ -91,6 +91,8 @@ class SolveSchedule:
         #: shading or geometry event, new cells to cover), not by refining batches: the viewport's
         #: pixel passes over one epoch stay valid while the cache refines.
         self.epoch = 0
+        #: When the last event (`changed`) began a re-solve.
+        self.changed_at = 0.0
 
     # --- events ---------------------------------------------------------------------------------
 
@@ -117,6 +119,7 @@ class SolveSchedule:
             return
         self.solved_once = False
         self.epoch += 1
+        self.changed_at = time.perf_counter()
         if shading:
             self._materials = materials or (self._relight_next is not None and self._materials)
             self._relight_next = 0
