@@ -524,11 +524,16 @@ def textures(value: np.ndarray, pix: np.ndarray, h: int, w: int) -> tuple[np.nda
     rgb, AO), background as the GPU gather writes it (indirect 0 with AO 1)."""
     indirect = np.zeros((h * w, 4), np.float32)
     indirect[:, 3] = 1.0
+    direct = np.zeros((h * w, 4), np.float32)
+    write_texels(indirect, direct, pix, value)
+    return indirect.reshape(h, w, 4), direct.reshape(h, w, 4)
+
+
+def write_texels(indirect: np.ndarray, direct: np.ndarray, pix: np.ndarray, value: np.ndarray) -> None:
+    """Write values (n, 7) at flat pixels pix into flat (h * w, 4) `textures` arrays, in place."""
     indirect[pix, 0:3] = np.maximum(value[:, 3:6], 0.0)
     indirect[pix, 3] = np.clip(value[:, 6], 0.0, 1.0)
-    direct = np.zeros((h * w, 4), np.float32)
     direct[pix, 0:3] = np.maximum(value[:, 0:3], 0.0)
-    return indirect.reshape(h, w, 4), direct.reshape(h, w, 4)
 
 
 @dataclass
@@ -541,9 +546,7 @@ class FullResGI:
     gi: PixelGI
     detail: int = 0
     steps_ms: dict[str, float] = field(default_factory=dict)
-    #: (H * W, 7) the resolved values (direct rgb, indirect rgb, AO) per flat full-res pixel, and
-    #: what resolves them again at other samples (a jittered subframe's surfaces).
-    value: np.ndarray | None = None
+    #: What resolves the GI again at other samples (a jittered subframe's surfaces).
     resolver: GIResolver | None = None
 
 
@@ -575,7 +578,8 @@ def sample_pixels(position_lo: np.ndarray, full_points: np.ndarray, full_pix: np
 def upsample_full(sh_lo: np.ndarray, cache_lo: np.ndarray, residual_lo: np.ndarray, position_lo: np.ndarray,
                   normal_lo: np.ndarray, valid_lo: np.ndarray, points: np.ndarray, normals: np.ndarray, pix: np.ndarray, width: int,
                   factor: int, camera: np.ndarray, plane_sigma: float = 0.02, normal_power: float = 8.0,
-                  sigma: float = 1.0, rep_xy: np.ndarray | None = None, offset=(0.0, 0.0)) -> Upsampled:
+                  sigma: float = 1.0, rep_xy: np.ndarray | None = None, offset=(0.0, 0.0),
+                  records: np.ndarray | None = None) -> Upsampled:
     """Interpolate the GI resolution at the full-res pixels `pix` (flat, rows of `width`) with
     points / unit normals (n, 3), from the GI pixels' blended cache SH sh_lo (h*w, K, 7), its
     irradiance at their own normals cache_lo (h*w, 7) and their filtered residuals residual_lo
@@ -595,6 +599,8 @@ def upsample_full(sh_lo: np.ndarray, cache_lo: np.ndarray, residual_lo: np.ndarr
     shifts a gradient by half a full-res pixel the same way everywhere (a bias, not noise).
     offset : (x, y) full-res pixels from the pixel centres to where the points were sampled (a
     jittered subframe's, `GIResolver`); the spatial weights measure from there.
+    records : `tap_records` of these GI-resolution inputs, made once by a caller that resolves
+    many sets of points against them (None: made here).
     """
     h, w = valid_lo.shape
     n = points.shape[0]
@@ -606,24 +612,14 @@ def upsample_full(sh_lo: np.ndarray, cache_lo: np.ndarray, residual_lo: np.ndarr
     if rep_xy is None:
         grid = np.arange(h * w)
         rep_xy = np.stack([(grid % w + 0.5) * factor - 0.5, (grid // w + 0.5) * factor - 0.5], axis=1)
-    rep_xy = np.asarray(rep_xy, np.float32)
     inv2s2 = np.float32(0.5 / (sigma * factor) ** 2)
-    pos_lo = np.asarray(position_lo, np.float32).reshape(h * w, -1)[:, :3]
-    nrm_lo = np.asarray(normal_lo, np.float32).reshape(h * w, -1)[:, :3]
-    flat_valid = valid_lo.reshape(-1)
+    rec = tap_records(cache_lo, residual_lo, position_lo, normal_lo, valid_lo, rep_xy) if records is None else records
     points = np.asarray(points, np.float32)
     normals = np.asarray(normals, np.float32)
     nx, ny, nz = normals[:, 0], normals[:, 1], normals[:, 2]
     dist = np.linalg.norm(points - np.asarray(camera, np.float32), axis=1)
     inv_sigma = (1.0 / np.maximum(plane_sigma * dist, 1e-12)).astype(np.float32)
     own_plane = nx * points[:, 0] + ny * points[:, 1] + nz * points[:, 2]
-    lum_lo = (residual_lo[:, 0:3] + residual_lo[:, 3:6]) @ LUMA
-    # One record per GI pixel, gathered once per tap: position, normal, sample pixel, validity,
-    # cache (7), residual (7), residual luminance and its square, AO residual squared.
-    rec = np.concatenate([pos_lo, nrm_lo, rep_xy, flat_valid[:, None].astype(np.float32),
-                          np.asarray(cache_lo, np.float32), np.asarray(residual_lo, np.float32),
-                          lum_lo[:, None], (lum_lo * lum_lo)[:, None], np.square(residual_lo[:, 6:7])],
-                         axis=1).astype(np.float32)
     taps, weights = [], []
     best = np.zeros(n, np.float32)
     turned = np.zeros(n, bool)  # some tap's normal differs from the pixel's
@@ -672,6 +668,22 @@ def upsample_full(sh_lo: np.ndarray, cache_lo: np.ndarray, residual_lo: np.ndarr
     return Upsampled(cache, res, spread.astype(np.float32), best, cover, turned)
 
 
+def tap_records(cache_lo: np.ndarray, residual_lo: np.ndarray, position_lo: np.ndarray, normal_lo: np.ndarray,
+                valid_lo: np.ndarray, rep_xy: np.ndarray) -> np.ndarray:
+    """(h*w, 26) float32, one record per GI pixel that `upsample_full` gathers once per tap:
+    position, normal, sample pixel (x, y), validity, cache (7), residual (7), residual luminance
+    and its square, AO residual squared. Why a function: a jittered subframe resolves a few
+    thousand samples against the same GI pixels, and making the records costs more than that."""
+    n = valid_lo.size
+    residual_lo = np.asarray(residual_lo, np.float32)
+    lum_lo = (residual_lo[:, 0:3] + residual_lo[:, 3:6]) @ LUMA
+    return np.concatenate([np.asarray(position_lo, np.float32).reshape(n, -1)[:, :3],
+                           np.asarray(normal_lo, np.float32).reshape(n, -1)[:, :3],
+                           np.asarray(rep_xy, np.float32), valid_lo.reshape(n, 1).astype(np.float32),
+                           np.asarray(cache_lo, np.float32), residual_lo, lum_lo[:, None], (lum_lo * lum_lo)[:, None],
+                           np.square(residual_lo[:, 6:7])], axis=1).astype(np.float32)
+
+
 @dataclass
 class Upsampled:
     """`upsample_full`'s answer at n full-res pixels: cache (n, 7) the cache's irradiance (direct
@@ -695,18 +707,23 @@ UPSAMPLE_CHUNK = 16384
 
 
 def _upsample_parallel(system, sh_lo, cache_lo, residual_lo, position_lo, normal_lo, valid_lo, points, normals, pix,
-                       width, factor, camera, plane_sigma, normal_power, rep_xy, offset=(0.0, 0.0)) -> Upsampled:
-    """`upsample_full` over chunks of pixels on the system's worker pool (numpy releases the GIL)."""
+                       width, factor, camera, plane_sigma, normal_power, rep_xy, offset=(0.0, 0.0),
+                       records=None) -> Upsampled:
+    """`upsample_full` over chunks of pixels on the system's worker pool (numpy releases the GIL);
+    a single chunk runs in line."""
+    if records is None:
+        records = tap_records(cache_lo, residual_lo, position_lo, normal_lo, valid_lo, rep_xy)
+    if points.shape[0] <= UPSAMPLE_CHUNK:
+        return upsample_full(sh_lo, cache_lo, residual_lo, position_lo, normal_lo, valid_lo, points, normals, pix,
+                             width, factor, camera, plane_sigma, normal_power, rep_xy=rep_xy, offset=offset,
+                             records=records)
     starts = range(0, points.shape[0], UPSAMPLE_CHUNK)
     jobs = [system.updater.pool.submit(upsample_full, sh_lo, cache_lo, residual_lo, position_lo, normal_lo, valid_lo,
                                        points[a:a + UPSAMPLE_CHUNK], normals[a:a + UPSAMPLE_CHUNK],
                                        pix[a:a + UPSAMPLE_CHUNK], width, factor, camera, plane_sigma, normal_power,
-                                       rep_xy=rep_xy, offset=offset)
+                                       rep_xy=rep_xy, offset=offset, records=records)
             for a in starts]
     parts = [job.result() for job in jobs]
-    if not parts:
-        return upsample_full(sh_lo, cache_lo, residual_lo, position_lo, normal_lo, valid_lo, points, normals, pix,
-                             width, factor, camera, plane_sigma, normal_power, rep_xy=rep_xy, offset=offset)
     return Upsampled(*(np.concatenate([getattr(p, f) for p in parts])
                        for f in ("cache", "residual", "spread", "best", "cover", "turned")))
 
@@ -782,11 +799,13 @@ def full_res_resolve(system, gi: PixelGI, position_lo: np.ndarray, pix: np.ndarr
     rep_xy = sample_pixels(position_lo, full_points, full_pix, width, height, factor)
     cache_lo = np.zeros((h * w, 7), np.float32)
     cache_lo[pix] = cache
+    records = tap_records(cache_lo, filtered, pos, nrm, valid, rep_xy)
     up = _upsample_parallel(system, sh_lo, cache_lo, filtered, pos.reshape(h, w, 3), nrm.reshape(h, w, 3),
                             valid.reshape(h, w), full_points, full_normals, full_pix, width, factor, camera,
-                            plane_sigma, normal_power, rep_xy)
+                            plane_sigma, normal_power, rep_xy, records=records)
     resolver = GIResolver(system, sh_lo, cache_lo, filtered, pos.reshape(h, w, 3), nrm.reshape(h, w, 3),
-                          valid.reshape(h, w), rep_xy, width, factor, camera, plane_sigma, normal_power, lookup, rays)
+                          valid.reshape(h, w), rep_xy, width, factor, camera, plane_sigma, normal_power, lookup, rays,
+                          records)
     value = up.cache + up.residual
     orphan = up.best < DETAIL_MATCH
     light = np.maximum((value[:, 0:3] + value[:, 3:6]) @ LUMA, np.float32(1e-6))
@@ -825,9 +844,7 @@ def full_res_resolve(system, gi: PixelGI, position_lo: np.ndarray, pix: np.ndarr
         gi.rays += own.rays
     indirect, direct = textures(value, full_pix, height, width)
     steps.update(gi.steps_ms)
-    flat = np.zeros((height * width, 7), np.float32)
-    flat[full_pix] = value
-    return FullResGI(indirect, direct, gi, int(detail.size), steps, flat, resolver)
+    return FullResGI(indirect, direct, gi, int(detail.size), steps, resolver)
 
 
 @dataclass
@@ -857,6 +874,7 @@ class GIResolver:
     normal_power: float
     lookup: HitLookup | None
     rays: int
+    records: np.ndarray | None = None  # `tap_records` of the inputs above (None: made per call)
 
     def at(self, points: np.ndarray, normals: np.ndarray, pix: np.ndarray, offset, frame: int,
            rays: int | None = None) -> tuple[np.ndarray, int]:
@@ -870,7 +888,8 @@ class GIResolver:
             return np.zeros((0, 7), np.float32), 0
         up = _upsample_parallel(self.system, self.sh_lo, self.cache_lo, self.residual_lo, self.position_lo,
                                 self.normal_lo, self.valid_lo, points, normals, pix, self.width, self.factor,
-                                self.camera, self.plane_sigma, self.normal_power, self.rep_xy, offset=offset)
+                                self.camera, self.plane_sigma, self.normal_power, self.rep_xy, offset=offset,
+                                records=self.records)
         value = up.cache + up.residual
         orphan = np.flatnonzero(up.best < DETAIL_MATCH)
         rays = self.rays if rays is None else int(rays)

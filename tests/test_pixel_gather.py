@@ -514,12 +514,21 @@ def test_a_subframe_sample_on_a_surface_the_centre_missed_gets_its_own_light(wal
     sub_nrm[wall] = (1.0, 0.0, 0.0)
     hit, same = subframe_surfaces(centre, sub_pos.reshape(h, w, 4), sub_nrm.reshape(h, w, 3))
     assert hit.all() and np.flatnonzero(~same).tolist() == [wall]
-    value, traced = subframe_gi(out.resolver, out.value, hit, same, sub_pos.reshape(h, w, 4),
-                                sub_nrm.reshape(h, w, 3), offset, 5, 256)
+    indirect, direct, traced = subframe_gi(out.resolver, out.indirect, out.direct, hit, same,
+                                           sub_pos.reshape(h, w, 4), sub_nrm.reshape(h, w, 3), offset, 5, 256)
     assert traced == 256
-    np.testing.assert_array_equal(np.delete(value, wall, axis=0), np.delete(out.value, wall, axis=0))
-    assert out.value[wall, 0] == pytest.approx(np.pi, rel=0.01)  # what the subframe reused before
-    assert value[wall, 0] == pytest.approx(np.pi / 2, rel=0.1), value[wall]
+    centre_direct = out.direct.reshape(-1, 4)
+    np.testing.assert_array_equal(np.delete(direct, wall, axis=0), np.delete(centre_direct, wall, axis=0))
+    np.testing.assert_array_equal(np.delete(indirect, wall, axis=0),
+                                  np.delete(out.indirect.reshape(-1, 4), wall, axis=0))
+    assert centre_direct[wall, 0] == pytest.approx(np.pi, rel=0.01)  # what the subframe reused before
+    assert direct[wall, 0] == pytest.approx(np.pi / 2, rel=0.1), direct[wall]
+    # A pixel whose subframe sample sees no geometry takes the background's (no light, AO 1).
+    hit[0] = False
+    indirect, direct, _ = subframe_gi(out.resolver, out.indirect, out.direct, hit, same & hit,
+                                      sub_pos.reshape(h, w, 4), sub_nrm.reshape(h, w, 3), offset, 5, 256)
+    np.testing.assert_array_equal(indirect[0], (0.0, 0.0, 0.0, 1.0))
+    np.testing.assert_array_equal(direct[0], 0.0)
 
 
 @pytest.mark.blender

@@ -462,12 +462,14 @@ class FramePipeline:
         """A jittered subframe's full-res GI textures (`subpixel.subframe_gi`: the centre's where it
         sees the centre's surface, resolved at its own samples elsewhere) and their guide, a copy of
         the subframe's own G-buffer: (gi textures, guide)."""
-        value, traced = subframe_gi(full_gi.resolver, full_gi.value, hit, same, position, normal, offset,
-                                    seed_frame, max(RATIO_MIN_SAMPLES, self.settings.pixel_rays // count))
+        indirect, direct, traced = subframe_gi(full_gi.resolver, full_gi.indirect, full_gi.direct, hit, same,
+                                               position, normal, offset, seed_frame,
+                                               max(RATIO_MIN_SAMPLES, self.settings.pixel_rays // count))
         stats.rays += traced
-        indirect, direct = pixel_gather.textures(value[hit], np.flatnonzero(hit), self.height, self.width)
         guide = self._full_copy.execute(gbuf)
-        return (upload_texture_2d(indirect, "RGBA32F"), upload_texture_2d(direct, "RGBA32F"),
+        shape = (self.height, self.width, 4)
+        # New textures, not updated in place: an update waits for the previous subframe's passes.
+        return (upload_texture_2d(indirect.reshape(shape), "RGBA32F"), upload_texture_2d(direct.reshape(shape), "RGBA32F"),
                 self._neutral_tex), guide
 
     def _pixel_gi(self, system, position_lo, normal_lo, pix, points, normals, visible, view, frame, stats):

@@ -34,6 +34,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..pixel_gather import write_texels
 from ..visible import pixels_to_points
 
 #: Blackman-Harris coefficients as Cycles' `filter_func_blackman_harris` uses them.
@@ -238,25 +239,34 @@ def subframe_surfaces(centre: CentreSample, position: np.ndarray, normal: np.nda
     return hit, same
 
 
-def subframe_gi(resolver, centre_value: np.ndarray, hit: np.ndarray, same: np.ndarray, position: np.ndarray,
-                normal: np.ndarray, offset, seed_frame: int, rays: int) -> tuple[np.ndarray, int]:
-    """A jittered subframe's full-res GI values, ((h * w, 7) float32, rays traced): the centre's
-    (`centre_value`, `pixel_gather.FullResGI.value`) where the subframe sees the centre's surface,
-    resolved at the subframe's own sample elsewhere (`pixel_gather.GIResolver.at`, `rays` rays
-    where no GI pixel shares its surface), 0 on the background. hit, same : `subframe_surfaces`.
+def subframe_gi(resolver, centre_indirect: np.ndarray, centre_direct: np.ndarray, hit: np.ndarray, same: np.ndarray,
+                position: np.ndarray, normal: np.ndarray, offset, seed_frame: int,
+                rays: int) -> tuple[np.ndarray, np.ndarray, int]:
+    """A jittered subframe's full-res GI textures, ((h * w, 4) indirect, (h * w, 4) direct, rays
+    traced), as `pixel_gather.textures` lays them out: the centre's (`centre_indirect`,
+    `centre_direct`: `pixel_gather.FullResGI.indirect` / `.direct`) where the subframe sees the
+    centre's surface, resolved at the subframe's own sample elsewhere (`pixel_gather.GIResolver.at`,
+    `rays` rays where no GI pixel shares its surface), the background's where it sees none.
+    hit, same : `subframe_surfaces`.
 
     Why: the film weights each sample's light by its own colour; a post's edge pixel whose
     subframe sees the ground behind it (or a bar the centre raster missed) must bring that
-    surface's light, not the centre surface's."""
-    n_pix = centre_value.shape[0]
-    value = np.where(same[:, None], centre_value, np.float32(0.0))
+    surface's light, not the centre surface's. Only those few % of the pixels are resolved: the
+    rest is a copy of the centre's textures, so a subframe costs little more than its resolve."""
+    n_pix = hit.shape[0]
+    indirect = np.array(centre_indirect, np.float32).reshape(n_pix, 4)
+    direct = np.array(centre_direct, np.float32).reshape(n_pix, 4)
+    miss = ~hit
+    indirect[miss] = (0.0, 0.0, 0.0, 1.0)
+    direct[miss] = 0.0
     fresh = np.flatnonzero(hit & ~same)
     traced = 0
     if fresh.size:
         p, n, keep = pixels_to_points(position.reshape(n_pix, -1)[fresh][None], normal.reshape(n_pix, -1)[fresh][None])
         rows = fresh[keep]
-        value[rows], traced = resolver.at(p, n, rows, offset, seed_frame, rays)
-    return value, traced
+        value, traced = resolver.at(p, n, rows, offset, seed_frame, rays)
+        write_texels(indirect, direct, rows, value)
+    return indirect, direct, traced
 
 
 def subframe_direct(system, centre: CentreSample, position: np.ndarray, normal: np.ndarray,
