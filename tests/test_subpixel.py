@@ -213,11 +213,11 @@ def test_a_sample_on_a_surface_of_other_bounce_light_marks_its_pixel():
     centre = np.zeros((5, 4), np.float32)
     centre[:, :3] = 1.0
     sample = centre.copy()
-    sample[0, :3] = 0.1  # a dark ground behind a bright bar
-    sample[1, :3] = 1.0 - GI_CONTRAST / 2  # another surface, alike in light
+    sample[0, :3] = 0.05  # a dark ground behind a bright bar
+    sample[1, :3] = 1.0 - GI_CONTRAST / 2  # another surface, not different enough
     sample[2, :3] = 0.1  # the centre's own surface (not fresh)
     sample[3, :3] = 0.1  # centre on the background
-    sample[4, :3] = 5.0  # a bright bar in front of the centre's ground
+    sample[4, :3] = 20.0  # a bright bar in front of the centre's ground
     fresh = np.array([True, True, False, True, True])
     centre_hit = np.array([True, True, True, False, True])
     assert gi_contrast(centre, sample, fresh, centre_hit).tolist() == [True, False, False, False, True]
@@ -263,13 +263,12 @@ def test_dilate_grows_a_mask_by_its_8_neighbours():
 def test_extra_subframes_run_only_where_marked_pixels_are_a_share_of_the_image():
     from hybridgi_core.raster.subpixel import EXTRA_MIN_SHARE, worth_extra
 
-    geometry = np.ones(1000, bool)
-    marked = np.zeros(1000, bool)
-    assert not worth_extra(marked, geometry)
-    marked[: int(EXTRA_MIN_SHARE * 1000) - 1] = True  # the odd silhouette pixel of a bundled scene
-    assert not worth_extra(marked, geometry)
-    marked[: int(EXTRA_MIN_SHARE * 1000)] = True
-    assert worth_extra(marked, geometry)
+    marked = np.zeros(10000, bool)
+    assert not worth_extra(marked)
+    marked[: int(EXTRA_MIN_SHARE * 10000) - 1] = True  # the odd silhouette pixel of a bundled scene
+    assert not worth_extra(marked)
+    marked[: int(EXTRA_MIN_SHARE * 10000)] = True
+    assert worth_extra(marked)
 
 
 def test_a_subframe_traces_only_where_it_is_asked_to():
@@ -292,3 +291,19 @@ def test_a_subframe_traces_only_where_it_is_asked_to():
     got = subframe_direct(System(), centre, position, normal0.copy(), seed_frame=1, samples=4,
                           where=np.array([False, True, False]))
     assert got[:, 0].tolist() == [1.0, 7.0, 1.0]
+
+
+@pytest.mark.parametrize("extra", [8, 16, 24])
+def test_the_extra_subframes_sample_other_points_of_the_filter(extra):
+    """The extra subframes' pattern is rotated off the first one's (`EXTRA_ROTATION`): an
+    unrotated Hammersley set of 8 would repeat the first 8 samples, adding nothing; rotated, it is
+    still stratified through the filter (one point per stratum of the filter's CDF)."""
+    from hybridgi_core.raster.subpixel import EXTRA_ROTATION, blackman_harris_cdf
+
+    first = subpixel_offsets(8, 1.5)
+    more = subpixel_offsets(extra, 1.5, rotation=EXTRA_ROTATION)
+    assert np.abs(more[:, None, :] - first[None, :, :]).max(axis=2).min() > 1e-3
+    assert np.abs(subpixel_offsets(8, 1.5) - first).max() == 0.0
+    for axis in (0, 1):
+        strata = np.floor(blackman_harris_cdf(more[:, axis], 1.5) * extra + 1e-9).astype(int)
+        assert sorted(strata.tolist()) == list(range(extra))

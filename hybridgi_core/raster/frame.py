@@ -40,6 +40,7 @@ from .readback import upload_texture_2d
 from .settings import DEBUG_FINAL, RasterSettings
 from .ssao import SSAOPass
 from .subpixel import (
+    EXTRA_ROTATION,
     CentreSample,
     FilmAccumulator,
     adaptive_sums,
@@ -325,7 +326,7 @@ class FramePipeline:
                     gi, gi_low = gi_sub, gi_low_sub
             shaded = self._shade_subframe(gbuf, gi_low, direct, gi, first=s == 0, **shading)
         extra = None
-        if jittered and self.extra_subframes > 0 and worth_extra(contrast, centre.position[:, 3] > 0.5):
+        if jittered and self.extra_subframes > 0 and worth_extra(contrast):
             # Their neighbours too: a bar's edge pixels whose first samples all missed it (the
             # pattern is the same in every pixel) gained as much from 32 samples as the marked ones.
             contrast = dilate(contrast.reshape(self.height, self.width), EXTRA_DILATE).reshape(-1)
@@ -383,12 +384,13 @@ class FramePipeline:
         return shaded
 
     def _extra_subframes(self, sub, where, count, gi, gi_low, shading):
-        """`extra_subframes` more subframes (their own Hammersley set of the filter) whose samples
+        """`extra_subframes` more subframes (their own Hammersley set of the filter, rotated off the
+        first one's points) whose samples
         count only at the pixels `where`: ((the sums of the first `count` subframes, where), the
         last shaded frame). Their CPU work (shadow rays, GI) is done at those pixels only."""
         with sub.stats.step("accumulate"):
             first = self.accumulate.read_all()
-        extra = subpixel_offsets(self.extra_subframes, self.filter_size, self.filter_type)
+        extra = subpixel_offsets(self.extra_subframes, self.filter_size, self.filter_type, rotation=EXTRA_ROTATION)
         total = count + extra.shape[0]
         shaded = None
         for e, offset in enumerate(extra):

@@ -124,22 +124,30 @@ def _radical_inverse2(i: np.ndarray) -> np.ndarray:
     return out
 
 
-def subpixel_offsets(count: int, filter_size: float, filter_type: str = "BLACKMAN_HARRIS") -> np.ndarray:
+#: The Cranley-Patterson rotation of the extra subframes' pattern (`subpixel_offsets(rotation=)`):
+#: the R2 sequence's irrational steps, so no point falls on one of the first pattern's.
+EXTRA_ROTATION = (0.6180339887498949, 0.7548776662466927)
+
+
+def subpixel_offsets(count: int, filter_size: float, filter_type: str = "BLACKMAN_HARRIS",
+                     rotation=(0.0, 0.0)) -> np.ndarray:
     """(count, 2) float64 offsets (x, y) in pixels of the subframes of one final-render frame.
 
     count = 1 is the pixel centre (one unfiltered sample, HybridGI without anti-aliasing). Else a
     Hammersley set centred in its strata, x = (i + 0.5) / count, y = radical inverse of i shifted
     by half a stratum, each axis mapped through the filter's inverse CDF: deterministic, every
-    frame the same.
+    frame the same. rotation : (u, v) added to both axes' uniforms modulo 1 (a Cranley-Patterson
+    rotation: still stratified, other points; the extra subframes', whose Hammersley set of 8 would
+    otherwise repeat the first 8).
     """
     count = int(count)
     if count < 1:
         raise ValueError(f"count must be >= 1, got {count}")
-    if count == 1:
+    if count == 1 and not any(rotation):
         return np.zeros((1, 2))
     i = np.arange(count)
-    ux = (i + 0.5) / count
-    uy = np.mod(_radical_inverse2(i) + 0.5 / count, 1.0)
+    ux = np.mod((i + 0.5) / count + rotation[0], 1.0)
+    uy = np.mod(_radical_inverse2(i) + 0.5 / count + rotation[1], 1.0)
     return np.stack([filter_offsets(ux, filter_size, filter_type), filter_offsets(uy, filter_size, filter_type)],
                     axis=1)
 
@@ -271,7 +279,7 @@ def subframe_gi(resolver, centre_indirect: np.ndarray, centre_direct: np.ndarray
 
 #: A subframe sample's indirect light that differs from the centre's by more than this share of
 #: the larger of the two marks a pixel for more subframes (`gi_contrast`).
-GI_CONTRAST = 0.75
+GI_CONTRAST = 0.9
 
 
 def gi_contrast(centre_indirect: np.ndarray, indirect: np.ndarray, fresh: np.ndarray, centre_hit: np.ndarray,
@@ -310,16 +318,17 @@ def dilate(mask: np.ndarray, radius: int = 1) -> np.ndarray:
     return out
 
 
-#: Each extra subframe costs a whole frame's raster passes; they are run when at least this share
-#: of the pixels that see geometry is marked (the fine-detail yard: 5.7% at 320x240, 3.1% at
-#: 640x480; bundled scenes at 640x360: car 0.9%, atrium 0.2%).
-EXTRA_MIN_SHARE = 0.02
+#: Each extra subframe costs a whole frame's raster passes, so they run only when the marked
+#: pixels are at least this share of the image (640x360 unless said: the fine-detail yard 2.7% at
+#: 320x240, 1.5% at 640x480; bundled and shared scenes 0.0-0.7%: dragon 0.67%, bunny 0.52%, car
+#: 0.48%, morse apartment 0.41%, atrium ~0; their marks the odd silhouette against a lit floor).
+EXTRA_MIN_SHARE = 0.01
 
 
-def worth_extra(marked: np.ndarray, geometry: np.ndarray, share: float = EXTRA_MIN_SHARE) -> bool:
-    """Whether the extra subframes pay: `marked` pixels (`subpixel.gi_contrast`) are at least
-    `share` of the `geometry` pixels (both (h * w,) bool)."""
-    return bool(marked.any()) and marked.sum() >= share * max(int(geometry.sum()), 1)
+def worth_extra(marked: np.ndarray, share: float = EXTRA_MIN_SHARE) -> bool:
+    """Whether the extra subframes pay: the (h * w,) bool `marked` pixels (`gi_contrast`) are at
+    least `share` of the image."""
+    return bool(marked.any()) and marked.sum() >= share * marked.size
 
 
 def adaptive_sums(first: dict[str, np.ndarray], count: int, total: dict[str, np.ndarray], total_count: int,
