@@ -67,6 +67,8 @@ SUBFRAME_SEED_STRIDE = 1 << 24
 EXTRA_SUBFRAMES = 24
 #: ... at the marked pixels and this many pixels around them.
 EXTRA_DILATE = 1
+
+
 @dataclass
 class _Subframes:
     """What every jittered subframe of one `render` reads."""
