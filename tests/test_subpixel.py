@@ -203,107 +203,43 @@ def test_a_shadow_boundary_on_one_surface_is_traced_again_in_every_subframe():
     assert got[:, 0].tolist() == [1.0, 1.0, 0.5, 0.5, 0.0, 0.0]
 
 
-def test_a_sample_on_a_surface_of_other_bounce_light_marks_its_pixel():
-    """`gi_contrast`: a subframe sample on another surface (fresh) whose indirect light differs
-    from the centre's by more than the contrast marks the pixel; a fresh sample with similar
-    light, a sample on the centre's surface, and a pixel whose centre saw the background (no
-    colour, no weight in Diffuse Indirect) do not."""
-    from hybridgi_core.raster.subpixel import GI_CONTRAST, gi_contrast
+def _row_of_surfaces(lum, depth_of, normals=None):
+    """A 1 x n centre raster on the plane z = -depth (or the given depths), all facing the camera,
+    with indirect light of luminance `lum` per pixel."""
+    from hybridgi_core.raster.subpixel import CentreSample
 
-    centre = np.zeros((5, 4), np.float32)
-    centre[:, :3] = 1.0
-    sample = centre.copy()
-    sample[0, :3] = 0.05  # a dark ground behind a bright bar
-    sample[1, :3] = 1.0 - GI_CONTRAST / 2  # another surface, not different enough
-    sample[2, :3] = 0.1  # the centre's own surface (not fresh)
-    sample[3, :3] = 0.1  # centre on the background
-    sample[4, :3] = 20.0  # a bright bar in front of the centre's ground
-    fresh = np.array([True, True, False, True, True])
-    centre_hit = np.array([True, True, True, False, True])
-    assert gi_contrast(centre, sample, fresh, centre_hit).tolist() == [True, False, False, False, True]
+    n = len(lum)
+    position = np.zeros((1, n, 4), np.float32)
+    position[0, :, 0] = np.arange(n) * 0.01
+    position[0, :, 2] = -np.asarray(depth_of, np.float32)
+    position[..., 3] = 1.0
+    normal = np.tile(np.array([0, 0, 1, 0], np.float32), (1, n, 1)) if normals is None else normals
+    depth = np.asarray(depth_of, np.float32).reshape(1, n, 1)
+    indirect = np.zeros((n, 4), np.float32)
+    indirect[:, :3] = np.asarray(lum, np.float32)[:, None]
+    return CentreSample.from_gbuffer(np.zeros((n, 4), np.float32), position, normal, depth), indirect
 
 
-def test_extra_subframes_count_only_at_their_pixels():
-    """`adaptive_sums` + `FilmAccumulator.set_sums` with per-pixel counts: a marked pixel averages
-    all 8 + 24 samples (its light from the total sums over 32), the others their first 8, and
-    Diffuse Direct is still divided by the colour summed over the same samples."""
-    from hybridgi_core.raster.subpixel import adaptive_sums
+def test_gi_edges_mark_neighbours_on_other_surfaces_of_far_other_bounce_light():
+    """`gi_edges`: a bar (pixel 2, 1 m in front of the ground) whose bounce light is 20 x the
+    ground's marks itself and both neighbours; a bar of similar light does not, nor does a
+    10 x step of light on one surface (a shadow's edge: `light_edges` handles those)."""
+    from hybridgi_core.raster.subpixel import gi_edges
 
-    h, w = 1, 2
-    first = {name: np.zeros((h, w, 4), np.float32) for name in ("combined", "combined_premultiplied",
-                                                                  "diffuse_direct", "diffuse_indirect",
-                                                                  "diffuse_color")}
-    first["normal"], first["ao"] = np.zeros((h, w, 3), np.float32), np.zeros((h, w, 1), np.float32)
-    total = {name: v.copy() for name, v in first.items()}
-    # 8 first samples on a bar (colour 0.1, light 2) at both pixels; 24 extra on ground (0.5, light 1).
-    for sums, n_bar, n_ground in ((first, 8, 0), (total, 8, 24)):
-        sums["diffuse_color"][..., :3] = n_bar * 0.1 + n_ground * 0.5
-        sums["diffuse_direct"][..., :3] = n_bar * 0.1 * 2.0 + n_ground * 0.5 * 1.0
-        sums["combined"][..., :3] = sums["diffuse_direct"][..., :3]
-    sums, count = adaptive_sums(first, 8, total, 32, np.array([True, False]))
-    assert count.ravel().tolist() == [32.0, 8.0]
-    film = FilmAccumulator()
-    film.set_sums(sums, count)
-    color, direct = film.read("diffuse_color")[0], film.read("diffuse_direct")[0]
-    assert color[0, 0] == pytest.approx((8 * 0.1 + 24 * 0.5) / 32) and color[1, 0] == pytest.approx(0.1)
-    assert direct[0, 0] == pytest.approx((8 * 0.1 * 2 + 24 * 0.5) / (8 * 0.1 + 24 * 0.5))
-    assert direct[1, 0] == pytest.approx(2.0)
-    assert film.read("combined")[0, 0, 0] == pytest.approx(color[0, 0] * direct[0, 0])
+    centre, indirect = _row_of_surfaces([1, 1, 20, 1, 1, 1], [5, 5, 4, 5, 5, 5])
+    assert gi_edges(centre, indirect, 1, 6).tolist() == [False, True, True, True, False, False]
+    centre, indirect = _row_of_surfaces([1, 1, 1.5, 1, 1, 1], [5, 5, 4, 5, 5, 5])
+    assert not gi_edges(centre, indirect, 1, 6).any()
+    centre, indirect = _row_of_surfaces([1, 1, 1, 20, 20, 20], [5] * 6)
+    assert not gi_edges(centre, indirect, 1, 6).any()
 
 
-def test_dilate_grows_a_mask_by_its_8_neighbours():
-    from hybridgi_core.raster.subpixel import dilate
-
-    mask = np.zeros((5, 5), bool)
-    mask[2, 2] = True
-    assert dilate(mask).sum() == 9 and dilate(mask)[1:4, 1:4].all()
-    assert dilate(mask, 2).all() and not dilate(mask, 0)[0, 0]
-
-
-def test_extra_subframes_run_only_where_marked_pixels_are_a_share_of_the_image():
+def test_a_frame_takes_extra_subframes_only_when_gi_edges_are_a_share_of_the_image():
     from hybridgi_core.raster.subpixel import EXTRA_MIN_SHARE, worth_extra
 
-    marked = np.zeros(10000, bool)
-    assert not worth_extra(marked)
-    marked[: int(EXTRA_MIN_SHARE * 10000) - 1] = True  # the odd silhouette pixel of a bundled scene
-    assert not worth_extra(marked)
-    marked[: int(EXTRA_MIN_SHARE * 10000)] = True
-    assert worth_extra(marked)
-
-
-def test_a_subframe_traces_only_where_it_is_asked_to():
-    """`subframe_direct(where=)`: the extra subframes trace their pixels only; elsewhere a pixel
-    that sees geometry keeps the centre's light (its neighbours in the deferred pass stay lit)."""
-    from hybridgi_core.raster.subpixel import CentreSample, subframe_direct
-
-    class System:
-        def direct(self, points, normals, frame, samples):
-            return np.full((points.shape[0], 3), 7.0, np.float32)
-
-    h, w = 1, 3
-    position0 = np.array([[[0, 0, -5, 1], [1, 0, -5, 1], [2, 0, -5, 1]]], np.float32)
-    normal0 = np.tile(np.array([0, 0, 1, 0], np.float32), (h, w, 1))
-    depth0 = np.full((h, w, 1), 5.0, np.float32)
-    direct0 = np.tile(np.array([1.0, 2.0, 3.0, 1.0], np.float32), (h * w, 1))
-    centre = CentreSample.from_gbuffer(direct0, position0, normal0, depth0)
-    position = position0.copy()
-    position[0, :, 2] = -7.0  # every subframe sample on a surface behind
-    got = subframe_direct(System(), centre, position, normal0.copy(), seed_frame=1, samples=4,
-                          where=np.array([False, True, False]))
-    assert got[:, 0].tolist() == [1.0, 7.0, 1.0]
-
-
-@pytest.mark.parametrize("extra", [8, 16, 24])
-def test_the_extra_subframes_sample_other_points_of_the_filter(extra):
-    """The extra subframes' pattern is rotated off the first one's (`EXTRA_ROTATION`): an
-    unrotated Hammersley set of 8 would repeat the first 8 samples, adding nothing; rotated, it is
-    still stratified through the filter (one point per stratum of the filter's CDF)."""
-    from hybridgi_core.raster.subpixel import EXTRA_ROTATION, blackman_harris_cdf
-
-    first = subpixel_offsets(8, 1.5)
-    more = subpixel_offsets(extra, 1.5, rotation=EXTRA_ROTATION)
-    assert np.abs(more[:, None, :] - first[None, :, :]).max(axis=2).min() > 1e-3
-    assert np.abs(subpixel_offsets(8, 1.5) - first).max() == 0.0
-    for axis in (0, 1):
-        strata = np.floor(blackman_harris_cdf(more[:, axis], 1.5) * extra + 1e-9).astype(int)
-        assert sorted(strata.tolist()) == list(range(extra))
+    edges = np.zeros(10000, bool)
+    assert not worth_extra(edges)
+    edges[: int(np.ceil(EXTRA_MIN_SHARE * 10000)) - 1] = True  # the odd silhouette of a bundled scene
+    assert not worth_extra(edges)
+    edges[: int(np.ceil(EXTRA_MIN_SHARE * 10000))] = True
+    assert worth_extra(edges)

@@ -40,12 +40,9 @@ from .readback import upload_texture_2d
 from .settings import DEBUG_FINAL, RasterSettings
 from .ssao import SSAOPass
 from .subpixel import (
-    EXTRA_ROTATION,
     CentreSample,
     FilmAccumulator,
-    adaptive_sums,
-    dilate,
-    gi_contrast,
+    gi_edges,
     jittered_projection,
     subframe_direct,
     subframe_gi,
@@ -62,25 +59,9 @@ log = logging.getLogger(__name__)
 SUBFRAME_SEED_STRIDE = 1 << 24
 
 
-#: Extra subframes at pixels whose subframes saw surfaces of materially different GI (thin bars):
-#: 8 + 24 samples there, the 32 a global Pixel Samples = 32 would give everywhere.
+#: Subframes a frame adds when thin surfaces of far other bounce light cover a share of its
+#: image (`FramePipeline._subframe_count`): 8 + 24, Pixel Samples = 32 for that frame.
 EXTRA_SUBFRAMES = 24
-#: ... at the marked pixels and this many pixels around them.
-EXTRA_DILATE = 1
-
-
-@dataclass
-class _Subframes:
-    """What every jittered subframe of one `render` reads."""
-
-    system: object
-    centre: CentreSample
-    view: np.ndarray
-    proj: np.ndarray
-    texture_filter: float
-    full_gi: object
-    frame: int
-    stats: FrameStats
 
 
 @dataclass
@@ -90,7 +71,7 @@ class FrameStats:
     rays: int = 0
     low_res: tuple[int, int] = (0, 0)
     detail_pixels: int = 0  # full-res pixels that traced their own pixel rays (`_pixel_gi_full`)
-    extra_pixels: int = 0  # full-res pixels that took the extra subframes (`_extra_subframes`)
+    extra_pixels: int = 0  # centre GI edge pixels that made the frame take extra subframes (`_subframe_count`)
 
     @contextmanager
     def step(self, name: str):
@@ -120,7 +101,7 @@ class FramePipeline:
         filter_size, filter_type : the pixel filter, as Cycles' Filter Width (pixels) and type.
         glossy_samples : lamp samples per pixel and lamp of the glossy lobes (every glossy pixel
             traces them; filtered where the lobe is rough, `reflection.filter_lamp_glossy`).
-        extra_subframes : subframes added where the first ones disagree (`_extra_subframes`)."""
+        extra_subframes : subframes a frame adds where thin surfaces need them (`_subframe_count`)."""
         self.settings = settings or RasterSettings()
         #: Shadow-ray samples per pixel and lamp for the full-res direct light in penumbrae (the
         #: rest of the image traces `penumbra.FIRST_SAMPLES`): soft shadows of area lights and suns
@@ -134,9 +115,8 @@ class FramePipeline:
         self.subframes = int(subframes)
         self.filter_size = float(filter_size)
         self.filter_type = filter_type
-        #: More subframes whose samples count only at pixels where a subframe saw another surface
-        #: with materially different GI (`subpixel.gi_contrast`: thin posts and bars against the
-        #: ground); 0 = none.
+        #: More subframes for a frame whose thin surfaces of far other bounce light than what lies
+        #: behind them cover a share of the image (`_subframe_count`); 0 = never.
         self.extra_subframes = int(extra_subframes)
         #: The last `render`'s passes, filtered over its subframes (FilmAccumulator).
         self.film = None
@@ -308,99 +288,61 @@ class FramePipeline:
         with stats.step("glossy"):
             glossy, glossy_col, glossy_ind = self._glossy(system, view, proj, p_full, n_full, pix_full, frame)
         film = FilmAccumulator()
-        offsets = subpixel_offsets(self.subframes, self.filter_size, self.filter_type)
-        jittered = offsets.shape[0] > 1
         film.set_depth(self.gbuffer.read("depth"))  # the centre sample, as Cycles' one sample
+        count = self.subframes
+        if count > 1:
+            centre = CentreSample.from_gbuffer(direct, position, normal, film.read("depth"))
+            count = self._subframe_count(centre, full_gi, stats)
+        offsets = subpixel_offsets(count, self.filter_size, self.filter_type)
+        jittered = offsets.shape[0] > 1
         if jittered:
             texture_filter = subframe_texture_filter(offsets.shape[0], self.filter_size)
-            centre = CentreSample.from_gbuffer(direct, position, normal, film.read("depth"))
-        shading = dict(view=view, proj=proj, low=low, mask=mask, lit_tex=lit_tex, debug_view=debug_view,
-                       world_color=world_color, stats=stats, glossy=glossy, bilateral=gi_bilateral)
-        sub = None
-        if jittered:
-            sub = _Subframes(system, centre, view, proj, texture_filter, full_gi, frame, stats)
-            contrast = np.zeros(self.height * self.width, bool)
         for s, offset in enumerate(offsets):
             if jittered:
-                gbuf, direct, gi_sub, gi_low_sub, marks = self._jittered(sub, s, offset, offsets.shape[0])
-                contrast |= marks
-                if gi_sub is not None:
-                    gi, gi_low = gi_sub, gi_low_sub
-            shaded = self._shade_subframe(gbuf, gi_low, direct, gi, first=s == 0, **shading)
-        extra = None
-        if jittered and self.extra_subframes > 0 and worth_extra(contrast):
-            # Their neighbours too: a bar's edge pixels whose first samples all missed it (the
-            # pattern is the same in every pixel) gained as much from 32 samples as the marked ones.
-            contrast = dilate(contrast.reshape(self.height, self.width), EXTRA_DILATE).reshape(-1)
-            with stats.step("extra_subframes"):
-                extra, shaded = self._extra_subframes(sub, contrast, offsets.shape[0], gi, gi_low, shading)
-            stats.extra_pixels = int(contrast.sum())
+                with stats.step("gbuffer"):  # the raster and its read-back, as "downsample" counts its own
+                    gbuf = self.gbuffer.execute(view, jittered_projection(proj, offset, self.width, self.height),
+                                                texture_filter=texture_filter)
+                    normal = self.gbuffer.read("normal")
+                    position = self.gbuffer.read("position")
+                with stats.step("direct"):
+                    hit, same = subframe_surfaces(centre, position, normal)
+                    direct = subframe_direct(system, centre, position, normal,
+                                             frame + s * SUBFRAME_SEED_STRIDE,
+                                             max(min(self.direct_samples, RATIO_MIN_SAMPLES),
+                                                 self.direct_samples // offsets.shape[0]), surfaces=(hit, same))
+                if full_gi is not None and full_gi.resolver is not None:
+                    with stats.step("subframe_gi"):
+                        gi, gi_low = self._subframe_gi(full_gi, gbuf, hit, same, position, normal, offset,
+                                                       frame + s * SUBFRAME_SEED_STRIDE, offsets.shape[0], stats)
+            with stats.step("direct"):
+                self._direct_tex = upload_texture_2d(direct.reshape(self.height, self.width, 4), "RGBA32F")
+            shaded = self.shade(gbuf, gi_low, view, proj, self._direct_tex,
+                                corner_visible=mask.reshape(low.height, low.width, 8), irradiance=lit_tex,
+                                debug_view=debug_view, world_color=world_color, stats=stats, gi=gi,
+                                glossy=self._glossy_tex if glossy is not None else None, bilateral=gi_bilateral)
+            with stats.step("accumulate"):
+                self.accumulate.execute(shaded, gbuf, first=s == 0)
         with stats.step("film"):
-            if extra is None:
-                film.set_sums(self.accumulate.read_all(), self.accumulate.count)
-            else:
-                film.set_sums(*adaptive_sums(extra[0], offsets.shape[0], self.accumulate.read_all(),
-                                             self.accumulate.count, extra[1]))
+            film.set_sums(self.accumulate.read_all(), self.accumulate.count)
             film.set_glossy(glossy, glossy_col, self.height, self.width, indirect=glossy_ind)
         self.film = film
         return shaded, stats
 
-    def _jittered(self, sub, s, offset, count, where=None):
-        """One jittered subframe's G-buffer, direct light and GI (`_Subframes`), traced only at the
-        pixels `where` (None: all): (gbuf, direct, gi textures or None, their guide, the pixels
-        whose sample's GI differs materially from the centre's, `subpixel.gi_contrast`)."""
-        stats = sub.stats
-        seed = sub.frame + s * SUBFRAME_SEED_STRIDE
-        with stats.step("gbuffer"):  # the raster and its read-back, as "downsample" counts its own
-            gbuf = self.gbuffer.execute(sub.view, jittered_projection(sub.proj, offset, self.width, self.height),
-                                        texture_filter=sub.texture_filter)
-            normal = self.gbuffer.read("normal")
-            position = self.gbuffer.read("position")
-        with stats.step("direct"):
-            hit, same = subframe_surfaces(sub.centre, position, normal)
-            direct = subframe_direct(sub.system, sub.centre, position, normal, seed,
-                                     max(min(self.direct_samples, RATIO_MIN_SAMPLES), self.direct_samples // count),
-                                     surfaces=(hit, same), where=where)
-            if where is not None:
-                same = same | (hit & ~where)  # the GI too: the centre's outside `where`
-        gi = gi_low = None
-        marks = np.zeros(hit.shape, bool)
-        if sub.full_gi is not None and sub.full_gi.resolver is not None:
-            with stats.step("subframe_gi"):
-                gi, gi_low, indirect = self._subframe_gi(sub.full_gi, gbuf, hit, same, position, normal, offset,
-                                                         seed, count, stats)
-                marks = gi_contrast(sub.full_gi.indirect, indirect, hit & ~same, sub.centre.position[:, 3] > 0.5)
-        return gbuf, direct, gi, gi_low, marks
-
-    def _shade_subframe(self, gbuf, gi_low, direct, gi, first, view, proj, low, mask, lit_tex, debug_view,
-                        world_color, stats, glossy, bilateral):
-        """Shade one subframe from its G-buffer, direct light and GI, and add it to the sums."""
-        with stats.step("direct"):
-            self._direct_tex = upload_texture_2d(direct.reshape(self.height, self.width, 4), "RGBA32F")
-        shaded = self.shade(gbuf, gi_low, view, proj, self._direct_tex,
-                            corner_visible=mask.reshape(low.height, low.width, 8), irradiance=lit_tex,
-                            debug_view=debug_view, world_color=world_color, stats=stats, gi=gi,
-                            glossy=self._glossy_tex if glossy is not None else None, bilateral=bilateral)
-        with stats.step("accumulate"):
-            self.accumulate.execute(shaded, gbuf, first=first)
-        return shaded
-
-    def _extra_subframes(self, sub, where, count, gi, gi_low, shading):
-        """`extra_subframes` more subframes (their own Hammersley set of the filter, rotated off the
-        first one's points) whose samples
-        count only at the pixels `where`: ((the sums of the first `count` subframes, where), the
-        last shaded frame). Their CPU work (shadow rays, GI) is done at those pixels only."""
-        with sub.stats.step("accumulate"):
-            first = self.accumulate.read_all()
-        extra = subpixel_offsets(self.extra_subframes, self.filter_size, self.filter_type, rotation=EXTRA_ROTATION)
-        total = count + extra.shape[0]
-        shaded = None
-        for e, offset in enumerate(extra):
-            gbuf, direct, gi_sub, gi_low_sub, _ = self._jittered(sub, count + e, offset, total, where)
-            if gi_sub is not None:
-                gi, gi_low = gi_sub, gi_low_sub
-            shaded = self._shade_subframe(gbuf, gi_low, direct, gi, first=False, **shading)
-        return (first, where), shaded
+    def _subframe_count(self, centre, full_gi, stats) -> int:
+        """Subframes of this frame: `subframes`, plus `extra_subframes` when the centre raster's GI
+        edges (`subpixel.gi_edges`: thin surfaces of far other bounce light than what lies behind
+        them) are a share of the image (`subpixel.worth_extra`). Why the whole frame: a subframe's
+        cost is its raster passes over every pixel, so more of them at a few pixels cost as much
+        as at all (yard 320x240 DI: 8 + 24 at the marked pixels 0.095, 32 everywhere 0.091, at the
+        same seconds), and one Hammersley set of 32 is better stratified than 8 and 24 apart."""
+        if self.extra_subframes <= 0 or full_gi is None:
+            return self.subframes
+        edges = gi_edges(centre, full_gi.indirect, self.height, self.width)
+        if not worth_extra(edges):
+            return self.subframes
+        stats.extra_pixels = int(edges.sum())
+        log.debug("%d GI edge pixels: %d + %d subframes", stats.extra_pixels, self.subframes, self.extra_subframes)
+        return self.subframes + self.extra_subframes
 
     def _gather_levels(self, levels, low, points, normals, pix, visible, view, proj, lit_tex):
         """The GPU gather of each cache level (its own corner mask: columns 8k .. 8k + 7 of
@@ -551,7 +493,7 @@ class FramePipeline:
     def _subframe_gi(self, full_gi, gbuf, hit, same, position, normal, offset, seed_frame, count, stats):
         """A jittered subframe's full-res GI textures (`subpixel.subframe_gi`: the centre's where it
         sees the centre's surface, resolved at its own samples elsewhere) and their guide, a copy of
-        the subframe's own G-buffer: (gi textures, guide, the indirect texture's (h * w, 4) values)."""
+        the subframe's own G-buffer: (gi textures, guide)."""
         indirect, direct, traced = subframe_gi(full_gi.resolver, full_gi.indirect, full_gi.direct, hit, same,
                                                position, normal, offset, seed_frame,
                                                max(RATIO_MIN_SAMPLES, self.settings.pixel_rays // count))
@@ -560,7 +502,7 @@ class FramePipeline:
         shape = (self.height, self.width, 4)
         # New textures, not updated in place: an update waits for the previous subframe's passes.
         return (upload_texture_2d(indirect.reshape(shape), "RGBA32F"), upload_texture_2d(direct.reshape(shape), "RGBA32F"),
-                self._neutral_tex), guide, indirect
+                self._neutral_tex), guide
 
     def _pixel_gi(self, system, position_lo, normal_lo, pix, points, normals, visible, view, frame, stats):
         """Per-pixel final gather (`pixel_gather.gi_images`) as the textures the gather and the

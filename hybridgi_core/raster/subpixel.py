@@ -124,30 +124,22 @@ def _radical_inverse2(i: np.ndarray) -> np.ndarray:
     return out
 
 
-#: The Cranley-Patterson rotation of the extra subframes' pattern (`subpixel_offsets(rotation=)`):
-#: the R2 sequence's irrational steps, so no point falls on one of the first pattern's.
-EXTRA_ROTATION = (0.6180339887498949, 0.7548776662466927)
-
-
-def subpixel_offsets(count: int, filter_size: float, filter_type: str = "BLACKMAN_HARRIS",
-                     rotation=(0.0, 0.0)) -> np.ndarray:
+def subpixel_offsets(count: int, filter_size: float, filter_type: str = "BLACKMAN_HARRIS") -> np.ndarray:
     """(count, 2) float64 offsets (x, y) in pixels of the subframes of one final-render frame.
 
     count = 1 is the pixel centre (one unfiltered sample, HybridGI without anti-aliasing). Else a
     Hammersley set centred in its strata, x = (i + 0.5) / count, y = radical inverse of i shifted
     by half a stratum, each axis mapped through the filter's inverse CDF: deterministic, every
-    frame the same. rotation : (u, v) added to both axes' uniforms modulo 1 (a Cranley-Patterson
-    rotation: still stratified, other points; the extra subframes', whose Hammersley set of 8 would
-    otherwise repeat the first 8).
+    frame the same.
     """
     count = int(count)
     if count < 1:
         raise ValueError(f"count must be >= 1, got {count}")
-    if count == 1 and not any(rotation):
+    if count == 1:
         return np.zeros((1, 2))
     i = np.arange(count)
-    ux = np.mod((i + 0.5) / count + rotation[0], 1.0)
-    uy = np.mod(_radical_inverse2(i) + 0.5 / count + rotation[1], 1.0)
+    ux = (i + 0.5) / count
+    uy = np.mod(_radical_inverse2(i) + 0.5 / count, 1.0)
     return np.stack([filter_offsets(ux, filter_size, filter_type), filter_offsets(uy, filter_size, filter_type)],
                     axis=1)
 
@@ -277,80 +269,67 @@ def subframe_gi(resolver, centre_indirect: np.ndarray, centre_direct: np.ndarray
     return indirect, direct, traced
 
 
-#: A subframe sample's indirect light that differs from the centre's by more than this share of
-#: the larger of the two marks a pixel for more subframes (`gi_contrast`).
+#: Neighbouring centre pixels on different surfaces whose indirect light differs by more than
+#: this share of the larger mark a GI edge (`gi_edges`): a 10 x step, a sunlit ground's bounce
+#: on a dark bar against ground that sees little of it.
 GI_CONTRAST = 0.9
+#: More subframes cost a whole frame's raster passes and shadow rays each, so a frame takes them
+#: only when its GI edges are at least this share of the image (640x360 unless said: the
+#: fine-detail yard 3.6% at 320x240, 2.1% at 640x480; dragon 0.86%, car 0.72%, bunny 0.56%,
+#: morse apartment 0.38%, spheres 0.05%, atrium, Cornell and animated 0).
+EXTRA_MIN_SHARE = 0.014
 
 
-def gi_contrast(centre_indirect: np.ndarray, indirect: np.ndarray, fresh: np.ndarray, centre_hit: np.ndarray,
-                contrast: float = GI_CONTRAST) -> np.ndarray:
-    """(h * w,) bool: pixels whose subframe sample sees another surface than the centre's (`fresh`)
-    with indirect light (luminance of the `pixel_gather.textures` rgb, (h * w, 4) each) differing
-    from the centre's by more than `contrast` of the larger; only where the centre saw geometry
-    (`centre_hit`: the background has no colour, so it weighs nothing in Diffuse Indirect).
+def gi_edges(centre: CentreSample, indirect: np.ndarray, height: int, width: int,
+             contrast: float = GI_CONTRAST) -> np.ndarray:
+    """(h * w,) bool: centre-raster pixels next to a 4-neighbour on another surface (`same_surface`
+    fails between them) whose indirect light differs by more than `contrast` of the larger
+    (`gi_contrast`'s test between neighbours; indirect: `pixel_gather.textures`' (h * w, 4)).
 
-    Why: Diffuse Indirect is sum(colour x light) / sum(colour) over a pixel's samples, so where two
-    surfaces of very different bounce light share a pixel (a dark iron bar lit by the sunny ground
-    in front of ground that sees little), the pass is as exact as the samples' share of each
-    surface; 8 subframes put a 4 cm bar's share in eighths, jumping from pixel to pixel."""
-    rows = np.flatnonzero(fresh & centre_hit)
-    out = np.zeros(fresh.shape, bool)
-    if rows.size:
-        luma = np.asarray(LUMA, np.float32)
-        a = np.asarray(centre_indirect, np.float32).reshape(fresh.shape[0], 4)[rows, :3] @ luma
-        b = np.asarray(indirect, np.float32).reshape(fresh.shape[0], 4)[rows, :3] @ luma
-        top = np.maximum(a, b)
-        out[rows] = (np.abs(a - b) > np.float32(contrast) * top) & (top > 0)
-    return out
-
-
-def dilate(mask: np.ndarray, radius: int = 1) -> np.ndarray:
-    """(h, w) bool: `mask` grown by `radius` pixels (its 8-neighbourhood, `radius` times)."""
-    out = np.asarray(mask, bool).copy()
-    for _ in range(radius):
-        grown = out.copy()
-        grown[1:] |= out[:-1]
-        grown[:-1] |= out[1:]
-        rows = grown.copy()
-        grown[:, 1:] |= rows[:, :-1]
-        grown[:, :-1] |= rows[:, 1:]
-        out = grown
-    return out
-
-
-#: Each extra subframe costs a whole frame's raster passes, so they run only when the marked
-#: pixels are at least this share of the image (640x360 unless said: the fine-detail yard 2.7% at
-#: 320x240, 1.5% at 640x480; bundled and shared scenes 0.0-0.7%: dragon 0.67%, bunny 0.52%, car
-#: 0.48%, morse apartment 0.41%, atrium ~0; their marks the odd silhouette against a lit floor).
-EXTRA_MIN_SHARE = 0.01
+    Why: where two surfaces of very different bounce light meet within a pixel or two (a thin
+    bar lit by the sunny ground, in front of ground that sees little), Diffuse Indirect is as
+    exact as the subframes' share of each surface; the centre raster finds them before the
+    subframes run, so the frame can take more of them (`worth_extra`)."""
+    n = height * width
+    pos = centre.position.reshape(height, width, -1)
+    nrm = centre.normal.reshape(height, width, -1)
+    depth = centre.depth.reshape(height, width)
+    luma = np.asarray(indirect, np.float32).reshape(n, 4)[:, :3] @ np.asarray(LUMA, np.float32)
+    lum = luma.reshape(height, width)
+    geo = pos[..., 3] > 0.5
+    out = np.zeros((height, width), bool)
+    for axis in (0, 1):
+        if out.shape[axis] < 2:
+            continue
+        a = [slice(None), slice(None)]
+        b = [slice(None), slice(None)]
+        a[axis], b[axis] = slice(0, -1), slice(1, None)
+        a, b = tuple(a), tuple(b)
+        both = geo[a] & geo[b]
+        m = pos[a].shape[0] * pos[a].shape[1]
+        same = same_surface(pos[a].reshape(m, pos.shape[-1]), nrm[a].reshape(m, nrm.shape[-1]),
+                            pos[b].reshape(m, pos.shape[-1]), nrm[b].reshape(m, nrm.shape[-1]),
+                            depth[a].reshape(m)).reshape(both.shape)
+        top = np.maximum(lum[a], lum[b])
+        edge = both & ~same & (np.abs(lum[a] - lum[b]) > np.float32(contrast) * top) & (top > 0)
+        out[a] |= edge
+        out[b] |= edge
+    return out.reshape(n)
 
 
-def worth_extra(marked: np.ndarray, share: float = EXTRA_MIN_SHARE) -> bool:
-    """Whether the extra subframes pay: the (h * w,) bool `marked` pixels (`gi_contrast`) are at
-    least `share` of the image."""
-    return bool(marked.any()) and marked.sum() >= share * marked.size
-
-
-def adaptive_sums(first: dict[str, np.ndarray], count: int, total: dict[str, np.ndarray], total_count: int,
-                  where: np.ndarray) -> tuple[dict[str, np.ndarray], np.ndarray]:
-    """(sums, (h, w, 1) float32 sample counts) for `FilmAccumulator.set_sums`: the sums of all
-    `total_count` subframes at the flat pixels `where`, of the first `count` elsewhere (the extra
-    subframes traced no light there)."""
-    h, w = next(iter(first.values())).shape[:2]
-    sel = np.asarray(where, bool).reshape(h, w, 1)
-    sums = {name: np.where(sel, total[name], first[name]).astype(np.float32) for name in first}
-    return sums, np.where(sel, np.float32(total_count), np.float32(count)).astype(np.float32)
+def worth_extra(edges: np.ndarray, share: float = EXTRA_MIN_SHARE) -> bool:
+    """Whether a frame takes the extra subframes: its (h * w,) bool GI `edges` are at least
+    `share` of the image."""
+    return bool(edges.any()) and edges.sum() >= share * edges.size
 
 
 def subframe_direct(system, centre: CentreSample, position: np.ndarray, normal: np.ndarray,
-                    seed_frame: int, samples: int, surfaces=None, where: np.ndarray | None = None) -> np.ndarray:
+                    seed_frame: int, samples: int, surfaces=None) -> np.ndarray:
     """A jittered subframe's direct light, (h * w, 4) float32: the centre's where the subframe's
     pixel sees the same surface, `samples` shadow rays per lamp (seeded by seed_frame) elsewhere.
 
     position, normal : the subframe's G-buffer read-backs (h, w, 4) / (h, w, >= 3); the
     G-buffer's normals are unit (normalised in its fragment shader).
-    where : (h * w,) bool, the only pixels that trace (None: all); the others take the centre's
-    light wherever the subframe sees geometry (the deferred pass's neighbours stay lit).
     """
     n_pix = centre.direct.shape[0]
     pos = position.reshape(n_pix, -1)
@@ -358,8 +337,6 @@ def subframe_direct(system, centre: CentreSample, position: np.ndarray, normal: 
     hit, same = subframe_surfaces(centre, position, normal) if surfaces is None else surfaces
     if centre.light_edge is not None:
         same = same & ~centre.light_edge  # a new array: the caller's `surfaces` stay as they are
-    if where is not None:
-        same = same | (hit & ~where)
     direct = np.where(same[:, None], centre.direct, np.float32(0.0))
     fresh = np.flatnonzero(hit & ~same)
     if fresh.size:
@@ -401,13 +378,12 @@ class FilmAccumulator:
         self._accumulate("normal", normal)
         self.count += 1
 
-    def set_sums(self, sums: dict[str, np.ndarray], count) -> None:
+    def set_sums(self, sums: dict[str, np.ndarray], count: int) -> None:
         """Take the sums of `count` subframes summed elsewhere (accumulate.AccumulatePass, the GPU
-        twin of `add`): the names `read` knows, except depth. count : an int, or (h, w, 1) per
-        pixel (`adaptive_sums`)."""
+        twin of `add`): the names `read` knows, except depth."""
         # float32 as the GPU summed them: no copies of every full-resolution pass.
         self._sums = {name: np.asarray(v, np.float32) for name, v in sums.items()}
-        self.count = np.asarray(count, np.float32) if np.ndim(count) else int(count)
+        self.count = int(count)
 
     def set_glossy(self, radiance, colour, height: int, width: int, indirect=None) -> None:
         """The glossy passes, from (h w, 4) lamp radiance and Glossy Color of the centre raster
@@ -444,7 +420,7 @@ class FilmAccumulator:
             if self._depth is None:
                 raise KeyError("depth was never set")
             return self._depth
-        if not np.any(self.count):
+        if self.count == 0:
             raise KeyError(f"{name}: no subframe was added")
         if name in COLOR_DIVIDED_PASSES:
             return _divide_even(self._sums[name], self._sums["diffuse_color"], self.count)
