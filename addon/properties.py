@@ -77,10 +77,8 @@ class HybridGISettings(bpy.types.PropertyGroup):
     )
     rays_per_cell: IntProperty(
         name="Rays per Cell",
-        description="Probe rays traced from each visible cell per cache update (with Pixel Rays the cache "
-        "carries only further bounces and the control variate: 32 with 48 pixel rays beat 64 with 32 on every "
-        "test scene but one, for the same or less time)",
-        default=32, min=1, max=65536, soft_max=1024,
+        description="Probe rays traced from each visible cell per cache update",
+        default=64, min=1, max=65536, soft_max=1024,
     )
     ray_length: FloatProperty(
         name="Ray Length",
@@ -152,8 +150,8 @@ class HybridGISettings(bpy.types.PropertyGroup):
         "own visibility (contacts, thin geometry), further bounces read the cache at the hits; replaces the "
         "screen-space pass (final renders; the viewport keeps the cache gather). 0 = off: the cache gather alone "
         "(32 with 8 warm-up updates, against 0 with 16: Cornell box Combined error vs Cycles 0.031 -> 0.029 in "
-        "27% less GI CPU time, car 0.010 -> 0.006; the residual's noise is most of the image's error, so 48 "
-        "with 32 Rays per Cell beat 32 with 64: Cornell 0.0217 -> 0.0206, atrium 0.0271 -> 0.0263)",
+        "27% less GI CPU time, car 0.010 -> 0.006; the residual's noise is most of the image's error: 48 "
+        "against 32, Cornell 0.0217 -> 0.0205, car 0.0034 -> 0.0033)",
         default=48, min=0, max=1024, soft_max=64,
     )
     pixel_filter: IntProperty(

@@ -100,7 +100,7 @@ LADDER = (
                            "pixel_samples=4")),
     ("r24 x32 w8 p48 s8", ("resolution=24", "rays_per_cell=32", "warmup_iterations=8", "pixel_rays=48",
                            "pixel_samples=8")),
-    ("r48 x32 w8 p48 s8 (default)", ()),
+    ("r48 x64 w8 p48 s8 (default)", ()),
     ("r48 x64 w16 p96 s16", ("rays_per_cell=64", "warmup_iterations=16", "pixel_rays=96", "pixel_samples=16")),
     ("r48 x128 w24 p160 s16", ("rays_per_cell=128", "warmup_iterations=24", "pixel_rays=160",
                                "pixel_samples=16")),
