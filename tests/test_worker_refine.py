@@ -8,6 +8,7 @@ test_viewport.py does in a subprocess)."""
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import importlib
 import sys
@@ -54,17 +55,26 @@ def pinhole_gbuffer(scene, settings, w=32, h=24):
     return pos.reshape(h, w, 4), nrm.reshape(h, w, 4), np.linalg.inv(m), ok
 
 
+@contextlib.contextmanager
+def still_view(worker, scene, settings, options, pos, nrm, view_matrix, full=None):
+    """A worker that was given `scene` and one still view (G-buffer pos / nrm; `full`: the
+    full-res (pos, nrm), default the same) and went idle; closed on leaving."""
+    full_pos, full_nrm = (pos, nrm) if full is None else full
+    wk = worker.ViewportWorker(settings, options)
+    try:
+        wk.post_edit(worker.FullScene(scene))
+        wk.post_view(worker.ViewRequest(("k",), pos, nrm, full_pos, full_nrm, view_matrix, np.eye(4)))
+        assert wk.wait_idle(120)
+        yield wk
+    finally:
+        wk.close()
+
+
 def converge(worker, scene, settings, view, **options):
     pos, nrm, view_matrix, _ = view
     options = dict(dict(direct_passes=3, solver_batches=2, first_batch_rays=8, pixel_rays=0), **options)
-    wk = worker.ViewportWorker(settings, worker.WorkerOptions(**options))
-    try:
-        wk.post_edit(worker.FullScene(scene))
-        wk.post_view(worker.ViewRequest(("k",), pos, nrm, pos, nrm, view_matrix, np.eye(4)))
-        assert wk.wait_idle(120)
+    with still_view(worker, scene, settings, worker.WorkerOptions(**options), pos, nrm, view_matrix) as wk:
         return wk.latest()
-    finally:
-        wk.close()
 
 
 def test_two_threads_converge_to_the_single_thread_result(worker):
@@ -103,14 +113,8 @@ def test_the_first_converged_cache_goes_out_without_the_depth_moments(worker, mo
     monkeypatch.setattr(worker.ViewportWorker, "_publish", record)
     options = worker.WorkerOptions(direct_passes=1, solver_batches=1, first_batch_rays=8, pixel_rays=4,
                                    pixel_passes=1)
-    wk = worker.ViewportWorker(settings, options)
-    try:
-        wk.post_edit(worker.FullScene(scene))
-        wk.post_view(worker.ViewRequest(("k",), pos, nrm, pos, nrm, view_matrix, np.eye(4)))
-        assert wk.wait_idle(120)
+    with still_view(worker, scene, settings, options, pos, nrm, view_matrix):
         assert frames[0][1] and frames[0][0].depth_texels is None
-    finally:
-        wk.close()
     assert frames[-1][0].depth_texels is not None
     np.testing.assert_array_equal(frames[-1][0].sh_texels, frames[-2][0].sh_texels)  # the depth alone joined
 
@@ -184,17 +188,11 @@ def test_a_lamp_edit_relights_the_cache_before_the_full_res_direct_pass(worker, 
 
     monkeypatch.setattr(worker.ViewportWorker, "_direct_pass", record)
     options = worker.WorkerOptions(direct_passes=2, solver_batches=1, first_batch_rays=8, pixel_rays=0)
-    wk = worker.ViewportWorker(settings, options)
-    try:
-        wk.post_edit(worker.FullScene(scene))
-        wk.post_view(worker.ViewRequest(("k",), pos, nrm, full_pos, full_nrm, view_matrix, np.eye(4)))
-        assert wk.wait_idle(120)
+    with still_view(worker, scene, settings, options, pos, nrm, view_matrix, (full_pos, full_nrm)) as wk:
         assert len(fine) == 2
         lamps = [dataclasses.replace(lt, power=2.0 * lt.power) for lt in scene.lights]
         wk.post_edit(worker.SetShading(lights=lamps))
         assert wk.wait_idle(120)
-    finally:
-        wk.close()
     assert fine == [True] * 4
 
 
@@ -223,13 +221,8 @@ def test_a_still_view_alternates_pixel_passes_and_full_res_direct_passes(worker,
     monkeypatch.setattr(worker.ViewportWorker, "_pixel_pass", record_pixels)
     options = worker.WorkerOptions(direct_passes=2, solver_batches=1, first_batch_rays=8, pixel_rays=4,
                                    pixel_passes=2)
-    wk = worker.ViewportWorker(settings, options)
-    try:
-        wk.post_edit(worker.FullScene(scene))
-        wk.post_view(worker.ViewRequest(("k",), pos, nrm, full_pos, full_nrm, view_matrix, np.eye(4)))
-        assert wk.wait_idle(120)
-    finally:
-        wk.close()
+    with still_view(worker, scene, settings, options, pos, nrm, view_matrix, (full_pos, full_nrm)):
+        pass
     assert order == ["p", "d", "p", "d"]
 
 
@@ -329,19 +322,13 @@ def test_a_lamp_edit_traces_pixel_passes_over_the_first_reshaded_batch_then_over
     monkeypatch.setattr(worker.ViewportWorker, "_pixel_pass", record)
     options = worker.WorkerOptions(direct_passes=1, solver_batches=2, first_batch_rays=8, pixel_rays=4,
                                    pixel_passes=1)
-    wk = worker.ViewportWorker(settings, options)
-    try:
-        wk.post_edit(worker.FullScene(scene))
-        wk.post_view(worker.ViewRequest(("k",), pos, nrm, pos, nrm, view_matrix, np.eye(4)))
-        assert wk.wait_idle(120)
+    with still_view(worker, scene, settings, options, pos, nrm, view_matrix) as wk:
         assert wk._session.system.solver.batches == 2
         keys.clear()
         lamps = [dataclasses.replace(lt, power=2.0 * lt.power) for lt in scene.lights]
         wk.post_edit(worker.SetShading(lights=lamps))
         assert wk.wait_idle(120)
         shown = wk._view_state.pixel_key
-    finally:
-        wk.close()
     epoch = keys[0][0]
     assert keys == [(epoch, False), (epoch, True)] and shown[1:] == (epoch, True)
 
