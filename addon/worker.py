@@ -750,7 +750,7 @@ def _interruptible(system, superseded: Callable[[], bool]):
     frame * MAX_DIRECT_BLOCKS + i, raising `_Superseded` before a block once superseded() holds.
     The blocks are fixed, so the light does not depend on the pool's thread count or on timing."""
 
-    def direct(points, normals, frame, samples=None, shadows=True, **outputs):
+    def direct(points, normals, frame, samples=None, **outputs):
         # outputs : `system.direct`'s per-point output arrays (partial, unshadowed), written
         # block by block through views of them.
         n = points.shape[0]
@@ -762,7 +762,7 @@ def _interruptible(system, superseded: Callable[[], bool]):
                 raise _Superseded
             views = {k: None if v is None else v[a:b] for k, v in outputs.items()}
             out.append(system.direct(points[a:b], normals[a:b], frame * MAX_DIRECT_BLOCKS + i, samples=samples,
-                                     shadows=shadows, **views))
+                                     **views))
         return np.concatenate(out) if out else np.zeros((0, 3), np.float32)
 
     return direct

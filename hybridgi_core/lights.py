@@ -465,11 +465,12 @@ def _area_chunk(light, shape, p, nrm, tracer, rng, samples, epsilon, partial=Non
                 f.ravel()[lit[ray[blocked]]] = 0.0
                 _mark_partial(partial, src, blocked, m)
     # Solid-angle sampling: each sample estimates L * S * cos_r, bounded by 2 pi L.
-    total = f.sum(axis=1) * scale
+    shadowed_sum = f.sum(axis=1)
+    total = shadowed_sum * scale
     open_total = open_sum * scale if opened is not None else None
     if unshadowed is not None:
         exact = _analytic(shape, radiance, p, nrm, live, every)
-        total = _times_visibility(exact, total, f.sum(axis=1), unshadowed)
+        total = _times_visibility(exact, total, shadowed_sum, unshadowed)
         if open_total is not None:
             open_total = np.where(unshadowed > 0, exact, open_total).astype(_F32)
     if opened is not None:

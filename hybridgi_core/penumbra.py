@@ -62,7 +62,7 @@ def adaptive_direct(direct, points: np.ndarray, normals: np.ndarray, pix: np.nda
     with `samples` shadow rays per lamp in penumbrae and FIRST_SAMPLES elsewhere, and the (n,)
     bool mask of the pixels that got the full count.
 
-    direct(points, normals, frame, samples=, partial=, shadows=) -> (n, 3): `GISystem.direct`.
+    direct(points, normals, frame, samples=, partial=, unshadowed=) -> (n, 3): `GISystem.direct`.
     camera : (3,) the eye; given, the penumbra pixels' visibility (their light over the
     unshadowed light) is filtered edge-aware on their surfaces (`filter_penumbra`)."""
     first = min(FIRST_SAMPLES, samples)

@@ -340,8 +340,7 @@ class GISystem:
         return gather(self.cache, points, normals, corner_visible=vis)
 
     def direct(self, points: np.ndarray, normals: np.ndarray, frame: int, samples: int | None = None,
-               partial: np.ndarray | None = None, shadows: bool = True,
-               unshadowed: np.ndarray | None = None) -> np.ndarray:
+               partial: np.ndarray | None = None, unshadowed: np.ndarray | None = None) -> np.ndarray:
         """Lamp irradiance (n, 3) W/m^2 with shadow rays at points: the deferred pass's direct light.
 
         Up to DIRECT_BLOCK_RAYS shadow rays run in one call on this thread; more (the full-res
@@ -349,23 +348,22 @@ class GISystem:
         pool, block i drawing its samples from child i of the frame's generator: deterministic
         and independent of the thread count (the tracer itself is single-threaded). partial : an
         optional (n,) bool output, True where a penumbra crosses (`lights.direct_irradiance`).
-        shadows : False gives the unshadowed light (no rays). unshadowed : an optional (n, 3)
-        output, the same samples' light without shadows (`lights.direct_irradiance`)."""
+        unshadowed : an optional (n, 3) output, the same samples' light without shadows
+        (`lights.direct_irradiance`)."""
         rng = frame_rng(self.settings.seed + 1, frame)
         samples = samples or self.settings.light_samples
         eps = float(self.tracer.epsilon)
         lights = self.scene.lights
         n = int(np.asarray(points).reshape(-1, 3).shape[0])
         per_block = max(1, DIRECT_BLOCK_RAYS // samples)
-        tracer = self.tracer if shadows else None
         if n <= per_block or not lights:
-            return direct_irradiance(lights, points, normals, tracer, rng, samples=samples, epsilon=eps,
+            return direct_irradiance(lights, points, normals, self.tracer, rng, samples=samples, epsilon=eps,
                                      partial=partial, unshadowed=unshadowed)
         points = np.asarray(points, np.float32).reshape(-1, 3)
         normals = np.asarray(normals, np.float32).reshape(-1, 3)
         starts = range(0, n, per_block)
         return np.concatenate(self._blocks([
-            (direct_irradiance, (lights, points[a : a + per_block], normals[a : a + per_block], tracer, child,
+            (direct_irradiance, (lights, points[a : a + per_block], normals[a : a + per_block], self.tracer, child,
                                  samples, eps), {"partial": None if partial is None else partial[a : a + per_block],
                                                  "unshadowed": None if unshadowed is None else unshadowed[a : a + per_block]})
             for a, child in zip(starts, rng.spawn(len(starts)), strict=True)]))

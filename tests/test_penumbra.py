@@ -21,9 +21,9 @@ def _floor():
 
 
 def _direct(lights, tracer, seed=0):
-    def direct(points, normals, frame, samples=1, partial=None, shadows=True, unshadowed=None):
+    def direct(points, normals, frame, samples=1, partial=None, unshadowed=None):
         rng = np.random.default_rng([seed, frame])
-        return direct_irradiance(lights, points, normals, tracer if shadows else None, rng, samples=samples,
+        return direct_irradiance(lights, points, normals, tracer, rng, samples=samples,
                                  partial=partial, unshadowed=unshadowed)
     return direct
 

@@ -284,7 +284,7 @@ def gi_edges(centre: CentreSample, indirect: np.ndarray, height: int, width: int
              contrast: float = GI_CONTRAST) -> np.ndarray:
     """(h * w,) bool: centre-raster pixels next to a 4-neighbour on another surface (`same_surface`
     fails between them) whose indirect light differs by more than `contrast` of the larger
-    (`gi_contrast`'s test between neighbours; indirect: `pixel_gather.textures`' (h * w, 4)).
+    (indirect: `pixel_gather.textures`' (h * w, 4)).
 
     Why: where two surfaces of very different bounce light meet within a pixel or two (a thin
     bar lit by the sunny ground, in front of ground that sees little), Diffuse Indirect is as
