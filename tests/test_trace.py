@@ -348,3 +348,27 @@ def test_weld_positions_merges_exact_duplicates_only():
     assert np.array_equal(v[head[group]], v[order])
     empty_first, empty_inverse = weld_positions(np.zeros((0, 3), np.float32))
     assert empty_first.size == 0 and empty_inverse.size == 0
+
+
+def test_c_api_upload_is_taken_and_hits_exactly_what_triangle_mesh_hits(monkeypatch):
+    """The fast upload (`embree_upload`) must be the path this platform takes, and give the very
+    hits of embreex's own TriangleMesh, static and dynamic scenes alike (it builds the same BVH)."""
+    from hybridgi_core.trace import embree_upload  # noqa: PLC0415
+
+    geometry = concat_geometry([soup(400, seed=3), cube(0.5, (0.2, 0.2, 0.2), object_index=1)])
+    origins, directions = random_rays(20000, seed=5)
+    taken = []
+    real = embree_upload.upload
+    monkeypatch.setattr(embree_upload, "upload", lambda *a: taken.append(real(*a)) or taken[-1])
+    with EmbreeTracer(geometry, dynamic_objects=frozenset({1})) as fast:
+        fast_hits = fast.intersect(origins, directions)
+        fast_blocked = fast.occluded(origins, directions, np.float32(0.7))
+    assert taken == [True, True]
+    monkeypatch.setattr(embree_upload, "upload", lambda *a: False)
+    with EmbreeTracer(geometry, dynamic_objects=frozenset({1})) as slow:
+        slow_hits = slow.intersect(origins, directions)
+        slow_blocked = slow.occluded(origins, directions, np.float32(0.7))
+    assert fast_hits.hit.mean() > 0.3
+    for name in ("t", "prim", "u", "v"):
+        np.testing.assert_array_equal(getattr(fast_hits, name), getattr(slow_hits, name))
+    np.testing.assert_array_equal(fast_blocked, slow_blocked)

@@ -24,7 +24,7 @@ from embreex.mesh_construction import TriangleMesh
 
 from ..errors import EmptySceneError, InvalidGeometryError, SettingsError
 from ..snapshot import Geometry
-from . import SURFACE_EPSILON, Hits
+from . import SURFACE_EPSILON, Hits, embree_upload
 from .reference import prepare_rays
 
 log = logging.getLogger(__name__)
@@ -53,7 +53,7 @@ class _SubScene:
     """
 
     scene: rtcs.EmbreeScene
-    mesh: TriangleMesh
+    mesh: TriangleMesh | None  # None: uploaded through Embree's C API (`embree_upload`)
     ids: np.ndarray
     vertex_ids: np.ndarray
     local_triangles: np.ndarray
@@ -339,7 +339,7 @@ class EmbreeTracer:
         self, ids: np.ndarray, vertex_ids: np.ndarray, local: np.ndarray, vertices: np.ndarray
     ) -> _SubScene:
         scene = rtcs.EmbreeScene(self._device, robust=ROBUST)
-        mesh = TriangleMesh(scene, vertices, local)
+        mesh = None if embree_upload.upload(scene, self._device, vertices, local) else TriangleMesh(scene, vertices, local)
         # embreex commits lazily on the first run(); do it here, on one thread, not racing in workers.
         scene.run(np.zeros((1, 3), np.float32), np.array([[0.0, 0.0, 1.0]], np.float32), dists=np.zeros(1, np.float32))
         identity = bool(np.array_equal(ids, np.arange(ids.size)))
