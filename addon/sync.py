@@ -156,39 +156,41 @@ def mesh_arrays(mesh):
     )
 
 
-def transformed(local, matrix, slot_to_material, object_index):
-    """`Geometry` of one instance of `local` placed by the (4, 4) `matrix`.
+def transformed(local, matrices, slot_to_material, first_object):
+    """`Geometry` of instances of `local`, one per (4, 4) matrix of `matrices` (I, 4, 4), finite,
+    instance i with object index first_object + i: a scattered mesh (thousands of rocks or leaves
+    of one instancer) is transformed in a few batched numpy calls, not a dozen calls per instance.
 
     slot_to_material : (S,) int32 global material index of each material slot (at least one).
-    Returns None when the matrix is not finite. A zero scale on one axis flattens the object, as
-    in Cycles, which still renders it (a plane seen from both sides); on two axes its triangles
-    have no area and the snapshot drops them.
+    A zero scale on one axis flattens the object, as in Cycles, which still renders it (a plane
+    seen from both sides); on two axes its triangles have no area and the snapshot drops them.
     """
-    matrix = np.asarray(matrix, np.float64)
-    if not np.isfinite(matrix).all():
-        return None
-    linear = matrix[:3, :3]
+    m = np.asarray(matrices, np.float64).reshape(-1, 4, 4)
+    count, corners = m.shape[0], local.positions.shape[0]
+    linear = m[:, :3, :3]
     det = np.linalg.det(linear)
-    positions = (local.positions @ linear.T + matrix[:3, 3]).astype(np.float32)
+    positions = (np.matmul(local.positions, linear.transpose(0, 2, 1)) + m[:, None, :3, 3]).astype(np.float32)
     # Normals transform with the cofactor matrix (det x inverse transpose), so non-uniform scale
     # keeps them perpendicular; unlike the inverse it exists for a flattened object, whose
     # normals all turn along the squashed axis. Only their direction counts (renormalized below).
-    normals = (local.normals @ _cofactor(linear).T * np.sign(det or 1.0)).astype(np.float32)
-    length = np.linalg.norm(normals, axis=1, keepdims=True)
+    sign = np.where(det < 0, -1.0, 1.0)[:, None, None]
+    normals = (np.matmul(local.normals, _cofactor(linear).transpose(0, 2, 1)) * sign).astype(np.float32)
+    length = np.sqrt(np.einsum("ilk,ilk->il", normals, normals))[..., None]
     normals = np.divide(normals, length, out=np.zeros_like(normals), where=length > 0)
-    triangles = local.triangles
-    if det < 0:
-        # A mirroring transform flips the winding; reverse it so geometric and shading normals agree.
-        triangles = triangles[:, ::-1]
+    n_tri = local.triangles.shape[0]
+    triangles = np.empty((count, n_tri, 3), np.int32)
+    triangles[:] = local.triangles
+    # A mirroring transform flips the winding; reverse it so geometric and shading normals agree.
+    triangles[det < 0] = local.triangles[:, ::-1]
+    triangles += (np.arange(count, dtype=np.int32) * np.int32(corners))[:, None, None]
     slots = np.clip(local.slot, 0, len(slot_to_material) - 1)
-    n_tri = triangles.shape[0]
     return snap.Geometry(
-        positions=positions,
-        triangles=np.ascontiguousarray(triangles, np.int32),
-        normals=normals,
-        uvs=local.uvs,
-        material_index=np.asarray(slot_to_material, np.int32)[slots],
-        object_index=np.full(n_tri, object_index, np.int32),
+        positions=positions.reshape(-1, 3),
+        triangles=triangles.reshape(-1, 3),
+        normals=normals.reshape(-1, 3),
+        uvs=local.uvs if count == 1 else np.tile(local.uvs, (count, 1)),
+        material_index=np.tile(np.asarray(slot_to_material, np.int32)[slots], count),
+        object_index=np.repeat(np.arange(first_object, first_object + count, dtype=np.int32), n_tri),
     )
 
 
@@ -198,8 +200,8 @@ def _listed(names, shown=5) -> str:
 
 
 def _cofactor(m):
-    """(3, 3) cofactor matrix of `m` (det(m) inv(m).T where m is invertible)."""
-    return np.stack([np.cross(m[1], m[2]), np.cross(m[2], m[0]), np.cross(m[0], m[1])])
+    """(I, 3, 3) cofactor matrices of `m` (I, 3, 3) (det(m) inv(m).T where m is invertible)."""
+    return np.stack([np.cross(m[:, 1], m[:, 2]), np.cross(m[:, 2], m[:, 0]), np.cross(m[:, 0], m[:, 1])], axis=1)
 
 
 class _SnapshotBuilder:
@@ -213,6 +215,7 @@ class _SnapshotBuilder:
         self.collection_flags = collection_flags or {}
         self.ignored: dict[str, set[str]] = {}  # what is approximated -> object names, warned once
         self.parts = []
+        self._run = None  # (key, local mesh, slot materials, first object index, [matrix]) to place
         self.objects = []
         self.lights = []
         self.materials = []
@@ -234,11 +237,12 @@ class _SnapshotBuilder:
             return
         parent = instance.parent if instance.is_instance else None
         dynamic = obj.name in self.dynamic_names or (parent is not None and parent.name in self.dynamic_names)
-        slot_to_material, local = self._slot_materials(obj, local, dynamic)
-        geometry = transformed(local, instance.matrix_world, slot_to_material, len(self.objects))
-        if geometry is None:
+        matrix = np.asarray(instance.matrix_world, np.float64)
+        if not np.isfinite(matrix).all():
             log.debug("skipped %s: singular transform", obj.name)
             return
+        slot_to_material, local = self._slot_materials(obj, local, dynamic)
+        self._add_placed(local, slot_to_material, matrix)
         # A curve's own mesh instance has the curve as its parent: keep its plain name.
         name = obj.name if parent is None or parent.name == obj.name else f"{parent.name}/{obj.name}"
         camera_visible = bool(getattr(obj, "visible_camera", True))
@@ -246,7 +250,22 @@ class _SnapshotBuilder:
             camera_visible = camera_visible and bool(getattr(parent, "visible_camera", True))
         self._note_ignored(obj)
         self.objects.append(snap.ObjectInfo(name=name, dynamic=dynamic, camera_visible=camera_visible))
-        self.parts.append(geometry)
+
+    def _add_placed(self, local, slot_to_material, matrix):
+        """Queue one instance of `local` (object index: the next ObjectInfo's). Consecutive
+        instances of one mesh with the same materials (an instancer's) are transformed together
+        (`transformed`), in the order they came: the snapshot is the same as one by one."""
+        key = (id(local), tuple(slot_to_material))
+        if self._run is None or self._run[0] != key:
+            self._flush_run()
+            self._run = (key, local, slot_to_material, len(self.objects), [])
+        self._run[4].append(matrix)
+
+    def _flush_run(self):
+        if self._run is not None:
+            _key, local, slot_to_material, first, matrices = self._run
+            self.parts.append(transformed(local, np.stack(matrices), slot_to_material, first))
+            self._run = None
 
     def _note_ignored(self, obj):
         for prop, meaning in IGNORED_VISIBILITY.items():
@@ -266,6 +285,7 @@ class _SnapshotBuilder:
                         "is" if len(names) == 1 else "are", meaning)
 
     def finish(self, world):
+        self._flush_run()
         self._warn_glossy()
         geometry = snap.concat_geometry(self.parts)
         return snap.make_snapshot(geometry, self.materials, self.lights, world, self.objects)

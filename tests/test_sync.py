@@ -370,6 +370,41 @@ def test_instances_and_linked_duplicates(bpy_module, scene, sync):
     assert x.max() == pytest.approx(11.0)  # the second instance is moved by its instancer
 
 
+def test_scattered_instances_are_placed_one_by_one(bpy_module, scene, sync):
+    """Consecutive instances of one mesh are transformed together (`sync.transformed`): each keeps
+    its own matrix (rotation, non-uniform and mirroring scale), winding, normals and object."""
+    bpy = bpy_module
+    collection = bpy.data.collections.new("rocks")
+    add_cube(bpy, scene, "rock", collection=collection)
+    placements = [((0.0, 0.0, 0.0), (0.0, 0.0, 0.0), (1.0, 1.0, 1.0)),
+                  ((4.0, 0.0, 1.0), (0.3, 0.0, 1.2), (2.0, 1.0, 0.5)),
+                  ((0.0, 6.0, 0.0), (0.0, 0.0, 0.0), (-1.0, 1.0, 1.0)),
+                  ((-5.0, 2.0, 3.0), (1.0, 0.5, 0.2), (0.5, -2.0, 1.5))]
+    for i, (loc, rot, scale) in enumerate(placements):
+        empty = bpy.data.objects.new(f"scatter{i}", None)
+        empty.instance_type = "COLLECTION"
+        empty.instance_collection = collection
+        empty.location, empty.rotation_euler, empty.scale = loc, rot, scale
+        scene.collection.objects.link(empty)
+
+    geo = snapshot(sync, bpy).geometry
+
+    assert geo.triangle_count == 4 * 12
+    for i in range(len(placements)):
+        empty = bpy.data.objects[f"scatter{i}"]
+        matrix = np.array(empty.matrix_world)
+        tris = geo.triangles[geo.object_index == i]
+        assert tris.shape[0] == 12
+        corners = geo.positions[tris]
+        local = (corners - matrix[:3, 3]) @ np.linalg.inv(matrix[:3, :3]).T
+        np.testing.assert_allclose(np.abs(local), 1.0, atol=1e-4)  # the unit cube's corners
+        centroid = corners.mean(axis=1)
+        outward = centroid - corners.mean(axis=(0, 1))
+        face = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+        assert np.all(np.einsum("ij,ij->i", face, outward) > 0), f"instance {i}: winding"
+        assert np.all(np.einsum("ij,ij->i", geo.normals[tris[:, 0]], outward) > 0), f"instance {i}: normals"
+
+
 def test_geometry_nodes_instances(bpy_module, scene, sync):
     bpy = bpy_module
     tree = bpy.data.node_groups.new("scatter", "GeometryNodeTree")
