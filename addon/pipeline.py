@@ -100,7 +100,10 @@ def camera_matrices(depsgraph, scene, width, height):
     render = scene.render
     proj = cam_eval.calc_matrix_camera(depsgraph, x=width, y=height,
                                        scale_x=render.pixel_aspect_x, scale_y=render.pixel_aspect_y)
-    view = cam_eval.matrix_world.inverted()
+    # Blender's engines ignore the camera's scale (its own or a scaled parent's: a model imported in
+    # centimetres under an empty at 0.01): the view keeps the camera's axes and position only, as
+    # Cycles' and EEVEE's do. The scaled matrix's inverse blew distances up 100x past the far clip.
+    view = cam_eval.matrix_world.normalized().inverted()
     return np.array(view, np.float32), np.array(proj, np.float32)
 
 

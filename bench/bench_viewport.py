@@ -161,7 +161,7 @@ def main(argv=None) -> int:
 
     depsgraph = bpy.context.evaluated_depsgraph_get()
     cam = scene.camera.evaluated_get(depsgraph)
-    region_data = SimpleNamespace(view_matrix=cam.matrix_world.inverted(),
+    region_data = SimpleNamespace(view_matrix=cam.matrix_world.normalized().inverted(),
                                   window_matrix=cam.calc_matrix_camera(depsgraph, x=width, y=height),
                                   is_perspective=True, view_perspective="PERSP")
     context = SimpleNamespace(region=SimpleNamespace(width=width, height=height), region_data=region_data,

@@ -82,7 +82,7 @@ class Viewport:
         depsgraph = bpy.context.evaluated_depsgraph_get()
         cam = scene.camera.evaluated_get(depsgraph)
         self.region_data = SimpleNamespace(
-            view_matrix=cam.matrix_world.inverted(), window_matrix=cam.calc_matrix_camera(depsgraph, x=width, y=height),
+            view_matrix=cam.matrix_world.normalized().inverted(), window_matrix=cam.calc_matrix_camera(depsgraph, x=width, y=height),
             is_perspective=cam.data.type != "ORTHO", view_perspective="CAMERA")
         self.context = SimpleNamespace(region=SimpleNamespace(width=width, height=height),
                                        region_data=self.region_data, scene=scene,

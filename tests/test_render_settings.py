@@ -40,6 +40,23 @@ def scenes(tmp_path_factory):
         variant("hidden_block", lambda d: setattr(d.objects["tall_block"], "visible_camera", False))
         variant("flat_block", lambda d: setattr(d.objects["tall_block"], "scale", (1.0, 1.0, 0.0)))
         variant("pano", lambda d: setattr(d.cameras[0], "type", "PANO"))
+        def placed(scale, offset):
+            def edit(d):
+                scene = bpy.context.scene
+                root = d.objects.new("root", None)
+                scene.collection.objects.link(root)
+                for ob in list(scene.objects):
+                    if ob.parent is None and ob is not root:
+                        ob.parent = root
+                root.scale, root.location = (scale,) * 3, (offset, offset, 0.0)
+                for light in d.lights:
+                    light.energy *= scale * scale  # the same radiance from the scaled lamp
+                for cam in d.cameras:
+                    cam.clip_start, cam.clip_end = cam.clip_start * scale, cam.clip_end * scale
+                scene.world.light_settings.distance *= scale
+            return edit
+        variant("centimetres", placed(0.01, 0.0))
+        variant("far_away", placed(1.0, 1.0e5))
     """)
     subprocess.run([sys.executable, "-c", script], check=True, capture_output=True)
     return out
@@ -136,6 +153,18 @@ def test_zero_scale_on_one_axis_flattens_the_object_instead_of_dropping_it(scene
     # The flattened block lies on the floor (z = 0 in its own space): its top face remains.
     assert record["triangles"] >= _full_record["triangles"] - 8  # only the side faces lost their area
     assert np.isfinite(layer(ch, "Combined")).all()
+
+
+@pytest.mark.parametrize(("name", "tolerance"), [("centimetres", 0.03), ("far_away", 0.06)])
+def test_a_scene_scaled_to_centimetres_or_placed_100_km_away_renders_the_same(scenes, full, tmp_path, name, tolerance):
+    """The whole box under an empty: scaled to 1/100 (a model in centimetres; the camera inherits the
+    scale, which Blender's engines ignore: the image was black), or moved 100 km (georeferenced
+    coordinates, 8 mm float32 steps: surfaces shadowed themselves in streaks)."""
+    _record, ch = rendered(scenes / f"{name}.blend", tmp_path / name)
+    for pass_name in ("Combined", "Diffuse Direct", "Ambient Occlusion"):
+        got, want = layer(ch, pass_name)[..., :3], layer(full, pass_name)[..., :3]
+        err = np.abs(got - want).sum() / np.abs(want).sum()
+        assert err < tolerance, f"{name}: {pass_name} relative L1 {err:.4f} against the box at the origin"
 
 
 def test_panoramic_camera_is_refused_with_a_clear_message(scenes, tmp_path):

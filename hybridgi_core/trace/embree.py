@@ -38,6 +38,9 @@ CHUNKS_PER_THREAD = 4
 ROBUST = True
 
 
+#: Least push of a ray origin off its surface, in float32 steps of the scene's largest coordinate.
+ORIGIN_ULPS = 8
+
 #: Cut-out layers a ray passes through before it counts as stopped (foliage: a handful).
 CUTOUT_LAYERS = 8
 
@@ -248,8 +251,11 @@ class EmbreeTracer:
 
     @property
     def epsilon(self) -> float:
-        """Distance (metres) to push ray origins off a surface before tracing."""
-        return SURFACE_EPSILON * self.extent
+        """Distance (metres) to push ray origins off a surface before tracing: SURFACE_EPSILON of
+        the scene's size, and at least ORIGIN_ULPS float32 steps of its largest coordinate (a
+        scene placed 100 km from the origin, as georeferenced models are, has 8 mm steps: a
+        smaller push left its surfaces shadowing themselves)."""
+        return max(SURFACE_EPSILON * self.extent, ORIGIN_ULPS * self.coordinate_step)
 
     def raw_throughput(self, n_rays: int = 200_000, seed: int = 0) -> float:
         """Closest-hit rays per second on random rays from inside the bounds, all threads."""
@@ -369,6 +375,8 @@ class EmbreeTracer:
         lo, hi = self._bounds_all()
         #: Scene bounding-box diagonal in metres; the scale for `epsilon`.
         self.extent = float(np.linalg.norm(hi - lo))
+        #: float32 spacing at the scene's largest coordinate magnitude (its positions' precision).
+        self.coordinate_step = float(np.spacing(np.float32(max(np.abs(lo).max(), np.abs(hi).max()))))
 
 
 def weld_positions(vertices: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
