@@ -248,8 +248,9 @@ def _chunk(system, lookup: HitLookup | None, p, nrm, corner_visible, rays, rng):
     cv_i = np.einsum("mk,mkc->mc", y_mean, sh_i)
     cv_a = np.where(covered, np.einsum("mk,mk->m", y_mean, sh_a), np.float32(1.0))  # uncovered: ao_c = 1
     r = radiance.reshape(m, rays, 6)
-    res[:, 0:3] = (r[..., 0:3].mean(axis=1) - cv_d) * np.float32(np.pi)
-    res[:, 3:6] = (r[..., 3:6].mean(axis=1) - cv_i) * np.float32(np.pi)
+    r_mean = r.mean(axis=1)  # one reduction over the rays for both bands
+    res[:, 0:3] = (r_mean[:, 0:3] - cv_d) * np.float32(np.pi)
+    res[:, 3:6] = (r_mean[:, 3:6] - cv_i) * np.float32(np.pi)
     ao_mean = visible.reshape(m, rays).mean(axis=1)
     res[:, 6] = ao_mean - cv_a
     # Variance of the two filter guides' means (luminance of all light, AO), from the rays' own
@@ -297,13 +298,17 @@ def hit_radiance(system, lookup: HitLookup | None, origins: np.ndarray, dirs: np
         if times is not None:
             times["shadow"] = times.get("shadow", 0.0) + (time.perf_counter() - ts) * 1e3
         brdf = surf.brdf
+        lamp = None
         if not glossy_lamps:
-            radiance[hit, 3:6] = e_in * (brdf - scene.surfaces.glossy_brdf(prim))
+            lamp = e_in * (brdf - scene.surfaces.glossy_brdf(prim))
             e_in = np.zeros_like(e_in)
         # Further bounces read the cache at the hit, as probe-ray hits do.
         if lookup is not None:
             e_in += lookup.irradiance(position, surf.normal).T
-        radiance[hit, 3:6] += e_in * brdf
+        e_in *= brdf
+        if lamp is not None:
+            e_in += lamp
+        radiance[hit, 3:6] = e_in  # one scatter (`+=` on fancy indices gathers and scatters)
     return radiance
 
 
