@@ -402,15 +402,27 @@ def filter_residual(residual: np.ndarray, position: np.ndarray, normal: np.ndarr
                 guide = np.stack([(img[0:3] + img[3:6]).transpose(1, 2, 0) @ LUMA, img[6]])
             pg, pvar = np.pad(guide, widths), np.pad(var, widths)
             acc_var = np.zeros_like(var)
+        # Per-tap temporaries, reused: the same operations in the same order as whole-array
+        # expressions, without a fresh allocation for every intermediate plane.
+        plane, cos, wt, tmp = (np.empty((h, w), np.float32) for _ in range(4))
+        acc6 = np.empty((6, h, w), np.float32)
+        if var is not None:
+            diff, den = np.empty_like(var), np.empty_like(var)
+            wt2 = np.empty((2, h, w), np.float32)
+            sq = np.empty((2, h, w), np.float32)
         for dy in range(5):
             for dx in range(5):
                 ys = slice(pad + (dy - 2) * step, pad + (dy - 2) * step + h)
                 xs = slice(pad + (dx - 2) * step, pad + (dx - 2) * step + w)
                 qp, qn = pp[:, ys, xs], pn[:, ys, xs]
-                plane = (qp[0] * nrm[0] + qp[1] * nrm[1] + qp[2] * nrm[2] - own) * inv_sigma
-                cos = np.maximum(qn[0] * nrm[0] + qn[1] * nrm[1] + qn[2] * nrm[2], 0.0)
-                wt = _power(cos, normal_power)
-                wt *= pv[ys, xs] * np.float32(_B3[dy] * _B3[dx])
+                _dot3(qp, nrm, plane, tmp)
+                plane -= own
+                plane *= inv_sigma
+                _dot3(qn, nrm, cos, tmp)
+                np.maximum(cos, np.float32(0.0), out=cos)
+                _power_into(cos, normal_power, wt)
+                np.multiply(pv[ys, xs], np.float32(_B3[dy] * _B3[dx]), out=tmp)
+                wt *= tmp
                 if var is None:
                     wt *= np.exp(-plane * plane)
                     acc += wt * pr[:, ys, xs]
@@ -418,24 +430,38 @@ def filter_residual(residual: np.ndarray, position: np.ndarray, normal: np.ndarr
                     continue
                 # One weight for the colour channels (luminance guide), one for AO; the plane
                 # and range terms share one exp.
-                diff = pg[:, ys, xs] - guide
-                rng = -(diff * diff) / (k2 * (var + pvar[:, ys, xs]) + np.float32(1e-12))
+                np.subtract(pg[:, ys, xs], guide, out=diff)
+                np.multiply(diff, diff, out=diff)
+                np.negative(diff, out=diff)
+                np.add(var, pvar[:, ys, xs], out=den)
+                den *= k2
+                den += np.float32(1e-12)
+                np.divide(diff, den, out=diff)  # the range terms' exponents
                 if split:
                     # The colour channels' tap must agree in both luminance guides: one spatial
                     # weight times the stricter of the two range terms (not their product: where
                     # all light is indirect, e.g. under a black world, the guides are one and the
                     # same, and the product would halve the noise allowance; Cornell 640x360
                     # Combined 0.0216 -> 0.0226).
-                    rng = np.stack([np.minimum(rng[0], rng[1]), rng[2]])
-                wt2 = wt * np.exp(rng - plane * plane)  # (2, h, w): the colour channels', AO's
-                acc[0:6] += wt2[0] * pr[0:6, ys, xs]
-                acc[6] += wt2[1] * pr[6, ys, xs]
-                sq = wt2 * wt2
-                if split:  # both luminance guides' variances go with the colour weight
-                    acc_var[0:2] += sq[0] * pvar[0:2, ys, xs]
-                    acc_var[2] += sq[1] * pvar[2, ys, xs]
+                    np.minimum(diff[0], diff[1], out=wt2[0])
+                    wt2[1] = diff[2]
                 else:
-                    acc_var += sq * pvar[:, ys, xs]
+                    wt2[:] = diff
+                np.multiply(plane, plane, out=tmp)
+                wt2 -= tmp
+                np.exp(wt2, out=wt2)
+                wt2 *= wt  # (2, h, w): the colour channels', AO's weights
+                np.multiply(wt2[0], pr[0:6, ys, xs], out=acc6)
+                acc[0:6] += acc6
+                np.multiply(wt2[1], pr[6, ys, xs], out=tmp)
+                acc[6] += tmp
+                np.multiply(wt2, wt2, out=sq)
+                if split:  # both luminance guides' variances go with the colour weight
+                    np.multiply(sq[0], pvar[0:2, ys, xs], out=den[0:2])
+                    np.multiply(sq[1], pvar[2, ys, xs], out=den[2])
+                else:
+                    np.multiply(sq, pvar[:, ys, xs], out=den)
+                acc_var += den
                 wsum += wt2
         total = np.maximum(wsum, np.float32(1e-12))
         img[0:6] = acc[0:6] / total[0]
@@ -466,6 +492,26 @@ def filter_at_pixels(values: np.ndarray, keep: np.ndarray, points: np.ndarray, n
     out = filter_residual(image.reshape(h, w, 7), pos.reshape(h, w, 3), nrm.reshape(h, w, 3), valid.reshape(h, w),
                           np.asarray(camera, np.float32), passes, pool=pool).reshape(h * w, 7)
     return np.where(keep[:, None], out[pix, :c], values).astype(np.float32)
+
+
+def _dot3(a: np.ndarray, b: np.ndarray, out: np.ndarray, tmp: np.ndarray) -> None:
+    """out = a[0] * b[0] + a[1] * b[1] + a[2] * b[2] for (3, ...) planes, in that order, into out."""
+    np.multiply(a[0], b[0], out=out)
+    np.multiply(a[1], b[1], out=tmp)
+    out += tmp
+    np.multiply(a[2], b[2], out=tmp)
+    out += tmp
+
+
+def _power_into(x: np.ndarray, exponent: float, out: np.ndarray) -> None:
+    """out = `_power`(x, exponent), the squarings in place."""
+    e = float(exponent)
+    if e >= 1 and e == int(e) and int(e) & (int(e) - 1) == 0:
+        np.copyto(out, x)
+        for _ in range(int(e).bit_length() - 1):
+            np.multiply(out, out, out=out)
+        return
+    np.power(x, np.float32(e), out=out)
 
 
 def _power(x: np.ndarray, exponent: float) -> np.ndarray:
