@@ -52,9 +52,10 @@ def corner_visibility(cache: IrradianceCache, tracer, points: np.ndarray, normal
     One occlusion ray per corner from the biased point (pushed `epsilon` further off the surface).
     """
     normals = np.asarray(normals, np.float32)
-    p = biased_points(cache, points, normals) + normals * np.float32(epsilon)
-    flats, _ = cache.grid.corner_cells(biased_points(cache, points, normals))
-    to_cell = cache.centers[flats] - p[:, None, :]
+    biased = biased_points(cache, points, normals)
+    p = biased + normals * np.float32(epsilon)
+    flats, _ = cache.grid.corner_cells(biased)
+    to_cell = np.take(cache.centers, flats, axis=0) - p[:, None, :]
     dist = np.linalg.norm(to_cell, axis=2)
     dirs = to_cell / np.maximum(dist, np.float32(1e-9))[..., None]
     origins = np.repeat(p, 8, axis=0)
