@@ -52,9 +52,10 @@ def corner_visibility(cache: IrradianceCache, tracer, points: np.ndarray, normal
     One occlusion ray per corner from the biased point (pushed `epsilon` further off the surface).
     """
     normals = np.asarray(normals, np.float32)
-    p = biased_points(cache, points, normals) + normals * np.float32(epsilon)
-    flats, _ = cache.grid.corner_cells(biased_points(cache, points, normals))
-    to_cell = cache.centers[flats] - p[:, None, :]
+    biased = biased_points(cache, points, normals)
+    p = biased + normals * np.float32(epsilon)
+    flats, _ = cache.grid.corner_cells(biased)
+    to_cell = np.take(cache.centers, flats, axis=0) - p[:, None, :]
     dist = np.linalg.norm(to_cell, axis=2)
     dirs = to_cell / np.maximum(dist, np.float32(1e-9))[..., None]
     origins = np.repeat(p, 8, axis=0)
@@ -80,9 +81,9 @@ def corner_weights(
     normals = np.asarray(normals, np.float32)
     p = biased_points(cache, points, normals)
     flats, tri = cache.grid.corner_cells(p)
-    w = tri * cache.valid[flats]
+    w = tri * np.take(cache.valid, flats)
     if visibility:
-        to_cell = cache.centers[flats] - p[:, None, :]  # (n, 8, 3)
+        to_cell = np.take(cache.centers, flats, axis=0) - p[:, None, :]  # (n, 8, 3): take, ~5x faster than [flats]
         dist = np.linalg.norm(to_cell, axis=2)
         safe = np.maximum(dist, np.float32(1e-6))[..., None]
         dirs = np.where(dist[..., None] > 1e-6, to_cell / safe, normals[:, None, :])
@@ -160,8 +161,11 @@ class HitLookup:
     cells around it, in front of its tangent plane (`_best_front_neighbour`).
 
     Irradiance is a polynomial in the normal (SH up to L2): the table holds it on the monomials
-    1, y, z, x, xy, yz, z^2, xz, x^2 - y^2 with every SH and cosine constant folded in, as
-    (rows, N) structure-of-arrays rows so each term is one contiguous multiply-add per hit.
+    1, y, z, x, xy, yz, z^2, xz, x^2 - y^2 with every SH and cosine constant folded in, one
+    (K*3,) row per cell (`irradiance_poly`): a hit's gather reads one or two cache lines, where
+    (K*3, N) structure-of-arrays rows cost a cache miss per term on a grid larger than the
+    caches (Cornell 48^3: 6.4 -> 2.9 ms per 38k hits). The gathered rows are transposed once so
+    each term is one contiguous multiply-add per hit.
     """
 
     def __init__(self, cache: IrradianceCache, bounced: bool, coeffs: np.ndarray | None = None, table: bool = True):
@@ -174,11 +178,11 @@ class HitLookup:
         self.inside = cache.inside
         k = cache.settings.sh_coeffs
         self.terms = k
-        self.rows = None
+        self.table = None
         if table:
             if coeffs is None:
                 coeffs = cache.sh_direct + cache.sh_indirect if bounced else cache.sh_direct
-            self.rows = irradiance_rows(coeffs, self.valid)  # (K*3, N)
+            self.table = irradiance_poly(coeffs, self.valid)  # (N, K*3)
         self.origin = np.asarray(grid.lo, np.float32)
         self.inv_cell = np.float32(1.0 / grid.cell_size)
         self.bias = np.float32(HIT_LOOKUP_BIAS * grid.cell_size)
@@ -218,15 +222,18 @@ class HitLookup:
         flat = ijk[:, 0].astype(np.intp)
         flat += ijk[:, 1] * self.strides[1]
         flat += ijk[:, 2] * self.strides[2]
-        bad = np.flatnonzero(~self.valid[flat])
-        if bad.size:
-            flat[bad] = _best_front_neighbour(self.grid, self.valid, g[bad] - np.float32(0.5), points[bad], normals[bad], flat[bad])
+        bad = np.flatnonzero(~np.take(self.valid, flat))
+        if bad.size:  # row gathers through np.take: ~5x faster than fancy indexing (numpy 1.26)
+            g_bad = np.take(g, bad, axis=0)
+            g_bad -= np.float32(0.5)
+            flat[bad] = _best_front_neighbour(self.grid, self.valid, g_bad, np.take(points, bad, axis=0),
+                                              np.take(normals, bad, axis=0), np.take(flat, bad))
         return flat
 
     def evaluate(self, flat: np.ndarray, mono: np.ndarray) -> np.ndarray:
         """(3, n) float32 irradiance >= 0 of cells flat (n,) at normals given as their
         `monomials` (terms, n)."""
-        c = np.take(self.rows, flat, axis=1)  # (K*3, n)
+        c = np.ascontiguousarray(np.take(self.table, flat, axis=0).T)  # (K*3, n)
         e = c[0:3] * mono[0]
         for k in range(1, self.terms):
             e += c[3 * k : 3 * k + 3] * mono[k]
@@ -235,11 +242,17 @@ class HitLookup:
 
 
 def irradiance_rows(coeffs: np.ndarray, valid: np.ndarray | None = None) -> np.ndarray:
-    """(K*3, n) float32 irradiance polynomial of radiance SH coeffs (n, K, 3) on the `monomials`,
+    """(K*3, n) float32 irradiance polynomial of radiance SH coeffs (n, K, 3) on the `monomials`
+    (`irradiance_poly`, transposed: one contiguous row per term)."""
+    return np.ascontiguousarray(irradiance_poly(coeffs, valid).T)
+
+
+def irradiance_poly(coeffs: np.ndarray, valid: np.ndarray | None = None) -> np.ndarray:
+    """(n, K*3) float32 irradiance polynomial of radiance SH coeffs (n, K, 3) on the `monomials`,
     every SH and cosine constant folded in; rows where valid (n,) is False are zero.
 
     Flat (n, K*3) rows take one multiply by a (K*3,) factor (per-axis broadcasts over (n, K, 3)
-    cost 3x more), then one transposed copy."""
+    cost 3x more)."""
     n, k = coeffs.shape[0], coeffs.shape[1]
     poly = np.array(coeffs, np.float32).reshape(n, k * 3)
     basis = np.array([sh.C0, sh.C1, sh.C1, sh.C1, sh.C2, sh.C2, 3.0 * sh.C3, sh.C2, sh.C4][:k], np.float32)
@@ -248,12 +261,12 @@ def irradiance_rows(coeffs: np.ndarray, valid: np.ndarray | None = None) -> np.n
         poly[:, 0:3] -= poly[:, 18:21] * np.float32(1.0 / 3.0)  # C3 (3 z^2 - 1): -1 joins the constant
     if valid is not None:
         poly[~valid] = 0.0
-    return np.ascontiguousarray(poly.T)
+    return poly
 
 
 def monomials(normals: np.ndarray, terms: int) -> np.ndarray:
     """(terms, n) float32 monomials 1, y, z, x (, xy, yz, z^2, xz, x^2 - y^2) of unit normals
-    (n, 3): the irradiance polynomial's variables in `HitLookup.rows` order."""
+    (n, 3): the irradiance polynomial's variables in `irradiance_poly` order."""
     x, y, z = np.ascontiguousarray(np.asarray(normals, np.float32).T)
     out = np.empty((terms, x.shape[0]), np.float32)
     out[0] = 1.0

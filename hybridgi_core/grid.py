@@ -78,15 +78,24 @@ class CacheGrid:
         base = np.floor(g)
         f = (g - base).astype(np.float32)
         base = base.astype(np.int64)
-        dims = np.asarray(self.dims)
+        nx, ny, _ = self.dims
+        # Per axis once: the two clamped indices, as flat offsets, and their weights; each corner
+        # is then two adds and two multiplies on (n,) columns (per-corner (n, 3) clips, wheres and
+        # products cost 5x more at 40k points).
+        idx, wgt = [], []
+        for a, stride in enumerate((1, nx, nx * ny)):
+            top = self.dims[a] - 1
+            idx.append((np.clip(base[:, a], 0, top) * stride, np.clip(base[:, a] + 1, 0, top) * stride))
+            fa = np.ascontiguousarray(f[:, a])
+            wgt.append((np.float32(1.0) - fa, fa))
         flats = np.empty((g.shape[0], 8), np.int64)
         weights = np.empty((g.shape[0], 8), np.float32)
         for c in range(8):
-            o = np.array([c & 1, (c >> 1) & 1, (c >> 2) & 1])
-            ijk = np.clip(base + o, 0, dims - 1)
-            flats[:, c] = self.flatten(ijk)
-            w = np.where(o == 1, f, 1.0 - f)
-            weights[:, c] = w[:, 0] * w[:, 1] * w[:, 2]
+            ox, oy, oz = c & 1, (c >> 1) & 1, (c >> 2) & 1
+            np.add(idx[0][ox], idx[1][oy], out=flats[:, c])
+            flats[:, c] += idx[2][oz]
+            np.multiply(wgt[0][ox], wgt[1][oy], out=weights[:, c])
+            weights[:, c] *= wgt[2][oz]
         return flats, weights
 
     def cells_near(self, lo: np.ndarray, hi: np.ndarray, radius: float) -> tuple[np.ndarray, np.ndarray]:

@@ -82,6 +82,13 @@ class FrameStats:
             self.steps_ms[name] = self.steps_ms.get(name, 0.0) + (time.perf_counter() - t0) * 1e3
 
 
+def _shared_lookup(full_gi) -> HitLookup | None:
+    """The HitLookup the frame's pixel rays read (`pixel_gather.GIResolver.lookup`), if it is the
+    plain one of the level-0 cache the reflection rays read too (not the levels'); else None."""
+    lookup = None if full_gi is None or full_gi.resolver is None else full_gi.resolver.lookup
+    return lookup if isinstance(lookup, HitLookup) else None
+
+
 class FramePipeline:
     """Owns the passes of one view; `resize`, `upload`, then `render` per frame; `free` at the end.
 
@@ -286,7 +293,8 @@ class FramePipeline:
                                                    frame, self.direct_samples, camera=camera,
                                                    pool=system.updater.pool)[0]
         with stats.step("glossy"):
-            glossy, glossy_col, glossy_ind = self._glossy(system, view, proj, p_full, n_full, pix_full, frame)
+            glossy, glossy_col, glossy_ind = self._glossy(system, view, proj, p_full, n_full, pix_full, frame,
+                                                          _shared_lookup(full_gi))
         film = FilmAccumulator()
         film.set_depth(self.gbuffer.read("depth"))  # the centre sample, as Cycles' one sample
         count = self.subframes
@@ -382,13 +390,14 @@ class FramePipeline:
         for k, v_ms in run.steps_ms.items():
             stats.steps_ms[f"levels_{k}"] = stats.steps_ms.get(f"levels_{k}", 0.0) + v_ms
 
-    def _glossy(self, system, view, proj, points, normals, pix, frame):
+    def _glossy(self, system, view, proj, points, normals, pix, frame, lookup: HitLookup | None = None):
         """(direct radiance, Glossy Color, bounced light), each (h w, 4) float32 or None without
         glossy lobes: the lamps', sky's and emitters' reflection by the glossy lobes at the centre
         raster's pixels (`glossy.glossy_direct`, `glossy.cache_reflection`) and the light of other
         surfaces they reflect (Glossy Indirect before its colour); direct + colour x bounced is
         uploaded for the deferred pass. Subframes reuse it: a highlight is smooth at the pixel
-        scale, and silhouettes are where its share is least."""
+        scale, and silhouettes are where its share is least. lookup : the frame's HitLookup of
+        the cache, if the pixel rays built one (None: the reflection rays build their own)."""
         if not glossy_image.has_glossy(system):
             return None, None, None
         rows = glossy_image.material_rows(self.gbuffer.read("material").reshape(-1)[pix])
@@ -410,14 +419,14 @@ class FramePipeline:
             glossy[q, :3] = filter_lamp_glossy(glossy[q, :3], rough, points[lit], normals[lit], q,
                                                (self.height, self.width), view, pool=system.updater.pool)
             sky, bounced, lamp = self._reflections(system, points[lit], normals[lit], to_eye[lit], rough, frame,
-                                                   pix[lit], view, skip[lit])
+                                                   pix[lit], view, skip[lit], lookup)
             glossy[pix[lit], :3] += colour[pix[lit], :3] * (sky + lamp)
             indirect[pix[lit], :3] = bounced
         total = glossy + colour * indirect
         self._glossy_tex = upload_texture_2d(total.reshape(self.height, self.width, 4), "RGBA32F")
         return glossy, colour, indirect
 
-    def _reflections(self, system, points, normals, to_eye, rough, frame, pix, view, lamps):
+    def _reflections(self, system, points, normals, to_eye, rough, frame, pix, view, lamps, lookup=None):
         """(sky, bounced, lamp), each (n, 3): what the lobes at the receivers reflect, the
         world's and emitters' light (Glossy Direct), other surfaces' (Glossy Indirect) and the
         area lamps `lamps` (n, L) marks as the rays met them (`reflection.bsdf_lamps`; lamp
@@ -425,7 +434,8 @@ class FramePipeline:
         filtered edge-aware over the image: `reflection.filter_reflections`) where the lobes are
         smooth enough, blended into the cache's split-sum estimates (`glossy.cache_reflection`)
         as they grow rough; the cache is read only where its estimate counts (rough lobes, rays
-        that found no light). pix : the receivers' flat pixels."""
+        that found no light). pix : the receivers' flat pixels; lookup : the cache's HitLookup to
+        reuse (None: built here; the whole grid's table costs ~50 ms on a 48^3 grid)."""
         rays = self.settings.reflection_rays
         n = points.shape[0]
         share = traced_share(rough) if rays > 0 else np.zeros(n)
@@ -433,7 +443,8 @@ class FramePipeline:
         lamp = np.zeros((n, 3), np.float32)
         traced = np.zeros(n, np.float32)
         if sel.size:
-            lookup = HitLookup(system.cache, bounced=system.settings.indirect_quality == MULTI_BOUNCE)
+            if lookup is None:
+                lookup = HitLookup(system.cache, bounced=system.settings.indirect_quality == MULTI_BOUNCE)
             direct, indirect, total, lamp[sel] = traced_reflection(system, lookup, points[sel], normals[sel],
                                                                    to_eye[sel], rough[sel], rays, frame, lamps[sel])
             direct, indirect = filter_reflections(direct, indirect, total, points[sel], normals[sel], pix[sel],
