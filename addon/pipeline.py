@@ -124,6 +124,10 @@ def unsupported_settings(scene, view_layer) -> list[str]:
     notes = []
     if getattr(scene.render, "use_motion_blur", False):
         notes.append("motion blur is not rendered")
+    camera = scene.camera
+    dof = getattr(getattr(camera, "data", None), "dof", None)
+    if dof is not None and getattr(dof, "use_dof", False):
+        notes.append(f"depth of field of camera {camera.name!r} is not rendered (everything is in focus)")
     passes = [label for flag, label in UNWRITTEN_PASSES if getattr(view_layer, flag, False)]
     if passes:
         notes.append(f"passes not written: {', '.join(passes)}")
