@@ -254,10 +254,8 @@ def spot_attenuation(light: Light, to_point: np.ndarray) -> np.ndarray:
 
 def _shadow_to_targets(tracer, p, nrm, idx, tx, ty, tz, epsilon):
     """Visibility of targets (tx, ty, tz) from receivers p[idx] (offset along their normals)."""
-    ox = p[0][idx] + nrm[0][idx] * epsilon
-    oy = p[1][idx] + nrm[1][idx] * epsilon
-    oz = p[2][idx] + nrm[2][idx] * epsilon
-    dx, dy, dz = tx - ox, ty - oy, tz - oz
+    origins = _lifted(p, nrm, epsilon)[idx]
+    dx, dy, dz = tx - origins[:, 0], ty - origins[:, 1], tz - origins[:, 2]
     dist = np.sqrt(dx * dx + dy * dy + dz * dz)
     tfar = dist - epsilon
     # Only rays with some reach can be blocked (0 < t <= tfar); those have a finite unit
@@ -266,10 +264,17 @@ def _shadow_to_targets(tracer, p, nrm, idx, tx, ty, tz, epsilon):
     vis = np.ones(dist.shape, bool)
     if tracer is None or ray.size == 0:
         return vis
-    inv = 1.0 / dist[ray]
-    origins = np.stack([ox[ray], oy[ray], oz[ray]], axis=1).astype(_F32, copy=False)
-    dirs = np.stack([dx[ray] * inv, dy[ray] * inv, dz[ray] * inv], axis=1).astype(_F32, copy=False)
-    vis[ray] = ~np.asarray(tracer.occluded(origins, dirs, tfar[ray].astype(_F32, copy=False), trusted=True), bool)
+    every = ray.size == dist.size
+    if not every:
+        origins, dx, dy, dz, dist, tfar = (a[ray] for a in (origins, dx, dy, dz, dist, tfar))
+    inv = 1.0 / dist
+    dirs = np.empty((dist.size, 3), _F32)
+    for k, d in enumerate((dx, dy, dz)):
+        np.multiply(d, inv, out=dirs[:, k])
+    hidden = np.asarray(tracer.occluded(origins, dirs, tfar.astype(_F32, copy=False), trusted=True), bool)
+    if every:
+        return ~hidden
+    vis[ray] = ~hidden
     return vis
 
 
@@ -375,7 +380,9 @@ def uniform_cone(axis, half_angle: float, u: np.ndarray, v: np.ndarray):
     scale = np.sqrt(np.maximum(one_minus_cos * (2.0 - r2 * one_minus_cos), 0.0))
     ax = np.asarray(axis, u.dtype)
     t1, t2 = _onb(ax[0:1], ax[1:2], ax[2:3])
-    return tuple(a * scale * t1[k] + b * scale * t2[k] + cos_t * ax[k] for k in range(3)), one_minus_cos
+    a *= scale
+    b *= scale
+    return tuple(a * t1[k] + b * t2[k] + cos_t * ax[k] for k in range(3)), one_minus_cos
 
 
 def _sun_chunk(light, p, nrm, tracer, rng, samples, epsilon, partial=None, opened=None):
@@ -393,8 +400,10 @@ def _sun_chunk(light, p, nrm, tracer, rng, samples, epsilon, partial=None, opene
         lit = np.flatnonzero(cos_r > 0)  # flat indices: (rows, cols) fancy indexing costs ~2x
         if lit.size:
             rows = lit // samples
-            origins = np.stack([p[k][rows] + nrm[k][rows] * epsilon for k in range(3)], axis=1)
-            dirs = np.stack([dx.ravel()[lit], dy.ravel()[lit], dz.ravel()[lit]], axis=1)
+            origins = _lifted(p, nrm, epsilon)[rows]
+            dirs = np.empty((lit.size, 3), _F32)
+            for k, d in enumerate((dx, dy, dz)):
+                np.take(d.ravel(), lit, out=dirs[:, k])
             # Finite receivers (checked by the caller) and unit cone directions: no ray checks.
             blocked = np.asarray(tracer.occluded(origins, dirs, np.inf, trusted=True), bool)
             contrib.ravel()[lit[blocked]] = 0.0

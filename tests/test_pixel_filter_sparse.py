@@ -43,3 +43,22 @@ def test_sparse_equals_whole_image(passes, channels):
     np.testing.assert_array_equal(sparse, _whole_image(values, keep, points, normals, pix, (h, w), eye, passes))
     assert not np.array_equal(sparse[keep], values[keep])  # it did filter
     np.testing.assert_array_equal(sparse[~keep], values[~keep])
+
+
+def test_sparse_halves_on_a_pool_equal_one_piece():
+    from concurrent.futures import ThreadPoolExecutor
+
+    h, w = 180, 200
+    rng = np.random.default_rng(9)
+    pix = np.sort(rng.choice(h * w, pixel_gather.SPARSE_SPLIT_PIXELS + 100, replace=False))
+    y, x = np.divmod(pix, w)
+    points = np.stack([x * 0.01, y * 0.01, (y > 60) * 0.3 + 0 * x], 1).astype(np.float32)
+    normals = np.tile(np.float32([0, 0, 1]), (pix.size, 1))
+    values = rng.random((pix.size, 3)).astype(np.float32)
+    keep = np.ones(pix.size, bool)
+    assert pix.size <= pixel_gather.SPARSE_FILTER_SHARE * h * w  # the sparse path
+    eye = np.array([0.8, 0.6, 3.0])
+    one = filter_at_pixels(values, keep, points, normals, pix, (h, w), eye, 2)
+    with ThreadPoolExecutor(2) as pool:
+        split = filter_at_pixels(values, keep, points, normals, pix, (h, w), eye, 2, pool=pool)
+    np.testing.assert_array_equal(split, one)
