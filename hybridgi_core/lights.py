@@ -254,7 +254,7 @@ def spot_attenuation(light: Light, to_point: np.ndarray) -> np.ndarray:
 
 def _shadow_to_targets(tracer, p, nrm, idx, tx, ty, tz, epsilon):
     """Visibility of targets (tx, ty, tz) from receivers p[idx] (offset along their normals)."""
-    origins = _lifted(p, nrm, epsilon)[idx]
+    origins = np.take(_lifted(p, nrm, epsilon), idx, axis=0)
     dx, dy, dz = tx - origins[:, 0], ty - origins[:, 1], tz - origins[:, 2]
     dist = np.sqrt(dx * dx + dy * dy + dz * dz)
     tfar = dist - epsilon
@@ -280,11 +280,25 @@ def _shadow_to_targets(tracer, p, nrm, idx, tx, ty, tz, epsilon):
 
 def _lifted(p, nrm, epsilon) -> np.ndarray:
     """(m, 3) float32 shadow-ray origins of receivers p (offset epsilon along their normals nrm;
-    both structure-of-arrays (m,) float32 triples)."""
+    both structure-of-arrays (m,) float32 triples). Gather its rows with np.take(axis=0): ~3x
+    faster than fancy indexing of a 2-D array."""
     out = np.empty((p[0].shape[0], 3), _F32)
     for k in range(3):
         np.add(p[k], nrm[k] * epsilon, out=out[:, k])
     return out
+
+
+def _mark_partial_all(partial, live, blocked):
+    """`_mark_partial` where every sample of receivers `live` (k,) (None: all) was traced:
+    blocked (k, samples)."""
+    if partial is None:
+        return
+    hidden = np.count_nonzero(blocked, axis=1)
+    mixed = (hidden > 0) & (hidden < blocked.shape[1])
+    if live is None:
+        partial |= mixed
+    else:
+        partial[live] |= mixed
 
 
 def _mark_partial(partial, rows, blocked, m):
@@ -400,10 +414,8 @@ def _sun_chunk(light, p, nrm, tracer, rng, samples, epsilon, partial=None, opene
         lit = np.flatnonzero(cos_r > 0)  # flat indices: (rows, cols) fancy indexing costs ~2x
         if lit.size:
             rows = lit // samples
-            origins = _lifted(p, nrm, epsilon)[rows]
-            dirs = np.empty((lit.size, 3), _F32)
-            for k, d in enumerate((dx, dy, dz)):
-                np.take(d.ravel(), lit, out=dirs[:, k])
+            origins = np.take(_lifted(p, nrm, epsilon), rows, axis=0)
+            dirs = np.stack([dx.ravel()[lit], dy.ravel()[lit], dz.ravel()[lit]], axis=1)
             # Finite receivers (checked by the caller) and unit cone directions: no ray checks.
             blocked = np.asarray(tracer.occluded(origins, dirs, np.inf, trusted=True), bool)
             contrib.ravel()[lit[blocked]] = 0.0
@@ -467,30 +479,44 @@ def _area_chunk(light, shape, p, nrm, tracer, rng, samples, epsilon, partial=Non
     if tracer is not None:
         lit = np.flatnonzero(f > 0)
         if lit.size:
-            rows = lit // samples
             eps = _F32(epsilon)
+            # Every sample lit (most chunks of a lamp above every receiver's horizon): whole
+            # arrays instead of gathers, the same values.
+            full = lit.size == f.size
+            rows = None if full else lit // samples
             # Origin p + n eps, target p + w: the ray is w - n eps, its length less eps the reach.
-            sx = wx.ravel()[lit] - nx[rows, 0] * eps
-            sy = wy.ravel()[lit] - ny[rows, 0] * eps
-            sz = wz.ravel()[lit] - nz[rows, 0] * eps
+            if full:
+                sx, sy, sz = ((w - c * eps).ravel() for w, c in ((wx, nx), (wy, ny), (wz, nz)))
+            else:
+                sx, sy, sz = (w.ravel()[lit] - c[rows, 0] * eps for w, c in ((wx, nx), (wy, ny), (wz, nz)))
             dist = np.sqrt(sx * sx + sy * sy + sz * sz)
             tfar = dist - eps
             # A ray of no length (receiver within epsilon of the lamp) cannot be blocked.
             ray = np.flatnonzero(tfar > 0)
             if 0 < ray.size < lit.size:
+                full, rows = False, lit // samples if rows is None else rows
                 lit, rows, sx, sy, sz, dist, tfar = (a[ray] for a in (lit, rows, sx, sy, sz, dist, tfar))
             if ray.size:
-                src = live[rows] if not every else rows
                 inv = _F32(1.0) / dist
                 dirs = np.empty((lit.size, 3), _F32)
                 for k, s in enumerate((sx, sy, sz)):
                     np.multiply(s, inv, out=dirs[:, k])
-                # Origins per receiver, then one gather per ray (not two gathers and a multiply-add).
-                origins = _lifted(p, nrm, eps)[src]
+                # Origins per receiver, then one gather (or repeat) per ray, not two gathers and a
+                # multiply-add.
+                lifted = _lifted(p, nrm, eps)
+                if full:
+                    origins = np.repeat(lifted if every else np.take(lifted, live, axis=0), samples, axis=0)
+                else:
+                    src = live[rows] if not every else rows
+                    origins = np.take(lifted, src, axis=0)
                 # Finite receivers (checked by the caller), unit directions, positive reach.
                 blocked = np.asarray(tracer.occluded(origins, dirs, tfar, trusted=True), bool)
-                f.ravel()[lit[blocked]] = 0.0
-                _mark_partial(partial, src, blocked, m)
+                if full:
+                    f.ravel()[blocked] = 0.0
+                    _mark_partial_all(partial, live if not every else None, blocked.reshape(-1, samples))
+                else:
+                    f.ravel()[lit[blocked]] = 0.0
+                    _mark_partial(partial, src, blocked, m)
     # Solid-angle sampling: each sample estimates L * S * cos_r, bounded by 2 pi L.
     shadowed_sum = f.sum(axis=1)
     total = shadowed_sum * scale
