@@ -441,8 +441,11 @@ def _area_chunk(light, shape, p, nrm, tracer, rng, samples, epsilon, partial=Non
     corner = shape.corner
     d = [corner[k] - p[k].astype(np.float64) for k in range(3)]
     z0 = d[0] * ez[0] + d[1] * ez[1] + d[2] * ez[2]
-    # One-sided: only receivers strictly on the emitting side (z0 < 0 in Urena's convention).
-    live = np.flatnonzero(z0 < -1e-9 * shape.extent)
+    # One-sided: only receivers strictly on the emitting side (z0 < 0 in Urena's convention),
+    # and not those that see the whole lamp below their horizon (no sample can light them: half
+    # of bunny_npm's pixels), with a margin far beyond the samples' float32 rounding, so that
+    # what is skipped is the 0 the samples would have given.
+    live = np.flatnonzero((z0 < -1e-9 * shape.extent) & _above_horizon(shape, d, nrm))
     if live.size == 0:
         if opened is not None:
             opened.append(e.copy())
@@ -540,6 +543,19 @@ def _area_chunk(light, shape, p, nrm, tracer, rng, samples, epsilon, partial=Non
         return total
     e[live] = total
     return e
+
+
+def _above_horizon(shape, d, nrm) -> np.ndarray:
+    """(m,) bool: receivers (normals nrm, (m,) float32 triple) with some corner of the lamp's
+    rectangle (d : the (m,) float64 components of receiver -> `shape.corner`) above their tangent
+    plane by more than 1e-4 of its distance (plus the lamp's size): False where every sample of
+    the rectangle (the corners' convex hull) lies below it, whatever float32 rounding does."""
+    height = d[0] * nrm[0] + d[1] * nrm[1] + d[2] * nrm[2]
+    ex, ey = shape.frame[0], shape.frame[1]
+    for edge in (np.asarray(ex, np.float64) * shape.len_u, np.asarray(ey, np.float64) * shape.len_v):
+        height += np.maximum(edge[0] * nrm[0] + edge[1] * nrm[1] + edge[2] * nrm[2], 0.0)
+    reach = np.sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2]) + 2.0 * shape.extent
+    return height > -1e-4 * reach
 
 
 def _exact_at(shape, radiance, p, nrm, live, every, need, known):
