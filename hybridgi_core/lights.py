@@ -399,12 +399,31 @@ def uniform_cone(axis, half_angle: float, u: np.ndarray, v: np.ndarray):
     return tuple(a * t1[k] + b * t2[k] + cos_t * ax[k] for k in range(3)), one_minus_cos
 
 
+def _rows_into(values: np.ndarray, rows: np.ndarray, m: int) -> np.ndarray:
+    """(m, s) zeros with values (k, s) at rows (k,)."""
+    out = np.zeros((m, values.shape[1]), values.dtype)
+    out[rows] = values
+    return out
+
+
 def _sun_chunk(light, p, nrm, tracer, rng, samples, epsilon, partial=None, opened=None):
     """A sun with a disc (angle > 0), sampled; `_sun_axis` shades suns traced along their axis."""
     m = p[0].shape[0]
     u, v = stratified_uv(rng, m, samples)
-    (dx, dy, dz), one_minus_cos = uniform_cone((-light.direction).astype(_F32), 0.5 * float(light.angle), u, v)
-    cos_r = np.maximum(dx * nrm[0][:, None] + dy * nrm[1][:, None] + dz * nrm[2][:, None], 0.0)
+    axis = (-light.direction).astype(_F32)
+    half = 0.5 * float(light.angle)
+    # Receivers facing away from the whole cone (half of the atrium's pixels; a margin far beyond
+    # float32 rounding) get 0 from every sample: their directions are not made.
+    facing = nrm[0] * axis[0] + nrm[1] * axis[1] + nrm[2] * axis[2] >= -np.sin(half) - 1e-4
+    some = None if facing.all() else np.flatnonzero(facing)
+    q = nrm if some is None else tuple(c[some] for c in nrm)
+    if some is not None:
+        u, v = u[some], v[some]
+    (dx, dy, dz), one_minus_cos = uniform_cone(axis, half, u, v)
+    cos_r = np.maximum(dx * q[0][:, None] + dy * q[1][:, None] + dz * q[2][:, None], 0.0)
+    if some is not None:
+        cos_r = _rows_into(cos_r, some, m)
+        dx, dy, dz = (_rows_into(c, some, m) for c in (dx, dy, dz))
     # Strength is the irradiance on a facing surface: the cone's mean cosine is divided out.
     weight = float(light.power) / ((1.0 - 0.5 * one_minus_cos) * samples)
     contrib = cos_r.astype(_F32) * _F32(weight)
