@@ -57,19 +57,23 @@ def dilate(mask: np.ndarray, radius: int) -> np.ndarray:
 
 
 def adaptive_direct(direct, points: np.ndarray, normals: np.ndarray, pix: np.ndarray, shape: tuple[int, int],
-                    frame: int, samples: int, camera=None, pool=None) -> tuple[np.ndarray, np.ndarray]:
+                    frame: int, samples: int, camera=None, pool=None, lamps: int = 0) -> tuple[np.ndarray, np.ndarray]:
     """Lamp irradiance (n, 3) at the pixels `pix` (flat indices into an image of `shape` (h, w))
     with `samples` shadow rays per lamp in penumbrae and FIRST_SAMPLES elsewhere, and the (n,)
     bool mask of the pixels that got the full count.
 
     direct(points, normals, frame, samples=, partial=, unshadowed=) -> (n, 3): `GISystem.direct`.
     camera : (3,) the eye; given, the penumbra pixels' visibility (their light over the
-    unshadowed light) is filtered edge-aware on their surfaces (`filter_penumbra`)."""
+    unshadowed light) is filtered edge-aware on their surfaces (`filter_penumbra`).
+    lamps : the scene's lamp count; given (> 0), `direct` takes exact= too and the area lamps'
+    exact unshadowed irradiance of the first pass is reused by the second (the same values, not
+    computed twice: ~1 us per receiver and lamp)."""
     first = min(FIRST_SAMPLES, samples)
     if samples <= first:
         return direct(points, normals, frame, samples=samples), np.ones(points.shape[0], bool)
     partial = np.zeros(points.shape[0], bool)
-    light = direct(points, normals, frame, samples=first, partial=partial)
+    reuse = {"exact": np.full((points.shape[0], lamps), np.nan)} if lamps > 0 else {}
+    light = direct(points, normals, frame, samples=first, partial=partial, **reuse)
     if not partial.any():
         return light, partial
     h, w = shape
@@ -80,7 +84,8 @@ def adaptive_direct(direct, points: np.ndarray, normals: np.ndarray, pix: np.nda
     # The same samples' unshadowed light comes with them (exact where the ratio estimator applies):
     # no second sampling pass for the filter's visibility.
     open_light = np.zeros((redo.size, 3), np.float32)
-    more = direct(points[redo], normals[redo], frame + SEED_OFFSET, samples=samples, unshadowed=open_light)
+    reuse = {k: v[redo] for k, v in reuse.items()}
+    more = direct(points[redo], normals[redo], frame + SEED_OFFSET, samples=samples, unshadowed=open_light, **reuse)
     light[redo] = (first * light[redo] + samples * more) / np.float32(first + samples)
     if camera is not None and FILTER_PASSES > 0:
         light[redo] = filter_penumbra(light[redo], open_light, points[redo], normals[redo], pix[redo], shape,

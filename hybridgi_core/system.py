@@ -340,7 +340,8 @@ class GISystem:
         return gather(self.cache, points, normals, corner_visible=vis)
 
     def direct(self, points: np.ndarray, normals: np.ndarray, frame: int, samples: int | None = None,
-               partial: np.ndarray | None = None, unshadowed: np.ndarray | None = None) -> np.ndarray:
+               partial: np.ndarray | None = None, unshadowed: np.ndarray | None = None,
+               exact: np.ndarray | None = None) -> np.ndarray:
         """Lamp irradiance (n, 3) W/m^2 with shadow rays at points: the deferred pass's direct light.
 
         Up to DIRECT_BLOCK_RAYS shadow rays run in one call on this thread; more (the full-res
@@ -349,7 +350,8 @@ class GISystem:
         and independent of the thread count (the tracer itself is single-threaded). partial : an
         optional (n,) bool output, True where a penumbra crosses (`lights.direct_irradiance`).
         unshadowed : an optional (n, 3) output, the same samples' light without shadows
-        (`lights.direct_irradiance`)."""
+        (`lights.direct_irradiance`). exact : an optional (n, lamps) float64 in/out, the area
+        lamps' exact unshadowed irradiance (`lights.direct_irradiance`)."""
         rng = frame_rng(self.settings.seed + 1, frame)
         samples = samples or self.settings.light_samples
         eps = float(self.tracer.epsilon)
@@ -358,14 +360,15 @@ class GISystem:
         per_block = max(1, DIRECT_BLOCK_RAYS // samples)
         if n <= per_block or not lights:
             return direct_irradiance(lights, points, normals, self.tracer, rng, samples=samples, epsilon=eps,
-                                     partial=partial, unshadowed=unshadowed)
+                                     partial=partial, unshadowed=unshadowed, exact=exact)
         points = np.asarray(points, np.float32).reshape(-1, 3)
         normals = np.asarray(normals, np.float32).reshape(-1, 3)
         starts = range(0, n, per_block)
         return np.concatenate(self._blocks([
             (direct_irradiance, (lights, points[a : a + per_block], normals[a : a + per_block], self.tracer, child,
                                  samples, eps), {"partial": None if partial is None else partial[a : a + per_block],
-                                                 "unshadowed": None if unshadowed is None else unshadowed[a : a + per_block]})
+                                                 "unshadowed": None if unshadowed is None else unshadowed[a : a + per_block],
+                                                 "exact": None if exact is None else exact[a : a + per_block]})
             for a, child in zip(starts, rng.spawn(len(starts)), strict=True)]))
 
     def _blocks(self, calls: list) -> list:

@@ -553,3 +553,43 @@ class TestEdges:
             direct_irradiance([], p, n, None, np.random.default_rng(0), samples=0)
         with pytest.raises(ValueError):
             direct_irradiance([], p, n[:1], None, np.random.default_rng(0))
+
+
+def test_receivers_below_the_whole_lamp_are_skipped_only_where_no_sample_lights_them():
+    """`_above_horizon` drops a receiver from an area lamp's samples only where every sample of
+    the lamp lies below its tangent plane: grazing receivers around the threshold, tilted so
+    the lamp's nearest corner is just above, on or just below their horizon."""
+    from hybridgi_core import lights
+
+    lamp = area_light(translation(0.3, -0.2, 2.0) @ rot_x(0.4), power=100.0, size=1.0, size_y=0.6)
+    shape = lights._area_shape(lamp)
+    rng = np.random.default_rng(0)
+    n = 3000
+    p = rng.uniform(-2.0, 2.0, (n, 3)).astype(np.float32)
+    p[:, 2] = rng.uniform(-1.0, 1.5, n)
+    corners = shape.corner + np.array([[0, 0], [1, 0], [0, 1], [1, 1]]) @ np.stack(
+        [shape.frame[0] * shape.len_u, shape.frame[1] * shape.len_v])
+    # A random normal, then tilted so that the highest corner sits at a height of about +-1e-4 of its distance.
+    nrm = rng.normal(size=(n, 3))
+    nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
+    rel = corners[None] - p[:, None].astype(np.float64)
+    top = np.argmax(np.einsum("nkc,nc->nk", rel, nrm), axis=1)
+    to_top = rel[np.arange(n), top]
+    to_top /= np.linalg.norm(to_top, axis=1, keepdims=True)
+    nrm -= (np.einsum("nc,nc->n", nrm, to_top) - rng.uniform(-3e-4, 3e-4, n))[:, None] * to_top
+    nrm = (nrm / np.linalg.norm(nrm, axis=1, keepdims=True)).astype(np.float32)
+    d = [shape.corner[k] - p[:, k].astype(np.float64) for k in range(3)]
+    q = tuple(np.ascontiguousarray(nrm[:, k]) for k in range(3))
+    keep = lights._above_horizon(shape, d, q)
+    assert 0.1 < keep.mean() < 0.9
+    # The samples of the dropped receivers: none above their horizon.
+    ex, ey, ez = shape.frame
+    x0, y0, z0 = (d[0] * e[0] + d[1] * e[1] + d[2] * e[2] for e in (ex, ey, ez))
+    u, v = lights.stratified_uv(rng, n, 64)
+    xu, yv, _, _ = lights._sample_spherical_rectangle(x0, y0, z0, shape.len_u, shape.len_v, u, v)
+    w = [xu * np.float32(ex[k]) + yv * np.float32(ey[k]) + z0.astype(np.float32)[:, None] * np.float32(ez[k])
+         for k in range(3)]
+    cos = w[0] * nrm[:, :1] + w[1] * nrm[:, 1:2] + w[2] * nrm[:, 2:3]
+    front = z0 < 0
+    assert (cos[~keep & front] <= 0).all()
+    assert (cos[keep & front] > 0).any(axis=1).mean() > 0.2  # grazing: a sliver of the lamp above

@@ -21,10 +21,10 @@ def _floor():
 
 
 def _direct(lights, tracer, seed=0):
-    def direct(points, normals, frame, samples=1, partial=None, unshadowed=None):
+    def direct(points, normals, frame, samples=1, partial=None, unshadowed=None, exact=None):
         rng = np.random.default_rng([seed, frame])
         return direct_irradiance(lights, points, normals, tracer, rng, samples=samples,
-                                 partial=partial, unshadowed=unshadowed)
+                                 partial=partial, unshadowed=unshadowed, exact=exact)
     return direct
 
 
@@ -125,3 +125,32 @@ def test_filtered_penumbra_is_closer_to_the_converged_light_and_keeps_open_floor
     err = lambda e: np.abs(e - ref)[full].sum() / ref[full].sum()  # noqa: E731
     assert err(smooth) < 0.8 * err(raw), (err(smooth), err(raw))
     np.testing.assert_array_equal(smooth[~full], raw[~full])
+
+
+def test_exact_light_is_reused_and_the_same():
+    """direct_irradiance's exact= in/out: the area lamp's exact unshadowed light, filled where
+    the ratio estimator used it and read back by a later call (the penumbra pass), which gives
+    the same light as computing it again; adaptive_direct with lamps= gives the same bits."""
+    lamps = [sun_light((0.3, 0.2, -1.0), strength=2.0, angle=0.1), area_light(translation(0.0, 0.0, 2.0), power=200.0)]
+    tracer = TriangleTracer(quad((0.0, 0.0, 1.0), (0.4, 0, 0), (0, 0.4, 0)))
+    pts, nrm = _floor()
+    exact = np.full((H * W, 2), np.nan)
+    plain = direct_irradiance(lamps, pts, nrm, tracer, np.random.default_rng(3), samples=8)
+    kept = direct_irradiance(lamps, pts, nrm, tracer, np.random.default_rng(3), samples=8, exact=exact)
+    np.testing.assert_array_equal(kept, plain)
+    assert np.isnan(exact[:, 0]).all()  # the sun has no closed form here
+    lit = ~np.isnan(exact[:, 1])
+    assert lit.mean() > 0.5 and not lit.all()  # wholly shadowed receivers need none
+    again = direct_irradiance(lamps, pts, nrm, tracer, np.random.default_rng(3), samples=8, exact=exact.copy())
+    np.testing.assert_array_equal(again, plain)
+    wrong = exact.copy()
+    wrong[lit, 1] *= 2.0  # read, not recomputed: the lit receivers' light changes
+    doubled = direct_irradiance(lamps, pts, nrm, tracer, np.random.default_rng(3), samples=8, exact=wrong)
+    assert (doubled[lit] > kept[lit]).any()
+    pix = np.arange(H * W)
+    for camera in (None, np.array([0.0, -3.0, 4.0])):
+        a = adaptive_direct(_direct(lamps, tracer), pts, nrm, pix, (H, W), frame=2, samples=24, camera=camera)
+        b = adaptive_direct(_direct(lamps, tracer), pts, nrm, pix, (H, W), frame=2, samples=24, camera=camera,
+                            lamps=len(lamps))
+        np.testing.assert_array_equal(a[0], b[0])
+        np.testing.assert_array_equal(a[1], b[1])

@@ -291,7 +291,7 @@ class FramePipeline:
             camera = filter_camera(system.scene.lights, camera_eye(view, proj))
             direct[pix_full, :3] = adaptive_direct(system.direct, p_full, n_full, pix_full, (self.height, self.width),
                                                    frame, self.direct_samples, camera=camera,
-                                                   pool=system.updater.pool)[0]
+                                                   pool=system.updater.pool, lamps=len(system.scene.lights))[0]
         with stats.step("glossy"):
             glossy, glossy_col, glossy_ind = self._glossy(system, view, proj, p_full, n_full, pix_full, frame,
                                                           _shared_lookup(full_gi))
