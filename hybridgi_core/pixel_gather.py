@@ -493,6 +493,14 @@ def filter_at_pixels(values: np.ndarray, keep: np.ndarray, points: np.ndarray, n
     if np.count_nonzero(keep) <= SPARSE_FILTER_SHARE * shape[0] * shape[1]:
         return _filter_sparse(values, keep, points, normals, pix, shape, camera, passes, plane_sigma, normal_power,
                               pool)
+    return _filter_dense(values, keep, points, normals, pix, shape, camera, passes, plane_sigma, normal_power, pool)
+
+
+def _filter_dense(values: np.ndarray, keep: np.ndarray, points: np.ndarray, normals: np.ndarray, pix: np.ndarray,
+                  shape: tuple[int, int], camera, passes: int, plane_sigma: float = 0.02, normal_power: float = 8.0,
+                  pool=None) -> np.ndarray:
+    """`filter_at_pixels` through the whole-image `filter_residual` (the values scattered into
+    image planes, filtered, gathered back)."""
     h, w = shape
     c = values.shape[1]
     image = np.zeros((h * w, 7), np.float32)

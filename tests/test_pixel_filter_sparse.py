@@ -6,23 +6,7 @@ import numpy as np
 import pytest
 
 from hybridgi_core import pixel_gather
-from hybridgi_core.pixel_gather import filter_at_pixels, filter_residual
-
-
-def _whole_image(values, keep, points, normals, pix, shape, camera, passes):
-    """The filter over the whole image, as `filter_at_pixels` ran it before the sparse path."""
-    h, w = shape
-    image = np.zeros((h * w, 7), np.float32)
-    image[pix, : values.shape[1]] = values
-    valid = np.zeros(h * w, bool)
-    valid[pix] = keep
-    pos = np.zeros((h * w, 3), np.float32)
-    pos[pix] = points
-    nrm = np.zeros((h * w, 3), np.float32)
-    nrm[pix] = normals
-    out = filter_residual(image.reshape(h, w, 7), pos.reshape(h, w, 3), nrm.reshape(h, w, 3), valid.reshape(h, w),
-                          np.asarray(camera, np.float32), passes).reshape(h * w, 7)
-    return np.where(keep[:, None], out[pix, : values.shape[1]], values).astype(np.float32)
+from hybridgi_core.pixel_gather import filter_at_pixels
 
 
 @pytest.mark.parametrize("passes, channels", [(1, 3), (2, 6), (3, 1)])
@@ -40,7 +24,7 @@ def test_sparse_equals_whole_image(passes, channels):
     eye = np.array([0.5, 0.3, 3.0])
     assert np.count_nonzero(keep) <= pixel_gather.SPARSE_FILTER_SHARE * h * w  # the sparse path
     sparse = filter_at_pixels(values, keep, points, normals, pix, (h, w), eye, passes)
-    np.testing.assert_array_equal(sparse, _whole_image(values, keep, points, normals, pix, (h, w), eye, passes))
+    np.testing.assert_array_equal(sparse, pixel_gather._filter_dense(values, keep, points, normals, pix, (h, w), eye, passes))
     assert not np.array_equal(sparse[keep], values[keep])  # it did filter
     np.testing.assert_array_equal(sparse[~keep], values[~keep])
 
