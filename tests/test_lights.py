@@ -84,8 +84,8 @@ def rot_x(angle):
     return m
 
 
-def point_light(pos, power=100.0, radius=0.0, color=WHITE):
-    return Light("POINT", color, power, translation(*pos), radius=radius)
+def point_light(pos, power=100.0, radius=0.0, color=WHITE, soft_falloff=True):
+    return Light("POINT", color, power, translation(*pos), radius=radius, soft_falloff=soft_falloff)
 
 
 def spot_light(pos, size, blend, power=100.0, matrix=None):
@@ -207,11 +207,17 @@ class TestPoint:
         two = irradiance([point_light((0, 0, 1)), point_light((0, 0, 1)), point_light((0, 0, 1), power=0.0)], p, n)
         np.testing.assert_allclose(two, 2 * one, rtol=1e-6)
 
-    def test_soft_radius_keeps_centre_intensity(self):
+    def test_radius_falloff_of_disc_and_sphere(self):
+        # Cycles (kernel/light/point.h): "Soft Falloff" emits from a disc facing the receiver,
+        # pi L r^2 / (d^2 + r^2) with L = P / (4 pi^2 r^2); without it a sphere, whose vector
+        # irradiance is that of the point lamp while the sphere is above the horizon.
         p, n = receivers([[0.3, 0.1, -2.0]], [0, 0, 1])
         hard = irradiance([point_light((0, 0, 0))], p, n)
-        soft = irradiance([point_light((0, 0, 0), radius=0.5)], p, n, samples=16)
-        np.testing.assert_allclose(soft, hard, rtol=1e-6)
+        d2, r = 0.3**2 + 0.1**2 + 2.0**2, 0.5
+        disc = irradiance([point_light((0, 0, 0), radius=r)], p, n, samples=16)
+        np.testing.assert_allclose(disc, hard * d2 / (d2 + r * r), rtol=1e-5)
+        sphere = irradiance([point_light((0, 0, 0), radius=r, soft_falloff=False)], p, n, samples=16)
+        np.testing.assert_allclose(sphere, hard, rtol=1e-5)
 
 
 def cycles_spot(cos_axis, size, blend):
