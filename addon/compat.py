@@ -55,7 +55,8 @@ def light_options(light) -> tuple[bool, float, bool]:
 
 def soft_falloff(light) -> bool:
     """A POINT/SPOT light's "Soft Falloff" (Cycles emits from a sphere when it is off). Blender 4.2
-    has it (added with sphere lights in 4.0); an older light without it is a facing disc, as on."""
+    has it (added in 4.1, Cycles commit 6ddb3f99b "Lights: Option to use old point light falloff");
+    the fallback is its default on new lights, True."""
     return bool(getattr(light, "use_soft_falloff", True))
 
 
