@@ -435,6 +435,13 @@ def _radius_chunk(light, p, nrm, tracer, rng, samples, epsilon, partial=None, op
     above = (cos_r[live] >= sin_a[live]) | into
     sum_f = f.sum(axis=1)
     ratio = np.where(above & (sum_f > 0), full / np.where(sum_f > 0, sum_f, 1.0), 1.0).astype(_F32)
+    if partial is not None:
+        # Where the samples' weights differ for reasons other than shadows (the horizon cuts the
+        # emitter, the spot's cone edge crosses it), they are noisy as in a penumbra: same count.
+        varied = ~above
+        if light.kind == "SPOT":
+            varied |= att.min(axis=1) != att.max(axis=1)
+        partial[live[varied]] = True
     w = (fa * ratio[:, None]).ravel()
     lit = np.flatnonzero(w > 0)
     rows = lit // s

@@ -290,6 +290,18 @@ class TestRadius:
         e = irradiance([point_light((0, 0, 0), self.P, self.R, soft_falloff=False)], p, n, samples=16)
         np.testing.assert_allclose(e, np.pi * self.radiance(), rtol=1e-5)
 
+    def test_horizon_and_cone_edge_get_the_penumbra_sample_count(self):
+        # No shadows anywhere, yet these receivers' samples differ like a penumbra's: facing the
+        # lamp (none), the lamp cut by their horizon, at a spot's cone edge.
+        p, n = receivers([[0, 0, -2.0], [0.0, 0.0, -0.6], [np.tan(0.5), 0, -1.0]], [[0, 0, 1], [1, 0, 0], [0, 0, 1]])
+        lamps = [point_light((0, 0, 0), self.P, self.R),
+                 Light("SPOT", WHITE, self.P, np.eye(4), radius=0.2, spot_size=1.0, spot_blend=0.1)]
+        for lamp, want in zip(lamps, ([False, True, False], [False, True, True]), strict=True):
+            partial = np.zeros(3, bool)
+            direct_irradiance([lamp], p, n, TriangleTracer(quad((0, 0, 50), (1, 0, 0), (0, 1, 0))),
+                              np.random.default_rng(0), samples=8, partial=partial)
+            assert partial.tolist() == want
+
     def test_spot_cone_is_averaged_over_the_disc(self):
         # Receiver on the floor at the cone's edge: each disc sample sees its own cone factor.
         size, blend, h = np.radians(60.0), 0.2, 1.0
