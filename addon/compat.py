@@ -53,6 +53,13 @@ def light_options(light) -> tuple[bool, float, bool]:
             bool(getattr(light, "normalize", True)))
 
 
+def soft_falloff(light) -> bool:
+    """A POINT/SPOT light's "Soft Falloff" (Cycles emits from a sphere when it is off). Blender 4.2
+    has it (added in 4.1, Cycles commit 6ddb3f99b "Lights: Option to use old point light falloff");
+    the fallback is its default on new lights, True."""
+    return bool(getattr(light, "use_soft_falloff", True))
+
+
 def geometry_edited_objects(depsgraph) -> frozenset:
     """Names of the objects whose geometry this depsgraph update changed (`is_updated_geometry`),
     inside view_update / depsgraph handlers.

@@ -1007,6 +1007,7 @@ def light_from_blender(light, matrix_world, name=""):
     fields = {}
     if kind in ("POINT", "SPOT"):
         fields["radius"] = float(light.shadow_soft_size)
+        fields["soft_falloff"] = compat.soft_falloff(light)
         if kind == "SPOT":
             fields["spot_size"] = float(light.spot_size)
             fields["spot_blend"] = float(light.spot_blend)

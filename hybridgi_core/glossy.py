@@ -257,26 +257,7 @@ def _lamp_samples(light: Light, p, rng, samples):
         weight = radiance * np.maximum(cos_l, 0.0) * shape.area / (d2 * samples)
         return dirs, weight, np.stack([qx, qy, qz], axis=-1)
     if light.kind in ("POINT", "SPOT"):
-        c = light.position.astype(np.float64)
-        to = c[None, :] - p
-        dist = np.maximum(np.linalg.norm(to, axis=1), 1e-6)
-        axis = -to / dist[:, None]
-        radius = float(light.radius)
-        s = samples if radius > 0 else 1
-        if radius > 0:
-            u, v = stratified_uv(rng, m, s)
-            a, b = concentric_disk(u, v)
-            t1, t2 = _onb(axis[:, 0:1], axis[:, 1:2], axis[:, 2:3])
-            q = np.stack([c[k] + radius * (a * t1[k] + b * t2[k]) for k in range(3)], axis=-1)
-        else:
-            q = np.broadcast_to(c, (m, 1, 3)).copy()
-        w = q - p[:, None, :]
-        d2 = np.maximum((w * w).sum(-1), max(radius * radius, 1e-8))
-        dirs = w / np.sqrt((w * w).sum(-1).clip(1e-16))[..., None]
-        weight = (float(light.power) / (4.0 * np.pi)) / (d2 * s)
-        if light.kind == "SPOT":
-            weight = weight * spot_attenuation(light, -to.astype(_F32))[:, None]
-        return dirs, weight, q
+        return _round_lamp_samples(light, p, rng, samples)
     to_sun = -light.direction.astype(np.float64)
     half = 0.5 * float(light.angle)
     if half <= 0:
@@ -286,6 +267,59 @@ def _lamp_samples(light: Light, p, rng, samples):
     dirs = np.stack(components, axis=-1)
     weight = np.full((m, samples), float(light.power) / ((1.0 - 0.5 * one_minus_cos) * samples))
     return dirs, weight, None
+
+
+def _round_lamp_samples(light: Light, p, rng, samples):
+    """`_lamp_samples` of a POINT/SPOT: its centre (radius 0), else the emitters of
+    `lights._radius_chunk` (L = P / (4 pi^2 r^2) on a disc facing the receiver with Soft Falloff,
+    on a sphere without), a SPOT's cone factor taken per sample as Cycles does."""
+    m = p.shape[0]
+    c = light.position.astype(np.float64)
+    to = c[None, :] - p
+    dist = np.maximum(np.linalg.norm(to, axis=1), 1e-6)
+    radius = float(light.radius)
+    power = float(light.power)
+    if radius <= 0:
+        q = np.broadcast_to(c, (m, 1, 3)).copy()
+        w = q - p[:, None, :]
+        d2 = np.maximum((w * w).sum(-1), 1e-8)
+        dirs = w / np.sqrt((w * w).sum(-1).clip(1e-16))[..., None]
+        weight = (power / (4.0 * np.pi)) / d2
+        if light.kind == "SPOT":
+            weight = weight * spot_attenuation(light, -to.astype(_F32))[:, None]
+        return dirs, weight, q
+    axis = to / dist[:, None]  # receiver -> lamp
+    u, v = stratified_uv(rng, m, samples)
+    a, b = concentric_disk(u.astype(np.float64), v.astype(np.float64))
+    t1, t2 = _onb(axis[:, 0:1], axis[:, 1:2], axis[:, 2:3])
+    r2 = radius * radius
+    if light.soft_falloff:
+        q = np.stack([c[k] + radius * (a * t1[k] + b * t2[k]) for k in range(3)], axis=-1)
+        w = q - p[:, None, :]
+        t2s = np.maximum((w * w).sum(-1), 1e-8)
+        dirs = w / np.sqrt(t2s)[..., None]
+        # L x disc area x cos_l / t^2 / s, cos_l = distance along the disc's axis / t.
+        weight = (power / (4.0 * np.pi * samples)) * dist[:, None] / (t2s * np.sqrt(t2s))
+    else:
+        inside = dist <= radius
+        s2 = np.where(inside, 1.0, r2 / np.maximum(dist, radius) ** 2)[:, None]
+        # Outside, the cone the sphere subtends; inside, the whole sphere of directions.
+        omc = np.where(inside[:, None], 2.0, s2 / (1.0 + np.sqrt(1.0 - s2)))
+        q2 = a * a + b * b
+        cos_t = 1.0 - q2 * omc
+        scale = np.sqrt(np.maximum(omc * (2.0 - q2 * omc), 0.0))
+        dirs = np.stack([scale * (a * t1[k] + b * t2[k]) + cos_t * axis[:, k:k + 1] for k in range(3)], axis=-1)
+        bc = (dirs * to[:, None, :]).sum(-1)
+        root = np.sqrt(np.maximum(r2 - dist[:, None] ** 2 + bc * bc, 0.0))
+        t = bc + np.where(inside[:, None], root, -root)
+        q = p[:, None, :] + dirs * t[..., None]
+        weight = (power / (2.0 * np.pi * r2 * samples)) * omc
+    if light.kind == "SPOT":
+        cone = spot_attenuation(light, -dirs.reshape(-1, 3).astype(_F32)).reshape(m, samples)
+        if not light.soft_falloff:
+            cone[dist <= radius] = 1.0
+        weight = weight * cone
+    return dirs, weight, q
 
 
 def _rectangle_samples(shape, radiance, p, u, v, samples):

@@ -5,8 +5,9 @@ of the deferred pass, so the cache and the final image can never disagree about 
 
 Conventions (Cycles 4.x/5.0, each checked numerically against its Diffuse Direct pass):
 
-- POINT of power P: intensity P / (4 pi) W/sr; E = I cos / d^2. A radius only softens the
-  shadow: shadow rays aim at a disc of that radius facing the receiver.
+- POINT of power P: intensity P / (4 pi) W/sr; E = I cos / d^2. With a radius r it emits
+  L = P / (4 pi^2 r^2) from a disc facing the receiver ("Soft Falloff", Blender's default) or
+  from a sphere (`_radius_chunk`).
 - SPOT: as POINT, times smoothstep((cos_axis - cos(size/2)) / ((1 - cos(size/2)) * blend)),
   where cos_axis is taken in the lamp's local frame, so object scale squashes the cone as in
   Cycles (`spot_light_to_local` uses the inverse transform).
@@ -312,22 +313,16 @@ def _mark_partial(partial, rows, blocked, m):
 
 
 def _point_chunk(light, p, nrm, tracer, rng, samples, epsilon, partial=None, opened=None):
+    if float(light.radius) > 0.0:
+        return _radius_chunk(light, p, nrm, tracer, rng, samples, epsilon, partial, opened)
     c = light.position
     wx, wy, wz = c[0] - p[0], c[1] - p[1], c[2] - p[2]  # receiver -> lamp
-    # I / d^2 is exact for a facing receiver outside a Lambertian sphere of that radius and its
-    # maximum (pi L) at the surface: no receiver is closer than the radius (or epsilon).
-    d2 = np.maximum(wx * wx + wy * wy + wz * wz, max(float(light.radius) ** 2, epsilon * epsilon))
+    d2 = np.maximum(wx * wx + wy * wy + wz * wz, epsilon * epsilon)
     inv_d = 1.0 / np.sqrt(d2)
     cos_r = (wx * nrm[0] + wy * nrm[1] + wz * nrm[2]) * inv_d
     e = (float(light.power) / (4.0 * np.pi)) * np.maximum(cos_r, 0.0) / d2
     if light.kind == "SPOT":
         e *= spot_attenuation(light, -np.stack([wx, wy, wz], axis=1))
-    radius = float(light.radius)
-    # Soft shadows need a target pattern per receiver; draw it for every receiver so the rng
-    # stream does not depend on which receivers happen to face the lamp.
-    s = samples if radius > 0.0 else 1
-    if radius > 0.0:
-        u, v = stratified_uv(rng, p[0].shape[0], s)
     if opened is not None:
         opened.append(e.copy())
     if tracer is None:
@@ -335,23 +330,133 @@ def _point_chunk(light, p, nrm, tracer, rng, samples, epsilon, partial=None, ope
     live = np.nonzero(e != 0)[0]
     if live.size == 0:
         return e
-    if radius == 0.0:
-        vis = _shadow_to_targets(tracer, p, nrm, live, _F32(c[0]), _F32(c[1]), _F32(c[2]), epsilon)
-        e[live] *= vis
+    vis = _shadow_to_targets(tracer, p, nrm, live, _F32(c[0]), _F32(c[1]), _F32(c[2]), epsilon)
+    e[live] *= vis
+    return e
+
+
+def _radius_chunk(light, p, nrm, tracer, rng, samples, epsilon, partial=None, opened=None):
+    """POINT/SPOT of radius r > 0 as Cycles 4.x/5.0 emit it (kernel/light/point.h, spot.h): radiance
+    L = P / (4 pi^2 r^2) (scene/light.cpp: power over pi times the sphere's area) from
+
+    - a sphere of radius r (`soft_falloff` False: Cycles' `is_sphere`), sampled uniformly in the
+      cone it subtends; inside it a receiver sees pi L with no spot cone;
+    - a disc of radius r facing the receiver (`soft_falloff` True, Blender's default), sampled
+      uniformly in area: pi L r^2 / (d^2 + r^2) on axis, which is the "soft" falloff.
+
+    A SPOT's cone factor is taken per sample along sample point -> receiver, which softens its
+    edge by the lamp's angular size. Where the whole emitter is above the receiver's horizon the
+    unshadowed irradiance is known in closed form (the emitter's vector irradiance is axial:
+    P cos / (4 pi d^2) for the sphere, P cos / (4 pi (d^2 + r^2)) for the disc) and the samples
+    only weight cone factor x visibility; elsewhere the samples estimate the clipped integral.
+    """
+    c = light.position
+    radius = float(light.radius)
+    r2 = radius * radius
+    m = p[0].shape[0]
+    s = samples
+    # Drawn for every receiver so the rng stream does not depend on which ones face the lamp.
+    u, v = stratified_uv(rng, m, s)
+    e = np.zeros(m, _F32)
+    wx, wy, wz = (c[k] - p[k] for k in range(3))  # receiver -> lamp
+    d2 = np.maximum(wx * wx + wy * wy + wz * wz, epsilon * epsilon)
+    d = np.sqrt(d2)
+    cos_r = (wx * nrm[0] + wy * nrm[1] + wz * nrm[2]) / d
+    sphere = not bool(light.soft_falloff)
+    # sin of the emitter's angular radius seen from the receiver; nothing reaches a receiver
+    # whose horizon the whole emitter is below.
+    sin_a = np.sqrt(r2 / np.maximum(d2, r2)) if sphere else radius / np.sqrt(d2 + r2)
+    inside = (d2 <= r2) if sphere else np.zeros(m, bool)
+    live = np.flatnonzero((cos_r > -sin_a) | inside)
+    if live.size == 0:
+        if opened is not None:
+            opened.append(e.copy())
         return e
-    # Disc of the lamp's radius facing the receiver: axis lamp -> receiver.
-    ax, ay, az = (-wx[live] * inv_d[live], -wy[live] * inv_d[live], -wz[live] * inv_d[live])
+    k = live.size
+    ax, ay, az = (w[live] / d[live] for w in (wx, wy, wz))  # unit receiver -> lamp
+    if inside.any():
+        # Inside a sphere the lamp is all around: sample the hemisphere above the receiver.
+        into = inside[live]
+        ax, ay, az = (np.where(into, q[live], w) for q, w in zip(nrm, (ax, ay, az), strict=True))
     t1, t2 = _onb(ax[:, None], ay[:, None], az[:, None])
     a, b = concentric_disk(u[live], v[live])
-    a *= radius
-    b *= radius
-    tx = c[0] + a * t1[0] + b * t2[0]
-    ty = c[1] + a * t1[1] + b * t2[1]
-    tz = c[2] + a * t1[2] + b * t2[2]
-    rows = np.repeat(live, s)
-    vis = _shadow_to_targets(tracer, p, nrm, rows, tx.ravel(), ty.ravel(), tz.ravel(), epsilon)
-    e[live] *= vis.reshape(-1, s).mean(axis=1, dtype=_F32)
-    _mark_partial(partial, rows, ~vis, e.shape[0])
+    px, py, pz = (q[live][:, None] for q in p)
+    nx, ny, nz = (q[live][:, None] for q in nrm)
+    dl = d[live][:, None]
+    power = float(light.power)
+    if sphere:
+        # Uniform cone towards the sphere (Cycles' sample_uniform_cone); the law of cosines puts
+        # the sample on the sphere's near side.
+        s2 = np.minimum(r2 / d2[live], 1.0)[:, None]
+        omc = s2 / (1.0 + np.sqrt(1.0 - s2))
+        q2 = a * a + b * b
+        cos_t = 1.0 - q2 * omc
+        scale = np.sqrt(np.maximum(omc * (2.0 - q2 * omc), 0.0))
+        a *= scale
+        b *= scale
+        dx, dy, dz = (a * t1[j] + b * t2[j] + cos_t * w[:, None] for j, w in enumerate((ax, ay, az)))
+        # Outside, the near root of |p + t dir - c| = r; inside, the only positive one.
+        bc = dx * wx[live][:, None] + dy * wy[live][:, None] + dz * wz[live][:, None]
+        root = np.sqrt(np.maximum(r2 - dl * dl + bc * bc, 0.0))
+        t = bc + np.where(inside[live][:, None], root, -root)
+        tx, ty, tz = px + dx * t, py + dy * t, pz + dz * t
+        # L x solid angle / s per sample, times its cosine: P / (4 pi^2 r^2) x 2 pi omc.
+        f = (power / (2.0 * np.pi * r2)) * omc * np.maximum(dx * nx + dy * ny + dz * nz, 0.0) / s
+        full = (power / (4.0 * np.pi)) * cos_r[live] / np.maximum(d2[live], r2)
+        # Inside the sphere every direction above the horizon sees it: pi L, no cone factor (the
+        # samples, uniform in that hemisphere, only weight visibility by their cosine).
+        into = inside[live]
+        full[into] = power / (4.0 * np.pi * r2)
+    else:
+        a *= radius
+        b *= radius
+        # Disc point relative to the lamp centre, in the plane facing the receiver.
+        ox, oy, oz = (a * t1[j] + b * t2[j] for j in range(3))
+        tx, ty, tz = c[0] + ox, c[1] + oy, c[2] + oz
+        dx, dy, dz = tx - px, ty - py, tz - pz
+        t2s = np.maximum(dx * dx + dy * dy + dz * dz, epsilon * epsilon)
+        inv_t = 1.0 / np.sqrt(t2s)
+        # cos at the disc: its normal is the axis lamp -> receiver; the sample's distance along it.
+        cos_l = dl * inv_t
+        cos_rs = np.maximum(dx * nx + dy * ny + dz * nz, 0.0) * inv_t
+        # L x disc area / s per sample, times cos_r cos_l / t^2.
+        f = (power / (4.0 * np.pi * s)) * cos_rs * cos_l / t2s
+        full = (power / (4.0 * np.pi)) * cos_r[live] / (d2[live] + r2)
+        into = np.zeros(k, bool)
+        dx, dy, dz = dx * inv_t, dy * inv_t, dz * inv_t
+    f = f.astype(_F32)
+    if light.kind == "SPOT":
+        att = spot_attenuation(light, -np.stack([dx.ravel(), dy.ravel(), dz.ravel()], axis=1)).reshape(k, s)
+        att[into] = 1.0
+        fa = f * att
+    else:
+        fa = f
+    # Whole emitter above the horizon: closed form x the samples' weighted cone factor.
+    above = (cos_r[live] >= sin_a[live]) | into
+    sum_f = f.sum(axis=1)
+    ratio = np.where(above & (sum_f > 0), full / np.where(sum_f > 0, sum_f, 1.0), 1.0).astype(_F32)
+    if partial is not None:
+        # Where the samples' weights differ for reasons other than shadows (the horizon cuts the
+        # emitter, the spot's cone edge crosses it), they are noisy as in a penumbra: same count.
+        varied = ~above
+        if light.kind == "SPOT":
+            varied |= att.min(axis=1) != att.max(axis=1)
+        partial[live[varied]] = True
+    w = (fa * ratio[:, None]).ravel()
+    lit = np.flatnonzero(w > 0)
+    rows = lit // s
+    w = w[lit]
+    if opened is not None or tracer is None:
+        # Summed as the shadowed total below, so an unblocking tracer changes no bit.
+        e[live] = np.bincount(rows, weights=w, minlength=k).astype(_F32)
+        if opened is not None:
+            opened.append(e.copy())
+    if tracer is None or lit.size == 0:
+        return e
+    tx, ty, tz = (q.ravel()[lit].astype(_F32) for q in (tx, ty, tz))
+    vis = _shadow_to_targets(tracer, p, nrm, live[rows], tx, ty, tz, epsilon)
+    e[live] = np.bincount(rows, weights=w * vis, minlength=k).astype(_F32)
+    _mark_partial(partial, live[rows], ~vis, m)
     return e
 
 

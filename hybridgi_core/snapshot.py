@@ -147,7 +147,9 @@ class Light:
     kind : POINT | SPOT | SUN | AREA
     power : watts for POINT/SPOT/AREA, irradiance in W/m^2 for SUN (Blender's "Strength")
     matrix : (4, 4) world matrix; lights shine along local -Z (SPOT, SUN, AREA)
-    radius : metres, soft-shadow radius of POINT/SPOT ("shadow_soft_size")
+    radius : metres, radius of a POINT/SPOT's emitter ("shadow_soft_size")
+    soft_falloff : POINT/SPOT with a radius: True emits from a disc facing each receiver (Blender's
+        "Soft Falloff", its default), False from a sphere (hybridgi_core/lights.py)
     spot_size : radians, full cone angle; spot_blend : 0..1
     angle : radians, full angular diameter of the SUN disc
     shape, size, size_y : AREA shape and its extents in metres (size_y for RECTANGLE/ELLIPSE)
@@ -158,6 +160,7 @@ class Light:
     power: float
     matrix: np.ndarray
     radius: float = 0.0
+    soft_falloff: bool = True
     spot_size: float = np.pi / 4
     spot_blend: float = 0.15
     angle: float = 0.0

@@ -97,3 +97,25 @@ def test_the_cache_reflects_the_sky_as_direct_and_nothing_as_bounced():
         sky, bounced = glossy.cache_reflection(gi.cache, pts, up, eye, np.full(3, 0.5))
     np.testing.assert_allclose(sky, 0.5, rtol=0.04)
     assert bounced.max() < 0.01
+
+
+@pytest.mark.parametrize(("kind", "soft"), [("POINT", True), ("POINT", False), ("SPOT", True), ("SPOT", False)])
+def test_lamp_samples_of_a_lamp_with_radius_give_the_diffuse_irradiance(kind, soft):
+    """The glossy lobes see the emitter the diffuse pass does (`lights._radius_chunk`): the
+    samples' weights times their cosine add up to its irradiance, across the horizon and inside
+    the sphere too."""
+    from hybridgi_core.lights import direct_irradiance
+
+    matrix = np.eye(4)
+    matrix[:3, 3] = (0.0, 0.0, 1.0)
+    lamp = Light(kind, np.ones(3, np.float32), 100.0, matrix, radius=0.4, soft_falloff=soft,
+                 spot_size=1.4, spot_blend=0.5)
+    tilt = np.array([0.0, 0.8, 1.5, 1.7, 2.5])
+    p = np.array([[0.3, 0.0, 0.0]] * 5 + [[0.1, 0.1, 0.8]] * 5)
+    n = np.concatenate([np.stack([np.sin(tilt), 0 * tilt, np.cos(tilt)], 1)] * 2)
+    dirs, weight, _targets = glossy._lamp_samples(lamp, p, np.random.default_rng(0), 8192)
+    glossy_e = (weight * np.maximum((dirs * n[:, None, :]).sum(-1), 0.0)).sum(1)
+    diffuse_e = direct_irradiance([lamp], p.astype(np.float32), n.astype(np.float32), None,
+                                  np.random.default_rng(1), samples=8192)[:, 0]
+    np.testing.assert_allclose(glossy_e, diffuse_e, rtol=0.02, atol=0.02 * diffuse_e.max())
+    assert (diffuse_e > 0).sum() >= 7

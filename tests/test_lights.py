@@ -84,8 +84,8 @@ def rot_x(angle):
     return m
 
 
-def point_light(pos, power=100.0, radius=0.0, color=WHITE):
-    return Light("POINT", color, power, translation(*pos), radius=radius)
+def point_light(pos, power=100.0, radius=0.0, color=WHITE, soft_falloff=True):
+    return Light("POINT", color, power, translation(*pos), radius=radius, soft_falloff=soft_falloff)
 
 
 def spot_light(pos, size, blend, power=100.0, matrix=None):
@@ -207,11 +207,118 @@ class TestPoint:
         two = irradiance([point_light((0, 0, 1)), point_light((0, 0, 1)), point_light((0, 0, 1), power=0.0)], p, n)
         np.testing.assert_allclose(two, 2 * one, rtol=1e-6)
 
-    def test_soft_radius_keeps_centre_intensity(self):
+    def test_radius_falloff_of_disc_and_sphere(self):
+        # Cycles (kernel/light/point.h): "Soft Falloff" emits from a disc facing the receiver,
+        # pi L r^2 / (d^2 + r^2) with L = P / (4 pi^2 r^2); without it a sphere, whose vector
+        # irradiance is that of the point lamp while the sphere is above the horizon.
         p, n = receivers([[0.3, 0.1, -2.0]], [0, 0, 1])
         hard = irradiance([point_light((0, 0, 0))], p, n)
-        soft = irradiance([point_light((0, 0, 0), radius=0.5)], p, n, samples=16)
-        np.testing.assert_allclose(soft, hard, rtol=1e-6)
+        d2, r = 0.3**2 + 0.1**2 + 2.0**2, 0.5
+        disc = irradiance([point_light((0, 0, 0), radius=r)], p, n, samples=16)
+        np.testing.assert_allclose(disc, hard * d2 / (d2 + r * r), rtol=1e-5)
+        sphere = irradiance([point_light((0, 0, 0), radius=r, soft_falloff=False)], p, n, samples=16)
+        np.testing.assert_allclose(sphere, hard, rtol=1e-5)
+
+
+def emitter_irradiance(points, normals, p, n, radiance):
+    """Irradiance at p (normal n) from Lambertian patches at points (k, 3) with outward normals
+    (k, 3) and areas folded into radiance (k,): sum L dA cos_r cos_e / t^2, both cosines clamped."""
+    d = points - p
+    t2 = (d * d).sum(axis=1)
+    t = np.sqrt(t2)
+    cos_r = np.maximum(d @ n / t, 0.0)
+    cos_e = np.maximum(-(d * normals).sum(axis=1) / t, 0.0)
+    return float((radiance * cos_r * cos_e / t2).sum())
+
+
+def sphere_patches(centre, r, k=800):
+    """(k^2, 3) midpoints and normals of a (theta, phi) grid on a sphere, and their areas."""
+    th = (np.arange(k) + 0.5) * np.pi / k
+    ph = (np.arange(2 * k) + 0.5) * np.pi / k
+    th, ph = np.meshgrid(th, ph, indexing="ij")
+    nrm = np.stack([np.sin(th) * np.cos(ph), np.sin(th) * np.sin(ph), np.cos(th)], -1).reshape(-1, 3)
+    area = (r * r * np.sin(th) * (np.pi / k) ** 2).ravel()
+    return np.asarray(centre) + r * nrm, nrm, area
+
+
+def disc_patches(centre, axis, r, k=600):
+    """Midpoints of a polar grid on the disc of radius r facing `axis` (unit), and their areas."""
+    rho = (np.arange(k) + 0.5) * r / k
+    ph = (np.arange(2 * k) + 0.5) * np.pi / k
+    rho, ph = np.meshgrid(rho, ph, indexing="ij")
+    t1 = np.cross(axis, [1.0, 0, 0] if abs(axis[0]) < 0.9 else [0, 1.0, 0])
+    t1 /= np.linalg.norm(t1)
+    t2 = np.cross(axis, t1)
+    pts = np.asarray(centre) + (rho * np.cos(ph)).reshape(-1, 1) * t1 + (rho * np.sin(ph)).reshape(-1, 1) * t2
+    return pts, np.broadcast_to(axis, pts.shape), (rho * (r / k) * (np.pi / k)).ravel()
+
+
+class TestRadius:
+    """POINT/SPOT lamps with a radius against the integrals Cycles' samplers estimate
+    (kernel/light/point.h, spot.h): L = P / (4 pi^2 r^2) over a sphere, or over a disc facing the
+    receiver with Soft Falloff."""
+
+    P, R = 100.0, 0.5
+
+    def radiance(self):
+        return self.P / (4 * np.pi**2 * self.R**2)
+
+    @pytest.mark.parametrize("tilt", [0.0, 1.2, 1.5, 1.75])
+    def test_sphere_across_the_horizon(self, tilt):
+        # Receiver 1 m from the centre; from tilt ~1.05 rad the sphere (30 degrees) dips below it.
+        p = np.array([0.0, 0.0, -1.0])
+        n = np.array([np.sin(tilt), 0.0, np.cos(tilt)])
+        pts, nrm, area = sphere_patches((0, 0, 0), self.R)
+        exact = emitter_irradiance(pts, nrm, p, n, self.radiance() * area)
+        pp, nn = receivers([p], n)
+        e = irradiance([point_light((0, 0, 0), self.P, self.R, soft_falloff=False)], pp, nn, samples=4096)[0, 0]
+        np.testing.assert_allclose(e, exact, rtol=0.01, atol=1e-3 * self.P / (4 * np.pi))
+
+    @pytest.mark.parametrize("tilt", [0.0, 1.2, 1.5, 1.75])
+    def test_soft_falloff_disc_across_the_horizon(self, tilt):
+        p = np.array([0.0, 0.0, -0.6])
+        n = np.array([np.sin(tilt), 0.0, np.cos(tilt)])
+        pts, nrm, area = disc_patches((0, 0, 0), np.array([0.0, 0.0, -1.0]), self.R)
+        exact = emitter_irradiance(pts, nrm, p, n, self.radiance() * area)
+        pp, nn = receivers([p], n)
+        e = irradiance([point_light((0, 0, 0), self.P, self.R)], pp, nn, samples=4096)[0, 0]
+        np.testing.assert_allclose(e, exact, rtol=0.01, atol=1e-3 * self.P / (4 * np.pi))
+
+    @pytest.mark.parametrize("normal", [[0, 0, 1], [0, 0, -1], [1, 0, 0]])
+    def test_inside_the_sphere_sees_pi_radiance_whatever_its_facing(self, normal):
+        p, n = receivers([[0.1, 0.05, -0.2]], normal)
+        e = irradiance([point_light((0, 0, 0), self.P, self.R, soft_falloff=False)], p, n, samples=16)
+        np.testing.assert_allclose(e, np.pi * self.radiance(), rtol=1e-5)
+
+    def test_horizon_and_cone_edge_get_the_penumbra_sample_count(self):
+        # No shadows anywhere, yet these receivers' samples differ like a penumbra's: facing the
+        # lamp (none), the lamp cut by their horizon, at a spot's cone edge.
+        p, n = receivers([[0, 0, -2.0], [0.0, 0.0, -0.6], [np.tan(0.5), 0, -1.0]], [[0, 0, 1], [1, 0, 0], [0, 0, 1]])
+        lamps = [point_light((0, 0, 0), self.P, self.R),
+                 Light("SPOT", WHITE, self.P, np.eye(4), radius=0.2, spot_size=1.0, spot_blend=0.1)]
+        for lamp, want in zip(lamps, ([False, True, False], [False, True, True]), strict=True):
+            partial = np.zeros(3, bool)
+            direct_irradiance([lamp], p, n, TriangleTracer(quad((0, 0, 50), (1, 0, 0), (0, 1, 0))),
+                              np.random.default_rng(0), samples=8, partial=partial)
+            assert partial.tolist() == want
+
+    def test_spot_cone_is_averaged_over_the_disc(self):
+        # Receiver on the floor at the cone's edge: each disc sample sees its own cone factor.
+        size, blend, h = np.radians(60.0), 0.2, 1.0
+        lamp = Light("SPOT", WHITE, self.P, translation(0, 0, h), radius=0.3, spot_size=size, spot_blend=blend)
+        p = np.array([h * np.tan(size / 2), 0.0, 0.0])
+        n = np.array([0.0, 0.0, 1.0])
+        axis = (p - [0, 0, h]) / np.linalg.norm(p - [0, 0, h])
+        pts, nrm, area = disc_patches((0, 0, h), axis, 0.3)
+        to_p = p - pts
+        cone = cycles_spot(-to_p[:, 2] / np.linalg.norm(to_p, axis=1), size, blend)
+        exact = emitter_irradiance(pts, nrm, p, n, self.P / (4 * np.pi**2 * 0.09) * area * cone)
+        pp, nn = receivers([p], n)
+        e = irradiance([lamp], pp, nn, samples=4096)[0, 0]
+        np.testing.assert_allclose(e, exact, rtol=0.01)
+        # The centre's cone factor is 0 there: the disc's samples inside the cone light it.
+        assert cycles_spot(np.cos(size / 2), size, blend) == 0.0 and e > 0.05 * emitter_irradiance(
+            pts, nrm, p, n, self.P / (4 * np.pi**2 * 0.09) * area)
 
 
 def cycles_spot(cos_axis, size, blend):

@@ -269,7 +269,7 @@ def test_every_light_type(bpy_module, scene, sync):
     point.location = (1.0, 2.0, 3.0)
     exposure = blender_compat.lights_have_exposure(bpy)  # Blender 4.2: no exposure, no normalize
     spot = {"energy": 50.0, "exposure": 1.0} if exposure else {"energy": 100.0}
-    add_light(bpy, scene, "SPOT", spot_size=math.radians(45), spot_blend=0.3, **spot)
+    add_light(bpy, scene, "SPOT", spot_size=math.radians(45), spot_blend=0.3, use_soft_falloff=False, **spot)
     sun = add_light(bpy, scene, "SUN", energy=3.0, angle=math.radians(10))
     sun.rotation_euler = (0.5, 0.0, 0.0)
     rect = add_light(bpy, scene, "AREA", energy=200.0, shape="RECTANGLE", size=2.0, size_y=1.0)
@@ -292,6 +292,8 @@ def test_every_light_type(bpy_module, scene, sync):
     s = lights["spot"]
     assert s.power == pytest.approx(100.0)  # exposure 1 doubles the power
     assert s.spot_size == pytest.approx(math.radians(45)) and s.spot_blend == pytest.approx(0.3)
+    # Soft Falloff (Blender's default): a facing disc; off: Cycles' sphere light.
+    assert p.soft_falloff and not s.soft_falloff
     sun_light = lights["sun"]
     assert sun_light.power == pytest.approx(3.0) and sun_light.angle == pytest.approx(math.radians(10))
     np.testing.assert_allclose(sun_light.matrix, np.array(sun.matrix_world), atol=1e-6)
