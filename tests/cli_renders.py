@@ -15,6 +15,18 @@ from hybridgi_cli import exr
 HYBRIDGI = Path(sys.executable).parent / "hybridgi"
 
 
+def cornell_variants(out: Path, script: str) -> Path:
+    """Build the Cornell box into `out`, then run `script` (bpy code; `src` names the box's file,
+    `out` the folder) in a bpy subprocess that saves its variants there: the user's files and the
+    bundled scenes stay untouched. Returns `out`."""
+    root = Path(__file__).resolve().parents[1]
+    subprocess.run([sys.executable, str(root / "blend_scenes" / "build.py"), "--only", "cornell", "--out", str(out)],
+                   check=True, capture_output=True)
+    prelude = f"import bpy\nsrc = {str(out / 'cornell.blend')!r}\nout = {str(out)!r}\n"
+    subprocess.run([sys.executable, "-c", prelude + script], check=True, capture_output=True)
+    return out
+
+
 def run_render(blend, prefix, res, *extra, env=None) -> subprocess.CompletedProcess:
     """`hybridgi render BLEND --out PREFIX --res RES EXTRA...`, its output captured."""
     return subprocess.run([str(HYBRIDGI), "render", str(blend), "--out", str(prefix), "--res", res, *extra],

@@ -6,15 +6,13 @@ mean Diffuse Direct was off by +7% (soft), -20% (sphere) and +18% (spot)."""
 
 from __future__ import annotations
 
-import subprocess
-import sys
 import textwrap
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from tests.cli_renders import layer, rendered
+from tests.cli_renders import cornell_variants, layer, rendered
 
 ROOT = Path(__file__).resolve().parents[1]
 RES = "64x48"
@@ -26,13 +24,9 @@ pytestmark = [pytest.mark.blender, pytest.mark.slow]
 
 @pytest.fixture(scope="module")
 def scenes(tmp_path_factory):
-    out = tmp_path_factory.mktemp("lamp_radius")
-    subprocess.run([sys.executable, str(ROOT / "blend_scenes" / "build.py"), "--only", "cornell", "--out", str(out)],
-                   check=True, capture_output=True)
-    script = textwrap.dedent(f"""
-        import bpy
+    script = textwrap.dedent("""
         def variant(name, kind, soft):
-            bpy.ops.wm.open_mainfile(filepath={str(out / "cornell.blend")!r})
+            bpy.ops.wm.open_mainfile(filepath=src)
             for ob in bpy.data.objects:
                 if ob.type == "LIGHT":
                     ob.data.type = kind
@@ -42,13 +36,12 @@ def scenes(tmp_path_factory):
                         ob.data.spot_size, ob.data.spot_blend = 1.2, 0.4
                     ob.location.z -= 1.0
                     ob.rotation_euler = (0.0, 0.0, 0.0)
-            bpy.ops.wm.save_as_mainfile(filepath={str(out)!r} + "/" + name + ".blend")
+            bpy.ops.wm.save_as_mainfile(filepath=out + "/" + name + ".blend")
         variant("soft", "POINT", True)
         variant("sphere", "POINT", False)
         variant("spot", "SPOT", True)
     """)
-    subprocess.run([sys.executable, "-c", script], check=True, capture_output=True)
-    return out
+    return cornell_variants(tmp_path_factory.mktemp("lamp_radius"), script)
 
 
 # Measured (mean error, rel L1 of Diffuse Direct): soft 0.4%, 0.063 (before 6.9%, 0.11); sphere

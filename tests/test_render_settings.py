@@ -5,8 +5,6 @@ from the camera, a zero scale on one axis) or is refused with a clear message (p
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
 import textwrap
 from pathlib import Path
 
@@ -27,16 +25,11 @@ pytestmark = [pytest.mark.blender, pytest.mark.slow]
 @pytest.fixture(scope="module")
 def scenes(tmp_path_factory):
     """The Cornell box, and variants edited in a bpy subprocess (the user's files stay untouched)."""
-    out = tmp_path_factory.mktemp("settings_scenes")
-    subprocess.run([sys.executable, str(ROOT / "blend_scenes" / "build.py"), "--only", "cornell", "--out", str(out)],
-                   check=True, capture_output=True)
-    script = textwrap.dedent(f"""
-        import bpy
-        src = {str(out / "cornell.blend")!r}
+    script = textwrap.dedent("""
         def variant(name, edit):
             bpy.ops.wm.open_mainfile(filepath=src)
             edit(bpy.data)
-            bpy.ops.wm.save_as_mainfile(filepath={str(out)!r} + "/" + name + ".blend")
+            bpy.ops.wm.save_as_mainfile(filepath=out + "/" + name + ".blend")
         variant("hidden_block", lambda d: setattr(d.objects["tall_block"], "visible_camera", False))
         variant("flat_block", lambda d: setattr(d.objects["tall_block"], "scale", (1.0, 1.0, 0.0)))
         variant("pano", lambda d: setattr(d.cameras[0], "type", "PANO"))
@@ -58,8 +51,7 @@ def scenes(tmp_path_factory):
         variant("centimetres", placed(0.01, 0.0))
         variant("far_away", placed(1.0, 1.0e5))
     """)
-    subprocess.run([sys.executable, "-c", script], check=True, capture_output=True)
-    return out
+    return cli_renders.cornell_variants(tmp_path_factory.mktemp("settings_scenes"), script)
 
 
 def render(blend, prefix, *extra):
