@@ -374,9 +374,9 @@ def _radius_chunk(light, p, nrm, tracer, rng, samples, epsilon, partial=None, op
         return e
     k = live.size
     ax, ay, az = (w[live] / d[live] for w in (wx, wy, wz))  # unit receiver -> lamp
-    if inside.any():
+    into = inside[live]
+    if into.any():
         # Inside a sphere the lamp is all around: sample the hemisphere above the receiver.
-        into = inside[live]
         ax, ay, az = (np.where(into, q[live], w) for q, w in zip(nrm, (ax, ay, az), strict=True))
     t1, t2 = _onb(ax[:, None], ay[:, None], az[:, None])
     a, b = concentric_disk(u[live], v[live])
@@ -405,7 +405,6 @@ def _radius_chunk(light, p, nrm, tracer, rng, samples, epsilon, partial=None, op
         full = (power / (4.0 * np.pi)) * cos_r[live] / np.maximum(d2[live], r2)
         # Inside the sphere every direction above the horizon sees it: pi L, no cone factor (the
         # samples, uniform in that hemisphere, only weight visibility by their cosine).
-        into = inside[live]
         full[into] = power / (4.0 * np.pi * r2)
     else:
         a *= radius
@@ -422,7 +421,6 @@ def _radius_chunk(light, p, nrm, tracer, rng, samples, epsilon, partial=None, op
         # L x disc area / s per sample, times cos_r cos_l / t^2.
         f = (power / (4.0 * np.pi * s)) * cos_rs * cos_l / t2s
         full = (power / (4.0 * np.pi)) * cos_r[live] / (d2[live] + r2)
-        into = np.zeros(k, bool)
         dx, dy, dz = dx * inv_t, dy * inv_t, dz * inv_t
     f = f.astype(_F32)
     if light.kind == "SPOT":

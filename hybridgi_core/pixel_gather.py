@@ -527,7 +527,8 @@ def _dot3(a: np.ndarray, b: np.ndarray, out: np.ndarray, tmp: np.ndarray) -> Non
 
 
 def _power_into(x: np.ndarray, exponent: float, out: np.ndarray) -> None:
-    """out = `_power`(x, exponent), the squarings in place."""
+    """out = x ** exponent, by squarings in place when the exponent is a power of two (the default
+    8: three multiplies instead of a transcendental pow per tap)."""
     e = float(exponent)
     if e >= 1 and e == int(e) and int(e) & (int(e) - 1) == 0:
         np.copyto(out, x)
@@ -585,7 +586,8 @@ def _filter_sparse(values: np.ndarray, keep: np.ndarray, points: np.ndarray, nor
                 qp, qn = pos[:, q], nrm[:, q]
                 plane = (qp[0] * pn[0] + qp[1] * pn[1] + qp[2] * pn[2] - po) * ps
                 cos = np.maximum(qn[0] * pn[0] + qn[1] * pn[1] + qn[2] * pn[2], 0.0)
-                wt = _power(cos, normal_power)
+                wt = np.empty_like(cos)
+                _power_into(cos, normal_power, wt)
                 wt *= vf[q] * np.float32(_B3[dy] * _B3[dx])
                 wt *= np.exp(-plane * plane)
                 acc += wt * img[:, q]
@@ -601,18 +603,6 @@ def _filter_sparse(values: np.ndarray, keep: np.ndarray, points: np.ndarray, nor
         img[:, :m] = np.concatenate([job.result() for job in jobs], axis=1)
     out[rows] = img[:, :m].T
     return out
-
-
-def _power(x: np.ndarray, exponent: float) -> np.ndarray:
-    """x ** exponent, by squarings when the exponent is a power of two (the default 8: three
-    multiplies instead of a transcendental pow per tap)."""
-    e = float(exponent)
-    if e >= 1 and e == int(e) and int(e) & (int(e) - 1) == 0:
-        y = x
-        for _ in range(int(e).bit_length() - 1):
-            y = y * y
-        return y
-    return x**e
 
 
 def _filter_in_bands(pool, halo, residual, position, normal, valid, camera, passes, plane_sigma, normal_power,
