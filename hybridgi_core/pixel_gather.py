@@ -40,6 +40,7 @@ from .evaluate import HitLookup, corner_weights
 from .levels import hit_lookup
 from .lights import _onb, concentric_disk, direct_irradiance, stratified_uv
 from .sampling import frame_rng
+from .screen_light import ScreenLight
 from .settings import AO_ONLY, MULTI_BOUNCE
 
 #: Rec.709 luminance weights (the colour channels' filter guide).
@@ -163,13 +164,14 @@ def cache_sh_at(cache, points: np.ndarray, normals: np.ndarray, corner_visible: 
 
 def trace_pixels(system, points: np.ndarray, normals: np.ndarray, rays: int, frame: int,
                  corner_visible: np.ndarray | None = None, lookup: HitLookup | None = None,
-                 chunk_rays: int = CHUNK_RAYS) -> PixelGI:
+                 chunk_rays: int = CHUNK_RAYS, screen: ScreenLight | None = None) -> PixelGI:
     """Per-pixel gather at points (n, 3) with unit normals (n, 3) of `system` (a GISystem):
     `rays` rays each, the cache's SH as control variate (module docstring). corner_visible :
     (n, 8) bool occlusion of the 8 neighbour cells (`GISystem.corner_visibility`), as the image
     gather reads the cache. lookup : the cache's HitLookup to reuse (building one reads the whole
     grid); chunk_rays : rays per work item (fixed per caller, so the result does not depend on the
-    thread count; a few pixels split finer to use every worker)."""
+    thread count; a few pixels split finer to use every worker). screen : the frame's lamp light
+    per pixel for the hits the camera sees (`screen_light`)."""
     cache, s = system.cache, system.settings
     points = np.ascontiguousarray(points, np.float32)
     normals = np.array(normals, np.float32).reshape(-1, 3)
@@ -194,7 +196,7 @@ def trace_pixels(system, points: np.ndarray, normals: np.ndarray, rays: int, fra
         starts = range(0, n, per)
         vis = (lambda a: None) if corner_visible is None else (lambda a: corner_visible[a:a + per])
         jobs = [system.updater.pool.submit(_chunk, system, lookup, points[a:a + per], normals[a:a + per], vis(a),
-                                           rays, frame_rng(s.seed + SEED_OFFSET, frame * 7919 + i))
+                                           rays, frame_rng(s.seed + SEED_OFFSET, frame * 7919 + i), screen)
                 for i, a in enumerate(starts)]
         for a, job in zip(starts, jobs, strict=True):
             values, coeffs, times = job.result()
@@ -208,7 +210,7 @@ def trace_pixels(system, points: np.ndarray, normals: np.ndarray, rays: int, fra
                    indirect_variance=out[:, 16], sh=sh_all, rays=n * rays, steps_ms=steps)
 
 
-def _chunk(system, lookup: HitLookup | None, p, nrm, corner_visible, rays, rng):
+def _chunk(system, lookup: HitLookup | None, p, nrm, corner_visible, rays, rng, screen=None):
     """Worker: (m, 17) of m pixels: mean residuals pi/N sum (L - L_cache) (direct rgb, indirect
     rgb, AO as 1/N sum (v - V_cache)), the variances of the luminance and AO means, the cache
     gather's direct rgb, indirect rgb and AO, the variance of the indirect luminance mean;
@@ -243,7 +245,7 @@ def _chunk(system, lookup: HitLookup | None, p, nrm, corner_visible, rays, rng):
 
     tic = time.perf_counter()
     k = sh_d.shape[1]
-    radiance = hit_radiance(system, lookup, origins, dirs, hits, rng, times)
+    radiance = hit_radiance(system, lookup, origins, dirs, hits, rng, times, screen=screen)
     visible = (hits.t > s.ao_distance).astype(np.float32)
     # Control variate: the cache's radiance SH along the same rays. Linear in the SH, so its mean
     # over a pixel's rays is the SH of the pixel's mean basis vector (no per-ray products).
@@ -274,7 +276,7 @@ def _chunk(system, lookup: HitLookup | None, p, nrm, corner_visible, rays, rng):
 
 
 def hit_radiance(system, lookup: HitLookup | None, origins: np.ndarray, dirs: np.ndarray, hits, rng,
-                 times: dict | None = None, glossy_lamps: bool = True) -> np.ndarray:
+                 times: dict | None = None, glossy_lamps: bool = True, screen: ScreenLight | None = None) -> np.ndarray:
     """(N, 6) float32 radiance coming back along rays (origins, dirs (N, 3)) from their `hits`:
     rgb straight from the world or an emitter (what Cycles counts as direct light) | rgb the hit
     surface reflects (its lamp light through shadow rays, plus the cache read at the hit for the
@@ -282,8 +284,10 @@ def hit_radiance(system, lookup: HitLookup | None, origins: np.ndarray, dirs: np
     times : step times to add the shadow rays' ("shadow") to. glossy_lamps : False lights a hit's
     glossy share (which the cache reflects as diffuse, `shading.SurfaceTable.set_materials`) by
     the cache's light only, not the lamps': a reflection ray sees a glossy surface from one
-    direction, where a lamp shows only in the highlight, not spread over the surface."""
-    s, scene, tracer = system.settings, system.updater.scene, system.tracer
+    direction, where a lamp shows only in the highlight, not spread over the surface. screen :
+    the frame's lamp irradiance per pixel, read at hits the camera sees instead of their own
+    shadow rays (`screen_light`)."""
+    s, scene = system.settings, system.updater.scene
     radiance = np.zeros((dirs.shape[0], 6), np.float32)
     if s.indirect_quality == AO_ONLY:
         return radiance
@@ -298,8 +302,7 @@ def hit_radiance(system, lookup: HitLookup | None, origins: np.ndarray, dirs: np
         position = hit_dirs * np.take(hits.t, hit)[:, None]
         position += np.take(origins, hit, axis=0)
         ts = time.perf_counter()
-        e_in = direct_irradiance(scene.lights, position, surf.normal, tracer, rng,
-                                 samples=s.light_samples, epsilon=float(np.float32(tracer.epsilon)), sun_disc=False)
+        e_in = _lamp_light_at_hits(system, screen, position, surf.normal, rng)
         if times is not None:
             times["shadow"] = times.get("shadow", 0.0) + (time.perf_counter() - ts) * 1e3
         brdf = surf.brdf
@@ -315,6 +318,27 @@ def hit_radiance(system, lookup: HitLookup | None, origins: np.ndarray, dirs: np
             e_in += lamp
         radiance[hit, 3:6] = e_in  # one scatter (`+=` on fancy indices gathers and scatters)
     return radiance
+
+
+def _lamp_light_at_hits(system, screen: ScreenLight | None, position: np.ndarray, normal: np.ndarray,
+                        rng) -> np.ndarray:
+    """(m, 3) lamp irradiance at hits (position, normal (m, 3)): read from `screen` where the
+    camera sees the hit's surface, from the hit's own light samples and shadow rays elsewhere."""
+    scene, tracer, s = system.updater.scene, system.tracer, system.settings
+    eps = float(np.float32(tracer.epsilon))
+    if screen is None or not scene.lights:
+        return direct_irradiance(scene.lights, position, normal, tracer, rng, samples=s.light_samples,
+                                 epsilon=eps, sun_disc=False)
+    found, light = screen.lookup(position, normal)
+    e_in = np.empty((position.shape[0], 3), np.float32)
+    e_in[found] = light
+    rest = np.ones(position.shape[0], bool)
+    rest[found] = False
+    rest = np.flatnonzero(rest)
+    if rest.size:
+        e_in[rest] = direct_irradiance(scene.lights, np.take(position, rest, axis=0), np.take(normal, rest, axis=0),
+                                       tracer, rng, samples=s.light_samples, epsilon=eps, sun_disc=False)
+    return e_in
 
 
 def _more_ao_rays(system, res, p, nrm, ao_mean, sh_a, covered, rays, rng, times) -> None:
@@ -622,12 +646,13 @@ def _filter_in_bands(pool, halo, residual, position, normal, valid, camera, pass
 
 def gi_images(system, position_lo: np.ndarray, normal_lo: np.ndarray, pix: np.ndarray, points: np.ndarray,
               normals: np.ndarray, corner_visible: np.ndarray, view: np.ndarray, frame: int, rays: int,
-              passes: int = 3, plane_sigma: float = 0.02, normal_power: float = 8.0):
+              passes: int = 3, plane_sigma: float = 0.02, normal_power: float = 8.0,
+              screen: ScreenLight | None = None):
     """The GI resolution's textures from pixel rays: (gi_indirect (h, w, 4) rgb indirect + a AO,
     gi_direct (h, w, 4) rgb sky/emitter irradiance, PixelGI), rows as the read-back's (pix indexes
     its flattened pixels), background as the GPU gather writes it (indirect 0 with AO 1)."""
     h, w = position_lo.shape[:2]
-    gi = trace_pixels(system, points, normals, rays, frame, corner_visible)
+    gi = trace_pixels(system, points, normals, rays, frame, corner_visible, screen=screen)
     tic = time.perf_counter()
     est, cache, valid, res, pos, nrm, camera, var = image_planes(gi, pix, points, normals, view, h, w)
     filtered = filter_residual(res.reshape(h, w, 7), pos.reshape(h, w, 3), nrm.reshape(h, w, 3),
@@ -884,7 +909,8 @@ def full_res_images(system, position_lo: np.ndarray, normal_lo: np.ndarray, pix:
                     normals: np.ndarray, corner_visible: np.ndarray, view: np.ndarray, frame: int, rays: int,
                     full_points: np.ndarray, full_normals: np.ndarray, full_pix: np.ndarray,
                     full_size: tuple[int, int], passes: int = 3, plane_sigma: float = 0.02,
-                    normal_power: float = 8.0, refine: float = REFINE_SPREAD) -> FullResGI:
+                    normal_power: float = 8.0, refine: float = REFINE_SPREAD,
+                    screen: ScreenLight | None = None) -> FullResGI:
     """Pixel rays at the GI resolution, resolved at the full resolution (W, H = full_size).
 
     The GI pixels trace as `gi_images` does; their estimates (not only the residuals) are filtered
@@ -904,20 +930,22 @@ def full_res_images(system, position_lo: np.ndarray, normal_lo: np.ndarray, pix:
       most REFINE_BUDGET x the GI pixels' count refine, the most disagreeing first.
     """
     lookup = hit_lookup(system, bounced=system.settings.indirect_quality == MULTI_BOUNCE) if rays > 0 else None
-    gi = trace_pixels(system, points, normals, rays, frame, corner_visible, lookup=lookup)
+    gi = trace_pixels(system, points, normals, rays, frame, corner_visible, lookup=lookup, screen=screen)
     return full_res_resolve(system, gi, position_lo, pix, points, normals, view, frame, rays, full_points,
-                            full_normals, full_pix, full_size, passes, plane_sigma, normal_power, refine, lookup)
+                            full_normals, full_pix, full_size, passes, plane_sigma, normal_power, refine, lookup,
+                            screen)
 
 
 def full_res_resolve(system, gi: PixelGI, position_lo: np.ndarray, pix: np.ndarray, points: np.ndarray,
                      normals: np.ndarray, view: np.ndarray, frame: int, rays: int, full_points: np.ndarray,
                      full_normals: np.ndarray, full_pix: np.ndarray, full_size: tuple[int, int], passes: int = 3,
                      plane_sigma: float = 0.02, normal_power: float = 8.0, refine: float = REFINE_SPREAD,
-                     lookup: HitLookup | None = None) -> FullResGI:
+                     lookup: HitLookup | None = None, screen: ScreenLight | None = None) -> FullResGI:
     """`full_res_images` after its GI pixels' rays `gi` (`trace_pixels` at points, frame, rays):
     the filter, the per-pixel resolve and the detail pixels' own rays (frame + DETAIL_FRAME; lookup:
     the HitLookup the GI pixels' rays read, None builds one). The viewport's worker traces `gi` in
-    slices over several steps and resolves it here."""
+    slices over several steps and resolves it here. screen : as `trace_pixels`', for the detail
+    pixels' rays and the resolver's."""
     width, height = full_size
     h, w = position_lo.shape[:2]
     factor = max(1, int(round(width / w)))
@@ -957,7 +985,7 @@ def full_res_resolve(system, gi: PixelGI, position_lo: np.ndarray, pix: np.ndarr
                             plane_sigma, normal_power, rep_xy, records=records)
     resolver = GIResolver(system, sh_lo, cache_lo, filtered, pos.reshape(h, w, 3), nrm.reshape(h, w, 3),
                           valid.reshape(h, w), rep_xy, width, factor, camera, plane_sigma, normal_power, lookup, rays,
-                          records)
+                          records, screen)
     value = up.cache + up.residual
     orphan = up.best < DETAIL_MATCH
     light = np.maximum((value[:, 0:3] + value[:, 3:6]) @ LUMA, np.float32(1e-6))
@@ -979,7 +1007,7 @@ def full_res_resolve(system, gi: PixelGI, position_lo: np.ndarray, pix: np.ndarr
         tic = time.perf_counter()
         dp, dn = np.take(full_points, detail, axis=0), np.take(full_normals, detail, axis=0)
         own = trace_pixels(system, dp, dn, rays, frame + DETAIL_FRAME, system.corner_visibility(dp, dn),
-                           lookup=lookup, chunk_rays=DETAIL_CHUNK_RAYS)
+                           lookup=lookup, chunk_rays=DETAIL_CHUNK_RAYS, screen=screen)
         own_est, own_cache = own.channels()
         own_res = own_est - own_cache
         # Inverse-variance average of the two residuals, per guide (luminance: colour channels).
@@ -1027,6 +1055,7 @@ class GIResolver:
     lookup: HitLookup | None
     rays: int
     records: np.ndarray | None = None  # `tap_records` of the inputs above (None: made per call)
+    screen: ScreenLight | None = None  # the centre frame's lamp light per pixel (`screen_light`)
 
     def at(self, points: np.ndarray, normals: np.ndarray, pix: np.ndarray, offset, frame: int,
            rays: int | None = None) -> tuple[np.ndarray, int]:
@@ -1049,7 +1078,7 @@ class GIResolver:
         if orphan.size and rays > 0:
             dp, dn = np.take(points, orphan, axis=0), np.take(normals, orphan, axis=0)
             own = trace_pixels(self.system, dp, dn, rays, frame + DETAIL_FRAME, self.system.corner_visibility(dp, dn),
-                               lookup=self.lookup, chunk_rays=DETAIL_CHUNK_RAYS)
+                               lookup=self.lookup, chunk_rays=DETAIL_CHUNK_RAYS, screen=self.screen)
             value[orphan] = own.channels()[0]
             traced = own.rays
         return value, traced

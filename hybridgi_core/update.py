@@ -16,6 +16,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from . import sh
+from .blas_threads import single_threaded_blas
 from .cache import CellSamples, IrradianceCache
 from .evaluate import HitLookup
 from .lights import direct_irradiance
@@ -74,6 +75,7 @@ class CacheUpdater:
         self.tracer = tracer
         self.scene = scene
         self.epsilon = np.float32(epsilon)
+        single_threaded_blas()  # the pool is the parallelism (`blas_threads`)
         self._pool = ThreadPoolExecutor(max_workers=cache.settings.threads, thread_name_prefix=POOL_PREFIX)
 
     @property

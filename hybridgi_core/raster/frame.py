@@ -26,6 +26,7 @@ from ..reflection import (
     traced_reflection,
     traced_share,
 )
+from ..screen_light import ScreenLight
 from ..settings import MULTI_BOUNCE
 from ..system import UPDATES_PER_BATCH
 from ..visible import pixels_to_points
@@ -259,6 +260,14 @@ class FramePipeline:
             normal = self.gbuffer.read("normal")
             position = self.gbuffer.read("position")
             p_full, n_full, pix_full = pixels_to_points(position, normal)
+            # Before the pixel rays: their hits that the camera sees read this light (`screen_light`).
+            direct = np.zeros((self.height * self.width, 4), np.float32)
+            camera = filter_camera(system.scene.lights, camera_eye(view, proj))
+            direct[pix_full, :3] = adaptive_direct(system.direct, p_full, n_full, pix_full, (self.height, self.width),
+                                                   frame, self.direct_samples, camera=camera,
+                                                   pool=system.updater.pool, lamps=len(system.scene.lights))[0]
+            screen = ScreenLight.from_pixels(view, proj, (self.width, self.height), p_full, n_full, pix_full,
+                                             direct[pix_full, :3])
         gi = None
         gi_low, gi_bilateral, full_gi = low, None, None
         if self.settings.pixel_rays > 0:
@@ -266,10 +275,10 @@ class FramePipeline:
                 if self.settings.downsample > 1 and self.settings.pixel_full_res:
                     gi, gi_low, gi_bilateral, full_gi = self._pixel_gi_full(
                         system, gbuf, position_lo, normal_lo, pix, points, normals, visible, view, frame,
-                        (p_full, n_full, pix_full), stats)
+                        (p_full, n_full, pix_full), stats, screen)
                 else:
                     gi = self._pixel_gi(system, position_lo, normal_lo, pix, points, normals, visible, view, frame,
-                                        stats)
+                                        stats, screen)
         with stats.step("gather"):
             mask = np.zeros((low.height * low.width, 8), bool)
             mask[pix] = visible[:, :8]
@@ -286,12 +295,6 @@ class FramePipeline:
         if gi is None and getattr(system, "levels", None) is not None:
             with stats.step("gather"):
                 gi = self._gather_levels(system.levels, low, points, normals, pix, visible, view, proj, lit_tex)
-        with stats.step("direct"):
-            direct = np.zeros((self.height * self.width, 4), np.float32)
-            camera = filter_camera(system.scene.lights, camera_eye(view, proj))
-            direct[pix_full, :3] = adaptive_direct(system.direct, p_full, n_full, pix_full, (self.height, self.width),
-                                                   frame, self.direct_samples, camera=camera,
-                                                   pool=system.updater.pool, lamps=len(system.scene.lights))[0]
         with stats.step("glossy"):
             glossy, glossy_col, glossy_ind = self._glossy(system, view, proj, p_full, n_full, pix_full, frame,
                                                           _shared_lookup(full_gi))
@@ -463,7 +466,7 @@ class FramePipeline:
         return sky, bounced, lamp
 
     def _pixel_gi_full(self, system, gbuf, position_lo, normal_lo, pix, points, normals, visible, view, frame,
-                       full, stats):
+                       full, stats, screen=None):
         """Pixel rays at the GI resolution resolved per full-res pixel (`pixel_gather.full_res_images`):
         (the three full-res textures, the centre G-buffer's copy that guides them, the factor-1
         bilateral pass that reads them)."""
@@ -473,7 +476,7 @@ class FramePipeline:
         out = pixel_gather.full_res_images(
             system, position_lo, normal_lo, pix, points, normals, visible, view, frame, s.pixel_rays,
             p_full, n_full, pix_full, (self.width, self.height), passes=s.pixel_filter,
-            plane_sigma=s.bilateral_plane_sigma, normal_power=s.bilateral_normal_power)
+            plane_sigma=s.bilateral_plane_sigma, normal_power=s.bilateral_normal_power, screen=screen)
         stats.rays += out.gi.rays
         for k, v in out.steps_ms.items():
             stats.steps_ms[f"pixel_{k}"] = stats.steps_ms.get(f"pixel_{k}", 0.0) + v
@@ -515,14 +518,16 @@ class FramePipeline:
         return (upload_texture_2d(indirect.reshape(shape), "RGBA32F"), upload_texture_2d(direct.reshape(shape), "RGBA32F"),
                 self._neutral_tex), guide
 
-    def _pixel_gi(self, system, position_lo, normal_lo, pix, points, normals, visible, view, frame, stats):
+    def _pixel_gi(self, system, position_lo, normal_lo, pix, points, normals, visible, view, frame, stats,
+                  screen=None):
         """Per-pixel final gather (`pixel_gather.gi_images`) as the textures the gather and the
         screen-space pass would give: the rays already see the near field, so the SSAO slot is
         neutral (no occlusion, no bounce) and nothing is counted twice."""
         s = self.settings
         indirect, direct, pg = pixel_gather.gi_images(
             system, position_lo, normal_lo, pix, points, normals, visible, view, frame, s.pixel_rays,
-            passes=s.pixel_filter, plane_sigma=s.bilateral_plane_sigma, normal_power=s.bilateral_normal_power)
+            passes=s.pixel_filter, plane_sigma=s.bilateral_plane_sigma, normal_power=s.bilateral_normal_power,
+            screen=screen)
         stats.rays += pg.rays
         for k, v in pg.steps_ms.items():
             stats.steps_ms[f"pixel_{k}"] = stats.steps_ms.get(f"pixel_{k}", 0.0) + v
