@@ -188,6 +188,14 @@ class HybridGISettings(bpy.types.PropertyGroup):
         default=8, min=1, max=64, soft_max=16,
     )
 
+    shadow_samples: IntProperty(
+        name="Shadow Samples",
+        description="Shadow rays per final-render pixel and soft lamp (area lamps, lamps with a radius) where "
+        "a penumbra crosses the pixel; elsewhere 8 rays find the penumbrae (a pixel the lamp lights wholly "
+        "is exact with them). Split over the Pixel Samples' subframes",
+        default=48, min=1, max=1024, soft_max=128,
+    )
+
     # Debugging.
     debug_view: EnumProperty(
         name="View",

@@ -172,3 +172,17 @@ def test_motion_blur_and_passes_hybridgi_does_not_write_are_warned_by_name(scene
     assert run.returncode == 0, run.stderr[-2000:]
     assert "motion blur is not rendered" in run.stderr
     assert "depth of field of camera" in run.stderr
+
+
+def test_shadow_samples_trade_penumbra_noise_for_rays(scenes, full, tmp_path):
+    """Shadow Samples sets the rays of the area lamp's penumbrae: 1 ray per pixel leaves the block's
+    soft shadow noisy, the default 48 is close to a 256-ray render of the same frame."""
+    many = layer(rendered(scenes / "cornell.blend", tmp_path / "s256", "--set", "shadow_samples=256")[1],
+                 "Diffuse Direct")[..., :3]
+    errors = {}
+    for samples, channels in ((1, rendered(scenes / "cornell.blend", tmp_path / "s1", "--set", "shadow_samples=1")[1]),
+                              (48, full)):
+        got = layer(channels, "Diffuse Direct")[..., :3]
+        errors[samples] = np.abs(got - many).sum() / np.abs(many).sum()
+    assert errors[1] > 2.0 * errors[48], errors
+    assert errors[48] < 0.02, errors
