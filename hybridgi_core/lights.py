@@ -37,9 +37,12 @@ from .trace import Tracer
 
 log = logging.getLogger(__name__)
 
-#: Rays (receivers x samples) per chunk: bounds temporaries to a few MB for any number of points;
-#: 16k measured fastest (the float64 temporaries stay in cache), 64k was ~15% slower.
-CHUNK_RAYS = 1 << 14
+#: Rays (receivers x samples) per chunk: bounds temporaries to a few MB for any number of points.
+#: 16k was fastest on one thread (the float64 temporaries stay in cache), but two pool threads on
+#: 16k chunks were no faster than one: each numpy call on a few thousand receivers lasts a few us,
+#: and the threads spend it handing the GIL back and forth. 32k: the full-res first penumbra pass
+#: (Cornell 640x360, 127k receivers x 8) 180 -> 150 ms on the pool.
+CHUNK_RAYS = 1 << 15
 
 #: Sheared area lamps only (area sampling): a sample closer than this fraction of its patch size,
 #: sqrt(A / samples), counts as that far away, keeping the 1/d^2 estimate finite on the lamp.

@@ -44,10 +44,10 @@ UPDATES_PER_BATCH = 8
 #: Most fixed-point iterations of one warm-up (they stop earlier once converged).
 MAX_WARMUP_ITERATIONS = 16
 #: Shadow rays per block of `GISystem.direct` (receivers x samples); larger calls are split over
-#: the worker pool. Small enough that an anti-aliasing subframe's few fresh pixels (Cornell
-#: 640x360: ~8k receivers x 4 samples) use both cores, not the main thread alone: a receiver's
-#: area-lamp set-up costs more than its rays.
-DIRECT_BLOCK_RAYS = 1 << 15
+#: the worker pool. 32k blocks of 16k-ray chunks kept both threads waiting on the GIL (see
+#: `lights.CHUNK_RAYS`); 64k: Cornell 640x360's "direct" step 500-527 -> 435-459 ms (3 interleaved
+#: runs each, idle host).
+DIRECT_BLOCK_RAYS = 1 << 16
 #: G-buffer points per block of `GISystem.corner_visibility` (8 occlusion rays each).
 VISIBILITY_BLOCK = 8192
 
