@@ -459,7 +459,19 @@ def save(bpy, scene, png: Path, exr: Path) -> None:
     blender_compat.set_file_format(bpy, settings, "OPEN_EXR_MULTILAYER")
     settings.color_depth = "32"
     settings.exr_codec = "ZIP"
-    result.save_render(str(exr), scene=scene)
+    render = scene.render
+    aspect = (render.pixel_aspect_x, render.pixel_aspect_y)
+    if aspect[0] != aspect[1]:
+        # Blender's multilayer EXR writer refuses non-square pixels ("Conflicting attributes found
+        # for header :: ... 'pixelAspectRatio'"), for Cycles' renders too: the passes are written
+        # with square pixels, the image itself is the one rendered.
+        progress(f"warning: Pixel Aspect {aspect[0]:g}:{aspect[1]:g}: the EXR is written with square pixels "
+                    "(Blender's multilayer EXR writer refuses other aspects)")
+        render.pixel_aspect_x = render.pixel_aspect_y = 1.0
+    try:
+        result.save_render(str(exr), scene=scene)
+    finally:
+        render.pixel_aspect_x, render.pixel_aspect_y = aspect
     for path in (png, exr):
         if not path.is_file() or path.stat().st_size == 0:
             raise CliError(f"Blender did not write {path}")

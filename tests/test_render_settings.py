@@ -186,3 +186,26 @@ def test_shadow_samples_trade_penumbra_noise_for_rays(scenes, full, tmp_path):
         errors[samples] = np.abs(got - many).sum() / np.abs(many).sum()
     assert errors[1] > 2.0 * errors[48], errors
     assert errors[48] < 0.02, errors
+
+
+def test_non_square_pixels_render_as_cycles_and_the_exr_is_still_written(scenes, full, tmp_path):
+    """Pixel Aspect 2:1 (anamorphic): Blender's multilayer EXR writer refuses it (for Cycles too),
+    so the EXR is written with square pixels and a warning; the image is the one the camera's
+    non-square pixels see, as in Cycles."""
+    aspect = ("--set", "render.pixel_aspect_x=2")
+    run = render(scenes / "cornell.blend", tmp_path / "a", *aspect)
+    assert run.returncode == 0, run.stderr[-2000:]
+    assert "Pixel Aspect 2:1" in run.stderr
+    record = json.loads(run.stdout.strip().splitlines()[-1])
+    depth = layer(exr.read_channels(record["exr"]), "Depth")[..., 0]
+    cycles = run_render(scenes / "cornell.blend", tmp_path / "c", RES, "--engine", "CYCLES", "--samples", "1", *aspect)
+    assert cycles.returncode == 0, cycles.stderr[-2000:]
+    want = layer(exr.read_channels(json.loads(cycles.stdout.strip().splitlines()[-1])["exr"]), "Depth")[..., 0]
+    geo = (depth < 1e9) & (want < 1e9)
+    assert geo.mean() > 0.5
+    assert np.median(np.abs(depth - want)[geo] / want[geo]) < 1e-3
+    # The aspect changed the view: the box's side walls and floor (not the back wall, whose view
+    # depth is constant) moved in the image.
+    square = layer(full, "Depth")[..., 0]
+    moved = np.abs(depth - square) > 1e-2 * np.minimum(depth, square)
+    assert moved.mean() > 0.1, moved.mean()
