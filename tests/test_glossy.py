@@ -119,3 +119,21 @@ def test_lamp_samples_of_a_lamp_with_radius_give_the_diffuse_irradiance(kind, so
                                   np.random.default_rng(1), samples=8192)[:, 0]
     np.testing.assert_allclose(glossy_e, diffuse_e, rtol=0.02, atol=0.02 * diffuse_e.max())
     assert (diffuse_e > 0).sum() >= 7
+
+
+def test_tabulated_glossy_color_follows_the_exact_one_per_material():
+    """The per-pixel Glossy Color is read from each material's table over the view cosine: the
+    exact value of its own material (rows -1 and materials without lobes: 0), grazing to normal."""
+    layers = [sp.SpecularLayer(roughness=0.02, ior=2.5, metallic=0.5), None, sp.SpecularLayer(roughness=0.9),
+              sp.SpecularLayer(roughness=0.3, metallic=1.0, metal_color=(0.9, 0.6, 0.2))]
+    mats = glossy.GlossyMaterials.from_materials([Material(specular=layer) for layer in layers])
+    rng = np.random.default_rng(4)
+    mu = np.concatenate([[0.0, 1e-6, 0.5, 1.0, 1.2, -0.1], rng.random(5000)]).astype(np.float32)
+    rows = rng.integers(-1, len(layers), mu.size)
+    got = glossy.glossy_color(mats, rows, mu)
+    assert got.dtype == np.float32 and got.shape == (mu.size, 3)
+    for m, layer in enumerate(layers):
+        sel = rows == m
+        want = np.zeros((sel.sum(), 3)) if layer is None else sp.glossy_color(layer, np.clip(mu[sel], 0.0, 1.0))
+        np.testing.assert_allclose(got[sel], want, atol=5e-4, err_msg=str(layer))
+    assert not got[rows < 0].any()
