@@ -199,7 +199,7 @@ def render_frame(engine, depsgraph):
     pipeline = FramePipeline(props.raster_settings(cell_size=system.cache.grid.cell_size),
                              subframes=1 if cells_view else props.pixel_samples,
                              filter_size=filter_size, filter_type=filter_type,
-                             direct_samples=props.shadow_samples)
+                             direct_samples=props.shadow_samples, glossy_samples=props.glossy_samples)
     try:
         # GPU render targets (~40 at 640x360): llvmpipe allocates them in ~0.35 s of CPU, a GPU in
         # milliseconds, so they are a step of their own (a GPU pass in bench/time_to_quality.py).

@@ -196,6 +196,14 @@ class HybridGISettings(bpy.types.PropertyGroup):
         default=48, min=1, max=1024, soft_max=128,
     )
 
+    glossy_samples: IntProperty(
+        name="Glossy Samples",
+        description="Lamp samples per final-render pixel and lamp of the glossy lobes (shadow rays included); "
+        "lobes of roughness 0.45 and above are filtered over their surface afterwards. Lamps much larger "
+        "than a smooth lobe are left to the Reflection Rays",
+        default=16, min=1, max=256, soft_max=64,
+    )
+
     # Debugging.
     debug_view: EnumProperty(
         name="View",

@@ -69,7 +69,7 @@ class HYBRIDGI_PT_film(HybridGIButtonsPanel, Panel):
     bl_label = "Film"
 
     def draw(self, context):
-        col = settings_column(self.layout, context.scene.hybridgi, ("pixel_samples", "shadow_samples"))
+        col = settings_column(self.layout, context.scene.hybridgi, ("pixel_samples", "shadow_samples", "glossy_samples"))
         cycles = getattr(context.scene, "cycles", None)
         if cycles is not None and hasattr(cycles, "filter_width"):
             col.prop(cycles, "pixel_filter_type", text="Filter")

@@ -55,9 +55,14 @@ def _error(mine, reference, mask):
     return float(np.abs(mine - reference)[mask].sum() / np.abs(reference)[mask].sum())
 
 
-def test_diffuse_weight_and_glossy_direct_match_cycles(tmp_path):
-    blend = tmp_path / "gloss.blend"
-    subprocess.run([sys.executable, "-c", SCENE, str(blend)], check=True, capture_output=True)
+@pytest.fixture(scope="module")
+def blend(tmp_path_factory):
+    path = tmp_path_factory.mktemp("gloss") / "gloss.blend"
+    subprocess.run([sys.executable, "-c", SCENE, str(path)], check=True, capture_output=True)
+    return path
+
+
+def test_diffuse_weight_and_glossy_direct_match_cycles(blend, tmp_path):
     ours = rendered(blend, tmp_path / "hg", RES)
     cycles = rendered(blend, tmp_path / "cy", RES, "--engine", "CYCLES", "--samples", "256")
     geometry = layer(cycles, "Depth", "Z")[..., 0] < 1e9
@@ -75,3 +80,15 @@ def test_diffuse_weight_and_glossy_direct_match_cycles(tmp_path):
     # Glossy Indirect: the floor and ball reflect each other's bounced light (the cache's).
     bounced = layer(ours, "Glossy Indirect")
     assert np.isfinite(bounced).all() and bounced.min() >= 0.0 and bounced[geometry].max() > 0.0
+
+
+def test_glossy_samples_trade_highlight_noise_for_rays(blend, tmp_path):
+    """Glossy Samples sets the lamp samples of the glossy lobes: 1 per pixel leaves the highlights
+    noisy, the default 16 is close to a 128-sample render of the same frame."""
+    quick = ("--set", "warmup_iterations=2", "--set", "pixel_rays=8", "--set", "pixel_samples=1")
+    many = layer(rendered(blend, tmp_path / "g128", RES, *quick, "--set", "glossy_samples=128"), "Glossy Direct")
+    geometry = np.isfinite(many).all(axis=-1) & (many.max(axis=-1) > 0)
+    errors = {k: _error(layer(rendered(blend, tmp_path / f"g{k}", RES, *quick, "--set", f"glossy_samples={k}"),
+                              "Glossy Direct"), many, geometry)
+              for k in (1, 16)}
+    assert errors[1] > 2.0 * errors[16], errors
