@@ -256,9 +256,10 @@ class FramePipeline:
             self._levels(system, points, normals, view, warmup, stats)
         with stats.step("visibility"):
             visible = system.corner_visibility(points, normals)
-        with stats.step("direct"):
+        with stats.step("gbuffer"):  # the full-res read-back, as the subframes count theirs
             normal = self.gbuffer.read("normal")
             position = self.gbuffer.read("position")
+        with stats.step("direct"):
             p_full, n_full, pix_full = pixels_to_points(position, normal)
             # Before the pixel rays: their hits that the camera sees read this light (`screen_light`).
             direct = np.zeros((self.height * self.width, 4), np.float32)
