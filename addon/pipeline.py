@@ -26,6 +26,7 @@ import numpy as np
 
 from hybridgi_core import errors, visible
 from hybridgi_core.raster.frame import FramePipeline
+from hybridgi_core.raster.gather import max_texture_size
 from hybridgi_core.session import GISession
 from hybridgi_core.settings import CacheSettings
 from hybridgi_core.system import GISystem
@@ -140,6 +141,11 @@ def render_frame(engine, depsgraph):
     scene = depsgraph.scene
     props = scene.hybridgi
     width, height = render_size(scene.render)
+    limit = max_texture_size()
+    if max(width, height) > limit:
+        # The G-buffer and film are GPU textures of the image's size: refused before any is made.
+        raise errors.LimitError(f"the image is {width}x{height} pixels; this GPU's textures take at most {limit} "
+                                "per side: lower the resolution (or its %)")
     settings = props.cache_settings(scene)
     for note in unsupported_settings(scene, depsgraph.view_layer):
         engine.report({"WARNING"}, f"HybridGI: {note}")

@@ -209,3 +209,12 @@ def test_non_square_pixels_render_as_cycles_and_the_exr_is_still_written(scenes,
     square = layer(full, "Depth")[..., 0]
     moved = np.abs(depth - square) > 1e-2 * np.minimum(depth, square)
     assert moved.mean() > 0.1, moved.mean()
+
+
+def test_an_image_larger_than_the_gpu_textures_is_refused_with_a_clear_message(scenes, tmp_path):
+    """65536 pixels wide (Blender's largest resolution) is beyond any GPU's texture limit: the frame
+    fails before allocating anything, saying why, and writes no file."""
+    run = run_render(scenes / "cornell.blend", tmp_path / "big", "65536x4", *QUICK)
+    assert run.returncode != 0
+    assert "textures take at most" in run.stderr and "internal error" not in run.stderr
+    assert not list(tmp_path.glob("big_*"))
