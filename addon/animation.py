@@ -125,9 +125,10 @@ def reset() -> None:
         unregister_session(key)
 
 
-def render_job_key(scene_name: str) -> tuple[str, str]:
-    """Registry key of the incremental final-render job of a scene (see pipeline.py)."""
-    return ("render", scene_name)
+def render_job_key(scene_name: str, view_layer: str) -> tuple[str, str, str]:
+    """Registry key of the incremental final-render job of a scene's view layer (see pipeline.py):
+    each view layer renders its own objects, so each keeps its own cache between frames."""
+    return ("render", scene_name, view_layer)
 
 
 # --- handlers (main thread; cheap: names and boxes, never a snapshot) ---------------------------

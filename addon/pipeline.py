@@ -151,7 +151,7 @@ def render_frame(engine, depsgraph):
         engine.report({"WARNING"}, f"HybridGI: {note}")
         log.warning("%s", note)
     incremental = props.animation_mode == "INCREMENTAL"
-    key = animation.render_job_key(scene.name_full)
+    key = animation.render_job_key(scene.name_full, depsgraph.view_layer.name)
     if not incremental:
         animation.unregister_session(key)  # a job kept by an earlier incremental render: free it
     steps = {}
@@ -178,7 +178,7 @@ def render_frame(engine, depsgraph):
     job = None
     extra = {"animation_mode": props.animation_mode}
     if incremental:
-        job = _job_for(scene, settings, dynamic)
+        job = _job_for(scene, settings, dynamic, key)
         try:
             system, fresh, job_stats = job.advance(snapshot)
         except BaseException:
@@ -336,8 +336,7 @@ class IncrementalJob:
         self.frames += 1
 
 
-def _job_for(scene, settings, dynamic):
-    key = animation.render_job_key(scene.name_full)
+def _job_for(scene, settings, dynamic, key):
     job = _JOBS.get(key)
     if job is not None and job.continues(settings, scene.frame_current, scene.frame_step):
         return job
@@ -436,11 +435,13 @@ class _Result:
     """The engine's render result for the frame's `result_rect`: passes are given as whole-frame
     (h, w, c) bottom-up arrays and cut to the rectangle here."""
 
-    def __init__(self, engine, render, width, height):
+    def __init__(self, engine, render, width, height, layer: str = ""):
         self.engine = engine
         self.x, self.y, self.w, self.h = result_rect(render, width, height)
         # Blender's result is the rectangle itself: its coordinates start at the rectangle's corner.
-        self.result = engine.begin_result(0, 0, self.w, self.h)
+        # Blender renders each view layer with its own depsgraph: the result holds that layer alone
+        # (else layers[0], the first view layer, took every layer's image in turn).
+        self.result = engine.begin_result(0, 0, self.w, self.h, layer=layer)
         self.layer = self.result.layers[0]
 
     def set(self, name, pixels):
@@ -455,7 +456,7 @@ def _write_result(engine, depsgraph, pipeline, width, height, world, cache=None,
     `cache`, Combined shows the Cache Cells debug view instead (each pixel coloured by the cell it
     reads; with `levels`, the system's finer cache levels, in each level's hue)."""
     render = depsgraph.scene.render
-    result = _Result(engine, render, width, height)
+    result = _Result(engine, render, width, height, depsgraph.view_layer.name)
     film = pipeline.film
     # A transparent film's background adds nothing to a pixel's colour: each subframe's colour
     # counts with its alpha (premultiplied, as Cycles writes it).
@@ -486,7 +487,7 @@ def _write_result(engine, depsgraph, pipeline, width, height, world, cache=None,
 
 def _write_background(engine, depsgraph, width, height, world):
     render = depsgraph.scene.render
-    result = _Result(engine, render, width, height)
+    result = _Result(engine, render, width, height, depsgraph.view_layer.name)
     bg = np.zeros((height, width, 4), np.float32)
     if not render.film_transparent:
         bg[...] = (*np.asarray(world, np.float32).tolist(), 1.0)

@@ -279,7 +279,9 @@ def _drop_render_job(props):
     if props.animation_mode != "INCREMENTAL":
         from . import animation  # noqa: PLC0415  (imports bpy handlers; only needed on a switch)
 
-        animation.unregister_session(animation.render_job_key(props.id_data.name_full))
+        scene = props.id_data
+        for layer in scene.view_layers:
+            animation.unregister_session(animation.render_job_key(scene.name_full, layer.name))
 
 
 def _f(value):

@@ -269,7 +269,7 @@ def test_moving_one_object_refreshes_only_cells_near_it(bpy_module, modules, tmp
     for obj in scene.objects:
         obj.animation_data_clear()
     render(bpy, modules, scene, 1, tmp_path)
-    job = modules.pipeline._JOBS[modules.animation.render_job_key(scene.name_full)]
+    job = modules.pipeline._JOBS[modules.animation.render_job_key(scene.name_full, scene.view_layers[0].name)]
     cache = job.session.system.cache
     samples = cache.samples.copy()
     assert cache.urgency.max() == 0  # converged, nothing changed yet
@@ -342,7 +342,7 @@ def test_deleting_objects_between_frames_of_a_job_is_safe(bpy_module, modules, t
         bpy.data.objects.remove(obj)
     empty, stats = render(bpy, modules, scene, 12, tmp_path)
     assert stats["rays"] == 0  # only the world: the job ends
-    assert modules.animation.live_session(modules.animation.render_job_key(scene.name_full)) is None
+    assert modules.animation.live_session(modules.animation.render_job_key(scene.name_full, scene.view_layers[0].name)) is None
     again, stats = render(bpy, modules, scene, 13, tmp_path)
     assert np.isfinite(again["Combined"]).all()
 

@@ -48,6 +48,16 @@ def scenes(tmp_path_factory):
                     cam.clip_start, cam.clip_end = cam.clip_start * scale, cam.clip_end * scale
                 scene.world.light_settings.distance *= scale
             return edit
+        def second_layer(d):
+            scene = bpy.context.scene
+            block = d.objects["tall_block"]
+            own = d.collections.new("block")
+            scene.collection.children.link(own)
+            for c in list(block.users_collection):
+                c.objects.unlink(block)
+            own.objects.link(block)
+            scene.view_layers.new("NoBlock").layer_collection.children["block"].exclude = True
+        variant("two_layers", second_layer)
         variant("centimetres", placed(0.01, 0.0))
         variant("far_away", placed(1.0, 1.0e5))
     """)
@@ -218,3 +228,16 @@ def test_an_image_larger_than_the_gpu_textures_is_refused_with_a_clear_message(s
     assert run.returncode != 0
     assert "textures take at most" in run.stderr and "internal error" not in run.stderr
     assert not list(tmp_path.glob("big_*"))
+
+
+def test_each_view_layer_gets_its_own_render(scenes, full, tmp_path):
+    """Two view layers, the second without the tall block: Blender renders each with its own
+    depsgraph, and each EXR layer holds that layer's image (the second one's used to overwrite
+    the first's, leaving its own layer empty)."""
+    _record, ch = rendered(scenes / "two_layers.blend", tmp_path / "v")
+    depth = {name: ch[f"{name}.Depth.Z"] for name in ("ViewLayer", "NoBlock")}
+    np.testing.assert_allclose(depth["ViewLayer"], layer(full, "Depth")[..., 0], rtol=1e-5)
+    geo = depth["NoBlock"] < 1e9
+    assert geo.mean() > 0.3  # the box is there
+    behind = depth["NoBlock"] > depth["ViewLayer"] * 1.05  # where the block stood, the wall behind it
+    assert 0.03 < behind.mean() < 0.3
