@@ -31,10 +31,10 @@ def look_down(height: float) -> np.ndarray:
     return view
 
 
-def ground_screen(height=10.0, fov=np.radians(60.0)):
+def ground_screen(height=10.0, fov_degrees=60.0):
     """The G-buffer of the ground z = 0 under the eye, every pixel's centre intersected
     analytically, with irradiance x + 10 (any function of the position)."""
-    proj = perspective(fov, W / H)
+    proj = perspective(np.radians(fov_degrees), W / H)
     ys, xs = np.mgrid[0:H, 0:W]
     ndc_x, ndc_y = (xs + 0.5) / W * 2 - 1, (ys + 0.5) / H * 2 - 1
     # The ray through a pixel centre: direction (ndc_x / P00, ndc_y / P11, -1) from the eye.
