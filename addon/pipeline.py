@@ -125,6 +125,8 @@ def unsupported_settings(scene, view_layer) -> list[str]:
     notes = []
     if getattr(scene.render, "use_motion_blur", False):
         notes.append("motion blur is not rendered")
+    if getattr(scene.render, "use_multiview", False):
+        notes.append("stereoscopy is not rendered: HybridGI renders the scene camera's view only")
     camera = scene.camera
     dof = getattr(getattr(camera, "data", None), "dof", None)
     if dof is not None and getattr(dof, "use_dof", False):

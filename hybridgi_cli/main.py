@@ -316,6 +316,11 @@ def configure(scene, args) -> None:
             setattr(view_layer, flag, True)
     for name, value in args.settings:
         assign(scene, name, value, args.engine)
+    if scene.render.use_multiview:
+        # Blender then writes one image per view; this command's files are one image per frame
+        # (Blender refused to save them: "Image 'Render Result' could not be saved", Cycles too).
+        raise CliError("Stereoscopy is on (Output Properties > Stereoscopy): hybridgi render writes one "
+                       "image per frame; turn it off (--set render.use_multiview=false)")
 
 
 def assign(scene, name: str, text: str, engine: str) -> None:

@@ -241,3 +241,12 @@ def test_each_view_layer_gets_its_own_render(scenes, full, tmp_path):
     assert geo.mean() > 0.3  # the box is there
     behind = depth["NoBlock"] > depth["ViewLayer"] * 1.05  # where the block stood, the wall behind it
     assert 0.03 < behind.mean() < 0.3
+
+
+def test_stereoscopy_is_refused_by_the_cli_with_a_clear_message(scenes, tmp_path):
+    """One image per frame is what `hybridgi render` writes: a stereoscopic scene (Blender would
+    write one per view, and failed to save them, for Cycles too) is refused up front, no file."""
+    run = render(scenes / "cornell.blend", tmp_path / "s", "--set", "render.use_multiview=true")
+    assert run.returncode != 0
+    assert "Stereoscopy" in run.stderr and "internal error" not in run.stderr
+    assert not list(tmp_path.glob("s_*"))
