@@ -372,7 +372,8 @@ def filter_residual(residual: np.ndarray, position: np.ndarray, normal: np.ndarr
                     normal_power: float = 8.0, variance: np.ndarray | None = None,
                     noise_sigma: float = NOISE_SIGMA, pool=None) -> np.ndarray:
     """Edge-aware a-trous filter of an (h, w, 7) image of residuals (direct rgb, indirect rgb, AO)
-    at the GI resolution.
+    at the GI resolution; without a variance, of an (h, w, c) image of any c channels (one
+    weight for all of them).
 
     position (h, w, 3) world, normal (h, w, 3) unit, valid (h, w) bool (background pixels are
     neither read nor written), camera (3,) the eye (plane distances are measured as a share of
@@ -435,6 +436,7 @@ def filter_residual(residual: np.ndarray, position: np.ndarray, normal: np.ndarr
         # expressions, without a fresh allocation for every intermediate plane.
         plane, cos, wt, tmp = (np.empty((h, w), np.float32) for _ in range(4))
         acc6 = np.empty((6, h, w), np.float32)
+        tap = np.empty_like(img) if var is None else None
         if var is not None:
             diff, den = np.empty_like(var), np.empty_like(var)
             wt2 = np.empty((2, h, w), np.float32)
@@ -453,9 +455,13 @@ def filter_residual(residual: np.ndarray, position: np.ndarray, normal: np.ndarr
                 np.multiply(pv[ys, xs], np.float32(_B3[dy] * _B3[dx]), out=tmp)
                 wt *= tmp
                 if var is None:
-                    wt *= np.exp(-plane * plane)
-                    acc += wt * pr[:, ys, xs]
-                    wsum += wt
+                    np.multiply(plane, plane, out=tmp)
+                    np.negative(tmp, out=tmp)
+                    np.exp(tmp, out=tmp)
+                    wt *= tmp
+                    np.multiply(wt, pr[:, ys, xs], out=tap)
+                    acc += tap
+                    wsum[0] += wt
                     continue
                 # One weight for the colour channels (luminance guide), one for AO; the plane
                 # and range terms share one exp.
@@ -493,8 +499,11 @@ def filter_residual(residual: np.ndarray, position: np.ndarray, normal: np.ndarr
                 acc_var += den
                 wsum += wt2
         total = np.maximum(wsum, np.float32(1e-12))
-        img[0:6] = acc[0:6] / total[0]
-        img[6] = acc[6] / total[1]
+        if var is None:  # one weight for every channel (any number of them)
+            np.divide(acc, total[0], out=img)
+        else:
+            img[0:6] = acc[0:6] / total[0]
+            img[6] = acc[6] / total[1]
         img *= vf
         if var is not None:
             if split:
@@ -527,18 +536,19 @@ def _filter_dense(values: np.ndarray, keep: np.ndarray, points: np.ndarray, norm
     image planes, filtered, gathered back)."""
     h, w = shape
     c = values.shape[1]
-    image = np.zeros((h * w, 7), np.float32)
-    image[pix, :c] = values
+    # Only the values' own channels: without a variance every channel shares one weight.
+    image = np.zeros((h * w, c), np.float32)
+    image[pix] = values
     valid = np.zeros(h * w, bool)
     valid[pix] = keep
     pos = np.zeros((h * w, 3), np.float32)
     pos[pix] = points
     nrm = np.zeros((h * w, 3), np.float32)
     nrm[pix] = normals
-    out = filter_residual(image.reshape(h, w, 7), pos.reshape(h, w, 3), nrm.reshape(h, w, 3), valid.reshape(h, w),
+    out = filter_residual(image.reshape(h, w, c), pos.reshape(h, w, 3), nrm.reshape(h, w, 3), valid.reshape(h, w),
                           np.asarray(camera, np.float32), passes, plane_sigma, normal_power,
-                          pool=pool).reshape(h * w, 7)
-    return np.where(keep[:, None], out[pix, :c], values).astype(np.float32)
+                          pool=pool).reshape(h * w, c)
+    return np.where(keep[:, None], out[pix], values).astype(np.float32)
 
 
 def _dot3(a: np.ndarray, b: np.ndarray, out: np.ndarray, tmp: np.ndarray) -> None:
