@@ -471,7 +471,7 @@ def save(bpy, scene, png: Path, exr: Path) -> None:
         # for header :: ... 'pixelAspectRatio'"), for Cycles' renders too: the passes are written
         # with square pixels, the image itself is the one rendered.
         progress(f"warning: Pixel Aspect {aspect[0]:g}:{aspect[1]:g}: the EXR is written with square pixels "
-                    "(Blender's multilayer EXR writer refuses other aspects)")
+                 "(Blender's multilayer EXR writer refuses other aspects)")
         render.pixel_aspect_x = render.pixel_aspect_y = 1.0
     try:
         result.save_render(str(exr), scene=scene)

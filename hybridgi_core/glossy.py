@@ -91,7 +91,7 @@ class GlossyMaterials:
     layers: list
     reflects: np.ndarray | None = None
     #: (m, COLOR_TABLE_SIZE, 3) float32 each material's Glossy Color over the view cosine on a
-    #: uniform grid of [0, 1] (`glossy_color` interpolates it), None before `from_materials`.
+    #: uniform grid of [0, 1] (`glossy_color` interpolates it); `from_materials` fills it.
     color_table: np.ndarray | None = None
 
     @classmethod
@@ -244,30 +244,22 @@ def glossy_color(mats: GlossyMaterials, rows, mu) -> np.ndarray:
     (itself linear in its albedo tables' coarser grid), whose float64 table look-ups per pixel
     cost bunny_npm's 640x360 frame 124 ms."""
     rows = np.asarray(rows)
-    if mats.color_table is not None:
-        table = mats.color_table
-        x = np.clip(np.asarray(mu, _F32), 0.0, 1.0) * _F32(COLOR_TABLE_SIZE - 1)
-        i0 = np.minimum(x.astype(np.intp), COLOR_TABLE_SIZE - 2)
-        frac = (x - i0)[:, None]
-        live = np.flatnonzero(rows >= 0)
-        out = np.zeros((rows.shape[0], 3), _F32)
-        if live.size:
-            flat = np.take(rows, live) * COLOR_TABLE_SIZE + np.take(i0, live)
-            rows_of = table.reshape(-1, 3)
-            f = np.take(frac, live, axis=0)
-            lo = np.take(rows_of, flat, axis=0)
-            hi = np.take(rows_of, flat + 1, axis=0)
-            hi -= lo
-            hi *= f
-            hi += lo
-            out[live] = hi
-        return out
-    out = np.zeros((rows.shape[0], 3))
-    for m, layer in enumerate(mats.layers):
-        sel = np.flatnonzero(rows == m)
-        if sel.size and layer is not None:
-            out[sel] = sp.glossy_color(layer, mu[sel])
-    return out.astype(_F32)
+    x = np.clip(np.asarray(mu, _F32), 0.0, 1.0) * _F32(COLOR_TABLE_SIZE - 1)
+    i0 = np.minimum(x.astype(np.intp), COLOR_TABLE_SIZE - 2)
+    frac = (x - i0)[:, None]
+    live = np.flatnonzero(rows >= 0)
+    out = np.zeros((rows.shape[0], 3), _F32)
+    if live.size:
+        flat = np.take(rows, live) * COLOR_TABLE_SIZE + np.take(i0, live)
+        rows_of = mats.color_table.reshape(-1, 3)
+        f = np.take(frac, live, axis=0)
+        lo = np.take(rows_of, flat, axis=0)
+        hi = np.take(rows_of, flat + 1, axis=0)
+        hi -= lo
+        hi *= f
+        hi += lo
+        out[live] = hi
+    return out
 
 
 def _lamp_samples(light: Light, p, rng, samples):

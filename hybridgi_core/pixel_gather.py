@@ -435,9 +435,10 @@ def filter_residual(residual: np.ndarray, position: np.ndarray, normal: np.ndarr
         # Per-tap temporaries, reused: the same operations in the same order as whole-array
         # expressions, without a fresh allocation for every intermediate plane.
         plane, cos, wt, tmp = (np.empty((h, w), np.float32) for _ in range(4))
-        acc6 = np.empty((6, h, w), np.float32)
-        tap = np.empty_like(img) if var is None else None
-        if var is not None:
+        if var is None:
+            tap = np.empty_like(img)
+        else:
+            acc6 = np.empty((6, h, w), np.float32)
             diff, den = np.empty_like(var), np.empty_like(var)
             wt2 = np.empty((2, h, w), np.float32)
             sq = np.empty((2, h, w), np.float32)
