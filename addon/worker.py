@@ -423,7 +423,8 @@ class ViewportWorker:
             try:
                 light, full = (_penumbra.adaptive_direct(
                     direct, points, normals, pix, shape, self._frame * MAX_DIRECT_BLOCKS, samples,
-                    camera=camera, pool=system.updater.pool) if points.shape[0] else (None, np.zeros(0, bool)))
+                    camera=camera, pool=system.updater.pool, lamps=len(system.scene.lights))
+                    if points.shape[0] else (None, np.zeros(0, bool)))
             except _Superseded:
                 self._steps["direct_dropped"] = (time.perf_counter() - t0) * 1e3
                 return
@@ -750,9 +751,9 @@ def _interruptible(system, superseded: Callable[[], bool]):
     frame * MAX_DIRECT_BLOCKS + i, raising `_Superseded` before a block once superseded() holds.
     The blocks are fixed, so the light does not depend on the pool's thread count or on timing."""
 
-    def direct(points, normals, frame, samples=None, **outputs):
-        # outputs : `system.direct`'s per-point output arrays (partial, unshadowed), written
-        # block by block through views of them.
+    def direct(points, normals, frame, samples=None, lights=None, **outputs):
+        # outputs : `system.direct`'s per-point output arrays (partial, unshadowed, exact,
+        # per_lamp), written block by block through views of them; lights : lamp indices.
         n = points.shape[0]
         blocks = min(-(-n // DIRECT_BLOCK_POINTS), MAX_DIRECT_BLOCKS)
         bounds = np.linspace(0, n, blocks + 1).astype(np.intp)
@@ -762,7 +763,7 @@ def _interruptible(system, superseded: Callable[[], bool]):
                 raise _Superseded
             views = {k: None if v is None else v[a:b] for k, v in outputs.items()}
             out.append(system.direct(points[a:b], normals[a:b], frame * MAX_DIRECT_BLOCKS + i, samples=samples,
-                                     **views))
+                                     lights=lights, **views))
         return np.concatenate(out) if out else np.zeros((0, 3), np.float32)
 
     return direct

@@ -834,6 +834,7 @@ def direct_irradiance(
     solid_angle: bool = True,
     unshadowed: np.ndarray | None = None,
     exact: np.ndarray | None = None,
+    per_lamp: np.ndarray | None = None,
 ) -> np.ndarray:
     """Irradiance from the lamps at one-sided Lambertian receivers, with shadow rays.
 
@@ -853,7 +854,9 @@ def direct_irradiance(
     sun_disc : sample the sun's angular disc (soft shadows); False traces one ray along its axis,
         enough where the result is averaged anyway (probe-ray hits of the low-frequency cache).
     partial : optional (n,) bool output: set True at receivers where some of a sampled lamp's
-        shadow rays were blocked and some were not (a penumbra; hard lamps never set it).
+        shadow rays were blocked and some were not (a penumbra; hard lamps never set it); or
+        (n, len(lights)): column i for lights[i] alone (`penumbra.adaptive_direct` re-samples
+        only the lamps whose penumbra crosses a pixel).
     solid_angle : sample rectangular area lamps uniformly in their solid angle (Urena et al.:
         quiet near a large lamp, ~3 us of float64 set-up per receiver); False samples them
         uniformly over their area (~5x cheaper per receiver, noisier close to the lamp), enough
@@ -884,6 +887,8 @@ def direct_irradiance(
         partial[:] = False
     if unshadowed is not None:
         unshadowed[:] = 0.0
+    if per_lamp is not None:
+        per_lamp[:] = 0.0
     column = [i for i, lt in enumerate(lights) if float(lt.power) != 0.0 and np.any(lt.color != 0)]
     active = [lights[i] for i in column]
     if n == 0 or not active:
@@ -905,14 +910,18 @@ def direct_irradiance(
         pts, nrm = pts[sel], nrm[sel]
     known = exact if exact is None or sel is None else exact[sel]
     acc = np.zeros((pts.shape[0], 3), _F32)
-    found = np.zeros(pts.shape[0], bool) if partial is not None else None
+    found = np.zeros((pts.shape[0],) + partial.shape[1:], bool) if partial is not None else None
+    shares = np.zeros((pts.shape[0], len(lights), 3), _F32) if per_lamp is not None else None
     acc_open = np.zeros((pts.shape[0], 3), _F32) if unshadowed is not None else None
     # Suns traced along their axis need no sample patterns: whole arrays at once, row-major.
     axial = [lt.kind == "SUN" and (not sun_disc or float(lt.angle) <= 0.0) for lt in active]
-    for lt, ax in zip(active, axial, strict=True):
+    for i, (lt, ax) in enumerate(zip(active, axial, strict=True)):
         if ax:
             opened = [] if acc_open is not None else None
-            acc += _sun_axis(lt, pts, nrm, tracer, epsilon, opened)[:, None] * lt.color[None, :]
+            e = _sun_axis(lt, pts, nrm, tracer, epsilon, opened)[:, None] * lt.color[None, :]
+            acc += e
+            if shares is not None:
+                shares[:, column[i]] = e
             if opened:
                 acc_open += opened[0][:, None] * lt.color[None, :]
     sampled = [(i, lt) for i, (lt, ax) in enumerate(zip(active, axial, strict=True)) if not ax]
@@ -921,8 +930,8 @@ def direct_irradiance(
         stop = min(start + step, pts.shape[0])
         p = tuple(np.ascontiguousarray(pts[start:stop, k]) for k in range(3))
         q = tuple(np.ascontiguousarray(nrm[start:stop, k]) for k in range(3))
-        mark = found[start:stop] if found is not None else None
         for i, lt in sampled:
+            mark = None if found is None else found[start:stop] if found.ndim == 1 else found[start:stop, column[i]]
             opened = [] if acc_open is not None else None
             if lt.kind in ("POINT", "SPOT"):
                 e = _point_chunk(lt, p, q, tracer, rng, samples, epsilon, mark, opened)
@@ -933,13 +942,18 @@ def direct_irradiance(
                                 None if known is None else known[start:stop, column[i]])
             else:
                 continue
-            acc[start:stop] += e[:, None] * lt.color[None, :]
+            e = e[:, None] * lt.color[None, :]
+            acc[start:stop] += e
+            if shares is not None:
+                shares[start:stop, column[i]] = e
             if opened:
                 acc_open[start:stop] += opened[0][:, None] * lt.color[None, :]
     if partial is not None:
         partial[slice(None) if sel is None else sel] = found
     if unshadowed is not None:
         unshadowed[slice(None) if sel is None else sel] = acc_open
+    if per_lamp is not None:
+        per_lamp[slice(None) if sel is None else sel] = shares
     if known is not None and sel is not None:
         exact[sel] = known
     if sel is None:

@@ -28,6 +28,10 @@ DILATE = 2
 SEED_OFFSET = 1 << 20
 #: A-trous passes over the penumbra pixels' visibility (`filter_penumbra`); 0 = none.
 FILTER_PASSES = 1
+#: Lamps whose first pass runs in one call (`_per_lamp` keeps their shares: (n, LAMP_GROUP, 3)).
+LAMP_GROUP = 8
+#: Lamp j's penumbra pass adds j times this to its frame number (and group g0's first pass g0 times).
+LAMP_SEED_STRIDE = 1 << 12
 
 
 def filter_camera(lights, eye) -> np.ndarray | None:
@@ -60,26 +64,27 @@ def adaptive_direct(direct, points: np.ndarray, normals: np.ndarray, pix: np.nda
                     frame: int, samples: int, camera=None, pool=None, lamps: int = 0) -> tuple[np.ndarray, np.ndarray]:
     """Lamp irradiance (n, 3) at the pixels `pix` (flat indices into an image of `shape` (h, w))
     with `samples` shadow rays per lamp in penumbrae and FIRST_SAMPLES elsewhere, and the (n,)
-    bool mask of the pixels that got the full count.
+    bool mask of the pixels that got the full count (for some lamp).
 
     direct(points, normals, frame, samples=, partial=, unshadowed=) -> (n, 3): `GISystem.direct`.
     camera : (3,) the eye; given, the penumbra pixels' visibility (their light over the
     unshadowed light) is filtered edge-aware on their surfaces (`filter_penumbra`).
     lamps : the scene's lamp count; given (> 0), `direct` takes exact= too and the area lamps'
     exact unshadowed irradiance of the first pass is reused by the second (the same values, not
-    computed twice: ~1 us per receiver and lamp)."""
+    computed twice: ~1 us per receiver and lamp). With more than one lamp `direct` also takes
+    per_lamp= and lights= (lamp indices), and each lamp's penumbra is re-sampled for that lamp
+    alone (`_per_lamp`)."""
     first = min(FIRST_SAMPLES, samples)
     if samples <= first:
         return direct(points, normals, frame, samples=samples), np.ones(points.shape[0], bool)
+    if lamps > 1:
+        return _per_lamp(direct, points, normals, pix, shape, frame, samples, first, camera, pool, lamps)
     partial = np.zeros(points.shape[0], bool)
     reuse = {"exact": np.full((points.shape[0], lamps), np.nan)} if lamps > 0 else {}
     light = direct(points, normals, frame, samples=first, partial=partial, **reuse)
     if not partial.any():
         return light, partial
-    h, w = shape
-    image = np.zeros(h * w, bool)
-    image[pix[partial]] = True
-    full = dilate(image.reshape(h, w), DILATE).reshape(-1)[pix]
+    full = _grown(partial, pix, shape)
     redo = np.flatnonzero(full)
     # The same samples' unshadowed light comes with them (exact where the ratio estimator applies):
     # no second sampling pass for the filter's visibility.
@@ -91,6 +96,50 @@ def adaptive_direct(direct, points: np.ndarray, normals: np.ndarray, pix: np.nda
         light[redo] = filter_penumbra(light[redo], open_light, points[redo], normals[redo], pix[redo], shape,
                                       camera, pool)
     return light, full
+
+
+def _per_lamp(direct, points, normals, pix, shape, frame, samples, first, camera, pool, lamps):
+    """`adaptive_direct` of several lamps, each lamp's penumbra on its own: a pixel re-samples
+    only the lamps whose rays disagreed around it. Why: a room lit by several soft lamps (an
+    area lamp and ceiling lamps with a radius) has some lamp's penumbra over most of the image,
+    and re-sampling every lamp there costs `samples` rays per lamp where one or two are soft.
+    The first pass shades LAMP_GROUP lamps per call (each lamp's share kept for the blend); lamp
+    j's penumbra pass draws from frame + SEED_OFFSET + j * LAMP_SEED_STRIDE; each penumbra's
+    visibility is filtered against its own lamp's unshadowed light."""
+    n = points.shape[0]
+    light = np.zeros((n, 3), np.float32)
+    full = np.zeros(n, bool)
+    for g0 in range(0, lamps, LAMP_GROUP):
+        group = list(range(g0, min(g0 + LAMP_GROUP, lamps)))
+        partial = np.zeros((n, len(group)), bool)
+        exact = np.full((n, len(group)), np.nan)
+        share = np.zeros((n, len(group), 3), np.float32)
+        light += direct(points, normals, frame + g0 * LAMP_SEED_STRIDE, samples=first, partial=partial, exact=exact,
+                        per_lamp=share, lights=group)
+        for k, j in enumerate(group):
+            if not partial[:, k].any():
+                continue
+            grown = _grown(partial[:, k], pix, shape)
+            full |= grown
+            redo = np.flatnonzero(grown)
+            open_light = np.zeros((redo.size, 3), np.float32)
+            more = direct(points[redo], normals[redo], frame + SEED_OFFSET + j * LAMP_SEED_STRIDE, samples=samples,
+                          unshadowed=open_light, exact=exact[redo, k : k + 1], lights=[j])
+            was = share[redo, k]
+            mixed = (first * was + samples * more) / np.float32(first + samples)
+            if camera is not None and FILTER_PASSES > 0:
+                mixed = filter_penumbra(mixed, open_light, points[redo], normals[redo], pix[redo], shape, camera, pool)
+            light[redo] += mixed - was
+    np.maximum(light, 0.0, out=light)  # the differences' rounding must not leave a dark pixel below 0
+    return light, full
+
+
+def _grown(partial: np.ndarray, pix: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """(n,) bool: the pixels `pix` within DILATE pixels of a `partial` one (in an image of `shape`)."""
+    h, w = shape
+    image = np.zeros(h * w, bool)
+    image[pix[partial]] = True
+    return dilate(image.reshape(h, w), DILATE).reshape(-1)[pix]
 
 
 def filter_penumbra(light: np.ndarray, open_light: np.ndarray, points: np.ndarray, normals: np.ndarray,

@@ -341,34 +341,37 @@ class GISystem:
 
     def direct(self, points: np.ndarray, normals: np.ndarray, frame: int, samples: int | None = None,
                partial: np.ndarray | None = None, unshadowed: np.ndarray | None = None,
-               exact: np.ndarray | None = None) -> np.ndarray:
+               exact: np.ndarray | None = None, per_lamp: np.ndarray | None = None,
+               lights: list[int] | None = None) -> np.ndarray:
         """Lamp irradiance (n, 3) W/m^2 with shadow rays at points: the deferred pass's direct light.
 
         Up to DIRECT_BLOCK_RAYS shadow rays run in one call on this thread; more (the full-res
         image at 16 samples: 2M rays) are cut into blocks of that many rays shared by the worker
         pool, block i drawing its samples from child i of the frame's generator: deterministic
         and independent of the thread count (the tracer itself is single-threaded). partial : an
-        optional (n,) bool output, True where a penumbra crosses (`lights.direct_irradiance`).
-        unshadowed : an optional (n, 3) output, the same samples' light without shadows
-        (`lights.direct_irradiance`). exact : an optional (n, lamps) float64 in/out, the area
-        lamps' exact unshadowed irradiance (`lights.direct_irradiance`)."""
+        optional (n,) bool output, True where a penumbra crosses, or (n, lamps) per lamp
+        (`lights.direct_irradiance`). unshadowed : an optional (n, 3) output, the same samples'
+        light without shadows. exact : an optional (n, lamps) float64 in/out, the area lamps'
+        exact unshadowed irradiance. per_lamp : an optional (n, lamps, 3) output, each lamp's
+        share. lights : indices of the scene's lamps to shade (None: all); the lamp columns of
+        partial, exact and per_lamp follow it."""
         rng = frame_rng(self.settings.seed + 1, frame)
         samples = samples or self.settings.light_samples
         eps = float(self.tracer.epsilon)
-        lights = self.scene.lights
+        lamps = self.scene.lights if lights is None else [self.scene.lights[i] for i in lights]
         n = int(np.asarray(points).reshape(-1, 3).shape[0])
         per_block = max(1, DIRECT_BLOCK_RAYS // samples)
-        if n <= per_block or not lights:
-            return direct_irradiance(lights, points, normals, self.tracer, rng, samples=samples, epsilon=eps,
-                                     partial=partial, unshadowed=unshadowed, exact=exact)
+        outputs = {"partial": partial, "unshadowed": unshadowed, "exact": exact, "per_lamp": per_lamp}
+        if n <= per_block or not lamps:
+            return direct_irradiance(lamps, points, normals, self.tracer, rng, samples=samples, epsilon=eps,
+                                     **outputs)
         points = np.asarray(points, np.float32).reshape(-1, 3)
         normals = np.asarray(normals, np.float32).reshape(-1, 3)
         starts = range(0, n, per_block)
         return np.concatenate(self._blocks([
-            (direct_irradiance, (lights, points[a : a + per_block], normals[a : a + per_block], self.tracer, child,
-                                 samples, eps), {"partial": None if partial is None else partial[a : a + per_block],
-                                                 "unshadowed": None if unshadowed is None else unshadowed[a : a + per_block],
-                                                 "exact": None if exact is None else exact[a : a + per_block]})
+            (direct_irradiance, (lamps, points[a : a + per_block], normals[a : a + per_block], self.tracer, child,
+                                 samples, eps),
+             {k: None if v is None else v[a : a + per_block] for k, v in outputs.items()})
             for a, child in zip(starts, rng.spawn(len(starts)), strict=True)]))
 
     def _blocks(self, calls: list) -> list:

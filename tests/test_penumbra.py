@@ -21,10 +21,14 @@ def _floor():
 
 
 def _direct(lights, tracer, seed=0):
-    def direct(points, normals, frame, samples=1, partial=None, unshadowed=None, exact=None):
+    """`GISystem.direct`'s signature over `lights` (lights= picks some of them by index)."""
+    def direct(points, normals, frame, samples=1, partial=None, unshadowed=None, exact=None, per_lamp=None,
+               lights=None):
         rng = np.random.default_rng([seed, frame])
-        return direct_irradiance(lights, points, normals, tracer, rng, samples=samples,
-                                 partial=partial, unshadowed=unshadowed, exact=exact)
+        shaded = lamps if lights is None else [lamps[i] for i in lights]
+        return direct_irradiance(shaded, points, normals, tracer, rng, samples=samples,
+                                 partial=partial, unshadowed=unshadowed, exact=exact, per_lamp=per_lamp)
+    lamps = lights
     return direct
 
 
@@ -149,8 +153,52 @@ def test_exact_light_is_reused_and_the_same():
     assert (doubled[lit] > kept[lit]).any()
     pix = np.arange(H * W)
     for camera in (None, np.array([0.0, -3.0, 4.0])):
-        a = adaptive_direct(_direct(lamps, tracer), pts, nrm, pix, (H, W), frame=2, samples=24, camera=camera)
-        b = adaptive_direct(_direct(lamps, tracer), pts, nrm, pix, (H, W), frame=2, samples=24, camera=camera,
-                            lamps=len(lamps))
+        a = adaptive_direct(_direct(lamps[1:], tracer), pts, nrm, pix, (H, W), frame=2, samples=24, camera=camera)
+        b = adaptive_direct(_direct(lamps[1:], tracer), pts, nrm, pix, (H, W), frame=2, samples=24, camera=camera,
+                            lamps=1)
         np.testing.assert_array_equal(a[0], b[0])
         np.testing.assert_array_equal(a[1], b[1])
+
+
+def test_per_lamp_outputs_split_the_light_and_the_penumbrae():
+    """direct_irradiance's per_lamp shares sum to its result, and a per-lamp partial (n, lamps)
+    marks each lamp's own penumbra: their union is the one-column mark of the same samples."""
+    lamps = [area_light(translation(0.0, 0.0, 2.0), power=200.0), sun_light((0.3, 0.2, -1.0), strength=2.0, angle=0.1),
+             point_light((1.0, 0.5, 1.5), radius=0.2), sun_light((-0.2, 0.1, -1.0), strength=1.0)]
+    tracer = TriangleTracer(quad((0.0, 0.0, 1.0), (0.4, 0, 0), (0, 0.4, 0)))
+    pts, nrm = _floor()
+    union = np.zeros(H * W, bool)
+    plain = direct_irradiance(lamps, pts, nrm, tracer, np.random.default_rng(4), samples=8, partial=union)
+    each = np.zeros((H * W, len(lamps)), bool)
+    share = np.zeros((H * W, len(lamps), 3), np.float32)
+    split = direct_irradiance(lamps, pts, nrm, tracer, np.random.default_rng(4), samples=8, partial=each,
+                              per_lamp=share)
+    np.testing.assert_array_equal(split, plain)
+    np.testing.assert_allclose(share.sum(axis=1), plain, rtol=1e-5, atol=1e-6)
+    np.testing.assert_array_equal(each.any(axis=1), union)
+    assert each[:, 0].any() and each[:, 1].any() and not each[:, 3].any()  # the axial sun is hard
+    assert (each[:, 0] != each[:, 1]).any()  # their penumbrae lie apart
+    for j, lamp in enumerate(lamps):
+        alone = direct_irradiance([lamp], pts, nrm, tracer, np.random.default_rng(9), samples=256)
+        assert np.abs(share[:, j] - alone).sum() <= 0.1 * max(alone.sum(), 1e-9) + 1e-6, j
+
+
+def test_per_lamp_penumbrae_trace_fewer_rays_for_the_same_light():
+    """Two soft lamps whose penumbrae lie in different places: re-sampling each lamp only in its
+    own penumbra (lamps=2) traces fewer rays than re-sampling both wherever either is soft, and
+    is as close to the converged light."""
+    lamps = [area_light(translation(0.0, 0.0, 2.0), power=200.0), point_light((2.5, -2.0, 1.5), radius=0.3)]
+    tracer = TriangleTracer(quad((0.0, 0.0, 1.0), (0.4, 0, 0), (0, 0.4, 0)))
+    pts, nrm = _floor()
+    pix = np.arange(H * W)
+    ref = direct_irradiance(lamps, pts, nrm, tracer, np.random.default_rng(7), samples=2048)
+    errors, rays = [], []
+    for count in (0, len(lamps)):
+        tracer.rays = 0
+        light, full = adaptive_direct(_direct(lamps, tracer), pts, nrm, pix, (H, W), frame=3, samples=32,
+                                      lamps=count)
+        rays.append(tracer.rays)
+        errors.append(np.abs(light - ref).sum() / ref.sum())
+        assert (light >= 0).all()
+    assert rays[1] < 0.8 * rays[0], rays
+    assert errors[1] < 1.15 * errors[0], errors
