@@ -38,7 +38,7 @@ import numpy as np
 from . import sh
 from .evaluate import HitLookup, corner_weights
 from .levels import hit_lookup
-from .lights import _onb, concentric_disk, direct_irradiance, stratified_uv
+from .lights import HIT_LAMP_BUDGET, _onb, concentric_disk, direct_irradiance, stratified_uv
 from .sampling import frame_rng
 from .screen_light import ScreenLight
 from .settings import AO_ONLY, MULTI_BOUNCE
@@ -328,7 +328,7 @@ def _lamp_light_at_hits(system, screen: ScreenLight | None, position: np.ndarray
     eps = float(np.float32(tracer.epsilon))
     if screen is None or not scene.lights:
         return direct_irradiance(scene.lights, position, normal, tracer, rng, samples=s.light_samples,
-                                 epsilon=eps, sun_disc=False)
+                                 epsilon=eps, sun_disc=False, lamp_budget=HIT_LAMP_BUDGET)
     found, light = screen.lookup(position, normal)
     e_in = np.empty((position.shape[0], 3), np.float32)
     e_in[found] = light
@@ -337,7 +337,8 @@ def _lamp_light_at_hits(system, screen: ScreenLight | None, position: np.ndarray
     rest = np.flatnonzero(rest)
     if rest.size:
         e_in[rest] = direct_irradiance(scene.lights, np.take(position, rest, axis=0), np.take(normal, rest, axis=0),
-                                       tracer, rng, samples=s.light_samples, epsilon=eps, sun_disc=False)
+                                       tracer, rng, samples=s.light_samples, epsilon=eps, sun_disc=False,
+                                       lamp_budget=HIT_LAMP_BUDGET)
     return e_in
 
 

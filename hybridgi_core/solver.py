@@ -42,7 +42,7 @@ from . import sh
 from .cache import CellSamples, IrradianceCache
 from .evaluate import HitLookup, irradiance_rows, monomials
 from .lampcache import LampLightTable
-from .lights import direct_irradiance
+from .lights import HIT_LAMP_BUDGET, direct_irradiance
 from .sampling import frame_rng, octahedral_texel, spherical_fibonacci
 from .settings import AO_ONLY, MULTI_BOUNCE
 
@@ -372,7 +372,7 @@ class GISolver:
             # receiver), as the updater's: the cache is low frequency.
             e = direct_irradiance(self.scene.lights, pos, chunk.normal[stale], self.tracer, rng,
                                   samples=s.light_samples, epsilon=float(self.epsilon), sun_disc=False,
-                                  solid_angle=False)
+                                  solid_angle=False, lamp_budget=HIT_LAMP_BUDGET)
             chunk.e_lamp[:, stale] = e.T
         elif stale.size:
             chunk.e_lamp[:, stale] = 0.0

@@ -19,7 +19,7 @@ from . import sh
 from .blas_threads import single_threaded_blas
 from .cache import CellSamples, IrradianceCache
 from .evaluate import HitLookup
-from .lights import direct_irradiance
+from .lights import HIT_LAMP_BUDGET, direct_irradiance
 from .sampling import frame_directions, frame_rng, octahedral_texel
 from .settings import AO_ONLY, MULTI_BOUNCE
 from .shading import SurfaceTable
@@ -188,6 +188,7 @@ class CacheUpdater:
             e_in = direct_irradiance(
                 self.scene.lights, position, surf.normal, self.tracer, rng,
                 samples=s.light_samples, epsilon=float(self.epsilon), sun_disc=False, solid_angle=False,
+                lamp_budget=HIT_LAMP_BUDGET,
             ).T
             shadow_ms = (time.perf_counter() - ts) * 1e3
             # Further bounces read the cache at the hit: the sky/emission band gives the second

@@ -700,3 +700,37 @@ def test_receivers_below_the_whole_lamp_are_skipped_only_where_no_sample_lights_
     front = z0 < 0
     assert (cos[~keep & front] <= 0).all()
     assert (cos[keep & front] > 0).any(axis=1).mean() > 0.2  # grazing: a sliver of the lamp above
+
+
+def test_lamp_budget_picks_lamps_without_bias_and_traces_fewer_rays():
+    """direct_irradiance(lamp_budget=k): each receiver shades k of the sampled lamps, drawn in
+    proportion to their rough light and weighted by one over their probability: the mean over
+    many seeds is every lamp's light (unbiased), with about k / lamps of the shadow rays; a budget
+    of at least the lamp count changes nothing."""
+    spot = Light("SPOT", np.ones(3), 80.0, translation(1.0, -1.0, 2.0), radius=0.1, spot_size=0.8)
+    lamps = [point_light((x, y, 1.9), radius=0.05) for x in (-1.5, 0.5) for y in (-1.0, 1.0)]
+    lamps += [spot, area_light(translation(-1.0, 1.5, 2.0), power=150.0),
+              sun_light((0.3, 0.2, -1.0), strength=2.0, angle=0.05),
+              sun_light((-0.2, 0.1, -1.0), strength=1.0)]  # axial: always shaded
+    tracer = TriangleTracer(quad((0.0, 0.0, 1.0), (0.6, 0, 0), (0, 0.6, 0)))
+    ys, xs = np.meshgrid(np.linspace(-3, 3, 24), np.linspace(-3, 3, 24), indexing="ij")
+    pts = np.column_stack([xs.ravel(), ys.ravel(), np.zeros(xs.size)]).astype(np.float32)
+    nrm = np.tile(np.float32([0, 0, 1]), (pts.shape[0], 1))
+    runs = 96
+    full = np.zeros((pts.shape[0], 3))
+    picked = np.zeros((pts.shape[0], 3))
+    tracer.rays = 0
+    for seed in range(runs):
+        full += direct_irradiance(lamps, pts, nrm, tracer, np.random.default_rng(seed), samples=2)
+    full_rays, tracer.rays = tracer.rays, 0
+    for seed in range(runs):
+        picked += direct_irradiance(lamps, pts, nrm, tracer, np.random.default_rng(seed), samples=2, lamp_budget=2)
+    assert tracer.rays < 0.45 * full_rays, (tracer.rays, full_rays)
+    full, picked = full / runs, picked / runs
+    assert abs(picked.sum() / full.sum() - 1.0) < 0.01
+    assert np.abs(picked - full).sum() / full.sum() < 0.03
+    rng = np.random.default_rng(3)
+    np.testing.assert_array_equal(direct_irradiance(lamps, pts, nrm, tracer, np.random.default_rng(3), samples=2),
+                                  direct_irradiance(lamps, pts, nrm, tracer, rng, samples=2, lamp_budget=7))
+    with pytest.raises(ValueError, match="lamp_budget"):
+        direct_irradiance(lamps, pts, nrm, tracer, rng, samples=2, lamp_budget=2, partial=np.zeros(pts.shape[0], bool))
