@@ -821,6 +821,20 @@ def _area_chunk_by_area(shape, radiance, p, nrm, tracer, u, v, samples, epsilon,
 # --------------------------------------------------------------------------------------------
 
 
+def _bump_weight(light: Light, pts: np.ndarray, nrm: np.ndarray, smooth: np.ndarray | None):
+    """(m,) float32 bump shadowing weight of a lamp's light at receivers (1 without `smooth`)."""
+    if smooth is None:
+        return np.ones(pts.shape[0], _F32)
+    from .bump import shadowing_term  # noqa: PLC0415  (bump imports nothing from here)
+
+    if light.kind == "SUN":
+        wi = np.broadcast_to(-light.direction.astype(_F32), pts.shape)
+    else:
+        wi = light.position[None, :] - pts
+        wi = wi / np.maximum(np.linalg.norm(wi, axis=1, keepdims=True), _F32(1e-30))
+    return shadowing_term(smooth, nrm, np.ascontiguousarray(wi, _F32))
+
+
 def direct_irradiance(
     lights: list[Light],
     points: np.ndarray,
@@ -834,6 +848,7 @@ def direct_irradiance(
     solid_angle: bool = True,
     unshadowed: np.ndarray | None = None,
     exact: np.ndarray | None = None,
+    smooth: np.ndarray | None = None,
 ) -> np.ndarray:
     """Irradiance from the lamps at one-sided Lambertian receivers, with shadow rays.
 
@@ -866,6 +881,10 @@ def direct_irradiance(
         read where present, written where computed: a second pass over the same receivers
         (`penumbra.adaptive_direct`'s penumbra pass) reuses the first pass's (~1 us per receiver
         and lamp) and gets the same result. Computed only where the ratio estimator uses it.
+    smooth : optional (n, 3) float32 smooth surface normals under receivers whose `normals` a
+        normal map bent (`bump.smooth_normals`): each lamp's light is weighed by Cycles' bump
+        shadowing term towards the lamp's centre (`bump.shadowing_term`; exact for suns and
+        point lamps, the centre's direction for area lamps and the sun's disc).
 
     Returns
     -------
@@ -901,8 +920,11 @@ def direct_irradiance(
     # Whole-array test first: the per-row reduction over 3 columns is slow and rarely needed.
     if not (np.isfinite(pts).all() and np.isfinite(nrm).all()):
         sel = np.nonzero(np.isfinite(pts).all(axis=1) & np.isfinite(nrm).all(axis=1))[0]
+    if smooth is not None:
+        smooth = np.asarray(smooth, _F32).reshape(-1, 3)
     if sel is not None:
         pts, nrm = pts[sel], nrm[sel]
+        smooth = None if smooth is None else smooth[sel]
     known = exact if exact is None or sel is None else exact[sel]
     acc = np.zeros((pts.shape[0], 3), _F32)
     found = np.zeros(pts.shape[0], bool) if partial is not None else None
@@ -912,9 +934,10 @@ def direct_irradiance(
     for lt, ax in zip(active, axial, strict=True):
         if ax:
             opened = [] if acc_open is not None else None
-            acc += _sun_axis(lt, pts, nrm, tracer, epsilon, opened)[:, None] * lt.color[None, :]
+            bump = _bump_weight(lt, pts, nrm, smooth)
+            acc += (_sun_axis(lt, pts, nrm, tracer, epsilon, opened) * bump)[:, None] * lt.color[None, :]
             if opened:
-                acc_open += opened[0][:, None] * lt.color[None, :]
+                acc_open += (opened[0] * bump)[:, None] * lt.color[None, :]
     sampled = [(i, lt) for i, (lt, ax) in enumerate(zip(active, axial, strict=True)) if not ax]
     step = max(1, CHUNK_RAYS // samples)
     for start in range(0, pts.shape[0] if sampled else 0, step):
@@ -933,6 +956,11 @@ def direct_irradiance(
                                 None if known is None else known[start:stop, column[i]])
             else:
                 continue
+            if smooth is not None:
+                bump = _bump_weight(lt, pts[start:stop], nrm[start:stop], smooth[start:stop])
+                e = e * bump
+                if opened:
+                    opened[0] = opened[0] * bump
             acc[start:stop] += e[:, None] * lt.color[None, :]
             if opened:
                 acc_open[start:stop] += opened[0][:, None] * lt.color[None, :]

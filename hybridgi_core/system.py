@@ -11,6 +11,7 @@ import time
 
 import numpy as np
 
+from .bump import has_normal_maps, smooth_normals
 from .cache import IrradianceCache
 from .cutout import Cutouts
 from .evaluate import Gathered, corner_visibility, gather
@@ -358,9 +359,13 @@ class GISystem:
         lights = self.scene.lights
         n = int(np.asarray(points).reshape(-1, 3).shape[0])
         per_block = max(1, DIRECT_BLOCK_RAYS // samples)
+        # Normals a normal map bent are lit as Cycles lights them (`bump.py`): the smooth surface
+        # normal under each point comes from the ray mesh.
+        smooth = (smooth_normals(self.surfaces, self.tracer, points, normals, eps)
+                  if n and lights and has_normal_maps(self.scene) else None)
         if n <= per_block or not lights:
             return direct_irradiance(lights, points, normals, self.tracer, rng, samples=samples, epsilon=eps,
-                                     partial=partial, unshadowed=unshadowed, exact=exact)
+                                     partial=partial, unshadowed=unshadowed, exact=exact, smooth=smooth)
         points = np.asarray(points, np.float32).reshape(-1, 3)
         normals = np.asarray(normals, np.float32).reshape(-1, 3)
         starts = range(0, n, per_block)
@@ -368,7 +373,8 @@ class GISystem:
             (direct_irradiance, (lights, points[a : a + per_block], normals[a : a + per_block], self.tracer, child,
                                  samples, eps), {"partial": None if partial is None else partial[a : a + per_block],
                                                  "unshadowed": None if unshadowed is None else unshadowed[a : a + per_block],
-                                                 "exact": None if exact is None else exact[a : a + per_block]})
+                                                 "exact": None if exact is None else exact[a : a + per_block],
+                                                 "smooth": None if smooth is None else smooth[a : a + per_block]})
             for a, child in zip(starts, rng.spawn(len(starts)), strict=True)]))
 
     def _blocks(self, calls: list) -> list:
