@@ -317,6 +317,17 @@ def test_viewport_draws_the_normal_map(bpy_module, gpu_context, ridges):
         assert np.percentile(normal[floor][:, 0], 95) > 0.5 and np.percentile(normal[floor][:, 0], 5) < -0.5
         luma = image[..., :3] @ np.array([0.2126, 0.7152, 0.0722], np.float32)
         assert np.percentile(luma[floor], 90) > 3.0 * max(np.percentile(luma[floor], 10), 1e-3)
+        # Turning the floor 90 degrees about z in the viewport turns its tangents with it.
+        view.follow_edits()
+        bpy.data.objects["Plane"].rotation_euler.z = math.radians(90)
+        bpy.context.view_layer.update()
+        view.draw()
+        view.converge()
+        view.draw()
+        normal = gbuffer.read("normal")
+        floor = (gbuffer.read("position")[..., 2] < 0.005) & (normal[..., 3] > 0.5)
+        assert np.percentile(np.abs(normal[floor][:, 0]), 95) < 0.1
+        assert np.percentile(normal[floor][:, 1], 95) > 0.5 and np.percentile(normal[floor][:, 1], 5) < -0.5
     finally:
         view.close()
         modules.overlay.close_all()
