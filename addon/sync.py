@@ -429,7 +429,8 @@ class _SnapshotBuilder:
         """`local` with the tangents of the normal-map UV map its materials `used` (global
         indices) follow, or `local` itself when none of them has a normal map (one computation per
         mesh and UV map, shared by its instances)."""
-        maps = [self.materials[i].normal_map for i in used if self.materials[i].normal_map is not None]
+        maps = [self.materials[i].normal_map for i in used
+                if self.materials[i].normal_map is not None and self.materials[i].normal_map.texture is not None]
         if not maps:
             return local
         uv_map = maps[0].uv_map
@@ -579,44 +580,80 @@ COMBINE_NODES = frozenset({"COMBXYZ", "COMBRGB", "COMBINE_COLOR"})
 def _normal_map(shader, textures, name):
     """`snapshot.NormalMap` of a BSDF's Normal input: a Normal Map node in tangent space whose
     Color is an Image Texture (directly, or through Separate -> Combine nodes that swap or flip
-    channels: 1 - x by a Math Subtract or an Invert). None when the input is unlinked; anything
-    else (Bump, object / world space, other nodes) keeps the smooth normal, noted once a sync."""
+    channels: 1 - x by a Math Subtract or an Invert), and / or a Bump node over an image's height
+    (`_bump_map`; its Normal may be such a map). None when the input is unlinked; anything else
+    (object / world space maps, other nodes) keeps the smooth normal, noted once a sync."""
     socket = _input(shader, "Normal")
     if socket is None or not socket.is_linked:
         return None
     node, _output = _source(socket)
     if node is None:
         return None
+    bump = None
     if node.type == "BUMP":
-        _note(textures, name, node, "Bump (rendered with the smooth normal)")
-        return None
+        bump = _bump_map(node, textures, name)
+        if bump is None:
+            return None
+        node, _output = _source(node.inputs["Normal"])
+        if node is None:
+            return snap.NormalMap(bump=bump)
+    only_bump = None if bump is None else snap.NormalMap(bump=bump)
     if node.type != "NORMAL_MAP":
         _note(textures, name, node, f"{node.bl_idname} on a Normal input (rendered with the smooth normal)")
-        return None
+        return only_bump
     if node.space != "TANGENT":
         _note(textures, name, node, f"{node.space.lower().replace('_', ' ')} space normal map (rendered with the smooth normal)")
-        return None
+        return only_bump
     strength = _constant_value(node.inputs["Strength"], name)
     colour = node.inputs["Color"]
     if not colour.is_linked:
-        return None  # the default colour (0.5, 0.5, 1) is the unbent normal
+        return only_bump  # the default colour (0.5, 0.5, 1) is the unbent normal
     found = _image_channels(colour)
     if found is None:
         source = _linked_node(colour)
         _note(textures, name, node, f"normal map colour from {source.bl_idname if source else 'a muted link'} "
               "(rendered with the smooth normal)")
-        return None
+        return only_bump
     image_node, channels, flips = found
     pixels = textures.get(image_node.image, name)
     if pixels is None:
-        return None
+        return only_bump
     if not _direct_image(image_node, "Color"):
         _note(textures, name, node, "normal map image through a mapping or projection (rendered with the smooth normal)")
-        return None
+        return only_bump
     if channels != (0, 1, 2) or any(flips):
         pixels = pixels[..., list(channels)]
         pixels = np.where(np.asarray(flips)[None, None, :], np.float32(1.0) - pixels, pixels).astype(np.float32)
-    return snap.NormalMap(texture=pixels, strength=strength, uv_map=node.uv_map)
+    return snap.NormalMap(texture=pixels, strength=strength, uv_map=node.uv_map, bump=bump)
+
+
+def _bump_map(node, textures, name):
+    """`snapshot.BumpMap` of a Bump node whose Height is an Image Texture's Color (its Rec.709
+    luminance, as Cycles turns a colour into a float) or Alpha, read through the mesh's UV map;
+    None (noted) for any other height."""
+    source, output = _source(node.inputs["Height"])
+    if source is None:
+        return None  # a constant height bends nothing
+    vector = source.inputs.get("Vector") if source is not None and source.type == "TEX_IMAGE" else None
+    direct = (source is not None and source.type == "TEX_IMAGE" and source.image is not None
+              and output in ("Color", "Alpha") and (vector is None or _source(vector)[0] is None)
+              and source.projection == "FLAT" and source.extension == "REPEAT")
+    if not direct:
+        what = "an image through a mapping or projection" if source.type == "TEX_IMAGE" else source.bl_idname
+        _note(textures, name, node, f"Bump height from {what} (rendered with the smooth normal)")
+        return None
+    if output == "Alpha":
+        height = textures.alpha(source.image, name)
+        if height is None:
+            height = np.ones(tuple(source.image.size)[::-1], np.float32)  # no alpha: 1, flat
+    else:
+        colour = textures.get(source.image, name)
+        if colour is None:
+            return None
+        height = (colour @ surface_mix.GRAY.astype(np.float32)).astype(np.float32)
+    distance = _constant_value(node.inputs["Distance"], name)
+    return snap.BumpMap(height=height, strength=_constant_value(node.inputs["Strength"], name),
+                        distance=-distance if node.invert else distance)
 
 
 def _image_channels(socket):

@@ -97,27 +97,57 @@ class Geometry:
 
 @dataclass
 class NormalMap:
-    """A tangent-space normal map (Cycles' Normal Map node, Tangent Space, fed by an image).
+    """What bends a material's shading normal: a tangent-space normal map (Cycles' Normal Map
+    node, Tangent Space, fed by an image) and / or a Bump node over an image's height.
 
-    texture : (h, w, 3) float32, the image's values as Cycles reads them (Non-Color: raw), row 0
-        at v = 0; the shading normal is T x + B y + N z with (x, y, z) = 2 texture - 1, in the
-        frame `Geometry.tangents` gives, then mixed with the smooth normal by `strength`
+    texture : (h, w, 3) float32 or None, the map's values as Cycles reads them (Non-Color: raw),
+        row 0 at v = 0; the shading normal is T x + B y + N z with (x, y, z) = 2 texture - 1, in
+        the frame `Geometry.tangents` gives, then mixed with the smooth normal by `strength`
         (Cycles' svm_node_normal_map: N + (mapped - N) max(strength, 0), renormalized)
-    strength : the node's Strength
+    strength : the Normal Map node's Strength
     uv_map : the UV map its tangents follow ("" = the mesh's active render UV map)
+    bump : `BumpMap` applied after the map (a Bump node whose Normal is the map's), or None
     """
 
-    texture: np.ndarray
+    texture: np.ndarray | None = None
     strength: float = 1.0
     uv_map: str = ""
+    bump: BumpMap | None = None
 
     def __post_init__(self) -> None:
-        self.texture = fit_texture(self.texture, MAX_TEXTURE_SIZE, "normal map")
+        if self.texture is not None:
+            self.texture = fit_texture(self.texture, MAX_TEXTURE_SIZE, "normal map")
         self.strength = float(self.strength) if np.isfinite(self.strength) else 1.0
 
     def key(self) -> tuple:
-        """What identifies it for change detection (the texture's sum, not its bytes)."""
-        return self.texture.shape, float(self.texture.sum(dtype=np.float64)), self.strength, self.uv_map
+        """What identifies it for change detection (the textures' sums, not their bytes)."""
+        texture = None if self.texture is None else (self.texture.shape, float(self.texture.sum(dtype=np.float64)))
+        return texture, self.strength, self.uv_map, None if self.bump is None else self.bump.key()
+
+
+@dataclass
+class BumpMap:
+    """Cycles' Bump node over an image's height (svm_node_set_bump): the shading normal becomes
+    normalize(N - distance x the height's gradient along the surface), mixed with N by strength.
+
+    height : (h, w) float32, what the image gives the node's Height input (a colour's Rec.709
+        luminance, or its alpha), row 0 at v = 0
+    strength : the node's Strength (at least 0, as Cycles clamps it)
+    distance : the node's Distance in metres, negated when the node inverts
+    """
+
+    height: np.ndarray
+    strength: float = 1.0
+    distance: float = 1.0
+
+    def __post_init__(self) -> None:
+        height = np.asarray(self.height, np.float32)
+        self.height = fit_texture(np.repeat(height[..., None], 3, axis=2), MAX_TEXTURE_SIZE, "bump map")[..., 0].copy()
+        self.strength = max(float(self.strength), 0.0) if np.isfinite(self.strength) else 1.0
+        self.distance = float(self.distance) if np.isfinite(self.distance) else 0.0
+
+    def key(self) -> tuple:
+        return self.height.shape, float(self.height.sum(dtype=np.float64)), self.strength, self.distance
 
 
 @dataclass

@@ -4,7 +4,9 @@
  * `weight_tx` row `material_row` holds the diffuse weight under the material's specular layer
  * against cos(normal, view) (specular.py: Cycles' closure_layering_weight). Bit 4: `normal_tx` is
  * a tangent-space normal map, applied in the frame of `world_tan` (xyz tangent, w bitangent sign)
- * as Cycles' Normal Map node applies it (svm_node_normal_map), `normal_strength` its Strength. */
+ * as Cycles' Normal Map node applies it (svm_node_normal_map), `normal_strength` its Strength.
+ * Bit 8: `bump_tx` (red) is a Bump node's height, applied after the map as Cycles' svm_node_set_bump
+ * with `bump_strength` and `bump_distance` (negative: inverted). */
 
 /* The diffuse weight at cosine mu, linear between the table's samples at i / (n - 1). */
 float diffuse_weight(float mu)
@@ -97,12 +99,57 @@ vec3 ensure_valid_specular_reflection(vec3 Ng, vec3 I, vec3 N)
   return Nx * X + Nz * Ng;
 }
 
+/* The shading normal N made valid against the facet (Cycles' Ng: the facet's normal on the
+ * camera's side) for the view direction I. */
+vec3 valid_reflection(vec3 facet, vec3 I, vec3 N)
+{
+  float facet_len = length(facet);
+  if (facet_len <= 0.0) {
+    return N;
+  }
+  vec3 ng = facet / facet_len;
+  if (dot(ng, I) < 0.0) {
+    ng = -ng;
+  }
+  return ensure_valid_specular_reflection(ng, I, N);
+}
+
+/* Cycles' svm_node_set_bump over the height in `bump_tx`: the surface gradient of the height from
+ * its UV gradient (central differences over half a texel or the pixel's footprint, whichever is
+ * wider) and the screen derivatives of UV and position (Cycles' ray differentials), then
+ * normalize(|det| N - distance sign(det) surfgrad), mixed with N by the strength. */
+vec3 bumped_normal(vec3 n_in, vec3 dpdx, vec3 dpdy, vec2 du, vec2 dv)
+{
+  vec2 size = vec2(textureSize(bump_tx, 0));
+  vec2 h_step = max(0.5 / size, 0.5 * max(abs(du), abs(dv)));
+  float hu = (sample_repeat_bilinear4(bump_tx, tex_uv + vec2(h_step.x, 0.0)).r -
+              sample_repeat_bilinear4(bump_tx, tex_uv - vec2(h_step.x, 0.0)).r) / (2.0 * h_step.x);
+  float hv = (sample_repeat_bilinear4(bump_tx, tex_uv + vec2(0.0, h_step.y)).r -
+              sample_repeat_bilinear4(bump_tx, tex_uv - vec2(0.0, h_step.y)).r) / (2.0 * h_step.y);
+  float dhdx = hu * du.x + hv * du.y;
+  float dhdy = hu * dv.x + hv * dv.y;
+  vec3 rx = cross(dpdy, n_in);
+  vec3 ry = cross(n_in, dpdx);
+  float det = dot(dpdx, rx);
+  vec3 surfgrad = dhdx * rx + dhdy * ry;
+  vec3 bent = abs(det) * n_in - bump_distance * sign(det) * surfgrad;
+  float len = length(bent);
+  if (len <= 0.0) {
+    return n_in;
+  }
+  vec3 mixed = bump_strength * (bent / len) + (1.0 - bump_strength) * n_in;
+  float mixed_len = length(mixed);
+  return (mixed_len > 0.0) ? mixed / mixed_len : n_in;
+}
+
 void main()
 {
   /* Derivatives before any branch: they are undefined in non-uniform control flow. */
   vec2 du = dFdx(tex_uv);
   vec2 dv = dFdy(tex_uv);
-  vec3 facet = cross(dFdx(world_pos), dFdy(world_pos));
+  vec3 dpdx = dFdx(world_pos);
+  vec3 dpdy = dFdy(world_pos);
+  vec3 facet = cross(dpdx, dpdy);
   vec3 n = normalize(world_nor);
   /* Cycles flips the shading normal of back faces so it faces the camera. */
   if (!gl_FrontFacing) {
@@ -134,16 +181,10 @@ void main()
       float mixed_len = length(mixed);
       mapped = (mixed_len > 1e-12) ? mixed / mixed_len : n;
     }
-    /* The facet's normal on the camera's side (Cycles' Ng of the hit). */
-    float facet_len = length(facet);
-    if (facet_len > 0.0) {
-      vec3 ng = facet / facet_len;
-      if (dot(ng, to_eye) < 0.0) {
-        ng = -ng;
-      }
-      mapped = ensure_valid_specular_reflection(ng, to_eye, mapped);
-    }
-    n = mapped;
+    n = valid_reflection(facet, to_eye, mapped);
+  }
+  if ((has_texture & 8) != 0 && uv_ok > 0.999) {
+    n = valid_reflection(facet, to_eye, bumped_normal(n, dpdx, dpdy, du, dv));
   }
   albedo *= diffuse_weight(dot(n, to_eye));
   out_albedo = vec4(albedo, 1.0);
