@@ -97,6 +97,7 @@ class _LocalMesh:
 
     positions, normals : (L, 3) float32; uvs : (L, 2) float32 (NaN without a UV map)
     triangles : (T, 3) int32 corner indices; slot : (T,) int32 material slot of each triangle
+    tangents : (L, 4) float32 object-space tangent and bitangent sign (`mesh_tangents`), or None
     """
 
     positions: np.ndarray
@@ -104,6 +105,7 @@ class _LocalMesh:
     uvs: np.ndarray
     triangles: np.ndarray
     slot: np.ndarray
+    tangents: np.ndarray | None = None
 
 
 def mesh_arrays(mesh):
@@ -156,6 +158,83 @@ def mesh_arrays(mesh):
     )
 
 
+def mesh_tangents(mesh, uv_map=""):
+    """(L, 4) float32 per-corner tangent and bitangent sign of `mesh` for the UV map `uv_map`
+    ("" = the active render map), as Blender computes them for Cycles' Normal Map node
+    (MikkTSpace, `Mesh.calc_tangents`); None when the mesh has no such UV map.
+
+    MikkTSpace needs triangles and quads: a mesh with n-gons takes per-triangle UV tangents
+    averaged over the corners that share a vertex and a UV (`uv_tangents`), near it on smooth
+    surfaces."""
+    layer = (mesh.uv_layers.get(uv_map) if uv_map
+             else next((layer for layer in mesh.uv_layers if layer.active_render), mesh.uv_layers.active))
+    if layer is None:
+        return None
+    n_corner = len(mesh.loops)
+    try:
+        mesh.calc_tangents(uvmap=layer.name)
+    except RuntimeError:  # n-gons
+        return _ngon_tangents(mesh, layer)
+    tangents = np.empty((n_corner, 4), np.float32)
+    vec = np.empty(n_corner * 3, np.float32)
+    mesh.loops.foreach_get("tangent", vec)
+    tangents[:, :3] = vec.reshape(-1, 3)
+    sign = np.empty(n_corner, np.float32)
+    mesh.loops.foreach_get("bitangent_sign", sign)
+    tangents[:, 3] = sign
+    mesh.free_tangents()
+    return tangents
+
+
+def _ngon_tangents(mesh, layer):
+    n_corner = len(mesh.loops)
+    corner_vert = np.empty(n_corner, np.int32)
+    mesh.attributes[".corner_vert"].data.foreach_get("value", corner_vert)
+    vert_pos = np.empty(len(mesh.vertices) * 3, np.float32)
+    mesh.attributes["position"].data.foreach_get("vector", vert_pos)
+    triangles = np.empty(len(mesh.loop_triangles) * 3, np.int32)
+    mesh.loop_triangles.foreach_get("loops", triangles)
+    normals = np.empty(n_corner * 3, np.float32)
+    mesh.corner_normals.foreach_get("vector", normals)
+    uvs = np.empty(n_corner * 2, np.float32)
+    layer.uv.foreach_get("vector", uvs)
+    return uv_tangents(vert_pos.reshape(-1, 3)[corner_vert], normals.reshape(-1, 3), uvs.reshape(-1, 2),
+                       triangles.reshape(-1, 3), corner_vert)
+
+
+def uv_tangents(positions, normals, uvs, triangles, corner_vert):
+    """(L, 4) float32 tangents of corners (positions, normals (L, 3), uvs (L, 2)) from the UV
+    gradients of the triangles (T, 3) they belong to, summed over the corners that share a vertex
+    (`corner_vert` (L,)) and a UV, made perpendicular to each corner's normal; w is the sign of
+    the UV map's handedness. Rows of zeros where the UVs give no direction."""
+    p = positions[triangles].astype(np.float64)
+    t = uvs[triangles].astype(np.float64)
+    e1, e2 = p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]
+    d1, d2 = t[:, 1] - t[:, 0], t[:, 2] - t[:, 0]
+    det = d1[:, 0] * d2[:, 1] - d2[:, 0] * d1[:, 1]
+    # dP/du and dP/dv, unnormalized (weighted by area, as MikkTSpace's sum is by angle).
+    sgn = np.where(det < 0, -1.0, 1.0)[:, None]
+    tu = (e1 * d2[:, 1:2] - e2 * d1[:, 1:2]) * sgn
+    tv = (e2 * d1[:, 0:1] - e1 * d2[:, 0:1]) * sgn
+    # Corners welded by vertex and UV share one sum.
+    key = np.c_[corner_vert.astype(np.float64), uvs.astype(np.float64)]
+    _, group = np.unique(key, axis=0, return_inverse=True)
+    group = group.reshape(-1)
+    su = np.zeros((group.max(initial=-1) + 1, 3))
+    sv = np.zeros_like(su)
+    for c in range(3):
+        np.add.at(su, group[triangles[:, c]], tu)
+        np.add.at(sv, group[triangles[:, c]], tv)
+    n = normals.astype(np.float64)
+    u = su[group] - n * np.sum(su[group] * n, axis=1, keepdims=True)
+    length = np.linalg.norm(u, axis=1, keepdims=True)
+    out = np.zeros((positions.shape[0], 4), np.float32)
+    ok = (length[:, 0] > 1e-20) & np.isfinite(length[:, 0])
+    out[ok, :3] = u[ok] / length[ok]
+    out[ok, 3] = np.where(np.sum(np.cross(n[ok], u[ok]) * sv[group][ok], axis=1) < 0, -1.0, 1.0)
+    return out
+
+
 def transformed(local, matrices, slot_to_material, first_object):
     """`Geometry` of instances of `local`, one per (4, 4) matrix of `matrices` (I, 4, 4), finite,
     instance i with object index first_object + i: a scattered mesh (thousands of rocks or leaves
@@ -177,6 +256,16 @@ def transformed(local, matrices, slot_to_material, first_object):
     normals = (np.matmul(local.normals, _cofactor(linear).transpose(0, 2, 1)) * sign).astype(np.float32)
     length = np.sqrt(np.einsum("ilk,ilk->il", normals, normals))[..., None]
     normals = np.divide(normals, length, out=np.zeros_like(normals), where=length > 0)
+    tangents = None
+    if local.tangents is not None:
+        # Tangents are surface directions: they follow the linear map itself. A mirroring
+        # transform swaps the frame's handedness, so the bitangent sign flips with det.
+        tangents = np.empty((count, corners, 4), np.float32)
+        vec = np.matmul(local.tangents[:, :3], linear.transpose(0, 2, 1))
+        length = np.sqrt(np.einsum("ilk,ilk->il", vec, vec))[..., None]
+        tangents[..., :3] = np.divide(vec, length, out=np.zeros_like(vec), where=length > 0)
+        tangents[..., 3] = local.tangents[None, :, 3] * np.where(det < 0, -1.0, 1.0)[:, None]
+        tangents = tangents.reshape(-1, 4)
     n_tri = local.triangles.shape[0]
     triangles = np.empty((count, n_tri, 3), np.int32)
     triangles[:] = local.triangles
@@ -191,6 +280,7 @@ def transformed(local, matrices, slot_to_material, first_object):
         uvs=local.uvs if count == 1 else np.tile(local.uvs, (count, 1)),
         material_index=np.tile(np.asarray(slot_to_material, np.int32)[slots], count),
         object_index=np.repeat(np.arange(first_object, first_object + count, dtype=np.int32), n_tri),
+        tangents=tangents,
     )
 
 
@@ -221,6 +311,7 @@ class _SnapshotBuilder:
         self.materials = []
         self._material_index = {}
         self._meshes = {}  # evaluated mesh pointer -> _LocalMesh | None, shared by its instances
+        self._tangent_meshes = {}  # (mesh pointer, UV map) -> the _LocalMesh with its tangents
         self._textures = _TextureCache()
 
     def add_instance(self, instance):
@@ -326,12 +417,32 @@ class _SnapshotBuilder:
         indices = [self._material(material) if s not in baked
                    else self._baked_material(material, obj, local, slots, s, baked[s], dynamic)
                    for s, material in enumerate(materials)]
+        local = self._with_tangents(obj, local, [indices[s] for s in np.unique(slots).tolist()])
         if baked:
             key = (obj.data.as_pointer(), tuple(sorted(baked)))
             if key not in self._atlas_meshes:
                 self._atlas_meshes[key] = with_atlas(local, slots, sorted(baked))
             local = self._atlas_meshes[key]
         return indices, local
+
+    def _with_tangents(self, obj, local, used):
+        """`local` with the tangents of the normal-map UV map its materials `used` (global
+        indices) follow, or `local` itself when none of them has a normal map (one computation per
+        mesh and UV map, shared by its instances)."""
+        maps = [self.materials[i].normal_map for i in used
+                if self.materials[i].normal_map is not None and self.materials[i].normal_map.texture is not None]
+        if not maps:
+            return local
+        uv_map = maps[0].uv_map
+        if any(m.uv_map != uv_map for m in maps[1:]):
+            log.warning("object %r: normal maps on different UV maps; all follow %r", obj.name, uv_map or "the active one")
+        key = (obj.data.as_pointer(), uv_map)
+        if key not in self._tangent_meshes:
+            tangents = mesh_tangents(obj.data, uv_map)
+            if tangents is None:
+                log.warning("object %r: no UV map %r for its normal map; rendered without it", obj.name, uv_map)
+            self._tangent_meshes[key] = local if tangents is None else replace(local, tangents=tangents)
+        return self._tangent_meshes[key]
 
     def _baked_material(self, material, obj, local, slots, slot, sockets, dynamic=False):
         """Index of `material` on the triangles of `slot` of this mesh, its bake queued."""
@@ -362,6 +473,11 @@ class _SnapshotBuilder:
             # quiet: a bake that failed warned itself, naming the material and the node.
             converted = material_from_blender(material, self._textures, baked=baked, pending=True)
             converted.bake_id = bake_id
+            if converted.normal_map is not None:
+                # Its triangles read the bake's atlas UVs, not the map's.
+                _note(self._textures, material.name, material.node_tree.nodes[jobs[0].node],
+                      "normal map on a baked colour (rendered with the smooth normal)")
+                converted.normal_map = None
             self.materials[index] = converted
 
     def _material(self, material):
@@ -405,7 +521,8 @@ def material_from_blender(material, textures=None, baked=None, pending=False):
     if specular is not None and sp.surface_lobes(specular):
         textures.glossy.add(name)
     return snap.Material(name=name, base_color=part.base.astype(np.float32), texture=part.texture,
-                         emission=part.emission.astype(np.float32), alpha=part.alpha, specular=specular)
+                         emission=part.emission.astype(np.float32), alpha=part.alpha, specular=specular,
+                         normal_map=part.normal)
 
 
 def _shader_surface(shader, textures, name, depth=0):
@@ -432,10 +549,11 @@ def _shader_surface(shader, textures, name, depth=0):
         diffuse = sp.diffuse_weight(layer, sp.view_grid())
         return surface_mix.SurfacePart(base=base, texture=texture, emission=emission,
                                        alpha=_alpha_map(shader.inputs["Alpha"], textures, name), diffuse=diffuse,
-                                       lobes=sp.layer_lobes(layer), layer=layer)
+                                       lobes=sp.layer_lobes(layer), layer=layer,
+                                       normal=_normal_map(shader, textures, name))
     if kind == "BSDF_DIFFUSE":
         base, texture = _color_socket(shader.inputs["Color"], textures, name)
-        return surface_mix.SurfacePart(base=base, texture=texture)
+        return surface_mix.SurfacePart(base=base, texture=texture, normal=_normal_map(shader, textures, name))
     if kind == "EMISSION":
         emission = _constant_color(shader.inputs["Color"], name) * _constant_value(shader.inputs["Strength"], name)
         return surface_mix.SurfacePart(emission=emission)
@@ -451,6 +569,128 @@ def _shader_surface(shader, textures, name, depth=0):
     if kind in ("MIX_SHADER", "ADD_SHADER") and depth < 8:
         return _mix_surface(shader, kind, textures, name, depth)
     return None
+
+
+#: Nodes that pass an image's channels through unchanged when their outputs feed the matching
+#: inputs of a combining node (a swizzle or a flipped channel: OpenGL <-> DirectX maps).
+SEPARATE_NODES = frozenset({"SEPXYZ", "SEPRGB", "SEPARATE_COLOR"})
+COMBINE_NODES = frozenset({"COMBXYZ", "COMBRGB", "COMBINE_COLOR"})
+
+
+def _normal_map(shader, textures, name):
+    """`snapshot.NormalMap` of a BSDF's Normal input: a Normal Map node in tangent space whose
+    Color is an Image Texture (directly, or through Separate -> Combine nodes that swap or flip
+    channels: 1 - x by a Math Subtract or an Invert), and / or a Bump node over an image's height
+    (`_bump_map`; its Normal may be such a map). None when the input is unlinked; anything else
+    (object / world space maps, other nodes) keeps the smooth normal, noted once a sync."""
+    socket = _input(shader, "Normal")
+    if socket is None or not socket.is_linked:
+        return None
+    node, _output = _source(socket)
+    if node is None:
+        return None
+    bump = None
+    if node.type == "BUMP":
+        bump = _bump_map(node, textures, name)
+        if bump is None:
+            return None
+        node, _output = _source(node.inputs["Normal"])
+        if node is None:
+            return snap.NormalMap(bump=bump)
+    only_bump = None if bump is None else snap.NormalMap(bump=bump)
+    if node.type != "NORMAL_MAP":
+        _note(textures, name, node, f"{node.bl_idname} on a Normal input (rendered with the smooth normal)")
+        return only_bump
+    if node.space != "TANGENT":
+        _note(textures, name, node, f"{node.space.lower().replace('_', ' ')} space normal map (rendered with the smooth normal)")
+        return only_bump
+    strength = _constant_value(node.inputs["Strength"], name)
+    colour = node.inputs["Color"]
+    if not colour.is_linked:
+        return only_bump  # the default colour (0.5, 0.5, 1) is the unbent normal
+    found = _image_channels(colour)
+    if found is None:
+        source = _linked_node(colour)
+        _note(textures, name, node, f"normal map colour from {source.bl_idname if source else 'a muted link'} "
+              "(rendered with the smooth normal)")
+        return only_bump
+    image_node, channels, flips = found
+    pixels = textures.get(image_node.image, name)
+    if pixels is None:
+        return only_bump
+    if not _direct_image(image_node, "Color"):
+        _note(textures, name, node, "normal map image through a mapping or projection (rendered with the smooth normal)")
+        return only_bump
+    if channels != (0, 1, 2) or any(flips):
+        pixels = pixels[..., list(channels)]
+        pixels = np.where(np.asarray(flips)[None, None, :], np.float32(1.0) - pixels, pixels).astype(np.float32)
+    return snap.NormalMap(texture=pixels, strength=strength, uv_map=node.uv_map, bump=bump)
+
+
+def _bump_map(node, textures, name):
+    """`snapshot.BumpMap` of a Bump node whose Height is an Image Texture's Color (its Rec.709
+    luminance, as Cycles turns a colour into a float) or Alpha, read through the mesh's UV map;
+    None (noted) for any other height."""
+    source, output = _source(node.inputs["Height"])
+    if source is None:
+        return None  # a constant height bends nothing
+    vector = source.inputs.get("Vector") if source is not None and source.type == "TEX_IMAGE" else None
+    direct = (source is not None and source.type == "TEX_IMAGE" and source.image is not None
+              and output in ("Color", "Alpha") and (vector is None or _source(vector)[0] is None)
+              and source.projection == "FLAT" and source.extension == "REPEAT")
+    if not direct:
+        what = "an image through a mapping or projection" if source.type == "TEX_IMAGE" else source.bl_idname
+        _note(textures, name, node, f"Bump height from {what} (rendered with the smooth normal)")
+        return None
+    if output == "Alpha":
+        height = textures.alpha(source.image, name)
+        if height is None:
+            height = np.ones(tuple(source.image.size)[::-1], np.float32)  # no alpha: 1, flat
+    else:
+        colour = textures.get(source.image, name)
+        if colour is None:
+            return None
+        height = (colour @ surface_mix.GRAY.astype(np.float32)).astype(np.float32)
+    distance = _constant_value(node.inputs["Distance"], name)
+    return snap.BumpMap(height=height, strength=_constant_value(node.inputs["Strength"], name),
+                        distance=-distance if node.invert else distance)
+
+
+def _image_channels(socket):
+    """(Image Texture node, (3,) source channel of each output channel, (3,) whether it is
+    flipped as 1 - x) of a colour input fed by an image's Color, directly or through
+    Separate -> (1 - x) -> Combine; None otherwise."""
+    node, output = _source(socket)
+    if node is None:
+        return None
+    if node.type == "TEX_IMAGE":
+        return (node, (0, 1, 2), (False, False, False)) if output == "Color" and node.image is not None else None
+    if node.type not in COMBINE_NODES or getattr(node, "mode", "RGB") != "RGB":
+        return None
+    image, channels, flips = None, [], []
+    for inp in [i for i in node.inputs if i.enabled][:3]:
+        src, out = _source(inp)
+        flip = False
+        if src is not None and ((src.type == "MATH" and src.operation == "SUBTRACT" and not src.use_clamp
+                                 and not src.inputs[0].is_linked and float(src.inputs[0].default_value) == 1.0)
+                                or (src.type == "INVERT" and not src.inputs["Fac"].is_linked
+                                    and float(src.inputs["Fac"].default_value) == 1.0)):
+            flip = True
+            src, out = _source(src.inputs[1])
+        if src is None or src.type not in SEPARATE_NODES or getattr(src, "mode", "RGB") != "RGB":
+            return None
+        outputs = [o.identifier for o in src.outputs if o.enabled]
+        inner, inner_out = _source(src.inputs[0])
+        if out not in outputs[:3] or inner is None or inner.type != "TEX_IMAGE" or inner_out != "Color":
+            return None
+        if image is not None and inner != image:
+            return None
+        image = inner
+        channels.append(outputs.index(out))
+        flips.append(flip)
+    if image is None or image.image is None or len(channels) != 3:
+        return None
+    return image, tuple(channels), tuple(flips)
 
 
 def _note(textures, name, node, text):
@@ -877,6 +1117,7 @@ def with_atlas(local, slots, baked_slots):
     """`_LocalMesh` whose triangles in `baked_slots` have corners of their own (appended) with
     the atlas UVs of their bake, in the order `bake_job` lists them."""
     positions, normals, uvs = [local.positions], [local.normals], [local.uvs]
+    tangents = None if local.tangents is None else [local.tangents]
     triangles = local.triangles.copy()
     start = local.positions.shape[0]
     for s in baked_slots:
@@ -884,11 +1125,14 @@ def with_atlas(local, slots, baked_slots):
         corners = local.triangles[sel].ravel()
         positions.append(local.positions[corners])
         normals.append(local.normals[corners])
+        if tangents is not None:
+            tangents.append(local.tangents[corners])
         uvs.append(material_bake.atlas_uvs(len(sel), material_bake.bake_size(len(sel))).reshape(-1, 2))
         triangles[sel] = start + np.arange(corners.size, dtype=np.int32).reshape(-1, 3)
         start += corners.size
     return _LocalMesh(positions=np.concatenate(positions), normals=np.concatenate(normals),
-                      uvs=np.concatenate(uvs).astype(np.float32), triangles=triangles, slot=local.slot)
+                      uvs=np.concatenate(uvs).astype(np.float32), triangles=triangles, slot=local.slot,
+                      tangents=None if tangents is None else np.concatenate(tangents))
 
 
 def _rgb(color):

@@ -28,6 +28,7 @@ class SceneMirror:
         self._local: dict = {}
         self._positions = None
         self._normals = None
+        self._tangents = None
 
     def full_sync(self, depsgraph):
         """Snapshot the whole scene; returns the worker edit."""
@@ -37,7 +38,7 @@ class SceneMirror:
         # Placement of every plain (non-instanced) object: moves are applied relative to it.
         self._matrices = updates.plain_object_matrices(depsgraph)
         self._local.clear()
-        self._positions = self._normals = None
+        self._positions = self._normals = self._tangents = None
         self.geometry_gen += 1
         self.gpu_dirty = "full"
         return FullScene(self.snapshot)
@@ -52,7 +53,7 @@ class SceneMirror:
             local = self._local[name] = self._object_local(name)
         if local is None:
             return ()  # no triangles in the snapshot: nothing to move
-        indices, pos_local, nrm_local, det_sign = local
+        indices, pos_local, nrm_local, det_sign, tan_local = local
         linear = matrix[:3, :3]
         det = np.linalg.det(linear)
         if not np.isfinite(det) or abs(det) < 1e-30 or np.sign(det) != det_sign:
@@ -67,6 +68,15 @@ class SceneMirror:
         rotated = not np.allclose(normals, self._normals[indices], atol=1e-6)
         self._positions[indices] = positions
         self._normals[indices] = normals
+        if tan_local is not None:
+            # Normal-map tangents turn with the object (the G-buffer's full upload carries them).
+            if self._tangents is None:
+                self._tangents = self.snapshot.geometry.tangents.copy()
+            tangents = tan_local[:, :3] @ linear.T
+            length = np.linalg.norm(tangents, axis=1, keepdims=True)
+            tangents = np.divide(tangents, length, out=np.zeros_like(tangents), where=length > 0).astype(np.float32)
+            rotated = rotated or not np.allclose(tangents, self._tangents[indices, :3], atol=1e-6)
+            self._tangents[indices, :3] = tangents
         # The G-buffer can replace its positions alone; new normals need a full upload.
         self.gpu_dirty = "full" if rotated or self.gpu_dirty == "full" else "positions"
         self.geometry_gen += 1
@@ -88,7 +98,11 @@ class SceneMirror:
         pos_local = (g.positions[indices].astype(np.float64) - m0[:3, 3]) @ np.linalg.inv(linear0).T
         # World normals are local normals times inv(linear0): undo it.
         nrm_local = g.normals[indices].astype(np.float64) @ linear0
-        return indices, pos_local, nrm_local, np.sign(np.linalg.det(linear0))
+        tan_local = None
+        if g.tangents is not None:
+            tan_local = g.tangents[indices].astype(np.float64)
+            tan_local[:, :3] = tan_local[:, :3] @ np.linalg.inv(linear0).T
+        return indices, pos_local, nrm_local, np.sign(np.linalg.det(linear0)), tan_local
 
     def set_shading(self, lights=None, world=None, materials=None):
         snap = self.snapshot
@@ -103,10 +117,12 @@ class SceneMirror:
         return SetShading(lights=lights, world=world, materials=materials)
 
     def gpu_snapshot(self):
-        """The snapshot with the positions and normals the G-buffer must draw."""
+        """The snapshot with the positions, normals and tangents the G-buffer must draw."""
         if self._positions is None:
             return self.snapshot
-        geometry = dataclasses.replace(self.snapshot.geometry, positions=self._positions, normals=self._normals)
+        tangents = self._tangents if self._tangents is not None else self.snapshot.geometry.tangents
+        geometry = dataclasses.replace(self.snapshot.geometry, positions=self._positions, normals=self._normals,
+                                       tangents=tangents)
         return dataclasses.replace(self.snapshot, geometry=geometry)
 
     @property

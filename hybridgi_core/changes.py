@@ -218,7 +218,8 @@ def _material_key(material: Material) -> tuple:
     # The sum, not the bytes: a hash of a 16k texture would copy it on every sync.
     texture_key = None if texture is None else (texture.shape, float(texture.sum(dtype=np.float64)))
     specular = None if material.specular is None else material.specular.key()
-    return material.base_color.tobytes(), material.emission.tobytes(), texture_key, specular
+    normal_map = None if material.normal_map is None else material.normal_map.key()
+    return material.base_color.tobytes(), material.emission.tobytes(), texture_key, specular, normal_map
 
 
 def _world_key(world: World) -> tuple:

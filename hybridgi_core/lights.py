@@ -880,9 +880,10 @@ def _pick_lamps(lights: list[Light], pts: np.ndarray, nrm: np.ndarray, budget: i
 
 
 def _shade_picked(light: Light, shape, weight: np.ndarray, p, q, tracer, rng, samples: int, epsilon: float,
-                  solid_angle: bool, acc: np.ndarray) -> None:
+                  solid_angle: bool, acc: np.ndarray, bumped=None) -> None:
     """acc (m, 3) += weight x the light of `light` at the receivers of the chunk (p, q: x, y, z
-    tuples) that picked it (weight > 0; `_pick_lamps`)."""
+    tuples) that picked it (weight > 0; `_pick_lamps`). bumped : (normals, smooth normals) of the
+    chunk's receivers for the bump shadowing term (`_bump_weight`), or None."""
     rows = np.flatnonzero(weight > 0)
     if rows.size == 0 or (light.kind == "AREA" and shape is None):
         return
@@ -894,7 +895,23 @@ def _shade_picked(light: Light, shape, weight: np.ndarray, p, q, tracer, rng, sa
         e = _sun_chunk(light, ps, qs, tracer, rng, samples, epsilon)
     else:
         e = _area_chunk(light, shape, ps, qs, tracer, rng, samples, epsilon, None, solid_angle)
+    if bumped is not None:
+        e = e * _bump_weight(light, np.stack(ps, axis=1), bumped[0][rows], bumped[1][rows])
     acc[rows] += (e * weight[rows])[:, None] * light.color[None, :]
+
+
+def _bump_weight(light: Light, pts: np.ndarray, nrm: np.ndarray, smooth: np.ndarray | None):
+    """(m,) float32 bump shadowing weight of a lamp's light at receivers (1 without `smooth`)."""
+    if smooth is None:
+        return np.ones(pts.shape[0], _F32)
+    from .bump import shadowing_term  # noqa: PLC0415  (bump imports nothing from here)
+
+    if light.kind == "SUN":
+        wi = np.broadcast_to(-light.direction.astype(_F32), pts.shape)
+    else:
+        wi = light.position[None, :] - pts
+        wi = wi / np.maximum(np.linalg.norm(wi, axis=1, keepdims=True), _F32(1e-30))
+    return shadowing_term(smooth, nrm, np.ascontiguousarray(wi, _F32))
 
 
 def direct_irradiance(
@@ -912,6 +929,7 @@ def direct_irradiance(
     exact: np.ndarray | None = None,
     per_lamp: np.ndarray | None = None,
     lamp_budget: int | None = None,
+    smooth: np.ndarray | None = None,
 ) -> np.ndarray:
     """Irradiance from the lamps at one-sided Lambertian receivers, with shadow rays.
 
@@ -946,6 +964,10 @@ def direct_irradiance(
         read where present, written where computed: a second pass over the same receivers
         (`penumbra.adaptive_direct`'s penumbra pass) reuses the first pass's (~1 us per receiver
         and lamp) and gets the same result. Computed only where the ratio estimator uses it.
+    smooth : optional (n, 3) float32 smooth surface normals under receivers whose `normals` a
+        normal map bent (`bump.smooth_normals`): each lamp's light is weighed by Cycles' bump
+        shadowing term towards the lamp's centre (`bump.shadowing_term`; exact for suns and
+        point lamps, the centre's direction for area lamps and the sun's disc).
 
     Returns
     -------
@@ -983,8 +1005,11 @@ def direct_irradiance(
     # Whole-array test first: the per-row reduction over 3 columns is slow and rarely needed.
     if not (np.isfinite(pts).all() and np.isfinite(nrm).all()):
         sel = np.nonzero(np.isfinite(pts).all(axis=1) & np.isfinite(nrm).all(axis=1))[0]
+    if smooth is not None:
+        smooth = np.asarray(smooth, _F32).reshape(-1, 3)
     if sel is not None:
         pts, nrm = pts[sel], nrm[sel]
+        smooth = None if smooth is None else smooth[sel]
     known = exact if exact is None or sel is None else exact[sel]
     acc = np.zeros((pts.shape[0], 3), _F32)
     found = np.zeros((pts.shape[0],) + partial.shape[1:], bool) if partial is not None else None
@@ -995,12 +1020,13 @@ def direct_irradiance(
     for i, (lt, ax) in enumerate(zip(active, axial, strict=True)):
         if ax:
             opened = [] if acc_open is not None else None
-            e = _sun_axis(lt, pts, nrm, tracer, epsilon, opened)[:, None] * lt.color[None, :]
+            bump = _bump_weight(lt, pts, nrm, smooth)
+            e = (_sun_axis(lt, pts, nrm, tracer, epsilon, opened) * bump)[:, None] * lt.color[None, :]
             acc += e
             if shares is not None:
                 shares[:, column[i]] = e
             if opened:
-                acc_open += opened[0][:, None] * lt.color[None, :]
+                acc_open += (opened[0] * bump)[:, None] * lt.color[None, :]
     sampled = [(i, lt) for i, (lt, ax) in enumerate(zip(active, axial, strict=True)) if not ax]
     picked = None
     if lamp_budget is not None and len(sampled) > lamp_budget:
@@ -1015,7 +1041,8 @@ def direct_irradiance(
         for slot, (i, lt) in enumerate(sampled):
             if picked is not None:
                 _shade_picked(lt, shapes.get(i), picked[start:stop, slot], p, q, tracer, rng, samples, epsilon,
-                              solid_angle, acc[start:stop])
+                              solid_angle, acc[start:stop],
+                              None if smooth is None else (nrm[start:stop], smooth[start:stop]))
                 continue
             mark = None if found is None else found[start:stop] if found.ndim == 1 else found[start:stop, column[i]]
             opened = [] if acc_open is not None else None
@@ -1028,6 +1055,11 @@ def direct_irradiance(
                                 None if known is None else known[start:stop, column[i]])
             else:
                 continue
+            if smooth is not None:
+                bump = _bump_weight(lt, pts[start:stop], nrm[start:stop], smooth[start:stop])
+                e = e * bump
+                if opened:
+                    opened[0] = opened[0] * bump
             e = e[:, None] * lt.color[None, :]
             acc[start:stop] += e
             if shares is not None:

@@ -36,6 +36,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from . import sh
+from .bump import has_normal_maps, shadowing_term, smooth_normals
 from .evaluate import HitLookup, corner_weights
 from .levels import hit_lookup
 from .lights import HIT_LAMP_BUDGET, _onb, concentric_disk, direct_irradiance, stratified_uv
@@ -238,7 +239,11 @@ def _chunk(system, lookup: HitLookup | None, p, nrm, corner_visible, rays, rng, 
     eps = np.float32(tracer.epsilon)
     tic = time.perf_counter()
     dirs = cosine_directions(nrm, rays, rng).reshape(-1, 3)
-    origins = np.repeat(p + nrm * eps, rays, axis=0)
+    # A normal map bends the shading normal away from the surface: rays leave along the smooth
+    # normal, and each brings its light times Cycles' bump shadowing term (none from below).
+    smooth = (smooth_normals(system.surfaces, tracer, p, nrm, float(eps))
+              if has_normal_maps(system.scene) else None)
+    origins = np.repeat(p + (nrm if smooth is None else smooth) * eps, rays, axis=0)
     tfar = np.float32(s.ray_length) if s.ray_length > 0 else np.float32(np.inf)
     hits = tracer.intersect(origins, dirs, tfar, trusted=True)
     times["trace"] = (time.perf_counter() - tic) * 1e3
@@ -246,6 +251,8 @@ def _chunk(system, lookup: HitLookup | None, p, nrm, corner_visible, rays, rng, 
     tic = time.perf_counter()
     k = sh_d.shape[1]
     radiance = hit_radiance(system, lookup, origins, dirs, hits, rng, times, screen=screen)
+    if smooth is not None:
+        radiance *= shadowing_term(np.repeat(smooth, rays, axis=0), np.repeat(nrm, rays, axis=0), dirs)[:, None]
     visible = (hits.t > s.ao_distance).astype(np.float32)
     # Control variate: the cache's radiance SH along the same rays. Linear in the SH, so its mean
     # over a pixel's rays is the SH of the pixel's mean basis vector (no per-ray products).

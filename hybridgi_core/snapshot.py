@@ -46,6 +46,10 @@ class Geometry:
     uvs : (V, 2) float32, active UV layer; NaN where the mesh has none
     material_index : (T,) int32, index into SceneSnapshot.materials
     object_index : (T,) int32, index into SceneSnapshot.objects
+    tangents : (V, 4) float32 or None: world-space unit tangent (xyz) of the normal-map UV map
+        (MikkTSpace, as Blender computes it) and the bitangent sign (w, +-1; the mirroring of the
+        object's transform folded in), so that bitangent = w * cross(normal, tangent); rows of zeros
+        where a mesh has none; None when no mesh in the scene needs them (no normal map)
     """
 
     positions: np.ndarray
@@ -54,6 +58,7 @@ class Geometry:
     uvs: np.ndarray
     material_index: np.ndarray
     object_index: np.ndarray
+    tangents: np.ndarray | None = None
 
     @property
     def triangle_count(self) -> int:
@@ -68,7 +73,8 @@ class Geometry:
         mask[tris.ravel()] = True
         if tris.shape[0] == self.triangle_count and mask.all():
             return Geometry(self.positions.copy(), self.triangles.astype(np.int32), self.normals.copy(), self.uvs.copy(),
-                            self.material_index.copy(), self.object_index.copy())
+                            self.material_index.copy(), self.object_index.copy(),
+                            None if self.tangents is None else self.tangents.copy())
         used = np.flatnonzero(mask)
         inverse = (np.cumsum(mask, dtype=np.int64) - 1).astype(np.int32)[tris]
         return Geometry(
@@ -78,6 +84,7 @@ class Geometry:
             uvs=self.uvs[used],
             material_index=self.material_index[tri_mask],
             object_index=self.object_index[tri_mask],
+            tangents=None if self.tangents is None else self.tangents[used],
         )
 
     def face_normals(self) -> np.ndarray:
@@ -86,6 +93,61 @@ class Geometry:
         n = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
         length = np.linalg.norm(n, axis=1, keepdims=True)
         return np.divide(n, length, out=np.zeros_like(n), where=length > 0).astype(np.float32)
+
+
+@dataclass
+class NormalMap:
+    """What bends a material's shading normal: a tangent-space normal map (Cycles' Normal Map
+    node, Tangent Space, fed by an image) and / or a Bump node over an image's height.
+
+    texture : (h, w, 3) float32 or None, the map's values as Cycles reads them (Non-Color: raw),
+        row 0 at v = 0; the shading normal is T x + B y + N z with (x, y, z) = 2 texture - 1, in
+        the frame `Geometry.tangents` gives, then mixed with the smooth normal by `strength`
+        (Cycles' svm_node_normal_map: N + (mapped - N) max(strength, 0), renormalized)
+    strength : the Normal Map node's Strength
+    uv_map : the UV map its tangents follow ("" = the mesh's active render UV map)
+    bump : `BumpMap` applied after the map (a Bump node whose Normal is the map's), or None
+    """
+
+    texture: np.ndarray | None = None
+    strength: float = 1.0
+    uv_map: str = ""
+    bump: BumpMap | None = None
+
+    def __post_init__(self) -> None:
+        if self.texture is not None:
+            self.texture = fit_texture(self.texture, MAX_TEXTURE_SIZE, "normal map")
+        self.strength = float(self.strength) if np.isfinite(self.strength) else 1.0
+
+    def key(self) -> tuple:
+        """What identifies it for change detection (the textures' sums, not their bytes)."""
+        texture = None if self.texture is None else (self.texture.shape, float(self.texture.sum(dtype=np.float64)))
+        return texture, self.strength, self.uv_map, None if self.bump is None else self.bump.key()
+
+
+@dataclass
+class BumpMap:
+    """Cycles' Bump node over an image's height (svm_node_set_bump): the shading normal becomes
+    normalize(N - distance x the height's gradient along the surface), mixed with N by strength.
+
+    height : (h, w) float32, what the image gives the node's Height input (a colour's Rec.709
+        luminance, or its alpha), row 0 at v = 0
+    strength : the node's Strength (at least 0, as Cycles clamps it)
+    distance : the node's Distance in metres, negated when the node inverts
+    """
+
+    height: np.ndarray
+    strength: float = 1.0
+    distance: float = 1.0
+
+    def __post_init__(self) -> None:
+        height = np.asarray(self.height, np.float32)
+        self.height = fit_texture(np.repeat(height[..., None], 3, axis=2), MAX_TEXTURE_SIZE, "bump map")[..., 0].copy()
+        self.strength = max(float(self.strength), 0.0) if np.isfinite(self.strength) else 1.0
+        self.distance = float(self.distance) if np.isfinite(self.distance) else 0.0
+
+    def key(self) -> tuple:
+        return self.height.shape, float(self.height.sum(dtype=np.float64)), self.strength, self.distance
 
 
 @dataclass
@@ -104,6 +166,8 @@ class Material:
         weight they leave (`specular.GlossySurface`), or None for a plain Lambertian surface.
         base_color is the diffuse colour before the view-dependent weight, which the G-buffer
         applies per pixel and probe hits as its hemispherical mean (`specular.diffuse_weight`)
+    normal_map : `NormalMap` the G-buffer bends the shading normal by, or None; probe-ray hits
+        keep the facet normal (a hit only feeds a cell's average)
     """
 
     name: str = "default"
@@ -113,6 +177,7 @@ class Material:
     alpha: np.ndarray | None = None
     bake_id: str | None = None
     specular: SpecularLayer | GlossySurface | None = None
+    normal_map: NormalMap | None = None
 
     def __post_init__(self) -> None:
         # Non-finite colours would reach every pixel that sees (or bounces off) this material.
@@ -372,6 +437,7 @@ def sanitized(geometry: Geometry, n_materials: int, n_objects: int) -> Geometry:
     uvs = np.asarray(geometry.uvs, np.float32).reshape(-1, 2)
     if normals.shape[0] != n_vert or uvs.shape[0] != n_vert:
         raise InvalidGeometryError("normals and uvs need one row per position")
+    tangents = _sanitized_tangents(geometry.tangents, n_vert)
     mat = np.asarray(geometry.material_index, np.int32).reshape(-1)
     obj = np.asarray(geometry.object_index, np.int32).reshape(-1)
     if mat.shape[0] != tris.shape[0] or obj.shape[0] != tris.shape[0]:
@@ -408,7 +474,7 @@ def sanitized(geometry: Geometry, n_materials: int, n_objects: int) -> Geometry:
             "dropped %d of %d triangles (non-finite vertices: %d, zero area: %d)",
             dropped, tris.shape[0], int((~finite).sum()), dropped - int((~finite).sum()),
         )
-    out = Geometry(pos, tris, normals, uvs, mat, obj).subset(keep)
+    out = Geometry(pos, tris, normals, uvs, mat, obj, tangents).subset(keep)
     norm = np.sqrt(np.add.reduce(out.normals * out.normals, axis=1))  # np.linalg.norm's sums
     fix = ~((norm >= 1e-6) & np.isfinite(norm))
     if fix.any() and out.triangle_count:
@@ -420,6 +486,21 @@ def sanitized(geometry: Geometry, n_materials: int, n_objects: int) -> Geometry:
         norm = np.linalg.norm(out.normals, axis=1)
     out.normals = (out.normals / np.maximum(norm, 1e-12)[:, None]).astype(np.float32)
     return out
+
+
+def _sanitized_tangents(tangents, n_vert: int) -> np.ndarray | None:
+    """(V, 4) float32 tangents with non-finite or zero-length rows zeroed (no normal map there),
+    or None."""
+    if tangents is None:
+        return None
+    t = np.asarray(tangents, np.float32).reshape(-1, 4)
+    if t.shape[0] != n_vert:
+        raise InvalidGeometryError("tangents need one row per position")
+    bad = ~np.isfinite(t).all(axis=1) | (np.abs(t[:, :3]).sum(axis=1) == 0)
+    if bad.any():
+        t = t.copy()
+        t[bad] = 0.0
+    return np.ascontiguousarray(t)
 
 
 def make_snapshot(
@@ -474,6 +555,10 @@ def concat_geometry(parts: list[Geometry]) -> Geometry:
         return Geometry(np.zeros((0, 3), np.float32), np.zeros((0, 3), np.int32), np.zeros((0, 3), np.float32),
                         np.zeros((0, 2), np.float32), np.zeros(0, np.int32), np.zeros(0, np.int32))
     offsets = np.cumsum([0] + [p.positions.shape[0] for p in parts[:-1]])
+    tangents = None
+    if any(p.tangents is not None for p in parts):
+        tangents = np.concatenate([p.tangents if p.tangents is not None else np.zeros((p.positions.shape[0], 4), np.float32)
+                                   for p in parts]).astype(np.float32)
     return Geometry(
         positions=np.concatenate([p.positions for p in parts]).astype(np.float32),
         triangles=np.concatenate([p.triangles + o for p, o in zip(parts, offsets, strict=True)]).astype(np.int32),
@@ -481,4 +566,5 @@ def concat_geometry(parts: list[Geometry]) -> Geometry:
         uvs=np.concatenate([p.uvs for p in parts]).astype(np.float32),
         material_index=np.concatenate([p.material_index for p in parts]).astype(np.int32),
         object_index=np.concatenate([p.object_index for p in parts]).astype(np.int32),
+        tangents=tangents,
     )

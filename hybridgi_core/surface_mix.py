@@ -32,7 +32,8 @@ class SurfacePart:
     emission : (3,) radiance; alpha : (h, w) opacity or None; diffuse : (V,) weight of the diffuse
     colour over the view cosine, or None (1); lobes : the glossy closures; layer : the
     `SpecularLayer` of a Principled BSDF read on its own (its layering, exactly as Cycles'),
-    dropped once the part is mixed (its lobes and diffuse weight carry it on).
+    dropped once the part is mixed (its lobes and diffuse weight carry it on); normal : the
+    `snapshot.NormalMap` on its Normal input, or None.
     """
 
     base: np.ndarray = field(default_factory=lambda: np.zeros(3, np.float32))
@@ -42,6 +43,7 @@ class SurfacePart:
     diffuse: np.ndarray | None = None
     lobes: list = field(default_factory=list)
     layer: sp.SpecularLayer | None = None
+    normal: object | None = None
 
     def diffuse_table(self) -> np.ndarray:
         """(V,) the diffuse weight over `specular.view_grid`."""
@@ -136,8 +138,15 @@ def mix(parts: list[SurfacePart], weights: list[np.ndarray], name: str = "") -> 
         diffuse = np.ones(sp.VIEW_SAMPLES)
     emission = sum(float(_cosine_mean(w)) * part.emission for part, w in zip(parts, weights, strict=True))
     alpha = next((part.alpha for part in parts if part.alpha is not None), None)
+    # One shading normal per material: the normal map of the part weighing most (Cycles bends
+    # each closure by its own; a mix of differently mapped closures keeps one map, noted).
+    mapped = [i for i, part in enumerate(parts) if part.normal is not None and np.any(weights[i] > 0)]
+    normal = parts[max(mapped, key=lambda i: float(weights[i].mean()))].normal if mapped else None
+    shading = [part for i, part in enumerate(parts) if np.any(weights[i] > 0) and (np.any(part.base > 0) or part.lobes)]
+    if mapped and any(part.normal is not normal for part in shading):
+        notes.append("closures with different normal inputs mixed (one normal map kept for all)")
     part = SurfacePart(base=np.asarray(base, np.float32), texture=texture, emission=np.asarray(emission, np.float32),
-                       alpha=alpha, diffuse=None if np.allclose(diffuse, 1.0) else diffuse, lobes=lobes)
+                       alpha=alpha, diffuse=None if np.allclose(diffuse, 1.0) else diffuse, lobes=lobes, normal=normal)
     return part, notes
 
 

@@ -11,6 +11,7 @@ import time
 
 import numpy as np
 
+from .bump import has_normal_maps, smooth_normals
 from .cache import IrradianceCache
 from .cutout import Cutouts
 from .evaluate import Gathered, corner_visibility, gather
@@ -361,7 +362,12 @@ class GISystem:
         lamps = self.scene.lights if lights is None else [self.scene.lights[i] for i in lights]
         n = int(np.asarray(points).reshape(-1, 3).shape[0])
         per_block = max(1, DIRECT_BLOCK_RAYS // samples)
-        outputs = {"partial": partial, "unshadowed": unshadowed, "exact": exact, "per_lamp": per_lamp}
+        # Normals a normal map bent are lit as Cycles lights them (`bump.py`): the smooth surface
+        # normal under each point comes from the ray mesh.
+        smooth = (smooth_normals(self.surfaces, self.tracer, points, normals, eps)
+                  if n and lamps and has_normal_maps(self.scene) else None)
+        outputs = {"partial": partial, "unshadowed": unshadowed, "exact": exact, "per_lamp": per_lamp,
+                   "smooth": smooth}
         if n <= per_block or not lamps:
             return direct_irradiance(lamps, points, normals, self.tracer, rng, samples=samples, epsilon=eps,
                                      **outputs)

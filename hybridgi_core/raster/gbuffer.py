@@ -6,7 +6,8 @@ Targets (all bottom-up rows, world space, scene-linear):
 |------|----------|---------|--------------------------------------------------------------|
 | 0    | albedo   | RGBA16F | diffuse colour (base x texture x the specular layer's        |
 |      |          |         | diffuse weight at the view angle), a = 1 on geometry         |
-| 1    | normal   | RGBA16F | unit shading normal, flipped to face the camera, a = 1       |
+| 1    | normal   | RGBA16F | unit shading normal, flipped to face the camera and bent by  |
+|      |          |         | the material's tangent-space normal map and bump, a = 1      |
 | 2    | position | RGBA32F | world position xyz, w = 1 on geometry, 0 on the background   |
 | 3    | emission | RGBA16F | emitted radiance W/(m^2 sr), a = 1                           |
 | 4    | depth    | R32F    | view-axis distance (Cycles' Depth pass), 1e10 on background  |
@@ -71,6 +72,10 @@ TEXTURE_FILTER = 1.5
 
 TEXTURE_COLOR = 1
 TEXTURE_ALPHA = 2
+#: The material's `normal_tx` holds a tangent-space normal map (`snapshot.NormalMap`).
+TEXTURE_NORMAL = 4
+#: The material's `bump_tx` holds a Bump node's height (`snapshot.BumpMap`), in red.
+TEXTURE_BUMP = 8
 
 
 def _texture_rgba(material) -> np.ndarray:
@@ -97,8 +102,13 @@ class _MaterialDraw:
     fallback_albedo: tuple
     emission: tuple
     texture: object  # GPUTexture or None
-    flags: int = 0  # TEXTURE_COLOR | TEXTURE_ALPHA: what `texture` holds
+    flags: int = 0  # TEXTURE_COLOR | TEXTURE_ALPHA | TEXTURE_NORMAL: what `texture`, `normal` hold
     row: int = 0  # the material's row of the diffuse weight table
+    normal: object = None  # GPUTexture of the normal map, or None
+    normal_strength: float = 1.0
+    bump: object = None  # GPUTexture of the bump height, or None
+    bump_strength: float = 1.0
+    bump_distance: float = 0.0
 
 
 def camera_eye(view: np.ndarray, proj: np.ndarray) -> tuple:
@@ -150,13 +160,16 @@ class GBufferPass(RasterPass):
             name="hybridgi_gbuffer",
             vertex=load_glsl("common_lib.glsl", "gbuffer_vert.glsl"),
             fragment=load_glsl("common_lib.glsl", "gbuffer_frag.glsl"),
-            vertex_in=((0, "VEC3", "pos"), (1, "VEC3", "nor"), (2, "VEC2", "uv"), (3, "FLOAT", "uv_valid")),
+            vertex_in=((0, "VEC3", "pos"), (1, "VEC3", "nor"), (2, "VEC2", "uv"), (3, "FLOAT", "uv_valid"),
+                       (4, "VEC4", "tangent")),
             varyings=(("smooth", "VEC3", "world_pos"), ("smooth", "VEC3", "world_nor"),
-                      ("smooth", "VEC2", "tex_uv"), ("smooth", "FLOAT", "uv_ok")),
-            samplers=((0, "FLOAT_2D", "albedo_tx"), (1, "FLOAT_2D", "weight_tx")),
-            # 76 bytes of push constants per material; the camera (80 bytes) is a UBO.
+                      ("smooth", "VEC2", "tex_uv"), ("smooth", "FLOAT", "uv_ok"), ("smooth", "VEC4", "world_tan")),
+            samplers=((0, "FLOAT_2D", "albedo_tx"), (1, "FLOAT_2D", "weight_tx"), (2, "FLOAT_2D", "normal_tx"),
+                      (3, "FLOAT_2D", "bump_tx")),
+            # 88 bytes of push constants per material; the camera (80 bytes) is a UBO.
             push=(("VEC4", "base_color"), ("VEC4", "fallback_albedo"), ("VEC4", "emission"), ("VEC4", "eye"),
-                  ("INT", "has_texture"), ("FLOAT", "texture_filter"), ("INT", "material_row")),
+                  ("INT", "has_texture"), ("FLOAT", "texture_filter"), ("INT", "material_row"),
+                  ("FLOAT", "normal_strength"), ("FLOAT", "bump_strength"), ("FLOAT", "bump_distance")),
             typedefs=CAMERA_TYPEDEF,
             ubos=((0, "CameraBlock", "camera"),),
             outputs=tuple((slot, "FLOAT" if ch == 1 else "VEC4", f"out_{name}")
@@ -198,7 +211,7 @@ class GBufferPass(RasterPass):
         """Build vertex/index buffers and material textures from a `SceneSnapshot`.
 
         Uses geometry.positions (V, 3) float32, normals (V, 3), uvs (V, 2) (NaN = no UV),
-        triangles (T, 3) int32 and material_index (T,) int32. Triangles are grouped by material
+        tangents (V, 4) or None (normal maps), triangles (T, 3) int32 and material_index (T,) int32. Triangles are grouped by material
         (one index buffer each) over shared vertex buffers; textures are uploaded once here.
         """
         import gpu  # noqa: PLC0415
@@ -212,11 +225,17 @@ class GBufferPass(RasterPass):
         fmt.attr_add(id="nor", comp_type="F32", len=3, fetch_mode="FLOAT")
         fmt.attr_add(id="uv", comp_type="F32", len=2, fetch_mode="FLOAT")
         fmt.attr_add(id="uv_valid", comp_type="F32", len=1, fetch_mode="FLOAT")
+        fmt.attr_add(id="tangent", comp_type="F32", len=4, fetch_mode="FLOAT")
         self._attr_vbo = gpu.types.GPUVertBuf(fmt, max(n_vert, 1))
         if n_vert:
             self._attr_vbo.attr_fill("nor", np.ascontiguousarray(geo.normals, np.float32).reshape(n_vert, 3))
             self._attr_vbo.attr_fill("uv", np.ascontiguousarray(np.nan_to_num(uvs, nan=0.0, posinf=0.0, neginf=0.0)))
             self._attr_vbo.attr_fill("uv_valid", uv_valid)
+            tangents = getattr(geo, "tangents", None)
+            # Zero tangents: no frame there, the shader keeps the smooth normal.
+            tangents = (np.zeros((n_vert, 4), np.float32) if tangents is None
+                        else np.nan_to_num(np.asarray(tangents, np.float32).reshape(n_vert, 4), nan=0.0))
+            self._attr_vbo.attr_fill("tangent", np.ascontiguousarray(tangents))
         self._vertex_count = n_vert
         if self._dummy_texture is None:
             self._dummy_texture = upload_texture_2d(np.ones((1, 1, 4), np.float32), "RGBA16F")
@@ -238,6 +257,17 @@ class GBufferPass(RasterPass):
                 texture, flags = upload_texture_2d(_texture_rgba(material), "RGBA16F"), (
                     (TEXTURE_COLOR if material.texture is not None else 0)
                     | (TEXTURE_ALPHA if material.alpha is not None else 0))
+            normal_map = getattr(material, "normal_map", None)
+            normal = bump = None
+            if normal_map is not None and normal_map.texture is not None:
+                normal = upload_texture_2d(np.ascontiguousarray(np.concatenate(
+                    [normal_map.texture, np.ones((*normal_map.texture.shape[:2], 1), np.float32)], axis=-1)), "RGBA16F")
+                flags |= TEXTURE_NORMAL
+            if normal_map is not None and normal_map.bump is not None:
+                height = np.zeros((*normal_map.bump.height.shape, 4), np.float32)
+                height[..., 0] = normal_map.bump.height
+                bump = upload_texture_2d(height, "RGBA32F")  # height differences need the precision
+                flags |= TEXTURE_BUMP
             base = np.asarray(material.base_color, np.float32).reshape(3)
             self._draws.append(_MaterialDraw(
                 batch=None,
@@ -248,6 +278,11 @@ class GBufferPass(RasterPass):
                 texture=texture,
                 flags=flags,
                 row=m,
+                normal=normal,
+                normal_strength=float(normal_map.strength) if normal_map is not None else 1.0,
+                bump=bump,
+                bump_strength=float(normal_map.bump.strength) if bump is not None else 1.0,
+                bump_distance=float(normal_map.bump.distance) if bump is not None else 0.0,
             ))
         self.update_positions(geo.positions)
         log.debug("gbuffer upload: %d vertices, %d triangles, %d material draws",
@@ -311,7 +346,12 @@ class GBufferPass(RasterPass):
                     shader.uniform_int("has_texture", draw.flags)
                     shader.uniform_float("texture_filter", float(texture_filter))
                     shader.uniform_int("material_row", draw.row)
+                    shader.uniform_float("normal_strength", draw.normal_strength)
+                    shader.uniform_float("bump_strength", draw.bump_strength)
+                    shader.uniform_float("bump_distance", draw.bump_distance)
                     shader.uniform_sampler("albedo_tx", draw.texture or self._dummy_texture)
+                    shader.uniform_sampler("normal_tx", draw.normal or self._dummy_texture)
+                    shader.uniform_sampler("bump_tx", draw.bump or self._dummy_texture)
                     shader.uniform_sampler("weight_tx", self._weight_texture)
                     draw.batch.draw(shader)
         return self.outputs()

@@ -2,7 +2,11 @@
  * texture (or a 1x1 dummy) is `albedo_tx`; `has_texture` bit 1: its rgb is the colour, bit 2:
  * its alpha cuts the surface out below one half (gbuffer.py TEXTURE_COLOR / TEXTURE_ALPHA).
  * `weight_tx` row `material_row` holds the diffuse weight under the material's specular layer
- * against cos(normal, view) (specular.py: Cycles' closure_layering_weight). */
+ * against cos(normal, view) (specular.py: Cycles' closure_layering_weight). Bit 4: `normal_tx` is
+ * a tangent-space normal map, applied in the frame of `world_tan` (xyz tangent, w bitangent sign)
+ * as Cycles' Normal Map node applies it (svm_node_normal_map), `normal_strength` its Strength.
+ * Bit 8: `bump_tx` (red) is a Bump node's height, applied after the map as Cycles' svm_node_set_bump
+ * with `bump_strength` and `bump_distance` (negative: inverted). */
 
 /* The diffuse weight at cosine mu, linear between the table's samples at i / (n - 1). */
 float diffuse_weight(float mu)
@@ -23,23 +27,23 @@ ivec2 wrap_texel(ivec2 i, ivec2 n)
 
 /* Bilinear filtering with REPEAT done by hand, texel centres at (i + 0.5) / size as in Cycles'
  * Linear interpolation: independent of the sampler state the Python API can set. */
-vec4 sample_repeat_bilinear4(vec2 uv)
+vec4 sample_repeat_bilinear4(sampler2D tx, vec2 uv)
 {
-  ivec2 size = textureSize(albedo_tx, 0);
+  ivec2 size = textureSize(tx, 0);
   vec2 st = uv * vec2(size) - 0.5;
   vec2 f = floor(st);
   vec2 t = st - f;
   ivec2 i0 = ivec2(f);
-  vec4 c00 = texelFetch(albedo_tx, wrap_texel(i0, size), 0);
-  vec4 c10 = texelFetch(albedo_tx, wrap_texel(i0 + ivec2(1, 0), size), 0);
-  vec4 c01 = texelFetch(albedo_tx, wrap_texel(i0 + ivec2(0, 1), size), 0);
-  vec4 c11 = texelFetch(albedo_tx, wrap_texel(i0 + ivec2(1, 1), size), 0);
+  vec4 c00 = texelFetch(tx, wrap_texel(i0, size), 0);
+  vec4 c10 = texelFetch(tx, wrap_texel(i0 + ivec2(1, 0), size), 0);
+  vec4 c01 = texelFetch(tx, wrap_texel(i0 + ivec2(0, 1), size), 0);
+  vec4 c11 = texelFetch(tx, wrap_texel(i0 + ivec2(1, 1), size), 0);
   return mix(mix(c00, c10, t.x), mix(c01, c11, t.x), t.y);
 }
 
-vec3 sample_repeat_bilinear(vec2 uv)
+vec3 sample_repeat_bilinear(sampler2D tx, vec2 uv)
 {
-  return sample_repeat_bilinear4(uv).rgb;
+  return sample_repeat_bilinear4(tx, uv).rgb;
 }
 
 /* Texels seen through one pixel, as Cycles' pixel filter sees them: up to MAX_TAPS x MAX_TAPS
@@ -49,13 +53,13 @@ vec3 sample_repeat_bilinear(vec2 uv)
  * about its shape. A texture minified k times gets k x k taps (capped), so a fine texture reads as
  * its average instead of aliasing; a magnified one stays one bilinear tap. */
 #define MAX_TAPS 8
-vec3 sample_footprint(vec2 uv, vec2 du, vec2 dv)
+vec3 sample_footprint(sampler2D tx, vec2 uv, vec2 du, vec2 dv)
 {
-  vec2 size = vec2(textureSize(albedo_tx, 0));
+  vec2 size = vec2(textureSize(tx, 0));
   float texels = max(length(du * size), length(dv * size)) * texture_filter;
   int taps = int(clamp(ceil(texels), 1.0, float(MAX_TAPS)));
   if (taps == 1) {
-    return sample_repeat_bilinear(uv);
+    return sample_repeat_bilinear(tx, uv);
   }
   vec3 sum = vec3(0.0);
   float weight_sum = 0.0;
@@ -63,11 +67,79 @@ vec3 sample_footprint(vec2 uv, vec2 du, vec2 dv)
     for (int j = 0; j < taps; j++) {
       vec2 o = ((vec2(i, j) + 0.5) / float(taps) - 0.5) * texture_filter;
       float w = exp(-2.0 * dot(o, o));
-      sum += w * sample_repeat_bilinear(uv + o.x * du + o.y * dv);
+      sum += w * sample_repeat_bilinear(tx, uv + o.x * du + o.y * dv);
       weight_sum += w;
     }
   }
   return sum / weight_sum;
+}
+
+/* Cycles' ensure_valid_specular_reflection (kernel/geom/shader_data.h): the shading normal N
+ * turned towards the geometric normal Ng just enough that the mirror direction of the view
+ * direction I (both facing the same side as Ng) stays above the surface. */
+vec3 ensure_valid_specular_reflection(vec3 Ng, vec3 I, vec3 N)
+{
+  vec3 R = 2.0 * dot(N, I) * N - I;
+  float Iz = dot(I, Ng);
+  float threshold = min(0.9 * Iz, 0.01);
+  if (dot(Ng, R) >= threshold) {
+    return N;
+  }
+  vec3 X = N - dot(N, Ng) * Ng;
+  float len = length(X);
+  X = (len > 1e-12) ? X / len : N;
+  float Ix = dot(I, X);
+  float a = Ix * Ix + Iz * Iz;
+  float b = 2.0 * (a + Iz * threshold);
+  float c = (threshold + Iz) * (threshold + Iz);
+  float root = sqrt(max(b * b - 16.0 * a * c, 0.0));
+  float Nz2 = (Ix < 0.0) ? 0.25 * (b + root) / a : 0.25 * (b - root) / a;
+  float Nx = sqrt(max(1.0 - Nz2, 0.0));
+  float Nz = sqrt(max(Nz2, 0.0));
+  return Nx * X + Nz * Ng;
+}
+
+/* The shading normal N made valid against the facet (Cycles' Ng: the facet's normal on the
+ * camera's side) for the view direction I. */
+vec3 valid_reflection(vec3 facet, vec3 I, vec3 N)
+{
+  float facet_len = length(facet);
+  if (facet_len <= 0.0) {
+    return N;
+  }
+  vec3 ng = facet / facet_len;
+  if (dot(ng, I) < 0.0) {
+    ng = -ng;
+  }
+  return ensure_valid_specular_reflection(ng, I, N);
+}
+
+/* Cycles' svm_node_set_bump over the height in `bump_tx`: the surface gradient of the height from
+ * its UV gradient (central differences over half a texel or the pixel's footprint, whichever is
+ * wider) and the screen derivatives of UV and position (Cycles' ray differentials), then
+ * normalize(|det| N - distance sign(det) surfgrad), mixed with N by the strength. */
+vec3 bumped_normal(vec3 n_in, vec3 dpdx, vec3 dpdy, vec2 du, vec2 dv)
+{
+  vec2 size = vec2(textureSize(bump_tx, 0));
+  vec2 h_step = max(0.5 / size, 0.5 * max(abs(du), abs(dv)));
+  float hu = (sample_repeat_bilinear4(bump_tx, tex_uv + vec2(h_step.x, 0.0)).r -
+              sample_repeat_bilinear4(bump_tx, tex_uv - vec2(h_step.x, 0.0)).r) / (2.0 * h_step.x);
+  float hv = (sample_repeat_bilinear4(bump_tx, tex_uv + vec2(0.0, h_step.y)).r -
+              sample_repeat_bilinear4(bump_tx, tex_uv - vec2(0.0, h_step.y)).r) / (2.0 * h_step.y);
+  float dhdx = hu * du.x + hv * du.y;
+  float dhdy = hu * dv.x + hv * dv.y;
+  vec3 rx = cross(dpdy, n_in);
+  vec3 ry = cross(n_in, dpdx);
+  float det = dot(dpdx, rx);
+  vec3 surfgrad = dhdx * rx + dhdy * ry;
+  vec3 bent = abs(det) * n_in - bump_distance * sign(det) * surfgrad;
+  float len = length(bent);
+  if (len <= 0.0) {
+    return n_in;
+  }
+  vec3 mixed = bump_strength * (bent / len) + (1.0 - bump_strength) * n_in;
+  float mixed_len = length(mixed);
+  return (mixed_len > 0.0) ? mixed / mixed_len : n_in;
 }
 
 void main()
@@ -75,6 +147,9 @@ void main()
   /* Derivatives before any branch: they are undefined in non-uniform control flow. */
   vec2 du = dFdx(tex_uv);
   vec2 dv = dFdy(tex_uv);
+  vec3 dpdx = dFdx(world_pos);
+  vec3 dpdy = dFdy(world_pos);
+  vec3 facet = cross(dpdx, dpdy);
   vec3 n = normalize(world_nor);
   /* Cycles flips the shading normal of back faces so it faces the camera. */
   if (!gl_FrontFacing) {
@@ -82,14 +157,35 @@ void main()
   }
   vec3 albedo = fallback_albedo.rgb;
   /* uv_ok interpolates to < 1 on triangles with any NaN-UV corner: no usable UV there. */
-  if ((has_texture & 2) != 0 && uv_ok > 0.999 && sample_repeat_bilinear4(tex_uv).a < 0.5) {
+  if ((has_texture & 2) != 0 && uv_ok > 0.999 && sample_repeat_bilinear4(albedo_tx, tex_uv).a < 0.5) {
     discard; /* a cut-out hole: what is behind shows (the rays see through it too, cutout.py) */
   }
   if ((has_texture & 1) != 0 && uv_ok > 0.999) {
-    albedo = base_color.rgb * sample_footprint(tex_uv, du, dv);
+    albedo = base_color.rgb * sample_footprint(albedo_tx, tex_uv, du, dv);
   }
   /* Towards the camera: from the point to the eye, or the orthographic camera's back axis. */
   vec3 to_eye = (eye.w > 0.5) ? normalize(eye.xyz - world_pos) : eye.xyz;
+  if ((has_texture & 4) != 0 && uv_ok > 0.999 && dot(world_tan.xyz, world_tan.xyz) > 1e-12) {
+    /* Cycles' svm_node_normal_map, tangent space: the unnormalized interpolated normal and
+     * tangent, B = sign cross(N, T), the map's texels averaged over the pixel's footprint. */
+    vec3 c = 2.0 * sample_footprint(normal_tx, tex_uv, du, dv) - 1.0;
+    vec3 bitangent = world_tan.w * cross(world_nor, world_tan.xyz);
+    vec3 mapped = c.x * world_tan.xyz + c.y * bitangent + c.z * world_nor;
+    float len = length(mapped);
+    mapped = (len > 1e-12) ? mapped / len : normalize(world_nor);
+    if (!gl_FrontFacing) {
+      mapped = -mapped;
+    }
+    if (normal_strength != 1.0) {
+      vec3 mixed = n + (mapped - n) * max(normal_strength, 0.0);
+      float mixed_len = length(mixed);
+      mapped = (mixed_len > 1e-12) ? mixed / mixed_len : n;
+    }
+    n = valid_reflection(facet, to_eye, mapped);
+  }
+  if ((has_texture & 8) != 0 && uv_ok > 0.999) {
+    n = valid_reflection(facet, to_eye, bumped_normal(n, dpdx, dpdy, du, dv));
+  }
   albedo *= diffuse_weight(dot(n, to_eye));
   out_albedo = vec4(albedo, 1.0);
   out_normal = vec4(n, 1.0);

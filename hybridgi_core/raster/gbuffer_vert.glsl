@@ -6,5 +6,6 @@ void main()
   world_nor = nor;
   tex_uv = uv;
   uv_ok = uv_valid;
+  world_tan = tangent;
   gl_Position = camera.view_proj * vec4(pos, 1.0);
 }
