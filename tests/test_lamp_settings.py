@@ -229,6 +229,19 @@ def test_linking_and_volumes_are_warned_once(bpy_module, empty_scene, sync, capl
     assert sum("world 'w'" in m and "Volume" in m for m in messages) == 1
 
 
+@pytest.mark.blender
+@pytest.mark.parametrize(("bounces", "quality"), [(0, 0), (1, 1), (4, 2)])
+def test_cycles_diffuse_bounce_limit_sets_the_indirect_quality(bpy_module, empty_scene, addon, bounces, quality):
+    pipeline = importlib.import_module(f"{addon.__name__}.pipeline")
+    scene = empty_scene
+    scene.cycles.diffuse_bounces = bounces
+    assert scene.hybridgi.cache_settings(scene).indirect_quality == quality
+    notes = pipeline.unsupported_settings(scene, scene.view_layers[0])
+    assert any("bounce limit" in n for n in notes) == (bounces < 2)
+    scene.cycles.diffuse_bounces, scene.cycles.max_bounces = 4, 1  # Max Bounces limits the diffuse ones too
+    assert scene.hybridgi.cache_settings(scene).indirect_quality == 1
+
+
 # --- renders against Cycles -----------------------------------------------------------------
 
 RES = "64x48"
@@ -258,18 +271,23 @@ def scenes(tmp_path_factory):
         save("no_shadow")
         base().data.spread = math.radians(30)
         save("spread")
+        base()
+        bpy.context.scene.cycles.diffuse_bounces = 0
+        save("bounces0")
     """)
     return cornell_variants(tmp_path_factory.mktemp("lamp_settings"), script)
 
 
 # (scene, pass, extra Cycles settings, rel L1 bound). Measured after: portal DD 0.025, no_shadow
-# DD 0.019, spread DD 0.14 (its cone's edge on the floor carries Cycles' 64-spp noise).
+# DD 0.019, spread DD 0.14 (its cone's edge on the floor carries Cycles' 64-spp noise), bounces0
+# Combined 0.031.
 @pytest.mark.blender
 @pytest.mark.slow
 @pytest.mark.parametrize(("name", "pass_name", "cycles_extra", "max_l1"), [
     ("portal", "Diffuse Direct", (), 0.06),
     ("no_shadow", "Diffuse Direct", (), 0.06),
     ("spread", "Diffuse Direct", (), 0.25),
+    ("bounces0", "Combined", ("--set", "cycles.diffuse_bounces=0"), 0.08),
 ])
 def test_lamp_settings_match_cycles(scenes, tmp_path, name, pass_name, cycles_extra, max_l1):
     from tests.cli_renders import layer, rendered
@@ -281,3 +299,5 @@ def test_lamp_settings_match_cycles(scenes, tmp_path, name, pass_name, cycles_ex
     mean_error = abs(float(a.mean()) / float(b.mean()) - 1.0)
     l1 = float(np.abs(a - b).sum() / np.abs(b).sum())
     assert mean_error < 0.05 and l1 < max_l1, (mean_error, l1)
+    if name == "bounces0":
+        assert float(np.abs(layer(ours, "Diffuse Indirect")).max()) == 0.0
