@@ -126,9 +126,11 @@ def unsupported_settings(scene, view_layer) -> list[str]:
     if getattr(scene.render, "use_motion_blur", False):
         notes.append("motion blur is not rendered")
     bounces = properties.cycles_diffuse_bounces(scene)
-    if bounces is not None and bounces < 2 and properties.INDIRECT_QUALITY[scene.hybridgi.indirect_quality] > bounces:
-        notes.append(f"Cycles' bounce limit ({bounces} diffuse bounce{'s' if bounces != 1 else ''}) is followed: "
-                     f"rendered as Indirect Quality {'AO only' if bounces == 0 else 'One Bounce'}")
+    if bounces == 0:
+        notes.append("Cycles' bounce limit (0 diffuse bounces) is followed: no light reflected by surfaces "
+                     "(no Diffuse Indirect); the sky, emitters and lamps light directly")
+    elif bounces == 1 and scene.hybridgi.indirect_quality == "MULTI_BOUNCE":
+        notes.append("Cycles' bounce limit (1 diffuse bounce) is followed: rendered as Indirect Quality One Bounce")
     if getattr(scene.render, "use_multiview", False):
         notes.append("stereoscopy is not rendered: HybridGI renders the scene camera's view only")
     camera = scene.camera

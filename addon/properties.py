@@ -64,13 +64,13 @@ def cycles_diffuse_bounces(scene) -> int | None:
 
 
 def bounce_limited_quality(scene) -> int:
-    """The highest Indirect Quality Cycles' diffuse bounce limit allows: 0 bounces, no light
-    reflected by surfaces (AO only; sky and emitters still light directly, as Cycles' Diffuse
-    Direct), 1 the light of one bounce (One Bounce), more: every bounce."""
+    """The highest Indirect Quality Cycles' diffuse bounce limit allows: One Bounce for 1 (and
+    for 0, whose hits then reflect nothing: `CacheSettings.bounce_light`, so the sky and emitters
+    still light directly, as in Cycles' Diffuse Direct), every bounce for more."""
     bounces = cycles_diffuse_bounces(scene)
     if bounces is None or bounces >= 2:
         return core_settings.MULTI_BOUNCE
-    return core_settings.ONE_BOUNCE if bounces == 1 else core_settings.AO_ONLY
+    return core_settings.ONE_BOUNCE
 
 class HybridGISettings(bpy.types.PropertyGroup):
     """Render settings of the HybridGI engine, stored per scene."""
@@ -266,6 +266,7 @@ class HybridGISettings(bpy.types.PropertyGroup):
             ray_length=_f(self.ray_length),
             hysteresis=_f(self.hysteresis),
             indirect_quality=min(INDIRECT_QUALITY[self.indirect_quality], bounce_limited_quality(scene)),
+            bounce_light=cycles_diffuse_bounces(scene) != 0,
             # The World allows 0; the core needs a positive distance.
             ao_distance=max(_f(ao_distance), 1e-4),
             lod_ratio=_f(self.lod_ratio),
