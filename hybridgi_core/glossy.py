@@ -271,6 +271,17 @@ def _lamp_samples(light: Light, p, rng, samples):
         shape = _area_shape(light)
         if shape.area <= 0:
             return None
+        if float(light.spread) <= 0.0:
+            # A collimated beam (`lights._beam`): one direction, P / A where the receiver's
+            # projection along the normal falls on the lamp.
+            ex, ey, ez = shape.frame
+            rel = p - shape.centre.astype(np.float64)
+            height = rel @ ez
+            a, b = (rel @ ex) * (2.0 / shape.len_u), (rel @ ey) * (2.0 / shape.len_v)
+            on = (a * a + b * b <= 1.0) if shape.round else ((np.abs(a) <= 1.0) & (np.abs(b) <= 1.0))
+            weight = np.where(on & (height > 0), float(light.power) / shape.area, 0.0)[:, None]
+            targets = (p - height[:, None] * ez[None, :])[:, None, :]
+            return np.broadcast_to(-ez, (m, 1, 3)).copy(), weight, targets
         u, v = stratified_uv(rng, m, samples)
         if shape.rectangular:
             dirs, weight, targets = _rectangle_samples(shape, float(light.power) / (np.pi * shape.area), p, u, v,

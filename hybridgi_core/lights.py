@@ -510,6 +510,32 @@ def _sun_axis(light, pts, nrm, tracer, epsilon, opened=None):
     return e
 
 
+def _beam(light, shape, p, nrm, tracer, epsilon, opened=None):
+    """(m,) irradiance of an AREA lamp of Spread 0: a collimated beam along its normal (Cycles'
+    spread attenuation is pi within 0.05 degrees of the normal, 0 elsewhere): P / A x cos at
+    receivers whose projection along the normal falls on the lamp's front, one shadow ray each.
+    p, nrm : (x, y, z) triples of (m,) float32."""
+    pts = np.stack(p, axis=1).astype(np.float64)
+    n = np.stack(nrm, axis=1).astype(np.float64)
+    ex, ey, ez = shape.frame
+    d = pts - shape.centre.astype(np.float64)
+    height = d @ ez  # > 0: in front of the lamp
+    a = (d @ ex) * (2.0 / max(shape.len_u, 1e-300))
+    b = (d @ ey) * (2.0 / max(shape.len_v, 1e-300))
+    on = (a * a + b * b <= 1.0) if shape.round else ((np.abs(a) <= 1.0) & (np.abs(b) <= 1.0))
+    cos_r = np.maximum(-(n @ ez), 0.0)
+    e = np.where(on & (height > 0), cos_r * (float(light.power) / shape.area), 0.0).astype(_F32)
+    if opened is not None:
+        opened.append(e.copy())
+    live = np.flatnonzero(e > 0)
+    if tracer is not None and live.size:
+        origins = (pts[live] + n[live] * epsilon).astype(_F32)
+        tfar = np.maximum(height[live] - epsilon, 0.0).astype(_F32)
+        blocked = np.asarray(tracer.occluded(origins, (-ez)[None].astype(_F32), tfar, trusted=True), bool)
+        e[live[blocked]] = 0.0
+    return e
+
+
 def uniform_cone(axis, half_angle: float, u: np.ndarray, v: np.ndarray):
     """Directions uniform in the cone of `half_angle` (radians) around the unit `axis` (3,), from
     sample coordinates u, v in [0, 1): the concentric map, as Cycles' sample_uniform_cone_concentric.
@@ -971,6 +997,8 @@ def direct_irradiance(
                 e = _point_chunk(lt, p, q, tr, rng, samples, epsilon, mark, opened)
             elif lt.kind == "SUN":
                 e = _sun_chunk(lt, p, q, tr, rng, samples, epsilon, mark, opened)
+            elif i in shapes and float(lt.spread) <= 0.0:
+                e = _beam(lt, shapes[i], p, q, tr, epsilon, opened)
             elif i in shapes:
                 e = _area_chunk(lt, shapes[i], p, q, tr, rng, samples, epsilon, mark, solid_angle, opened,
                                 None if known is None else known[start:stop, column[i]])

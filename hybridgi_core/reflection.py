@@ -116,8 +116,8 @@ def bsdf_lamps(lights, points: np.ndarray, normals: np.ndarray, rough: np.ndarra
     lobe = 4.0 * np.pi * alpha * alpha
     for j, light in enumerate(lights):
         light = light.for_glossy()
-        if light.kind != "AREA" or float(light.power) == 0.0:
-            continue
+        if light.kind != "AREA" or float(light.power) == 0.0 or float(light.spread) <= 0.0:
+            continue  # a Spread-0 lamp is a collimated beam: lamp sampling finds it
         shape = _area_shape(light)
         if shape.area <= 0:
             continue
