@@ -21,6 +21,7 @@ import numpy as np
 from hybridgi_core import environment, surface_mix
 from hybridgi_core import snapshot as snap
 from hybridgi_core import specular as sp
+from hybridgi_core.blackbody import blackbody_rgb
 from hybridgi_core.glossy import MIN_ROUGHNESS
 from hybridgi_core.specular import SpecularLayer
 
@@ -1089,7 +1090,9 @@ def warn_lamp_notes(notes) -> None:
 def _light_nodes(light, name, notes) -> np.ndarray:
     """(3,) factor a light's node tree puts on its colour x strength, as Cycles multiplies the
     emission its Light Output receives: an Emission node's Color x Strength where both are
-    constants (through reroutes); 1 without nodes. Anything else keeps factor 1 and is noted."""
+    constants or the Color a Blackbody node of a constant temperature (through reroutes); 1
+    without nodes; 0 with nothing linked to the output. Anything else keeps its own value and is
+    noted."""
     one = np.ones(3, np.float32)
     tree = light.node_tree if getattr(light, "use_nodes", False) else None
     if tree is None:
@@ -1109,11 +1112,15 @@ def _light_nodes(light, name, notes) -> np.ndarray:
                          set()).add(name)
         return one
     color_in, strength_in = node.inputs["Color"], node.inputs["Strength"]
-    linked = [s.name for s in (color_in, strength_in) if _source(s)[0] is not None]
-    if linked:
+    color = _rgb(color_in.default_value)
+    source = _source(color_in)[0]
+    if source is not None and source.type == "BLACKBODY" and _source(source.inputs["Temperature"])[0] is None:
+        # Cycles renders a Blackbody node as it renders the light's own Temperature.
+        color, source = blackbody_rgb(source.inputs["Temperature"].default_value), None
+    if source is not None or _source(strength_in)[0] is not None:
         notes.setdefault("an Emission Color or Strength fed by a node is not read (its own value is used)",
                          set()).add(name)
-    return (_rgb(color_in.default_value) * float(strength_in.default_value)).astype(np.float32)
+    return (color * float(strength_in.default_value)).astype(np.float32)
 
 
 #: Environment maps already split, by what they depend on (`_environment_key`): a world that did

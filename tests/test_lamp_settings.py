@@ -11,7 +11,8 @@ the Cornell box with HybridGI and with Cycles in the test. Measured before -> af
 - ceiling lamp with Shadow off: Diffuse Direct 0.384 vs 0.415 -> 0.417;
 - Spread 30 degrees: Diffuse Direct 0.384 vs 0.199 -> 0.194 (rel L1 2.59 -> 0.14); Spread 0 (a
   collimated beam) 0.151 vs Cycles' 0.146;
-- lamp node tree, Emission Strength 2, Color (1, 0.5, 0.25): 0.384 vs 0.448 -> 0.448;
+- lamp node tree, Emission Strength 2, Color (1, 0.5, 0.25): 0.384 vs 0.448 -> 0.448; a
+  Blackbody node at 3000 K renders as the lamp's Temperature 3000 K (Cycles: identical);
 - lamp object hidden from diffuse rays: 0.384 vs 0 -> 0;
 - Diffuse factor 0.5 (EEVEE's; Cycles ignores it): 0.192 vs 0.384 -> 0.384;
 - Cycles diffuse bounces 0: Diffuse Indirect 0.364 vs 0 -> 0; 1: 0.364 vs 0.172 -> 0.169; the
@@ -205,7 +206,13 @@ def test_lamp_node_trees(bpy_module, empty_scene, sync, caplog):
     blackbody = add_light(bpy, scene, "blackbody", "POINT", energy=100.0)
     blackbody.data.use_nodes = True
     tree = blackbody.data.node_tree
-    tree.links.new(tree.nodes.new("ShaderNodeBlackbody").outputs[0], tree.nodes["Emission"].inputs["Color"])
+    kelvin = tree.nodes.new("ShaderNodeBlackbody")
+    kelvin.inputs["Temperature"].default_value = 3000.0
+    tree.links.new(kelvin.outputs[0], tree.nodes["Emission"].inputs["Color"])
+    textured = add_light(bpy, scene, "textured", "POINT", energy=100.0)
+    textured.data.use_nodes = True
+    tree = textured.data.node_tree
+    tree.links.new(tree.nodes.new("ShaderNodeTexNoise").outputs["Color"], tree.nodes["Emission"].inputs["Color"])
     unlinked = add_light(bpy, scene, "unlinked", "POINT", energy=100.0)
     unlinked.data.use_nodes = True
     tree = unlinked.data.node_tree
@@ -214,8 +221,12 @@ def test_lamp_node_trees(bpy_module, empty_scene, sync, caplog):
         found = lamps(sync, bpy)
     np.testing.assert_allclose(found["emission"].color * found["emission"].power, [200.0, 100.0, 50.0], rtol=1e-5)
     assert float(np.max(found["unlinked"].color)) == 0.0  # Cycles: an output with nothing linked is dark
-    warned = [r.getMessage() for r in caplog.records if "blackbody" in r.getMessage()]
-    assert len(warned) == 1 and "Emission Color or Strength fed by a node" in warned[0]
+    # A Blackbody node renders as the light's own Temperature (Cycles: identical Diffuse Direct).
+    reference = bpy.data.lights.new("reference", "POINT")
+    reference.use_temperature, reference.temperature = True, 3000.0
+    np.testing.assert_allclose(found["blackbody"].color, reference.temperature_color, rtol=3e-3)
+    warned = [r.getMessage() for r in caplog.records if "fed by a node" in r.getMessage()]
+    assert len(warned) == 1 and "'textured'" in warned[0] and "blackbody" not in warned[0]
 
 
 @pytest.mark.blender
@@ -331,3 +342,14 @@ def test_lamp_settings_match_cycles(scenes, tmp_path, name, pass_name, cycles_ex
     assert mean_error < 0.05 and l1 < max_l1, (mean_error, l1)
     if name == "bounces0":
         assert float(np.abs(layer(ours, "Diffuse Indirect")).max()) == 0.0
+
+
+def test_blackbody_table_follows_blenders_colours():
+    from hybridgi_core.blackbody import blackbody_rgb
+
+    # Blender 5.0's Light.temperature_color at temperatures between the table's samples.
+    np.testing.assert_allclose(blackbody_rgb(1000.0), [4.6014, 0.039, 0.0], atol=0.01)
+    np.testing.assert_allclose(blackbody_rgb(3000.0), [1.7708, 0.8443, 0.2722], rtol=3e-3)
+    np.testing.assert_allclose(blackbody_rgb(6500.0), [1.0426, 0.9841, 1.0353], rtol=3e-3)
+    np.testing.assert_allclose(blackbody_rgb(12000.0), [0.8263, 0.9945, 1.5663], rtol=3e-3)
+    np.testing.assert_allclose(blackbody_rgb(1e6), blackbody_rgb(20000.0))  # clamped to the range
