@@ -172,7 +172,7 @@ def render_frame(engine, depsgraph):
     snapshot = sync.snapshot_from_depsgraph(depsgraph, dynamic)
     steps["sync"] = (time.perf_counter() - ts) * 1e3
     view, proj = camera_matrices(depsgraph, scene, width, height)
-    world = snapshot.world.color
+    world = snapshot.world.background_color
 
     if snapshot.geometry.triangle_count == 0:
         animation.unregister_session(key)  # nothing to keep a cache of

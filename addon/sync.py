@@ -1242,13 +1242,43 @@ def read_world(world, wait=True):
     """(`World`, [the lamps it brings]) of a Blender world, read once: a uniform Background
     colour x strength, or the sky of a world that varies with direction, whose sun becomes a
     shadowed SUN `Light` (see `environment.py`). wait=False (the viewport): a world whose map
-    still bakes reads as its uniform colour, with no sun, meanwhile."""
+    still bakes reads as its uniform colour, with no sun, meanwhile.
+
+    Cycles' ray visibility of the world (`world.cycles_visibility`): hidden from the camera, the
+    background is black; hidden from diffuse rays, it lights nothing (its glossy reflections
+    then go too, with a warning, if it stays visible to glossy rays; hidden from glossy rays
+    alone is warned about)."""
+    found, lamps = _read_world(world, wait)
+    visibility = getattr(world, "cycles_visibility", None) if world is not None else None
+    if visibility is None:
+        return found, lamps
+    camera = bool(getattr(visibility, "camera", True))
+    diffuse = bool(getattr(visibility, "diffuse", True))
+    glossy = bool(getattr(visibility, "glossy", True))
+    background = found.background_color if camera else np.zeros(3, np.float32)
+    if not diffuse:
+        if glossy:
+            log.warning("world %r is hidden from diffuse rays only: it lights nothing, its glossy reflections "
+                        "included (Cycles keeps those)", world.name)
+        return snap.World(ao_distance=found.ao_distance, background=background), []
+    if not glossy:
+        log.warning("world %r: its visibility to glossy rays off is not followed (glossy surfaces still "
+                    "reflect it)", world.name)
+    if not camera:
+        found = replace(found, background=background)
+    return found, lamps
+
+
+def _read_world(world, wait=True):
     if world is None:
         return snap.World(ao_distance=snap.NO_WORLD_AO_DISTANCE), []
     ao_distance = float(world.light_settings.distance)
     if world.node_tree is None:
         return snap.World(color=_rgb(world.color), ao_distance=ao_distance), []
     _warn_volume(world.node_tree, f"world {world.name!r}")
+    if any(n.type == "LIGHT_PATH" and not n.mute and any(o.is_linked for o in n.outputs) for n in world.node_tree.nodes):
+        log.warning("world %r: its Light Path node is read as camera rays see it (the sky lights the scene "
+                    "with what the camera sees)", world.name)
     node = _output_node(world)
     if node is None:
         # Cycles renders a world with nothing linked to its output as black.

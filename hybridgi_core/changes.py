@@ -224,7 +224,8 @@ def _material_key(material: Material) -> tuple:
 
 def _world_key(world: World) -> tuple:
     sky_map = getattr(world.sky_map, "pixels", None)
-    return (world.color.tobytes(), float(world.ao_distance), None if world.sky_sh is None else world.sky_sh.tobytes(),
+    return (world.color.tobytes(), world.background_color.tobytes(), float(world.ao_distance),
+            None if world.sky_sh is None else world.sky_sh.tobytes(),
             None if sky_map is None else hash(sky_map.tobytes()))
 
 

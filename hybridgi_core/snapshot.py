@@ -233,12 +233,21 @@ class World:
         (which then still holds its mean over the upper hemisphere, for the background).
     sky_map : `environment.SkyMap` of the same sky, or None: rays read it where given (the SH
         stays for what needs a smooth sky).
+    background : (3,) float32 what the camera sees of the world where it differs from `color`
+        (a world hidden from diffuse rays lights nothing but is still seen; one hidden from the
+        camera is black); None: `color`.
     """
 
     color: np.ndarray = field(default_factory=lambda: np.zeros(3, np.float32))
     ao_distance: float = 1.0
     sky_sh: np.ndarray | None = None
     sky_map: object | None = None
+    background: np.ndarray | None = None
+
+    @property
+    def background_color(self) -> np.ndarray:
+        """(3,) float32 the world's colour as the camera sees it."""
+        return self.color if self.background is None else self.background
 
     @property
     def any(self) -> bool:
@@ -257,6 +266,8 @@ class World:
 
     def __post_init__(self) -> None:
         self.color = _finite_color(self.color, 0.0, "world colour")
+        if self.background is not None:
+            self.background = _finite_color(self.background, 0.0, "world background")
         if not (np.isfinite(self.ao_distance) and self.ao_distance >= 0.0):
             log.warning("world AO distance %r is not a finite distance; using 1 m", self.ao_distance)
             self.ao_distance = 1.0

@@ -308,6 +308,12 @@ def scenes(tmp_path_factory):
         bpy.ops.wm.open_mainfile(filepath=out + "/car.blend")
         bpy.context.scene.cycles.diffuse_bounces = 0
         save("bounces0")
+        bpy.ops.wm.open_mainfile(filepath=out + "/car.blend")
+        bpy.context.scene.world.cycles_visibility.camera = False
+        save("world_unseen")
+        bpy.ops.wm.open_mainfile(filepath=out + "/car.blend")
+        bpy.context.scene.world.cycles_visibility.diffuse = False
+        save("world_unlit")
     """)
     out = tmp_path_factory.mktemp("lamp_settings")
     root = Path(__file__).resolve().parents[1]
@@ -353,3 +359,52 @@ def test_blackbody_table_follows_blenders_colours():
     np.testing.assert_allclose(blackbody_rgb(6500.0), [1.0426, 0.9841, 1.0353], rtol=3e-3)
     np.testing.assert_allclose(blackbody_rgb(12000.0), [0.8263, 0.9945, 1.5663], rtol=3e-3)
     np.testing.assert_allclose(blackbody_rgb(1e6), blackbody_rgb(20000.0))  # clamped to the range
+
+
+# The car under its sky, world hidden from the camera / from diffuse rays, 64x48: before, the
+# background kept the sky (Combined there 0.30-0.50 vs Cycles' 0.008) and the hidden world still
+# lit (Diffuse Direct mean 0.920 vs 0.573); after, background 0.008 and 0.573 (rel L1 0.004).
+@pytest.mark.blender
+@pytest.mark.slow
+@pytest.mark.parametrize("name", ["world_unseen", "world_unlit"])
+def test_world_ray_visibility_matches_cycles(scenes, tmp_path, name):
+    from tests.cli_renders import layer, rendered
+
+    ours = rendered(scenes / f"{name}.blend", tmp_path / "hg", RES, *QUICK)
+    cycles = rendered(scenes / f"{name}.blend", tmp_path / "cy", RES, *CYCLES)
+    sky = layer(cycles, "Depth", "Z")[..., 0] >= 1e9
+    assert sky.any() and (~sky).any()
+    combined, reference = layer(ours, "Combined", "RGBA"), layer(cycles, "Combined", "RGBA")
+    np.testing.assert_allclose(combined[sky].mean(0), reference[sky].mean(0), atol=0.02)
+    a, b = layer(ours, "Diffuse Direct")[~sky], layer(cycles, "Diffuse Direct")[~sky]
+    assert abs(float(a.mean()) / float(b.mean()) - 1.0) < 0.03
+
+
+@pytest.mark.blender
+def test_world_visibility_and_light_path_are_read(bpy_module, empty_scene, sync, caplog):
+    bpy, scene = bpy_module, empty_scene
+    world = bpy.data.worlds.new("w")
+    world.color = (0.2, 0.3, 0.4)
+    scene.world = world
+    seen = sync.read_world(world)[0].color  # Blender 5.0's new worlds have a node tree (grey 0.05)
+    assert seen.any()
+    world.cycles_visibility.camera = False
+    found, _ = sync.read_world(world)
+    np.testing.assert_allclose(found.color, seen)
+    assert not found.background_color.any()
+    world.cycles_visibility.camera, world.cycles_visibility.diffuse = True, False
+    with caplog.at_level(logging.WARNING):
+        found, lamps = sync.read_world(world)
+    assert not found.any and not lamps
+    np.testing.assert_allclose(found.background_color, seen)
+    assert any("hidden from diffuse rays only" in r.getMessage() for r in caplog.records)
+    world.cycles_visibility.diffuse = True
+    if world.node_tree is None:  # before 5.0
+        world.use_nodes = True
+    tree = world.node_tree
+    mix = tree.nodes.new("ShaderNodeMixShader")
+    tree.links.new(tree.nodes.new("ShaderNodeLightPath").outputs["Is Camera Ray"], mix.inputs[0])
+    caplog.clear()
+    with caplog.at_level(logging.WARNING):
+        sync.read_world(world)
+    assert sum("Light Path" in r.getMessage() for r in caplog.records) == 1
