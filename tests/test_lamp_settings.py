@@ -305,6 +305,9 @@ def scenes(tmp_path_factory):
         save("spread")
         base().data.spread = 0.0
         save("spread0")
+        base()
+        bpy.context.scene.cycles.film_exposure = 2.0
+        save("film_exposure")
         bpy.ops.wm.open_mainfile(filepath=out + "/car.blend")
         bpy.context.scene.cycles.diffuse_bounces = 0
         save("bounces0")
@@ -324,7 +327,8 @@ def scenes(tmp_path_factory):
 
 # (scene, pass, extra Cycles settings, rel L1 bound). Measured after: portal DD 0.025, no_shadow
 # DD 0.019, spread DD 0.14 (its cone's edge on the floor carries Cycles' 64-spp noise), spread0
-# DD 0.12 (mean +3%; before the beam it was black); the car
+# DD 0.12 (mean +3%; before the beam it was black), film_exposure (Cycles' Film > Exposure 2)
+# Combined 0.071 (0.499 before: HybridGI ignored it); the car
 # under its sky with 0 diffuse bounces, Combined 0.012 (AO-only quality, the first mapping, lost
 # the sky's direct light: Diffuse Direct mean 0.572 vs 0.917).
 @pytest.mark.blender
@@ -334,6 +338,7 @@ def scenes(tmp_path_factory):
     ("no_shadow", "Diffuse Direct", (), 0.06),
     ("spread", "Diffuse Direct", (), 0.25),
     ("spread0", "Diffuse Direct", (), 0.25),
+    ("film_exposure", "Combined", (), 0.1),
     ("bounces0", "Combined", ("--set", "cycles.diffuse_bounces=0"), 0.08),
 ])
 def test_lamp_settings_match_cycles(scenes, tmp_path, name, pass_name, cycles_extra, max_l1):
