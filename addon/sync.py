@@ -68,7 +68,9 @@ def snapshot_from_depsgraph(depsgraph, dynamic_names=frozenset(), wait_for_world
 IGNORED_VISIBILITY = {
     "visible_shadow": "hidden from shadow rays",
     "visible_diffuse": "hidden from diffuse rays",
+    "visible_glossy": "hidden from glossy rays",
     "is_holdout": "a holdout",
+    "is_shadow_catcher": "a shadow catcher",
 }
 
 

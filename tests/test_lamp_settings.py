@@ -230,10 +230,15 @@ def test_lamp_node_trees(bpy_module, empty_scene, sync, caplog):
 
 
 @pytest.mark.blender
-def test_linking_and_volumes_are_warned_once(bpy_module, empty_scene, sync, caplog):
+def test_linking_volumes_and_shadow_catchers_are_warned_once(bpy_module, empty_scene, sync, caplog):
     bpy, scene = bpy_module, empty_scene
     from hybridgi_cli import blender_compat
 
+    catcher = bpy.data.objects.new("catcher", bpy.data.meshes.new("plane"))
+    catcher.data.from_pydata([(0, 0, 0), (1, 0, 0), (0, 1, 0)], [], [(0, 1, 2)])
+    catcher.is_shadow_catcher = True
+    catcher.visible_glossy = False
+    scene.collection.objects.link(catcher)
     lamp = add_light(bpy, scene, "linked_lamp")
     lamp.light_linking.receiver_collection = bpy.data.collections.new("receivers")
     lamp.light_linking.blocker_collection = bpy.data.collections.new("blockers")
@@ -256,6 +261,8 @@ def test_linking_and_volumes_are_warned_once(bpy_module, empty_scene, sync, capl
     assert sum("light-linked" in m and "linked_lamp" in m for m in messages) == 1
     assert sum("shadow-linked" in m and "linked_lamp" in m for m in messages) == 1
     assert sum("'fog'" in m and "Volume" in m for m in messages) == 1
+    assert sum("catcher" in m and "a shadow catcher" in m for m in messages) == 1
+    assert sum("catcher" in m and "hidden from glossy rays" in m for m in messages) == 1
     assert sum("world 'w'" in m and "Volume" in m for m in messages) == 1
 
 
