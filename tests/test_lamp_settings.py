@@ -251,7 +251,8 @@ def test_linking_volumes_and_shadow_catchers_are_warned_once(bpy_module, empty_s
     mat.node_tree.links.new(mat.node_tree.nodes.new("ShaderNodeVolumePrincipled").outputs[0], out.inputs["Volume"])
     obj.data.materials.append(mat)
     world = bpy.data.worlds.new("w")
-    world.use_nodes = True
+    if world.node_tree is None:  # before 5.0
+        world.use_nodes = True
     wout = next(n for n in world.node_tree.nodes if n.type == "OUTPUT_WORLD")
     world.node_tree.links.new(world.node_tree.nodes.new("ShaderNodeVolumeScatter").outputs[0], wout.inputs["Volume"])
     scene.world = world
