@@ -53,6 +53,22 @@ def light_options(light) -> tuple[bool, float, bool]:
             bool(getattr(light, "normalize", True)))
 
 
+def light_casts_shadow(light) -> bool:
+    """A light's "Shadow" checkbox: `use_shadow` since Blender 4.0 (before it Cycles kept its own
+    `light.cycles.cast_shadow`, read where `use_shadow` is missing)."""
+    if hasattr(light, "use_shadow"):
+        return bool(light.use_shadow)
+    return bool(getattr(getattr(light, "cycles", None), "cast_shadow", True))
+
+
+def light_is_portal(light) -> bool:
+    """An area light marked as a Portal (Cycles: it guides the sky's samples and emits nothing):
+    `light.cycles.is_portal` in 4.2-5.0; a newer Blender's own `is_portal` where it has one."""
+    if hasattr(light, "is_portal"):
+        return bool(light.is_portal)
+    return bool(getattr(getattr(light, "cycles", None), "is_portal", False))
+
+
 def soft_falloff(light) -> bool:
     """A POINT/SPOT light's "Soft Falloff" (Cycles emits from a sphere when it is off). Blender 4.2
     has it (added in 4.1, Cycles commit 6ddb3f99b "Lights: Option to use old point light falloff");

@@ -125,6 +125,12 @@ def unsupported_settings(scene, view_layer) -> list[str]:
     notes = []
     if getattr(scene.render, "use_motion_blur", False):
         notes.append("motion blur is not rendered")
+    bounces = properties.cycles_diffuse_bounces(scene)
+    if bounces == 0:
+        notes.append("Cycles' bounce limit (0 diffuse bounces) is followed: no light reflected by surfaces "
+                     "(no Diffuse Indirect); the sky, emitters and lamps light directly")
+    elif bounces == 1 and scene.hybridgi.indirect_quality == "MULTI_BOUNCE":
+        notes.append("Cycles' bounce limit (1 diffuse bounce) is followed: rendered as Indirect Quality One Bounce")
     if getattr(scene.render, "use_multiview", False):
         notes.append("stereoscopy is not rendered: HybridGI renders the scene camera's view only")
     camera = scene.camera
@@ -166,7 +172,7 @@ def render_frame(engine, depsgraph):
     snapshot = sync.snapshot_from_depsgraph(depsgraph, dynamic)
     steps["sync"] = (time.perf_counter() - ts) * 1e3
     view, proj = camera_matrices(depsgraph, scene, width, height)
-    world = snapshot.world.color
+    world = snapshot.world.background_color
 
     if snapshot.geometry.triangle_count == 0:
         animation.unregister_session(key)  # nothing to keep a cache of
@@ -474,17 +480,27 @@ def _write_result(engine, depsgraph, pipeline, width, height, world, cache=None,
             combined[..., :3] *= combined[..., 3:4]
     else:
         combined[..., 3] = 1.0  # Cycles' alpha is 1 on the background unless the film is transparent
+    exposure = film_exposure(depsgraph.scene)
+    combined[..., :3] *= exposure
     result.set("Combined", combined)
-    result.set("Diffuse Direct", film.read("diffuse_direct"))
-    result.set("Diffuse Indirect", film.read("diffuse_indirect"))
+    result.set("Diffuse Direct", film.read("diffuse_direct") * exposure)
+    result.set("Diffuse Indirect", film.read("diffuse_indirect") * exposure)
     result.set("Diffuse Color", film.read("diffuse_color"))
     result.set("Ambient Occlusion", np.repeat(film.read("ao"), 3, axis=-1))
     result.set("Depth", film.read("depth"))
     result.set("Normal", film.read("normal"))  # the average of the hits' normals, 0 on the background
-    result.set("Glossy Direct", film.read("glossy_direct"))
-    result.set("Glossy Indirect", film.read("glossy_indirect"))
+    result.set("Glossy Direct", film.read("glossy_direct") * exposure)
+    result.set("Glossy Indirect", film.read("glossy_indirect") * exposure)
     result.set("Glossy Color", film.read("glossy_color"))
     result.end()
+
+
+def film_exposure(scene) -> np.float32:
+    """Cycles' Film > Exposure (`scene.cycles.film_exposure`, a linear factor, 1 by default): Cycles
+    scales its light passes (Combined, Diffuse/Glossy Direct and Indirect) by it; colour, AO,
+    depth and normal passes stay (Cornell, 2: Diffuse Direct mean 0.384 -> 0.768)."""
+    value = float(getattr(getattr(scene, "cycles", None), "film_exposure", 1.0))
+    return np.float32(value if np.isfinite(value) and value >= 0.0 else 1.0)
 
 
 def _write_background(engine, depsgraph, width, height, world):
@@ -492,7 +508,7 @@ def _write_background(engine, depsgraph, width, height, world):
     result = _Result(engine, render, width, height, depsgraph.view_layer.name)
     bg = np.zeros((height, width, 4), np.float32)
     if not render.film_transparent:
-        bg[...] = (*np.asarray(world, np.float32).tolist(), 1.0)
+        bg[...] = (*(np.asarray(world, np.float32) * film_exposure(depsgraph.scene)).tolist(), 1.0)
     result.set("Combined", bg)
     for name in ("Diffuse Direct", "Diffuse Indirect", "Diffuse Color", "Ambient Occlusion", "Normal", "Glossy Direct",
                  "Glossy Indirect", "Glossy Color"):

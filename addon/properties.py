@@ -53,6 +53,25 @@ ANIMATION_MODE_ITEMS = (
 )
 
 
+
+def cycles_diffuse_bounces(scene) -> int | None:
+    """The diffuse bounces Cycles would render for this scene (min of its Max Bounces and Diffuse
+    bounces), None without Cycles' settings."""
+    cycles = getattr(scene, "cycles", None)
+    if cycles is None or not hasattr(cycles, "diffuse_bounces"):
+        return None
+    return max(min(int(cycles.max_bounces), int(cycles.diffuse_bounces)), 0)
+
+
+def bounce_limited_quality(scene) -> int:
+    """The highest Indirect Quality Cycles' diffuse bounce limit allows: One Bounce for 1 (and
+    for 0, whose hits then reflect nothing: `CacheSettings.bounce_light`, so the sky and emitters
+    still light directly, as in Cycles' Diffuse Direct), every bounce for more."""
+    bounces = cycles_diffuse_bounces(scene)
+    if bounces is None or bounces >= 2:
+        return core_settings.MULTI_BOUNCE
+    return core_settings.ONE_BOUNCE
+
 class HybridGISettings(bpy.types.PropertyGroup):
     """Render settings of the HybridGI engine, stored per scene."""
 
@@ -246,7 +265,8 @@ class HybridGISettings(bpy.types.PropertyGroup):
             rays_per_cell=self.rays_per_cell,
             ray_length=_f(self.ray_length),
             hysteresis=_f(self.hysteresis),
-            indirect_quality=INDIRECT_QUALITY[self.indirect_quality],
+            indirect_quality=min(INDIRECT_QUALITY[self.indirect_quality], bounce_limited_quality(scene)),
+            bounce_light=cycles_diffuse_bounces(scene) != 0,
             # The World allows 0; the core needs a positive distance.
             ao_distance=max(_f(ao_distance), 1e-4),
             lod_ratio=_f(self.lod_ratio),

@@ -4,8 +4,9 @@ Main thread only: it reads `bpy` data. Everything it returns is numpy arrays and
 values (no bpy object survives in the snapshot), so the core's worker threads can use it freely.
 
 Conventions (Cycles', checked against its Diffuse Direct pass to < 1%): geometry in world space with modifiers, instances and
-geometry nodes applied; lights in Blender's units with colour x temperature, exposure and the
-diffuse factor folded into `color`/`power`, area-light sizes unscaled (the object's scale stays
+geometry nodes applied; lights in Blender's units with colour x temperature, a constant node tree's
+emission and exposure folded into `color`/`power` (portals skipped; EEVEE's diffuse and specular
+factors not read, as Cycles does not), area-light sizes unscaled (the object's scale stays
 in the matrix); materials reduced to a Lambertian base colour (optionally an image) plus emission radiance, with
 glossy closures (`hybridgi_core.specular`: a Principled BSDF's specular layer and metallic lobe, Glossy,
 Metallic and Glass BSDFs, mixed by constant, Fresnel or Layer Weight factors: `hybridgi_core.surface_mix`)
@@ -20,6 +21,7 @@ import numpy as np
 from hybridgi_core import environment, surface_mix
 from hybridgi_core import snapshot as snap
 from hybridgi_core import specular as sp
+from hybridgi_core.blackbody import blackbody_rgb
 from hybridgi_core.glossy import MIN_ROUGHNESS
 from hybridgi_core.specular import SpecularLayer
 
@@ -66,7 +68,9 @@ def snapshot_from_depsgraph(depsgraph, dynamic_names=frozenset(), wait_for_world
 IGNORED_VISIBILITY = {
     "visible_shadow": "hidden from shadow rays",
     "visible_diffuse": "hidden from diffuse rays",
+    "visible_glossy": "hidden from glossy rays",
     "is_holdout": "a holdout",
+    "is_shadow_catcher": "a shadow catcher",
 }
 
 
@@ -308,6 +312,7 @@ class _SnapshotBuilder:
         self._run = None  # (key, local mesh, slot materials, first object index, [matrix]) to place
         self.objects = []
         self.lights = []
+        self.lamp_notes: dict[str, set[str]] = {}  # what of a lamp is approximated -> lamp names
         self.materials = []
         self._material_index = {}
         self._meshes = {}  # evaluated mesh pointer -> _LocalMesh | None, shared by its instances
@@ -316,8 +321,11 @@ class _SnapshotBuilder:
 
     def add_instance(self, instance):
         obj = instance.object
+        self._note_linking(obj)
         if obj.type == "LIGHT":
-            self.lights.append(light_from_blender(obj.data, instance.matrix_world, obj.name))
+            lamp = light_from_blender(obj.data, instance.matrix_world, obj.name, obj, self.lamp_notes)
+            if lamp is not None:
+                self.lights.append(lamp)
             return
         # Only meshes: curves, text, surfaces and metaballs also arrive as a mesh instance of
         # their evaluated geometry (converting them too would count them twice).
@@ -367,8 +375,19 @@ class _SnapshotBuilder:
             meaning = {"holdout": "in a holdout collection", "indirect_only": "in an indirect-only collection"}[flag]
             self.ignored.setdefault(meaning, set()).add(obj.name)
 
+    def _note_linking(self, obj):
+        """Light and shadow linking (Blender 4.0+): noted, not followed."""
+        linking = getattr(obj, "light_linking", None)
+        if linking is None:
+            return
+        for prop, meaning in (("receiver_collection", "light-linked (a Light Linking receiver collection)"),
+                              ("blocker_collection", "shadow-linked (a Shadow Linking blocker collection)")):
+            if getattr(linking, prop, None) is not None:
+                self.ignored.setdefault(meaning, set()).add(obj.name)
+
     def warn_unsupported(self):
         """One warning per kind of setting HybridGI does not follow, naming the objects."""
+        warn_lamp_notes(self.lamp_notes)
         for meaning, names in sorted(self.ignored.items()):
             shown = ", ".join(sorted(names)[:5]) + (f" and {len(names) - 5} more" if len(names) > 5 else "")
             objects = "object" if len(names) == 1 else "objects"
@@ -509,6 +528,7 @@ def material_from_blender(material, textures=None, baked=None, pending=False):
     tree = material.node_tree
     if tree is None:
         return snap.Material(name=name, base_color=_rgb(material.diffuse_color))
+    _warn_volume(tree, f"material {name!r}")
     shader = _linked_node(_surface_input(tree))
     if shader is None:
         log.warning("material %r: no shader linked to an active output; using grey", name)
@@ -981,6 +1001,16 @@ def _grey(name):
     return snap.Material(name=name, base_color=np.full(3, FALLBACK_GREY, np.float32))
 
 
+def _warn_volume(tree, what):
+    """Warn when a material's or world's output has a Volume shader linked: Cycles renders it
+    (fog, absorption, scattering), HybridGI does not."""
+    output = tree.get_output_node(OUTPUT_TARGET)
+    volume = None if output is None else output.inputs.get("Volume")
+    node = None if volume is None else _linked_node(volume)
+    if node is not None:
+        log.warning("%s: its Volume shader (%s) is not rendered: HybridGI renders surfaces only", what, node.bl_idname)
+
+
 def _surface_input(tree):
     output = tree.get_output_node(OUTPUT_TARGET)
     return None if output is None else output.inputs.get("Surface")
@@ -1232,23 +1262,40 @@ def read_image(image):
 # --- lights and world ----------------------------------------------------------------------
 
 
-def light_from_blender(light, matrix_world, name=""):
-    """`Light` of a Blender light placed by `matrix_world` (Cycles' sync_light conventions).
+def light_from_blender(light, matrix_world, name="", obj=None, notes=None):
+    """`Light` of a Blender light placed by `matrix_world` (Cycles' sync_light conventions), or
+    None for an area light that is a Portal (Cycles emits nothing from it).
 
-    power = energy x 2^exposure x diffuse factor (HybridGI shades diffuse only); colour includes
-    the blackbody tint. AREA size/size_y are Blender's (unscaled): the object's scale stays in
-    `matrix` and the core applies it to the extents (hybridgi_core/lights.py), as Cycles does. An
-    unnormalized area light keeps its radiance (strength / pi) by multiplying the power by the
-    placed area.
+    power = energy x 2^exposure (what diffuse surfaces see; 0 when the object `obj` is hidden
+    from diffuse rays), glossy_power the same for glossy lobes (0 when hidden from glossy rays);
+    EEVEE's diffuse and specular factors are not Cycles' and are not read; colour includes the blackbody tint and a light node tree's constant
+    Emission colour x strength (`_light_nodes`). AREA size/size_y are Blender's (unscaled): the
+    object's scale stays in `matrix` and the core applies it to the extents
+    (hybridgi_core/lights.py), as Cycles does. An unnormalized area light keeps its radiance
+    (strength / pi) by multiplying the power by the placed area. notes : optional dict, what this
+    reader approximates -> lamp names, for one warning per sync (`warn_lamp_notes`); None warns here.
     """
+    own_notes = notes is None
+    notes = {} if own_notes else notes
+    if light.type == "AREA" and compat.light_is_portal(light):
+        log.debug("light %r is a portal: it emits nothing (as in Cycles); skipped", name)
+        return None
     matrix = np.array(matrix_world, np.float64)
     use_temperature, exposure, normalize = compat.light_options(light)
     color = _rgb(light.color)
     if use_temperature:
         color = color * _rgb(light.temperature_color)
-    power = float(light.energy) * 2.0**exposure * float(getattr(light, "diffuse_factor", 1.0))
+    color = color * _light_nodes(light, name, notes)
+    # The Diffuse and Specular factors are EEVEE's: Cycles renders a lamp with diffuse_factor 0.5
+    # (or specular_factor 0) as with 1 (Cornell, Diffuse Direct mean 0.384 either way).
+    power = glossy_power = float(light.energy) * 2.0**exposure
+    if obj is not None:
+        if not getattr(obj, "visible_diffuse", True):
+            power = 0.0
+        if not getattr(obj, "visible_glossy", True):
+            glossy_power = 0.0
     kind = light.type
-    fields = {}
+    fields = {"cast_shadow": compat.light_casts_shadow(light)}
     if kind in ("POINT", "SPOT"):
         fields["radius"] = float(light.shadow_soft_size)
         fields["soft_falloff"] = compat.soft_falloff(light)
@@ -1264,14 +1311,62 @@ def light_from_blender(light, matrix_world, name=""):
     elif kind == "AREA":
         shape = light.shape
         size_y = light.size_y if shape in ("RECTANGLE", "ELLIPSE") else light.size
-        fields.update(shape=shape, size=float(light.size), size_y=float(size_y))
+        fields.update(shape=shape, size=float(light.size), size_y=float(size_y),
+                      spread=float(getattr(light, "spread", np.pi)))
         if not normalize:
             # Extents as the lamp is placed: the core scales size/size_y by the matrix the same way.
             extent_u = matrix[:3, 0] * light.size
             extent_v = matrix[:3, 1] * size_y
             area = float(np.linalg.norm(np.cross(extent_u, extent_v)))
-            power *= area * (np.pi / 4 if shape in ("DISK", "ELLIPSE") else 1.0)
-    return snap.Light(kind=kind, color=color, power=power, matrix=matrix, name=name, **fields)
+            scale = area * (np.pi / 4 if shape in ("DISK", "ELLIPSE") else 1.0)
+            power *= scale
+            glossy_power *= scale
+    if own_notes:
+        warn_lamp_notes(notes)
+    return snap.Light(kind=kind, color=color, power=power, matrix=matrix, name=name,
+                      glossy_power=None if glossy_power == power else glossy_power, **fields)
+
+
+def warn_lamp_notes(notes) -> None:
+    """One warning per kind of lamp setting approximated (`light_from_blender`'s notes), naming the lamps."""
+    for meaning, names in sorted(notes.items()):
+        log.warning("light %s: %s", _listed(names), meaning)
+
+
+def _light_nodes(light, name, notes) -> np.ndarray:
+    """(3,) factor a light's node tree puts on its colour x strength, as Cycles multiplies the
+    emission its Light Output receives: an Emission node's Color x Strength where both are
+    constants or the Color a Blackbody node of a constant temperature (through reroutes); 1
+    without nodes; 0 with nothing linked to the output. Anything else keeps its own value and is
+    noted."""
+    one = np.ones(3, np.float32)
+    tree = light.node_tree if getattr(light, "use_nodes", False) else None
+    if tree is None:
+        return one
+    output = tree.get_output_node(OUTPUT_TARGET)
+    surface = None if output is None else output.inputs.get("Surface")
+    if surface is None or not surface.is_linked:
+        if surface is not None and output is not None:
+            # An output with nothing linked emits nothing in Cycles.
+            return np.zeros(3, np.float32)
+        return one
+    node, _ = _source(surface)
+    if node is None:  # a muted link or node: nothing reaches the output
+        return np.zeros(3, np.float32)
+    if node.type != "EMISSION":
+        notes.setdefault(f"its node tree's {node.bl_idname} is not read (the lamp renders as without nodes)",
+                         set()).add(name)
+        return one
+    color_in, strength_in = node.inputs["Color"], node.inputs["Strength"]
+    color = _rgb(color_in.default_value)
+    source = _source(color_in)[0]
+    if source is not None and source.type == "BLACKBODY" and _source(source.inputs["Temperature"])[0] is None:
+        # Cycles renders a Blackbody node as it renders the light's own Temperature.
+        color, source = blackbody_rgb(source.inputs["Temperature"].default_value), None
+    if source is not None or _source(strength_in)[0] is not None:
+        notes.setdefault("an Emission Color or Strength fed by a node is not read (its own value is used)",
+                         set()).add(name)
+    return (color * float(strength_in.default_value)).astype(np.float32)
 
 
 #: Environment maps already split, by what they depend on (`_environment_key`): a world that did
@@ -1393,12 +1488,43 @@ def read_world(world, wait=True):
     """(`World`, [the lamps it brings]) of a Blender world, read once: a uniform Background
     colour x strength, or the sky of a world that varies with direction, whose sun becomes a
     shadowed SUN `Light` (see `environment.py`). wait=False (the viewport): a world whose map
-    still bakes reads as its uniform colour, with no sun, meanwhile."""
+    still bakes reads as its uniform colour, with no sun, meanwhile.
+
+    Cycles' ray visibility of the world (`world.cycles_visibility`): hidden from the camera, the
+    background is black; hidden from diffuse rays, it lights nothing (its glossy reflections
+    then go too, with a warning, if it stays visible to glossy rays; hidden from glossy rays
+    alone is warned about)."""
+    found, lamps = _read_world(world, wait)
+    visibility = getattr(world, "cycles_visibility", None) if world is not None else None
+    if visibility is None:
+        return found, lamps
+    camera = bool(getattr(visibility, "camera", True))
+    diffuse = bool(getattr(visibility, "diffuse", True))
+    glossy = bool(getattr(visibility, "glossy", True))
+    background = found.background_color if camera else np.zeros(3, np.float32)
+    if not diffuse:
+        if glossy:
+            log.warning("world %r is hidden from diffuse rays only: it lights nothing, its glossy reflections "
+                        "included (Cycles keeps those)", world.name)
+        return snap.World(ao_distance=found.ao_distance, background=background), []
+    if not glossy:
+        log.warning("world %r: its visibility to glossy rays off is not followed (glossy surfaces still "
+                    "reflect it)", world.name)
+    if not camera:
+        found = replace(found, background=background)
+    return found, lamps
+
+
+def _read_world(world, wait=True):
     if world is None:
         return snap.World(ao_distance=snap.NO_WORLD_AO_DISTANCE), []
     ao_distance = float(world.light_settings.distance)
     if world.node_tree is None:
         return snap.World(color=_rgb(world.color), ao_distance=ao_distance), []
+    _warn_volume(world.node_tree, f"world {world.name!r}")
+    if any(n.type == "LIGHT_PATH" and not n.mute and any(o.is_linked for o in n.outputs) for n in world.node_tree.nodes):
+        log.warning("world %r: its Light Path node is read as camera rays see it (the sky lights the scene "
+                    "with what the camera sees)", world.name)
     node = _output_node(world)
     if node is None:
         # Cycles renders a world with nothing linked to its output as black.
@@ -1431,9 +1557,11 @@ def scene_shading(depsgraph, wait_for_world=True):
     """(every lamp instance as a `Light`, then the world's; the `World`): the snapshot's lamps
     and world read again, the world once."""
     world, world_lamps = read_world(depsgraph.scene.world, wait_for_world)
-    lamps = [light_from_blender(inst.object.data, inst.matrix_world, inst.object.name)
+    notes = {}
+    lamps = [light_from_blender(inst.object.data, inst.matrix_world, inst.object.name, inst.object, notes)
              for inst in depsgraph.object_instances if inst.object.type == "LIGHT"]
-    return lamps + world_lamps, world
+    warn_lamp_notes(notes)
+    return [lamp for lamp in lamps if lamp is not None] + world_lamps, world
 
 
 def scene_materials(snapshot, names=None) -> list:

@@ -304,7 +304,7 @@ class ViewportSession:
         with stats.step("resolve"):
             direct = gpu_state.resolve_full.execute(gbuf.position, gbuf.normal, source)
             lit = gpu_state.resolve_low.execute(low.position, low.normal, source)
-        world = self.mirror.snapshot.world.color
+        world = self.mirror.snapshot.world.background_color
         with stats.step("upload_results"):
             gi = self._pixel_textures(gpu_state, published, view_key)
         gi_low, gi_bilateral = low, None

@@ -210,7 +210,8 @@ def _is_affine(before: np.ndarray, after: np.ndarray) -> bool:
 
 def _light_key(light: Light) -> tuple:
     return (light.kind, light.color.tobytes(), float(light.power), light.matrix.tobytes(), light.radius,
-            light.soft_falloff, light.spot_size, light.spot_blend, light.angle, light.shape, light.size, light.size_y)
+            light.soft_falloff, light.spot_size, light.spot_blend, light.angle, light.shape, light.size, light.size_y,
+            light.spread, light.cast_shadow, light.glossy_power)
 
 
 def _material_key(material: Material) -> tuple:
@@ -224,7 +225,8 @@ def _material_key(material: Material) -> tuple:
 
 def _world_key(world: World) -> tuple:
     sky_map = getattr(world.sky_map, "pixels", None)
-    return (world.color.tobytes(), float(world.ao_distance), None if world.sky_sh is None else world.sky_sh.tobytes(),
+    return (world.color.tobytes(), world.background_color.tobytes(), float(world.ao_distance),
+            None if world.sky_sh is None else world.sky_sh.tobytes(),
             None if sky_map is None else hash(sky_map.tobytes()))
 
 

@@ -41,6 +41,7 @@ from .lights import (
     _shadow_to_targets,
     concentric_disk,
     spot_attenuation,
+    spread_attenuation,
     stratified_uv,
     uniform_cone,
 )
@@ -270,17 +271,35 @@ def _lamp_samples(light: Light, p, rng, samples):
         shape = _area_shape(light)
         if shape.area <= 0:
             return None
+        if float(light.spread) <= 0.0:
+            # A collimated beam (`lights._beam`): one direction, P / A where the receiver's
+            # projection along the normal falls on the lamp.
+            ex, ey, ez = shape.frame
+            rel = p - shape.centre.astype(np.float64)
+            height = rel @ ez
+            a, b = (rel @ ex) * (2.0 / shape.len_u), (rel @ ey) * (2.0 / shape.len_v)
+            on = (a * a + b * b <= 1.0) if shape.round else ((np.abs(a) <= 1.0) & (np.abs(b) <= 1.0))
+            weight = np.where(on & (height > 0), float(light.power) / shape.area, 0.0)[:, None]
+            targets = (p - height[:, None] * ez[None, :])[:, None, :]
+            return np.broadcast_to(-ez, (m, 1, 3)).copy(), weight, targets
         u, v = stratified_uv(rng, m, samples)
         if shape.rectangular:
-            return _rectangle_samples(shape, float(light.power) / (np.pi * shape.area), p, u, v, samples)
-        qx, qy, qz = _area_points(shape, u, v)
-        w = np.stack([qx - p[:, 0:1], qy - p[:, 1:2], qz - p[:, 2:3]], axis=-1)
-        d2 = np.maximum((w * w).sum(-1), 1e-8)
-        dirs = w / np.sqrt(d2)[..., None]
-        cos_l = -(dirs @ shape.normal.astype(np.float64))
-        radiance = float(light.power) / (np.pi * shape.area)
-        weight = radiance * np.maximum(cos_l, 0.0) * shape.area / (d2 * samples)
-        return dirs, weight, np.stack([qx, qy, qz], axis=-1)
+            dirs, weight, targets = _rectangle_samples(shape, float(light.power) / (np.pi * shape.area), p, u, v,
+                                                       samples)
+        else:
+            qx, qy, qz = _area_points(shape, u, v)
+            w = np.stack([qx - p[:, 0:1], qy - p[:, 1:2], qz - p[:, 2:3]], axis=-1)
+            d2 = np.maximum((w * w).sum(-1), 1e-8)
+            dirs = w / np.sqrt(d2)[..., None]
+            cos_l = -(dirs @ shape.normal.astype(np.float64))
+            radiance = float(light.power) / (np.pi * shape.area)
+            weight = radiance * np.maximum(cos_l, 0.0) * shape.area / (d2 * samples)
+            targets = np.stack([qx, qy, qz], axis=-1)
+        if float(light.spread) < np.pi:  # Spread: the radiance towards each sample's direction
+            cos_l = -(dirs @ shape.normal.astype(dirs.dtype))
+            sin_l = np.sqrt(np.maximum(1.0 - cos_l * cos_l, 0.0))
+            weight = weight * spread_attenuation(light, cos_l, sin_l / np.maximum(cos_l, 1e-30))
+        return dirs, weight, targets
     if light.kind in ("POINT", "SPOT"):
         return _round_lamp_samples(light, p, rng, samples)
     to_sun = -light.direction.astype(np.float64)
@@ -386,7 +405,8 @@ def glossy_direct(lights, points, normals, to_eye, rows, mats: GlossyMaterials, 
     eye = np.asarray(to_eye, np.float64).reshape(-1, 3)
     rows = np.asarray(rows, np.int64).reshape(-1)
     out = np.zeros((pts.shape[0], 3), _F32)
-    active = [lt for lt in lights if float(lt.power) != 0.0 and np.any(lt.color != 0)]
+    # The lamps as glossy lobes see them (Specular factor, glossy ray visibility).
+    active = [g for g in (lt.for_glossy() for lt in lights) if float(g.power) != 0.0 and np.any(g.color != 0)]
     if not active or not mats.any or pts.shape[0] == 0:
         return out
     valid = (rows >= 0) & np.isfinite(pts).all(1) & np.isfinite(nrm).all(1) & np.isfinite(eye).all(1)
@@ -413,7 +433,7 @@ def glossy_direct(lights, points, normals, to_eye, rows, mats: GlossyMaterials, 
             lit = np.zeros(w32.shape, bool)
             for common, _, _ in slots:
                 lit |= (common * w32) > 0
-            if tracer is not None:
+            if tracer is not None and light.cast_shadow:
                 ri, si = np.nonzero(lit)
                 if ri.size:
                     if targets is not None:

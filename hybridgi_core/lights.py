@@ -226,6 +226,28 @@ def light_position_samples(light: Light, n: int, rng: np.random.Generator) -> np
     return (light.position[None, :] + float(light.radius) * d).astype(_F32)
 
 
+def spread_attenuation(light: Light, cos_a, tan_a):
+    """Factor on an AREA lamp's radiance leaving it at angle a from its normal (cos_a, tan_a:
+    arrays of one shape), or None for a full spread (pi: Lambertian, factor 1).
+
+    Cycles' `area_light_spread_attenuation` (kernel/light/area.h): a soft-box grid's share of the
+    lamp not hidden by its slats, max(tan(spread / 2) - tan a, 0), normalized (scene/light.cpp) by
+    1 / (tan(spread / 2) - spread / 2) so the cosine-weighted integral over the hemisphere stays
+    pi: the lamp's power is the same, concentrated in the cone. A spread of 0 is a beam along the
+    normal (factor pi within 0.05 degrees of it, as Cycles)."""
+    spread = float(light.spread)
+    if light.kind != "AREA" or spread >= np.pi:
+        return None
+    half = 0.5 * spread
+    tan_half = float(np.tan(half))
+    cos_a = np.asarray(cos_a)
+    if tan_half <= 0.0:
+        return np.where(cos_a > 0.9999997, np.pi, 0.0).astype(cos_a.dtype)
+    norm = 1.0 / (tan_half - half) if half > 0.05 else 3.0 / half**3
+    tan_a = np.where(cos_a > 0, np.asarray(tan_a), np.inf)
+    return (np.maximum(tan_half - tan_a, 0.0) * norm).astype(cos_a.dtype)
+
+
 def smoothstep01(x: np.ndarray) -> np.ndarray:
     """Cycles' `smoothstepf`: the cubic 3x^2 - 2x^3 on x clamped to [0, 1]."""
     t = np.clip(x, 0.0, 1.0)
@@ -497,6 +519,32 @@ def _sun_axis(light, pts, nrm, tracer, epsilon, opened=None):
     return e
 
 
+def _beam(light, shape, p, nrm, tracer, epsilon, opened=None):
+    """(m,) irradiance of an AREA lamp of Spread 0: a collimated beam along its normal (Cycles'
+    spread attenuation is pi within 0.05 degrees of the normal, 0 elsewhere): P / A x cos at
+    receivers whose projection along the normal falls on the lamp's front, one shadow ray each.
+    p, nrm : (x, y, z) triples of (m,) float32."""
+    pts = np.stack(p, axis=1).astype(np.float64)
+    n = np.stack(nrm, axis=1).astype(np.float64)
+    ex, ey, ez = shape.frame
+    d = pts - shape.centre.astype(np.float64)
+    height = d @ ez  # > 0: in front of the lamp
+    a = (d @ ex) * (2.0 / max(shape.len_u, 1e-300))
+    b = (d @ ey) * (2.0 / max(shape.len_v, 1e-300))
+    on = (a * a + b * b <= 1.0) if shape.round else ((np.abs(a) <= 1.0) & (np.abs(b) <= 1.0))
+    cos_r = np.maximum(-(n @ ez), 0.0)
+    e = np.where(on & (height > 0), cos_r * (float(light.power) / shape.area), 0.0).astype(_F32)
+    if opened is not None:
+        opened.append(e.copy())
+    live = np.flatnonzero(e > 0)
+    if tracer is not None and live.size:
+        origins = (pts[live] + n[live] * epsilon).astype(_F32)
+        tfar = np.maximum(height[live] - epsilon, 0.0).astype(_F32)
+        blocked = np.asarray(tracer.occluded(origins, (-ez)[None].astype(_F32), tfar, trusted=True), bool)
+        e[live[blocked]] = 0.0
+    return e
+
+
 def uniform_cone(axis, half_angle: float, u: np.ndarray, v: np.ndarray):
     """Directions uniform in the cone of `half_angle` (radians) around the unit `axis` (3,), from
     sample coordinates u, v in [0, 1): the concentric map, as Cycles' sample_uniform_cone_concentric.
@@ -567,7 +615,7 @@ def _area_chunk(light, shape, p, nrm, tracer, rng, samples, epsilon, partial=Non
     e = np.zeros(m, _F32)
     radiance = float(light.power) / (np.pi * shape.area)
     if not shape.rectangular or not solid_angle:
-        return _area_chunk_by_area(shape, radiance, p, nrm, tracer, u, v, samples, epsilon, partial, opened)
+        return _area_chunk_by_area(shape, radiance, p, nrm, tracer, u, v, samples, epsilon, partial, opened, light)
     # Receiver-relative coordinates of the lamp's bounding rectangle in its frame (x, y, normal).
     # float64 per receiver: the solid angle is a small difference of angles that sum to ~2 pi;
     # the per-sample work below is float32 (`_sample_spherical_rectangle`).
@@ -610,8 +658,14 @@ def _area_chunk(light, shape, p, nrm, tracer, rng, samples, epsilon, partial=Non
         a = (xu - x0.astype(_F32)[:, None]) * _F32(2.0 / shape.len_u) - _F32(1.0)
         b = (yv - y0.astype(_F32)[:, None]) * _F32(2.0 / shape.len_v) - _F32(1.0)
         f *= a * a + b * b <= 1.0
+    # Spread: the radiance per sample direction (z0 < 0 on the emitting side); the closed-form
+    # unshadowed light is that of a Lambertian lamp, so the plain estimate stays.
+    away = -z0.astype(_F32)[:, None]
+    cone = spread_attenuation(light, away / np.sqrt(xu * xu + yv * yv + away * away), np.sqrt(xu * xu + yv * yv) / away)
+    if cone is not None:
+        f *= cone
     open_sum = f.sum(axis=1)
-    unshadowed = open_sum if samples >= RATIO_MIN_SAMPLES else None
+    unshadowed = open_sum if samples >= RATIO_MIN_SAMPLES and cone is None else None
     scale = (solid_angle * (radiance / samples)).astype(_F32)
     if tracer is not None:
         lit = np.flatnonzero(f > 0)
@@ -803,7 +857,8 @@ def _sample_spherical_rectangle(x0, y0, z0, len_x, len_y, u, v):
     return xu, yv, valid, solid_angle
 
 
-def _area_chunk_by_area(shape, radiance, p, nrm, tracer, u, v, samples, epsilon, partial=None, opened=None):
+def _area_chunk_by_area(shape, radiance, p, nrm, tracer, u, v, samples, epsilon, partial=None, opened=None,
+                        light=None):
     """Uniform area sampling, for sheared (non-rectangular) lamps that Urena's method cannot take."""
     qx, qy, qz = _area_points(shape, u, v)
     wx, wy, wz = qx - p[0][:, None], qy - p[1][:, None], qz - p[2][:, None]  # receiver -> sample
@@ -814,6 +869,10 @@ def _area_chunk_by_area(shape, radiance, p, nrm, tracer, u, v, samples, epsilon,
     ln = shape.normal
     cos_l = -(wx * ln[0] + wy * ln[1] + wz * ln[2]) * inv_d
     g = np.maximum(cos_r, 0.0) * np.maximum(cos_l, 0.0) / d2
+    cone = None if light is None else spread_attenuation(
+        light, cos_l, np.sqrt(np.maximum(1.0 - cos_l * cos_l, 0.0)) / np.maximum(cos_l, _F32(1e-30)))
+    if cone is not None:
+        g *= cone
     if opened is not None:
         opened.append(g.sum(axis=1) * _F32(radiance * shape.area / samples))
     if tracer is not None:
@@ -893,6 +952,8 @@ def _shade_picked(light: Light, shape, weight: np.ndarray, p, q, tracer, rng, sa
         e = _point_chunk(light, ps, qs, tracer, rng, samples, epsilon)
     elif light.kind == "SUN":
         e = _sun_chunk(light, ps, qs, tracer, rng, samples, epsilon)
+    elif float(light.spread) <= 0.0:
+        e = _beam(light, shape, ps, qs, tracer, epsilon)
     else:
         e = _area_chunk(light, shape, ps, qs, tracer, rng, samples, epsilon, None, solid_angle)
     if bumped is not None:
@@ -1021,7 +1082,8 @@ def direct_irradiance(
         if ax:
             opened = [] if acc_open is not None else None
             bump = _bump_weight(lt, pts, nrm, smooth)
-            e = (_sun_axis(lt, pts, nrm, tracer, epsilon, opened) * bump)[:, None] * lt.color[None, :]
+            e = (_sun_axis(lt, pts, nrm, tracer if lt.cast_shadow else None, epsilon, opened) * bump)[:, None]
+            e = e * lt.color[None, :]
             acc += e
             if shares is not None:
                 shares[:, column[i]] = e
@@ -1039,19 +1101,22 @@ def direct_irradiance(
         p = tuple(np.ascontiguousarray(pts[start:stop, k]) for k in range(3))
         q = tuple(np.ascontiguousarray(nrm[start:stop, k]) for k in range(3))
         for slot, (i, lt) in enumerate(sampled):
+            tr = tracer if lt.cast_shadow else None  # the lamp's Shadow checkbox off: no shadow rays
             if picked is not None:
-                _shade_picked(lt, shapes.get(i), picked[start:stop, slot], p, q, tracer, rng, samples, epsilon,
+                _shade_picked(lt, shapes.get(i), picked[start:stop, slot], p, q, tr, rng, samples, epsilon,
                               solid_angle, acc[start:stop],
                               None if smooth is None else (nrm[start:stop], smooth[start:stop]))
                 continue
             mark = None if found is None else found[start:stop] if found.ndim == 1 else found[start:stop, column[i]]
             opened = [] if acc_open is not None else None
             if lt.kind in ("POINT", "SPOT"):
-                e = _point_chunk(lt, p, q, tracer, rng, samples, epsilon, mark, opened)
+                e = _point_chunk(lt, p, q, tr, rng, samples, epsilon, mark, opened)
             elif lt.kind == "SUN":
-                e = _sun_chunk(lt, p, q, tracer, rng, samples, epsilon, mark, opened)
+                e = _sun_chunk(lt, p, q, tr, rng, samples, epsilon, mark, opened)
+            elif i in shapes and float(lt.spread) <= 0.0:
+                e = _beam(lt, shapes[i], p, q, tr, epsilon, opened)
             elif i in shapes:
-                e = _area_chunk(lt, shapes[i], p, q, tracer, rng, samples, epsilon, mark, solid_angle, opened,
+                e = _area_chunk(lt, shapes[i], p, q, tr, rng, samples, epsilon, mark, solid_angle, opened,
                                 None if known is None else known[start:stop, column[i]])
             else:
                 continue

@@ -29,7 +29,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .lights import _area_shape, _onb, stratified_uv
+from .lights import _area_shape, _onb, spread_attenuation, stratified_uv
 from .pixel_gather import filter_at_pixels, hit_radiance
 from .sampling import frame_rng
 from .specular import _lambda
@@ -115,8 +115,9 @@ def bsdf_lamps(lights, points: np.ndarray, normals: np.ndarray, rough: np.ndarra
     alpha = np.asarray(rough, np.float64).reshape(-1) ** 2
     lobe = 4.0 * np.pi * alpha * alpha
     for j, light in enumerate(lights):
-        if light.kind != "AREA" or float(light.power) == 0.0:
-            continue
+        light = light.for_glossy()
+        if light.kind != "AREA" or float(light.power) == 0.0 or float(light.spread) <= 0.0:
+            continue  # a Spread-0 lamp is a collimated beam: lamp sampling finds it
         shape = _area_shape(light)
         if shape.area <= 0:
             continue
@@ -182,7 +183,7 @@ def _lamp_radiance(lights, lamps: np.ndarray, origins: np.ndarray, dirs: np.ndar
     dirs) meet on their emitting side nearer than `reach` (N,) (their geometry hit, or inf)."""
     out = np.zeros((dirs.shape[0], 3), _F32)
     for j in np.flatnonzero(lamps.any(axis=0)):
-        light = lights[j]
+        light = lights[j].for_glossy()
         shape = _area_shape(light)
         rows = np.flatnonzero(lamps[:, j])
         o, d = origins[rows].astype(np.float64), dirs[rows].astype(np.float64)
@@ -198,7 +199,10 @@ def _lamp_radiance(lights, lamps: np.ndarray, origins: np.ndarray, dirs: np.ndar
         a, b = ab[0], ab[1]
         inside = (a * a + b * b <= 1.0) if shape.round else ((np.abs(a) <= 1.0) & (np.abs(b) <= 1.0))
         hit = (facing < 0) & (t > 0) & (t < reach[rows]) & inside
-        out[rows[hit]] += _F32(float(light.power) / (np.pi * shape.area)) * light.color.astype(_F32)
+        radiance = (_F32(float(light.power) / (np.pi * shape.area)) * light.color.astype(_F32))[None, :]
+        cone = spread_attenuation(light, -facing[hit], np.sqrt(np.maximum(1.0 - facing[hit] ** 2, 0.0))
+                                  / np.maximum(-facing[hit], 1e-30))
+        out[rows[hit]] += radiance if cone is None else radiance * cone.astype(_F32)[:, None]
     return out
 
 

@@ -91,6 +91,9 @@ class CacheSettings:
     #: Camera-centred levels (`levels.py`): 1 = the one grid over the scene; 2-3 add grids of half
     #: the cell size over the nearest visible geometry (final renders with pixel rays)
     cache_levels: int = 1
+    #: False: surfaces that rays hit reflect no light (Cycles' diffuse bounce limit 0): beyond its
+    #: lamps a pixel sees only the sky and emitters, as Cycles' Diffuse Direct; no Diffuse Indirect.
+    bounce_light: bool = True
 
     #: Valid values of each field: (low, high, low_open, high_open) or a frozenset of choices
     #: (a class attribute, not a field: it has no annotation).

@@ -56,7 +56,10 @@ class ProbeHits:
 class SurfaceTable:
     """Packed triangles and materials of one traced Geometry (built once per geometry change)."""
 
-    def __init__(self, geometry: Geometry, materials: list[Material]):
+    def __init__(self, geometry: Geometry, materials: list[Material], reflect: bool = True):
+        """reflect : False makes every hit reflect nothing (albedo 0: no bounce light), its
+        emission kept (`CacheSettings.bounce_light`)."""
+        self.reflect = reflect
         rows = np.arange(geometry.triangle_count)
         self._normals = _pack_normals(geometry, rows)
         self._positions = _pack_positions(geometry, rows)
@@ -94,6 +97,9 @@ class SurfaceTable:
         self.glossy = np.array([m.hit_glossy_albedo for m in materials], np.float32).reshape(-1, 3)
         self.albedo = np.array([m.base_color for m in materials], np.float32).reshape(-1, 3) * weight
         self.mean_albedo = np.array([m.mean_albedo for m in materials], np.float32).reshape(-1, 3) * weight
+        if not self.reflect:
+            self.glossy, self.albedo, self.mean_albedo = (np.zeros_like(a) for a in (self.glossy, self.albedo,
+                                                                                       self.mean_albedo))
         self.emission = np.array([m.emission for m in materials], np.float32).reshape(-1, 3)
         self.textured = [i for i, m in enumerate(materials) if m.texture is not None]
         self.emissive = bool(self.emission.any())

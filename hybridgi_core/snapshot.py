@@ -9,7 +9,7 @@ world colour as radiance.
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -218,6 +218,11 @@ class Light:
     spot_size : radians, full cone angle; spot_blend : 0..1
     angle : radians, full angular diameter of the SUN disc
     shape, size, size_y : AREA shape and its extents in metres (size_y for RECTANGLE/ELLIPSE)
+    spread : radians, AREA only: the full angle of its emission cone (Cycles' "Spread"; pi: the
+        whole hemisphere, Lambertian). Narrower: radiance x `lights.spread_attenuation`.
+    cast_shadow : False traces no shadow rays for this lamp (Blender's "Shadow" checkbox off).
+    glossy_power : the power glossy lobes see (0 when the lamp object is hidden from glossy rays);
+        None: `power`. `power` is what diffuse surfaces see (0 when hidden from diffuse rays).
     """
 
     kind: str
@@ -233,6 +238,9 @@ class Light:
     size: float = 1.0
     size_y: float = 1.0
     name: str = ""
+    spread: float = np.pi
+    cast_shadow: bool = True
+    glossy_power: float | None = None
 
     def __post_init__(self) -> None:
         if self.kind not in LIGHT_KINDS:
@@ -245,13 +253,25 @@ class Light:
         if not np.isfinite(self.matrix).all():
             raise InvalidGeometryError(f"{what}: its transform is not finite")
         # A light that is not finite would put NaN in every pixel it reaches: it emits nothing.
-        for name in ("power", "radius", "spot_size", "spot_blend", "angle", "size", "size_y"):
+        for name in ("power", "radius", "spot_size", "spot_blend", "angle", "size", "size_y", "spread",
+                     "glossy_power"):
+            if name == "glossy_power" and self.glossy_power is None:
+                continue
             value = float(getattr(self, name))
             if not np.isfinite(value):
                 log.warning("%s: %s=%r is not finite; the light is switched off", what, name, value)
                 self.power = 0.0
+                self.glossy_power = 0.0 if self.glossy_power is not None else None
                 value = 0.0
             setattr(self, name, value)
+        self.spread = min(max(self.spread, 0.0), float(np.pi))
+        self.cast_shadow = bool(self.cast_shadow)
+
+    def for_glossy(self) -> Light:
+        """This lamp as glossy lobes see it: `glossy_power` in place of `power`."""
+        if self.glossy_power is None or self.glossy_power == self.power:
+            return self
+        return replace(self, power=self.glossy_power, glossy_power=None)
 
     @property
     def position(self) -> np.ndarray:
@@ -278,12 +298,21 @@ class World:
         (which then still holds its mean over the upper hemisphere, for the background).
     sky_map : `environment.SkyMap` of the same sky, or None: rays read it where given (the SH
         stays for what needs a smooth sky).
+    background : (3,) float32 what the camera sees of the world where it differs from `color`
+        (a world hidden from diffuse rays lights nothing but is still seen; one hidden from the
+        camera is black); None: `color`.
     """
 
     color: np.ndarray = field(default_factory=lambda: np.zeros(3, np.float32))
     ao_distance: float = 1.0
     sky_sh: np.ndarray | None = None
     sky_map: object | None = None
+    background: np.ndarray | None = None
+
+    @property
+    def background_color(self) -> np.ndarray:
+        """(3,) float32 the world's colour as the camera sees it."""
+        return self.color if self.background is None else self.background
 
     @property
     def any(self) -> bool:
@@ -302,6 +331,8 @@ class World:
 
     def __post_init__(self) -> None:
         self.color = _finite_color(self.color, 0.0, "world colour")
+        if self.background is not None:
+            self.background = _finite_color(self.background, 0.0, "world background")
         if not (np.isfinite(self.ao_distance) and self.ao_distance >= 0.0):
             log.warning("world AO distance %r is not a finite distance; using 1 m", self.ao_distance)
             self.ao_distance = 1.0
