@@ -135,3 +135,20 @@ def test_compacted_and_whole_batch_shading_agree(monkeypatch, scene):
     assert whole[1][:, 0].max() > 0.01  # bounce light exists, so the comparison means something
     for a, b in zip(whole, compact, strict=True):
         np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-6)
+
+
+def test_a_mix_shader_weighs_an_emission_texture_and_adds_the_other_emission():
+    """Mix(textured emitter, constant emitter, Fac 0.25): 0.75 x texture + 0.25 x constant per
+    texel, as Cycles adds the weighted emission closures; no texture stays no texture."""
+    from hybridgi_core import surface_mix  # noqa: PLC0415
+
+    glow = np.zeros((1, 2, 3), np.float32)
+    glow[0, 0], glow[0, 1] = (8.0, 0.0, 0.0), (0.0, 0.0, 4.0)
+    textured = surface_mix.SurfacePart(emission=glow.reshape(-1, 3).mean(axis=0), emission_texture=glow)
+    flat = surface_mix.SurfacePart(emission=np.array([0.0, 4.0, 0.0], np.float32))
+    part, notes = surface_mix.mix([textured, flat], [surface_mix.constant_factor(0.75), surface_mix.constant_factor(0.25)])
+    np.testing.assert_allclose(part.emission_texture, 0.75 * glow + [0.0, 1.0, 0.0], rtol=1e-5)
+    assert not notes
+    plain, _ = surface_mix.mix([flat, flat], [surface_mix.constant_factor(0.5)] * 2)
+    assert plain.emission_texture is None
+    np.testing.assert_allclose(plain.emission, [0.0, 4.0, 0.0], rtol=1e-6)
