@@ -9,6 +9,10 @@ UV maps do not matter. The triangles of that material then carry the atlas UVs a
 texture, through the same plumbing as an image texture (probe hits: `shading.SurfaceTable`; the
 G-buffer: `raster/gbuffer`).
 
+An emission whose colour or strength is linked (`sync.EMISSION_BAKE`) is baked the same way as
+their product: one Emission shader fed by both, so the texture is the emitted radiance, HDR
+(float bake; the disk copy is float16, radiance clipped at its 65504).
+
 The bake runs Cycles in a separate process, like `world_bake` (a bake cannot run inside a
 render, and the user's data must not change): the mesh travels as arrays (the triangles of the
 material's slot, object-space corners, every UV map and colour attribute, the texture space), the
@@ -273,6 +277,7 @@ def _run(cmd, tmp, described) -> dict[str, np.ndarray]:
             texture[~used] = texture[used].mean(axis=0)  # the texture's mean stays the surface's
         if not np.isfinite(texture).all():
             texture = np.nan_to_num(texture, nan=0.0, posinf=0.0, neginf=0.0)
+        np.minimum(texture, np.float32(65504.0), out=texture)  # float16's largest, on disk and in the G-buffer
         STORE.put(key, texture)
         out[key] = texture
     log.info("baked %d material texture(s) (%s) in %.1f s, the process's start included", len(out), names,

@@ -44,6 +44,27 @@ def source_socket(tree, node_name, socket_id):
     raise RuntimeError(f"input {socket_id} of {node_name} is not linked")
 
 
+#: The pseudo-input of a shader's emission (`sync.EMISSION_BAKE`): colour and strength wired into one
+#: Emission shader, so the bake is their product, HDR.
+EMISSION_INPUTS = {"BSDF_PRINCIPLED": ("Emission Color", "Emission Strength"), "EMISSION": ("Color", "Strength")}
+
+
+def wire(tree, target, node_name, socket_name):
+    """Feed input `socket_name` of node `node_name` into `target`: its source, or its value."""
+    socket = tree.nodes[node_name].inputs[socket_name]
+    while socket.is_linked and not socket.links[0].is_muted:
+        link = socket.links[0]
+        if link.from_node.type != "REROUTE":
+            if not link.from_node.mute:
+                tree.links.new(link.from_socket, target)
+                return
+            break
+        socket = link.from_node.inputs[0]
+    socket = tree.nodes[node_name].inputs[socket_name]
+    value = socket.default_value
+    target.default_value = tuple(value) if hasattr(value, "__len__") else value
+
+
 def run(job):
     arrays = np.load(os.path.join(folder, job["key"] + ".npz"))
     positions = arrays["positions"].astype(np.float64)
@@ -79,11 +100,15 @@ def run(job):
     material = materials[(job["blend"], job["material"])].copy()
     mesh.materials.append(material)
     tree = material.node_tree
-    source = source_socket(tree, job["node"], job["socket"])
     output = tree.get_output_node("CYCLES")
     emission = tree.nodes.new("ShaderNodeEmission")
     emission.inputs["Strength"].default_value = 1.0
-    tree.links.new(source, emission.inputs["Color"])
+    if job["socket"] == "emission":
+        colour, strength = EMISSION_INPUTS[tree.nodes[job["node"]].type]
+        wire(tree, emission.inputs["Color"], job["node"], colour)
+        wire(tree, emission.inputs["Strength"], job["node"], strength)
+    else:
+        tree.links.new(source_socket(tree, job["node"], job["socket"]), emission.inputs["Color"])
     tree.links.new(emission.outputs[0], output.inputs["Surface"])
     if output.inputs.get("Displacement") is not None:
         for link in list(output.inputs["Displacement"].links):

@@ -542,7 +542,7 @@ def material_from_blender(material, textures=None, baked=None, pending=False):
         textures.glossy.add(name)
     return snap.Material(name=name, base_color=part.base.astype(np.float32), texture=part.texture,
                          emission=part.emission.astype(np.float32), alpha=part.alpha, specular=specular,
-                         normal_map=part.normal)
+                         normal_map=part.normal, emission_texture=part.emission_texture)
 
 
 def _shader_surface(shader, textures, name, depth=0):
@@ -564,10 +564,10 @@ def _shader_surface(shader, textures, name, depth=0):
         _note_approximations(shader, textures, name, metallic, transmission, coat)
         layer = _specular_layer(shader, textures, name, base, texture, metallic, transmission)
         base = base * weight * (1.0 + np.clip(coat, 0, 1) * (tint - 1.0))
-        emission = _constant_color(shader.inputs["Emission Color"], name) * _constant_value(
-            shader.inputs["Emission Strength"], name)
+        emission, glow = _emission(shader, shader.inputs["Emission Color"], shader.inputs["Emission Strength"],
+                                   textures, name)
         diffuse = sp.diffuse_weight(layer, sp.view_grid())
-        return surface_mix.SurfacePart(base=base, texture=texture, emission=emission,
+        return surface_mix.SurfacePart(base=base, texture=texture, emission=emission, emission_texture=glow,
                                        alpha=_alpha_map(shader.inputs["Alpha"], textures, name), diffuse=diffuse,
                                        lobes=sp.layer_lobes(layer), layer=layer,
                                        normal=_normal_map(shader, textures, name))
@@ -575,8 +575,8 @@ def _shader_surface(shader, textures, name, depth=0):
         base, texture = _color_socket(shader.inputs["Color"], textures, name)
         return surface_mix.SurfacePart(base=base, texture=texture, normal=_normal_map(shader, textures, name))
     if kind == "EMISSION":
-        emission = _constant_color(shader.inputs["Color"], name) * _constant_value(shader.inputs["Strength"], name)
-        return surface_mix.SurfacePart(emission=emission)
+        emission, glow = _emission(shader, shader.inputs["Color"], shader.inputs["Strength"], textures, name)
+        return surface_mix.SurfacePart(emission=emission, emission_texture=glow)
     if kind in ("BSDF_GLOSSY", "BSDF_ANISOTROPIC", "BSDF_METALLIC", "BSDF_GLASS"):
         return surface_mix.SurfacePart(lobes=[_glossy_lobe(shader, kind, textures, name)])
     if kind in ("BSDF_TRANSPARENT", "BSDF_REFRACTION", "HOLDOUT", "BSDF_TRANSLUCENT"):
@@ -942,6 +942,40 @@ def _alpha_map(socket, textures, name, constant_ok=True):
     return None
 
 
+#: Inputs (colour, strength) of the shaders whose emission `_emission` reads, and the name of
+#: their product's bake (`bake_sockets`, `material_bake_process`: one EMIT bake of colour x strength).
+EMISSION_INPUTS = {"BSDF_PRINCIPLED": ("Emission Color", "Emission Strength"), "EMISSION": ("Color", "Strength")}
+EMISSION_BAKE = "emission"
+
+
+def _emission(node, colour, strength, textures, name):
+    """((3,) emitted radiance, (h, w, 3) radiance per texel or None) of a shader's emission:
+    colour x strength as Cycles' emission closure weighs it. Constants (and nodes folding to
+    constants) give the constant, exactly as before; an Image Texture's colour plugged straight
+    into the colour, under a constant strength, is that image times the strength (read through
+    the mesh's UV map like a base colour image); anything else is the product Blender baked
+    (`bake_sockets`). A bake still running or failed keeps the inputs' own values."""
+    folded = _fold(colour, 0), _fold(strength, 0)
+    if folded[0] is not None and folded[1] is not None:
+        return _constant_color(colour, name) * _constant_value(strength, name), None
+    baked = textures.baked.get((node.name, EMISSION_BAKE))
+    if baked is not None:
+        return baked.reshape(-1, 3).mean(axis=0).astype(np.float32), baked
+    source, output = _source(colour)
+    if folded[1] is not None and _direct_image(source, output):
+        pixels = textures.get(source.image, name)
+        if pixels is not None:
+            glow = (pixels * np.float32(_constant_value(strength, name))).astype(np.float32)
+            return glow.reshape(-1, 3).mean(axis=0).astype(np.float32), glow
+    if not textures.pending:
+        linked = _linked_node(colour) if folded[0] is None else _linked_node(strength)
+        _note(textures, name, node, f"emission from {getattr(linked, 'bl_idname', 'a node')} could not be read "
+              "(its sockets' own values are used)")
+    value = folded[0] if folded[0] is not None else tuple(colour.default_value)[:3]
+    scale = folded[1] if folded[1] is not None else strength.default_value
+    return (np.broadcast_to(np.asarray(value, np.float32), (3,)) * np.float32(np.mean(scale))).astype(np.float32), None
+
+
 def _input(node, *names):
     """The first of `names` that `node` has as an input (socket names changed across versions)."""
     for n in names:
@@ -1043,6 +1077,10 @@ def _color_socket(socket, textures, material_name):
     node, output = _source(socket)
     if node is None:
         return value, None  # a muted link: Cycles uses the socket's own value
+    baked = textures.baked.get((socket.node.name, socket.identifier))
+    if baked is not None:
+        # Baked, even an image: the material's triangles read the bake's atlas UVs.
+        return np.ones(3, np.float32), baked
     if _direct_image(node, output):
         texture = textures.get(node.image, material_name)
         if texture is not None:
@@ -1078,11 +1116,14 @@ BAKED_INPUTS = {"BSDF_PRINCIPLED": "Base Color", "BSDF_DIFFUSE": "Color"}
 def bake_sockets(material) -> list[tuple[str, str]]:
     """(node name, input identifier) of every diffuse colour input of `material`'s surface
     (through Mix / Add Shaders) that needs Blender to evaluate it: linked to anything but a
-    readable image, a constant, or a muted link."""
+    readable image, a constant, or a muted link; and (node name, EMISSION_BAKE) of every
+    emission whose colour or strength is linked to anything but constants or an image's colour
+    under a constant strength. A material with any bake has its triangles on the bake's atlas
+    UVs, so its images on these inputs are baked too."""
     tree = getattr(material, "node_tree", None)
     if tree is None:
         return []
-    out = []
+    out, images = [], []
     stack, seen = [_linked_node(_surface_input(tree))], set()
     while stack:
         node = stack.pop()
@@ -1092,6 +1133,13 @@ def bake_sockets(material) -> list[tuple[str, str]]:
         if node.type in ("MIX_SHADER", "ADD_SHADER"):
             stack += [_linked_node(s) for s in node.inputs if s.type == "SHADER"]
             continue
+        glow = EMISSION_INPUTS.get(node.type)
+        if glow is not None and all(node.inputs.get(n) is not None for n in glow):
+            colour, strength = (node.inputs[n] for n in glow)
+            if _fold(colour, 0) is None or _fold(strength, 0) is None:
+                source, output = _source(colour)
+                image = _fold(strength, 0) is not None and _direct_image(source, output)
+                (images if image else out).append((node.name, EMISSION_BAKE))
         name = BAKED_INPUTS.get(node.type)
         socket = node.inputs.get(name) if name else None
         if socket is None or not socket.is_linked:
@@ -1100,10 +1148,11 @@ def bake_sockets(material) -> list[tuple[str, str]]:
         if source is None:
             continue
         if _direct_image(source, output):
+            images.append((node.name, socket.identifier))
             continue
         if _fold(socket, 0) is None:
             out.append((node.name, socket.identifier))
-    return out
+    return out + images if out else out
 
 
 #: bake_id -> the jobs a baked material was made of (the viewport re-bakes edited materials).
@@ -1136,7 +1185,11 @@ def bake_job(material, node, socket, mesh, local, triangles):
         colors[attr.name] = values[corners]
     texspace = (tuple(mesh.texspace_location), tuple(mesh.texspace_size))
     shader = material.node_tree.nodes[node]
-    source = _linked_node(next(s for s in shader.inputs if s.identifier == socket))
+    if socket == EMISSION_BAKE:
+        colour, strength = (shader.inputs[n] for n in EMISSION_INPUTS[shader.type])
+        source = _linked_node(colour) if _fold(colour, 0) is None else _linked_node(strength)
+    else:
+        source = _linked_node(next(s for s in shader.inputs if s.identifier == socket))
     return material_bake.BakeJob(material=material, node=node, socket=socket, source=getattr(source, "name", ""),
                                  positions=np.ascontiguousarray(local.positions[corners], np.float32),
                                  uv_maps=uv_maps, render_uv=render, colors=colors, texspace=texspace,

@@ -220,7 +220,9 @@ def _material_key(material: Material) -> tuple:
     texture_key = None if texture is None else (texture.shape, float(texture.sum(dtype=np.float64)))
     specular = None if material.specular is None else material.specular.key()
     normal_map = None if material.normal_map is None else material.normal_map.key()
-    return material.base_color.tobytes(), material.emission.tobytes(), texture_key, specular, normal_map
+    glow = getattr(material, "emission_texture", None)
+    glow_key = None if glow is None else (glow.shape, float(glow.sum(dtype=np.float64)))
+    return material.base_color.tobytes(), material.emission.tobytes(), texture_key, specular, normal_map, glow_key
 
 
 def _world_key(world: World) -> tuple:

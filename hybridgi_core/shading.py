@@ -102,7 +102,9 @@ class SurfaceTable:
                                                                                        self.mean_albedo))
         self.emission = np.array([m.emission for m in materials], np.float32).reshape(-1, 3)
         self.textured = [i for i, m in enumerate(materials) if m.texture is not None]
-        self.emissive = bool(self.emission.any())
+        # Materials whose emission varies over the surface: hits read it at their UV.
+        self.glowing = [i for i, m in enumerate(materials) if getattr(m, "emission_texture", None) is not None]
+        self.emissive = bool(self.emission.any()) or bool(self.glowing)
         # A zero row last, for the -1 of missed rays.
         records = np.zeros((self._normals.shape[0] + 1, RECORD_FLOATS), np.float32)
         records[:-1, _NG] = _face_normals(self._positions)
@@ -120,7 +122,7 @@ class SurfaceTable:
         facing = np.einsum("ij,ij->i", r[:, _NG], ray_dirs)
         backface = facing > 0
         nrm = r[:, _NG] * np.where(backface, np.float32(-1.0), np.float32(1.0))[:, None]
-        return ProbeHits(nrm, self._brdf(r, prim, u, v), r[:, _EMIT], backface)
+        return ProbeHits(nrm, self._brdf(r, prim, u, v), self._emission(r, prim, u, v), backface)
 
     def glossy_brdf(self, prim: np.ndarray) -> np.ndarray:
         """(n, 3) float32 the part of the hits' brdf (prim (n,) >= 0) that stands for their glossy
@@ -128,9 +130,11 @@ class SurfaceTable:
         take as lamp light reflected towards it (a lobe shows a lamp only in its highlight)."""
         return self.glossy[np.take(self.material_index, prim)] * _INV_PI
 
-    def emission_of(self, prim: np.ndarray) -> np.ndarray:
-        """(n, 3) float32 emission of triangles prim; 0 for -1."""
-        return np.take(self.records, prim, axis=0)[:, _EMIT]
+    def emission_of(self, prim: np.ndarray, u: np.ndarray | None = None, v: np.ndarray | None = None) -> np.ndarray:
+        """(n, 3) float32 emission of triangles prim at barycentrics (u, v); 0 for -1. Without
+        u, v, an emission texture reads as its mean."""
+        r = np.take(self.records, prim, axis=0)
+        return r[:, _EMIT] if u is None or v is None else self._emission(r, prim, u, v)
 
     def face_normals(self, prim: np.ndarray) -> np.ndarray:
         """(n, 3) float32 unit geometric normals (winding order) of triangles prim; 0 for -1."""
@@ -152,7 +156,31 @@ class SurfaceTable:
         pos = p[:, 0:3] + u * p[:, 3:6] + v * p[:, 6:9]
         r = np.take(self.records, prim, axis=0)
         brdf = self._brdf(r, prim, u[:, 0], v[:, 0])
-        return SurfaceHits(pos, nrm, brdf * np.float32(np.pi), np.ascontiguousarray(r[:, _EMIT]), backface)
+        return SurfaceHits(pos, nrm, brdf * np.float32(np.pi), np.ascontiguousarray(self._emission(r, prim, u[:, 0], v[:, 0])),
+                           backface)
+
+    def _emission(self, r: np.ndarray, prim: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+        """(n, 3) emission of gathered records r at hits (prim, u, v): the record's (a view into
+        r), or, on materials with an emission texture, the texture at the hit UV (a fresh array;
+        the texture's mean where the triangle has no UV)."""
+        emission = r[:, _EMIT]
+        if not self.glowing:
+            return emission
+        emission = emission.copy()
+        mat = np.where(prim >= 0, np.take(self.material_index, np.maximum(prim, 0)), -1)
+        for m in self.glowing:
+            sel = np.flatnonzero(mat == m)
+            if sel.size == 0:
+                continue
+            uv, known = self._hit_uvs(prim[sel], u[sel], v[sel])
+            emission[sel[known]] = sample_texture(self.materials[m].emission_texture, uv[known])
+        return emission
+
+    def _hit_uvs(self, prim: np.ndarray, u: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """((n, 2) UVs at hits on triangles prim (>= 0) at barycentrics u, v; (n,) bool finite)."""
+        t = np.take(self._uvs, prim, axis=0)
+        uv = t[:, 0:2] + u[:, None] * t[:, 2:4] + v[:, None] * t[:, 4:6]
+        return uv, np.isfinite(uv).all(axis=1)
 
     def _brdf(self, r: np.ndarray, prim: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
         """(n, 3) albedo / pi of gathered records r at hits (prim, u, v): the record's, or the
@@ -168,9 +196,7 @@ class SurfaceTable:
             sel = np.flatnonzero(mat == m)
             if sel.size == 0:
                 continue
-            t = np.take(self._uvs, prim[sel], axis=0)
-            uv = t[:, 0:2] + u[sel, None] * t[:, 2:4] + v[sel, None] * t[:, 4:6]
-            known = np.isfinite(uv).all(axis=1)
+            uv, known = self._hit_uvs(prim[sel], u[sel], v[sel])
             col = np.tile((self.mean_albedo[m] + self.glossy[m]) * _INV_PI, (sel.size, 1))
             col[known] = (self.albedo[m] * _INV_PI) * sample_texture(self.materials[m].texture, uv[known])
             col[known] += self.glossy[m] * _INV_PI

@@ -155,7 +155,11 @@ class Material:
     """Lambertian surface: linear base colour, optional texture, emission radiance.
 
     texture : (h, w, 3) float32 linear RGB, row 0 at v = 0 (Blender's image order), or None
-    emission : (3,) radiance in W/(m^2 sr) = emission colour x strength
+    emission : (3,) radiance in W/(m^2 sr) = emission colour x strength; with an
+        `emission_texture`, that texture's mean (what reads where no UV is known)
+    emission_texture : (h, w, 3) float32 emitted radiance per texel (colour x strength,
+        scene-linear, may exceed 1), row 0 at v = 0, read through the same UVs as `texture`; or
+        None (the constant `emission` everywhere)
     alpha : (h, w) float32 opacity from an image, row 0 at v = 0, or None (opaque): the surface is
         cut out where it is below ALPHA_CUTOFF, for the camera and for rays (`cutout.py`)
     bake_id : the reader's name for a texture it had Blender bake over this material's own UV
@@ -178,6 +182,7 @@ class Material:
     bake_id: str | None = None
     specular: SpecularLayer | GlossySurface | None = None
     normal_map: NormalMap | None = None
+    emission_texture: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         # Non-finite colours would reach every pixel that sees (or bounces off) this material.
@@ -185,6 +190,10 @@ class Material:
         self.emission = _finite_color(self.emission, 0.0, f"material {self.name!r} emission")
         if self.texture is not None:
             self.texture = fit_texture(self.texture, MAX_TEXTURE_SIZE, f"material {self.name!r}")
+        if self.emission_texture is not None:
+            self.emission_texture = np.maximum(fit_texture(
+                self.emission_texture, MAX_TEXTURE_SIZE, f"material {self.name!r} emission"), np.float32(0.0))
+            self.emission = self.emission_texture.reshape(-1, 3).mean(axis=0, dtype=np.float64).astype(np.float32)
 
     @property
     def mean_albedo(self) -> np.ndarray:

@@ -393,7 +393,7 @@ class GISolver:
             values[0:3] = world.radiance(chunk.ray_dirs).T  # a sky that varies with direction
         h = chunk.hit
         if h.size and self.scene.surfaces.emissive:
-            values[0:3, h] = self.scene.surfaces.emission_of(chunk.prim[h]).T
+            values[0:3, h] = self.scene.surfaces.emission_of(chunk.prim[h], chunk.u[h], chunk.v[h]).T
         elif h.size:
             values[0:3, h] = 0.0  # no emitter in the scene: skip gathering zero records
         if s.indirect_quality == AO_ONLY:

@@ -33,7 +33,8 @@ class SurfacePart:
     colour over the view cosine, or None (1); lobes : the glossy closures; layer : the
     `SpecularLayer` of a Principled BSDF read on its own (its layering, exactly as Cycles'),
     dropped once the part is mixed (its lobes and diffuse weight carry it on); normal : the
-    `snapshot.NormalMap` on its Normal input, or None.
+    `snapshot.NormalMap` on its Normal input, or None; emission_texture : (h, w, 3) emitted
+    radiance per texel (then `emission` is its mean), or None.
     """
 
     base: np.ndarray = field(default_factory=lambda: np.zeros(3, np.float32))
@@ -44,6 +45,7 @@ class SurfacePart:
     lobes: list = field(default_factory=list)
     layer: sp.SpecularLayer | None = None
     normal: object | None = None
+    emission_texture: np.ndarray | None = None
 
     def diffuse_table(self) -> np.ndarray:
         """(V,) the diffuse weight over `specular.view_grid`."""
@@ -137,6 +139,7 @@ def mix(parts: list[SurfacePart], weights: list[np.ndarray], name: str = "") -> 
     else:
         diffuse = np.ones(sp.VIEW_SAMPLES)
     emission = sum(float(_cosine_mean(w)) * part.emission for part, w in zip(parts, weights, strict=True))
+    glow = _mixed_emission_texture(parts, weights, notes)
     alpha = next((part.alpha for part in parts if part.alpha is not None), None)
     # One shading normal per material: the normal map of the part weighing most (Cycles bends
     # each closure by its own; a mix of differently mapped closures keeps one map, noted).
@@ -146,8 +149,27 @@ def mix(parts: list[SurfacePart], weights: list[np.ndarray], name: str = "") -> 
     if mapped and any(part.normal is not normal for part in shading):
         notes.append("closures with different normal inputs mixed (one normal map kept for all)")
     part = SurfacePart(base=np.asarray(base, np.float32), texture=texture, emission=np.asarray(emission, np.float32),
-                       alpha=alpha, diffuse=None if np.allclose(diffuse, 1.0) else diffuse, lobes=lobes, normal=normal)
+                       alpha=alpha, diffuse=None if np.allclose(diffuse, 1.0) else diffuse, lobes=lobes, normal=normal,
+                       emission_texture=glow)
     return part, notes
+
+
+def _mixed_emission_texture(parts: list[SurfacePart], weights: list[np.ndarray], notes: list[str]) -> np.ndarray | None:
+    """(h, w, 3) the emitted radiance per texel of a mix whose parts have emission textures, or
+    None: the textured part's texture times its weight plus the other parts' emission (Cycles
+    adds the emission closures, each times its mix weight; emission does not depend on the view
+    factor's angle beyond its mean here). Two textures: the stronger one is kept, its mean standing
+    for the other's, noted."""
+    textured = [i for i, part in enumerate(parts) if part.emission_texture is not None and np.any(weights[i] > 0)]
+    if not textured:
+        return None
+    keep = max(textured, key=lambda i: float(_cosine_mean(weights[i])) * float(parts[i].emission.mean()))
+    if len(textured) > 1:
+        notes.append("emission textures mixed (the stronger kept, the other's mean colour added)")
+    glow = np.float32(_cosine_mean(weights[keep])) * parts[keep].emission_texture
+    rest = sum((float(_cosine_mean(w)) * part.emission for i, (part, w) in enumerate(zip(parts, weights, strict=True))
+                if i != keep), np.zeros(3))
+    return (glow + np.asarray(rest, np.float32)).astype(np.float32)
 
 
 #: Math node operations a factor table goes through (Cycles' svm_math, safe division and power).

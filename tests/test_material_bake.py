@@ -257,6 +257,105 @@ def test_a_failed_bake_warns_and_keeps_the_constant(bpy_module, empty_scene, syn
     assert "exit 3" in warnings[0]
 
 
+def _emissive(bpy, name, strength_from_checker=True, base_image=None, emission_image=None):
+    """A Principled BSDF with Emission Color (1, 0.5, 0.2) or `emission_image`, and Emission
+    Strength a Checker's Fac x 10 (Math) or 4."""
+    material = blender_compat.new_material(bpy, name)
+    tree = material.node_tree
+    bsdf = tree.nodes["Principled BSDF"]
+    bsdf.inputs["Emission Color"].default_value = (1.0, 0.5, 0.2, 1.0)
+    bsdf.inputs["Emission Strength"].default_value = 4.0
+    if strength_from_checker:
+        checker = tree.nodes.new("ShaderNodeTexChecker")
+        checker.inputs["Color1"].default_value = (1, 1, 1, 1)
+        checker.inputs["Color2"].default_value = (0, 0, 0, 1)
+        times = tree.nodes.new("ShaderNodeMath")
+        times.operation = "MULTIPLY"
+        times.inputs[1].default_value = 10.0
+        tree.links.new(checker.outputs["Fac"], times.inputs[0])
+        tree.links.new(times.outputs[0], bsdf.inputs["Emission Strength"])
+    for image, socket in ((base_image, "Base Color"), (emission_image, "Emission Color")):
+        if image is not None:
+            node = tree.nodes.new("ShaderNodeTexImage")
+            node.image = image
+            tree.links.new(node.outputs["Color"], bsdf.inputs[socket])
+    return material
+
+
+def _halves(bpy, name="halves"):
+    """A 4x2 float image: left half red, right half blue."""
+    image = bpy.data.images.new(name, 4, 2, float_buffer=True)
+    rgba = np.zeros((2, 4, 4), np.float32)
+    rgba[..., 3] = 1.0
+    rgba[:, :2, 0] = 1.0
+    rgba[:, 2:, 2] = 1.0
+    image.pixels.foreach_set(rgba.ravel())
+    image.pack()  # the bake process reads the material from a file
+    return image, rgba[..., :3]
+
+
+QUAD = ([(0, 0, 0), (1, 0, 0), (1, 1, 0), (0, 1, 0)], [], [(0, 1, 2, 3)])
+
+
+def test_a_procedural_emission_strength_bakes_colour_times_strength(bpy_module, empty_scene, sync, material_bake,
+                                                                   cache_home):
+    bpy = bpy_module
+    material = _emissive(bpy, "sign")
+    assert sync.bake_sockets(material) == [("Principled BSDF", sync.EMISSION_BAKE)]
+    _object(bpy, empty_scene, "quad", *QUAD, material)
+    (got,) = sync.snapshot_from_depsgraph(bpy.context.evaluated_depsgraph_get()).materials
+    assert got.texture is None and got.bake_id is not None
+    glow = got.emission_texture
+    used = glow[material_bake.used_texels(2, glow.shape[0])]
+    # The checker's squares: 10 x the colour (HDR, above 1) and black; the mean is the constant.
+    np.testing.assert_allclose(used.max(axis=0), [10.0, 5.0, 2.0], rtol=0.01)
+    assert used.min() == pytest.approx(0.0, abs=1e-3)
+    assert 0.2 < used[:, 0].mean() / 10.0 < 0.8
+    np.testing.assert_allclose(got.emission, glow.reshape(-1, 3).mean(axis=0), rtol=1e-5)
+
+
+def test_an_emission_image_is_read_directly_times_the_strength(bpy_module, empty_scene, sync, material_bake,
+                                                               cache_home):
+    bpy = bpy_module
+    image, rgb = _halves(bpy)
+    material = _emissive(bpy, "tv", strength_from_checker=False, emission_image=image)
+    assert sync.bake_sockets(material) == []
+    _object(bpy, empty_scene, "quad", *QUAD, material, uv=True)
+    (got,) = sync.snapshot_from_depsgraph(bpy.context.evaluated_depsgraph_get()).materials
+    assert got.bake_id is None
+    np.testing.assert_allclose(got.emission_texture, 4.0 * rgb, rtol=1e-6)
+    np.testing.assert_allclose(got.emission, [2.0, 0.0, 2.0], rtol=1e-6)
+
+
+def test_constant_emission_stays_constant(bpy_module, empty_scene, sync, cache_home):
+    bpy = bpy_module
+    material = _emissive(bpy, "lamp", strength_from_checker=False)
+    tree = material.node_tree
+    rgb = tree.nodes.new("ShaderNodeRGB")
+    rgb.outputs[0].default_value = (0.5, 0.25, 1.0, 1.0)
+    tree.links.new(rgb.outputs[0], tree.nodes["Principled BSDF"].inputs["Emission Color"])
+    assert sync.bake_sockets(material) == []
+    got = sync.material_from_blender(material)
+    assert got.emission_texture is None
+    np.testing.assert_array_equal(got.emission, np.float32([2.0, 1.0, 4.0]))
+
+
+def test_a_base_image_is_baked_with_a_baked_emission(bpy_module, empty_scene, sync, material_bake, cache_home):
+    """The material's triangles read the atlas UVs once anything of it is baked: its base colour
+    image is baked too, not read through the atlas."""
+    bpy = bpy_module
+    image, rgb = _halves(bpy)
+    material = _emissive(bpy, "both", base_image=image)
+    assert sorted(sync.bake_sockets(material)) == [("Principled BSDF", "Base Color"), ("Principled BSDF", sync.EMISSION_BAKE)]
+    _object(bpy, empty_scene, "quad", *QUAD, material, uv=True)
+    (got,) = sync.snapshot_from_depsgraph(bpy.context.evaluated_depsgraph_get()).materials
+    assert got.texture is not None and got.emission_texture is not None
+    used = material_bake.used_texels(2, got.texture.shape[0])
+    # Red and blue halves, each on about half of the baked quad.
+    assert 0.3 < got.texture[used][:, 0].mean() < 0.7 and 0.3 < got.texture[used][:, 2].mean() < 0.7
+    assert got.texture[used][:, 1].max() < 1e-3
+
+
 def test_meshes_without_faces_or_uvs(bpy_module, empty_scene, sync, material_bake, cache_home):
     bpy = bpy_module
     material, _ = _procedural(bpy)

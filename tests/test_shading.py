@@ -53,6 +53,25 @@ def test_probe_hits_read_texture_base_colour_emission_and_misses():
     assert up.backface[0]
 
 
+def test_hits_read_an_emission_texture_at_their_uv():
+    glow = np.zeros((1, 2, 3), np.float32)
+    glow[0, 0] = (8.0, 0.0, 0.0)  # u < 0.5 red
+    glow[0, 1] = (0.0, 0.0, 4.0)  # u > 0.5 blue
+    mats = [Material("tv", np.zeros(3, np.float32), emission_texture=glow), Material("plain")]
+    np.testing.assert_allclose(mats[0].emission, [4.0, 0.0, 2.0])  # the mean stands for it without UVs
+    table = SurfaceTable(floor_quads(), mats)
+    assert table.emissive
+    prim = np.array([0, 0, 2, -1], np.int32)
+    u = np.array([0.125, 0.875, 0.5, 0.0], np.float32)
+    v = np.array([0.0, 0.0, 0.25, 0.0], np.float32)
+    down = np.tile([[0, 0, -1.0]], (4, 1)).astype(np.float32)
+    expect = np.array([[6.0, 0.0, 1.0], [2.0, 0.0, 3.0], [0, 0, 0], [0, 0, 0]])  # bilinear across the 2 texels
+    np.testing.assert_allclose(table.probe_hits(prim, u, v, down).emission, expect, atol=1e-5)
+    np.testing.assert_allclose(table.emission_of(prim, u, v), expect, atol=1e-5)
+    np.testing.assert_allclose(table.surface(prim[:3], u[:3], v[:3], down[:3]).emission, expect[:3], atol=1e-5)
+    np.testing.assert_allclose(table.emission_of(prim), [[4.0, 0, 2.0]] * 2 + [[0, 0, 0]] * 2)
+
+
 def test_probe_hits_take_the_geometric_normal_image_pixels_the_smooth_one():
     """Probe hits only feed a cell's average, so they skip normal interpolation; `surface` (image
     pixels) keeps the smooth normal. Both follow a triangle that moves (update_rows)."""
@@ -116,3 +135,20 @@ def test_compacted_and_whole_batch_shading_agree(monkeypatch, scene):
     assert whole[1][:, 0].max() > 0.01  # bounce light exists, so the comparison means something
     for a, b in zip(whole, compact, strict=True):
         np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-6)
+
+
+def test_a_mix_shader_weighs_an_emission_texture_and_adds_the_other_emission():
+    """Mix(textured emitter, constant emitter, Fac 0.25): 0.75 x texture + 0.25 x constant per
+    texel, as Cycles adds the weighted emission closures; no texture stays no texture."""
+    from hybridgi_core import surface_mix  # noqa: PLC0415
+
+    glow = np.zeros((1, 2, 3), np.float32)
+    glow[0, 0], glow[0, 1] = (8.0, 0.0, 0.0), (0.0, 0.0, 4.0)
+    textured = surface_mix.SurfacePart(emission=glow.reshape(-1, 3).mean(axis=0), emission_texture=glow)
+    flat = surface_mix.SurfacePart(emission=np.array([0.0, 4.0, 0.0], np.float32))
+    part, notes = surface_mix.mix([textured, flat], [surface_mix.constant_factor(0.75), surface_mix.constant_factor(0.25)])
+    np.testing.assert_allclose(part.emission_texture, 0.75 * glow + [0.0, 1.0, 0.0], rtol=1e-5)
+    assert not notes
+    plain, _ = surface_mix.mix([flat, flat], [surface_mix.constant_factor(0.5)] * 2)
+    assert plain.emission_texture is None
+    np.testing.assert_allclose(plain.emission, [0.0, 4.0, 0.0], rtol=1e-6)

@@ -9,7 +9,8 @@ Targets (all bottom-up rows, world space, scene-linear):
 | 1    | normal   | RGBA16F | unit shading normal, flipped to face the camera and bent by  |
 |      |          |         | the material's tangent-space normal map and bump, a = 1      |
 | 2    | position | RGBA32F | world position xyz, w = 1 on geometry, 0 on the background   |
-| 3    | emission | RGBA16F | emitted radiance W/(m^2 sr), a = 1                           |
+| 3    | emission | RGBA16F | emitted radiance W/(m^2 sr) (the material's emission texture |
+|      |          |         | at the pixel's UV where it has one), a = 1                   |
 | 4    | depth    | R32F    | view-axis distance (Cycles' Depth pass), 1e10 on background  |
 | 5    | material | R32F    | material index + 1 (0 on the background): the CPU's glossy lobes |
 
@@ -76,6 +77,8 @@ TEXTURE_ALPHA = 2
 TEXTURE_NORMAL = 4
 #: The material's `bump_tx` holds a Bump node's height (`snapshot.BumpMap`), in red.
 TEXTURE_BUMP = 8
+#: The material's `emission_tx` holds its emitted radiance per texel (`Material.emission_texture`).
+TEXTURE_EMISSION = 16
 
 
 def _texture_rgba(material) -> np.ndarray:
@@ -109,6 +112,7 @@ class _MaterialDraw:
     bump: object = None  # GPUTexture of the bump height, or None
     bump_strength: float = 1.0
     bump_distance: float = 0.0
+    glow: object = None  # GPUTexture of the emission texture, or None
 
 
 def camera_eye(view: np.ndarray, proj: np.ndarray) -> tuple:
@@ -165,7 +169,7 @@ class GBufferPass(RasterPass):
             varyings=(("smooth", "VEC3", "world_pos"), ("smooth", "VEC3", "world_nor"),
                       ("smooth", "VEC2", "tex_uv"), ("smooth", "FLOAT", "uv_ok"), ("smooth", "VEC4", "world_tan")),
             samplers=((0, "FLOAT_2D", "albedo_tx"), (1, "FLOAT_2D", "weight_tx"), (2, "FLOAT_2D", "normal_tx"),
-                      (3, "FLOAT_2D", "bump_tx")),
+                      (3, "FLOAT_2D", "bump_tx"), (4, "FLOAT_2D", "emission_tx")),
             # 88 bytes of push constants per material; the camera (80 bytes) is a UBO.
             push=(("VEC4", "base_color"), ("VEC4", "fallback_albedo"), ("VEC4", "emission"), ("VEC4", "eye"),
                   ("INT", "has_texture"), ("FLOAT", "texture_filter"), ("INT", "material_row"),
@@ -268,6 +272,13 @@ class GBufferPass(RasterPass):
                 height[..., 0] = normal_map.bump.height
                 bump = upload_texture_2d(height, "RGBA32F")  # height differences need the precision
                 flags |= TEXTURE_BUMP
+            glow_texture = getattr(material, "emission_texture", None)
+            glow = None
+            if glow_texture is not None:
+                # Half floats hold radiance up to 65504: emission textures are HDR.
+                glow = upload_texture_2d(np.ascontiguousarray(np.concatenate(
+                    [glow_texture, np.ones((*glow_texture.shape[:2], 1), np.float32)], axis=-1)), "RGBA16F")
+                flags |= TEXTURE_EMISSION
             base = np.asarray(material.base_color, np.float32).reshape(3)
             self._draws.append(_MaterialDraw(
                 batch=None,
@@ -283,6 +294,7 @@ class GBufferPass(RasterPass):
                 bump=bump,
                 bump_strength=float(normal_map.bump.strength) if bump is not None else 1.0,
                 bump_distance=float(normal_map.bump.distance) if bump is not None else 0.0,
+                glow=glow,
             ))
         self.update_positions(geo.positions)
         log.debug("gbuffer upload: %d vertices, %d triangles, %d material draws",
@@ -352,6 +364,7 @@ class GBufferPass(RasterPass):
                     shader.uniform_sampler("albedo_tx", draw.texture or self._dummy_texture)
                     shader.uniform_sampler("normal_tx", draw.normal or self._dummy_texture)
                     shader.uniform_sampler("bump_tx", draw.bump or self._dummy_texture)
+                    shader.uniform_sampler("emission_tx", draw.glow or self._dummy_texture)
                     shader.uniform_sampler("weight_tx", self._weight_texture)
                     draw.batch.draw(shader)
         return self.outputs()

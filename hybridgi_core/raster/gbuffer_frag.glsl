@@ -6,7 +6,9 @@
  * a tangent-space normal map, applied in the frame of `world_tan` (xyz tangent, w bitangent sign)
  * as Cycles' Normal Map node applies it (svm_node_normal_map), `normal_strength` its Strength.
  * Bit 8: `bump_tx` (red) is a Bump node's height, applied after the map as Cycles' svm_node_set_bump
- * with `bump_strength` and `bump_distance` (negative: inverted). */
+ * with `bump_strength` and `bump_distance` (negative: inverted). Bit 16: `emission_tx` is the emitted
+ * radiance per texel (an emissive texture), averaged over the pixel's footprint like the colour;
+ * without it (or without UVs) the constant `emission`. */
 
 /* The diffuse weight at cosine mu, linear between the table's samples at i / (n - 1). */
 float diffuse_weight(float mu)
@@ -190,7 +192,11 @@ void main()
   out_albedo = vec4(albedo, 1.0);
   out_normal = vec4(n, 1.0);
   out_position = vec4(world_pos, 1.0);
-  out_emission = vec4(emission.rgb, 1.0);
+  vec3 emitted = emission.rgb;
+  if ((has_texture & 16) != 0 && uv_ok > 0.999) {
+    emitted = sample_footprint(emission_tx, tex_uv, du, dv);
+  }
+  out_emission = vec4(emitted, 1.0);
   out_depth = view_depth(camera.view_z, world_pos);
   out_material = float(material_row + 1);
 }
