@@ -73,6 +73,7 @@ class FrameStats:
     low_res: tuple[int, int] = (0, 0)
     detail_pixels: int = 0  # full-res pixels that traced their own pixel rays (`_pixel_gi_full`)
     extra_pixels: int = 0  # centre GI edge pixels that made the frame take extra subframes (`_subframe_count`)
+    subframes: int = 1  # jittered subframes the frame took (`_subframe_count`)
 
     @contextmanager
     def step(self, name: str):
@@ -259,14 +260,18 @@ class FramePipeline:
         with stats.step("gbuffer"):  # the full-res read-back, as the subframes count theirs
             normal = self.gbuffer.read("normal")
             position = self.gbuffer.read("position")
+            # The smooth surface under normal maps (`normal` itself where none bends it).
+            surface = self.gbuffer.read_surface(normal)
         with stats.step("direct"):
             p_full, n_full, pix_full = pixels_to_points(position, normal)
+            s_full = None if surface is normal else pixels_to_points(position, surface)[1]
             # Before the pixel rays: their hits that the camera sees read this light (`screen_light`).
             direct = np.zeros((self.height * self.width, 4), np.float32)
             camera = filter_camera(system.scene.lights, camera_eye(view, proj))
             direct[pix_full, :3] = adaptive_direct(system.direct, p_full, n_full, pix_full, (self.height, self.width),
                                                    frame, self.direct_samples, camera=camera,
-                                                   pool=system.updater.pool, lamps=len(system.scene.lights))[0]
+                                                   pool=system.updater.pool, lamps=len(system.scene.lights),
+                                                   smooth=s_full)[0]
             screen = ScreenLight.from_pixels(view, proj, (self.width, self.height), p_full, n_full, pix_full,
                                              direct[pix_full, :3])
         gi = None
@@ -303,8 +308,9 @@ class FramePipeline:
         film.set_depth(self.gbuffer.read("depth"))  # the centre sample, as Cycles' one sample
         count = self.subframes
         if count > 1:
-            centre = CentreSample.from_gbuffer(direct, position, normal, film.read("depth"))
+            centre = CentreSample.from_gbuffer(direct, position, normal, film.read("depth"), surface=surface)
             count = self._subframe_count(centre, full_gi, stats)
+        stats.subframes = count
         offsets = subpixel_offsets(count, self.filter_size, self.filter_type)
         jittered = offsets.shape[0] > 1
         if jittered:
@@ -316,12 +322,14 @@ class FramePipeline:
                                                 texture_filter=texture_filter)
                     normal = self.gbuffer.read("normal")
                     position = self.gbuffer.read("position")
+                    surface = self.gbuffer.read_surface(normal)
                 with stats.step("direct"):
-                    hit, same = subframe_surfaces(centre, position, normal)
+                    hit, same = subframe_surfaces(centre, position, normal, surface)
                     direct = subframe_direct(system, centre, position, normal,
                                              frame + s * SUBFRAME_SEED_STRIDE,
                                              max(min(self.direct_samples, RATIO_MIN_SAMPLES),
-                                                 self.direct_samples // offsets.shape[0]), surfaces=(hit, same))
+                                                 self.direct_samples // offsets.shape[0]), surfaces=(hit, same),
+                                             surface=surface)
                 if full_gi is not None and full_gi.resolver is not None:
                     with stats.step("subframe_gi"):
                         gi, gi_low = self._subframe_gi(full_gi, gbuf, hit, same, position, normal, offset,
