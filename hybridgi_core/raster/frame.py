@@ -272,8 +272,9 @@ class FramePipeline:
                                                    frame, self.direct_samples, camera=camera,
                                                    pool=system.updater.pool, lamps=len(system.scene.lights),
                                                    smooth=s_full)[0]
-            screen = ScreenLight.from_pixels(view, proj, (self.width, self.height), p_full, n_full, pix_full,
-                                             direct[pix_full, :3])
+            # Hits find their pixel by the surface (the smooth normal), not a normal map's bend.
+            screen = ScreenLight.from_pixels(view, proj, (self.width, self.height), p_full,
+                                             n_full if s_full is None else s_full, pix_full, direct[pix_full, :3])
         gi = None
         gi_low, gi_bilateral, full_gi = low, None, None
         if self.settings.pixel_rays > 0:
@@ -281,7 +282,7 @@ class FramePipeline:
                 if self.settings.downsample > 1 and self.settings.pixel_full_res:
                     gi, gi_low, gi_bilateral, full_gi = self._pixel_gi_full(
                         system, gbuf, position_lo, normal_lo, pix, points, normals, visible, view, frame,
-                        (p_full, n_full, pix_full), stats, screen)
+                        (p_full, n_full, pix_full), stats, screen, s_full)
                 else:
                     gi = self._pixel_gi(system, position_lo, normal_lo, pix, points, normals, visible, view, frame,
                                         stats, screen)
@@ -333,7 +334,8 @@ class FramePipeline:
                 if full_gi is not None and full_gi.resolver is not None:
                     with stats.step("subframe_gi"):
                         gi, gi_low = self._subframe_gi(full_gi, gbuf, hit, same, position, normal, offset,
-                                                       frame + s * SUBFRAME_SEED_STRIDE, offsets.shape[0], stats)
+                                                       frame + s * SUBFRAME_SEED_STRIDE, offsets.shape[0], stats,
+                                                       surface)
             with stats.step("direct"):
                 self._direct_tex = upload_texture_2d(direct.reshape(self.height, self.width, 4), "RGBA32F")
             shaded = self.shade(gbuf, gi_low, view, proj, self._direct_tex,
@@ -475,7 +477,7 @@ class FramePipeline:
         return sky, bounced, lamp
 
     def _pixel_gi_full(self, system, gbuf, position_lo, normal_lo, pix, points, normals, visible, view, frame,
-                       full, stats, screen=None):
+                       full, stats, screen=None, full_surfaces=None):
         """Pixel rays at the GI resolution resolved per full-res pixel (`pixel_gather.full_res_images`):
         (the three full-res textures, the centre G-buffer's copy that guides them, the factor-1
         bilateral pass that reads them)."""
@@ -485,7 +487,8 @@ class FramePipeline:
         out = pixel_gather.full_res_images(
             system, position_lo, normal_lo, pix, points, normals, visible, view, frame, s.pixel_rays,
             p_full, n_full, pix_full, (self.width, self.height), passes=s.pixel_filter,
-            plane_sigma=s.bilateral_plane_sigma, normal_power=s.bilateral_normal_power, screen=screen)
+            plane_sigma=s.bilateral_plane_sigma, normal_power=s.bilateral_normal_power, screen=screen,
+            full_surfaces=full_surfaces)
         stats.rays += out.gi.rays
         for k, v in out.steps_ms.items():
             stats.steps_ms[f"pixel_{k}"] = stats.steps_ms.get(f"pixel_{k}", 0.0) + v
@@ -513,13 +516,15 @@ class FramePipeline:
             p.resize(self.width, self.height)
         return self._full_copy.execute(gbuf), self._bilateral_full
 
-    def _subframe_gi(self, full_gi, gbuf, hit, same, position, normal, offset, seed_frame, count, stats):
+    def _subframe_gi(self, full_gi, gbuf, hit, same, position, normal, offset, seed_frame, count, stats,
+                     surface=None):
         """A jittered subframe's full-res GI textures (`subpixel.subframe_gi`: the centre's where it
         sees the centre's surface, resolved at its own samples elsewhere) and their guide, a copy of
         the subframe's own G-buffer: (gi textures, guide)."""
         indirect, direct, traced = subframe_gi(full_gi.resolver, full_gi.indirect, full_gi.direct, hit, same,
                                                position, normal, offset, seed_frame,
-                                               max(RATIO_MIN_SAMPLES, self.settings.pixel_rays // count))
+                                               max(RATIO_MIN_SAMPLES, self.settings.pixel_rays // count),
+                                               surface=surface)
         stats.rays += traced
         guide = self._full_copy.execute(gbuf)
         shape = (self.height, self.width, 4)

@@ -261,13 +261,14 @@ def subframe_surfaces(centre: CentreSample, position: np.ndarray, normal: np.nda
 
 def subframe_gi(resolver, centre_indirect: np.ndarray, centre_direct: np.ndarray, hit: np.ndarray, same: np.ndarray,
                 position: np.ndarray, normal: np.ndarray, offset, seed_frame: int,
-                rays: int) -> tuple[np.ndarray, np.ndarray, int]:
+                rays: int, surface: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, int]:
     """A jittered subframe's full-res GI textures, ((h * w, 4) indirect, (h * w, 4) direct, rays
     traced), as `pixel_gather.textures` lays them out: the centre's (`centre_indirect`,
     `centre_direct`: `pixel_gather.FullResGI.indirect` / `.direct`) where the subframe sees the
     centre's surface, resolved at the subframe's own sample elsewhere (`pixel_gather.GIResolver.at`,
     `rays` rays where no GI pixel shares its surface), the background's where it sees none.
-    hit, same : `subframe_surfaces`.
+    hit, same : `subframe_surfaces`. surface : the subframe's `surface` read-back where a material
+    bends normals, else None.
 
     Why: the film weights each sample's light by its own colour; a post's edge pixel whose
     subframe sees the ground behind it (or a bar the centre raster missed) must bring that
@@ -284,7 +285,10 @@ def subframe_gi(resolver, centre_indirect: np.ndarray, centre_direct: np.ndarray
     if fresh.size:
         p, n, keep = pixels_to_points(position.reshape(n_pix, -1)[fresh][None], normal.reshape(n_pix, -1)[fresh][None])
         rows = fresh[keep]
-        value, traced = resolver.at(p, n, rows, offset, seed_frame, rays)
+        smooth = None
+        if surface is not None and surface is not normal:
+            smooth = pixels_to_points(position.reshape(n_pix, -1)[fresh][None], surface.reshape(n_pix, -1)[fresh][None])[1]
+        value, traced = resolver.at(p, n, rows, offset, seed_frame, rays, surfaces=smooth)
         write_texels(indirect, direct, rows, value)
     return indirect, direct, traced
 
