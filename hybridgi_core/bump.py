@@ -7,8 +7,10 @@ the other side of the smooth surface than N says, else the GGX masking G1 of |Ns
 roughness from the deviation, alpha^2 = tan^2(Ns, N) / 8), which darkens ridges turned towards a
 low lamp (Diffuse Direct 20% at the crest of a 50-degree ridge under a 20-degree sun).
 
-The G-buffer hands the CPU only N; `smooth_normals` recovers Ns under each pixel from the ray
-mesh with one short ray back along N, so the lamps' and the pixel rays' code need no new input.
+The G-buffer keeps Ns under each pixel (`GBufferPass.read_surface`), which final renders hand
+to the lamps' and the pixel rays' code; where no image gives it (the viewport's worker),
+`smooth_normals` recovers it from the ray mesh with one short ray back along N.
+`irradiance_kernel` reads radiance SH through the lobe the term shapes (the pixel rays' cache).
 """
 
 from __future__ import annotations
