@@ -242,6 +242,7 @@ def render_frame(engine, depsgraph):
             update_hook=refresh,
         )
         steps.update(stats.steps_ms)
+        extra.update(subframes=stats.subframes, extra_pixels=stats.extra_pixels)
         if update:
             extra.update(updated_cells=refresh.updated_cells, extra_cells=refresh.extra_cells,
                          refresh="resolve" if isinstance(refresh, _SolvedRefresh) else "update")

@@ -61,7 +61,8 @@ def dilate(mask: np.ndarray, radius: int) -> np.ndarray:
 
 
 def adaptive_direct(direct, points: np.ndarray, normals: np.ndarray, pix: np.ndarray, shape: tuple[int, int],
-                    frame: int, samples: int, camera=None, pool=None, lamps: int = 0) -> tuple[np.ndarray, np.ndarray]:
+                    frame: int, samples: int, camera=None, pool=None, lamps: int = 0,
+                    smooth: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Lamp irradiance (n, 3) at the pixels `pix` (flat indices into an image of `shape` (h, w))
     with `samples` shadow rays per lamp in penumbrae and FIRST_SAMPLES elsewhere, and the (n,)
     bool mask of the pixels that got the full count (for some lamp).
@@ -73,15 +74,18 @@ def adaptive_direct(direct, points: np.ndarray, normals: np.ndarray, pix: np.nda
     exact unshadowed irradiance of the first pass is reused by the second (the same values, not
     computed twice: ~1 us per receiver and lamp). With more than one lamp `direct` also takes
     per_lamp= and lights= (lamp indices), and each lamp's penumbra is re-sampled for that lamp
-    alone (`_per_lamp`)."""
+    alone (`_per_lamp`). smooth : (n, 3) the smooth surface normals under the points where a
+    normal map bends `normals` (the G-buffer's `surface` target): handed to `direct` (its bump
+    shadowing term) and the guide of the penumbra filter's surfaces; None: `normals`."""
+    guide = normals if smooth is None else smooth
     first = min(FIRST_SAMPLES, samples)
     if samples <= first:
-        return direct(points, normals, frame, samples=samples), np.ones(points.shape[0], bool)
+        return direct(points, normals, frame, samples=samples, **_smooth(smooth)), np.ones(points.shape[0], bool)
     if lamps > 1:
-        return _per_lamp(direct, points, normals, pix, shape, frame, samples, first, camera, pool, lamps)
+        return _per_lamp(direct, points, normals, pix, shape, frame, samples, first, camera, pool, lamps, smooth)
     partial = np.zeros(points.shape[0], bool)
     reuse = {"exact": np.full((points.shape[0], lamps), np.nan)} if lamps > 0 else {}
-    light = direct(points, normals, frame, samples=first, partial=partial, **reuse)
+    light = direct(points, normals, frame, samples=first, partial=partial, **reuse, **_smooth(smooth))
     if not partial.any():
         return light, partial
     full = _grown(partial, pix, shape)
@@ -90,23 +94,32 @@ def adaptive_direct(direct, points: np.ndarray, normals: np.ndarray, pix: np.nda
     # no second sampling pass for the filter's visibility.
     open_light = np.zeros((redo.size, 3), np.float32)
     reuse = {k: v[redo] for k, v in reuse.items()}
-    more = direct(points[redo], normals[redo], frame + SEED_OFFSET, samples=samples, unshadowed=open_light, **reuse)
+    more = direct(points[redo], normals[redo], frame + SEED_OFFSET, samples=samples, unshadowed=open_light, **reuse,
+                  **_smooth(smooth, redo))
     light[redo] = (first * light[redo] + samples * more) / np.float32(first + samples)
     if camera is not None and FILTER_PASSES > 0:
-        light[redo] = filter_penumbra(light[redo], open_light, points[redo], normals[redo], pix[redo], shape,
+        light[redo] = filter_penumbra(light[redo], open_light, points[redo], guide[redo], pix[redo], shape,
                                       camera, pool)
     return light, full
 
 
-def _per_lamp(direct, points, normals, pix, shape, frame, samples, first, camera, pool, lamps):
+def _smooth(smooth: np.ndarray | None, rows: np.ndarray | None = None) -> dict:
+    """`direct`'s smooth= keyword for the points of `rows` (None: all), or none without."""
+    if smooth is None:
+        return {}
+    return {"smooth": smooth if rows is None else smooth[rows]}
+
+
+def _per_lamp(direct, points, normals, pix, shape, frame, samples, first, camera, pool, lamps, smooth=None):
     """`adaptive_direct` of several lamps, each lamp's penumbra on its own: a pixel re-samples
     only the lamps whose rays disagreed around it. Why: a room lit by several soft lamps (an
     area lamp and ceiling lamps with a radius) has some lamp's penumbra over most of the image,
     and re-sampling every lamp there costs `samples` rays per lamp where one or two are soft.
     The first pass shades LAMP_GROUP lamps per call (each lamp's share kept for the blend); lamp
     j's penumbra pass draws from frame + SEED_OFFSET + j * LAMP_SEED_STRIDE; each penumbra's
-    visibility is filtered against its own lamp's unshadowed light."""
+    visibility is filtered against its own lamp's unshadowed light. smooth : as `adaptive_direct`'s."""
     n = points.shape[0]
+    guide = normals if smooth is None else smooth
     light = np.zeros((n, 3), np.float32)
     full = np.zeros(n, bool)
     for g0 in range(0, lamps, LAMP_GROUP):
@@ -115,7 +128,7 @@ def _per_lamp(direct, points, normals, pix, shape, frame, samples, first, camera
         exact = np.full((n, len(group)), np.nan)
         share = np.zeros((n, len(group), 3), np.float32)
         light += direct(points, normals, frame + g0 * LAMP_SEED_STRIDE, samples=first, partial=partial, exact=exact,
-                        per_lamp=share, lights=group)
+                        per_lamp=share, lights=group, **_smooth(smooth))
         for k, j in enumerate(group):
             if not partial[:, k].any():
                 continue
@@ -124,11 +137,11 @@ def _per_lamp(direct, points, normals, pix, shape, frame, samples, first, camera
             redo = np.flatnonzero(grown)
             open_light = np.zeros((redo.size, 3), np.float32)
             more = direct(points[redo], normals[redo], frame + SEED_OFFSET + j * LAMP_SEED_STRIDE, samples=samples,
-                          unshadowed=open_light, exact=exact[redo, k : k + 1], lights=[j])
+                          unshadowed=open_light, exact=exact[redo, k : k + 1], lights=[j], **_smooth(smooth, redo))
             was = share[redo, k]
             mixed = (first * was + samples * more) / np.float32(first + samples)
             if camera is not None and FILTER_PASSES > 0:
-                mixed = filter_penumbra(mixed, open_light, points[redo], normals[redo], pix[redo], shape, camera, pool)
+                mixed = filter_penumbra(mixed, open_light, points[redo], guide[redo], pix[redo], shape, camera, pool)
             light[redo] += mixed - was
     np.maximum(light, 0.0, out=light)  # the differences' rounding must not leave a dark pixel below 0
     return light, full

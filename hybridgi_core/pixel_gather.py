@@ -36,7 +36,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from . import sh
-from .bump import has_normal_maps, shadowing_term, smooth_normals
+from .bump import has_normal_maps, irradiance_kernel, shadowing_term, smooth_normals
 from .evaluate import HitLookup, corner_weights
 from .levels import hit_lookup
 from .lights import HIT_LAMP_BUDGET, _onb, concentric_disk, direct_irradiance, stratified_uv
@@ -165,14 +165,17 @@ def cache_sh_at(cache, points: np.ndarray, normals: np.ndarray, corner_visible: 
 
 def trace_pixels(system, points: np.ndarray, normals: np.ndarray, rays: int, frame: int,
                  corner_visible: np.ndarray | None = None, lookup: HitLookup | None = None,
-                 chunk_rays: int = CHUNK_RAYS, screen: ScreenLight | None = None) -> PixelGI:
+                 chunk_rays: int = CHUNK_RAYS, screen: ScreenLight | None = None,
+                 surfaces: np.ndarray | None = None) -> PixelGI:
     """Per-pixel gather at points (n, 3) with unit normals (n, 3) of `system` (a GISystem):
     `rays` rays each, the cache's SH as control variate (module docstring). corner_visible :
     (n, 8) bool occlusion of the 8 neighbour cells (`GISystem.corner_visibility`), as the image
     gather reads the cache. lookup : the cache's HitLookup to reuse (building one reads the whole
     grid); chunk_rays : rays per work item (fixed per caller, so the result does not depend on the
     thread count; a few pixels split finer to use every worker). screen : the frame's lamp light
-    per pixel for the hits the camera sees (`screen_light`)."""
+    per pixel for the hits the camera sees (`screen_light`). surfaces : (n, 3) the smooth surface
+    normals under normals a normal map bent (the G-buffer's `surface`), or None: found by a ray
+    each in scenes with normal maps (`bump.smooth_normals`)."""
     cache, s = system.cache, system.settings
     points = np.ascontiguousarray(points, np.float32)
     normals = np.array(normals, np.float32).reshape(-1, 3)
@@ -182,6 +185,9 @@ def trace_pixels(system, points: np.ndarray, normals: np.ndarray, rays: int, fra
     bad = ~(np.abs(length - 1.0) < 0.1)
     if bad.any():
         normals[bad] = (0.0, 0.0, 1.0)
+    if surfaces is not None:
+        surfaces = np.array(surfaces, np.float32).reshape(-1, 3)
+        surfaces[bad] = normals[bad]
     n = points.shape[0]
     steps: dict[str, float] = {}
     # Columns: residual direct rgb, indirect rgb, AO | luminance and AO variances | the cache's
@@ -196,8 +202,9 @@ def trace_pixels(system, points: np.ndarray, normals: np.ndarray, rays: int, fra
         per = max(1, chunk_rays // max(rays, 8))
         starts = range(0, n, per)
         vis = (lambda a: None) if corner_visible is None else (lambda a: corner_visible[a:a + per])
+        surf = (lambda a: None) if surfaces is None else (lambda a: surfaces[a:a + per])
         jobs = [system.updater.pool.submit(_chunk, system, lookup, points[a:a + per], normals[a:a + per], vis(a),
-                                           rays, frame_rng(s.seed + SEED_OFFSET, frame * 7919 + i), screen)
+                                           rays, frame_rng(s.seed + SEED_OFFSET, frame * 7919 + i), screen, surf(a))
                 for i, a in enumerate(starts)]
         for a, job in zip(starts, jobs, strict=True):
             values, coeffs, times = job.result()
@@ -211,11 +218,17 @@ def trace_pixels(system, points: np.ndarray, normals: np.ndarray, rays: int, fra
                    indirect_variance=out[:, 16], sh=sh_all, rays=n * rays, steps_ms=steps)
 
 
-def _chunk(system, lookup: HitLookup | None, p, nrm, corner_visible, rays, rng, screen=None):
+def _chunk(system, lookup: HitLookup | None, p, nrm, corner_visible, rays, rng, screen=None, surf=None):
     """Worker: (m, 17) of m pixels: mean residuals pi/N sum (L - L_cache) (direct rgb, indirect
     rgb, AO as 1/N sum (v - V_cache)), the variances of the luminance and AO means, the cache
     gather's direct rgb, indirect rgb and AO, the variance of the indirect luminance mean;
-    (m, K, 7) the blended SH; and step times."""
+    (m, K, 7) the blended SH; and step times. surf : (m, 3) smooth surface normals, or None.
+
+    Bent normals (a normal map's): the rays bring their light times Cycles' bump shadowing term,
+    so the cache's part is the same lobe's (`bump.irradiance_kernel`: nothing from below the
+    smooth surface) and the control variate is weighed by the same term, ray by ray: the
+    residual is then what the cache misses, not the light under the surface the cosine of the
+    bent normal would read (3.2 x the ridges' Diffuse Indirect)."""
     times = {}
     s = system.settings
     tic = time.perf_counter()
@@ -224,10 +237,23 @@ def _chunk(system, lookup: HitLookup | None, p, nrm, corner_visible, rays, rng, 
     levels = getattr(system, "levels", None)
     sh_d, sh_i, sh_a, covered = (cache_sh_at(system.cache, p, nrm, corner_visible) if levels is None
                                  else levels.sh_at(p, nrm, corner_visible))
+    tracer = system.tracer
+    eps = np.float32(tracer.epsilon)
+    # A normal map bends the shading normal away from the surface: rays leave along the smooth
+    # normal, and each brings its light times Cycles' bump shadowing term (none from below).
+    smooth = surf
+    if smooth is None and has_normal_maps(system.scene) and m:
+        smooth = smooth_normals(system.surfaces, tracer, p, nrm, float(eps))
+    k = sh_d.shape[1]
+    kernel = None if smooth is None else irradiance_kernel(smooth, nrm, 2 if k == 9 else 1)
     # The cache's own irradiance at the pixels, what the GPU gather reads (unclamped here: the
     # control variate must be the exact integral of the SH used below).
-    res[:, 9:12] = sh.irradiance(sh_d, nrm)
-    res[:, 12:15] = sh.irradiance(sh_i, nrm)
+    if kernel is None:
+        res[:, 9:12] = sh.irradiance(sh_d, nrm)
+        res[:, 12:15] = sh.irradiance(sh_i, nrm)
+    else:
+        res[:, 9:12] = np.einsum("mk,mkc->mc", kernel, sh_d)
+        res[:, 12:15] = np.einsum("mk,mkc->mc", kernel, sh_i)
     res[:, 15] = np.where(covered, sh.irradiance(sh_a[..., None], nrm)[:, 0] / np.float32(np.pi), np.float32(1.0))
     coeffs = np.concatenate([sh_d, sh_i, sh_a[..., None]], axis=2)
     coeffs[~covered, :, 6] = 0.0
@@ -235,31 +261,28 @@ def _chunk(system, lookup: HitLookup | None, p, nrm, corner_visible, rays, rng, 
     times["cache_sh"] = (time.perf_counter() - tic) * 1e3
     if rays <= 0:
         return res, coeffs, times
-    tracer = system.tracer
-    eps = np.float32(tracer.epsilon)
     tic = time.perf_counter()
     dirs = cosine_directions(nrm, rays, rng).reshape(-1, 3)
-    # A normal map bends the shading normal away from the surface: rays leave along the smooth
-    # normal, and each brings its light times Cycles' bump shadowing term (none from below).
-    smooth = (smooth_normals(system.surfaces, tracer, p, nrm, float(eps))
-              if has_normal_maps(system.scene) else None)
     origins = np.repeat(p + (nrm if smooth is None else smooth) * eps, rays, axis=0)
     tfar = np.float32(s.ray_length) if s.ray_length > 0 else np.float32(np.inf)
     hits = tracer.intersect(origins, dirs, tfar, trusted=True)
     times["trace"] = (time.perf_counter() - tic) * 1e3
 
     tic = time.perf_counter()
-    k = sh_d.shape[1]
     radiance = hit_radiance(system, lookup, origins, dirs, hits, rng, times, screen=screen)
-    if smooth is not None:
-        radiance *= shadowing_term(np.repeat(smooth, rays, axis=0), np.repeat(nrm, rays, axis=0), dirs)[:, None]
     visible = (hits.t > s.ao_distance).astype(np.float32)
     # Control variate: the cache's radiance SH along the same rays. Linear in the SH, so its mean
     # over a pixel's rays is the SH of the pixel's mean basis vector (no per-ray products).
     y = sh.basis(dirs, 2 if k == 9 else 1).reshape(m, rays, k)
     y_mean = y.mean(axis=1)  # (m, K)
-    cv_d = np.einsum("mk,mkc->mc", y_mean, sh_d)
-    cv_i = np.einsum("mk,mkc->mc", y_mean, sh_i)
+    y_lit = y
+    if smooth is not None:
+        term = shadowing_term(np.repeat(smooth, rays, axis=0), np.repeat(nrm, rays, axis=0), dirs)
+        radiance *= term[:, None]
+        y_lit = y * term.reshape(m, rays, 1)
+    y_lit_mean = y_mean if smooth is None else y_lit.mean(axis=1)
+    cv_d = np.einsum("mk,mkc->mc", y_lit_mean, sh_d)
+    cv_i = np.einsum("mk,mkc->mc", y_lit_mean, sh_i)
     cv_a = np.where(covered, np.einsum("mk,mk->m", y_mean, sh_a), np.float32(1.0))  # uncovered: ao_c = 1
     r = radiance.reshape(m, rays, 6)
     r_mean = r.mean(axis=1)  # one reduction over the rays for both bands
@@ -270,8 +293,8 @@ def _chunk(system, lookup: HitLookup | None, p, nrm, corner_visible, rays, rng, 
     # Variance of the two filter guides' means (luminance of all light, AO), from the rays' own
     # spread around their control variate: what the filter may average away as noise.
     luma = LUMA.astype(np.float32)
-    lum_d = r[..., 0:3] @ luma - np.matmul(y, (sh_d @ luma)[..., None])[..., 0]
-    lum_i = r[..., 3:6] @ luma - np.matmul(y, (sh_i @ luma)[..., None])[..., 0]
+    lum_d = r[..., 0:3] @ luma - np.matmul(y_lit, (sh_d @ luma)[..., None])[..., 0]
+    lum_i = r[..., 3:6] @ luma - np.matmul(y_lit, (sh_i @ luma)[..., None])[..., 0]
     ao = visible.reshape(m, rays) - np.where(covered[:, None], np.matmul(y, sh_a[..., None])[..., 0], np.float32(1.0))
     of_mean = np.float32(1.0 / max(rays - 1, 1))  # sample variance / N
     res[:, 7] = (lum_d + lum_i).var(axis=1) * np.float32(np.pi**2) * of_mean
@@ -765,7 +788,7 @@ def upsample_full(sh_lo: np.ndarray, cache_lo: np.ndarray, residual_lo: np.ndarr
                   normal_lo: np.ndarray, valid_lo: np.ndarray, points: np.ndarray, normals: np.ndarray, pix: np.ndarray, width: int,
                   factor: int, camera: np.ndarray, plane_sigma: float = 0.02, normal_power: float = 8.0,
                   sigma: float = 1.0, rep_xy: np.ndarray | None = None, offset=(0.0, 0.0),
-                  records: np.ndarray | None = None) -> Upsampled:
+                  records: np.ndarray | None = None, surfaces: np.ndarray | None = None) -> Upsampled:
     """Interpolate the GI resolution at the full-res pixels `pix` (flat, rows of `width`) with
     points / unit normals (n, 3), from the GI pixels' blended cache SH sh_lo (h*w, K, 7), its
     irradiance at their own normals cache_lo (h*w, 7) and their filtered residuals residual_lo
@@ -787,6 +810,10 @@ def upsample_full(sh_lo: np.ndarray, cache_lo: np.ndarray, residual_lo: np.ndarr
     jittered subframe's, `GIResolver`); the spatial weights measure from there.
     records : `tap_records` of these GI-resolution inputs, made once by a caller that resolves
     many sets of points against them (None: made here).
+    surfaces : (n, 3) the pixels' smooth surface normals where a normal map bends `normals` (the
+    records' normals are then the GI pixels' surfaces, rows 26-28 their shading normals,
+    `tap_records(shading=)`): the range weights compare surfaces, the cache's part is read with
+    the bent lobe (`bump.irradiance_kernel`).
     """
     h, w = valid_lo.shape
     n = points.shape[0]
@@ -802,7 +829,10 @@ def upsample_full(sh_lo: np.ndarray, cache_lo: np.ndarray, residual_lo: np.ndarr
     rec = tap_records(cache_lo, residual_lo, position_lo, normal_lo, valid_lo, rep_xy) if records is None else records
     points = np.asarray(points, np.float32)
     normals = np.asarray(normals, np.float32)
-    nx, ny, nz = normals[:, 0], normals[:, 1], normals[:, 2]
+    guide = normals if surfaces is None else np.asarray(surfaces, np.float32)
+    nx, ny, nz = guide[:, 0], guide[:, 1], guide[:, 2]
+    sx, sy, sz = normals[:, 0], normals[:, 1], normals[:, 2]
+    shading_rows = surfaces is not None and rec.shape[0] > 26
     dist = np.linalg.norm(points - np.asarray(camera, np.float32), axis=1)
     inv_sigma = (1.0 / np.maximum(plane_sigma * dist, 1e-12)).astype(np.float32)
     own_plane = nx * points[:, 0] + ny * points[:, 1] + nz * points[:, 2]
@@ -818,18 +848,20 @@ def upsample_full(sh_lo: np.ndarray, cache_lo: np.ndarray, residual_lo: np.ndarr
             qi, qj = i0 + di, j0 + dj
             inside = (qi >= 0) & (qi < w) & (qj >= 0) & (qj < h)
             q = np.where(inside, qi + w * qj, 0)
-            r = np.take(rec, q, axis=1)  # (26, n)
+            r = np.take(rec, q, axis=1)  # (26, n), or (29, n) with the shading normals
             ws = np.exp(-(np.square(r[6] - xf) + np.square(r[7] - yf)) * inv2s2)
             plane = (nx * r[0] + ny * r[1] + nz * r[2] - own_plane) * inv_sigma
             cos = np.maximum(nx * r[3] + ny * r[4] + nz * r[5], np.float32(0.0))
             wr = np.exp(-plane * plane) * cos**power
             wr *= inside * r[8]
             np.maximum(best, wr, out=best)
+            if shading_rows:  # the cache's part follows the shading normals
+                cos = sx * r[26] + sy * r[27] + sz * r[28]
             turned |= (wr > 0) & (cos < np.float32(FLAT_COS))
             wt = ws * wr
             taps.append(q)
             weights.append(wt)
-            acc += wt * r[9:]
+            acc += wt * r[9:26]
             total += wt
             spatial += ws * inside
     inv = np.where(total > 0, np.float32(1.0) / np.maximum(total, np.float32(1e-30)), np.float32(0.0))
@@ -845,11 +877,19 @@ def upsample_full(sh_lo: np.ndarray, cache_lo: np.ndarray, residual_lo: np.ndarr
     if bent.size:
         order = 1 if k == 4 else 2
         yk = (sh.basis(np.take(normals, bent, axis=0), order) * sh.cosine_scale(order)).astype(np.float32)
+        lobe = None
+        if surfaces is not None:  # light through the bent lobe; AO keeps the cosine
+            lobe = irradiance_kernel(np.take(guide, bent, axis=0), np.take(normals, bent, axis=0), order)
         own = np.zeros((bent.size, 7), np.float32)
         inv_bent = np.take(inv, bent)
         for q, wt in zip(taps, weights, strict=True):
-            own += np.einsum("nk,nkc->nc", yk * (np.take(wt, bent) * inv_bent)[:, None],
-                             np.take(sh_lo, np.take(q, bent), axis=0))
+            tap_sh = np.take(sh_lo, np.take(q, bent), axis=0)
+            share = (np.take(wt, bent) * inv_bent)[:, None]
+            if lobe is None:
+                own += np.einsum("nk,nkc->nc", yk * share, tap_sh)
+            else:
+                own[:, 0:6] += np.einsum("nk,nkc->nc", lobe * share, tap_sh[..., 0:6])
+                own[:, 6] += np.einsum("nk,nk->n", yk * share, tap_sh[..., 6])
         own[:, 6] /= np.float32(np.pi)
         cache[bent] = own
     cover = (total / np.maximum(spatial, np.float32(1e-30))).astype(np.float32)
@@ -857,17 +897,19 @@ def upsample_full(sh_lo: np.ndarray, cache_lo: np.ndarray, residual_lo: np.ndarr
 
 
 def tap_records(cache_lo: np.ndarray, residual_lo: np.ndarray, position_lo: np.ndarray, normal_lo: np.ndarray,
-                valid_lo: np.ndarray, rep_xy: np.ndarray) -> np.ndarray:
+                valid_lo: np.ndarray, rep_xy: np.ndarray, shading: np.ndarray | None = None) -> np.ndarray:
     """(26, h*w) float32 planes, one column per GI pixel that `upsample_full` gathers once per tap:
     position, normal, sample pixel (x, y), validity, cache (7), residual (7), residual luminance
     and its square, AO residual squared. Why a function: a jittered subframe resolves a few
     thousand samples against the same GI pixels, and making the records costs more than that.
     Why planes: each tap's weights and sums then run on contiguous (n,) rows (the row-major
-    (n, 26) gather's column reads and (n, 17) broadcasts cost ~2x the whole upsample)."""
+    (n, 26) gather's column reads and (n, 17) broadcasts cost ~2x the whole upsample).
+    shading : the GI pixels' shading normals where a normal map bends them (`normal_lo` is then
+    their smooth surfaces): three more rows, 26-28."""
     n = valid_lo.size
     residual_lo = np.asarray(residual_lo, np.float32)
     lum_lo = (residual_lo[:, 0:3] + residual_lo[:, 3:6]) @ LUMA
-    rec = np.empty((26, n), np.float32)
+    rec = np.empty((26 if shading is None else 29, n), np.float32)
     rec[0:3] = np.asarray(position_lo, np.float32).reshape(n, -1)[:, :3].T
     rec[3:6] = np.asarray(normal_lo, np.float32).reshape(n, -1)[:, :3].T
     rec[6:8] = np.asarray(rep_xy, np.float32).T
@@ -877,6 +919,8 @@ def tap_records(cache_lo: np.ndarray, residual_lo: np.ndarray, position_lo: np.n
     rec[23] = lum_lo
     rec[24] = lum_lo * lum_lo
     rec[25] = np.square(residual_lo[:, 6])
+    if shading is not None:
+        rec[26:29] = np.asarray(shading, np.float32).reshape(n, -1)[:, :3].T
     return rec
 
 
@@ -904,7 +948,7 @@ UPSAMPLE_CHUNK = 16384
 
 def _upsample_parallel(system, sh_lo, cache_lo, residual_lo, position_lo, normal_lo, valid_lo, points, normals, pix,
                        width, factor, camera, plane_sigma, normal_power, rep_xy, offset=(0.0, 0.0),
-                       records=None) -> Upsampled:
+                       records=None, surfaces=None) -> Upsampled:
     """`upsample_full` over chunks of pixels on the system's worker pool (numpy releases the GIL);
     a single chunk runs in line."""
     if records is None:
@@ -912,12 +956,13 @@ def _upsample_parallel(system, sh_lo, cache_lo, residual_lo, position_lo, normal
     if points.shape[0] <= UPSAMPLE_CHUNK:
         return upsample_full(sh_lo, cache_lo, residual_lo, position_lo, normal_lo, valid_lo, points, normals, pix,
                              width, factor, camera, plane_sigma, normal_power, rep_xy=rep_xy, offset=offset,
-                             records=records)
+                             records=records, surfaces=surfaces)
     starts = range(0, points.shape[0], UPSAMPLE_CHUNK)
     jobs = [system.updater.pool.submit(upsample_full, sh_lo, cache_lo, residual_lo, position_lo, normal_lo, valid_lo,
                                        points[a:a + UPSAMPLE_CHUNK], normals[a:a + UPSAMPLE_CHUNK],
                                        pix[a:a + UPSAMPLE_CHUNK], width, factor, camera, plane_sigma, normal_power,
-                                       rep_xy=rep_xy, offset=offset, records=records)
+                                       rep_xy=rep_xy, offset=offset, records=records,
+                                       surfaces=None if surfaces is None else surfaces[a:a + UPSAMPLE_CHUNK])
             for a in starts]
     parts = [job.result() for job in jobs]
     return Upsampled(*(np.concatenate([getattr(p, f) for p in parts])
@@ -929,7 +974,7 @@ def full_res_images(system, position_lo: np.ndarray, normal_lo: np.ndarray, pix:
                     full_points: np.ndarray, full_normals: np.ndarray, full_pix: np.ndarray,
                     full_size: tuple[int, int], passes: int = 3, plane_sigma: float = 0.02,
                     normal_power: float = 8.0, refine: float = REFINE_SPREAD,
-                    screen: ScreenLight | None = None) -> FullResGI:
+                    screen: ScreenLight | None = None, full_surfaces: np.ndarray | None = None) -> FullResGI:
     """Pixel rays at the GI resolution, resolved at the full resolution (W, H = full_size).
 
     The GI pixels trace as `gi_images` does; their estimates (not only the residuals) are filtered
@@ -947,37 +992,75 @@ def full_res_images(system, position_lo: np.ndarray, normal_lo: np.ndarray, pix:
       then averaged by their inverse variances (its rays' sample variance, the taps' spread), so
       the refinement adds detail where the taps disagree and little noise where they do not. At
       most REFINE_BUDGET x the GI pixels' count refine, the most disagreeing first.
+
+    full_surfaces : (n, 3) the full-res pixels' smooth surface normals where a material bends
+    `full_normals` (the G-buffer's `surface`), else None. Given, the GI pixels take theirs from
+    the full-res pixels they sampled (`sample_pixels`), and the surfaces guide the filter and the
+    interpolation (differently bent neighbours are one surface) while the light is read with the
+    bent lobe (`bump.irradiance_kernel`).
     """
+    surfaces = None
+    if full_surfaces is not None:
+        surfaces = low_res_surfaces(position_lo, pix, normals, full_points, full_surfaces, full_pix, full_size)
     lookup = hit_lookup(system, bounced=system.settings.indirect_quality == MULTI_BOUNCE) if rays > 0 else None
-    gi = trace_pixels(system, points, normals, rays, frame, corner_visible, lookup=lookup, screen=screen)
+    gi = trace_pixels(system, points, normals, rays, frame, corner_visible, lookup=lookup, screen=screen,
+                      surfaces=surfaces)
     return full_res_resolve(system, gi, position_lo, pix, points, normals, view, frame, rays, full_points,
                             full_normals, full_pix, full_size, passes, plane_sigma, normal_power, refine, lookup,
-                            screen)
+                            screen, surfaces=surfaces, full_surfaces=full_surfaces)
+
+
+def low_res_surfaces(position_lo: np.ndarray, pix: np.ndarray, normals: np.ndarray, full_points: np.ndarray,
+                     full_surfaces: np.ndarray, full_pix: np.ndarray, full_size: tuple[int, int]) -> np.ndarray:
+    """(n, 3) float32 the smooth surface normals of the GI pixels `pix`: those of the full-res
+    pixels whose samples the downsample copied (`sample_pixels`); their shading `normals` where
+    none is found."""
+    width, height = full_size
+    h, w = position_lo.shape[:2]
+    factor = max(1, int(round(width / w)))
+    xy = sample_pixels(position_lo, full_points, full_pix, width, height, factor)[pix]
+    flat = np.clip(np.rint(xy[:, 0]).astype(np.int64) + width * np.rint(xy[:, 1]).astype(np.int64), 0,
+                   width * height - 1)
+    image = np.zeros((width * height, 3), np.float32)
+    image[full_pix] = full_surfaces
+    out = image[flat]
+    missing = np.einsum("ij,ij->i", out, out) < 0.25
+    out[missing] = np.asarray(normals, np.float32)[missing]
+    return out
 
 
 def full_res_resolve(system, gi: PixelGI, position_lo: np.ndarray, pix: np.ndarray, points: np.ndarray,
                      normals: np.ndarray, view: np.ndarray, frame: int, rays: int, full_points: np.ndarray,
                      full_normals: np.ndarray, full_pix: np.ndarray, full_size: tuple[int, int], passes: int = 3,
                      plane_sigma: float = 0.02, normal_power: float = 8.0, refine: float = REFINE_SPREAD,
-                     lookup: HitLookup | None = None, screen: ScreenLight | None = None) -> FullResGI:
+                     lookup: HitLookup | None = None, screen: ScreenLight | None = None,
+                     surfaces: np.ndarray | None = None, full_surfaces: np.ndarray | None = None) -> FullResGI:
     """`full_res_images` after its GI pixels' rays `gi` (`trace_pixels` at points, frame, rays):
     the filter, the per-pixel resolve and the detail pixels' own rays (frame + DETAIL_FRAME; lookup:
     the HitLookup the GI pixels' rays read, None builds one). The viewport's worker traces `gi` in
     slices over several steps and resolves it here. screen : as `trace_pixels`', for the detail
-    pixels' rays and the resolver's."""
+    pixels' rays and the resolver's. surfaces, full_surfaces : the GI pixels' and the full-res
+    pixels' smooth surface normals where a material bends normals (`full_res_images`), or None."""
     width, height = full_size
     h, w = position_lo.shape[:2]
     factor = max(1, int(round(width / w)))
     if lookup is None and rays > 0:
         lookup = hit_lookup(system, bounced=system.settings.indirect_quality == MULTI_BOUNCE)
     tic = time.perf_counter()
-    est, cache, valid, res, pos, nrm, camera, var = image_planes(gi, pix, points, normals, view, h, w)
+    est, cache, valid, res, pos, nrm, camera, var = image_planes(gi, pix, points,
+                                                                 normals if surfaces is None else surfaces, view, h, w)
+    shading = None
+    if surfaces is not None:
+        shading = np.zeros((h * w, 3), np.float32)
+        shading[pix] = normals
     # The estimate itself is filtered, not only its residual: the cache's own structure finer than
     # the filter (cell seams and streaks where cells are a few pixels across, the far field) would
     # otherwise pass through untouched (cache + F(residual) = F(estimate) + cache - F(cache)).
     # At 320x240 vs Cycles: trusses AO 0.057 -> 0.053, contact AO 0.011 -> 0.010, car DI 0.083 -> 0.081.
     est_img = np.zeros((h * w, 7), np.float32)
-    est_img[pix] = est
+    # Bent normals: the residual alone. The cache's part follows each pixel's bent normal, which a
+    # filter over one surface would average away.
+    est_img[pix] = est if surfaces is None else est - cache
     guides = var  # all light, AO; with the indirect light's variance: all light, indirect light, AO
     if gi.indirect_variance is not None:
         guides = np.zeros((h * w, 3), np.float32)
@@ -998,10 +1081,12 @@ def full_res_resolve(system, gi: PixelGI, position_lo: np.ndarray, pix: np.ndarr
     rep_xy = sample_pixels(position_lo, full_points, full_pix, width, height, factor)
     cache_lo = np.zeros((h * w, 7), np.float32)
     cache_lo[pix] = cache
-    records = tap_records(cache_lo, filtered, pos, nrm, valid, rep_xy)
+    records = tap_records(cache_lo, filtered, pos, nrm, valid, rep_xy, shading)
+    if full_surfaces is not None:
+        full_surfaces = np.ascontiguousarray(full_surfaces, np.float32)
     up = _upsample_parallel(system, sh_lo, cache_lo, filtered, pos.reshape(h, w, 3), nrm.reshape(h, w, 3),
                             valid.reshape(h, w), full_points, full_normals, full_pix, width, factor, camera,
-                            plane_sigma, normal_power, rep_xy, records=records)
+                            plane_sigma, normal_power, rep_xy, records=records, surfaces=full_surfaces)
     resolver = GIResolver(system, sh_lo, cache_lo, filtered, pos.reshape(h, w, 3), nrm.reshape(h, w, 3),
                           valid.reshape(h, w), rep_xy, width, factor, camera, plane_sigma, normal_power, lookup, rays,
                           records, screen)
@@ -1025,8 +1110,9 @@ def full_res_resolve(system, gi: PixelGI, position_lo: np.ndarray, pix: np.ndarr
     if detail.size and rays > 0:
         tic = time.perf_counter()
         dp, dn = np.take(full_points, detail, axis=0), np.take(full_normals, detail, axis=0)
+        ds = None if full_surfaces is None else np.take(full_surfaces, detail, axis=0)
         own = trace_pixels(system, dp, dn, rays, frame + DETAIL_FRAME, system.corner_visibility(dp, dn),
-                           lookup=lookup, chunk_rays=DETAIL_CHUNK_RAYS, screen=screen)
+                           lookup=lookup, chunk_rays=DETAIL_CHUNK_RAYS, screen=screen, surfaces=ds)
         own_est, own_cache = own.channels()
         own_res = own_est - own_cache
         # Inverse-variance average of the two residuals, per guide (luminance: colour channels).
@@ -1077,11 +1163,12 @@ class GIResolver:
     screen: ScreenLight | None = None  # the centre frame's lamp light per pixel (`screen_light`)
 
     def at(self, points: np.ndarray, normals: np.ndarray, pix: np.ndarray, offset, frame: int,
-           rays: int | None = None) -> tuple[np.ndarray, int]:
+           rays: int | None = None, surfaces: np.ndarray | None = None) -> tuple[np.ndarray, int]:
         """((n, 7) GI values, rays traced) at samples (points, unit normals (n, 3)) of full-res
         pixels pix taken at pixel centre + offset (pixels): the interpolated cache SH and residual,
         as `full_res_images` resolves every pixel; samples no GI pixel near shares a surface with
-        take their own estimate from `rays` rays (default: the GI pixels' count)."""
+        take their own estimate from `rays` rays (default: the GI pixels' count). surfaces : the
+        samples' smooth surface normals where a material bends `normals` (as `full_res_images`')."""
         points = np.ascontiguousarray(points, np.float32)
         normals = np.ascontiguousarray(normals, np.float32)
         if points.shape[0] == 0:
@@ -1089,15 +1176,16 @@ class GIResolver:
         up = _upsample_parallel(self.system, self.sh_lo, self.cache_lo, self.residual_lo, self.position_lo,
                                 self.normal_lo, self.valid_lo, points, normals, pix, self.width, self.factor,
                                 self.camera, self.plane_sigma, self.normal_power, self.rep_xy, offset=offset,
-                                records=self.records)
+                                records=self.records, surfaces=surfaces)
         value = up.cache + up.residual
         orphan = np.flatnonzero(up.best < DETAIL_MATCH)
         rays = self.rays if rays is None else int(rays)
         traced = 0
         if orphan.size and rays > 0:
             dp, dn = np.take(points, orphan, axis=0), np.take(normals, orphan, axis=0)
+            ds = None if surfaces is None else np.take(surfaces, orphan, axis=0)
             own = trace_pixels(self.system, dp, dn, rays, frame + DETAIL_FRAME, self.system.corner_visibility(dp, dn),
-                               lookup=self.lookup, chunk_rays=DETAIL_CHUNK_RAYS, screen=self.screen)
+                               lookup=self.lookup, chunk_rays=DETAIL_CHUNK_RAYS, screen=self.screen, surfaces=ds)
             value[orphan] = own.channels()[0]
             traced = own.rays
         return value, traced

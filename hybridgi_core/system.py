@@ -343,7 +343,7 @@ class GISystem:
     def direct(self, points: np.ndarray, normals: np.ndarray, frame: int, samples: int | None = None,
                partial: np.ndarray | None = None, unshadowed: np.ndarray | None = None,
                exact: np.ndarray | None = None, per_lamp: np.ndarray | None = None,
-               lights: list[int] | None = None) -> np.ndarray:
+               lights: list[int] | None = None, smooth: np.ndarray | None = None) -> np.ndarray:
         """Lamp irradiance (n, 3) W/m^2 with shadow rays at points: the deferred pass's direct light.
 
         Up to DIRECT_BLOCK_RAYS shadow rays run in one call on this thread; more (the full-res
@@ -355,7 +355,9 @@ class GISystem:
         light without shadows. exact : an optional (n, lamps) float64 in/out, the area lamps'
         exact unshadowed irradiance. per_lamp : an optional (n, lamps, 3) output, each lamp's
         share. lights : indices of the scene's lamps to shade (None: all); the lamp columns of
-        partial, exact and per_lamp follow it."""
+        partial, exact and per_lamp follow it. smooth : the (n, 3) smooth surface normals under
+        points where a normal map may bend `normals` (the G-buffer's `surface` target); None:
+        found by one ray each in scenes with normal maps (`bump.smooth_normals`)."""
         rng = frame_rng(self.settings.seed + 1, frame)
         samples = samples or self.settings.light_samples
         eps = float(self.tracer.epsilon)
@@ -364,8 +366,12 @@ class GISystem:
         per_block = max(1, DIRECT_BLOCK_RAYS // samples)
         # Normals a normal map bent are lit as Cycles lights them (`bump.py`): the smooth surface
         # normal under each point comes from the ray mesh.
-        smooth = (smooth_normals(self.surfaces, self.tracer, points, normals, eps)
-                  if n and lamps and has_normal_maps(self.scene) else None)
+        if not (n and lamps and has_normal_maps(self.scene)):
+            smooth = None
+        elif smooth is None:
+            smooth = smooth_normals(self.surfaces, self.tracer, points, normals, eps)
+        else:
+            smooth = np.asarray(smooth, np.float32).reshape(-1, 3)
         outputs = {"partial": partial, "unshadowed": unshadowed, "exact": exact, "per_lamp": per_lamp,
                    "smooth": smooth}
         if n <= per_block or not lamps:

@@ -12,6 +12,7 @@ Direct was off by rel L1 0.61 and 0.55 (mean +22%, +17%): every pixel had the sm
 from __future__ import annotations
 
 import importlib
+import json
 import logging
 import math
 import subprocess
@@ -21,9 +22,11 @@ import textwrap
 import numpy as np
 import pytest
 
-from hybridgi_core.bump import shadowing_term
+from hybridgi_cli import exr
+from hybridgi_core import sh
+from hybridgi_core.bump import irradiance_kernel, shadowing_term
 from hybridgi_core.snapshot import BumpMap, Material, NormalMap, concat_geometry, make_snapshot
-from tests.cli_renders import layer, rendered
+from tests.cli_renders import layer, rendered, run_render
 
 # --- Cycles' bump shadowing term (bpy-free) ---------------------------------------------------
 
@@ -48,6 +51,32 @@ def test_bump_shadowing_term_matches_cycles_closed_form():
     # Light below the smooth surface that the bent normal would still face: none.
     below = _unit([[1.0, 0.0, -0.1]])
     assert shadowing_term(up, ridge, below)[0] == 0.0
+
+
+def test_irradiance_kernel_is_cycles_bent_lobe_over_the_sh():
+    """`irradiance_kernel`: sum_k kernel_k L_k = int L(w) max(0, N.w) term(Ns, N, w) dw for any
+    L2 SH radiance (a Monte Carlo reference over the sphere); exactly the cosine convolution
+    where the normal is not bent; nothing of light from below the smooth surface."""
+    rng = np.random.default_rng(5)
+    smooth = _unit(rng.normal(size=(3, 3)))
+    np.testing.assert_array_equal(irradiance_kernel(smooth, smooth, 2), sh.basis(smooth, 2) * sh.cosine_scale(2))
+    tilt = np.radians([20.0, 50.0, 75.0])
+    bent = np.stack([np.sin(tilt), np.zeros(3), np.cos(tilt)], axis=1).astype(np.float32)
+    up = np.tile(np.array([[0.0, 0.0, 1.0]], np.float32), (3, 1))
+    kernel = irradiance_kernel(up, bent, 2)
+    w = _unit(rng.normal(size=(200000, 3)))
+    y = sh.basis(w, 2).astype(np.float64)
+    for i in range(3):
+        lobe = np.maximum(w @ bent[i], 0.0) * shadowing_term(np.broadcast_to(up[i], w.shape),
+                                                            np.broadcast_to(bent[i], w.shape), w)
+        want = (y * lobe[:, None]).mean(axis=0) * 4.0 * np.pi
+        np.testing.assert_allclose(kernel[i], want, atol=0.02)
+    # Light only from below the smooth surface (radiance 1 there: L = (1 - z-sign) / 2 in L1 ~)
+    # reaches a 75-degree bend's cosine lobe, but not Cycles' bent lobe.
+    below = np.zeros(9, np.float32)
+    below[0], below[2] = 0.5 / sh.C0, -0.75 / sh.C1  # 0.5 - 0.75 z: brighter below the plane
+    plain = float(sh.basis(bent[2:], 2)[0] * sh.cosine_scale(2) @ below)
+    assert float(kernel[2] @ below) < 0.5 * plain
 
 
 # --- the G-buffer applies the map as Cycles' svm_node_normal_map -------------------------------
@@ -99,6 +128,35 @@ def test_gbuffer_normal_follows_tangent_frame_sign_and_strength(gbuffer):
         got = normal[inner & (side == label)]
         assert got.shape[0] > 20
         np.testing.assert_allclose(got, np.broadcast_to(want, got.shape), atol=3e-3)
+
+
+@pytest.mark.blender
+def test_gbuffer_keeps_the_smooth_surface_under_the_bent_normal(gbuffer):
+    """The material target's gba hold the interpolated normal before the map bends it
+    (`read_surface`): the surface that edge tests, filter guides and the bump term compare.
+    Without a normal map the shading normal is that surface, and no read-back is made."""
+    from tests.test_raster import look_at, perspective, quad
+
+    n_ts = _unit([0.6, 0.0, 0.8])
+    texel = np.broadcast_to((n_ts + 1.0) / 2.0, (2, 2, 3)).astype(np.float32)
+    uv = [[0, 0], [1, 0], [1, 1], [0, 1]]
+    geo = concat_geometry([quad((-2.0, -1.0, 0.0), (4.0, 0.0, 0.0), (0.0, 2.0, 0.0), uv=uv, material=0)])
+    geo.tangents = np.tile(np.array([1.0, 0.0, 0.0, 1.0], np.float32), (geo.positions.shape[0], 1))
+    view = look_at((0.0, -2.0, 5.0), (0.0, 0.0, 0.0), up=(0.0, 1.0, 0.0))
+    gbuffer.upload(make_snapshot(geo, [Material(name="mapped", normal_map=NormalMap(texel))]))
+    gbuffer.execute(view, perspective(30.0))
+    normal = gbuffer.read("normal")
+    surface = gbuffer.read_surface(normal)
+    on = gbuffer.read("position")[..., 3] > 0.5
+    assert on.sum() > 100 and surface.shape == normal.shape
+    np.testing.assert_allclose(surface[on][:, :3], np.broadcast_to([0.0, 0.0, 1.0], (on.sum(), 3)), atol=1e-5)
+    assert (surface[on][:, 3] > 0.5).all() and (surface[~on][:, :3] == 0).all()
+    assert (normal[on][:, 0] > 0.4).all()  # bent (towards the view where the reflection needs it)
+    np.testing.assert_array_equal(gbuffer.read("material")[..., 0][on], 1.0)  # the index stays in r
+    gbuffer.upload(make_snapshot(geo, [Material(name="plain")]))
+    gbuffer.execute(view, perspective(30.0))
+    normal = gbuffer.read("normal")
+    assert gbuffer.read_surface(normal) is normal
 
 
 @pytest.mark.blender
@@ -340,15 +398,26 @@ def bumps(tmp_path_factory):
 
 
 # Measured at 128x96 against Cycles 64 spp, Diffuse Direct rel L1 (mean) and Diffuse Indirect rel
-# L1: normal map 0.021 (+0.1%), 0.46; smooth normals (before) 0.61 (+22%), 0.76; the map without
-# Cycles' bump shadowing term 0.11 (+10%). Bump 0.018 (+0.1%), 0.33; smooth normals 0.55 (+17%),
-# 0.55. The same scene with Strength 0: Diffuse Indirect 0.23 (Cycles' noise).
+# L1 (mean): normal map 0.022 (+0.2%), 0.39 (+21%); smooth normals (before) 0.61 (+22%), 0.76; the
+# map without Cycles' bump shadowing term 0.11 (+10%); before the smooth surface normal in the
+# G-buffer (32 subframes: the GI-edge test took differently bent neighbours for other surfaces;
+# the cache read over the bent cosine lobe) 0.021, 0.46 (+28%). Bump 0.019 (+0.2%), 0.29 (+9%);
+# smooth normals 0.55 (+17%), 0.55; before 0.018, 0.33 (+9%). The same scene with Strength 0:
+# Diffuse Indirect 0.23 (Cycles' noise).
+DI_BOUNDS = {"ridges": (0.42, 0.25), "bumps": (0.31, 0.12)}
+
+
 @pytest.mark.blender
 @pytest.mark.slow
 @pytest.mark.parametrize("scene", ["ridges", "bumps"])
 def test_normal_mapped_planes_and_sphere_match_cycles(scene, request, tmp_path):
     blend = request.getfixturevalue(scene)
-    ours = rendered(blend, tmp_path / "hg", RES, *QUICK)
+    run = run_render(blend, tmp_path / "hg", RES, *QUICK)
+    assert run.returncode == 0, run.stderr[-3000:]
+    line = json.loads(run.stdout.strip().splitlines()[-1])
+    # Differently bent neighbours are one surface: the frame takes the base 8 subframes, not 32.
+    assert line["subframes"] == 8 and line["extra_pixels"] == 0, line
+    ours = exr.read_channels(line["exr"])
     cycles = rendered(blend, tmp_path / "cy", RES, "--engine", "CYCLES", "--samples", "64")
     geometry = layer(cycles, "Depth", "Z")[..., 0] < 1e9
     direct, reference = layer(ours, "Diffuse Direct")[geometry], layer(cycles, "Diffuse Direct")[geometry]
@@ -356,7 +425,9 @@ def test_normal_mapped_planes_and_sphere_match_cycles(scene, request, tmp_path):
     mean_error = abs(float(direct.mean()) / float(reference.mean()) - 1.0)
     assert l1 < 0.04 and mean_error < 0.02, (l1, mean_error)
     indirect, reference = layer(ours, "Diffuse Indirect")[geometry], layer(cycles, "Diffuse Indirect")[geometry]
-    assert float(np.abs(indirect - reference).sum() / np.abs(reference).sum()) < 0.6
+    l1 = float(np.abs(indirect - reference).sum() / np.abs(reference).sum())
+    mean_error = abs(float(indirect.mean()) / float(reference.mean()) - 1.0)
+    assert l1 < DI_BOUNDS[scene][0] and mean_error < DI_BOUNDS[scene][1], (l1, mean_error)
 
 
 @pytest.mark.blender

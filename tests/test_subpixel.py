@@ -243,3 +243,37 @@ def test_a_frame_takes_extra_subframes_only_when_gi_edges_are_a_share_of_the_ima
     assert not worth_extra(edges)
     edges[: int(np.ceil(EXTRA_MIN_SHARE * 10000))] = True
     assert worth_extra(edges)
+
+
+def test_a_normal_maps_bends_are_one_surface_to_gi_edges_and_subframes():
+    """Ridges of a normal map: shading normals bent +-50 degrees pixel by pixel over one flat
+    plane, whose indirect light differs 12 x between the two flanks. Compared by their shading
+    normals every pixel is a GI edge (the ridged planes' frame took 32 subframes instead of 8);
+    by the smooth surface (the G-buffer's `surface`, `CentreSample.surface`) none is. A
+    subframe's pixel still counts as the centre's surface, to reuse its light, only where the
+    bend agrees too."""
+    from hybridgi_core.raster.subpixel import CentreSample, gi_edges, subframe_surfaces
+
+    n = 8
+    bend = np.radians(50.0)
+    normal = np.zeros((1, n, 4), np.float32)
+    normal[0, :, 0] = np.where(np.arange(n) % 2 == 0, np.sin(bend), -np.sin(bend))
+    normal[0, :, 2] = np.cos(bend)
+    flat = np.tile(np.array([0, 0, 1, 1], np.float32), (1, n, 1))
+    position = np.zeros((1, n, 4), np.float32)
+    position[0, :, 0] = np.arange(n) * 0.01
+    position[0, :, 2] = -5.0
+    position[..., 3] = 1.0
+    depth = np.full((1, n, 1), 5.0, np.float32)
+    indirect = np.zeros((n, 4), np.float32)
+    indirect[:, :3] = np.where(np.arange(n) % 2 == 0, 12.0, 1.0)[:, None]
+    direct = np.zeros((n, 4), np.float32)
+    by_bend = CentreSample.from_gbuffer(direct, position, normal, depth)
+    assert gi_edges(by_bend, indirect, 1, n).all()
+    by_surface = CentreSample.from_gbuffer(direct, position, normal, depth, surface=flat)
+    assert not gi_edges(by_surface, indirect, 1, n).any()
+    # A subframe: the same bends except pixel 3's, on the same plane.
+    turned = normal.copy()
+    turned[0, 3, 0] *= -1.0
+    hit, same = subframe_surfaces(by_surface, position, turned, flat)
+    assert hit.all() and same.tolist() == [True, True, True, False, True, True, True, True]

@@ -73,6 +73,7 @@ class FrameStats:
     low_res: tuple[int, int] = (0, 0)
     detail_pixels: int = 0  # full-res pixels that traced their own pixel rays (`_pixel_gi_full`)
     extra_pixels: int = 0  # centre GI edge pixels that made the frame take extra subframes (`_subframe_count`)
+    subframes: int = 1  # jittered subframes the frame took (`_subframe_count`)
 
     @contextmanager
     def step(self, name: str):
@@ -259,16 +260,21 @@ class FramePipeline:
         with stats.step("gbuffer"):  # the full-res read-back, as the subframes count theirs
             normal = self.gbuffer.read("normal")
             position = self.gbuffer.read("position")
+            # The smooth surface under normal maps (`normal` itself where none bends it).
+            surface = self.gbuffer.read_surface(normal)
         with stats.step("direct"):
             p_full, n_full, pix_full = pixels_to_points(position, normal)
+            s_full = None if surface is normal else pixels_to_points(position, surface)[1]
             # Before the pixel rays: their hits that the camera sees read this light (`screen_light`).
             direct = np.zeros((self.height * self.width, 4), np.float32)
             camera = filter_camera(system.scene.lights, camera_eye(view, proj))
             direct[pix_full, :3] = adaptive_direct(system.direct, p_full, n_full, pix_full, (self.height, self.width),
                                                    frame, self.direct_samples, camera=camera,
-                                                   pool=system.updater.pool, lamps=len(system.scene.lights))[0]
-            screen = ScreenLight.from_pixels(view, proj, (self.width, self.height), p_full, n_full, pix_full,
-                                             direct[pix_full, :3])
+                                                   pool=system.updater.pool, lamps=len(system.scene.lights),
+                                                   smooth=s_full)[0]
+            # Hits find their pixel by the surface (the smooth normal), not a normal map's bend.
+            screen = ScreenLight.from_pixels(view, proj, (self.width, self.height), p_full,
+                                             n_full if s_full is None else s_full, pix_full, direct[pix_full, :3])
         gi = None
         gi_low, gi_bilateral, full_gi = low, None, None
         if self.settings.pixel_rays > 0:
@@ -276,7 +282,7 @@ class FramePipeline:
                 if self.settings.downsample > 1 and self.settings.pixel_full_res:
                     gi, gi_low, gi_bilateral, full_gi = self._pixel_gi_full(
                         system, gbuf, position_lo, normal_lo, pix, points, normals, visible, view, frame,
-                        (p_full, n_full, pix_full), stats, screen)
+                        (p_full, n_full, pix_full), stats, screen, s_full)
                 else:
                     gi = self._pixel_gi(system, position_lo, normal_lo, pix, points, normals, visible, view, frame,
                                         stats, screen)
@@ -303,8 +309,9 @@ class FramePipeline:
         film.set_depth(self.gbuffer.read("depth"))  # the centre sample, as Cycles' one sample
         count = self.subframes
         if count > 1:
-            centre = CentreSample.from_gbuffer(direct, position, normal, film.read("depth"))
+            centre = CentreSample.from_gbuffer(direct, position, normal, film.read("depth"), surface=surface)
             count = self._subframe_count(centre, full_gi, stats)
+        stats.subframes = count
         offsets = subpixel_offsets(count, self.filter_size, self.filter_type)
         jittered = offsets.shape[0] > 1
         if jittered:
@@ -316,16 +323,19 @@ class FramePipeline:
                                                 texture_filter=texture_filter)
                     normal = self.gbuffer.read("normal")
                     position = self.gbuffer.read("position")
+                    surface = self.gbuffer.read_surface(normal)
                 with stats.step("direct"):
-                    hit, same = subframe_surfaces(centre, position, normal)
+                    hit, same = subframe_surfaces(centre, position, normal, surface)
                     direct = subframe_direct(system, centre, position, normal,
                                              frame + s * SUBFRAME_SEED_STRIDE,
                                              max(min(self.direct_samples, RATIO_MIN_SAMPLES),
-                                                 self.direct_samples // offsets.shape[0]), surfaces=(hit, same))
+                                                 self.direct_samples // offsets.shape[0]), surfaces=(hit, same),
+                                             surface=surface)
                 if full_gi is not None and full_gi.resolver is not None:
                     with stats.step("subframe_gi"):
                         gi, gi_low = self._subframe_gi(full_gi, gbuf, hit, same, position, normal, offset,
-                                                       frame + s * SUBFRAME_SEED_STRIDE, offsets.shape[0], stats)
+                                                       frame + s * SUBFRAME_SEED_STRIDE, offsets.shape[0], stats,
+                                                       surface)
             with stats.step("direct"):
                 self._direct_tex = upload_texture_2d(direct.reshape(self.height, self.width, 4), "RGBA32F")
             shaded = self.shade(gbuf, gi_low, view, proj, self._direct_tex,
@@ -467,7 +477,7 @@ class FramePipeline:
         return sky, bounced, lamp
 
     def _pixel_gi_full(self, system, gbuf, position_lo, normal_lo, pix, points, normals, visible, view, frame,
-                       full, stats, screen=None):
+                       full, stats, screen=None, full_surfaces=None):
         """Pixel rays at the GI resolution resolved per full-res pixel (`pixel_gather.full_res_images`):
         (the three full-res textures, the centre G-buffer's copy that guides them, the factor-1
         bilateral pass that reads them)."""
@@ -477,7 +487,8 @@ class FramePipeline:
         out = pixel_gather.full_res_images(
             system, position_lo, normal_lo, pix, points, normals, visible, view, frame, s.pixel_rays,
             p_full, n_full, pix_full, (self.width, self.height), passes=s.pixel_filter,
-            plane_sigma=s.bilateral_plane_sigma, normal_power=s.bilateral_normal_power, screen=screen)
+            plane_sigma=s.bilateral_plane_sigma, normal_power=s.bilateral_normal_power, screen=screen,
+            full_surfaces=full_surfaces)
         stats.rays += out.gi.rays
         for k, v in out.steps_ms.items():
             stats.steps_ms[f"pixel_{k}"] = stats.steps_ms.get(f"pixel_{k}", 0.0) + v
@@ -505,13 +516,15 @@ class FramePipeline:
             p.resize(self.width, self.height)
         return self._full_copy.execute(gbuf), self._bilateral_full
 
-    def _subframe_gi(self, full_gi, gbuf, hit, same, position, normal, offset, seed_frame, count, stats):
+    def _subframe_gi(self, full_gi, gbuf, hit, same, position, normal, offset, seed_frame, count, stats,
+                     surface=None):
         """A jittered subframe's full-res GI textures (`subpixel.subframe_gi`: the centre's where it
         sees the centre's surface, resolved at its own samples elsewhere) and their guide, a copy of
         the subframe's own G-buffer: (gi textures, guide)."""
         indirect, direct, traced = subframe_gi(full_gi.resolver, full_gi.indirect, full_gi.direct, hit, same,
                                                position, normal, offset, seed_frame,
-                                               max(RATIO_MIN_SAMPLES, self.settings.pixel_rays // count))
+                                               max(RATIO_MIN_SAMPLES, self.settings.pixel_rays // count),
+                                               surface=surface)
         stats.rays += traced
         guide = self._full_copy.execute(gbuf)
         shape = (self.height, self.width, 4)

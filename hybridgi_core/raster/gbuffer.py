@@ -12,7 +12,9 @@ Targets (all bottom-up rows, world space, scene-linear):
 | 3    | emission | RGBA16F | emitted radiance W/(m^2 sr) (the material's emission texture |
 |      |          |         | at the pixel's UV where it has one), a = 1                   |
 | 4    | depth    | R32F    | view-axis distance (Cycles' Depth pass), 1e10 on background  |
-| 5    | material | R32F    | material index + 1 (0 on the background): the CPU's glossy lobes |
+| 5    | material | RGBA32F | r: material index + 1 (0 on the background): the CPU's glossy    |
+|      |          |         | lobes; gba: the unit smooth surface normal (interpolated vertex  |
+|      |          |         | normal facing the camera, not bent by maps; `read_surface`)      |
 
 Everything else is 0 on the background. Geometry is uploaded once (`upload`); animated vertices
 replace only the position buffer (`update_positions`). One draw call per material.
@@ -48,8 +50,13 @@ GBUFFER_TARGETS = (
     ("position", "RGBA32F", 4),
     ("emission", "RGBA16F", 4),
     ("depth", "R32F", 1),
-    ("material", "R32F", 1),
+    ("material", "RGBA32F", 4),
 )
+#: Channels `read(name)` returns where fewer than the target holds: the material index alone
+#: (the smooth surface normal in the material target's gba comes from `read_surface`).
+READ_CHANNELS = {"material": 1}
+#: Blender's framebuffers take at most 6 colour attachments: the smooth normal shares a target.
+SURFACE_TARGET = "material"
 
 
 @dataclass
@@ -157,6 +164,9 @@ class GBufferPass(RasterPass):
         self._dummy_texture = None
         self._weight_texture = None
         self._vertex_count = 0
+        #: Whether a drawn material bends its normals (normal map, bump): only then does the
+        #: smooth surface normal differ from `normal` (`read_surface`).
+        self.bends_normals = False
 
     # -- lifecycle ---------------------------------------------------------------------------
     def _build_shaders(self) -> dict:
@@ -296,6 +306,7 @@ class GBufferPass(RasterPass):
                 bump_distance=float(normal_map.bump.distance) if bump is not None else 0.0,
                 glow=glow,
             ))
+        self.bends_normals = any(d.flags & (TEXTURE_NORMAL | TEXTURE_BUMP) for d in self._draws)
         self.update_positions(geo.positions)
         log.debug("gbuffer upload: %d vertices, %d triangles, %d material draws",
                   n_vert, tris.shape[0], len(self._draws))
@@ -381,5 +392,16 @@ class GBufferPass(RasterPass):
         """Target `name` (albedo|normal|position|emission|depth|material) as (h, w, c) float32, bottom-up."""
         for slot, (tname, _fmt, ch) in enumerate(GBUFFER_TARGETS):
             if tname == name:
-                return read_framebuffer(self._fb, slot, self.width, self.height, ch, out=out)
+                return read_framebuffer(self._fb, slot, self.width, self.height, READ_CHANNELS.get(name, ch), out=out)
         raise KeyError(name)
+
+    def read_surface(self, normal: np.ndarray) -> np.ndarray:
+        """The smooth surface normals (h, w, 4) of the last `execute`: `normal` itself (the
+        `normal` target's read-back, the same array) when no drawn material bends its normals,
+        else the material target's gba (xyz) with its r as w: > 0.5 on geometry, as the normal
+        target's alpha. One read-back only where it differs."""
+        if not self.bends_normals:
+            return normal
+        slot = [name for name, _f, _c in GBUFFER_TARGETS].index(SURFACE_TARGET)
+        rgba = read_framebuffer(self._fb, slot, self.width, self.height, 4)
+        return np.ascontiguousarray(rgba[..., (1, 2, 3, 0)])

@@ -8,7 +8,9 @@
  * Bit 8: `bump_tx` (red) is a Bump node's height, applied after the map as Cycles' svm_node_set_bump
  * with `bump_strength` and `bump_distance` (negative: inverted). Bit 16: `emission_tx` is the emitted
  * radiance per texel (an emissive texture), averaged over the pixel's footprint like the colour;
- * without it (or without UVs) the constant `emission`. */
+ * without it (or without UVs) the constant `emission`. `out_material`'s gba is the smooth normal
+ * before a map or bump bends it (what the CPU takes for the surface: edges, filter guides, ray
+ * origins, the bump shadowing term). */
 
 /* The diffuse weight at cosine mu, linear between the table's samples at i / (n - 1). */
 float diffuse_weight(float mu)
@@ -157,6 +159,8 @@ void main()
   if (!gl_FrontFacing) {
     n = -n;
   }
+  /* The smooth surface before any map bends it: the material target's gba. */
+  vec3 n_surface = n;
   vec3 albedo = fallback_albedo.rgb;
   /* uv_ok interpolates to < 1 on triangles with any NaN-UV corner: no usable UV there. */
   if ((has_texture & 2) != 0 && uv_ok > 0.999 && sample_repeat_bilinear4(albedo_tx, tex_uv).a < 0.5) {
@@ -198,5 +202,5 @@ void main()
   }
   out_emission = vec4(emitted, 1.0);
   out_depth = view_depth(camera.view_z, world_pos);
-  out_material = float(material_row + 1);
+  out_material = vec4(float(material_row + 1), n_surface);
 }

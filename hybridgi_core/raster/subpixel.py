@@ -192,17 +192,27 @@ class CentreSample:
 
     direct: np.ndarray  # (h * w, 4) float32, rgb = lamp irradiance W/m^2
     position: np.ndarray  # (h * w, 4) float32 G-buffer position, w = 1 on geometry
-    normal: np.ndarray  # (h * w, >= 3) float32 unit (xyz)
+    normal: np.ndarray  # (h * w, >= 3) float32 unit (xyz): the shading normal
     depth: np.ndarray  # (h * w,) float32 view depth
     light_edge: np.ndarray | None = None  # (h * w,) bool: a shadow or light boundary crosses the pixel
+    #: (h * w, >= 3) float32 unit smooth surface normal (the G-buffer's `surface` target), what
+    #: surface identity compares (`same_surface`): a normal map's differently bent neighbours are
+    #: one surface. None: the shading normal (no material bends it).
+    surface: np.ndarray | None = None
+
+    @property
+    def surface_normal(self) -> np.ndarray:
+        return self.normal if self.surface is None else self.surface
 
     @classmethod
-    def from_gbuffer(cls, direct, position, normal, depth) -> CentreSample:
-        """From the read-backs (h, w, 4) / (h, w, >= 3) / (h, w, 1) and the direct light."""
+    def from_gbuffer(cls, direct, position, normal, depth, surface=None) -> CentreSample:
+        """From the read-backs (h, w, 4) / (h, w, >= 3) / (h, w, 1) and the direct light;
+        surface : the `surface` target's read-back (h, w, >= 3), or None / `normal` itself."""
         h, w = position.shape[:2]
         n = h * w
         return cls(direct, position.reshape(n, -1), normal.reshape(n, -1), depth.reshape(n),
-                   light_edges(np.asarray(direct)[:, :3].sum(axis=1).reshape(h, w)).reshape(n))
+                   light_edges(np.asarray(direct)[:, :3].sum(axis=1).reshape(h, w)).reshape(n),
+                   None if surface is None or surface is normal else surface.reshape(n, -1))
 
 
 def light_edges(light: np.ndarray, contrast: float = LIGHT_EDGE_CONTRAST) -> np.ndarray:
@@ -227,27 +237,38 @@ def light_edges(light: np.ndarray, contrast: float = LIGHT_EDGE_CONTRAST) -> np.
     return edge
 
 
-def subframe_surfaces(centre: CentreSample, position: np.ndarray, normal: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def subframe_surfaces(centre: CentreSample, position: np.ndarray, normal: np.ndarray,
+                      surface: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """((h * w,) bool, (h * w,) bool): pixels where the subframe (read-backs (h, w, 4) /
-    (h, w, >= 3)) sees geometry, and where it sees the centre sample's surface (`same_surface`)."""
+    (h, w, >= 3)) sees geometry, and where it sees the centre sample's surface (`same_surface`
+    of the smooth surface normals: `surface`, the subframe's `surface` read-back, against
+    `centre.surface_normal`) lit alike: where a material bends normals, the shading normals agree
+    to SAME_COS too, so a normal map's detail within a pixel keeps its own light."""
     n_pix = centre.position.shape[0]
     pos = position.reshape(n_pix, -1)
     nrm = normal.reshape(n_pix, -1)
     hit = pos[:, 3] > 0.5
+    bent = surface is not None and surface is not normal and centre.surface is not None
+    geo = surface.reshape(n_pix, -1) if bent else nrm
     # Whole-image arrays (no gathers): the comparison is the bulk of a subframe's CPU work.
-    same = hit & (centre.position[:, 3] > 0.5) & same_surface(centre.position, centre.normal, pos, nrm, centre.depth)
+    same = hit & (centre.position[:, 3] > 0.5) & same_surface(centre.position, centre.surface_normal, pos, geo,
+                                                              centre.depth)
+    if bent:
+        c = centre.normal
+        same &= (nrm[:, 0] * c[:, 0] + nrm[:, 1] * c[:, 1] + nrm[:, 2] * c[:, 2]) >= SAME_COS
     return hit, same
 
 
 def subframe_gi(resolver, centre_indirect: np.ndarray, centre_direct: np.ndarray, hit: np.ndarray, same: np.ndarray,
                 position: np.ndarray, normal: np.ndarray, offset, seed_frame: int,
-                rays: int) -> tuple[np.ndarray, np.ndarray, int]:
+                rays: int, surface: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, int]:
     """A jittered subframe's full-res GI textures, ((h * w, 4) indirect, (h * w, 4) direct, rays
     traced), as `pixel_gather.textures` lays them out: the centre's (`centre_indirect`,
     `centre_direct`: `pixel_gather.FullResGI.indirect` / `.direct`) where the subframe sees the
     centre's surface, resolved at the subframe's own sample elsewhere (`pixel_gather.GIResolver.at`,
     `rays` rays where no GI pixel shares its surface), the background's where it sees none.
-    hit, same : `subframe_surfaces`.
+    hit, same : `subframe_surfaces`. surface : the subframe's `surface` read-back where a material
+    bends normals, else None.
 
     Why: the film weights each sample's light by its own colour; a post's edge pixel whose
     subframe sees the ground behind it (or a bar the centre raster missed) must bring that
@@ -264,7 +285,10 @@ def subframe_gi(resolver, centre_indirect: np.ndarray, centre_direct: np.ndarray
     if fresh.size:
         p, n, keep = pixels_to_points(position.reshape(n_pix, -1)[fresh][None], normal.reshape(n_pix, -1)[fresh][None])
         rows = fresh[keep]
-        value, traced = resolver.at(p, n, rows, offset, seed_frame, rays)
+        smooth = None
+        if surface is not None and surface is not normal:
+            smooth = pixels_to_points(position.reshape(n_pix, -1)[fresh][None], surface.reshape(n_pix, -1)[fresh][None])[1]
+        value, traced = resolver.at(p, n, rows, offset, seed_frame, rays, surfaces=smooth)
         write_texels(indirect, direct, rows, value)
     return indirect, direct, traced
 
@@ -292,7 +316,8 @@ def gi_edges(centre: CentreSample, indirect: np.ndarray, height: int, width: int
     subframes run, so the frame can take more of them (`worth_extra`)."""
     n = height * width
     pos = centre.position.reshape(height, width, -1)
-    nrm = centre.normal.reshape(height, width, -1)
+    # The smooth surface: a normal map's differently bent neighbours are one surface.
+    nrm = centre.surface_normal.reshape(height, width, -1)
     depth = centre.depth.reshape(height, width)
     luma = np.asarray(indirect, np.float32).reshape(n, 4)[:, :3] @ np.asarray(LUMA, np.float32)
     lum = luma.reshape(height, width)
@@ -324,24 +349,30 @@ def worth_extra(edges: np.ndarray, share: float = EXTRA_MIN_SHARE) -> bool:
 
 
 def subframe_direct(system, centre: CentreSample, position: np.ndarray, normal: np.ndarray,
-                    seed_frame: int, samples: int, surfaces=None) -> np.ndarray:
+                    seed_frame: int, samples: int, surfaces=None, surface: np.ndarray | None = None) -> np.ndarray:
     """A jittered subframe's direct light, (h * w, 4) float32: the centre's where the subframe's
     pixel sees the same surface, `samples` shadow rays per lamp (seeded by seed_frame) elsewhere.
 
     position, normal : the subframe's G-buffer read-backs (h, w, 4) / (h, w, >= 3); the
-    G-buffer's normals are unit (normalised in its fragment shader).
+    G-buffer's normals are unit (normalised in its fragment shader). surface : the subframe's
+    `surface` read-back where a material bends normals (None: the shading normal): the surface
+    `same_surface` compares and the smooth normal of the bump shadowing term.
     """
     n_pix = centre.direct.shape[0]
     pos = position.reshape(n_pix, -1)
     nrm = normal.reshape(n_pix, -1)
-    hit, same = subframe_surfaces(centre, position, normal) if surfaces is None else surfaces
+    bent = surface is not None and surface is not normal
+    hit, same = subframe_surfaces(centre, position, normal, surface) if surfaces is None else surfaces
     if centre.light_edge is not None:
         same = same & ~centre.light_edge  # a new array: the caller's `surfaces` stay as they are
     direct = np.where(same[:, None], centre.direct, np.float32(0.0))
     fresh = np.flatnonzero(hit & ~same)
     if fresh.size:
         p, n, keep = pixels_to_points(pos[fresh][None], nrm[fresh][None])
-        direct[fresh[keep], :3] = system.direct(p, n, seed_frame, samples=samples)
+        smooth = {}
+        if bent:
+            smooth["smooth"] = pixels_to_points(pos[fresh][None], surface.reshape(n_pix, -1)[fresh][None])[1]
+        direct[fresh[keep], :3] = system.direct(p, n, seed_frame, samples=samples, **smooth)
     return direct
 
 
