@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import importlib
 import os
 import tempfile
 
@@ -46,6 +47,21 @@ def gpu_context(bpy_module):
     import gpu  # noqa: PLC0415
 
     return gpu
+
+
+@pytest.fixture(scope="module")
+def addon(bpy_module):
+    """The add-on package, enabled from this checkout (imports it the way Blender does); a test
+    module may define its own (with handlers registered, say)."""
+    from hybridgi_cli import dev_install  # noqa: PLC0415
+
+    return dev_install.enable()
+
+
+@pytest.fixture(scope="module")
+def sync(addon):
+    """The add-on's `sync` module: the one reader of Blender data."""
+    return importlib.import_module(f"{addon.__name__}.sync")
 
 
 @pytest.fixture

@@ -149,18 +149,6 @@ def test_glossy_power_is_what_glossy_lobes_see():
 # --- sync: what a Blender lamp and scene say ----------------------------------------------
 
 
-@pytest.fixture(scope="module")
-def addon(bpy_module):
-    from hybridgi_cli import dev_install
-
-    return dev_install.enable()
-
-
-@pytest.fixture(scope="module")
-def sync(addon):
-    return importlib.import_module(f"{addon.__name__}.sync")
-
-
 def add_light(bpy, scene, name, kind="AREA", **settings):
     data = bpy.data.lights.new(name, kind)
     for key, value in settings.items():

@@ -113,18 +113,6 @@ ROOM = textwrap.dedent("""
 
 
 @pytest.fixture(scope="module")
-def addon(bpy_module):
-    from hybridgi_cli import dev_install
-
-    return dev_install.enable()
-
-
-@pytest.fixture(scope="module")
-def sync(addon):
-    return importlib.import_module(f"{addon.__name__}.sync")
-
-
-@pytest.fixture(scope="module")
 def material_bake(addon):
     return importlib.import_module(f"{addon.__name__}.material_bake")
 

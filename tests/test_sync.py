@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import importlib
 import logging
 import math
 
@@ -11,19 +10,6 @@ import pytest
 
 from hybridgi_cli import blender_compat
 from hybridgi_core.errors import EmptySceneError
-
-
-@pytest.fixture(scope="module")
-def addon(bpy_module):
-    """The add-on package, enabled from this checkout (imports it the way Blender does)."""
-    from hybridgi_cli import dev_install
-
-    return dev_install.enable()
-
-
-@pytest.fixture(scope="module")
-def sync(addon):
-    return importlib.import_module(f"{addon.__name__}.sync")
 
 
 @pytest.fixture
