@@ -96,11 +96,12 @@ AO_RELATIVE_NOISE = 0.15
 #: second bounce, `_near_bounce`) instead of reading the cache at the hit: in clutter finer than a
 #: cell (rocks, crevices) the cell in front of a near hit lies above the clutter and sees more sky and
 #: other bounce light than the hit does (module docstring).
-#: 0.25: the 320x240 scatter of `bench/fine_detail_scenes.py` vs Cycles 256 spp, Diffuse Indirect bias
-#: -7.6% -> -5.3% (0.125: -5.5%, 0.5: -5.4%, 1 and 3 cells the same: its hits are that near); the
-#: 640x360 atrium's DI 0.0447 -> 0.0437 (0.125: 0.0440, 0.5: 0.0434) for ~9% more CPU time; Cornell,
-#: spheres, car, animated within their run-to-run noise (near hits are 2-8% of their pixel-ray time).
-NEAR_BOUNCE_CELLS = 0.25
+#: 0.125: the 320x240 scatter of `bench/fine_detail_scenes.py` vs Cycles 256 spp, Diffuse Indirect bias
+#: -7.6% -> -5.5% (0.25: -5.3%, 0.5: -5.4%, 1 and 3 cells the same: its hits are that near); the
+#: 640x360 atrium's DI 0.0447 -> 0.0440 (0.25: 0.0437, 0.5: 0.0434). Near-bounce time over the pixel
+#: rays' time in the same render: Cornell 1.5%, spheres 3%, animated 4%, car and atrium 8% (at 0.25:
+#: Cornell 6%, atrium 12%; at 0.5: Cornell 6-8%, atrium 15-17%, where Cornell gains nothing).
+NEAR_BOUNCE_CELLS = 0.125
 #: Bounces a near hit may trace before reading the cache (1: a near second hit reads the cell in
 #: front of it). 2 / 4 on the scatter: bias -8.4% -> -8.1 / -8.0% (1 cm origins); a 0.3 m trench
 #: 8.2% -> 2.2% too bright at 3, at more rays where the clutter is deep.

@@ -607,7 +607,7 @@ def test_pixel_rays_bounce_light_in_a_crevice_finer_than_a_cell():
     """Issue #12: a pixel ray hitting the trench's wall read its further bounces from the cell in
     front of the hit, which lies above the trench (5 m cells, a 0.3 m slot) and sees the open sky:
     the floor's light came out 13.0% too bright against a path-traced reference. Hits nearer than
-    NEAR_BOUNCE_CELLS trace one ray of their own instead: +8.1% (the second hit still reads the
+    NEAR_BOUNCE_CELLS trace one ray of their own instead: +8.4% (the second hit still reads the
     cell above; deeper slots keep more of the error)."""
     with GISystem(_trench(), CacheSettings(resolution=8, rays_per_cell=64)) as gi:
         gi.warm_up(8)
