@@ -31,6 +31,7 @@ from hybridgi_core.cycles_reference import CYCLES_REFERENCE  # noqa: E402
 
 BUILT = ("yard", "contact", "trusses")
 WORLDS = ("hdri_yard", "sky_yard", "hdri_room")
+CLUTTER = ("scatter",)
 BUNDLED = ("car", "atrium")
 SOURCE = Path(__file__).with_name("fine_detail_scenes.py")
 PROCEDURAL = (ROOT / "blend_scenes" / "procedural.py", ROOT / "blend_scenes" / "build.py")
@@ -64,7 +65,8 @@ def reference(name: str, blend: Path, digest: str, res, spp: int, cache: Path) -
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--scenes", default=",".join(BUILT + BUNDLED), help=f"also: {','.join(WORLDS)} (issue #11's worlds)")
+    ap.add_argument("--scenes", default=",".join(BUILT + BUNDLED), help=f"also: {','.join(WORLDS)} (issue #11's worlds), "
+                    f"{','.join(CLUTTER)} (issue #12's dense clutter)")
     ap.add_argument("--res", default="320x240")
     ap.add_argument("--spp", type=int, default=1024)
     ap.add_argument("--set", dest="settings", action="append", default=[])

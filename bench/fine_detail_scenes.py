@@ -8,6 +8,9 @@
   floor, lit by an area lamp and a dim sky: contact shadows and colour bleeding finer than a cell.
 - trusses: an attic under a gable roof with a row of 8 cm trusses, sun through a roof opening and
   a warm area lamp.
+- scatter: 6,561 half-buried rocks 0.3 m across (a jittered 81 x 81 grid of icospheres, one mesh)
+  on a ground plane under sun + a uniform sky: clutter far finer than a cache cell, where most of
+  the bounce light between rocks comes from more than one bounce (issue #12's dense case).
 
 Every surface is a plain diffuse Principled BSDF (no specular) so that Cycles' Diffuse passes hold
 all of the light. Run in its own process (it resets the bpy module's file).
@@ -205,6 +208,47 @@ def trusses():
     _camera(scene, (2.2, -5.7, 0.7), (-0.8, 3.0, 0.9), lens=18.0)
 
 
+def scatter(count=81, spacing=0.33, radius=0.15, seed=12):
+    """Issue #12's dense scatter: count^2 rocks (icospheres of 80 faces, radius 0.15 m scaled
+    0.8-1.2 and squashed in z, 0.33 m apart, their centres on the ground: half buried) on a jittered grid,
+    joined into one mesh (6,561 objects would make the sync the measurement). Deterministic:
+    its own seeded generator."""
+    import random  # noqa: PLC0415
+
+    scene = _reset()
+    ground = _material("ground", (0.6, 0.58, 0.55))
+    rock = _material("rock", (0.78, 0.76, 0.72))
+    _box(scene, "ground", (-40, -40, -0.2), (40, 40, 0.0), ground)
+    rng = random.Random(seed)
+    half = (count - 1) * spacing / 2
+
+    bm = bmesh.new()
+    bmesh.ops.create_icosphere(bm, subdivisions=2, radius=radius)
+    unit = [tuple(v.co) for v in bm.verts]
+    faces = [tuple(v.index for v in f.verts) for f in bm.faces]
+    bm.free()
+    verts, polys = [], []
+    for i in range(count):
+        for j in range(count):
+            x = i * spacing - half + rng.uniform(-0.25, 0.25) * spacing
+            y = j * spacing - half + rng.uniform(-0.25, 0.25) * spacing
+            s = rng.uniform(0.8, 1.2)
+            sz = rng.uniform(0.7, 1.0)
+            turn = rng.uniform(0.0, 2.0 * math.pi)
+            c, si = math.cos(turn), math.sin(turn)
+            base = len(verts)
+            verts.extend((x + s * (c * vx - si * vy), y + s * (si * vx + c * vy), s * sz * vz) for vx, vy, vz in unit)
+            polys.extend(tuple(base + k for k in f) for f in faces)
+    mesh = bpy.data.meshes.new("rocks")
+    mesh.from_pydata(verts, [], polys)
+    mesh.materials.append(rock)
+    obj = bpy.data.objects.new("rocks", mesh)
+    scene.collection.objects.link(obj)
+    _sun(scene, 4.0, elevation=40.0, azimuth=30.0)
+    _world(scene, (0.5, 0.6, 0.8), 1.0)
+    _camera(scene, (0.0, -11.0, 2.2), (0.0, -3.0, 0.0), lens=30.0)
+
+
 def _studio_hdri(scene, name="sunrise.exr", rotation_z=1.2, strength=1.0):
     """The world of Blender's bundled CC0 studio HDRI `name`, turned about Z by a Mapping node."""
     path = Path(bpy.utils.system_resource("DATAFILES")) / "studiolights" / "world" / name
@@ -249,7 +293,7 @@ def hdri_room():
     _studio_hdri(bpy.context.scene, rotation_z=2.4)
 
 
-SCENES = {f.__name__: f for f in (yard, contact, trusses, hdri_yard, sky_yard, hdri_room)}
+SCENES = {f.__name__: f for f in (yard, contact, trusses, hdri_yard, sky_yard, hdri_room, scatter)}
 
 
 def build(out_dir: Path, names=None) -> dict[str, Path]:

@@ -11,7 +11,10 @@ from typing import Protocol
 import numpy as np
 
 #: Ray origins are pushed this far (relative to the scene extent) off surfaces: Embree's tnear is 0.
-SURFACE_EPSILON = 1e-4
+#: 1e-5: at 1e-4 a scene with an 80 m ground pushed origins 1.1 cm, and contacts of 0.3 m rocks lost
+#: their darkest centimetre (scatter 320x240 vs Cycles: AO bias +2.7% -> +1.5%, Diffuse Indirect
+#: bias -10.7% -> -7.6%); ORIGIN_ULPS keeps the float32 floor of far-away models.
+SURFACE_EPSILON = 1e-5
 
 
 @dataclass
