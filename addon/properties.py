@@ -3,6 +3,8 @@
 # No `from __future__ import annotations` here: bpy reads the property annotations at registration
 # and needs them evaluated.
 
+import math
+
 import bpy
 from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty, PointerProperty
 
@@ -61,6 +63,16 @@ def cycles_diffuse_bounces(scene) -> int | None:
     if cycles is None or not hasattr(cycles, "diffuse_bounces"):
         return None
     return max(min(int(cycles.max_bounces), int(cycles.diffuse_bounces)), 0)
+
+
+def cycles_filter_glossy(scene) -> float:
+    """Cycles' Filter Glossy of this scene (`blur_glossy`; its default 1.0 without Cycles' settings)."""
+    value = getattr(getattr(scene, "cycles", None), "blur_glossy", 1.0)
+    try:
+        value = float(value)
+    except (TypeError, ValueError):
+        return 1.0
+    return value if math.isfinite(value) and value >= 0.0 else 1.0
 
 
 def bounce_limited_quality(scene) -> int:
@@ -267,6 +279,7 @@ class HybridGISettings(bpy.types.PropertyGroup):
             hysteresis=_f(self.hysteresis),
             indirect_quality=min(INDIRECT_QUALITY[self.indirect_quality], bounce_limited_quality(scene)),
             bounce_light=cycles_diffuse_bounces(scene) != 0,
+            filter_glossy=cycles_filter_glossy(scene),
             # The World allows 0; the core needs a positive distance.
             ao_distance=max(_f(ao_distance), 1e-4),
             lod_ratio=_f(self.lod_ratio),

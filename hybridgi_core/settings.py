@@ -94,6 +94,10 @@ class CacheSettings:
     #: False: surfaces that rays hit reflect no light (Cycles' diffuse bounce limit 0): beyond its
     #: lamps a pixel sees only the sky and emitters, as Cycles' Diffuse Direct; no Diffuse Indirect.
     bounce_light: bool = True
+    #: Cycles' Filter Glossy (`cycles.blur_glossy`; 0 = off): how much Cycles blurs the glossy
+    #: lobes of ray hits after a diffuse bounce, which the hits' glossy albedo follows
+    #: (`specular.hit_blur_roughness`).
+    filter_glossy: float = 1.0
 
     #: Valid values of each field: (low, high, low_open, high_open) or a frozenset of choices
     #: (a class attribute, not a field: it has no annotation).
@@ -114,6 +118,7 @@ class CacheSettings:
         "threads": _closed(1, 64),
         "max_memory_mib": _closed(1),
         "cache_levels": _closed(1, 3),
+        "filter_glossy": _closed(0.0, 1e6),
     }
 
     def __post_init__(self) -> None:

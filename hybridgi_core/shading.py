@@ -19,6 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .snapshot import Geometry, Material
+from .specular import FILTER_GLOSSY, hemispherical_glossy_albedo
 
 # Record layout (floats): unit geometric normal | albedo / pi | emission | spare
 _NG, _BRDF, _EMIT = (slice(3 * i, 3 * i + 3) for i in range(3))
@@ -56,10 +57,13 @@ class ProbeHits:
 class SurfaceTable:
     """Packed triangles and materials of one traced Geometry (built once per geometry change)."""
 
-    def __init__(self, geometry: Geometry, materials: list[Material], reflect: bool = True):
+    def __init__(self, geometry: Geometry, materials: list[Material], reflect: bool = True,
+                 filter_glossy: float = FILTER_GLOSSY):
         """reflect : False makes every hit reflect nothing (albedo 0: no bounce light), its
-        emission kept (`CacheSettings.bounce_light`)."""
+        emission kept (`CacheSettings.bounce_light`). filter_glossy : Cycles' Filter Glossy,
+        which blurs the glossy lobes of hits (`CacheSettings.filter_glossy`)."""
         self.reflect = reflect
+        self.filter_glossy = filter_glossy
         rows = np.arange(geometry.triangle_count)
         self._normals = _pack_normals(geometry, rows)
         self._positions = _pack_positions(geometry, rows)
@@ -92,9 +96,12 @@ class SurfaceTable:
         self.materials = materials
         # Hits reflect the diffuse base under the specular layer by its hemispherical mean
         # weight, and the glossy lobes' mean albedo as if it were diffuse (untextured): the cache
-        # cannot hold a lobe's direction, but Cycles' bounce light carries its energy.
+        # cannot hold a lobe's direction, but Cycles' bounce light carries its energy. The lobes
+        # are those Cycles' Filter Glossy leaves at a hit after a diffuse bounce: blurred, they
+        # reflect less than the diffuse weight gave up (roughness 0.2: 0.088 -> 0.045).
         weight = np.array([[m.hit_diffuse_weight] for m in materials], np.float32).reshape(-1, 1)
-        self.glossy = np.array([m.hit_glossy_albedo for m in materials], np.float32).reshape(-1, 3)
+        self.glossy = np.array([hemispherical_glossy_albedo(m.specular, self.filter_glossy) for m in materials],
+                               np.float32).reshape(-1, 3)
         self.albedo = np.array([m.base_color for m in materials], np.float32).reshape(-1, 3) * weight
         self.mean_albedo = np.array([m.mean_albedo for m in materials], np.float32).reshape(-1, 3) * weight
         if not self.reflect:

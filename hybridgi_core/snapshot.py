@@ -210,7 +210,8 @@ class Material:
 
     @property
     def hit_glossy_albedo(self) -> np.ndarray:
-        """(3,) albedo a probe-ray hit adds for its glossy lobes (`specular.hemispherical_glossy_albedo`)."""
+        """(3,) albedo a probe-ray hit adds for its glossy lobes (`specular.hemispherical_glossy_albedo`,
+        blurred by Cycles' default Filter Glossy; `shading.SurfaceTable` uses the scene's)."""
         return hemispherical_glossy_albedo(self.specular)
 
 

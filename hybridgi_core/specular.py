@@ -345,21 +345,89 @@ def diffuse_weight_row(layer, n: int = WEIGHT_SAMPLES) -> np.ndarray:
     return diffuse_weight(layer, _grid(n)).astype(np.float32)
 
 
-def hemispherical_glossy_albedo(layer) -> np.ndarray:
-    """(3,) cosine-weighted mean albedo of the glossy lobes: the dielectric layer's (times its
-    weight) and the metallic lobe's (its average Fresnel, F0 + (1 - F0) / 21, times its weight).
-    Probe-ray hits reflect this share of their light as if it were diffuse: a cache of
-    irradiance cannot hold the lobe's direction, but Cycles' bounce light carries its energy."""
+#: Cycles' Filter Glossy (`cycles.blur_glossy`, its default): the setting the hits' lobes are blurred by.
+FILTER_GLOSSY = 1.0
+
+
+def hit_blur_roughness(filter_glossy: float = FILTER_GLOSSY, n: int = 16) -> tuple[np.ndarray, np.ndarray]:
+    """((n,) roughness, (n,) weight) of Cycles' Filter Glossy at a ray hit after a diffuse bounce.
+
+    Cycles (surface_shader_prepare_closures) blurs every BSDF of a hit whose path's smallest pdf
+    so far (`min_ray_pdf`), divided by Filter Glossy, is below 1: alpha = max(alpha, 0.5 sqrt(1 -
+    pdf / filter)), after the closures' setup, so the specular layer keeps the diffuse weight and
+    the multiscatter compensation of its own roughness and loses what the rougher lobe no longer
+    reflects. After a diffuse bounce the pdf is cos / pi (cosine-weighted: density 2 cos), so
+    the blurred roughness spans sqrt(0.41)..sqrt(0.5) = 0.64..0.71 at the default 1; 0 = off."""
+    if not filter_glossy > 0.0:
+        return np.zeros(1), np.ones(1)
+    c = (np.arange(n) + 0.5) / n
+    pdf = c / (np.pi * filter_glossy)
+    alpha = np.where(pdf < 1.0, 0.5 * np.sqrt(np.clip(1.0 - pdf, 0.0, 1.0)), 0.0)
+    weight = 2.0 * c / n
+    return np.sqrt(alpha), weight / weight.sum()
+
+
+def _hit_lobe_albedo(lobe: GlossyLobe, mu, rough_blur) -> np.ndarray:
+    """(..., 3) the energy a lobe blurred to roughness max(its own, rough_blur) reflects at cosines
+    mu (broadcast with rough_blur), before its weight and view factor: its Fresnel average and GGX
+    albedo at the blurred roughness, the multiscatter factor of its own (set up before the blur).
+    Where the blur does not reach the lobe's roughness, `lobe_albedo`."""
+    mu = np.clip(np.asarray(mu, np.float64), 0.0, 1.0)
+    rough = lobe.roughness
+    rb = np.maximum(np.asarray(rough_blur, np.float64), rough)
+    mu, rb = np.broadcast_arrays(mu, rb)
+    if lobe.fresnel == "none":
+        fresnel = np.ones((*mu.shape, 3))
+    elif lobe.fresnel == "dielectric":
+        eta = lobe.eta
+        z = np.sqrt(abs(eta - 1.0) / (eta + 1.0))
+        fresnel = lobe.f0 + (1.0 - lobe.f0) * _lerp_table(tables()[2], [z, rb, mu])[..., None]
+    elif lobe.fresnel == "f82":
+        fresnel = lobe.f0 + (1.0 - lobe.f0) * _lerp_table(schlick_table(), [rb, mu])[..., None]
+    else:
+        fresnel = fresnel_conductor(mu, lobe.n, lobe.k)
+    e_table, e_avg_table, _ = tables()
+    e = _lerp_table(e_table, [rough, mu])[..., None]
+    loss = _lerp_table(e_table, [rb, mu])[..., None] / np.maximum(e, 1e-6)  # 1 where unblurred
+    if lobe.distribution == "MULTI_GGX":
+        e_avg = float(_lerp_table(e_avg_table, [rough]))
+        return fresnel * e * multiscatter_factor(lobe.average_fresnel(), e, e_avg) * loss
+    return fresnel * loss  # the model's single-scattering lobe (`lobe_albedo`), darkened by the blur
+
+
+def _hit_lobe_mean(lobe: GlossyLobe, filter_glossy: float) -> np.ndarray:
+    """(3,) cosine-weighted mean over the view of a lobe's colour at a hit (`_hit_lobe_albedo`),
+    averaged over the blurs of `hit_blur_roughness`."""
+    mu = (np.arange(64) + 0.5) / 64
+    view = 1.0 if lobe.view is None else sample_view(lobe.view, mu)[:, None]
+    rough_blur, w = hit_blur_roughness(filter_glossy)
+    albedo = _hit_lobe_albedo(lobe, mu[None, :], rough_blur[:, None])  # (blur, mu, 3)
+    per_blur = np.mean(2.0 * view * albedo * mu[:, None], axis=1)
+    return lobe.weight * (w[:, None] * per_blur).sum(axis=0)
+
+
+def hemispherical_glossy_albedo(layer, filter_glossy: float = FILTER_GLOSSY) -> np.ndarray:
+    """(3,) cosine-weighted mean albedo of the glossy lobes at a ray hit: the dielectric layer's
+    (times its weight) and the metallic lobe's (its average Fresnel, F0 + (1 - F0) / 21, times its
+    weight), each as Cycles' Filter Glossy blurs it at a hit after a diffuse bounce
+    (`hit_blur_roughness`; filter_glossy 0: unblurred). Probe-ray hits reflect this share of their
+    light as if it were diffuse: a cache of irradiance cannot hold the lobe's direction, but
+    Cycles' bounce light carries its energy."""
     if layer is None:
         return np.zeros(3, np.float32)
-    mu = (np.arange(64) + 0.5) / 64
     if isinstance(layer, GlossySurface):
-        return np.mean(2.0 * glossy_color(layer, mu) * mu[:, None], axis=0).astype(np.float32)
-    dielectric = np.mean(2.0 * layer_albedo(layer, mu) * mu[:, None], axis=0) if layer.active else np.zeros(3)
-    metal = layer.metal_color + (1.0 - layer.metal_color) / 21.0
-    glass = sum((np.mean(2.0 * lobe_color(lobe, mu) * mu[:, None], axis=0) for lobe in _transmission_lobes(layer)),
-                np.zeros(3))
-    return (layer.weight * dielectric + layer.metallic * metal + glass).astype(np.float32)
+        return sum((_hit_lobe_mean(lobe, filter_glossy) for lobe in layer.lobes), np.zeros(3)).astype(np.float32)
+    out = np.zeros(3)
+    for lobe in layer_lobes(layer):
+        if lobe.fresnel == "f82":
+            # The metal's average Fresnel, less what the blur takes (the lobe's own mean, blurred / not).
+            sharp = _hit_lobe_mean(lobe, 0.0)
+            blur = _hit_lobe_mean(lobe, filter_glossy)
+            ratio = np.where(sharp > 0, blur / np.maximum(sharp, 1e-12), 1.0)
+            out += layer.metallic * (layer.metal_color + (1.0 - layer.metal_color) / 21.0) * ratio
+        else:
+            out += _hit_lobe_mean(lobe, filter_glossy)
+    return out.astype(np.float32)
 
 
 def hemispherical_diffuse_weight(layer) -> float:

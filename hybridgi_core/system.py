@@ -71,7 +71,8 @@ class GISystem:
         self.ray_geometry = self._with_dynamic(scene)
         self.tracer = EmbreeTracer(self.ray_geometry, self.dynamic_objects, threads=1)
         self.tracer.set_cutouts(Cutouts(self.ray_geometry, scene.materials))
-        self.surfaces = SurfaceTable(self.ray_geometry, scene.materials, reflect=settings.bounce_light)
+        self.surfaces = SurfaceTable(self.ray_geometry, scene.materials, reflect=settings.bounce_light,
+                                     filter_glossy=settings.filter_glossy)
         self.cache = cache if cache is not None else IrradianceCache.for_scene(scene, settings)
         self.updater = CacheUpdater(self.cache, self.tracer, ShadingScene(self.surfaces, scene.lights, scene.world), self.tracer.epsilon)
         #: Stored probe hits and the fixed-point solver of final renders (and of re-lighting).

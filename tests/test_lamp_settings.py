@@ -270,6 +270,14 @@ def test_cycles_diffuse_bounce_limit_sets_the_indirect_quality(bpy_module, empty
     assert scene.hybridgi.cache_settings(scene).indirect_quality == 1
 
 
+@pytest.mark.blender
+def test_cycles_filter_glossy_reaches_the_cache_settings(bpy_module, empty_scene, addon):
+    scene = empty_scene
+    assert scene.hybridgi.cache_settings(scene).filter_glossy == pytest.approx(scene.cycles.blur_glossy)
+    scene.cycles.blur_glossy = 0.0
+    assert scene.hybridgi.cache_settings(scene).filter_glossy == 0.0
+
+
 # --- renders against Cycles -----------------------------------------------------------------
 
 RES = "64x48"

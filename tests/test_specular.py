@@ -155,3 +155,23 @@ def test_probe_hits_see_the_layer_as_its_hemispherical_mean():
     assert np.allclose(hit(layered), (base * w + glossy) / np.pi, rtol=1e-5)
     # Energy: the diffuse share lost is about what the white layer reflects.
     assert 0.0 < glossy[0] < 0.15 and abs((1.0 - w) - glossy[0]) < 0.03
+
+
+def test_hit_glossy_albedo_follows_cycles_filter_glossy():
+    """Cycles blurs a hit's lobes after a diffuse bounce to roughness >= ~0.64 (Filter Glossy 1)
+    after their setup: a smooth layer's hits reflect the blurred lobe's energy (less), a rough
+    one's are untouched, and Filter Glossy 0 keeps the sharp lobe's mean albedo."""
+    mu = (np.arange(64) + 0.5) / 64
+    rough, weight = sp.hit_blur_roughness(1.0)
+    assert 0.64 < rough.min() and rough.max() < 0.71 and weight.sum() == pytest.approx(1.0)
+    for r in (0.1, 0.2, 0.5):
+        layer = sp.SpecularLayer(roughness=r)
+        sharp = np.mean(2.0 * sp.layer_albedo(layer, mu) * mu[:, None], axis=0)
+        assert np.allclose(sp.hemispherical_glossy_albedo(layer, 0.0), sharp, rtol=1e-5)
+        assert np.all(sp.hemispherical_glossy_albedo(layer) < (0.8 if r < 0.4 else 1.0) * sharp)
+    rough_layer = sp.SpecularLayer(roughness=0.8)
+    assert np.allclose(sp.hemispherical_glossy_albedo(rough_layer), sp.hemispherical_glossy_albedo(rough_layer, 0.0))
+    # A metal loses its blurred multiple scattering too, in proportion.
+    metal = sp.SpecularLayer(roughness=0.2, metallic=1.0, weight=0.0, metal_color=(0.9, 0.6, 0.3))
+    assert np.all(sp.hemispherical_glossy_albedo(metal) < sp.hemispherical_glossy_albedo(metal, 0.0))
+    assert np.all(sp.hemispherical_glossy_albedo(metal) > 0.5 * sp.hemispherical_glossy_albedo(metal, 0.0))
