@@ -939,27 +939,45 @@ def _pick_lamps(lights: list[Light], pts: np.ndarray, nrm: np.ndarray, budget: i
     return draws
 
 
+def _lamp_chunk(light: Light, shape, p, q, tracer, rng, samples: int, epsilon: float, solid_angle: bool,
+                mark=None, opened=None, known=None, bumped=None) -> np.ndarray | None:
+    """(m,) irradiance of one sampled (not axial) lamp at a chunk's receivers (p, q: x, y, z
+    tuples of (m,)), by its kind: `_point_chunk`, `_sun_chunk`, `_beam` (Spread 0) or
+    `_area_chunk`; None for an area lamp without a shape (zero area). mark, opened, known: their
+    per-lamp outputs and the exact light to reuse. bumped : (points, normals, smooth normals)
+    (m, 3) for the bump shadowing term (`_bump_weight`, applied to `opened` too), or None."""
+    if light.kind in ("POINT", "SPOT"):
+        e = _point_chunk(light, p, q, tracer, rng, samples, epsilon, mark, opened)
+    elif light.kind == "SUN":
+        e = _sun_chunk(light, p, q, tracer, rng, samples, epsilon, mark, opened)
+    elif shape is None:
+        return None
+    elif float(light.spread) <= 0.0:
+        e = _beam(light, shape, p, q, tracer, epsilon, opened)
+    else:
+        e = _area_chunk(light, shape, p, q, tracer, rng, samples, epsilon, mark, solid_angle, opened, known)
+    if bumped is not None:
+        bump = _bump_weight(light, *bumped)
+        e = e * bump
+        if opened:
+            opened[0] = opened[0] * bump
+    return e
+
+
 def _shade_picked(light: Light, shape, weight: np.ndarray, p, q, tracer, rng, samples: int, epsilon: float,
                   solid_angle: bool, acc: np.ndarray, bumped=None) -> None:
     """acc (m, 3) += weight x the light of `light` at the receivers of the chunk (p, q: x, y, z
     tuples) that picked it (weight > 0; `_pick_lamps`). bumped : (normals, smooth normals) of the
     chunk's receivers for the bump shadowing term (`_bump_weight`), or None."""
     rows = np.flatnonzero(weight > 0)
-    if rows.size == 0 or (light.kind == "AREA" and shape is None):
+    if rows.size == 0:
         return
     ps = tuple(np.ascontiguousarray(c[rows]) for c in p)
     qs = tuple(np.ascontiguousarray(c[rows]) for c in q)
-    if light.kind in ("POINT", "SPOT"):
-        e = _point_chunk(light, ps, qs, tracer, rng, samples, epsilon)
-    elif light.kind == "SUN":
-        e = _sun_chunk(light, ps, qs, tracer, rng, samples, epsilon)
-    elif float(light.spread) <= 0.0:
-        e = _beam(light, shape, ps, qs, tracer, epsilon)
-    else:
-        e = _area_chunk(light, shape, ps, qs, tracer, rng, samples, epsilon, None, solid_angle)
-    if bumped is not None:
-        e = e * _bump_weight(light, np.stack(ps, axis=1), bumped[0][rows], bumped[1][rows])
-    acc[rows] += (e * weight[rows])[:, None] * light.color[None, :]
+    bumped = None if bumped is None else (np.stack(ps, axis=1), bumped[0][rows], bumped[1][rows])
+    e = _lamp_chunk(light, shape, ps, qs, tracer, rng, samples, epsilon, solid_angle, bumped=bumped)
+    if e is not None:
+        acc[rows] += (e * weight[rows])[:, None] * light.color[None, :]
 
 
 def _bump_weight(light: Light, pts: np.ndarray, nrm: np.ndarray, smooth: np.ndarray | None):
@@ -1110,22 +1128,11 @@ def direct_irradiance(
                 continue
             mark = None if found is None else found[start:stop] if found.ndim == 1 else found[start:stop, column[i]]
             opened = [] if acc_open is not None else None
-            if lt.kind in ("POINT", "SPOT"):
-                e = _point_chunk(lt, p, q, tr, rng, samples, epsilon, mark, opened)
-            elif lt.kind == "SUN":
-                e = _sun_chunk(lt, p, q, tr, rng, samples, epsilon, mark, opened)
-            elif i in shapes and float(lt.spread) <= 0.0:
-                e = _beam(lt, shapes[i], p, q, tr, epsilon, opened)
-            elif i in shapes:
-                e = _area_chunk(lt, shapes[i], p, q, tr, rng, samples, epsilon, mark, solid_angle, opened,
-                                None if known is None else known[start:stop, column[i]])
-            else:
+            e = _lamp_chunk(lt, shapes.get(i), p, q, tr, rng, samples, epsilon, solid_angle, mark, opened,
+                            None if known is None else known[start:stop, column[i]],
+                            None if smooth is None else (pts[start:stop], nrm[start:stop], smooth[start:stop]))
+            if e is None:
                 continue
-            if smooth is not None:
-                bump = _bump_weight(lt, pts[start:stop], nrm[start:stop], smooth[start:stop])
-                e = e * bump
-                if opened:
-                    opened[0] = opened[0] * bump
             e = e[:, None] * lt.color[None, :]
             acc[start:stop] += e
             if shares is not None:

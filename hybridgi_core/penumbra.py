@@ -90,17 +90,25 @@ def adaptive_direct(direct, points: np.ndarray, normals: np.ndarray, pix: np.nda
         return light, partial
     full = _grown(partial, pix, shape)
     redo = np.flatnonzero(full)
-    # The same samples' unshadowed light comes with them (exact where the ratio estimator applies):
-    # no second sampling pass for the filter's visibility.
-    open_light = np.zeros((redo.size, 3), np.float32)
-    reuse = {k: v[redo] for k, v in reuse.items()}
-    more = direct(points[redo], normals[redo], frame + SEED_OFFSET, samples=samples, unshadowed=open_light, **reuse,
-                  **_smooth(smooth, redo))
-    light[redo] = (first * light[redo] + samples * more) / np.float32(first + samples)
-    if camera is not None and FILTER_PASSES > 0:
-        light[redo] = filter_penumbra(light[redo], open_light, points[redo], guide[redo], pix[redo], shape,
-                                      camera, pool)
+    light[redo] = _resample(direct, points, normals, guide, pix, shape, redo, light[redo], frame + SEED_OFFSET,
+                            samples, first, camera, pool, **{k: v[redo] for k, v in reuse.items()},
+                            **_smooth(smooth, redo))
     return light, full
+
+
+def _resample(direct, points, normals, guide, pix, shape, redo, was, frame, samples, first, camera, pool,
+              **kwargs) -> np.ndarray:
+    """(r, 3) the light of the penumbra pixels `redo` (r,): `samples` more shadow rays per lamp
+    (`direct(..., frame, **kwargs)`) averaged with the first pass's `was` (r, 3) by their counts,
+    its visibility filtered on the pixels' surfaces (`guide` normals) when `camera` is given. The
+    same samples' unshadowed light comes with them (exact where the ratio estimator applies): no
+    second sampling pass for the filter's visibility."""
+    open_light = np.zeros((redo.size, 3), np.float32)
+    more = direct(points[redo], normals[redo], frame, samples=samples, unshadowed=open_light, **kwargs)
+    mixed = (first * was + samples * more) / np.float32(first + samples)
+    if camera is not None and FILTER_PASSES > 0:
+        mixed = filter_penumbra(mixed, open_light, points[redo], guide[redo], pix[redo], shape, camera, pool)
+    return mixed
 
 
 def _smooth(smooth: np.ndarray | None, rows: np.ndarray | None = None) -> dict:
@@ -135,13 +143,10 @@ def _per_lamp(direct, points, normals, pix, shape, frame, samples, first, camera
             grown = _grown(partial[:, k], pix, shape)
             full |= grown
             redo = np.flatnonzero(grown)
-            open_light = np.zeros((redo.size, 3), np.float32)
-            more = direct(points[redo], normals[redo], frame + SEED_OFFSET + j * LAMP_SEED_STRIDE, samples=samples,
-                          unshadowed=open_light, exact=exact[redo, k : k + 1], lights=[j], **_smooth(smooth, redo))
             was = share[redo, k]
-            mixed = (first * was + samples * more) / np.float32(first + samples)
-            if camera is not None and FILTER_PASSES > 0:
-                mixed = filter_penumbra(mixed, open_light, points[redo], guide[redo], pix[redo], shape, camera, pool)
+            mixed = _resample(direct, points, normals, guide, pix, shape, redo, was,
+                              frame + SEED_OFFSET + j * LAMP_SEED_STRIDE, samples, first, camera, pool,
+                              exact=exact[redo, k : k + 1], lights=[j], **_smooth(smooth, redo))
             light[redo] += mixed - was
     np.maximum(light, 0.0, out=light)  # the differences' rounding must not leave a dark pixel below 0
     return light, full

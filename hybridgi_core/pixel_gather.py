@@ -367,20 +367,15 @@ def hit_radiance(system, lookup: HitLookup | None, origins: np.ndarray, dirs: np
         # Further bounces read the cache at the hit, as probe-ray hits do; hits nearer than
         # `near` trace them one ray further instead (`_near_bounce`).
         if lookup is not None:
-            near_idx = (np.flatnonzero(np.take(hits.t, hit) < near) if near > 0 and near_rng is not None
-                        else np.zeros(0, np.intp))
-            if near_idx.size:
-                far_idx = np.ones(hit.size, bool)
-                far_idx[near_idx] = False
-                far_idx = np.flatnonzero(far_idx)
-                if far_idx.size:
-                    e_in[far_idx] += lookup.irradiance(np.take(position, far_idx, axis=0),
-                                                       np.take(surf.normal, far_idx, axis=0)).T
-                e_in[near_idx] += _near_bounce(system, lookup, np.take(position, near_idx, axis=0),
-                                               np.take(surf.normal, near_idx, axis=0), near_rng, times, screen,
-                                               near, depth)
-            else:
+            close = np.take(hits.t, hit) < near if near > 0 and near_rng is not None else None
+            if close is None or not close.any():
                 e_in += lookup.irradiance(position, surf.normal).T
+            else:
+                far, close = np.flatnonzero(~close), np.flatnonzero(close)
+                if far.size:
+                    e_in[far] += lookup.irradiance(np.take(position, far, axis=0), np.take(surf.normal, far, axis=0)).T
+                e_in[close] += _near_bounce(system, lookup, np.take(position, close, axis=0),
+                                            np.take(surf.normal, close, axis=0), near_rng, times, screen, near, depth)
         e_in *= brdf
         if lamp is not None:
             e_in += lamp
