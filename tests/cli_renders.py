@@ -13,6 +13,10 @@ import numpy as np
 from hybridgi_cli import exr
 
 HYBRIDGI = Path(sys.executable).parent / "hybridgi"
+#: `hybridgi render` settings of the quick renders these tests compare: a coarse, short warm-up.
+QUICK = ("--set", "warmup_iterations=2", "--set", "resolution=12", "--set", "rays_per_cell=16")
+#: The Cycles these tests compare with: 64 spp and its denoiser.
+CYCLES = ("--engine", "CYCLES", "--samples", "64", "--set", "cycles.use_denoising=true")
 
 
 def cornell_variants(out: Path, script: str) -> Path:

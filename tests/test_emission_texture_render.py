@@ -20,11 +20,9 @@ import textwrap
 import numpy as np
 import pytest
 
-from tests.cli_renders import layer, rendered
+from tests.cli_renders import CYCLES, QUICK, layer, rendered
 
 RES = "96x72"
-QUICK = ("--set", "warmup_iterations=2", "--set", "resolution=12", "--set", "rays_per_cell=16")
-CYCLES = ("--engine", "CYCLES", "--samples", "64", "--set", "cycles.use_denoising=true")
 #: Regions of the 96x72 image (rows, columns; top-down): the panel's red and blue halves, and the
 #: left and right walls at mid height.
 PANEL_L, PANEL_R = (slice(31, 42), slice(38, 46)), (slice(31, 42), slice(50, 58))

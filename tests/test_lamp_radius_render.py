@@ -12,12 +12,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from tests.cli_renders import cornell_variants, layer, rendered
+from tests.cli_renders import CYCLES, QUICK, cornell_variants, layer, rendered
 
 ROOT = Path(__file__).resolve().parents[1]
 RES = "64x48"
-QUICK = ("--set", "warmup_iterations=2", "--set", "resolution=12", "--set", "rays_per_cell=16")
-CYCLES = ("--engine", "CYCLES", "--samples", "64", "--set", "cycles.use_denoising=true")
 
 pytestmark = [pytest.mark.blender, pytest.mark.slow]
 

@@ -35,6 +35,7 @@ import pytest
 from hybridgi_core import glossy
 from hybridgi_core.lights import direct_irradiance, spread_attenuation
 from hybridgi_core.snapshot import Light
+from tests.cli_renders import CYCLES, QUICK
 
 # --- core: Spread and the Shadow checkbox -------------------------------------------------
 
@@ -281,8 +282,6 @@ def test_cycles_filter_glossy_reaches_the_cache_settings(bpy_module, empty_scene
 # --- renders against Cycles -----------------------------------------------------------------
 
 RES = "64x48"
-QUICK = ("--set", "warmup_iterations=2", "--set", "resolution=12", "--set", "rays_per_cell=16")
-CYCLES = ("--engine", "CYCLES", "--samples", "64", "--set", "cycles.use_denoising=true")
 
 
 @pytest.fixture(scope="module")

@@ -26,7 +26,7 @@ from hybridgi_cli import exr
 from hybridgi_core import sh
 from hybridgi_core.bump import irradiance_kernel, shadowing_term
 from hybridgi_core.snapshot import BumpMap, Material, NormalMap, concat_geometry, make_snapshot
-from tests.cli_renders import layer, rendered, run_render
+from tests.cli_renders import QUICK, layer, rendered, run_render
 
 # --- Cycles' bump shadowing term (bpy-free) ---------------------------------------------------
 
@@ -378,7 +378,6 @@ RIDGES_SCENE = textwrap.dedent("""
 """)
 
 RES = "128x96"
-QUICK = ("--set", "warmup_iterations=2", "--set", "resolution=12", "--set", "rays_per_cell=16")
 
 
 def _ridges_scene(tmp_path_factory, mode):

@@ -13,11 +13,10 @@ import pytest
 
 from hybridgi_cli import exr
 from tests import cli_renders
-from tests.cli_renders import run_render
+from tests.cli_renders import QUICK, run_render
 
 ROOT = Path(__file__).resolve().parents[1]
 RES = "64x48"
-QUICK = ("--set", "warmup_iterations=2", "--set", "resolution=12", "--set", "rays_per_cell=16")
 
 pytestmark = [pytest.mark.blender, pytest.mark.slow]
 
