@@ -1033,7 +1033,8 @@ def full_res_images(system, position_lo: np.ndarray, normal_lo: np.ndarray, pix:
                     full_points: np.ndarray, full_normals: np.ndarray, full_pix: np.ndarray,
                     full_size: tuple[int, int], passes: int = 3, plane_sigma: float = 0.02,
                     normal_power: float = 8.0, refine: float = REFINE_SPREAD,
-                    screen: ScreenLight | None = None, full_surfaces: np.ndarray | None = None) -> FullResGI:
+                    screen: ScreenLight | None = None, full_surfaces: np.ndarray | None = None,
+                    filter=None) -> FullResGI:
     """Pixel rays at the GI resolution, resolved at the full resolution (W, H = full_size).
 
     The GI pixels trace as `gi_images` does; their estimates (not only the residuals) are filtered
@@ -1057,6 +1058,9 @@ def full_res_images(system, position_lo: np.ndarray, normal_lo: np.ndarray, pix:
     the full-res pixels they sampled (`sample_pixels`), and the surfaces guide the filter and the
     interpolation (differently bent neighbours are one surface) while the light is read with the
     bent lobe (`bump.irradiance_kernel`).
+
+    filter : a callable with `filter_residual`'s signature and answer to filter the GI pixels'
+    estimates with (a final render's GPU pass, `raster.atrous.AtrousPass`); None: `filter_residual`.
     """
     surfaces = None
     if full_surfaces is not None:
@@ -1066,7 +1070,7 @@ def full_res_images(system, position_lo: np.ndarray, normal_lo: np.ndarray, pix:
                       surfaces=surfaces)
     return full_res_resolve(system, gi, position_lo, pix, points, normals, view, frame, rays, full_points,
                             full_normals, full_pix, full_size, passes, plane_sigma, normal_power, refine, lookup,
-                            screen, surfaces=surfaces, full_surfaces=full_surfaces)
+                            screen, surfaces=surfaces, full_surfaces=full_surfaces, filter=filter)
 
 
 def low_res_surfaces(position_lo: np.ndarray, pix: np.ndarray, normals: np.ndarray, full_points: np.ndarray,
@@ -1093,13 +1097,16 @@ def full_res_resolve(system, gi: PixelGI, position_lo: np.ndarray, pix: np.ndarr
                      full_normals: np.ndarray, full_pix: np.ndarray, full_size: tuple[int, int], passes: int = 3,
                      plane_sigma: float = 0.02, normal_power: float = 8.0, refine: float = REFINE_SPREAD,
                      lookup: HitLookup | None = None, screen: ScreenLight | None = None,
-                     surfaces: np.ndarray | None = None, full_surfaces: np.ndarray | None = None) -> FullResGI:
+                     surfaces: np.ndarray | None = None, full_surfaces: np.ndarray | None = None,
+                     filter=None) -> FullResGI:
     """`full_res_images` after its GI pixels' rays `gi` (`trace_pixels` at points, frame, rays):
     the filter, the per-pixel resolve and the detail pixels' own rays (frame + DETAIL_FRAME; lookup:
     the HitLookup the GI pixels' rays read, None builds one). The viewport's worker traces `gi` in
     slices over several steps and resolves it here. screen : as `trace_pixels`', for the detail
     pixels' rays and the resolver's. surfaces, full_surfaces : the GI pixels' and the full-res
-    pixels' smooth surface normals where a material bends normals (`full_res_images`), or None."""
+    pixels' smooth surface normals where a material bends normals (`full_res_images`), or None.
+    filter : as `full_res_images`'. Step times: "planes" (the filter's input images), "filter"
+    (the filter alone), "upsample", "detail" and the GI pixels' own."""
     width, height = full_size
     h, w = position_lo.shape[:2]
     factor = max(1, int(round(width / w)))
@@ -1126,13 +1133,15 @@ def full_res_resolve(system, gi: PixelGI, position_lo: np.ndarray, pix: np.ndarr
         guides[pix, 1] = gi.indirect_variance
         guides[:, 0] = var[:, 0]
         guides[:, 2] = var[:, 1]
-    smooth = filter_residual(est_img.reshape(h, w, 7), pos.reshape(h, w, 3), nrm.reshape(h, w, 3),
-                             valid.reshape(h, w), camera, passes, plane_sigma, normal_power,
-                             variance=guides.reshape(h, w, -1), noise_sigma=FULL_RES_NOISE_SIGMA,
-                             pool=system.updater.pool).reshape(h * w, 7)
-    filtered = (smooth - (est_img - res)) * valid[:, None]  # as a residual of each GI pixel's own cache
-    steps = {"filter": (time.perf_counter() - tic) * 1e3}
+    steps = {"planes": (time.perf_counter() - tic) * 1e3}
     tic = time.perf_counter()
+    smooth = (filter or filter_residual)(est_img.reshape(h, w, 7), pos.reshape(h, w, 3), nrm.reshape(h, w, 3),
+                                         valid.reshape(h, w), camera, passes, plane_sigma, normal_power,
+                                         variance=guides.reshape(h, w, -1), noise_sigma=FULL_RES_NOISE_SIGMA,
+                                         pool=system.updater.pool).reshape(h * w, 7)
+    steps["filter"] = (time.perf_counter() - tic) * 1e3
+    tic = time.perf_counter()
+    filtered = (smooth - (est_img - res)) * valid[:, None]  # as a residual of each GI pixel's own cache
     sh_lo = np.zeros((h * w,) + gi.sh.shape[1:], np.float32)
     sh_lo[pix] = gi.sh
     full_points = np.ascontiguousarray(full_points, np.float32)

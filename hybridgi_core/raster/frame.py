@@ -31,6 +31,7 @@ from ..settings import MULTI_BOUNCE
 from ..system import UPDATES_PER_BATCH
 from ..visible import pixels_to_points
 from .accumulate import AccumulatePass
+from .atrous import AtrousPass
 from .bilateral import BilateralPass
 from .deferred import DeferredPass, ShadedFrame
 from .downsample import DownsamplePass
@@ -136,8 +137,11 @@ class FramePipeline:
         self.bilateral = BilateralPass(self.settings)
         self.deferred = DeferredPass(self.settings)
         self.accumulate = AccumulatePass()
+        #: The pixel rays' edge-aware filter at the GI resolution (`pixel_gather.filter_residual`
+        #: on the GPU; sized on use).
+        self.atrous = AtrousPass()
         self._passes = (self.gbuffer, self.downsample, self.gather, self.ssao, self.bilateral, self.deferred,
-                        self.accumulate)
+                        self.accumulate, self.atrous)
         #: Final renders with pixel rays resolve the GI at full resolution on the CPU
         #: (`pixel_gather.full_res_images`): a copy of the centre raster's G-buffer (the guide of
         #: those full-res GI samples, as the downsampled G-buffer guides the low-res ones; the
@@ -488,9 +492,11 @@ class FramePipeline:
             system, position_lo, normal_lo, pix, points, normals, visible, view, frame, s.pixel_rays,
             p_full, n_full, pix_full, (self.width, self.height), passes=s.pixel_filter,
             plane_sigma=s.bilateral_plane_sigma, normal_power=s.bilateral_normal_power, screen=screen,
-            full_surfaces=full_surfaces)
+            full_surfaces=full_surfaces, filter=self.atrous)
         stats.rays += out.gi.rays
-        for k, v in out.steps_ms.items():
+        steps = dict(out.steps_ms)
+        stats.steps_ms["atrous"] = stats.steps_ms.get("atrous", 0.0) + steps.pop("filter", 0.0)  # a GPU pass
+        for k, v in steps.items():
             stats.steps_ms[f"pixel_{k}"] = stats.steps_ms.get(f"pixel_{k}", 0.0) + v
         stats.detail_pixels = out.detail
         log.debug("pixel rays: %d full-res pixels traced their own rays", out.detail)
