@@ -46,13 +46,13 @@ class PackedGatherPass(_gather.GatherPass):
         self._depth_texels = cache.depth_texels
         return uploaded
 
-    def execute(self, low, visibility: bool = True, corner_visible=None):
+    def execute(self, low, visibility: bool = True, corner_visible=None, surfaces: bool = False):
         """As `GatherPass.execute`; a frame the worker sent without depth moments (a still view
         with its corner mask does not read them: `ViewportWorker._depth_wanted`) is read without
         the Chebyshev test by a view without its mask, until the moments follow (a worker step)."""
         if visibility and corner_visible is None and not self.has_depth:
             visibility = False
-        return super().execute(low, visibility=visibility, corner_visible=corner_visible)
+        return super().execute(low, visibility=visibility, corner_visible=corner_visible, surfaces=surfaces)
 
 
 

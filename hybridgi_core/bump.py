@@ -103,6 +103,12 @@ def _lobe_moments() -> np.ndarray:
     return out
 
 
+def lobe_moments() -> np.ndarray:
+    """The bent lobe's moment table (`_lobe_moments`, computed once per process): what the GPU
+    gather interpolates (`raster.gather.lobe_texels`) as `irradiance_kernel` does."""
+    return _lobe_moments()
+
+
 def irradiance_kernel(smooth: np.ndarray, normals: np.ndarray, order: int) -> np.ndarray:
     """(n, K) float32 coefficients that turn radiance SH (n, K, c) into the irradiance a diffuse
     closure with bent normals (n, 3) over smooth normals `smooth` (n, 3) receives as Cycles

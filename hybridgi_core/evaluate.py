@@ -21,6 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from . import sh
+from .bump import irradiance_kernel
 from .cache import IrradianceCache
 from .sampling import octahedral_texel
 
@@ -123,12 +124,15 @@ def gather(
     normals: np.ndarray,
     visibility: bool = True,
     corner_visible: np.ndarray | None = None,
+    surfaces: np.ndarray | None = None,
 ) -> Gathered:
     """Irradiance from the cache at points with unit normals (n, 3) float32, clamped to >= 0.
 
     The SH of the 8 cells are blended first and convolved once (linear, so identical to blending
     irradiances, and 8x cheaper). AO is the cosine-weighted visibility: irradiance of the
-    visibility SH divided by pi.
+    visibility SH divided by pi. surfaces : (n, 3) the smooth surface normals under normals a
+    normal map bent, or None: the light is then read through the bent lobe
+    (`bump.irradiance_kernel`: nothing from below the surface), AO keeps the cosine.
     """
     normals = np.asarray(normals, np.float32)
     flats, w = corner_weights(cache, points, normals, visibility, corner_visible)
@@ -139,8 +143,13 @@ def gather(
     sh_d = np.einsum("nc,nckl->nkl", w, cache.sh_direct[flats])
     sh_i = np.einsum("nc,nckl->nkl", w, cache.sh_indirect[flats])
     sh_a = np.einsum("nc,nck->nk", w, cache.ao_sh[flats])[..., None]
-    direct = np.maximum(sh.irradiance(sh_d, normals), 0.0)
-    indirect = np.maximum(sh.irradiance(sh_i, normals), 0.0)
+    if surfaces is None:
+        direct = np.maximum(sh.irradiance(sh_d, normals), 0.0)
+        indirect = np.maximum(sh.irradiance(sh_i, normals), 0.0)
+    else:
+        kernel = irradiance_kernel(surfaces, normals, 2 if sh_d.shape[1] == 9 else 1)
+        direct = np.maximum(np.einsum("nk,nkc->nc", kernel, sh_d), 0.0)
+        indirect = np.maximum(np.einsum("nk,nkc->nc", kernel, sh_i), 0.0)
     covered = w.sum(axis=1) > 0
     ao = np.where(covered, np.clip(sh.irradiance(sh_a, normals)[:, 0] / np.pi, 0.0, 1.0), 1.0)
     return Gathered(direct.astype(np.float32), indirect.astype(np.float32), ao.astype(np.float32))

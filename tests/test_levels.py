@@ -226,7 +226,7 @@ def test_cache_gather_ssao_follows_the_finest_level(monkeypatch):
     fine_grid = CacheGrid(np.array([2, 2, 2], np.float32), 0.5, (8, 8, 8))
     levels = lv.CacheLevels(constant_cache(base, s, 1.0), [constant_cache(fine_grid, s, 3.0)])
     z = np.zeros((1, 3), np.float32)
-    monkeypatch.setattr(frame, "gather_levels", lambda *a: Gathered(z, z, np.ones(1, np.float32)))
+    monkeypatch.setattr(frame, "gather_levels", lambda *a, **k: Gathered(z, z, np.ones(1, np.float32)))
     monkeypatch.setattr(frame, "upload_texture_2d", lambda array, fmt: array)
     class SSAO:
         def __init__(self, settings):
@@ -237,7 +237,8 @@ def test_cache_gather_ssao_follows_the_finest_level(monkeypatch):
             return "ssao"
 
     for auto, radius, want in ((True, 1.0, 0.5), (False, 0.8, 0.8)):
-        pipe = SimpleNamespace(gather=None, ssao=SSAO(RasterSettings(ssao_radius=radius, ssao_auto=auto)))
+        pipe = SimpleNamespace(gather=None, ssao=SSAO(RasterSettings(ssao_radius=radius, ssao_auto=auto)),
+                               gbuffer=SimpleNamespace(bends_normals=False))
         low = SimpleNamespace(height=1, width=1)
         out = frame.FramePipeline._gather_levels(pipe, levels, low, z, z + [0, 0, 1], np.zeros(1, np.int64),
                                                  np.ones((1, 16), bool), None, None, None)

@@ -691,6 +691,52 @@ def test_gpu_gather_equals_evaluate(raster):
             assert np.abs(results[0] - results[1]).max() > 0.1 and np.abs(results[1] - results[2]).max() > 0.1
 
 
+def test_gpu_gather_reads_bent_normals_through_the_bent_lobe(gpu_context):
+    """Normal-mapped pixels (shading normals bent off the smooth surface, which the downsampled
+    material target carries in gba): the GPU gather reads the light through Cycles' bent lobe
+    (`bump.irradiance_kernel`), as the numpy reference does, AO with the cosine; unbent pixels and
+    surfaces=False keep the plain cosine lobe."""
+    from types import SimpleNamespace
+
+    from hybridgi_core.evaluate import gather
+    from hybridgi_core.raster.gather import GatherPass
+    from hybridgi_core.raster.readback import upload_texture_2d
+
+    scene = box_snapshot()
+    h, w = 12, 16
+    rng = np.random.default_rng(9)
+    pts = rng.uniform((-0.5, -0.3, 0.1), (0.4, 0.6, 0.8), (h * w, 3)).astype(np.float32)
+    smooth = np.tile(np.array([0.0, 0.0, 1.0], np.float32), (h * w, 1))
+    tilt = rng.uniform(0.0, 1.2, h * w)  # up to ~69 degrees off the surface
+    phi = rng.uniform(0.0, 2.0 * np.pi, h * w)
+    bent = np.stack([np.sin(tilt) * np.cos(phi), np.sin(tilt) * np.sin(phi), np.cos(tilt)], axis=1).astype(np.float32)
+    bent[: h * w // 4] = smooth[: h * w // 4]  # a quarter not bent
+    position = np.concatenate([pts, np.ones((h * w, 1), np.float32)], axis=1).reshape(h, w, 4)
+    normal = np.concatenate([bent, np.ones((h * w, 1), np.float32)], axis=1).reshape(h, w, 4)
+    material = np.concatenate([np.ones((h * w, 1), np.float32), smooth], axis=1).reshape(h, w, 4)
+    low = SimpleNamespace(position=upload_texture_2d(position), normal=upload_texture_2d(normal),
+                          material=upload_texture_2d(material), width=w, height=h)
+    with GatherPass() as gp:
+        gp.resize(w, h)
+        cache = random_cache(scene, 2)
+        gp.upload(cache)
+        for surfaces in (True, False):
+            gp.execute(low, visibility=False, surfaces=surfaces)
+            ind, dirc = gp.read(0).reshape(-1, 4), gp.read(1).reshape(-1, 4)
+            ref = gather(cache, pts, bent, visibility=False, surfaces=smooth if surfaces else None)
+            for got, want in ((ind[:, :3], ref.indirect), (dirc[:, :3], ref.direct), (ind[:, 3], ref.ao)):
+                scale = max(float(np.abs(want).max()), 1e-6)
+                # The lobe table is interpolated in float32 on the GPU, float64 in numpy.
+                np.testing.assert_allclose(got, want, rtol=2e-3, atol=2e-3 * scale, err_msg=f"surfaces={surfaces}")
+        plain = gather(cache, pts, bent, visibility=False)
+        through = gather(cache, pts, bent, visibility=False, surfaces=smooth)
+        # The bent lobe differs where normals are bent (no light from below the surface), not elsewhere.
+        q = h * w // 4
+        np.testing.assert_allclose(through.indirect[:q], plain.indirect[:q], rtol=1e-5)
+        assert np.abs(through.indirect[q:] - plain.indirect[q:]).max() > 0.05
+        np.testing.assert_allclose(through.ao, plain.ao)
+
+
 def test_gpu_gather_of_two_levels_equals_the_numpy_reference(raster):
     """Cache levels without pixel rays: the GPU gather of each level with its own corner mask,
     joined by CacheLevels.blend (`gather_levels`), equals CacheLevels.gather in numpy; level 1

@@ -6,7 +6,8 @@ point on a real surface; averaging would put points in mid-air at silhouettes, w
 would then pick cache cells and shoot shadow rays.
 
 Targets at ceil(W / f) x ceil(H / f), same formats and meaning as the G-buffer:
-albedo RGBA16F, normal RGBA16F, position RGBA32F (w = 1 geometry, 0 background), depth R32F.
+albedo RGBA16F, normal RGBA16F, position RGBA32F (w = 1 geometry, 0 background), depth R32F,
+material RGBA32F (index + 1, smooth surface normal).
 """
 
 from __future__ import annotations
@@ -27,7 +28,9 @@ DOWNSAMPLE_TARGETS = (
     ("normal", "RGBA16F", 4),
     ("position", "RGBA32F", 4),
     ("depth", "R32F", 1),
-    ("material", "R32F", 1),  # the same sample's material index + 1: the viewport's glossy lobes
+    # The same sample's material index + 1 (the viewport's glossy lobes) in r, its smooth surface
+    # normal under a normal map in gba (the gather's bent lobes, `GatherPass.execute(surfaces=)`).
+    ("material", "RGBA32F", 4),
 )
 
 
@@ -42,6 +45,7 @@ class LowResGBuffer:
     width: int
     height: int
     factor: int
+    material: object = None
 
 
 class DownsamplePass(RasterPass):
@@ -111,7 +115,7 @@ class DownsamplePass(RasterPass):
         if t is None:
             raise RasterError("downsample: no targets (resize first)")
         return LowResGBuffer(t["albedo"], t["normal"], t["position"], t["depth"],
-                             self.low_width, self.low_height, self.factor)
+                             self.low_width, self.low_height, self.factor, t["material"])
 
     def read(self, name: str, out: np.ndarray | None = None) -> np.ndarray:
         """Low-res target `name` as (h, w, c) float32, rows bottom-up."""

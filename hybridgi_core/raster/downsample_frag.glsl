@@ -26,5 +26,5 @@ void main()
   out_normal = texelFetch(normal_tx, best_px, 0);
   out_position = texelFetch(position_tx, best_px, 0);
   out_depth = texelFetch(depth_tx, best_px, 0).r;
-  out_material = texelFetch(material_tx, best_px, 0).r;
+  out_material = texelFetch(material_tx, best_px, 0);
 }

@@ -212,7 +212,8 @@ class FramePipeline:
             gi_indirect, gi_direct, ssao = gi
         else:
             with stats.step("gather"):
-                gi_indirect, gi_direct = self.gather.execute(low, corner_visible=corner_visible)
+                gi_indirect, gi_direct = self.gather.execute(low, corner_visible=corner_visible,
+                                                             surfaces=self.gbuffer.bends_normals)
             with stats.step("ssao"):
                 ssao = self.ssao.execute(low, view, proj, irradiance=irradiance)
         with stats.step("bilateral"):
@@ -375,7 +376,7 @@ class FramePipeline:
         `visible`), read back and joined by `CacheLevels.blend` (the numpy reference is
         `CacheLevels.gather`), as the (indirect, direct, ssao) textures `shade` takes."""
         h, w = low.height, low.width
-        g = gather_levels(self.gather, levels, low, points, normals, pix, visible)
+        g = gather_levels(self.gather, levels, low, points, normals, pix, visible, surfaces=self.gbuffer.bends_normals)
         indirect = np.zeros((h * w, 4), np.float32)
         indirect[..., 3] = 1.0
         direct = np.zeros((h * w, 4), np.float32)

@@ -9,7 +9,11 @@
  *    over the texture width: s < K: (sh_direct[k].rgb, ao_sh[k]); s >= K: (sh_indirect[k].rgb,
  *    s == K ? valid : 0)
  *  depth_tx (RG32F 2D), D*D texels per cell at flat * D*D + texel: (mean, mean square) distance
- *  mask_tx (R32F, low res): bit c set = corner c visible (evaluate.corner_visibility) */
+ *  mask_tx (R32F, low res): bit c set = corner c visible (evaluate.corner_visibility)
+ *  surface_tx (low res, read with bent_lobes = 1): gba = the smooth surface normal under a normal
+ *    map; the light is then read through the bent lobe (bump.irradiance_kernel), AO keeps the cosine
+ *  lobe_tx (RGBA32F, LOBE_ANGLES x 2): bump.lobe_moments, texel (i, 0) = (m0, mx, mz, mxx),
+ *    (i, 1) = (myy, mzz, mxz, 0) */
 
 #define MODE_PLAIN 0
 #define MODE_CHEBYSHEV 1
@@ -71,6 +75,46 @@ float sh_irradiance_weight(int k, vec3 n)
     case 7: return A2 * C2 * n.x * n.z;
     default: return A2 * C4 * (n.x * n.x - n.y * n.y);
   }
+}
+
+/* bump.irradiance_kernel: the SH weights of the irradiance a diffuse closure with bent normal n
+ * over the smooth surface normal g receives (no light from below the surface, Cycles' bump
+ * shadowing term above it). Returns false where n is not bent (the plain cosine weights hold). */
+bool bent_kernel(vec3 g, vec3 n, out float k[9])
+{
+  const float C0 = 0.28209479177387814;
+  const float C1 = 0.4886025119029199;
+  const float C2 = 1.0925484305920792;
+  const float C3 = 0.31539156525252005;
+  const float C4 = 0.5462742152960396;
+  float c = clamp(dot(g, n), -1.0, 1.0);
+  if (c >= 1.0 - 1e-6) {
+    return false;
+  }
+  vec3 t = n - c * g;
+  t /= max(length(t), 1e-30);
+  vec3 b = cross(g, t);
+  int angles = textureSize(lobe_tx, 0).x;
+  float x = acos(clamp(c, 0.0, 1.0)) / (0.5 * M_PI) * float(angles - 1);
+  int i0 = min(int(x), angles - 2);
+  float f = x - float(i0);
+  vec4 a = mix(texelFetch(lobe_tx, ivec2(i0, 0), 0), texelFetch(lobe_tx, ivec2(i0 + 1, 0), 0), f);
+  vec4 e = mix(texelFetch(lobe_tx, ivec2(i0, 1), 0), texelFetch(lobe_tx, ivec2(i0 + 1, 1), 0), f);
+  float m0 = a.x, mx = a.y, mz = a.z, mxx = a.w, myy = e.x, mzz = e.y, mxz = e.z;
+  vec3 first = mx * t + mz * g;
+  /* second moments int (w.e_i)(w.e_j) K in world axes, as a symmetric matrix */
+  mat3 s2 = mxx * outerProduct(t, t) + myy * outerProduct(b, b) + mzz * outerProduct(g, g) +
+            mxz * (outerProduct(t, g) + outerProduct(g, t));
+  k[0] = C0 * m0;
+  k[1] = C1 * first.y;
+  k[2] = C1 * first.z;
+  k[3] = C1 * first.x;
+  k[4] = C2 * s2[0][1];
+  k[5] = C2 * s2[1][2];
+  k[6] = C3 * (3.0 * s2[2][2] - m0);
+  k[7] = C2 * s2[0][2];
+  k[8] = C4 * (s2[0][0] - s2[1][1]);
+  return true;
 }
 
 void main()
@@ -151,6 +195,18 @@ void main()
     total += w[c];
   }
 
+  /* The light's SH weights: the cosine lobe at n, or the bent lobe over the smooth surface. */
+  float lobe[9];
+  bool bent = false;
+  if (bent_lobes != 0) {
+    vec3 smooth_n = texelFetch(surface_tx, px, 0).yzw;
+    bent = dot(smooth_n, smooth_n) > 0.25 && bent_kernel(smooth_n, n, lobe);
+  }
+  if (!bent) {
+    for (int k = 0; k < 9; k++) {
+      lobe[k] = sh_irradiance_weight(k, n);
+    }
+  }
   vec3 direct = vec3(0.0);
   vec3 indirect = vec3(0.0);
   float ao_irr = 0.0;
@@ -162,11 +218,11 @@ void main()
       }
       int first = flats[c] * slots;
       for (int k = 0; k < K; k++) {
-        float yk = wc * sh_irradiance_weight(k, n);
+        float yk = wc * lobe[k];
         vec4 dir_ao = fetch_linear(cache_tx, first + k);
         vec4 ind = fetch_linear(cache_tx, first + K + k);
         direct += yk * dir_ao.rgb;
-        ao_irr += yk * dir_ao.a;
+        ao_irr += wc * sh_irradiance_weight(k, n) * dir_ao.a;
         indirect += yk * ind.rgb;
       }
     }
