@@ -215,7 +215,7 @@ class FramePipeline:
                 gi_indirect, gi_direct = self.gather.execute(low, corner_visible=corner_visible,
                                                              surfaces=self.gbuffer.bends_normals)
             with stats.step("ssao"):
-                ssao = self.ssao.execute(low, view, proj, irradiance=irradiance)
+                ssao = self.ssao.execute(low, view, proj, irradiance=irradiance, surfaces=self.gbuffer.bends_normals)
         with stats.step("bilateral"):
             filtered = (bilateral or self.bilateral).execute(gbuf, low, gi_indirect, gi_direct, ssao)
         with stats.step("deferred"):
@@ -387,7 +387,7 @@ class FramePipeline:
             # vs Cycles, Combined: atrium 0.0398 -> 0.0386, car 0.0057 -> 0.0056, yard 0.0236 -> 0.0134).
             self.ssao.settings = kept.with_(ssao_radius=float(levels.caches[-1].grid.cell_size))
         try:
-            ssao = self.ssao.execute(low, view, proj, irradiance=lit_tex)
+            ssao = self.ssao.execute(low, view, proj, irradiance=lit_tex, surfaces=self.gbuffer.bends_normals)
         finally:
             self.ssao.settings = kept
         return (upload_texture_2d(indirect.reshape(h, w, 4), "RGBA32F"),

@@ -23,7 +23,10 @@ void main()
     out_ssao = vec4(0.0, 0.0, 0.0, 1.0);
     return;
   }
-  vec3 n = normalize(texelFetch(normal_tx, px, 0).xyz);
+  /* normal_gba: normal_tx is the material target, whose gba hold the smooth surface normal under
+   * a normal map; the hemisphere of geometric occluders is the surface's, not the bent normal's. */
+  vec4 nt = texelFetch(normal_tx, px, 0);
+  vec3 n = normalize(normal_gba != 0 ? nt.yzw : nt.xyz);
   mat3 frame = basis_from_normal(n);
   float noise_a = pixel_noise(vec2(px), 0.0);
   float noise_b = pixel_noise(vec2(px), 1.0);
