@@ -109,6 +109,35 @@ def lobe_moments() -> np.ndarray:
     return _lobe_moments()
 
 
+#: Texels of a normal map `map_bend_factor` averages over (a strided subset of larger maps).
+BEND_SAMPLE_TEXELS = 1 << 16
+
+
+def map_bend_factor(normal_map) -> float:
+    """The share of a smooth surface's diffuse light that a tangent-space normal map leaves its
+    surface: the bent lobe's integral (with Cycles' bump shadowing term) over the cosine lobe's,
+    pi, for light from every direction above the surface, averaged over the map's texels.
+
+    Why: probe-ray hits shade a normal-mapped surface with its facet normal (a hit only feeds a
+    cell's average), so they reflected the smooth surface's light, where Cycles' bent normals
+    reflect less (ridges tilted up to 50 degrees: 0.82 of it; the room's Diffuse Indirect +23%).
+    1.0 without a map image (and for Bump nodes, whose bend depends on the mesh's UV scale)."""
+    texture = None if normal_map is None else normal_map.texture
+    if texture is None or normal_map.strength <= 0.0:
+        return 1.0
+    t = np.asarray(texture, np.float64).reshape(-1, 3)
+    if t.shape[0] > BEND_SAMPLE_TEXELS:
+        t = t[:: t.shape[0] // BEND_SAMPLE_TEXELS + 1]
+    n = t * 2.0 - 1.0
+    n[:, 2] -= 1.0
+    n *= max(float(normal_map.strength), 0.0)
+    n[:, 2] += 1.0  # Cycles' svm_node_normal_map: N + (mapped - N) strength, renormalized
+    z = n[:, 2] / np.maximum(np.linalg.norm(n, axis=1), 1e-12)
+    angle = np.arccos(np.clip(z, 0.0, 1.0)) / (0.5 * np.pi) * (LOBE_ANGLES - 1)
+    share = _lobe_moments()[:, 0] / np.pi
+    return float(np.clip(np.interp(angle, np.arange(LOBE_ANGLES), share).mean(), 0.0, 1.0))
+
+
 def irradiance_kernel(smooth: np.ndarray, normals: np.ndarray, order: int) -> np.ndarray:
     """(n, K) float32 coefficients that turn radiance SH (n, K, c) into the irradiance a diffuse
     closure with bent normals (n, 3) over smooth normals `smooth` (n, 3) receives as Cycles

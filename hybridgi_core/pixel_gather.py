@@ -356,7 +356,11 @@ def hit_radiance(system, lookup: HitLookup | None, origins: np.ndarray, dirs: np
         position = hit_dirs * np.take(hits.t, hit)[:, None]
         position += np.take(origins, hit, axis=0)
         ts = time.perf_counter()
-        e_in = _lamp_light_at_hits(system, screen, position, surf.normal, rng)
+        e_in, seen = _lamp_light_at_hits(system, screen, position, surf.normal, rng)
+        if seen is not None and seen.size and scene.surfaces.bends:
+            # Read from the image, the light of a normal-mapped hit is its bent normals' already:
+            # the brdf's share for the bend (`SurfaceTable.bend`) must not take it twice.
+            e_in[seen] /= scene.surfaces.bend_of(np.take(prim, seen))[:, None]
         if times is not None:
             times["shadow"] = times.get("shadow", 0.0) + (time.perf_counter() - ts) * 1e3
         brdf = surf.brdf
@@ -410,14 +414,15 @@ def _near_bounce(system, lookup, position: np.ndarray, normal: np.ndarray, rng: 
 
 
 def _lamp_light_at_hits(system, screen: ScreenLight | None, position: np.ndarray, normal: np.ndarray,
-                        rng) -> np.ndarray:
-    """(m, 3) lamp irradiance at hits (position, normal (m, 3)): read from `screen` where the
-    camera sees the hit's surface, from the hit's own light samples and shadow rays elsewhere."""
+                        rng) -> tuple[np.ndarray, np.ndarray | None]:
+    """((m, 3) lamp irradiance at hits (position, normal (m, 3)), the indices of the hits it was
+    read for from `screen` or None): read from `screen` where the camera sees the hit's surface,
+    from the hit's own light samples and shadow rays elsewhere."""
     scene, tracer, s = system.updater.scene, system.tracer, system.settings
     eps = float(np.float32(tracer.epsilon))
     if screen is None or not scene.lights:
         return direct_irradiance(scene.lights, position, normal, tracer, rng, samples=s.light_samples,
-                                 epsilon=eps, sun_disc=False, lamp_budget=HIT_LAMP_BUDGET)
+                                 epsilon=eps, sun_disc=False, lamp_budget=HIT_LAMP_BUDGET), None
     found, light = screen.lookup(position, normal)
     e_in = np.empty((position.shape[0], 3), np.float32)
     e_in[found] = light
@@ -428,7 +433,7 @@ def _lamp_light_at_hits(system, screen: ScreenLight | None, position: np.ndarray
         e_in[rest] = direct_irradiance(scene.lights, np.take(position, rest, axis=0), np.take(normal, rest, axis=0),
                                        tracer, rng, samples=s.light_samples, epsilon=eps, sun_disc=False,
                                        lamp_budget=HIT_LAMP_BUDGET)
-    return e_in
+    return e_in, found
 
 
 def _more_ao_rays(system, res, p, nrm, ao_mean, sh_a, covered, rays, rng, times) -> None:

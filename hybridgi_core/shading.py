@@ -18,6 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .bump import map_bend_factor
 from .snapshot import Geometry, Material
 from .specular import FILTER_GLOSSY, hemispherical_glossy_albedo
 
@@ -100,8 +101,15 @@ class SurfaceTable:
         # are those Cycles' Filter Glossy leaves at a hit after a diffuse bounce: blurred, they
         # reflect less than the diffuse weight gave up (roughness 0.2: 0.088 -> 0.045).
         weight = np.array([[m.hit_diffuse_weight] for m in materials], np.float32).reshape(-1, 1)
+        # Normal-mapped surfaces reflect less of their light than the facet normal hits shade them
+        # with (`bump.map_bend_factor`): their hits' whole brdf is scaled by that share.
+        self.bend = np.array([map_bend_factor(m.normal_map) for m in materials], np.float32).reshape(-1)
+        self.bends = bool((self.bend < 1.0).any())
         self.glossy = np.array([hemispherical_glossy_albedo(m.specular, self.filter_glossy) for m in materials],
                                np.float32).reshape(-1, 3)
+        if self.bends:
+            self.glossy *= self.bend[:, None]
+            weight = weight * self.bend[:, None]
         self.albedo = np.array([m.base_color for m in materials], np.float32).reshape(-1, 3) * weight
         self.mean_albedo = np.array([m.mean_albedo for m in materials], np.float32).reshape(-1, 3) * weight
         if not self.reflect:
@@ -130,6 +138,11 @@ class SurfaceTable:
         backface = facing > 0
         nrm = r[:, _NG] * np.where(backface, np.float32(-1.0), np.float32(1.0))[:, None]
         return ProbeHits(nrm, self._brdf(r, prim, u, v), self._emission(r, prim, u, v), backface)
+
+    def bend_of(self, prim: np.ndarray) -> np.ndarray:
+        """(n,) float32 `bump.map_bend_factor` of the hits' materials (prim (n,) >= 0): the share
+        their brdf carries for a normal map's bend."""
+        return self.bend[np.take(self.material_index, prim)]
 
     def glossy_brdf(self, prim: np.ndarray) -> np.ndarray:
         """(n, 3) float32 the part of the hits' brdf (prim (n,) >= 0) that stands for their glossy
