@@ -19,12 +19,16 @@ from pathlib import Path
 #: The Blender whose bpy `make setup` installs without BLENDER=... (README, CI's full suite).
 DEFAULT_BLENDER = (5, 0)
 
-#: Cycles' pass names before Blender 5.0, and the names 5.0 gave them (the other passes kept theirs).
+#: Cycles' pass names before Blender 5.0, and the names 5.0 gave them (the other passes kept
+#: theirs); the add-on's own copy is `addon/compat.py`'s (an extension ships without this package).
 LEGACY_PASS_NAMES = {
     "DiffDir": "Diffuse Direct",
     "DiffInd": "Diffuse Indirect",
     "DiffCol": "Diffuse Color",
     "AO": "Ambient Occlusion",
+    "GlossDir": "Glossy Direct",
+    "GlossInd": "Glossy Indirect",
+    "GlossCol": "Glossy Color",
 }
 
 ROOT = Path(__file__).resolve().parent.parent

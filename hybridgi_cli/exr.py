@@ -1,6 +1,7 @@
 """The multilayer EXRs the CLI writes, read without bpy (`hybridgi_core.exr`), with every pass
-under its Blender 5.0 name: Cycles and HybridGI before 5.0 write DiffDir, DiffInd, DiffCol and AO,
-so files from every version compare by name. `channel_names` gives the names in the file."""
+under its Blender 5.0 name: Cycles and HybridGI before 5.0 write DiffDir, DiffInd, DiffCol, AO,
+GlossDir, GlossInd and GlossCol, so files from every version compare by name. `channel_names`
+gives the names in the file."""
 
 from __future__ import annotations
 

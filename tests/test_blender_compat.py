@@ -32,6 +32,11 @@ def test_cycles_pass_names_per_version(version, expected):
 def test_exr_reader_gives_legacy_passes_their_current_names():
     assert exr._current_name("ViewLayer.DiffDir.R") == "ViewLayer.Diffuse Direct.R"
     assert exr._current_name("ViewLayer.AO.G") == "ViewLayer.Ambient Occlusion.G"
+    # The glossy passes too (Blender 4.x's GlossDir, GlossInd, GlossCol: the full suite on 4.5
+    # failed five glossy tests on a missing 'Glossy Color').
+    assert exr._current_name("ViewLayer.GlossCol.R") == "ViewLayer.Glossy Color.R"
+    assert exr._current_name("ViewLayer.GlossInd.B") == "ViewLayer.Glossy Indirect.B"
+    assert blender_compat.cycles_pass_name("Glossy Direct", (4, 5)) == "GlossDir"
     assert exr._current_name("ViewLayer.Diffuse Color.B") == "ViewLayer.Diffuse Color.B"
     assert exr._current_name("ViewLayer.Depth.Z") == "ViewLayer.Depth.Z"
 
