@@ -1,5 +1,5 @@
-/* The image handed to Blender's display: Combined (times `scale`: 1 / the subframes a running
- * anti-aliasing sum holds) with an opaque alpha unless the film is transparent; in the Cache Cells view, the worker's cell colours on geometry (dark grey until
+/* The image handed to Blender's display: Combined (times `scale`: Cycles' Film Exposure over the
+ * subframes a running anti-aliasing sum holds) with an opaque alpha unless the film is transparent; in the Cache Cells view, the worker's cell colours on geometry (dark grey until
  * they arrive). */
 void main()
 {

@@ -44,6 +44,7 @@ from hybridgi_core.raster import settings as _raster_settings
 from hybridgi_core.raster import subpixel as _subpixel
 
 from . import material_bake, pipeline, sync, updates, viewport_aa, viewport_stats, worker, world_bake
+from .pipeline import film_exposure
 from .viewport_mirror import SceneMirror
 from .viewport_passes import (
     PRESENT_CELLS,
@@ -271,6 +272,8 @@ class ViewportSession:
             raise errors.HybridGIError(f"viewport GI stopped: {published.error}")
         props = scene.hybridgi
         debug_view, present_mode = debug_view_of(props)
+        # Cycles' Film > Exposure scales what the viewport shows, as final renders' light passes.
+        exposure = float(film_exposure(scene))
         with stats.step("settings"):
             gpu_state = self._ensure_gpu(props, published, width, height)
             aa = self._aa_pattern(scene, present_mode)
@@ -279,7 +282,7 @@ class ViewportSession:
             None if published.view is None else published.view.serial,
         )
         key = (camera.key, width, height, self.mirror.geometry_gen, debug_view, present_mode, opaque,
-               self._raster, published.empty, aa.config)
+               self._raster, published.empty, aa.config, exposure)
         if key == self._drawn_key and serials == self._drawn_serials and self.mirror.gpu_dirty is None:
             if self._aa_due(published):
                 return self._draw_subframe(gpu_state, stats, t0)
@@ -322,7 +325,7 @@ class ViewportSession:
             # The sum starts from this centre image with the first subframe (its targets hold it
             # until then): a redraw the worker's next result replaces costs no accumulate pass.
             aa.start(dict(view=view, proj=proj, mask=mask, lit=lit, gi=gi, world=world, debug_view=debug_view,
-                          present_mode=present_mode, opaque=opaque, shaded=shaded, gbuf=gbuf,
+                          present_mode=present_mode, opaque=opaque, shaded=shaded, gbuf=gbuf, exposure=exposure,
                           gi_low=gi_low if gi_bilateral is not None else None, bilateral=gi_bilateral))
         else:
             aa.reset()
@@ -336,7 +339,7 @@ class ViewportSession:
                     # The direct light's resolve is done with its target: reuse it for the colours.
                     cells = gpu_state.resolve_full.execute(gbuf.position, gbuf.normal, gpu_state.cells_source,
                                                            nearest=True)
-            out = gpu_state.present.execute(shaded.combined, gbuf, present_mode, opaque, cells)
+            out = gpu_state.present.execute(shaded.combined, gbuf, present_mode, opaque, cells, scale=exposure)
         self._drawn_key, self._drawn_serials = key, serials
         stats.total_ms = (time.perf_counter() - t0) * 1e3
         self.last_stats = stats
@@ -400,7 +403,8 @@ class ViewportSession:
         aa.drawn += 1
         with stats.step("present"):
             out = gpu_state.present.execute(pipeline_.accumulate.texture("combined"), gbuf, inputs["present_mode"],
-                                            inputs["opaque"], None, scale=1.0 / pipeline_.accumulate.count)
+                                            inputs["opaque"], None,
+                                            scale=inputs["exposure"] / pipeline_.accumulate.count)
         stats.total_ms = (time.perf_counter() - t0) * 1e3
         self.last_stats = stats
         return out

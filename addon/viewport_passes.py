@@ -205,7 +205,7 @@ class PresentPass(_passes.RasterPass):
 
     def execute(self, combined, gbuf, mode: int, opaque: bool, cells=None, scale: float = 1.0):
         """cells : full-res RGBA texture of Cache Cells colours (mode PRESENT_CELLS); scale :
-        multiplies Combined (1 / count of a sum of anti-aliasing subframes)."""
+        multiplies Combined (Cycles' Film Exposure / the count of a sum of anti-aliasing subframes)."""
         self._require()
         shader = self._shader()
         shader.uniform_sampler("combined_tx", combined)

@@ -353,6 +353,21 @@ def test_light_energy_doubling_brightens_the_view(view, addon):
     assert 1.8 < ratio < 2.2, ratio  # direct and bounced light both scale with the lamp
 
 
+def test_film_exposure_scales_the_view_as_it_scales_final_renders(view, addon):
+    """Cycles' Film > Exposure: final renders scale their light passes by it (pipeline.film_exposure);
+    the viewport showed the unscaled image."""
+    before = _converged_image(view)
+    scene = addon.bpy.context.scene
+    scene.cycles.film_exposure = 2.0
+    try:
+        after = view.draw()
+    finally:
+        scene.cycles.film_exposure = 1.0
+    geometry = view.session.gpu.pipeline.gbuffer.read("position")[..., 3] > 0.5
+    ratio = _luma(after)[geometry].mean() / _luma(before)[geometry].mean()
+    assert ratio == pytest.approx(2.0, rel=0.02)
+
+
 def test_moving_an_object_resyncs_only_that_object(view, addon):
     _converged_image(view)
     view.follow_edits()
