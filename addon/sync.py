@@ -1499,24 +1499,40 @@ def _is_uniform(node) -> bool:
             and not node.inputs["Strength"].is_linked)
 
 
-def _world_split(world, node, wait=True):
+def _world_split(world, node, wait=True, rays="camera"):
     """(`EnvironmentSplit`, strength still to apply) of a world whose output `node` varies with
     direction; None for a uniform world, or one that could not be read (yet).
 
     An Environment Texture on the Background's colour is read directly (exact, fast); any other
     tree (Sky Texture, gradients, mixes) is baked by Blender itself (`world_bake`), both cached.
+    rays : "camera", or "diffuse" for the world as diffuse bounce rays see it (a tree with Light
+    Path nodes; always baked).
     """
     if _is_uniform(node):
         return None
-    if node.type == "BACKGROUND" and not node.inputs["Strength"].is_linked:
+    if rays == "camera" and node.type == "BACKGROUND" and not node.inputs["Strength"].is_linked:
         source, output = _source(node.inputs["Color"])
         if source is not None and source.type == "TEX_ENVIRONMENT" and output == "Color":
             split = _environment_split(source, world.name)
             if split is not None:
                 return split, float(_value(node.inputs["Strength"]))
-    key = world_bake.world_key(world)
-    split = _cached_split(("baked", key), lambda: world_bake.bake_world(world, wait=wait, key=key))
+    key = world_bake.world_key(world, rays)
+    split = _cached_split(("baked", key), lambda: world_bake.bake_world(world, wait=wait, key=key, rays=rays))
     return None if split is None else (split, 1.0)
+
+
+def _light_path_outputs(tree, seen=None) -> set[str]:
+    """Names of the Light Path outputs a (world) node tree uses, in nested groups too."""
+    seen = set() if seen is None else seen
+    if tree is None or tree.name_full in seen:
+        return set()
+    seen.add(tree.name_full)
+    used = set()
+    for n in tree.nodes:
+        if n.type == "LIGHT_PATH" and not n.mute:
+            used |= {o.name for o in n.outputs if o.is_linked}
+        used |= _light_path_outputs(getattr(n, "node_tree", None), seen)
+    return used
 
 
 def _sun_light(split, strength, world_name):
@@ -1575,13 +1591,13 @@ def _read_world(world, wait=True):
     if world.node_tree is None:
         return snap.World(color=_rgb(world.color), ao_distance=ao_distance), []
     _warn_volume(world.node_tree, f"world {world.name!r}")
-    if any(n.type == "LIGHT_PATH" and not n.mute and any(o.is_linked for o in n.outputs) for n in world.node_tree.nodes):
-        log.warning("world %r: its Light Path node is read as camera rays see it (the sky lights the scene "
-                    "with what the camera sees)", world.name)
     node = _output_node(world)
     if node is None:
         # Cycles renders a world with nothing linked to its output as black.
         return snap.World(color=np.zeros(3, np.float32), ao_distance=ao_distance), []
+    light_path = _light_path_outputs(world.node_tree)
+    if light_path:
+        return _read_light_path_world(world, node, ao_distance, light_path, wait)
     found = _world_split(world, node, wait)
     if found is not None:
         split, strength = found
@@ -1601,6 +1617,31 @@ def _read_world(world, wait=True):
         log.warning("world %r: its background could not be read; using its colour value", world.name)
     radiance = (_rgb(node.inputs["Color"].default_value) * _value(node.inputs["Strength"])).astype(np.float32)
     return snap.World(color=radiance, ao_distance=ao_distance), []
+
+
+def _read_light_path_world(world, node, ao_distance, outputs, wait):
+    """A world whose tree reads a Light Path node (a backdrop for the camera, an HDRI for the
+    light: "Is Camera Ray"): it lights the scene as a diffuse bounce ray sees it, and the
+    background shows what the camera sees; each is baked by Blender (`world_bake`, cached)."""
+    ambiguous = sorted(outputs & world_bake.AMBIGUOUS_OUTPUTS)
+    if ambiguous:
+        log.warning("world %r: Light Path %s read as a diffuse bounce ray sees it (Cycles' lamp sampling of the "
+                    "world sees none of the ray flags)", world.name, ", ".join(ambiguous))
+    light = _world_split(world, node, wait, rays="diffuse")
+    seen = _world_split(world, node, wait)
+    if light is None or seen is None:
+        if not world_bake.pending():
+            log.warning("world %r: its Light Path tree could not be baked; using its colour value", world.name)
+        return snap.World(color=_rgb(world.color), ao_distance=ao_distance), []
+    (split, strength), (camera_split, camera_strength) = light, seen
+    log.info("world %r: lit as diffuse rays see it (%s), seen as the camera sees it", world.name,
+             "a shadowed sun" if split.sun_direction is not None else "no sun")
+    sun = _sun_light(split, strength, world.name)
+    sky_map = None if split.sky_map is None else environment.SkyMap(split.sky_map * np.float32(strength), split.to_world)
+    return snap.World(color=(split.sky * strength).astype(np.float32), ao_distance=ao_distance,
+                      sky_sh=(split.sky_sh * strength).astype(np.float32), sky_map=sky_map,
+                      background=(camera_split.sky * camera_strength).astype(np.float32)), \
+        [sun] if sun is not None else []
 
 
 # --- partial re-reads (shading edits in the viewport) ---------------------------------------
