@@ -542,7 +542,8 @@ def material_from_blender(material, textures=None, baked=None, pending=False):
         textures.glossy.add(name)
     return snap.Material(name=name, base_color=part.base.astype(np.float32), texture=part.texture,
                          emission=part.emission.astype(np.float32), alpha=part.alpha, specular=specular,
-                         normal_map=part.normal, emission_texture=part.emission_texture)
+                         normal_map=part.normal, emission_texture=part.emission_texture,
+                         metallic_map=part.metallic_map if part.layer is not None else None)
 
 
 def _shader_surface(shader, textures, name, depth=0):
@@ -556,13 +557,23 @@ def _shader_surface(shader, textures, name, depth=0):
     kind = shader.type
     if kind == "BSDF_PRINCIPLED":
         base, texture = _color_socket(shader.inputs["Base Color"], textures, name)
-        metallic = _constant_value(shader.inputs["Metallic"], name)
+        metallic_map = _metallic_map(shader, textures, name)
+        metallic = (float(metallic_map.mean()) if metallic_map is not None
+                    else _constant_value(shader.inputs["Metallic"], name))
         transmission = _constant_value(_input(shader, "Transmission Weight", "Transmission"), name)
         coat = _constant_value(_input(shader, "Coat Weight"), name) if _input(shader, "Coat Weight") else 0.0
         tint = _constant_color(_input(shader, "Coat Tint"), name) if _input(shader, "Coat Tint") else np.ones(3)
         weight = (1.0 - np.clip(metallic, 0, 1)) * (1.0 - np.clip(transmission, 0, 1))
         _note_approximations(shader, textures, name, metallic, transmission, coat)
         layer = _specular_layer(shader, textures, name, base, texture, metallic, transmission)
+        if metallic_map is not None:
+            # The diffuse base per texel, base colour x (1 - metallic) as Cycles weighs it; the
+            # glossy lobes per pixel (`Material.metallic_map`), ray hits' by the mean metallic.
+            if texture is not None:
+                metallic_map = _resampled(metallic_map, texture.shape)
+            texture = (base if texture is None else texture) * (1.0 - metallic_map)
+            base = np.ones(3, np.float32)
+            weight = 1.0 - np.clip(transmission, 0, 1)
         base = base * weight * (1.0 + np.clip(coat, 0, 1) * (tint - 1.0))
         emission, glow = _emission(shader, shader.inputs["Emission Color"], shader.inputs["Emission Strength"],
                                    textures, name)
@@ -570,7 +581,8 @@ def _shader_surface(shader, textures, name, depth=0):
         return surface_mix.SurfacePart(base=base, texture=texture, emission=emission, emission_texture=glow,
                                        alpha=_alpha_map(shader.inputs["Alpha"], textures, name), diffuse=diffuse,
                                        lobes=sp.layer_lobes(layer), layer=layer,
-                                       normal=_normal_map(shader, textures, name))
+                                       normal=_normal_map(shader, textures, name),
+                                       metallic_map=None if metallic_map is None else metallic_map[..., 0])
     if kind == "BSDF_DIFFUSE":
         base, texture = _color_socket(shader.inputs["Color"], textures, name)
         return surface_mix.SurfacePart(base=base, texture=texture, normal=_normal_map(shader, textures, name))
@@ -589,6 +601,39 @@ def _shader_surface(shader, textures, name, depth=0):
     if kind in ("MIX_SHADER", "ADD_SHADER") and depth < 8:
         return _mix_surface(shader, kind, textures, name, depth)
     return None
+
+
+#: Scalar inputs of a Principled BSDF that `bake_sockets` bakes when a texture feeds them (the
+#: bake process routes them through a clamped Math node: Blender's own colour-to-float conversion).
+BAKED_SCALARS = {"BSDF_PRINCIPLED": ("Metallic",)}
+
+
+def _metallic_map(shader, textures, name):
+    """(h, w, 1) float32 Metallic per texel, or None when Metallic is a constant (or its texture
+    is missing: the constant path warns): an Image Texture's colour straight into it is read
+    directly (the mesh's UVs, as a base colour image), anything else (and any Metallic of a
+    material with other bakes, so that both share the atlas) is what Blender baked."""
+    socket = shader.inputs["Metallic"]
+    if not socket.is_linked or _fold(socket, 0) is not None:
+        return None
+    texels = textures.baked.get((shader.name, socket.identifier))
+    if texels is None:
+        source, output = _source(socket)
+        if source is not None and _direct_image(source, output):
+            texels = textures.get(source.image, name)
+    if texels is None:
+        return None
+    # A colour into a float input: Blender converts by the mean of the channels' luminance;
+    # metallic masks are grey.
+    return np.clip(np.asarray(texels, np.float32)[..., :3].mean(axis=-1, keepdims=True), 0.0, 1.0)
+
+
+def _resampled(values: np.ndarray, shape) -> np.ndarray:
+    """`values` (h', w', c) at (h, w) by nearest texels (textures read through the same UVs)."""
+    h, w = shape[:2]
+    if values.shape[:2] == (h, w):
+        return values
+    return values[(np.arange(h) * values.shape[0]) // h][:, (np.arange(w) * values.shape[1]) // w]
 
 
 #: Nodes that pass an image's channels through unchanged when their outputs feed the matching
@@ -1140,6 +1185,11 @@ def bake_sockets(material) -> list[tuple[str, str]]:
                 source, output = _source(colour)
                 image = _fold(strength, 0) is not None and _direct_image(source, output)
                 (images if image else out).append((node.name, EMISSION_BAKE))
+        for scalar in BAKED_SCALARS.get(node.type, ()):
+            socket = node.inputs.get(scalar)
+            source, output = _source(socket) if socket is not None and socket.is_linked else (None, None)
+            if source is not None and _fold(socket, 0) is None:
+                (images if _direct_image(source, output) else out).append((node.name, socket.identifier))
         name = BAKED_INPUTS.get(node.type)
         socket = node.inputs.get(name) if name else None
         if socket is None or not socket.is_linked:

@@ -86,6 +86,19 @@ TEXTURE_NORMAL = 4
 TEXTURE_BUMP = 8
 #: The material's `emission_tx` holds its emitted radiance per texel (`Material.emission_texture`).
 TEXTURE_EMISSION = 16
+#: The alpha of `emission_tx` holds the Metallic per texel (`Material.metallic_map`): the material
+#: target's r adds half of it to the index (`glossy_image.material_rows` picks the lobes by it).
+TEXTURE_METALLIC = 32
+
+
+def _nearest(values: np.ndarray, shape) -> np.ndarray:
+    """(h, w) float32 `values` (h', w') at another size, nearest texels (the same UVs)."""
+    h, w = shape
+    if values.shape == (h, w):
+        return np.asarray(values, np.float32)
+    ys = (np.arange(h) * values.shape[0]) // h
+    xs = (np.arange(w) * values.shape[1]) // w
+    return np.asarray(values, np.float32)[ys][:, xs]
 
 
 def _texture_rgba(material) -> np.ndarray:
@@ -283,12 +296,18 @@ class GBufferPass(RasterPass):
                 bump = upload_texture_2d(height, "RGBA32F")  # height differences need the precision
                 flags |= TEXTURE_BUMP
             glow_texture = getattr(material, "emission_texture", None)
+            metal = getattr(material, "metallic_map", None)
             glow = None
-            if glow_texture is not None:
-                # Half floats hold radiance up to 65504: emission textures are HDR.
-                glow = upload_texture_2d(np.ascontiguousarray(np.concatenate(
-                    [glow_texture, np.ones((*glow_texture.shape[:2], 1), np.float32)], axis=-1)), "RGBA16F")
-                flags |= TEXTURE_EMISSION
+            if glow_texture is not None or metal is not None:
+                # Half floats hold radiance up to 65504: emission textures are HDR. The alpha
+                # carries the Metallic texture (TEXTURE_METALLIC), else 1.
+                rgb = (glow_texture if glow_texture is not None
+                       else np.broadcast_to(np.asarray(material.emission, np.float32), (*metal.shape, 3)))
+                a = np.ones(rgb.shape[:2], np.float32) if metal is None else _nearest(metal, rgb.shape[:2])
+                glow = upload_texture_2d(np.ascontiguousarray(np.concatenate([rgb, a[..., None]], axis=-1),
+                                                              np.float32), "RGBA16F")
+                flags |= (TEXTURE_EMISSION if glow_texture is not None else 0) | (
+                    TEXTURE_METALLIC if metal is not None else 0)
             base = np.asarray(material.base_color, np.float32).reshape(3)
             self._draws.append(_MaterialDraw(
                 batch=None,
