@@ -18,7 +18,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from hybridgi_core import environment, surface_mix
+from hybridgi_core import environment, hair, surface_mix
 from hybridgi_core import snapshot as snap
 from hybridgi_core import specular as sp
 from hybridgi_core.blackbody import blackbody_rgb
@@ -110,6 +110,36 @@ class _LocalMesh:
     triangles: np.ndarray
     slot: np.ndarray
     tangents: np.ndarray | None = None
+
+
+def _hair_arrays(curves, name):
+    """`_LocalMesh` of a Blender Curves datablock's strands as tubes, or None without any."""
+    n_points, n_curves = len(curves.points), len(curves.curves)
+    if n_points < 2 or n_curves == 0:
+        return None
+    points = np.empty(n_points * 3, np.float32)
+    curves.position_data.foreach_get("vector", points)
+    offsets = np.empty(n_curves + 1, np.int32)
+    curves.curve_offset_data.foreach_get("value", offsets)
+    radius = curves.attributes.get("radius")
+    radii = np.full(n_points, 0.01, np.float32)  # Blender's radius where the attribute is missing
+    if radius is not None and radius.domain == "POINT" and radius.data_type == "FLOAT":
+        radius.data.foreach_get("value", radii)
+    tubes = hair.tubes(points, offsets, radii)
+    if tubes.thinned > 1:
+        log.warning("hair %r: %d strands are more than %d triangles; every %d-th is kept, widened to cover as much",
+                    name, n_curves, hair.TRIANGLE_BUDGET, tubes.thinned)
+    if tubes.triangles.shape[0] == 0:
+        return None
+    slot = np.zeros(tubes.triangles.shape[0], np.int32)
+    index = curves.attributes.get("material_index")
+    if index is not None and index.domain == "CURVE":
+        per_curve = np.empty(n_curves, np.int32)
+        index.data.foreach_get("value", per_curve)
+        slot = per_curve[tubes.curve]
+    return _LocalMesh(positions=tubes.positions, normals=tubes.normals,
+                      uvs=np.full((tubes.positions.shape[0], 2), np.nan, np.float32), triangles=tubes.triangles,
+                      slot=slot)
 
 
 def mesh_arrays(mesh):
@@ -327,11 +357,11 @@ class _SnapshotBuilder:
             if lamp is not None:
                 self.lights.append(lamp)
             return
-        # Only meshes: curves, text, surfaces and metaballs also arrive as a mesh instance of
-        # their evaluated geometry (converting them too would count them twice).
-        if obj.type != "MESH" or not instance.show_self:
+        # Meshes, and Curves (hair) as tubes: curves, text, surfaces and metaballs also arrive as
+        # a mesh instance of their evaluated geometry (converting them too would count them twice).
+        if obj.type not in ("MESH", "CURVES") or not instance.show_self:
             return
-        local = self._local_mesh(obj)
+        local = self._local_mesh(obj) if obj.type == "MESH" else self._hair_mesh(obj)
         if local is None:
             return
         parent = instance.parent if instance.is_instance else None
@@ -412,6 +442,13 @@ class _SnapshotBuilder:
         more = f" (and {len(names) - 5} more materials)" if len(names) > 5 else ""
         log.warning("Shader features approximated: %s%s", listed, more)
 
+    def _hair_mesh(self, obj):
+        """`_LocalMesh` of a Curves object's strands as tubes (`hybridgi_core.hair`; no UVs), or None."""
+        key = obj.data.as_pointer()
+        if key not in self._meshes:
+            self._meshes[key] = _hair_arrays(obj.data, obj.name)
+        return self._meshes[key]
+
     def _local_mesh(self, obj):
         key = obj.data.as_pointer()
         if key not in self._meshes:
@@ -428,6 +465,9 @@ class _SnapshotBuilder:
             self.without_material.add(obj.name)
             return [self._material(None)], local
         slots = np.clip(local.slot, 0, len(materials) - 1)
+        if obj.type != "MESH":
+            # Hair tubes have no UVs to bake over, nor tangents: each material's own values.
+            return [self._material(material) for material in materials], local
         baked = {}
         for s, material in enumerate(materials):
             sockets = bake_sockets(material) if material is not None else []

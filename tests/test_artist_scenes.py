@@ -99,6 +99,19 @@ SCENE = textwrap.dedent("""
         image = floor.nodes.new("ShaderNodeTexImage")
         image.image, image.interpolation = mask, "Closest"
         floor.links.new(image.outputs["Color"], floor.nodes["Principled BSDF"].inputs["Metallic"])
+    if variant == "hair":
+        # A patch of grass as a Curves (hair) object: 400 strands of 6 points, 2 cm radius.
+        import numpy as np
+        hair = bpy.data.hair_curves.new("grass")
+        rng = np.random.default_rng(1)
+        hair.add_curves([6] * 400)
+        roots = np.column_stack([rng.uniform(-1.1, 0.7, 400), rng.uniform(-1.2, -0.4, 400), np.zeros(400)])
+        points = roots[:, None, :] + np.array([0.0, 0.0, 0.12])[None, None, :] * np.arange(6)[None, :, None]
+        hair.position_data.foreach_set("vector", points.astype(np.float32).ravel())
+        radius = hair.attributes.get("radius") or hair.attributes.new("radius", "FLOAT", "POINT")
+        radius.data.foreach_set("value", np.full(2400, 0.02, np.float32))
+        hair.materials.append(material("green", (0.2, 0.7, 0.2)))
+        scene.collection.objects.link(bpy.data.objects.new("grass", hair))
     bpy.ops.wm.save_as_mainfile(filepath=sys.argv[-1])
 """)
 
@@ -152,3 +165,19 @@ def test_metallic_from_a_texture_is_followed_per_pixel(tmp_path, variant):
     print(errors)
     assert errors["Diffuse Color"] < 0.05 and errors["Diffuse Direct"] < 0.1, errors
     assert errors["Combined"] < 0.1, errors
+
+
+def test_hair_curves_render_as_strands(tmp_path):
+    """A Curves object (hair, grass) was dropped without a word (Cycles renders its strands);
+    now each strand is a tube through its points (`hybridgi_core.hair`). Measured here (64x48,
+    quick settings): Combined over geometry 0.269 -> 0.037, Diffuse Color on the grass 0.854 ->
+    0.011; a smaller patch at 128x96, default settings: Combined 0.049 -> 0.012."""
+    ours, cycles = both(tmp_path, build(tmp_path, "hair"))
+    geometry = layer(cycles, "Depth", "Z")[..., 0] < 1e9
+    colour = layer(cycles, "Diffuse Color")
+    grass = geometry & (colour[..., 1] > 1.5 * colour[..., 0]) & (colour[..., 1] > 1.5 * colour[..., 2])
+    assert grass.sum() > 50
+    errors = {"Combined": rel_l1(layer(ours, "Combined")[geometry], layer(cycles, "Combined")[geometry]),
+              "grass Diffuse Color": rel_l1(layer(ours, "Diffuse Color")[grass], colour[grass])}
+    print(errors)
+    assert errors["Combined"] < 0.07 and errors["grass Diffuse Color"] < 0.1, errors
