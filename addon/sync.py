@@ -69,7 +69,6 @@ IGNORED_VISIBILITY = {
     "visible_shadow": "hidden from shadow rays",
     "visible_diffuse": "hidden from diffuse rays",
     "visible_glossy": "hidden from glossy rays",
-    "is_holdout": "a holdout",
     "is_shadow_catcher": "a shadow catcher",
 }
 
@@ -375,10 +374,14 @@ class _SnapshotBuilder:
         # A curve's own mesh instance has the curve as its parent: keep its plain name.
         name = obj.name if parent is None or parent.name == obj.name else f"{parent.name}/{obj.name}"
         camera_visible = bool(getattr(obj, "visible_camera", True))
+        holdout = bool(getattr(obj, "is_holdout", False)) or "holdout" in self.collection_flags.get(obj.name, ())
         if parent is not None and parent.name != obj.name:
             camera_visible = camera_visible and bool(getattr(parent, "visible_camera", True))
+            holdout = holdout or bool(getattr(parent, "is_holdout", False)) or (
+                "holdout" in self.collection_flags.get(parent.name, ()))
         self._note_ignored(obj)
-        self.objects.append(snap.ObjectInfo(name=name, dynamic=dynamic, camera_visible=camera_visible))
+        self.objects.append(snap.ObjectInfo(name=name, dynamic=dynamic, camera_visible=camera_visible,
+                                            holdout=holdout))
 
     def _add_placed(self, local, slot_to_material, matrix):
         """Queue one instance of `local` (object index: the next ObjectInfo's). Consecutive
@@ -401,9 +404,8 @@ class _SnapshotBuilder:
             hidden = not getattr(obj, prop, True) if prop.startswith("visible") else getattr(obj, prop, False)
             if hidden:
                 self.ignored.setdefault(meaning, set()).add(obj.name)
-        for flag in self.collection_flags.get(obj.name, ()):
-            meaning = {"holdout": "in a holdout collection", "indirect_only": "in an indirect-only collection"}[flag]
-            self.ignored.setdefault(meaning, set()).add(obj.name)
+        if "indirect_only" in self.collection_flags.get(obj.name, ()):
+            self.ignored.setdefault("in an indirect-only collection", set()).add(obj.name)
 
     def _note_linking(self, obj):
         """Light and shadow linking (Blender 4.0+): noted, not followed."""
@@ -573,6 +575,9 @@ def material_from_blender(material, textures=None, baked=None, pending=False):
     if shader is None:
         log.warning("material %r: no shader linked to an active output; using grey", name)
         return _grey(name)
+    if shader.type == "HOLDOUT":
+        # The camera sees a hole (the G-buffer and the film, `Material.holdout`); rays a black surface.
+        return snap.Material(name=name, base_color=np.zeros(3, np.float32), holdout=True)
     part = _shader_surface(shader, textures, name)
     if part is None:
         log.warning("material %r: shader %s is not supported; using grey %.1f", name, shader.bl_idname, FALLBACK_GREY)

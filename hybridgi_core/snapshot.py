@@ -188,6 +188,8 @@ class Material:
     normal_map: NormalMap | None = None
     emission_texture: np.ndarray | None = None
     metallic_map: np.ndarray | None = None
+    #: its surface is a Holdout shader: the camera sees a hole (Combined 0, alpha 0), rays a black surface
+    holdout: bool = False
 
     def __post_init__(self) -> None:
         # Non-finite colours would reach every pixel that sees (or bounces off) this material.
@@ -362,6 +364,9 @@ class ObjectInfo:
     name: str
     dynamic: bool = False  # moves or deforms over the animation: traced in the per-frame scene
     camera_visible: bool = True  # seen by the camera (False: still casts shadows and bounces light)
+    #: a holdout (Object > Visibility > Holdout, a holdout collection): the camera sees a hole
+    #: there (Combined 0, alpha 0), rays see the object as usual
+    holdout: bool = False
 
 
 @dataclass

@@ -9,7 +9,8 @@
  * with `bump_strength` and `bump_distance` (negative: inverted). Bit 16: `emission_tx` is the emitted
  * radiance per texel (an emissive texture), averaged over the pixel's footprint like the colour;
  * without it (or without UVs) the constant `emission`. Bit 32: `emission_tx`'s alpha is the
- * Metallic per texel, added as half of it to `out_material`'s r. `out_material`'s gba is the smooth normal
+ * Metallic per texel, added as half of it to `out_material`'s r. Bit 64: a holdout, drawn as a
+ * hole (the background's zeros at a depth beyond it). `out_material`'s gba is the smooth normal
  * before a map or bump bends it (what the CPU takes for the surface: edges, filter guides, ray
  * origins, the bump shadowing term). */
 
@@ -217,4 +218,13 @@ void main()
   out_emission = vec4(emitted, 1.0);
   out_depth = view_depth(camera.view_z, world_pos);
   out_material = vec4(row, n_surface);
+  if ((has_texture & 64) != 0) {
+    /* A holdout: a hole the background shows through, marked by its depth (gbuffer.py HOLDOUT_DEPTH). */
+    out_albedo = vec4(0.0);
+    out_normal = vec4(0.0);
+    out_position = vec4(0.0);
+    out_emission = vec4(0.0);
+    out_depth = 1.5 * BACKGROUND_DEPTH;
+    out_material = vec4(0.0);
+  }
 }
