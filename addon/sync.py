@@ -66,7 +66,6 @@ def snapshot_from_depsgraph(depsgraph, dynamic_names=frozenset(), wait_for_world
 #: Cycles' per-object ray visibility HybridGI does not follow (the object takes part as if on):
 #: property -> what it means, for the warning.
 IGNORED_VISIBILITY = {
-    "visible_shadow": "hidden from shadow rays",
     "visible_diffuse": "hidden from diffuse rays",
     "visible_glossy": "hidden from glossy rays",
     "is_shadow_catcher": "a shadow catcher",
@@ -374,6 +373,8 @@ class _SnapshotBuilder:
         # A curve's own mesh instance has the curve as its parent: keep its plain name.
         name = obj.name if parent is None or parent.name == obj.name else f"{parent.name}/{obj.name}"
         camera_visible = bool(getattr(obj, "visible_camera", True))
+        casts_shadow = bool(getattr(obj, "visible_shadow", True)) and (
+            parent is None or parent.name == obj.name or bool(getattr(parent, "visible_shadow", True)))
         holdout = bool(getattr(obj, "is_holdout", False)) or "holdout" in self.collection_flags.get(obj.name, ())
         if parent is not None and parent.name != obj.name:
             camera_visible = camera_visible and bool(getattr(parent, "visible_camera", True))
@@ -381,7 +382,7 @@ class _SnapshotBuilder:
                 "holdout" in self.collection_flags.get(parent.name, ()))
         self._note_ignored(obj)
         self.objects.append(snap.ObjectInfo(name=name, dynamic=dynamic, camera_visible=camera_visible,
-                                            holdout=holdout))
+                                            holdout=holdout, casts_shadow=casts_shadow))
 
     def _add_placed(self, local, slot_to_material, matrix):
         """Queue one instance of `local` (object index: the next ObjectInfo's). Consecutive
@@ -578,6 +579,10 @@ def material_from_blender(material, textures=None, baked=None, pending=False):
     if shader.type == "HOLDOUT":
         # The camera sees a hole (the G-buffer and the film, `Material.holdout`); rays a black surface.
         return snap.Material(name=name, base_color=np.zeros(3, np.float32), holdout=True)
+    shadow_transparent = False
+    surface = _shadow_ray_mix(shader)
+    if surface is not None:
+        shader, shadow_transparent = surface, True
     part = _shader_surface(shader, textures, name)
     if part is None:
         log.warning("material %r: shader %s is not supported; using grey %.1f", name, shader.bl_idname, FALLBACK_GREY)
@@ -588,7 +593,23 @@ def material_from_blender(material, textures=None, baked=None, pending=False):
     return snap.Material(name=name, base_color=part.base.astype(np.float32), texture=part.texture,
                          emission=part.emission.astype(np.float32), alpha=part.alpha, specular=specular,
                          normal_map=part.normal, emission_texture=part.emission_texture,
-                         metallic_map=part.metallic_map if part.layer is not None else None)
+                         metallic_map=part.metallic_map if part.layer is not None else None,
+                         shadow_transparent=shadow_transparent)
+
+
+def _shadow_ray_mix(shader):
+    """The other shader of Mix(a surface, Transparent BSDF) whose factor is Light Path > Is Shadow
+    Ray (Transparent on the factor-1 side): what every ray but shadow rays sees; None for any
+    other shader."""
+    if shader.type != "MIX_SHADER" or shader.mute:
+        return None
+    source, output = _source(shader.inputs["Fac"])
+    if source is None or source.type != "LIGHT_PATH" or output != "Is Shadow Ray":
+        return None
+    other, clear = (_linked_node(s) for s in shader.inputs[-2:])
+    if clear is None or clear.type != "BSDF_TRANSPARENT" or other is None:
+        return None
+    return other
 
 
 def _shader_surface(shader, textures, name, depth=0):

@@ -225,7 +225,7 @@ def _material_key(material: Material) -> tuple:
     metal = getattr(material, "metallic_map", None)
     metal_key = None if metal is None else (metal.shape, float(metal.sum(dtype=np.float64)))
     return (material.base_color.tobytes(), material.emission.tobytes(), texture_key, specular, normal_map, glow_key,
-            metal_key, getattr(material, "holdout", False))
+            metal_key, getattr(material, "holdout", False), getattr(material, "shadow_transparent", False))
 
 
 def _world_key(world: World) -> tuple:

@@ -40,6 +40,7 @@ from .lights import (
     _sample_spherical_rectangle,
     _shadow_to_targets,
     concentric_disk,
+    shadow_query,
     spot_attenuation,
     spread_attenuation,
     stratified_uv,
@@ -458,7 +459,7 @@ def glossy_direct(lights, points, normals, to_eye, rows, mats: GlossyMaterials, 
                         vis = _shadow_to_targets(tracer, p32, ncols, ri, t[:, 0], t[:, 1], t[:, 2], epsilon)
                     else:
                         origins = (p[ri] + n[ri] * epsilon).astype(_F32)
-                        vis = ~np.asarray(tracer.occluded(origins, d32[ri, si], np.inf, trusted=True), bool)
+                        vis = ~np.asarray(shadow_query(tracer)(origins, d32[ri, si], np.inf, trusted=True), bool)
                     w32 = w32.copy()
                     w32[ri[~vis], si[~vis]] = 0.0
             for common, terms, k in slots:

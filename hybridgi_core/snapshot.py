@@ -190,6 +190,9 @@ class Material:
     metallic_map: np.ndarray | None = None
     #: its surface is a Holdout shader: the camera sees a hole (Combined 0, alpha 0), rays a black surface
     holdout: bool = False
+    #: shadow rays pass through it (a Mix Shader whose factor is Light Path > Is Shadow Ray with a
+    #: Transparent BSDF on that side: glass that lets the lamps through); other rays see the surface
+    shadow_transparent: bool = False
 
     def __post_init__(self) -> None:
         # Non-finite colours would reach every pixel that sees (or bounces off) this material.
@@ -367,6 +370,8 @@ class ObjectInfo:
     #: a holdout (Object > Visibility > Holdout, a holdout collection): the camera sees a hole
     #: there (Combined 0, alpha 0), rays see the object as usual
     holdout: bool = False
+    #: blocks shadow rays (Object > Visibility > Ray Visibility > Shadow; False: lamps shine through it)
+    casts_shadow: bool = True
 
 
 @dataclass
