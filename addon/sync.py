@@ -587,6 +587,14 @@ def material_from_blender(material, textures=None, baked=None, pending=False):
     if part is None:
         log.warning("material %r: shader %s is not supported; using grey %.1f", name, shader.bl_idname, FALLBACK_GREY)
         return _grey(name)
+    displaced = _displacement_bump(material, tree, textures, name)
+    if displaced is not None:
+        if part.normal is None:
+            part.normal = snap.NormalMap(bump=displaced)
+        elif part.normal.bump is None:
+            part.normal = replace(part.normal, bump=displaced)
+        else:
+            _note(textures, name, shader, "a Bump node and a Displacement: rendered with the Bump node's only")
     specular = part.surface()
     if specular is not None and sp.surface_lobes(specular):
         textures.glossy.add(name)
@@ -756,6 +764,60 @@ def _normal_map(shader, textures, name):
         pixels = pixels[..., list(channels)]
         pixels = np.where(np.asarray(flips)[None, None, :], np.float32(1.0) - pixels, pixels).astype(np.float32)
     return snap.NormalMap(texture=pixels, strength=strength, uv_map=node.uv_map, bump=bump)
+
+
+def _displacement_bump(material, tree, textures, name):
+    """`snapshot.BumpMap` of the Material Output's Displacement as Cycles renders it by default
+    (Displacement > Bump Only, or the bump of Displacement and Bump): a Displacement node's
+    height bends the shading normal as a Bump node of Distance = its Scale does (Cycles
+    evaluates the displaced surface's normal, the same first-order term). None when nothing is
+    linked; anything it cannot follow (true displacement, a height other than an image, a vector
+    displacement) is noted."""
+    output = tree.get_output_node(OUTPUT_TARGET)
+    socket = None if output is None else output.inputs.get("Displacement")
+    if socket is None or not socket.is_linked:
+        return None
+    node, _output = _source(socket)
+    if node is None:
+        return None
+    method = getattr(material, "displacement_method", None) or getattr(
+        getattr(material, "cycles", None), "displacement_method", "BUMP")
+    if method == "DISPLACEMENT":
+        _note(textures, name, node, "true displacement (Settings > Displacement) is not rendered (the undisplaced surface)")
+        return None
+    if method == "DISPLACEMENT_BOTH":  # pragma: no cover - older Blender's name
+        method = "BOTH"
+    if method == "BOTH":
+        _note(textures, name, node, "Displacement and Bump: rendered as its bump only")
+    if node.type != "DISPLACEMENT":
+        _note(textures, name, node, f"displacement from {node.bl_idname} (rendered without it)")
+        return None
+    height = _height_map(node, node.inputs["Height"], textures, name, "Displacement height")
+    if height is None:
+        return None
+    return snap.BumpMap(height=height, strength=1.0, distance=_constant_value(node.inputs["Scale"], name))
+
+
+def _height_map(node, socket, textures, name, what_for):
+    """(h, w) float32 height of an Image Texture's Color (its Rec.709 luminance, as Cycles turns a
+    colour into a float) or Alpha feeding `socket`, read through the mesh's UV map; None for a
+    constant (nothing bends) or anything else (noted on `node`)."""
+    source, output = _source(socket)
+    if source is None:
+        return None  # a constant height bends nothing
+    vector = source.inputs.get("Vector") if source.type == "TEX_IMAGE" else None
+    direct = (source.type == "TEX_IMAGE" and source.image is not None
+              and output in ("Color", "Alpha") and (vector is None or _source(vector)[0] is None)
+              and source.projection == "FLAT" and source.extension == "REPEAT")
+    if not direct:
+        what = "an image through a mapping or projection" if source.type == "TEX_IMAGE" else source.bl_idname
+        _note(textures, name, node, f"{what_for} from {what} (rendered with the smooth normal)")
+        return None
+    if output == "Alpha":
+        height = textures.alpha(source.image, name)
+        return np.ones(tuple(source.image.size)[::-1], np.float32) if height is None else height  # no alpha: flat
+    colour = textures.get(source.image, name)
+    return None if colour is None else (colour @ surface_mix.GRAY.astype(np.float32)).astype(np.float32)
 
 
 def _bump_map(node, textures, name):

@@ -124,6 +124,23 @@ SCENE = textwrap.dedent("""
             tree.links.new(tree.nodes["Principled BSDF"].outputs[0], mix.inputs[1])
             tree.links.new(tree.nodes.new("ShaderNodeBsdfTransparent").outputs[0], mix.inputs[2])
             tree.links.new(mix.outputs[0], tree.nodes["Material Output"].inputs["Surface"])
+    if variant == "displacement_image":
+        # A height image into the Material Output's Displacement (Bump Only, Cycles' default).
+        import numpy as np
+        height = bpy.data.images.new("height", 64, 64)
+        pixels = np.ones((64, 64, 4), np.float32)
+        pixels[..., :3] = (0.5 + 0.5 * np.sin(np.arange(64) / 64 * 2 * np.pi * 4))[None, :, None]
+        height.pixels.foreach_set(pixels.ravel())
+        height.filepath_raw, height.file_format = sys.argv[-1] + ".height.png", "PNG"
+        height.save()
+        height.colorspace_settings.name = "Non-Color"
+        floor = bpy.data.objects["floor"].active_material.node_tree
+        image = floor.nodes.new("ShaderNodeTexImage")
+        image.image = height
+        displace = floor.nodes.new("ShaderNodeDisplacement")
+        displace.inputs["Scale"].default_value = 0.3
+        floor.links.new(image.outputs["Color"], displace.inputs["Height"])
+        floor.links.new(displace.outputs["Displacement"], floor.nodes["Material Output"].inputs["Displacement"])
     if variant == "hair":
         # A patch of grass as a Curves (hair) object: 400 strands of 6 points, 2 cm radius.
         import numpy as np
@@ -246,3 +263,17 @@ def test_surfaces_shadow_rays_pass_let_the_sun_through(tmp_path, variant):
               "Diffuse Direct mean": (float(direct.mean()), float(reference.mean()))}
     print(errors)
     assert errors["Diffuse Direct"] < 0.1 and errors["Combined"] < 0.1, errors
+
+
+def test_displacement_renders_as_its_bump(tmp_path):
+    """A height image into a Displacement node on the Material Output: Cycles' default method,
+    Bump Only, bends the shading normal as a Bump node of Distance = Scale. Before, the output's
+    Displacement was ignored without a word; a procedural height is now named in the
+    approximations warning. Measured here (64x48): Diffuse Direct 0.064 -> 0.020, Combined
+    0.064 -> 0.021; 128x96, default settings, a wall behind: 0.102 -> 0.015, 0.087 -> 0.015."""
+    ours, cycles = both(tmp_path, build(tmp_path, "displacement_image"))
+    geometry = layer(cycles, "Depth", "Z")[..., 0] < 1e9
+    errors = {name: rel_l1(layer(ours, name)[geometry], layer(cycles, name)[geometry])
+              for name in ("Diffuse Direct", "Combined")}
+    print(errors)
+    assert errors["Diffuse Direct"] < 0.05 and errors["Combined"] < 0.05, errors
