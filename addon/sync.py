@@ -14,6 +14,7 @@ and the view-dependent weight they leave the diffuse part.
 """
 
 import logging
+import math
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -53,7 +54,7 @@ def snapshot_from_depsgraph(depsgraph, dynamic_names=frozenset(), wait_for_world
     (`material_bake`) keep their constant value until the background bake is done.
     """
     builder = _SnapshotBuilder(frozenset(dynamic_names), _collection_flags(depsgraph.view_layer),
-                               wait=wait_for_world)
+                               wait=wait_for_world, render_mode=getattr(depsgraph, "mode", "RENDER") == "RENDER")
     for instance in depsgraph.object_instances:
         builder.add_instance(instance)
     builder.warn_unsupported()
@@ -108,6 +109,20 @@ class _LocalMesh:
     triangles: np.ndarray
     slot: np.ndarray
     tangents: np.ndarray | None = None
+
+
+#: Strands of one particle hair system read (one `co_hair` call per point each).
+MAX_PARTICLE_STRANDS = 50_000
+
+
+def _hair_shape(shape, root, tip, t):
+    """Cycles' shaperadius: the strand's radius factor from root to tip at t (0..1) by Shape."""
+    radius = 1.0 - np.asarray(t, np.float64)
+    if shape < 0.0:
+        radius = radius ** (1.0 + shape)
+    elif shape > 0.0:
+        radius = radius ** (1.0 / max(1.0 - shape, 1e-6))
+    return radius * (root - tip) + tip
 
 
 def _hair_arrays(curves, name):
@@ -327,9 +342,10 @@ def _cofactor(m):
 
 
 class _SnapshotBuilder:
-    def __init__(self, dynamic_names, collection_flags=None, wait=True):
+    def __init__(self, dynamic_names, collection_flags=None, wait=True, render_mode=True):
         self.dynamic_names = dynamic_names
         self.wait = wait
+        self.render_mode = render_mode  # a render's depsgraph: particle paths at their render steps
         self._baked = {}  # (material, mesh pointer, slot) -> material index
         self._bakes = []  # (material index, bpy material, [BakeJob])
         self._atlas_meshes = {}  # (mesh pointer, baked slots) -> _LocalMesh with atlas UVs
@@ -355,6 +371,8 @@ class _SnapshotBuilder:
             if lamp is not None:
                 self.lights.append(lamp)
             return
+        if obj.type == "MESH" and instance.show_particles and len(obj.particle_systems):
+            self._add_particle_hair(instance)
         # Meshes, and Curves (hair) as tubes: curves, text, surfaces and metaballs also arrive as
         # a mesh instance of their evaluated geometry (converting them too would count them twice).
         if obj.type not in ("MESH", "CURVES") or not instance.show_self:
@@ -383,6 +401,48 @@ class _SnapshotBuilder:
         self._note_ignored(obj)
         self.objects.append(snap.ObjectInfo(name=name, dynamic=dynamic, camera_visible=camera_visible,
                                             holdout=holdout, casts_shadow=casts_shadow))
+
+    def _add_particle_hair(self, instance):
+        """Particle systems of type Hair rendered as strands (Render As Path) as tubes, in world
+        space (`ParticleSystem.co_hair`), children included; past MAX_PARTICLE_STRANDS every n-th
+        strand is read, widened by sqrt(n) (warned)."""
+        obj = instance.object
+        for psys in obj.particle_systems:
+            settings = psys.settings
+            if settings.type != "HAIR" or settings.render_type != "PATH":
+                continue
+            total = len(psys.particles) + len(psys.child_particles)
+            steps = (1 << int(settings.render_step if self.render_mode else settings.display_step)) + 1
+            if total == 0:
+                continue
+            stride = max(1, math.ceil(total / MAX_PARTICLE_STRANDS))
+            if stride > 1:
+                log.warning("hair %r of %r: %d strands; every %d-th is rendered, widened to cover as much",
+                            psys.name, obj.name, total, stride)
+            strands = range(0, total, stride)
+            points = np.array([tuple(psys.co_hair(obj, particle_no=i, step=k)) for i in strands for k in range(steps)],
+                              np.float32).reshape(len(strands), steps, 3)
+            # Steps past a strand's path read as the origin: each strand's points up to the first.
+            valid = np.any(points != 0.0, axis=2)
+            valid[:, 0] = True
+            counts = np.where(valid.all(axis=1), steps, np.argmin(valid, axis=1))
+            keep = np.arange(steps)[None, :] < counts[:, None]
+            t = np.broadcast_to(np.arange(steps) / max(steps - 1, 1), points.shape[:2])
+            radii = 0.5 * settings.radius_scale * _hair_shape(settings.shape, settings.root_radius,
+                                                              settings.tip_radius, t) * math.sqrt(stride)
+            offsets = np.concatenate([[0], np.cumsum(counts)])
+            tubes = hair.tubes(points[keep], offsets, radii[keep].astype(np.float32))
+            if tubes.triangles.shape[0] == 0:
+                continue
+            local = _LocalMesh(positions=tubes.positions, normals=tubes.normals,
+                               uvs=np.full((tubes.positions.shape[0], 2), np.nan, np.float32),
+                               triangles=tubes.triangles,
+                               slot=np.full(tubes.triangles.shape[0], max(int(settings.material) - 1, 0), np.int32))
+            slot_to_material, local = self._slot_materials(obj, local, bakes=False)
+            self._add_placed(local, slot_to_material, np.eye(4))
+            self.objects.append(snap.ObjectInfo(name=f"{obj.name}/{psys.name}",
+                                                camera_visible=bool(getattr(obj, "visible_camera", True)),
+                                                casts_shadow=bool(getattr(obj, "visible_shadow", True))))
 
     def _add_placed(self, local, slot_to_material, matrix):
         """Queue one instance of `local` (object index: the next ObjectInfo's). Consecutive
@@ -458,7 +518,7 @@ class _SnapshotBuilder:
             self._meshes[key] = mesh_arrays(obj.data)
         return self._meshes[key]
 
-    def _slot_materials(self, obj, local, dynamic=False):
+    def _slot_materials(self, obj, local, dynamic=False, bakes=True):
         """(global material index of each slot, the local mesh): slots whose material needs a
         bake get a material of their own for this mesh, and its triangles the atlas UVs."""
         materials = [slot.material for slot in obj.material_slots]
@@ -468,7 +528,7 @@ class _SnapshotBuilder:
             self.without_material.add(obj.name)
             return [self._material(None)], local
         slots = np.clip(local.slot, 0, len(materials) - 1)
-        if obj.type != "MESH":
+        if obj.type != "MESH" or not bakes:
             # Hair tubes have no UVs to bake over, nor tangents: each material's own values.
             return [self._material(material) for material in materials], local
         baked = {}
