@@ -439,7 +439,14 @@ class _SnapshotBuilder:
                                triangles=tubes.triangles,
                                slot=np.full(tubes.triangles.shape[0], max(int(settings.material) - 1, 0), np.int32))
             slot_to_material, local = self._slot_materials(obj, local, bakes=False)
-            self._add_placed(local, slot_to_material, np.eye(4))
+            # co_hair gives the emitter's own world space: an instance of it moves the strands along.
+            matrix = np.eye(4)
+            if instance.is_instance:
+                matrix = np.asarray(instance.matrix_world, np.float64) @ np.linalg.inv(
+                    np.asarray(obj.matrix_world, np.float64))
+            if not np.isfinite(matrix).all():
+                continue
+            self._add_placed(local, slot_to_material, matrix)
             self.objects.append(snap.ObjectInfo(name=f"{obj.name}/{psys.name}",
                                                 camera_visible=bool(getattr(obj, "visible_camera", True)),
                                                 casts_shadow=bool(getattr(obj, "visible_shadow", True))))
