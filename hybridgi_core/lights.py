@@ -289,9 +289,11 @@ def spot_attenuation(light: Light, to_point: np.ndarray) -> np.ndarray:
 
 
 def shadow_query(tracer):
-    """The tracer's query for shadow rays: `occluded_shadow` (objects hidden from shadow rays and
-    materials transparent to them let the ray through) where it has one, else `occluded`."""
-    return getattr(tracer, "occluded_shadow", tracer.occluded)
+    """The tracer's query for shadow rays: `occluded_shadow` where its scene has triangles shadow
+    rays pass (objects hidden from shadow rays, materials transparent to them:
+    `EmbreeTracer.has_shadow_skips`), else `occluded` (every other scene takes the same calls as
+    before, wrappers of `occluded` included)."""
+    return tracer.occluded_shadow if getattr(tracer, "has_shadow_skips", False) else tracer.occluded
 
 
 def _shadow_to_targets(tracer, p, nrm, idx, tx, ty, tz, epsilon):

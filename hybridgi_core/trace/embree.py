@@ -157,6 +157,11 @@ class EmbreeTracer:
         self._cutouts = cutouts if cutouts is not None and cutouts.any else None
         self._shadow_skip = cutouts if cutouts is not None and cutouts.shadow_any else None
 
+    @property
+    def has_shadow_skips(self) -> bool:
+        """Whether shadow rays pass some triangles (`set_cutouts`): `lights.shadow_query`."""
+        return self._shadow_skip is not None
+
     def occluded_shadow(
         self, origins: np.ndarray, directions: np.ndarray, tfar: float | np.ndarray = np.inf, trusted: bool = False
     ) -> np.ndarray:
