@@ -1,12 +1,13 @@
 """What an artist's scene holds that earlier rounds did not cover, through the real `hybridgi
 render` command against Cycles rendered in the same test (64 spp + OIDN).
 
-A sweep of 42 such scenes (128x96, default settings; `git log` of this file has the table) found
-collection and Geometry Nodes instances, modifiers, text and curve bevels, metaballs, negative
-scales, objects without a material, orthographic and shifted cameras, sensor fit, clipping,
-resolution percentage, image-alpha leaves (Principled Alpha, Mix with a Transparent BSDF), colour
-attributes, emission shaders, a Sky Texture, Filmic, a wide pixel filter and 1000x / 0.001x
-scenes within Combined rel L1 0.03 of Cycles. The cases below were wrong and are fixed here.
+A sweep of 49 such scenes (`bench/artist_scenes.py`, `bench/artist_sweep.py`: 128x96, default
+settings; the commit that added them has the table) found collection and Geometry Nodes
+instances, modifiers, text and curve bevels, metaballs, negative scales, objects without a
+material or with several, orthographic and shifted cameras, sensor fit, clipping, resolution
+percentage, image-alpha leaves (Principled Alpha, Mix with a Transparent BSDF), colour attributes,
+emission shaders, a Sky Texture, Filmic, a wide pixel filter and 1000x / 0.001x scenes within
+Combined rel L1 0.03 of Cycles. The cases below were wrong and are fixed here.
 """
 
 from __future__ import annotations
