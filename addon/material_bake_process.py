@@ -49,6 +49,10 @@ def source_socket(tree, node_name, socket_id):
 EMISSION_INPUTS = {"BSDF_PRINCIPLED": ("Emission Color", "Emission Strength"), "EMISSION": ("Color", "Strength")}
 
 
+#: Scalar inputs baked as a grey (`sync.BAKED_SCALARS`).
+SCALARS = {"Metallic"}
+
+
 def wire(tree, target, node_name, socket_name):
     """Feed input `socket_name` of node `node_name` into `target`: its source, or its value."""
     socket = tree.nodes[node_name].inputs[socket_name]
@@ -107,6 +111,14 @@ def run(job):
         colour, strength = EMISSION_INPUTS[tree.nodes[job["node"]].type]
         wire(tree, emission.inputs["Color"], job["node"], colour)
         wire(tree, emission.inputs["Strength"], job["node"], strength)
+    elif job["socket"] in SCALARS:
+        # A float input: Blender's own conversion of what feeds it (a colour's luminance), clamped
+        # as the BSDF clamps it, as a grey.
+        scalar = tree.nodes.new("ShaderNodeMath")
+        scalar.operation, scalar.use_clamp = "ADD", True
+        scalar.inputs[1].default_value = 0.0
+        tree.links.new(source_socket(tree, job["node"], job["socket"]), scalar.inputs[0])
+        tree.links.new(scalar.outputs[0], emission.inputs["Color"])
     else:
         tree.links.new(source_socket(tree, job["node"], job["socket"]), emission.inputs["Color"])
     tree.links.new(emission.outputs[0], output.inputs["Surface"])

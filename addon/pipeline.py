@@ -25,6 +25,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from hybridgi_core import errors, visible
+from hybridgi_core.raster import gbuffer
 from hybridgi_core.raster.frame import FramePipeline
 from hybridgi_core.raster.gather import max_texture_size
 from hybridgi_core.session import GISession
@@ -481,6 +482,14 @@ def _write_result(engine, depsgraph, pipeline, width, height, world, cache=None,
             combined[..., :3] *= combined[..., 3:4]
     else:
         combined[..., 3] = 1.0  # Cycles' alpha is 1 on the background unless the film is transparent
+    depth = film.read("depth")
+    holes = gbuffer.holdout_mask(depth[..., 0])
+    if holes.any():
+        # Holdouts: Cycles' Combined is 0 and its alpha the rest's coverage, transparent film or
+        # not (the premultiplied colour, whose background adds nothing); their Depth the background's.
+        if not render.film_transparent:
+            combined[holes] = film.read("combined_premultiplied")[holes]
+        depth = np.where(holes[..., None], np.float32(gbuffer.BACKGROUND_DEPTH), depth)
     exposure = film_exposure(depsgraph.scene)
     combined[..., :3] *= exposure
     result.set("Combined", combined)
@@ -488,7 +497,7 @@ def _write_result(engine, depsgraph, pipeline, width, height, world, cache=None,
     result.set("Diffuse Indirect", film.read("diffuse_indirect") * exposure)
     result.set("Diffuse Color", film.read("diffuse_color"))
     result.set("Ambient Occlusion", np.repeat(film.read("ao"), 3, axis=-1))
-    result.set("Depth", film.read("depth"))
+    result.set("Depth", depth)
     result.set("Normal", film.read("normal"))  # the average of the hits' normals, 0 on the background
     result.set("Glossy Direct", film.read("glossy_direct") * exposure)
     result.set("Glossy Indirect", film.read("glossy_indirect") * exposure)

@@ -14,11 +14,12 @@ and the view-dependent weight they leave the diffuse part.
 """
 
 import logging
+import math
 from dataclasses import dataclass, replace
 
 import numpy as np
 
-from hybridgi_core import environment, surface_mix
+from hybridgi_core import environment, hair, surface_mix
 from hybridgi_core import snapshot as snap
 from hybridgi_core import specular as sp
 from hybridgi_core.blackbody import blackbody_rgb
@@ -53,7 +54,7 @@ def snapshot_from_depsgraph(depsgraph, dynamic_names=frozenset(), wait_for_world
     (`material_bake`) keep their constant value until the background bake is done.
     """
     builder = _SnapshotBuilder(frozenset(dynamic_names), _collection_flags(depsgraph.view_layer),
-                               wait=wait_for_world)
+                               wait=wait_for_world, render_mode=getattr(depsgraph, "mode", "RENDER") == "RENDER")
     for instance in depsgraph.object_instances:
         builder.add_instance(instance)
     builder.warn_unsupported()
@@ -66,10 +67,8 @@ def snapshot_from_depsgraph(depsgraph, dynamic_names=frozenset(), wait_for_world
 #: Cycles' per-object ray visibility HybridGI does not follow (the object takes part as if on):
 #: property -> what it means, for the warning.
 IGNORED_VISIBILITY = {
-    "visible_shadow": "hidden from shadow rays",
     "visible_diffuse": "hidden from diffuse rays",
     "visible_glossy": "hidden from glossy rays",
-    "is_holdout": "a holdout",
     "is_shadow_catcher": "a shadow catcher",
 }
 
@@ -110,6 +109,50 @@ class _LocalMesh:
     triangles: np.ndarray
     slot: np.ndarray
     tangents: np.ndarray | None = None
+
+
+#: Strands of one particle hair system read (one `co_hair` call per point each).
+MAX_PARTICLE_STRANDS = 50_000
+
+
+def _hair_shape(shape, root, tip, t):
+    """Cycles' shaperadius: the strand's radius factor from root to tip at t (0..1) by Shape."""
+    radius = 1.0 - np.asarray(t, np.float64)
+    if shape < 0.0:
+        radius = radius ** (1.0 + shape)
+    elif shape > 0.0:
+        radius = radius ** (1.0 / max(1.0 - shape, 1e-6))
+    return radius * (root - tip) + tip
+
+
+def _hair_arrays(curves, name):
+    """`_LocalMesh` of a Blender Curves datablock's strands as tubes, or None without any."""
+    n_points, n_curves = len(curves.points), len(curves.curves)
+    if n_points < 2 or n_curves == 0:
+        return None
+    points = np.empty(n_points * 3, np.float32)
+    curves.position_data.foreach_get("vector", points)
+    offsets = np.empty(n_curves + 1, np.int32)
+    curves.curve_offset_data.foreach_get("value", offsets)
+    radius = curves.attributes.get("radius")
+    radii = np.full(n_points, 0.01, np.float32)  # Blender's radius where the attribute is missing
+    if radius is not None and radius.domain == "POINT" and radius.data_type == "FLOAT":
+        radius.data.foreach_get("value", radii)
+    tubes = hair.tubes(points, offsets, radii)
+    if tubes.thinned > 1:
+        log.warning("hair %r: %d strands are more than %d triangles; every %d-th is kept, widened to cover as much",
+                    name, n_curves, hair.TRIANGLE_BUDGET, tubes.thinned)
+    if tubes.triangles.shape[0] == 0:
+        return None
+    slot = np.zeros(tubes.triangles.shape[0], np.int32)
+    index = curves.attributes.get("material_index")
+    if index is not None and index.domain == "CURVE":
+        per_curve = np.empty(n_curves, np.int32)
+        index.data.foreach_get("value", per_curve)
+        slot = per_curve[tubes.curve]
+    return _LocalMesh(positions=tubes.positions, normals=tubes.normals,
+                      uvs=np.full((tubes.positions.shape[0], 2), np.nan, np.float32), triangles=tubes.triangles,
+                      slot=slot)
 
 
 def mesh_arrays(mesh):
@@ -299,9 +342,10 @@ def _cofactor(m):
 
 
 class _SnapshotBuilder:
-    def __init__(self, dynamic_names, collection_flags=None, wait=True):
+    def __init__(self, dynamic_names, collection_flags=None, wait=True, render_mode=True):
         self.dynamic_names = dynamic_names
         self.wait = wait
+        self.render_mode = render_mode  # a render's depsgraph: particle paths at their render steps
         self._baked = {}  # (material, mesh pointer, slot) -> material index
         self._bakes = []  # (material index, bpy material, [BakeJob])
         self._atlas_meshes = {}  # (mesh pointer, baked slots) -> _LocalMesh with atlas UVs
@@ -327,11 +371,13 @@ class _SnapshotBuilder:
             if lamp is not None:
                 self.lights.append(lamp)
             return
-        # Only meshes: curves, text, surfaces and metaballs also arrive as a mesh instance of
-        # their evaluated geometry (converting them too would count them twice).
-        if obj.type != "MESH" or not instance.show_self:
+        if obj.type == "MESH" and instance.show_particles and len(obj.particle_systems):
+            self._add_particle_hair(instance)
+        # Meshes, and Curves (hair) as tubes: curves, text, surfaces and metaballs also arrive as
+        # a mesh instance of their evaluated geometry (converting them too would count them twice).
+        if obj.type not in ("MESH", "CURVES") or not instance.show_self:
             return
-        local = self._local_mesh(obj)
+        local = self._local_mesh(obj) if obj.type == "MESH" else self._hair_mesh(obj)
         if local is None:
             return
         parent = instance.parent if instance.is_instance else None
@@ -345,10 +391,65 @@ class _SnapshotBuilder:
         # A curve's own mesh instance has the curve as its parent: keep its plain name.
         name = obj.name if parent is None or parent.name == obj.name else f"{parent.name}/{obj.name}"
         camera_visible = bool(getattr(obj, "visible_camera", True))
+        casts_shadow = bool(getattr(obj, "visible_shadow", True)) and (
+            parent is None or parent.name == obj.name or bool(getattr(parent, "visible_shadow", True)))
+        holdout = bool(getattr(obj, "is_holdout", False)) or "holdout" in self.collection_flags.get(obj.name, ())
         if parent is not None and parent.name != obj.name:
             camera_visible = camera_visible and bool(getattr(parent, "visible_camera", True))
+            holdout = holdout or bool(getattr(parent, "is_holdout", False)) or (
+                "holdout" in self.collection_flags.get(parent.name, ()))
         self._note_ignored(obj)
-        self.objects.append(snap.ObjectInfo(name=name, dynamic=dynamic, camera_visible=camera_visible))
+        self.objects.append(snap.ObjectInfo(name=name, dynamic=dynamic, camera_visible=camera_visible,
+                                            holdout=holdout, casts_shadow=casts_shadow))
+
+    def _add_particle_hair(self, instance):
+        """Particle systems of type Hair rendered as strands (Render As Path) as tubes, in world
+        space (`ParticleSystem.co_hair`), children included; past MAX_PARTICLE_STRANDS every n-th
+        strand is read, widened by sqrt(n) (warned)."""
+        obj = instance.object
+        for psys in obj.particle_systems:
+            settings = psys.settings
+            if settings.type != "HAIR" or settings.render_type != "PATH":
+                continue
+            total = len(psys.particles) + len(psys.child_particles)
+            steps = (1 << int(settings.render_step if self.render_mode else settings.display_step)) + 1
+            if total == 0:
+                continue
+            stride = max(1, math.ceil(total / MAX_PARTICLE_STRANDS))
+            if stride > 1:
+                log.warning("hair %r of %r: %d strands; every %d-th is rendered, widened to cover as much",
+                            psys.name, obj.name, total, stride)
+            strands = range(0, total, stride)
+            points = np.array([tuple(psys.co_hair(obj, particle_no=i, step=k)) for i in strands for k in range(steps)],
+                              np.float32).reshape(len(strands), steps, 3)
+            # Steps past a strand's path read as the origin: each strand's points up to the first.
+            valid = np.any(points != 0.0, axis=2)
+            valid[:, 0] = True
+            counts = np.where(valid.all(axis=1), steps, np.argmin(valid, axis=1))
+            keep = np.arange(steps)[None, :] < counts[:, None]
+            t = np.broadcast_to(np.arange(steps) / max(steps - 1, 1), points.shape[:2])
+            radii = 0.5 * settings.radius_scale * _hair_shape(settings.shape, settings.root_radius,
+                                                              settings.tip_radius, t) * math.sqrt(stride)
+            offsets = np.concatenate([[0], np.cumsum(counts)])
+            tubes = hair.tubes(points[keep], offsets, radii[keep].astype(np.float32))
+            if tubes.triangles.shape[0] == 0:
+                continue
+            local = _LocalMesh(positions=tubes.positions, normals=tubes.normals,
+                               uvs=np.full((tubes.positions.shape[0], 2), np.nan, np.float32),
+                               triangles=tubes.triangles,
+                               slot=np.full(tubes.triangles.shape[0], max(int(settings.material) - 1, 0), np.int32))
+            slot_to_material, local = self._slot_materials(obj, local, bakes=False)
+            # co_hair gives the emitter's own world space: an instance of it moves the strands along.
+            matrix = np.eye(4)
+            if instance.is_instance:
+                matrix = np.asarray(instance.matrix_world, np.float64) @ np.linalg.inv(
+                    np.asarray(obj.matrix_world, np.float64))
+            if not np.isfinite(matrix).all():
+                continue
+            self._add_placed(local, slot_to_material, matrix)
+            self.objects.append(snap.ObjectInfo(name=f"{obj.name}/{psys.name}",
+                                                camera_visible=bool(getattr(obj, "visible_camera", True)),
+                                                casts_shadow=bool(getattr(obj, "visible_shadow", True))))
 
     def _add_placed(self, local, slot_to_material, matrix):
         """Queue one instance of `local` (object index: the next ObjectInfo's). Consecutive
@@ -371,9 +472,8 @@ class _SnapshotBuilder:
             hidden = not getattr(obj, prop, True) if prop.startswith("visible") else getattr(obj, prop, False)
             if hidden:
                 self.ignored.setdefault(meaning, set()).add(obj.name)
-        for flag in self.collection_flags.get(obj.name, ()):
-            meaning = {"holdout": "in a holdout collection", "indirect_only": "in an indirect-only collection"}[flag]
-            self.ignored.setdefault(meaning, set()).add(obj.name)
+        if "indirect_only" in self.collection_flags.get(obj.name, ()):
+            self.ignored.setdefault("in an indirect-only collection", set()).add(obj.name)
 
     def _note_linking(self, obj):
         """Light and shadow linking (Blender 4.0+): noted, not followed."""
@@ -412,13 +512,20 @@ class _SnapshotBuilder:
         more = f" (and {len(names) - 5} more materials)" if len(names) > 5 else ""
         log.warning("Shader features approximated: %s%s", listed, more)
 
+    def _hair_mesh(self, obj):
+        """`_LocalMesh` of a Curves object's strands as tubes (`hybridgi_core.hair`; no UVs), or None."""
+        key = obj.data.as_pointer()
+        if key not in self._meshes:
+            self._meshes[key] = _hair_arrays(obj.data, obj.name)
+        return self._meshes[key]
+
     def _local_mesh(self, obj):
         key = obj.data.as_pointer()
         if key not in self._meshes:
             self._meshes[key] = mesh_arrays(obj.data)
         return self._meshes[key]
 
-    def _slot_materials(self, obj, local, dynamic=False):
+    def _slot_materials(self, obj, local, dynamic=False, bakes=True):
         """(global material index of each slot, the local mesh): slots whose material needs a
         bake get a material of their own for this mesh, and its triangles the atlas UVs."""
         materials = [slot.material for slot in obj.material_slots]
@@ -428,6 +535,9 @@ class _SnapshotBuilder:
             self.without_material.add(obj.name)
             return [self._material(None)], local
         slots = np.clip(local.slot, 0, len(materials) - 1)
+        if obj.type != "MESH" or not bakes:
+            # Hair tubes have no UVs to bake over, nor tangents: each material's own values.
+            return [self._material(material) for material in materials], local
         baked = {}
         for s, material in enumerate(materials):
             sockets = bake_sockets(material) if material is not None else []
@@ -533,16 +643,48 @@ def material_from_blender(material, textures=None, baked=None, pending=False):
     if shader is None:
         log.warning("material %r: no shader linked to an active output; using grey", name)
         return _grey(name)
+    if shader.type == "HOLDOUT":
+        # The camera sees a hole (the G-buffer and the film, `Material.holdout`); rays a black surface.
+        return snap.Material(name=name, base_color=np.zeros(3, np.float32), holdout=True)
+    shadow_transparent = False
+    surface = _shadow_ray_mix(shader)
+    if surface is not None:
+        shader, shadow_transparent = surface, True
     part = _shader_surface(shader, textures, name)
     if part is None:
         log.warning("material %r: shader %s is not supported; using grey %.1f", name, shader.bl_idname, FALLBACK_GREY)
         return _grey(name)
+    displaced = _displacement_bump(material, tree, textures, name)
+    if displaced is not None:
+        if part.normal is None:
+            part.normal = snap.NormalMap(bump=displaced)
+        elif part.normal.bump is None:
+            part.normal = replace(part.normal, bump=displaced)
+        else:
+            _note(textures, name, shader, "a Bump node and a Displacement: rendered with the Bump node's only")
     specular = part.surface()
     if specular is not None and sp.surface_lobes(specular):
         textures.glossy.add(name)
     return snap.Material(name=name, base_color=part.base.astype(np.float32), texture=part.texture,
                          emission=part.emission.astype(np.float32), alpha=part.alpha, specular=specular,
-                         normal_map=part.normal, emission_texture=part.emission_texture)
+                         normal_map=part.normal, emission_texture=part.emission_texture,
+                         metallic_map=part.metallic_map if part.layer is not None else None,
+                         shadow_transparent=shadow_transparent)
+
+
+def _shadow_ray_mix(shader):
+    """The other shader of Mix(a surface, Transparent BSDF) whose factor is Light Path > Is Shadow
+    Ray (Transparent on the factor-1 side): what every ray but shadow rays sees; None for any
+    other shader."""
+    if shader.type != "MIX_SHADER" or shader.mute:
+        return None
+    source, output = _source(shader.inputs["Fac"])
+    if source is None or source.type != "LIGHT_PATH" or output != "Is Shadow Ray":
+        return None
+    other, clear = (_linked_node(s) for s in shader.inputs[-2:])
+    if clear is None or clear.type != "BSDF_TRANSPARENT" or other is None:
+        return None
+    return other
 
 
 def _shader_surface(shader, textures, name, depth=0):
@@ -556,13 +698,23 @@ def _shader_surface(shader, textures, name, depth=0):
     kind = shader.type
     if kind == "BSDF_PRINCIPLED":
         base, texture = _color_socket(shader.inputs["Base Color"], textures, name)
-        metallic = _constant_value(shader.inputs["Metallic"], name)
+        metallic_map = _metallic_map(shader, textures, name)
+        metallic = (float(metallic_map.mean()) if metallic_map is not None
+                    else _constant_value(shader.inputs["Metallic"], name))
         transmission = _constant_value(_input(shader, "Transmission Weight", "Transmission"), name)
         coat = _constant_value(_input(shader, "Coat Weight"), name) if _input(shader, "Coat Weight") else 0.0
         tint = _constant_color(_input(shader, "Coat Tint"), name) if _input(shader, "Coat Tint") else np.ones(3)
         weight = (1.0 - np.clip(metallic, 0, 1)) * (1.0 - np.clip(transmission, 0, 1))
         _note_approximations(shader, textures, name, metallic, transmission, coat)
         layer = _specular_layer(shader, textures, name, base, texture, metallic, transmission)
+        if metallic_map is not None:
+            # The diffuse base per texel, base colour x (1 - metallic) as Cycles weighs it; the
+            # glossy lobes per pixel (`Material.metallic_map`), ray hits' by the mean metallic.
+            if texture is not None:
+                metallic_map = _resampled(metallic_map, texture.shape)
+            texture = (base if texture is None else texture) * (1.0 - metallic_map)
+            base = np.ones(3, np.float32)
+            weight = 1.0 - np.clip(transmission, 0, 1)
         base = base * weight * (1.0 + np.clip(coat, 0, 1) * (tint - 1.0))
         emission, glow = _emission(shader, shader.inputs["Emission Color"], shader.inputs["Emission Strength"],
                                    textures, name)
@@ -570,7 +722,8 @@ def _shader_surface(shader, textures, name, depth=0):
         return surface_mix.SurfacePart(base=base, texture=texture, emission=emission, emission_texture=glow,
                                        alpha=_alpha_map(shader.inputs["Alpha"], textures, name), diffuse=diffuse,
                                        lobes=sp.layer_lobes(layer), layer=layer,
-                                       normal=_normal_map(shader, textures, name))
+                                       normal=_normal_map(shader, textures, name),
+                                       metallic_map=None if metallic_map is None else metallic_map[..., 0])
     if kind == "BSDF_DIFFUSE":
         base, texture = _color_socket(shader.inputs["Color"], textures, name)
         return surface_mix.SurfacePart(base=base, texture=texture, normal=_normal_map(shader, textures, name))
@@ -589,6 +742,39 @@ def _shader_surface(shader, textures, name, depth=0):
     if kind in ("MIX_SHADER", "ADD_SHADER") and depth < 8:
         return _mix_surface(shader, kind, textures, name, depth)
     return None
+
+
+#: Scalar inputs of a Principled BSDF that `bake_sockets` bakes when a texture feeds them (the
+#: bake process routes them through a clamped Math node: Blender's own colour-to-float conversion).
+BAKED_SCALARS = {"BSDF_PRINCIPLED": ("Metallic",)}
+
+
+def _metallic_map(shader, textures, name):
+    """(h, w, 1) float32 Metallic per texel, or None when Metallic is a constant (or its texture
+    is missing: the constant path warns): an Image Texture's colour straight into it is read
+    directly (the mesh's UVs, as a base colour image), anything else (and any Metallic of a
+    material with other bakes, so that both share the atlas) is what Blender baked."""
+    socket = shader.inputs["Metallic"]
+    if not socket.is_linked or _fold(socket, 0) is not None:
+        return None
+    texels = textures.baked.get((shader.name, socket.identifier))
+    if texels is None:
+        source, output = _source(socket)
+        if source is not None and _direct_image(source, output):
+            texels = textures.get(source.image, name)
+    if texels is None:
+        return None
+    # A colour into a float input: Blender converts by the mean of the channels' luminance;
+    # metallic masks are grey.
+    return np.clip(np.asarray(texels, np.float32)[..., :3].mean(axis=-1, keepdims=True), 0.0, 1.0)
+
+
+def _resampled(values: np.ndarray, shape) -> np.ndarray:
+    """`values` (h', w', c) at (h, w) by nearest texels (textures read through the same UVs)."""
+    h, w = shape[:2]
+    if values.shape[:2] == (h, w):
+        return values
+    return values[(np.arange(h) * values.shape[0]) // h][:, (np.arange(w) * values.shape[1]) // w]
 
 
 #: Nodes that pass an image's channels through unchanged when their outputs feed the matching
@@ -645,6 +831,60 @@ def _normal_map(shader, textures, name):
         pixels = pixels[..., list(channels)]
         pixels = np.where(np.asarray(flips)[None, None, :], np.float32(1.0) - pixels, pixels).astype(np.float32)
     return snap.NormalMap(texture=pixels, strength=strength, uv_map=node.uv_map, bump=bump)
+
+
+def _displacement_bump(material, tree, textures, name):
+    """`snapshot.BumpMap` of the Material Output's Displacement as Cycles renders it by default
+    (Displacement > Bump Only, or the bump of Displacement and Bump): a Displacement node's
+    height bends the shading normal as a Bump node of Distance = its Scale does (Cycles
+    evaluates the displaced surface's normal, the same first-order term). None when nothing is
+    linked; anything it cannot follow (true displacement, a height other than an image, a vector
+    displacement) is noted."""
+    output = tree.get_output_node(OUTPUT_TARGET)
+    socket = None if output is None else output.inputs.get("Displacement")
+    if socket is None or not socket.is_linked:
+        return None
+    node, _output = _source(socket)
+    if node is None:
+        return None
+    method = getattr(material, "displacement_method", None) or getattr(
+        getattr(material, "cycles", None), "displacement_method", "BUMP")
+    if method == "DISPLACEMENT":
+        _note(textures, name, node, "true displacement (Settings > Displacement) is not rendered (the undisplaced surface)")
+        return None
+    if method == "DISPLACEMENT_BOTH":  # pragma: no cover - older Blender's name
+        method = "BOTH"
+    if method == "BOTH":
+        _note(textures, name, node, "Displacement and Bump: rendered as its bump only")
+    if node.type != "DISPLACEMENT":
+        _note(textures, name, node, f"displacement from {node.bl_idname} (rendered without it)")
+        return None
+    height = _height_map(node, node.inputs["Height"], textures, name, "Displacement height")
+    if height is None:
+        return None
+    return snap.BumpMap(height=height, strength=1.0, distance=_constant_value(node.inputs["Scale"], name))
+
+
+def _height_map(node, socket, textures, name, what_for):
+    """(h, w) float32 height of an Image Texture's Color (its Rec.709 luminance, as Cycles turns a
+    colour into a float) or Alpha feeding `socket`, read through the mesh's UV map; None for a
+    constant (nothing bends) or anything else (noted on `node`)."""
+    source, output = _source(socket)
+    if source is None:
+        return None  # a constant height bends nothing
+    vector = source.inputs.get("Vector") if source.type == "TEX_IMAGE" else None
+    direct = (source.type == "TEX_IMAGE" and source.image is not None
+              and output in ("Color", "Alpha") and (vector is None or _source(vector)[0] is None)
+              and source.projection == "FLAT" and source.extension == "REPEAT")
+    if not direct:
+        what = "an image through a mapping or projection" if source.type == "TEX_IMAGE" else source.bl_idname
+        _note(textures, name, node, f"{what_for} from {what} (rendered with the smooth normal)")
+        return None
+    if output == "Alpha":
+        height = textures.alpha(source.image, name)
+        return np.ones(tuple(source.image.size)[::-1], np.float32) if height is None else height  # no alpha: flat
+    colour = textures.get(source.image, name)
+    return None if colour is None else (colour @ surface_mix.GRAY.astype(np.float32)).astype(np.float32)
 
 
 def _bump_map(node, textures, name):
@@ -1140,6 +1380,11 @@ def bake_sockets(material) -> list[tuple[str, str]]:
                 source, output = _source(colour)
                 image = _fold(strength, 0) is not None and _direct_image(source, output)
                 (images if image else out).append((node.name, EMISSION_BAKE))
+        for scalar in BAKED_SCALARS.get(node.type, ()):
+            socket = node.inputs.get(scalar)
+            source, output = _source(socket) if socket is not None and socket.is_linked else (None, None)
+            if source is not None and _fold(socket, 0) is None:
+                (images if _direct_image(source, output) else out).append((node.name, socket.identifier))
         name = BAKED_INPUTS.get(node.type)
         socket = node.inputs.get(name) if name else None
         if socket is None or not socket.is_linked:
@@ -1499,24 +1744,40 @@ def _is_uniform(node) -> bool:
             and not node.inputs["Strength"].is_linked)
 
 
-def _world_split(world, node, wait=True):
+def _world_split(world, node, wait=True, rays="camera"):
     """(`EnvironmentSplit`, strength still to apply) of a world whose output `node` varies with
     direction; None for a uniform world, or one that could not be read (yet).
 
     An Environment Texture on the Background's colour is read directly (exact, fast); any other
     tree (Sky Texture, gradients, mixes) is baked by Blender itself (`world_bake`), both cached.
+    rays : "camera", or "diffuse" for the world as diffuse bounce rays see it (a tree with Light
+    Path nodes; always baked).
     """
     if _is_uniform(node):
         return None
-    if node.type == "BACKGROUND" and not node.inputs["Strength"].is_linked:
+    if rays == "camera" and node.type == "BACKGROUND" and not node.inputs["Strength"].is_linked:
         source, output = _source(node.inputs["Color"])
         if source is not None and source.type == "TEX_ENVIRONMENT" and output == "Color":
             split = _environment_split(source, world.name)
             if split is not None:
                 return split, float(_value(node.inputs["Strength"]))
-    key = world_bake.world_key(world)
-    split = _cached_split(("baked", key), lambda: world_bake.bake_world(world, wait=wait, key=key))
+    key = world_bake.world_key(world, rays)
+    split = _cached_split(("baked", key), lambda: world_bake.bake_world(world, wait=wait, key=key, rays=rays))
     return None if split is None else (split, 1.0)
+
+
+def _light_path_outputs(tree, seen=None) -> set[str]:
+    """Names of the Light Path outputs a (world) node tree uses, in nested groups too."""
+    seen = set() if seen is None else seen
+    if tree is None or tree.name_full in seen:
+        return set()
+    seen.add(tree.name_full)
+    used = set()
+    for n in tree.nodes:
+        if n.type == "LIGHT_PATH" and not n.mute:
+            used |= {o.name for o in n.outputs if o.is_linked}
+        used |= _light_path_outputs(getattr(n, "node_tree", None), seen)
+    return used
 
 
 def _sun_light(split, strength, world_name):
@@ -1575,13 +1836,13 @@ def _read_world(world, wait=True):
     if world.node_tree is None:
         return snap.World(color=_rgb(world.color), ao_distance=ao_distance), []
     _warn_volume(world.node_tree, f"world {world.name!r}")
-    if any(n.type == "LIGHT_PATH" and not n.mute and any(o.is_linked for o in n.outputs) for n in world.node_tree.nodes):
-        log.warning("world %r: its Light Path node is read as camera rays see it (the sky lights the scene "
-                    "with what the camera sees)", world.name)
     node = _output_node(world)
     if node is None:
         # Cycles renders a world with nothing linked to its output as black.
         return snap.World(color=np.zeros(3, np.float32), ao_distance=ao_distance), []
+    light_path = _light_path_outputs(world.node_tree)
+    if light_path:
+        return _read_light_path_world(world, node, ao_distance, light_path, wait)
     found = _world_split(world, node, wait)
     if found is not None:
         split, strength = found
@@ -1601,6 +1862,31 @@ def _read_world(world, wait=True):
         log.warning("world %r: its background could not be read; using its colour value", world.name)
     radiance = (_rgb(node.inputs["Color"].default_value) * _value(node.inputs["Strength"])).astype(np.float32)
     return snap.World(color=radiance, ao_distance=ao_distance), []
+
+
+def _read_light_path_world(world, node, ao_distance, outputs, wait):
+    """A world whose tree reads a Light Path node (a backdrop for the camera, an HDRI for the
+    light: "Is Camera Ray"): it lights the scene as a diffuse bounce ray sees it, and the
+    background shows what the camera sees; each is baked by Blender (`world_bake`, cached)."""
+    ambiguous = sorted(outputs & world_bake.AMBIGUOUS_OUTPUTS)
+    if ambiguous:
+        log.warning("world %r: Light Path %s read as a diffuse bounce ray sees it (Cycles' lamp sampling of the "
+                    "world sees none of the ray flags)", world.name, ", ".join(ambiguous))
+    light = _world_split(world, node, wait, rays="diffuse")
+    seen = _world_split(world, node, wait)
+    if light is None or seen is None:
+        if not world_bake.pending():
+            log.warning("world %r: its Light Path tree could not be baked; using its colour value", world.name)
+        return snap.World(color=_rgb(world.color), ao_distance=ao_distance), []
+    (split, strength), (camera_split, camera_strength) = light, seen
+    log.info("world %r: lit as diffuse rays see it (%s), seen as the camera sees it", world.name,
+             "a shadowed sun" if split.sun_direction is not None else "no sun")
+    sun = _sun_light(split, strength, world.name)
+    sky_map = None if split.sky_map is None else environment.SkyMap(split.sky_map * np.float32(strength), split.to_world)
+    return snap.World(color=(split.sky * strength).astype(np.float32), ao_distance=ao_distance,
+                      sky_sh=(split.sky_sh * strength).astype(np.float32), sky_map=sky_map,
+                      background=(camera_split.sky * camera_strength).astype(np.float32)), \
+        [sun] if sun is not None else []
 
 
 # --- partial re-reads (shading edits in the viewport) ---------------------------------------

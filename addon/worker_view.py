@@ -60,7 +60,7 @@ class GlossyLevel:
         self.position, self.normal = level.position, level.normal
         h, w = level.position.shape[:2]
         self.shape = (h, w)
-        rows = _glossy.material_rows(np.asarray(material).reshape(-1)[pix])
+        rows = _glossy.material_rows(np.asarray(material).reshape(-1)[pix], glossy_materials)
         safe = np.where((rows >= 0) & (rows < len(glossy_materials.layers)), rows, -1)
         sel = np.flatnonzero(np.append(reflecting(glossy_materials), False)[safe])
         self.points, self.normals, self.rows = points[sel], normals[sel], safe[sel]

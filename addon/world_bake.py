@@ -16,6 +16,7 @@ the main thread; the bake process itself runs headless with the factory settings
 from __future__ import annotations
 
 import hashlib
+import json
 import logging
 import os
 import shutil
@@ -43,17 +44,51 @@ BAKE_TIMEOUT_S = 120
 #: Maps kept in memory (worlds are few, maps 1.5 MiB).
 KEPT = 8
 
+#: The Light Path node's outputs as a ray leaving a diffuse surface sees the world (Cycles' first
+#: bounce: depth 1 of the diffuse kind, a reflection; the rest 0; the ray is unbounded). A world
+#: that mixes with Light Path ("Is Camera Ray": a backdrop the camera sees, an HDRI that lights)
+#: is baked once as the camera sees it (the background) and once as this ray does (the light).
+DIFFUSE_RAY = {"Is Camera Ray": 0.0, "Is Shadow Ray": 0.0, "Is Diffuse Ray": 1.0, "Is Glossy Ray": 0.0,
+               "Is Singular Ray": 0.0, "Is Reflection Ray": 1.0, "Is Transmission Ray": 0.0,
+               "Is Volume Scatter Ray": 0.0, "Ray Length": 1.0e10, "Ray Depth": 1.0, "Diffuse Depth": 1.0,
+               "Glossy Depth": 0.0, "Transparent Depth": 0.0, "Transmission Depth": 0.0}
+#: Light Path outputs whose value differs between Cycles' two ways of finding the world from a
+#: diffuse surface (lamp sampling evaluates the world with none of the ray flags set, a bounce
+#: ray with its own): `DIFFUSE_RAY` is the second; a warning names them.
+AMBIGUOUS_OUTPUTS = frozenset({"Is Diffuse Ray", "Is Reflection Ray", "Ray Depth", "Diffuse Depth", "Ray Length"})
+
 #: Finished maps (memory and ~/.cache/hybridgi/worlds) and the background bakes.
 STORE = BakeStore("worlds", KEPT)
 
 #: Runs in the bake process: argv = the .blend holding the world, its name, the output .npy.
 _BAKE_SCRIPT = r"""
+import json
 import sys
 import bpy
 import numpy as np
-blend, name, out, width, height, samples, reduce = sys.argv[-7:]
+blend, name, out, width, height, samples, reduce, rays = sys.argv[-8:]
 with bpy.data.libraries.load(blend) as (data_from, data_to):
     data_to.worlds = [name]
+if rays != "camera":
+    # The world as a diffuse bounce ray sees it: every linked Light Path output becomes a Value
+    # node of that ray's value (the bake's own rays are camera rays).
+    values = json.loads(rays)
+    def ray_values(tree, seen):
+        if tree is None or tree.name_full in seen:
+            return
+        seen.add(tree.name_full)
+        for node in list(tree.nodes):
+            if node.type == "LIGHT_PATH":
+                for output in node.outputs:
+                    targets = [link.to_socket for link in tree.links if link.from_socket == output]
+                    if not targets:
+                        continue
+                    value = tree.nodes.new("ShaderNodeValue")
+                    value.outputs[0].default_value = values.get(output.identifier, 0.0)
+                    for socket in targets:  # replaces the input's link
+                        tree.links.new(value.outputs[0], socket)
+            ray_values(getattr(node, "node_tree", None), seen)
+    ray_values(data_to.worlds[0].node_tree, set())
 scene = bpy.context.scene
 for obj in list(scene.objects):
     bpy.data.objects.remove(obj)
@@ -102,11 +137,14 @@ def _value_repr(value) -> str:
     return repr(value)
 
 
-def world_key(world) -> str:
+def world_key(world, rays: str = "camera") -> str:
     """Hash of what a world's output depends on: its nodes' settings, socket values and links,
-    the images they read (by name, path and size), and the Blender version."""
+    the images they read (by name, path and size), and the Blender version; with
+    rays="diffuse", of its map as diffuse bounce rays see it (`DIFFUSE_RAY`)."""
     digest = hashlib.sha256(bpy.app.version_string.encode())
     tree_digest(digest, world.node_tree)
+    if rays != "camera":
+        digest.update(f"rays={rays}:{sorted(DIFFUSE_RAY.items())}".encode())
     return digest.hexdigest()[:32]
 
 
@@ -158,18 +196,20 @@ def tree_digest(digest, tree, seen: set | None = None) -> None:
             tree_digest(digest, group, seen)
 
 
-def bake_world(world, wait: bool = True, key: str | None = None) -> np.ndarray | None:
+def bake_world(world, wait: bool = True, key: str | None = None, rays: str = "camera") -> np.ndarray | None:
     """(h, w, 3) float32 linear radiance of `world` in every direction (the core's equirect
     layout), or None when the bake failed (logged; the caller falls back) or, with wait=False,
-    is still running in the background. key : `world_key(world)` when the caller has it."""
-    key = key or world_key(world)
+    is still running in the background. key : `world_key(world, rays)` when the caller has it.
+    rays : "camera" (what the camera sees) or "diffuse" (what lights a diffuse surface: its
+    Light Path nodes read as `DIFFUSE_RAY`)."""
+    key = key or world_key(world, rays)
     pixels = STORE.get(key)
     if pixels is not None:
         return pixels
     if not wait:
-        _start(world, key)
+        _start(world, key, rays)
         return None
-    return _finish(key, _bake(world))
+    return _finish(key, _bake(world, rays))
 
 
 def pending() -> bool:
@@ -182,12 +222,12 @@ def _finish(key: str, pixels: np.ndarray | None) -> np.ndarray | None:
     return None if pixels is None else STORE.put(key, pixels)
 
 
-def _start(world, key: str) -> None:
+def _start(world, key: str, rays: str = "camera") -> None:
     """Bake on a thread (main thread: the world is written out here, the thread only waits)."""
     if STORE.running(key):
         return
     tmp = tempfile.mkdtemp(prefix="hybridgi_world_")
-    cmd, out = _command(world, tmp)
+    cmd, out = _command(world, tmp, rays)
     name = world.name
 
     def work():
@@ -200,13 +240,14 @@ def _start(world, key: str) -> None:
     STORE.start(key, work, "hybridgi-world-bake")
 
 
-def _command(world, tmp: str) -> tuple[list[str], str]:
+def _command(world, tmp: str, rays: str = "camera") -> tuple[list[str], str]:
     """The bake process's command line for `world` (written to a .blend in `tmp`), and its output."""
     blend = os.path.join(tmp, "world.blend")
     out = os.path.join(tmp, "map")
     # Only the world and what it uses; image paths made absolute so the bake finds them.
     bpy.data.libraries.write(blend, {world}, path_remap="ABSOLUTE", fake_user=True)
-    args = [blend, world.name, out, str(BAKE_WIDTH), str(BAKE_HEIGHT), str(BAKE_SAMPLES), str(BAKE_REDUCE)]
+    args = [blend, world.name, out, str(BAKE_WIDTH), str(BAKE_HEIGHT), str(BAKE_SAMPLES), str(BAKE_REDUCE),
+            "camera" if rays == "camera" else json.dumps(DIFFUSE_RAY)]
     if bpy.app.binary_path:  # inside Blender: its own binary, headless
         return [bpy.app.binary_path, "-b", "--factory-startup", "--python-expr", _BAKE_SCRIPT, "--", *args], out
     return [sys.executable, "-c", _BAKE_SCRIPT, *args], out  # the bpy module: this Python
@@ -230,7 +271,7 @@ def _run(cmd: list[str], out: str, name: str) -> np.ndarray | None:
     return pixels
 
 
-def _bake(world) -> np.ndarray | None:
+def _bake(world, rays: str = "camera") -> np.ndarray | None:
     with tempfile.TemporaryDirectory(prefix="hybridgi_world_") as tmp:
-        cmd, out = _command(world, tmp)
+        cmd, out = _command(world, tmp, rays)
         return _run(cmd, out, world.name)

@@ -222,7 +222,10 @@ def _material_key(material: Material) -> tuple:
     normal_map = None if material.normal_map is None else material.normal_map.key()
     glow = getattr(material, "emission_texture", None)
     glow_key = None if glow is None else (glow.shape, float(glow.sum(dtype=np.float64)))
-    return material.base_color.tobytes(), material.emission.tobytes(), texture_key, specular, normal_map, glow_key
+    metal = getattr(material, "metallic_map", None)
+    metal_key = None if metal is None else (metal.shape, float(metal.sum(dtype=np.float64)))
+    return (material.base_color.tobytes(), material.emission.tobytes(), texture_key, specular, normal_map, glow_key,
+            metal_key, getattr(material, "holdout", False), getattr(material, "shadow_transparent", False))
 
 
 def _world_key(world: World) -> tuple:

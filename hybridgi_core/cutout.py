@@ -14,9 +14,20 @@ from .snapshot import ALPHA_CUTOFF, Geometry, Material
 
 
 class Cutouts:
-    """Per-triangle alpha lookups of one ray geometry (indices as the tracer's prim ids)."""
+    """Per-triangle alpha lookups of one ray geometry (indices as the tracer's prim ids), and the
+    triangles shadow rays pass through (`shadow_transparent`): objects hidden from shadow rays
+    (`ObjectInfo.casts_shadow`) and materials Cycles makes transparent to them
+    (`Material.shadow_transparent`, a Light Path > Is Shadow Ray mix)."""
 
-    def __init__(self, geometry: Geometry, materials: list[Material]):
+    def __init__(self, geometry: Geometry, materials: list[Material], objects=None):
+        unshadowing = [i for i, m in enumerate(materials) if getattr(m, "shadow_transparent", False)]
+        passed = [i for i, o in enumerate(objects or ()) if not getattr(o, "casts_shadow", True)]
+        skip = np.zeros(geometry.triangle_count, bool)
+        if unshadowing:
+            skip |= np.isin(np.asarray(geometry.material_index), unshadowing)
+        if passed:
+            skip |= np.isin(np.asarray(geometry.object_index), passed)
+        self._shadow_skip = skip if skip.any() else None
         cut = [i for i, m in enumerate(materials) if m.alpha is not None]
         self._alpha = {i: np.asarray(materials[i].alpha, np.float32) for i in cut}
         self._material = np.asarray(geometry.material_index, np.int32)
@@ -30,6 +41,17 @@ class Cutouts:
     @property
     def any(self) -> bool:
         return bool(self._has.any())
+
+    @property
+    def shadow_any(self) -> bool:
+        """Whether any triangle lets shadow rays through."""
+        return self._shadow_skip is not None
+
+    def shadow_transparent(self, prim: np.ndarray) -> np.ndarray:
+        """(n,) bool: the hit triangle lets shadow rays through (prim -1: False)."""
+        if self._shadow_skip is None:
+            return np.zeros(prim.shape[0], bool)
+        return (prim >= 0) & self._shadow_skip[np.maximum(prim, 0)]
 
     def transparent(self, prim: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
         """(n,) bool: the hit (triangle prim, Embree barycentrics u, v) lies in a hole."""

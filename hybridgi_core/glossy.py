@@ -26,7 +26,7 @@ of the surroundings are missing.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -40,6 +40,7 @@ from .lights import (
     _sample_spherical_rectangle,
     _shadow_to_targets,
     concentric_disk,
+    shadow_query,
     spot_attenuation,
     spread_attenuation,
     stratified_uv,
@@ -57,6 +58,11 @@ MIN_ROUGHNESS = 0.02
 #: View cosines at which `GlossyMaterials.reflects` looks for a Glossy Color above 0.
 _REFLECT_COSINES = np.array([0.1, 0.5, 1.0])
 
+
+#: Metallic values of the variants of a material with a Metallic texture (`Material.metallic_map`):
+#: the G-buffer writes each pixel's texel value into the material target's fraction
+#: (`raster/gbuffer`), `glossy_image.material_rows` picks the nearest variant's row.
+METALLIC_STEPS = 5
 
 #: View cosines of each material's tabulated Glossy Color (`GlossyMaterials.color_table`).
 COLOR_TABLE_SIZE = 1025
@@ -76,6 +82,9 @@ class GlossyMaterials:
     view factor over `specular.view_grid` (ones without one); layers : each material's `specular`;
     reflects : (m,) whether a material's glossy lobes reflect anything at all (a Glossy Color
     above 0 at some view angle, mirror-like lobes included): a scene without is skipped whole.
+    Rows past the materials' are the `METALLIC_STEPS` variants of each material with a Metallic
+    texture (its layer at metallic 0, 0.25, ... 1); variants : (materials,) int64 the first
+    variant row of each material, -1 for the rest.
     """
 
     rough: np.ndarray
@@ -94,10 +103,18 @@ class GlossyMaterials:
     #: (m, COLOR_TABLE_SIZE, 3) float32 each material's Glossy Color over the view cosine on a
     #: uniform grid of [0, 1] (`glossy_color` interpolates it); `from_materials` fills it.
     color_table: np.ndarray | None = None
+    variants: np.ndarray | None = None
 
     @classmethod
     def from_materials(cls, materials) -> GlossyMaterials:
         layers = [getattr(m, "specular", None) for m in materials]
+        variants = np.full(len(layers), -1, np.int64)
+        for i, material in enumerate(materials):
+            layer = layers[i]
+            if getattr(material, "metallic_map", None) is not None and isinstance(layer, sp.SpecularLayer):
+                variants[i] = len(layers)
+                layers = layers + [replace(layer, metallic=float(q), weight=(1.0 - q) * (1.0 - layer.transmission))
+                                   for q in np.linspace(0.0, 1.0, METALLIC_STEPS)]
         every = [sp.surface_lobes(layer) for layer in layers]
         per = [[lobe for lobe in lobes if lobe.roughness >= MIN_ROUGHNESS] for lobes in every]
         n, slots = len(layers), max((len(p) for p in per), default=0)
@@ -127,6 +144,7 @@ class GlossyMaterials:
         for i, layer in enumerate(layers):
             if layer is not None:
                 out.color_table[i] = sp.glossy_color(layer, grid)
+        out.variants = variants
         return out
 
     @property
@@ -441,7 +459,7 @@ def glossy_direct(lights, points, normals, to_eye, rows, mats: GlossyMaterials, 
                         vis = _shadow_to_targets(tracer, p32, ncols, ri, t[:, 0], t[:, 1], t[:, 2], epsilon)
                     else:
                         origins = (p[ri] + n[ri] * epsilon).astype(_F32)
-                        vis = ~np.asarray(tracer.occluded(origins, d32[ri, si], np.inf, trusted=True), bool)
+                        vis = ~np.asarray(shadow_query(tracer)(origins, d32[ri, si], np.inf, trusted=True), bool)
                     w32 = w32.copy()
                     w32[ri[~vis], si[~vis]] = 0.0
             for common, terms, k in slots:

@@ -17,6 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from . import glossy
 from .glossy import cache_reflection, glossy_color
 
 
@@ -25,9 +26,24 @@ def has_glossy(system) -> bool:
     return hasattr(system, "glossy") and bool(system.glossy_materials.reflects.any())
 
 
-def material_rows(material: np.ndarray) -> np.ndarray:
-    """(n,) int64 material indices from G-buffer `material` texels (index + 1, 0 = background)."""
-    return np.rint(np.asarray(material, np.float32).reshape(-1)).astype(np.int64) - 1
+def material_rows(material: np.ndarray, mats=None) -> np.ndarray:
+    """(n,) int64 glossy rows from G-buffer `material` texels (index + 1, 0 = background; a
+    material with a Metallic texture adds half its texel's metallic). With `mats`
+    (`glossy.GlossyMaterials`), such a pixel's row is its material's variant nearest that
+    metallic; without, the material's own row."""
+    r = np.asarray(material, np.float32).reshape(-1)
+    whole = np.floor(r)
+    rows = whole.astype(np.int64) - 1
+    variants = getattr(mats, "variants", None)
+    if variants is None or not (variants >= 0).any():
+        return rows
+    known = (rows >= 0) & (rows < variants.shape[0])
+    first = np.where(known, variants[np.clip(rows, 0, variants.shape[0] - 1)], -1)
+    mapped = first >= 0
+    steps = glossy.METALLIC_STEPS - 1
+    step = np.clip(np.rint((r - whole) * 2.0 * steps), 0, steps).astype(np.int64)
+    rows[mapped] = first[mapped] + step[mapped]
+    return rows
 
 
 def directions_to_eye(points: np.ndarray, eye) -> np.ndarray:

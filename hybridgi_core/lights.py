@@ -288,6 +288,14 @@ def spot_attenuation(light: Light, to_point: np.ndarray) -> np.ndarray:
 # --------------------------------------------------------------------------------------------
 
 
+def shadow_query(tracer):
+    """The tracer's query for shadow rays: `occluded_shadow` where its scene has triangles shadow
+    rays pass (objects hidden from shadow rays, materials transparent to them:
+    `EmbreeTracer.has_shadow_skips`), else `occluded` (every other scene takes the same calls as
+    before, wrappers of `occluded` included)."""
+    return tracer.occluded_shadow if getattr(tracer, "has_shadow_skips", False) else tracer.occluded
+
+
 def _shadow_to_targets(tracer, p, nrm, idx, tx, ty, tz, epsilon):
     """Visibility of targets (tx, ty, tz) from receivers p[idx] (offset along their normals)."""
     origins = np.take(_lifted(p, nrm, epsilon), idx, axis=0)
@@ -307,7 +315,7 @@ def _shadow_to_targets(tracer, p, nrm, idx, tx, ty, tz, epsilon):
     dirs = np.empty((dist.size, 3), _F32)
     for k, d in enumerate((dx, dy, dz)):
         np.multiply(d, inv, out=dirs[:, k])
-    hidden = np.asarray(tracer.occluded(origins, dirs, tfar.astype(_F32, copy=False), trusted=True), bool)
+    hidden = np.asarray(shadow_query(tracer)(origins, dirs, tfar.astype(_F32, copy=False), trusted=True), bool)
     if every:
         return ~hidden
     vis[ray] = ~hidden
@@ -515,7 +523,7 @@ def _sun_axis(light, pts, nrm, tracer, epsilon, opened=None):
         origins *= _F32(epsilon)
         origins += pts[live]
         # Finite receivers (checked by the caller) and one unit direction: rays need no checks.
-        live = live[~np.asarray(tracer.occluded(origins, to_sun[None], np.inf, trusted=True), bool)]
+        live = live[~np.asarray(shadow_query(tracer)(origins, to_sun[None], np.inf, trusted=True), bool)]
     e[live] = cos_r[live] * _F32(light.power)
     return e
 
@@ -541,7 +549,7 @@ def _beam(light, shape, p, nrm, tracer, epsilon, opened=None):
     if tracer is not None and live.size:
         origins = (pts[live] + n[live] * epsilon).astype(_F32)
         tfar = np.maximum(height[live] - epsilon, 0.0).astype(_F32)
-        blocked = np.asarray(tracer.occluded(origins, (-ez)[None].astype(_F32), tfar, trusted=True), bool)
+        blocked = np.asarray(shadow_query(tracer)(origins, (-ez)[None].astype(_F32), tfar, trusted=True), bool)
         e[live[blocked]] = 0.0
     return e
 
@@ -600,7 +608,7 @@ def _sun_chunk(light, p, nrm, tracer, rng, samples, epsilon, partial=None, opene
             origins = np.take(_lifted(p, nrm, epsilon), rows, axis=0)
             dirs = np.stack([dx.ravel()[lit], dy.ravel()[lit], dz.ravel()[lit]], axis=1)
             # Finite receivers (checked by the caller) and unit cone directions: no ray checks.
-            blocked = np.asarray(tracer.occluded(origins, dirs, np.inf, trusted=True), bool)
+            blocked = np.asarray(shadow_query(tracer)(origins, dirs, np.inf, trusted=True), bool)
             contrib.ravel()[lit[blocked]] = 0.0
             _mark_partial(partial, rows, blocked, m)
     return contrib.sum(axis=1)
@@ -702,7 +710,7 @@ def _area_chunk(light, shape, p, nrm, tracer, rng, samples, epsilon, partial=Non
                     src = live[rows] if not every else rows
                     origins = np.take(lifted, src, axis=0)
                 # Finite receivers (checked by the caller), unit directions, positive reach.
-                blocked = np.asarray(tracer.occluded(origins, dirs, tfar, trusted=True), bool)
+                blocked = np.asarray(shadow_query(tracer)(origins, dirs, tfar, trusted=True), bool)
                 if full:
                     f.ravel()[blocked] = 0.0
                     _mark_partial_all(partial, live if not every else None, blocked.reshape(-1, samples))

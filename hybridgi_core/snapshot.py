@@ -172,6 +172,10 @@ class Material:
         applies per pixel and probe hits as its hemispherical mean (`specular.diffuse_weight`)
     normal_map : `NormalMap` the G-buffer bends the shading normal by, or None; probe-ray hits
         keep the facet normal (a hit only feeds a cell's average)
+    metallic_map : (h, w) float32 a Principled BSDF's Metallic per texel (0..1, read through the
+        same UVs as `texture`, whose colour already carries the (1 - metallic) weight), or None;
+        `specular` then holds the mean metallic, and the G-buffer picks each pixel's glossy
+        lobes among `glossy.METALLIC_STEPS` variants of the material by its texel's value
     """
 
     name: str = "default"
@@ -183,6 +187,12 @@ class Material:
     specular: SpecularLayer | GlossySurface | None = None
     normal_map: NormalMap | None = None
     emission_texture: np.ndarray | None = None
+    metallic_map: np.ndarray | None = None
+    #: its surface is a Holdout shader: the camera sees a hole (Combined 0, alpha 0), rays a black surface
+    holdout: bool = False
+    #: shadow rays pass through it (a Mix Shader whose factor is Light Path > Is Shadow Ray with a
+    #: Transparent BSDF on that side: glass that lets the lamps through); other rays see the surface
+    shadow_transparent: bool = False
 
     def __post_init__(self) -> None:
         # Non-finite colours would reach every pixel that sees (or bounces off) this material.
@@ -194,6 +204,10 @@ class Material:
             self.emission_texture = np.maximum(fit_texture(
                 self.emission_texture, MAX_TEXTURE_SIZE, f"material {self.name!r} emission"), np.float32(0.0))
             self.emission = self.emission_texture.reshape(-1, 3).mean(axis=0, dtype=np.float64).astype(np.float32)
+        if self.metallic_map is not None:
+            metal = np.nan_to_num(np.asarray(self.metallic_map, np.float32), nan=0.0, posinf=1.0, neginf=0.0)
+            self.metallic_map = np.clip(fit_texture(np.repeat(metal[..., None], 3, axis=-1), MAX_TEXTURE_SIZE,
+                                                    f"material {self.name!r} metallic")[..., 0], 0.0, 1.0)
 
     @property
     def mean_albedo(self) -> np.ndarray:
@@ -353,6 +367,11 @@ class ObjectInfo:
     name: str
     dynamic: bool = False  # moves or deforms over the animation: traced in the per-frame scene
     camera_visible: bool = True  # seen by the camera (False: still casts shadows and bounces light)
+    #: a holdout (Object > Visibility > Holdout, a holdout collection): the camera sees a hole
+    #: there (Combined 0, alpha 0), rays see the object as usual
+    holdout: bool = False
+    #: blocks shadow rays (Object > Visibility > Ray Visibility > Shadow; False: lamps shine through it)
+    casts_shadow: bool = True
 
 
 @dataclass

@@ -34,7 +34,9 @@ class SurfacePart:
     `SpecularLayer` of a Principled BSDF read on its own (its layering, exactly as Cycles'),
     dropped once the part is mixed (its lobes and diffuse weight carry it on); normal : the
     `snapshot.NormalMap` on its Normal input, or None; emission_texture : (h, w, 3) emitted
-    radiance per texel (then `emission` is its mean), or None.
+    radiance per texel (then `emission` is its mean), or None; metallic_map : (h, w) a lone
+    Principled BSDF's Metallic per texel of `texture`'s UVs (`snapshot.Material.metallic_map`),
+    dropped once the part is mixed (its mean stays in the lobes).
     """
 
     base: np.ndarray = field(default_factory=lambda: np.zeros(3, np.float32))
@@ -46,6 +48,7 @@ class SurfacePart:
     layer: sp.SpecularLayer | None = None
     normal: object | None = None
     emission_texture: np.ndarray | None = None
+    metallic_map: np.ndarray | None = None
 
     def diffuse_table(self) -> np.ndarray:
         """(V,) the diffuse weight over `specular.view_grid`."""

@@ -51,6 +51,29 @@ def test_rays_pass_through_holes_and_stop_on_the_solid_part():
         assert tracer.intersect(origins, down, np.float32(1.5)).prim[0] == -1  # the floor is past tfar
 
 
+def test_shadow_rays_pass_what_is_hidden_from_them_and_other_rays_do_not():
+    """Three stacked quads: a glass pane transparent to shadow rays (z = 2), one object hidden
+    from shadow rays (z = 1, object 1), a floor (z = 0, object 2)."""
+    from hybridgi_core.snapshot import ObjectInfo
+
+    quads = [_quad(2.0, 0), _quad(1.0, 1), _quad(0.0, 1)]
+    for i, q in enumerate(quads):
+        q.object_index[:] = i
+    geometry = concat_geometry(quads)
+    materials = [Material("glass", shadow_transparent=True), Material("plain")]
+    objects = [ObjectInfo("pane"), ObjectInfo("ghost", casts_shadow=False), ObjectInfo("floor")]
+    origin, down = np.array([[0.5, 0.5, 3.0]], np.float32), np.array([[0, 0, -1.0]], np.float32)
+    with EmbreeTracer(geometry, threads=1) as tracer:
+        tracer.set_cutouts(Cutouts(geometry, materials, objects))
+        np.testing.assert_allclose(tracer.intersect(origin, down).t, [1.0], atol=1e-4)  # other rays: the pane
+        assert tracer.occluded(origin, down).tolist() == [True]
+        assert tracer.occluded_shadow(origin, down, np.float32(2.5)).tolist() == [False]  # pane and ghost passed
+        assert tracer.occluded_shadow(origin, down).tolist() == [True]  # the floor still blocks
+        tracer.set_cutouts(Cutouts(geometry, materials))  # without the objects: the ghost blocks
+        assert tracer.occluded_shadow(origin, down, np.float32(2.5)).tolist() == [True]
+    assert not Cutouts(geometry, [Material("a"), Material("b")], [ObjectInfo("x")] * 3).shadow_any
+
+
 def test_triangles_without_uvs_or_alpha_stay_solid():
     geometry = concat_geometry([_quad(1.0, 0, uv=False), _quad(0.0, 1)])
     alpha = np.zeros((2, 2), np.float32)

@@ -137,3 +137,23 @@ def test_tabulated_glossy_color_follows_the_exact_one_per_material():
         want = np.zeros((sel.sum(), 3)) if layer is None else sp.glossy_color(layer, np.clip(mu[sel], 0.0, 1.0))
         np.testing.assert_allclose(got[sel], want, atol=5e-4, err_msg=str(layer))
     assert not got[rows < 0].any()
+
+
+def test_a_metallic_texture_picks_each_pixels_lobes_by_its_texel():
+    """A material with a Metallic texture gets METALLIC_STEPS variant rows after the materials;
+    the G-buffer's material texel (index + 1 + metallic / 2) picks the nearest one."""
+    from hybridgi_core.glossy_image import material_rows
+
+    layer = sp.SpecularLayer(roughness=0.4, weight=0.5, metallic=0.5, metal_color=np.full(3, 0.8, np.float32))
+    plain = Material(name="plain", specular=sp.SpecularLayer(roughness=0.4))
+    mapped = Material(name="mapped", texture=np.full((4, 4, 3), 0.4, np.float32), specular=layer,
+                      metallic_map=np.tile(np.float32([0.0, 1.0]), (4, 2)))
+    mats = glossy.GlossyMaterials.from_materials([plain, mapped])
+    assert mats.variants.tolist() == [-1, 2] and len(mats.layers) == 2 + glossy.METALLIC_STEPS
+    assert [mats.layers[2 + i].metallic for i in range(glossy.METALLIC_STEPS)] == [0.0, 0.25, 0.5, 0.75, 1.0]
+    texels = np.float32([0.0, 1.0, 2.0, 2.0 + 0.5 * 0.3, 2.5, 1.0 + 0.5])
+    assert material_rows(texels).tolist() == [-1, 0, 1, 1, 1, 0]  # without variants: the material's own row
+    assert material_rows(texels, mats).tolist() == [-1, 0, 2, 3, 6, 0]
+    # The metal variant reflects the base colour at normal incidence; the dielectric one ~4%.
+    colour = glossy.glossy_color(mats, np.array([2, 6]), np.array([1.0, 1.0]))
+    assert colour[1].mean() > 0.7 > 0.1 > colour[0].mean()

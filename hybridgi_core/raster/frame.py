@@ -419,7 +419,7 @@ class FramePipeline:
         the cache, if the pixel rays built one (None: the reflection rays build their own)."""
         if not glossy_image.has_glossy(system):
             return None, None, None
-        rows = glossy_image.material_rows(self.gbuffer.read("material").reshape(-1)[pix])
+        rows = glossy_image.material_rows(self.gbuffer.read("material").reshape(-1)[pix], system.glossy_materials)
         to_eye = glossy_image.directions_to_eye(points, camera_eye(view, proj))
         glossy = np.zeros((self.height * self.width, 4), np.float32)
         colour = np.zeros((self.height * self.width, 4), np.float32)

@@ -86,6 +86,29 @@ TEXTURE_NORMAL = 4
 TEXTURE_BUMP = 8
 #: The material's `emission_tx` holds its emitted radiance per texel (`Material.emission_texture`).
 TEXTURE_EMISSION = 16
+#: The alpha of `emission_tx` holds the Metallic per texel (`Material.metallic_map`): the material
+#: target's r adds half of it to the index (`glossy_image.material_rows` picks the lobes by it).
+TEXTURE_METALLIC = 32
+#: A holdout's triangles: drawn as a hole (the background's zeros, depth HOLDOUT_DEPTH), so the
+#: film can tell them from the world (`holdout_mask`) and Cycles' zero Combined and alpha show.
+TEXTURE_HOLDOUT = 64
+#: Depth a hole writes: beyond the background's (never the nearest of a downsampled block).
+HOLDOUT_DEPTH = 1.5 * BACKGROUND_DEPTH
+
+
+def holdout_mask(depth: np.ndarray) -> np.ndarray:
+    """bool mask of the pixels whose centre raster saw a holdout (Depth pass values)."""
+    return np.asarray(depth) > 1.25 * BACKGROUND_DEPTH
+
+
+def _nearest(values: np.ndarray, shape) -> np.ndarray:
+    """(h, w) float32 `values` (h', w') at another size, nearest texels (the same UVs)."""
+    h, w = shape
+    if values.shape == (h, w):
+        return np.asarray(values, np.float32)
+    ys = (np.arange(h) * values.shape[0]) // h
+    xs = (np.arange(w) * values.shape[1]) // w
+    return np.asarray(values, np.float32)[ys][:, xs]
 
 
 def _texture_rgba(material) -> np.ndarray:
@@ -260,11 +283,19 @@ class GBufferPass(RasterPass):
         # still see them, so they keep casting shadows and bouncing light, as in Cycles.
         hidden = [i for i, o in enumerate(snapshot.objects) if not o.camera_visible]
         drawn = ~np.isin(geo.object_index, hidden) if hidden else np.ones(tris.shape[0], bool)
+        # Holdouts (objects, collections, the Holdout shader) are drawn as holes (TEXTURE_HOLDOUT).
+        holes = [i for i, o in enumerate(snapshot.objects) if getattr(o, "holdout", False)]
+        hole = np.isin(geo.object_index, holes) if holes else np.zeros(tris.shape[0], bool)
         self._draws = []
         self._weight_texture = upload_texture_2d(weight_table(snapshot.materials), "RGBA16F")
         for m, material in enumerate(snapshot.materials):
-            sel = tris[(mat_index == m) & drawn]
-            if sel.shape[0] == 0:
+            mine = (mat_index == m) & drawn
+            if getattr(material, "holdout", False):
+                parts = ((None, TEXTURE_HOLDOUT, tris[mine]),)
+            else:
+                parts = ((None, 0, tris[mine & ~hole]), (None, TEXTURE_HOLDOUT, tris[mine & hole]))
+            parts = [(flag, sel) for _none, flag, sel in parts if sel.shape[0]]
+            if not parts:
                 continue
             texture, flags = None, 0
             if material.texture is not None or material.alpha is not None:
@@ -283,21 +314,27 @@ class GBufferPass(RasterPass):
                 bump = upload_texture_2d(height, "RGBA32F")  # height differences need the precision
                 flags |= TEXTURE_BUMP
             glow_texture = getattr(material, "emission_texture", None)
+            metal = getattr(material, "metallic_map", None)
             glow = None
-            if glow_texture is not None:
-                # Half floats hold radiance up to 65504: emission textures are HDR.
-                glow = upload_texture_2d(np.ascontiguousarray(np.concatenate(
-                    [glow_texture, np.ones((*glow_texture.shape[:2], 1), np.float32)], axis=-1)), "RGBA16F")
-                flags |= TEXTURE_EMISSION
+            if glow_texture is not None or metal is not None:
+                # Half floats hold radiance up to 65504: emission textures are HDR. The alpha
+                # carries the Metallic texture (TEXTURE_METALLIC), else 1.
+                rgb = (glow_texture if glow_texture is not None
+                       else np.broadcast_to(np.asarray(material.emission, np.float32), (*metal.shape, 3)))
+                a = np.ones(rgb.shape[:2], np.float32) if metal is None else _nearest(metal, rgb.shape[:2])
+                glow = upload_texture_2d(np.ascontiguousarray(np.concatenate([rgb, a[..., None]], axis=-1),
+                                                              np.float32), "RGBA16F")
+                flags |= (TEXTURE_EMISSION if glow_texture is not None else 0) | (
+                    TEXTURE_METALLIC if metal is not None else 0)
             base = np.asarray(material.base_color, np.float32).reshape(3)
-            self._draws.append(_MaterialDraw(
+            self._draws += [_MaterialDraw(
                 batch=None,
                 ibo=gpu.types.GPUIndexBuf(type="TRIS", seq=np.ascontiguousarray(sel)),
                 base_color=(*base.tolist(), 1.0),
                 fallback_albedo=(*np.asarray(material.mean_albedo, np.float32).reshape(3).tolist(), 1.0),
                 emission=(*np.asarray(material.emission, np.float32).reshape(3).tolist(), 1.0),
                 texture=texture,
-                flags=flags,
+                flags=flags | hole_flag,
                 row=m,
                 normal=normal,
                 normal_strength=float(normal_map.strength) if normal_map is not None else 1.0,
@@ -305,7 +342,7 @@ class GBufferPass(RasterPass):
                 bump_strength=float(normal_map.bump.strength) if bump is not None else 1.0,
                 bump_distance=float(normal_map.bump.distance) if bump is not None else 0.0,
                 glow=glow,
-            ))
+            ) for hole_flag, sel in parts]
         self.bends_normals = any(d.flags & (TEXTURE_NORMAL | TEXTURE_BUMP) for d in self._draws)
         self.update_positions(geo.positions)
         log.debug("gbuffer upload: %d vertices, %d triangles, %d material draws",

@@ -8,7 +8,9 @@
  * Bit 8: `bump_tx` (red) is a Bump node's height, applied after the map as Cycles' svm_node_set_bump
  * with `bump_strength` and `bump_distance` (negative: inverted). Bit 16: `emission_tx` is the emitted
  * radiance per texel (an emissive texture), averaged over the pixel's footprint like the colour;
- * without it (or without UVs) the constant `emission`. `out_material`'s gba is the smooth normal
+ * without it (or without UVs) the constant `emission`. Bit 32: `emission_tx`'s alpha is the
+ * Metallic per texel, added as half of it to `out_material`'s r. Bit 64: a holdout, drawn as a
+ * hole (the background's zeros at a depth beyond it). `out_material`'s gba is the smooth normal
  * before a map or bump bends it (what the CPU takes for the surface: edges, filter guides, ray
  * origins, the bump shadowing term). */
 
@@ -57,25 +59,30 @@ vec3 sample_repeat_bilinear(sampler2D tx, vec2 uv)
  * about its shape. A texture minified k times gets k x k taps (capped), so a fine texture reads as
  * its average instead of aliasing; a magnified one stays one bilinear tap. */
 #define MAX_TAPS 8
-vec3 sample_footprint(sampler2D tx, vec2 uv, vec2 du, vec2 dv)
+vec4 sample_footprint4(sampler2D tx, vec2 uv, vec2 du, vec2 dv)
 {
   vec2 size = vec2(textureSize(tx, 0));
   float texels = max(length(du * size), length(dv * size)) * texture_filter;
   int taps = int(clamp(ceil(texels), 1.0, float(MAX_TAPS)));
   if (taps == 1) {
-    return sample_repeat_bilinear(tx, uv);
+    return sample_repeat_bilinear4(tx, uv);
   }
-  vec3 sum = vec3(0.0);
+  vec4 sum = vec4(0.0);
   float weight_sum = 0.0;
   for (int i = 0; i < taps; i++) {
     for (int j = 0; j < taps; j++) {
       vec2 o = ((vec2(i, j) + 0.5) / float(taps) - 0.5) * texture_filter;
       float w = exp(-2.0 * dot(o, o));
-      sum += w * sample_repeat_bilinear(tx, uv + o.x * du + o.y * dv);
+      sum += w * sample_repeat_bilinear4(tx, uv + o.x * du + o.y * dv);
       weight_sum += w;
     }
   }
   return sum / weight_sum;
+}
+
+vec3 sample_footprint(sampler2D tx, vec2 uv, vec2 du, vec2 dv)
+{
+  return sample_footprint4(tx, uv, du, dv).rgb;
 }
 
 /* Cycles' ensure_valid_specular_reflection (kernel/geom/shader_data.h): the shading normal N
@@ -197,10 +204,27 @@ void main()
   out_normal = vec4(n, 1.0);
   out_position = vec4(world_pos, 1.0);
   vec3 emitted = emission.rgb;
-  if ((has_texture & 16) != 0 && uv_ok > 0.999) {
-    emitted = sample_footprint(emission_tx, tex_uv, du, dv);
+  float row = float(material_row + 1);
+  if ((has_texture & 48) != 0 && uv_ok > 0.999) {
+    vec4 glow = sample_footprint4(emission_tx, tex_uv, du, dv);
+    if ((has_texture & 16) != 0) {
+      emitted = glow.rgb;
+    }
+    if ((has_texture & 32) != 0) {
+      /* The Metallic texel as the index's fraction: the CPU's glossy lobes pick by it. */
+      row += 0.5 * clamp(glow.a, 0.0, 1.0);
+    }
   }
   out_emission = vec4(emitted, 1.0);
   out_depth = view_depth(camera.view_z, world_pos);
-  out_material = vec4(float(material_row + 1), n_surface);
+  out_material = vec4(row, n_surface);
+  if ((has_texture & 64) != 0) {
+    /* A holdout: a hole the background shows through, marked by its depth (gbuffer.py HOLDOUT_DEPTH). */
+    out_albedo = vec4(0.0);
+    out_normal = vec4(0.0);
+    out_position = vec4(0.0);
+    out_emission = vec4(0.0);
+    out_depth = 1.5 * BACKGROUND_DEPTH;
+    out_material = vec4(0.0);
+  }
 }

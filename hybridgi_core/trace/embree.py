@@ -89,6 +89,7 @@ class EmbreeTracer:
             raise SettingsError(f"threads must be 1..64, got {threads}")
         self.geometry = geometry
         self._cutouts = None  # see set_cutouts
+        self._shadow_skip = None
         self.dynamic_objects = frozenset(int(i) for i in dynamic_objects)
         self.threads = int(threads)
         self._device = rtc.EmbreeDevice()
@@ -151,8 +152,40 @@ class EmbreeTracer:
 
     def set_cutouts(self, cutouts) -> None:
         """Rays pass through the holes `cutouts.transparent(prim, u, v)` reports (a `cutout.Cutouts`
-        or None): `intersect` continues them past such hits and `occluded` ignores them."""
+        or None): `intersect` continues them past such hits and `occluded` ignores them; shadow
+        rays (`occluded_shadow`) pass its `shadow_transparent` triangles too."""
         self._cutouts = cutouts if cutouts is not None and cutouts.any else None
+        self._shadow_skip = cutouts if cutouts is not None and cutouts.shadow_any else None
+
+    @property
+    def has_shadow_skips(self) -> bool:
+        """Whether shadow rays pass some triangles (`set_cutouts`): `lights.shadow_query`."""
+        return self._shadow_skip is not None
+
+    def occluded_shadow(
+        self, origins: np.ndarray, directions: np.ndarray, tfar: float | np.ndarray = np.inf, trusted: bool = False
+    ) -> np.ndarray:
+        """`occluded` for shadow rays: objects hidden from shadow rays and materials transparent
+        to them (`set_cutouts`) do not block (closest hits, continued past them)."""
+        skip = self._shadow_skip
+        if skip is None:
+            return self.occluded(origins, directions, tfar, trusted)
+        hits = self.intersect(origins, directions, tfar, trusted)
+        o = np.asarray(origins, np.float32).reshape(-1, 3)
+        d = np.broadcast_to(np.asarray(directions, np.float32).reshape(-1, 3), o.shape)
+        limit = np.broadcast_to(np.asarray(tfar, np.float32), (o.shape[0],))
+        t, prim = hits.t.copy(), hits.prim.copy()
+        eps = np.float32(self.epsilon)
+        for _layer in range(CUTOUT_LAYERS):
+            through = np.flatnonzero(skip.shadow_transparent(prim))
+            if through.size == 0:
+                break
+            start = t[through] + eps
+            again = self.intersect(o[through] + d[through] * start[:, None], d[through],
+                                   np.maximum(limit[through] - start, 0.0), True)
+            t[through] = np.where(again.prim >= 0, start + again.t, np.float32(np.inf))
+            prim[through] = again.prim
+        return prim >= 0
 
     def intersect(
         self, origins: np.ndarray, directions: np.ndarray, tfar: float | np.ndarray = np.inf, trusted: bool = False
