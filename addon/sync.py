@@ -890,27 +890,10 @@ def _height_map(node, socket, textures, name, what_for):
 def _bump_map(node, textures, name):
     """`snapshot.BumpMap` of a Bump node whose Height is an Image Texture's Color (its Rec.709
     luminance, as Cycles turns a colour into a float) or Alpha, read through the mesh's UV map;
-    None (noted) for any other height."""
-    source, output = _source(node.inputs["Height"])
-    if source is None:
-        return None  # a constant height bends nothing
-    vector = source.inputs.get("Vector") if source is not None and source.type == "TEX_IMAGE" else None
-    direct = (source is not None and source.type == "TEX_IMAGE" and source.image is not None
-              and output in ("Color", "Alpha") and (vector is None or _source(vector)[0] is None)
-              and source.projection == "FLAT" and source.extension == "REPEAT")
-    if not direct:
-        what = "an image through a mapping or projection" if source.type == "TEX_IMAGE" else source.bl_idname
-        _note(textures, name, node, f"Bump height from {what} (rendered with the smooth normal)")
+    None (noted) for any other height (`_height_map`)."""
+    height = _height_map(node, node.inputs["Height"], textures, name, "Bump height")
+    if height is None:
         return None
-    if output == "Alpha":
-        height = textures.alpha(source.image, name)
-        if height is None:
-            height = np.ones(tuple(source.image.size)[::-1], np.float32)  # no alpha: 1, flat
-    else:
-        colour = textures.get(source.image, name)
-        if colour is None:
-            return None
-        height = (colour @ surface_mix.GRAY.astype(np.float32)).astype(np.float32)
     distance = _constant_value(node.inputs["Distance"], name)
     return snap.BumpMap(height=height, strength=_constant_value(node.inputs["Strength"], name),
                         distance=-distance if node.invert else distance)

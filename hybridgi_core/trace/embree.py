@@ -171,21 +171,9 @@ class EmbreeTracer:
         if skip is None:
             return self.occluded(origins, directions, tfar, trusted)
         hits = self.intersect(origins, directions, tfar, trusted)
-        o = np.asarray(origins, np.float32).reshape(-1, 3)
-        d = np.broadcast_to(np.asarray(directions, np.float32).reshape(-1, 3), o.shape)
-        limit = np.broadcast_to(np.asarray(tfar, np.float32), (o.shape[0],))
-        t, prim = hits.t.copy(), hits.prim.copy()
-        eps = np.float32(self.epsilon)
-        for _layer in range(CUTOUT_LAYERS):
-            through = np.flatnonzero(skip.shadow_transparent(prim))
-            if through.size == 0:
-                break
-            start = t[through] + eps
-            again = self.intersect(o[through] + d[through] * start[:, None], d[through],
-                                   np.maximum(limit[through] - start, 0.0), True)
-            t[through] = np.where(again.prim >= 0, start + again.t, np.float32(np.inf))
-            prim[through] = again.prim
-        return prim >= 0
+        passed = self._continue_past(origins, directions, tfar, hits,
+                                     lambda prim, _u, _v: skip.shadow_transparent(prim), self.intersect)
+        return passed.prim >= 0
 
     def intersect(
         self, origins: np.ndarray, directions: np.ndarray, tfar: float | np.ndarray = np.inf, trusted: bool = False
@@ -199,20 +187,26 @@ class EmbreeTracer:
         cutouts = self._cutouts
         if cutouts is None:
             return hits
+        return self._continue_past(origins, directions, tfar, hits, cutouts.transparent, self._intersect_once)
+
+    def _continue_past(self, origins, directions, tfar, hits: Hits, passes, trace) -> Hits:
+        """`hits` with the rays whose hit `passes(prim, u, v)` marks (an alpha cutout's hole, a
+        triangle shadow rays pass) continued just beyond it by `trace` (an intersect), at most
+        CUTOUT_LAYERS times; a ray that leaves its reach misses (t inf, prim -1)."""
         o = np.asarray(origins, np.float32).reshape(-1, 3)
         d = np.broadcast_to(np.asarray(directions, np.float32).reshape(-1, 3), o.shape)
         limit = np.broadcast_to(np.asarray(tfar, np.float32), (o.shape[0],))
         t, prim, u, v = hits.t.copy(), hits.prim.copy(), hits.u.copy(), hits.v.copy()
         eps = np.float32(self.epsilon)
         for _layer in range(CUTOUT_LAYERS):
-            holes = np.flatnonzero(cutouts.transparent(prim, u, v))
-            if holes.size == 0:
+            through = np.flatnonzero(passes(prim, u, v))
+            if through.size == 0:
                 break
-            start = t[holes] + eps
-            again = self._intersect_once(o[holes] + d[holes] * start[:, None], d[holes],
-                                         np.maximum(limit[holes] - start, 0.0), True)
-            t[holes] = np.where(again.prim >= 0, start + again.t, np.float32(np.inf))
-            prim[holes], u[holes], v[holes] = again.prim, again.u, again.v
+            start = t[through] + eps
+            again = trace(o[through] + d[through] * start[:, None], d[through],
+                          np.maximum(limit[through] - start, 0.0), True)
+            t[through] = np.where(again.prim >= 0, start + again.t, np.float32(np.inf))
+            prim[through], u[through], v[through] = again.prim, again.u, again.v
         return Hits(t, prim, u, v)
 
     def _intersect_once(
