@@ -89,15 +89,17 @@ DETAIL_FRAME = 1 << 20
 #: Cycles: car Diffuse Indirect 0.091 -> 0.083, contact AO 0.013 -> 0.011, trusses AO 0.058 ->
 #: 0.057, yard and the others equal or better; 0.6 was better on the car, worse on trusses and yard).
 FULL_RES_NOISE_SIGMA = 1.0
-#: `full_res_images`' filter counts a tap fully while it lies no farther from the pixel than the same
-#: screen step spans on a surface facing the camera, and falls off as exp(-((ratio - 1) / STRETCH)^2)
-#: in how many times farther it lies (~1 / cos of the viewing angle, `_stretch_into`). Why: on a
+#: `full_res_images`' filter and its full-res interpolation (`upsample_full`, also a subframe's
+#: `GIResolver`) count a tap fully while it lies no farther from the pixel than the same screen
+#: step spans on a surface facing the camera, and fall off as exp(-((ratio - 1) / STRETCH)^2) in
+#: how many times farther it lies (~1 / cos of the viewing angle, `_stretch_into`). Why: on a
 #: ground seen at a grazing angle one pixel spans metres along the view, and the plane and normal
-#: terms let the a-trous taps (up to 14 GI pixels away) average light from tens of metres apart
-#: (the glow under the yard's pavilion spread over the ground beyond it). 320x240 vs Cycles 4096 spp,
-#: Diffuse Indirect, none -> 4: hdri_yard 0.1005 -> 0.0978, yard 0.0757 -> 0.0748, sky_yard
-#: 0.0755 -> 0.0731 (2: 0.0984 / 0.0756; 8: 0.0987 / 0.0749; 1: 0.1002 / 0.0768); 640x360 vs
-#: 1024 spp, Combined: Cornell 0.0203 -> 0.0202, atrium 0.0229 -> 0.0228.
+#: terms let taps average light from tens of metres apart (the glow under the yard's pavilion
+#: spread over the ground seen beyond it, 10x Cycles' light there). 320x240 vs Cycles 4096 spp,
+#: Diffuse Indirect, none -> filter only -> filter and interpolation: hdri_yard 0.1005 -> 0.0978
+#: -> 0.0881, yard 0.0757 -> 0.0748 -> 0.0621, sky_yard 0.0755 -> 0.0731 -> 0.0621 (filter only,
+#: STRETCH 2: 0.0984 / 0.0756 (hdri_yard / yard); 8: 0.0987 / 0.0749; 1: 0.1002 / 0.0768); 640x360
+#: vs 1024 spp, Combined: Cornell 0.0203 -> 0.0202, atrium 0.0229 -> 0.0227.
 STRETCH = 4.0
 #: Adaptive AO sampling (`_more_ao_rays`): pixels whose AO's relative standard error exceeds
 #: AO_RELATIVE_NOISE trace AO_EXTRA x their rays again as occlusion-only AO rays.
@@ -905,7 +907,8 @@ def upsample_full(sh_lo: np.ndarray, cache_lo: np.ndarray, residual_lo: np.ndarr
                   normal_lo: np.ndarray, valid_lo: np.ndarray, points: np.ndarray, normals: np.ndarray, pix: np.ndarray, width: int,
                   factor: int, camera: np.ndarray, plane_sigma: float = 0.02, normal_power: float = 8.0,
                   sigma: float = 1.0, rep_xy: np.ndarray | None = None, offset=(0.0, 0.0),
-                  records: np.ndarray | None = None, surfaces: np.ndarray | None = None) -> Upsampled:
+                  records: np.ndarray | None = None, surfaces: np.ndarray | None = None,
+                  stretch: float | None = STRETCH) -> Upsampled:
     """Interpolate the GI resolution at the full-res pixels `pix` (flat, rows of `width`) with
     points / unit normals (n, 3), from the GI pixels' blended cache SH sh_lo (h*w, K, 7), its
     irradiance at their own normals cache_lo (h*w, 7) and their filtered residuals residual_lo
@@ -931,6 +934,8 @@ def upsample_full(sh_lo: np.ndarray, cache_lo: np.ndarray, residual_lo: np.ndarr
     records' normals are then the GI pixels' surfaces, rows 26-28 their shading normals,
     `tap_records(shading=)`): the range weights compare surfaces, the cache's part is read with
     the bent lobe (`bump.irradiance_kernel`).
+    stretch : the taps' weight falls off where they lie farther from the pixel than their screen
+    step spans on a surface facing the camera (`_stretch_into`; STRETCH); None: no such term.
     """
     h, w = valid_lo.shape
     n = points.shape[0]
@@ -950,9 +955,13 @@ def upsample_full(sh_lo: np.ndarray, cache_lo: np.ndarray, residual_lo: np.ndarr
     nx, ny, nz = guide[:, 0], guide[:, 1], guide[:, 2]
     sx, sy, sz = normals[:, 0], normals[:, 1], normals[:, 2]
     shading_rows = surfaces is not None and rec.shape[0] > 26
-    dist = np.linalg.norm(points - np.asarray(camera, np.float32), axis=1)
+    cam = np.asarray(camera, np.float32)
+    dist = np.linalg.norm(points - cam, axis=1)
     inv_sigma = (1.0 / np.maximum(plane_sigma * dist, 1e-12)).astype(np.float32)
     own_plane = nx * points[:, 0] + ny * points[:, 1] + nz * points[:, 2]
+    if stretch is not None:  # the pixels' unit view directions and squared view distances
+        view = ((points - cam) / np.maximum(dist, np.float32(1e-30))[:, None]).T.astype(np.float32)
+        dist2 = (dist * dist).astype(np.float32)
     taps, weights = [], []
     best = np.zeros(n, np.float32)
     turned = np.zeros(n, bool)  # some tap's normal differs from the pixel's
@@ -971,6 +980,11 @@ def upsample_full(sh_lo: np.ndarray, cache_lo: np.ndarray, residual_lo: np.ndarr
             cos = np.maximum(nx * r[3] + ny * r[4] + nz * r[5], np.float32(0.0))
             wr = np.exp(-plane * plane) * cos**power
             wr *= inside * r[8]
+            if stretch is not None:
+                to_tap = r[0:3] - cam[:, None]
+                tap_view = to_tap / np.maximum(np.sqrt(np.einsum("kn,kn->n", to_tap, to_tap)), np.float32(1e-30))
+                _stretch_into(r[0:3], points.T, tap_view, view, dist2, stretch, wr, np.empty(n, np.float32),
+                              np.empty((2, n), np.float32))
             np.maximum(best, wr, out=best)
             if shading_rows:  # the cache's part follows the shading normals
                 cos = sx * r[26] + sy * r[27] + sz * r[28]
