@@ -36,18 +36,21 @@ def _scene(seed: int = 3):
     return residual, position, normal, valid, np.array([1.0, -4.0, 2.0], np.float32), variance
 
 
-@pytest.mark.parametrize("case", ["plain3", "plain7", "guides2", "guides3"])
+@pytest.mark.parametrize("case", ["plain3", "plain7", "guides2", "guides3", "guides3_stretch"])
 def test_gpu_atrous_equals_filter_residual(gpu_context, case):
     from hybridgi_core.raster.atrous import AtrousPass
 
     residual, position, normal, valid, camera, variance = _scene()
     channels = 3 if case == "plain3" else 7
-    var = {"guides2": variance[..., [0, 2]], "guides3": variance}.get(case)
+    var = {"guides2": variance[..., [0, 2]], "guides3": variance, "guides3_stretch": variance}.get(case)
+    stretch = 4.0 if case.endswith("stretch") else None
     args = (residual[..., :channels], position, normal, valid, camera, 3, 0.02, 8.0)
-    ref = filter_residual(*args, variance=var, noise_sigma=1.5)
+    ref = filter_residual(*args, variance=var, noise_sigma=1.5, stretch=stretch)
+    if stretch is not None:  # the term matters on this image (the floor is seen at a slant)
+        assert np.abs(ref - filter_residual(*args, variance=var, noise_sigma=1.5)).max() > 1e-3
     atrous = AtrousPass()
     try:
-        got = atrous(*args, variance=var, noise_sigma=1.5)
+        got = atrous(*args, variance=var, noise_sigma=1.5, stretch=stretch)
     finally:
         atrous.free()
     assert got.shape == ref.shape

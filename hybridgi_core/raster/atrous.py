@@ -45,7 +45,7 @@ class AtrousPass(RasterPass):
             samplers=((0, "FLOAT_2D", "img_a_tx"), (1, "FLOAT_2D", "img_b_tx"), (2, "FLOAT_2D", "var_tx"),
                       (3, "FLOAT_2D", "pos_tx"), (4, "FLOAT_2D", "nrm_tx")),
             push=(("VEC4", "camera"), ("INT", "step"), ("INT", "guides"), ("FLOAT", "plane_sigma"),
-                  ("FLOAT", "normal_power"), ("FLOAT", "noise_k2")),
+                  ("FLOAT", "normal_power"), ("FLOAT", "noise_k2"), ("FLOAT", "stretch")),
             outputs=((0, "VEC4", "out_a"), (1, "VEC4", "out_b"), (2, "VEC4", "out_var")),
         )
         return {"main": compile_spec(spec)}
@@ -63,9 +63,10 @@ class AtrousPass(RasterPass):
 
     def __call__(self, residual: np.ndarray, position: np.ndarray, normal: np.ndarray, valid: np.ndarray,
                  camera: np.ndarray, passes: int = 3, plane_sigma: float = 0.02, normal_power: float = 8.0,
-                 variance: np.ndarray | None = None, noise_sigma: float = 2.0, pool=None) -> np.ndarray:
-        """`filter_residual` on the GPU: (h, w, c) float32 (c <= MAX_CHANNELS). pool is unused
-        (the numpy version's bands)."""
+                 variance: np.ndarray | None = None, noise_sigma: float = 2.0, pool=None,
+                 stretch: float | None = None) -> np.ndarray:
+        """`filter_residual` on the GPU: (h, w, c) float32 (c <= MAX_CHANNELS), its stretch term
+        too. pool is unused (the numpy version's bands)."""
         valid = np.asarray(valid, bool)
         h, w = valid.shape
         image = np.where(valid[..., None], np.asarray(residual, np.float32), np.float32(0.0))
@@ -104,6 +105,7 @@ class AtrousPass(RasterPass):
             shader.uniform_float("plane_sigma", float(plane_sigma))
             shader.uniform_float("normal_power", float(normal_power))
             shader.uniform_float("noise_k2", float(noise_sigma) ** 2)
+            shader.uniform_float("stretch", 0.0 if stretch is None else float(stretch))
             self._draw_fullscreen(fb, shader, (w, h))
             src = targets
         _targets, fb = self._sets[(passes - 1) % 2]

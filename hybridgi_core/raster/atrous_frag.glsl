@@ -1,6 +1,7 @@
 /* One a-trous pass of `pixel_gather.filter_residual` (see atrous.py): 5 x 5 taps `step` pixels
  * apart, weighted by the B3 spline, the tap's validity, max(0, n_p . n_q)^normal_power and
- * exp(-(plane distance / (plane_sigma x view distance))^2); with variance guides (guides = 2 or
+ * exp(-(plane distance / (plane_sigma x view distance))^2) (x the stretch term where stretch > 0:
+ * `pixel_gather._stretch_into`); with variance guides (guides = 2 or
  * 3) also by exp(-(g_q - g_p)^2 / (noise_k2 (var_p + var_q) + 1e-12)) per guide (SVGF), the
  * variances filtered along with the image.
  *
@@ -42,7 +43,11 @@ void main()
   }
   vec3 own_n = texelFetch(nrm_tx, p, 0).xyz;
   float own_plane = dot(own_pos.xyz, own_n);
-  float inv_sigma = 1.0 / max(plane_sigma * distance(own_pos.xyz, camera.xyz), 1e-12);
+  float own_dist = distance(own_pos.xyz, camera.xyz);
+  float inv_sigma = 1.0 / max(plane_sigma * own_dist, 1e-12);
+  /* The stretch term's: the pixel's unit view direction and squared view distance. */
+  vec3 own_view = (own_pos.xyz - camera.xyz) / max(own_dist, 1e-30);
+  float own_dist2 = own_dist * own_dist;
   vec4 own_a = texelFetch(img_a_tx, p, 0);
   vec4 own_b = texelFetch(img_b_tx, p, 0);
   vec3 own_g = guides_of(own_a, own_b);
@@ -63,6 +68,16 @@ void main()
       vec3 qn = texelFetch(nrm_tx, q, 0).xyz;
       float plane = (dot(qp.xyz, own_n) - own_plane) * inv_sigma;
       float wt = power_of(max(dot(qn, own_n), 0.0)) * (B3[dy] * B3[dx]);
+      if (stretch > 0.0 && (dx != 2 || dy != 2)) {
+        /* pixel_gather._stretch_into: the tap's distance over what the same screen step spans on a
+         * surface facing the camera (view distance x the chord of the two view directions). */
+        vec3 to_q = qp.xyz - camera.xyz;
+        vec3 chord_v = to_q / max(length(to_q), 1e-30) - own_view;
+        vec3 apart = qp.xyz - own_pos.xyz;
+        float ratio = sqrt(dot(apart, apart) / max(dot(chord_v, chord_v) * own_dist2, 1e-30));
+        float s = max(ratio - 1.0, 0.0) / stretch;
+        wt *= exp(-s * s);
+      }
       vec4 qa = texelFetch(img_a_tx, q, 0);
       vec4 qb = texelFetch(img_b_tx, q, 0);
       if (guides == 0) {
