@@ -101,6 +101,8 @@ class _LocalMesh:
     positions, normals : (L, 3) float32; uvs : (L, 2) float32 (NaN without a UV map)
     triangles : (T, 3) int32 corner indices; slot : (T,) int32 material slot of each triangle
     tangents : (L, 4) float32 object-space tangent and bitangent sign (`mesh_tangents`), or None
+    normal_uvs : (L, 2) float32 the mesh's own UVs where `uvs` holds a bake's atlas (`with_atlas`:
+        what normal and bump maps are read with), or None (`uvs`)
     """
 
     positions: np.ndarray
@@ -109,6 +111,7 @@ class _LocalMesh:
     triangles: np.ndarray
     slot: np.ndarray
     tangents: np.ndarray | None = None
+    normal_uvs: np.ndarray | None = None
 
 
 #: Strands of one particle hair system read (one `co_hair` call per point each).
@@ -328,6 +331,8 @@ def transformed(local, matrices, slot_to_material, first_object):
         material_index=np.tile(np.asarray(slot_to_material, np.int32)[slots], count),
         object_index=np.repeat(np.arange(first_object, first_object + count, dtype=np.int32), n_tri),
         tangents=tangents,
+        normal_uvs=(None if local.normal_uvs is None else
+                    local.normal_uvs if count == 1 else np.tile(local.normal_uvs, (count, 1))),
     )
 
 
@@ -583,7 +588,10 @@ class _SnapshotBuilder:
             for job in jobs:
                 job.dynamic = dynamic
             index = self._baked[key] = len(self.materials)
-            self.materials.append(snap.Material(name=material.name))  # replaced in bake_materials
+            # Replaced in bake_materials; its normal map now already, so that the mesh gets the
+            # tangents of the map's UV map (`_with_tangents`).
+            read = material_from_blender(material, self._textures, pending=True)
+            self.materials.append(snap.Material(name=material.name, normal_map=read.normal_map))
             self._bakes.append((index, material, jobs))
         return index
 
@@ -602,11 +610,8 @@ class _SnapshotBuilder:
             # quiet: a bake that failed warned itself, naming the material and the node.
             converted = material_from_blender(material, self._textures, baked=baked, pending=True)
             converted.bake_id = bake_id
-            if converted.normal_map is not None:
-                # Its triangles read the bake's atlas UVs, not the map's.
-                _note(self._textures, material.name, material.node_tree.nodes[jobs[0].node],
-                      "normal map on a baked colour (rendered with the smooth normal)")
-                converted.normal_map = None
+            # Its triangles read the bake's atlas UVs; a normal or bump map keeps the mesh's own
+            # (`with_atlas`, `Geometry.normal_uvs`).
             self.materials[index] = converted
 
     def _material(self, material):
@@ -1428,6 +1433,9 @@ def with_atlas(local, slots, baked_slots):
     """`_LocalMesh` whose triangles in `baked_slots` have corners of their own (appended) with
     the atlas UVs of their bake, in the order `bake_job` lists them."""
     positions, normals, uvs = [local.positions], [local.normals], [local.uvs]
+    # The normal and bump maps keep reading the mesh's own UVs (their tangents follow those).
+    own_uvs = local.uvs if local.normal_uvs is None else local.normal_uvs
+    normal_uvs = [own_uvs]
     tangents = None if local.tangents is None else [local.tangents]
     triangles = local.triangles.copy()
     start = local.positions.shape[0]
@@ -1438,12 +1446,14 @@ def with_atlas(local, slots, baked_slots):
         normals.append(local.normals[corners])
         if tangents is not None:
             tangents.append(local.tangents[corners])
+        normal_uvs.append(own_uvs[corners])
         uvs.append(material_bake.atlas_uvs(len(sel), material_bake.bake_size(len(sel))).reshape(-1, 2))
         triangles[sel] = start + np.arange(corners.size, dtype=np.int32).reshape(-1, 3)
         start += corners.size
     return _LocalMesh(positions=np.concatenate(positions), normals=np.concatenate(normals),
                       uvs=np.concatenate(uvs).astype(np.float32), triangles=triangles, slot=local.slot,
-                      tangents=None if tangents is None else np.concatenate(tangents))
+                      tangents=None if tangents is None else np.concatenate(tangents),
+                      normal_uvs=np.concatenate(normal_uvs).astype(np.float32))
 
 
 def _rgb(color):

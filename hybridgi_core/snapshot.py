@@ -50,6 +50,9 @@ class Geometry:
         (MikkTSpace, as Blender computes it) and the bitangent sign (w, +-1; the mirroring of the
         object's transform folded in), so that bitangent = w * cross(normal, tangent); rows of zeros
         where a mesh has none; None when no mesh in the scene needs them (no normal map)
+    normal_uvs : (V, 2) float32 or None: the UVs normal and bump maps are read with where they
+        differ from `uvs` (a baked colour puts its triangles' `uvs` on the bake's atlas; the maps
+        keep the mesh's own, which their tangents follow); None: `uvs`
     """
 
     positions: np.ndarray
@@ -59,6 +62,7 @@ class Geometry:
     material_index: np.ndarray
     object_index: np.ndarray
     tangents: np.ndarray | None = None
+    normal_uvs: np.ndarray | None = None
 
     @property
     def triangle_count(self) -> int:
@@ -74,7 +78,8 @@ class Geometry:
         if tris.shape[0] == self.triangle_count and mask.all():
             return Geometry(self.positions.copy(), self.triangles.astype(np.int32), self.normals.copy(), self.uvs.copy(),
                             self.material_index.copy(), self.object_index.copy(),
-                            None if self.tangents is None else self.tangents.copy())
+                            None if self.tangents is None else self.tangents.copy(),
+                            None if self.normal_uvs is None else self.normal_uvs.copy())
         used = np.flatnonzero(mask)
         inverse = (np.cumsum(mask, dtype=np.int64) - 1).astype(np.int32)[tris]
         return Geometry(
@@ -85,6 +90,7 @@ class Geometry:
             material_index=self.material_index[tri_mask],
             object_index=self.object_index[tri_mask],
             tangents=None if self.tangents is None else self.tangents[used],
+            normal_uvs=None if self.normal_uvs is None else self.normal_uvs[used],
         )
 
     def face_normals(self) -> np.ndarray:
@@ -498,6 +504,11 @@ def sanitized(geometry: Geometry, n_materials: int, n_objects: int) -> Geometry:
     if normals.shape[0] != n_vert or uvs.shape[0] != n_vert:
         raise InvalidGeometryError("normals and uvs need one row per position")
     tangents = _sanitized_tangents(geometry.tangents, n_vert)
+    normal_uvs = getattr(geometry, "normal_uvs", None)
+    if normal_uvs is not None:
+        normal_uvs = np.asarray(normal_uvs, np.float32).reshape(-1, 2)
+        if normal_uvs.shape[0] != n_vert:
+            raise InvalidGeometryError("normal_uvs need one row per position")
     mat = np.asarray(geometry.material_index, np.int32).reshape(-1)
     obj = np.asarray(geometry.object_index, np.int32).reshape(-1)
     if mat.shape[0] != tris.shape[0] or obj.shape[0] != tris.shape[0]:
@@ -534,7 +545,7 @@ def sanitized(geometry: Geometry, n_materials: int, n_objects: int) -> Geometry:
             "dropped %d of %d triangles (non-finite vertices: %d, zero area: %d)",
             dropped, tris.shape[0], int((~finite).sum()), dropped - int((~finite).sum()),
         )
-    out = Geometry(pos, tris, normals, uvs, mat, obj, tangents).subset(keep)
+    out = Geometry(pos, tris, normals, uvs, mat, obj, tangents, normal_uvs).subset(keep)
     norm = np.sqrt(np.add.reduce(out.normals * out.normals, axis=1))  # np.linalg.norm's sums
     fix = ~((norm >= 1e-6) & np.isfinite(norm))
     if fix.any() and out.triangle_count:
@@ -615,6 +626,9 @@ def concat_geometry(parts: list[Geometry]) -> Geometry:
         return Geometry(np.zeros((0, 3), np.float32), np.zeros((0, 3), np.int32), np.zeros((0, 3), np.float32),
                         np.zeros((0, 2), np.float32), np.zeros(0, np.int32), np.zeros(0, np.int32))
     offsets = np.cumsum([0] + [p.positions.shape[0] for p in parts[:-1]])
+    normal_uvs = None
+    if any(getattr(p, "normal_uvs", None) is not None for p in parts):
+        normal_uvs = np.concatenate([p.uvs if p.normal_uvs is None else p.normal_uvs for p in parts]).astype(np.float32)
     tangents = None
     if any(p.tangents is not None for p in parts):
         tangents = np.concatenate([p.tangents if p.tangents is not None else np.zeros((p.positions.shape[0], 4), np.float32)
@@ -627,4 +641,5 @@ def concat_geometry(parts: list[Geometry]) -> Geometry:
         material_index=np.concatenate([p.material_index for p in parts]).astype(np.int32),
         object_index=np.concatenate([p.object_index for p in parts]).astype(np.int32),
         tangents=tangents,
+        normal_uvs=normal_uvs,
     )

@@ -464,6 +464,48 @@ def test_normal_mapped_planes_and_sphere_match_cycles(scene, request, tmp_path):
     assert mean_error < 0.45, mean_error
 
 
+BAKED_COLOUR = textwrap.dedent("""
+    import sys
+    import bpy
+    src, out = sys.argv[-2:]
+    bpy.ops.wm.open_mainfile(filepath=src)
+    for m in bpy.data.materials:
+        nt = m.node_tree
+        bsdf = nt.nodes.get("Principled BSDF")
+        if bsdf is None:
+            continue
+        noise = nt.nodes.new("ShaderNodeTexNoise")
+        ramp = nt.nodes.new("ShaderNodeValToRGB")  # greys 0.6 .. 0.8: a colour the reader bakes
+        ramp.color_ramp.elements[0].color = (0.6, 0.6, 0.6, 1.0)
+        ramp.color_ramp.elements[1].color = (0.8, 0.8, 0.8, 1.0)
+        nt.links.new(noise.outputs["Fac"], ramp.inputs["Fac"])
+        nt.links.new(ramp.outputs["Color"], bsdf.inputs["Base Color"])
+    bpy.ops.wm.save_as_mainfile(filepath=out)
+""")
+
+
+@pytest.mark.blender
+@pytest.mark.slow
+def test_normal_map_under_a_baked_colour_keeps_its_map(ridges, tmp_path):
+    """A procedural Base Color is baked onto an atlas of the mesh's triangles; the normal map
+    keeps reading the mesh's own UVs (`Geometry.normal_uvs`) with its tangents. It was dropped
+    with a warning ("normal map on a baked colour"): Diffuse Direct rel L1 0.61, mean +22%."""
+    blend = tmp_path / "baked_colour.blend"
+    subprocess.run([sys.executable, "-c", BAKED_COLOUR, str(ridges), str(blend)], check=True, capture_output=True)
+    run = run_render(blend, tmp_path / "hg", RES, *QUICK)
+    assert run.returncode == 0, run.stderr[-3000:]
+    assert "normal map on a baked colour" not in run.stderr
+    ours = exr.read_channels(json.loads(run.stdout.strip().splitlines()[-1])["exr"])
+    cycles = rendered(blend, tmp_path / "cy", RES, "--engine", "CYCLES", "--samples", "64")
+    geometry = layer(cycles, "Depth", "Z")[..., 0] < 1e9
+    direct, reference = layer(ours, "Diffuse Direct")[geometry], layer(cycles, "Diffuse Direct")[geometry]
+    l1 = float(np.abs(direct - reference).sum() / np.abs(reference).sum())
+    mean_error = abs(float(direct.mean()) / float(reference.mean()) - 1.0)
+    assert l1 < 0.05 and mean_error < 0.02, (l1, mean_error)
+    colour, reference = layer(ours, "Diffuse Color")[geometry], layer(cycles, "Diffuse Color")[geometry]
+    assert float(np.abs(colour - reference).sum() / np.abs(reference).sum()) < 0.05
+
+
 @pytest.mark.blender
 def test_viewport_draws_the_normal_map(bpy_module, gpu_context, ridges):
     """The viewport shares the G-buffer pass: its normals and its lamp light show the ridges."""

@@ -198,9 +198,10 @@ class GBufferPass(RasterPass):
             vertex=load_glsl("common_lib.glsl", "gbuffer_vert.glsl"),
             fragment=load_glsl("common_lib.glsl", "gbuffer_frag.glsl"),
             vertex_in=((0, "VEC3", "pos"), (1, "VEC3", "nor"), (2, "VEC2", "uv"), (3, "FLOAT", "uv_valid"),
-                       (4, "VEC4", "tangent")),
+                       (4, "VEC4", "tangent"), (5, "VEC2", "nuv")),
             varyings=(("smooth", "VEC3", "world_pos"), ("smooth", "VEC3", "world_nor"),
-                      ("smooth", "VEC2", "tex_uv"), ("smooth", "FLOAT", "uv_ok"), ("smooth", "VEC4", "world_tan")),
+                      ("smooth", "VEC2", "tex_uv"), ("smooth", "FLOAT", "uv_ok"), ("smooth", "VEC4", "world_tan"),
+                      ("smooth", "VEC2", "map_uv")),
             samplers=((0, "FLOAT_2D", "albedo_tx"), (1, "FLOAT_2D", "weight_tx"), (2, "FLOAT_2D", "normal_tx"),
                       (3, "FLOAT_2D", "bump_tx"), (4, "FLOAT_2D", "emission_tx")),
             # 88 bytes of push constants per material; the camera (80 bytes) is a UBO.
@@ -263,6 +264,7 @@ class GBufferPass(RasterPass):
         fmt.attr_add(id="uv", comp_type="F32", len=2, fetch_mode="FLOAT")
         fmt.attr_add(id="uv_valid", comp_type="F32", len=1, fetch_mode="FLOAT")
         fmt.attr_add(id="tangent", comp_type="F32", len=4, fetch_mode="FLOAT")
+        fmt.attr_add(id="nuv", comp_type="F32", len=2, fetch_mode="FLOAT")
         self._attr_vbo = gpu.types.GPUVertBuf(fmt, max(n_vert, 1))
         if n_vert:
             self._attr_vbo.attr_fill("nor", np.ascontiguousarray(geo.normals, np.float32).reshape(n_vert, 3))
@@ -273,6 +275,12 @@ class GBufferPass(RasterPass):
             tangents = (np.zeros((n_vert, 4), np.float32) if tangents is None
                         else np.nan_to_num(np.asarray(tangents, np.float32).reshape(n_vert, 4), nan=0.0))
             self._attr_vbo.attr_fill("tangent", np.ascontiguousarray(tangents))
+            # The normal and bump maps' UVs (`Geometry.normal_uvs`: the mesh's own under a baked
+            # colour's atlas), else the texture UVs.
+            map_uvs = getattr(geo, "normal_uvs", None)
+            map_uvs = uvs if map_uvs is None else np.asarray(map_uvs, np.float32).reshape(n_vert, 2)
+            self._attr_vbo.attr_fill("nuv", np.ascontiguousarray(np.nan_to_num(map_uvs, nan=0.0, posinf=0.0,
+                                                                               neginf=0.0)))
         self._vertex_count = n_vert
         if self._dummy_texture is None:
             self._dummy_texture = upload_texture_2d(np.ones((1, 1, 4), np.float32), "RGBA16F")

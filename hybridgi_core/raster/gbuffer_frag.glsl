@@ -133,10 +133,10 @@ vec3 bumped_normal(vec3 n_in, vec3 dpdx, vec3 dpdy, vec2 du, vec2 dv)
 {
   vec2 size = vec2(textureSize(bump_tx, 0));
   vec2 h_step = max(0.5 / size, 0.5 * max(abs(du), abs(dv)));
-  float hu = (sample_repeat_bilinear4(bump_tx, tex_uv + vec2(h_step.x, 0.0)).r -
-              sample_repeat_bilinear4(bump_tx, tex_uv - vec2(h_step.x, 0.0)).r) / (2.0 * h_step.x);
-  float hv = (sample_repeat_bilinear4(bump_tx, tex_uv + vec2(0.0, h_step.y)).r -
-              sample_repeat_bilinear4(bump_tx, tex_uv - vec2(0.0, h_step.y)).r) / (2.0 * h_step.y);
+  float hu = (sample_repeat_bilinear4(bump_tx, map_uv + vec2(h_step.x, 0.0)).r -
+              sample_repeat_bilinear4(bump_tx, map_uv - vec2(h_step.x, 0.0)).r) / (2.0 * h_step.x);
+  float hv = (sample_repeat_bilinear4(bump_tx, map_uv + vec2(0.0, h_step.y)).r -
+              sample_repeat_bilinear4(bump_tx, map_uv - vec2(0.0, h_step.y)).r) / (2.0 * h_step.y);
   float dhdx = hu * du.x + hv * du.y;
   float dhdy = hu * dv.x + hv * dv.y;
   vec3 rx = cross(dpdy, n_in);
@@ -158,6 +158,10 @@ void main()
   /* Derivatives before any branch: they are undefined in non-uniform control flow. */
   vec2 du = dFdx(tex_uv);
   vec2 dv = dFdy(tex_uv);
+  /* The normal and bump maps' UVs: the mesh's own where a baked colour moved tex_uv onto the
+   * bake's atlas, else tex_uv. */
+  vec2 map_du = dFdx(map_uv);
+  vec2 map_dv = dFdy(map_uv);
   vec3 dpdx = dFdx(world_pos);
   vec3 dpdy = dFdy(world_pos);
   vec3 facet = cross(dpdx, dpdy);
@@ -181,7 +185,7 @@ void main()
   if ((has_texture & 4) != 0 && uv_ok > 0.999 && dot(world_tan.xyz, world_tan.xyz) > 1e-12) {
     /* Cycles' svm_node_normal_map, tangent space: the unnormalized interpolated normal and
      * tangent, B = sign cross(N, T), the map's texels averaged over the pixel's footprint. */
-    vec3 c = 2.0 * sample_footprint(normal_tx, tex_uv, du, dv) - 1.0;
+    vec3 c = 2.0 * sample_footprint(normal_tx, map_uv, map_du, map_dv) - 1.0;
     vec3 bitangent = world_tan.w * cross(world_nor, world_tan.xyz);
     vec3 mapped = c.x * world_tan.xyz + c.y * bitangent + c.z * world_nor;
     float len = length(mapped);
@@ -197,7 +201,7 @@ void main()
     n = valid_reflection(facet, to_eye, mapped);
   }
   if ((has_texture & 8) != 0 && uv_ok > 0.999) {
-    n = valid_reflection(facet, to_eye, bumped_normal(n, dpdx, dpdy, du, dv));
+    n = valid_reflection(facet, to_eye, bumped_normal(n, dpdx, dpdy, map_du, map_dv));
   }
   albedo *= diffuse_weight(dot(n, to_eye));
   out_albedo = vec4(albedo, 1.0);

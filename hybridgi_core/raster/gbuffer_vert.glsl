@@ -5,6 +5,7 @@ void main()
   world_pos = pos;
   world_nor = nor;
   tex_uv = uv;
+  map_uv = nuv;
   uv_ok = uv_valid;
   world_tan = tangent;
   gl_Position = camera.view_proj * vec4(pos, 1.0);
