@@ -967,6 +967,7 @@ def upsample_full(sh_lo: np.ndarray, cache_lo: np.ndarray, residual_lo: np.ndarr
     if stretch is not None:  # the pixels' unit view directions and squared view distances
         view = ((points - cam) / np.maximum(dist, np.float32(1e-30))[:, None]).T.astype(np.float32)
         dist2 = (dist * dist).astype(np.float32)
+        stretch_a, stretch_scratch = np.empty(n, np.float32), np.empty((2, n), np.float32)  # every tap's
     taps, weights = [], []
     best = np.zeros(n, np.float32)
     turned = np.zeros(n, bool)  # some tap's normal differs from the pixel's
@@ -988,8 +989,7 @@ def upsample_full(sh_lo: np.ndarray, cache_lo: np.ndarray, residual_lo: np.ndarr
             if stretch is not None:
                 to_tap = r[0:3] - cam[:, None]
                 tap_view = to_tap / np.maximum(np.sqrt(np.einsum("kn,kn->n", to_tap, to_tap)), np.float32(1e-30))
-                _stretch_into(r[0:3], points.T, tap_view, view, dist2, stretch, wr, np.empty(n, np.float32),
-                              np.empty((2, n), np.float32))
+                _stretch_into(r[0:3], points.T, tap_view, view, dist2, stretch, wr, stretch_a, stretch_scratch)
             np.maximum(best, wr, out=best)
             if shading_rows:  # the cache's part follows the shading normals
                 cos = sx * r[26] + sy * r[27] + sz * r[28]

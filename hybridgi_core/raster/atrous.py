@@ -7,9 +7,10 @@ arithmetic fused per pixel (and a GPU in well under a millisecond). The numpy fu
 reference (and the viewport worker's, which has no GPU context); `tests/test_atrous.py` holds
 the two equal.
 
-`AtrousFilter(residual, position, normal, valid, camera, passes, plane_sigma, normal_power,
-variance=, noise_sigma=)` has `filter_residual`'s signature and answer (up to float32 rounding in
-another order); a `FramePipeline` hands it to `full_res_images` as its `filter`.
+Calling an `AtrousPass` (residual, position, normal, valid, camera, passes, plane_sigma,
+normal_power, variance=, noise_sigma=, stretch=) has `filter_residual`'s signature and answer (up
+to float32 rounding in another order); a `FramePipeline` hands it to `full_res_images` as its
+`filter`.
 """
 
 from __future__ import annotations
