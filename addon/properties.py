@@ -229,10 +229,11 @@ class HybridGISettings(bpy.types.PropertyGroup):
 
     glossy_samples: IntProperty(
         name="Glossy Samples",
-        description="Lamp samples per final-render pixel and lamp of the glossy lobes (shadow rays included); "
-        "lobes of roughness 0.45 and above are filtered over their surface afterwards. Lamps much larger "
-        "than a smooth lobe are left to the Reflection Rays",
-        default=16, min=1, max=256, soft_max=64,
+        description="Lamp samples per final-render pixel and lamp of the glossy lobes (shadow rays included) "
+        "where a first 4 find the highlight noisy; elsewhere those 4 are kept. Lobes of roughness 0.45 and above "
+        "are filtered over their surface afterwards. Lamps much larger than a smooth lobe are left to the "
+        "Reflection Rays",
+        default=32, min=1, max=256, soft_max=64,
     )
 
     # Debugging.

@@ -51,6 +51,8 @@ from .snapshot import Light
 _F32 = np.float32
 #: Receivers x samples per block (bounds the temporaries).
 CHUNK = 1 << 15
+#: Rec. 709 luminance weights (the `variance` output's luminance).
+_LUMA = np.array([0.2126, 0.7152, 0.0722], _F32)
 #: Below this roughness a lobe is too sharp to meet a sampled lamp point (Cycles evaluates none).
 MIN_ROUGHNESS = 0.02
 
@@ -412,17 +414,22 @@ def _rectangle_samples(shape, radiance, p, u, v, samples):
 
 
 def glossy_direct(lights, points, normals, to_eye, rows, mats: GlossyMaterials, tracer, rng, samples: int = 4,
-                  epsilon: float = 1e-4) -> np.ndarray:
+                  epsilon: float = 1e-4, variance: np.ndarray | None = None) -> np.ndarray:
     """(n, 3) float32 lamp radiance the glossy lobes reflect towards the eye (Cycles' Glossy Direct
     times Glossy Color), with shadow rays.
 
     points, normals, to_eye : (n, 3) float32 receivers, unit normals facing the eye and unit
-    directions to the eye; rows : (n,) int32 material index (-1: none)."""
+    directions to the eye; rows : (n,) int32 material index (-1: none). variance : optional (n,)
+    float32 output, the estimated variance of each receiver's result's luminance (Rec. 709), from
+    the spread of its samples' luminances as if they were independent (the stratified samples
+    spread less: it errs high), summed over the lamps: where the highlight is noisy (`glossy_noise`)."""
     pts = np.asarray(points, np.float64).reshape(-1, 3)
     nrm = np.asarray(normals, np.float64).reshape(-1, 3)
     eye = np.asarray(to_eye, np.float64).reshape(-1, 3)
     rows = np.asarray(rows, np.int64).reshape(-1)
     out = np.zeros((pts.shape[0], 3), _F32)
+    if variance is not None:
+        variance[:] = 0.0
     # The lamps as glossy lobes see them (Specular factor, glossy ray visibility).
     active = [g for g in (lt.for_glossy() for lt in lights) if float(g.power) != 0.0 and np.any(g.color != 0)]
     if not active or not mats.any or pts.shape[0] == 0:
@@ -462,14 +469,26 @@ def glossy_direct(lights, points, normals, to_eye, rows, mats: GlossyMaterials, 
                         vis = ~np.asarray(shadow_query(tracer)(origins, d32[ri, si], np.inf, trusted=True), bool)
                     w32 = w32.copy()
                     w32[ri[~vis], si[~vis]] = 0.0
+            lum = np.zeros(w32.shape, _F32) if variance is not None else None
+            luma = _LUMA * light.color.astype(_F32)
             for common, terms, k in slots:
                 # Per channel: sum_s c (k0 + k1 remap + k2 s5 + k3 c s6), without an (m, s, 3) array.
                 c = common * w32
                 total = k[:, 0] * c.sum(axis=1)[:, None]
+                if lum is not None:
+                    lum += c * (k[:, 0] @ luma)[:, None]
                 for j, term in enumerate(terms):
                     if term is not None:
-                        total += k[:, j + 1] * (c * term).sum(axis=1)[:, None]
+                        ct = c * term
+                        total += k[:, j + 1] * ct.sum(axis=1)[:, None]
+                        if lum is not None:
+                            lum += ct * (k[:, j + 1] @ luma)[:, None]
                 acc += total * light.color
+            if lum is not None and lum.shape[1] > 1:
+                # The estimate is the sum of s samples: s x their sample variance.
+                s = lum.shape[1]
+                var_idx = lum.var(axis=1) * _F32(s * s / (s - 1))
+                variance[idx] += var_idx
         out[idx] = acc
     return out
 

@@ -130,20 +130,26 @@ def bsdf_lamps(lights, points: np.ndarray, normals: np.ndarray, rough: np.ndarra
 
 
 def lamp_glossy_without(system, points, normals, to_eye, rows, frame: int, samples: int,
-                        skip: np.ndarray) -> np.ndarray:
+                        skip: np.ndarray, variance: np.ndarray | None = None) -> np.ndarray:
     """(n, 3) the lamps' glossy radiance by lamp sampling (`GISystem.glossy`), each receiver
-    without the lamps `skip` (n, L) marks for it (the reflection rays estimate those)."""
+    without the lamps `skip` (n, L) marks for it (the reflection rays estimate those).
+    variance : an optional (n,) output, the estimate's luminance variance (`glossy.glossy_direct`)."""
     n = np.asarray(points).reshape(-1, 3).shape[0]
     plain = ~skip.any(axis=1)
     if plain.all():
-        return system.glossy(points, normals, to_eye, rows, frame, samples=samples)
+        return system.glossy(points, normals, to_eye, rows, frame, samples=samples, variance=variance)
     out = np.zeros((n, 3), _F32)
+    if variance is not None:
+        variance[:] = 0.0
     parts = [(np.flatnonzero(plain), None)]
     parts += [(np.flatnonzero(~plain & ~skip[:, j]), [light]) for j, light in enumerate(system.scene.lights)]
     for sel, lights in parts:
         if sel.size:
+            var = None if variance is None else np.zeros(sel.size, _F32)
             out[sel] += system.glossy(points[sel], normals[sel], to_eye[sel], rows[sel], frame, samples=samples,
-                                      lights=lights)
+                                      lights=lights, variance=var)
+            if var is not None:
+                variance[sel] += var
     return out
 
 

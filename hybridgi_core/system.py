@@ -405,10 +405,12 @@ class GISystem:
         return self._glossy_materials
 
     def glossy(self, points: np.ndarray, normals: np.ndarray, to_eye: np.ndarray, rows: np.ndarray, frame: int,
-               samples: int | None = None, lights: list | None = None) -> np.ndarray:
+               samples: int | None = None, lights: list | None = None,
+               variance: np.ndarray | None = None) -> np.ndarray:
         """Lamp radiance (n, 3) the glossy lobes of materials `rows` reflect towards the eye, with
         shadow rays (`glossy.glossy_direct`; its own samples, seeded apart from `direct`'s), of
-        the scene's lamps or of `lights`, a subset of them."""
+        the scene's lamps or of `lights`, a subset of them. variance : an optional (n,) output,
+        the estimate's luminance variance (`glossy_direct`'s)."""
         rng = frame_rng(self.settings.seed + 2, frame)
         samples = samples or self.settings.light_samples
         eps = float(self.tracer.epsilon)
@@ -416,14 +418,17 @@ class GISystem:
         per_block = max(1, DIRECT_BLOCK_RAYS // samples)
         lights, mats = self.scene.lights if lights is None else lights, self.glossy_materials
         if n <= per_block or not lights:
-            return glossy_direct(lights, points, normals, to_eye, rows, mats, self.tracer, rng, samples, eps)
-        # Blocks on the worker pool, each with its own child generator (as `direct`).
+            return glossy_direct(lights, points, normals, to_eye, rows, mats, self.tracer, rng, samples, eps,
+                                 variance=variance)
+        # Blocks on the worker pool, each with its own child generator (as `direct`), each
+        # writing its own slice of `variance`.
         per_pixel = [np.asarray(a).reshape(n, -1) for a in (points, normals, to_eye)]
         rows = np.asarray(rows).reshape(-1)
         starts = range(0, n, per_block)
         return np.concatenate(self._blocks([
             (glossy_direct, (lights, *(a[b : b + per_block] for a in per_pixel), rows[b : b + per_block], mats,
-                             self.tracer, child, samples, eps), {})
+                             self.tracer, child, samples, eps),
+             {"variance": None if variance is None else variance[b : b + per_block]})
             for b, child in zip(starts, rng.spawn(len(starts)), strict=True)]))
 
 

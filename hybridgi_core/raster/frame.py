@@ -13,9 +13,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .. import glossy_image, pixel_gather
+from .. import glossy_image, glossy_noise, pixel_gather
 from ..evaluate import HitLookup
 from ..glossy import cache_reflection, glossy_color
+from ..glossy_noise import adaptive_lamp_glossy
 from ..lights import RATIO_MIN_SAMPLES
 from ..penumbra import adaptive_direct, filter_camera
 from ..reflection import (
@@ -102,15 +103,16 @@ class FramePipeline:
 
     def __init__(self, settings: RasterSettings | None = None, direct_samples: int = 48,
                  gather: GatherPass | None = None, subframes: int = 1, filter_size: float = 1.5,
-                 filter_type: str = "BLACKMAN_HARRIS", glossy_samples: int = 16,
+                 filter_type: str = "BLACKMAN_HARRIS", glossy_samples: int = 32,
                  extra_subframes: int = EXTRA_SUBFRAMES):
         """gather : a GatherPass (subclass) to use instead of a plain one; the viewport's takes
         cache textures its worker thread packed.
         subframes : jittered subframes per `render` (the pixel filter, `subpixel.py`); 1 = one
             sample at each pixel centre.
         filter_size, filter_type : the pixel filter, as Cycles' Filter Width (pixels) and type.
-        glossy_samples : lamp samples per pixel and lamp of the glossy lobes (every glossy pixel
-            traces them; filtered where the lobe is rough, `reflection.filter_lamp_glossy`).
+        glossy_samples : lamp samples per pixel and lamp of the glossy lobes where a first pass
+            finds the highlight noisy (`glossy_noise`; filtered where the lobe is rough,
+            `reflection.filter_lamp_glossy`).
         extra_subframes : subframes a frame adds where thin surfaces need them (`_subframe_count`)."""
         self.settings = settings or RasterSettings()
         #: Shadow-ray samples per pixel and lamp for the full-res direct light in penumbrae (the
@@ -309,7 +311,7 @@ class FramePipeline:
                 gi = self._gather_levels(system.levels, low, points, normals, pix, visible, view, proj, lit_tex)
         with stats.step("glossy"):
             glossy, glossy_col, glossy_ind = self._glossy(system, view, proj, p_full, n_full, pix_full, frame,
-                                                          _shared_lookup(full_gi))
+                                                          _shared_lookup(full_gi), direct[pix_full, :3])
         film = FilmAccumulator()
         film.set_depth(self.gbuffer.read("depth"))  # the centre sample, as Cycles' one sample
         count = self.subframes
@@ -409,14 +411,18 @@ class FramePipeline:
         for k, v_ms in run.steps_ms.items():
             stats.steps_ms[f"levels_{k}"] = stats.steps_ms.get(f"levels_{k}", 0.0) + v_ms
 
-    def _glossy(self, system, view, proj, points, normals, pix, frame, lookup: HitLookup | None = None):
+    def _glossy(self, system, view, proj, points, normals, pix, frame, lookup: HitLookup | None = None,
+                irradiance: np.ndarray | None = None):
         """(direct radiance, Glossy Color, bounced light), each (h w, 4) float32 or None without
         glossy lobes: the lamps', sky's and emitters' reflection by the glossy lobes at the centre
         raster's pixels (`glossy.glossy_direct`, `glossy.cache_reflection`) and the light of other
         surfaces they reflect (Glossy Indirect before its colour); direct + colour x bounced is
         uploaded for the deferred pass. Subframes reuse it: a highlight is smooth at the pixel
         scale, and silhouettes are where its share is least. lookup : the frame's HitLookup of
-        the cache, if the pixel rays built one (None: the reflection rays build their own)."""
+        the cache, if the pixel rays built one (None: the reflection rays build their own).
+        irradiance : (n, 3) the pixels' diffuse lamp irradiance: given, the lamps' glossy light is
+        sampled `glossy_samples` times only where it is noisy against the pixels' lamp light
+        (`glossy_noise`), else everywhere."""
         if not glossy_image.has_glossy(system):
             return None, None, None
         rows = glossy_image.material_rows(self.gbuffer.read("material").reshape(-1)[pix], system.glossy_materials)
@@ -432,7 +438,14 @@ class FramePipeline:
         skip = np.zeros((points.shape[0], len(system.scene.lights)), bool)
         if self.settings.reflection_rays > 0 and lit.size:
             skip[lit] = bsdf_lamps(system.scene.lights, points[lit], normals[lit], rough) & (traced_share(rough) > 0)[:, None]
-        glossy[pix, :3] = lamp_glossy_without(system, points, normals, to_eye, rows, frame, self.glossy_samples, skip)
+        if irradiance is None:
+            glossy[pix, :3] = lamp_glossy_without(system, points, normals, to_eye, rows, frame, self.glossy_samples,
+                                                  skip)
+        else:
+            albedo = self.gbuffer.read("albedo").reshape(-1, 4)[pix, :3]
+            level = (albedo * irradiance) @ glossy_noise.LUMA / np.float32(np.pi)
+            glossy[pix, :3] = adaptive_lamp_glossy(system, points, normals, to_eye, rows, pix, (self.height, self.width),
+                                                   frame, self.glossy_samples, skip, level)[0]
         if lit.size:
             q = pix[lit]
             glossy[q, :3] = filter_lamp_glossy(glossy[q, :3], rough, points[lit], normals[lit], q,
