@@ -118,10 +118,10 @@ QUICK_LADDER = LADDER[:3] + LADDER[4:5]  # the three cheapest rungs and the defa
 #: Steps of a HybridGI final render's steps_ms that are GPU work (llvmpipe here): the render
 #: targets' allocation, G-buffer, downsample (+ its read-back), gather (+ the cache texture
 #: upload), SSAO, bilateral, deferred, the film's accumulation, the pixel rays' a-trous filter
-#: (+ its upload and read-back; a sub-step of "pixel_rays").
+#: and full-res interpolation (each + its upload and read-back; sub-steps of "pixel_rays").
 #: Everything else (sync, build, warm-up, visibility, direct light, write) is CPU work.
 GPU_PASS_STEPS = ("targets", "gbuffer", "downsample", "gather", "ssao", "bilateral", "deferred", "accumulate",
-                  "atrous")
+                  "atrous", "upsample")
 
 VIEWPORT_CHECKPOINTS = (0.1, 0.25, 0.5, 1.0, 2.0, 4.0)
 TIMELINES = ("wall", "worker", "wall_light", "worker_light")

@@ -1111,7 +1111,7 @@ def full_res_images(system, position_lo: np.ndarray, normal_lo: np.ndarray, pix:
                     full_size: tuple[int, int], passes: int = 3, plane_sigma: float = 0.02,
                     normal_power: float = 8.0, refine: float = REFINE_SPREAD,
                     screen: ScreenLight | None = None, full_surfaces: np.ndarray | None = None,
-                    filter=None) -> FullResGI:
+                    filter=None, upsample=None) -> FullResGI:
     """Pixel rays at the GI resolution, resolved at the full resolution (W, H = full_size).
 
     The GI pixels trace as `gi_images` does; their estimates (not only the residuals) are filtered
@@ -1138,6 +1138,8 @@ def full_res_images(system, position_lo: np.ndarray, normal_lo: np.ndarray, pix:
 
     filter : a callable with `filter_residual`'s signature and answer to filter the GI pixels'
     estimates with (a final render's GPU pass, `raster.atrous.AtrousPass`); None: `filter_residual`.
+    upsample : likewise for `upsample_full` over the whole image (`raster.upsample.UpsamplePass`);
+    its time is the step "upsample_pass". None: `upsample_full` on the worker pool.
     """
     surfaces = None
     if full_surfaces is not None:
@@ -1147,7 +1149,8 @@ def full_res_images(system, position_lo: np.ndarray, normal_lo: np.ndarray, pix:
                       surfaces=surfaces)
     return full_res_resolve(system, gi, position_lo, pix, points, normals, view, frame, rays, full_points,
                             full_normals, full_pix, full_size, passes, plane_sigma, normal_power, refine, lookup,
-                            screen, surfaces=surfaces, full_surfaces=full_surfaces, filter=filter)
+                            screen, surfaces=surfaces, full_surfaces=full_surfaces, filter=filter,
+                            upsample=upsample)
 
 
 def low_res_surfaces(position_lo: np.ndarray, pix: np.ndarray, normals: np.ndarray, full_points: np.ndarray,
@@ -1175,15 +1178,16 @@ def full_res_resolve(system, gi: PixelGI, position_lo: np.ndarray, pix: np.ndarr
                      plane_sigma: float = 0.02, normal_power: float = 8.0, refine: float = REFINE_SPREAD,
                      lookup: HitLookup | None = None, screen: ScreenLight | None = None,
                      surfaces: np.ndarray | None = None, full_surfaces: np.ndarray | None = None,
-                     filter=None) -> FullResGI:
+                     filter=None, upsample=None) -> FullResGI:
     """`full_res_images` after its GI pixels' rays `gi` (`trace_pixels` at points, frame, rays):
     the filter, the per-pixel resolve and the detail pixels' own rays (frame + DETAIL_FRAME; lookup:
     the HitLookup the GI pixels' rays read, None builds one). The viewport's worker traces `gi` in
     slices over several steps and resolves it here. screen : as `trace_pixels`', for the detail
     pixels' rays and the resolver's. surfaces, full_surfaces : the GI pixels' and the full-res
     pixels' smooth surface normals where a material bends normals (`full_res_images`), or None.
-    filter : as `full_res_images`'. Step times: "planes" (the filter's input images), "filter"
-    (the filter alone), "upsample", "detail" and the GI pixels' own."""
+    filter, upsample : as `full_res_images`'. Step times: "planes" (the filter's input images),
+    "filter" (the filter alone), "upsample" (without "upsample_pass", the `upsample` callable's),
+    "detail" and the GI pixels' own."""
     width, height = full_size
     h, w = position_lo.shape[:2]
     factor = max(1, int(round(width / w)))
@@ -1229,9 +1233,16 @@ def full_res_resolve(system, gi: PixelGI, position_lo: np.ndarray, pix: np.ndarr
     records = tap_records(cache_lo, filtered, pos, nrm, valid, rep_xy, shading)
     if full_surfaces is not None:
         full_surfaces = np.ascontiguousarray(full_surfaces, np.float32)
-    up = _upsample_parallel(system, sh_lo, cache_lo, filtered, pos.reshape(h, w, 3), nrm.reshape(h, w, 3),
-                            valid.reshape(h, w), full_points, full_normals, full_pix, width, factor, camera,
-                            plane_sigma, normal_power, rep_xy, records=records, surfaces=full_surfaces)
+    pass_tic = time.perf_counter()
+    if upsample is not None and full_surfaces is None:
+        up = upsample(sh_lo, cache_lo, filtered, pos.reshape(h, w, 3), nrm.reshape(h, w, 3), valid.reshape(h, w),
+                      full_points, full_normals, full_pix, width, factor, camera, plane_sigma, normal_power,
+                      rep_xy=rep_xy, records=records)
+        steps["upsample_pass"] = (time.perf_counter() - pass_tic) * 1e3
+    else:
+        up = _upsample_parallel(system, sh_lo, cache_lo, filtered, pos.reshape(h, w, 3), nrm.reshape(h, w, 3),
+                                valid.reshape(h, w), full_points, full_normals, full_pix, width, factor, camera,
+                                plane_sigma, normal_power, rep_xy, records=records, surfaces=full_surfaces)
     resolver = GIResolver(system, sh_lo, cache_lo, filtered, pos.reshape(h, w, 3), nrm.reshape(h, w, 3),
                           valid.reshape(h, w), rep_xy, width, factor, camera, plane_sigma, normal_power, lookup, rays,
                           records, screen)
@@ -1251,7 +1262,7 @@ def full_res_resolve(system, gi: PixelGI, position_lo: np.ndarray, pix: np.ndarr
         varying = varying[np.argsort(-score[varying], kind="stable")[:budget]]
     detail = np.union1d(np.flatnonzero(orphan), varying)
 
-    steps["upsample"] = (time.perf_counter() - tic) * 1e3
+    steps["upsample"] = (time.perf_counter() - tic) * 1e3 - steps.get("upsample_pass", 0.0)
     if detail.size and rays > 0:
         tic = time.perf_counter()
         dp, dn = np.take(full_points, detail, axis=0), np.take(full_normals, detail, axis=0)

@@ -54,6 +54,7 @@ from .subpixel import (
     subpixel_offsets,
     worth_extra,
 )
+from .upsample import UpsamplePass
 
 log = logging.getLogger(__name__)
 
@@ -142,8 +143,10 @@ class FramePipeline:
         #: The pixel rays' edge-aware filter at the GI resolution (`pixel_gather.filter_residual`
         #: on the GPU; sized on use).
         self.atrous = AtrousPass()
+        #: Their full-res interpolation (`pixel_gather.upsample_full` on the GPU; sized on use).
+        self.upsample = UpsamplePass()
         self._passes = (self.gbuffer, self.downsample, self.gather, self.ssao, self.bilateral, self.deferred,
-                        self.accumulate, self.atrous)
+                        self.accumulate, self.atrous, self.upsample)
         #: Final renders with pixel rays resolve the GI at full resolution on the CPU
         #: (`pixel_gather.full_res_images`): a copy of the centre raster's G-buffer (the guide of
         #: those full-res GI samples, as the downsampled G-buffer guides the low-res ones; the
@@ -506,10 +509,11 @@ class FramePipeline:
             system, position_lo, normal_lo, pix, points, normals, visible, view, frame, s.pixel_rays,
             p_full, n_full, pix_full, (self.width, self.height), passes=s.pixel_filter,
             plane_sigma=s.bilateral_plane_sigma, normal_power=s.bilateral_normal_power, screen=screen,
-            full_surfaces=full_surfaces, filter=self.atrous)
+            full_surfaces=full_surfaces, filter=self.atrous, upsample=self.upsample)
         stats.rays += out.gi.rays
         steps = dict(out.steps_ms)
         stats.steps_ms["atrous"] = stats.steps_ms.get("atrous", 0.0) + steps.pop("filter", 0.0)  # a GPU pass
+        stats.steps_ms["upsample"] = stats.steps_ms.get("upsample", 0.0) + steps.pop("upsample_pass", 0.0)  # too
         for k, v in steps.items():
             stats.steps_ms[f"pixel_{k}"] = stats.steps_ms.get(f"pixel_{k}", 0.0) + v
         stats.detail_pixels = out.detail
