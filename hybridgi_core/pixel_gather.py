@@ -49,6 +49,7 @@ from .lights import HIT_LAMP_BUDGET, _onb, concentric_disk, direct_irradiance, s
 from .sampling import frame_rng
 from .screen_light import ScreenLight
 from .settings import AO_ONLY, MULTI_BOUNCE
+from .sky_ratio import open_share, open_sky_estimate, sky_irradiance
 
 #: Rec.709 luminance weights (the colour channels' filter guide).
 LUMA = np.array([0.2126, 0.7152, 0.0722], np.float32)
@@ -302,8 +303,13 @@ def _chunk(system, lookup: HitLookup | None, p, nrm, corner_visible, rays, rng, 
 
     tic = time.perf_counter()
     near = np.float32(NEAR_BOUNCE_CELLS * system.cache.grid.cell_size)
+    # A sky that varies with direction: where it is open, its exact light less what the rays
+    # found blocked (`sky_ratio`), which needs the sky in every ray's direction, blocked or not.
+    world = system.updater.scene.world
+    sky_open = sky_irradiance(world) if smooth is None and s.indirect_quality != AO_ONLY else None
+    sky = world.radiance(dirs) if sky_open is not None else None
     radiance = hit_radiance(system, lookup, origins, dirs, hits, rng, times, screen=screen, near=near,
-                            near_rng=np.random.default_rng(rng.bit_generator.seed_seq.spawn(1)[0]))
+                            near_rng=np.random.default_rng(rng.bit_generator.seed_seq.spawn(1)[0]), sky=sky)
     visible = (hits.t > s.ao_distance).astype(np.float32)
     # Control variate: the cache's radiance SH along the same rays. Linear in the SH, so its mean
     # over a pixel's rays is the SH of the pixel's mean basis vector (no per-ray products).
@@ -327,7 +333,22 @@ def _chunk(system, lookup: HitLookup | None, p, nrm, corner_visible, rays, rng, 
     # Variance of the two filter guides' means (luminance of all light, AO), from the rays' own
     # spread around their control variate: what the filter may average away as noise.
     luma = LUMA.astype(np.float32)
-    lum_d = r[..., 0:3] @ luma - np.matmul(y_lit, (sh_d @ luma)[..., None])[..., 0]
+    if sky_open is None:
+        lum_d = r[..., 0:3] @ luma - np.matmul(y_lit, (sh_d @ luma)[..., None])[..., 0]
+    else:
+        # The direct band where the cache finds the sky mostly open: its exact unshadowed light
+        # less what the rays found blocked, plus the emitters they hit (`sky_ratio`), blended into
+        # the control-variate estimate by that openness (a weight the rays do not set: unbiased).
+        escaped = hits.prim < 0
+        emitted = np.where(escaped[:, None], np.float32(0.0), radiance[:, 0:3]).reshape(m, rays, 3)
+        unshadowed = sky_open.irradiance(nrm)
+        sky_light, sky_terms = open_sky_estimate(unshadowed, sky, escaped, rays)
+        lum_cv = r[..., 0:3] @ luma - np.matmul(y_lit, (sh_d @ luma)[..., None])[..., 0]
+        lum_open = sky_terms + emitted @ luma
+        share = open_share(res[:, 9:12], unshadowed)[:, None]
+        open_res = sky_light + emitted.mean(axis=1) * np.float32(np.pi) - res[:, 9:12]
+        res[:, 0:3] = share * open_res + (1 - share) * res[:, 0:3]
+        lum_d = share * lum_open + (1 - share) * lum_cv
     lum_i = r[..., 3:6] @ luma - np.matmul(y_lit, (sh_i @ luma)[..., None])[..., 0]
     ao = visible.reshape(m, rays) - np.where(covered[:, None], np.matmul(y, sh_a[..., None])[..., 0], np.float32(1.0))
     of_mean = np.float32(1.0 / max(rays - 1, 1))  # sample variance / N
@@ -341,7 +362,8 @@ def _chunk(system, lookup: HitLookup | None, p, nrm, corner_visible, rays, rng, 
 
 def hit_radiance(system, lookup: HitLookup | None, origins: np.ndarray, dirs: np.ndarray, hits, rng,
                  times: dict | None = None, glossy_lamps: bool = True, screen: ScreenLight | None = None,
-                 near: float = 0.0, near_rng: np.random.Generator | None = None, depth: int = NEAR_BOUNCE_DEPTH) -> np.ndarray:
+                 near: float = 0.0, near_rng: np.random.Generator | None = None, depth: int = NEAR_BOUNCE_DEPTH,
+                 sky: np.ndarray | None = None) -> np.ndarray:
     """(N, 6) float32 radiance coming back along rays (origins, dirs (N, 3)) from their `hits`:
     rgb straight from the world or an emitter (what Cycles counts as direct light) | rgb the hit
     surface reflects (its lamp light through shadow rays, plus the cache read at the hit for the
@@ -352,14 +374,15 @@ def hit_radiance(system, lookup: HitLookup | None, origins: np.ndarray, dirs: np
     direction, where a lamp shows only in the highlight, not spread over the surface. screen :
     the frame's lamp irradiance per pixel, read at hits the camera sees instead of their own
     shadow rays (`screen_light`). near : hits nearer than this (world units) take their further
-    bounces from one ray of their own drawn from near_rng (`_near_bounce`), not from the cache."""
+    bounces from one ray of their own drawn from near_rng (`_near_bounce`), not from the cache.
+    sky : (N, 3) the world's radiance along the rays if the caller has it (`World.radiance`)."""
     s, scene = system.settings, system.updater.scene
     radiance = np.zeros((dirs.shape[0], 6), np.float32)
     if s.indirect_quality == AO_ONLY:
         return radiance
     hit = np.flatnonzero(hits.prim >= 0)
     if scene.world.any:
-        radiance[:, 0:3] = scene.world.radiance(dirs)
+        radiance[:, 0:3] = scene.world.radiance(dirs) if sky is None else sky
     if hit.size:
         # np.take: row gathers ~5x faster than fancy indexing (numpy 1.26).
         prim, hit_dirs = np.take(hits.prim, hit), np.take(dirs, hit, axis=0)
