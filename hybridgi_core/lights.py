@@ -472,14 +472,21 @@ def _radius_chunk(light, p, nrm, tracer, rng, samples, epsilon, partial=None, op
         fa = f * att
     else:
         fa = f
-    # Whole emitter above the horizon: closed form x the samples' weighted cone factor.
+    # The unshadowed light in closed form, the emitter clipped by the horizon where it cuts it
+    # (`clipped_cone_irradiance`), x the samples' weighted cone factor and visibility.
     above = (cos_r[live] >= sin_a[live]) | into
+    clipped = ~above
+    if clipped.any():
+        sin2 = (sin_a[live][clipped] ** 2).astype(np.float64)
+        full = np.asarray(full, np.float64).copy()
+        full[clipped] = (power / (4.0 * np.pi * np.pi * r2)) * clipped_cone_irradiance(
+            cos_r[live][clipped].astype(np.float64), sin2)
     sum_f = f.sum(axis=1)
-    ratio = np.where(above & (sum_f > 0), full / np.where(sum_f > 0, sum_f, 1.0), 1.0).astype(_F32)
+    ratio = np.where(sum_f > 0, full / np.where(sum_f > 0, sum_f, 1.0), 1.0).astype(_F32)
     if partial is not None:
-        # Where the samples' weights differ for reasons other than shadows (the horizon cuts the
-        # emitter, the spot's cone edge crosses it), they are noisy as in a penumbra: same count.
-        varied = ~above
+        # Where the samples' weights differ for reasons other than shadows (the spot's cone edge
+        # crosses the emitter), they are noisy as in a penumbra: same count.
+        varied = np.zeros(k, bool)
         if light.kind == "SPOT":
             varied |= att.min(axis=1) != att.max(axis=1)
         partial[live[varied]] = True
@@ -499,6 +506,28 @@ def _radius_chunk(light, p, nrm, tracer, rng, samples, epsilon, partial=None, op
     e[live] = np.bincount(rows, weights=w * vis, minlength=k).astype(_F32)
     _mark_partial(partial, live[rows], ~vis, m)
     return e
+
+
+def clipped_cone_irradiance(cos_theta: np.ndarray, sin2_sigma: np.ndarray) -> np.ndarray:
+    """Irradiance per unit radiance from a uniform emitter that subtends a cone of half-angle
+    sigma (a sphere, or a disc facing the receiver) whose axis is theta from the receiver's
+    normal, the part below the receiver's horizon clipped off: pi sin^2 sigma cos theta where the
+    whole cone is above it, else Snyder's closed form (1996; Lagarde & de Rousiers 2014, eq. 27).
+
+    Why: a point or spot lamp with a radius near a surface (a ceiling lamp over a wall, radius
+    1 m over a sofa) straddles the horizon of many receivers; their light was left to the shadow
+    samples, which re-sampled every such pixel as a penumbra."""
+    c = np.clip(np.asarray(cos_theta, np.float64), -1.0, 1.0)
+    s2 = np.clip(np.asarray(sin2_sigma, np.float64), 1e-12, 1.0)
+    sin_t = np.sqrt(np.maximum(1.0 - c * c, 1e-24))
+    whole = c * c > s2
+    x = np.sqrt(np.maximum(1.0 / s2 - 1.0, 0.0))
+    y = np.clip(-x * c / sin_t, -1.0, 1.0)
+    sy = sin_t * np.sqrt(np.maximum(1.0 - y * y, 0.0))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        cut = (c * np.arccos(y) - x * sy) * s2 + np.arctan2(sy, x)
+    out = np.where(whole, np.pi * s2 * np.maximum(c, 0.0), cut)
+    return np.maximum(out, 0.0)
 
 
 def _sun_axis(light, pts, nrm, tracer, epsilon, opened=None):
