@@ -42,7 +42,7 @@ class AtrousPass(RasterPass):
     def _build_shaders(self) -> dict:
         spec = fullscreen_spec(
             "hybridgi_atrous",
-            load_glsl("atrous_frag.glsl"),
+            load_glsl("common_lib.glsl", "atrous_frag.glsl"),
             samplers=((0, "FLOAT_2D", "img_a_tx"), (1, "FLOAT_2D", "img_b_tx"), (2, "FLOAT_2D", "var_tx"),
                       (3, "FLOAT_2D", "pos_tx"), (4, "FLOAT_2D", "nrm_tx")),
             push=(("VEC4", "camera"), ("INT", "step"), ("INT", "guides"), ("FLOAT", "plane_sigma"),

@@ -19,17 +19,6 @@ vec3 guides_of(vec4 a, vec4 b)
   return vec3(dot(direct + indirect, LUMA), dot(indirect, LUMA), b.b);
 }
 
-float power_of(float c)
-{
-  /* The default exponent 8 by squarings, as numpy's `_power_into` (no pow() per tap). */
-  if (normal_power == 8.0) {
-    float c2 = c * c;
-    float c4 = c2 * c2;
-    return c4 * c4;
-  }
-  return pow(c, normal_power);
-}
-
 void main()
 {
   ivec2 p = ivec2(gl_FragCoord.xy);
@@ -67,7 +56,7 @@ void main()
       }
       vec3 qn = texelFetch(nrm_tx, q, 0).xyz;
       float plane = (dot(qp.xyz, own_n) - own_plane) * inv_sigma;
-      float wt = power_of(max(dot(qn, own_n), 0.0)) * (B3[dy] * B3[dx]);
+      float wt = power_of(max(dot(qn, own_n), 0.0), normal_power) * (B3[dy] * B3[dx]);
       if (stretch > 0.0 && (dx != 2 || dy != 2)) {
         /* pixel_gather._stretch_into: the tap's distance over what the same screen step spans on a
          * surface facing the camera (view distance x the chord of the two view directions). */

@@ -28,3 +28,39 @@ float pixel_noise(vec2 px, float salt)
   px += salt * vec2(47.0, 17.0);
   return fract(52.9829189 * fract(dot(px, vec2(0.06711056, 0.00583715))));
 }
+
+/* sh.basis x sh.cosine_scale, Sloan's order and constants: irradiance weight of coefficient k
+ * at normal n. */
+float sh_irradiance_weight(int k, vec3 n)
+{
+  const float C0 = 0.28209479177387814;
+  const float C1 = 0.4886025119029199;
+  const float C2 = 1.0925484305920792;
+  const float C3 = 0.31539156525252005;
+  const float C4 = 0.5462742152960396;
+  const float A1 = 2.0 * M_PI / 3.0;
+  const float A2 = M_PI / 4.0;
+  switch (k) {
+    case 0: return M_PI * C0;
+    case 1: return A1 * C1 * n.y;
+    case 2: return A1 * C1 * n.z;
+    case 3: return A1 * C1 * n.x;
+    case 4: return A2 * C2 * n.x * n.y;
+    case 5: return A2 * C2 * n.y * n.z;
+    case 6: return A2 * C3 * (3.0 * n.z * n.z - 1.0);
+    case 7: return A2 * C2 * n.x * n.z;
+    default: return A2 * C4 * (n.x * n.x - n.y * n.y);
+  }
+}
+
+/* max(0, c)^power for the range weights of the filters: the default exponent 8 by squarings, as
+ * numpy's `_power_into` (no pow() per tap). */
+float power_of(float c, float power)
+{
+  if (power == 8.0) {
+    float c2 = c * c;
+    float c4 = c2 * c2;
+    return c4 * c4;
+  }
+  return pow(c, power);
+}

@@ -53,30 +53,6 @@ int octahedral_texel(vec3 d, int size)
   return t.y * size + t.x;
 }
 
-/* sh.basis x sh.cosine_scale, Sloan's order and constants: irradiance weight of coefficient k
- * at normal n. */
-float sh_irradiance_weight(int k, vec3 n)
-{
-  const float C0 = 0.28209479177387814;
-  const float C1 = 0.4886025119029199;
-  const float C2 = 1.0925484305920792;
-  const float C3 = 0.31539156525252005;
-  const float C4 = 0.5462742152960396;
-  const float A1 = 2.0 * M_PI / 3.0;
-  const float A2 = M_PI / 4.0;
-  switch (k) {
-    case 0: return M_PI * C0;
-    case 1: return A1 * C1 * n.y;
-    case 2: return A1 * C1 * n.z;
-    case 3: return A1 * C1 * n.x;
-    case 4: return A2 * C2 * n.x * n.y;
-    case 5: return A2 * C2 * n.y * n.z;
-    case 6: return A2 * C3 * (3.0 * n.z * n.z - 1.0);
-    case 7: return A2 * C2 * n.x * n.z;
-    default: return A2 * C4 * (n.x * n.x - n.y * n.y);
-  }
-}
-
 /* bump.irradiance_kernel: the SH weights of the irradiance a diffuse closure with bent normal n
  * over the smooth surface normal g receives (no light from below the surface, Cycles' bump
  * shadowing term above it). Returns false where n is not bent (the plain cosine weights hold). */

@@ -4,7 +4,7 @@
  * its validity and the stretch term (stretch > 0, `pixel_gather._stretch_into`); sums of the
  * cache's irradiance (7), the filtered residual (7), its luminance, luminance^2 and AO^2. Where a
  * tap's normal differs from the pixel's (cos < FLAT_COS) the cache's part is the taps' SH
- * evaluated at the pixel's own normal.
+ * evaluated at the pixel's own normal (`sh_irradiance_weight`, common_lib.glsl).
  *
  * pts / nrm : the full-res pixels' position (w = 1 on geometry) and unit normal; rec_pos : GI
  * position, validity; rec_nrm : GI normal, residual luminance; rec_xy : sample pixel x, y,
@@ -15,41 +15,7 @@
  * Out: cache_a, (cache 4-6, best range weight), res_a, (res 4-6, cover), (spread of the
  * luminance, spread of the AO, turned, 1). */
 
-const vec3 LUMA = vec3(0.2126, 0.7152, 0.0722);
 const float FLAT_COS = 0.99;
-
-float power_of(float c)
-{
-  if (normal_power == 8.0) {
-    float c2 = c * c;
-    float c4 = c2 * c2;
-    return c4 * c4;
-  }
-  return pow(c, normal_power);
-}
-
-/* sh.basis x sh.cosine_scale (Sloan's order), as gather_frag.glsl's. */
-float sh_weight(int k, vec3 n)
-{
-  const float C0 = 0.28209479177387814;
-  const float C1 = 0.4886025119029199;
-  const float C2 = 1.0925484305920792;
-  const float C3 = 0.31539156525252005;
-  const float C4 = 0.5462742152960396;
-  const float A1 = 2.0 * M_PI / 3.0;
-  const float A2 = M_PI / 4.0;
-  switch (k) {
-    case 0: return M_PI * C0;
-    case 1: return A1 * C1 * n.y;
-    case 2: return A1 * C1 * n.z;
-    case 3: return A1 * C1 * n.x;
-    case 4: return A2 * C2 * n.x * n.y;
-    case 5: return A2 * C2 * n.y * n.z;
-    case 6: return A2 * C3 * (3.0 * n.z * n.z - 1.0);
-    case 7: return A2 * C2 * n.x * n.z;
-    default: return A2 * C4 * (n.x * n.x - n.y * n.y);
-  }
-}
 
 void main()
 {
@@ -91,7 +57,7 @@ void main()
       float ws = exp(-dot(d, d) * inv2s2);
       float plane = (dot(n, qp.xyz) - own_plane) * inv_sigma;
       float c = max(dot(n, qn.xyz), 0.0);
-      float wr = exp(-plane * plane) * power_of(c);
+      float wr = exp(-plane * plane) * power_of(c, normal_power);
       wr *= (inside ? 1.0 : 0.0) * qp.w;
       if (stretch > 0.0) {
         vec3 to_q = qp.xyz - camera.xyz;
@@ -124,7 +90,7 @@ void main()
     /* The taps' SH at the pixel's own normal, each tap's share of the weights. */
     vec4 own_a = vec4(0.0), own_b = vec4(0.0);
     for (int k = 0; k < sh_count; k++) {
-      float y = sh_weight(k, n);
+      float y = sh_irradiance_weight(k, n);
       for (int i = 0; i < 9; i++) {
         float share = wts[i] * inv * y;
         ivec2 at = ivec2(2 * taps[i].x, taps[i].y * sh_count + k);
