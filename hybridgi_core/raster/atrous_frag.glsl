@@ -58,14 +58,7 @@ void main()
       float plane = (dot(qp.xyz, own_n) - own_plane) * inv_sigma;
       float wt = power_of(max(dot(qn, own_n), 0.0), normal_power) * (B3[dy] * B3[dx]);
       if (stretch > 0.0 && (dx != 2 || dy != 2)) {
-        /* pixel_gather._stretch_into: the tap's distance over what the same screen step spans on a
-         * surface facing the camera (view distance x the chord of the two view directions). */
-        vec3 to_q = qp.xyz - camera.xyz;
-        vec3 chord_v = to_q / max(length(to_q), 1e-30) - own_view;
-        vec3 apart = qp.xyz - own_pos.xyz;
-        float ratio = sqrt(dot(apart, apart) / max(dot(chord_v, chord_v) * own_dist2, 1e-30));
-        float s = max(ratio - 1.0, 0.0) / stretch;
-        wt *= exp(-s * s);
+        wt *= stretch_weight(qp.xyz, own_pos.xyz, camera.xyz, own_view, own_dist2, stretch);
       }
       vec4 qa = texelFetch(img_a_tx, q, 0);
       vec4 qb = texelFetch(img_b_tx, q, 0);

@@ -53,14 +53,29 @@ float sh_irradiance_weight(int k, vec3 n)
   }
 }
 
-/* max(0, c)^power for the range weights of the filters: the default exponent 8 by squarings, as
+/* c^exponent for the range weights of the filters: the default exponent 8 by squarings, as
  * numpy's `_power_into` (no pow() per tap). */
-float power_of(float c, float power)
+float power_of(float c, float exponent)
 {
-  if (power == 8.0) {
+  if (exponent == 8.0) {
     float c2 = c * c;
     float c4 = c2 * c2;
     return c4 * c4;
   }
-  return pow(c, power);
+  return pow(c, exponent);
+}
+
+/* pixel_gather._stretch_into: a tap at tap_p seen from a pixel at own_p (unit view direction
+ * own_dir from the eye at eye_p, squared view distance own_d2) weighs 1 up to the distance the
+ * same screen step spans on a surface facing the camera (view distance x the chord of the two
+ * view directions) and exp(-((ratio - 1) / falloff)^2) beyond. (Parameter names that no pass
+ * uses for a push constant: Blender defines those as names.) */
+float stretch_weight(vec3 tap_p, vec3 own_p, vec3 eye_p, vec3 own_dir, float own_d2, float falloff)
+{
+  vec3 to_q = tap_p - eye_p;
+  vec3 chord_v = to_q / max(length(to_q), 1e-30) - own_dir;
+  vec3 apart = tap_p - own_p;
+  float ratio = sqrt(dot(apart, apart) / max(dot(chord_v, chord_v) * own_d2, 1e-30));
+  float s = max(ratio - 1.0, 0.0) / falloff;
+  return exp(-s * s);
 }

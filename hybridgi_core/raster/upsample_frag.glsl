@@ -60,12 +60,7 @@ void main()
       float wr = exp(-plane * plane) * power_of(c, normal_power);
       wr *= (inside ? 1.0 : 0.0) * qp.w;
       if (stretch > 0.0) {
-        vec3 to_q = qp.xyz - camera.xyz;
-        vec3 chord_v = to_q / max(length(to_q), 1e-30) - view;
-        vec3 apart = qp.xyz - own.xyz;
-        float ratio = sqrt(dot(apart, apart) / max(dot(chord_v, chord_v) * dist2, 1e-30));
-        float s = max(ratio - 1.0, 0.0) / stretch;
-        wr *= exp(-s * s);
+        wr *= stretch_weight(qp.xyz, own.xyz, camera.xyz, view, dist2, stretch);
       }
       best = max(best, wr);
       turned = turned || (wr > 0.0 && c < FLAT_COS);
