@@ -80,3 +80,20 @@ def test_gpu_upsample_hands_bent_normals_to_numpy(gpu_context):
     finally:
         upsample.free()
     np.testing.assert_array_equal(got.cache, ref.cache)
+
+
+def test_gpu_upsample_hands_images_past_the_texture_limit_to_numpy(gpu_context, monkeypatch):
+    """A GI image whose SH texture would exceed the GPU's texture size (a very large render) is
+    interpolated by numpy, not refused by the driver."""
+    from hybridgi_core.raster import upsample as up
+
+    args, rep_xy = _inputs(2)
+    monkeypatch.setattr(up, "max_texture_size", lambda: 8)
+    ref = upsample_full(*args, rep_xy=rep_xy)
+    upsample = up.UpsamplePass()
+    try:
+        got = upsample(*args, rep_xy=rep_xy)
+        assert upsample.width == 0  # no GPU target was made
+    finally:
+        upsample.free()
+    np.testing.assert_array_equal(got.cache, ref.cache)

@@ -16,6 +16,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..pixel_gather import STRETCH, Upsampled, tap_records, upsample_full
+from .gather import max_texture_size
 from .glsl import load_glsl
 from .passes import RasterPass, compile_spec, fullscreen_spec, make_target
 from .readback import read_framebuffer, upload_texture_2d
@@ -62,14 +63,15 @@ class UpsamplePass(RasterPass):
                  width: int, factor: int, camera, plane_sigma: float = 0.02, normal_power: float = 8.0,
                  sigma: float = 1.0, rep_xy=None, offset=(0.0, 0.0), records=None, surfaces=None,
                  stretch: float | None = STRETCH) -> Upsampled:
-        """`upsample_full` on the GPU; with `surfaces` (bent normals) or no pixels, numpy's."""
+        """`upsample_full` on the GPU; with `surfaces` (bent normals), no pixels or an image whose
+        SH texture (2 w x K h texels) would exceed the GPU's texture size, numpy's."""
         pix = np.asarray(pix)
-        if surfaces is not None or pix.size == 0 or rep_xy is None:
+        h, w = valid_lo.shape
+        k = sh_lo.shape[1]
+        if surfaces is not None or pix.size == 0 or rep_xy is None or max(2 * w, k * h) > max_texture_size():
             return upsample_full(sh_lo, cache_lo, residual_lo, position_lo, normal_lo, valid_lo, points, normals,
                                  pix, width, factor, camera, plane_sigma, normal_power, sigma, rep_xy, offset,
                                  records, surfaces, stretch)
-        h, w = valid_lo.shape
-        k = sh_lo.shape[1]
         height = int(pix.max()) // width + 1
         self.resize(width, height)
         self._require()
