@@ -333,22 +333,9 @@ def _chunk(system, lookup: HitLookup | None, p, nrm, corner_visible, rays, rng, 
     # Variance of the two filter guides' means (luminance of all light, AO), from the rays' own
     # spread around their control variate: what the filter may average away as noise.
     luma = LUMA.astype(np.float32)
-    if sky_open is None:
-        lum_d = r[..., 0:3] @ luma - np.matmul(y_lit, (sh_d @ luma)[..., None])[..., 0]
-    else:
-        # The direct band where the cache finds the sky mostly open: its exact unshadowed light
-        # less what the rays found blocked, plus the emitters they hit (`sky_ratio`), blended into
-        # the control-variate estimate by that openness (a weight the rays do not set: unbiased).
-        escaped = hits.prim < 0
-        emitted = np.where(escaped[:, None], np.float32(0.0), radiance[:, 0:3]).reshape(m, rays, 3)
-        unshadowed = sky_open.irradiance(nrm)
-        sky_light, sky_terms = open_sky_estimate(unshadowed, sky, escaped, rays)
-        lum_cv = r[..., 0:3] @ luma - np.matmul(y_lit, (sh_d @ luma)[..., None])[..., 0]
-        lum_open = sky_terms + emitted @ luma
-        share = open_share(res[:, 9:12], unshadowed)[:, None]
-        open_res = sky_light + emitted.mean(axis=1) * np.float32(np.pi) - res[:, 9:12]
-        res[:, 0:3] = share * open_res + (1 - share) * res[:, 0:3]
-        lum_d = share * lum_open + (1 - share) * lum_cv
+    lum_d = r[..., 0:3] @ luma - np.matmul(y_lit, (sh_d @ luma)[..., None])[..., 0]
+    if sky_open is not None:
+        lum_d = _open_sky_band(res, lum_d, sky_open, sky, hits, radiance, nrm, rays)
     lum_i = r[..., 3:6] @ luma - np.matmul(y_lit, (sh_i @ luma)[..., None])[..., 0]
     ao = visible.reshape(m, rays) - np.where(covered[:, None], np.matmul(y, sh_a[..., None])[..., 0], np.float32(1.0))
     of_mean = np.float32(1.0 / max(rays - 1, 1))  # sample variance / N
@@ -358,6 +345,24 @@ def _chunk(system, lookup: HitLookup | None, p, nrm, corner_visible, rays, rng, 
     _more_ao_rays(system, res, p, nrm, ao_mean, sh_a, covered, rays, rng, times)
     times["shade"] = (time.perf_counter() - tic) * 1e3 - times.get("shadow", 0.0)
     return res, coeffs, times
+
+
+def _open_sky_band(res: np.ndarray, lum_cv: np.ndarray, sky_open, sky: np.ndarray, hits, radiance: np.ndarray,
+                   nrm: np.ndarray, rays: int) -> np.ndarray:
+    """The direct band of m pixels under a sky map (`_chunk`): where the cache finds the sky mostly
+    open, its exact unshadowed light less what the rays found blocked, plus the emitters they hit
+    (`sky_ratio`), blended into the control-variate estimate by that openness (a weight the rays
+    do not set: unbiased). Writes res[:, 0:3] (the residual against the cache's res[:, 9:12]) and
+    returns the (m, rays) per-ray luminance terms of the blend (lum_cv: the control variate's)."""
+    m = res.shape[0]
+    escaped = hits.prim < 0
+    emitted = np.where(escaped[:, None], np.float32(0.0), radiance[:, 0:3]).reshape(m, rays, 3)
+    unshadowed = sky_open.irradiance(nrm)
+    sky_light, sky_terms = open_sky_estimate(unshadowed, sky, escaped, rays)
+    share = open_share(res[:, 9:12], unshadowed)[:, None]
+    open_res = sky_light + emitted.mean(axis=1) * np.float32(np.pi) - res[:, 9:12]
+    res[:, 0:3] = share * open_res + (1 - share) * res[:, 0:3]
+    return share * (sky_terms + emitted @ LUMA.astype(np.float32)) + (1 - share) * lum_cv
 
 
 def hit_radiance(system, lookup: HitLookup | None, origins: np.ndarray, dirs: np.ndarray, hits, rng,
