@@ -100,6 +100,11 @@ SCENE = textwrap.dedent("""
         image = floor.nodes.new("ShaderNodeTexImage")
         image.image, image.interpolation = mask, "Closest"
         floor.links.new(image.outputs["Color"], floor.nodes["Principled BSDF"].inputs["Metallic"])
+    if variant == "metal_reflecting_metal":
+        # A rough metal floor and a rough metal ball (Metallic 1, roughness 0.5) under the sun.
+        for name in ("floor", "ball"):
+            tree = bpy.data.objects[name].active_material.node_tree
+            tree.nodes["Principled BSDF"].inputs["Metallic"].default_value = 1.0
     if variant == "holdout_object":
         bpy.data.objects["ball"].is_holdout = True
     if variant == "holdout_collection":
@@ -215,6 +220,20 @@ def test_metallic_from_a_texture_is_followed_per_pixel(tmp_path, variant):
     print(errors)
     assert errors["Diffuse Color"] < 0.05 and errors["Diffuse Direct"] < 0.1, errors
     assert errors["Combined"] < 0.1, errors
+
+
+def test_metal_reflects_the_sun_in_metal(tmp_path):
+    """A rough metal floor reflecting a rough metal ball and itself under the sun: a reflection
+    ray that meets the metal ball sees the sun in the ball's highlight (`pixel_gather.
+    _add_shiny_highlights`); before, the metal's lamp light was dropped at reflection-ray hits
+    (their glossy share reflects the cache's light only). bench/artist_scenes.py metallic_const
+    (the same with a metal wall), 128x96: Combined 0.306 -> 0.087, Glossy Indirect 0.100 -> 0.317
+    against Cycles' 0.291. Here (64x48): 0.100 -> 0.062."""
+    ours, cycles = both(tmp_path, build(tmp_path, "metal_reflecting_metal"))
+    geometry = layer(cycles, "Depth", "Z")[..., 0] < 1e9
+    error = rel_l1(layer(ours, "Combined")[geometry], layer(cycles, "Combined")[geometry])
+    print(f"Combined {error:.3f}")
+    assert error < 0.08, error
 
 
 @pytest.mark.parametrize("variant", ["hair", "particle_hair"])
