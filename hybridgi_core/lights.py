@@ -587,7 +587,8 @@ def uniform_cone(axis, half_angle: float, u: np.ndarray, v: np.ndarray):
     """Directions uniform in the cone of `half_angle` (radians) around the unit `axis` (3,), from
     sample coordinates u, v in [0, 1): the concentric map, as Cycles' sample_uniform_cone_concentric.
     Returns ((dx, dy, dz) arrays shaped as u, in u's dtype, and 1 - cos(half_angle))."""
-    one_minus_cos = 2.0 * np.sin(0.5 * half_angle) ** 2
+    # A Python float: NumPy 2 keeps u's float32 against it (an np.float64 scalar would promote).
+    one_minus_cos = float(2.0 * np.sin(0.5 * half_angle) ** 2)
     a, b = concentric_disk(u, v)
     r2 = a * a + b * b
     cos_t = 1.0 - r2 * one_minus_cos
