@@ -692,6 +692,16 @@ def filter_residual(residual: np.ndarray, position: np.ndarray, normal: np.ndarr
     return np.ascontiguousarray(np.moveaxis(img, 0, -1))
 
 
+def _squared_distance_into(x: np.ndarray, y: np.ndarray, out: np.ndarray, tmp: np.ndarray) -> None:
+    """out = |x - y|^2 of component planes x, y (3, ...), in place (tmp: scratch of out's shape)."""
+    np.subtract(x[0], y[0], out=out)
+    np.multiply(out, out, out=out)
+    for k in (1, 2):
+        np.subtract(x[k], y[k], out=tmp)
+        np.multiply(tmp, tmp, out=tmp)
+        out += tmp
+
+
 def _stretch_into(qp: np.ndarray, pos: np.ndarray, qu: np.ndarray, view: np.ndarray, dist2: np.ndarray,
                   stretch: float, wt: np.ndarray, a: np.ndarray, scratch: np.ndarray) -> None:
     """wt *= the stretch weight of taps at qp (3, h, w) for pixels at pos (3, h, w), in place
@@ -701,18 +711,8 @@ def _stretch_into(qp: np.ndarray, pos: np.ndarray, qu: np.ndarray, view: np.ndar
     two view directions) is ~1 / cos of the viewing angle; the weight is 1 up to 1 and
     exp(-((ratio - 1) / stretch)^2) beyond (`filter_residual`)."""
     b, chord = scratch[0], scratch[1]
-    np.subtract(qp[0], pos[0], out=a)
-    np.multiply(a, a, out=a)
-    for k in (1, 2):
-        np.subtract(qp[k], pos[k], out=b)
-        np.multiply(b, b, out=b)
-        a += b
-    np.subtract(qu[0], view[0], out=chord)
-    np.multiply(chord, chord, out=chord)
-    for k in (1, 2):
-        np.subtract(qu[k], view[k], out=b)
-        np.multiply(b, b, out=b)
-        chord += b
+    _squared_distance_into(qp, pos, a, b)
+    _squared_distance_into(qu, view, chord, b)
     chord *= dist2
     np.maximum(chord, np.float32(1e-30), out=chord)
     np.divide(a, chord, out=a)
