@@ -32,6 +32,7 @@ import numpy as np
 
 from . import sh as shmod
 from . import specular as sp
+from .environment import LUMA
 from .evaluate import corner_weights
 from .lights import (
     _area_points,
@@ -52,7 +53,7 @@ _F32 = np.float32
 #: Receivers x samples per block (bounds the temporaries).
 CHUNK = 1 << 15
 #: Rec. 709 luminance weights (the `variance` output's luminance).
-_LUMA = np.array([0.2126, 0.7152, 0.0722], _F32)
+_LUMA = LUMA.astype(_F32)
 #: Below this roughness a lobe is too sharp to meet a sampled lamp point (Cycles evaluates none).
 MIN_ROUGHNESS = 0.02
 

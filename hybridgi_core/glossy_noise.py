@@ -20,6 +20,7 @@ from __future__ import annotations
 import numpy as np
 
 from .penumbra import dilate
+from .pixel_gather import LUMA
 from .reflection import lamp_glossy_without
 
 #: Samples per pixel and lamp of the first pass, which finds the noisy pixels (and is the answer
@@ -32,8 +33,6 @@ NOISE = 0.1
 DILATE = 1
 #: Added to the frame number of the second pass's samples: a stream of its own.
 SEED_OFFSET = 1 << 21
-#: Rec. 709 luminance weights.
-LUMA = np.array([0.2126, 0.7152, 0.0722], np.float32)
 
 
 def adaptive_lamp_glossy(system, points, normals, to_eye, rows, pix: np.ndarray, shape: tuple[int, int],

@@ -27,7 +27,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .environment import equirect_directions
+from .environment import LUMA, equirect_directions
 
 #: `open_share`: the cache's direct light over the unshadowed sky's at which the open-sky estimate
 #: takes over entirely, and below which it has no weight.
@@ -35,6 +35,8 @@ from .environment import equirect_directions
 #: 0.0183 / 0.0109; 0.98 and 0.8: 0.0159 / 0.0117; these: 0.0158 / 0.0112.)
 OPEN_FULL = 0.95
 OPEN_NONE = 0.7
+#: Rec. 709 luminance weights, as the float32 arrays they weigh.
+_LUMA = LUMA.astype(np.float32)
 #: Normals of the irradiance table: rows (elevation) x twice as many columns (azimuth). The
 #: irradiance is the map convolved with a clamped cosine: smooth, bilinear in between is ample.
 TABLE_ROWS = 32
@@ -112,8 +114,7 @@ def open_sky_estimate(unshadowed: np.ndarray, sky: np.ndarray, escaped: np.ndarr
     blocked = np.where(np.asarray(escaped).reshape(-1, 1), np.float32(0.0), np.asarray(sky, np.float32))
     blocked = blocked.reshape(m, rays, 3)
     estimate = unshadowed - blocked.mean(axis=1) * np.float32(np.pi)
-    luma = np.array([0.2126, 0.7152, 0.0722], np.float32)
-    return estimate.astype(np.float32), -(blocked @ luma)
+    return estimate.astype(np.float32), -(blocked @ _LUMA)
 
 
 def open_share(cache_light: np.ndarray, unshadowed: np.ndarray) -> np.ndarray:
@@ -123,7 +124,6 @@ def open_share(cache_light: np.ndarray, unshadowed: np.ndarray) -> np.ndarray:
     own rays, so the blend of two unbiased estimates stays unbiased: the open estimate is exact in
     the open and noisy where most of the sky is blocked (its blocked part carries the sky's whole
     variation there), where the cache's estimate is the quieter."""
-    luma = np.array([0.2126, 0.7152, 0.0722], np.float32)
-    share = (np.asarray(cache_light, np.float32) @ luma) / np.maximum(np.asarray(unshadowed, np.float32) @ luma,
+    share = (np.asarray(cache_light, np.float32) @ _LUMA) / np.maximum(np.asarray(unshadowed, np.float32) @ _LUMA,
                                                                          np.float32(1e-30))
     return np.clip((share - np.float32(OPEN_NONE)) / np.float32(OPEN_FULL - OPEN_NONE), 0.0, 1.0).astype(np.float32)

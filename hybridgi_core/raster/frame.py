@@ -13,7 +13,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .. import glossy_image, glossy_noise, pixel_gather
+from .. import glossy_image, pixel_gather
 from ..evaluate import HitLookup
 from ..glossy import cache_reflection, glossy_color
 from ..glossy_noise import adaptive_lamp_glossy
@@ -23,7 +23,6 @@ from ..reflection import (
     bsdf_lamps,
     filter_lamp_glossy,
     filter_reflections,
-    lamp_glossy_without,
     traced_reflection,
     traced_share,
 )
@@ -414,8 +413,8 @@ class FramePipeline:
         for k, v_ms in run.steps_ms.items():
             stats.steps_ms[f"levels_{k}"] = stats.steps_ms.get(f"levels_{k}", 0.0) + v_ms
 
-    def _glossy(self, system, view, proj, points, normals, pix, frame, lookup: HitLookup | None = None,
-                irradiance: np.ndarray | None = None):
+    def _glossy(self, system, view, proj, points, normals, pix, frame, lookup: HitLookup | None,
+                irradiance: np.ndarray):
         """(direct radiance, Glossy Color, bounced light), each (h w, 4) float32 or None without
         glossy lobes: the lamps', sky's and emitters' reflection by the glossy lobes at the centre
         raster's pixels (`glossy.glossy_direct`, `glossy.cache_reflection`) and the light of other
@@ -423,9 +422,8 @@ class FramePipeline:
         uploaded for the deferred pass. Subframes reuse it: a highlight is smooth at the pixel
         scale, and silhouettes are where its share is least. lookup : the frame's HitLookup of
         the cache, if the pixel rays built one (None: the reflection rays build their own).
-        irradiance : (n, 3) the pixels' diffuse lamp irradiance: given, the lamps' glossy light is
-        sampled `glossy_samples` times only where it is noisy against the pixels' lamp light
-        (`glossy_noise`), else everywhere."""
+        irradiance : (n, 3) the pixels' diffuse lamp irradiance: the lamps' glossy light is sampled
+        `glossy_samples` times only where it is noisy against the pixels' lamp light (`glossy_noise`)."""
         if not glossy_image.has_glossy(system):
             return None, None, None
         rows = glossy_image.material_rows(self.gbuffer.read("material").reshape(-1)[pix], system.glossy_materials)
@@ -441,14 +439,10 @@ class FramePipeline:
         skip = np.zeros((points.shape[0], len(system.scene.lights)), bool)
         if self.settings.reflection_rays > 0 and lit.size:
             skip[lit] = bsdf_lamps(system.scene.lights, points[lit], normals[lit], rough) & (traced_share(rough) > 0)[:, None]
-        if irradiance is None:
-            glossy[pix, :3] = lamp_glossy_without(system, points, normals, to_eye, rows, frame, self.glossy_samples,
-                                                  skip)
-        else:
-            albedo = self.gbuffer.read("albedo").reshape(-1, 4)[pix, :3]
-            level = (albedo * irradiance) @ glossy_noise.LUMA / np.float32(np.pi)
-            glossy[pix, :3] = adaptive_lamp_glossy(system, points, normals, to_eye, rows, pix, (self.height, self.width),
-                                                   frame, self.glossy_samples, skip, level)[0]
+        albedo = self.gbuffer.read("albedo").reshape(-1, 4)[pix, :3]
+        level = (albedo * irradiance) @ pixel_gather.LUMA / np.float32(np.pi)
+        glossy[pix, :3] = adaptive_lamp_glossy(system, points, normals, to_eye, rows, pix, (self.height, self.width),
+                                               frame, self.glossy_samples, skip, level)[0]
         if lit.size:
             q = pix[lit]
             glossy[q, :3] = filter_lamp_glossy(glossy[q, :3], rough, points[lit], normals[lit], q,
