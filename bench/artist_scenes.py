@@ -274,26 +274,25 @@ _flag("cube", "visible_glossy", False)
 _flag("cube", "is_holdout", True)
 
 
-@case
-def holdout_collection():
+def _ball_in_collection(name):
+    """The base scene with the ball moved into a collection of its own: its layer collection."""
     s = base()
-    coll = bpy.data.collections.new("ho")
+    coll = bpy.data.collections.new(name)
     s.collection.children.link(coll)
     ball = bpy.data.objects["ball"]
     s.collection.objects.unlink(ball)
     coll.objects.link(ball)
-    s.view_layers[0].layer_collection.children["ho"].holdout = True
+    return s.view_layers[0].layer_collection.children[name]
+
+
+@case
+def holdout_collection():
+    _ball_in_collection("ho").holdout = True
 
 
 @case
 def indirect_only_collection():
-    s = base()
-    coll = bpy.data.collections.new("io")
-    s.collection.children.link(coll)
-    ball = bpy.data.objects["ball"]
-    s.collection.objects.unlink(ball)
-    coll.objects.link(ball)
-    s.view_layers[0].layer_collection.children["io"].indirect_only = True
+    _ball_in_collection("io").indirect_only = True
 
 
 @case
