@@ -84,8 +84,15 @@ FLAT_COS = 0.99
 #: have refinement candidates at a quarter of its GI pixels' count: 0.25 -> 0.15 cost DI 0.0523 ->
 #: 0.0525 there for 40% fewer detail rays; the car's 1819 stay under it).
 REFINE_BUDGET = 0.15
-#: Rays per work item of the detail pixels (a few thousand pixels: split so both workers run).
-DETAIL_CHUNK_RAYS = 8192
+#: Fewest work items of the detail pixels' rays (a few thousand pixels): enough to feed every
+#: worker, each still CHUNK_RAYS at most. Fixed, so the result does not depend on the thread
+#: count. Work items of 8192 rays (170 pixels) left the two workers waiting on the GIL for their
+#: short numpy calls: Cornell 640x360's 4.8k detail pixels took 196 ms on two threads, 212 on one.
+DETAIL_MIN_CHUNKS = 4
+#: Fewest rays of a work item that `trace_pixels(min_chunks=)` splits off: a `_chunk` call costs
+#: ~2 ms whatever its size (~30 us a pixel of 48 rays on top), so a subframe's few dozen orphan
+#: pixels stay one item (four items of them cost dragon_npm's 8 subframes +150 ms).
+MIN_SPLIT_RAYS = 16384
 #: Share of a pixel's spatial tap weight that must lie on its own surface for it to count as
 #: inside a surface (below: near a crease, contact or silhouette; refinement candidate).
 REFINE_COVER = 0.85
@@ -205,13 +212,14 @@ def cache_sh_at(cache, points: np.ndarray, normals: np.ndarray, corner_visible: 
 def trace_pixels(system, points: np.ndarray, normals: np.ndarray, rays: int, frame: int,
                  corner_visible: np.ndarray | None = None, lookup: HitLookup | None = None,
                  chunk_rays: int = CHUNK_RAYS, screen: ScreenLight | None = None,
-                 surfaces: np.ndarray | None = None) -> PixelGI:
+                 surfaces: np.ndarray | None = None, min_chunks: int = 1) -> PixelGI:
     """Per-pixel gather at points (n, 3) with unit normals (n, 3) of `system` (a GISystem):
     `rays` rays each, the cache's SH as control variate (module docstring). corner_visible :
     (n, 8) bool occlusion of the 8 neighbour cells (`GISystem.corner_visibility`), as the image
     gather reads the cache. lookup : the cache's HitLookup to reuse (building one reads the whole
     grid); chunk_rays : rays per work item (fixed per caller, so the result does not depend on the
-    thread count; a few pixels split finer to use every worker). screen : the frame's lamp light
+    thread count). min_chunks : fewest work items (a few pixels split finer to use every worker;
+    fixed per caller too). screen : the frame's lamp light
     per pixel for the hits the camera sees (`screen_light`). surfaces : (n, 3) the smooth surface
     normals under normals a normal map bent (the G-buffer's `surface`), or None: found by a ray
     each in scenes with normal maps (`bump.smooth_normals`)."""
@@ -238,7 +246,8 @@ def trace_pixels(system, points: np.ndarray, normals: np.ndarray, rays: int, fra
     if n:
         if lookup is None and rays > 0:
             lookup = hit_lookup(system, bounced=s.indirect_quality == MULTI_BOUNCE)
-        per = max(1, chunk_rays // max(rays, 8))
+        most = max(1, chunk_rays // max(rays, 8))
+        per = min(most, max(-(-n // max(1, min_chunks)), MIN_SPLIT_RAYS // max(rays, 8)))
         starts = range(0, n, per)
         vis = (lambda a: None) if corner_visible is None else (lambda a: corner_visible[a:a + per])
         surf = (lambda a: None) if surfaces is None else (lambda a: surfaces[a:a + per])
@@ -1326,7 +1335,7 @@ def full_res_resolve(system, gi: PixelGI, position_lo: np.ndarray, pix: np.ndarr
         dp, dn = np.take(full_points, detail, axis=0), np.take(full_normals, detail, axis=0)
         ds = None if full_surfaces is None else np.take(full_surfaces, detail, axis=0)
         own = trace_pixels(system, dp, dn, rays, frame + DETAIL_FRAME, system.corner_visibility(dp, dn),
-                           lookup=lookup, chunk_rays=DETAIL_CHUNK_RAYS, screen=screen, surfaces=ds)
+                           lookup=lookup, min_chunks=DETAIL_MIN_CHUNKS, screen=screen, surfaces=ds)
         own_est, own_cache = own.channels()
         own_res = own_est - own_cache
         # Inverse-variance average of the two residuals, per guide (luminance: colour channels).
@@ -1399,7 +1408,8 @@ class GIResolver:
             dp, dn = np.take(points, orphan, axis=0), np.take(normals, orphan, axis=0)
             ds = None if surfaces is None else np.take(surfaces, orphan, axis=0)
             own = trace_pixels(self.system, dp, dn, rays, frame + DETAIL_FRAME, self.system.corner_visibility(dp, dn),
-                               lookup=self.lookup, chunk_rays=DETAIL_CHUNK_RAYS, screen=self.screen, surfaces=ds)
+                               lookup=self.lookup, min_chunks=DETAIL_MIN_CHUNKS, screen=self.screen,
+                               surfaces=ds)
             value[orphan] = own.channels()[0]
             traced = own.rays
         return value, traced

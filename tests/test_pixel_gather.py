@@ -132,6 +132,25 @@ def test_deterministic_per_frame(wall_system):
     assert not np.array_equal(a.direct, c.direct)
 
 
+def test_split_work_items_give_the_same_pixels_on_any_thread_count():
+    """`min_chunks` splits a few thousand pixels into items for every worker (the detail pixels'
+    rays): the split is fixed by the pixel and ray counts, so one worker and two give the same
+    bits; and it does split (another item draws other random numbers than one item would)."""
+    rng = np.random.default_rng(5)
+    p = np.column_stack([rng.uniform(0.2, 30.0, 1200), rng.uniform(-15, 15, 1200), np.zeros(1200)]).astype(np.float32)
+    n = np.tile(UP, (p.shape[0], 1))
+    out = []
+    for threads in (1, 2):
+        with GISystem(ground_and_wall(albedo=0.5), CacheSettings(resolution=8, rays_per_cell=32, threads=threads)) as gi:
+            gi.warm_up(8)
+            split = pixel_gather.trace_pixels(gi, p, n, 32, frame=2, min_chunks=pixel_gather.DETAIL_MIN_CHUNKS)
+            whole = pixel_gather.trace_pixels(gi, p, n, 32, frame=2)
+            out.append((split.indirect, split.ao, whole.indirect))
+    np.testing.assert_array_equal(out[0][0], out[1][0])
+    np.testing.assert_array_equal(out[0][1], out[1][1])
+    assert not np.array_equal(out[0][0], out[0][2])
+
+
 def test_a_pixel_without_a_usable_normal_still_gets_finite_light(wall_system):
     p = np.array([[3.0, 0.0, 0.0], [4.0, 0.0, 0.0]], np.float32)
     n = np.array([[0.0, 0.0, 0.0], [0.0, 0.0, 1.0]], np.float32)
