@@ -62,7 +62,8 @@ def dilate(mask: np.ndarray, radius: int) -> np.ndarray:
 
 def adaptive_direct(direct, points: np.ndarray, normals: np.ndarray, pix: np.ndarray, shape: tuple[int, int],
                     frame: int, samples: int, camera=None, pool=None, lamps: int = 0,
-                    smooth: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+                    smooth: np.ndarray | None = None,
+                    per_lamp: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Lamp irradiance (n, 3) at the pixels `pix` (flat indices into an image of `shape` (h, w))
     with `samples` shadow rays per lamp in penumbrae and FIRST_SAMPLES elsewhere, and the (n,)
     bool mask of the pixels that got the full count (for some lamp).
@@ -76,13 +77,17 @@ def adaptive_direct(direct, points: np.ndarray, normals: np.ndarray, pix: np.nda
     per_lamp= and lights= (lamp indices), and each lamp's penumbra is re-sampled for that lamp
     alone (`_per_lamp`). smooth : (n, 3) the smooth surface normals under the points where a
     normal map bends `normals` (the G-buffer's `surface` target): handed to `direct` (its bump
-    shadowing term) and the guide of the penumbra filter's surfaces; None: `normals`."""
+    shadowing term) and the guide of the penumbra filter's surfaces; None: `normals`. per_lamp :
+    an optional (n, lamps, 3) output, each lamp's share of the light (with more than one lamp)."""
     guide = normals if smooth is None else smooth
     first = min(FIRST_SAMPLES, samples)
     if samples <= first:
-        return direct(points, normals, frame, samples=samples, **_smooth(smooth)), np.ones(points.shape[0], bool)
+        kwargs = {} if per_lamp is None or lamps <= 1 else {"per_lamp": per_lamp}
+        return (direct(points, normals, frame, samples=samples, **kwargs, **_smooth(smooth)),
+                np.ones(points.shape[0], bool))
     if lamps > 1:
-        return _per_lamp(direct, points, normals, pix, shape, frame, samples, first, camera, pool, lamps, smooth)
+        return _per_lamp(direct, points, normals, pix, shape, frame, samples, first, camera, pool, lamps, smooth,
+                         per_lamp)
     partial = np.zeros(points.shape[0], bool)
     reuse = {"exact": np.full((points.shape[0], lamps), np.nan)} if lamps > 0 else {}
     light = direct(points, normals, frame, samples=first, partial=partial, **reuse, **_smooth(smooth))
@@ -118,14 +123,16 @@ def _smooth(smooth: np.ndarray | None, rows: np.ndarray | None = None) -> dict:
     return {"smooth": smooth if rows is None else smooth[rows]}
 
 
-def _per_lamp(direct, points, normals, pix, shape, frame, samples, first, camera, pool, lamps, smooth=None):
+def _per_lamp(direct, points, normals, pix, shape, frame, samples, first, camera, pool, lamps, smooth=None,
+              per_lamp=None):
     """`adaptive_direct` of several lamps, each lamp's penumbra on its own: a pixel re-samples
     only the lamps whose rays disagreed around it. Why: a room lit by several soft lamps (an
     area lamp and ceiling lamps with a radius) has some lamp's penumbra over most of the image,
     and re-sampling every lamp there costs `samples` rays per lamp where one or two are soft.
     The first pass shades LAMP_GROUP lamps per call (each lamp's share kept for the blend); lamp
     j's penumbra pass draws from frame + SEED_OFFSET + j * LAMP_SEED_STRIDE; each penumbra's
-    visibility is filtered against its own lamp's unshadowed light. smooth : as `adaptive_direct`'s."""
+    visibility is filtered against its own lamp's unshadowed light. smooth, per_lamp : as
+    `adaptive_direct`'s."""
     n = points.shape[0]
     guide = normals if smooth is None else smooth
     light = np.zeros((n, 3), np.float32)
@@ -148,6 +155,9 @@ def _per_lamp(direct, points, normals, pix, shape, frame, samples, first, camera
                               frame + SEED_OFFSET + j * LAMP_SEED_STRIDE, samples, first, camera, pool,
                               exact=exact[redo, k : k + 1], lights=[j], **_smooth(smooth, redo))
             light[redo] += mixed - was
+            share[redo, k] = mixed
+        if per_lamp is not None:
+            per_lamp[:, g0 : g0 + len(group)] = share
     np.maximum(light, 0.0, out=light)  # the differences' rounding must not leave a dark pixel below 0
     return light, full
 

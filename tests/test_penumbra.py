@@ -202,3 +202,20 @@ def test_per_lamp_penumbrae_trace_fewer_rays_for_the_same_light():
         assert (light >= 0).all()
     assert rays[1] < 0.8 * rays[0], rays
     assert errors[1] < 1.15 * errors[0], errors
+
+
+def test_per_lamp_shares_of_adaptive_direct_add_up_to_its_light():
+    """adaptive_direct(per_lamp=) hands each lamp's share after its own penumbra pass (what the
+    subframes' per-lamp light edges read): the shares add up to the light, and each is that lamp's
+    light alone (a lamp's shadow is not in the other's share)."""
+    lamps = [area_light(translation(0.0, 0.0, 2.0), power=200.0), point_light((2.5, -2.0, 1.5), radius=0.3)]
+    tracer = TriangleTracer(quad((0.0, 0.0, 1.0), (0.4, 0, 0), (0, 0.4, 0)))
+    pts, nrm = _floor()
+    pix = np.arange(H * W)
+    shares = np.zeros((pts.shape[0], 2, 3), np.float32)
+    light, _full = adaptive_direct(_direct(lamps, tracer), pts, nrm, pix, (H, W), frame=3, samples=32, lamps=2,
+                                   per_lamp=shares)
+    np.testing.assert_allclose(shares.sum(axis=1), light, rtol=1e-5, atol=1e-6)
+    for k, lamp in enumerate(lamps):
+        alone = direct_irradiance([lamp], pts, nrm, tracer, np.random.default_rng(7), samples=512)
+        assert np.abs(shares[:, k] - alone).sum() < 0.05 * alone.sum(), k

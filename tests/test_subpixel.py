@@ -277,3 +277,41 @@ def test_a_normal_maps_bends_are_one_surface_to_gi_edges_and_subframes():
     turned[0, 3, 0] *= -1.0
     hit, same = subframe_surfaces(by_surface, position, turned, flat)
     assert hit.all() and same.tolist() == [True, True, True, False, True, True, True, True]
+
+
+def test_a_light_edge_is_traced_again_only_for_the_lamp_that_makes_it():
+    """Two lamps over one plane, a shadow edge of lamp 0 only: its light-edge pixels take lamp 0's
+    light from the subframe's own rays and keep the centre's share of lamp 1; pixels away from
+    the edge keep both; a weak lamp's step too small against the total light is no edge."""
+    from hybridgi_core.raster.subpixel import CentreSample, lamp_edges, subframe_direct
+
+    class System:
+        def __init__(self):
+            self.calls = []
+
+        def direct(self, points, normals, frame, samples, lights=None):
+            self.calls.append((points.shape[0], lights))
+            return np.full((points.shape[0], 3), 0.5, np.float32)
+
+    h, w = 1, 6
+    position0 = np.zeros((h, w, 4), np.float32)
+    position0[0, :, 0] = np.arange(w)
+    position0[0, :, 2] = -5.0
+    position0[..., 3] = 1.0
+    normal0 = np.tile(np.array([0, 0, 1, 0], np.float32), (h, w, 1))
+    depth0 = np.full((h, w, 1), 5.0, np.float32)
+    shares = np.zeros((h * w, 3, 3), np.float32)
+    shares[:, 0] = np.array([1.0, 1.0, 1.0, 0.0, 0.0, 0.0])[:, None]  # lamp 0's shadow starts at pixel 3
+    shares[:, 1] = 2.0  # lamp 1 lights the whole plane
+    shares[:, 2] = np.array([0.1, 0.1, 0.1, 0.1, 0.0, 0.0])[:, None]  # lamp 2: 0.1 of 3, no edge
+    direct0 = np.zeros((h * w, 4), np.float32)
+    direct0[:, :3] = shares.sum(axis=1)
+    edges = lamp_edges(shares, direct0[:, :3].sum(axis=1).reshape(h, w))
+    assert edges[:, 0].tolist() == [False, False, True, True, False, False]
+    assert not edges[:, 1:].any()
+    centre = CentreSample.from_gbuffer(direct0, position0, normal0, depth0, lamp_light=shares)
+    assert centre.light_edge.tolist() == edges[:, 0].tolist()
+    system = System()
+    got = subframe_direct(system, centre, position0.copy(), normal0.copy(), seed_frame=1, samples=4)
+    assert system.calls == [(2, [0])]
+    np.testing.assert_allclose(got[:, 0], [3.1, 3.1, 2.6, 2.6, 2.0, 2.0], rtol=1e-6)

@@ -60,6 +60,10 @@ log = logging.getLogger(__name__)
 #: Subframe s of a frame seeds its shadow rays with frame + s * this: other samples in every
 #: subframe, subframe 0 those of a frame without subframes.
 SUBFRAME_SEED_STRIDE = 1 << 24
+#: Most lamps whose shares of the centre's light the subframes keep (h x w x lamps x 3 floats) to
+#: trace again only the lamps whose light edge crosses a pixel (`subpixel.lamp_edges`); more
+#: lamps trace every lamp at every light edge, as one lamp does.
+SUBFRAME_LAMP_LIMIT = 8
 
 
 #: Subframes a frame adds when thin surfaces of far other bounce light cover a share of its
@@ -277,10 +281,18 @@ class FramePipeline:
             # Before the pixel rays: their hits that the camera sees read this light (`screen_light`).
             direct = np.zeros((self.height * self.width, 4), np.float32)
             camera = filter_camera(system.scene.lights, camera_eye(view, proj))
+            lamps = len(system.scene.lights)
+            # Each lamp's share, for the subframes' light edges per lamp (`subpixel.lamp_edges`).
+            shares = (np.zeros((p_full.shape[0], lamps, 3), np.float32)
+                      if self.subframes > 1 and 1 < lamps <= SUBFRAME_LAMP_LIMIT else None)
             direct[pix_full, :3] = adaptive_direct(system.direct, p_full, n_full, pix_full, (self.height, self.width),
                                                    frame, self.direct_samples, camera=camera,
-                                                   pool=system.updater.pool, lamps=len(system.scene.lights),
-                                                   smooth=s_full)[0]
+                                                   pool=system.updater.pool, lamps=lamps,
+                                                   smooth=s_full, per_lamp=shares)[0]
+            lamp_light = None
+            if shares is not None:
+                lamp_light = np.zeros((self.height * self.width, lamps, 3), np.float32)
+                lamp_light[pix_full] = shares
             # Hits find their pixel by the surface (the smooth normal), not a normal map's bend.
             screen = ScreenLight.from_pixels(view, proj, (self.width, self.height), p_full,
                                              n_full if s_full is None else s_full, pix_full, direct[pix_full, :3])
@@ -318,7 +330,8 @@ class FramePipeline:
         film.set_depth(self.gbuffer.read("depth"))  # the centre sample, as Cycles' one sample
         count = self.subframes
         if count > 1:
-            centre = CentreSample.from_gbuffer(direct, position, normal, film.read("depth"), surface=surface)
+            centre = CentreSample.from_gbuffer(direct, position, normal, film.read("depth"), surface=surface,
+                                               lamp_light=lamp_light)
             count = self._subframe_count(centre, full_gi, stats)
         stats.subframes = count
         offsets = subpixel_offsets(count, self.filter_size, self.filter_type)
