@@ -128,7 +128,13 @@ AO_RELATIVE_NOISE = 0.15
 #: 640x360 atrium's DI 0.0447 -> 0.0440 (0.25: 0.0437, 0.5: 0.0434). Near-bounce time over the pixel
 #: rays' time in the same render: Cornell 1.5%, spheres 3%, animated 4%, car and atrium 8% (at 0.25:
 #: Cornell 6%, atrium 12%; at 0.5: Cornell 6-8%, atrium 15-17%, where Cornell gains nothing).
-NEAR_BOUNCE_CELLS = 0.125
+#: 1.0 since: at 640x360 vs Cycles 1024 spp with the pixel rays' cost since then, Combined at the
+#: default settings (0.125 -> 1.0) spheres 0.0087 -> 0.0083 (the light between the front sphere's
+#: underside and the floor it stands on, DI 0.056 -> 0.052), morse_apartment 0.0490 -> 0.0472,
+#: dragon_npm 0.0481 -> 0.0477, car 0.0031 -> 0.0030, atrium 0.0227 -> 0.0225, Cornell 0.0202 ->
+#: 0.0201, bunny_npm 0.0250 the same; near-bounce time +25-70 ms (atrium +160 ms, 8% of its pixel
+#: rays). 2 cells: the same errors (spheres 0.0083, atrium 0.0226) for twice the time.
+NEAR_BOUNCE_CELLS = 1.0
 #: Bounces a near hit may trace before reading the cache (1: a near second hit reads the cell in
 #: front of it). 2 / 4 on the scatter: bias -8.4% -> -8.1 / -8.0% (1 cm origins); a 0.3 m trench
 #: 8.2% -> 2.2% too bright at 3, at more rays where the clutter is deep.
