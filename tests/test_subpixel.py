@@ -178,6 +178,16 @@ def test_a_subframe_traces_shadow_rays_only_where_it_sees_another_surface():
     assert system.calls == [(2, 3, 4)]
 
 
+
+def _plane_row(w):
+    """(position, normal, depth) read-backs of a 1 x w centre raster of the plane z = -5 facing
+    the camera, one metre a pixel."""
+    position = np.zeros((1, w, 4), np.float32)
+    position[0, :, 0] = np.arange(w)
+    position[0, :, 2] = -5.0
+    position[..., 3] = 1.0
+    return position, np.tile(np.array([0, 0, 1, 0], np.float32), (1, w, 1)), np.full((1, w, 1), 5.0, np.float32)
+
 def test_a_shadow_boundary_on_one_surface_is_traced_again_in_every_subframe():
     """A sun's shadow edge across one plane: the pixels on both sides of the step are light edges
     and get their own shadow rays in a subframe; pixels away from it reuse the centre's light."""
@@ -188,12 +198,7 @@ def test_a_shadow_boundary_on_one_surface_is_traced_again_in_every_subframe():
             return np.full((points.shape[0], 3), 0.5, np.float32)
 
     h, w = 1, 6
-    position0 = np.zeros((h, w, 4), np.float32)
-    position0[0, :, 0] = np.arange(w)
-    position0[0, :, 2] = -5.0
-    position0[..., 3] = 1.0
-    normal0 = np.tile(np.array([0, 0, 1, 0], np.float32), (h, w, 1))
-    depth0 = np.full((h, w, 1), 5.0, np.float32)
+    position0, normal0, depth0 = _plane_row(w)
     lit = np.array([1.0, 1.0, 1.0, 0.0, 0.0, 0.0], np.float32)  # the shadow starts at pixel 3
     direct0 = np.zeros((h * w, 4), np.float32)
     direct0[:, :3] = lit[:, None]
@@ -294,12 +299,7 @@ def test_a_light_edge_is_traced_again_only_for_the_lamp_that_makes_it():
             return np.full((points.shape[0], 3), 0.5, np.float32)
 
     h, w = 1, 6
-    position0 = np.zeros((h, w, 4), np.float32)
-    position0[0, :, 0] = np.arange(w)
-    position0[0, :, 2] = -5.0
-    position0[..., 3] = 1.0
-    normal0 = np.tile(np.array([0, 0, 1, 0], np.float32), (h, w, 1))
-    depth0 = np.full((h, w, 1), 5.0, np.float32)
+    position0, normal0, depth0 = _plane_row(w)
     shares = np.zeros((h * w, 3, 3), np.float32)
     shares[:, 0] = np.array([1.0, 1.0, 1.0, 0.0, 0.0, 0.0])[:, None]  # lamp 0's shadow starts at pixel 3
     shares[:, 1] = 2.0  # lamp 1 lights the whole plane
