@@ -173,9 +173,6 @@ SAME_PLANE = 0.005
 SAME_REACH = 0.05
 #: Relative lamp-light step between neighbouring centre pixels that marks a light edge (`light_edges`).
 LIGHT_EDGE_CONTRAST = 0.25
-#: Added to a subframe's seed for the lamps it traces again at light edges (lamp k: + k x
-#: LAMP_SEED_STRIDE): streams apart from the silhouettes' and the centre's (`penumbra`).
-LAMP_EDGE_SEED = 1 << 21
 
 
 def same_surface(position0: np.ndarray, normal0: np.ndarray, position: np.ndarray,
@@ -410,18 +407,26 @@ def subframe_direct(system, centre: CentreSample, position: np.ndarray, normal: 
             kwargs["smooth"] = pixels_to_points(pos[rows][None], surface.reshape(n_pix, -1)[rows][None])[1]
         return rows[keep], system.direct(p, n, frame, samples=samples, **kwargs)
 
-    fresh = np.flatnonzero(hit & ~same)
-    if fresh.size:
-        rows, light = lit(fresh, seed_frame)
-        direct[rows, :3] = light
-    if lamp_edge is not None:
-        # On the centre's surface only the lamps whose edge crosses the pixel are traced again;
-        # the others keep the centre's share, as a pixel without any edge keeps all of them.
-        for k in np.flatnonzero(lamp_edge.any(axis=0)):
-            rows, light = lit(np.flatnonzero(lamp_edge[:, k]), seed_frame + LAMP_EDGE_SEED + int(k) * LAMP_SEED_STRIDE,
-                              lights=[int(k)])
-            direct[rows, :3] += light - centre.lamp_light[rows, k]
-        np.maximum(direct[:, :3], 0.0, out=direct[:, :3])  # the differences' rounding
+    fresh = hit & ~same
+    if lamp_edge is None:
+        if fresh.any():
+            rows, light = lit(np.flatnonzero(fresh), seed_frame)
+            direct[rows, :3] = light
+        return direct
+    # Lamp by lamp: another surface (a silhouette) takes every lamp's light from its own rays; on
+    # the centre's surface only the lamps whose edge crosses the pixel are traced again, the
+    # others keep the centre's share, as a pixel without any edge keeps all of them. Lamp k draws
+    # from seed_frame + k x LAMP_SEED_STRIDE, as the centre's penumbra passes do: lamp 0's rays are
+    # those of the one-lamp image (a lamp that emits nothing beside it changes no pixel).
+    for k in range(lamp_edge.shape[1]):
+        want = np.flatnonzero(fresh | lamp_edge[:, k])
+        if want.size == 0:
+            continue
+        rows, light = lit(want, seed_frame + k * LAMP_SEED_STRIDE, lights=[k])
+        edge = lamp_edge[rows, k]
+        light[edge] -= centre.lamp_light[rows[edge], k]
+        direct[rows, :3] += light
+    np.maximum(direct[:, :3], 0.0, out=direct[:, :3])  # the differences' rounding
     return direct
 
 
