@@ -43,6 +43,7 @@ import numpy as np
 
 from . import sh
 from .bump import has_normal_maps, irradiance_kernel, shadowing_term, smooth_normals
+from .environment import LUMA as ENV_LUMA
 from .evaluate import HitLookup, corner_weights
 from .glossy import glossy_direct
 from .levels import hit_lookup
@@ -57,8 +58,8 @@ from .sky_ratio import open_share, open_sky_estimate, sky_irradiance
 #: samples per hit and lamp.
 SHINY_SHARE = 0.5
 SHINY_SAMPLES = 2
-#: Rec.709 luminance weights (the colour channels' filter guide).
-LUMA = np.array([0.2126, 0.7152, 0.0722], np.float32)
+#: Rec.709 luminance weights (the colour channels' filter guide), as the float32 arrays they weigh.
+LUMA = ENV_LUMA.astype(np.float32)
 
 #: Rays per work item (pixels x rays): fixed, so the result does not depend on the thread count.
 CHUNK_RAYS = 65536
@@ -353,11 +354,10 @@ def _chunk(system, lookup: HitLookup | None, p, nrm, corner_visible, rays, rng, 
     res[:, 6] = ao_mean - cv_a
     # Variance of the two filter guides' means (luminance of all light, AO), from the rays' own
     # spread around their control variate: what the filter may average away as noise.
-    luma = LUMA.astype(np.float32)
-    lum_d = r[..., 0:3] @ luma - np.matmul(y_lit, (sh_d @ luma)[..., None])[..., 0]
+    lum_d = r[..., 0:3] @ LUMA - np.matmul(y_lit, (sh_d @ LUMA)[..., None])[..., 0]
     if sky_open is not None:
         lum_d = _open_sky_band(res, lum_d, sky_open, sky, hits, radiance, nrm, rays)
-    lum_i = r[..., 3:6] @ luma - np.matmul(y_lit, (sh_i @ luma)[..., None])[..., 0]
+    lum_i = r[..., 3:6] @ LUMA - np.matmul(y_lit, (sh_i @ LUMA)[..., None])[..., 0]
     ao = visible.reshape(m, rays) - np.where(covered[:, None], np.matmul(y, sh_a[..., None])[..., 0], np.float32(1.0))
     of_mean = np.float32(1.0 / max(rays - 1, 1))  # sample variance / N
     res[:, 7] = (lum_d + lum_i).var(axis=1) * np.float32(np.pi**2) * of_mean
@@ -383,7 +383,7 @@ def _open_sky_band(res: np.ndarray, lum_cv: np.ndarray, sky_open, sky: np.ndarra
     share = open_share(res[:, 9:12], unshadowed)[:, None]
     open_res = sky_light + emitted.mean(axis=1) * np.float32(np.pi) - res[:, 9:12]
     res[:, 0:3] = share * open_res + (1 - share) * res[:, 0:3]
-    return share * (sky_terms + emitted @ LUMA.astype(np.float32)) + (1 - share) * lum_cv
+    return share * (sky_terms + emitted @ LUMA) + (1 - share) * lum_cv
 
 
 def hit_radiance(system, lookup: HitLookup | None, origins: np.ndarray, dirs: np.ndarray, hits, rng,
@@ -459,8 +459,7 @@ def _add_shiny_highlights(system, lamp: np.ndarray, glossy_part: np.ndarray, brd
     dropped whole (a rough metal floor reflecting a rough metal wall under a sun: Glossy Indirect
     0.100 against Cycles' 0.291). Dielectric coats keep the cache's light only: their highlight
     is a few percent of what they reflect."""
-    luma = LUMA.astype(np.float32)
-    shiny = np.flatnonzero(glossy_part @ luma > np.float32(SHINY_SHARE) * (brdf @ luma))
+    shiny = np.flatnonzero(glossy_part @ LUMA > np.float32(SHINY_SHARE) * (brdf @ LUMA))
     if shiny.size == 0 or not system.scene.lights:
         return
     rows = np.take(system.updater.scene.surfaces.material_index, np.take(prim, shiny)).astype(np.int64)
