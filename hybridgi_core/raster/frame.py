@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import logging
 import time
+from concurrent import futures
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 
@@ -90,6 +91,22 @@ class FrameStats:
             self.steps_ms[name] = self.steps_ms.get(name, 0.0) + (time.perf_counter() - t0) * 1e3
 
 
+@dataclass
+class CentreLight:
+    """`FramePipeline._centre_direct`'s result: direct (h w, 4) the lamp light, lamp_light (h w,
+    lamps, 3) each lamp's share or None, screen the pixel rays' ScreenLight, the geometry pixels'
+    points, normals, flat pix and smooth normals (None without normal maps), ms its wall time."""
+
+    direct: np.ndarray
+    lamp_light: np.ndarray | None
+    screen: ScreenLight
+    points: np.ndarray
+    normals: np.ndarray
+    pix: np.ndarray
+    smooth: np.ndarray | None
+    ms: float
+
+
 def _shared_lookup(full_gi) -> HitLookup | None:
     """The HitLookup the frame's pixel rays read (`pixel_gather.GIResolver.lookup`), if it is the
     plain one of the level-0 cache the reflection rays read too (not the levels'); else None."""
@@ -159,6 +176,8 @@ class FramePipeline:
         self.width = self.height = 0
         self._direct_tex = None
         self._glossy_tex = None
+        #: The stage thread (`_stage_thread`), made on first use.
+        self._stage = None
 
     def resize(self, width: int, height: int) -> None:
         if (width, height) == (self.width, self.height):
@@ -187,6 +206,9 @@ class FramePipeline:
     def free(self) -> None:
         for p in self._passes + tuple(p for p in (self._full_copy, self._bilateral_full) if p is not None):
             p.free()
+        if self._stage is not None:
+            self._stage.shutdown(wait=True)
+            self._stage = None
         self._direct_tex = None
         self.width = self.height = 0
 
@@ -248,54 +270,27 @@ class FramePipeline:
         with stats.step("select"):
             cells = system.visible_cells(points, normals)
         stats.visible_cells = int(cells.size)
-        if warmup > 0:
-            with stats.step("warmup"):
-                warm_cells = np.union1d(system.surface_cells(), cells)
-                runs = []
-                for i in range(warmup):
-                    runs += system.warm_up(1, warm_cells, start=i, total=warmup)
-                    if progress is not None:
-                        progress(i, warmup)
-            stats.rays += sum(r.rays for r in runs)
-            for r in runs:
-                for k, v in r.steps_ms.items():
-                    stats.steps_ms[f"warmup_{k}"] = stats.steps_ms.get(f"warmup_{k}", 0.0) + v
-        if update:
-            with stats.step("update"):
-                run = update_hook(cells) if update_hook is not None else system.update(cells, frame)
-            stats.rays += run.rays
-            for k, v in run.steps_ms.items():
-                stats.steps_ms[f"update_{k}"] = v
-        if hasattr(system, "build_levels"):
-            self._levels(system, points, normals, view, warmup, stats)
-        with stats.step("visibility"):
-            visible = system.corner_visibility(points, normals)
         with stats.step("gbuffer"):  # the full-res read-back, as the subframes count theirs
             normal = self.gbuffer.read("normal")
             position = self.gbuffer.read("position")
             # The smooth surface under normal maps (`normal` itself where none bends it).
             surface = self.gbuffer.read_surface(normal)
-        with stats.step("direct"):
-            p_full, n_full, pix_full = pixels_to_points(position, normal)
-            s_full = None if surface is normal else pixels_to_points(position, surface)[1]
-            # Before the pixel rays: their hits that the camera sees read this light (`screen_light`).
-            direct = np.zeros((self.height * self.width, 4), np.float32)
-            camera = filter_camera(system.scene.lights, camera_eye(view, proj))
-            lamps = len(system.scene.lights)
-            # Each lamp's share, for the subframes' light edges per lamp (`subpixel.lamp_edges`).
-            shares = (np.zeros((p_full.shape[0], lamps, 3), np.float32)
-                      if self.subframes > 1 and 1 < lamps <= SUBFRAME_LAMP_LIMIT else None)
-            direct[pix_full, :3] = adaptive_direct(system.direct, p_full, n_full, pix_full, (self.height, self.width),
-                                                   frame, self.direct_samples, camera=camera,
-                                                   pool=system.updater.pool, lamps=lamps,
-                                                   smooth=s_full, per_lamp=shares)[0]
-            lamp_light = None
-            if shares is not None:
-                lamp_light = np.zeros((self.height * self.width, lamps, 3), np.float32)
-                lamp_light[pix_full] = shares
-            # Hits find their pixel by the surface (the smooth normal), not a normal map's bend.
-            screen = ScreenLight.from_pixels(view, proj, (self.width, self.height), p_full,
-                                             n_full if s_full is None else s_full, pix_full, direct[pix_full, :3])
+        # The centre's lamp light needs the full-res G-buffer only, not the cache: it runs on a
+        # thread of its own while this one updates the cache, so that the serial parts of each
+        # overlap the other's work on the pool. Only CPU steps run beside it (no GPU pass before
+        # the wait): the seconds without the GPU passes count all of it.
+        pending = self._stage_thread().submit(self._centre_direct, system, view, proj, frame, position, normal,
+                                              surface)
+        try:
+            visible = self._update_cache(system, points, normals, cells, view, frame, warmup, update, stats,
+                                         progress, update_hook)
+        finally:
+            with stats.step("direct_wait"):
+                futures.wait([pending])  # nothing of this frame runs on after it is abandoned
+        centre_light = pending.result()
+        stats.steps_ms["direct"] = stats.steps_ms.get("direct", 0.0) + centre_light.ms
+        direct, lamp_light, screen = centre_light.direct, centre_light.lamp_light, centre_light.screen
+        p_full, n_full, pix_full, s_full = centre_light.points, centre_light.normals, centre_light.pix, centre_light.smooth
         gi = None
         gi_low, gi_bilateral, full_gi = low, None, None
         if self.settings.pixel_rays > 0:
@@ -371,6 +366,68 @@ class FramePipeline:
             film.set_glossy(glossy, glossy_col, self.height, self.width, indirect=glossy_ind)
         self.film = film
         return shaded, stats
+
+    def _stage_thread(self) -> futures.ThreadPoolExecutor:
+        """The thread a frame's centre lamp light runs on beside the cache update (made on use).
+        Not a worker of the system's pool (`CacheUpdater.on_pool_thread`): it splits its shadow
+        rays over that pool as the render thread would. numpy and shadow rays only, no bpy, no gpu."""
+        if self._stage is None:
+            self._stage = futures.ThreadPoolExecutor(1, thread_name_prefix="hybridgi-stage")
+        return self._stage
+
+    def _update_cache(self, system, points, normals, cells, view, frame, warmup, update, stats, progress,
+                      update_hook) -> np.ndarray:
+        """Steps 3-5 of `render` for the visible cells (CPU only): the warm-up, the frame's update,
+        the levels; returns the points' corner visibility (`GISystem.corner_visibility`)."""
+        if warmup > 0:
+            with stats.step("warmup"):
+                warm_cells = np.union1d(system.surface_cells(), cells)
+                runs = []
+                for i in range(warmup):
+                    runs += system.warm_up(1, warm_cells, start=i, total=warmup)
+                    if progress is not None:
+                        progress(i, warmup)
+            stats.rays += sum(r.rays for r in runs)
+            for r in runs:
+                for k, v in r.steps_ms.items():
+                    stats.steps_ms[f"warmup_{k}"] = stats.steps_ms.get(f"warmup_{k}", 0.0) + v
+        if update:
+            with stats.step("update"):
+                run = update_hook(cells) if update_hook is not None else system.update(cells, frame)
+            stats.rays += run.rays
+            for k, v in run.steps_ms.items():
+                stats.steps_ms[f"update_{k}"] = v
+        if hasattr(system, "build_levels"):
+            self._levels(system, points, normals, view, warmup, stats)
+        with stats.step("visibility"):
+            return system.corner_visibility(points, normals)
+
+    def _centre_direct(self, system, view, proj, frame, position, normal, surface) -> CentreLight:
+        """The centre raster's lamp light at full resolution (on the stage thread): adaptive in
+        penumbrae (`penumbra.adaptive_direct`), each lamp's share for the subframes' light edges,
+        and the `ScreenLight` the pixel rays' hits that the camera sees read it from."""
+        tic = time.perf_counter()
+        p_full, n_full, pix_full = pixels_to_points(position, normal)
+        s_full = None if surface is normal else pixels_to_points(position, surface)[1]
+        direct = np.zeros((self.height * self.width, 4), np.float32)
+        camera = filter_camera(system.scene.lights, camera_eye(view, proj))
+        lamps = len(system.scene.lights)
+        # Each lamp's share, for the subframes' light edges per lamp (`subpixel.lamp_edges`).
+        shares = (np.zeros((p_full.shape[0], lamps, 3), np.float32)
+                  if self.subframes > 1 and 1 < lamps <= SUBFRAME_LAMP_LIMIT else None)
+        direct[pix_full, :3] = adaptive_direct(system.direct, p_full, n_full, pix_full, (self.height, self.width),
+                                               frame, self.direct_samples, camera=camera,
+                                               pool=system.updater.pool, lamps=lamps,
+                                               smooth=s_full, per_lamp=shares)[0]
+        lamp_light = None
+        if shares is not None:
+            lamp_light = np.zeros((self.height * self.width, lamps, 3), np.float32)
+            lamp_light[pix_full] = shares
+        # Hits find their pixel by the surface (the smooth normal), not a normal map's bend.
+        screen = ScreenLight.from_pixels(view, proj, (self.width, self.height), p_full,
+                                         n_full if s_full is None else s_full, pix_full, direct[pix_full, :3])
+        return CentreLight(direct, lamp_light, screen, p_full, n_full, pix_full, s_full,
+                           (time.perf_counter() - tic) * 1e3)
 
     def _subframe_count(self, centre, full_gi, stats) -> int:
         """Subframes of this frame: `subframes`, plus `extra_subframes` when the centre raster's GI
