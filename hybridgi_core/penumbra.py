@@ -32,6 +32,15 @@ FILTER_PASSES = 1
 LAMP_GROUP = 8
 #: Lamp j's penumbra pass adds j times this to its frame number (and group g0's first pass g0 times).
 LAMP_SEED_STRIDE = 1 << 12
+#: With several lamps, a lamp whose rough light at a pixel (`lights.rough_lights`) is under this
+#: share of all the lamps' there is weak at it: one shadow ray instead of FIRST_SAMPLES, and no
+#: penumbra pass (unbiased; its noise is at most this share of the pixel's light, less after the
+#: subframes). Why: a room lit through a window by a strong lamp with a few dim ones beside it
+#: traced FIRST_SAMPLES rays per pixel to every dim lamp (morse_apartment: 4 point lamps of 100 W
+#: with a 1 m radius beside a 28 kW area lamp, 40 rays per pixel for ~0.2% of its light).
+WEAK_SHARE = 1.0 / 64.0
+#: Added to a weak lamp's frame number (after its own LAMP_SEED_STRIDE): a stream of its own.
+WEAK_SEED_OFFSET = 1 << 21
 
 
 def filter_camera(lights, eye) -> np.ndarray | None:
@@ -63,7 +72,8 @@ def dilate(mask: np.ndarray, radius: int) -> np.ndarray:
 def adaptive_direct(direct, points: np.ndarray, normals: np.ndarray, pix: np.ndarray, shape: tuple[int, int],
                     frame: int, samples: int, camera=None, pool=None, lamps: int = 0,
                     smooth: np.ndarray | None = None,
-                    per_lamp: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+                    per_lamp: np.ndarray | None = None,
+                    rough: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Lamp irradiance (n, 3) at the pixels `pix` (flat indices into an image of `shape` (h, w))
     with `samples` shadow rays per lamp in penumbrae and FIRST_SAMPLES elsewhere, and the (n,)
     bool mask of the pixels that got the full count (for some lamp).
@@ -87,7 +97,7 @@ def adaptive_direct(direct, points: np.ndarray, normals: np.ndarray, pix: np.nda
                 np.ones(points.shape[0], bool))
     if lamps > 1:
         return _per_lamp(direct, points, normals, pix, shape, frame, samples, first, camera, pool, lamps, smooth,
-                         per_lamp)
+                         per_lamp, _weak_lamps(rough))
     partial = np.zeros(points.shape[0], bool)
     reuse = {"exact": np.full((points.shape[0], lamps), np.nan)} if lamps > 0 else {}
     light = direct(points, normals, frame, samples=first, partial=partial, **reuse, **_smooth(smooth))
@@ -123,8 +133,53 @@ def _smooth(smooth: np.ndarray | None, rows: np.ndarray | None = None) -> dict:
     return {"smooth": smooth if rows is None else smooth[rows]}
 
 
+def _weak_lamps(rough: np.ndarray | None) -> np.ndarray | None:
+    """(n, lamps) bool: the lamps under WEAK_SHARE of all the lamps' rough light at each point
+    (non-finite rough light counts 0: a NaN-power lamp is weak everywhere), or None for none."""
+    if rough is None:
+        return None
+    r = np.nan_to_num(np.asarray(rough, np.float32), nan=0.0, posinf=np.float32(1e30), neginf=0.0)
+    np.maximum(r, 0.0, out=r)
+    weak = r < np.float32(WEAK_SHARE) * r.sum(axis=1, keepdims=True)
+    return weak if weak.any() else None
+
+
+def _first_pass(direct, points, normals, frame, first, group, weak, partial, exact, share, smooth=None):
+    """The first pass of the lamps `group` at every point -> (n, 3), filling partial (n, g),
+    exact (n, g) and share (n, g, 3): one call for the group, or, where some of them are weak at
+    some points (`weak` (n, g) bool), per lamp: FIRST_SAMPLES rays where it is not (seeded
+    frame + j x LAMP_SEED_STRIDE: a lamp strong everywhere draws what a one-lamp frame draws) and
+    one ray where it is (never a penumbra)."""
+    if weak is None or not weak.any():
+        return direct(points, normals, frame + group[0] * LAMP_SEED_STRIDE, samples=first, partial=partial,
+                      exact=exact, per_lamp=share, lights=group, **_smooth(smooth))
+    light = np.zeros((points.shape[0], 3), np.float32)
+    for k, j in enumerate(group):
+        strong = ~weak[:, k]
+        seed = frame + j * LAMP_SEED_STRIDE
+        if strong.all():
+            one = np.zeros((points.shape[0], 1, 3), np.float32)
+            light += direct(points, normals, seed, samples=first, partial=partial[:, k : k + 1],
+                            exact=exact[:, k : k + 1], per_lamp=one, lights=[j], **_smooth(smooth))
+            share[:, k] = one[:, 0]
+            continue
+        for rows, count in ((np.flatnonzero(strong), first), (np.flatnonzero(~strong), 1)):
+            if rows.size == 0:
+                continue
+            got = np.zeros((rows.size, 1), bool)
+            known = exact[rows, k : k + 1]
+            e = direct(points[rows], normals[rows], seed if count > 1 else seed + WEAK_SEED_OFFSET, samples=count,
+                       partial=got, exact=known, lights=[j], **_smooth(smooth, rows))
+            light[rows] += e
+            share[rows, k] = e
+            if count > 1:
+                partial[rows, k] = got[:, 0]
+                exact[rows, k] = known[:, 0]
+    return light
+
+
 def _per_lamp(direct, points, normals, pix, shape, frame, samples, first, camera, pool, lamps, smooth=None,
-              per_lamp=None):
+              per_lamp=None, weak=None):
     """`adaptive_direct` of several lamps, each lamp's penumbra on its own: a pixel re-samples
     only the lamps whose rays disagreed around it. Why: a room lit by several soft lamps (an
     area lamp and ceiling lamps with a radius) has some lamp's penumbra over most of the image,
@@ -142,12 +197,14 @@ def _per_lamp(direct, points, normals, pix, shape, frame, samples, first, camera
         partial = np.zeros((n, len(group)), bool)
         exact = np.full((n, len(group)), np.nan)
         share = np.zeros((n, len(group), 3), np.float32)
-        light += direct(points, normals, frame + g0 * LAMP_SEED_STRIDE, samples=first, partial=partial, exact=exact,
-                        per_lamp=share, lights=group, **_smooth(smooth))
+        light += _first_pass(direct, points, normals, frame, first, group,
+                             None if weak is None else weak[:, g0 : g0 + len(group)], partial, exact, share, smooth)
         for k, j in enumerate(group):
             if not partial[:, k].any():
                 continue
             grown = _grown(partial[:, k], pix, shape)
+            if weak is not None:
+                grown &= ~weak[:, j]  # their one ray is no first pass of FIRST_SAMPLES to average with
             full |= grown
             redo = np.flatnonzero(grown)
             was = share[redo, k]

@@ -735,7 +735,41 @@ def test_lamp_budget_picks_lamps_without_bias_and_traces_fewer_rays():
     assert abs(picked.sum() / full.sum() - 1.0) < 0.01
     assert np.abs(picked - full).sum() / full.sum() < 0.03
     rng = np.random.default_rng(3)
+    # A budget so large that every lamp's share reaches 1 / budget shades all of them, as none does.
     np.testing.assert_array_equal(direct_irradiance(lamps, pts, nrm, tracer, np.random.default_rng(3), samples=2),
-                                  direct_irradiance(lamps, pts, nrm, tracer, rng, samples=2, lamp_budget=7))
+                                  direct_irradiance(lamps, pts, nrm, tracer, rng, samples=2, lamp_budget=10**9))
     with pytest.raises(ValueError, match="lamp_budget"):
         direct_irradiance(lamps, pts, nrm, tracer, rng, samples=2, lamp_budget=2, partial=np.zeros(pts.shape[0], bool))
+
+
+def test_lamp_budget_of_all_lamps_skips_dim_lamps_by_roulette_without_bias():
+    """direct_irradiance(lamp_budget=k) with no more sampled lamps than k: a lamp whose share of
+    the rough light is at least 1 / k is shaded at every receiver (weight 1), a dimmer one with
+    probability k x its share and weighted by one over it: the mean over seeds is every lamp's
+    light, with far fewer shadow rays to the dim lamps (a strong lamp beside four dim ones)."""
+    strong = area_light(translation(0.0, 0.0, 2.0), power=4000.0)
+    dim = [point_light((x, y, 1.5), radius=0.3, power=2.0) for x in (-2.0, 2.0) for y in (-2.0, 2.0)]
+    lamps = [strong] + dim
+    tracer = TriangleTracer(quad((0.0, 0.0, 1.0), (0.6, 0, 0), (0, 0.6, 0)))
+    ys, xs = np.meshgrid(np.linspace(-3, 3, 24), np.linspace(-3, 3, 24), indexing="ij")
+    pts = np.column_stack([xs.ravel(), ys.ravel(), np.zeros(xs.size)]).astype(np.float32)
+    nrm = np.tile(np.float32([0, 0, 1]), (pts.shape[0], 1))
+    runs = 96
+    full, picked = np.zeros((pts.shape[0], 3)), np.zeros((pts.shape[0], 3))
+    tracer.rays = 0
+    for seed in range(runs):
+        full += direct_irradiance(lamps, pts, nrm, tracer, np.random.default_rng(seed), samples=1)
+    full_rays, tracer.rays = tracer.rays, 0
+    for seed in range(runs):
+        picked += direct_irradiance(lamps, pts, nrm, tracer, np.random.default_rng(seed), samples=1, lamp_budget=8)
+    assert tracer.rays < 0.5 * full_rays, (tracer.rays, full_rays)
+    full, picked = full / runs, picked / runs
+    assert abs(picked.sum() / full.sum() - 1.0) < 0.01
+    assert np.abs(picked - full).sum() / full.sum() < 0.06  # both are 96 one-sample estimates apart
+    # The weights themselves: 1 for the strong lamp everywhere, and a mean of 1 (unbiased) for
+    # each dim one, which is drawn at only a share of the receivers.
+    weights = np.stack([lights_mod._roulette_lamps(lamps, pts, nrm, 8, np.random.default_rng(seed)) for seed in range(400)])
+    assert (weights[..., 0] == 1.0).all()
+    drawn = (weights[..., 1:] > 0).mean()
+    assert drawn < 0.25, drawn
+    np.testing.assert_allclose(weights[..., 1:].mean(axis=0).mean(axis=0), 1.0, atol=0.05)

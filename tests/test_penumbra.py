@@ -5,8 +5,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from hybridgi_core.lights import direct_irradiance
-from hybridgi_core.penumbra import FIRST_SAMPLES, adaptive_direct, dilate
+from hybridgi_core.lights import direct_irradiance, rough_lights
+from hybridgi_core.penumbra import FIRST_SAMPLES, WEAK_SHARE, adaptive_direct, dilate
 from tests.test_lights import TriangleTracer, area_light, point_light, quad, sun_light, translation
 
 # A floor image of 48 x 48 pixels over [-4, 4]^2, a 1 m square lamp 2 m up, a blocker that
@@ -219,3 +219,32 @@ def test_per_lamp_shares_of_adaptive_direct_add_up_to_its_light():
     for k, lamp in enumerate(lamps):
         alone = direct_irradiance([lamp], pts, nrm, tracer, np.random.default_rng(7), samples=512)
         assert np.abs(shares[:, k] - alone).sum() < 0.05 * alone.sum(), k
+
+
+def test_weak_lamps_trace_one_ray_and_the_strong_lamp_its_one_lamp_rays():
+    """adaptive_direct(rough=): a dim soft lamp beside a strong one traces one shadow ray where
+    its rough light is under WEAK_SHARE of the pixel's, and no penumbra pass there: fewer rays
+    than without rough=, the light as close to the converged light, and the strong lamp's share,
+    strong everywhere, the very light of a frame with that lamp alone."""
+    strong = area_light(translation(0.0, 0.0, 2.0), power=2000.0)
+    lamps = [strong, point_light((2.5, -2.0, 1.5), radius=0.3, power=50.0)]
+    tracer = TriangleTracer(quad((0.0, 0.0, 1.0), (0.4, 0, 0), (0, 0.4, 0)))
+    pts, nrm = _floor()
+    pix = np.arange(H * W)
+    rough = rough_lights(lamps, pts, nrm)
+    weak = rough[:, 1] < WEAK_SHARE * rough.sum(axis=1)
+    assert 0.5 < weak.mean() < 1.0  # weak over most of the floor, not under the dim lamp
+    ref = direct_irradiance(lamps, pts, nrm, tracer, np.random.default_rng(7), samples=2048)
+    errors, rays = [], []
+    for given in (None, rough):
+        tracer.rays = 0
+        shares = np.zeros((pts.shape[0], 2, 3), np.float32)
+        light, _ = adaptive_direct(_direct(lamps, tracer), pts, nrm, pix, (H, W), frame=3, samples=32, lamps=2,
+                                   per_lamp=shares, rough=given)
+        rays.append(tracer.rays)
+        errors.append(np.abs(light - ref).sum() / ref.sum())
+        np.testing.assert_allclose(shares.sum(axis=1), light, rtol=1e-5, atol=1e-6)
+    assert rays[1] < 0.75 * rays[0], rays
+    assert errors[1] < 1.05 * errors[0] + 1e-4, errors
+    alone, _ = adaptive_direct(_direct([strong], tracer), pts, nrm, pix, (H, W), frame=3, samples=32, lamps=1)
+    np.testing.assert_array_equal(shares[:, 0], alone)

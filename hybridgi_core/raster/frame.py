@@ -18,7 +18,7 @@ from .. import glossy_image, pixel_gather
 from ..evaluate import HitLookup
 from ..glossy import cache_reflection, glossy_color
 from ..glossy_noise import adaptive_lamp_glossy
-from ..lights import RATIO_MIN_SAMPLES
+from ..lights import RATIO_MIN_SAMPLES, rough_lights
 from ..penumbra import adaptive_direct, filter_camera
 from ..reflection import (
     bsdf_lamps,
@@ -415,10 +415,12 @@ class FramePipeline:
         # Each lamp's share, for the subframes' light edges per lamp (`subpixel.lamp_edges`).
         shares = (np.zeros((p_full.shape[0], lamps, 3), np.float32)
                   if self.subframes > 1 and 1 < lamps <= SUBFRAME_LAMP_LIMIT else None)
+        # Several lamps: each traces its first pass's rays where it is not weak (`penumbra.WEAK_SHARE`).
+        rough = rough_lights(system.scene.lights, p_full, n_full) if lamps > 1 else None
         direct[pix_full, :3] = adaptive_direct(system.direct, p_full, n_full, pix_full, (self.height, self.width),
                                                frame, self.direct_samples, camera=camera,
                                                pool=system.updater.pool, lamps=lamps,
-                                               smooth=s_full, per_lamp=shares)[0]
+                                               smooth=s_full, per_lamp=shares, rough=rough)[0]
         lamp_light = None
         if shares is not None:
             lamp_light = np.zeros((self.height * self.width, lamps, 3), np.float32)
