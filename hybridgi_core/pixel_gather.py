@@ -100,10 +100,14 @@ REFINE_COVER = 0.85
 #: Frame offset of the detail pixels' ray stream (other directions than the GI pixels').
 DETAIL_FRAME = 1 << 20
 #: NOISE_SIGMA of `full_res_images`: the per-pixel interpolation already averages over the GI pixels
-#: around each pixel, so the filter may stop at smaller differences (1 against 2, at 320x240 vs
-#: Cycles: car Diffuse Indirect 0.091 -> 0.083, contact AO 0.013 -> 0.011, trusses AO 0.058 ->
-#: 0.057, yard and the others equal or better; 0.6 was better on the car, worse on trusses and yard).
-FULL_RES_NOISE_SIGMA = 1.0
+#: around each pixel, so the filter may stop at smaller differences than NOISE_SIGMA. 1.5, not 1.0
+#: (640x360 vs 1024-spp Cycles, Combined, r32 x32 p32 s4 rung: Cornell 0.0220 -> 0.0215, spheres
+#: 0.0095 -> 0.0088, bunny_npm 0.0275 -> 0.0266, dragon 0.0528 -> 0.0521, car and atrium equal; r24
+#: rung: Cornell 0.0291 -> 0.0270, spheres 0.0119 -> 0.0105; at 320x240 yard, contact, hdri_yard a
+#: little better, trusses equal, scatter 0.0125 -> 0.0126): noise, not detail, stopped the taps on
+#: the Cornell box's ceiling. 2.0 was better still on the spheres and bunny, worse on the car
+#: (Diffuse Indirect 0.0505 -> 0.0543); 1.0 against 2 once won at 320x240 with fewer pixel rays.
+FULL_RES_NOISE_SIGMA = 1.5
 #: `full_res_images`' filter and its full-res interpolation (`upsample_full`, also a subframe's
 #: `GIResolver`) count a tap fully while it lies no farther from the pixel than the same screen
 #: step spans on a surface facing the camera, and fall off as exp(-((ratio - 1) / STRETCH)^2) in
