@@ -191,7 +191,9 @@ class HitLookup:
         if table:
             if coeffs is None:
                 coeffs = cache.sh_direct + cache.sh_indirect if bounced else cache.sh_direct
-            self.table = irradiance_poly(coeffs, self.valid)  # (N, K*3)
+            # (K*3, N): one row per term, gathered along its columns (`evaluate_rows`): the hits'
+            # (n, K*3) rows transposed after the gather cost 3x the gather itself.
+            self.table = irradiance_rows(coeffs, self.valid)
         self.origin = np.asarray(grid.lo, np.float32)
         self.inv_cell = np.float32(1.0 / grid.cell_size)
         self.bias = np.float32(HIT_LOOKUP_BIAS * grid.cell_size)
@@ -242,12 +244,19 @@ class HitLookup:
     def evaluate(self, flat: np.ndarray, mono: np.ndarray) -> np.ndarray:
         """(3, n) float32 irradiance >= 0 of cells flat (n,) at normals given as their
         `monomials` (terms, n)."""
-        c = np.ascontiguousarray(np.take(self.table, flat, axis=0).T)  # (K*3, n)
-        e = c[0:3] * mono[0]
-        for k in range(1, self.terms):
-            e += c[3 * k : 3 * k + 3] * mono[k]
-        np.maximum(e, 0.0, out=e)
-        return e
+        return evaluate_rows(self.table, flat, mono)
+
+
+def evaluate_rows(rows: np.ndarray, index: np.ndarray, mono: np.ndarray) -> np.ndarray:
+    """(3, n) float32 irradiance >= 0 of table `rows` (K*3, R) at entries index (n,), normals
+    given as their monomials (K, n). Gathered along the columns of the term rows: (K*3, n) at
+    once (200k hits of a 32^3 grid: 12 ms, against 38 ms for (n, K*3) rows and their transpose)."""
+    c = np.take(rows, index, axis=1)
+    e = c[0:3] * mono[0]
+    for k in range(1, mono.shape[0]):
+        e += c[3 * k : 3 * k + 3] * mono[k]
+    np.maximum(e, 0.0, out=e)
+    return e
 
 
 def irradiance_rows(coeffs: np.ndarray, valid: np.ndarray | None = None) -> np.ndarray:

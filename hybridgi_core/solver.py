@@ -40,7 +40,7 @@ import numpy as np
 
 from . import sh
 from .cache import CellSamples, IrradianceCache
-from .evaluate import HitLookup, irradiance_rows, monomials
+from .evaluate import HitLookup, evaluate_rows, irradiance_rows, monomials
 from .lampcache import LampLightTable
 from .lights import HIT_LAMP_BUDGET, direct_irradiance
 from .sampling import frame_rng, octahedral_texel, spherical_fibonacci
@@ -939,17 +939,6 @@ def cell_directions(n: int, seed: int, frame: int, cells: np.ndarray, grid_count
         np.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], -1),
     ], 1).astype(np.float32)  # (m, 3, 3)
     return np.matmul(spherical_fibonacci(n)[None], rot.transpose(0, 2, 1))
-
-
-def evaluate_rows(rows: np.ndarray, index: np.ndarray, mono: np.ndarray) -> np.ndarray:
-    """(3, n) float32 irradiance >= 0 of table `rows` (K*3, R) at entries index (n,), normals
-    given as their monomials (K, n); the same sums as `HitLookup.evaluate`."""
-    c = np.take(rows, index, axis=1)
-    e = c[0:3] * mono[0]
-    for k in range(1, mono.shape[0]):
-        e += c[3 * k : 3 * k + 3] * mono[k]
-    np.maximum(e, 0.0, out=e)
-    return e
 
 
 def _sample_rows(s: CellSamples, rows: np.ndarray) -> CellSamples:
