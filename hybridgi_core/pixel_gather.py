@@ -142,8 +142,13 @@ AO_RELATIVE_NOISE = 0.15
 NEAR_BOUNCE_CELLS = 1.0
 #: Bounces a near hit may trace before reading the cache (1: a near second hit reads the cell in
 #: front of it). 2 / 4 on the scatter: bias -8.4% -> -8.1 / -8.0% (1 cm origins); a 0.3 m trench
-#: 8.2% -> 2.2% too bright at 3, at more rays where the clutter is deep.
-NEAR_BOUNCE_DEPTH = 1
+#: 8.2% -> 2.2% too bright at 3, at more rays where the clutter is deep. 2 since the full-res
+#: filter's noise gate rose to 1.5 (`FULL_RES_NOISE_SIGMA`): the gap between the spheres' front
+#: sphere and its floor is bounce upon bounce (640x360 Combined, r40 x32 p48 s8 rung: 0.0078 ->
+#: 0.0072, below Cycles 16 spp + OIDN's 0.0074; r32 rung: morse 0.0519 -> 0.0514, dragon 0.0521 ->
+#: 0.0519, car Diffuse Indirect 0.0522 -> 0.0512, Cornell, bunny, atrium equal) for +50-230 ms of
+#: near-bounce work on the two workers.
+NEAR_BOUNCE_DEPTH = 2
 #: B3-spline taps of one a-trous pass (5 x 5, Dammertz et al. 2010).
 _B3 = np.array([1.0, 4.0, 6.0, 4.0, 1.0], np.float32) / 16.0
 #: Fewest rows of own pixels a band must add to its halos for the filter to split the image.
