@@ -707,6 +707,27 @@ def test_receivers_below_the_whole_lamp_are_skipped_only_where_no_sample_lights_
     assert (cos[keep & front] > 0).any(axis=1).mean() > 0.2  # grazing: a sliver of the lamp above
 
 
+def _budget_floor():
+    """(tracer, points, normals): a 24 x 24 floor over [-3, 3]^2 under a small blocker."""
+    tracer = TriangleTracer(quad((0.0, 0.0, 1.0), (0.6, 0, 0), (0, 0.6, 0)))
+    ys, xs = np.meshgrid(np.linspace(-3, 3, 24), np.linspace(-3, 3, 24), indexing="ij")
+    pts = np.column_stack([xs.ravel(), ys.ravel(), np.zeros(xs.size)]).astype(np.float32)
+    return tracer, pts, np.tile(np.float32([0, 0, 1]), (pts.shape[0], 1))
+
+
+def _budget_means(lamps, pts, nrm, tracer, samples, budget, runs=96):
+    """(mean light of every lamp, mean with lamp_budget=budget, their shadow rays) over `runs` seeds."""
+    full, picked = np.zeros((pts.shape[0], 3)), np.zeros((pts.shape[0], 3))
+    tracer.rays = 0
+    for seed in range(runs):
+        full += direct_irradiance(lamps, pts, nrm, tracer, np.random.default_rng(seed), samples=samples)
+    full_rays, tracer.rays = tracer.rays, 0
+    for seed in range(runs):
+        picked += direct_irradiance(lamps, pts, nrm, tracer, np.random.default_rng(seed), samples=samples,
+                                    lamp_budget=budget)
+    return full / runs, picked / runs, full_rays, tracer.rays
+
+
 def test_lamp_budget_picks_lamps_without_bias_and_traces_fewer_rays():
     """direct_irradiance(lamp_budget=k): each receiver shades k of the sampled lamps, drawn in
     proportion to their rough light and weighted by one over their probability: the mean over
@@ -717,21 +738,9 @@ def test_lamp_budget_picks_lamps_without_bias_and_traces_fewer_rays():
     lamps += [spot, area_light(translation(-1.0, 1.5, 2.0), power=150.0),
               sun_light((0.3, 0.2, -1.0), strength=2.0, angle=0.05),
               sun_light((-0.2, 0.1, -1.0), strength=1.0)]  # axial: always shaded
-    tracer = TriangleTracer(quad((0.0, 0.0, 1.0), (0.6, 0, 0), (0, 0.6, 0)))
-    ys, xs = np.meshgrid(np.linspace(-3, 3, 24), np.linspace(-3, 3, 24), indexing="ij")
-    pts = np.column_stack([xs.ravel(), ys.ravel(), np.zeros(xs.size)]).astype(np.float32)
-    nrm = np.tile(np.float32([0, 0, 1]), (pts.shape[0], 1))
-    runs = 96
-    full = np.zeros((pts.shape[0], 3))
-    picked = np.zeros((pts.shape[0], 3))
-    tracer.rays = 0
-    for seed in range(runs):
-        full += direct_irradiance(lamps, pts, nrm, tracer, np.random.default_rng(seed), samples=2)
-    full_rays, tracer.rays = tracer.rays, 0
-    for seed in range(runs):
-        picked += direct_irradiance(lamps, pts, nrm, tracer, np.random.default_rng(seed), samples=2, lamp_budget=2)
-    assert tracer.rays < 0.45 * full_rays, (tracer.rays, full_rays)
-    full, picked = full / runs, picked / runs
+    tracer, pts, nrm = _budget_floor()
+    full, picked, full_rays, picked_rays = _budget_means(lamps, pts, nrm, tracer, samples=2, budget=2)
+    assert picked_rays < 0.45 * full_rays, (picked_rays, full_rays)
     assert abs(picked.sum() / full.sum() - 1.0) < 0.01
     assert np.abs(picked - full).sum() / full.sum() < 0.03
     rng = np.random.default_rng(3)
@@ -750,20 +759,9 @@ def test_lamp_budget_of_all_lamps_skips_dim_lamps_by_roulette_without_bias():
     strong = area_light(translation(0.0, 0.0, 2.0), power=4000.0)
     dim = [point_light((x, y, 1.5), radius=0.3, power=2.0) for x in (-2.0, 2.0) for y in (-2.0, 2.0)]
     lamps = [strong] + dim
-    tracer = TriangleTracer(quad((0.0, 0.0, 1.0), (0.6, 0, 0), (0, 0.6, 0)))
-    ys, xs = np.meshgrid(np.linspace(-3, 3, 24), np.linspace(-3, 3, 24), indexing="ij")
-    pts = np.column_stack([xs.ravel(), ys.ravel(), np.zeros(xs.size)]).astype(np.float32)
-    nrm = np.tile(np.float32([0, 0, 1]), (pts.shape[0], 1))
-    runs = 96
-    full, picked = np.zeros((pts.shape[0], 3)), np.zeros((pts.shape[0], 3))
-    tracer.rays = 0
-    for seed in range(runs):
-        full += direct_irradiance(lamps, pts, nrm, tracer, np.random.default_rng(seed), samples=1)
-    full_rays, tracer.rays = tracer.rays, 0
-    for seed in range(runs):
-        picked += direct_irradiance(lamps, pts, nrm, tracer, np.random.default_rng(seed), samples=1, lamp_budget=8)
-    assert tracer.rays < 0.5 * full_rays, (tracer.rays, full_rays)
-    full, picked = full / runs, picked / runs
+    tracer, pts, nrm = _budget_floor()
+    full, picked, full_rays, picked_rays = _budget_means(lamps, pts, nrm, tracer, samples=1, budget=8)
+    assert picked_rays < 0.5 * full_rays, (picked_rays, full_rays)
     assert abs(picked.sum() / full.sum() - 1.0) < 0.01
     assert np.abs(picked - full).sum() / full.sum() < 0.06  # both are 96 one-sample estimates apart
     # The weights themselves: 1 for the strong lamp everywhere, and a mean of 1 (unbiased) for
