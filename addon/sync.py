@@ -514,8 +514,8 @@ class _SnapshotBuilder:
     def finish(self, world):
         self._flush_run()
         self._warn_glossy()
-        geometry = snap.concat_geometry(self.parts)
-        return snap.make_snapshot(geometry, self.materials, self.lights, world, self.objects)
+        geometry = snap.concat_geometry(self.parts)  # new arrays, handed over whole
+        return snap.make_snapshot(geometry, self.materials, self.lights, world, self.objects, owned=True)
 
     def _warn_glossy(self):
         """One warning per sync for the shader features HybridGI still approximates (Principled,

@@ -323,3 +323,24 @@ def test_gpu_gather_uploads_depth_moments_only_for_the_chebyshev_test(raster, mo
         assert gp.upload(cache)
         gp.execute(low, corner_visible=np.ones((h, w, 8), bool))
         assert sum(fmt == "RG32F" and size >= depth_size for fmt, size in formats) == 1
+
+
+def test_sanitized_shares_arrays_only_when_handed_over_and_nothing_is_dropped():
+    """sanitized(owned=False) never shares an array with its input (the caller may keep and change
+    it); owned=True (a sync's fresh concatenation) takes the arrays as they are where every
+    triangle is kept, and still copies where one is dropped; the geometry is the same either way."""
+    pos = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [2, 0, 0], [2, 0, 0], [2, 0, 0]], np.float32)
+
+    def geometry(tris):
+        return snap.geometry_from_arrays(pos.copy(), np.array(tris, np.int32))
+
+    for tris, dropped in (([[0, 1, 2]], False), ([[0, 1, 2], [3, 4, 5]], True)):
+        results = []
+        for owned in (False, True):
+            g = geometry(tris)
+            out = snap.sanitized(g, 1, 1, owned=owned)
+            assert np.shares_memory(out.positions, g.positions) == (owned and not dropped)
+            results.append(out)
+        assert results[0].triangle_count == results[1].triangle_count == 1
+        for name in ("positions", "triangles", "normals", "uvs", "material_index", "object_index"):
+            np.testing.assert_array_equal(getattr(results[0], name), getattr(results[1], name))
