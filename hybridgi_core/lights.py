@@ -963,6 +963,13 @@ def rough_lights(lights: list[Light], pts: np.ndarray, nrm: np.ndarray) -> np.nd
     return out
 
 
+def _with_floor(p: np.ndarray) -> np.ndarray:
+    """p (n, L) rough lights, in place: plus PICK_FLOOR of each row's sum spread over its lamps
+    (and 1e-30), so that every lamp may be drawn (`_pick_lamps`, `_roulette_lamps`)."""
+    p += _F32(PICK_FLOOR / p.shape[1]) * p.sum(axis=1, keepdims=True) + _F32(1e-30)
+    return p
+
+
 def _pick_lamps(lights: list[Light], pts: np.ndarray, nrm: np.ndarray, budget: int,
                 rng: np.random.Generator) -> np.ndarray:
     """(n, L) float32 weights of the lamps each receiver is shaded by: `budget` systematic draws
@@ -971,10 +978,7 @@ def _pick_lamps(lights: list[Light], pts: np.ndarray, nrm: np.ndarray, budget: i
     PICK_FLOOR of it spread over the lamps, so every lamp can be drawn); lamp j weighted by
     (draws of j) / (budget p_j), 0 where not drawn: the weighted sum is unbiased."""
     n, count = pts.shape[0], len(lights)
-    p = np.empty((n, count), _F32)
-    for j, lt in enumerate(lights):
-        p[:, j] = _rough_light(lt, pts, nrm)
-    p += _F32(PICK_FLOOR / count) * p.sum(axis=1, keepdims=True) + _F32(1e-30)
+    p = _with_floor(rough_lights(lights, pts, nrm))
     p /= p.sum(axis=1, keepdims=True)
     cdf = np.cumsum(p, axis=1)
     u = (rng.random((n, 1), dtype=_F32) + np.arange(budget, dtype=_F32)[None, :]) / _F32(budget)
@@ -997,11 +1001,7 @@ def _roulette_lamps(lights: list[Light], pts: np.ndarray, nrm: np.ndarray, budge
     draws: all are shaded). Why: a strong lamp beside dim ones traced a shadow ray per hit to
     each dim one (morse_apartment's hits: 5 rays where one lamp gives ~99% of the light)."""
     n, count = pts.shape[0], len(lights)
-    p = np.empty((n, count), _F32)
-    for j, lt in enumerate(lights):
-        p[:, j] = _rough_light(lt, pts, nrm)
-    p = np.nan_to_num(p, nan=0.0, posinf=np.float32(1e30), neginf=0.0)
-    p += _F32(PICK_FLOOR / count) * p.sum(axis=1, keepdims=True) + _F32(1e-30)
+    p = _with_floor(np.nan_to_num(rough_lights(lights, pts, nrm), nan=0.0, posinf=np.float32(1e30), neginf=0.0))
     q = np.minimum(_F32(budget) * p / p.sum(axis=1, keepdims=True), _F32(1.0))
     if (q >= 1.0).all():
         return None

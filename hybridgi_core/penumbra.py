@@ -157,12 +157,6 @@ def _first_pass(direct, points, normals, frame, first, group, weak, partial, exa
     for k, j in enumerate(group):
         strong = ~weak[:, k]
         seed = frame + j * LAMP_SEED_STRIDE
-        if strong.all():
-            one = np.zeros((points.shape[0], 1, 3), np.float32)
-            light += direct(points, normals, seed, samples=first, partial=partial[:, k : k + 1],
-                            exact=exact[:, k : k + 1], per_lamp=one, lights=[j], **_smooth(smooth))
-            share[:, k] = one[:, 0]
-            continue
         for rows, count in ((np.flatnonzero(strong), first), (np.flatnonzero(~strong), 1)):
             if rows.size == 0:
                 continue
