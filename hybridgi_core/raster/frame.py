@@ -16,19 +16,9 @@ import numpy as np
 
 from .. import glossy_image, pixel_gather
 from ..evaluate import HitLookup
-from ..glossy import cache_reflection, glossy_color
-from ..glossy_noise import adaptive_lamp_glossy
 from ..lights import RATIO_MIN_SAMPLES, rough_lights
 from ..penumbra import adaptive_direct, filter_camera
-from ..reflection import (
-    bsdf_lamps,
-    filter_lamp_glossy,
-    filter_reflections,
-    traced_reflection,
-    traced_share,
-)
 from ..screen_light import ScreenLight
-from ..settings import MULTI_BOUNCE
 from ..system import UPDATES_PER_BATCH
 from ..visible import pixels_to_points
 from .accumulate import AccumulatePass
@@ -489,79 +479,27 @@ class FramePipeline:
                 irradiance: np.ndarray):
         """(direct radiance, Glossy Color, bounced light), each (h w, 4) float32 or None without
         glossy lobes: the lamps', sky's and emitters' reflection by the glossy lobes at the centre
-        raster's pixels (`glossy.glossy_direct`, `glossy.cache_reflection`) and the light of other
-        surfaces they reflect (Glossy Indirect before its colour); direct + colour x bounced is
-        uploaded for the deferred pass. Subframes reuse it: a highlight is smooth at the pixel
-        scale, and silhouettes are where its share is least. lookup : the frame's HitLookup of
-        the cache, if the pixel rays built one (None: the reflection rays build their own).
-        irradiance : (n, 3) the pixels' diffuse lamp irradiance: the lamps' glossy light is sampled
-        `glossy_samples` times only where it is noisy against the pixels' lamp light (`glossy_noise`)."""
+        raster's pixels and the light of other surfaces they reflect (Glossy Indirect before its
+        colour), `glossy_image.frame_glossy`'s; direct + colour x bounced is uploaded for the
+        deferred pass. Subframes reuse it: a highlight is smooth at the pixel scale, and
+        silhouettes are where its share is least. lookup : the frame's HitLookup of the cache, if
+        the pixel rays built one (None: the reflection rays build their own). irradiance : (n, 3)
+        the pixels' diffuse lamp irradiance: the lamps' glossy light is sampled `glossy_samples`
+        times only where it is noisy against the pixels' lamp light (`glossy_noise`)."""
         if not glossy_image.has_glossy(system):
             return None, None, None
-        rows = glossy_image.material_rows(self.gbuffer.read("material").reshape(-1)[pix], system.glossy_materials)
-        to_eye = glossy_image.directions_to_eye(points, camera_eye(view, proj))
-        glossy = np.zeros((self.height * self.width, 4), np.float32)
-        colour = np.zeros((self.height * self.width, 4), np.float32)
-        mu = np.clip(np.einsum("ij,ij->i", normals, to_eye), 0.0, 1.0)
-        colour[pix, :3] = glossy_color(system.glossy_materials, rows, mu)
-        indirect = np.zeros((self.height * self.width, 4), np.float32)
-        lit = np.flatnonzero(colour[pix, :3].max(axis=1) > 0)
-        rough = system.glossy_materials.rough[rows[lit]]
-        # Area lamps in lobes much narrower than they are: the reflection rays estimate them.
-        skip = np.zeros((points.shape[0], len(system.scene.lights)), bool)
-        if self.settings.reflection_rays > 0 and lit.size:
-            skip[lit] = bsdf_lamps(system.scene.lights, points[lit], normals[lit], rough) & (traced_share(rough) > 0)[:, None]
+        material = self.gbuffer.read("material").reshape(-1)[pix]
         albedo = self.gbuffer.read("albedo").reshape(-1, 4)[pix, :3]
-        level = (albedo * irradiance) @ pixel_gather.LUMA / np.float32(np.pi)
-        glossy[pix, :3] = adaptive_lamp_glossy(system, points, normals, to_eye, rows, pix, (self.height, self.width),
-                                               frame, self.glossy_samples, skip, level)[0]
-        if lit.size:
-            q = pix[lit]
-            glossy[q, :3] = filter_lamp_glossy(glossy[q, :3], rough, points[lit], normals[lit], q,
-                                               (self.height, self.width), view, pool=system.updater.pool)
-            sky, bounced, lamp = self._reflections(system, points[lit], normals[lit], to_eye[lit], rough, frame,
-                                                   pix[lit], view, skip[lit], lookup)
-            glossy[pix[lit], :3] += colour[pix[lit], :3] * (sky + lamp)
-            indirect[pix[lit], :3] = bounced
+        light = glossy_image.frame_glossy(system, points, normals, pix, (self.height, self.width), material, albedo,
+                                          irradiance, view, camera_eye(view, proj), frame, self.glossy_samples,
+                                          self.settings.reflection_rays, lookup, pool=system.updater.pool)
+        glossy, colour, indirect = (np.zeros((self.height * self.width, 4), np.float32) for _ in range(3))
+        glossy[pix, :3] = light.direct
+        colour[pix, :3] = light.colour
+        indirect[pix, :3] = light.bounced
         total = glossy + colour * indirect
         self._glossy_tex = upload_texture_2d(total.reshape(self.height, self.width, 4), "RGBA32F")
         return glossy, colour, indirect
-
-    def _reflections(self, system, points, normals, to_eye, rough, frame, pix, view, lamps, lookup=None):
-        """(sky, bounced, lamp), each (n, 3): what the lobes at the receivers reflect, the
-        world's and emitters' light (Glossy Direct), other surfaces' (Glossy Indirect) and the
-        area lamps `lamps` (n, L) marks as the rays met them (`reflection.bsdf_lamps`; lamp
-        sampling skipped them), before Glossy Color. Reflection rays (`reflection.traced_reflection`,
-        filtered edge-aware over the image: `reflection.filter_reflections`) where the lobes are
-        smooth enough, blended into the cache's split-sum estimates (`glossy.cache_reflection`)
-        as they grow rough; the cache is read only where its estimate counts (rough lobes, rays
-        that found no light). pix : the receivers' flat pixels; lookup : the cache's HitLookup to
-        reuse (None: built here; the whole grid's table costs ~50 ms on a 48^3 grid)."""
-        rays = self.settings.reflection_rays
-        n = points.shape[0]
-        share = traced_share(rough) if rays > 0 else np.zeros(n)
-        sel = np.flatnonzero(share > 0)
-        lamp = np.zeros((n, 3), np.float32)
-        traced = np.zeros(n, np.float32)
-        if sel.size:
-            if lookup is None:
-                lookup = HitLookup(system.cache, bounced=system.settings.indirect_quality == MULTI_BOUNCE)
-            direct, indirect, total, lamp[sel] = traced_reflection(system, lookup, points[sel], normals[sel],
-                                                                   to_eye[sel], rough[sel], rays, frame, lamps[sel])
-            direct, indirect = filter_reflections(direct, indirect, total, points[sel], normals[sel], pix[sel],
-                                                  (self.height, self.width), view, pool=system.updater.pool)
-            traced[sel] = share[sel] * (total > 0)
-        sky = np.zeros((n, 3), np.float32)
-        bounced = np.zeros((n, 3), np.float32)
-        need = np.flatnonzero(traced < 1.0)
-        if need.size:
-            sky[need], bounced[need] = cache_reflection(system.cache, points[need], normals[need], to_eye[need],
-                                                        rough[need])
-        if sel.size:
-            t = traced[sel, None]
-            sky[sel] += t * (direct - sky[sel])
-            bounced[sel] += t * (indirect - bounced[sel])
-        return sky, bounced, lamp
 
     def _pixel_gi_full(self, system, gbuf, position_lo, normal_lo, pix, points, normals, visible, view, frame,
                        full, stats, screen=None, full_surfaces=None):
