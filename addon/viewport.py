@@ -182,6 +182,7 @@ class ViewportSession:
         self.last_stats = DrawStats()
         self.last_edit_gen = 0
         self._raster = None
+        self._glossy_samples = 0  # the scene's Glossy Samples: the still view's final glossy light
         self._posted_key = None
         self._drawn_key = None
         self._drawn_serials = None
@@ -443,6 +444,7 @@ class ViewportSession:
     def _ensure_gpu(self, props, published, width: int, height: int) -> _GPUState:
         cell = published.cache.grid.cell_size if published.cache is not None else None
         raster = props.raster_settings(cell_size=cell)
+        self._glossy_samples = int(getattr(props, "glossy_samples", 0))
         if self.gpu is not None and raster != self._raster and not self.gpu.pipeline.set_settings(raster):
             self.gpu.free()
             self.gpu = None
@@ -481,16 +483,23 @@ class ViewportSession:
             # The pixel rays' GI resolved at every full-res pixel, as final renders do (`full_res_images`).
             full_res = (d_position.shape[:2] != position.shape[:2] and d_position.shape[:2] == (gbuf.height, gbuf.width)
                         and gpu_state.pipeline.settings.pixel_full_res)
-            material = None
+            material = full_material = full_albedo = None
             if any(getattr(m, "specular", None) is not None for m in self.mirror.snapshot.materials):
                 # At the GI pixels (the glossy light's): a new array, the worker keeps it.
                 material = gpu_state.pipeline.downsample.read("material")[..., 0]
+                if d_position.shape[:2] == (gbuf.height, gbuf.width) and self._glossy_samples > 0:
+                    # And at every pixel, for the final render's glossy light of a still view
+                    # (`worker.ViewportWorker._fine_glossy`).
+                    full_material = gpu_state.pipeline.gbuffer.read("material")[..., 0]
+                    full_albedo = gpu_state.pipeline.gbuffer.read("albedo")
         with stats.step("post"):
             request = worker.ViewRequest(
                 key=view_key, position=position.copy(), normal=normal.copy(),
                 direct_position=d_position, direct_normal=d_normal,
                 view=camera.view, proj=camera.proj, debug_cells=debug_cells, material=material,
-                full_res=bool(full_res),
+                full_res=bool(full_res), full_material=full_material, full_albedo=full_albedo,
+                glossy_samples=self._glossy_samples if full_material is not None else 0,
+                reflection_rays=gpu_state.pipeline.settings.reflection_rays,
             )
             self.worker.post_view(request)
         self._posted_key = view_key

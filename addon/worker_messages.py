@@ -70,6 +70,14 @@ class ViewRequest:
     #: final renders do with Full-Res GI (`pixel_gather.full_res_resolve`); else the GI
     #: resolution's textures, which the bilateral pass upsamples
     full_res: bool = False
+    #: The G-buffer's material texels (h, w) and diffuse albedo (h, w, 4) at the direct light's
+    #: resolution, with the final render's lamp samples and reflection rays: a still view takes
+    #: the final render's glossy light at every pixel once its pixel rays are traced
+    #: (`glossy_image.frame_glossy`); None / 0: the GI pixels' glossy light alone.
+    full_material: np.ndarray | None = None
+    full_albedo: np.ndarray | None = None
+    glossy_samples: int = 0
+    reflection_rays: int = 0
 
 
 @dataclass(frozen=True)
@@ -148,8 +156,9 @@ class ViewResult:
     #: The glossy layers' light towards this view's camera (`glossy_image`: the lamps' part, the
     #: mean over `glossy_passes` passes, plus the cache's split-sum part): (h, w, 4) rgb radiance
     #: added to Combined, a = 1 where computed, at glossy_position / glossy_normal (the request's
-    #: GI-resolution arrays: a highlight is smooth at the pixel scale); None when no material
-    #: has a glossy layer.
+    #: GI-resolution arrays: a highlight is smooth at the pixel scale; the direct light's once a
+    #: still view has the final render's glossy light, `glossy_image.frame_glossy`); None when no
+    #: material has a glossy layer.
     glossy: np.ndarray | None = None
     glossy_position: np.ndarray | None = None
     glossy_normal: np.ndarray | None = None

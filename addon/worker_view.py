@@ -120,6 +120,10 @@ class ViewState:
         self.cells_key = None
         self.cells_at = 0.0
         self.glossy: GlossyLevel | None = None  # made by the worker with the first fine pass
+        #: The final render's glossy light at the direct light's pixels ((h, w, 4) radiance, a = 1
+        #: on geometry: `glossy_image.frame_glossy`) and the cache and lighting it was made with.
+        self.fine_glossy: np.ndarray | None = None
+        self.fine_glossy_key = None
         self.dirty = False
 
     def fine_level(self) -> DirectLevel:
@@ -147,6 +151,7 @@ class ViewState:
         self._fine = None
         if self.glossy is not None:
             self.glossy.reset_lamps()  # the cache's part stays until the cache re-solves
+        self.fine_glossy, self.fine_glossy_key = None, None
         self.reset_pixels()
         self.dirty = True
 
@@ -208,8 +213,17 @@ class ViewState:
             gi_indirect=None if self.pixel_sum is None else frozen(self.pixel_sum[0] / self.pixel_passes),
             gi_direct=None if self.pixel_sum is None else frozen(self.pixel_sum[1] / self.pixel_passes),
             pixel_passes=self.pixel_passes,
-            glossy=None if self.glossy is None else frozen(self.glossy.image()),
-            glossy_position=None if self.glossy is None else self.glossy.position,
-            glossy_normal=None if self.glossy is None else self.glossy.normal,
-            glossy_passes=0 if self.glossy is None else self.glossy.passes,
+            **self._glossy_fields(),
         )
+
+    def _glossy_fields(self) -> dict:
+        """The published glossy light: the final render's (`fine_glossy`) once made, else the GI
+        pixels' running one."""
+        if self.fine_glossy is not None:
+            fine = self.fine_level()
+            return dict(glossy=frozen(self.fine_glossy.copy()), glossy_position=fine.position,
+                        glossy_normal=fine.normal, glossy_passes=self.glossy.passes if self.glossy is not None else 0)
+        if self.glossy is None:
+            return dict(glossy=None, glossy_position=None, glossy_normal=None, glossy_passes=0)
+        return dict(glossy=frozen(self.glossy.image()), glossy_position=self.glossy.position,
+                    glossy_normal=self.glossy.normal, glossy_passes=self.glossy.passes)

@@ -121,7 +121,7 @@ class FrameGlossy:
 
 def frame_glossy(system, points, normals, pix, shape: tuple[int, int], material, albedo, irradiance, view, eye,
                  frame: int, samples: int, reflection_rays: int, lookup: HitLookup | None = None,
-                 pool=None) -> FrameGlossy:
+                 pool=None, between=None) -> FrameGlossy:
     """The glossy light of an image's receivers as final renders compute it: the lamps' light
     (`glossy_noise.adaptive_lamp_glossy`: `samples` per lamp only where a first pass is noisy
     against the receiver's diffuse lamp light, then `reflection.filter_lamp_glossy`) and the light
@@ -134,8 +134,11 @@ def frame_glossy(system, points, normals, pix, shape: tuple[int, int], material,
     `shape` (h, w); material : (n,) G-buffer material texels (`material_rows`); albedo : (n, 3)
     diffuse colour and irradiance : (n, 3) diffuse lamp irradiance (their product is the noise
     scale of the lamp samples); view : the camera's 4x4 view matrix; eye : `gbuffer.camera_eye`'s
-    (x, y, z, w); lookup : the cache's HitLookup to reuse (None: built here when rays are traced).
-    Pure numpy: the final render's pipeline and the viewport's worker both call it."""
+    (x, y, z, w); lookup : the cache's HitLookup to reuse (None: built here when rays are traced);
+    between : called between its steps (the viewport's worker raises there when an edit or a
+    newer view waits). Pure numpy: the final render's pipeline and the viewport's worker both
+    call it."""
+    between = between or (lambda: None)
     points = np.asarray(points).reshape(-1, 3)
     normals = np.asarray(normals).reshape(-1, 3)
     n = points.shape[0]
@@ -156,15 +159,17 @@ def frame_glossy(system, points, normals, pix, shape: tuple[int, int], material,
     level = (np.asarray(albedo, np.float32).reshape(-1, 3) * irradiance) @ LUMA / np.float32(np.pi)
     direct[:] = adaptive_lamp_glossy(system, points, normals, to_eye, rows, pix, shape, frame, samples, skip, level)[0]
     if lit.size:
+        between()
         q = pix[lit]
         direct[lit] = filter_lamp_glossy(direct[lit], rough, points[lit], normals[lit], q, shape, view, pool=pool)
+        between()
         sky, bounced[lit], lamp = _reflections(system, points[lit], normals[lit], to_eye[lit], rough, frame, q,
-                                               shape, view, skip[lit], reflection_rays, lookup, pool)
+                                               shape, view, skip[lit], reflection_rays, lookup, pool, between)
         direct[lit] += colour[lit] * (sky + lamp)
     return FrameGlossy(direct, colour, bounced)
 
 
-def _reflections(system, points, normals, to_eye, rough, frame, pix, shape, view, lamps, rays, lookup, pool):
+def _reflections(system, points, normals, to_eye, rough, frame, pix, shape, view, lamps, rays, lookup, pool, between):
     """(sky, bounced, lamp), each (n, 3): what the lobes at the receivers reflect, the world's and
     emitters' light (Glossy Direct), other surfaces' (Glossy Indirect) and the area lamps `lamps`
     (n, L) marks as the rays met them (`reflection.bsdf_lamps`; lamp sampling skipped them),
@@ -184,6 +189,7 @@ def _reflections(system, points, normals, to_eye, rough, frame, pix, shape, view
             lookup = HitLookup(system.cache, bounced=system.settings.indirect_quality == MULTI_BOUNCE)
         direct, indirect, total, lamp[sel] = traced_reflection(system, lookup, points[sel], normals[sel],
                                                                to_eye[sel], rough[sel], rays, frame, lamps[sel])
+        between()
         direct, indirect = filter_reflections(direct, indirect, total, points[sel], normals[sel], pix[sel], shape,
                                               view, pool=pool)
         traced[sel] = share[sel] * (total > 0)

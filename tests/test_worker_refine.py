@@ -471,3 +471,72 @@ def test_a_still_view_finishes_its_pixel_passes_and_goes_idle(worker):
     finally:
         pixels.SLICE_POINTS = old
     assert p.stats.idle and p.view.pixel_passes == 3 and p.view.gi_indirect is not None
+
+
+def _glossy_cornell():
+    """The Cornell box with the default specular layer (roughness 0.3) on every material."""
+    from hybridgi_core import specular as sp  # noqa: PLC0415
+
+    scene = procedural.cornell()
+    layer = sp.SpecularLayer(roughness=0.3)
+    return dataclasses.replace(scene, materials=[dataclasses.replace(m, specular=layer) for m in scene.materials])
+
+
+def _full_res_glossy_request(worker, scene, settings, samples: int):
+    """A still view's request with the G-buffer's material and albedo at the direct light's
+    resolution (every pixel one material: the box's walls differ only in colour here)."""
+    pos, nrm, view_matrix, ok = pinhole_gbuffer(scene, settings)
+    material = np.where(ok, 1.0, 0.0).astype(np.float32).reshape(pos.shape[:2])
+    albedo = np.zeros(pos.shape, np.float32)
+    albedo[ok.reshape(pos.shape[:2])] = (0.7, 0.7, 0.7, 1.0)
+    return worker.ViewRequest(("k",), pos, nrm, pos, nrm, view_matrix, np.eye(4), material=material,
+                              full_material=material, full_albedo=albedo, glossy_samples=samples, reflection_rays=2)
+
+
+def test_a_still_view_takes_the_final_renders_glossy_light_and_an_edit_drops_it(worker):
+    """Once a still view has a full-res direct pass and its pixel rays, the worker publishes the
+    final render's glossy light at every pixel of the direct light's resolution
+    (`glossy_image.frame_glossy`), made once per cache and lighting; a newer view arriving while
+    it is made drops it between its steps."""
+    from hybridgi_core import glossy_image  # noqa: PLC0415
+
+    scene = _glossy_cornell()
+    settings = CacheSettings(resolution=10, rays_per_cell=16, threads=2)
+    request = _full_res_glossy_request(worker, scene, settings, samples=8)
+    options = worker.WorkerOptions(direct_passes=2, solver_batches=1, first_batch_rays=8, pixel_rays=4,
+                                   pixel_passes=1, glossy_passes=2)
+    wk = worker.ViewportWorker(settings, options)
+    try:
+        wk.post_edit(worker.FullScene(scene))
+        wk.post_view(request)
+        assert wk.wait_idle(120)
+        result = wk.latest().view
+        state = wk._view_state
+        assert state.fine_glossy is not None and state.fine_glossy_key is not None
+        assert result.glossy.shape == request.full_albedo.shape and result.glossy_position is request.direct_position
+        on = request.direct_position[..., 3] > 0.5
+        glossy = np.asarray(result.glossy)
+        assert (glossy[on, 3] == 1.0).all() and glossy[on, :3].mean() > 0 and np.isfinite(glossy).all()
+        # Made once: the idle worker has no more glossy work over this cache.
+        assert not wk._fine_glossy_due(state)
+        # Its light is `frame_glossy`'s: the lamps' part and the reflections, from the fine
+        # direct light's irradiance (another frame's samples: equal in the mean).
+        level = state.fine_level()
+        points, normals, pix = level.points
+        again = glossy_image.frame_glossy(
+            wk._session.system, points, normals, pix, on.shape, request.full_material.reshape(-1)[pix],
+            request.full_albedo.reshape(-1, 4)[pix, :3], level.mean().reshape(-1, 4)[pix, :3], request.view,
+            worker.camera_eye(request.view, request.proj), 12345, 8, 2)
+        mine = glossy.reshape(-1, 4)[pix, :3]
+        assert 0.9 < mine.sum() / again.radiance.sum() < 1.1
+        # A newer view waits: the next fine glossy pass stops between its steps.
+        with wk._cond:  # the idle worker thread waits on it meanwhile
+            state.fine_glossy, state.fine_glossy_key = None, None
+            wk._view = dataclasses.replace(request, key=("other",))
+            try:
+                wk._fine_glossy(wk._session.system, state)
+            finally:
+                wk._view = request
+        assert state.fine_glossy is None and "fine_glossy_dropped" in wk._steps
+    finally:
+        wk.close()
