@@ -63,21 +63,20 @@ def directions_to_eye(points: np.ndarray, eye) -> np.ndarray:
 
 
 @dataclass
-class CacheGlossy:
-    """The cache's split-sum glossy light at n receivers, each (n, 3) float32.
+class GlossyLight:
+    """Glossy light at n receivers, each (n, 3) float32: `direct` the lamps', sky's and emitters'
+    reflection (Glossy Direct, colour applied; the cache's split sum: the sky's and emitters'
+    alone), `colour` Glossy Color at the view angle, `bounced` other surfaces' light before its
+    colour (Glossy Indirect / Glossy Color)."""
 
-    colour : Glossy Color at the view angle; sky : the sky's and emitters' reflected radiance
-    (part of Glossy Direct, colour applied); bounced : other surfaces' light before its colour
-    (Glossy Indirect)."""
-
+    direct: np.ndarray
     colour: np.ndarray
-    sky: np.ndarray
     bounced: np.ndarray
 
     @property
     def radiance(self) -> np.ndarray:
-        """(n, 3) what the deferred pass adds to Combined for this part: sky + colour x bounced."""
-        return self.sky + self.colour * self.bounced
+        """(n, 3) what the deferred pass adds to Combined: direct + colour x bounced."""
+        return self.direct + self.colour * self.bounced
 
 
 def lamp_glossy(system, points, normals, to_eye, rows, frame: int, samples: int) -> np.ndarray:
@@ -85,9 +84,10 @@ def lamp_glossy(system, points, normals, to_eye, rows, frame: int, samples: int)
     return system.glossy(points, normals, to_eye, rows, frame, samples=samples)
 
 
-def cache_glossy(system, points, normals, to_eye, rows) -> CacheGlossy:
-    """`CacheGlossy` at the receivers: Glossy Color and `glossy.cache_reflection` of the cache as
-    it is now (receivers without a glossy colour read no cache)."""
+def cache_glossy(system, points, normals, to_eye, rows) -> GlossyLight:
+    """The cache's split-sum `GlossyLight` at the receivers: Glossy Color and
+    `glossy.cache_reflection` of the cache as it is now (receivers without a glossy colour read no
+    cache)."""
     n = np.asarray(points).reshape(-1, 3).shape[0]
     normals = np.asarray(normals).reshape(-1, 3)
     mu = np.clip(np.einsum("ij,ij->i", normals, to_eye), 0.0, 1.0)
@@ -100,28 +100,12 @@ def cache_glossy(system, points, normals, to_eye, rows) -> CacheGlossy:
         s, b = cache_reflection(system.cache, np.asarray(points).reshape(-1, 3)[lit], normals[lit], to_eye[lit], rough)
         sky[lit] = colour[lit] * s
         bounced[lit] = b
-    return CacheGlossy(colour, sky, bounced)
-
-
-@dataclass
-class FrameGlossy:
-    """A frame's glossy light at n receivers, each (n, 3) float32: `direct` the lamps', sky's and
-    emitters' reflection (Glossy Direct, colour applied), `colour` Glossy Color, `bounced` other
-    surfaces' light before its colour (Glossy Indirect / Glossy Color)."""
-
-    direct: np.ndarray
-    colour: np.ndarray
-    bounced: np.ndarray
-
-    @property
-    def radiance(self) -> np.ndarray:
-        """(n, 3) what the deferred pass adds to Combined: direct + colour x bounced."""
-        return self.direct + self.colour * self.bounced
+    return GlossyLight(sky, colour, bounced)
 
 
 def frame_glossy(system, points, normals, pix, shape: tuple[int, int], material, albedo, irradiance, view, eye,
                  frame: int, samples: int, reflection_rays: int, lookup: HitLookup | None = None,
-                 pool=None, between=None) -> FrameGlossy:
+                 pool=None, between=None) -> GlossyLight:
     """The glossy light of an image's receivers as final renders compute it: the lamps' light
     (`glossy_noise.adaptive_lamp_glossy`: `samples` per lamp only where a first pass is noisy
     against the receiver's diffuse lamp light, then `reflection.filter_lamp_glossy`) and the light
@@ -166,7 +150,7 @@ def frame_glossy(system, points, normals, pix, shape: tuple[int, int], material,
         sky, bounced[lit], lamp = _reflections(system, points[lit], normals[lit], to_eye[lit], rough, frame, q,
                                                shape, view, skip[lit], reflection_rays, lookup, pool, between)
         direct[lit] += colour[lit] * (sky + lamp)
-    return FrameGlossy(direct, colour, bounced)
+    return GlossyLight(direct, colour, bounced)
 
 
 def _reflections(system, points, normals, to_eye, rough, frame, pix, shape, view, lamps, rays, lookup, pool, between):
