@@ -128,6 +128,9 @@ def frame_glossy(system, points, normals, pix, shape: tuple[int, int], material,
     n = points.shape[0]
     mats = system.glossy_materials
     rows = material_rows(np.asarray(material).reshape(-1), mats)
+    # A G-buffer drawn from another material list than the system's (the viewport's worker may
+    # still hold the one before an edit): an unknown material reflects nothing here.
+    rows = np.where((rows >= 0) & (rows < len(mats.layers)), rows, -1)
     to_eye = directions_to_eye(points, eye)
     mu = np.clip(np.einsum("ij,ij->i", normals, to_eye), 0.0, 1.0)
     colour = np.zeros((n, 3), np.float32)

@@ -529,6 +529,13 @@ def test_a_still_view_takes_the_final_renders_glossy_light_and_an_edit_drops_it(
             worker.camera_eye(request.view, request.proj), 12345, 8, 2)
         mine = glossy.reshape(-1, 4)[pix, :3]
         assert 0.9 < mine.sum() / again.radiance.sum() < 1.1
+        # Texels of a material the system does not know (a G-buffer drawn after a material edit
+        # the worker has not taken yet) reflect nothing instead of failing.
+        unknown = np.full(pix.size, 99.0, np.float32)
+        none = glossy_image.frame_glossy(
+            wk._session.system, points, normals, pix, on.shape, unknown, request.full_albedo.reshape(-1, 4)[pix, :3],
+            level.mean().reshape(-1, 4)[pix, :3], request.view, worker.camera_eye(request.view, request.proj), 1, 8, 2)
+        assert not none.radiance.any()
         # A newer view waits: the next fine glossy pass stops between its steps.
         with wk._cond:  # the idle worker thread waits on it meanwhile
             state.fine_glossy, state.fine_glossy_key = None, None
