@@ -422,7 +422,7 @@ class ViewportWorker:
             camera = _penumbra.filter_camera(system.scene.lights, camera_eye(r.view, r.proj))
             # A full-res pass is 0.3-0.7 s on 2 busy cores: a lamp edit or a new view that arrives
             # meanwhile drops it between two blocks of its shadow rays instead of waiting for it.
-            direct = _interruptible(system, lambda: bool(self._edits) or self._view is not state.request)
+            direct = _interruptible(system, lambda: self._superseded(state))
             try:
                 light, full = (_penumbra.adaptive_direct(
                     direct, points, normals, pix, shape, self._frame * MAX_DIRECT_BLOCKS, samples,
@@ -478,10 +478,18 @@ class ViewportWorker:
         system = getattr(self._session, "system", None)
         if system is None:
             return False
+        if (r.full_material.shape[:2] != r.direct_position.shape[:2]
+                or r.full_albedo.shape[:2] != r.full_material.shape[:2]):
+            return False  # not the direct light's pixels
         key = self._fine_glossy_key(system, state)
         if self.options.pixel_rays > 0 and (state.pixel_key != key[:-1] or state.pixel_passes < 1):
             return False
         return state.fine_glossy_key != key
+
+    def _superseded(self, state: ViewState) -> bool:
+        """An edit or a newer view waits (a plain read of the inbox references is atomic): a still
+        view's long refinements stop between their steps and are made again once it holds still."""
+        return bool(self._edits) or self._view is not state.request
 
     def _fine_glossy(self, system, state: ViewState) -> None:
         """The final render's glossy light at the still view's full-resolution pixels
@@ -499,14 +507,14 @@ class ViewportWorker:
         image = np.zeros((h * w, 4), np.float32)
         image[pix, 3] = 1.0
         key = self._fine_glossy_key(system, state)
-        if points.shape[0] and r.full_material.shape[:2] == (h, w) and r.full_albedo.shape[:2] == (h, w):
+        if points.shape[0]:
             self._frame += 1
             irradiance = level.mean().reshape(-1, 4)[pix, :3]
 
             def between() -> None:
                 # 0.3-1 s on 2 busy cores: an edit or a new view that arrives meanwhile drops it
-                # between its steps (it is made again once the view holds still).
-                if self._edits or self._view is not state.request:
+                # between its steps.
+                if self._superseded(state):
                     raise _Superseded
 
             try:

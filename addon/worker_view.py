@@ -60,10 +60,9 @@ class GlossyLevel:
         self.position, self.normal = level.position, level.normal
         h, w = level.position.shape[:2]
         self.shape = (h, w)
-        rows = _glossy.material_rows(np.asarray(material).reshape(-1)[pix], glossy_materials)
-        safe = np.where((rows >= 0) & (rows < len(glossy_materials.layers)), rows, -1)
-        sel = np.flatnonzero(np.append(reflecting(glossy_materials), False)[safe])
-        self.points, self.normals, self.rows = points[sel], normals[sel], safe[sel]
+        rows = _glossy.material_rows(np.asarray(material).reshape(-1)[pix], glossy_materials)  # -1: none it knows
+        sel = np.flatnonzero(np.append(reflecting(glossy_materials), False)[rows])
+        self.points, self.normals, self.rows = points[sel], normals[sel], rows[sel]
         self.pix = pix[sel]
         self.all_pix = pix  # every geometry pixel of the level (a = 1: glossy-free ones show 0)
         self.to_eye = _glossy.directions_to_eye(self.points, eye).astype(np.float32)
@@ -221,7 +220,8 @@ class ViewState:
         pixels' running one."""
         if self.fine_glossy is not None:
             fine = self.fine_level()
-            return dict(glossy=frozen(self.fine_glossy.copy()), glossy_position=fine.position,
+            # Never written once made (a new one replaces it): published as it is.
+            return dict(glossy=frozen(self.fine_glossy), glossy_position=fine.position,
                         glossy_normal=fine.normal, glossy_passes=self.glossy.passes if self.glossy is not None else 0)
         if self.glossy is None:
             return dict(glossy=None, glossy_position=None, glossy_normal=None, glossy_passes=0)

@@ -37,10 +37,15 @@ def material_rows(material: np.ndarray, mats=None) -> np.ndarray:
     """(n,) int64 glossy rows from G-buffer `material` texels (index + 1, 0 = background; a
     material with a Metallic texture adds half its texel's metallic). With `mats`
     (`glossy.GlossyMaterials`), such a pixel's row is its material's variant nearest that
-    metallic; without, the material's own row."""
+    metallic; without, the material's own row. With `mats`, a texel of a material it does not
+    know (a G-buffer drawn from another material list than the system's: the viewport's worker
+    may still hold the one before an edit) gets -1, as the background: it reflects nothing."""
     r = np.asarray(material, np.float32).reshape(-1)
     whole = np.floor(r)
     rows = whole.astype(np.int64) - 1
+    if mats is None:
+        return rows
+    rows = np.where((rows >= 0) & (rows < len(mats.layers)), rows, -1)
     variants = getattr(mats, "variants", None)
     if variants is None or not (variants >= 0).any():
         return rows
@@ -128,9 +133,6 @@ def frame_glossy(system, points, normals, pix, shape: tuple[int, int], material,
     n = points.shape[0]
     mats = system.glossy_materials
     rows = material_rows(np.asarray(material).reshape(-1), mats)
-    # A G-buffer drawn from another material list than the system's (the viewport's worker may
-    # still hold the one before an edit): an unknown material reflects nothing here.
-    rows = np.where((rows >= 0) & (rows < len(mats.layers)), rows, -1)
     to_eye = directions_to_eye(points, eye)
     mu = np.clip(np.einsum("ij,ij->i", normals, to_eye), 0.0, 1.0)
     colour = np.zeros((n, 3), np.float32)
