@@ -228,7 +228,12 @@ def _pack_corners(per_vertex: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     """(m, 3 d) float32 of (m, 3) triangles over (V, d) vertex data: the first corner's value, then
     the other two corners' differences from it, so barycentric interpolation is a + u b + v c."""
     c = per_vertex[triangles]
-    return np.concatenate([c[:, 0], c[:, 1] - c[:, 0], c[:, 2] - c[:, 0]], axis=1).astype(np.float32)
+    d = c.shape[2]
+    out = np.empty((c.shape[0], 3 * d), np.float32)  # filled in place: no concatenation, no cast copy
+    out[:, :d] = c[:, 0]
+    np.subtract(c[:, 1], c[:, 0], out=out[:, d : 2 * d], casting="same_kind")
+    np.subtract(c[:, 2], c[:, 0], out=out[:, 2 * d :], casting="same_kind")
+    return out
 
 
 def _pack_normals(geometry: Geometry, rows: np.ndarray) -> np.ndarray:
