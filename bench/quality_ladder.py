@@ -66,6 +66,24 @@ def time_to_error(points, target: float) -> TimeToError:
     return TimeToError(math.inf, "never", f"best rung's error {best:.4g} > target {target:.4g}")
 
 
+def crossing_rungs(points, target: float) -> tuple[int, ...]:
+    """Indices (into `points`) of the rungs whose seconds `time_to_error` reads: the two around
+    the first crossing (the second alone when its error is the target itself), the cheapest one
+    alone when it is already at the target, none when the ladder never gets there (or nothing
+    is valid). What a benchmark re-times to steady a ratio: the other rungs do not enter it."""
+    pts = sorted((float(t), float(e), i) for i, (t, e) in enumerate(points) if _positive(t) and _positive(e))
+    if not pts or not _positive(target):
+        return ()
+    if pts[0][1] <= target:
+        return (pts[0][2],)
+    for (_t0, _e0, i0), (_t1, e1, i1) in zip(pts, pts[1:], strict=False):
+        if e1 == target:  # the target is this rung's own error (Cycles 16 spp): its time alone
+            return (i1,)
+        if e1 < target:
+            return (i0, i1)
+    return ()
+
+
 def speed_ratio(test: TimeToError, peer: TimeToError) -> float | None:
     """test.seconds / peer.seconds; inf when only the test never gets there, None when neither does."""
     if not math.isfinite(peer.seconds):

@@ -57,6 +57,20 @@ def test_unusable_points_are_skipped():
     assert ql.time_to_error([], 0.1).how == "never"
 
 
+def test_crossing_rungs_are_the_ones_the_time_reads():
+    points = [(5.0, 0.12), (1.0, 0.5), (3.0, 0.1), (9.0, 0.05), (0.5, None)]
+    # The first crossing in time order is 1 s -> 3 s; the 5 s and 9 s rungs do not enter it.
+    assert ql.crossing_rungs(points, 0.2) == (1, 2)
+    assert ql.crossing_rungs(points, 0.15) == (1, 2)
+    assert ql.crossing_rungs(points, 0.6) == (1,)  # the cheapest rung alone bounds it
+    assert ql.crossing_rungs(points, 0.01) == ()  # never
+    assert ql.crossing_rungs(points, 0.05) == (3,)  # a rung exactly at the target is its own time
+    # Re-timing those rungs moves the result; re-timing the others cannot.
+    before = ql.time_to_error(points, 0.2).seconds
+    slower_elsewhere = [(50.0, 0.12), (1.0, 0.5), (3.0, 0.1), (90.0, 0.05)]
+    assert ql.time_to_error(slower_elsewhere, 0.2).seconds == pytest.approx(before)
+
+
 def test_speed_ratio():
     fast = ql.TimeToError(1.0, "interpolated")
     slow = ql.TimeToError(4.0, "interpolated")
