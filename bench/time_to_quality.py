@@ -170,11 +170,13 @@ def scene_jobs(args) -> list[Job]:
     wanted = [s.strip() for s in args.scenes.split(",") if s.strip()] if args.scenes else list(available)
     jobs = []
     for name in wanted:
+        if name.endswith(".blend") and Path(name).is_file():  # any scene of the user's, by its path
+            available.setdefault(name, (Path(name).resolve(), False))
         if name not in available:
             progress(f"{name}: no such scene (have {', '.join(available)}); skipped")
             continue
         path, bundled = available[name]
-        jobs.append(Job(name, path, args.res, bundled, args.out))
+        jobs.append(Job(path.stem if name.endswith(".blend") else name, path, args.res, bundled, args.out))
     if args.hd and HD_SCENE in available and HD_RES != tuple(args.res):
         path, bundled = available[HD_SCENE]
         jobs.append(Job(HD_SCENE, path, HD_RES, bundled, args.out))
@@ -702,7 +704,8 @@ def _resolution(text: str):
 
 def parse_args(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--scenes", help="comma-separated names (default: every bundled and shared scene)")
+    parser.add_argument("--scenes", help="comma-separated names or .blend paths (default: every bundled and shared "
+                        "scene)")
     parser.add_argument("--res", type=_resolution, default=DEFAULT_RES, help="WxH (default 640x360)")
     parser.add_argument("--hd", action=argparse.BooleanOptionalAction, default=None,
                         help=f"also {HD_SCENE} at {HD_RES[0]}x{HD_RES[1]} (default: on, off with --quick or --scenes)")
