@@ -1724,6 +1724,10 @@ def _cached_split(key, read, to_world=None):
     return split
 
 
+#: Cycles' colour of an image texture whose file cannot be read (`TEX_IMAGE_MISSING_R/G/B`).
+MISSING_TEXTURE = np.array([1.0, 0.0, 1.0], np.float32)
+
+
 def _environment_split(source, world_name):
     """`EnvironmentSplit` of an Environment Texture node (cached), or None when it has no image."""
     image = source.image
@@ -1735,7 +1739,15 @@ def _environment_split(source, world_name):
     image = image.original
     key = (image.name_full, image.filepath, tuple(image.size), image.is_dirty, to_world.round(6).tobytes(),
            image.colorspace_settings.name)
-    return _cached_split(key, lambda: image_pixels(image), to_world)
+    split = _cached_split(key, lambda: image_pixels(image), to_world)
+    if split is None:
+        # A file that is gone (a .blend moved away from its HDRI, a path of another machine):
+        # Cycles lights and shows the world in its missing-texture magenta; so does this reader,
+        # at once, rather than baking the tree through Cycles (~4 s) to the same colour.
+        log.warning("world %r: environment image %r (%s) could not be read; the world is Cycles' missing-texture "
+                    "magenta", world_name, image.name, image.filepath or "no file")
+        split = _cached_split(("missing",), lambda: np.tile(MISSING_TEXTURE, (16, 32, 1)))
+    return split
 
 
 def _output_node(world):
