@@ -139,21 +139,16 @@ def progress(message: str) -> None:
 class Job:
     """One scene at one resolution."""
 
-    def __init__(self, name: str, blend: Path, res, bundled: bool, work: Path):
+    def __init__(self, name: str, blend: Path, res, bundled: bool):
         self.name, self.res, self.bundled = name, tuple(res), bundled
         self.label = name if self.res == DEFAULT_RES else f"{name} {res[0]}x{res[1]}"
         self.slug = f"{name}_{res[0]}x{res[1]}"
-        if bundled:
-            self.blend = blend
-            self.digest = ql.scene_digest(blend, PROCEDURAL_SOURCES)
-        else:
-            # ../shared/scenes is read-only and others' files: render from a private copy.
-            copy = work / "scenes" / blend.name
-            copy.parent.mkdir(parents=True, exist_ok=True)
-            if not copy.is_file() or copy.stat().st_size != blend.stat().st_size:
-                shutil.copyfile(blend, copy)
-            self.blend = copy
-            self.digest = ql.scene_digest(blend)
+        # Rendered where it lies (renders only read it): a copy elsewhere loses the textures and
+        # environment maps that a .blend names relative to itself ("//textures/wood.png"), and
+        # both Cycles and HybridGI then render them missing (a copied HDRI room was lit by
+        # Cycles' magenta of a missing image, its sun gone).
+        self.blend = blend
+        self.digest = ql.scene_digest(blend, PROCEDURAL_SOURCES) if bundled else ql.scene_digest(blend)
 
 
 def scene_jobs(args) -> list[Job]:
@@ -176,10 +171,10 @@ def scene_jobs(args) -> list[Job]:
             progress(f"{name}: no such scene (have {', '.join(available)}); skipped")
             continue
         path, bundled = available[name]
-        jobs.append(Job(path.stem if name.endswith(".blend") else name, path, args.res, bundled, args.out))
+        jobs.append(Job(path.stem if name.endswith(".blend") else name, path, args.res, bundled))
     if args.hd and HD_SCENE in available and HD_RES != tuple(args.res):
         path, bundled = available[HD_SCENE]
-        jobs.append(Job(HD_SCENE, path, HD_RES, bundled, args.out))
+        jobs.append(Job(HD_SCENE, path, HD_RES, bundled))
     return jobs
 
 
