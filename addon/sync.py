@@ -1780,7 +1780,38 @@ def _world_split(world, node, wait=True, rays="camera"):
                 return split, float(_value(node.inputs["Strength"]))
     key = world_bake.world_key(world, rays)
     split = _cached_split(("baked", key), lambda: world_bake.bake_world(world, wait=wait, key=key, rays=rays))
-    return None if split is None else (split, 1.0)
+    if split is None:
+        return None
+    size = _sky_sun_size(world.node_tree)
+    if size is not None and split.sun_direction is not None:
+        # The bake's map is box-filtered to ~0.7 degree texels: a 0.545 degree disc spread over
+        # several of them read as 1.56 degrees wide, and its shadows three times as soft as
+        # Cycles' (sky_yard 640x360: the sun's penumbrae were most of the Combined error). The
+        # node says how large it draws the disc.
+        split = replace(split, sun_angle=size)
+    return split, 1.0
+
+
+def _sky_sun_size(tree) -> float | None:
+    """The angular diameter (radians) of the sun disc that the Sky Textures of a world tree draw
+    (nested groups too), or None: no disc, or discs of different sizes."""
+    sizes = set()
+    for node in _tree_nodes(tree):
+        if (node.type == "TEX_SKY" and not node.mute and getattr(node, "sun_disc", False)
+                and node.sky_type not in ("PREETHAM", "HOSEK_WILKIE") and any(o.is_linked for o in node.outputs)):
+            sizes.add(round(float(node.sun_size), 9))
+    return sizes.pop() if len(sizes) == 1 else None
+
+
+def _tree_nodes(tree, seen=None):
+    """Every node of a node tree and of the groups it uses, each group once."""
+    seen = set() if seen is None else seen
+    if tree is None or tree.name_full in seen:
+        return
+    seen.add(tree.name_full)
+    for node in tree.nodes:
+        yield node
+        yield from _tree_nodes(getattr(node, "node_tree", None), seen)
 
 
 def _light_path_outputs(tree, seen=None) -> set[str]:

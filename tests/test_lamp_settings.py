@@ -418,3 +418,30 @@ def test_world_visibility_and_light_path_are_read(bpy_module, empty_scene, sync,
     with caplog.at_level(logging.WARNING):
         sync.read_world(world)
     assert sum("Light Path" in r.getMessage() and "Is Diffuse Ray" in r.getMessage() for r in caplog.records) == 1
+
+
+@pytest.mark.blender
+@pytest.mark.slow
+def test_a_sky_textures_sun_is_as_wide_as_the_node_draws_it(bpy_module, empty_scene, sync, tmp_path, monkeypatch):
+    """A Sky Texture is baked (through Cycles) to a map of ~0.7 degree texels, in which its
+    0.545 degree sun disc spreads over several: read from the map alone, the sun lamp came out
+    1.56 degrees wide and its shadows three times as soft as Cycles' (sky_yard 640x360: Combined
+    0.0141 -> 0.0121 with the node's size). Its direction stays the map's (within 0.1 degree)."""
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))  # the bake runs, never read from an earlier one
+    bpy, scene = bpy_module, empty_scene
+    world = bpy.data.worlds.new("sky")
+    if world.node_tree is None:  # before 5.0
+        world.use_nodes = True
+    tree = world.node_tree
+    sky = tree.nodes.new("ShaderNodeTexSky")
+    sky.sun_disc, sky.sun_size, sky.sun_elevation, sky.sun_rotation = True, math.radians(0.545), 0.3, 1.0
+    tree.links.new(sky.outputs["Color"], tree.nodes["Background"].inputs["Color"])
+    scene.world = world
+    _, lamps = sync.read_world(world)
+    assert len(lamps) == 1
+    sun = lamps[0]
+    assert sun.angle == pytest.approx(math.radians(0.545), rel=1e-6)
+    elevation = math.degrees(math.asin(float(sun.matrix[2, 2])))
+    assert elevation == pytest.approx(math.degrees(0.3), abs=0.2)
+    sky.sun_disc = False  # no disc: the node's size is not used (the glow around the sun is what the map shows)
+    assert all(lamp.angle > math.radians(2.0) for lamp in sync.read_world(world)[1])
