@@ -1,9 +1,9 @@
 """Time to quality: how soon HybridGI, Cycles + OpenImageDenoise and EEVEE reach an image close to
 converged path tracing, on the same CPU, measured in one run (issue #10, part 1).
 
-    python bench/time_to_quality.py [--scenes cornell,atrium,...] [--res 640x360] [--quick]
-        [--hd | --no-hd] [--ref-spp 1024] [--ref-cache DIR] [--out out/ttq] [--docs docs]
-        [--no-viewport] [--no-eevee] [--references-only] [--report-only]
+    python bench/time_to_quality.py [--scenes cornell,atrium,path/to/my.blend,...] [--res 640x360]
+        [--quick] [--hd | --no-hd] [--ref-spp 1024] [--ref-cache DIR] [--out out/ttq] [--docs docs]
+        [--repeat 3] [--no-viewport] [--no-eevee] [--references-only] [--report-only]
 
 `make compare` runs the full benchmark and writes docs/time_to_quality.{md,png}.
 
@@ -14,14 +14,17 @@ Per scene (every bundled scene in blend_scenes/, then ../shared/scenes/*.blend w
   denoising or adaptive sampling (hybridgi_core.cycles_reference). Cached under --ref-cache
   (default out/ttq_refs/, gitignored) by `quality_ladder.reference_key`: the scene's content (the
   procedural sources of a bundled scene, whose .blend bytes change with every build; the bytes of
-  any other .blend), the Blender version, the resolution, the samples and the settings. A later
-  run with the same key renders nothing.
+  any other .blend, not of the files it names: a changed texture on disk keeps the key), the
+  Blender version, the resolution, the samples and the settings. A later run with the same key
+  renders nothing.
 - peers in the same run: Cycles + OpenImageDenoise at 1, 4, 16, 64 spp (the reference's settings,
   all CPU threads, denoising on, seed 1 so their noise is independent of the reference's), and
   EEVEE at its defaults (it renders headless on llvmpipe here: its seconds are llvmpipe's, a real
   GPU's would be far lower; it has no Diffuse Indirect pass).
 - HybridGI final renders along LADDER (cache resolution r, rays per cell x, warm-up updates w, pixel
   rays p per GI pixel, anti-aliasing subframes s).
+- the renders each time to the target reads (`quality_ladder.crossing_rungs`) again, --repeat - 1
+  more times in rounds alternating the peers; each keeps its fastest run (`retime`).
 - the HybridGI viewport, driven headless with the scene camera by bench/ttq_viewport.py (see its
   docstring): the displayed image at 0.1, 0.25, 0.5, 1, 2, 4 s after the first draw, and again
   after a light move, in two timelines:
