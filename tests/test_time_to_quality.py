@@ -137,3 +137,40 @@ def test_exposure_white_uses_the_masked_percentile():
     mask[:5] = True
     assert ql.exposure_white(img, mask) == pytest.approx(1.0)
     assert ql.exposure_white(np.zeros((2, 2, 3))) == 1.0  # black: a usable white anyway
+
+
+def test_retime_renders_the_crossing_rungs_again_and_keeps_each_ones_fastest(monkeypatch, tmp_path):
+    """`time_to_quality.retime`: only the renders the times to the target read run again, the
+    peers alternating, and each keeps its fastest wall and -gpu seconds (errors stay)."""
+    import types
+
+    import time_to_quality as ttq
+
+    target = 0.02
+    peers = {
+        "cycles_oidn": [{"setting": f"{spp} spp", "spp": spp, "seconds": s, "wall_seconds": s + 1, "combined": e}
+                        for spp, s, e in ((1, 2.0, 0.04), (4, 3.0, 0.03), (16, 6.0, target), (64, 15.0, 0.015))],
+        "hybridgi": [{"setting": name, "set": [name], "seconds": s, "wall_seconds": s + 1, "seconds_minus_gpu": s - 0.5,
+                      "combined": e}
+                     for name, s, e in (("a", 1.0, 0.03), ("b", 2.0, 0.025), ("c", 3.0, 0.018), ("d", 9.0, 0.012))],
+    }
+    calls = []
+    runs = {"16": [5.0, 7.0], "b": [1.5, 2.5], "c": [3.5, 2.6]}
+
+    def fake(job, args, tag, engine, samples=None, settings=(), timeout=None):
+        key = str(samples) if engine == "CYCLES" else settings[0]
+        calls.append(key)
+        s = runs[key].pop(0)
+        return {"seconds": s, "wall_seconds": s + 1, "steps_ms": {"gbuffer": 400.0}}
+
+    monkeypatch.setattr(ttq, "measured_render", fake)
+    args = types.SimpleNamespace(repeat=3, out=tmp_path)
+    ttq.retime(types.SimpleNamespace(label="x", slug="x"), args, peers)
+    assert calls == ["16", "b", "c", "16", "b", "c"]  # rounds alternate the peers; a, d and 1/4/64 spp never
+    cycles16 = peers["cycles_oidn"][2]
+    assert cycles16["seconds"] == 5.0 and cycles16["seconds_runs"] == [6.0, 5.0, 7.0]
+    b, c = peers["hybridgi"][1], peers["hybridgi"][2]
+    assert b["seconds"] == 1.5 and b["seconds_minus_gpu"] == pytest.approx(1.1)
+    assert c["seconds"] == 2.6 and c["seconds_minus_gpu"] == pytest.approx(2.2)
+    assert c["combined"] == 0.018  # the error is the first run's
+    assert peers["hybridgi"][0]["seconds"] == 1.0 and "seconds_runs" not in peers["hybridgi"][0]
