@@ -340,7 +340,8 @@ def _chunk(system, lookup: HitLookup | None, p, nrm, corner_visible, rays, rng, 
     sky_open = sky_irradiance(world) if smooth is None and s.indirect_quality != AO_ONLY else None
     sky = world.radiance(dirs) if sky_open is not None else None
     radiance = hit_radiance(system, lookup, origins, dirs, hits, rng, times, screen=screen, near=near,
-                            near_rng=np.random.default_rng(rng.bit_generator.seed_seq.spawn(1)[0]), sky=sky)
+                            near_rng=np.random.default_rng(rng.bit_generator.seed_seq.spawn(1)[0]), sky=sky,
+                            sampled_emitters=screen is not None and screen.emitters_sampled)
     visible = (hits.t > s.ao_distance).astype(np.float32)
     # Control variate: the cache's radiance SH along the same rays. Linear in the SH, so its mean
     # over a pixel's rays is the SH of the pixel's mean basis vector (no per-ray products).
@@ -398,7 +399,7 @@ def _open_sky_band(res: np.ndarray, lum_cv: np.ndarray, sky_open, sky: np.ndarra
 def hit_radiance(system, lookup: HitLookup | None, origins: np.ndarray, dirs: np.ndarray, hits, rng,
                  times: dict | None = None, glossy_lamps: bool = True, screen: ScreenLight | None = None,
                  near: float = 0.0, near_rng: np.random.Generator | None = None, depth: int = NEAR_BOUNCE_DEPTH,
-                 sky: np.ndarray | None = None) -> np.ndarray:
+                 sky: np.ndarray | None = None, sampled_emitters: bool = False) -> np.ndarray:
     """(N, 6) float32 radiance coming back along rays (origins, dirs (N, 3)) from their `hits`:
     rgb straight from the world or an emitter (what Cycles counts as direct light) | rgb the hit
     surface reflects (its lamp light through shadow rays, plus the cache read at the hit for the
@@ -410,7 +411,9 @@ def hit_radiance(system, lookup: HitLookup | None, origins: np.ndarray, dirs: np
     the frame's lamp irradiance per pixel, read at hits the camera sees instead of their own
     shadow rays (`screen_light`). near : hits nearer than this (world units) take their further
     bounces from one ray of their own drawn from near_rng (`_near_bounce`), not from the cache.
-    sky : (N, 3) the world's radiance along the rays if the caller has it (`World.radiance`)."""
+    sky : (N, 3) the world's radiance along the rays if the caller has it (`World.radiance`).
+    sampled_emitters : the rays leave pixels whose direct light samples the emissive triangles
+    (`emitters.py`): what they find of those is not counted again (further bounces still are)."""
     s, scene = system.settings, system.updater.scene
     radiance = np.zeros((dirs.shape[0], 6), np.float32)
     if s.indirect_quality == AO_ONLY:
@@ -422,7 +425,8 @@ def hit_radiance(system, lookup: HitLookup | None, origins: np.ndarray, dirs: np
         # np.take: row gathers ~5x faster than fancy indexing (numpy 1.26).
         prim, hit_dirs = np.take(hits.prim, hit), np.take(dirs, hit, axis=0)
         surf = scene.surfaces.probe_hits(prim, np.take(hits.u, hit), np.take(hits.v, hit), hit_dirs)
-        radiance[hit, 0:3] = surf.emission
+        radiance[hit, 0:3] = (scene.surfaces.diffuse_emission(surf.emission, prim) if sampled_emitters
+                              else surf.emission)
         position = hit_dirs * np.take(hits.t, hit)[:, None]
         position += np.take(origins, hit, axis=0)
         ts = time.perf_counter()

@@ -52,6 +52,9 @@ class ScreenLight:
     normal: np.ndarray
     irradiance: np.ndarray
     valid: np.ndarray
+    #: The frame's pixels sample the emissive triangles (`emitters.py`): the pixel rays leaving
+    #: them drop what they find of those (`pixel_gather._chunk`). `irradiance` never holds it.
+    emitters_sampled: bool = False
 
     @classmethod
     def from_pixels(cls, view: np.ndarray, proj: np.ndarray, size: tuple[int, int], points: np.ndarray,

@@ -19,6 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .bump import map_bend_factor
+from .emitters import MeshLights
 from .snapshot import Geometry, Material
 from .specular import FILTER_GLOSSY, hemispherical_glossy_albedo
 
@@ -92,6 +93,7 @@ class SurfaceTable:
         records = self.records.copy()
         records[rows, _NG] = _face_normals(positions[rows])
         self._normals, self._positions, self.records = normals, positions, records
+        self._set_emitters()
 
     def set_materials(self, materials: list[Material]) -> None:
         self.materials = materials
@@ -128,6 +130,25 @@ class SurfaceTable:
             records[:-1, _BRDF] = (self.albedo[mat] + self.glossy[mat]) * _INV_PI
             records[:-1, _EMIT] = self.emission[mat]
         self.records = records
+        self._set_emitters()
+
+    def _set_emitters(self) -> None:
+        """The emissive triangles sampled as lights (`emitters.MeshLights`, None without), and the
+        (T + 1,) mask of them (the -1 of missed rays last, False): rays that hit one bring its
+        emission to the camera and to glossy lobes, but not to diffuse receivers, which sample
+        it (`diffuse_emission`). Textured emission stays the rays' alone."""
+        skip = np.isin(self.material_index, np.asarray(self.glowing, np.int32)) if self.glowing else None
+        self.emitters = MeshLights.from_packed(self._positions, self.records[:-1, _EMIT], skip)
+        self.sampled = np.zeros(self.records.shape[0], bool)
+        if self.emitters is not None:
+            self.sampled[self.emitters.prims] = True
+
+    def diffuse_emission(self, emission: np.ndarray, prim: np.ndarray) -> np.ndarray:
+        """The emission (n, 3) of hits on triangles prim (n,) as a diffuse receiver's ray counts
+        it: none from triangles the emitters sample (their light comes from those samples)."""
+        if self.emitters is None:
+            return emission
+        return np.where(np.take(self.sampled, prim)[:, None], np.float32(0.0), emission)
 
     def probe_hits(self, prim: np.ndarray, u: np.ndarray, v: np.ndarray, ray_dirs: np.ndarray) -> ProbeHits:
         """Shading inputs of probe rays. prim (n,) int32 (-1 = miss), u, v (n,) float32 (read only

@@ -391,6 +391,26 @@ class GISystem:
              {k: None if v is None else v[a : a + per_block] for k, v in outputs.items()})
             for a, child in zip(starts, rng.spawn(len(starts)), strict=True)]))
 
+    def emitter_light(self, points: np.ndarray, normals: np.ndarray, frame: int, samples: int) -> np.ndarray | None:
+        """(n, 3) irradiance of the emissive triangles at receivers (`emitters.MeshLights`,
+        `samples` points and shadow rays each), in blocks on the worker pool as `direct`'s; None
+        when nothing emits. Its own stream of the frame (seed + 3)."""
+        emitters = self.surfaces.emitters
+        if emitters is None:
+            return None
+        points = np.asarray(points, np.float32).reshape(-1, 3)
+        normals = np.asarray(normals, np.float32).reshape(-1, 3)
+        n = points.shape[0]
+        rng = frame_rng(self.settings.seed + 3, frame)
+        per_block = max(1, DIRECT_BLOCK_RAYS // max(samples, 1))
+        if n <= per_block:
+            return emitters.irradiance(points, normals, self.tracer, rng, samples, float(self.tracer.epsilon))
+        starts = range(0, n, per_block)
+        return np.concatenate(self._blocks([
+            (emitters.irradiance, (points[a : a + per_block], normals[a : a + per_block], self.tracer, child, samples,
+                                   float(self.tracer.epsilon)), {})
+            for a, child in zip(starts, rng.spawn(len(starts)), strict=True)]))
+
     def _blocks(self, calls: list) -> list:
         """Results of calls [(fn, args, kwargs)] in order: on the worker pool, or one after another
         when the caller is itself one of its workers (the same blocks and generators either way,

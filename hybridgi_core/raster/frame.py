@@ -6,6 +6,7 @@ space and outlives views) and camera matrices, and read back a `ShadedFrame`.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import time
 from concurrent import futures
@@ -15,6 +16,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .. import glossy_image, pixel_gather
+from ..emitters import emitter_samples, worth_sampling
 from ..evaluate import HitLookup
 from ..lights import RATIO_MIN_SAMPLES, rough_lights
 from ..penumbra import adaptive_direct, filter_camera
@@ -337,7 +339,7 @@ class FramePipeline:
                                              frame + s * SUBFRAME_SEED_STRIDE,
                                              max(min(self.direct_samples, RATIO_MIN_SAMPLES),
                                                  self.direct_samples // offsets.shape[0]), surfaces=(hit, same),
-                                             surface=surface)
+                                             surface=surface, emitters=screen.emitters_sampled)
                 if full_gi is not None and full_gi.resolver is not None:
                     with stats.step("subframe_gi"):
                         gi, gi_low = self._subframe_gi(full_gi, gbuf, hit, same, position, normal, offset,
@@ -415,9 +417,16 @@ class FramePipeline:
         if shares is not None:
             lamp_light = np.zeros((self.height * self.width, lamps, 3), np.float32)
             lamp_light[pix_full] = shares
-        # Hits find their pixel by the surface (the smooth normal), not a normal map's bend.
+        # Hits find their pixel by the surface (the smooth normal), not a normal map's bend. Their
+        # light is the lamps' only: hits see emitters through the cache, as before.
         screen = ScreenLight.from_pixels(view, proj, (self.width, self.height), p_full,
                                          n_full if s_full is None else s_full, pix_full, direct[pix_full, :3])
+        # Emissive triangles sampled as lights at every pixel (`emitters.py`), where pixel rays
+        # remove the cache's share of them (with pixel rays off the cache's gather keeps it).
+        if self.settings.pixel_rays > 0 and worth_sampling(getattr(getattr(system, "surfaces", None), "emitters", None),
+                                                           system.scene.lights):
+            direct[pix_full, :3] += system.emitter_light(p_full, n_full, frame, emitter_samples(self.direct_samples))
+            screen = dataclasses.replace(screen, emitters_sampled=True)
         return CentreLight(direct, lamp_light, screen, p_full, n_full, pix_full, s_full,
                            (time.perf_counter() - tic) * 1e3)
 

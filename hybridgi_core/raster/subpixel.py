@@ -379,14 +379,17 @@ def worth_extra(edges: np.ndarray, share: float = EXTRA_MIN_SHARE) -> bool:
 
 
 def subframe_direct(system, centre: CentreSample, position: np.ndarray, normal: np.ndarray,
-                    seed_frame: int, samples: int, surfaces=None, surface: np.ndarray | None = None) -> np.ndarray:
+                    seed_frame: int, samples: int, surfaces=None, surface: np.ndarray | None = None,
+                    emitters: bool = False) -> np.ndarray:
     """A jittered subframe's direct light, (h * w, 4) float32: the centre's where the subframe's
     pixel sees the same surface, `samples` shadow rays per lamp (seeded by seed_frame) elsewhere.
 
     position, normal : the subframe's G-buffer read-backs (h, w, 4) / (h, w, >= 3); the
     G-buffer's normals are unit (normalised in its fragment shader). surface : the subframe's
     `surface` read-back where a material bends normals (None: the shading normal): the surface
-    `same_surface` compares and the smooth normal of the bump shadowing term.
+    `same_surface` compares and the smooth normal of the bump shadowing term. emitters : the
+    centre's light holds the emissive triangles' samples (`emitters.py`): pixels on another
+    surface take their own.
     """
     n_pix = centre.direct.shape[0]
     pos = position.reshape(n_pix, -1)
@@ -408,10 +411,18 @@ def subframe_direct(system, centre: CentreSample, position: np.ndarray, normal: 
         return rows[keep], system.direct(p, n, frame, samples=samples, **kwargs)
 
     fresh = hit & ~same
+    emitted = None
+    if emitters and fresh.any():
+        rows = np.flatnonzero(fresh)
+        p, n, keep = pixels_to_points(pos[rows][None], nrm[rows][None])
+        emitted = np.zeros((n_pix, 3), np.float32)
+        emitted[rows[keep]] = system.emitter_light(p, n, seed_frame, samples)
     if lamp_edge is None:
         if fresh.any():
             rows, light = lit(np.flatnonzero(fresh), seed_frame)
             direct[rows, :3] = light
+        if emitted is not None:
+            direct[:, :3] += emitted
         return direct
     # Lamp by lamp: another surface (a silhouette) takes every lamp's light from its own rays; on
     # the centre's surface only the lamps whose edge crosses the pixel are traced again, the
@@ -426,6 +437,8 @@ def subframe_direct(system, centre: CentreSample, position: np.ndarray, normal: 
         edge = lamp_edge[rows, k]
         light[edge] -= centre.lamp_light[rows[edge], k]
         direct[rows, :3] += light
+    if emitted is not None:
+        direct[:, :3] += emitted
     np.maximum(direct[:, :3], 0.0, out=direct[:, :3])  # the differences' rounding
     return direct
 

@@ -1,0 +1,107 @@
+"""hybridgi_core/emitters.py: emissive triangles sampled as lights, against Lambert's closed form."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from hybridgi_core import emitters
+from hybridgi_core.emitters import MeshLights
+from hybridgi_core.polygon_light import cosine_solid_angle
+from tests.test_lights import TriangleTracer, quad
+
+
+def panel(centre=(0.0, 0.0, 2.0), half=0.5, radiance=(3.0, 2.0, 1.0), facing_down=True):
+    tris = np.asarray(quad(centre, (half, 0.0, 0.0), (0.0, half if facing_down else -half, 0.0)), np.float32)
+    positions = tris.reshape(-1, 3)
+    triangles = np.arange(6).reshape(2, 3)
+    return positions, triangles, np.tile(np.asarray(radiance, np.float32), (2, 1)), tris
+
+
+def receivers(n=64):
+    g = np.linspace(-1.5, 1.5, 8)
+    x, y = np.meshgrid(g, g)
+    points = np.stack([x.ravel(), y.ravel(), np.zeros(x.size)], axis=1).astype(np.float32)
+    normals = np.tile(np.array([0.0, 0.0, 1.0], np.float32), (points.shape[0], 1))
+    tilted = np.tile(np.array([0.6, 0.0, 0.8], np.float32), (points.shape[0], 1))
+    return points, normals, tilted
+
+
+@pytest.mark.parametrize("facing_down", [True, False])
+def test_unshadowed_light_is_lamberts_closed_form(facing_down):
+    """Both sides emit (as rays read emission): a panel facing away lights the floor the same."""
+    positions, triangles, emission, tris = panel(facing_down=facing_down)
+    lights = MeshLights.from_triangles(positions, triangles, emission)
+    points, up, tilted = receivers()
+    polygon = np.array([tris[0][0], tris[0][1], tris[0][2], tris[1][2]], np.float64)
+    for normals in (up, tilted):
+        exact = cosine_solid_angle(polygon, points, normals)[:, None] * np.array([3.0, 2.0, 1.0])
+        got = lights.irradiance(points, normals, None, np.random.default_rng(1), 4096, 1e-4)
+        np.testing.assert_allclose(got.mean(axis=0), exact.mean(axis=0), rtol=0.02)
+        np.testing.assert_allclose(got, exact, rtol=0.08, atol=0.01 * exact.max())
+
+
+def test_an_occluder_casts_its_shadow_and_the_emitter_does_not_shadow_itself():
+    positions, triangles, emission, tris = panel(half=0.25)
+    blocker = np.asarray(quad((0.0, 0.0, 1.0), (0.3, 0.0, 0.0), (0.0, 0.3, 0.0)), np.float32)
+    lights = MeshLights.from_triangles(positions, triangles, emission)
+    points = np.array([[0.0, 0.0, 0.0], [1.5, 0.0, 0.0]], np.float32)
+    normals = np.tile(np.array([0.0, 0.0, 1.0], np.float32), (2, 1))
+    rng = np.random.default_rng(2)
+    open_light = lights.irradiance(points, normals, None, rng, 512, 1e-4)
+    # The emitter's own triangles are in the scene: rays stop short of the point they aim at.
+    tracer = TriangleTracer(np.concatenate([tris, blocker]))
+    shadowed = lights.irradiance(points, normals, tracer, rng, 512, 1e-4)
+    assert shadowed[0].max() == 0.0  # under the blocker, which hides the whole panel
+    np.testing.assert_allclose(shadowed[1], open_light[1], rtol=0.1)  # off to the side: lit
+
+
+def test_triangles_are_chosen_by_power_and_nothing_emitting_is_none():
+    positions, triangles, emission, _ = panel()
+    emission[1] *= 3.0
+    lights = MeshLights.from_triangles(positions, triangles, emission)
+    np.testing.assert_allclose(lights.choose, [0.25, 0.75])
+    assert MeshLights.from_triangles(positions, triangles, np.zeros_like(emission)) is None
+    assert MeshLights.from_triangles(positions, triangles, emission, skip=np.array([True, True])) is None
+
+
+@pytest.mark.parametrize("gap", [0.02, 0.002])
+def test_receivers_next_to_an_emitter_get_its_light_without_fireflies(gap):
+    """A panel a few mm from a ceiling lights it by its back (both sides emit). Sampled by area,
+    the points right next to a receiver weigh 1 / d^2: fireflies. Near triangles are sampled in
+    their solid angle: the estimate stays within a few % with 64 samples."""
+    positions, triangles, emission, tris = panel(centre=(0.0, 0.0, 2.0), half=0.3)
+    lights = MeshLights.from_triangles(positions, triangles, emission)
+    g = np.linspace(-0.25, 0.25, 6)
+    x, y = np.meshgrid(g, g)
+    points = np.stack([x.ravel(), y.ravel(), np.full(x.size, 2.0 + gap)], axis=1).astype(np.float32)
+    down = np.tile(np.array([0.0, 0.0, -1.0], np.float32), (points.shape[0], 1))
+    polygon = np.array([tris[0][0], tris[0][1], tris[0][2], tris[1][2]], np.float64)
+    exact = cosine_solid_angle(polygon, points, down)[:, None] * np.array([3.0, 2.0, 1.0])
+    got = lights.irradiance(points, down, None, np.random.default_rng(3), 64, 1e-5)
+    # Unbiased over the receivers; each within the spread the choice between the two triangles
+    # leaves (their solid angles differ a lot from a point this close).
+    np.testing.assert_allclose(got.mean(axis=0), exact.mean(axis=0), rtol=0.05)
+    worst = float(np.abs(got / exact - 1.0).max())
+    monkeypatch_angle = emitters.NEAR_SOLID_ANGLE
+    try:
+        emitters.NEAR_SOLID_ANGLE = np.inf  # every triangle sampled by area
+        by_area = lights.irradiance(points, down, None, np.random.default_rng(3), 64, 1e-5)
+    finally:
+        emitters.NEAR_SOLID_ANGLE = monkeypatch_angle
+    worst_by_area = float(np.abs(by_area / exact - 1.0).max())
+    print(f"gap {gap}: worst relative error {worst:.2f} (by area {worst_by_area:.2f})")
+    assert worst < 0.5 and worst < 0.5 * worst_by_area, (worst, worst_by_area)
+
+
+def test_pixels_sample_the_emitters_only_where_they_light_the_scene():
+    from hybridgi_core.snapshot import Light
+
+    positions, triangles, emission, _ = panel()  # 1 m^2 of radiance (3, 2, 1): ~13 W of flux
+    lights = MeshLights.from_triangles(positions, triangles, emission)
+    lamp = lambda kind, power: Light(kind=kind, color=np.ones(3, np.float32), power=power, matrix=np.eye(4))  # noqa: E731
+    assert emitters.worth_sampling(lights, [])
+    assert emitters.worth_sampling(lights, [lamp("AREA", 50.0)])
+    assert not emitters.worth_sampling(lights, [lamp("AREA", 500.0)])  # a few % of the light: rays
+    assert not emitters.worth_sampling(lights, [lamp("SUN", 3.0)])
+    assert not emitters.worth_sampling(None, [])

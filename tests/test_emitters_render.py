@@ -1,0 +1,90 @@
+"""A room lit only by an emissive panel, through the real engine against Cycles rendered in the
+same test: the pixels sample the emitter (`hybridgi_core/emitters.py`) instead of waiting for
+their rays to hit it."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import textwrap
+
+import numpy as np
+import pytest
+
+from tests.cli_renders import layer, rendered
+
+pytestmark = [pytest.mark.blender, pytest.mark.slow]
+
+RES = "128x72"
+
+SCENE = textwrap.dedent("""
+    import sys, math, bpy
+    from mathutils import Vector
+    bpy.ops.wm.read_homefile(use_empty=True)
+    scene = bpy.context.scene
+    def material(name, color, emit=0.0):
+        m = bpy.data.materials.new(name)
+        if m.node_tree is None:
+            m.use_nodes = True
+        bsdf = m.node_tree.nodes["Principled BSDF"]
+        bsdf.inputs["Base Color"].default_value = (*color, 1.0)
+        bsdf.inputs["Roughness"].default_value = 0.8
+        if emit:
+            bsdf.inputs["Emission Color"].default_value = (1.0, 0.95, 0.85, 1.0)
+            bsdf.inputs["Emission Strength"].default_value = emit
+        return m
+    def box(location, size, mat, inward=False):
+        bpy.ops.mesh.primitive_cube_add(size=1.0, location=location)
+        obj = bpy.context.object
+        obj.scale = size
+        obj.data.materials.append(mat)
+        if inward:
+            bpy.ops.object.mode_set(mode="EDIT")
+            bpy.ops.mesh.flip_normals()
+            bpy.ops.object.mode_set(mode="OBJECT")
+    white = material("white", (0.75, 0.75, 0.75))
+    box((0, 0, 1.5), (5, 6, 3), white, inward=True)
+    box((0.3, 0.8, 0.4), (1.2, 0.8, 0.8), white)
+    box((-1.5, 2.0, 0.9), (0.8, 0.6, 1.8), material("red", (0.7, 0.1, 0.1)))
+    bpy.ops.mesh.primitive_plane_add(size=0.6, location=(0, 0.5, 2.98))
+    panel = bpy.context.object
+    panel.rotation_euler = (math.pi, 0, 0)
+    panel.data.materials.append(material("panel", (0.8, 0.8, 0.8), emit=60.0))
+    cam = bpy.data.objects.new("camera", bpy.data.cameras.new("camera"))
+    cam.data.lens = 24
+    cam.location = (0.5, -2.7, 1.6)
+    cam.rotation_euler = (Vector((0, 1.0, 1.0)) - cam.location).to_track_quat("-Z", "Y").to_euler()
+    scene.collection.objects.link(cam)
+    scene.camera = cam
+    world = bpy.data.worlds.new("w")
+    world.color = (0, 0, 0)
+    if world.node_tree is None:
+        world.use_nodes = True
+    world.node_tree.nodes["Background"].inputs["Color"].default_value = (0, 0, 0, 1)
+    scene.world = world
+    bpy.ops.wm.save_as_mainfile(filepath=sys.argv[-1])
+""")
+
+
+def test_a_room_lit_by_an_emissive_panel_has_cycles_direct_light():
+    """Against the 128 spp here, pixels sampling the panel / rays alone: Diffuse Direct 0.028 /
+    0.227, Combined 0.141 / 0.174 (its Diffuse Indirect is the rays' either way)."""
+    import tempfile
+    from pathlib import Path
+
+    with tempfile.TemporaryDirectory() as tmp:
+        blend = Path(tmp) / "panel.blend"
+        subprocess.run([sys.executable, "-c", SCENE, str(blend)], check=True, capture_output=True)
+        ours = rendered(blend, Path(tmp) / "hg", RES)
+        cycles = rendered(blend, Path(tmp) / "cy", RES, "--engine", "CYCLES", "--samples", "128")
+    geometry = layer(cycles, "Depth", "Z")[..., 0] < 1e9
+    errors = {}
+    for name in ("Diffuse Direct", "Combined"):
+        mine, reference = layer(ours, name), layer(cycles, name)
+        errors[name] = float(np.abs(mine - reference)[geometry].sum() / np.abs(reference)[geometry].sum())
+    mine, reference = layer(ours, "Diffuse Direct")[geometry], layer(cycles, "Diffuse Direct")[geometry]
+    ratio = float(mine.sum() / reference.sum())
+    print(errors, f"Diffuse Direct sum ratio {ratio:.3f}")
+    assert abs(ratio - 1.0) < 0.05, ratio  # the emitter's light counted once
+    assert errors["Diffuse Direct"] < 0.12, errors
+    assert errors["Combined"] < 0.16, errors
