@@ -101,16 +101,8 @@ class MeshLights:
         """From a geometry's (V, 3) positions, (T, 3) triangles and (T, 3) per-triangle emitted
         radiance; skip : (T,) bool triangles left to the rays (textured emission). None when
         nothing emits."""
-        emission = np.asarray(emission, np.float32).reshape(-1, 3)
-        lum = emission @ LUMA
-        lit = (lum > 0) & np.isfinite(lum)
-        if skip is not None:
-            lit &= ~np.asarray(skip, bool)
-        prims = np.flatnonzero(lit)
-        if prims.size == 0:
-            return None
-        p = np.asarray(positions, np.float32)[np.asarray(triangles)[prims]]
-        return cls._build(prims, p[:, 0], p[:, 1] - p[:, 0], p[:, 2] - p[:, 0], emission, lum)
+        p = np.asarray(positions, np.float32)[np.asarray(triangles)]
+        return cls.from_packed(np.concatenate([p[:, 0], p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]], axis=1), emission, skip)
 
     @classmethod
     def from_packed(cls, packed: np.ndarray, emission: np.ndarray, skip: np.ndarray | None = None) -> MeshLights | None:
