@@ -1814,18 +1814,9 @@ def _tree_nodes(tree, seen=None):
         yield from _tree_nodes(getattr(node, "node_tree", None), seen)
 
 
-def _light_path_outputs(tree, seen=None) -> set[str]:
+def _light_path_outputs(tree) -> set[str]:
     """Names of the Light Path outputs a (world) node tree uses, in nested groups too."""
-    seen = set() if seen is None else seen
-    if tree is None or tree.name_full in seen:
-        return set()
-    seen.add(tree.name_full)
-    used = set()
-    for n in tree.nodes:
-        if n.type == "LIGHT_PATH" and not n.mute:
-            used |= {o.name for o in n.outputs if o.is_linked}
-        used |= _light_path_outputs(getattr(n, "node_tree", None), seen)
-    return used
+    return {o.name for n in _tree_nodes(tree) if n.type == "LIGHT_PATH" and not n.mute for o in n.outputs if o.is_linked}
 
 
 def _sun_light(split, strength, world_name):

@@ -30,11 +30,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .environment import LUMA as ENV_LUMA
 from .lights import AREA_MIN_DISTANCE_FRACTION, shadow_query
 
 _F32 = np.float32
-#: Rec. 709 luminance: the power that chooses a triangle.
-LUMA = np.array([0.2126, 0.7152, 0.0722], np.float32)
+#: Rec. 709 luminance (the environment's weights, as float32): the power that chooses a triangle.
+LUMA = ENV_LUMA.astype(_F32)
 #: Receivers per block of work: bounds the (receivers x samples) arrays.
 BLOCK = 1 << 14
 #: Emitter samples per pixel of a frame's direct light, as a share of its lamps' shadow samples
@@ -184,10 +185,10 @@ class MeshLights:
             d2 = np.einsum("ij,ij->i", w, w)
             dist[far] = np.sqrt(d2)
             direction[far] = w / np.maximum(dist[far], 1e-300)[:, None]
-            cos_l = np.abs(np.einsum("ij,ij->i", self.normal[tri[far]], direction[far]))
+            cos_l = np.abs(np.einsum("ij,ij->i", self.normal[t], direction[far]))
             # Area measure: pdf choose / area; the floor as area lamps sampled by area have it.
-            floor = np.maximum(AREA_MIN_DISTANCE_FRACTION**2 * self.area[tri[far]] / samples, epsilon * epsilon)
-            weight[far] = cos_l * self.area[tri[far]] / (self.choose[tri[far]] * np.maximum(d2, floor))
+            floor = np.maximum(AREA_MIN_DISTANCE_FRACTION**2 * self.area[t] / samples, epsilon * epsilon)
+            weight[far] = cos_l * self.area[t] / (self.choose[t] * np.maximum(d2, floor))
         close = np.flatnonzero(near)
         if close.size:
             pick = near[maybe]
@@ -201,14 +202,13 @@ class MeshLights:
             weight[close] = omega[close] / self.choose[tri[close]]  # solid-angle measure: pdf choose / omega
         cos_r = np.einsum("ij,ij->i", receiver, direction)
         weight = np.where((cos_r > 0) & np.isfinite(weight) & (dist > 0), cos_r * weight, 0.0)
-        dist = dist.astype(_F32)
-        live = np.flatnonzero(weight > 0)
-        if tracer is not None and live.size:
-            reach = (dist[live] - _F32(epsilon)).astype(_F32)
-            ray = live[reach > 0]
+        if tracer is not None:
+            # Shadow rays stop epsilon short of the emitter (it must not hide its own point).
+            reach = dist.astype(_F32) - _F32(epsilon)
+            ray = np.flatnonzero((weight > 0) & (reach > 0))
             if ray.size:
                 blocked = np.asarray(shadow_query(tracer)(origin[ray], np.ascontiguousarray(direction[ray], _F32),
-                                                          (dist[ray] - _F32(epsilon)).astype(_F32), trusted=True), bool)
+                                                          reach[ray], trusted=True), bool)
                 weight[ray[blocked]] = 0.0
         e = self.radiance[tri] * weight[:, None].astype(_F32)
         return e.reshape(m, samples, 3).mean(axis=1)

@@ -423,8 +423,7 @@ class FramePipeline:
                                          n_full if s_full is None else s_full, pix_full, direct[pix_full, :3])
         # Emissive triangles sampled as lights at every pixel (`emitters.py`), where pixel rays
         # remove the cache's share of them (with pixel rays off the cache's gather keeps it).
-        if self.settings.pixel_rays > 0 and worth_sampling(getattr(getattr(system, "surfaces", None), "emitters", None),
-                                                           system.scene.lights):
+        if self.settings.pixel_rays > 0 and worth_sampling(system.surfaces.emitters, system.scene.lights):
             direct[pix_full, :3] += system.emitter_light(p_full, n_full, frame, emitter_samples(self.direct_samples))
             screen = dataclasses.replace(screen, emitters_sampled=True)
         return CentreLight(direct, lamp_light, screen, p_full, n_full, pix_full, s_full,
