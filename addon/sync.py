@@ -23,6 +23,7 @@ from hybridgi_core import environment, hair, surface_mix
 from hybridgi_core import snapshot as snap
 from hybridgi_core import specular as sp
 from hybridgi_core.blackbody import blackbody_rgb
+from hybridgi_core.blocks import for_blocks
 from hybridgi_core.glossy import MIN_ROUGHNESS
 from hybridgi_core.specular import SpecularLayer
 
@@ -311,13 +312,15 @@ def transformed(local, matrices, slot_to_material, first_object):
     # each) stay in cache and their pages are reused, not faulted in afresh (its positions' matmul
     # 76-507 ms in one go, 37-115 ms in blocks on this 2-core VM). The same arithmetic row by
     # row: the same bits (dragon_npm renders identically).
-    step = max(1, TRANSFORM_BLOCK // count)
-    for a in range(0, corners, step):
-        b = min(a + step, corners)
+    # The blocks run on a few threads (`blocks.for_blocks`), each writing its own corners.
+
+    def block(a, b):
         positions[:, a:b] = np.matmul(local.positions[a:b], to_world) + m[:, None, :3, 3]
         nb = np.matmul(local.normals[a:b], to_normal).astype(np.float32)
         length = np.sqrt(np.einsum("ilk,ilk->il", nb, nb))[..., None]
         normals[:, a:b] = np.divide(nb, length, out=np.zeros_like(nb), where=length > 0)
+
+    for_blocks(corners, block, max(1, TRANSFORM_BLOCK // count))
     tangents = None
     if local.tangents is not None:
         # Tangents are surface directions: they follow the linear map itself. A mirroring

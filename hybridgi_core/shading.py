@@ -18,6 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .blocks import for_blocks
 from .bump import map_bend_factor
 from .emitters import MeshLights
 from .snapshot import Geometry, Material
@@ -248,12 +249,17 @@ class SurfaceTable:
 def _pack_corners(per_vertex: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     """(m, 3 d) float32 of (m, 3) triangles over (V, d) vertex data: the first corner's value, then
     the other two corners' differences from it, so barycentric interpolation is a + u b + v c."""
-    c = per_vertex[triangles]
-    d = c.shape[2]
-    out = np.empty((c.shape[0], 3 * d), np.float32)  # filled in place: no concatenation, no cast copy
-    out[:, :d] = c[:, 0]
-    np.subtract(c[:, 1], c[:, 0], out=out[:, d : 2 * d], casting="same_kind")
-    np.subtract(c[:, 2], c[:, 0], out=out[:, 2 * d :], casting="same_kind")
+    d = per_vertex.shape[1]
+    out = np.empty((triangles.shape[0], 3 * d), np.float32)  # filled in place: no concatenation, no cast copy
+
+    def block(a, b):  # row gathers through np.take: several times faster than fancy indexing
+        t = triangles[a:b]
+        c0 = np.take(per_vertex, t[:, 0], axis=0)
+        out[a:b, :d] = c0
+        np.subtract(np.take(per_vertex, t[:, 1], axis=0), c0, out=out[a:b, d : 2 * d], casting="same_kind")
+        np.subtract(np.take(per_vertex, t[:, 2], axis=0), c0, out=out[a:b, 2 * d :], casting="same_kind")
+
+    for_blocks(triangles.shape[0], block)
     return out
 
 
@@ -269,9 +275,15 @@ def _pack_positions(geometry: Geometry, rows: np.ndarray) -> np.ndarray:
 
 def _face_normals(positions: np.ndarray) -> np.ndarray:
     """(m, 3) float32 unit winding normals of packed positions (0 for degenerate triangles)."""
-    fn = np.cross(positions[:, 3:6], positions[:, 6:9])
-    length = np.linalg.norm(fn, axis=1, keepdims=True)
-    return np.divide(fn, length, out=np.zeros_like(fn), where=length > 0)
+    out = np.zeros((positions.shape[0], 3), np.float32)
+
+    def block(a, b):
+        fn = np.cross(positions[a:b, 3:6], positions[a:b, 6:9])
+        length = np.linalg.norm(fn, axis=1, keepdims=True)
+        np.divide(fn, length, out=out[a:b], where=length > 0)
+
+    for_blocks(positions.shape[0], block)
+    return out
 
 
 def _pack_uvs(geometry: Geometry, rows: np.ndarray) -> np.ndarray:

@@ -13,6 +13,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from .blocks import for_blocks
 from .errors import EmptySceneError, InvalidGeometryError
 from .specular import GlossySurface, SpecularLayer, hemispherical_diffuse_weight, hemispherical_glossy_albedo
 
@@ -521,26 +522,7 @@ def sanitized(geometry: Geometry, n_materials: int, n_objects: int, owned: bool 
     if obj.size and (obj.min() < 0 or obj.max() >= max(n_objects, 1)):
         raise InvalidGeometryError("object_index out of range of the objects")
 
-    # Per vertex first (a corner-split mesh has ~3 corners per triangle anyway), and the area in
-    # float64 component by component: np.cross and norm over (T, 3, 3) cost ~3x more.
-    finite = np.ones(tris.shape[0], bool)
-    if not np.isfinite(pos).all():  # the whole-array test first: the per-row reduction is slow
-        finite = np.isfinite(pos).all(axis=1)[tris].all(axis=1)
-    with np.errstate(invalid="ignore", over="ignore"):
-        cols = [pos[:, k].astype(np.float64) for k in range(3)]
-        c0 = [col[tris[:, 0]] for col in cols]
-        e1 = [col[tris[:, 1]] - a for col, a in zip(cols, c0, strict=True)]
-        e2 = [col[tris[:, 2]] - a for col, a in zip(cols, c0, strict=True)]
-        area2 = np.sqrt((e1[1] * e2[2] - e1[2] * e2[1]) ** 2 + (e1[2] * e2[0] - e1[0] * e2[2]) ** 2
-                        + (e1[0] * e2[1] - e1[1] * e2[0]) ** 2)
-    # Relative to the object's own size, not the distance from the origin.
-    size2 = np.zeros(tris.shape[0])
-    if finite.any():
-        probe = Geometry(pos, tris, normals, uvs, mat, obj)
-        ids, blo, bhi = object_boxes(probe, finite)
-        diag2 = np.zeros(max(n_objects, int(obj.max(initial=0)) + 1))
-        diag2[ids] = np.sum((bhi.astype(np.float64) - blo) ** 2, axis=1)
-        size2 = diag2[obj]
+    finite, area2, size2 = _triangle_sizes(pos, tris, obj, n_objects)
     keep = finite & (area2 > 0.0) & (area2 > ZERO_AREA_RELATIVE * size2)
     dropped = int((~keep).sum())
     if dropped:
@@ -551,17 +533,90 @@ def sanitized(geometry: Geometry, n_materials: int, n_objects: int, owned: bool 
     out = Geometry(pos, tris, normals, uvs, mat, obj, tangents, normal_uvs)
     if not (owned and dropped == 0):
         out = out.subset(keep)
-    norm = np.sqrt(np.add.reduce(out.normals * out.normals, axis=1))  # np.linalg.norm's sums
-    fix = ~((norm >= 1e-6) & np.isfinite(norm))
-    if fix.any() and out.triangle_count:
-        fn = out.face_normals()
-        # A vertex shared by several triangles takes the last face normal: good enough for a fallback.
-        vert_fn = np.zeros_like(out.normals)
-        vert_fn[out.triangles.ravel()] = np.repeat(fn, 3, axis=0)
-        out.normals[fix] = vert_fn[fix]
-        norm = np.linalg.norm(out.normals, axis=1)
-    out.normals = (out.normals / np.maximum(norm, 1e-12)[:, None]).astype(np.float32)
+    out.normals = _unit_normals(out)
     return out
+
+
+def _triangle_sizes(pos: np.ndarray, tris: np.ndarray, obj: np.ndarray, n_objects: int):
+    """((T,) bool finite, (T,) float64 twice the area, (T,) float64 squared diagonal of the
+    triangle's object's box over its finite triangles) of the triangles `tris` of (V, 3) float32
+    positions `pos`, objects `obj` (T,).
+
+    The area in float64 component by component (np.cross and norm over (T, 3, 3) cost ~3x more),
+    from float32 corners: a float32 difference would round a tiny triangle far from the origin to
+    zero area. In blocks over threads (`blocks.for_blocks`), each block's per-object boxes folded
+    together afterwards: the same bits as the whole-array expressions."""
+    n_tri = tris.shape[0]
+    vert_finite = None if np.isfinite(pos).all() else np.isfinite(pos).all(axis=1)
+    finite = np.ones(n_tri, bool)
+    area2 = np.empty(n_tri, np.float64)
+
+    def block(a, b):
+        t = tris[a:b]
+        c0, c1, c2 = (np.take(pos, t[:, k], axis=0) for k in range(3))
+        d0 = c0.astype(np.float64)
+        with np.errstate(invalid="ignore", over="ignore"):
+            e1, e2 = c1 - d0, c2 - d0
+            area2[a:b] = np.sqrt((e1[:, 1] * e2[:, 2] - e1[:, 2] * e2[:, 1]) ** 2
+                                 + (e1[:, 2] * e2[:, 0] - e1[:, 0] * e2[:, 2]) ** 2
+                                 + (e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]) ** 2)
+        ob = obj[a:b]
+        if vert_finite is not None:
+            finite[a:b] = vert_finite[t].all(axis=1)
+            keep = np.flatnonzero(finite[a:b])
+            c0, c1, c2, ob = c0[keep], c1[keep], c2[keep], ob[keep]
+        if ob.size == 0:
+            return None
+        lo = np.minimum(np.minimum(c0, c1), c2)
+        hi = np.maximum(np.maximum(c0, c1), c2)
+        if ob.size > 1 and not (ob[1:] >= ob[:-1]).all():  # objects interleaved: sort them into runs
+            order = np.argsort(ob, kind="stable")
+            ob, lo, hi = ob[order], lo[order], hi[order]
+        starts = np.concatenate(([0], np.flatnonzero(ob[1:] != ob[:-1]) + 1))
+        return ob[starts], np.minimum.reduceat(lo, starts, axis=0), np.maximum.reduceat(hi, starts, axis=0)
+
+    boxes = [r for r in for_blocks(n_tri, block) if r is not None]
+    n_ids = max(n_objects, int(obj.max(initial=0)) + 1)
+    diag2 = np.zeros(n_ids)
+    if boxes:
+        ids = np.concatenate([r[0] for r in boxes])
+        blo = np.full((n_ids, 3), np.inf, np.float32)
+        bhi = np.full((n_ids, 3), -np.inf, np.float32)
+        np.minimum.at(blo, ids, np.concatenate([r[1] for r in boxes]))
+        np.maximum.at(bhi, ids, np.concatenate([r[2] for r in boxes]))
+        seen = np.unique(ids)
+        diag2[seen] = np.sum((bhi[seen].astype(np.float64) - blo[seen]) ** 2, axis=1)
+    return finite, area2, diag2[obj]
+
+
+def _unit_normals(geometry: Geometry) -> np.ndarray:
+    """(V, 3) float32 unit normals of `geometry`: its normals normalized, in blocks over threads;
+    those missing or non-finite take the face normal (a vertex shared by several triangles takes
+    the last one: good enough for a fallback)."""
+    normals = geometry.normals
+    out = np.empty(normals.shape, np.float32)
+    broken = []
+
+    def block(a, b):
+        n = normals[a:b]
+        norm = np.sqrt(np.add.reduce(n * n, axis=1))  # np.linalg.norm's sums
+        fix = ~((norm >= 1e-6) & np.isfinite(norm))
+        if fix.any():
+            broken.append((a, b))
+        with np.errstate(invalid="ignore"):  # inf / inf where a normal is broken: redone below
+            out[a:b] = n / np.maximum(norm, 1e-12)[:, None]
+
+    for_blocks(normals.shape[0], block)
+    if not broken or not geometry.triangle_count:
+        return out
+    norm = np.sqrt(np.add.reduce(normals * normals, axis=1))
+    fix = ~((norm >= 1e-6) & np.isfinite(norm))
+    fn = geometry.face_normals()
+    vert_fn = np.zeros_like(normals)
+    vert_fn[geometry.triangles.ravel()] = np.repeat(fn, 3, axis=0)
+    normals[fix] = vert_fn[fix]
+    norm = np.linalg.norm(normals, axis=1)
+    return (normals / np.maximum(norm, 1e-12)[:, None]).astype(np.float32)
 
 
 def _sanitized_tangents(tangents, n_vert: int) -> np.ndarray | None:

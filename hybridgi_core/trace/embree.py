@@ -358,11 +358,13 @@ class EmbreeTracer:
         vertex_ids = np.flatnonzero(used)
         inverse = (np.cumsum(used) - 1)[corners]
         vertices = np.ascontiguousarray(geometry.positions[vertex_ids], np.float32)
-        if weld:
+        if weld and not embree_upload.available(rtcs.EmbreeScene, self._device):
             # Snapshots repeat a vertex per corner (normals and UVs are per corner), and embreex
             # copies vertices element by element through Python indexing (~1 us per vertex):
             # welding the atrium's 959k corners to 166k vertices halves its build. Embree sees the
-            # same triangles, so every hit is bit for bit the same.
+            # same triangles, so every hit is bit for bit the same. The C API upload copies them
+            # in one memmove: there the weld's sort cost more than it saved (a 2M-triangle mesh's
+            # 6M corners: ~0.7 s).
             first, merged = weld_positions(vertices)
             vertex_ids, vertices, inverse = vertex_ids[first], np.ascontiguousarray(vertices[first]), merged[inverse]
         local = inverse.reshape(-1, 3).astype(np.int32)

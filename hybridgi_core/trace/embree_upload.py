@@ -117,6 +117,12 @@ def _setup(scene_type, device):
     return result
 
 
+def available(scene_type, device) -> bool:
+    """Whether `upload` can attach meshes to scenes of `scene_type` made with `device` (the C
+    API path was found), so vertex copies cost a memmove, not a Python call per vertex."""
+    return _setup(scene_type, device) is not None
+
+
 def upload(scene, device, vertices: np.ndarray, triangles: np.ndarray) -> bool:
     """Attach one triangle mesh (vertices (m, 3) float, triangles (k, 3) indices < m) to the
     uncommitted embreex `scene` made with `device`; False (scene untouched) when the C API path is
