@@ -125,11 +125,18 @@ class SurfaceTable:
         self.emissive = bool(self.emission.any()) or bool(self.glowing)
         # A zero row last, for the -1 of missed rays.
         records = np.zeros((self._normals.shape[0] + 1, RECORD_FLOATS), np.float32)
-        records[:-1, _NG] = _face_normals(self._positions)
-        if len(materials):
-            mat = np.clip(self.material_index, 0, len(materials) - 1)
-            records[:-1, _BRDF] = (self.albedo[mat] + self.glossy[mat]) * _INV_PI
-            records[:-1, _EMIT] = self.emission[mat]
+        brdf = (self.albedo + self.glossy) * _INV_PI
+        last = len(materials) - 1
+        positions, material_index = self._positions, self.material_index
+
+        def block(a, b):  # rows a..b of the records, face normal, brdf and emission
+            _face_normals_into(positions[a:b], records[a:b, _NG])
+            if last >= 0:
+                mat = np.clip(material_index[a:b], 0, last)
+                records[a:b, _BRDF] = np.take(brdf, mat, axis=0)
+                records[a:b, _EMIT] = np.take(self.emission, mat, axis=0)
+
+        for_blocks(positions.shape[0], block)
         self.records = records
         self._set_emitters()
 
@@ -276,14 +283,16 @@ def _pack_positions(geometry: Geometry, rows: np.ndarray) -> np.ndarray:
 def _face_normals(positions: np.ndarray) -> np.ndarray:
     """(m, 3) float32 unit winding normals of packed positions (0 for degenerate triangles)."""
     out = np.zeros((positions.shape[0], 3), np.float32)
-
-    def block(a, b):
-        fn = np.cross(positions[a:b, 3:6], positions[a:b, 6:9])
-        length = np.linalg.norm(fn, axis=1, keepdims=True)
-        np.divide(fn, length, out=out[a:b], where=length > 0)
-
-    for_blocks(positions.shape[0], block)
+    for_blocks(positions.shape[0], lambda a, b: _face_normals_into(positions[a:b], out[a:b]))
     return out
+
+
+def _face_normals_into(positions: np.ndarray, out: np.ndarray) -> None:
+    """`_face_normals` of packed positions (m, 9) written into out (m, 3), which holds zeros
+    (left there for degenerate triangles)."""
+    fn = np.cross(positions[:, 3:6], positions[:, 6:9])
+    length = np.linalg.norm(fn, axis=1, keepdims=True)
+    np.divide(fn, length, out=out, where=length > 0)
 
 
 def _pack_uvs(geometry: Geometry, rows: np.ndarray) -> np.ndarray:

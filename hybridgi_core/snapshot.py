@@ -432,25 +432,52 @@ class SceneSnapshot:
 
 
 def object_boxes(geometry: Geometry, tri_mask: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Bounding boxes of each object's triangles in one pass over the triangles.
+    """Bounding boxes of each object's triangles in one pass over the triangles (in blocks over
+    threads, `blocks.for_blocks`).
 
     tri_mask : optional (T,) bool, triangles to count (others are ignored).
     Returns ids (m,) int32 of the objects that have triangles, lo (m, 3) and hi (m, 3) float32.
     """
-    tris, obj = geometry.triangles, geometry.object_index
-    if tri_mask is not None:
-        tris, obj = tris[tri_mask], obj[tri_mask]
-    if tris.shape[0] == 0:
+    tris, obj, pos = geometry.triangles, geometry.object_index, geometry.positions
+
+    def block(a, b):
+        t, ob = tris[a:b], obj[a:b]
+        if tri_mask is not None:
+            sel = np.flatnonzero(tri_mask[a:b])
+            t, ob = t[sel], ob[sel]
+        return _run_boxes(ob, *(np.take(pos, t[:, k], axis=0) for k in range(3)))
+
+    return _fold_boxes(for_blocks(tris.shape[0], block), int(obj.max(initial=0)) + 1)
+
+
+def _run_boxes(ob: np.ndarray, c0: np.ndarray, c1: np.ndarray, c2: np.ndarray):
+    """(ids, lo, hi) of one block's triangles (corners c0, c1, c2 (m, 3) float32, objects ob
+    (m,)) per object, or None for an empty block."""
+    if ob.size == 0:
+        return None
+    lo = np.minimum(np.minimum(c0, c1), c2)
+    hi = np.maximum(np.maximum(c0, c1), c2)
+    if ob.size > 1 and not (ob[1:] >= ob[:-1]).all():  # objects interleaved: sort them into runs
+        order = np.argsort(ob, kind="stable")
+        ob, lo, hi = ob[order], lo[order], hi[order]
+    starts = np.concatenate(([0], np.flatnonzero(ob[1:] != ob[:-1]) + 1))
+    return ob[starts], np.minimum.reduceat(lo, starts, axis=0), np.maximum.reduceat(hi, starts, axis=0)
+
+
+def _fold_boxes(parts: list, n_ids: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """`object_boxes`' (ids ascending, lo, hi) of the blocks' `_run_boxes` (None: empty) over
+    object ids below n_ids: each object's box is the union of its boxes in every block."""
+    parts = [p for p in parts if p is not None]
+    if not parts:
         empty = np.zeros((0, 3), np.float32)
         return np.zeros(0, np.int32), empty, empty
-    corners = [geometry.positions[tris[:, c]] for c in range(3)]
-    tlo = np.minimum(np.minimum(corners[0], corners[1]), corners[2])
-    thi = np.maximum(np.maximum(corners[0], corners[1]), corners[2])
-    order = np.argsort(obj, kind="stable")
-    ids, starts = np.unique(obj[order], return_index=True)
-    lo = np.minimum.reduceat(tlo[order], starts, axis=0)
-    hi = np.maximum.reduceat(thi[order], starts, axis=0)
-    return ids.astype(np.int32), lo.astype(np.float32), hi.astype(np.float32)
+    ids = np.concatenate([p[0] for p in parts])
+    lo = np.full((n_ids, 3), np.inf, np.float32)
+    hi = np.full((n_ids, 3), -np.inf, np.float32)
+    np.minimum.at(lo, ids, np.concatenate([p[1] for p in parts]))
+    np.maximum.at(hi, ids, np.concatenate([p[2] for p in parts]))
+    seen = np.unique(ids)
+    return seen.astype(np.int32), lo[seen], hi[seen]
 
 
 def fit_texture(texture: np.ndarray, max_size: int = MAX_TEXTURE_SIZE, what: str = "texture") -> np.ndarray:
@@ -565,27 +592,12 @@ def _triangle_sizes(pos: np.ndarray, tris: np.ndarray, obj: np.ndarray, n_object
             finite[a:b] = vert_finite[t].all(axis=1)
             keep = np.flatnonzero(finite[a:b])
             c0, c1, c2, ob = c0[keep], c1[keep], c2[keep], ob[keep]
-        if ob.size == 0:
-            return None
-        lo = np.minimum(np.minimum(c0, c1), c2)
-        hi = np.maximum(np.maximum(c0, c1), c2)
-        if ob.size > 1 and not (ob[1:] >= ob[:-1]).all():  # objects interleaved: sort them into runs
-            order = np.argsort(ob, kind="stable")
-            ob, lo, hi = ob[order], lo[order], hi[order]
-        starts = np.concatenate(([0], np.flatnonzero(ob[1:] != ob[:-1]) + 1))
-        return ob[starts], np.minimum.reduceat(lo, starts, axis=0), np.maximum.reduceat(hi, starts, axis=0)
+        return _run_boxes(ob, c0, c1, c2)
 
-    boxes = [r for r in for_blocks(n_tri, block) if r is not None]
     n_ids = max(n_objects, int(obj.max(initial=0)) + 1)
+    ids, blo, bhi = _fold_boxes(for_blocks(n_tri, block), n_ids)
     diag2 = np.zeros(n_ids)
-    if boxes:
-        ids = np.concatenate([r[0] for r in boxes])
-        blo = np.full((n_ids, 3), np.inf, np.float32)
-        bhi = np.full((n_ids, 3), -np.inf, np.float32)
-        np.minimum.at(blo, ids, np.concatenate([r[1] for r in boxes]))
-        np.maximum.at(bhi, ids, np.concatenate([r[2] for r in boxes]))
-        seen = np.unique(ids)
-        diag2[seen] = np.sum((bhi[seen].astype(np.float64) - blo[seen]) ** 2, axis=1)
+    diag2[ids] = np.sum((bhi.astype(np.float64) - blo) ** 2, axis=1)
     return finite, area2, diag2[obj]
 
 

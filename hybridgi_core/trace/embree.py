@@ -351,13 +351,19 @@ class EmbreeTracer:
         that meet now may part later)."""
         if ids.size == 0:
             return None
-        corners = geometry.triangles[ids].ravel()
+        whole = ids.size == geometry.triangle_count  # ids ascending and unique: every triangle
+        corners = geometry.triangles.ravel() if whole else geometry.triangles[ids].ravel()
         # np.unique(corners, return_inverse=True) without its sort: a mask over the vertices.
         used = np.zeros(geometry.positions.shape[0], bool)
         used[corners] = True
-        vertex_ids = np.flatnonzero(used)
-        inverse = (np.cumsum(used) - 1)[corners]
-        vertices = np.ascontiguousarray(geometry.positions[vertex_ids], np.float32)
+        if used.all():  # a snapshot's corner-split vertices: all used, none to compact
+            vertex_ids = np.arange(used.size)
+            inverse = corners
+            vertices = np.ascontiguousarray(geometry.positions, np.float32)
+        else:
+            vertex_ids = np.flatnonzero(used)
+            inverse = (np.cumsum(used) - 1)[corners]
+            vertices = np.ascontiguousarray(geometry.positions[vertex_ids], np.float32)
         if weld and not embree_upload.available(rtcs.EmbreeScene, self._device):
             # Snapshots repeat a vertex per corner (normals and UVs are per corner), and embreex
             # copies vertices element by element through Python indexing (~1 us per vertex):
@@ -388,7 +394,8 @@ class EmbreeTracer:
     def _bounds(sub: _SubScene | None) -> tuple[np.ndarray, np.ndarray] | None:
         if sub is None:
             return None
-        finite = sub.vertices[np.isfinite(sub.vertices).all(axis=1)]
+        v = sub.vertices
+        finite = v if np.isfinite(v).all() else v[np.isfinite(v).all(axis=1)]  # no copy when all are
         if finite.size == 0:
             return None
         return finite.min(axis=0).astype(np.float64), finite.max(axis=0).astype(np.float64)
