@@ -200,6 +200,10 @@ class Material:
     #: shadow rays pass through it (a Mix Shader whose factor is Light Path > Is Shadow Ray with a
     #: Transparent BSDF on that side: glass that lets the lamps through); other rays see the surface
     shadow_transparent: bool = False
+    #: most of the light passes straight through it (a Transparent BSDF, glass, a Principled BSDF's
+    #: transmission, a constant alpha under ALPHA_CUTOFF): rendered as clear thin glass, a hole
+    #: for the camera and for every ray (`cutout.py`), with no refraction and no reflection
+    clear: bool = False
 
     def __post_init__(self) -> None:
         # Non-finite colours would reach every pixel that sees (or bounces off) this material.

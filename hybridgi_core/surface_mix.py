@@ -36,7 +36,9 @@ class SurfacePart:
     `snapshot.NormalMap` on its Normal input, or None; emission_texture : (h, w, 3) emitted
     radiance per texel (then `emission` is its mean), or None; metallic_map : (h, w) a lone
     Principled BSDF's Metallic per texel of `texture`'s UVs (`snapshot.Material.metallic_map`),
-    dropped once the part is mixed (its mean stays in the lobes).
+    dropped once the part is mixed (its mean stays in the lobes); clear : the share of the light
+    that passes straight through (a Transparent BSDF's 1, glass's, a Principled BSDF's
+    transmission), mixed by the cosine-weighted mean of each part's weight.
     """
 
     base: np.ndarray = field(default_factory=lambda: np.zeros(3, np.float32))
@@ -49,6 +51,7 @@ class SurfacePart:
     normal: object | None = None
     emission_texture: np.ndarray | None = None
     metallic_map: np.ndarray | None = None
+    clear: float = 0.0
 
     def diffuse_table(self) -> np.ndarray:
         """(V,) the diffuse weight over `specular.view_grid`."""
@@ -142,6 +145,7 @@ def mix(parts: list[SurfacePart], weights: list[np.ndarray], name: str = "") -> 
     else:
         diffuse = np.ones(sp.VIEW_SAMPLES)
     emission = sum(float(_cosine_mean(w)) * part.emission for part, w in zip(parts, weights, strict=True))
+    clear = sum(float(_cosine_mean(w)) * part.clear for part, w in zip(parts, weights, strict=True))
     glow = _mixed_emission_texture(parts, weights, notes)
     alpha = next((part.alpha for part in parts if part.alpha is not None), None)
     # One shading normal per material: the normal map of the part weighing most (Cycles bends
@@ -153,7 +157,7 @@ def mix(parts: list[SurfacePart], weights: list[np.ndarray], name: str = "") -> 
         notes.append("closures with different normal inputs mixed (one normal map kept for all)")
     part = SurfacePart(base=np.asarray(base, np.float32), texture=texture, emission=np.asarray(emission, np.float32),
                        alpha=alpha, diffuse=None if np.allclose(diffuse, 1.0) else diffuse, lobes=lobes, normal=normal,
-                       emission_texture=glow)
+                       emission_texture=glow, clear=float(np.clip(clear, 0.0, 1.0)))
     return part, notes
 
 

@@ -80,8 +80,10 @@ SCENE = textwrap.dedent("""
         floor = single("floor", lambda t: node(t, "ShaderNodeBsdfMetallic", Roughness=0.5,
                                                _fresnel_type="PHYSICAL_CONDUCTOR"))
     elif kind == "principled_glass":
+        # 40% transmission: under the clear threshold (`snapshot.Material.clear`), so the glass
+        # closure's reflection is rendered over the diffuse base.
         ball = single("ball", lambda t: node(t, "ShaderNodeBsdfPrincipled", Roughness=0.3,
-                                              **{"Transmission Weight": 1.0}))
+                                              **{"Transmission Weight": 0.4}))
         floor = single("floor", lambda t: diffuse(t, (0.6, 0.5, 0.4)))
     elif kind == "tinted_metal":
         ball = single("ball", lambda t: node(t, "ShaderNodeBsdfPrincipled", Metallic=1.0, Roughness=0.35,

@@ -235,9 +235,59 @@ def test_principled_weights_mixes_and_constant_nodes(bpy_module, scene, sync, ca
     by_name = {m.name: m for m in snapshot(sync, bpy).materials}
     np.testing.assert_allclose(by_name["half_metal"].base_color, [0.2, 0.1, 0.05], rtol=1e-5)
     np.testing.assert_allclose(by_name["glassy"].base_color, 0.0, atol=1e-7)
+    assert by_name["glassy"].clear and not by_name["half_metal"].clear
     np.testing.assert_allclose(by_name["coated"].base_color, [0.5, 0.25, 0.25], rtol=1e-5)
     np.testing.assert_allclose(by_name["panel"].emission, [1.0, 0.2, 1.1], rtol=1e-5)
     np.testing.assert_allclose(by_name["mixed"].base_color, [1.0, 0.25, 0.25], rtol=1e-5)
+
+
+def test_what_lets_most_light_through_is_clear_glass(bpy_module, scene, sync, caplog):
+    """A surface most of whose light passes (Glass, Transparent and Refraction BSDFs, a Principled
+    BSDF's transmission, a constant alpha, mixes of them: their mix weights' share) is clear
+    (`Material.clear`); under one half it stays an opaque surface, its passing light noted."""
+    bpy = bpy_module
+
+    def lone(name, kind):
+        mat = blender_compat.new_material(bpy, name)
+        tree = mat.node_tree
+        tree.nodes.remove(tree.nodes["Principled BSDF"])
+        tree.links.new(tree.nodes.new(kind).outputs[0], tree.nodes["Material Output"].inputs["Surface"])
+        return mat
+
+    def mixed(name, fac):
+        mat = blender_compat.new_material(bpy, name)
+        tree = mat.node_tree
+        mix = tree.nodes.new("ShaderNodeMixShader")
+        mix.inputs["Fac"].default_value = fac
+        tree.links.new(tree.nodes["Principled BSDF"].outputs[0], mix.inputs[1])
+        tree.links.new(tree.nodes.new("ShaderNodeBsdfTransparent").outputs[0], mix.inputs[2])
+        tree.links.new(mix.outputs[0], tree.nodes["Material Output"].inputs["Surface"])
+        return mat
+
+    see_through, half_seen = principled(bpy, "alpha 0.2"), principled(bpy, "alpha 0.7")
+    see_through[1].inputs["Alpha"].default_value = 0.2
+    half_seen[1].inputs["Alpha"].default_value = 0.7
+    mats = [lone("glass", "ShaderNodeBsdfGlass"), lone("transparent", "ShaderNodeBsdfTransparent"),
+            lone("refraction", "ShaderNodeBsdfRefraction"), see_through[0], half_seen[0],
+            mixed("mostly clear", 0.8), mixed("mostly solid", 0.3)]
+    cube = add_cube(bpy, scene)
+    for mat in mats:
+        cube.data.materials.append(mat)
+    for i, poly in enumerate(cube.data.polygons):
+        poly.material_index = i
+    with caplog.at_level(logging.WARNING):
+        by_name = {m.name: m for m in snapshot(sync, bpy).materials}
+    bpy.data.objects.remove(cube)
+    for mat in mats:  # material names are global: later tests make their own "glass"
+        bpy.data.materials.remove(mat)
+    clear = {name for name, m in by_name.items() if m.clear}
+    assert clear == {"glass", "transparent", "refraction", "alpha 0.2", "mostly clear"}
+    # The solid ones keep their surface: under a 0.3 mix, 70% of the Principled BSDF's diffuse
+    # colour (0.8 under its specular layer's view-dependent weight).
+    assert np.all((by_name["mostly solid"].base_color > 0.4) & (by_name["mostly solid"].base_color < 0.7 * 0.8))
+    notes = " ".join(r.getMessage() for r in caplog.records if "approximated" in r.getMessage())
+    assert "'glass'" in notes and "clear thin glass" in notes
+    assert "'mostly solid'" in notes and "lets 30% of its light through (rendered opaque)" in notes
 
 
 def add_light(bpy, scene, kind, **settings):

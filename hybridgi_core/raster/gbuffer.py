@@ -297,6 +297,8 @@ class GBufferPass(RasterPass):
         self._draws = []
         self._weight_texture = upload_texture_2d(weight_table(snapshot.materials), "RGBA16F")
         for m, material in enumerate(snapshot.materials):
+            if getattr(material, "clear", False):
+                continue  # clear glass (`Material.clear`): the camera sees what lies behind it
             mine = (mat_index == m) & drawn
             if getattr(material, "holdout", False):
                 parts = ((None, TEXTURE_HOLDOUT, tris[mine]),)
