@@ -1313,14 +1313,147 @@ def _surface_input(tree):
     return None if output is None else output.inputs.get("Surface")
 
 
+#: Node groups a shader tree is read through, nested at most this deep (Cycles flattens any depth).
+GROUP_DEPTH = 8
+
+
+class _Inputs:
+    """A node's inputs seen through the node groups it sits in (`_GroupNode`)."""
+
+    def __init__(self, raw, groups):
+        self._raw, self._groups = raw, groups
+
+    def _wrap(self, socket):
+        return None if socket is None else _GroupSocket(socket, self._groups)
+
+    def __getitem__(self, key):
+        item = self._raw[key]
+        return [self._wrap(s) for s in item] if isinstance(key, slice) else self._wrap(item)
+
+    def get(self, key, default=None):
+        socket = self._raw.get(key)
+        return default if socket is None else self._wrap(socket)
+
+    def __iter__(self):
+        return (self._wrap(s) for s in self._raw)
+
+    def __len__(self):
+        return len(self._raw)
+
+
+class _GroupNode:
+    """A shader node as the material reader sees it: its inputs resolve through the node groups
+    around it (`_GroupSocket`), its name carries the group nodes' (no clash with the material's
+    own nodes, whose names key the bakes); every other attribute is the node's own."""
+
+    def __init__(self, node, groups=()):
+        self._node, self._groups = node, tuple(groups)
+
+    def __getattr__(self, name):
+        return getattr(self._node, name)
+
+    @property
+    def inputs(self):
+        return _Inputs(self._node.inputs, self._groups)
+
+    @property
+    def name(self):
+        return "/".join([g.name for g in self._groups] + [self._node.name])
+
+    @property
+    def grouped(self) -> bool:
+        """Whether the node sits inside a node group (Blender cannot bake its inputs in place)."""
+        return bool(self._groups)
+
+
+class _GroupSocket:
+    """An input socket of the flattened tree Cycles compiles: one linked from a node group's Group
+    Input node is the group node's own input, in the tree around the group (linked there, or its
+    value); `_source` descends into the groups it meets. `groups`: the group nodes the socket sits
+    in, outermost first."""
+
+    def __init__(self, socket, groups=()):
+        self._socket, self._groups = socket, tuple(groups)
+
+    def __getattr__(self, name):
+        return getattr(self._socket, name)
+
+    def _outer(self):
+        """The group node's input this socket reads through a Group Input node, or None."""
+        socket = self._socket
+        if self._groups and socket.is_linked:
+            link = socket.links[0]
+            if not link.is_muted and link.from_node.type == "GROUP_INPUT":
+                outer = self._groups[-1].inputs.get(link.from_socket.identifier)
+                if outer is None:  # matched by name where identifiers differ (older files)
+                    outer = next((i for i in self._groups[-1].inputs if i.name == link.from_socket.name), None)
+                return None if outer is None else _GroupSocket(outer, self._groups[:-1])
+        return None
+
+    @property
+    def is_linked(self):
+        outer = self._outer()
+        return self._socket.is_linked if outer is None else outer.is_linked
+
+    @property
+    def default_value(self):
+        outer = self._outer()
+        return self._socket.default_value if outer is None else outer.default_value
+
+    @property
+    def links(self):
+        outer = self._outer()
+        return outer.links if outer is not None else [_GroupLink(link, self._groups) for link in self._socket.links]
+
+    @property
+    def node(self):
+        return _GroupNode(self._socket.node, self._groups)
+
+
+class _GroupLink:
+    """A link of the flattened tree (`_GroupSocket.links`)."""
+
+    def __init__(self, link, groups):
+        self._link, self._groups = link, groups
+
+    def __getattr__(self, name):
+        return getattr(self._link, name)
+
+    @property
+    def from_node(self):
+        return _GroupNode(self._link.from_node, self._groups)
+
+
+def _group_output(group_node, identifier):
+    """The socket inside node group `group_node` that its output `identifier` gives (its active
+    Group Output node's input), or None."""
+    tree = getattr(group_node, "node_tree", None)
+    if tree is None:
+        return None
+    outputs = [n for n in tree.nodes if n.type == "GROUP_OUTPUT"]
+    out = next((n for n in outputs if getattr(n, "is_active_output", False)), outputs[0] if outputs else None)
+    return None if out is None else out.inputs.get(identifier)
+
+
 def _source(socket):
-    """(node, output socket identifier) feeding `socket` through reroutes; (None, None) when the
-    socket is unlinked or the link or node is muted (Cycles then uses the socket's own value)."""
+    """(node, output socket identifier) feeding `socket` through reroutes and node groups (a group
+    node's output continues at its Group Output node inside, a Group Input's at the group node's
+    input outside: the flattened tree Cycles compiles; nodes returned as `_GroupNode`); (None,
+    None) when the socket is unlinked or the link or node is muted (Cycles then uses the socket's
+    own value)."""
+    if socket is not None and not isinstance(socket, _GroupSocket):
+        socket = _GroupSocket(socket)
     while socket is not None and socket.is_linked:
         link = socket.links[0]
         if link.is_muted:
             return None, None
         node = link.from_node
+        if node.type == "GROUP" and not node.mute:
+            inner = _group_output(node, link.from_socket.identifier)
+            if inner is None or len(node._groups) >= GROUP_DEPTH:
+                return None, None
+            socket = _GroupSocket(inner, node._groups + (node._node,))
+            continue
         if node.type != "REROUTE":
             return (None, None) if node.mute else (node, link.from_socket.identifier)
         socket = node.inputs[0]
@@ -1396,6 +1529,8 @@ def bake_sockets(material) -> list[tuple[str, str]]:
         if node.type in ("MIX_SHADER", "ADD_SHADER"):
             stack += [_linked_node(s) for s in node.inputs if s.type == "SHADER"]
             continue
+        if getattr(node, "grouped", False):
+            continue  # inside a node group: the bake process edits the material's own tree only
         glow = EMISSION_INPUTS.get(node.type)
         if glow is not None and all(node.inputs.get(n) is not None for n in glow):
             colour, strength = (node.inputs[n] for n in glow)

@@ -290,6 +290,69 @@ def test_what_lets_most_light_through_is_clear_glass(bpy_module, scene, sync, ca
     assert "'mostly solid'" in notes and "lets 30% of its light through (rendered opaque)" in notes
 
 
+def test_shaders_inside_node_groups_are_read_as_cycles_flattens_them(bpy_module, scene, sync, caplog):
+    """A material whose surface comes out of a node group (as asset libraries ship them), nested
+    groups, and group inputs that are constants, linked outside (an image) or left at the group's
+    own value: read as the flattened tree Cycles compiles (they were grey 0.8, "not supported")."""
+    bpy = bpy_module
+    wrap = bpy.data.node_groups.new("Wrap", "ShaderNodeTree")
+    wrap.interface.new_socket("Tint", in_out="INPUT", socket_type="NodeSocketColor")
+    wrap.interface.new_socket("Shader", in_out="OUTPUT", socket_type="NodeSocketShader")
+    gin, gout = wrap.nodes.new("NodeGroupInput"), wrap.nodes.new("NodeGroupOutput")
+    bsdf = wrap.nodes.new("ShaderNodeBsdfPrincipled")
+    bsdf.inputs["Roughness"].default_value = 0.25
+    wrap.links.new(gin.outputs["Tint"], bsdf.inputs["Base Color"])
+    wrap.links.new(bsdf.outputs[0], gout.inputs["Shader"])
+    outer = bpy.data.node_groups.new("Outer", "ShaderNodeTree")
+    outer.interface.new_socket("Colour", in_out="INPUT", socket_type="NodeSocketColor")
+    outer.interface.new_socket("Shader", in_out="OUTPUT", socket_type="NodeSocketShader")
+    oin, oout = outer.nodes.new("NodeGroupInput"), outer.nodes.new("NodeGroupOutput")
+    inner = outer.nodes.new("ShaderNodeGroup")
+    inner.node_tree = wrap
+    outer.links.new(oin.outputs["Colour"], inner.inputs["Tint"])
+    outer.links.new(inner.outputs["Shader"], oout.inputs["Shader"])
+
+    def grouped(name, group, socket, colour=None):
+        mat = blender_compat.new_material(bpy, name)
+        tree = mat.node_tree
+        tree.nodes.remove(tree.nodes["Principled BSDF"])
+        node = tree.nodes.new("ShaderNodeGroup")
+        node.node_tree = group
+        if colour is not None:
+            node.inputs[socket].default_value = (*colour, 1.0)
+        tree.links.new(node.outputs["Shader"], tree.nodes["Material Output"].inputs["Surface"])
+        return mat, node
+
+    plain, _ = grouped("grouped", wrap, "Tint", (0.1, 0.6, 0.9))
+    nested, _ = grouped("nested", outer, "Colour", (0.7, 0.2, 0.1))
+    imaged, node = grouped("imaged", wrap, "Tint")
+    image = bpy.data.images.new("tint image", 2, 2)
+    image.pixels.foreach_set(np.tile(np.array([0.5, 0.25, 1.0, 1.0], np.float32), 4))
+    texture = imaged.node_tree.nodes.new("ShaderNodeTexImage")
+    texture.image = image
+    imaged.node_tree.links.new(texture.outputs["Color"], node.inputs["Tint"])
+    cube = add_cube(bpy, scene)
+    for mat in (plain, nested, imaged):
+        cube.data.materials.append(mat)
+    for i, poly in enumerate(cube.data.polygons):
+        poly.material_index = min(i, 2)
+    with caplog.at_level(logging.WARNING):
+        by_name = {m.name: m for m in snapshot(sync, bpy).materials}
+    bpy.data.objects.remove(cube)
+    for mat in (plain, nested, imaged):
+        bpy.data.materials.remove(mat)
+    assert not any("not supported" in r.getMessage() for r in caplog.records)
+    np.testing.assert_allclose(by_name["grouped"].base_color, [0.1, 0.6, 0.9], rtol=1e-5)
+    np.testing.assert_allclose(by_name["nested"].base_color, [0.7, 0.2, 0.1], rtol=1e-5)
+    for name in ("grouped", "nested", "imaged"):
+        assert by_name[name].specular.roughness == pytest.approx(0.25)
+    tex = by_name["imaged"].texture
+    assert tex is not None and tex.shape[:2] == (2, 2)
+    srgb = np.array([0.5, 0.25, 1.0])  # the image's sRGB values, read as scene-linear colour
+    linear = np.where(srgb <= 0.04045, srgb / 12.92, ((srgb + 0.055) / 1.055) ** 2.4)
+    np.testing.assert_allclose(tex.reshape(-1, 3).mean(axis=0), linear, atol=0.01)
+
+
 def add_light(bpy, scene, kind, **settings):
     data = bpy.data.lights.new(kind.lower(), kind)
     for key, value in settings.items():
