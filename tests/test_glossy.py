@@ -157,3 +157,46 @@ def test_a_metallic_texture_picks_each_pixels_lobes_by_its_texel():
     # The metal variant reflects the base colour at normal incidence; the dielectric one ~4%.
     colour = glossy.glossy_color(mats, np.array([2, 6]), np.array([1.0, 1.0]))
     assert colour[1].mean() > 0.7 > 0.1 > colour[0].mean()
+
+
+def test_many_lamps_are_drawn_per_pixel_and_their_glossy_light_stays_unbiased(monkeypatch):
+    """Over GLOSSY_LAMP_BUDGET lamps, each receiver samples GLOSSY_LAMP_BUDGET draws of them by
+    their rough light, weighted by one over their probability: the mean over frames is every
+    lamp's light (a floor under 24 point lamps of different powers), and far fewer lamp samples
+    are taken (each frame: the budget's draws per receiver, not the 24 lamps)."""
+    from hybridgi_core import system as system_module
+    from hybridgi_core.settings import CacheSettings
+    from hybridgi_core.snapshot import geometry_from_arrays, make_snapshot
+    from hybridgi_core.system import GISystem
+
+    rng = np.random.default_rng(4)
+    lamps = []
+    for i in range(24):
+        matrix = np.eye(4)
+        matrix[:3, 3] = (rng.uniform(-3, 3), rng.uniform(-3, 3), rng.uniform(0.5, 2.0))
+        lamps.append(Light(kind="POINT", color=np.ones(3, np.float32), power=float(5 + 10 * (i % 4)), matrix=matrix))
+    floor = geometry_from_arrays([[-5, -5, 0], [5, -5, 0], [5, 5, 0], [-5, 5, 0]], [[0, 1, 2], [0, 2, 3]])
+    snap = make_snapshot(floor, [Material(specular=sp.SpecularLayer(roughness=0.5))], lamps)
+    pts = np.column_stack([rng.uniform(-2, 2, 64), rng.uniform(-2, 2, 64), np.zeros(64)]).astype(np.float32)
+    up = np.tile([[0, 0, 1.0]], (64, 1)).astype(np.float32)
+    eye = np.tile([[0.0, -0.6, 0.8]], (64, 1)).astype(np.float32)
+    rows = np.zeros(64, np.int32)
+    calls = []
+    real = glossy.glossy_direct
+
+    def counted(lights, points, *args, **kwargs):
+        calls.append(len(lights) * np.asarray(points).reshape(-1, 3).shape[0])
+        return real(lights, points, *args, **kwargs)
+
+    with GISystem(snap, CacheSettings(resolution=4, rays_per_cell=16)) as gi:
+        monkeypatch.setattr(system_module, "glossy_direct", counted)
+        # 8 lamps a call (the budget): every lamp sampled at every receiver.
+        every = np.mean([sum(gi.glossy(pts, up, eye, rows, f, samples=16, lights=lamps[k:k + 8]) for k in (0, 8, 16))
+                         for f in range(8)], axis=0)
+        calls.clear()
+        picked = np.mean([gi.glossy(pts, up, eye, rows, f, samples=16) for f in range(64)], axis=0)
+    assert sum(calls) <= 64 * 64 * system_module.GLOSSY_LAMP_BUDGET
+    total = every.sum(axis=1)
+    assert total.min() > 0
+    np.testing.assert_allclose(picked.sum(axis=1).mean(), total.mean(), rtol=0.03)
+    np.testing.assert_allclose(picked.sum(axis=1), total, rtol=0.25)
