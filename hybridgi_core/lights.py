@@ -977,15 +977,9 @@ def _pick_lamps(lights: list[Light], pts: np.ndarray, nrm: np.ndarray, budget: i
     least 1 / budget is always drawn) from p_j, its rough light's share of the total (at least
     PICK_FLOOR of it spread over the lamps, so every lamp can be drawn); lamp j weighted by
     (draws of j) / (budget p_j), 0 where not drawn: the weighted sum is unbiased."""
-    return draw_weights(_with_floor(rough_lights(lights, pts, nrm)), budget, rng)
-
-
-def draw_weights(p: np.ndarray, budget: int, rng: np.random.Generator) -> np.ndarray:
-    """(n, L) float32 weights of `budget` systematic draws per row (one uniform per row, shifted by
-    1 / budget per draw) from p (n, L) > 0 normalized per row: (draws of j) / (budget p_j), 0
-    where not drawn. E[weight] = 1 for every entry: a weighted sum over the draws is unbiased."""
-    n, count = p.shape
-    p = p / p.sum(axis=1, keepdims=True)
+    n, count = pts.shape[0], len(lights)
+    p = _with_floor(rough_lights(lights, pts, nrm))
+    p /= p.sum(axis=1, keepdims=True)
     cdf = np.cumsum(p, axis=1)
     u = (rng.random((n, 1), dtype=_F32) + np.arange(budget, dtype=_F32)[None, :]) / _F32(budget)
     # Draw k takes the first lamp whose cdf reaches u_k.
@@ -994,8 +988,8 @@ def draw_weights(p: np.ndarray, budget: int, rng: np.random.Generator) -> np.nda
     rows = np.arange(n)
     for k in range(budget):  # each row once per draw: plain fancy += is exact
         draws[rows, chosen[:, k]] += _F32(1.0)
-    # Undrawn entries stay 0 (their p may be 0: a lamp the caller excluded).
-    return np.divide(draws, _F32(budget) * p, out=np.zeros_like(draws), where=draws > 0)
+    draws /= _F32(budget) * p
+    return draws
 
 
 def _roulette_lamps(lights: list[Light], pts: np.ndarray, nrm: np.ndarray, budget: int,

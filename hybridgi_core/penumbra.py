@@ -17,9 +17,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .lights import PICK_FLOOR, draw_weights
 from .pixel_gather import filter_at_pixels
-from .sampling import frame_rng
 
 #: Shadow rays per pixel and lamp of the first pass, which finds the penumbrae (>= the ratio
 #: estimator's minimum, so that wholly lit pixels are exact).
@@ -43,15 +41,6 @@ LAMP_SEED_STRIDE = 1 << 12
 WEAK_SHARE = 1.0 / 64.0
 #: Added to a weak lamp's frame number (after its own LAMP_SEED_STRIDE): a stream of its own.
 WEAK_SEED_OFFSET = 1 << 21
-#: With more lamps than this, the lamps weak at a pixel are not each given their one ray:
-#: WEAK_PICK_BUDGET draws among them by their rough light, each drawn lamp's ray weighted by one
-#: over its probability (`lights.draw_weights`: unbiased), as the glossy light and the probe
-#: hits draw theirs. Why: 120 point lamps, each under WEAK_SHARE, traced 120 rays per pixel
-#: (6.5 s of a 320x180 frame).
-WEAK_PICK_LAMPS = 8
-WEAK_PICK_BUDGET = 8
-#: Seed of the weak lamps' draws (a stream apart from the samples').
-WEAK_PICK_SEED = 0x5745414B
 
 
 def filter_camera(lights, eye) -> np.ndarray | None:
@@ -107,9 +96,8 @@ def adaptive_direct(direct, points: np.ndarray, normals: np.ndarray, pix: np.nda
         return (direct(points, normals, frame, samples=samples, **kwargs, **_smooth(smooth)),
                 np.ones(points.shape[0], bool))
     if lamps > 1:
-        weak = _weak_lamps(rough)
         return _per_lamp(direct, points, normals, pix, shape, frame, samples, first, camera, pool, lamps, smooth,
-                         per_lamp, weak, _weak_picks(rough, weak, frame) if lamps > WEAK_PICK_LAMPS else None)
+                         per_lamp, _weak_lamps(rough))
     partial = np.zeros(points.shape[0], bool)
     reuse = {"exact": np.full((points.shape[0], lamps), np.nan)} if lamps > 0 else {}
     light = direct(points, normals, frame, samples=first, partial=partial, **reuse, **_smooth(smooth))
@@ -156,32 +144,12 @@ def _weak_lamps(rough: np.ndarray | None) -> np.ndarray | None:
     return weak if weak.any() else None
 
 
-def _weak_picks(rough: np.ndarray | None, weak: np.ndarray | None, frame: int) -> np.ndarray | None:
-    """(n, lamps) float32 weights of WEAK_PICK_BUDGET draws per point among its weak lamps
-    (`weak`) by their rough light (0: not drawn; `lights.draw_weights`), or None without weak
-    lamps. A point's weak lamps' light is then the drawn lamps' rays times their weights."""
-    if weak is None:
-        return None
-    r = np.nan_to_num(np.asarray(rough, np.float32), nan=0.0, posinf=np.float32(1e30), neginf=0.0)
-    r = np.where(weak, np.maximum(r, 0.0), np.float32(0.0))
-    count = weak.sum(axis=1, keepdims=True).astype(np.float32)
-    # Every weak lamp may be drawn (a floor of PICK_FLOOR of the weak light), the strong never.
-    r += np.where(weak, np.float32(PICK_FLOOR) * r.sum(axis=1, keepdims=True) / np.maximum(count, 1.0)
-                  + np.float32(1e-30), np.float32(0.0))
-    picks = np.zeros(r.shape, np.float32)
-    rows = np.flatnonzero(count[:, 0] > 0)
-    if rows.size:
-        picks[rows] = draw_weights(r[rows], WEAK_PICK_BUDGET, frame_rng(WEAK_PICK_SEED, frame))
-    return picks
-
-
-def _first_pass(direct, points, normals, frame, first, group, weak, partial, exact, share, smooth=None, picks=None):
+def _first_pass(direct, points, normals, frame, first, group, weak, partial, exact, share, smooth=None):
     """The first pass of the lamps `group` at every point -> (n, 3), filling partial (n, g),
     exact (n, g) and share (n, g, 3): one call for the group, or, where some of them are weak at
     some points (`weak` (n, g) bool), per lamp: FIRST_SAMPLES rays where it is not (seeded
     frame + j x LAMP_SEED_STRIDE: a lamp strong everywhere draws what a one-lamp frame draws) and
-    one ray where it is (never a penumbra); with `picks` (n, g) (`_weak_picks`) only where that
-    lamp was drawn among the weak ones, its light times its weight."""
+    one ray where it is (never a penumbra)."""
     if weak is None or not weak.any():
         return direct(points, normals, frame + group[0] * LAMP_SEED_STRIDE, samples=first, partial=partial,
                       exact=exact, per_lamp=share, lights=group, **_smooth(smooth))
@@ -189,16 +157,13 @@ def _first_pass(direct, points, normals, frame, first, group, weak, partial, exa
     for k, j in enumerate(group):
         strong = ~weak[:, k]
         seed = frame + j * LAMP_SEED_STRIDE
-        faint = ~strong if picks is None else ~strong & (picks[:, k] > 0)
-        for rows, count in ((np.flatnonzero(strong), first), (np.flatnonzero(faint), 1)):
+        for rows, count in ((np.flatnonzero(strong), first), (np.flatnonzero(~strong), 1)):
             if rows.size == 0:
                 continue
             got = np.zeros((rows.size, 1), bool)
             known = exact[rows, k : k + 1]
             e = direct(points[rows], normals[rows], seed if count > 1 else seed + WEAK_SEED_OFFSET, samples=count,
                        partial=got, exact=known, lights=[j], **_smooth(smooth, rows))
-            if count == 1 and picks is not None:
-                e = e * picks[rows, k : k + 1]
             light[rows] += e
             share[rows, k] = e
             if count > 1:
@@ -208,7 +173,7 @@ def _first_pass(direct, points, normals, frame, first, group, weak, partial, exa
 
 
 def _per_lamp(direct, points, normals, pix, shape, frame, samples, first, camera, pool, lamps, smooth=None,
-              per_lamp=None, weak=None, picks=None):
+              per_lamp=None, weak=None):
     """`adaptive_direct` of several lamps, each lamp's penumbra on its own: a pixel re-samples
     only the lamps whose rays disagreed around it. Why: a room lit by several soft lamps (an
     area lamp and ceiling lamps with a radius) has some lamp's penumbra over most of the image,
@@ -227,8 +192,7 @@ def _per_lamp(direct, points, normals, pix, shape, frame, samples, first, camera
         exact = np.full((n, len(group)), np.nan)
         share = np.zeros((n, len(group), 3), np.float32)
         light += _first_pass(direct, points, normals, frame, first, group,
-                             None if weak is None else weak[:, g0 : g0 + len(group)], partial, exact, share, smooth,
-                             None if picks is None else picks[:, g0 : g0 + len(group)])
+                             None if weak is None else weak[:, g0 : g0 + len(group)], partial, exact, share, smooth)
         for k, j in enumerate(group):
             if not partial[:, k].any():
                 continue

@@ -248,39 +248,3 @@ def test_weak_lamps_trace_one_ray_and_the_strong_lamp_its_one_lamp_rays():
     assert errors[1] < 1.05 * errors[0] + 1e-4, errors
     alone, _ = adaptive_direct(_direct([strong], tracer), pts, nrm, pix, (H, W), frame=3, samples=32, lamps=1)
     np.testing.assert_array_equal(shares[:, 0], alone)
-
-
-def test_many_weak_lamps_are_drawn_not_each_traced(monkeypatch):
-    """Over WEAK_PICK_LAMPS lamps, the lamps weak at a pixel give WEAK_PICK_BUDGET drawn rays by
-    their rough light, weighted by one over their probability, instead of one ray each: 24 dim
-    point lamps around a strong area lamp over a floor, the mean over frames is the converged
-    light (unbiased), with far fewer rays per frame than one per weak lamp."""
-    from hybridgi_core import penumbra
-
-    rng = np.random.default_rng(2)
-    dim = [point_light((rng.uniform(-4, 4), rng.uniform(-4, 4), rng.uniform(0.5, 2.0)), radius=0.1, power=20.0)
-           for _ in range(24)]
-    lamps = [area_light(translation(0.0, 0.0, 2.0), power=2000.0)] + dim
-    assert len(lamps) > penumbra.WEAK_PICK_LAMPS
-    tracer = TriangleTracer(quad((0.0, 0.0, 1.0), (0.4, 0, 0), (0, 0.4, 0)))
-    pts, nrm = _floor()
-    pix = np.arange(H * W)
-    rough = rough_lights(lamps, pts, nrm)
-    weak = rough < WEAK_SHARE * rough.sum(axis=1, keepdims=True)
-    assert weak[:, 1:].mean() > 0.8  # the dim lamps are weak nearly everywhere
-    ref = direct_irradiance(lamps, pts, nrm, tracer, np.random.default_rng(7), samples=256)
-
-    def frame(f):
-        return adaptive_direct(_direct(lamps, tracer), pts, nrm, pix, (H, W), frame=f, samples=16,
-                               lamps=len(lamps), rough=rough)[0]
-
-    tracer.rays = 0
-    mean = np.mean([frame(f) for f in range(12)], axis=0)
-    picked = tracer.rays / 12
-    # Unbiased: the mean over frames converges to the reference (the dim lamps are ~20% of it).
-    assert abs(mean.sum() / ref.sum() - 1.0) < 0.01
-    assert np.abs(mean - ref).sum() / ref.sum() < 0.04
-    monkeypatch.setattr(penumbra, "WEAK_PICK_LAMPS", 1000)  # one ray per weak lamp, as before
-    tracer.rays = 0
-    frame(0)
-    assert picked < 0.8 * tracer.rays, (picked, tracer.rays)  # 24 weak lamps: 8 draws, not 24 rays
