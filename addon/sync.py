@@ -1374,12 +1374,19 @@ class _GroupSocket:
 
     def __init__(self, socket, groups=()):
         self._socket, self._groups = socket, tuple(groups)
+        self._hop = None  # `_outer`'s answer, once asked: (socket or None,)
 
     def __getattr__(self, name):
         return getattr(self._socket, name)
 
     def _outer(self):
-        """The group node's input this socket reads through a Group Input node, or None."""
+        """The group node's input this socket reads through a Group Input node, or None (found
+        once: `_source` asks for is_linked and links in turn)."""
+        if self._hop is None:
+            self._hop = (self._find_outer(),)
+        return self._hop[0]
+
+    def _find_outer(self):
         socket = self._socket
         if self._groups and socket.is_linked:
             link = socket.links[0]

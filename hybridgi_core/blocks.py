@@ -1,7 +1,8 @@
 """Whole-scene array work in cache-sized blocks of rows, spread over a few threads.
 
-Why: a scene's per-triangle and per-corner passes (the snapshot's checks, the instances'
-transforms, the concatenation) ran as whole-array numpy expressions. At millions of triangles each
+Why: a scene's per-triangle and per-corner passes (the snapshot's checks and normals, the
+instances' transforms, the object boxes, the surface table's packing) ran as whole-array numpy
+expressions. At millions of triangles each
 temporary is tens of MB: freshly mapped pages to fault in, then evicted from the caches before the
 next operation reads them (a 2M-triangle mesh's zero-area check: 350-750 ms in one piece). In
 blocks of BLOCK_ROWS rows the temporaries stay in the caches and their memory is reused (~270 ms),

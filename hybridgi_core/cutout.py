@@ -28,7 +28,9 @@ class Cutouts:
         if passed:
             skip |= np.isin(np.asarray(geometry.object_index), passed)
         self._shadow_skip = skip if skip.any() else None
-        cut = [i for i, m in enumerate(materials) if m.alpha is not None and not getattr(m, "clear", False)]
+        # Clear materials (`Material.clear`: clear glass, Transparent BSDF) are a hole everywhere.
+        clear = [i for i, m in enumerate(materials) if getattr(m, "clear", False)]
+        cut = [i for i, m in enumerate(materials) if m.alpha is not None and i not in clear]
         self._alpha = {i: np.asarray(materials[i].alpha, np.float32) for i in cut}
         self._material = np.asarray(geometry.material_index, np.int32)
         self._has = np.isin(self._material, cut) if cut else np.zeros(geometry.triangle_count, bool)
@@ -37,8 +39,6 @@ class Cutouts:
         if self._corner_uv is not None:
             # Triangles without a usable UV (NaN) stay solid.
             self._has &= np.isfinite(self._corner_uv).all(axis=(1, 2))
-        # Clear materials (`Material.clear`: clear glass, Transparent BSDF) are a hole everywhere.
-        clear = [i for i, m in enumerate(materials) if getattr(m, "clear", False)]
         self._clear = np.isin(self._material, clear) if clear else None
 
     @property

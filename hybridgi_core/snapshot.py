@@ -611,19 +611,15 @@ def _unit_normals(geometry: Geometry) -> np.ndarray:
     the last one: good enough for a fallback)."""
     normals = geometry.normals
     out = np.empty(normals.shape, np.float32)
-    broken = []
 
-    def block(a, b):
+    def block(a, b) -> bool:  # whether the block holds a broken normal
         n = normals[a:b]
         norm = np.sqrt(np.add.reduce(n * n, axis=1))  # np.linalg.norm's sums
-        fix = ~((norm >= 1e-6) & np.isfinite(norm))
-        if fix.any():
-            broken.append((a, b))
         with np.errstate(invalid="ignore"):  # inf / inf where a normal is broken: redone below
             out[a:b] = n / np.maximum(norm, 1e-12)[:, None]
+        return bool((~((norm >= 1e-6) & np.isfinite(norm))).any())
 
-    for_blocks(normals.shape[0], block)
-    if not broken or not geometry.triangle_count:
+    if not any(for_blocks(normals.shape[0], block)) or not geometry.triangle_count:
         return out
     norm = np.sqrt(np.add.reduce(normals * normals, axis=1))
     fix = ~((norm >= 1e-6) & np.isfinite(norm))
