@@ -421,8 +421,12 @@ def render_frame(bpy, scene, frame: int, files: output.FrameFiles, engine: str, 
     png, exr = files.paths
     save(bpy, scene, files.temp[png], files.temp[exr])
     bad = output.non_finite_channels(files.temp[exr])
+    fatal = output.fatal_non_finite(bad, engine)
+    if fatal:
+        raise CliError(f"frame {frame}: the render has non-finite pixels in {', '.join(fatal)}; nothing was written")
     if bad:
-        raise CliError(f"frame {frame}: the render has non-finite pixels in {', '.join(bad)}; nothing was written")
+        progress(f"warning: frame {frame}: {engine} left non-finite pixels in {', '.join(bad)}; "
+                 "written as the engine made them (Combined is finite)")
     percent = scene.render.resolution_percentage / 100
     return {
         "frame": frame,

@@ -130,6 +130,25 @@ def non_finite_channels(exr_path: Path) -> list[str]:
     return bad
 
 
+def fatal_non_finite(bad: list[str], engine: str) -> list[str]:
+    """Which of `non_finite_channels`' channels fail the frame: all of them for HybridGI's own
+    render; for a peer engine (Cycles, EEVEE) only Combined's (a single-layer file's R, G, B, A
+    are Combined). Why: Cycles itself leaves NaN in its Diffuse Color pass where a volume fills a
+    pixel with no surface (0 / 0), and Blender saves that pass as it is; refusing the frame made
+    `--engine CYCLES` unusable on any scene with a volume. The other channels are written as the
+    engine made them and named in a warning."""
+    if engine == "HYBRIDGI":
+        return list(bad)
+    return [b for b in bad if _pass_of(b) in ("Combined", "")]
+
+
+def _pass_of(channel: str) -> str:
+    """The pass of a `non_finite_channels` label ("ViewLayer.Diffuse Color.R (12)" -> "Diffuse
+    Color"; "R (1)", a single-layer channel -> "")."""
+    parts = channel.rsplit(" (", 1)[0].split(".")
+    return parts[-2] if len(parts) >= 2 else ""
+
+
 def discard_pending() -> None:
     """Remove the temporary files of every frame being written (interrupt path)."""
     with _PENDING_LOCK:

@@ -60,6 +60,47 @@ def cornell(tmp_path_factory) -> tuple[Path, float]:
     return out / "cornell.blend", 0.8
 
 
+VOLUME_SCENE = """
+import sys, bpy
+bpy.ops.wm.read_factory_settings(use_empty=True)
+scene = bpy.context.scene
+bpy.ops.object.camera_add(location=(0, -6, 1), rotation=(1.45, 0, 0))
+scene.camera = bpy.context.object
+bpy.ops.object.light_add(type="SUN", location=(0, 0, 5))
+bpy.ops.mesh.primitive_plane_add(size=20)
+bpy.ops.mesh.primitive_cube_add(size=2, location=(0, 0, 1))
+material = bpy.data.materials.new("fog")
+material.use_nodes = True
+tree = material.node_tree
+tree.nodes.remove(tree.nodes["Principled BSDF"])
+volume = tree.nodes.new("ShaderNodeVolumePrincipled")
+tree.links.new(volume.outputs[0], tree.nodes["Material Output"].inputs["Volume"])
+bpy.context.object.data.materials.append(material)
+scene.world = bpy.data.worlds.new("haze")
+scene.world.use_nodes = True
+tree = scene.world.node_tree
+haze = tree.nodes.new("ShaderNodeVolumePrincipled")
+haze.inputs["Density"].default_value = 0.02
+tree.links.new(haze.outputs[0], tree.nodes["World Output"].inputs["Volume"])
+bpy.ops.wm.save_as_mainfile(filepath=sys.argv[-1])
+"""
+
+
+def test_cycles_volume_scene_writes_with_a_warning(tmp_path):
+    """Cycles leaves NaN in its own Diffuse Color where a volume fills a pixel: the peer render is
+    written (Combined is finite) and the channels named in a warning, not refused."""
+    blend = tmp_path / "volume.blend"
+    env = {k: v for k, v in os.environ.items() if k != "BLENDER_USER_RESOURCES"}
+    subprocess.run([sys.executable, "-c", VOLUME_SCENE, str(blend)], check=True, capture_output=True, timeout=120,
+                   env=env)
+    run = hybridgi("render", str(blend), "--out", str(tmp_path / "v"), "--engine", "CYCLES", "--samples", "2",
+                   "--res", "64x36")
+    assert run.returncode == 0, run.stderr[-2000:]
+    assert "warning: frame 1: CYCLES left non-finite pixels in ViewLayer.Diffuse Color" in run.stderr
+    combined = exr.read_channels(tmp_path / "v_0001.exr")["ViewLayer.Combined.R"]
+    assert np.isfinite(combined).all()
+
+
 def test_cycles_render_writes_png_exr_and_json(tmp_path, cornell):
     blend, albedo = cornell
     run = hybridgi(

@@ -297,6 +297,17 @@ def test_exr_with_non_finite_pixels_is_named(bpy_module, tmp_path):
     assert sorted(output.non_finite_channels(tmp_path / "nan.exr")) == ["G (1)", "R (1)"]
 
 
+def test_peer_engines_fail_only_on_a_non_finite_combined():
+    """Cycles leaves NaN in Diffuse Color where a volume fills a pixel (its own output): a peer
+    engine's frame fails only when Combined is not finite; HybridGI's on any channel."""
+    colour = ["ViewLayer.Diffuse Color.R (40)", "ViewLayer.Diffuse Color.G (40)"]
+    combined = ["ViewLayer.Combined.R (2)"]
+    assert output.fatal_non_finite(colour, "CYCLES") == []
+    assert output.fatal_non_finite(colour + combined, "CYCLES") == combined
+    assert output.fatal_non_finite(["R (1)"], "BLENDER_EEVEE_NEXT") == ["R (1)"]
+    assert output.fatal_non_finite(colour, "HYBRIDGI") == colour
+
+
 def test_gpu_gather_uploads_depth_moments_only_for_the_chebyshev_test(raster, monkeypatch):  # noqa: F811
     from hybridgi_core.raster.gather import GatherPass
 
