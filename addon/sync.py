@@ -700,7 +700,7 @@ def material_from_blender(material, textures=None, baked=None, pending=False):
                          emission=part.emission.astype(np.float32), alpha=part.alpha, specular=specular,
                          normal_map=part.normal, emission_texture=part.emission_texture,
                          metallic_map=part.metallic_map if part.layer is not None else None,
-                         shadow_transparent=shadow_transparent)
+                         shadow_transparent=shadow_transparent, translucent=part.translucent)
 
 
 def _shadow_ray_mix(shader):
@@ -776,12 +776,13 @@ def _shader_surface(shader, textures, name, depth=0):
         # rendered straight): clear on its own; no diffuse reflection (Cycles' Diffuse Color pass
         # is black there).
         return surface_mix.SurfacePart(base=zero, clear=1.0)
-    if kind in ("HOLDOUT", "BSDF_TRANSLUCENT"):
-        # No diffuse reflection; HybridGI renders no light diffused through a surface, so what a
-        # Translucent BSDF transmits is missing from Combined.
-        if kind != "HOLDOUT":
-            log.warning("material %r: %s reflects no diffuse light; its transmitted light is not rendered",
-                        name, shader.bl_idname)
+    if kind == "BSDF_TRANSLUCENT":
+        # Diffuse light from behind: Cycles counts it in the Diffuse passes (its colour in Diffuse
+        # Color); the lamps' light is taken on the back of the surface (`Material.translucent`).
+        base, texture = _color_socket(shader.inputs["Color"], textures, name)
+        return surface_mix.SurfacePart(base=base, texture=texture, normal=_normal_map(shader, textures, name),
+                                       translucent=np.ones(3, np.float32))
+    if kind == "HOLDOUT":
         return surface_mix.SurfacePart(base=zero)
     if kind in ("MIX_SHADER", "ADD_SHADER") and depth < 8:
         return _mix_surface(shader, kind, textures, name, depth)

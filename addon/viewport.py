@@ -483,10 +483,21 @@ class ViewportSession:
             # The pixel rays' GI resolved at every full-res pixel, as final renders do (`full_res_images`).
             full_res = (d_position.shape[:2] != position.shape[:2] and d_position.shape[:2] == (gbuf.height, gbuf.width)
                         and gpu_state.pipeline.settings.pixel_full_res)
-            material = full_material = full_albedo = None
-            if any(getattr(m, "specular", None) is not None for m in self.mirror.snapshot.materials):
-                # At the GI pixels (the glossy light's): a new array, the worker keeps it.
+            material = full_material = full_albedo = direct_material = None
+            materials = self.mirror.snapshot.materials
+            if any(getattr(m, "translucent", None) is not None for m in materials):
+                # The translucent shares of the coarse and the direct light's pixels (`worker._shares`).
                 material = gpu_state.pipeline.downsample.read("material")[..., 0]
+                if d_position.shape[:2] == (gbuf.height, gbuf.width):
+                    direct_material = gpu_state.pipeline.gbuffer.read("material")[..., 0]
+                elif gpu_state.direct_down is not None:
+                    direct_material = gpu_state.direct_down.read("material")[..., 0].copy()
+                else:
+                    direct_material = material
+            if any(getattr(m, "specular", None) is not None for m in materials):
+                # At the GI pixels (the glossy light's): a new array, the worker keeps it.
+                if material is None:
+                    material = gpu_state.pipeline.downsample.read("material")[..., 0]
                 if d_position.shape[:2] == (gbuf.height, gbuf.width) and self._glossy_samples > 0:
                     # And at every pixel, for the final render's glossy light of a still view
                     # (`worker.ViewportWorker._fine_glossy`).
@@ -498,6 +509,7 @@ class ViewportSession:
                 direct_position=d_position, direct_normal=d_normal,
                 view=camera.view, proj=camera.proj, debug_cells=debug_cells, material=material,
                 full_res=bool(full_res), full_material=full_material, full_albedo=full_albedo,
+                direct_material=direct_material,
                 glossy_samples=self._glossy_samples if full_material is not None else 0,
                 reflection_rays=gpu_state.pipeline.settings.reflection_rays,
             )

@@ -27,6 +27,7 @@ from hybridgi_core import errors
 from hybridgi_core import glossy_image as _glossy
 from hybridgi_core import glossy_noise as _glossy_noise
 from hybridgi_core import penumbra as _penumbra
+from hybridgi_core import translucent as _translucent
 from hybridgi_core import visible as _visible
 from hybridgi_core.raster import gather as _gather_layout
 from hybridgi_core.raster import settings as _raster_settings
@@ -413,8 +414,12 @@ class ViewportWorker:
         points, normals, pix = level.points
         samples = self.options.direct_samples * level.samples
         rays = points.shape[0] * samples
+        shares = _shares(system, state.request, coarse or level is state.coarse, pix)
         if coarse or self.options.fine_samples <= 0:
             light = _direct_split(system, points, normals, self._frame, samples) if points.shape[0] else None
+            if light is not None:
+                light = _translucent.mix_back(light, shares, lambda rows: _direct_split(
+                    system, points[rows], -normals[rows], self._frame + _translucent.BACK_SEED_OFFSET, samples))
         else:
             samples = self.options.fine_samples
             r = state.request
@@ -432,6 +437,15 @@ class ViewportWorker:
                 self._steps["direct_dropped"] = (time.perf_counter() - t0) * 1e3
                 return
             rays = points.shape[0] * min(samples, _penumbra.FIRST_SAMPLES) + int(full.sum()) * samples
+            if light is not None and shares is not None:
+                try:
+                    light = _translucent.mix_back(light, shares, lambda rows: _penumbra.adaptive_direct(
+                        direct, points[rows], -normals[rows], pix[rows], shape,
+                        (self._frame + _translucent.BACK_SEED_OFFSET) * MAX_DIRECT_BLOCKS, samples, camera=camera,
+                        pool=system.updater.pool, lamps=len(system.scene.lights))[0])
+                except _Superseded:
+                    self._steps["direct_dropped"] = (time.perf_counter() - t0) * 1e3
+                    return
         if light is not None:
             level.add(light, samples)
         else:
@@ -801,6 +815,17 @@ class _Superseded(Exception):
 
 
 # --- snapshot helpers (pure numpy) ----------------------------------------------------------------
+
+
+def _shares(system, request, coarse: bool, pix: np.ndarray) -> np.ndarray | None:
+    """(n, 3) the translucent shares (`translucent.pixel_shares`) of a direct level's pixels
+    `pix`: the GI pixels' material texels for the coarse level, the direct light's for the fine
+    one; None in a scene without a Translucent BSDF (or a request that carries no texels)."""
+    table = _translucent.share_table(system.scene.materials)
+    texels = request.material if coarse else request.direct_material
+    if table is None or texels is None:
+        return None
+    return _translucent.pixel_shares(table, np.asarray(texels).reshape(-1)[pix])
 
 
 def _direct_split(system, points: np.ndarray, normals: np.ndarray, frame: int, samples: int) -> np.ndarray:

@@ -225,7 +225,12 @@ def _material_key(material: Material) -> tuple:
     metal = getattr(material, "metallic_map", None)
     metal_key = None if metal is None else (metal.shape, float(metal.sum(dtype=np.float64)))
     return (material.base_color.tobytes(), material.emission.tobytes(), texture_key, specular, normal_map, glow_key,
-            metal_key, getattr(material, "holdout", False), getattr(material, "shadow_transparent", False))
+            metal_key, getattr(material, "holdout", False), getattr(material, "shadow_transparent", False),
+            getattr(material, "clear", False), _bytes_or_none(getattr(material, "translucent", None)))
+
+
+def _bytes_or_none(array) -> bytes | None:
+    return None if array is None else np.asarray(array).tobytes()
 
 
 def _world_key(world: World) -> tuple:

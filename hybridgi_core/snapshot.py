@@ -204,10 +204,16 @@ class Material:
     #: transmission, a constant alpha under ALPHA_CUTOFF): rendered as clear thin glass, a hole
     #: for the camera and for every ray (`cutout.py`), with no refraction and no reflection
     clear: bool = False
+    #: (3,) per channel, the share of the diffuse colour that is a Translucent BSDF's (lit from
+    #: behind: Cycles counts it in the Diffuse passes), or None (all of it reflects)
+    translucent: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         # Non-finite colours would reach every pixel that sees (or bounces off) this material.
         self.base_color = _finite_color(self.base_color, 0.8, f"material {self.name!r} base colour")
+        if self.translucent is not None:
+            share = np.clip(np.nan_to_num(np.asarray(self.translucent, np.float32).reshape(-1)[:3], nan=0.0), 0.0, 1.0)
+            self.translucent = share if share.size == 3 and share.any() else None
         self.emission = _finite_color(self.emission, 0.0, f"material {self.name!r} emission")
         if self.texture is not None:
             self.texture = fit_texture(self.texture, MAX_TEXTURE_SIZE, f"material {self.name!r}")

@@ -38,7 +38,9 @@ class SurfacePart:
     Principled BSDF's Metallic per texel of `texture`'s UVs (`snapshot.Material.metallic_map`),
     dropped once the part is mixed (its mean stays in the lobes); clear : the share of the light
     that passes straight through (a Transparent BSDF's 1, glass's, a Principled BSDF's
-    transmission), mixed by the cosine-weighted mean of each part's weight.
+    transmission), mixed by the cosine-weighted mean of each part's weight; translucent : (3,)
+    per channel the share of the diffuse colour that is lit from behind (a Translucent BSDF's 1),
+    or None (0), mixed by each part's share of the diffuse light.
     """
 
     base: np.ndarray = field(default_factory=lambda: np.zeros(3, np.float32))
@@ -52,6 +54,7 @@ class SurfacePart:
     emission_texture: np.ndarray | None = None
     metallic_map: np.ndarray | None = None
     clear: float = 0.0
+    translucent: np.ndarray | None = None
 
     def diffuse_table(self) -> np.ndarray:
         """(V,) the diffuse weight over `specular.view_grid`."""
@@ -144,6 +147,15 @@ def mix(parts: list[SurfacePart], weights: list[np.ndarray], name: str = "") -> 
             notes.append("diffuse inputs of different colours mixed by a view-dependent factor (one colour kept)")
     else:
         diffuse = np.ones(sp.VIEW_SAMPLES)
+    translucent = None
+    if any(part.translucent is not None for part in parts):
+        # Per channel, the translucent parts' share of the mixed diffuse light (cosine means).
+        each = [_cosine_mean(w * part.diffuse_table())[()] * np.asarray(c, np.float64) for part, w, c in
+                zip(parts, weights, colours, strict=True)]
+        back = sum(e * (0.0 if part.translucent is None else np.asarray(part.translucent, np.float64))
+                   for part, e in zip(parts, each, strict=True))
+        total = sum(each)
+        translucent = np.divide(back, total, out=np.zeros(3), where=total > 0).astype(np.float32)
     emission = sum(float(_cosine_mean(w)) * part.emission for part, w in zip(parts, weights, strict=True))
     clear = sum(float(_cosine_mean(w)) * part.clear for part, w in zip(parts, weights, strict=True))
     glow = _mixed_emission_texture(parts, weights, notes)
@@ -157,7 +169,7 @@ def mix(parts: list[SurfacePart], weights: list[np.ndarray], name: str = "") -> 
         notes.append("closures with different normal inputs mixed (one normal map kept for all)")
     part = SurfacePart(base=np.asarray(base, np.float32), texture=texture, emission=np.asarray(emission, np.float32),
                        alpha=alpha, diffuse=None if np.allclose(diffuse, 1.0) else diffuse, lobes=lobes, normal=normal,
-                       emission_texture=glow, clear=float(np.clip(clear, 0.0, 1.0)))
+                       emission_texture=glow, clear=float(np.clip(clear, 0.0, 1.0)), translucent=translucent)
     return part, notes
 
 

@@ -16,6 +16,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .. import glossy_image, pixel_gather
+from .. import translucent as translucent_mod
 from ..emitters import emitter_samples, worth_sampling
 from ..evaluate import HitLookup
 from ..lights import RATIO_MIN_SAMPLES, rough_lights
@@ -267,12 +268,13 @@ class FramePipeline:
             position = self.gbuffer.read("position")
             # The smooth surface under normal maps (`normal` itself where none bends it).
             surface = self.gbuffer.read_surface(normal)
+            translucent = self._translucent_shares(system)
         # The centre's lamp light needs the full-res G-buffer only, not the cache: it runs on a
         # thread of its own while this one updates the cache, so that the serial parts of each
         # overlap the other's work on the pool. Only CPU steps run beside it (no GPU pass before
         # the wait): the seconds without the GPU passes count all of it.
         pending = self._stage_thread().submit(self._centre_direct, system, view, proj, frame, position, normal,
-                                              surface)
+                                              surface, translucent)
         try:
             visible = self._update_cache(system, points, normals, cells, view, frame, warmup, update, stats,
                                          progress, update_hook)
@@ -333,13 +335,15 @@ class FramePipeline:
                     normal = self.gbuffer.read("normal")
                     position = self.gbuffer.read("position")
                     surface = self.gbuffer.read_surface(normal)
+                    translucent = self._translucent_shares(system)
                 with stats.step("direct"):
                     hit, same = subframe_surfaces(centre, position, normal, surface)
                     direct = subframe_direct(system, centre, position, normal,
                                              frame + s * SUBFRAME_SEED_STRIDE,
                                              max(min(self.direct_samples, RATIO_MIN_SAMPLES),
                                                  self.direct_samples // offsets.shape[0]), surfaces=(hit, same),
-                                             surface=surface, emitters=screen.emitters_sampled)
+                                             surface=surface, emitters=screen.emitters_sampled,
+                                             translucent=translucent)
                 if full_gi is not None and full_gi.resolver is not None:
                     with stats.step("subframe_gi"):
                         gi, gi_low = self._subframe_gi(full_gi, gbuf, hit, same, position, normal, offset,
@@ -394,10 +398,20 @@ class FramePipeline:
         with stats.step("visibility"):
             return system.corner_visibility(points, normals)
 
-    def _centre_direct(self, system, view, proj, frame, position, normal, surface) -> CentreLight:
+    def _translucent_shares(self, system) -> np.ndarray | None:
+        """(h w, 3) the translucent share of the last raster's pixels (`translucent.pixel_shares`:
+        one more read-back, only in scenes with a Translucent BSDF), or None."""
+        table = translucent_mod.share_table(system.scene.materials)
+        if table is None:
+            return None
+        return translucent_mod.pixel_shares(table, self.gbuffer.read("material").reshape(-1))
+
+    def _centre_direct(self, system, view, proj, frame, position, normal, surface, translucent=None) -> CentreLight:
         """The centre raster's lamp light at full resolution (on the stage thread): adaptive in
         penumbrae (`penumbra.adaptive_direct`), each lamp's share for the subframes' light edges,
-        and the `ScreenLight` the pixel rays' hits that the camera sees read it from."""
+        and the `ScreenLight` the pixel rays' hits that the camera sees read it from. translucent
+        : (h w, 3) the pixels' translucent shares or None: their lamps are sampled on the back
+        too (`translucent.mix_back`)."""
         tic = time.perf_counter()
         p_full, n_full, pix_full = pixels_to_points(position, normal)
         s_full = None if surface is normal else pixels_to_points(position, surface)[1]
@@ -413,6 +427,18 @@ class FramePipeline:
                                                frame, self.direct_samples, camera=camera,
                                                pool=system.updater.pool, lamps=lamps,
                                                smooth=s_full, per_lamp=shares, rough=rough)[0]
+        if translucent is not None:
+
+            def back(rows):
+                flipped = -n_full[rows]
+                return adaptive_direct(system.direct, p_full[rows], flipped, pix_full[rows],
+                                       (self.height, self.width), frame + translucent_mod.BACK_SEED_OFFSET,
+                                       self.direct_samples, camera=camera, pool=system.updater.pool, lamps=lamps,
+                                       smooth=None if s_full is None else -s_full[rows],
+                                       rough=rough_lights(system.scene.lights, p_full[rows], flipped) if lamps > 1
+                                       else None)[0]
+
+            direct[pix_full, :3] = translucent_mod.mix_back(direct[pix_full, :3], translucent[pix_full], back)
         lamp_light = None
         if shares is not None:
             lamp_light = np.zeros((self.height * self.width, lamps, 3), np.float32)

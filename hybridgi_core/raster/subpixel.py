@@ -36,6 +36,7 @@ import numpy as np
 
 from ..penumbra import LAMP_SEED_STRIDE
 from ..pixel_gather import LUMA, write_texels
+from ..translucent import BACK_SEED_OFFSET, mix_back
 from ..visible import pixels_to_points
 
 #: Blackman-Harris coefficients as Cycles' `filter_func_blackman_harris` uses them.
@@ -380,7 +381,7 @@ def worth_extra(edges: np.ndarray, share: float = EXTRA_MIN_SHARE) -> bool:
 
 def subframe_direct(system, centre: CentreSample, position: np.ndarray, normal: np.ndarray,
                     seed_frame: int, samples: int, surfaces=None, surface: np.ndarray | None = None,
-                    emitters: bool = False) -> np.ndarray:
+                    emitters: bool = False, translucent: np.ndarray | None = None) -> np.ndarray:
     """A jittered subframe's direct light, (h * w, 4) float32: the centre's where the subframe's
     pixel sees the same surface, `samples` shadow rays per lamp (seeded by seed_frame) elsewhere.
 
@@ -389,7 +390,8 @@ def subframe_direct(system, centre: CentreSample, position: np.ndarray, normal: 
     `surface` read-back where a material bends normals (None: the shading normal): the surface
     `same_surface` compares and the smooth normal of the bump shadowing term. emitters : the
     centre's light holds the emissive triangles' samples (`emitters.py`): pixels on another
-    surface take their own.
+    surface take their own. translucent : (h w, 3) the subframe's pixels' translucent shares or
+    None: pixels lit afresh take the lamps' light on their back too (`translucent.mix_back`).
     """
     n_pix = centre.direct.shape[0]
     pos = position.reshape(n_pix, -1)
@@ -408,7 +410,16 @@ def subframe_direct(system, centre: CentreSample, position: np.ndarray, normal: 
         p, n, keep = pixels_to_points(pos[rows][None], nrm[rows][None])
         if bent:
             kwargs["smooth"] = pixels_to_points(pos[rows][None], surface.reshape(n_pix, -1)[rows][None])[1]
-        return rows[keep], system.direct(p, n, frame, samples=samples, **kwargs)
+        light = system.direct(p, n, frame, samples=samples, **kwargs)
+        if translucent is None:
+            return rows[keep], light
+
+        def back(r):
+            smooth = {} if "smooth" not in kwargs else {"smooth": -kwargs["smooth"][r]}
+            rest = {k: v for k, v in kwargs.items() if k != "smooth"}
+            return system.direct(p[r], -n[r], frame + BACK_SEED_OFFSET, samples=samples, **rest, **smooth)
+
+        return rows[keep], mix_back(light, translucent[rows[keep]], back)
 
     fresh = hit & ~same
     emitted = None
