@@ -92,6 +92,9 @@ class BakeJob:
     #: the first frame serves every frame (UV and Generated coordinates do not move with the
     #: surface; a texture in Object coordinates would, and is not baked again).
     dynamic: bool = False
+    #: The Object Info values the material reads for the object this bake is for (`sync.object_values`:
+    #: random, location, color, object_index), or None: the bake process feeds them as constants.
+    object_values: dict | None = None
 
     @property
     def what(self) -> str:
@@ -153,6 +156,8 @@ def job_key(job: BakeJob) -> str:
     if job.normals is not None and not job.dynamic:
         digest.update(np.ascontiguousarray(job.normals).tobytes())
     digest.update(repr((job.render_uv, job.texspace)).encode())
+    if job.object_values is not None:
+        digest.update(repr(sorted(job.object_values.items())).encode())
     return digest.hexdigest()[:32]
 
 
@@ -241,7 +246,8 @@ def _command(jobs: list[BakeJob], tmp: str) -> list[str]:
         specs.append({"key": job.key, "material": job.material.name, "blend": blends[job.material.name],
                       "node": job.node, "socket": job.socket,
                       "size": job.size, "uv_maps": list(job.uv_maps), "render_uv": job.render_uv,
-                      "colors": list(job.colors), "texspace": [list(v) for v in job.texspace]})
+                      "colors": list(job.colors), "texspace": [list(v) for v in job.texspace],
+                      "object_values": job.object_values})
     with open(os.path.join(tmp, "jobs.json"), "w") as f:
         json.dump({"samples": BAKE_SAMPLES, "margin": MARGIN, "jobs": specs}, f)
     args = [os.path.join(tmp, "jobs.json"), tmp]

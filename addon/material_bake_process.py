@@ -69,6 +69,35 @@ def wire(tree, target, node_name, socket_name):
     target.default_value = tuple(value) if hasattr(value, "__len__") else value
 
 
+def constant_object_info(tree, values):
+    """Feed the Object Info nodes' outputs that `values` gives (`sync.object_values`) from
+    constant nodes: the bake's own object is not the one the texture is for."""
+    for node in [n for n in tree.nodes if n.type == "OBJECT_INFO"]:
+        for out in node.outputs:
+            if not out.is_linked:
+                continue
+            if out.name == "Random" and "random" in values:
+                const = tree.nodes.new("ShaderNodeValue")
+                const.outputs[0].default_value = float(values["random"])
+            elif out.name == "Location" and "location" in values:
+                const = tree.nodes.new("ShaderNodeCombineXYZ")
+                for i, v in enumerate(values["location"]):
+                    const.inputs[i].default_value = float(v)
+            elif out.name == "Color" and "color" in values:
+                const = tree.nodes.new("ShaderNodeRGB")
+                const.outputs[0].default_value = tuple(float(v) for v in values["color"])
+            elif out.name == "Alpha" and "color" in values:
+                const = tree.nodes.new("ShaderNodeValue")
+                const.outputs[0].default_value = float(values["color"][3])
+            elif out.name == "Object Index" and "object_index" in values:
+                const = tree.nodes.new("ShaderNodeValue")
+                const.outputs[0].default_value = float(values["object_index"])
+            else:
+                continue
+            for link in list(out.links):
+                tree.links.new(const.outputs[0], link.to_socket)
+
+
 def run(job):
     arrays = np.load(os.path.join(folder, job["key"] + ".npz"))
     positions = arrays["positions"].astype(np.float64)
@@ -104,6 +133,8 @@ def run(job):
     material = materials[(job["blend"], job["material"])].copy()
     mesh.materials.append(material)
     tree = material.node_tree
+    if job.get("object_values"):
+        constant_object_info(tree, job["object_values"])
     output = tree.get_output_node("CYCLES")
     emission = tree.nodes.new("ShaderNodeEmission")
     emission.inputs["Strength"].default_value = 1.0

@@ -369,6 +369,8 @@ class _SnapshotBuilder:
         self._baked = {}  # (material, mesh pointer, slot) -> material index
         self._bakes = []  # (material index, bpy material, [BakeJob])
         self._atlas_meshes = {}  # (mesh pointer, baked slots) -> _LocalMesh with atlas UVs
+        self._variants = {}  # (material, mesh pointer, slot) -> the Object Info value sets baked
+        self._variant_warned = set()
         self.without_material = set()  # object names (Cycles gives them a glossy default)
         self.collection_flags = collection_flags or {}
         self.ignored: dict[str, set[str]] = {}  # what is approximated -> object names, warned once
@@ -406,7 +408,7 @@ class _SnapshotBuilder:
         if not np.isfinite(matrix).all():
             log.debug("skipped %s: singular transform", obj.name)
             return
-        slot_to_material, local = self._slot_materials(obj, local, dynamic)
+        slot_to_material, local = self._slot_materials(obj, local, dynamic, instance=instance)
         self._add_placed(local, slot_to_material, matrix)
         # A curve's own mesh instance has the curve as its parent: keep its plain name.
         name = obj.name if parent is None or parent.name == obj.name else f"{parent.name}/{obj.name}"
@@ -545,9 +547,10 @@ class _SnapshotBuilder:
             self._meshes[key] = mesh_arrays(obj.data)
         return self._meshes[key]
 
-    def _slot_materials(self, obj, local, dynamic=False, bakes=True):
+    def _slot_materials(self, obj, local, dynamic=False, bakes=True, instance=None):
         """(global material index of each slot, the local mesh): slots whose material needs a
-        bake get a material of their own for this mesh, and its triangles the atlas UVs."""
+        bake get a material of their own for this mesh (and for this object's Object Info values
+        where the material reads them: `object_values`), and its triangles the atlas UVs."""
         materials = [slot.material for slot in obj.material_slots]
         if not materials:
             materials = list(obj.data.materials)
@@ -564,7 +567,7 @@ class _SnapshotBuilder:
             if sockets and (slots == s).any():
                 baked[s] = sockets
         indices = [self._material(material) if s not in baked
-                   else self._baked_material(material, obj, local, slots, s, baked[s], dynamic)
+                   else self._baked_material(material, obj, local, slots, s, baked[s], dynamic, instance)
                    for s, material in enumerate(materials)]
         local = self._with_tangents(obj, local, [indices[s] for s in np.unique(slots).tolist()])
         if baked:
@@ -593,15 +596,22 @@ class _SnapshotBuilder:
             self._tangent_meshes[key] = local if tangents is None else replace(local, tangents=tangents)
         return self._tangent_meshes[key]
 
-    def _baked_material(self, material, obj, local, slots, slot, sockets, dynamic=False):
-        """Index of `material` on the triangles of `slot` of this mesh, its bake queued."""
-        key = (material.name_full, obj.data.as_pointer(), slot)
+    def _baked_material(self, material, obj, local, slots, slot, sockets, dynamic=False, instance=None):
+        """Index of `material` on the triangles of `slot` of this mesh, its bake queued; one per
+        set of the object's Object Info values where the material reads them (`object_values`:
+        up to MAX_OBJECT_VARIANTS per mesh slot, further objects share the nearest one's)."""
+        values = object_values(instance, object_info_outputs(material)) if instance is not None else None
+        base = (material.name_full, obj.data.as_pointer(), slot)
+        if values is not None:
+            values = self._object_variant(base, values, material.name)
+        key = base + (None if values is None else tuple(sorted((k, repr(v)) for k, v in values.items())),)
         index = self._baked.get(key)
         if index is None:
             jobs = [bake_job(material, node, socket, obj.data, local, np.nonzero(slots == slot)[0])
                     for node, socket in sockets]
             for job in jobs:
                 job.dynamic = dynamic
+                job.object_values = values
             index = self._baked[key] = len(self.materials)
             # Replaced in bake_materials; its normal map now already, so that the mesh gets the
             # tangents of the map's UV map (`_with_tangents`).
@@ -609,6 +619,26 @@ class _SnapshotBuilder:
             self.materials.append(snap.Material(name=material.name, normal_map=read.normal_map))
             self._bakes.append((index, material, jobs))
         return index
+
+    def _object_variant(self, base, values: dict, name: str) -> dict:
+        """`values`, or, once MAX_OBJECT_VARIANTS sets were baked for this mesh slot, the set
+        nearest to them (by Random, then Location) among those: a scatter of thousands of
+        instances bakes a few dozen textures, not one per instance (warned once)."""
+        known = self._variants.setdefault(base, [])
+        if values in known or len(known) < MAX_OBJECT_VARIANTS:
+            if values not in known:
+                known.append(values)
+            return values
+        if name not in self._variant_warned:
+            self._variant_warned.add(name)
+            log.warning("material %r: more than %d objects differ in what its Object Info node reads; the others "
+                        "take the bake of the nearest one", name, MAX_OBJECT_VARIANTS)
+
+        def distance(other):
+            return (abs(other.get("random", 0.0) - values.get("random", 0.0)),
+                    float(np.linalg.norm(np.subtract(other.get("location", (0, 0, 0)), values.get("location", (0, 0, 0))))))
+
+        return min(known, key=distance)
 
     def bake_materials(self):
         """Bake every queued colour input (one process for all; cached ones cost nothing) and
@@ -1566,6 +1596,73 @@ def bake_sockets(material) -> list[tuple[str, str]]:
     return out + images if out else out
 
 
+#: Object Info value sets baked per mesh slot of a material that reads them (`_object_variant`).
+MAX_OBJECT_VARIANTS = 16
+#: Object Info outputs `object_values` gives (the rest are not per object, or are not read).
+OBJECT_INFO_OUTPUTS = ("Location", "Color", "Alpha", "Object Index", "Material Index", "Random")
+
+
+def object_info_outputs(material) -> frozenset:
+    """Outputs of the Object Info nodes of `material`'s own tree that are linked: what its bakes
+    must be given per object (`object_values`); empty for most materials."""
+    tree = getattr(material, "node_tree", None)
+    if tree is None:
+        return frozenset()
+    return frozenset(out.name for node in tree.nodes if node.type == "OBJECT_INFO" and not node.mute
+                     for out in node.outputs if out.is_linked and out.name in OBJECT_INFO_OUTPUTS)
+
+
+def object_values(instance, outputs) -> dict | None:
+    """The Object Info values of a depsgraph instance, those in `outputs` (None when empty), as
+    Cycles computes them: Random is the instance's random_id, or for an object of its own the
+    hash of its name (Cycles' hash_uint2(hash_string(name), 0)), over 2^32 - 1; Location the
+    instance's world translation; Color and Alpha the object's colour; the pass indices."""
+    if not outputs:
+        return None
+    obj = instance.object
+    out = {}
+    if "Random" in outputs:
+        rid = int(instance.random_id) & 0xFFFFFFFF if instance.is_instance else cycles_name_hash(obj.name)
+        out["random"] = round(rid / 4294967295.0, 6)
+    if "Location" in outputs:
+        out["location"] = tuple(round(float(v), 5) for v in np.asarray(instance.matrix_world)[:3, 3])
+    if "Color" in outputs or "Alpha" in outputs:
+        out["color"] = tuple(round(float(v), 5) for v in obj.color)
+    if "Object Index" in outputs:
+        out["object_index"] = int(obj.pass_index)
+    return out
+
+
+def cycles_name_hash(name: str) -> int:
+    """Cycles' random id of an object that is no instance: hash_uint2(hash_string(name), 0)
+    (util/hash.h: a string hash, then Bob Jenkins' lookup3 final mix)."""
+    m = 0xFFFFFFFF
+
+    def rot(x, k):
+        return ((x << k) | (x >> (32 - k))) & m
+
+    h = 0
+    for ch in name.encode():
+        h = (h * 37 + ch) & m
+    a = b = c = (0xDEADBEEF + (2 << 2) + 13) & m
+    a = (a + h) & m
+    c ^= b
+    c = (c - rot(b, 14)) & m
+    a ^= c
+    a = (a - rot(c, 11)) & m
+    b ^= a
+    b = (b - rot(a, 25)) & m
+    c ^= b
+    c = (c - rot(b, 16)) & m
+    a ^= c
+    a = (a - rot(c, 4)) & m
+    b ^= a
+    b = (b - rot(a, 14)) & m
+    c ^= b
+    c = (c - rot(b, 24)) & m
+    return c
+
+
 #: bake_id -> the jobs a baked material was made of (the viewport re-bakes edited materials).
 _BAKE_JOBS: dict[str, list] = {}
 
@@ -2129,7 +2226,7 @@ def scene_materials(snapshot, names=None) -> list:
         jobs = [material_bake.BakeJob(material=source, node=j.node, socket=j.socket, source=j.source, dynamic=j.dynamic,
                                       positions=j.positions,
                                       uv_maps=j.uv_maps, render_uv=j.render_uv, colors=j.colors, texspace=j.texspace,
-                                      normals=j.normals)
+                                      normals=j.normals, object_values=j.object_values)
                 for j in jobs if (j.node, j.socket) in bake_sockets(source)]
         baked = material_bake.bake(jobs, wait=False)
         if jobs and not all(job.key in baked for job in jobs):
