@@ -232,7 +232,11 @@ def _command(jobs: list[BakeJob], tmp: str) -> list[str]:
     for job in jobs:
         if job.material.name not in blends:
             blends[job.material.name] = os.path.join(tmp, f"material{len(blends)}.blend")
-            bpy.data.libraries.write(blends[job.material.name], {job.material}, path_remap="ABSOLUTE", fake_user=True)
+            # The original datablock: a render's depsgraph hands out evaluated copies, which Blender
+            # 4.2 and 4.5 write as an empty library (every bake failed there: "KeyError") and 5.0
+            # with a "loopback" error.
+            original = getattr(job.material, "original", None) or job.material
+            bpy.data.libraries.write(blends[job.material.name], {original}, path_remap="ABSOLUTE", fake_user=True)
     specs = []
     for job in jobs:
         arrays = {"positions": job.positions, "atlas": atlas_uvs(job.triangles, job.size).reshape(-1, 2)}

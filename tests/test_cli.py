@@ -96,9 +96,11 @@ def test_cycles_volume_scene_writes_with_a_warning(tmp_path):
     run = hybridgi("render", str(blend), "--out", str(tmp_path / "v"), "--engine", "CYCLES", "--samples", "2",
                    "--res", "64x36")
     assert run.returncode == 0, run.stderr[-2000:]
-    assert "warning: frame 1: CYCLES left non-finite pixels in ViewLayer.Diffuse Color" in run.stderr
-    combined = exr.read_channels(tmp_path / "v_0001.exr")["ViewLayer.Combined.R"]
-    assert np.isfinite(combined).all()
+    channels = exr.read_channels(tmp_path / "v_0001.exr")
+    assert np.isfinite(channels["ViewLayer.Combined.R"]).all()
+    # Blender 5.0's Cycles leaves the NaN (4.2, 4.5 and 5.3 do not): named, not refused.
+    if not np.isfinite(channels["ViewLayer.Diffuse Color.R"]).all():
+        assert "warning: frame 1: CYCLES left non-finite pixels in ViewLayer.Diffuse Color" in run.stderr
 
 
 def test_cycles_render_writes_png_exr_and_json(tmp_path, cornell):
