@@ -22,7 +22,7 @@ import textwrap
 import numpy as np
 import pytest
 
-from hybridgi_cli import exr
+from hybridgi_cli import blender_compat, exr
 from hybridgi_core import sh
 from hybridgi_core.bump import irradiance_kernel, shadowing_term
 from hybridgi_core.snapshot import BumpMap, Material, NormalMap, concat_geometry, make_snapshot
@@ -436,8 +436,16 @@ def bumps(tmp_path_factory):
 DI_BOUNDS = {"ridges": (0.36, 0.08), "bumps": (0.31, 0.12)}
 
 
+#: Cycles 4.2 shades these normal maps otherwise than 4.5 and later (the ridges' Diffuse Direct 7.6%
+#: rel L1 off 4.5's at the same mean; 4.5 and 5.0 identical). HybridGI follows 4.5+ (its 4.2 render
+#: is within 0.0004 of its 5.0 one): the comparisons with Cycles run there.
+CYCLES_NORMAL_MAPS = pytest.mark.skipif(blender_compat.blender_version() < (4, 5),
+                                        reason="Cycles before 4.5 shades normal maps otherwise (7.6% rel L1)")
+
+
 @pytest.mark.blender
 @pytest.mark.slow
+@CYCLES_NORMAL_MAPS
 @pytest.mark.parametrize("scene", ["ridges", "bumps"])
 def test_normal_mapped_planes_and_sphere_match_cycles(scene, request, tmp_path):
     blend = request.getfixturevalue(scene)
@@ -490,6 +498,7 @@ BAKED_COLOUR = textwrap.dedent("""
 
 @pytest.mark.blender
 @pytest.mark.slow
+@CYCLES_NORMAL_MAPS
 def test_normal_map_under_a_baked_colour_keeps_its_map(ridges, tmp_path):
     """A procedural Base Color is baked onto an atlas of the mesh's triangles; the normal map
     keeps reading the mesh's own UVs (`Geometry.normal_uvs`) with its tangents. It was dropped
