@@ -1637,30 +1637,20 @@ def cycles_name_hash(name: str) -> int:
     """Cycles' random id of an object that is no instance: hash_uint2(hash_string(name), 0)
     (util/hash.h: a string hash, then Bob Jenkins' lookup3 final mix)."""
     m = 0xFFFFFFFF
-
-    def rot(x, k):
-        return ((x << k) | (x >> (32 - k))) & m
-
     h = 0
     for ch in name.encode():
         h = (h * 37 + ch) & m
-    a = b = c = (0xDEADBEEF + (2 << 2) + 13) & m
-    a = (a + h) & m
-    c ^= b
-    c = (c - rot(b, 14)) & m
-    a ^= c
-    a = (a - rot(c, 11)) & m
-    b ^= a
-    b = (b - rot(a, 25)) & m
-    c ^= b
-    c = (c - rot(b, 16)) & m
-    a ^= c
-    a = (a - rot(c, 4)) & m
-    b ^= a
-    b = (b - rot(a, 14)) & m
-    c ^= b
-    c = (c - rot(b, 24)) & m
-    return c
+    seed = (0xDEADBEEF + (2 << 2) + 13) & m
+    state = {"a": (seed + h) & m, "b": seed, "c": seed}
+    # lookup3's final(a, b, c): x ^= y; x -= rot(y, k) for each (x, y, k) in turn.
+    for x, y, k in _LOOKUP3_FINAL:
+        v = state[y]
+        state[x] = ((state[x] ^ v) - (((v << k) | (v >> (32 - k))) & m)) & m
+    return state["c"]
+
+
+_LOOKUP3_FINAL = (("c", "b", 14), ("a", "c", 11), ("b", "a", 25), ("c", "b", 16), ("a", "c", 4), ("b", "a", 14),
+                  ("c", "b", 24))
 
 
 #: bake_id -> the jobs a baked material was made of (the viewport re-bakes edited materials).
