@@ -1756,7 +1756,12 @@ class _TextureCache:
         if key not in self._images:
             self._images[key] = read_image(image)
             if self._images[key] is None:
-                log.warning("material %r: image %r could not be read; using the base colour", material_name, key)
+                # A file that is gone (a .blend moved away from its textures, a path of another
+                # machine): Cycles reads it as its missing-texture magenta, opaque, and shows the
+                # artist that colour; so does this reader (it used the base colour before).
+                log.warning("material %r: image %r (%s) could not be read; it is Cycles' missing-texture magenta",
+                            material_name, key, image.filepath or "no file")
+                self._images[key] = (np.tile(MISSING_TEXTURE, (2, 2, 1)), None)
         return self._images[key]
 
     def get(self, image, material_name):
