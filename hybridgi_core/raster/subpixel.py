@@ -539,14 +539,23 @@ class FilmAccumulator:
 def _divide_even(light: np.ndarray, color: np.ndarray, count: int) -> np.ndarray:
     """light / color per channel, as Cycles' `safe_divide_even_color`: a channel whose colour is 0
     takes the mean ratio of the pixel's other channels, a black pixel 0. Alpha: the average."""
-    out = np.zeros(light.shape, np.float32)
-    c = color[..., :3]
-    ok = c > 0
-    ratio = np.divide(light[..., :3], c, out=np.zeros(c.shape, np.float32), where=ok)
-    valid = ok.sum(axis=-1, keepdims=True, dtype=np.float32)
-    mean = np.divide(ratio.sum(axis=-1, keepdims=True), valid, out=np.zeros(valid.shape, np.float32),
-                     where=valid > 0)
-    out[..., :3] = np.where(ok, ratio, mean)
+    # Channel by channel on contiguous planes: reductions over a last axis of 3 and strided
+    # (h, w, 3)-of-4 views cost ~20 ms per pass at 640x360; the same float32 sums in the same order.
+    n = light.shape[0] * light.shape[1]
+    flat_light = light.reshape(n, light.shape[-1])
+    flat_color = color.reshape(n, color.shape[-1])
+    ok = [flat_color[:, k] > 0 for k in range(3)]
+    ratio = [np.zeros(n, np.float32) for _ in range(3)]
+    total = np.zeros(n, np.float32)
+    valid = np.zeros(n, np.float32)
+    for k in range(3):
+        np.divide(flat_light[:, k], flat_color[:, k], out=ratio[k], where=ok[k])
+        total += ratio[k]
+        valid += ok[k]
+    mean = np.divide(total, valid, out=np.zeros(n, np.float32), where=valid > 0)
+    out = np.zeros((n, light.shape[-1]), np.float32)
+    for k in range(3):
+        out[:, k] = np.where(ok[k], ratio[k], mean)
     if light.shape[-1] > 3:
-        out[..., 3:] = light[..., 3:] / np.float32(count)
-    return out
+        out[:, 3:] = flat_light[:, 3:] / np.float32(count)
+    return out.reshape(light.shape)
