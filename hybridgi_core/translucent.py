@@ -49,16 +49,25 @@ def pixel_shares(table: np.ndarray | None, material: np.ndarray) -> np.ndarray |
     return out if out.any() else None
 
 
+def lit_from_behind(shares: np.ndarray | None) -> np.ndarray:
+    """(k,) the receivers of shares (n, 3) (None: none) with some translucent share."""
+    if shares is None:
+        return np.zeros(0, np.intp)
+    return np.flatnonzero(shares.max(axis=1) > 0)
+
+
+def blend(front: np.ndarray, back: np.ndarray, share: np.ndarray) -> np.ndarray:
+    """(1 - t) front + t back, float32 (t broadcast over the light's trailing axes)."""
+    return ((1.0 - share) * front + share * np.asarray(back, np.float32)).astype(np.float32)
+
+
 def mix_back(front: np.ndarray, shares: np.ndarray | None, back_light) -> np.ndarray:
     """(n, 3) the lamp irradiance (1 - t) front + t back at n receivers of shares t (n, 3) (None:
     `front` as it is). back_light(rows) -> (k, 3) the lamps' light on the back of the receivers
     `rows` (k,) (their normals flipped), called only for those with some t > 0."""
-    if shares is None:
-        return front
-    rows = np.flatnonzero(shares.max(axis=1) > 0)
+    rows = lit_from_behind(shares)
     if rows.size == 0:
         return front
     out = np.array(front, np.float32, copy=True)
-    t = shares[rows]
-    out[rows] = (1.0 - t) * out[rows] + t * np.asarray(back_light(rows), np.float32)
+    out[rows] = blend(out[rows], back_light(rows), shares[rows])
     return out

@@ -427,18 +427,23 @@ class FramePipeline:
                                                frame, self.direct_samples, camera=camera,
                                                pool=system.updater.pool, lamps=lamps,
                                                smooth=s_full, per_lamp=shares, rough=rough)[0]
-        if translucent is not None:
-
-            def back(rows):
-                flipped = -n_full[rows]
-                return adaptive_direct(system.direct, p_full[rows], flipped, pix_full[rows],
-                                       (self.height, self.width), frame + translucent_mod.BACK_SEED_OFFSET,
-                                       self.direct_samples, camera=camera, pool=system.updater.pool, lamps=lamps,
-                                       smooth=None if s_full is None else -s_full[rows],
-                                       rough=rough_lights(system.scene.lights, p_full[rows], flipped) if lamps > 1
-                                       else None)[0]
-
-            direct[pix_full, :3] = translucent_mod.mix_back(direct[pix_full, :3], translucent[pix_full], back)
+        t_full = None if translucent is None else translucent[pix_full]
+        rows = translucent_mod.lit_from_behind(t_full)
+        if rows.size:
+            # The lamps on the back of the translucent pixels, each lamp's share too (the
+            # subframes' light edges replace a lamp's share by their own mixed light).
+            flipped = -n_full[rows]
+            back_shares = None if shares is None else np.zeros((rows.size, lamps, 3), np.float32)
+            back = adaptive_direct(system.direct, p_full[rows], flipped, pix_full[rows], (self.height, self.width),
+                                   frame + translucent_mod.BACK_SEED_OFFSET, self.direct_samples, camera=camera,
+                                   pool=system.updater.pool, lamps=lamps,
+                                   smooth=None if s_full is None else -s_full[rows], per_lamp=back_shares,
+                                   rough=rough_lights(system.scene.lights, p_full[rows], flipped) if lamps > 1
+                                   else None)[0]
+            t = t_full[rows]
+            direct[pix_full[rows], :3] = translucent_mod.blend(direct[pix_full[rows], :3], back, t)
+            if shares is not None:
+                shares[rows] = translucent_mod.blend(shares[rows], back_shares, t[:, None, :])
         lamp_light = None
         if shares is not None:
             lamp_light = np.zeros((self.height * self.width, lamps, 3), np.float32)
