@@ -370,6 +370,7 @@ class _SnapshotBuilder:
         self._bakes = []  # (material index, bpy material, [BakeJob])
         self._atlas_meshes = {}  # (mesh pointer, baked slots) -> _LocalMesh with atlas UVs
         self._variants = {}  # (material, mesh pointer, slot) -> the Object Info value sets baked
+        self._object_outputs = {}  # material name -> `object_info_outputs`, read once per sync
         self._variant_warned = set()
         self.without_material = set()  # object names (Cycles gives them a glossy default)
         self.collection_flags = collection_flags or {}
@@ -600,8 +601,11 @@ class _SnapshotBuilder:
         """Index of `material` on the triangles of `slot` of this mesh, its bake queued; one per
         set of the object's Object Info values where the material reads them (`object_values`:
         up to MAX_OBJECT_VARIANTS per mesh slot, further objects share the nearest one's)."""
-        values = object_values(instance, object_info_outputs(material)) if instance is not None else None
         base = (material.name_full, obj.data.as_pointer(), slot)
+        outputs = self._object_outputs.get(base[0])
+        if outputs is None:
+            outputs = self._object_outputs[base[0]] = object_info_outputs(material)
+        values = object_values(instance, outputs) if instance is not None else None
         if values is not None:
             values = self._object_variant(base, values, material.name)
         key = base + (None if values is None else tuple(sorted((k, repr(v)) for k, v in values.items())),)
@@ -1598,8 +1602,9 @@ def bake_sockets(material) -> list[tuple[str, str]]:
 
 #: Object Info value sets baked per mesh slot of a material that reads them (`_object_variant`).
 MAX_OBJECT_VARIANTS = 16
-#: Object Info outputs `object_values` gives (the rest are not per object, or are not read).
-OBJECT_INFO_OUTPUTS = ("Location", "Color", "Alpha", "Object Index", "Material Index", "Random")
+#: Object Info outputs `object_values` gives (the rest are not per object: the bake's copy of the
+#: material has the same Material Index).
+OBJECT_INFO_OUTPUTS = ("Location", "Color", "Alpha", "Object Index", "Random")
 
 
 def object_info_outputs(material) -> frozenset:

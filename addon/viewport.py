@@ -491,7 +491,7 @@ class ViewportSession:
                 if d_position.shape[:2] == (gbuf.height, gbuf.width):
                     direct_material = gpu_state.pipeline.gbuffer.read("material")[..., 0]
                 elif gpu_state.direct_down is not None:
-                    direct_material = gpu_state.direct_down.read("material")[..., 0].copy()
+                    direct_material = gpu_state.direct_down.read("material")[..., 0]
                 else:
                     direct_material = material
             if any(getattr(m, "specular", None) is not None for m in materials):
