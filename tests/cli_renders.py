@@ -19,6 +19,15 @@ QUICK = ("--set", "warmup_iterations=2", "--set", "resolution=12", "--set", "ray
 CYCLES = ("--engine", "CYCLES", "--samples", "64", "--set", "cycles.use_denoising=true")
 
 
+def run_bpy(script: str, *argv: str, **replace: str) -> None:
+    """Run bpy code in a subprocess of this environment's Python (its own bpy: the test process's
+    scene stays as it is), its `sys.argv` ending in argv; each KEY=value of `replace` substitutes
+    repr(value) for KEY in the code (a path the script saves to). Fails the test if it fails."""
+    for key, value in replace.items():
+        script = script.replace(key, repr(value))
+    subprocess.run([sys.executable, "-c", script, *argv], check=True, capture_output=True, timeout=300)
+
+
 def cornell_variants(out: Path, script: str) -> Path:
     """Build the Cornell box into `out`, then run `script` (bpy code; `src` names the box's file,
     `out` the folder) in a bpy subprocess that saves its variants there: the user's files and the

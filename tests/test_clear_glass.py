@@ -11,8 +11,6 @@ noise: sunlight through glass reaches a diffuse wall only along paths Cycles can
 
 from __future__ import annotations
 
-import subprocess
-import sys
 import textwrap
 
 import numpy as np
@@ -21,7 +19,7 @@ import pytest
 from hybridgi_core.cutout import Cutouts
 from hybridgi_core.snapshot import Material, concat_geometry, geometry_from_arrays
 from hybridgi_core.trace.embree import EmbreeTracer
-from tests.cli_renders import CYCLES, QUICK, layer, rendered
+from tests.cli_renders import CYCLES, QUICK, layer, rendered, run_bpy
 
 RES = "96x54"
 
@@ -125,7 +123,7 @@ def test_rays_pass_clear_materials_and_stop_on_the_others():
 @pytest.fixture(scope="module")
 def rooms(tmp_path_factory):
     out = tmp_path_factory.mktemp("clear_glass")
-    subprocess.run([sys.executable, "-c", SCENES.replace("OUT", repr(str(out)))], check=True, capture_output=True)
+    run_bpy(SCENES, OUT=str(out))
     return out
 
 

@@ -7,14 +7,12 @@ random red-to-blue tint came out one purple (320x180 against Cycles 64 spp: Comb
 
 from __future__ import annotations
 
-import subprocess
-import sys
 import textwrap
 
 import numpy as np
 import pytest
 
-from tests.cli_renders import CYCLES, QUICK, layer, rendered
+from tests.cli_renders import CYCLES, QUICK, layer, rendered, run_bpy
 
 RES = "96x54"
 
@@ -73,7 +71,7 @@ SCENE = textwrap.dedent("""
 @pytest.fixture(scope="module")
 def tinted(tmp_path_factory):
     out = tmp_path_factory.mktemp("object_info") / "tinted.blend"
-    subprocess.run([sys.executable, "-c", SCENE.replace("OUT", repr(str(out)))], check=True, capture_output=True)
+    run_bpy(SCENE, OUT=str(out))
     return out
 
 

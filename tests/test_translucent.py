@@ -6,8 +6,6 @@ light was not rendered): sunlit leaves over a ground, 320x180 against Cycles 256
 
 from __future__ import annotations
 
-import subprocess
-import sys
 import textwrap
 
 import numpy as np
@@ -15,7 +13,7 @@ import pytest
 
 from hybridgi_core import surface_mix, translucent
 from hybridgi_core.snapshot import Material
-from tests.cli_renders import CYCLES, QUICK, layer, rendered
+from tests.cli_renders import CYCLES, QUICK, layer, rendered, run_bpy
 
 RES = "64x36"
 
@@ -96,7 +94,7 @@ def test_back_light_mixes_by_share_and_only_where_needed():
 @pytest.fixture(scope="module")
 def planes(tmp_path_factory):
     out = tmp_path_factory.mktemp("translucent")
-    subprocess.run([sys.executable, "-c", SCENES.replace("OUT", repr(str(out)))], check=True, capture_output=True)
+    run_bpy(SCENES, OUT=str(out))
     return out
 
 
