@@ -734,7 +734,24 @@ def material_from_blender(material, textures=None, baked=None, pending=False):
                          emission=part.emission.astype(np.float32), alpha=part.alpha, specular=specular,
                          normal_map=part.normal, emission_texture=part.emission_texture,
                          metallic_map=part.metallic_map if part.layer is not None else None,
-                         shadow_transparent=shadow_transparent, translucent=part.translucent)
+                         shadow_transparent=shadow_transparent, translucent=part.translucent, sheen=part.sheen,
+                         sheen_roughness=part.sheen_roughness, sheen_layered=part.sheen_layered)
+
+
+def _principled_sheen(shader, name) -> tuple[np.ndarray | None, float]:
+    """((3,) a Principled BSDF's sheen colour, Sheen Weight x Sheen Tint, or None; its Sheen
+    Roughness), from the sockets' constants (`_constant_value` notes a linked one)."""
+    weight_socket = _input(shader, "Sheen Weight")
+    if weight_socket is None:
+        return None, 0.5
+    weight = float(np.clip(_constant_value(weight_socket, name), 0.0, None))
+    if weight <= 0:
+        return None, 0.5
+    tint = _input(shader, "Sheen Tint")
+    colour = _constant_color(tint, name) if tint is not None else np.ones(3)
+    roughness = _input(shader, "Sheen Roughness")
+    rough = _constant_value(roughness, name) if roughness is not None else 0.5
+    return (weight * np.asarray(colour, np.float64)).astype(np.float32), float(rough)
 
 
 def _shadow_ray_mix(shader):
@@ -789,12 +806,14 @@ def _shader_surface(shader, textures, name, depth=0):
         alpha_socket = shader.inputs["Alpha"]
         opacity = 1.0 if alpha_socket.is_linked else float(np.clip(_constant_value(alpha_socket, name), 0.0, 1.0))
         clear = (1.0 - opacity) + opacity * float(np.clip(transmission, 0, 1)) * (1.0 - float(np.clip(metallic, 0, 1)))
+        sheen_colour, sheen_roughness = _principled_sheen(shader, name)
         return surface_mix.SurfacePart(base=base, texture=texture, emission=emission, emission_texture=glow,
                                        alpha=_alpha_map(alpha_socket, textures, name), diffuse=diffuse,
                                        lobes=sp.layer_lobes(layer), layer=layer,
                                        normal=_normal_map(shader, textures, name),
                                        metallic_map=None if metallic_map is None else metallic_map[..., 0],
-                                       clear=clear)
+                                       clear=clear, sheen=sheen_colour, sheen_roughness=sheen_roughness,
+                                       sheen_layered=True)
     if kind == "BSDF_DIFFUSE":
         base, texture = _color_socket(shader.inputs["Color"], textures, name)
         return surface_mix.SurfacePart(base=base, texture=texture, normal=_normal_map(shader, textures, name))
@@ -816,6 +835,29 @@ def _shader_surface(shader, textures, name, depth=0):
         base, texture = _color_socket(shader.inputs["Color"], textures, name)
         return surface_mix.SurfacePart(base=base, texture=texture, normal=_normal_map(shader, textures, name),
                                        translucent=np.ones(3, np.float32))
+    if kind == "BSDF_TOON":
+        # Cycles' Toon closures are a diffuse (Diffuse passes) or a glossy one whose lobe is a
+        # cone of `Size` x 90 degrees: rendered as a Diffuse BSDF or a GGX lobe of that roughness.
+        notes = []
+        colour = _mean_colour_input(shader.inputs["Color"], textures, name, shader, notes)
+        size = float(np.clip(_constant_value(shader.inputs["Size"], name), 0.0, 1.0))
+        _note(textures, name, shader, ", ".join([*notes, "Toon BSDF (its light is rendered as a smooth diffuse or "
+                                                 "glossy closure's, without the toon steps)"]))
+        if getattr(shader, "component", "DIFFUSE") == "GLOSSY":
+            return surface_mix.SurfacePart(lobes=[sp.GlossyLobe(weight=np.maximum(colour, 0.0), roughness=max(size, 0.05),
+                                                                 distribution="GGX", fresnel="none")])
+        return surface_mix.SurfacePart(base=np.asarray(colour, np.float32), normal=_normal_map(shader, textures, name))
+    if kind == "BSDF_SHEEN":
+        # A diffuse closure weighted by the sheen lobe's albedo at the view angle (`sheen.py`).
+        notes = []
+        colour = _mean_colour_input(shader.inputs["Color"], textures, name, shader, notes)
+        if getattr(shader, "distribution", "MICROFIBER") != "MICROFIBER":
+            notes.append("Ashikhmin velvet (rendered as Microfiber)")
+        if notes:
+            _note(textures, name, shader, ", ".join(notes))
+        return surface_mix.SurfacePart(base=zero, sheen=np.asarray(colour, np.float32),
+                                       sheen_roughness=_roughness(shader, textures, name),
+                                       normal=_normal_map(shader, textures, name))
     if kind == "HOLDOUT":
         return surface_mix.SurfacePart(base=zero)
     if kind in ("MIX_SHADER", "ADD_SHADER") and depth < 8:
@@ -1083,7 +1125,7 @@ def _note_approximations(shader, textures, name, metallic, transmission, coat):
     notes = []
     if coat > 0:
         notes.append("coat (only its tint: its reflection and layering are not rendered)")
-    for socket, note in (("Sheen Weight", "sheen (not rendered)"), ("Anisotropic", "anisotropy (rendered isotropic)")):
+    for socket, note in (("Anisotropic", "anisotropy (rendered isotropic)"),):
         value = _input(shader, socket)
         if value is not None and _constant_value(value, name) > 0:
             notes.append(note)

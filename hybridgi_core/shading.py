@@ -18,6 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from . import sheen
 from .blocks import for_blocks
 from .bump import map_bend_factor
 from .emitters import MeshLights
@@ -108,8 +109,9 @@ class SurfaceTable:
         # with (`bump.map_bend_factor`): their hits' whole brdf is scaled by that share.
         self.bend = np.array([map_bend_factor(m.normal_map) for m in materials], np.float32).reshape(-1)
         self.bends = bool((self.bend < 1.0).any())
-        self.glossy = np.array([hemispherical_glossy_albedo(m.specular, self.filter_glossy) for m in materials],
-                               np.float32).reshape(-1, 3)
+        # A sheen's colour joins them the same way (untextured, its hemispherical mean albedo).
+        self.glossy = np.array([hemispherical_glossy_albedo(m.specular, self.filter_glossy) + sheen.hit_albedo(m)
+                                for m in materials], np.float32).reshape(-1, 3)
         if self.bends:
             self.glossy *= self.bend[:, None]
             weight = weight * self.bend[:, None]

@@ -13,6 +13,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from . import sheen
 from .blocks import for_blocks
 from .errors import EmptySceneError, InvalidGeometryError
 from .specular import GlossySurface, SpecularLayer, hemispherical_diffuse_weight, hemispherical_glossy_albedo
@@ -207,6 +208,13 @@ class Material:
     #: (3,) per channel, the share of the diffuse colour that is a Translucent BSDF's (lit from
     #: behind: Cycles counts it in the Diffuse passes), or None (all of it reflects)
     translucent: np.ndarray | None = None
+    #: (3,) the colour of a Sheen closure (a Sheen BSDF's, a Principled BSDF's sheen weight x
+    #: tint), or None: its light is diffuse light weighted by the sheen's directional albedo at
+    #: the view angle (`sheen.py`); `sheen_roughness` its roughness, `sheen_layered` whether it
+    #: lies over the base as a Principled BSDF's layer (the base then weighted 1 - max(sheen) A)
+    sheen: np.ndarray | None = None
+    sheen_roughness: float = 0.5
+    sheen_layered: bool = False
 
     def __post_init__(self) -> None:
         # Non-finite colours would reach every pixel that sees (or bounces off) this material.
@@ -214,6 +222,10 @@ class Material:
         if self.translucent is not None:
             share = np.clip(np.nan_to_num(np.asarray(self.translucent, np.float32).reshape(-1)[:3], nan=0.0), 0.0, 1.0)
             self.translucent = share if share.size == 3 and share.any() else None
+        if self.sheen is not None:
+            colour = np.clip(np.nan_to_num(np.asarray(self.sheen, np.float32).reshape(-1)[:3], nan=0.0), 0.0, None)
+            self.sheen = colour if colour.size == 3 and colour.any() else None
+        self.sheen_roughness = float(np.clip(np.nan_to_num(self.sheen_roughness, nan=0.5), 0.0, 1.0))
         self.emission = _finite_color(self.emission, 0.0, f"material {self.name!r} emission")
         if self.texture is not None:
             self.texture = fit_texture(self.texture, MAX_TEXTURE_SIZE, f"material {self.name!r}")
@@ -237,7 +249,7 @@ class Material:
     def hit_diffuse_weight(self) -> float:
         """Share of the diffuse base a probe-ray hit reflects under the specular layer (its
         cosine-weighted mean over the hemisphere; 1 without a layer)."""
-        return hemispherical_diffuse_weight(self.specular)
+        return hemispherical_diffuse_weight(self.specular) * sheen.hit_weight(self)
 
     @property
     def hit_glossy_albedo(self) -> np.ndarray:

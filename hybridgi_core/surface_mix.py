@@ -19,6 +19,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from . import sheen
 from . import specular as sp
 
 log = logging.getLogger(__name__)
@@ -40,7 +41,10 @@ class SurfacePart:
     that passes straight through (a Transparent BSDF's 1, glass's, a Principled BSDF's
     transmission), mixed by the cosine-weighted mean of each part's weight; translucent : (3,)
     per channel the share of the diffuse colour that is lit from behind (a Translucent BSDF's 1),
-    or None (0), mixed by each part's share of the diffuse light.
+    or None (0), mixed by each part's share of the diffuse light; sheen : (3,) a Sheen closure's
+    colour or None, `sheen_roughness` its roughness and `sheen_layered` whether it lies over the
+    part's base (a Principled BSDF's: `sheen.py`), mixed by the cosine-weighted mean of each
+    part's weight (a layered sheen's weight on its base folded into the mixed diffuse weight).
     """
 
     base: np.ndarray = field(default_factory=lambda: np.zeros(3, np.float32))
@@ -55,10 +59,21 @@ class SurfacePart:
     metallic_map: np.ndarray | None = None
     clear: float = 0.0
     translucent: np.ndarray | None = None
+    sheen: np.ndarray | None = None
+    sheen_roughness: float = 0.5
+    sheen_layered: bool = False
 
     def diffuse_table(self) -> np.ndarray:
         """(V,) the diffuse weight over `specular.view_grid`."""
         return np.ones(sp.VIEW_SAMPLES) if self.diffuse is None else sp.sample_view(self.diffuse, sp.view_grid())
+
+    def base_table(self) -> np.ndarray:
+        """(V,) the base's diffuse weight over `specular.view_grid`, a layered sheen's share on it
+        included (`sheen.weight_row`'s red)."""
+        table = self.diffuse_table()
+        if self.sheen is None or not self.sheen_layered:
+            return table
+        return table * sheen.weight_row(self, sp.view_grid())[:, 0]
 
     def mean_colour(self) -> np.ndarray:
         """(3,) the diffuse colour (base times its texture's mean)."""
@@ -135,7 +150,7 @@ def mix(parts: list[SurfacePart], weights: list[np.ndarray], name: str = "") -> 
     texture = parts[max(textured, key=lambda i: float(weights[i].mean()))].texture if textured else None
     mean = texture.reshape(-1, 3).mean(axis=0) if texture is not None else np.ones(3)
     colours = [part.base if part.texture is texture else part.mean_colour() / np.maximum(mean, 1e-6) for part in parts]
-    light = sum(w[:, None] * part.diffuse_table()[:, None] * np.asarray(c, np.float64)[None, :]
+    light = sum(w[:, None] * part.base_table()[:, None] * np.asarray(c, np.float64)[None, :]
                 for part, w, c in zip(parts, weights, colours, strict=True))  # (V, 3)
     base = _cosine_mean(light)
     brightness = light.mean(axis=1)
@@ -150,12 +165,13 @@ def mix(parts: list[SurfacePart], weights: list[np.ndarray], name: str = "") -> 
     translucent = None
     if any(part.translucent is not None for part in parts):
         # Per channel, the translucent parts' share of the mixed diffuse light (cosine means).
-        each = [_cosine_mean(w * part.diffuse_table())[()] * np.asarray(c, np.float64) for part, w, c in
+        each = [_cosine_mean(w * part.base_table())[()] * np.asarray(c, np.float64) for part, w, c in
                 zip(parts, weights, colours, strict=True)]
         back = sum(e * (0.0 if part.translucent is None else np.asarray(part.translucent, np.float64))
                    for part, e in zip(parts, each, strict=True))
         total = sum(each)
         translucent = np.divide(back, total, out=np.zeros(3), where=total > 0).astype(np.float32)
+    sheen_colour, sheen_roughness = _mixed_sheen(parts, weights)
     emission = sum(float(_cosine_mean(w)) * part.emission for part, w in zip(parts, weights, strict=True))
     clear = sum(float(_cosine_mean(w)) * part.clear for part, w in zip(parts, weights, strict=True))
     glow = _mixed_emission_texture(parts, weights, notes)
@@ -169,8 +185,22 @@ def mix(parts: list[SurfacePart], weights: list[np.ndarray], name: str = "") -> 
         notes.append("closures with different normal inputs mixed (one normal map kept for all)")
     part = SurfacePart(base=np.asarray(base, np.float32), texture=texture, emission=np.asarray(emission, np.float32),
                        alpha=alpha, diffuse=None if np.allclose(diffuse, 1.0) else diffuse, lobes=lobes, normal=normal,
-                       emission_texture=glow, clear=float(np.clip(clear, 0.0, 1.0)), translucent=translucent)
+                       emission_texture=glow, clear=float(np.clip(clear, 0.0, 1.0)), translucent=translucent,
+                       sheen=sheen_colour, sheen_roughness=sheen_roughness)
     return part, notes
+
+
+def _mixed_sheen(parts: list[SurfacePart], weights: list[np.ndarray]) -> tuple[np.ndarray | None, float]:
+    """((3,) the mixed sheen colour or None, its roughness): each part's sheen colour times the
+    cosine-weighted mean of its weight, the roughness the mean of theirs weighted by it."""
+    each = [(float(_cosine_mean(w)) * np.asarray(part.sheen, np.float64), part.sheen_roughness)
+            for part, w in zip(parts, weights, strict=True) if part.sheen is not None]
+    colour = sum((c for c, _ in each), np.zeros(3))
+    strength = [float(c.max()) for c, _ in each]
+    if not each or sum(strength) <= 0:
+        return None, 0.5
+    roughness = sum(s * r for s, (_, r) in zip(strength, each, strict=True)) / sum(strength)
+    return colour.astype(np.float32), float(roughness)
 
 
 def _mixed_emission_texture(parts: list[SurfacePart], weights: list[np.ndarray], notes: list[str]) -> np.ndarray | None:

@@ -591,6 +591,10 @@ def test_principled_specular_layers_are_read_and_approximations_named_once(bpy_m
     assert layers["default"] is not None and layers["default"].active  # Blender's default surface
     notes = [r.getMessage() for r in caplog.records if "approximated" in r.getMessage()]
     assert len(notes) == 1, notes
-    assert "'coated'" in notes[0] and "coat" in notes[0] and "sheen" in notes[0] and "'Principled BSDF'" in notes[0]
+    assert "'coated'" in notes[0] and "coat" in notes[0] and "'Principled BSDF'" in notes[0]
+    assert "sheen" not in notes[0]  # rendered (`sheen.py`)
     assert "shiny" not in notes[0] and "matte" not in notes[0]
+    coated_material = next(m for m in snap.materials if m.name == "coated")
+    np.testing.assert_allclose(coated_material.sheen, 0.2)
+    assert coated_material.sheen_layered
     assert not [r for r in caplog.records if "lacks the glossy part" in r.getMessage()]

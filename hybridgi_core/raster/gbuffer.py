@@ -27,6 +27,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .. import sheen
 from ..specular import WEIGHT_SAMPLES, diffuse_weight_row
 from .glsl import ShaderSpec, load_glsl
 from .passes import (
@@ -157,12 +158,16 @@ def camera_eye(view: np.ndarray, proj: np.ndarray) -> tuple:
 
 
 def weight_table(materials) -> np.ndarray:
-    """(n_materials, WEIGHT_SAMPLES, 4) float32: row m holds material m's diffuse weight under its
-    specular layer at cosines i / (WEIGHT_SAMPLES - 1) (1 without a layer), in red."""
-    rows = [diffuse_weight_row(getattr(m, "specular", None)) for m in materials] or [np.ones(WEIGHT_SAMPLES, np.float32)]
-    table = np.ones((len(rows), WEIGHT_SAMPLES, 4), np.float32)
-    table[:, :, 0] = np.stack(rows)
-    return table
+    """(n_materials, WEIGHT_SAMPLES, 4) float32: row m holds, at cosines i / (WEIGHT_SAMPLES - 1)
+    between the normal and the view, the factor on material m's diffuse colour in red (its
+    specular layer's diffuse weight, 1 without one, times a layered sheen's) and the colour its
+    sheen adds in green-blue-alpha (`sheen.weight_row`; zeros without one)."""
+    if not materials:
+        return np.concatenate([np.ones((1, WEIGHT_SAMPLES, 1)), np.zeros((1, WEIGHT_SAMPLES, 3))], -1).astype(np.float32)
+    mu = np.linspace(0.0, 1.0, WEIGHT_SAMPLES)
+    table = np.stack([sheen.weight_row(m, mu) for m in materials])
+    table[:, :, 0] *= np.stack([diffuse_weight_row(getattr(m, "specular", None)) for m in materials])
+    return table.astype(np.float32)
 
 
 class GBufferPass(RasterPass):

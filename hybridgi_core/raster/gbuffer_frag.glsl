@@ -1,8 +1,9 @@
 /* G-buffer MRT. One draw per material: the material's constants are push constants and its
  * texture (or a 1x1 dummy) is `albedo_tx`; `has_texture` bit 1: its rgb is the colour, bit 2:
  * its alpha cuts the surface out below one half (gbuffer.py TEXTURE_COLOR / TEXTURE_ALPHA).
- * `weight_tx` row `material_row` holds the diffuse weight under the material's specular layer
- * against cos(normal, view) (specular.py: Cycles' closure_layering_weight). Bit 4: `normal_tx` is
+ * `weight_tx` row `material_row` holds, against cos(normal, view), the factor on the diffuse
+ * colour under the material's specular layer and sheen (specular.py, sheen.py: Cycles'
+ * closure_layering_weight) in red and the colour its sheen adds in gba. Bit 4: `normal_tx` is
  * a tangent-space normal map, applied in the frame of `world_tan` (xyz tangent, w bitangent sign)
  * as Cycles' Normal Map node applies it (svm_node_normal_map), `normal_strength` its Strength.
  * Bit 8: `bump_tx` (red) is a Bump node's height, applied after the map as Cycles' svm_node_set_bump
@@ -14,14 +15,15 @@
  * before a map or bump bends it (what the CPU takes for the surface: edges, filter guides, ray
  * origins, the bump shadowing term). */
 
-/* The diffuse weight at cosine mu, linear between the table's samples at i / (n - 1). */
-float diffuse_weight(float mu)
+/* The diffuse factor (r) and added sheen colour (gba) at cosine mu, linear between the table's
+ * samples at i / (n - 1). */
+vec4 diffuse_weight(float mu)
 {
   int n = textureSize(weight_tx, 0).x;
   float x = clamp(mu, 0.0, 1.0) * float(n - 1);
   int i0 = min(int(x), n - 2);
-  float a = texelFetch(weight_tx, ivec2(i0, material_row), 0).r;
-  float b = texelFetch(weight_tx, ivec2(i0 + 1, material_row), 0).r;
+  vec4 a = texelFetch(weight_tx, ivec2(i0, material_row), 0);
+  vec4 b = texelFetch(weight_tx, ivec2(i0 + 1, material_row), 0);
   return mix(a, b, x - float(i0));
 }
 
@@ -203,7 +205,8 @@ void main()
   if ((has_texture & 8) != 0 && uv_ok > 0.999) {
     n = valid_reflection(facet, to_eye, bumped_normal(n, dpdx, dpdy, map_du, map_dv));
   }
-  albedo *= diffuse_weight(dot(n, to_eye));
+  vec4 weight = diffuse_weight(dot(n, to_eye));
+  albedo = albedo * weight.r + weight.gba;
   out_albedo = vec4(albedo, 1.0);
   out_normal = vec4(n, 1.0);
   out_position = vec4(world_pos, 1.0);
