@@ -724,7 +724,10 @@ def material_from_blender(material, textures=None, baked=None, pending=False):
         textures.approximated.setdefault(name, set()).add(
             f"lets {part.clear:.0%} of its light through: rendered as clear thin glass (light and the view "
             "pass straight through it, without refraction, reflection or tint)")
-        return snap.Material(name=name, base_color=np.zeros(3, np.float32), clear=True)
+        # Glass (most of the passing light refracted) stops the shadow rays of small lamps, as
+        # Cycles' glass does (`lights.stopped_by_glass`).
+        return snap.Material(name=name, base_color=np.zeros(3, np.float32), clear=True,
+                             refractive=part.refract >= 0.5 * part.clear)
     if part.clear > 0:
         _note(textures, name, shader, f"lets {part.clear:.0%} of its light through (rendered opaque)")
     specular = part.surface()
@@ -782,7 +785,7 @@ def _shader_surface(shader, textures, name, depth=0):
         base, texture = _color_socket(shader.inputs["Base Color"], textures, name)
         metallic_map = _metallic_map(shader, textures, name)
         metallic = (float(metallic_map.mean()) if metallic_map is not None
-                    else _constant_value(shader.inputs["Metallic"], name))
+                    else _scalar_value(shader.inputs["Metallic"], textures, name))
         transmission = _constant_value(_input(shader, "Transmission Weight", "Transmission"), name)
         coat = _constant_value(_input(shader, "Coat Weight"), name) if _input(shader, "Coat Weight") else 0.0
         tint = _constant_color(_input(shader, "Coat Tint"), name) if _input(shader, "Coat Tint") else np.ones(3)
@@ -805,14 +808,16 @@ def _shader_surface(shader, textures, name, depth=0):
         # constant alpha cuts away (an alpha texture cuts holes instead: `alpha`).
         alpha_socket = shader.inputs["Alpha"]
         opacity = 1.0 if alpha_socket.is_linked else float(np.clip(_constant_value(alpha_socket, name), 0.0, 1.0))
-        clear = (1.0 - opacity) + opacity * float(np.clip(transmission, 0, 1)) * (1.0 - float(np.clip(metallic, 0, 1)))
+        refract = opacity * float(np.clip(transmission, 0, 1)) * (1.0 - float(np.clip(metallic, 0, 1)))
+        clear = (1.0 - opacity) + refract
         sheen_colour, sheen_roughness = _principled_sheen(shader, name)
         return surface_mix.SurfacePart(base=base, texture=texture, emission=emission, emission_texture=glow,
                                        alpha=_alpha_map(alpha_socket, textures, name), diffuse=diffuse,
                                        lobes=sp.layer_lobes(layer), layer=layer,
                                        normal=_normal_map(shader, textures, name),
                                        metallic_map=None if metallic_map is None else metallic_map[..., 0],
-                                       clear=clear, sheen=sheen_colour, sheen_roughness=sheen_roughness,
+                                       clear=clear, refract=refract, sheen=sheen_colour,
+                                       sheen_roughness=sheen_roughness,
                                        sheen_layered=True)
     if kind == "BSDF_DIFFUSE":
         base, texture = _color_socket(shader.inputs["Color"], textures, name)
@@ -822,13 +827,14 @@ def _shader_surface(shader, textures, name, depth=0):
         return surface_mix.SurfacePart(emission=emission, emission_texture=glow)
     if kind in ("BSDF_GLOSSY", "BSDF_ANISOTROPIC", "BSDF_METALLIC", "BSDF_GLASS"):
         # Glass transmits what it does not reflect: clear (`snapshot.Material.clear`) on its own.
-        return surface_mix.SurfacePart(lobes=[_glossy_lobe(shader, kind, textures, name)],
-                                       clear=1.0 if kind == "BSDF_GLASS" else 0.0)
+        glass = 1.0 if kind == "BSDF_GLASS" else 0.0
+        return surface_mix.SurfacePart(lobes=[_glossy_lobe(shader, kind, textures, name)], clear=glass,
+                                       refract=glass)
     if kind in ("BSDF_TRANSPARENT", "BSDF_REFRACTION"):
         # Light passes (straight through a Transparent BSDF, refracted through a Refraction BSDF:
         # rendered straight): clear on its own; no diffuse reflection (Cycles' Diffuse Color pass
         # is black there).
-        return surface_mix.SurfacePart(base=zero, clear=1.0)
+        return surface_mix.SurfacePart(base=zero, clear=1.0, refract=1.0 if kind == "BSDF_REFRACTION" else 0.0)
     if kind == "BSDF_TRANSLUCENT":
         # Diffuse light from behind: Cycles counts it in the Diffuse passes (its colour in Diffuse
         # Color); the lamps' light is taken on the back of the surface (`Material.translucent`).
@@ -867,7 +873,11 @@ def _shader_surface(shader, textures, name, depth=0):
 
 #: Scalar inputs of a Principled BSDF that `bake_sockets` bakes when a texture feeds them (the
 #: bake process routes them through a clamped Math node: Blender's own colour-to-float conversion).
-BAKED_SCALARS = {"BSDF_PRINCIPLED": ("Metallic",)}
+#: Roughness fed by nodes (an ORM texture's green through Separate Color, as glTF imports wire it;
+#: a Math or Color Ramp over an image) is baked so that its lobe takes the mean of what Blender
+#: evaluates, not the socket's own value (a glTF import's is its roughness factor, often 1).
+BAKED_SCALARS = {"BSDF_PRINCIPLED": ("Metallic", "Roughness"), "BSDF_GLOSSY": ("Roughness",),
+                 "BSDF_ANISOTROPIC": ("Roughness",), "BSDF_METALLIC": ("Roughness",), "BSDF_GLASS": ("Roughness",)}
 
 
 def _metallic_map(shader, textures, name):
@@ -1143,11 +1153,16 @@ def _note_approximations(shader, textures, name, metallic, transmission, coat):
 
 
 def _roughness(shader, textures, name, default=0.5):
-    """A closure's Roughness: its constant, or the mean of an image it reads directly (a lobe has
-    one roughness: noted), else its own value (`_constant_value` warns)."""
+    """A closure's Roughness: its constant, or the mean of an image it reads directly or of what
+    Blender baked of the nodes feeding it (`BAKED_SCALARS`; a lobe has one roughness: noted),
+    else its own value (`_constant_value` warns)."""
     socket = _input(shader, "Roughness")
     if socket is None:
         return default
+    baked = textures.baked.get((shader.name, socket.identifier))
+    if baked is not None and socket.is_linked:
+        _note(textures, name, shader, "Roughness from a texture (its mean)")
+        return float(np.clip(np.asarray(baked, np.float32)[..., :3].mean(), 0.0, 1.0))
     node, output = _source(socket)
     if node is not None and node.type == "TEX_IMAGE" and output in ("Color", "Alpha"):
         pixels = textures.alpha(node.image, name) if output == "Alpha" else textures.get(node.image, name)
@@ -1155,6 +1170,14 @@ def _roughness(shader, textures, name, default=0.5):
             _note(textures, name, shader, "Roughness from an image (its mean)")
             mean = pixels.mean() if output == "Alpha" else pixels.reshape(-1, 3).mean(axis=0) @ surface_mix.GRAY
             return float(np.clip(mean, 0.0, 1.0))
+    return _scalar_value(socket, textures, name)
+
+
+def _scalar_value(socket, textures, name) -> float:
+    """A float input's constant; one fed by nodes whose bake is on the way (`textures.pending`:
+    the viewport shows the socket's value meanwhile) gives its own value without a warning."""
+    if textures.pending and socket.is_linked and _fold(socket, 0) is None:
+        return float(socket.default_value)
     return _constant_value(socket, name)
 
 

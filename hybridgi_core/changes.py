@@ -226,7 +226,8 @@ def _material_key(material: Material) -> tuple:
     metal_key = None if metal is None else (metal.shape, float(metal.sum(dtype=np.float64)))
     return (material.base_color.tobytes(), material.emission.tobytes(), texture_key, specular, normal_map, glow_key,
             metal_key, getattr(material, "holdout", False), getattr(material, "shadow_transparent", False),
-            getattr(material, "clear", False), _bytes_or_none(getattr(material, "translucent", None)),
+            getattr(material, "clear", False), getattr(material, "refractive", False),
+            _bytes_or_none(getattr(material, "translucent", None)),
             _bytes_or_none(getattr(material, "sheen", None)), getattr(material, "sheen_roughness", 0.5),
             getattr(material, "sheen_layered", False))
 

@@ -40,6 +40,8 @@ class Cutouts:
             # Triangles without a usable UV (NaN) stay solid.
             self._has &= np.isfinite(self._corner_uv).all(axis=(1, 2))
         self._clear = np.isin(self._material, clear) if clear else None
+        glass = [i for i in clear if getattr(materials[i], "refractive", False)]
+        self._glass = np.isin(self._material, glass) if glass else None
 
     @property
     def any(self) -> bool:
@@ -49,6 +51,21 @@ class Cutouts:
     def shadow_any(self) -> bool:
         """Whether any triangle lets shadow rays through."""
         return self._shadow_skip is not None
+
+    @property
+    def glass_any(self) -> bool:
+        """Whether any clear triangle is refractive glass (`Material.refractive`)."""
+        return self._glass is not None
+
+    def shadow_passes_glass(self, prim: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+        """(n,) bool: a shadow ray of a lamp that glass stops passes the hit: a hole or a triangle
+        shadow rays pass (`shadow_transparent`), but not refractive glass. Cycles' shadow rays stop
+        at glass closures, and the light it refracts reaches a diffuse surface only along caustic
+        paths: a sun through a glazed window leaves no sunlit patch at 1024 spp, clamped or not."""
+        passes = self.transparent(prim, u, v)
+        if self._glass is not None:
+            passes &= ~((prim >= 0) & self._glass[np.maximum(prim, 0)])
+        return passes | self.shadow_transparent(prim)
 
     def shadow_transparent(self, prim: np.ndarray) -> np.ndarray:
         """(n,) bool: the hit triangle lets shadow rays through (prim -1: False)."""

@@ -44,6 +44,7 @@ from .lights import (
     shadow_query,
     spot_attenuation,
     spread_attenuation,
+    stopped_by_glass,
     stratified_uv,
     uniform_cone,
 )
@@ -464,10 +465,12 @@ def glossy_direct(lights, points, normals, to_eye, rows, mats: GlossyMaterials, 
                 if ri.size:
                     if targets is not None:
                         t = targets[ri, si].astype(_F32)
-                        vis = _shadow_to_targets(tracer, p32, ncols, ri, t[:, 0], t[:, 1], t[:, 2], epsilon)
+                        vis = _shadow_to_targets(tracer, p32, ncols, ri, t[:, 0], t[:, 1], t[:, 2], epsilon,
+                                                 stopped_by_glass(light))
                     else:
                         origins = (p[ri] + n[ri] * epsilon).astype(_F32)
-                        vis = ~np.asarray(shadow_query(tracer)(origins, d32[ri, si], np.inf, trusted=True), bool)
+                        vis = ~np.asarray(shadow_query(tracer, stopped_by_glass(light))(
+                            origins, d32[ri, si], np.inf, trusted=True), bool)
                     w32 = w32.copy()
                     w32[ri[~vis], si[~vis]] = 0.0
             lum = np.zeros(w32.shape, _F32) if variance is not None else None

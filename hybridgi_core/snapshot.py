@@ -205,6 +205,10 @@ class Material:
     #: transmission, a constant alpha under ALPHA_CUTOFF): rendered as clear thin glass, a hole
     #: for the camera and for every ray (`cutout.py`), with no refraction and no reflection
     clear: bool = False
+    #: a clear material whose light passes by refraction (glass, a Principled BSDF's transmission,
+    #: a Refraction BSDF), not a Transparent BSDF's or an alpha's: Cycles' shadow rays stop at it,
+    #: so the sun and point / spot lamps do not shine through it (`cutout.Cutouts.glass`)
+    refractive: bool = False
     #: (3,) per channel, the share of the diffuse colour that is a Translucent BSDF's (lit from
     #: behind: Cycles counts it in the Diffuse passes), or None (all of it reflects)
     translucent: np.ndarray | None = None

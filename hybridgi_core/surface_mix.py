@@ -39,7 +39,8 @@ class SurfacePart:
     Principled BSDF's Metallic per texel of `texture`'s UVs (`snapshot.Material.metallic_map`),
     dropped once the part is mixed (its mean stays in the lobes); clear : the share of the light
     that passes straight through (a Transparent BSDF's 1, glass's, a Principled BSDF's
-    transmission), mixed by the cosine-weighted mean of each part's weight; translucent : (3,)
+    transmission), mixed by the cosine-weighted mean of each part's weight; refract : the share
+    of it that passes by refraction (glass, transmission, a Refraction BSDF), mixed alike; translucent : (3,)
     per channel the share of the diffuse colour that is lit from behind (a Translucent BSDF's 1),
     or None (0), mixed by each part's share of the diffuse light; sheen : (3,) a Sheen closure's
     colour or None, `sheen_roughness` its roughness and `sheen_layered` whether it lies over the
@@ -58,6 +59,7 @@ class SurfacePart:
     emission_texture: np.ndarray | None = None
     metallic_map: np.ndarray | None = None
     clear: float = 0.0
+    refract: float = 0.0
     translucent: np.ndarray | None = None
     sheen: np.ndarray | None = None
     sheen_roughness: float = 0.5
@@ -174,6 +176,7 @@ def mix(parts: list[SurfacePart], weights: list[np.ndarray], name: str = "") -> 
     sheen_colour, sheen_roughness = _mixed_sheen(parts, weights)
     emission = sum(float(_cosine_mean(w)) * part.emission for part, w in zip(parts, weights, strict=True))
     clear = sum(float(_cosine_mean(w)) * part.clear for part, w in zip(parts, weights, strict=True))
+    refract = sum(float(_cosine_mean(w)) * part.refract for part, w in zip(parts, weights, strict=True))
     glow = _mixed_emission_texture(parts, weights, notes)
     alpha = next((part.alpha for part in parts if part.alpha is not None), None)
     # One shading normal per material: the normal map of the part weighing most (Cycles bends
@@ -185,7 +188,8 @@ def mix(parts: list[SurfacePart], weights: list[np.ndarray], name: str = "") -> 
         notes.append("closures with different normal inputs mixed (one normal map kept for all)")
     part = SurfacePart(base=np.asarray(base, np.float32), texture=texture, emission=np.asarray(emission, np.float32),
                        alpha=alpha, diffuse=None if np.allclose(diffuse, 1.0) else diffuse, lobes=lobes, normal=normal,
-                       emission_texture=glow, clear=float(np.clip(clear, 0.0, 1.0)), translucent=translucent,
+                       emission_texture=glow, clear=float(np.clip(clear, 0.0, 1.0)),
+                       refract=float(np.clip(refract, 0.0, 1.0)), translucent=translucent,
                        sheen=sheen_colour, sheen_roughness=sheen_roughness)
     return part, notes
 

@@ -315,6 +315,33 @@ def test_an_emission_image_is_read_directly_times_the_strength(bpy_module, empty
     np.testing.assert_allclose(got.emission, [2.0, 0.0, 2.0], rtol=1e-6)
 
 
+def test_a_roughness_through_separate_color_is_baked_and_its_mean_taken(bpy_module, empty_scene, sync,
+                                                                          material_bake, cache_home):
+    """An ORM texture's green through Separate Color into Roughness (as glTF imports wire it):
+    the lobe's roughness is the mean of what Blender evaluates (0.3 and 0.7 halves: 0.5), not
+    the socket's own value (1, a glTF import's roughness factor)."""
+    bpy = bpy_module
+    image = bpy.data.images.new("orm", 4, 2, float_buffer=True)
+    rgba = np.ones((2, 4, 4), np.float32)
+    rgba[:, :2, 1], rgba[:, 2:, 1] = 0.3, 0.7
+    image.pixels.foreach_set(rgba.ravel())
+    image.pack()
+    material = blender_compat.new_material(bpy, "orm")
+    tree = material.node_tree
+    bsdf = tree.nodes["Principled BSDF"]
+    bsdf.inputs["Roughness"].default_value = 1.0
+    texture = tree.nodes.new("ShaderNodeTexImage")
+    texture.image = image
+    texture.interpolation = "Closest"
+    split = tree.nodes.new("ShaderNodeSeparateColor")
+    tree.links.new(texture.outputs["Color"], split.inputs[0])
+    tree.links.new(split.outputs["Green"], bsdf.inputs["Roughness"])
+    assert sync.bake_sockets(material) == [("Principled BSDF", bsdf.inputs["Roughness"].identifier)]
+    _object(bpy, empty_scene, "quad", *QUAD, material, uv=True)
+    (got,) = sync.snapshot_from_depsgraph(bpy.context.evaluated_depsgraph_get()).materials
+    assert got.specular.roughness == pytest.approx(0.5, abs=0.05)
+
+
 def test_constant_emission_stays_constant(bpy_module, empty_scene, sync, cache_home):
     bpy = bpy_module
     material = _emissive(bpy, "lamp", strength_from_checker=False)

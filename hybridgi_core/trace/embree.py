@@ -156,17 +156,31 @@ class EmbreeTracer:
         rays (`occluded_shadow`) pass its `shadow_transparent` triangles too."""
         self._cutouts = cutouts if cutouts is not None and cutouts.any else None
         self._shadow_skip = cutouts if cutouts is not None and cutouts.shadow_any else None
+        self._glass = cutouts if cutouts is not None and cutouts.glass_any else None
 
     @property
     def has_shadow_skips(self) -> bool:
         """Whether shadow rays pass some triangles (`set_cutouts`): `lights.shadow_query`."""
         return self._shadow_skip is not None
 
+    @property
+    def has_glass(self) -> bool:
+        """Whether some clear triangles are refractive glass (`cutout.Cutouts.glass_any`)."""
+        return self._glass is not None
+
     def occluded_shadow(
-        self, origins: np.ndarray, directions: np.ndarray, tfar: float | np.ndarray = np.inf, trusted: bool = False
+        self, origins: np.ndarray, directions: np.ndarray, tfar: float | np.ndarray = np.inf, trusted: bool = False,
+        glass: bool = False,
     ) -> np.ndarray:
         """`occluded` for shadow rays: objects hidden from shadow rays and materials transparent
-        to them (`set_cutouts`) do not block (closest hits, continued past them)."""
+        to them (`set_cutouts`) do not block (closest hits, continued past them); with `glass`,
+        refractive clear triangles do (`cutout.Cutouts.shadow_passes_glass`)."""
+        rules = self._glass if glass else None
+        if rules is not None:
+            hits = self._intersect_once(origins, directions, tfar, trusted)
+            passed = self._continue_past(origins, directions, tfar, hits, rules.shadow_passes_glass,
+                                         self._intersect_once, layers=2 * CUTOUT_LAYERS)
+            return passed.prim >= 0
         skip = self._shadow_skip
         if skip is None:
             return self.occluded(origins, directions, tfar, trusted)
@@ -189,16 +203,16 @@ class EmbreeTracer:
             return hits
         return self._continue_past(origins, directions, tfar, hits, cutouts.transparent, self._intersect_once)
 
-    def _continue_past(self, origins, directions, tfar, hits: Hits, passes, trace) -> Hits:
+    def _continue_past(self, origins, directions, tfar, hits: Hits, passes, trace, layers: int = CUTOUT_LAYERS) -> Hits:
         """`hits` with the rays whose hit `passes(prim, u, v)` marks (an alpha cutout's hole, a
         triangle shadow rays pass) continued just beyond it by `trace` (an intersect), at most
-        CUTOUT_LAYERS times; a ray that leaves its reach misses (t inf, prim -1)."""
+        `layers` times; a ray that leaves its reach misses (t inf, prim -1)."""
         o = np.asarray(origins, np.float32).reshape(-1, 3)
         d = np.broadcast_to(np.asarray(directions, np.float32).reshape(-1, 3), o.shape)
         limit = np.broadcast_to(np.asarray(tfar, np.float32), (o.shape[0],))
         t, prim, u, v = hits.t.copy(), hits.prim.copy(), hits.u.copy(), hits.v.copy()
         eps = np.float32(self.epsilon)
-        for _layer in range(CUTOUT_LAYERS):
+        for _layer in range(layers):
             through = np.flatnonzero(passes(prim, u, v))
             if through.size == 0:
                 break
