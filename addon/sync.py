@@ -737,6 +737,7 @@ def material_from_blender(material, textures=None, baked=None, pending=False):
                          emission=part.emission.astype(np.float32), alpha=part.alpha, specular=specular,
                          normal_map=part.normal, emission_texture=part.emission_texture,
                          metallic_map=part.metallic_map if part.layer is not None else None,
+                         roughness_map=part.roughness_map if part.layer is not None else None,
                          shadow_transparent=shadow_transparent, translucent=part.translucent, sheen=part.sheen,
                          sheen_roughness=part.sheen_roughness, sheen_layered=part.sheen_layered)
 
@@ -816,6 +817,7 @@ def _shader_surface(shader, textures, name, depth=0):
                                        lobes=sp.layer_lobes(layer), layer=layer,
                                        normal=_normal_map(shader, textures, name),
                                        metallic_map=None if metallic_map is None else metallic_map[..., 0],
+                                       roughness_map=_roughness_map(shader, textures, name),
                                        clear=clear, refract=refract, sheen=sheen_colour,
                                        sheen_roughness=sheen_roughness,
                                        sheen_layered=True)
@@ -1171,6 +1173,26 @@ def _roughness(shader, textures, name, default=0.5):
             mean = pixels.mean() if output == "Alpha" else pixels.reshape(-1, 3).mean(axis=0) @ surface_mix.GRAY
             return float(np.clip(mean, 0.0, 1.0))
     return _scalar_value(socket, textures, name)
+
+
+def _roughness_map(shader, textures, name):
+    """(h, w) float32 a Principled BSDF's Roughness per texel, or None when it is a constant: an
+    Image Texture's colour or alpha straight into it (the mesh's UVs, as a base colour image), or
+    what Blender baked of the nodes feeding it (`BAKED_SCALARS`; on the bake's atlas, as the
+    colour then is)."""
+    socket = _input(shader, "Roughness")
+    if socket is None or not socket.is_linked or _fold(socket, 0) is not None:
+        return None
+    texels = textures.baked.get((shader.name, socket.identifier))
+    if texels is not None:
+        return np.asarray(texels, np.float32)[..., :3].mean(axis=-1)
+    node, output = _source(socket)
+    if node is None or node.type != "TEX_IMAGE" or output not in ("Color", "Alpha"):
+        return None
+    if output == "Alpha":
+        return textures.alpha(node.image, name)
+    pixels = textures.get(node.image, name)
+    return None if pixels is None else np.asarray(pixels, np.float32).reshape(*pixels.shape[:2], 3) @ surface_mix.GRAY
 
 
 def _scalar_value(socket, textures, name) -> float:

@@ -68,6 +68,24 @@ _REFLECT_COSINES = np.array([0.1, 0.5, 1.0])
 #: (`raster/gbuffer`), `glossy_image.material_rows` picks the nearest variant's row.
 METALLIC_STEPS = 5
 
+#: Roughness values of the variants of a material with a Roughness texture (`Material.roughness_map`):
+#: evenly spread over the texture's range (`roughness_range`); the G-buffer writes each pixel's
+#: variant (metallic step x roughness step) into the material target's fraction.
+ROUGHNESS_STEPS = 6
+
+
+def roughness_range(material) -> tuple[float, float] | None:
+    """(lo, hi) the 2nd and 98th percentiles of a material's roughness texture, over which its
+    `ROUGHNESS_STEPS` variants spread; None without variants (no texture, not a lone Principled
+    BSDF's layer, or a spread under 0.02: its mean roughness serves)."""
+    texels = getattr(material, "roughness_map", None)
+    if texels is None or not isinstance(getattr(material, "specular", None), sp.SpecularLayer):
+        return None
+    stride = max(1, int(np.sqrt(texels.size / 65536)))
+    lo, hi = np.percentile(texels[::stride, ::stride], [2.0, 98.0])
+    return (float(lo), float(hi)) if hi - lo > 0.02 else None
+
+
 #: View cosines of each material's tabulated Glossy Color (`GlossyMaterials.color_table`).
 COLOR_TABLE_SIZE = 1025
 
@@ -86,9 +104,11 @@ class GlossyMaterials:
     view factor over `specular.view_grid` (ones without one); layers : each material's `specular`;
     reflects : (m,) whether a material's glossy lobes reflect anything at all (a Glossy Color
     above 0 at some view angle, mirror-like lobes included): a scene without is skipped whole.
-    Rows past the materials' are the `METALLIC_STEPS` variants of each material with a Metallic
-    texture (its layer at metallic 0, 0.25, ... 1); variants : (materials,) int64 the first
-    variant row of each material, -1 for the rest.
+    Rows past the materials' are the variants of each material with a Metallic texture (its
+    layer at metallic 0, 0.25, ... 1: `METALLIC_STEPS`) and / or a Roughness texture
+    (`ROUGHNESS_STEPS` roughness values over `roughness_range`), metallic-major; variants :
+    (materials,) int64 the first variant row of each material, -1 for the rest; variant_steps :
+    (materials, 2) int64 its metallic and roughness step counts (1 for the one it lacks).
     """
 
     rough: np.ndarray
@@ -108,17 +128,30 @@ class GlossyMaterials:
     #: uniform grid of [0, 1] (`glossy_color` interpolates it); `from_materials` fills it.
     color_table: np.ndarray | None = None
     variants: np.ndarray | None = None
+    variant_steps: np.ndarray | None = None
 
     @classmethod
     def from_materials(cls, materials) -> GlossyMaterials:
         layers = [getattr(m, "specular", None) for m in materials]
         variants = np.full(len(layers), -1, np.int64)
+        variant_steps = np.ones((len(layers), 2), np.int64)
         for i, material in enumerate(materials):
             layer = layers[i]
-            if getattr(material, "metallic_map", None) is not None and isinstance(layer, sp.SpecularLayer):
-                variants[i] = len(layers)
-                layers = layers + [replace(layer, metallic=float(q), weight=(1.0 - q) * (1.0 - layer.transmission))
-                                   for q in np.linspace(0.0, 1.0, METALLIC_STEPS)]
+            if not isinstance(layer, sp.SpecularLayer):
+                continue
+            metals = np.linspace(0.0, 1.0, METALLIC_STEPS) if getattr(material, "metallic_map", None) is not None \
+                else None
+            span = roughness_range(material)
+            roughs = np.linspace(span[0], span[1], ROUGHNESS_STEPS) if span is not None else None
+            if metals is None and roughs is None:
+                continue
+            variants[i] = len(layers)
+            variant_steps[i] = (1 if metals is None else metals.size, 1 if roughs is None else roughs.size)
+            for q in (None,) if metals is None else metals:
+                metal = layer if q is None else replace(layer, metallic=float(q),
+                                                        weight=(1.0 - q) * (1.0 - layer.transmission))
+                layers = layers + [metal if r is None else replace(metal, roughness=float(r))
+                                   for r in ((None,) if roughs is None else roughs)]
         every = [sp.surface_lobes(layer) for layer in layers]
         per = [[lobe for lobe in lobes if lobe.roughness >= MIN_ROUGHNESS] for lobes in every]
         n, slots = len(layers), max((len(p) for p in per), default=0)
@@ -149,6 +182,7 @@ class GlossyMaterials:
             if layer is not None:
                 out.color_table[i] = sp.glossy_color(layer, grid)
         out.variants = variants
+        out.variant_steps = variant_steps
         return out
 
     @property

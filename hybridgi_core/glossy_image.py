@@ -35,9 +35,10 @@ def has_glossy(system) -> bool:
 
 def material_rows(material: np.ndarray, mats=None) -> np.ndarray:
     """(n,) int64 glossy rows from G-buffer `material` texels (index + 1, 0 = background; a
-    material with a Metallic texture adds half its texel's metallic). With `mats`
-    (`glossy.GlossyMaterials`), such a pixel's row is its material's variant nearest that
-    metallic; without, the material's own row. With `mats`, a texel of a material it does not
+    material with a Metallic texture adds half its texel's metallic; one with a Roughness texture
+    adds (variant + 0.5) / variants, its metallic step x `glossy.ROUGHNESS_STEPS` + its roughness
+    step: `raster/gbuffer_frag.glsl`). With `mats` (`glossy.GlossyMaterials`), such a pixel's row
+    is its material's variant nearest its texels; without, the material's own row. With `mats`, a texel of a material it does not
     know (a G-buffer drawn from another material list than the system's: the viewport's worker
     may still hold the one before an edit) gets -1, as the background: it reflects nothing."""
     r = np.asarray(material, np.float32).reshape(-1)
@@ -52,8 +53,16 @@ def material_rows(material: np.ndarray, mats=None) -> np.ndarray:
     known = (rows >= 0) & (rows < variants.shape[0])
     first = np.where(known, variants[np.clip(rows, 0, variants.shape[0] - 1)], -1)
     mapped = first >= 0
+    frac = r - whole
     steps = glossy.METALLIC_STEPS - 1
-    step = np.clip(np.rint((r - whole) * 2.0 * steps), 0, steps).astype(np.int64)
+    step = np.clip(np.rint(frac * 2.0 * steps), 0, steps).astype(np.int64)
+    counts = getattr(mats, "variant_steps", None)
+    if counts is not None:
+        count = counts[np.clip(rows, 0, counts.shape[0] - 1)]
+        rough = mapped & (count[:, 1] > 1)
+        if rough.any():
+            total = count[rough, 0] * count[rough, 1]
+            step[rough] = np.clip(np.floor(frac[rough] * total), 0, total - 1).astype(np.int64)
     rows[mapped] = first[mapped] + step[mapped]
     return rows
 

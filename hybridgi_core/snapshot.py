@@ -196,6 +196,10 @@ class Material:
     normal_map: NormalMap | None = None
     emission_texture: np.ndarray | None = None
     metallic_map: np.ndarray | None = None
+    #: (h, w) float32 a Principled BSDF's Roughness per texel (0..1, through the same UVs as
+    #: `texture`), or None; `specular` then holds its mean, and the G-buffer picks each pixel's
+    #: glossy lobes among `glossy.ROUGHNESS_STEPS` variants by its texel's value
+    roughness_map: np.ndarray | None = None
     #: its surface is a Holdout shader: the camera sees a hole (Combined 0, alpha 0), rays a black surface
     holdout: bool = False
     #: shadow rays pass through it (a Mix Shader whose factor is Light Path > Is Shadow Ray with a
@@ -241,6 +245,11 @@ class Material:
             metal = np.nan_to_num(np.asarray(self.metallic_map, np.float32), nan=0.0, posinf=1.0, neginf=0.0)
             self.metallic_map = np.clip(fit_texture(np.repeat(metal[..., None], 3, axis=-1), MAX_TEXTURE_SIZE,
                                                     f"material {self.name!r} metallic")[..., 0], 0.0, 1.0)
+        if self.roughness_map is not None:
+            rough = np.nan_to_num(np.asarray(self.roughness_map, np.float32), nan=0.5, posinf=1.0, neginf=0.0)
+            self.roughness_map = np.ascontiguousarray(np.clip(fit_texture(
+                np.repeat(rough[..., None], 3, axis=-1), MAX_TEXTURE_SIZE, f"material {self.name!r} roughness")[..., 0],
+                0.0, 1.0))
 
     @property
     def mean_albedo(self) -> np.ndarray:

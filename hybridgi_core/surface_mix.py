@@ -37,7 +37,8 @@ class SurfacePart:
     `snapshot.NormalMap` on its Normal input, or None; emission_texture : (h, w, 3) emitted
     radiance per texel (then `emission` is its mean), or None; metallic_map : (h, w) a lone
     Principled BSDF's Metallic per texel of `texture`'s UVs (`snapshot.Material.metallic_map`),
-    dropped once the part is mixed (its mean stays in the lobes); clear : the share of the light
+    dropped once the part is mixed (its mean stays in the lobes); roughness_map : (h, w) its
+    Roughness per texel, the same way (`snapshot.Material.roughness_map`); clear : the share of the light
     that passes straight through (a Transparent BSDF's 1, glass's, a Principled BSDF's
     transmission), mixed by the cosine-weighted mean of each part's weight; refract : the share
     of it that passes by refraction (glass, transmission, a Refraction BSDF), mixed alike; translucent : (3,)
@@ -58,6 +59,7 @@ class SurfacePart:
     normal: object | None = None
     emission_texture: np.ndarray | None = None
     metallic_map: np.ndarray | None = None
+    roughness_map: np.ndarray | None = None
     clear: float = 0.0
     refract: float = 0.0
     translucent: np.ndarray | None = None

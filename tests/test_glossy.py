@@ -159,6 +159,31 @@ def test_a_metallic_texture_picks_each_pixels_lobes_by_its_texel():
     assert colour[1].mean() > 0.7 > 0.1 > colour[0].mean()
 
 
+def test_a_roughness_texture_picks_each_pixels_lobes_by_its_texel():
+    """A material with a Roughness texture gets ROUGHNESS_STEPS variants over its texels' range
+    (with a Metallic texture too: metallic-major, METALLIC_STEPS x ROUGHNESS_STEPS); the
+    G-buffer's fraction (variant + 0.5) / variants picks one. A constant-ish texture (spread
+    under 0.02) gets none: its mean serves."""
+    from hybridgi_core.glossy_image import material_rows
+
+    stripes = np.tile(np.float32([0.2, 0.8]), (8, 4))
+    rough = Material(name="rough", specular=sp.SpecularLayer(roughness=0.5), roughness_map=stripes)
+    both = Material(name="both", texture=np.full((8, 8, 3), 0.4, np.float32),
+                    specular=sp.SpecularLayer(roughness=0.5, weight=0.5, metallic=0.5),
+                    metallic_map=np.tile(np.float32([0.0, 1.0]), (8, 4)), roughness_map=stripes)
+    flat = Material(name="flat", specular=sp.SpecularLayer(roughness=0.5), roughness_map=np.full((4, 4), 0.5))
+    mats = glossy.GlossyMaterials.from_materials([rough, both, flat])
+    r, m = glossy.ROUGHNESS_STEPS, glossy.METALLIC_STEPS
+    assert mats.variants.tolist() == [3, 3 + r, -1]
+    assert mats.variant_steps.tolist() == [[1, r], [m, r], [1, 1]]
+    np.testing.assert_allclose([mats.layers[3 + i].roughness for i in range(r)], np.linspace(0.2, 0.8, r), atol=1e-6)
+    assert mats.layers[3 + r + 2 * r + 1].metallic == 0.5  # metallic step 2, roughness step 1
+    code = lambda row, variant, count: np.float32(row + 1 + (variant + 0.5) / count)  # noqa: E731
+    texels = np.float32([code(0, 0, r), code(0, r - 1, r), code(1, 2 * r + 1, m * r), 3.0])
+    assert material_rows(texels, mats).tolist() == [3, 3 + r - 1, 3 + r + 2 * r + 1, 2]
+    assert mats.rough[3] == pytest.approx(0.2) and mats.rough[3 + r - 1] == pytest.approx(0.8)
+
+
 def test_many_lamps_are_drawn_per_pixel_and_their_glossy_light_stays_unbiased(monkeypatch):
     """Over GLOSSY_LAMP_BUDGET lamps, each receiver samples GLOSSY_LAMP_BUDGET draws of them by
     their rough light, weighted by one over their probability: the mean over frames is every

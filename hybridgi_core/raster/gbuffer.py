@@ -27,7 +27,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .. import sheen
+from .. import glossy, sheen
 from ..specular import WEIGHT_SAMPLES, diffuse_weight_row
 from .glsl import ShaderSpec, load_glsl
 from .passes import (
@@ -93,6 +93,10 @@ TEXTURE_METALLIC = 32
 #: A holdout's triangles: drawn as a hole (the background's zeros, depth HOLDOUT_DEPTH), so the
 #: film can tell them from the world (`holdout_mask`) and Cycles' zero Combined and alpha show.
 TEXTURE_HOLDOUT = 64
+#: The material's `rough_tx` holds its Roughness per texel (`Material.roughness_map`), in red:
+#: the material target's fraction then codes the pixel's glossy variant, `rough_range` = (lo, hi,
+#: metallic steps, roughness steps) of `glossy.GlossyMaterials` (`glossy_image.material_rows`).
+TEXTURE_ROUGHNESS = 128
 #: Depth a hole writes: beyond the background's (never the nearest of a downsampled block).
 HOLDOUT_DEPTH = 1.5 * BACKGROUND_DEPTH
 
@@ -144,6 +148,8 @@ class _MaterialDraw:
     bump_strength: float = 1.0
     bump_distance: float = 0.0
     glow: object = None  # GPUTexture of the emission texture, or None
+    rough: object = None  # GPUTexture of the roughness texture, or None
+    rough_range: tuple = (0.0, 1.0, 1.0, 1.0)  # TEXTURE_ROUGHNESS's (lo, hi, metallic steps, roughness steps)
 
 
 def camera_eye(view: np.ndarray, proj: np.ndarray) -> tuple:
@@ -208,9 +214,10 @@ class GBufferPass(RasterPass):
                       ("smooth", "VEC2", "tex_uv"), ("smooth", "FLOAT", "uv_ok"), ("smooth", "VEC4", "world_tan"),
                       ("smooth", "VEC2", "map_uv")),
             samplers=((0, "FLOAT_2D", "albedo_tx"), (1, "FLOAT_2D", "weight_tx"), (2, "FLOAT_2D", "normal_tx"),
-                      (3, "FLOAT_2D", "bump_tx"), (4, "FLOAT_2D", "emission_tx")),
-            # 88 bytes of push constants per material; the camera (80 bytes) is a UBO.
+                      (3, "FLOAT_2D", "bump_tx"), (4, "FLOAT_2D", "emission_tx"), (5, "FLOAT_2D", "rough_tx")),
+            # 104 bytes of push constants per material; the camera (80 bytes) is a UBO.
             push=(("VEC4", "base_color"), ("VEC4", "fallback_albedo"), ("VEC4", "emission"), ("VEC4", "eye"),
+                  ("VEC4", "rough_range"),
                   ("INT", "has_texture"), ("FLOAT", "texture_filter"), ("INT", "material_row"),
                   ("FLOAT", "normal_strength"), ("FLOAT", "bump_strength"), ("FLOAT", "bump_distance")),
             typedefs=CAMERA_TYPEDEF,
@@ -341,6 +348,15 @@ class GBufferPass(RasterPass):
                                                               np.float32), "RGBA16F")
                 flags |= (TEXTURE_EMISSION if glow_texture is not None else 0) | (
                     TEXTURE_METALLIC if metal is not None else 0)
+            rough, rough_range = None, (0.0, 1.0, 1.0, 1.0)
+            span = glossy.roughness_range(material)
+            if span is not None:
+                texels = np.zeros((*material.roughness_map.shape, 4), np.float32)
+                texels[..., 0] = material.roughness_map
+                rough = upload_texture_2d(texels, "RGBA16F")
+                flags |= TEXTURE_ROUGHNESS
+                rough_range = (*span, float(glossy.METALLIC_STEPS if metal is not None else 1),
+                               float(glossy.ROUGHNESS_STEPS))
             base = np.asarray(material.base_color, np.float32).reshape(3)
             self._draws += [_MaterialDraw(
                 batch=None,
@@ -357,6 +373,8 @@ class GBufferPass(RasterPass):
                 bump_strength=float(normal_map.bump.strength) if bump is not None else 1.0,
                 bump_distance=float(normal_map.bump.distance) if bump is not None else 0.0,
                 glow=glow,
+                rough=rough,
+                rough_range=rough_range,
             ) for hole_flag, sel in parts]
         self.bends_normals = any(d.flags & (TEXTURE_NORMAL | TEXTURE_BUMP) for d in self._draws)
         self.update_positions(geo.positions)
@@ -428,6 +446,8 @@ class GBufferPass(RasterPass):
                     shader.uniform_sampler("normal_tx", draw.normal or self._dummy_texture)
                     shader.uniform_sampler("bump_tx", draw.bump or self._dummy_texture)
                     shader.uniform_sampler("emission_tx", draw.glow or self._dummy_texture)
+                    shader.uniform_sampler("rough_tx", draw.rough or self._dummy_texture)
+                    shader.uniform_float("rough_range", draw.rough_range)
                     shader.uniform_sampler("weight_tx", self._weight_texture)
                     draw.batch.draw(shader)
         return self.outputs()

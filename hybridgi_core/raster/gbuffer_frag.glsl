@@ -11,7 +11,8 @@
  * radiance per texel (an emissive texture), averaged over the pixel's footprint like the colour;
  * without it (or without UVs) the constant `emission`. Bit 32: `emission_tx`'s alpha is the
  * Metallic per texel, added as half of it to `out_material`'s r. Bit 64: a holdout, drawn as a
- * hole (the background's zeros at a depth beyond it). `out_material`'s gba is the smooth normal
+ * hole (the background's zeros at a depth beyond it). Bit 128: `rough_tx` (red) is the Roughness per
+ * texel, coded with the metallic into the material index's fraction. `out_material`'s gba is the smooth normal
  * before a map or bump bends it (what the CPU takes for the surface: edges, filter guides, ray
  * origins, the bump shadowing term). */
 
@@ -212,6 +213,7 @@ void main()
   out_position = vec4(world_pos, 1.0);
   vec3 emitted = emission.rgb;
   float row = float(material_row + 1);
+  float metal = -1.0; /* the Metallic texel, where one is read */
   if ((has_texture & 48) != 0 && uv_ok > 0.999) {
     vec4 glow = sample_footprint4(emission_tx, tex_uv, du, dv);
     if ((has_texture & 16) != 0) {
@@ -219,8 +221,23 @@ void main()
     }
     if ((has_texture & 32) != 0) {
       /* The Metallic texel as the index's fraction: the CPU's glossy lobes pick by it. */
-      row += 0.5 * clamp(glow.a, 0.0, 1.0);
+      metal = clamp(glow.a, 0.0, 1.0);
+      row += 0.5 * metal;
     }
+  }
+  if ((has_texture & 128) != 0) {
+    /* A Roughness texture: the fraction codes the glossy variant, (metallic step x roughness
+     * steps + roughness step + 0.5) / variants, rough_range = (lo, hi, metallic steps, roughness
+     * steps) (glossy_image.material_rows decodes it). Without UVs, the middle step. */
+    float t = 0.5;
+    if (uv_ok > 0.999) {
+      float r = sample_footprint(rough_tx, tex_uv, du, dv).x;
+      t = clamp((r - rough_range.x) / max(rough_range.y - rough_range.x, 1e-6), 0.0, 1.0);
+    }
+    float steps = rough_range.w;
+    float ri = floor(t * (steps - 1.0) + 0.5);
+    float mi = (metal >= 0.0) ? floor(metal * (rough_range.z - 1.0) + 0.5) : 0.0;
+    row = float(material_row + 1) + (mi * steps + ri + 0.5) / (rough_range.z * steps);
   }
   out_emission = vec4(emitted, 1.0);
   out_depth = view_depth(camera.view_z, world_pos);
