@@ -33,6 +33,7 @@ import numpy as np
 
 from hybridgi_core import cache as _cache
 from hybridgi_core import errors
+from hybridgi_core import glossy as _glossy_core
 from hybridgi_core import grid as _grid
 from hybridgi_core import settings as _settings
 from hybridgi_core.raster import downsample as _downsample
@@ -483,7 +484,7 @@ class ViewportSession:
             # The pixel rays' GI resolved at every full-res pixel, as final renders do (`full_res_images`).
             full_res = (d_position.shape[:2] != position.shape[:2] and d_position.shape[:2] == (gbuf.height, gbuf.width)
                         and gpu_state.pipeline.settings.pixel_full_res)
-            material = full_material = full_albedo = direct_material = None
+            material = full_material = full_albedo = full_tint = direct_material = None
             materials = self.mirror.snapshot.materials
             if any(getattr(m, "translucent", None) is not None for m in materials):
                 # The translucent shares of the coarse and the direct light's pixels (`worker._shares`).
@@ -503,12 +504,14 @@ class ViewportSession:
                     # (`worker.ViewportWorker._fine_glossy`).
                     full_material = gpu_state.pipeline.gbuffer.read("material")[..., 0]
                     full_albedo = gpu_state.pipeline.gbuffer.read("albedo")
+                    if any(_glossy_core.is_textured_metal(m) for m in materials):
+                        full_tint = gpu_state.pipeline.gbuffer.read("emission")[..., 3]
         with stats.step("post"):
             request = worker.ViewRequest(
                 key=view_key, position=position.copy(), normal=normal.copy(),
                 direct_position=d_position, direct_normal=d_normal,
                 view=camera.view, proj=camera.proj, debug_cells=debug_cells, material=material,
-                full_res=bool(full_res), full_material=full_material, full_albedo=full_albedo,
+                full_res=bool(full_res), full_material=full_material, full_albedo=full_albedo, full_tint=full_tint,
                 direct_material=direct_material,
                 glossy_samples=self._glossy_samples if full_material is not None else 0,
                 reflection_rays=gpu_state.pipeline.settings.reflection_rays,

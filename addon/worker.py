@@ -531,12 +531,17 @@ class ViewportWorker:
                 if self._superseded(state):
                     raise _Superseded
 
+            tint = None
+            if r.full_tint is not None and np.asarray(r.full_tint).shape[:2] == (h, w):
+                # Textured metals: their texels' coordinates (the albedo's and emission's alphas).
+                tint = np.stack([np.asarray(r.full_albedo).reshape(-1, 4)[pix, 3],
+                                 np.asarray(r.full_tint).reshape(-1)[pix]], axis=-1)
             try:
                 light = _glossy.frame_glossy(
                     system, points, normals, pix, (h, w), np.asarray(r.full_material).reshape(-1)[pix],
                     np.asarray(r.full_albedo).reshape(-1, 4)[pix, :3], irradiance, r.view,
                     camera_eye(r.view, r.proj), self._frame, r.glossy_samples, r.reflection_rays,
-                    pool=system.updater.pool, between=between)
+                    pool=system.updater.pool, between=between, tint=tint)
             except _Superseded:
                 self._steps["fine_glossy_dropped"] = (time.perf_counter() - t0) * 1e3
                 return

@@ -76,6 +76,9 @@ class ViewRequest:
     #: (`glossy_image.frame_glossy`); None / 0: the GI pixels' glossy light alone.
     full_material: np.ndarray | None = None
     full_albedo: np.ndarray | None = None
+    #: (h, w) the emission target's alpha at every pixel where a textured metal is in the scene:
+    #: with the albedo's alpha, its texels' coordinates (`glossy.metal_tint_basis`); else None
+    full_tint: np.ndarray | None = None
     #: The material texels (h, w) at the direct light's resolution in a scene with a Translucent
     #: BSDF (its pixels take the lamps' light on their back too: `translucent.mix_back`); None
     #: without one (`material` serves the GI pixels' coarse passes)

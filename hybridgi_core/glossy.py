@@ -86,6 +86,42 @@ def roughness_range(material) -> tuple[float, float] | None:
     return (float(lo), float(hi)) if hi - lo > 0.02 else None
 
 
+def is_textured_metal(material) -> bool:
+    """Whether a material's metallic lobe may follow its colour texture (`metal_tint_basis`)."""
+    layer = getattr(material, "specular", None)
+    return (getattr(material, "texture", None) is not None and isinstance(layer, sp.SpecularLayer)
+            and layer.metallic > 0.0 and getattr(material, "metallic_map", None) is None)
+
+
+def metal_tint_basis(material) -> np.ndarray | None:
+    """(3, 3) float32 rows: a textured metal's mean colour texel and its texture's two main axes
+    of colour variation (unit; principal components of the texels), or None where its metallic
+    lobe takes one colour: no colour texture, no metallic lobe of a lone Principled BSDF, or a
+    Metallic texture (the colour texture then holds (1 - metallic) x base: the metal's own
+    colour is lost). The G-buffer writes each pixel's texel coordinates along the axes into the
+    albedo and emission targets' alphas (spare there); `metal_tint` rebuilds the texel from them
+    and the metallic lobe's colour (its F0: the mean texel) follows it per pixel. Two axes hold
+    a texture's colour variation (brightness, and a hue between two colours) nearly whole."""
+    if not is_textured_metal(material):
+        return None
+    texels = material.texture.reshape(-1, 3).astype(np.float64)
+    texels = texels[:: max(1, texels.shape[0] // 65536)]
+    mean = texels.mean(axis=0)
+    if float(mean @ LUMA) <= 1e-4:
+        return None
+    _, vectors = np.linalg.eigh(np.cov((texels - mean).T) + np.eye(3) * 1e-12)
+    return np.stack([mean, vectors[:, 2], vectors[:, 1]]).astype(np.float32)
+
+
+def metal_tint(basis: np.ndarray, s: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """(n, 3) the texel over the mean colour, per channel, from coordinates s, t (n,) along the
+    axes of `metal_tint_basis` (clipped to 0..8; 1 where the mean's channel is 0)."""
+    mean = basis[0].astype(np.float64)
+    texel = mean[None, :] + s[:, None] * basis[1][None, :] + t[:, None] * basis[2][None, :]
+    ratio = np.divide(texel, mean[None, :], out=np.ones_like(texel), where=mean[None, :] > 1e-6)
+    return np.clip(ratio, 0.0, 8.0).astype(np.float32)
+
+
 #: View cosines of each material's tabulated Glossy Color (`GlossyMaterials.color_table`).
 COLOR_TABLE_SIZE = 1025
 
@@ -129,6 +165,11 @@ class GlossyMaterials:
     color_table: np.ndarray | None = None
     variants: np.ndarray | None = None
     variant_steps: np.ndarray | None = None
+    #: (m,) the metallic lobe's share of each row's Glossy Color at normal incidence (a lone
+    #: Principled BSDF's; 0 for the rest): what a pixel's metal tint scales (`metal_tint_basis`)
+    metal_share: np.ndarray | None = None
+    #: material index -> `metal_tint_basis` of the textured metals
+    tint_bases: dict | None = None
 
     @classmethod
     def from_materials(cls, materials) -> GlossyMaterials:
@@ -183,6 +224,13 @@ class GlossyMaterials:
                 out.color_table[i] = sp.glossy_color(layer, grid)
         out.variants = variants
         out.variant_steps = variant_steps
+        out.tint_bases = {i: b for i, b in enumerate(metal_tint_basis(m) for m in materials) if b is not None}
+        out.metal_share = np.zeros(n)
+        for i, layer in enumerate(layers):
+            if isinstance(layer, sp.SpecularLayer) and layer.metallic > 0.0:
+                total = float(np.asarray(sp.glossy_color(layer, 1.0)).reshape(-1, 3)[0] @ LUMA)
+                metal = float(np.asarray(sp.glossy_color(replace(layer, weight=0.0), 1.0)).reshape(-1, 3)[0] @ LUMA)
+                out.metal_share[i] = float(np.clip(metal / total, 0.0, 1.0)) if total > 0 else 0.0
         return out
 
     @property

@@ -119,7 +119,7 @@ def cache_glossy(system, points, normals, to_eye, rows) -> GlossyLight:
 
 def frame_glossy(system, points, normals, pix, shape: tuple[int, int], material, albedo, irradiance, view, eye,
                  frame: int, samples: int, reflection_rays: int, lookup: HitLookup | None = None,
-                 pool=None, between=None) -> GlossyLight:
+                 pool=None, between=None, tint: np.ndarray | None = None) -> GlossyLight:
     """The glossy light of an image's receivers as final renders compute it: the lamps' light
     (`glossy_noise.adaptive_lamp_glossy`: `samples` per lamp only where a first pass is noisy
     against the receiver's diffuse lamp light, then `reflection.filter_lamp_glossy`) and the light
@@ -134,8 +134,9 @@ def frame_glossy(system, points, normals, pix, shape: tuple[int, int], material,
     scale of the lamp samples); view : the camera's 4x4 view matrix; eye : `gbuffer.camera_eye`'s
     (x, y, z, w); lookup : the cache's HitLookup to reuse (None: built here when rays are traced);
     between : called between its steps (the viewport's worker raises there when an edit or a
-    newer view waits). Pure numpy: the final render's pipeline and the viewport's worker both
-    call it."""
+    newer view waits); tint : (n, 2) the textured metals' texel coordinates per receiver (the
+    G-buffer albedo and emission targets' alphas: `glossy.metal_tint_basis`), or None: the
+    metallic lobes' share of the light takes the texel's colour over the mean's. Pure numpy: the final render's pipeline and the viewport's worker both call it."""
     between = between or (lambda: None)
     points = np.asarray(points).reshape(-1, 3)
     normals = np.asarray(normals).reshape(-1, 3)
@@ -164,7 +165,25 @@ def frame_glossy(system, points, normals, pix, shape: tuple[int, int], material,
         sky, bounced[lit], lamp = _reflections(system, points[lit], normals[lit], to_eye[lit], rough, frame, q,
                                                shape, view, skip[lit], reflection_rays, lookup, pool, between)
         direct[lit] += colour[lit] * (sky + lamp)
+    if tint is not None and getattr(mats, "tint_bases", None):
+        _tint_metals(mats, np.asarray(material).reshape(-1), rows, np.asarray(tint, np.float32).reshape(-1, 2),
+                     direct, colour)
     return GlossyLight(direct, colour, bounced)
+
+
+def _tint_metals(mats, material, rows, tint, direct, colour) -> None:
+    """Scale, in place, the metallic lobes' share (`GlossyMaterials.metal_share`) of the glossy
+    light and colour of textured metals' receivers by their texel's colour over the texture
+    mean's (their lobe's F0 is the mean): per channel, 1 + share (texel / mean - 1)."""
+    index = material_rows(material)
+    for m, basis in mats.tint_bases.items():
+        sel = np.flatnonzero(index == m)
+        if sel.size == 0:
+            continue
+        share = mats.metal_share[rows[sel]].astype(np.float32)[:, None]
+        factor = 1.0 + share * (glossy.metal_tint(basis, tint[sel, 0], tint[sel, 1]) - 1.0)
+        direct[sel] *= factor
+        colour[sel] *= factor
 
 
 def _reflections(system, points, normals, to_eye, rough, frame, pix, shape, view, lamps, rays, lookup, pool, between):

@@ -184,6 +184,30 @@ def test_a_roughness_texture_picks_each_pixels_lobes_by_its_texel():
     assert mats.rough[3] == pytest.approx(0.2) and mats.rough[3 + r - 1] == pytest.approx(0.8)
 
 
+def test_a_textured_metals_colour_is_rebuilt_from_two_coordinates():
+    """`metal_tint_basis`: the mean texel and the texture's two main colour axes; a texel's
+    coordinates along them rebuild it (exactly for a texture of two colours and their mixes),
+    so the lobe's colour per pixel is the texel over the mean. None without a metallic lobe or
+    with a Metallic texture (the colour texture is then the diffuse base)."""
+    texture = np.zeros((4, 4, 3), np.float32)
+    texture[:, :2] = [0.8, 0.5, 0.2]
+    texture[:, 2:] = [0.8, 0.8, 0.2]
+    metal = Material(name="gold", texture=texture, base_color=np.zeros(3, np.float32),
+                     specular=sp.SpecularLayer(roughness=0.3, weight=0.0, metallic=1.0,
+                                               metal_color=texture.reshape(-1, 3).mean(0)))
+    basis = glossy.metal_tint_basis(metal)
+    np.testing.assert_allclose(basis[0], [0.8, 0.65, 0.2], atol=1e-6)
+    texels = np.float32([[0.8, 0.5, 0.2], [0.8, 0.8, 0.2]])
+    d = texels - basis[0]
+    ratio = glossy.metal_tint(basis, d @ basis[1], d @ basis[2])
+    np.testing.assert_allclose(ratio, texels / basis[0], atol=1e-5)
+    assert glossy.metal_tint_basis(Material(name="plastic", texture=texture, specular=sp.SpecularLayer())) is None
+    assert glossy.metal_tint_basis(Material(name="mapped", texture=texture, specular=metal.specular,
+                                            metallic_map=np.ones((4, 4), np.float32))) is None
+    mats = glossy.GlossyMaterials.from_materials([Material(name="plain"), metal])
+    assert list(mats.tint_bases) == [1] and mats.metal_share[1] == pytest.approx(1.0, abs=0.02)
+
+
 def test_many_lamps_are_drawn_per_pixel_and_their_glossy_light_stays_unbiased(monkeypatch):
     """Over GLOSSY_LAMP_BUDGET lamps, each receiver samples GLOSSY_LAMP_BUDGET draws of them by
     their rough light, weighted by one over their probability: the mean over frames is every

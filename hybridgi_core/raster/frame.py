@@ -528,10 +528,14 @@ class FramePipeline:
         if not glossy_image.has_glossy(system):
             return None, None, None
         material = self.gbuffer.read("material").reshape(-1)[pix]
-        albedo = self.gbuffer.read("albedo").reshape(-1, 4)[pix, :3]
-        light = glossy_image.frame_glossy(system, points, normals, pix, (self.height, self.width), material, albedo,
-                                          irradiance, view, camera_eye(view, proj), frame, self.glossy_samples,
-                                          self.settings.reflection_rays, lookup, pool=system.updater.pool)
+        albedo = self.gbuffer.read("albedo").reshape(-1, 4)[pix]
+        tint = None
+        if system.glossy_materials.tint_bases:  # textured metals: their texels' coordinates
+            tint = np.stack([albedo[:, 3], self.gbuffer.read("emission").reshape(-1, 4)[pix, 3]], axis=-1)
+        light = glossy_image.frame_glossy(system, points, normals, pix, (self.height, self.width), material,
+                                          albedo[:, :3], irradiance, view, camera_eye(view, proj), frame,
+                                          self.glossy_samples, self.settings.reflection_rays, lookup,
+                                          pool=system.updater.pool, tint=tint)
         glossy, colour, indirect = (np.zeros((self.height * self.width, 4), np.float32) for _ in range(3))
         glossy[pix, :3] = light.direct
         colour[pix, :3] = light.colour

@@ -176,6 +176,19 @@ def weight_table(materials) -> np.ndarray:
     return table.astype(np.float32)
 
 
+def tint_table(materials) -> np.ndarray:
+    """(n_materials, 3, 4) float32: row m holds material m's `glossy.metal_tint_basis` (mean
+    texel, first axis, second axis) in rgb, alpha 1 where it has one (0: the G-buffer writes
+    zeros for its texel coordinates)."""
+    table = np.zeros((max(len(materials), 1), 3, 4), np.float32)
+    for m, material in enumerate(materials):
+        basis = glossy.metal_tint_basis(material)
+        if basis is not None:
+            table[m, :, :3] = basis
+            table[m, :, 3] = 1.0
+    return table
+
+
 class GBufferPass(RasterPass):
     """Rasterizes a `SceneSnapshot`'s triangles into the G-buffer.
 
@@ -197,6 +210,7 @@ class GBufferPass(RasterPass):
         self._draws: list[_MaterialDraw] = []
         self._dummy_texture = None
         self._weight_texture = None
+        self._tint_texture = None
         self._vertex_count = 0
         #: Whether a drawn material bends its normals (normal map, bump): only then does the
         #: smooth surface normal differ from `normal` (`read_surface`).
@@ -214,7 +228,8 @@ class GBufferPass(RasterPass):
                       ("smooth", "VEC2", "tex_uv"), ("smooth", "FLOAT", "uv_ok"), ("smooth", "VEC4", "world_tan"),
                       ("smooth", "VEC2", "map_uv")),
             samplers=((0, "FLOAT_2D", "albedo_tx"), (1, "FLOAT_2D", "weight_tx"), (2, "FLOAT_2D", "normal_tx"),
-                      (3, "FLOAT_2D", "bump_tx"), (4, "FLOAT_2D", "emission_tx"), (5, "FLOAT_2D", "rough_tx")),
+                      (3, "FLOAT_2D", "bump_tx"), (4, "FLOAT_2D", "emission_tx"), (5, "FLOAT_2D", "rough_tx"),
+                      (6, "FLOAT_2D", "tint_tx")),
             # 104 bytes of push constants per material; the camera (80 bytes) is a UBO.
             push=(("VEC4", "base_color"), ("VEC4", "fallback_albedo"), ("VEC4", "emission"), ("VEC4", "eye"),
                   ("VEC4", "rough_range"),
@@ -254,6 +269,7 @@ class GBufferPass(RasterPass):
         self._draws = []
         self._dummy_texture = None
         self._weight_texture = None
+        self._tint_texture = None
         self._vertex_count = 0
 
     # -- geometry ----------------------------------------------------------------------------
@@ -308,6 +324,7 @@ class GBufferPass(RasterPass):
         hole = np.isin(geo.object_index, holes) if holes else np.zeros(tris.shape[0], bool)
         self._draws = []
         self._weight_texture = upload_texture_2d(weight_table(snapshot.materials), "RGBA16F")
+        self._tint_texture = upload_texture_2d(tint_table(snapshot.materials), "RGBA32F")
         for m, material in enumerate(snapshot.materials):
             if getattr(material, "clear", False):
                 continue  # clear glass (`Material.clear`): the camera sees what lies behind it
@@ -449,6 +466,7 @@ class GBufferPass(RasterPass):
                     shader.uniform_sampler("rough_tx", draw.rough or self._dummy_texture)
                     shader.uniform_float("rough_range", draw.rough_range)
                     shader.uniform_sampler("weight_tx", self._weight_texture)
+                    shader.uniform_sampler("tint_tx", self._tint_texture)
                     draw.batch.draw(shader)
         return self.outputs()
 

@@ -180,8 +180,19 @@ void main()
   if ((has_texture & 2) != 0 && uv_ok > 0.999 && sample_repeat_bilinear4(albedo_tx, tex_uv).a < 0.5) {
     discard; /* a cut-out hole: what is behind shows (the rays see through it too, cutout.py) */
   }
+  /* A textured metal (`tint_tx` row: mean texel, two main axes of its texture's colours, alpha
+   * 1: glossy.metal_tint_basis): the texel's coordinates along the axes go to the albedo and
+   * emission targets' alphas, its metallic lobe's colour per pixel. */
+  vec2 tint = vec2(0.0);
   if ((has_texture & 1) != 0 && uv_ok > 0.999) {
-    albedo = base_color.rgb * sample_footprint(albedo_tx, tex_uv, du, dv);
+    vec3 texel = sample_footprint(albedo_tx, tex_uv, du, dv);
+    albedo = base_color.rgb * texel;
+    vec4 tint_mean = texelFetch(tint_tx, ivec2(0, material_row), 0);
+    if (tint_mean.a > 0.5) {
+      vec3 d = texel - tint_mean.rgb;
+      tint = vec2(dot(d, texelFetch(tint_tx, ivec2(1, material_row), 0).rgb),
+                  dot(d, texelFetch(tint_tx, ivec2(2, material_row), 0).rgb));
+    }
   }
   /* Towards the camera: from the point to the eye, or the orthographic camera's back axis. */
   vec3 to_eye = (eye.w > 0.5) ? normalize(eye.xyz - world_pos) : eye.xyz;
@@ -208,7 +219,7 @@ void main()
   }
   vec4 weight = diffuse_weight(dot(n, to_eye));
   albedo = albedo * weight.r + weight.gba;
-  out_albedo = vec4(albedo, 1.0);
+  out_albedo = vec4(albedo, tint.x);
   out_normal = vec4(n, 1.0);
   out_position = vec4(world_pos, 1.0);
   vec3 emitted = emission.rgb;
@@ -239,7 +250,7 @@ void main()
     float mi = (metal >= 0.0) ? floor(metal * (rough_range.z - 1.0) + 0.5) : 0.0;
     row = float(material_row + 1) + (mi * steps + ri + 0.5) / (rough_range.z * steps);
   }
-  out_emission = vec4(emitted, 1.0);
+  out_emission = vec4(emitted, tint.y);
   out_depth = view_depth(camera.view_z, world_pos);
   out_material = vec4(row, n_surface);
   if ((has_texture & 64) != 0) {
