@@ -738,6 +738,7 @@ def material_from_blender(material, textures=None, baked=None, pending=False):
                          normal_map=part.normal, emission_texture=part.emission_texture,
                          metallic_map=part.metallic_map if part.layer is not None else None,
                          roughness_map=part.roughness_map if part.layer is not None else None,
+                         metal_texture=part.metal_texture if part.layer is not None else None,
                          shadow_transparent=shadow_transparent, translucent=part.translucent, sheen=part.sheen,
                          sheen_roughness=part.sheen_roughness, sheen_layered=part.sheen_layered)
 
@@ -793,11 +794,14 @@ def _shader_surface(shader, textures, name, depth=0):
         weight = (1.0 - np.clip(metallic, 0, 1)) * (1.0 - np.clip(transmission, 0, 1))
         _note_approximations(shader, textures, name, metallic, transmission, coat)
         layer = _specular_layer(shader, textures, name, base, texture, metallic, transmission)
+        metal_texture = None
         if metallic_map is not None:
             # The diffuse base per texel, base colour x (1 - metallic) as Cycles weighs it; the
             # glossy lobes per pixel (`Material.metallic_map`), ray hits' by the mean metallic.
+            # The colour texture itself stays the metal's (`Material.metal_texture`).
             if texture is not None:
                 metallic_map = _resampled(metallic_map, texture.shape)
+                metal_texture = (np.asarray(base, np.float32) * texture).astype(np.float32)
             texture = (base if texture is None else texture) * (1.0 - metallic_map)
             base = np.ones(3, np.float32)
             weight = 1.0 - np.clip(transmission, 0, 1)
@@ -818,6 +822,7 @@ def _shader_surface(shader, textures, name, depth=0):
                                        normal=_normal_map(shader, textures, name),
                                        metallic_map=None if metallic_map is None else metallic_map[..., 0],
                                        roughness_map=_roughness_map(shader, textures, name),
+                                       metal_texture=metal_texture,
                                        clear=clear, refract=refract, sheen=sheen_colour,
                                        sheen_roughness=sheen_roughness,
                                        sheen_layered=True)

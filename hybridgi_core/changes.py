@@ -224,12 +224,14 @@ def _material_key(material: Material) -> tuple:
     glow_key = None if glow is None else (glow.shape, float(glow.sum(dtype=np.float64)))
     metal = getattr(material, "metallic_map", None)
     metal_key = None if metal is None else (metal.shape, float(metal.sum(dtype=np.float64)))
+    maps = tuple(None if a is None else (a.shape, float(a.sum(dtype=np.float64)))
+                 for a in (getattr(material, "roughness_map", None), getattr(material, "metal_texture", None)))
     return (material.base_color.tobytes(), material.emission.tobytes(), texture_key, specular, normal_map, glow_key,
             metal_key, getattr(material, "holdout", False), getattr(material, "shadow_transparent", False),
             getattr(material, "clear", False), getattr(material, "refractive", False),
             _bytes_or_none(getattr(material, "translucent", None)),
             _bytes_or_none(getattr(material, "sheen", None)), getattr(material, "sheen_roughness", 0.5),
-            getattr(material, "sheen_layered", False))
+            getattr(material, "sheen_layered", False), maps)
 
 
 def _bytes_or_none(array) -> bytes | None:

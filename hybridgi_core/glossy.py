@@ -87,24 +87,34 @@ def roughness_range(material) -> tuple[float, float] | None:
 
 
 def is_textured_metal(material) -> bool:
-    """Whether a material's metallic lobe may follow its colour texture (`metal_tint_basis`)."""
+    """Whether a material's metallic lobe may follow a colour texture (`metal_tint_basis`)."""
+    return _metal_texels(material) is not None
+
+
+def _metal_texels(material) -> np.ndarray | None:
+    """(h, w, 3) the texture a material's metallic lobe takes its colour from: the colour texture
+    of a lone Principled BSDF with a metallic lobe, under a Metallic texture its
+    `Material.metal_texture` (the colour texture is then the diffuse base); else None."""
     layer = getattr(material, "specular", None)
-    return (getattr(material, "texture", None) is not None and isinstance(layer, sp.SpecularLayer)
-            and layer.metallic > 0.0 and getattr(material, "metallic_map", None) is None)
+    if not isinstance(layer, sp.SpecularLayer) or layer.metallic <= 0.0:
+        return None
+    if getattr(material, "metallic_map", None) is not None:
+        return getattr(material, "metal_texture", None)
+    return getattr(material, "texture", None)
 
 
 def metal_tint_basis(material) -> np.ndarray | None:
     """(3, 3) float32 rows: a textured metal's mean colour texel and its texture's two main axes
     of colour variation (unit; principal components of the texels), or None where its metallic
-    lobe takes one colour: no colour texture, no metallic lobe of a lone Principled BSDF, or a
-    Metallic texture (the colour texture then holds (1 - metallic) x base: the metal's own
-    colour is lost). The G-buffer writes each pixel's texel coordinates along the axes into the
+    lobe takes one colour: no colour texture, no metallic lobe of a lone Principled BSDF (under a
+    Metallic texture, the colour is its `Material.metal_texture`). The G-buffer writes each pixel's texel coordinates along the axes into the
     albedo and emission targets' alphas (spare there); `metal_tint` rebuilds the texel from them
     and the metallic lobe's colour (its F0: the mean texel) follows it per pixel. Two axes hold
     a texture's colour variation (brightness, and a hue between two colours) nearly whole."""
-    if not is_textured_metal(material):
+    source = _metal_texels(material)
+    if source is None:
         return None
-    texels = material.texture.reshape(-1, 3).astype(np.float64)
+    texels = source.reshape(-1, 3).astype(np.float64)
     texels = texels[:: max(1, texels.shape[0] // 65536)]
     mean = texels.mean(axis=0)
     if float(mean @ LUMA) <= 1e-4:

@@ -200,6 +200,10 @@ class Material:
     #: `texture`), or None; `specular` then holds its mean, and the G-buffer picks each pixel's
     #: glossy lobes among `glossy.ROUGHNESS_STEPS` variants by its texel's value
     roughness_map: np.ndarray | None = None
+    #: (h, w, 3) float32 the colour texture of a material with a `metallic_map` (whose `texture`
+    #: is then the diffuse base, (1 - metallic) x colour): its metallic lobe's colour per texel
+    #: (`glossy.metal_tint_basis`), or None
+    metal_texture: np.ndarray | None = None
     #: its surface is a Holdout shader: the camera sees a hole (Combined 0, alpha 0), rays a black surface
     holdout: bool = False
     #: shadow rays pass through it (a Mix Shader whose factor is Light Path > Is Shadow Ray with a
@@ -245,6 +249,9 @@ class Material:
             metal = np.nan_to_num(np.asarray(self.metallic_map, np.float32), nan=0.0, posinf=1.0, neginf=0.0)
             self.metallic_map = np.clip(fit_texture(np.repeat(metal[..., None], 3, axis=-1), MAX_TEXTURE_SIZE,
                                                     f"material {self.name!r} metallic")[..., 0], 0.0, 1.0)
+        if self.metal_texture is not None:
+            self.metal_texture = np.clip(np.nan_to_num(fit_texture(
+                self.metal_texture, MAX_TEXTURE_SIZE, f"material {self.name!r} metal colour"), nan=0.0), 0.0, 1.0)
         if self.roughness_map is not None:
             rough = np.nan_to_num(np.asarray(self.roughness_map, np.float32), nan=0.5, posinf=1.0, neginf=0.0)
             self.roughness_map = np.ascontiguousarray(np.clip(fit_texture(

@@ -38,7 +38,8 @@ class SurfacePart:
     radiance per texel (then `emission` is its mean), or None; metallic_map : (h, w) a lone
     Principled BSDF's Metallic per texel of `texture`'s UVs (`snapshot.Material.metallic_map`),
     dropped once the part is mixed (its mean stays in the lobes); roughness_map : (h, w) its
-    Roughness per texel, the same way (`snapshot.Material.roughness_map`); clear : the share of the light
+    Roughness per texel, the same way (`snapshot.Material.roughness_map`); metal_texture : the
+    colour texture under a Metallic texture, the metal's own colour (`Material.metal_texture`); clear : the share of the light
     that passes straight through (a Transparent BSDF's 1, glass's, a Principled BSDF's
     transmission), mixed by the cosine-weighted mean of each part's weight; refract : the share
     of it that passes by refraction (glass, transmission, a Refraction BSDF), mixed alike; translucent : (3,)
@@ -60,6 +61,7 @@ class SurfacePart:
     emission_texture: np.ndarray | None = None
     metallic_map: np.ndarray | None = None
     roughness_map: np.ndarray | None = None
+    metal_texture: np.ndarray | None = None
     clear: float = 0.0
     refract: float = 0.0
     translucent: np.ndarray | None = None

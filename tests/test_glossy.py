@@ -202,8 +202,11 @@ def test_a_textured_metals_colour_is_rebuilt_from_two_coordinates():
     ratio = glossy.metal_tint(basis, d @ basis[1], d @ basis[2])
     np.testing.assert_allclose(ratio, texels / basis[0], atol=1e-5)
     assert glossy.metal_tint_basis(Material(name="plastic", texture=texture, specular=sp.SpecularLayer())) is None
-    assert glossy.metal_tint_basis(Material(name="mapped", texture=texture, specular=metal.specular,
-                                            metallic_map=np.ones((4, 4), np.float32))) is None
+    mapped = dict(specular=metal.specular, metallic_map=np.ones((4, 4), np.float32))
+    assert glossy.metal_tint_basis(Material(name="mapped", texture=texture * 0.0, **mapped)) is None
+    # Under a Metallic texture the colour texture is the diffuse base: the metal's is its own.
+    np.testing.assert_allclose(glossy.metal_tint_basis(Material(name="mapped", texture=texture * 0.0,
+                                                                metal_texture=texture, **mapped)), basis)
     mats = glossy.GlossyMaterials.from_materials([Material(name="plain"), metal])
     assert list(mats.tint_bases) == [1] and mats.metal_share[1] == pytest.approx(1.0, abs=0.02)
 

@@ -150,6 +150,7 @@ class _MaterialDraw:
     glow: object = None  # GPUTexture of the emission texture, or None
     rough: object = None  # GPUTexture of the roughness texture, or None
     rough_range: tuple = (0.0, 1.0, 1.0, 1.0)  # TEXTURE_ROUGHNESS's (lo, hi, metallic steps, roughness steps)
+    metal: object = None  # GPUTexture of `Material.metal_texture`, or None
 
 
 def camera_eye(view: np.ndarray, proj: np.ndarray) -> tuple:
@@ -178,14 +179,15 @@ def weight_table(materials) -> np.ndarray:
 
 def tint_table(materials) -> np.ndarray:
     """(n_materials, 3, 4) float32: row m holds material m's `glossy.metal_tint_basis` (mean
-    texel, first axis, second axis) in rgb, alpha 1 where it has one (0: the G-buffer writes
-    zeros for its texel coordinates)."""
+    texel, first axis, second axis) in rgb, alpha 1 where it has one and its colour texture is
+    the one drawn, 2 where it is `Material.metal_texture` (`metal_tx`), 0 without (the G-buffer
+    writes zeros for its texel coordinates)."""
     table = np.zeros((max(len(materials), 1), 3, 4), np.float32)
     for m, material in enumerate(materials):
         basis = glossy.metal_tint_basis(material)
         if basis is not None:
             table[m, :, :3] = basis
-            table[m, :, 3] = 1.0
+            table[m, :, 3] = 2.0 if getattr(material, "metallic_map", None) is not None else 1.0
     return table
 
 
@@ -229,7 +231,7 @@ class GBufferPass(RasterPass):
                       ("smooth", "VEC2", "map_uv")),
             samplers=((0, "FLOAT_2D", "albedo_tx"), (1, "FLOAT_2D", "weight_tx"), (2, "FLOAT_2D", "normal_tx"),
                       (3, "FLOAT_2D", "bump_tx"), (4, "FLOAT_2D", "emission_tx"), (5, "FLOAT_2D", "rough_tx"),
-                      (6, "FLOAT_2D", "tint_tx")),
+                      (6, "FLOAT_2D", "tint_tx"), (7, "FLOAT_2D", "metal_tx")),
             # 104 bytes of push constants per material; the camera (80 bytes) is a UBO.
             push=(("VEC4", "base_color"), ("VEC4", "fallback_albedo"), ("VEC4", "emission"), ("VEC4", "eye"),
                   ("VEC4", "rough_range"),
@@ -374,6 +376,11 @@ class GBufferPass(RasterPass):
                 flags |= TEXTURE_ROUGHNESS
                 rough_range = (*span, float(glossy.METALLIC_STEPS if metal is not None else 1),
                                float(glossy.ROUGHNESS_STEPS))
+            metal_colour = None
+            if getattr(material, "metal_texture", None) is not None and glossy.is_textured_metal(material):
+                metal_colour = upload_texture_2d(np.ascontiguousarray(np.concatenate(
+                    [material.metal_texture, np.ones((*material.metal_texture.shape[:2], 1), np.float32)], axis=-1)),
+                    "RGBA16F")
             base = np.asarray(material.base_color, np.float32).reshape(3)
             self._draws += [_MaterialDraw(
                 batch=None,
@@ -392,6 +399,7 @@ class GBufferPass(RasterPass):
                 glow=glow,
                 rough=rough,
                 rough_range=rough_range,
+                metal=metal_colour,
             ) for hole_flag, sel in parts]
         self.bends_normals = any(d.flags & (TEXTURE_NORMAL | TEXTURE_BUMP) for d in self._draws)
         self.update_positions(geo.positions)
@@ -467,6 +475,7 @@ class GBufferPass(RasterPass):
                     shader.uniform_float("rough_range", draw.rough_range)
                     shader.uniform_sampler("weight_tx", self._weight_texture)
                     shader.uniform_sampler("tint_tx", self._tint_texture)
+                    shader.uniform_sampler("metal_tx", draw.metal or self._dummy_texture)
                     draw.batch.draw(shader)
         return self.outputs()
 

@@ -189,7 +189,10 @@ void main()
     albedo = base_color.rgb * texel;
     vec4 tint_mean = texelFetch(tint_tx, ivec2(0, material_row), 0);
     if (tint_mean.a > 0.5) {
-      vec3 d = texel - tint_mean.rgb;
+      /* Alpha 2: under a Metallic texture the drawn colour is the diffuse base; the metal's own
+       * colour texture is `metal_tx`. */
+      vec3 source = (tint_mean.a > 1.5) ? sample_footprint(metal_tx, tex_uv, du, dv) : texel;
+      vec3 d = source - tint_mean.rgb;
       tint = vec2(dot(d, texelFetch(tint_tx, ivec2(1, material_row), 0).rgb),
                   dot(d, texelFetch(tint_tx, ivec2(2, material_row), 0).rgb));
     }
