@@ -1140,8 +1140,8 @@ def _mean_colour_input(socket, textures, name, node, notes):
 def _note_approximations(shader, textures, name, metallic, transmission, coat):
     """Record what of a Principled BSDF HybridGI renders only approximately (`_warn_glossy`)."""
     notes = []
-    if coat > 0:
-        notes.append("coat (only its tint: its reflection and layering are not rendered)")
+    if coat > 0 and _input(shader, "Coat Normal") is not None and _input(shader, "Coat Normal").is_linked:
+        notes.append("coat normal (the coat takes the base's normal)")
     for socket, note in (("Anisotropic", "anisotropy (rendered isotropic)"),):
         value = _input(shader, socket)
         if value is not None and _constant_value(value, name) > 0:
@@ -1223,7 +1223,21 @@ def _specular_layer(shader, textures, name, base, texture, metallic, transmissio
                          tint=_constant_color(tint, name) if colour_tint else np.ones(3, np.float32),
                          multiscatter=getattr(shader, "distribution", "MULTI_GGX") == "MULTI_GGX",
                          weight=(1.0 - metallic) * (1.0 - transmission), metallic=metallic, metal_color=metal,
-                         transmission=transmission)
+                         transmission=transmission, **_coat(shader, name))
+
+
+def _coat(shader, name) -> dict:
+    """A Principled BSDF's Coat inputs as `SpecularLayer` fields (constants; none without a coat)."""
+    weight = _input(shader, "Coat Weight")
+    if weight is None or _constant_value(weight, name) <= 0:
+        return {}
+    out = {"coat": _constant_value(weight, name)}
+    for field_name, socket in (("coat_roughness", "Coat Roughness"), ("coat_ior", "Coat IOR")):
+        if _input(shader, socket) is not None:
+            out[field_name] = _constant_value(_input(shader, socket), name)
+    if _input(shader, "Coat Tint") is not None:
+        out["coat_tint"] = _constant_color(_input(shader, "Coat Tint"), name)
+    return out
 
 
 def _mix_surface(shader, kind, textures, name, depth):

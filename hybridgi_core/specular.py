@@ -24,7 +24,7 @@ grids of Cycles' own tables: rough = i / (n - 1), mu = j / (n - 1), and z = F0^(
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from functools import lru_cache
 from pathlib import Path
 
@@ -253,6 +253,11 @@ class SpecularLayer:
     it; metallic, metal_color : the metallic lobe's weight and F0 (the clamped base colour);
     transmission : the Transmission Weight, whose glass closure (weight transmission x
     (1 - metallic)) reflects with the real Fresnel of the IOR (not level-adjusted) and the tint.
+    coat, coat_roughness, coat_ior, coat_tint : the Coat layer over all of it (car paint,
+    varnish): a GGX lobe of weight `coat` with the dielectric Fresnel of `coat_ior` (Cycles'
+    coat closure), the layers under it weighted 1 - coat x max(its albedo) at the view angle
+    (closure_layering_weight) and tinted 1 + coat (tint - 1) (Cycles' absorption at normal
+    incidence; the diffuse base's tint is in the material's colour).
     """
 
     roughness: float = 0.5
@@ -264,6 +269,10 @@ class SpecularLayer:
     metallic: float = 0.0
     metal_color: np.ndarray = field(default_factory=lambda: np.zeros(3, np.float32))
     transmission: float = 0.0
+    coat: float = 0.0
+    coat_roughness: float = 0.03
+    coat_ior: float = 1.5
+    coat_tint: np.ndarray = field(default_factory=lambda: np.ones(3, np.float32))
 
     def __post_init__(self) -> None:
         def finite(value, default, lo, hi):
@@ -280,6 +289,11 @@ class SpecularLayer:
         metal = np.asarray(self.metal_color, np.float32).reshape(-1)[:3]
         self.metal_color = np.clip(np.where(np.isfinite(metal), metal, 0.0), 0.0, 1.0).astype(np.float32)
         self.transmission = finite(self.transmission, 0.0, 0.0, 1.0)
+        self.coat = finite(self.coat, 0.0, 0.0, 1.0)
+        self.coat_roughness = finite(self.coat_roughness, 0.03, 0.0, 1.0)
+        self.coat_ior = finite(self.coat_ior, 1.5, 1.0, 1e6)
+        coat_tint = np.asarray(self.coat_tint, np.float32).reshape(-1)[:3]
+        self.coat_tint = np.where(np.isfinite(coat_tint), np.clip(coat_tint, 0.0, 1.0), 1.0).astype(np.float32)
 
     @property
     def eta(self) -> float:
@@ -302,7 +316,25 @@ class SpecularLayer:
 
     def key(self) -> bytes:
         return np.array([self.roughness, self.ior, self.level, *self.tint, self.multiscatter, self.weight,
-                         self.metallic, *self.metal_color, self.transmission], np.float64).tobytes()
+                         self.metallic, *self.metal_color, self.transmission, self.coat, self.coat_roughness,
+                         self.coat_ior, *self.coat_tint], np.float64).tobytes()
+
+    @property
+    def coated(self) -> bool:
+        """Whether a coat lies over the layer (a weight and an IOR other than 1)."""
+        return self.coat > 0.0 and self.coat_ior != 1.0
+
+    def coat_layer(self) -> SpecularLayer:
+        """The coat as a bare dielectric layer (GGX, no multiscatter): its albedo weighs the rest."""
+        return SpecularLayer(roughness=self.coat_roughness, ior=self.coat_ior, multiscatter=False)
+
+    def coat_factor(self, mu) -> np.ndarray:
+        """(...) the weight of what lies under the coat at cosines mu: 1 - coat x max(its albedo)
+        (1 without a coat)."""
+        mu = np.asarray(mu, np.float64)
+        if not self.coated:
+            return np.ones(mu.shape)
+        return np.clip(1.0 - self.coat * layer_albedo(self.coat_layer(), mu).max(axis=-1), 0.0, 1.0)
 
 
 def layer_albedo(layer: SpecularLayer, mu) -> np.ndarray:
@@ -335,9 +367,12 @@ def diffuse_weight(layer, mu) -> np.ndarray:
     mu = np.asarray(mu, np.float64)
     if isinstance(layer, GlossySurface):
         return np.ones(mu.shape) if layer.diffuse is None else sample_view(layer.diffuse, mu)
-    if layer is None or not layer.active:
+    if layer is None:
         return np.ones(mu.shape)
-    return np.clip(1.0 - layer_albedo(layer, mu).max(axis=-1), 0.0, 1.0)
+    coat = layer.coat_factor(mu)
+    if not layer.active:
+        return coat
+    return coat * np.clip(1.0 - layer_albedo(layer, mu).max(axis=-1), 0.0, 1.0)
 
 
 def diffuse_weight_row(layer, n: int = WEIGHT_SAMPLES) -> np.ndarray:
@@ -433,7 +468,7 @@ def hemispherical_glossy_albedo(layer, filter_glossy: float = FILTER_GLOSSY) -> 
 def hemispherical_diffuse_weight(layer) -> float:
     """Cosine-weighted mean of the diffuse weight over the hemisphere, 2 int w(mu) mu dmu: what
     a probe-ray hit, seen from every direction at once, reflects of its diffuse base."""
-    if layer is None or (not isinstance(layer, GlossySurface) and not layer.active):
+    if layer is None or (not isinstance(layer, GlossySurface) and not layer.active and not layer.coated):
         return 1.0
     mu = (np.arange(64) + 0.5) / 64
     return float(np.mean(2.0 * diffuse_weight(layer, mu) * mu))
@@ -666,6 +701,15 @@ def layer_lobes(layer: SpecularLayer) -> list:
         b = np.zeros(3) if np.all(tint == 1.0) else f82_b_from_tint(layer.metal_color, tint)
         out.append(GlossyLobe(weight=np.full(3, layer.metallic), roughness=layer.roughness, distribution=distribution,
                               fresnel="f82", f0=layer.metal_color, b=b))
+    if layer.coated:
+        # Under the coat: its tint and its layering weight at the view angle; then the coat's own lobe.
+        under = layer.coat_factor(view_grid())
+        absorb = 1.0 + layer.coat * (layer.coat_tint.astype(np.float64) - 1.0)
+        out = [replace(lobe, weight=lobe.weight * absorb,
+                       view=under if lobe.view is None else sample_view(lobe.view, view_grid()) * under) for lobe in out]
+        coat = layer.coat_layer()
+        out.append(GlossyLobe(weight=np.full(3, layer.coat), roughness=layer.coat_roughness, distribution="GGX",
+                              fresnel="dielectric", ior=coat.eta, f0=coat.f0))
     return out
 
 

@@ -175,3 +175,23 @@ def test_hit_glossy_albedo_follows_cycles_filter_glossy():
     metal = sp.SpecularLayer(roughness=0.2, metallic=1.0, weight=0.0, metal_color=(0.9, 0.6, 0.3))
     assert np.all(sp.hemispherical_glossy_albedo(metal) < sp.hemispherical_glossy_albedo(metal, 0.0))
     assert np.all(sp.hemispherical_glossy_albedo(metal) > 0.5 * sp.hemispherical_glossy_albedo(metal, 0.0))
+
+
+def test_a_coat_adds_its_lobe_and_weighs_what_lies_under_it():
+    """Cycles' coat: a GGX lobe of weight `coat` with the dielectric Fresnel of its IOR over the
+    layer; the diffuse base and the lobes under it are weighted 1 - coat x max(its albedo) at the
+    view angle and tinted 1 + coat (tint - 1). Without a coat, nothing changes."""
+    plain = sp.SpecularLayer(roughness=0.5, metallic=0.3, metal_color=np.float32([0.9, 0.6, 0.3]), weight=0.7)
+    coated = sp.SpecularLayer(roughness=0.5, metallic=0.3, metal_color=np.float32([0.9, 0.6, 0.3]), weight=0.7,
+                              coat=0.8, coat_roughness=0.05, coat_tint=np.float32([1.0, 0.5, 0.5]))
+    mu = np.linspace(0.05, 1.0, 9)
+    coat_albedo = sp.layer_albedo(sp.SpecularLayer(roughness=0.05, ior=1.5, multiscatter=False), mu).max(axis=-1)
+    np.testing.assert_allclose(sp.diffuse_weight(coated, mu), sp.diffuse_weight(plain, mu) * (1 - 0.8 * coat_albedo),
+                               rtol=1e-6)
+    lobes, base = sp.layer_lobes(coated), sp.layer_lobes(plain)
+    assert len(lobes) == len(base) + 1 and lobes[-1].roughness == pytest.approx(0.05)
+    under = (1 - 0.8 * coat_albedo)[:, None] * np.float64([1.0, 0.6, 0.6])
+    expected = under * sum(sp.lobe_color(lobe, mu) for lobe in base) + sp.lobe_color(lobes[-1], mu)
+    np.testing.assert_allclose(sp.glossy_color(coated, mu), expected, rtol=2e-3, atol=1e-4)
+    assert len(sp.layer_lobes(sp.SpecularLayer(coat=0.0))) == len(sp.layer_lobes(sp.SpecularLayer()))
+    np.testing.assert_array_equal(sp.glossy_color(sp.SpecularLayer(coat=0.0), mu), sp.glossy_color(sp.SpecularLayer(), mu))

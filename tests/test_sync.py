@@ -581,7 +581,9 @@ def test_principled_specular_layers_are_read_and_approximations_named_once(bpy_m
     add_cube(bpy, scene, "plain").data.materials.append(matte)
     coated, bsdf = principled(bpy, "coated")
     bsdf.inputs["Coat Weight"].default_value = 0.5
+    bsdf.inputs["Coat Roughness"].default_value = 0.1
     bsdf.inputs["Sheen Weight"].default_value = 0.2
+    bsdf.inputs["Anisotropic"].default_value = 0.5
     add_cube(bpy, scene, "lacquered").data.materials.append(coated)
     with caplog.at_level(logging.WARNING):
         snap = snapshot(sync, bpy)
@@ -591,8 +593,9 @@ def test_principled_specular_layers_are_read_and_approximations_named_once(bpy_m
     assert layers["default"] is not None and layers["default"].active  # Blender's default surface
     notes = [r.getMessage() for r in caplog.records if "approximated" in r.getMessage()]
     assert len(notes) == 1, notes
-    assert "'coated'" in notes[0] and "coat" in notes[0] and "'Principled BSDF'" in notes[0]
-    assert "sheen" not in notes[0]  # rendered (`sheen.py`)
+    assert "'coated'" in notes[0] and "anisotropy" in notes[0] and "'Principled BSDF'" in notes[0]
+    assert "sheen" not in notes[0] and "only its tint" not in notes[0]  # rendered (`sheen.py`, the coat's lobe)
+    assert layers["coated"].coat == pytest.approx(0.5) and layers["coated"].coat_roughness == pytest.approx(0.1)
     assert "shiny" not in notes[0] and "matte" not in notes[0]
     coated_material = next(m for m in snap.materials if m.name == "coated")
     np.testing.assert_allclose(coated_material.sheen, 0.2)

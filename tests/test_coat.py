@@ -1,0 +1,69 @@
+"""A Principled BSDF's Coat (car paint, varnish) is a glossy lobe of its own over the layers under
+it (`specular.SpecularLayer.coat`): Cycles' coat closure (GGX, the dielectric Fresnel of the Coat
+IOR) whose albedo weighs the diffuse base and the lobes beneath at the view angle, which its tint
+colours. Before, only the tint was applied (a note said its reflection and layering were not
+rendered): three coated spheres (red paint, brown paint, blue 70% metal) against Cycles 64 spp,
+320x180: Combined 0.102 / 0.102 / 0.067 -> 0.035 / 0.039 / 0.041, Diffuse Color 0.04-0.07 ->
+0.002."""
+
+from __future__ import annotations
+
+import textwrap
+
+import numpy as np
+import pytest
+
+from tests.cli_renders import CYCLES, QUICK, layer, rendered, run_bpy
+
+RES = "240x135"
+
+SCENE = textwrap.dedent("""
+    import math, bpy
+    out = OUT
+    bpy.ops.wm.read_homefile(use_empty=True)
+    scene = bpy.context.scene
+    cam = bpy.data.objects.new("cam", bpy.data.cameras.new("cam"))
+    cam.location, cam.rotation_euler = (0, -3.2, 1.2), (math.radians(80), 0, 0)
+    scene.collection.objects.link(cam)
+    scene.camera = cam
+    sun = bpy.data.objects.new("sun", bpy.data.lights.new("sun", "SUN"))
+    sun.data.energy, sun.data.angle = 3.0, math.radians(3)
+    sun.rotation_euler = (math.radians(-40), math.radians(25), 0)
+    scene.collection.objects.link(sun)
+    scene.world = bpy.data.worlds.new("grey")
+    if scene.world.node_tree is None:
+        scene.world.use_nodes = True
+    scene.world.node_tree.nodes["Background"].inputs["Color"].default_value = (0.3, 0.35, 0.4, 1)
+    bpy.ops.mesh.primitive_plane_add(size=20, location=(0, 0, -1))
+    bpy.ops.mesh.primitive_uv_sphere_add(radius=1.0, segments=64, ring_count=32)
+    bpy.ops.object.shade_smooth()
+    m = bpy.data.materials.new("paint")
+    if m.node_tree is None:
+        m.use_nodes = True
+    bsdf = m.node_tree.nodes["Principled BSDF"]
+    bsdf.inputs["Base Color"].default_value = (0.6, 0.05, 0.05, 1)
+    bsdf.inputs["Roughness"].default_value = 0.5
+    bsdf.inputs["Coat Weight"].default_value = 1.0
+    bsdf.inputs["Coat Roughness"].default_value = 0.2
+    bpy.context.object.data.materials.append(m)
+    bpy.ops.wm.save_as_mainfile(filepath=f"{out}/coat.blend")
+""")
+
+
+@pytest.mark.blender
+@pytest.mark.slow
+def test_a_coated_sphere_matches_cycles(tmp_path):
+    """Combined and Diffuse Color over the sphere against Cycles' (64 spp + OIDN): the coat's
+    sharp reflection and its darkening of the paint beneath at grazing views are there."""
+    run_bpy(SCENE, OUT=str(tmp_path))
+    ours = rendered(tmp_path / "coat.blend", tmp_path / "h", RES, *QUICK)
+    cycles = rendered(tmp_path / "coat.blend", tmp_path / "c", RES, *CYCLES)
+    sphere = layer(cycles, "Depth", "Z")[..., 0] < 4.5
+    sphere &= layer(cycles, "Diffuse Color")[..., 1] < 0.1  # the red paint, not the grey floor
+    assert sphere.sum() > 2000
+    errors = {}
+    for name in ("Combined", "Diffuse Color"):
+        a, b = layer(ours, name)[sphere], layer(cycles, name)[sphere]
+        errors[name] = np.abs(a - b).sum() / np.abs(b).sum()
+    # Measured (before: only the tint) Combined 0.021 (0.284), Diffuse Color 0.002 (0.090).
+    assert errors["Combined"] < 0.06 and errors["Diffuse Color"] < 0.02, errors
