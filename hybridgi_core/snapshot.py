@@ -36,6 +36,8 @@ ZERO_AREA_RELATIVE = 1e-14
 #: Textures larger than this many texels per side are box-filtered down on entry (a 16k texture
 #: would otherwise mean gigabytes of float32 copies and a GPU upload over the device's limit).
 MAX_TEXTURE_SIZE = 4096
+#: Largest side of `Material.metal_texture` (a second colour texture, its tint only).
+METAL_TEXTURE_SIZE = 1024
 
 
 @dataclass
@@ -250,8 +252,10 @@ class Material:
             self.metallic_map = np.clip(fit_texture(np.repeat(metal[..., None], 3, axis=-1), MAX_TEXTURE_SIZE,
                                                     f"material {self.name!r} metallic")[..., 0], 0.0, 1.0)
         if self.metal_texture is not None:
+            # Only its colour's variation is read from it (`glossy.metal_tint_basis`): 1k texels a side.
             self.metal_texture = np.clip(np.nan_to_num(fit_texture(
-                self.metal_texture, MAX_TEXTURE_SIZE, f"material {self.name!r} metal colour"), nan=0.0), 0.0, 1.0)
+                self.metal_texture, METAL_TEXTURE_SIZE, f"material {self.name!r} metal colour", quiet=True), nan=0.0),
+                0.0, 1.0)
         if self.roughness_map is not None:
             rough = np.nan_to_num(np.asarray(self.roughness_map, np.float32), nan=0.5, posinf=1.0, neginf=0.0)
             self.roughness_map = np.ascontiguousarray(np.clip(fit_texture(
@@ -522,9 +526,11 @@ def _fold_boxes(parts: list, n_ids: int) -> tuple[np.ndarray, np.ndarray, np.nda
     return seen.astype(np.int32), lo[seen], hi[seen]
 
 
-def fit_texture(texture: np.ndarray, max_size: int = MAX_TEXTURE_SIZE, what: str = "texture") -> np.ndarray:
+def fit_texture(texture: np.ndarray, max_size: int = MAX_TEXTURE_SIZE, what: str = "texture",
+                quiet: bool = False) -> np.ndarray:
     """(h, w, 3) float32 finite texture, box-filtered by an integer factor until both sides are at
-    most `max_size` (logged); non-finite texels become 0 (logged)."""
+    most `max_size` (a warning unless `quiet`: a copy reduced on purpose); non-finite texels
+    become 0 (logged)."""
     tex = np.asarray(texture, np.float32)
     if tex.ndim != 3 or tex.shape[2] != 3 or tex.shape[0] == 0 or tex.shape[1] == 0:
         raise InvalidGeometryError(f"{what}: texture must be (h, w, 3), got {tex.shape}")
@@ -538,7 +544,9 @@ def fit_texture(texture: np.ndarray, max_size: int = MAX_TEXTURE_SIZE, what: str
             tex = np.pad(tex, ((0, ph - h), (0, pw - w), (0, 0)), mode="edge")
         tex = tex.reshape(ph // factor, factor, pw, 3).mean(axis=1, dtype=np.float32)
         tex = tex.reshape(ph // factor, pw // factor, factor, 3).mean(axis=2, dtype=np.float32)
-        log.warning("%s: %dx%d texture reduced to %dx%d (limit %d per side)", what, w, h, tex.shape[1], tex.shape[0], max_size)
+        if not quiet:
+            log.warning("%s: %dx%d texture reduced to %dx%d (limit %d per side)", what, w, h, tex.shape[1],
+                        tex.shape[0], max_size)
     bad = ~np.isfinite(tex)
     if bad.any():
         log.warning("%s: %d non-finite texel values replaced by 0", what, int(bad.sum()))

@@ -370,9 +370,7 @@ class GBufferPass(RasterPass):
             rough, rough_range = None, (0.0, 1.0, 1.0, 1.0)
             span = glossy.roughness_range(material)
             if span is not None:
-                texels = np.zeros((*material.roughness_map.shape, 4), np.float32)
-                texels[..., 0] = material.roughness_map
-                rough = upload_texture_2d(texels, "RGBA16F")
+                rough = upload_texture_2d(material.roughness_map, "R16F")
                 flags |= TEXTURE_ROUGHNESS
                 rough_range = (*span, float(glossy.METALLIC_STEPS if metal is not None else 1),
                                float(glossy.ROUGHNESS_STEPS))
