@@ -56,3 +56,27 @@ def rendered(blend, prefix, res, *extra, env=None) -> dict:
 def layer(channels, name, components="RGB") -> np.ndarray:
     """(h, w, len(components)) float32 of a pass (rows top-down, as the EXR stores them)."""
     return np.stack([channels[f"ViewLayer.{name}.{c}"] for c in components], axis=-1)
+
+
+#: bpy code (for `run_bpy` scripts, after `import math, bpy`) of a stage for one object: an empty
+#: scene, a camera 3.2 m in front of the origin looking slightly down, a 3-degree sun, a grey-blue
+#: world and a 20 m floor 1 m below; then a smooth unit UV sphere at the origin, the active object.
+LIT_SPHERE_STAGE = """
+bpy.ops.wm.read_homefile(use_empty=True)
+scene = bpy.context.scene
+cam = bpy.data.objects.new("cam", bpy.data.cameras.new("cam"))
+cam.location, cam.rotation_euler = (0, -3.2, 1.2), (math.radians(80), 0, 0)
+scene.collection.objects.link(cam)
+scene.camera = cam
+sun = bpy.data.objects.new("sun", bpy.data.lights.new("sun", "SUN"))
+sun.data.energy, sun.data.angle = 3.0, math.radians(3)
+sun.rotation_euler = (math.radians(-40), math.radians(25), 0)
+scene.collection.objects.link(sun)
+scene.world = bpy.data.worlds.new("grey")
+if scene.world.node_tree is None:
+    scene.world.use_nodes = True
+scene.world.node_tree.nodes["Background"].inputs["Color"].default_value = (0.3, 0.35, 0.4, 1)
+bpy.ops.mesh.primitive_plane_add(size=20, location=(0, 0, -1))
+bpy.ops.mesh.primitive_uv_sphere_add(radius=1.0, segments=64, ring_count=32)
+bpy.ops.object.shade_smooth()
+"""

@@ -70,15 +70,18 @@ SCENES = textwrap.dedent("""
         scene.camera = cam
         return scene
 
-    def glass():
-        m = bpy.data.materials.new("glass")
+    def lone(name, node_type):
+        m = bpy.data.materials.new(name)
         if m.node_tree is None:
             m.use_nodes = True
         tree = m.node_tree
         tree.nodes.remove(tree.nodes["Principled BSDF"])
-        node = tree.nodes.new("ShaderNodeBsdfGlass")
+        node = tree.nodes.new(node_type)
         tree.links.new(node.outputs[0], tree.nodes["Material Output"].inputs["Surface"])
         return m
+
+    def glass():
+        return lone("glass", "ShaderNodeBsdfGlass")
 
     def principled_glass():
         m = material("principled glass", (1, 1, 1))
@@ -87,14 +90,7 @@ SCENES = textwrap.dedent("""
         return m
 
     def transparent():
-        m = bpy.data.materials.new("transparent")
-        if m.node_tree is None:
-            m.use_nodes = True
-        tree = m.node_tree
-        tree.nodes.remove(tree.nodes["Principled BSDF"])
-        node = tree.nodes.new("ShaderNodeBsdfTransparent")
-        tree.links.new(node.outputs[0], tree.nodes["Material Output"].inputs["Surface"])
-        return m
+        return lone("transparent", "ShaderNodeBsdfTransparent")
 
     for name, glazing in (("open", None), ("glass", glass), ("principled", principled_glass),
                           ("transparent", transparent)):

@@ -13,30 +13,12 @@ import textwrap
 import numpy as np
 import pytest
 
-from tests.cli_renders import CYCLES, QUICK, layer, rendered, run_bpy
+from tests.cli_renders import CYCLES, LIT_SPHERE_STAGE, QUICK, layer, rendered, run_bpy
 
 RES = "240x135"
 
-SCENE = textwrap.dedent("""
-    import math, bpy
+SCENE = "import math, bpy\n" + LIT_SPHERE_STAGE + textwrap.dedent("""
     out = OUT
-    bpy.ops.wm.read_homefile(use_empty=True)
-    scene = bpy.context.scene
-    cam = bpy.data.objects.new("cam", bpy.data.cameras.new("cam"))
-    cam.location, cam.rotation_euler = (0, -3.2, 1.2), (math.radians(80), 0, 0)
-    scene.collection.objects.link(cam)
-    scene.camera = cam
-    sun = bpy.data.objects.new("sun", bpy.data.lights.new("sun", "SUN"))
-    sun.data.energy, sun.data.angle = 3.0, math.radians(3)
-    sun.rotation_euler = (math.radians(-40), math.radians(25), 0)
-    scene.collection.objects.link(sun)
-    scene.world = bpy.data.worlds.new("grey")
-    if scene.world.node_tree is None:
-        scene.world.use_nodes = True
-    scene.world.node_tree.nodes["Background"].inputs["Color"].default_value = (0.3, 0.35, 0.4, 1)
-    bpy.ops.mesh.primitive_plane_add(size=20, location=(0, 0, -1))
-    bpy.ops.mesh.primitive_uv_sphere_add(radius=1.0, segments=64, ring_count=32)
-    bpy.ops.object.shade_smooth()
     m = bpy.data.materials.new("paint")
     if m.node_tree is None:
         m.use_nodes = True

@@ -22,31 +22,17 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from tests.cli_renders import CYCLES, QUICK, layer, rendered, run_bpy
+from tests.cli_renders import CYCLES, LIT_SPHERE_STAGE, QUICK, layer, rendered, run_bpy
 
 RES = "240x135"
 ROOT = Path(__file__).resolve().parents[1]
 
-SCENES = textwrap.dedent("""
+SCENES = "STAGE = " + repr("import math, bpy\n" + LIT_SPHERE_STAGE) + "\n" + textwrap.dedent("""
     import math, bpy
     import numpy as np
     out = OUT
     for kind in ("image", "separate", "colour", "mapped"):
-        bpy.ops.wm.read_homefile(use_empty=True)
-        scene = bpy.context.scene
-        cam = bpy.data.objects.new("cam", bpy.data.cameras.new("cam"))
-        cam.location, cam.rotation_euler = (0, -3.2, 1.2), (math.radians(80), 0, 0)
-        scene.collection.objects.link(cam)
-        scene.camera = cam
-        sun = bpy.data.objects.new("sun", bpy.data.lights.new("sun", "SUN"))
-        sun.data.energy, sun.data.angle = 3.0, math.radians(3)
-        sun.rotation_euler = (math.radians(-40), math.radians(25), 0)
-        scene.collection.objects.link(sun)
-        scene.world = bpy.data.worlds.new("grey")
-        if scene.world.node_tree is None:
-            scene.world.use_nodes = True
-        scene.world.node_tree.nodes["Background"].inputs["Color"].default_value = (0.3, 0.35, 0.4, 1)
-        bpy.ops.mesh.primitive_plane_add(size=20, location=(0, 0, -1))
+        exec(STAGE)  # camera, sun, world, floor, the sphere (active)
         n = 64
         x = np.arange(n)[None, :].repeat(n, 0)
         stripes = np.where((x // 8) % 2 == 0, 0.15, 0.75).astype(np.float32)
@@ -56,8 +42,6 @@ SCENES = textwrap.dedent("""
         image.colorspace_settings.name = "Non-Color"
         image.pixels.foreach_set(rgba.ravel())
         image.pack()
-        bpy.ops.mesh.primitive_uv_sphere_add(radius=1.0, segments=64, ring_count=32)
-        bpy.ops.object.shade_smooth()
         m = bpy.data.materials.new("metal")
         if m.node_tree is None:
             m.use_nodes = True
