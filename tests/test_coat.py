@@ -34,6 +34,7 @@ SCENE = "import math, bpy\n" + LIT_SPHERE_STAGE + textwrap.dedent("""
 
 @pytest.mark.blender
 @pytest.mark.slow
+@pytest.mark.smoke
 def test_a_coated_sphere_matches_cycles(tmp_path):
     """Combined and Diffuse Color over the sphere against Cycles' (64 spp + OIDN): the coat's
     sharp reflection and its darkening of the paint beneath at grazing views are there."""

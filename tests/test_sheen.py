@@ -102,6 +102,7 @@ def planes(tmp_path_factory):
 
 @pytest.mark.blender
 @pytest.mark.slow
+@pytest.mark.smoke
 @pytest.mark.parametrize("kind", ["principled", "sheen"])
 def test_a_sheen_plane_at_a_grazing_view_matches_cycles(planes, tmp_path, kind):
     """Diffuse Color and Combined against Cycles' (64 spp + OIDN) over the plane, seen 75
