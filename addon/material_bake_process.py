@@ -50,7 +50,7 @@ EMISSION_INPUTS = {"BSDF_PRINCIPLED": ("Emission Color", "Emission Strength"), "
 
 
 #: Scalar inputs baked as a grey (`sync.BAKED_SCALARS`).
-SCALARS = {"Metallic", "Roughness"}
+SCALARS = {"Metallic", "Roughness", "Alpha", "Fac"}
 
 
 def wire(tree, target, node_name, socket_name):

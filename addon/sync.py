@@ -878,12 +878,18 @@ def _shader_surface(shader, textures, name, depth=0):
     return None
 
 
+#: Nodes whose output over the view angle a Mix Shader's factor reads as such (`_factor_table`),
+#: not as a cutout mask to bake.
+VIEW_FACTOR_NODES = frozenset({"FRESNEL", "LAYER_WEIGHT", "LIGHT_PATH"})
+
 #: Scalar inputs of a Principled BSDF that `bake_sockets` bakes when a texture feeds them (the
 #: bake process routes them through a clamped Math node: Blender's own colour-to-float conversion).
 #: Roughness fed by nodes (an ORM texture's green through Separate Color, as glTF imports wire it;
 #: a Math or Color Ramp over an image) is baked so that its lobe takes the mean of what Blender
-#: evaluates, not the socket's own value (a glTF import's is its roughness factor, often 1).
-BAKED_SCALARS = {"BSDF_PRINCIPLED": ("Metallic", "Roughness"), "BSDF_GLOSSY": ("Roughness",),
+#: evaluates, not the socket's own value (a glTF import's is its roughness factor, often 1); an
+#: Alpha fed by nodes (an image's alpha through a Math node or a Color Ramp, a procedural mask) is
+#: baked into the cutout it makes (it rendered opaque).
+BAKED_SCALARS = {"BSDF_PRINCIPLED": ("Metallic", "Roughness", "Alpha"), "BSDF_GLOSSY": ("Roughness",),
                  "BSDF_ANISOTROPIC": ("Roughness",), "BSDF_METALLIC": ("Roughness",), "BSDF_GLASS": ("Roughness",)}
 
 
@@ -1331,6 +1337,9 @@ def _alpha_map(socket, textures, name):
     mean when the colour output feeds it), or None for an opaque or constant input."""
     if socket is None or not socket.is_linked:
         return None  # a constant: the part's `clear` share
+    baked = textures.baked.get((socket.node.name, socket.identifier))
+    if baked is not None:
+        return np.ascontiguousarray(np.asarray(baked, np.float32)[..., :3].mean(axis=-1))
     node, output = _source(socket)
     if node is not None and node.type == "TEX_IMAGE":
         if output == "Alpha":
@@ -1341,7 +1350,11 @@ def _alpha_map(socket, textures, name):
         if output == "Color":
             colour = textures.get(node.image, name)
             return None if colour is None else colour.mean(axis=-1)
-    log.warning("material %r: alpha from %s is not supported; rendered opaque", name,
+    if node is not None and textures.pending:
+        return None  # its bake is on the way: opaque meanwhile
+    if node is not None and _fold(socket, 0) is not None:
+        return None  # constant after all (the part's `clear` share)
+    log.warning("material %r: alpha from %s could not be read; rendered opaque", name,
                 node.bl_idname if node is not None else "a muted link")
     return None
 
@@ -1676,6 +1689,15 @@ def bake_sockets(material) -> list[tuple[str, str]]:
         seen.add(node.name)
         if node.type in ("MIX_SHADER", "ADD_SHADER"):
             stack += [_linked_node(s) for s in node.inputs if s.type == "SHADER"]
+            fac = node.inputs.get("Fac") if node.type == "MIX_SHADER" else None
+            shaders = [_linked_node(s) for s in node.inputs if s.type == "SHADER"]
+            if (fac is not None and fac.is_linked and _fold(fac, 0) is None
+                    and any(n is not None and n.type == "BSDF_TRANSPARENT" for n in shaders)):
+                # A cutout mask from nodes (Mix(Transparent, surface) by a procedural or a
+                # processed image): baked as the hole's map (`_alpha_map`).
+                source, output = _source(fac)
+                if source is not None and source.type not in VIEW_FACTOR_NODES:
+                    (images if _direct_image(source, output) else out).append((node.name, fac.identifier))
             continue
         if getattr(node, "grouped", False):
             continue  # inside a node group: the bake process edits the material's own tree only

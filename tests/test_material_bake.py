@@ -342,6 +342,47 @@ def test_a_roughness_through_separate_color_is_baked_and_its_mean_taken(bpy_modu
     assert got.specular.roughness == pytest.approx(0.5, abs=0.05)
 
 
+def test_an_alpha_from_nodes_is_baked_into_a_cutout(bpy_module, empty_scene, sync, material_bake, cache_home):
+    """An Alpha fed by nodes (an image's red halves through a Math Greater Than) and a Mix with a
+    Transparent BSDF by such a mask are baked into the cutout map (`Material.alpha`): half the
+    used texels holes, half solid. They rendered opaque before."""
+    bpy = bpy_module
+    image, _rgb = _halves(bpy, "mask")
+    got = []
+    for mixed in (False, True):
+        material = blender_compat.new_material(bpy, f"leaf{int(mixed)}")
+        tree = material.node_tree
+        bsdf = tree.nodes["Principled BSDF"]
+        texture = tree.nodes.new("ShaderNodeTexImage")
+        texture.image = image
+        texture.interpolation = "Closest"
+        split = tree.nodes.new("ShaderNodeSeparateColor")
+        tree.links.new(texture.outputs["Color"], split.inputs[0])
+        step = tree.nodes.new("ShaderNodeMath")
+        step.operation = "GREATER_THAN"
+        step.inputs[1].default_value = 0.5
+        tree.links.new(split.outputs["Red"], step.inputs[0])
+        if mixed:
+            hole = tree.nodes.new("ShaderNodeBsdfTransparent")
+            mix = tree.nodes.new("ShaderNodeMixShader")
+            tree.links.new(step.outputs[0], mix.inputs["Fac"])
+            tree.links.new(hole.outputs[0], mix.inputs[1])
+            tree.links.new(bsdf.outputs[0], mix.inputs[2])
+            tree.links.new(mix.outputs[0], tree.nodes["Material Output"].inputs["Surface"])
+            assert sync.bake_sockets(material) == [(mix.name, mix.inputs["Fac"].identifier)]
+        else:
+            tree.links.new(step.outputs[0], bsdf.inputs["Alpha"])
+            assert sync.bake_sockets(material) == [("Principled BSDF", bsdf.inputs["Alpha"].identifier)]
+        _object(bpy, empty_scene, f"leaf{int(mixed)}", *QUAD, material, uv=True)
+    materials = sync.snapshot_from_depsgraph(bpy.context.evaluated_depsgraph_get()).materials
+    for m in materials:
+        used = m.alpha[material_bake.used_texels(2, m.alpha.shape[0])]
+        got.append((m.name, float((used < 0.5).mean())))
+    # The red half is solid on the Principled BSDF's; the Mix's factor 1 picks its second shader
+    # (the surface) there, so the red half is solid too.
+    assert sorted(got) == [("leaf0", pytest.approx(0.5, abs=0.1)), ("leaf1", pytest.approx(0.5, abs=0.1))]
+
+
 def test_constant_emission_stays_constant(bpy_module, empty_scene, sync, cache_home):
     bpy = bpy_module
     material = _emissive(bpy, "lamp", strength_from_checker=False)
