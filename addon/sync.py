@@ -743,19 +743,19 @@ def material_from_blender(material, textures=None, baked=None, pending=False):
                          sheen_roughness=part.sheen_roughness, sheen_layered=part.sheen_layered)
 
 
-def _principled_sheen(shader, name) -> tuple[np.ndarray | None, float]:
+def _principled_sheen(shader, textures, name) -> tuple[np.ndarray | None, float]:
     """((3,) a Principled BSDF's sheen colour, Sheen Weight x Sheen Tint, or None; its Sheen
     Roughness), from the sockets' constants (`_constant_value` notes a linked one)."""
     weight_socket = _input(shader, "Sheen Weight")
     if weight_socket is None:
         return None, 0.5
-    weight = float(np.clip(_constant_value(weight_socket, name), 0.0, None))
+    weight = float(np.clip(_scalar_value(weight_socket, textures, name), 0.0, None))
     if weight <= 0:
         return None, 0.5
     tint = _input(shader, "Sheen Tint")
     colour = _constant_color(tint, name) if tint is not None else np.ones(3)
     roughness = _input(shader, "Sheen Roughness")
-    rough = _constant_value(roughness, name) if roughness is not None else 0.5
+    rough = _scalar_value(roughness, textures, name) if roughness is not None else 0.5
     return (weight * np.asarray(colour, np.float64)).astype(np.float32), float(rough)
 
 
@@ -789,11 +789,11 @@ def _shader_surface(shader, textures, name, depth=0):
         metallic = (float(metallic_map.mean()) if metallic_map is not None
                     else _scalar_value(shader.inputs["Metallic"], textures, name))
         transmission = _constant_value(_input(shader, "Transmission Weight", "Transmission"), name)
-        coat = _constant_value(_input(shader, "Coat Weight"), name) if _input(shader, "Coat Weight") else 0.0
+        coat = _scalar_value(_input(shader, "Coat Weight"), textures, name) if _input(shader, "Coat Weight") else 0.0
         tint = _constant_color(_input(shader, "Coat Tint"), name) if _input(shader, "Coat Tint") else np.ones(3)
         weight = (1.0 - np.clip(metallic, 0, 1)) * (1.0 - np.clip(transmission, 0, 1))
         _note_approximations(shader, textures, name, metallic, transmission, coat)
-        layer = _specular_layer(shader, textures, name, base, texture, metallic, transmission)
+        layer = _specular_layer(shader, textures, name, base, texture, metallic, transmission, coat)
         metal_texture = None
         if metallic_map is not None:
             # The diffuse base per texel, base colour x (1 - metallic) as Cycles weighs it; the
@@ -815,7 +815,7 @@ def _shader_surface(shader, textures, name, depth=0):
         opacity = 1.0 if alpha_socket.is_linked else float(np.clip(_constant_value(alpha_socket, name), 0.0, 1.0))
         refract = opacity * float(np.clip(transmission, 0, 1)) * (1.0 - float(np.clip(metallic, 0, 1)))
         clear = (1.0 - opacity) + refract
-        sheen_colour, sheen_roughness = _principled_sheen(shader, name)
+        sheen_colour, sheen_roughness = _principled_sheen(shader, textures, name)
         return surface_mix.SurfacePart(base=base, texture=texture, emission=emission, emission_texture=glow,
                                        alpha=_alpha_map(alpha_socket, textures, name), diffuse=diffuse,
                                        lobes=sp.layer_lobes(layer), layer=layer,
@@ -1207,14 +1207,16 @@ def _roughness_map(shader, textures, name):
 
 
 def _scalar_value(socket, textures, name) -> float:
-    """A float input's constant; one fed by nodes whose bake is on the way (`textures.pending`:
-    the viewport shows the socket's value meanwhile) gives its own value without a warning."""
-    if textures.pending and socket.is_linked and _fold(socket, 0) is None:
+    """A float input's constant; one that `bake_sockets` bakes (`BAKED_SCALARS`), fed by nodes
+    while its bake is on the way (`textures.pending`: the viewport shows the socket's value
+    meanwhile), gives its own value without a warning."""
+    if (textures.pending and socket.is_linked and socket.name in BAKED_SCALARS.get(socket.node.type, ())
+            and _fold(socket, 0) is None):
         return float(socket.default_value)
     return _constant_value(socket, name)
 
 
-def _specular_layer(shader, textures, name, base, texture, metallic, transmission):
+def _specular_layer(shader, textures, name, base, texture, metallic, transmission, coat=0.0):
     """`SpecularLayer` of a Principled BSDF: its roughness, IOR, Specular IOR Level and Tint and
     its distribution (constant inputs; a linked one keeps its value, with a warning), weighted as
     Cycles weights the dielectric layer; the metallic lobe's F0 is the (mean) base colour."""
@@ -1229,20 +1231,21 @@ def _specular_layer(shader, textures, name, base, texture, metallic, transmissio
                          tint=_constant_color(tint, name) if colour_tint else np.ones(3, np.float32),
                          multiscatter=getattr(shader, "distribution", "MULTI_GGX") == "MULTI_GGX",
                          weight=(1.0 - metallic) * (1.0 - transmission), metallic=metallic, metal_color=metal,
-                         transmission=transmission, **_coat(shader, name))
+                         transmission=transmission, **_coat(shader, textures, name, coat))
 
 
-def _coat(shader, name) -> dict:
-    """A Principled BSDF's Coat inputs as `SpecularLayer` fields (constants; none without a coat)."""
-    weight = _input(shader, "Coat Weight")
-    if weight is None or _constant_value(weight, name) <= 0:
+def _coat(shader, textures, name, weight: float) -> dict:
+    """A Principled BSDF's Coat inputs as `SpecularLayer` fields (constants; none without a coat
+    of `weight`, the Coat Weight already read)."""
+    if weight <= 0:
         return {}
-    out = {"coat": _constant_value(weight, name)}
+    out = {"coat": weight}
     for field_name, socket in (("coat_roughness", "Coat Roughness"), ("coat_ior", "Coat IOR")):
         if _input(shader, socket) is not None:
-            out[field_name] = _constant_value(_input(shader, socket), name)
-    if _input(shader, "Coat Tint") is not None:
-        out["coat_tint"] = _constant_color(_input(shader, "Coat Tint"), name)
+            out[field_name] = _scalar_value(_input(shader, socket), textures, name)
+    tint = _input(shader, "Coat Tint")
+    if tint is not None:
+        out["coat_tint"] = _constant_color(tint, name)
     return out
 
 
