@@ -106,11 +106,12 @@ def _metal_texels(material) -> np.ndarray | None:
 def metal_tint_basis(material) -> np.ndarray | None:
     """(3, 3) float32 rows: a textured metal's mean colour texel and its texture's two main axes
     of colour variation (unit; principal components of the texels), or None where its metallic
-    lobe takes one colour: no colour texture, no metallic lobe of a lone Principled BSDF (under a
-    Metallic texture, the colour is its `Material.metal_texture`). The G-buffer writes each pixel's texel coordinates along the axes into the
-    albedo and emission targets' alphas (spare there); `metal_tint` rebuilds the texel from them
-    and the metallic lobe's colour (its F0: the mean texel) follows it per pixel. Two axes hold
-    a texture's colour variation (brightness, and a hue between two colours) nearly whole."""
+    lobe takes one colour: no colour texture, or no metallic lobe of a lone Principled BSDF (under
+    a Metallic texture the colour is its `Material.metal_texture`). The G-buffer writes each
+    pixel's texel coordinates along the axes into the albedo and emission targets' alphas (spare
+    there); `metal_tint` rebuilds the texel from them and the metallic lobe's colour (its F0: the
+    mean texel) follows it per pixel. Two axes hold a texture's colour variation (brightness, and
+    a hue between two colours) nearly whole."""
     source = _metal_texels(material)
     if source is None:
         return None

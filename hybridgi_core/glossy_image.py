@@ -38,9 +38,10 @@ def material_rows(material: np.ndarray, mats=None) -> np.ndarray:
     material with a Metallic texture adds half its texel's metallic; one with a Roughness texture
     adds (variant + 0.5) / variants, its metallic step x `glossy.ROUGHNESS_STEPS` + its roughness
     step: `raster/gbuffer_frag.glsl`). With `mats` (`glossy.GlossyMaterials`), such a pixel's row
-    is its material's variant nearest its texels; without, the material's own row. With `mats`, a texel of a material it does not
-    know (a G-buffer drawn from another material list than the system's: the viewport's worker
-    may still hold the one before an edit) gets -1, as the background: it reflects nothing."""
+    is its material's variant nearest its texels; without, the material's own row. With `mats`,
+    a texel of a material it does not know (a G-buffer drawn from another material list than the
+    system's: the viewport's worker may still hold the one before an edit) gets -1, as the
+    background: it reflects nothing."""
     r = np.asarray(material, np.float32).reshape(-1)
     whole = np.floor(r)
     rows = whole.astype(np.int64) - 1
@@ -136,7 +137,8 @@ def frame_glossy(system, points, normals, pix, shape: tuple[int, int], material,
     between : called between its steps (the viewport's worker raises there when an edit or a
     newer view waits); tint : (n, 2) the textured metals' texel coordinates per receiver (the
     G-buffer albedo and emission targets' alphas: `glossy.metal_tint_basis`), or None: the
-    metallic lobes' share of the light takes the texel's colour over the mean's. Pure numpy: the final render's pipeline and the viewport's worker both call it."""
+    metallic lobes' share of the light takes the texel's colour over the mean's. Pure numpy: the
+    final render's pipeline and the viewport's worker both call it."""
     between = between or (lambda: None)
     points = np.asarray(points).reshape(-1, 3)
     normals = np.asarray(normals).reshape(-1, 3)
@@ -177,7 +179,7 @@ def _tint_metals(mats, material, rows, tint, direct, colour) -> None:
     mean's (their lobe's F0 is the mean): per channel, 1 + share (texel / mean - 1)."""
     index = material_rows(material)
     for m, basis in mats.tint_bases.items():
-        sel = np.flatnonzero(index == m)
+        sel = np.flatnonzero((index == m) & (rows >= 0))
         if sel.size == 0:
             continue
         share = mats.metal_share[rows[sel]].astype(np.float32)[:, None]

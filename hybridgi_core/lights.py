@@ -328,7 +328,8 @@ def _shadow_to_targets(tracer, p, nrm, idx, tx, ty, tz, epsilon, glass=False):
     dirs = np.empty((dist.size, 3), _F32)
     for k, d in enumerate((dx, dy, dz)):
         np.multiply(d, inv, out=dirs[:, k])
-    hidden = np.asarray(shadow_query(tracer, glass)(origins, dirs, tfar.astype(_F32, copy=False), trusted=True), bool)
+    query = shadow_query(tracer, glass)
+    hidden = np.asarray(query(origins, dirs, tfar.astype(_F32, copy=False), trusted=True), bool)
     if every:
         return ~hidden
     vis[ray] = ~hidden
@@ -386,7 +387,8 @@ def _point_chunk(light, p, nrm, tracer, rng, samples, epsilon, partial=None, ope
     live = np.nonzero(e != 0)[0]
     if live.size == 0:
         return e
-    vis = _shadow_to_targets(tracer, p, nrm, live, _F32(c[0]), _F32(c[1]), _F32(c[2]), epsilon, stopped_by_glass(light))
+    vis = _shadow_to_targets(tracer, p, nrm, live, _F32(c[0]), _F32(c[1]), _F32(c[2]), epsilon,
+                             stopped_by_glass(light))
     e[live] *= vis
     return e
 

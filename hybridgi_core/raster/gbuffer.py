@@ -170,7 +170,9 @@ def weight_table(materials) -> np.ndarray:
     specular layer's diffuse weight, 1 without one, times a layered sheen's) and the colour its
     sheen adds in green-blue-alpha (`sheen.weight_row`; zeros without one)."""
     if not materials:
-        return np.concatenate([np.ones((1, WEIGHT_SAMPLES, 1)), np.zeros((1, WEIGHT_SAMPLES, 3))], -1).astype(np.float32)
+        empty = np.zeros((1, WEIGHT_SAMPLES, 4), np.float32)
+        empty[..., 0] = 1.0
+        return empty
     mu = np.linspace(0.0, 1.0, WEIGHT_SAMPLES)
     table = np.stack([sheen.weight_row(m, mu) for m in materials])
     table[:, :, 0] *= np.stack([diffuse_weight_row(getattr(m, "specular", None)) for m in materials])
