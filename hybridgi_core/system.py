@@ -13,7 +13,7 @@ import numpy as np
 
 from .bump import has_normal_maps, smooth_normals
 from .cache import IrradianceCache
-from .cutout import Cutouts
+from .cutout import Cutouts, glass_transmission
 from .evaluate import Gathered, corner_visibility, gather
 from .glossy import GlossyMaterials, glossy_direct
 from .levels import CacheLevels, build_levels
@@ -77,7 +77,8 @@ class GISystem:
         self._static_rays = self._static_ray_geometry(scene)
         self.ray_geometry = self._with_dynamic(scene)
         self.tracer = EmbreeTracer(self.ray_geometry, self.dynamic_objects, threads=1)
-        self.tracer.set_cutouts(Cutouts(self.ray_geometry, scene.materials, scene.objects))
+        self.tracer.set_cutouts(Cutouts(self.ray_geometry, scene.materials, scene.objects,
+                                           glass=glass_transmission(self.settings.filter_glossy)))
         self.surfaces = SurfaceTable(self.ray_geometry, scene.materials, reflect=settings.bounce_light,
                                      filter_glossy=settings.filter_glossy)
         self.cache = cache if cache is not None else IrradianceCache.for_scene(scene, settings)
@@ -118,7 +119,8 @@ class GISystem:
         self.scene = scene
         self.ray_geometry = self._with_dynamic(scene)
         self.tracer.update_dynamic(self.ray_geometry)
-        self.tracer.set_cutouts(Cutouts(self.ray_geometry, scene.materials, scene.objects))
+        self.tracer.set_cutouts(Cutouts(self.ray_geometry, scene.materials, scene.objects,
+                                           glass=glass_transmission(self.settings.filter_glossy)))
         rows = np.arange(self._static_rays.triangle_count, self.ray_geometry.triangle_count)
         self.surfaces.update_rows(self.ray_geometry, rows)
         if self.solver.has_hits:
@@ -138,7 +140,8 @@ class GISystem:
         self.updater.scene = ShadingScene(self.surfaces, scene.lights, scene.world)
         if not same_materials:
             self.surfaces.set_materials(scene.materials)
-            self.tracer.set_cutouts(Cutouts(self.ray_geometry, scene.materials, scene.objects))
+            self.tracer.set_cutouts(Cutouts(self.ray_geometry, scene.materials, scene.objects,
+                                           glass=glass_transmission(self.settings.filter_glossy)))
         self.solver.scene = self.updater.scene
         self.solver.lights_changed()
 

@@ -186,7 +186,7 @@ class EmbreeTracer:
             return self.occluded(origins, directions, tfar, trusted)
         hits = self.intersect(origins, directions, tfar, trusted)
         passed = self._continue_past(origins, directions, tfar, hits,
-                                     lambda prim, _u, _v: skip.shadow_transparent(prim), self.intersect)
+                                     lambda prim, _u, _v, _d: skip.shadow_transparent(prim), self.intersect)
         return passed.prim >= 0
 
     def intersect(
@@ -206,14 +206,15 @@ class EmbreeTracer:
     def _continue_past(self, origins, directions, tfar, hits: Hits, passes, trace, layers: int = CUTOUT_LAYERS) -> Hits:
         """`hits` with the rays whose hit `passes(prim, u, v)` marks (an alpha cutout's hole, a
         triangle shadow rays pass) continued just beyond it by `trace` (an intersect), at most
-        `layers` times; a ray that leaves its reach misses (t inf, prim -1)."""
+        `layers` times; a ray that leaves its reach misses (t inf, prim -1). `passes` takes the
+        hits' prim, u, v and the rays' directions."""
         o = np.asarray(origins, np.float32).reshape(-1, 3)
         d = np.broadcast_to(np.asarray(directions, np.float32).reshape(-1, 3), o.shape)
         limit = np.broadcast_to(np.asarray(tfar, np.float32), (o.shape[0],))
         t, prim, u, v = hits.t.copy(), hits.prim.copy(), hits.u.copy(), hits.v.copy()
         eps = np.float32(self.epsilon)
         for _layer in range(layers):
-            through = np.flatnonzero(passes(prim, u, v))
+            through = np.flatnonzero(passes(prim, u, v, d))
             if through.size == 0:
                 break
             start = t[through] + eps
