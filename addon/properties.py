@@ -207,7 +207,7 @@ class HybridGISettings(bpy.types.PropertyGroup):
         "light up to 1: polished floors, metals, lacquer, the default Principled BSDF's specular) reflects, "
         "shaded at their hits, so it mirrors the room rather than its average colour (final renders). "
         "0 = the cache's mean light for every glossy surface",
-        default=4, min=0, max=256, soft_max=16,
+        default=8, min=0, max=256, soft_max=16,
     )
 
     # Film (final renders).
