@@ -792,8 +792,10 @@ def _shader_surface(shader, textures, name, depth=0):
         coat = _scalar_value(_input(shader, "Coat Weight"), textures, name) if _input(shader, "Coat Weight") else 0.0
         tint = _constant_color(_input(shader, "Coat Tint"), name) if _input(shader, "Coat Tint") else np.ones(3)
         weight = (1.0 - np.clip(metallic, 0, 1)) * (1.0 - np.clip(transmission, 0, 1))
-        _note_approximations(shader, textures, name, metallic, transmission, coat)
-        layer = _specular_layer(shader, textures, name, base, texture, metallic, transmission, coat)
+        roughness_map = _roughness_map(shader, textures, name)
+        roughness = _roughness(shader, textures, name, texels=roughness_map)
+        _note_approximations(shader, textures, name, metallic, transmission, coat, roughness)
+        layer = _specular_layer(shader, name, base, texture, metallic, transmission, roughness, coat, tint)
         metal_texture = None
         if metallic_map is not None:
             # The diffuse base per texel, base colour x (1 - metallic) as Cycles weighs it; the
@@ -821,7 +823,7 @@ def _shader_surface(shader, textures, name, depth=0):
                                        lobes=sp.layer_lobes(layer), layer=layer,
                                        normal=_normal_map(shader, textures, name),
                                        metallic_map=None if metallic_map is None else metallic_map[..., 0],
-                                       roughness_map=_roughness_map(shader, textures, name),
+                                       roughness_map=roughness_map,
                                        metal_texture=metal_texture,
                                        clear=clear, refract=refract, sheen=sheen_colour,
                                        sheen_roughness=sheen_roughness,
@@ -1143,51 +1145,46 @@ def _mean_colour_input(socket, textures, name, node, notes):
     return np.asarray(base, np.float64) * texture.reshape(-1, 3).mean(axis=0)
 
 
-def _note_approximations(shader, textures, name, metallic, transmission, coat):
+def _note_approximations(shader, textures, name, metallic, transmission, coat, roughness):
     """Record what of a Principled BSDF HybridGI renders only approximately (`_warn_glossy`)."""
     notes = []
     if coat > 0 and _input(shader, "Coat Normal") is not None and _input(shader, "Coat Normal").is_linked:
         notes.append("coat normal (the coat takes the base's normal)")
-    for socket, note in (("Anisotropic", "anisotropy (rendered isotropic)"),):
-        value = _input(shader, socket)
-        if value is not None and _constant_value(value, name) > 0:
-            notes.append(note)
-    for socket, note in (("Thin Film Thickness", "thin film (not rendered)"),
+    for socket, note in (("Anisotropic", "anisotropy (rendered isotropic)"),
+                         ("Thin Film Thickness", "thin film (not rendered)"),
                          ("Subsurface Weight", "subsurface (rendered as diffuse)")):
         value = _input(shader, socket)
         if value is not None and _constant_value(value, name) > 0:
             notes.append(note)
     level = _input(shader, "Specular IOR Level", "Specular")
     glossy = metallic > 0 or (level is not None and _constant_value(level, name) > 0)
-    if glossy and _input(shader, "Roughness") is not None and _roughness(shader, textures, name) < MIN_ROUGHNESS:
+    if glossy and _input(shader, "Roughness") is not None and roughness < MIN_ROUGHNESS:
         notes.append(f"a mirror-like specular (roughness under {MIN_ROUGHNESS}: lamps' reflections are not rendered)")
     if notes:
         _note(textures, name, shader, ", ".join(notes))
 
 
-def _roughness(shader, textures, name, default=0.5):
-    """A closure's Roughness: its constant, or the mean of an image it reads directly or of what
-    Blender baked of the nodes feeding it (`BAKED_SCALARS`; a lobe has one roughness: noted),
-    else its own value (`_constant_value` warns)."""
+_UNREAD = object()
+
+
+def _roughness(shader, textures, name, default=0.5, texels=_UNREAD):
+    """A closure's Roughness: its constant, or the mean of its texels (`_roughness_map`: an image
+    it reads directly or what Blender baked of the nodes feeding it; a lobe has one roughness:
+    noted), else its own value (`_constant_value` warns). texels : the map the caller already
+    read (None: a constant)."""
     socket = _input(shader, "Roughness")
     if socket is None:
         return default
-    baked = textures.baked.get((shader.name, socket.identifier))
-    if baked is not None and socket.is_linked:
+    if texels is _UNREAD:
+        texels = _roughness_map(shader, textures, name)
+    if texels is not None:
         _note(textures, name, shader, "Roughness from a texture (its mean)")
-        return float(np.clip(np.asarray(baked, np.float32)[..., :3].mean(), 0.0, 1.0))
-    node, output = _source(socket)
-    if node is not None and node.type == "TEX_IMAGE" and output in ("Color", "Alpha"):
-        pixels = textures.alpha(node.image, name) if output == "Alpha" else textures.get(node.image, name)
-        if pixels is not None:
-            _note(textures, name, shader, "Roughness from an image (its mean)")
-            mean = pixels.mean() if output == "Alpha" else pixels.reshape(-1, 3).mean(axis=0) @ surface_mix.GRAY
-            return float(np.clip(mean, 0.0, 1.0))
+        return float(np.clip(np.mean(texels, dtype=np.float64), 0.0, 1.0))
     return _scalar_value(socket, textures, name)
 
 
 def _roughness_map(shader, textures, name):
-    """(h, w) float32 a Principled BSDF's Roughness per texel, or None when it is a constant: an
+    """(h, w) float32 a closure's Roughness per texel, or None when it is a constant: an
     Image Texture's colour or alpha straight into it (the mesh's UVs, as a base colour image), or
     what Blender baked of the nodes feeding it (`BAKED_SCALARS`; on the bake's atlas, as the
     colour then is)."""
@@ -1216,36 +1213,36 @@ def _scalar_value(socket, textures, name) -> float:
     return _constant_value(socket, name)
 
 
-def _specular_layer(shader, textures, name, base, texture, metallic, transmission, coat=0.0):
-    """`SpecularLayer` of a Principled BSDF: its roughness, IOR, Specular IOR Level and Tint and
-    its distribution (constant inputs; a linked one keeps its value, with a warning), weighted as
-    Cycles weights the dielectric layer; the metallic lobe's F0 is the (mean) base colour."""
+def _specular_layer(shader, name, base, texture, metallic, transmission, roughness, coat=0.0, coat_tint=None):
+    """`SpecularLayer` of a Principled BSDF: `roughness` (`_roughness`), its IOR, Specular IOR
+    Level and Tint and its distribution (constant inputs; a linked one keeps its value, with a
+    warning), weighted as Cycles weights the dielectric layer, and its coat (`_coat`); the metallic
+    lobe's F0 is the (mean) base colour."""
     metal = base if texture is None else base * texture.reshape(-1, 3).mean(axis=0)
     metallic, transmission = float(np.clip(metallic, 0, 1)), float(np.clip(transmission, 0, 1))
     level = _input(shader, "Specular IOR Level", "Specular")
     tint = _input(shader, "Specular Tint")
     colour_tint = tint is not None and hasattr(tint.default_value, "__len__")
-    return SpecularLayer(roughness=_roughness(shader, textures, name),
+    return SpecularLayer(roughness=roughness,
                          ior=_constant_value(_input(shader, "IOR"), name) if _input(shader, "IOR") else 1.5,
                          level=_constant_value(level, name) if level is not None else 0.5,
                          tint=_constant_color(tint, name) if colour_tint else np.ones(3, np.float32),
                          multiscatter=getattr(shader, "distribution", "MULTI_GGX") == "MULTI_GGX",
                          weight=(1.0 - metallic) * (1.0 - transmission), metallic=metallic, metal_color=metal,
-                         transmission=transmission, **_coat(shader, textures, name, coat))
+                         transmission=transmission, **_coat(shader, name, coat, coat_tint))
 
 
-def _coat(shader, textures, name, weight: float) -> dict:
+def _coat(shader, name, weight: float, tint) -> dict:
     """A Principled BSDF's Coat inputs as `SpecularLayer` fields (constants; none without a coat
-    of `weight`, the Coat Weight already read)."""
+    of `weight`; the Coat Weight and Tint already read by the caller)."""
     if weight <= 0:
         return {}
     out = {"coat": weight}
     for field_name, socket in (("coat_roughness", "Coat Roughness"), ("coat_ior", "Coat IOR")):
         if _input(shader, socket) is not None:
-            out[field_name] = _scalar_value(_input(shader, socket), textures, name)
-    tint = _input(shader, "Coat Tint")
+            out[field_name] = _constant_value(_input(shader, socket), name)
     if tint is not None:
-        out["coat_tint"] = _constant_color(tint, name)
+        out["coat_tint"] = tint
     return out
 
 
@@ -1691,9 +1688,9 @@ def bake_sockets(material) -> list[tuple[str, str]]:
             continue
         seen.add(node.name)
         if node.type in ("MIX_SHADER", "ADD_SHADER"):
-            stack += [_linked_node(s) for s in node.inputs if s.type == "SHADER"]
-            fac = node.inputs.get("Fac") if node.type == "MIX_SHADER" else None
             shaders = [_linked_node(s) for s in node.inputs if s.type == "SHADER"]
+            stack += shaders
+            fac = node.inputs.get("Fac") if node.type == "MIX_SHADER" else None
             if (fac is not None and fac.is_linked and _fold(fac, 0) is None
                     and any(n is not None and n.type == "BSDF_TRANSPARENT" for n in shaders)):
                 # A cutout mask from nodes (Mix(Transparent, surface) by a procedural or a

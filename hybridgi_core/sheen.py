@@ -14,7 +14,8 @@ HybridGI folds it into the G-buffer's per-material view-dependent weight table (
 red multiplies the diffuse colour, green-blue-alpha add the sheen's colour) and into what a
 probe-ray hit reflects (`hit_albedo`, `hit_weight`: the cosine-weighted means over the
 hemisphere). The lamps' light on it is the diffuse light (the lobe's shape, brighter towards
-grazing lamps, is not followed: exact under uniform light). The table is Cycles' own, measured
+grazing lamps, is not followed: exact under uniform light); the specular layer under a
+Principled BSDF's sheen keeps its full weight (Cycles weighs it by 1 - max(sheen) A too). The table is Cycles' own, measured
 by `scripts/measure_sheen_albedo.py` (the Diffuse Color of white Sheen BSDF spheres).
 
 Pure numpy: no bpy.

@@ -11,9 +11,9 @@
  * radiance per texel (an emissive texture), averaged over the pixel's footprint like the colour;
  * without it (or without UVs) the constant `emission`. Bit 32: `emission_tx`'s alpha is the
  * Metallic per texel, added as half of it to `out_material`'s r. Bit 64: a holdout, drawn as a
- * hole (the background's zeros at a depth beyond it). Bit 128: `rough_tx` (red) is the Roughness per
- * texel, coded with the metallic into the material index's fraction. `out_material`'s gba is the smooth normal
- * before a map or bump bends it (what the CPU takes for the surface: edges, filter guides, ray
+ * hole (the background's zeros at a depth beyond it). Bit 128: `rough_tx` (red) is the Roughness
+ * per texel, coded with the metallic into the material index's fraction. `out_material`'s gba is
+ * the smooth normal before a map or bump bends it (what the CPU takes for the surface: edges, filter guides, ray
  * origins, the bump shadowing term). */
 
 /* The diffuse factor (r) and added sheen colour (gba) at cosine mu, linear between the table's
