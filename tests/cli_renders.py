@@ -58,6 +58,12 @@ def layer(channels, name, components="RGB") -> np.ndarray:
     return np.stack([channels[f"ViewLayer.{name}.{c}"] for c in components], axis=-1)
 
 
+def pass_error(ours: dict, reference: dict, name: str, mask: np.ndarray) -> float:
+    """Relative L1 of pass `name` (RGB) of two renders' channels over the pixels `mask`."""
+    a, b = layer(ours, name)[mask], layer(reference, name)[mask]
+    return float(np.abs(a - b).sum() / np.abs(b).sum())
+
+
 #: bpy code (for `run_bpy` scripts, after `import math, bpy`) of a stage for one object: an empty
 #: scene, a camera 3.2 m in front of the origin looking slightly down, a 3-degree sun, a grey-blue
 #: world and a 20 m floor 1 m below; then a smooth unit UV sphere at the origin, the active object.
