@@ -1196,7 +1196,7 @@ def full_res_images(system, position_lo: np.ndarray, normal_lo: np.ndarray, pix:
                     full_size: tuple[int, int], passes: int = 3, plane_sigma: float = 0.02,
                     normal_power: float = 8.0, refine: float = REFINE_SPREAD,
                     screen: ScreenLight | None = None, full_surfaces: np.ndarray | None = None,
-                    filter=None, upsample=None) -> FullResGI:
+                    filter=None, upsample=None, lookup: HitLookup | None = None) -> FullResGI:
     """Pixel rays at the GI resolution, resolved at the full resolution (W, H = full_size).
 
     The GI pixels trace as `gi_images` does; their estimates (not only the residuals) are filtered
@@ -1225,11 +1225,13 @@ def full_res_images(system, position_lo: np.ndarray, normal_lo: np.ndarray, pix:
     estimates with (a final render's GPU pass, `raster.atrous.AtrousPass`); None: `filter_residual`.
     upsample : likewise for `upsample_full` over the whole image (`raster.upsample.UpsamplePass`);
     its time is the step "upsample_pass". None: `upsample_full` on the worker pool.
+    lookup : the cache's HitLookup the hits read (None: `levels.hit_lookup`'s, built here).
     """
     surfaces = None
     if full_surfaces is not None:
         surfaces = low_res_surfaces(position_lo, pix, normals, full_points, full_surfaces, full_pix, full_size)
-    lookup = hit_lookup(system, bounced=system.settings.indirect_quality == MULTI_BOUNCE) if rays > 0 else None
+    if lookup is None and rays > 0:
+        lookup = hit_lookup(system, bounced=system.settings.indirect_quality == MULTI_BOUNCE)
     gi = trace_pixels(system, points, normals, rays, frame, corner_visible, lookup=lookup, screen=screen,
                       surfaces=surfaces)
     return full_res_resolve(system, gi, position_lo, pix, points, normals, view, frame, rays, full_points,

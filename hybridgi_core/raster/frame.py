@@ -22,6 +22,7 @@ from ..evaluate import HitLookup
 from ..lights import RATIO_MIN_SAMPLES, rough_lights
 from ..penumbra import adaptive_direct, filter_camera
 from ..screen_light import ScreenLight
+from ..settings import MULTI_BOUNCE
 from ..system import UPDATES_PER_BATCH
 from ..visible import pixels_to_points
 from .accumulate import AccumulatePass
@@ -98,13 +99,6 @@ class CentreLight:
     pix: np.ndarray
     smooth: np.ndarray | None
     ms: float
-
-
-def _shared_lookup(full_gi) -> HitLookup | None:
-    """The HitLookup the frame's pixel rays read (`pixel_gather.GIResolver.lookup`), if it is the
-    plain one of the level-0 cache the reflection rays read too (not the levels'); else None."""
-    lookup = None if full_gi is None or full_gi.resolver is None else full_gi.resolver.lookup
-    return lookup if isinstance(lookup, HitLookup) else None
 
 
 class FramePipeline:
@@ -287,15 +281,26 @@ class FramePipeline:
         p_full, n_full, pix_full, s_full = centre_light.points, centre_light.normals, centre_light.pix, centre_light.smooth
         gi = None
         gi_low, gi_bilateral, full_gi = low, None, None
-        if self.settings.pixel_rays > 0:
-            with stats.step("pixel_rays"):
-                if self.settings.downsample > 1 and self.settings.pixel_full_res:
-                    gi, gi_low, gi_bilateral, full_gi = self._pixel_gi_full(
-                        system, gbuf, position_lo, normal_lo, pix, points, normals, visible, view, frame,
-                        (p_full, n_full, pix_full), stats, screen, s_full)
-                else:
-                    gi = self._pixel_gi(system, position_lo, normal_lo, pix, points, normals, visible, view, frame,
-                                        stats, screen)
+        # The glossy light needs the cache and the lamp light, not the pixel rays: it runs on the
+        # stage thread while this one traces them (both on the pool), as the lamp light ran
+        # beside the cache update; both read one HitLookup of the cache.
+        lookup = self._frame_lookup(system)
+        glossy_job = self._start_glossy(system, view, proj, p_full, n_full, pix_full, frame, lookup,
+                                        direct[pix_full, :3])
+        try:
+            if self.settings.pixel_rays > 0:
+                with stats.step("pixel_rays"):
+                    if self.settings.downsample > 1 and self.settings.pixel_full_res:
+                        gi, gi_low, gi_bilateral, full_gi = self._pixel_gi_full(
+                            system, gbuf, position_lo, normal_lo, pix, points, normals, visible, view, frame,
+                            (p_full, n_full, pix_full), stats, screen, s_full, lookup)
+                    else:
+                        gi = self._pixel_gi(system, position_lo, normal_lo, pix, points, normals, visible, view,
+                                            frame, stats, screen)
+        finally:
+            if glossy_job is not None:
+                with stats.step("glossy_wait"):
+                    futures.wait([glossy_job])  # nothing of this frame runs on after it is abandoned
         with stats.step("gather"):
             mask = np.zeros((low.height * low.width, 8), bool)
             mask[pix] = visible[:, :8]
@@ -312,9 +317,7 @@ class FramePipeline:
         if gi is None and getattr(system, "levels", None) is not None:
             with stats.step("gather"):
                 gi = self._gather_levels(system.levels, low, points, normals, pix, visible, view, proj, lit_tex)
-        with stats.step("glossy"):
-            glossy, glossy_col, glossy_ind = self._glossy(system, view, proj, p_full, n_full, pix_full, frame,
-                                                          _shared_lookup(full_gi), direct[pix_full, :3])
+        glossy, glossy_col, glossy_ind = self._finish_glossy(glossy_job, pix_full, stats)
         film = FilmAccumulator()
         film.set_depth(self.gbuffer.read("depth"))  # the centre sample, as Cycles' one sample
         count = self.subframes
@@ -514,38 +517,66 @@ class FramePipeline:
         for k, v_ms in run.steps_ms.items():
             stats.steps_ms[f"levels_{k}"] = stats.steps_ms.get(f"levels_{k}", 0.0) + v_ms
 
-    def _glossy(self, system, view, proj, points, normals, pix, frame, lookup: HitLookup | None,
-                irradiance: np.ndarray):
-        """(direct radiance, Glossy Color, bounced light), each (h w, 4) float32 or None without
-        glossy lobes: the lamps', sky's and emitters' reflection by the glossy lobes at the centre
-        raster's pixels and the light of other surfaces they reflect (Glossy Indirect before its
-        colour), `glossy_image.frame_glossy`'s; direct + colour x bounced is uploaded for the
-        deferred pass. Subframes reuse it: a highlight is smooth at the pixel scale, and
-        silhouettes are where its share is least. lookup : the frame's HitLookup of the cache, if
-        the pixel rays built one (None: the reflection rays build their own). irradiance : (n, 3)
-        the pixels' diffuse lamp irradiance: the lamps' glossy light is sampled `glossy_samples`
-        times only where it is noisy against the pixels' lamp light (`glossy_noise`)."""
+    @staticmethod
+    def _frame_lookup(system) -> HitLookup | None:
+        """The HitLookup of the level-0 cache that the frame's pixel rays and reflection rays both
+        read (each built its own: ~50 ms on a 48^3 grid), or None where the pixel rays read the
+        finer levels (`levels.hit_lookup`) or no glossy lobe reflects: each then builds its own."""
+        if getattr(system, "levels", None) is not None or not glossy_image.has_glossy(system):
+            return None
+        return HitLookup(system.cache, bounced=system.settings.indirect_quality == MULTI_BOUNCE)
+
+    def _start_glossy(self, system, view, proj, points, normals, pix, frame, lookup: HitLookup | None,
+                      irradiance: np.ndarray) -> futures.Future | None:
+        """Submit to the stage thread the glossy light of the centre raster's pixels
+        (`glossy_image.frame_glossy`: the lamps', sky's and emitters' reflection by the glossy lobes
+        and the light of other surfaces they reflect); None without glossy lobes. The G-buffer's
+        targets are read here, on the thread that owns the GPU context; the job is numpy only.
+        lookup : the cache's HitLookup to reuse (None: the reflection rays build their own).
+        irradiance : (n, 3) the pixels' diffuse lamp irradiance: the lamps' glossy light is
+        sampled `glossy_samples` times only where it is noisy against the pixels' lamp light
+        (`glossy_noise`). `_finish_glossy` waits for it and uploads the result."""
         if not glossy_image.has_glossy(system):
-            return None, None, None
+            return None
         material = self.gbuffer.read("material").reshape(-1)[pix]
         albedo = self.gbuffer.read("albedo").reshape(-1, 4)[pix]
         tint = None
         if system.glossy_materials.tint_bases:  # textured metals: their texels' coordinates
             tint = np.stack([albedo[:, 3], self.gbuffer.read("emission").reshape(-1, 4)[pix, 3]], axis=-1)
-        light = glossy_image.frame_glossy(system, points, normals, pix, (self.height, self.width), material,
-                                          albedo[:, :3], irradiance, view, camera_eye(view, proj), frame,
-                                          self.glossy_samples, self.settings.reflection_rays, lookup,
-                                          pool=system.updater.pool, tint=tint)
-        glossy, colour, indirect = (np.zeros((self.height * self.width, 4), np.float32) for _ in range(3))
-        glossy[pix, :3] = light.direct
-        colour[pix, :3] = light.colour
-        indirect[pix, :3] = light.bounced
-        total = glossy + colour * indirect
-        self._glossy_tex = upload_texture_2d(total.reshape(self.height, self.width, 4), "RGBA32F")
+        eye = camera_eye(view, proj)
+        shape = (self.height, self.width)
+
+        def job():
+            t0 = time.perf_counter()
+            light = glossy_image.frame_glossy(system, points, normals, pix, shape, material, albedo[:, :3],
+                                              irradiance, view, eye, frame, self.glossy_samples,
+                                              self.settings.reflection_rays, lookup, pool=system.updater.pool,
+                                              tint=tint)
+            return light, (time.perf_counter() - t0) * 1e3
+
+        return self._stage_thread().submit(job)
+
+    def _finish_glossy(self, job: futures.Future | None, pix, stats: FrameStats):
+        """(direct radiance, Glossy Color, bounced light), each (h w, 4) float32, or None without
+        glossy lobes: `_start_glossy`'s result laid out over the image, direct + colour x bounced
+        uploaded for the deferred pass. Subframes reuse it: a highlight is smooth at the pixel
+        scale, and silhouettes are where its share is least. Step "glossy": the job's own time
+        (it overlapped the pixel rays) and the upload."""
+        if job is None:
+            return None, None, None
+        light, ms = job.result()
+        stats.steps_ms["glossy"] = stats.steps_ms.get("glossy", 0.0) + ms
+        with stats.step("glossy"):
+            glossy, colour, indirect = (np.zeros((self.height * self.width, 4), np.float32) for _ in range(3))
+            glossy[pix, :3] = light.direct
+            colour[pix, :3] = light.colour
+            indirect[pix, :3] = light.bounced
+            total = glossy + colour * indirect
+            self._glossy_tex = upload_texture_2d(total.reshape(self.height, self.width, 4), "RGBA32F")
         return glossy, colour, indirect
 
     def _pixel_gi_full(self, system, gbuf, position_lo, normal_lo, pix, points, normals, visible, view, frame,
-                       full, stats, screen=None, full_surfaces=None):
+                       full, stats, screen=None, full_surfaces=None, lookup: HitLookup | None = None):
         """Pixel rays at the GI resolution resolved per full-res pixel (`pixel_gather.full_res_images`):
         (the three full-res textures, the centre G-buffer's copy that guides them, the factor-1
         bilateral pass that reads them)."""
@@ -556,7 +587,7 @@ class FramePipeline:
             system, position_lo, normal_lo, pix, points, normals, visible, view, frame, s.pixel_rays,
             p_full, n_full, pix_full, (self.width, self.height), passes=s.pixel_filter,
             plane_sigma=s.bilateral_plane_sigma, normal_power=s.bilateral_normal_power, screen=screen,
-            full_surfaces=full_surfaces, filter=self.atrous, upsample=self.upsample)
+            full_surfaces=full_surfaces, filter=self.atrous, upsample=self.upsample, lookup=lookup)
         stats.rays += out.gi.rays
         steps = dict(out.steps_ms)
         stats.steps_ms["atrous"] = stats.steps_ms.get("atrous", 0.0) + steps.pop("filter", 0.0)  # a GPU pass
