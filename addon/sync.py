@@ -692,11 +692,10 @@ def material_from_blender(material, textures=None, baked=None, pending=False):
     tree = material.node_tree
     if tree is None:
         return snap.Material(name=name, base_color=_rgb(material.diffuse_color))
-    _warn_volume(tree, f"material {name!r}")
+    volume = _warn_volume(tree, f"material {name!r}")
     shader = _linked_node(_surface_input(tree))
     if shader is None:
-        log.warning("material %r: no shader linked to an active output; using grey", name)
-        return _grey(name)
+        return _without_surface(name, volume)
     if shader.type == "HOLDOUT":
         # The camera sees a hole (the G-buffer and the film, `Material.holdout`); rays a black surface.
         return snap.Material(name=name, base_color=np.zeros(3, np.float32), holdout=True)
@@ -1452,14 +1451,26 @@ def _grey(name):
     return snap.Material(name=name, base_color=np.full(3, FALLBACK_GREY, np.float32))
 
 
-def _warn_volume(tree, what):
+def _without_surface(name, volume: bool):
+    """The `Material` of an output without a Surface shader, as Cycles renders it (measured): with
+    a Volume shader the surface is a mere boundary that the camera, rays and shadows pass straight
+    through (a fog box around a scene, a smoke domain: the volume itself is not rendered,
+    `_warn_volume` said so), with nothing linked an opaque black surface."""
+    if volume:
+        return snap.Material(name=name, base_color=np.zeros(3, np.float32), clear=True)
+    log.warning("material %r: no shader linked to its output: black, as Cycles renders it", name)
+    return snap.Material(name=name, base_color=np.zeros(3, np.float32))
+
+
+def _warn_volume(tree, what) -> bool:
     """Warn when a material's or world's output has a Volume shader linked: Cycles renders it
-    (fog, absorption, scattering), HybridGI does not."""
+    (fog, absorption, scattering), HybridGI does not. Whether one is linked."""
     output = tree.get_output_node(OUTPUT_TARGET)
     volume = None if output is None else output.inputs.get("Volume")
     node = None if volume is None else _linked_node(volume)
     if node is not None:
         log.warning("%s: its Volume shader (%s) is not rendered: HybridGI renders surfaces only", what, node.bl_idname)
+    return node is not None
 
 
 def _surface_input(tree):
