@@ -216,7 +216,8 @@ class HybridGISettings(bpy.types.PropertyGroup):
         description="Jittered subframes per final-render pixel, placed by Cycles' pixel filter (its type "
         "and width, Blackman-Harris 1.5 px by default, sampled as Cycles samples it) and averaged: anti-aliased edges and textures in every "
         "pass. The cache is converged once per frame; the direct light's shadow rays are split over the "
-        "subframes. 1 = one sample at each pixel centre",
+        "subframes. 1 = one sample at each pixel centre. Every pass but Depth is then filtered over the "
+        "neighbouring pixels by the same filter (their footprint's share, a K-th of it for K subframes)",
         default=8, min=1, max=64, soft_max=16,
     )
 

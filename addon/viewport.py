@@ -284,7 +284,7 @@ class ViewportSession:
             None if published.view is None else published.view.serial,
         )
         key = (camera.key, width, height, self.mirror.geometry_gen, debug_view, present_mode, opaque,
-               self._raster, published.empty, aa.config, exposure)
+               self._raster, published.empty, aa.config, self._aa_source, exposure)
         if key == self._drawn_key and serials == self._drawn_serials and self.mirror.gpu_dirty is None:
             if self._aa_due(published):
                 return self._draw_subframe(gpu_state, stats, t0)
@@ -341,7 +341,8 @@ class ViewportSession:
                     # The direct light's resolve is done with its target: reuse it for the colours.
                     cells = gpu_state.resolve_full.execute(gbuf.position, gbuf.normal, gpu_state.cells_source,
                                                            nearest=True)
-            out = gpu_state.present.execute(shaded.combined, gbuf, present_mode, opaque, cells, scale=exposure)
+            out = gpu_state.present.execute(shaded.combined, gbuf, present_mode, opaque, cells, scale=exposure,
+                                            taps=None if debug_cells else self._present_filter(1))
         self._drawn_key, self._drawn_serials = key, serials
         stats.total_ms = (time.perf_counter() - t0) * 1e3
         self.last_stats = stats
@@ -361,6 +362,12 @@ class ViewportSession:
             self.aa = viewport_aa.Accumulation.pattern(count, filter_size, filter_type)
             self._aa_source = (count, filter_size, filter_type)
         return self.aa
+
+    def _present_filter(self, samples: int):
+        """The pixel filter the view shows an image of `samples` samples per pixel through, as final
+        renders' film filters theirs (`subpixel.reconstruction_taps`)."""
+        _count, filter_size, filter_type = self._aa_source
+        return _subpixel.reconstruction_taps(samples, filter_size, filter_type)
 
     def _aa_due(self, published) -> bool:
         """A jittered subframe is to be drawn now: the sum is not complete, and the worker is idle
@@ -406,7 +413,8 @@ class ViewportSession:
         with stats.step("present"):
             out = gpu_state.present.execute(pipeline_.accumulate.texture("combined"), gbuf, inputs["present_mode"],
                                             inputs["opaque"], None,
-                                            scale=inputs["exposure"] / pipeline_.accumulate.count)
+                                            scale=inputs["exposure"] / pipeline_.accumulate.count,
+                                            taps=self._present_filter(pipeline_.accumulate.count))
         stats.total_ms = (time.perf_counter() - t0) * 1e3
         self.last_stats = stats
         return out

@@ -34,7 +34,7 @@ class Accumulation:
 
     @classmethod
     def pattern(cls, count: int, filter_size: float, filter_type: str) -> Accumulation:
-        """The final render's subframe pattern for `count` pixel samples (1: no anti-aliasing)."""
+        """The final render's subframe pattern for `count` pixel samples (1: none, the centre alone)."""
         count = max(int(count), 1)
         if count == 1:
             return cls()

@@ -174,6 +174,24 @@ def pixel_footprint(proj: np.ndarray, height: int) -> tuple[float, float]:
 
 
 
+#: Pixels each way the present pass's filter reaches (Blackman-Harris up to a 3.5 px Filter Width).
+MAX_TAP_RADIUS = 3
+
+
+def present_taps(taps) -> tuple[tuple[float, float, float, float], int]:
+    """((centre, 1, 2, 3 px) weights, radius) of a symmetric separable filter (odd length, or None:
+    none) for the present shader: cut at MAX_TAP_RADIUS and renormalised to sum 1."""
+    if taps is None or len(taps) <= 1:
+        return (1.0, 0.0, 0.0, 0.0), 0
+    taps = np.asarray(taps, np.float64)
+    r = taps.size // 2
+    half = taps[r : r + MAX_TAP_RADIUS + 1]
+    half = half / (half[0] + 2.0 * half[1:].sum())
+    out = np.zeros(4)
+    out[: half.size] = half
+    return tuple(float(x) for x in out), int(half.size - 1)
+
+
 class PresentPass(_passes.RasterPass):
     """Combined -> the texture drawn into the viewport (RGBA16F, scene linear)."""
 
@@ -189,7 +207,7 @@ class PresentPass(_passes.RasterPass):
             "hybridgi_present",
             load_addon_glsl("present_frag.glsl"),
             samplers=((0, "FLOAT_2D", "combined_tx"), (1, "FLOAT_2D", "position_tx"), (2, "FLOAT_2D", "cells_tx")),
-            push=(("INT", "mode"), ("INT", "opaque"), ("FLOAT", "scale")),
+            push=(("INT", "mode"), ("INT", "opaque"), ("FLOAT", "scale"), ("VEC4", "taps"), ("INT", "radius")),
             outputs=((0, "VEC4", "out_color"),),
         )
         return {"main": _passes.compile_spec(spec)}
@@ -203,10 +221,14 @@ class PresentPass(_passes.RasterPass):
     def _release_targets(self) -> None:
         self._target = self._fb = None
 
-    def execute(self, combined, gbuf, mode: int, opaque: bool, cells=None, scale: float = 1.0):
+    def execute(self, combined, gbuf, mode: int, opaque: bool, cells=None, scale: float = 1.0, taps=None):
         """cells : full-res RGBA texture of Cache Cells colours (mode PRESENT_CELLS); scale :
-        multiplies Combined (Cycles' Film Exposure / the count of a sum of anti-aliasing subframes)."""
+        multiplies Combined (Cycles' Film Exposure / the count of a sum of anti-aliasing subframes);
+        taps : the separable pixel filter over the neighbours (`subpixel.reconstruction_taps`),
+        at most MAX_TAP_RADIUS pixels each way (wider ones are cut there and renormalised), or
+        None: each pixel as it is."""
         self._require()
+        centre, radius = present_taps(taps)
         shader = self._shader()
         shader.uniform_sampler("combined_tx", combined)
         shader.uniform_sampler("position_tx", gbuf.position)
@@ -214,6 +236,8 @@ class PresentPass(_passes.RasterPass):
         shader.uniform_int("mode", int(mode) if cells is not None else PRESENT_COLOR)
         shader.uniform_int("opaque", 1 if opaque else 0)
         shader.uniform_float("scale", float(scale))
+        shader.uniform_float("taps", centre)
+        shader.uniform_int("radius", radius)
         self._draw_fullscreen(self._fb, shader, (self.width, self.height))
         return self._target
 

@@ -9,9 +9,11 @@ from hybridgi_core.raster.subpixel import (
     FilmAccumulator,
     blackman_harris,
     blackman_harris_cdf,
+    filter_image,
     filter_offsets,
     filter_support,
     jittered_projection,
+    reconstruction_taps,
     subpixel_offsets,
 )
 
@@ -120,6 +122,51 @@ def test_the_film_averages_passes_and_keeps_one_depth():
     assert acc.read("depth").tolist() == [[[2.0], [2.0]]]
     with pytest.raises(KeyError):
         FilmAccumulator().read("combined")
+
+
+def test_one_sample_per_pixel_takes_the_filters_share_of_each_neighbour():
+    """The taps of a one-subframe frame are Cycles' filter integrated over each pixel's footprint
+    (here by quadrature of the window itself), K subframes keep 1 / K of the neighbours' share,
+    and a box of one pixel (or a filter width 0) leaves the pixels alone."""
+    v = np.linspace(-1.5, 1.5, 300001)
+    w = blackman_harris(v, 1.5)
+    side = w[(v >= 0.5)].sum() / w.sum()
+    one = reconstruction_taps(1, 1.5)
+    assert one.shape == (3,) and one.sum() == pytest.approx(1.0)
+    assert one[0] == pytest.approx(side, abs=1e-4) and one[2] == pytest.approx(side, abs=1e-4)
+    assert 0.11 < side < 0.13
+    four = reconstruction_taps(4, 1.5)
+    assert four[0] == pytest.approx(side / 4, abs=1e-4) and four.sum() == pytest.approx(1.0)
+    assert reconstruction_taps(1, 1.0, "BOX").tolist() == [1.0]
+    assert reconstruction_taps(1, 0.0).tolist() == [1.0]
+    wide = reconstruction_taps(1, 3.0)  # a 3 px Blackman-Harris reaches two pixels and more
+    assert wide.size == 7 and wide[3] < 0.5 and wide.sum() == pytest.approx(1.0)
+
+
+def test_the_film_filters_its_sums_as_cycles_filters_its_samples():
+    """A lone bright pixel spreads by the taps along both axes, a flat image stays flat, Depth
+    stays a point sample, and a colour-divided pass is its filtered light over its filtered colour."""
+    acc = FilmAccumulator()
+    taps = reconstruction_taps(1, 1.5)
+    acc.set_filter(taps)
+    combined = np.zeros((5, 5, 4), np.float32)
+    combined[2, 2] = 1.0
+    colour = np.full((5, 5, 4), 0.5, np.float32)
+    colour[:, :2, :3] = 0.1  # a dark left side: Cycles weighs each sample's light by its colour
+    light = np.ones((5, 5, 4), np.float32)
+    light[:, :2, :3] = 4.0
+    acc.add({"combined": combined, "diffuse_direct": light, "diffuse_indirect": np.ones_like(light),
+             "diffuse_color": colour, "ao": np.ones((5, 5, 1), np.float32), "normal": np.ones((5, 5, 3), np.float32),
+             "depth": np.full((5, 5, 1), 2.0, np.float32)})
+    acc.set_depth(np.arange(25, dtype=np.float32).reshape(5, 5, 1))
+    np.testing.assert_allclose(acc.read("combined")[..., 0], np.outer(np.pad(taps, 1), np.pad(taps, 1)), atol=1e-6)
+    np.testing.assert_allclose(acc.read("ao"), 1.0, atol=1e-6)
+    np.testing.assert_allclose(acc.read("diffuse_indirect")[..., :3], 1.0, atol=1e-6)
+    assert acc.read("depth")[..., 0].tolist() == np.arange(25).reshape(5, 5).tolist()
+    # Column 2 (bright side, next to the dark one): light x colour filtered over colour filtered.
+    mixed = (taps[0] * 0.1 * 4.0 + (taps[1] + taps[2]) * 0.5 * 1.0) / (taps[0] * 0.1 + (taps[1] + taps[2]) * 0.5)
+    assert acc.read("diffuse_direct")[2, 2, 0] == pytest.approx(mixed, rel=1e-5)
+    np.testing.assert_array_equal(filter_image(combined, np.ones(1)), combined)
 
 
 def test_diffuse_light_is_divided_by_the_accumulated_colour_as_cycles_does():

@@ -41,6 +41,7 @@ from .subpixel import (
     FilmAccumulator,
     gi_edges,
     jittered_projection,
+    reconstruction_taps,
     subframe_direct,
     subframe_gi,
     subframe_surfaces,
@@ -361,6 +362,7 @@ class FramePipeline:
             with stats.step("accumulate"):
                 self.accumulate.execute(shaded, gbuf, first=s == 0)
         with stats.step("film"):
+            film.set_filter(reconstruction_taps(self.accumulate.count, self.filter_size, self.filter_type))
             film.set_sums(self.accumulate.read_all(), self.accumulate.count)
             film.set_glossy(glossy, glossy_col, self.height, self.width, indirect=glossy_ind)
         self.film = film
