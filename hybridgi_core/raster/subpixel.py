@@ -107,15 +107,19 @@ def filter_offsets(u: np.ndarray, width: float, filter_type: str = "BLACKMAN_HAR
         raise ValueError(f"unknown pixel filter {filter_type!r}, expected one of {FILTER_TYPES}")
     if width <= 0.0:
         return np.zeros_like(u)
+    v, cdf = _filter_cdf(filter_type, width)
+    return np.interp(u, cdf, v)
+
+
+def _filter_cdf(filter_type: str, width: float) -> tuple[np.ndarray, np.ndarray]:
+    """(offsets, P(offset <= them)) tabulated over the filter's support (width > 0)."""
     reach = filter_support(filter_type, width)
     v = np.linspace(-reach, reach, _TABLE_SIZE)
     if filter_type == "BLACKMAN_HARRIS":
-        cdf = blackman_harris_cdf(v, width)
-    else:
-        w = filter_weight(v, filter_type, width)
-        cdf = np.concatenate([[0.0], np.cumsum((w[1:] + w[:-1]) * 0.5)])
-        cdf /= cdf[-1]
-    return np.interp(u, cdf, v)
+        return v, blackman_harris_cdf(v, width)
+    w = filter_weight(v, filter_type, width)
+    cdf = np.concatenate([[0.0], np.cumsum((w[1:] + w[:-1]) * 0.5)])
+    return v, cdf / cdf[-1]
 
 
 def _radical_inverse2(i: np.ndarray) -> np.ndarray:
@@ -171,13 +175,7 @@ def reconstruction_taps(count: int, filter_size: float, filter_type: str = "BLAC
     radius = int(np.ceil(reach - 0.5)) if reach > 0.5 else 0
     if radius == 0:
         return np.ones(1)
-    v = np.linspace(-reach, reach, _TABLE_SIZE)
-    if filter_type == "BLACKMAN_HARRIS":
-        cdf = blackman_harris_cdf(v, filter_size)
-    else:
-        w = filter_weight(v, filter_type, filter_size)
-        cdf = np.concatenate([[0.0], np.cumsum((w[1:] + w[:-1]) * 0.5)])
-        cdf /= cdf[-1]
+    v, cdf = _filter_cdf(filter_type, filter_size)
     k = np.arange(-radius, radius + 1, dtype=np.float64)
     edges = np.interp(np.concatenate([k - 0.5, [radius + 0.5]]), v, cdf, left=0.0, right=1.0)
     taps = np.diff(edges)
