@@ -31,6 +31,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from . import sh as shmod
+from . import sheen as sheen_mod
 from . import specular as sp
 from .environment import LUMA
 from .evaluate import corner_weights
@@ -185,6 +186,7 @@ class GlossyMaterials:
     @classmethod
     def from_materials(cls, materials) -> GlossyMaterials:
         layers = [getattr(m, "specular", None) for m in materials]
+        owner = list(range(len(layers)))  # the material of each row (variants: their material's)
         variants = np.full(len(layers), -1, np.int64)
         variant_steps = np.ones((len(layers), 2), np.int64)
         for i, material in enumerate(materials):
@@ -202,9 +204,11 @@ class GlossyMaterials:
             for q in (None,) if metals is None else metals:
                 metal = layer if q is None else replace(layer, metallic=float(q),
                                                         weight=(1.0 - q) * (1.0 - layer.transmission))
-                layers = layers + [metal if r is None else replace(metal, roughness=float(r))
-                                   for r in ((None,) if roughs is None else roughs)]
-        every = [sp.surface_lobes(layer) for layer in layers]
+                added = [metal if r is None else replace(metal, roughness=float(r))
+                         for r in ((None,) if roughs is None else roughs)]
+                layers = layers + added
+                owner += [i] * len(added)
+        every = [under_sheen(materials[m], layer) for m, layer in zip(owner, layers, strict=True)]
         per = [[lobe for lobe in lobes if lobe.roughness >= MIN_ROUGHNESS] for lobes in every]
         n, slots = len(layers), max((len(p) for p in per), default=0)
         out = cls(np.ones(n), np.zeros((slots, n)), np.zeros((slots, n)), np.zeros((slots, n), bool),
@@ -226,13 +230,13 @@ class GlossyMaterials:
                 out.e_avg[j, i] = float(sp._lerp_table(e_avg_table, [lobe.roughness]))
                 if lobe.view is not None:
                     out.view[j, i] = sp.sample_view(lobe.view, sp.view_grid())
-        out.reflects = np.array([layer is not None and float(np.max(sp.glossy_color(layer, _REFLECT_COSINES))) > 0
-                                 for layer in layers], bool)
+        out.reflects = np.array([layer is not None and float(np.max(_lobes_color(lobes, _REFLECT_COSINES))) > 0
+                                 for layer, lobes in zip(layers, every, strict=True)], bool)
         grid = np.linspace(0.0, 1.0, COLOR_TABLE_SIZE)
         out.color_table = np.zeros((n, COLOR_TABLE_SIZE, 3), _F32)
         for i, layer in enumerate(layers):
             if layer is not None:
-                out.color_table[i] = sp.glossy_color(layer, grid)
+                out.color_table[i] = _lobes_color(every[i], grid)
         out.variants = variants
         out.variant_steps = variant_steps
         out.tint_bases = {i: b for i, b in enumerate(metal_tint_basis(m) for m in materials) if b is not None}
@@ -306,6 +310,31 @@ def _lobe_terms(mats: GlossyMaterials, rows, n, v, lx, ly, lz):
         scale = np.where(mats.ms[slot, rows][:, None], sp.multiscatter_factor(mats.fss[slot, rows], e, e_avg), 1.0)
         view = _view_factor(mats.view[slot, rows], mu_view)
         out.append((common, terms, (k * (scale * view[:, None])[:, None, :]).astype(_F32)))
+    return out
+
+
+def under_sheen(material, layer) -> list:
+    """The glossy lobes of `layer` (`specular.surface_lobes`), those under a Principled BSDF's
+    sheen weighted by 1 - max(sheen colour) x the sheen's albedo at the view angle
+    (`sheen.layer_factor`), as Cycles layers its sheen over the specular and metallic lobes (the
+    coat lies above the sheen and keeps its weight). Why: a velvet's highlight at grazing views
+    was as bright as without its sheen."""
+    lobes = sp.surface_lobes(layer)
+    factor = sheen_mod.layer_factor(material, sp.view_grid()) if isinstance(layer, sp.SpecularLayer) else None
+    if factor is None or not lobes:
+        return lobes
+    coat = lobes[-1] if layer.coated else None
+    return [lobe if lobe is coat else
+            replace(lobe, view=factor if lobe.view is None else sp.sample_view(lobe.view, sp.view_grid()) * factor)
+            for lobe in lobes]
+
+
+def _lobes_color(lobes, mu) -> np.ndarray:
+    """(..., 3) Glossy Color at cosines mu of these lobes (`specular.glossy_color` of their layer)."""
+    mu = np.asarray(mu, np.float64)
+    out = np.zeros((*mu.shape, 3))
+    for lobe in lobes:
+        out = out + sp.lobe_color(lobe, mu)
     return out
 
 

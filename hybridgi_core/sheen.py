@@ -14,8 +14,10 @@ HybridGI folds it into the G-buffer's per-material view-dependent weight table (
 red multiplies the diffuse colour, green-blue-alpha add the sheen's colour) and into what a
 probe-ray hit reflects (`hit_albedo`, `hit_weight`: the cosine-weighted means over the
 hemisphere). The lamps' light on it is the diffuse light (the lobe's shape, brighter towards
-grazing lamps, is not followed: exact under uniform light); the specular layer under a
-Principled BSDF's sheen keeps its full weight (Cycles weighs it by 1 - max(sheen) A too). The table is Cycles' own, measured
+grazing lamps, is not followed: exact under uniform light); the specular and metallic lobes
+under a Principled BSDF's sheen are weighted as its base is (`layer_factor`,
+`glossy.under_sheen`; a probe-ray hit's glossy albedo keeps its full weight). The table is
+Cycles' own, measured
 by `scripts/measure_sheen_albedo.py` (the Diffuse Color of white Sheen BSDF spheres).
 
 Pure numpy: no bpy.
@@ -77,6 +79,16 @@ def weight_row(material, mu: np.ndarray) -> np.ndarray:
         row[:, 0] = np.clip(1.0 - sheen.max() * a, 0.0, 1.0)
     row[:, 1:] = a[:, None] * sheen[None, :]
     return row
+
+
+def layer_factor(material, mu: np.ndarray) -> np.ndarray | None:
+    """(len(mu),) the weight of what lies under a Principled BSDF's sheen (its specular and
+    metallic lobes, as its diffuse base: `weight_row`'s red) at view cosines mu, 1 - max(sheen) A;
+    None without a layered sheen."""
+    sheen = colour_of(material)
+    if sheen is None or not getattr(material, "sheen_layered", False):
+        return None
+    return np.clip(1.0 - sheen.max() * albedo(material.sheen_roughness, mu), 0.0, 1.0)
 
 
 def hit_weight(material) -> float:

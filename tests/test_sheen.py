@@ -20,12 +20,13 @@ from tests.cli_renders import CYCLES, QUICK, layer, pass_error, rendered, run_bp
 RES = "64x64"
 
 #: A 2 m plane under a uniform grey world, seen 75 degrees off its normal (orthographic): a
-#: Principled BSDF (base 0.5, no specular) with sheen weight 1 ("principled"), and a Sheen BSDF
-#: of colour (0.9, 0.6, 0.3) ("sheen").
+#: Principled BSDF (base 0.5, no specular) with sheen weight 1 ("principled"), the same with its
+#: specular layer (Specular IOR Level 1, roughness 0.3: "specular"), and a Sheen BSDF of colour
+#: (0.9, 0.6, 0.3) ("sheen").
 SCENES = textwrap.dedent("""
     import math, bpy
     out = OUT
-    for kind in ("principled", "sheen"):
+    for kind in ("principled", "sheen", "specular"):
         bpy.ops.wm.read_homefile(use_empty=True)
         scene = bpy.context.scene
         cam = bpy.data.objects.new("cam", bpy.data.cameras.new("cam"))
@@ -40,11 +41,12 @@ SCENES = textwrap.dedent("""
         if m.node_tree is None:
             m.use_nodes = True
         tree = m.node_tree
-        if kind == "principled":
+        if kind in ("principled", "specular"):
             p = tree.nodes["Principled BSDF"]
             p.inputs["Base Color"].default_value = (0.5, 0.5, 0.5, 1)
             p.inputs["Sheen Weight"].default_value = 1.0
-            p.inputs["Specular IOR Level"].default_value = 0.0
+            p.inputs["Specular IOR Level"].default_value = 0.0 if kind == "principled" else 1.0
+            p.inputs["Roughness"].default_value = 0.3
         else:
             tree.nodes.remove(tree.nodes["Principled BSDF"])
             s = tree.nodes.new("ShaderNodeBsdfSheen")
@@ -103,11 +105,13 @@ def planes(tmp_path_factory):
 @pytest.mark.blender
 @pytest.mark.slow
 @pytest.mark.smoke
-@pytest.mark.parametrize("kind", ["principled", "sheen"])
+@pytest.mark.parametrize("kind", ["principled", "sheen", "specular"])
 def test_a_sheen_plane_at_a_grazing_view_matches_cycles(planes, tmp_path, kind):
     """Diffuse Color and Combined against Cycles' (64 spp + OIDN) over the plane, seen 75
     degrees off its normal: the sheen's brightening is there (without it the Principled plane's
-    Diffuse Color was 0.5 against Cycles' 0.69, the Sheen BSDF's grey 0.8 against ~0.3)."""
+    Diffuse Color was 0.5 against Cycles' 0.69, the Sheen BSDF's grey 0.8 against ~0.3), and the
+    specular layer under it is dimmed as Cycles layers it (`glossy.under_sheen`; measured, the
+    "specular" plane's Combined 0.116 at the specular's full weight -> 0.0025)."""
     ours = rendered(planes / f"{kind}.blend", tmp_path / "h", RES, *QUICK)
     cycles = rendered(planes / f"{kind}.blend", tmp_path / "c", RES, *CYCLES)
     mask = layer(cycles, "Depth", "Z")[..., 0] < 1e9
