@@ -86,3 +86,19 @@ bpy.ops.mesh.primitive_plane_add(size=20, location=(0, 0, -1))
 bpy.ops.mesh.primitive_uv_sphere_add(radius=1.0, segments=64, ring_count=32)
 bpy.ops.object.shade_smooth()
 """
+
+
+def principled_sphere_scene(name: str, inputs: dict) -> str:
+    """bpy code (for `run_bpy`, with OUT the folder) of `LIT_SPHERE_STAGE` whose sphere wears a
+    Principled BSDF material `name` with these input values (name -> float or RGBA tuple), saved
+    as OUT/`name`.blend."""
+    return "import math, bpy\n" + LIT_SPHERE_STAGE + f"""
+m = bpy.data.materials.new({name!r})
+if m.node_tree is None:
+    m.use_nodes = True
+bsdf = m.node_tree.nodes["Principled BSDF"]
+for key, value in {inputs!r}.items():
+    bsdf.inputs[key].default_value = value
+bpy.context.object.data.materials.append(m)
+bpy.ops.wm.save_as_mainfile(filepath=f"{{OUT}}/{name}.blend")
+"""

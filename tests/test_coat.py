@@ -8,27 +8,14 @@ rendered): three coated spheres (red paint, brown paint, blue 70% metal) against
 
 from __future__ import annotations
 
-import textwrap
-
 import pytest
 
-from tests.cli_renders import CYCLES, LIT_SPHERE_STAGE, QUICK, layer, pass_error, rendered, run_bpy
+from tests.cli_renders import CYCLES, QUICK, layer, pass_error, principled_sphere_scene, rendered, run_bpy
 
 RES = "240x135"
 
-SCENE = "import math, bpy\n" + LIT_SPHERE_STAGE + textwrap.dedent("""
-    out = OUT
-    m = bpy.data.materials.new("paint")
-    if m.node_tree is None:
-        m.use_nodes = True
-    bsdf = m.node_tree.nodes["Principled BSDF"]
-    bsdf.inputs["Base Color"].default_value = (0.6, 0.05, 0.05, 1)
-    bsdf.inputs["Roughness"].default_value = 0.5
-    bsdf.inputs["Coat Weight"].default_value = 1.0
-    bsdf.inputs["Coat Roughness"].default_value = 0.2
-    bpy.context.object.data.materials.append(m)
-    bpy.ops.wm.save_as_mainfile(filepath=f"{out}/coat.blend")
-""")
+SCENE = principled_sphere_scene("coat", {"Base Color": (0.6, 0.05, 0.05, 1), "Roughness": 0.5, "Coat Weight": 1.0,
+                                         "Coat Roughness": 0.2})
 
 
 @pytest.mark.blender

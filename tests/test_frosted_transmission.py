@@ -5,27 +5,15 @@ clear glass, a hole the camera looked through: the ball vanished."""
 
 from __future__ import annotations
 
-import textwrap
-
 import numpy as np
 import pytest
 
-from tests.cli_renders import CYCLES, LIT_SPHERE_STAGE, QUICK, layer, rendered, run_bpy
+from tests.cli_renders import CYCLES, QUICK, layer, principled_sphere_scene, rendered, run_bpy
 
 RES = "240x135"
 
-SCENE = "import math, bpy\n" + LIT_SPHERE_STAGE + textwrap.dedent("""
-    out = OUT
-    m = bpy.data.materials.new("frosted")
-    if m.node_tree is None:
-        m.use_nodes = True
-    bsdf = m.node_tree.nodes["Principled BSDF"]
-    bsdf.inputs["Base Color"].default_value = (0.9, 0.9, 0.9, 1)
-    bsdf.inputs["Roughness"].default_value = 0.5
-    bsdf.inputs["Transmission Weight"].default_value = 0.5
-    bpy.context.object.data.materials.append(m)
-    bpy.ops.wm.save_as_mainfile(filepath=f"{out}/frosted.blend")
-""")
+SCENE = principled_sphere_scene("frosted", {"Base Color": (0.9, 0.9, 0.9, 1), "Roughness": 0.5,
+                                            "Transmission Weight": 0.5})
 
 
 @pytest.mark.blender
