@@ -200,8 +200,10 @@ def filter_image(image: np.ndarray, taps: np.ndarray) -> np.ndarray:
         padded = np.pad(out, pad, mode="edge")
         n = out.shape[axis]
         acc = np.zeros(out.shape, np.float32)
+        window = [slice(None)] * image.ndim
         for j, t in enumerate(taps):
-            acc += np.float32(t) * np.take(padded, np.arange(j, j + n), axis=axis)
+            window[axis] = slice(j, j + n)  # a view: no copy of the shifted image
+            acc += np.float32(t) * padded[tuple(window)]
         out = acc
     return out
 
