@@ -810,7 +810,8 @@ def _shader_surface(shader, textures, name, depth=0):
         roughness = _roughness(shader, textures, name, texels=roughness_map)
         transmission = float(np.clip(transmission, 0, 1))
         # Rough transmission scatters as a Translucent BSDF would: part of the diffuse colour.
-        frosted = transmission * frosted_share(roughness)
+        share = frosted_share(roughness)
+        frosted = transmission * share
         weight = (1.0 - np.clip(metallic, 0, 1)) * (1.0 - transmission + frosted)
         _note_approximations(shader, textures, name, metallic, transmission, coat, roughness)
         layer = _specular_layer(shader, name, base, texture, metallic, transmission, roughness, coat, tint)
@@ -843,7 +844,7 @@ def _shader_surface(shader, textures, name, depth=0):
         if frosted > 0:
             translucent = np.full(3, frosted / (1.0 - transmission + frosted), np.float32)
             _note(textures, name, shader, f"transmission {transmission:.2f} at roughness {roughness:.2f} "
-                  f"({frosted_share(roughness):.0%} of it rendered as a Translucent BSDF's light from behind, "
+                  f"({share:.0%} of it rendered as a Translucent BSDF's light from behind, "
                   "without refraction)")
         return surface_mix.SurfacePart(base=base, texture=texture, emission=emission, emission_texture=glow,
                                        alpha=_alpha_map(alpha_socket, textures, name), diffuse=diffuse,

@@ -230,13 +230,13 @@ class GlossyMaterials:
                 out.e_avg[j, i] = float(sp._lerp_table(e_avg_table, [lobe.roughness]))
                 if lobe.view is not None:
                     out.view[j, i] = sp.sample_view(lobe.view, sp.view_grid())
-        out.reflects = np.array([layer is not None and float(np.max(_lobes_color(lobes, _REFLECT_COSINES))) > 0
+        out.reflects = np.array([layer is not None and float(np.max(sp.lobes_color(lobes, _REFLECT_COSINES))) > 0
                                  for layer, lobes in zip(layers, every, strict=True)], bool)
         grid = np.linspace(0.0, 1.0, COLOR_TABLE_SIZE)
         out.color_table = np.zeros((n, COLOR_TABLE_SIZE, 3), _F32)
         for i, layer in enumerate(layers):
             if layer is not None:
-                out.color_table[i] = _lobes_color(every[i], grid)
+                out.color_table[i] = sp.lobes_color(every[i], grid)
         out.variants = variants
         out.variant_steps = variant_steps
         out.tint_bases = {i: b for i, b in enumerate(metal_tint_basis(m) for m in materials) if b is not None}
@@ -327,15 +327,6 @@ def under_sheen(material, layer) -> list:
     return [lobe if lobe is coat else
             replace(lobe, view=factor if lobe.view is None else sp.sample_view(lobe.view, sp.view_grid()) * factor)
             for lobe in lobes]
-
-
-def _lobes_color(lobes, mu) -> np.ndarray:
-    """(..., 3) Glossy Color at cosines mu of these lobes (`specular.glossy_color` of their layer)."""
-    mu = np.asarray(mu, np.float64)
-    out = np.zeros((*mu.shape, 3))
-    for lobe in lobes:
-        out = out + sp.lobe_color(lobe, mu)
-    return out
 
 
 def _view_factor(tables, mu) -> np.ndarray:

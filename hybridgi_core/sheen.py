@@ -74,10 +74,10 @@ def weight_row(material, mu: np.ndarray) -> np.ndarray:
     sheen = colour_of(material)
     if sheen is None:
         return row
-    a = albedo(material.sheen_roughness, mu)
-    if material.sheen_layered:
-        row[:, 0] = np.clip(1.0 - sheen.max() * a, 0.0, 1.0)
-    row[:, 1:] = a[:, None] * sheen[None, :]
+    under = layer_factor(material, mu)
+    if under is not None:
+        row[:, 0] = under
+    row[:, 1:] = albedo(material.sheen_roughness, mu)[:, None] * sheen[None, :]
     return row
 
 

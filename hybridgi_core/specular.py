@@ -212,9 +212,14 @@ def metal_albedo(layer: SpecularLayer, mu) -> np.ndarray:
 def glossy_color(layer, mu) -> np.ndarray:
     """(..., 3) Cycles' Glossy Color at cosines mu: the glossy closures' albedos times their
     weights (a `SpecularLayer`'s dielectric layer and metallic lobe, a `GlossySurface`'s lobes)."""
+    return lobes_color(surface_lobes(layer), mu)
+
+
+def lobes_color(lobes, mu) -> np.ndarray:
+    """(..., 3) the Glossy Color at cosines mu of these lobes: the sum of their `lobe_color`s."""
     mu = np.asarray(mu, np.float64)
     out = np.zeros((*mu.shape, 3))
-    for lobe in surface_lobes(layer):
+    for lobe in lobes:
         out = out + lobe_color(lobe, mu)
     return out
 

@@ -77,8 +77,7 @@ class GISystem:
         self._static_rays = self._static_ray_geometry(scene)
         self.ray_geometry = self._with_dynamic(scene)
         self.tracer = EmbreeTracer(self.ray_geometry, self.dynamic_objects, threads=1)
-        self.tracer.set_cutouts(Cutouts(self.ray_geometry, scene.materials, scene.objects,
-                                           glass=glass_transmission(self.settings.filter_glossy)))
+        self._set_cutouts(scene)
         self.surfaces = SurfaceTable(self.ray_geometry, scene.materials, reflect=settings.bounce_light,
                                      filter_glossy=settings.filter_glossy)
         self.cache = cache if cache is not None else IrradianceCache.for_scene(scene, settings)
@@ -105,6 +104,12 @@ class GISystem:
         static = scene.geometry.subset(~self._dynamic_mask(scene)) if self.dynamic_objects else scene.geometry
         return decimate(static, self.settings.lod_ratio) if self.settings.lod_ratio < 1.0 else static
 
+    def _set_cutouts(self, scene: SceneSnapshot) -> None:
+        """Hand the tracer the holes, glass and shadow skips of the ray geometry's materials and
+        objects (`cutout.Cutouts`; glass passes as Cycles' Filter Glossy lets it)."""
+        self.tracer.set_cutouts(Cutouts(self.ray_geometry, scene.materials, scene.objects,
+                                        glass=glass_transmission(self.settings.filter_glossy)))
+
     def _with_dynamic(self, scene: SceneSnapshot):
         if not self.dynamic_objects:
             return self._static_rays
@@ -119,8 +124,7 @@ class GISystem:
         self.scene = scene
         self.ray_geometry = self._with_dynamic(scene)
         self.tracer.update_dynamic(self.ray_geometry)
-        self.tracer.set_cutouts(Cutouts(self.ray_geometry, scene.materials, scene.objects,
-                                           glass=glass_transmission(self.settings.filter_glossy)))
+        self._set_cutouts(scene)
         rows = np.arange(self._static_rays.triangle_count, self.ray_geometry.triangle_count)
         self.surfaces.update_rows(self.ray_geometry, rows)
         if self.solver.has_hits:
@@ -140,8 +144,7 @@ class GISystem:
         self.updater.scene = ShadingScene(self.surfaces, scene.lights, scene.world)
         if not same_materials:
             self.surfaces.set_materials(scene.materials)
-            self.tracer.set_cutouts(Cutouts(self.ray_geometry, scene.materials, scene.objects,
-                                           glass=glass_transmission(self.settings.filter_glossy)))
+            self._set_cutouts(scene)
         self.solver.scene = self.updater.scene
         self.solver.lights_changed()
 
