@@ -442,8 +442,7 @@ class SceneSnapshot:
         g = self.geometry
         used = np.zeros(g.positions.shape[0], bool)  # a mask, not np.unique's sort
         used[g.triangles.ravel()] = True
-        p = g.positions if used.all() else g.positions[used]
-        return p.min(axis=0), p.max(axis=0)
+        return point_bounds(g.positions if used.all() else g.positions[used])
 
     def focus_bounds(self, margin: float = FOCUS_MARGIN) -> tuple[np.ndarray, np.ndarray]:
         """Bounds the cache grid should cover: like `bounds`, but a ground plane much larger than
@@ -475,6 +474,15 @@ class SceneSnapshot:
         flo[2] = min(float(flo[2]), float(lo[2]))
         pad = margin * (fhi - flo).max()
         return np.maximum(flo - pad, lo).astype(np.float32), np.minimum(fhi + pad, hi).astype(np.float32)
+
+
+def point_bounds(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(lo, hi) (3,) of points (n, 3), in their dtype: `points.min(axis=0)`, `.max(axis=0)`, one
+    column at a time. Why: numpy 1.26 reduces an (n, 3) array over its rows 3 values at a time,
+    ~20x slower than over a strided column (the atrium's 960k ray-mesh vertices: 53 -> 2.3 ms)."""
+    lo = np.array([points[:, k].min() for k in range(points.shape[1])], points.dtype)
+    hi = np.array([points[:, k].max() for k in range(points.shape[1])], points.dtype)
+    return lo, hi
 
 
 def object_boxes(geometry: Geometry, tri_mask: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -660,7 +668,12 @@ def _unit_normals(geometry: Geometry) -> np.ndarray:
 
     def block(a, b) -> bool:  # whether the block holds a broken normal
         n = normals[a:b]
-        norm = np.sqrt(np.add.reduce(n * n, axis=1))  # np.linalg.norm's sums
+        # np.linalg.norm's sums in its order, a column at a time (numpy's reduce over rows of 3
+        # is ~5x slower than the two adds).
+        norm = n[:, 0] * n[:, 0]
+        norm += n[:, 1] * n[:, 1]
+        norm += n[:, 2] * n[:, 2]
+        np.sqrt(norm, out=norm)
         with np.errstate(invalid="ignore"):  # inf / inf where a normal is broken: redone below
             out[a:b] = n / np.maximum(norm, 1e-12)[:, None]
         return bool((~((norm >= 1e-6) & np.isfinite(norm))).any())
