@@ -26,6 +26,7 @@ import numpy as np
 from hybridgi_core import errors
 from hybridgi_core import glossy_image as _glossy
 from hybridgi_core import glossy_noise as _glossy_noise
+from hybridgi_core import lights as _lights
 from hybridgi_core import penumbra as _penumbra
 from hybridgi_core import translucent as _translucent
 from hybridgi_core import visible as _visible
@@ -428,10 +429,13 @@ class ViewportWorker:
             # A full-res pass is 0.3-0.7 s on 2 busy cores: a lamp edit or a new view that arrives
             # meanwhile drops it between two blocks of its shadow rays instead of waiting for it.
             direct = _interruptible(system, lambda: self._superseded(state))
+            # Its first pass on probes where the lamps allow (`penumbra._coarse_first_pass`).
+            exact_lamps = np.array([_lights.one_sample_exact(light) for light in system.scene.lights], bool)
             try:
                 light, full = (_penumbra.adaptive_direct(
                     direct, points, normals, pix, shape, self._frame * MAX_DIRECT_BLOCKS, samples,
-                    camera=camera, pool=system.updater.pool, lamps=len(system.scene.lights))
+                    camera=camera, pool=system.updater.pool, lamps=len(system.scene.lights),
+                    exact_lamps=exact_lamps)
                     if points.shape[0] else (None, np.zeros(0, bool)))
             except _Superseded:
                 self._steps["direct_dropped"] = (time.perf_counter() - t0) * 1e3
@@ -442,7 +446,7 @@ class ViewportWorker:
                     light = _translucent.mix_back(light, shares, lambda rows: _penumbra.adaptive_direct(
                         direct, points[rows], -normals[rows], pix[rows], shape,
                         (self._frame + _translucent.BACK_SEED_OFFSET) * MAX_DIRECT_BLOCKS, samples, camera=camera,
-                        pool=system.updater.pool, lamps=len(system.scene.lights))[0])
+                        pool=system.updater.pool, lamps=len(system.scene.lights), exact_lamps=exact_lamps)[0])
                 except _Superseded:
                     self._steps["direct_dropped"] = (time.perf_counter() - t0) * 1e3
                     return
@@ -857,7 +861,8 @@ def _interruptible(system, superseded: Callable[[], bool]):
 
     def direct(points, normals, frame, samples=None, lights=None, **outputs):
         # outputs : `system.direct`'s per-point output arrays (partial, unshadowed, exact,
-        # per_lamp), written block by block through views of them; lights : lamp indices.
+        # per_lamp), written block by block through views of them, and its other keywords
+        # (ratio_samples) as they are; lights : lamp indices.
         n = points.shape[0]
         blocks = min(-(-n // DIRECT_BLOCK_POINTS), MAX_DIRECT_BLOCKS)
         bounds = np.linspace(0, n, blocks + 1).astype(np.intp)
@@ -865,7 +870,7 @@ def _interruptible(system, superseded: Callable[[], bool]):
         for i, (a, b) in enumerate(zip(bounds[:-1], bounds[1:], strict=True)):
             if superseded():
                 raise _Superseded
-            views = {k: None if v is None else v[a:b] for k, v in outputs.items()}
+            views = {k: v[a:b] if isinstance(v, np.ndarray) else v for k, v in outputs.items()}
             out.append(system.direct(points[a:b], normals[a:b], frame * MAX_DIRECT_BLOCKS + i, samples=samples,
                                      lights=lights, **views))
         return np.concatenate(out) if out else np.zeros((0, 3), np.float32)

@@ -52,6 +52,10 @@ AREA_MIN_DISTANCE_FRACTION = 1e-2
 #: hits take one), a sample that misses a disc or falls behind the horizon would leave no
 #: visibility to scale by: the plain estimate stays.
 RATIO_MIN_SAMPLES = 4
+#: Widest sun disc (radians, its full angle) whose light one sample gives (`one_sample_exact`): the
+#: cosine of one direction in the disc differs from the disc's mean by at most ~tan(theta) x
+#: angle / 2 (0.05: 1.4% at 30 degrees from the normal; Blender's default sun is 0.009).
+ONE_SAMPLE_SUN_ANGLE = 0.05
 #: Lamps each ray hit (probe and pixel rays) is shaded by when a scene samples more: the hit picks
 #: that many of them at random, in proportion to their rough unshadowed light there
 #: (`_pick_lamps`), and weighs each by one over its probability, as Cycles' light tree picks one
@@ -623,8 +627,13 @@ def _rows_into(values: np.ndarray, rows: np.ndarray, m: int) -> np.ndarray:
     return out
 
 
-def _sun_chunk(light, p, nrm, tracer, rng, samples, epsilon, partial=None, opened=None):
-    """A sun with a disc (angle > 0), sampled; `_sun_axis` shades suns traced along their axis."""
+def _sun_chunk(light, p, nrm, tracer, rng, samples, epsilon, partial=None, opened=None,
+               ratio_samples=RATIO_MIN_SAMPLES):
+    """A sun with a disc (angle > 0), sampled; `_sun_axis` shades suns traced along their axis.
+    With at least ratio_samples samples, a receiver that sees the whole disc above its horizon
+    takes the ratio estimator (`polygon_light`): the exact light, strength x cos(axis), times the
+    share of its samples' light that reached the sun (one direction's cosine differs from the
+    disc's mean by ~tan(theta) x angle / 2: 1.7% noise over a floor under a 2 degree sun)."""
     m = p[0].shape[0]
     u, v = stratified_uv(rng, m, samples)
     axis = (-light.direction).astype(_F32)
@@ -644,8 +653,14 @@ def _sun_chunk(light, p, nrm, tracer, rng, samples, epsilon, partial=None, opene
     # Strength is the irradiance on a facing surface: the cone's mean cosine is divided out.
     weight = float(light.power) / ((1.0 - 0.5 * one_minus_cos) * samples)
     contrib = cos_r.astype(_F32) * _F32(weight)
+    open_sum = contrib.sum(axis=1)
+    whole = None
+    if samples >= ratio_samples:
+        cos_axis = nrm[0] * axis[0] + nrm[1] * axis[1] + nrm[2] * axis[2]
+        whole = (cos_axis >= np.sin(half)) & (open_sum > 0)
+        exact = (_F32(light.power) * cos_axis).astype(_F32)
     if opened is not None:
-        opened.append(contrib.sum(axis=1))
+        opened.append(open_sum if whole is None else np.where(whole, exact, open_sum).astype(_F32))
     if tracer is not None:
         lit = np.flatnonzero(cos_r > 0)  # flat indices: (rows, cols) fancy indexing costs ~2x
         if lit.size:
@@ -656,13 +671,17 @@ def _sun_chunk(light, p, nrm, tracer, rng, samples, epsilon, partial=None, opene
             blocked = np.asarray(shadow_query(tracer, True)(origins, dirs, np.inf, trusted=True), bool)
             contrib.ravel()[lit[blocked]] = 0.0
             _mark_partial(partial, rows, blocked, m)
-    return contrib.sum(axis=1)
+    total = contrib.sum(axis=1)
+    if whole is not None:
+        total = np.where(whole, exact * (total / np.where(whole, open_sum, _F32(1.0))), total).astype(_F32)
+    return total
 
 
 def _area_chunk(light, shape, p, nrm, tracer, rng, samples, epsilon, partial=None, solid_angle=True, opened=None,
-                known=None):
+                known=None, ratio_samples=RATIO_MIN_SAMPLES):
     """known : optional (m,) float64 in/out, the lamp's exact unshadowed irradiance at the
-    receivers (NaN where not yet computed; `direct_irradiance`'s exact)."""
+    receivers (NaN where not yet computed; `direct_irradiance`'s exact). ratio_samples : fewest
+    samples for the ratio estimator (`direct_irradiance`)."""
     m = p[0].shape[0]
     # Drawn for every receiver so the rng stream does not depend on which ones face the lamp.
     u, v = stratified_uv(rng, m, samples)
@@ -719,7 +738,7 @@ def _area_chunk(light, shape, p, nrm, tracer, rng, samples, epsilon, partial=Non
     if cone is not None:
         f *= cone
     open_sum = f.sum(axis=1)
-    unshadowed = open_sum if samples >= RATIO_MIN_SAMPLES and cone is None else None
+    unshadowed = open_sum if samples >= ratio_samples and cone is None else None
     scale = (solid_angle * (radiance / samples)).astype(_F32)
     if tracer is not None:
         lit = np.flatnonzero(f > 0)
@@ -943,6 +962,23 @@ def _area_chunk_by_area(shape, radiance, p, nrm, tracer, u, v, samples, epsilon,
 # --------------------------------------------------------------------------------------------
 
 
+def one_sample_exact(light: Light) -> bool:
+    """Whether one sample of `light` with `direct_irradiance(ratio_samples=1)` gives its exact
+    unshadowed irradiance times that sample's visibility (or 0 where the sample missed it): point
+    and spot lamps (hard, or a sphere or disc in closed form), suns whose disc is at most
+    ONE_SAMPLE_SUN_ANGLE wide (one direction's cosine is the disc's mean within ~1%), rectangular
+    and round area lamps of full spread (the ratio estimator). Not sheared area lamps (area
+    sampling, no closed form) nor spread ones (the cone factor varies over the lamp)."""
+    if light.kind in ("POINT", "SPOT"):
+        return True
+    if light.kind == "SUN":
+        return float(light.angle) <= ONE_SAMPLE_SUN_ANGLE
+    if light.kind == "AREA":
+        shape = _area_shape(light)
+        return shape.area > 0.0 and shape.rectangular and float(light.spread) >= np.pi
+    return False
+
+
 def _rough_light(light: Light, pts: np.ndarray, nrm: np.ndarray) -> np.ndarray:
     """(n,) float32 a rough unshadowed irradiance of `light` at receivers (pts, nrm (n, 3)): the
     pick weight of `_pick_lamps`. The inverse square of the distance to the lamp's centre (kept
@@ -1025,7 +1061,8 @@ def _roulette_lamps(lights: list[Light], pts: np.ndarray, nrm: np.ndarray, budge
 
 
 def _lamp_chunk(light: Light, shape, p, q, tracer, rng, samples: int, epsilon: float, solid_angle: bool,
-                mark=None, opened=None, known=None, bumped=None) -> np.ndarray | None:
+                mark=None, opened=None, known=None, bumped=None,
+                ratio_samples: int = RATIO_MIN_SAMPLES) -> np.ndarray | None:
     """(m,) irradiance of one sampled (not axial) lamp at a chunk's receivers (p, q: x, y, z
     tuples of (m,)), by its kind: `_point_chunk`, `_sun_chunk`, `_beam` (Spread 0) or
     `_area_chunk`; None for an area lamp without a shape (zero area). mark, opened, known: their
@@ -1034,13 +1071,14 @@ def _lamp_chunk(light: Light, shape, p, q, tracer, rng, samples: int, epsilon: f
     if light.kind in ("POINT", "SPOT"):
         e = _point_chunk(light, p, q, tracer, rng, samples, epsilon, mark, opened)
     elif light.kind == "SUN":
-        e = _sun_chunk(light, p, q, tracer, rng, samples, epsilon, mark, opened)
+        e = _sun_chunk(light, p, q, tracer, rng, samples, epsilon, mark, opened, ratio_samples)
     elif shape is None:
         return None
     elif float(light.spread) <= 0.0:
         e = _beam(light, shape, p, q, tracer, epsilon, opened)
     else:
-        e = _area_chunk(light, shape, p, q, tracer, rng, samples, epsilon, mark, solid_angle, opened, known)
+        e = _area_chunk(light, shape, p, q, tracer, rng, samples, epsilon, mark, solid_angle, opened, known,
+                        ratio_samples)
     if bumped is not None:
         bump = _bump_weight(light, *bumped)
         e = e * bump
@@ -1095,6 +1133,7 @@ def direct_irradiance(
     per_lamp: np.ndarray | None = None,
     lamp_budget: int | None = None,
     smooth: np.ndarray | None = None,
+    ratio_samples: int = RATIO_MIN_SAMPLES,
 ) -> np.ndarray:
     """Irradiance from the lamps at one-sided Lambertian receivers, with shadow rays.
 
@@ -1133,6 +1172,10 @@ def direct_irradiance(
         normal map bent (`bump.smooth_normals`): each lamp's light is weighed by Cycles' bump
         shadowing term towards the lamp's centre (`bump.shadowing_term`; exact for suns and
         point lamps, the centre's direction for area lamps and the sun's disc).
+    ratio_samples : fewest samples per receiver at which rectangular and round area lamps take
+        the ratio estimator (RATIO_MIN_SAMPLES); 1 makes a lamp of `one_sample_exact` give its
+        exact unshadowed light times one ray's visibility, or 0 where the sample missed the lamp
+        (outside a round lamp, below the horizon): what `penumbra`'s probes check pixels with.
 
     Returns
     -------
@@ -1217,7 +1260,8 @@ def direct_irradiance(
             opened = [] if acc_open is not None else None
             e = _lamp_chunk(lt, shapes.get(i), p, q, tr, rng, samples, epsilon, solid_angle, mark, opened,
                             None if known is None else known[start:stop, column[i]],
-                            None if smooth is None else (pts[start:stop], nrm[start:stop], smooth[start:stop]))
+                            None if smooth is None else (pts[start:stop], nrm[start:stop], smooth[start:stop]),
+                            ratio_samples)
             if e is None:
                 continue
             e = e[:, None] * lt.color[None, :]

@@ -18,7 +18,7 @@ from .cutout import Cutouts, glass_transmission
 from .evaluate import Gathered, corner_visibility, gather
 from .glossy import GlossyMaterials, glossy_direct
 from .levels import CacheLevels, build_levels
-from .lights import _pick_lamps, direct_irradiance
+from .lights import RATIO_MIN_SAMPLES, _pick_lamps, direct_irradiance
 from .lod import decimate
 from .sampling import frame_rng
 from .settings import MULTI_BOUNCE, CacheSettings
@@ -369,7 +369,8 @@ class GISystem:
     def direct(self, points: np.ndarray, normals: np.ndarray, frame: int, samples: int | None = None,
                partial: np.ndarray | None = None, unshadowed: np.ndarray | None = None,
                exact: np.ndarray | None = None, per_lamp: np.ndarray | None = None,
-               lights: list[int] | None = None, smooth: np.ndarray | None = None) -> np.ndarray:
+               lights: list[int] | None = None, smooth: np.ndarray | None = None,
+               ratio_samples: int = RATIO_MIN_SAMPLES) -> np.ndarray:
         """Lamp irradiance (n, 3) W/m^2 with shadow rays at points: the deferred pass's direct light.
 
         Up to DIRECT_BLOCK_RAYS shadow rays run in one call on this thread; more (the full-res
@@ -383,7 +384,9 @@ class GISystem:
         share. lights : indices of the scene's lamps to shade (None: all); the lamp columns of
         partial, exact and per_lamp follow it. smooth : the (n, 3) smooth surface normals under
         points where a normal map may bend `normals` (the G-buffer's `surface` target); None:
-        found by one ray each in scenes with normal maps (`bump.smooth_normals`)."""
+        found by one ray each in scenes with normal maps (`bump.smooth_normals`). ratio_samples :
+        `lights.direct_irradiance`'s (1: one sample gives a `one_sample_exact` lamp's exact light
+        times its visibility)."""
         rng = frame_rng(self.settings.seed + 1, frame)
         samples = samples or self.settings.light_samples
         eps = float(self.tracer.epsilon)
@@ -402,14 +405,15 @@ class GISystem:
                    "smooth": smooth}
         if n <= per_block or not lamps:
             return direct_irradiance(lamps, points, normals, self.tracer, rng, samples=samples, epsilon=eps,
-                                     **outputs)
+                                     ratio_samples=ratio_samples, **outputs)
         points = np.asarray(points, np.float32).reshape(-1, 3)
         normals = np.asarray(normals, np.float32).reshape(-1, 3)
         starts = range(0, n, per_block)
         return np.concatenate(self._blocks([
             (direct_irradiance, (lamps, points[a : a + per_block], normals[a : a + per_block], self.tracer, child,
                                  samples, eps),
-             {k: None if v is None else v[a : a + per_block] for k, v in outputs.items()})
+             {"ratio_samples": ratio_samples,
+              **{k: None if v is None else v[a : a + per_block] for k, v in outputs.items()}})
             for a, child in zip(starts, rng.spawn(len(starts)), strict=True)]))
 
     def emitter_light(self, points: np.ndarray, normals: np.ndarray, frame: int, samples: int) -> np.ndarray | None:

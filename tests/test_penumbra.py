@@ -5,8 +5,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from hybridgi_core.lights import direct_irradiance, rough_lights
-from hybridgi_core.penumbra import FIRST_SAMPLES, WEAK_SHARE, adaptive_direct, dilate
+from hybridgi_core.lights import RATIO_MIN_SAMPLES, direct_irradiance, one_sample_exact, rough_lights
+from hybridgi_core.penumbra import COARSE_MIN_PIXELS, FIRST_SAMPLES, WEAK_SHARE, adaptive_direct, dilate
 from tests.test_lights import TriangleTracer, area_light, point_light, quad, sun_light, translation
 
 # A floor image of 48 x 48 pixels over [-4, 4]^2, a 1 m square lamp 2 m up, a blocker that
@@ -248,3 +248,107 @@ def test_weak_lamps_trace_one_ray_and_the_strong_lamp_its_one_lamp_rays():
     assert errors[1] < 1.05 * errors[0] + 1e-4, errors
     alone, _ = adaptive_direct(_direct([strong], tracer), pts, nrm, pix, (H, W), frame=3, samples=32, lamps=1)
     np.testing.assert_array_equal(shares[:, 0], alone)
+
+
+def _direct_with_ratio(lights, tracer, seed=0):
+    """`_direct` with `direct_irradiance`'s ratio_samples= too (the probes' one-sample check)."""
+    def direct(points, normals, frame, samples=1, partial=None, unshadowed=None, exact=None, per_lamp=None,
+               lights=None, ratio_samples=RATIO_MIN_SAMPLES):
+        rng = np.random.default_rng([seed, frame])
+        shaded = lamps if lights is None else [lamps[i] for i in lights]
+        return direct_irradiance(shaded, points, normals, tracer, rng, samples=samples, partial=partial,
+                                 unshadowed=unshadowed, exact=exact, per_lamp=per_lamp, ratio_samples=ratio_samples)
+    lamps = lights
+    return direct
+
+
+def _large_floor(n=144):
+    """n x n floor pixels over [-4, 4]^2 (enough for the probes: n^2 >= COARSE_MIN_PIXELS)."""
+    ys, xs = np.meshgrid(np.linspace(-4, 4, n), np.linspace(-4, 4, n), indexing="ij")
+    pts = np.column_stack([xs.ravel(), ys.ravel(), np.zeros(n * n)]).astype(np.float32)
+    return pts, np.tile(np.float32([0, 0, 1]), (n * n, 1)), n
+
+
+def test_probes_find_the_penumbrae_with_fewer_rays_and_the_same_light():
+    """The first pass on probes (`_coarse_first_pass`): a soft lamp's penumbra and a hard lamp's
+    thin shadow, a one-pixel line between probes that saw the lamp, come out as the full first
+    pass gives them, for far fewer rays."""
+    assert _large_floor()[2] ** 2 >= COARSE_MIN_PIXELS
+    area = area_light(translation(0.0, 0.0, 2.0), power=200.0, size=0.3)
+    point = point_light((5.0, 0.5, 3.0), power=600.0)
+    # A square blocker (a soft shadow of the area lamp, its penumbra a few pixels wide) and a thin
+    # bar: its hard shadow under the point lamp is one pixel column wide, an odd one (x = -1.93 m),
+    # which no probe sees, far from its soft shadow under the area lamp (x = -1.26 m): only the
+    # pixels' own check rays find it.
+    blockers = quad((0.0, 0.0, 0.6), (0.4, 0, 0), (0, 0.4, 0)) + quad((-1.0062, 0.0, 0.4), (0.02, 0, 0), (0, 1.5, 0))
+    pts, nrm, n = _large_floor()
+    pix = np.arange(n * n)
+    lamps = [area, point]
+    line = pts[:, 0][(np.arange(n * n) % n) == 37][0]  # the bar's shadow, an odd pixel column
+
+    class LineTracer(TriangleTracer):
+        """Counts the rays leaving that column too."""
+        line_rays = 0
+
+        def occluded(self, origins, directions, tfar=np.inf, trusted=False):
+            self.line_rays += int((np.abs(origins[:, 0] - line) < 1e-3).sum())
+            return super().occluded(origins, directions, tfar, trusted)
+
+    tracer = LineTracer(blockers)
+    ref = direct_irradiance(lamps, pts, nrm, tracer, np.random.default_rng(7), samples=512)
+    runs = {}
+    for name, exact_lamps in (("plain", None), ("probes", np.array([one_sample_exact(lt) for lt in lamps]))):
+        tracer.rays = tracer.line_rays = 0
+        shares = np.zeros((n * n, 2, 3), np.float32)
+        light, full = adaptive_direct(_direct_with_ratio(lamps, tracer), pts, nrm, pix, (n, n), frame=3,
+                                      samples=16, lamps=2, per_lamp=shares, exact_lamps=exact_lamps)
+        runs[name] = (light, full, shares, tracer.rays)
+    runs["line_rays"] = tracer.line_rays
+    (light_p, full_p, share_p, rays_p), (light_c, full_c, share_c, rays_c) = runs["plain"], runs["probes"]
+    assert rays_c < 0.6 * rays_p, (rays_c, rays_p)
+    err = lambda e: np.abs(e - ref).sum() / ref.sum()  # noqa: E731
+    assert err(light_c) < 1.1 * err(light_p) + 1e-3, (err(light_c), err(light_p))
+    # The hard lamp's light is one ray's either way: the same at every pixel, its thin shadow too.
+    bar_shadow = (share_p[:, 1, 0] == 0) & (np.abs(pts[:, 0] + 1.93) < 0.2)
+    assert 0 < bar_shadow.sum() < 0.02 * n * n
+    assert (np.flatnonzero(bar_shadow) % n % 2 == 1).all()  # between the probes' columns
+    np.testing.assert_allclose(share_c[:, 1], share_p[:, 1], rtol=1e-5, atol=1e-6)
+    # The line's pixels agreed with no probe's view of the point lamp (their check rays were
+    # blocked): they traced the full first pass, FIRST_SAMPLES rays to the area lamp, not one.
+    assert runs["line_rays"] >= bar_shadow.sum() * (FIRST_SAMPLES + 1), (runs["line_rays"], bar_shadow.sum())
+    # The soft penumbra is found (re-sampled) where the full first pass finds it.
+    assert full_c[full_p].mean() > 0.95
+
+
+def test_one_sample_exact_lamps():
+    assert one_sample_exact(point_light((0, 0, 2)))
+    assert one_sample_exact(point_light((0, 0, 2), radius=0.3))
+    assert one_sample_exact(area_light(translation(0, 0, 2)))
+    assert one_sample_exact(area_light(translation(0, 0, 2), shape="DISK"))
+    assert one_sample_exact(sun_light((0, 0, -1), angle=0.02))
+    assert not one_sample_exact(sun_light((0, 0, -1), angle=0.2))  # one direction's cosine is not the disc's
+    sheared = translation(0, 0, 2)
+    sheared[:3, 1] = (0.5, 1.0, 0.0)
+    assert not one_sample_exact(area_light(sheared))
+    spread = area_light(translation(0, 0, 2))
+    spread.spread = 0.5
+    assert not one_sample_exact(spread)
+
+
+def test_sun_disc_is_exact_where_nothing_shadows_it():
+    """A sampled sun disc takes the ratio estimator: an open floor gets strength x cos exactly,
+    not each sample direction's cosine (1.7% noise under a 2 degree sun at 45 degrees)."""
+    sun = sun_light((1.0, 0.0, -1.0), strength=3.0, angle=np.radians(2.0))
+    tracer = TriangleTracer(quad((0.0, 0.0, 1.0), (0.4, 0, 0), (0, 0.4, 0)))
+    pts, nrm = _floor()
+    partial = np.zeros(H * W, bool)
+    light = direct_irradiance([sun], pts, nrm, tracer, np.random.default_rng(0), samples=8, partial=partial)
+    unblocked = direct_irradiance([sun], pts, nrm, None, np.random.default_rng(0), samples=8)
+    exact = 3.0 * np.cos(np.pi / 4)
+    np.testing.assert_allclose(unblocked[:, 0], exact, rtol=1e-5)
+    lit = (light[:, 0] > 0) & ~partial
+    assert lit.mean() > 0.5
+    np.testing.assert_allclose(light[lit, 0], exact, rtol=1e-5)
+    # Below ratio_samples, each sample's own cosine (the plain estimate): not all equal.
+    plain = direct_irradiance([sun], pts, nrm, None, np.random.default_rng(0), samples=2)
+    assert np.ptp(plain[:, 0]) > 1e-3 * exact

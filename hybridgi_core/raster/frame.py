@@ -19,7 +19,7 @@ from .. import glossy_image, pixel_gather
 from .. import translucent as translucent_mod
 from ..emitters import emitter_samples, worth_sampling
 from ..evaluate import HitLookup
-from ..lights import RATIO_MIN_SAMPLES, rough_lights
+from ..lights import RATIO_MIN_SAMPLES, one_sample_exact, rough_lights
 from ..penumbra import FIRST_SAMPLES as PENUMBRA_FIRST_SAMPLES
 from ..penumbra import adaptive_direct, filter_camera
 from ..screen_light import ScreenLight
@@ -439,10 +439,13 @@ class FramePipeline:
                   if self.subframes > 1 and 1 < lamps <= SUBFRAME_LAMP_LIMIT else None)
         # Several lamps: each traces its first pass's rays where it is not weak (`penumbra.WEAK_SHARE`).
         rough = rough_lights(system.scene.lights, p_full, n_full) if lamps > 1 else None
+        # The lamps whose first pass may run on probes (`penumbra._coarse_first_pass`).
+        exact_lamps = np.array([one_sample_exact(light) for light in system.scene.lights], bool)
         direct[pix_full, :3] = adaptive_direct(system.direct, p_full, n_full, pix_full, (self.height, self.width),
                                                frame, self.direct_samples, camera=camera,
                                                pool=system.updater.pool, lamps=lamps,
-                                               smooth=s_full, per_lamp=shares, rough=rough)[0]
+                                               smooth=s_full, per_lamp=shares, rough=rough,
+                                               exact_lamps=exact_lamps)[0]
         t_full = None if translucent is None else translucent[pix_full]
         rows = translucent_mod.lit_from_behind(t_full)
         if rows.size:
@@ -455,7 +458,7 @@ class FramePipeline:
                                    pool=system.updater.pool, lamps=lamps,
                                    smooth=None if s_full is None else -s_full[rows], per_lamp=back_shares,
                                    rough=rough_lights(system.scene.lights, p_full[rows], flipped) if lamps > 1
-                                   else None)[0]
+                                   else None, exact_lamps=exact_lamps)[0]
             t = t_full[rows]
             direct[pix_full[rows], :3] = translucent_mod.blend(direct[pix_full[rows], :3], back, t)
             if shares is not None:
