@@ -49,6 +49,7 @@ from .lights import (
     stratified_uv,
     uniform_cone,
 )
+from .rows import finite_rows
 from .snapshot import Light
 
 _F32 = np.float32
@@ -549,7 +550,7 @@ def glossy_direct(lights, points, normals, to_eye, rows, mats: GlossyMaterials, 
     active = [g for g in (lt.for_glossy() for lt in lights) if float(g.power) != 0.0 and np.any(g.color != 0)]
     if not active or not mats.any or pts.shape[0] == 0:
         return out
-    valid = (rows >= 0) & np.isfinite(pts).all(1) & np.isfinite(nrm).all(1) & np.isfinite(eye).all(1)
+    valid = (rows >= 0) & finite_rows(pts) & finite_rows(nrm) & finite_rows(eye)
     valid[valid] &= mats.live[rows[valid]]
     sel = np.flatnonzero(valid)
     step = max(1, CHUNK // max(samples, 1))

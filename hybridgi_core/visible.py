@@ -9,6 +9,7 @@ from __future__ import annotations
 import numpy as np
 
 from .grid import CacheGrid
+from .rows import finite_rows, row_norms
 
 
 def visible_cells(grid: CacheGrid, positions: np.ndarray, normals: np.ndarray, normal_bias: float) -> np.ndarray:
@@ -52,9 +53,9 @@ def pixels_to_points(position_rgba: np.ndarray, normal_rgb: np.ndarray) -> tuple
     """
     pos = position_rgba.reshape(-1, position_rgba.shape[-1])
     nrm = normal_rgb.reshape(-1, normal_rgb.shape[-1])[:, :3]
-    idx = np.flatnonzero((pos[:, 3] > 0.5) & np.isfinite(pos[:, :3]).all(axis=1))
+    idx = np.flatnonzero((pos[:, 3] > 0.5) & finite_rows(pos[:, :3]))
     n = nrm[idx].astype(np.float32)
-    n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+    n /= np.maximum(row_norms(n), np.float32(1e-12))[:, None]
     return pos[idx, :3].astype(np.float32), n, idx
 
 

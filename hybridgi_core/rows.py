@@ -1,0 +1,28 @@
+"""Per-row tests and norms of (n, k) arrays with a few columns, computed column by column.
+
+Why: numpy 1.26 reduces an (n, k) array along its rows k values at a time, which for k <= 4 is
+5-20x slower than combining its k columns as whole arrays (a 640x360 image's 230k (n, 3) rows:
+`np.isfinite(a).all(axis=1)` ~8 ms, these ~1 ms). The results are the same bits: the sums run in
+the order numpy's reduction takes for fewer than 8 values.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def finite_rows(a: np.ndarray) -> np.ndarray:
+    """(n,) bool: every value of the row of a (n, k) is finite (`np.isfinite(a).all(axis=1)`)."""
+    out = np.isfinite(a[:, 0])
+    for k in range(1, a.shape[1]):
+        out &= np.isfinite(a[:, k])
+    return out
+
+
+def row_norms(a: np.ndarray) -> np.ndarray:
+    """(n,) the Euclidean norm of each row of a (n, k) (`np.linalg.norm(a, axis=1)`), in a's
+    floating dtype."""
+    out = a[:, 0] * a[:, 0]
+    for k in range(1, a.shape[1]):
+        out += a[:, k] * a[:, k]
+    return np.sqrt(out, out=out)
