@@ -20,10 +20,11 @@ from .glossy import GlossyMaterials, glossy_direct
 from .levels import CacheLevels, build_levels
 from .lights import RATIO_MIN_SAMPLES, _pick_lamps, direct_irradiance
 from .lod import decimate
+from .rows import column_bounds
 from .sampling import frame_rng
 from .settings import MULTI_BOUNCE, CacheSettings
 from .shading import SurfaceTable
-from .snapshot import SceneSnapshot, concat_geometry, point_bounds
+from .snapshot import SceneSnapshot, concat_geometry
 from .solver import WARMUP_FRAME_BASE, GISolver, SolveStats
 from .trace.embree import EmbreeTracer
 from .update import CacheUpdater, ShadingScene, UpdateStats
@@ -522,5 +523,5 @@ def _moved_boxes(old, new, rows: np.ndarray) -> list[tuple[np.ndarray, np.ndarra
         sel = objs == obj
         for p in (p_old[sel], p_new[sel]):
             pts = p.reshape(-1, 3)
-            boxes.append(point_bounds(pts))
+            boxes.append(column_bounds(pts))
     return boxes

@@ -23,7 +23,8 @@ from embreex import rtcore_scene as rtcs
 from embreex.mesh_construction import TriangleMesh
 
 from ..errors import EmptySceneError, InvalidGeometryError, SettingsError
-from ..snapshot import Geometry, point_bounds
+from ..rows import column_bounds
+from ..snapshot import Geometry
 from . import SURFACE_EPSILON, Hits, embree_upload
 from .reference import prepare_rays
 
@@ -413,7 +414,7 @@ class EmbreeTracer:
         finite = v if np.isfinite(v).all() else v[np.isfinite(v).all(axis=1)]  # no copy when all are
         if finite.size == 0:
             return None
-        lo, hi = point_bounds(finite)
+        lo, hi = column_bounds(finite)
         return lo.astype(np.float64), hi.astype(np.float64)
 
     def _bounds_all(self) -> tuple[np.ndarray, np.ndarray]:
