@@ -48,6 +48,7 @@ from .evaluate import HitLookup, corner_weights
 from .glossy import glossy_direct
 from .levels import hit_lookup
 from .lights import HIT_LAMP_BUDGET, _onb, concentric_disk, direct_irradiance, stratified_uv
+from .rows import mean_over_rays
 from .sampling import frame_rng
 from .screen_light import ScreenLight
 from .settings import AO_ONLY, MULTI_BOUNCE
@@ -346,21 +347,21 @@ def _chunk(system, lookup: HitLookup | None, p, nrm, corner_visible, rays, rng, 
     # Control variate: the cache's radiance SH along the same rays. Linear in the SH, so its mean
     # over a pixel's rays is the SH of the pixel's mean basis vector (no per-ray products).
     y = sh.basis(dirs, 2 if k == 9 else 1).reshape(m, rays, k)
-    y_mean = y.mean(axis=1)  # (m, K)
+    y_mean = mean_over_rays(y)  # (m, K)
     y_lit = y
     if smooth is not None:
         term = shadowing_term(np.repeat(smooth, rays, axis=0), np.repeat(nrm, rays, axis=0), dirs)
         radiance *= term[:, None]
         y_lit = y * term.reshape(m, rays, 1)
-    y_lit_mean = y_mean if smooth is None else y_lit.mean(axis=1)
+    y_lit_mean = y_mean if smooth is None else mean_over_rays(y_lit)
     cv_d = np.einsum("mk,mkc->mc", y_lit_mean, sh_d)
     cv_i = np.einsum("mk,mkc->mc", y_lit_mean, sh_i)
     cv_a = np.where(covered, np.einsum("mk,mk->m", y_mean, sh_a), np.float32(1.0))  # uncovered: ao_c = 1
     r = radiance.reshape(m, rays, 6)
-    r_mean = r.mean(axis=1)  # one reduction over the rays for both bands
+    r_mean = mean_over_rays(r)  # one reduction over the rays for both bands
     res[:, 0:3] = (r_mean[:, 0:3] - cv_d) * np.float32(np.pi)
     res[:, 3:6] = (r_mean[:, 3:6] - cv_i) * np.float32(np.pi)
-    ao_mean = visible.reshape(m, rays).mean(axis=1)
+    ao_mean = mean_over_rays(visible.reshape(m, rays))
     res[:, 6] = ao_mean - cv_a
     # Variance of the two filter guides' means (luminance of all light, AO), from the rays' own
     # spread around their control variate: what the filter may average away as noise.

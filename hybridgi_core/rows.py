@@ -34,3 +34,14 @@ def column_bounds(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     lo = np.array([points[:, k].min() for k in range(points.shape[1])], points.dtype)
     hi = np.array([points[:, k].max() for k in range(points.shape[1])], points.dtype)
     return lo, hi
+
+
+def mean_over_rays(x: np.ndarray) -> np.ndarray:
+    """(m, ...) float32 mean of x (m, r, ...) over its axis 1 (each pixel's r rays), as one batched
+    product with a row of 1/r: numpy's mean over a middle axis of 32 with 6-9 values behind it
+    costs ~10x (57.6k pixels x 32 rays x 9 SH terms: 33 -> 3 ms). Rounding differs from
+    `x.mean(axis=1)` in the last bits (the order of the sum)."""
+    m, r = x.shape[0], x.shape[1]
+    flat = np.ascontiguousarray(x, np.float32).reshape(m, r, -1)
+    out = np.matmul(np.full((1, r), np.float32(1.0 / r)), flat)
+    return out.reshape((m,) + x.shape[2:])
