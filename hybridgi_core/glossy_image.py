@@ -25,6 +25,7 @@ from .glossy import cache_reflection, glossy_color
 from .glossy_noise import adaptive_lamp_glossy
 from .pixel_gather import LUMA
 from .reflection import bsdf_lamps, filter_lamp_glossy, filter_reflections, traced_reflection, traced_share
+from .rows import rows_above
 from .settings import MULTI_BOUNCE
 
 
@@ -109,7 +110,7 @@ def cache_glossy(system, points, normals, to_eye, rows) -> GlossyLight:
     colour = glossy_color(system.glossy_materials, rows, mu)
     sky = np.zeros((n, 3), np.float32)
     bounced = np.zeros((n, 3), np.float32)
-    lit = np.flatnonzero(colour.max(axis=1) > 0)
+    lit = np.flatnonzero(rows_above(colour, 0.0))
     if lit.size:
         rough = system.glossy_materials.rough[rows[lit]]
         s, b = cache_reflection(system.cache, np.asarray(points).reshape(-1, 3)[lit], normals[lit], to_eye[lit], rough)
@@ -151,7 +152,7 @@ def frame_glossy(system, points, normals, pix, shape: tuple[int, int], material,
     colour[:] = glossy_color(mats, rows, mu)
     direct = np.zeros((n, 3), np.float32)
     bounced = np.zeros((n, 3), np.float32)
-    lit = np.flatnonzero(colour.max(axis=1) > 0)
+    lit = np.flatnonzero(rows_above(colour, 0.0))
     rough = mats.rough[rows[lit]]
     # Area lamps in lobes much narrower than they are: the reflection rays estimate them.
     skip = np.zeros((n, len(system.scene.lights)), bool)

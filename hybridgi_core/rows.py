@@ -45,3 +45,12 @@ def mean_over_rays(x: np.ndarray) -> np.ndarray:
     flat = np.ascontiguousarray(x, np.float32).reshape(m, r, -1)
     out = np.matmul(np.full((1, r), np.float32(1.0 / r)), flat)
     return out.reshape((m,) + x.shape[2:])
+
+
+def rows_above(a: np.ndarray, threshold: float) -> np.ndarray:
+    """(n,) bool: some value of the row of a (n, k) exceeds threshold (`(a > t).any(axis=1)`;
+    `a.max(axis=1) > t` for finite rows)."""
+    out = a[:, 0] > threshold
+    for k in range(1, a.shape[1]):
+        out |= a[:, k] > threshold
+    return out
