@@ -430,7 +430,7 @@ class ViewportWorker:
             # meanwhile drops it between two blocks of its shadow rays instead of waiting for it.
             direct = _interruptible(system, lambda: self._superseded(state))
             # Its first pass on probes where the lamps allow (`penumbra._coarse_first_pass`).
-            exact_lamps = np.array([_lights.one_sample_exact(light) for light in system.scene.lights], bool)
+            exact_lamps = _lights.one_sample_exact_lamps(system.scene.lights)
             try:
                 light, full = (_penumbra.adaptive_direct(
                     direct, points, normals, pix, shape, self._frame * MAX_DIRECT_BLOCKS, samples,

@@ -979,6 +979,11 @@ def one_sample_exact(light: Light) -> bool:
     return False
 
 
+def one_sample_exact_lamps(lights: list[Light]) -> np.ndarray:
+    """(len(lights),) bool: `one_sample_exact` of each lamp (`penumbra.adaptive_direct`'s exact_lamps)."""
+    return np.array([one_sample_exact(light) for light in lights], bool)
+
+
 def _rough_light(light: Light, pts: np.ndarray, nrm: np.ndarray) -> np.ndarray:
     """(n,) float32 a rough unshadowed irradiance of `light` at receivers (pts, nrm (n, 3)): the
     pick weight of `_pick_lamps`. The inverse square of the distance to the lamp's centre (kept

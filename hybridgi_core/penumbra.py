@@ -21,6 +21,7 @@ from __future__ import annotations
 import numpy as np
 
 from .pixel_gather import filter_at_pixels
+from .rows import rows_above
 
 #: Shadow rays per pixel and lamp of the first pass, which finds the penumbrae (>= the ratio
 #: estimator's minimum, so that wholly lit pixels are exact).
@@ -128,8 +129,7 @@ def adaptive_direct(direct, points: np.ndarray, normals: np.ndarray, pix: np.nda
     if lamps == 1 and _coarse(exact_lamps, [0], points.shape[0]):
         grid = np.zeros((points.shape[0], 1), bool)
         light = _coarse_first_pass(direct, points, normals, pix, shape, frame, first, [0], None, grid,
-                                   reuse["exact"], np.zeros((points.shape[0], 1, 3), np.float32), smooth,
-                                   single=True)
+                                   reuse["exact"], np.zeros((points.shape[0], 1, 3), np.float32), smooth)
         partial = grid[:, 0]
     else:
         light = direct(points, normals, frame, samples=first, partial=partial, **reuse, **_smooth(smooth))
@@ -257,7 +257,7 @@ def _coarse(exact_lamps: np.ndarray | None, group: list[int], n: int) -> bool:
 
 
 def _coarse_first_pass(direct, points, normals, pix, shape, frame, first, group, weak, partial, exact, share,
-                       smooth=None, single=False) -> np.ndarray:
+                       smooth=None) -> np.ndarray:
     """`_first_pass` of the lamps `group` (all `lights.one_sample_exact`) over pixels `pix` of an
     image of `shape`, found from probes (COARSE_STEP): -> (n, 3), filling partial (n, g), exact
     (n, g) and share (n, g, 3) as it does.
@@ -271,8 +271,7 @@ def _coarse_first_pass(direct, points, normals, pix, shape, frame, first, group,
        ray's visibility) and keep it where every lamp's ray agrees with its probes (seen where
        they saw the lamp, unseen where they did not); a ray that disagrees (a thin shadow or gap
        between probes, a sample outside a round lamp) sends the pixel to the full first pass.
-    4. The rest trace the full first pass. Penumbrae are then found as before, from `partial`.
-    single : one lamp, `direct` called without lights= / per_lamp= (`adaptive_direct`'s)."""
+    4. The rest trace the full first pass. Penumbrae are then found as before, from `partial`."""
     n, g = points.shape[0], len(group)
     h, w = shape
     y, x = np.divmod(np.asarray(pix, np.int64), w)
@@ -282,13 +281,6 @@ def _coarse_first_pass(direct, points, normals, pix, shape, frame, first, group,
     def full_pass(rows: np.ndarray, seed: int) -> None:
         if rows.size == 0:
             return
-        if single:
-            got = np.zeros(rows.size, bool)
-            known = exact[rows]
-            light[rows] = direct(points[rows], normals[rows], seed, samples=first, partial=got, exact=known,
-                                 **_smooth(smooth, rows))
-            partial[rows, 0], exact[rows] = got, known
-            return
         got, known, part = partial[rows], exact[rows], share[rows]
         light[rows] = _first_pass(direct, points[rows], normals[rows], seed, first, group,
                                   None if weak is None else weak[rows], got, known, part,
@@ -297,16 +289,12 @@ def _coarse_first_pass(direct, points, normals, pix, shape, frame, first, group,
 
     probes = np.flatnonzero(is_probe)
     full_pass(probes, frame)
-    if single:
-        share[probes, 0] = light[probes]
     # Each lamp's agreeing probes on the probe grid, eroded: +1 all saw it, -1 none did, 0 neither.
     gh, gw = -(-h // COARSE_STEP), -(-w // COARSE_STEP)
     gy, gx = y // COARSE_STEP, x // COARSE_STEP
     verdict = np.zeros((n, g), np.int8)
     for k in range(g):
-        seen = share[probes, k, 0] > 0
-        seen |= share[probes, k, 1] > 0
-        seen |= share[probes, k, 2] > 0
+        seen = rows_above(share[probes, k], 0.0)
         calm = ~partial[probes, k]
         for sign, mask in ((1, calm & seen), (-1, calm & ~seen)):
             grid = np.zeros((gh, gw), bool)
@@ -320,13 +308,8 @@ def _coarse_first_pass(direct, points, normals, pix, shape, frame, first, group,
     if candidates.size:
         known = exact[candidates]
         part = np.zeros((candidates.size, g, 3), np.float32)
-        if single:
-            one = direct(points[candidates], normals[candidates], frame + CHECK_SEED_OFFSET, samples=1,
-                         exact=known, ratio_samples=1, **_smooth(smooth, candidates))
-            part[:, 0] = one
-        else:
-            one = direct(points[candidates], normals[candidates], frame + CHECK_SEED_OFFSET, samples=1,
-                         exact=known, per_lamp=part, lights=group, ratio_samples=1, **_smooth(smooth, candidates))
+        one = direct(points[candidates], normals[candidates], frame + CHECK_SEED_OFFSET, samples=1,
+                     exact=known, per_lamp=part, lights=group, ratio_samples=1, **_smooth(smooth, candidates))
         saw = part.max(axis=2) > 0
         v = verdict[candidates]
         agree = np.where(v == 1, saw, np.where(v == -1, ~saw, True)).all(axis=1)
@@ -337,8 +320,6 @@ def _coarse_first_pass(direct, points, normals, pix, shape, frame, first, group,
         exact[good] = known[agree]
         partial[good] = False
     full_pass(np.flatnonzero(~is_probe & ~kept), frame + REST_SEED_OFFSET)
-    if single:
-        share[:, 0] = light
     return light
 
 

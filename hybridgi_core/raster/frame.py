@@ -19,7 +19,7 @@ from .. import glossy_image, pixel_gather
 from .. import translucent as translucent_mod
 from ..emitters import emitter_samples, worth_sampling
 from ..evaluate import HitLookup
-from ..lights import RATIO_MIN_SAMPLES, one_sample_exact, rough_lights
+from ..lights import RATIO_MIN_SAMPLES, one_sample_exact_lamps, rough_lights
 from ..penumbra import FIRST_SAMPLES as PENUMBRA_FIRST_SAMPLES
 from ..penumbra import adaptive_direct, filter_camera
 from ..screen_light import ScreenLight
@@ -440,7 +440,7 @@ class FramePipeline:
         # Several lamps: each traces its first pass's rays where it is not weak (`penumbra.WEAK_SHARE`).
         rough = rough_lights(system.scene.lights, p_full, n_full) if lamps > 1 else None
         # The lamps whose first pass may run on probes (`penumbra._coarse_first_pass`).
-        exact_lamps = np.array([one_sample_exact(light) for light in system.scene.lights], bool)
+        exact_lamps = one_sample_exact_lamps(system.scene.lights)
         direct[pix_full, :3] = adaptive_direct(system.direct, p_full, n_full, pix_full, (self.height, self.width),
                                                frame, self.direct_samples, camera=camera,
                                                pool=system.updater.pool, lamps=lamps,

@@ -28,6 +28,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .. import glossy, sheen
+from ..rows import finite_rows
 from ..specular import WEIGHT_SAMPLES, diffuse_weight_row
 from .glsl import ShaderSpec, load_glsl
 from .passes import (
@@ -290,8 +291,7 @@ class GBufferPass(RasterPass):
         geo = snapshot.geometry
         n_vert = int(geo.positions.shape[0])
         uvs = np.asarray(geo.uvs, np.float32).reshape(n_vert, 2)
-        # Column by column: numpy reduces (n, 2) rows ~8x slower than it ands two columns.
-        uv_valid = (np.isfinite(uvs[:, 0]) & np.isfinite(uvs[:, 1])).astype(np.float32)
+        uv_valid = finite_rows(uvs).astype(np.float32)
         fmt = gpu.types.GPUVertFormat()
         fmt.attr_add(id="nor", comp_type="F32", len=3, fetch_mode="FLOAT")
         fmt.attr_add(id="uv", comp_type="F32", len=2, fetch_mode="FLOAT")
