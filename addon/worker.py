@@ -659,7 +659,8 @@ class ViewportWorker:
         if state.pixel_pass is None or state.pixel_pass.key != key:
             state.pixel_pass = _pixels.PixelPass(key, points.shape[0], state.passes_over(key))
         pass_ = state.pixel_pass
-        self._count_rays(pass_.trace_next(system, points, normals, state.visible, self.options.pixel_rays))
+        self._count_rays(pass_.trace_next(system, points, normals, state.visible, self.options.pixel_rays, pix,
+                                          r.position.shape[1]))
         self._steps["pixel_rays"] = (time.perf_counter() - t0) * 1e3
         if pass_.done:
             t1 = time.perf_counter()

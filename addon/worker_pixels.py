@@ -46,14 +46,17 @@ class PixelPass:
         """The frame number of the pass's first slice (its detail pixels draw from frame + DETAIL_FRAME)."""
         return FRAME_BASE + self.index * FRAMES_PER_PASS
 
-    def trace_next(self, system, points, normals, visible, rays: int) -> int:
-        """Trace the next slice; returns its rays."""
+    def trace_next(self, system, points, normals, visible, rays: int, pix=None, width: int = 0) -> int:
+        """Trace the next slice; returns its rays. pix, width : the points' flat pixel indices in
+        the GI image and its width: the slices' rays stratify with their neighbours' across the
+        whole pass (`tiled_nets`, one key per pass)."""
         i = len(self.parts)
         a, b = self.bounds[i], self.bounds[i + 1]
         if self.lookup is None and rays > 0:
             self.lookup = hit_lookup(system, bounced=system.settings.indirect_quality == MULTI_BOUNCE)
+        tiles = (pix[a:b], width, self.frame) if pix is not None and pixel_gather.TILED_RAYS else None
         gi = pixel_gather.trace_pixels(system, points[a:b], normals[a:b], rays, self.frame + i, visible[a:b],
-                                       lookup=self.lookup)
+                                       lookup=self.lookup, pixels=tiles)
         self.parts.append(gi)
         return gi.rays
 

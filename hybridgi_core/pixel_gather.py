@@ -53,6 +53,7 @@ from .sampling import frame_rng
 from .screen_light import ScreenLight
 from .settings import AO_ONLY, MULTI_BOUNCE
 from .sky_ratio import open_share, open_sky_estimate, sky_irradiance
+from .tiled_nets import tiled_uv
 
 #: A reflection ray's hit is lit by its glossy lobes' own lamp highlight (`_add_shiny_highlights`)
 #: where the glossy share of its brdf's luminance exceeds this (metals), with this many lamp
@@ -62,6 +63,8 @@ SHINY_SAMPLES = 2
 #: Rec.709 luminance weights (the colour channels' filter guide), as the float32 arrays they weigh.
 LUMA = ENV_LUMA.astype(np.float32)
 
+#: The GI pixels' rays stratify with their neighbours' (`tiled_nets`).
+TILED_RAYS = True
 #: Rays per work item (pixels x rays): fixed, so the result does not depend on the thread count.
 CHUNK_RAYS = 65536
 #: Seed offset of the pixel rays' stream (the cache uses seed, the direct light seed + 1).
@@ -195,14 +198,16 @@ class PixelGI:
         return est, cache
 
 
-def cosine_directions(normals: np.ndarray, rays: int, rng: np.random.Generator) -> np.ndarray:
+def cosine_directions(normals: np.ndarray, rays: int, rng: np.random.Generator,
+                      uv: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
     """(n, rays, 3) float32 cosine-distributed unit directions around unit normals (n, 3).
 
     Each pixel's set is a Hammersley set shifted by its own random offset (`lights.stratified_uv`),
-    mapped to the disc area-preserving (`concentric_disk`) and lifted to the hemisphere (Malley).
+    or the (n, rays) points `uv` given (`tiled_nets.tiled_uv`), mapped to the disc
+    area-preserving (`concentric_disk`) and lifted to the hemisphere (Malley).
     """
     n = normals.shape[0]
-    u, v = stratified_uv(rng, n, rays)
+    u, v = stratified_uv(rng, n, rays) if uv is None else uv
     a, b = concentric_disk(u, v)
     c = np.sqrt(np.maximum(np.float32(1.0) - a * a - b * b, np.float32(0.0)))
     nx, ny, nz = (np.asarray(normals[:, k], np.float32)[:, None] for k in range(3))
@@ -229,7 +234,8 @@ def cache_sh_at(cache, points: np.ndarray, normals: np.ndarray, corner_visible: 
 def trace_pixels(system, points: np.ndarray, normals: np.ndarray, rays: int, frame: int,
                  corner_visible: np.ndarray | None = None, lookup: HitLookup | None = None,
                  chunk_rays: int = CHUNK_RAYS, screen: ScreenLight | None = None,
-                 surfaces: np.ndarray | None = None, min_chunks: int = 1) -> PixelGI:
+                 surfaces: np.ndarray | None = None, min_chunks: int = 1,
+                 pixels: tuple[np.ndarray, int, int] | None = None) -> PixelGI:
     """Per-pixel gather at points (n, 3) with unit normals (n, 3) of `system` (a GISystem):
     `rays` rays each, the cache's SH as control variate (module docstring). corner_visible :
     (n, 8) bool occlusion of the 8 neighbour cells (`GISystem.corner_visibility`), as the image
@@ -239,7 +245,9 @@ def trace_pixels(system, points: np.ndarray, normals: np.ndarray, rays: int, fra
     fixed per caller too). screen : the frame's lamp light
     per pixel for the hits the camera sees (`screen_light`). surfaces : (n, 3) the smooth surface
     normals under normals a normal map bent (the G-buffer's `surface`), or None: found by a ray
-    each in scenes with normal maps (`bump.smooth_normals`)."""
+    each in scenes with normal maps (`bump.smooth_normals`). pixels : (pix (n,), width, key) the
+    points' flat indices in an image `width` pixels wide and the pass's key: the pixels of each
+    tile of that image draw their rays as one net (`tiled_nets`); None: a random shift each."""
     cache, s = system.cache, system.settings
     points = np.ascontiguousarray(points, np.float32)
     normals = np.array(normals, np.float32).reshape(-1, 3)
@@ -268,8 +276,11 @@ def trace_pixels(system, points: np.ndarray, normals: np.ndarray, rays: int, fra
         starts = range(0, n, per)
         vis = (lambda a: None) if corner_visible is None else (lambda a: corner_visible[a:a + per])
         surf = (lambda a: None) if surfaces is None else (lambda a: surfaces[a:a + per])
+        tiles = (lambda a: None) if pixels is None else (
+            lambda a: (pixels[0][a:a + per], pixels[1], (s.seed + SEED_OFFSET) * 7919 + pixels[2]))
         jobs = [system.updater.pool.submit(_chunk, system, lookup, points[a:a + per], normals[a:a + per], vis(a),
-                                           rays, frame_rng(s.seed + SEED_OFFSET, frame * 7919 + i), screen, surf(a))
+                                           rays, frame_rng(s.seed + SEED_OFFSET, frame * 7919 + i), screen, surf(a),
+                                           tiles(a))
                 for i, a in enumerate(starts)]
         for a, job in zip(starts, jobs, strict=True):
             values, coeffs, times = job.result()
@@ -283,7 +294,7 @@ def trace_pixels(system, points: np.ndarray, normals: np.ndarray, rays: int, fra
                    indirect_variance=out[:, 16], sh=sh_all, rays=n * rays, steps_ms=steps)
 
 
-def _chunk(system, lookup: HitLookup | None, p, nrm, corner_visible, rays, rng, screen=None, surf=None):
+def _chunk(system, lookup: HitLookup | None, p, nrm, corner_visible, rays, rng, screen=None, surf=None, tiles=None):
     """Worker: (m, 17) of m pixels: mean residuals pi/N sum (L - L_cache) (direct rgb, indirect
     rgb, AO as 1/N sum (v - V_cache)), the variances of the luminance and AO means, the cache
     gather's direct rgb, indirect rgb and AO, the variance of the indirect luminance mean;
@@ -327,7 +338,8 @@ def _chunk(system, lookup: HitLookup | None, p, nrm, corner_visible, rays, rng, 
     if rays <= 0:
         return res, coeffs, times
     tic = time.perf_counter()
-    dirs = cosine_directions(nrm, rays, rng).reshape(-1, 3)
+    uv = None if tiles is None else tiled_uv(tiles[0], tiles[1], rays, tiles[2])
+    dirs = cosine_directions(nrm, rays, rng, uv).reshape(-1, 3)
     origins = np.repeat(p + (nrm if smooth is None else smooth) * eps, rays, axis=0)
     tfar = np.float32(s.ray_length) if s.ray_length > 0 else np.float32(np.inf)
     hits = tracer.intersect(origins, dirs, tfar, trusted=True)
@@ -1234,7 +1246,7 @@ def full_res_images(system, position_lo: np.ndarray, normal_lo: np.ndarray, pix:
     if lookup is None and rays > 0:
         lookup = hit_lookup(system, bounced=system.settings.indirect_quality == MULTI_BOUNCE)
     gi = trace_pixels(system, points, normals, rays, frame, corner_visible, lookup=lookup, screen=screen,
-                      surfaces=surfaces)
+                      surfaces=surfaces, pixels=(pix, position_lo.shape[1], frame) if TILED_RAYS else None)
     return full_res_resolve(system, gi, position_lo, pix, points, normals, view, frame, rays, full_points,
                             full_normals, full_pix, full_size, passes, plane_sigma, normal_power, refine, lookup,
                             screen, surfaces=surfaces, full_surfaces=full_surfaces, filter=filter,
