@@ -208,7 +208,8 @@ def _reflections(system, points, normals, to_eye, rough, frame, pix, shape, view
         if lookup is None:
             lookup = HitLookup(system.cache, bounced=system.settings.indirect_quality == MULTI_BOUNCE)
         direct, indirect, total, lamp[sel] = traced_reflection(system, lookup, points[sel], normals[sel],
-                                                               to_eye[sel], rough[sel], rays, frame, lamps[sel])
+                                                               to_eye[sel], rough[sel], rays, frame, lamps[sel],
+                                                               pixels=(pix[sel], shape[1]))
         between()
         direct, indirect = filter_reflections(direct, indirect, total, points[sel], normals[sel], pix[sel], shape,
                                               view, pool=pool)

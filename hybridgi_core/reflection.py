@@ -33,6 +33,7 @@ from .lights import _area_shape, _onb, spread_attenuation, stratified_uv
 from .pixel_gather import filter_at_pixels, hit_radiance
 from .sampling import frame_rng
 from .specular import _lambda
+from .tiled_nets import tiled_uv
 
 _F32 = np.float32
 #: Lobes at least this rough keep the cache's hemisphere mean (`glossy.cache_reflection`).
@@ -162,13 +163,15 @@ def lamp_glossy_without(system, points, normals, to_eye, rows, frame: int, sampl
 
 
 def traced_reflection(system, lookup, points: np.ndarray, normals: np.ndarray, to_eye: np.ndarray,
-                      rough: np.ndarray, rays: int, frame: int, lamps: np.ndarray | None = None
+                      rough: np.ndarray, rays: int, frame: int, lamps: np.ndarray | None = None,
+                      pixels: tuple[np.ndarray, int] | None = None
                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """(direct (n, 3), indirect (n, 3), weight sum (n,), lamp (n, 3)) float32: the mean radiance
     `rays` reflection rays per receiver bring from the world or emitters, from other surfaces and
     from the area lamps `lamps` (n, L) marks for it (`bsdf_lamps`; None: none), on the worker
     pool. A receiver whose samples all went below the horizon has weight sum 0 (its estimate is
-    0: keep the cache's there)."""
+    0: keep the cache's there). pixels : (pix (n,), width) the receivers' flat pixel indices in an
+    image `width` wide: each tile's rays stratify together (`tiled_nets`), for the image filter."""
     pts = np.ascontiguousarray(points, _F32).reshape(-1, 3)
     n = pts.shape[0]
     out = np.zeros((n, 10), _F32)
@@ -183,9 +186,10 @@ def traced_reflection(system, lookup, points: np.ndarray, normals: np.ndarray, t
     lights = system.scene.lights
     if lamps is None or not lamps.any():
         lamps = None
+    tiles = (lambda a: None) if pixels is None else (lambda a: (pixels[0][a:a + per], pixels[1], seed * 7919 + frame))
     jobs = [system.updater.pool.submit(_chunk, system, lookup, pts[a:a + per], nrm[a:a + per], eye[a:a + per],
                                        rough[a:a + per], rays, frame_rng(seed, frame * 7919 + i),
-                                       None if lamps is None else lamps[a:a + per], lights)
+                                       None if lamps is None else lamps[a:a + per], lights, tiles(a))
             for i, a in enumerate(starts)]
     for a, job in zip(starts, jobs, strict=True):
         out[a:a + per] = job.result()
@@ -220,11 +224,11 @@ def _lamp_radiance(lights, lamps: np.ndarray, origins: np.ndarray, dirs: np.ndar
     return out
 
 
-def _chunk(system, lookup, p, nrm, eye, rough, rays, rng, lamps=None, lights=()):
+def _chunk(system, lookup, p, nrm, eye, rough, rays, rng, lamps=None, lights=(), tiles=None):
     """Worker: (m, 10) weighted mean direct rgb, indirect rgb, the weight sum and the marked
-    area lamps' rgb of m receivers."""
+    area lamps' rgb of m receivers. tiles : (pix, width, key) for `tiled_nets.tiled_uv`, or None."""
     m = p.shape[0]
-    u, v = stratified_uv(rng, m, rays)
+    u, v = stratified_uv(rng, m, rays) if tiles is None else tiled_uv(tiles[0], tiles[1], rays, tiles[2])
     dirs, weight = sample_reflections(nrm, eye, rough, u, v)
     tracer = system.tracer
     eps = _F32(tracer.epsilon)
