@@ -702,3 +702,47 @@ def test_pixel_rays_bounce_light_in_a_crevice_finer_than_a_cell():
         ours = float((g.direct + g.indirect).mean())
         ref = float(_path_traced_irradiance(gi, p, n, 4096, 40, np.random.default_rng(5)).mean())
     assert abs(ours / ref - 1.0) < 0.10, (ours, ref)
+
+
+def _path_traced(system, points, normals, bounces, rays, rng):
+    """(n, 3) irradiance at points from emission reaching them over up to `bounces` diffuse
+    bounces: a plain path tracer on the system's own ray mesh and hit shading (no cache)."""
+    def radiance(p, n, depth, k):
+        d = pixel_gather.cosine_directions(n, k, rng).reshape(-1, 3)
+        o = np.repeat(p + n * np.float32(system.tracer.epsilon), k, axis=0)
+        hits = system.tracer.intersect(o, d, np.float32(np.inf), trusted=True)
+        out = np.zeros((o.shape[0], 3), np.float32)
+        hit = np.flatnonzero(hits.prim >= 0)
+        if hit.size:
+            surf = system.updater.scene.surfaces.probe_hits(hits.prim[hit], hits.u[hit], hits.v[hit], d[hit])
+            out[hit] = surf.emission
+            if depth > 0:
+                at = o[hit] + d[hit] * hits.t[hit][:, None]
+                out[hit] += np.float32(np.pi) * surf.brdf * radiance(at, surf.normal, depth - 1, 1)
+        return out.reshape(p.shape[0], k, 3).mean(axis=1)
+    return np.float32(np.pi) * radiance(points, normals, bounces, rays)
+
+
+def test_light_between_an_emitter_and_the_floor_it_touches_is_not_lost():
+    """A glowing ball on a floor: light goes back and forth between them near the contact, each
+    round about half the last, where the cache's cells (coarser than the contact) hold a third
+    of it. The pixel rays' near bounces follow it (NEAR_BOUNCE_DEPTH) as a path tracer does:
+    at depth 2 the indirect light 2-5 cm from the contact was 45% short."""
+    from blend_scenes.procedural import _placement, transformed, uv_sphere
+
+    ball = transformed(uv_sphere(0.25, 48, 24), _placement((0.0, 0.0, 0.25)))
+    ball = geometry_from_arrays(ball.positions, ball.triangles, 1, 1)
+    floor = quad([[-4, -4, 0], [4, -4, 0], [4, 4, 0], [-4, 4, 0]])
+    mats = [Material("floor", np.full(3, 0.7, np.float32)),
+            Material("glow", np.full(3, 0.8, np.float32), emission=np.full(3, 4.0, np.float32))]
+    scene = make_snapshot(concat_geometry([floor, ball]), mats, [], World(color=np.zeros(3, np.float32)))
+    with GISystem(scene, CacheSettings(resolution=48, rays_per_cell=32)) as gi:
+        gi.warm_up(6)
+        p, n = points_up([0.0, -0.02, 0.0], [0.0, -0.05, 0.0])
+        truth = _path_traced(gi, p, n, 8, 20000, np.random.default_rng(1))
+        emitted = _path_traced(gi, p, n, 0, 20000, np.random.default_rng(2))
+        got = pixel_gather.trace_pixels(gi, p, n, 4096, frame=0)
+    bounced = (truth - emitted).mean(axis=1)
+    assert (bounced > 0.5 * emitted.mean(axis=1)).all()  # the case: bounces are most of the light
+    np.testing.assert_allclose(got.direct.mean(axis=1), emitted.mean(axis=1), rtol=0.03)
+    np.testing.assert_allclose(got.indirect.mean(axis=1), bounced, rtol=0.12)
