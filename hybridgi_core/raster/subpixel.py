@@ -466,7 +466,8 @@ def subframe_direct(system, centre: CentreSample, position: np.ndarray, normal: 
         lamp_edge = centre.lamp_edge & (hit & same)[:, None]  # same surface, some lamp's edge
     elif centre.light_edge is not None:
         same = same & ~centre.light_edge  # a new array: the caller's `surfaces` stay as they are
-    direct = np.where(same[:, None], centre.direct, np.float32(0.0))
+    direct = centre.direct.copy()
+    direct[np.flatnonzero(~same)] = 0.0  # ~5x np.where's speed: few pixels leave the centre's surface
 
     def lit(rows, frame, **kwargs):
         """(rows, (k, 3)) the light at the subframe's pixels `rows` that have a point."""
@@ -503,6 +504,7 @@ def subframe_direct(system, centre: CentreSample, position: np.ndarray, normal: 
     # others keep the centre's share, as a pixel without any edge keeps all of them. Lamp k draws
     # from seed_frame + k x LAMP_SEED_STRIDE, as the centre's penumbra passes do: lamp 0's rays are
     # those of the one-lamp image (a lamp that emits nothing beside it changes no pixel).
+    touched = []
     for k in range(lamp_edge.shape[1]):
         want = np.flatnonzero(fresh | lamp_edge[:, k])
         if want.size == 0:
@@ -511,9 +513,14 @@ def subframe_direct(system, centre: CentreSample, position: np.ndarray, normal: 
         edge = lamp_edge[rows, k]
         light[edge] -= centre.lamp_light[rows[edge], k]
         direct[rows, :3] += light
+        touched.append(rows)
     if emitted is not None:
         direct[:, :3] += emitted
-    np.maximum(direct[:, :3], 0.0, out=direct[:, :3])  # the differences' rounding
+    if touched:
+        # The differences' rounding, where they were taken (elsewhere nothing is below 0; a
+        # strided pass over the whole image cost ~4 ms a subframe).
+        rows = np.unique(np.concatenate(touched))
+        direct[rows, :3] = np.maximum(direct[rows, :3], 0.0)
     return direct
 
 
