@@ -106,6 +106,13 @@ LADDER = (
                            "pixel_samples=2", "reflection_rays=4")),
     ("r32 x32 w8 p32 s4", ("resolution=32", "rays_per_cell=32", "warmup_iterations=8", "pixel_rays=32",
                            "pixel_samples=4")),
+    # The default's cache resolution and subframes over its cheapest cache rays and pixel rays,
+    # since the GI pixels' rays stratify with their neighbours' (`tiled_nets`): 640x360, one run,
+    # against the next rung: atrium 0.0235 at 1.94 s (0.0228 at 2.19), spheres 0.0075 at 1.60 s
+    # (0.0069 at 1.70), Cornell 0.0214 at 1.44 s (0.0203 at 1.60), dragon 0.0480 at 2.54 s
+    # (0.0464 at 2.80).
+    ("r48 x16 w6 p24 s8", ("resolution=48", "rays_per_cell=16", "warmup_iterations=6", "pixel_rays=24",
+                           "pixel_samples=8")),
     # The default's cache and subframes with the r32 rung's pixel rays and a shorter warm-up (the
     # fixed-point solve converges in it): where the cache's resolution matters more than its
     # rays (640x360, one run, against the r40 rung beside it: atrium 0.0233 at 2.24 s, r40 0.0245
