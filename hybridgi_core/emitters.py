@@ -82,6 +82,10 @@ class MeshLights:
     radiance : (k, 3) float32 emitted radiance (both sides)
     choose : (k,) float64 the probability of choosing each triangle (power share)
     cdf : (k,) float64 its running sum (last = 1)
+    centre, radius : (k, 3), (k,) float32 each triangle's bounding sphere
+    group : (k,) int64 the compact emitter (`COMPACT_FILL`) each triangle belongs to, -1 for none
+    spheres : (G, 4) float64 each compact emitter's bounding sphere (centre, radius)
+    group_share : (G,) float64 each compact emitter's share of the power (its triangles' choose)
     """
 
     prims: np.ndarray
@@ -95,20 +99,26 @@ class MeshLights:
     cdf: np.ndarray
     centre: np.ndarray
     radius: np.ndarray
+    group: np.ndarray
+    spheres: np.ndarray
+    group_share: np.ndarray
 
     @classmethod
     def from_triangles(cls, positions: np.ndarray, triangles: np.ndarray, emission: np.ndarray,
-                       skip: np.ndarray | None = None) -> MeshLights | None:
+                       skip: np.ndarray | None = None, objects: np.ndarray | None = None) -> MeshLights | None:
         """From a geometry's (V, 3) positions, (T, 3) triangles and (T, 3) per-triangle emitted
-        radiance; skip : (T,) bool triangles left to the rays (textured emission). None when
+        radiance; skip : (T,) bool triangles left to the rays (textured emission); objects : (T,)
+        each triangle's object (None: one object each), which `COMPACT_FILL` judges. None when
         nothing emits."""
         p = np.asarray(positions, np.float32)[np.asarray(triangles)]
-        return cls.from_packed(np.concatenate([p[:, 0], p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]], axis=1), emission, skip)
+        return cls.from_packed(np.concatenate([p[:, 0], p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]], axis=1), emission, skip,
+                               objects)
 
     @classmethod
-    def from_packed(cls, packed: np.ndarray, emission: np.ndarray, skip: np.ndarray | None = None) -> MeshLights | None:
+    def from_packed(cls, packed: np.ndarray, emission: np.ndarray, skip: np.ndarray | None = None,
+                    objects: np.ndarray | None = None) -> MeshLights | None:
         """From `shading.SurfaceTable`'s (T, 9) packed corners (v0, v1 - v0, v2 - v0) and (T, 3)
-        emission; skip as `from_triangles`."""
+        emission; skip, objects as `from_triangles`."""
         emission = np.asarray(emission, np.float32).reshape(-1, 3)
         lum = emission @ LUMA
         lit = (lum > 0) & np.isfinite(lum)
@@ -118,16 +128,18 @@ class MeshLights:
         if prims.size == 0:
             return None
         p = np.asarray(packed, np.float32)[prims]
-        return cls._build(prims, p[:, 0:3], p[:, 3:6], p[:, 6:9], emission, lum)
+        owner = prims if objects is None else np.asarray(objects).reshape(-1)[prims]
+        return cls._build(prims, p[:, 0:3], p[:, 3:6], p[:, 6:9], emission, lum, owner)
 
     @classmethod
-    def _build(cls, prims, v0, e1, e2, emission, lum) -> MeshLights | None:
+    def _build(cls, prims, v0, e1, e2, emission, lum, owner=None) -> MeshLights | None:
         cross = np.cross(e1.astype(np.float64), e2.astype(np.float64))
         twice = np.linalg.norm(cross, axis=1)
         keep = twice > 0
         if not keep.any():
             return None
         prims, v0, e1, e2, cross, twice = prims[keep], v0[keep], e1[keep], e2[keep], cross[keep], twice[keep]
+        owner = prims if owner is None else np.asarray(owner)[keep]
         area = 0.5 * twice
         power = lum[prims].astype(np.float64) * area
         choose = power / power.sum()
@@ -136,8 +148,9 @@ class MeshLights:
         v0, e1, e2 = (np.ascontiguousarray(a, _F32) for a in (v0, e1, e2))
         centre = v0 + (e1 + e2) / _F32(3.0)
         radius = np.max([np.linalg.norm(v0 + e - centre, axis=1) for e in (0.0, e1, e2)], axis=0)
+        group, spheres, share = _compact_groups(owner, v0, e1, e2, area, choose)
         return cls(prims, v0, e1, e2, (cross / twice[:, None]).astype(_F32), area, emission[prims], choose, cdf,
-                   centre, radius.astype(_F32))
+                   centre, radius.astype(_F32), group, spheres, share)
 
     def irradiance(self, points: np.ndarray, normals: np.ndarray, tracer, rng: np.random.Generator,
                    samples: int, epsilon: float) -> np.ndarray:
@@ -202,6 +215,9 @@ class MeshLights:
             weight[close] = omega[close] / self.choose[tri[close]]  # solid-angle measure: pdf choose / omega
         cos_r = np.einsum("ij,ij->i", receiver, direction)
         weight = np.where((cos_r > 0) & np.isfinite(weight) & (dist > 0), cos_r * weight, 0.0)
+        cone = self._cone_samples(tri, origin, tracer)
+        if cone.size:
+            weight[cone] = 0.0  # estimated below, by rays into their emitter's bounding sphere
         if tracer is not None:
             # Shadow rays stop epsilon short of the emitter (it must not hide its own point).
             reach = dist.astype(_F32) - _F32(epsilon)
@@ -211,7 +227,94 @@ class MeshLights:
                                                           reach[ray], trusted=True), bool)
                 weight[ray[blocked]] = 0.0
         e = self.radiance[tri] * weight[:, None].astype(_F32)
+        if cone.size:
+            e[cone] = self._cone_light(tri[cone], origin[cone], receiver[cone], tracer, u1[cone], u2[cone])
         return e.reshape(m, samples, 3).mean(axis=1)
+
+    def _cone_samples(self, tri: np.ndarray, origin: np.ndarray, tracer) -> np.ndarray:
+        """Indices of the samples (chosen triangles `tri`, ray origins) whose triangle belongs to a
+        compact emitter that the origin lies outside of: they sample its bounding sphere's cone."""
+        if tracer is None or self.spheres.shape[0] == 0:
+            return np.zeros(0, np.int64)
+        cand = np.flatnonzero(self.group[tri] >= 0)
+        if cand.size == 0:
+            return cand
+        sphere = self.spheres[self.group[tri[cand]]]
+        gap = np.linalg.norm(sphere[:, :3] - origin[cand], axis=1)
+        return cand[gap > sphere[:, 3] * (1.0 + CONE_MARGIN)]
+
+    def _cone_light(self, tri, origin, receiver, tracer, u1, u2) -> np.ndarray:
+        """(c, 3) float32 one-sample estimates of the light the compact emitters of triangles `tri`
+        give receivers (origin, unit normal (c, 3)) outside their bounding spheres: a direction
+        uniform in the sphere's cone, traced to its first hit; that hit's emission counts if it is
+        a triangle of the same emitter. Divided by the emitter's choice probability (its power
+        share, the sum of its triangles'): the estimate stands for the whole emitter, so a compact
+        emitter's light is estimated by cones alone, wherever its triangles were chosen."""
+        g = self.group[tri]
+        sphere = self.spheres[g]
+        axis = sphere[:, :3] - origin.astype(np.float64)
+        gap = np.linalg.norm(axis, axis=1)
+        axis /= gap[:, None]
+        sin2 = np.minimum((sphere[:, 3] / gap) ** 2, 1.0)
+        cos_max = np.sqrt(1.0 - sin2)
+        one_minus = sin2 / (1.0 + cos_max)  # 1 - cos_max without cancellation
+        cos_t = 1.0 - np.asarray(u1, np.float64) * one_minus
+        sin_t = np.sqrt(np.maximum(1.0 - cos_t * cos_t, 0.0))
+        phi = 2.0 * np.pi * np.asarray(u2, np.float64)
+        helper = np.where(np.abs(axis[:, 2:3]) < 0.9, [[0.0, 0.0, 1.0]], [[1.0, 0.0, 0.0]])
+        t1 = np.cross(axis, helper)
+        t1 /= np.linalg.norm(t1, axis=1, keepdims=True)
+        t2 = np.cross(axis, t1)
+        d = (np.cos(phi) * sin_t)[:, None] * t1 + (np.sin(phi) * sin_t)[:, None] * t2 + cos_t[:, None] * axis
+        cos_r = np.einsum("ij,ij->i", receiver.astype(np.float64), d)
+        out = np.zeros((tri.shape[0], 3), _F32)
+        live = np.flatnonzero(cos_r > 0)
+        if live.size == 0:
+            return out
+        hits = tracer.intersect(origin[live], np.ascontiguousarray(d[live], _F32), _F32(np.inf), trusted=True)
+        row = np.minimum(np.searchsorted(self.prims, hits.prim), self.prims.size - 1)
+        same = (hits.prim >= 0) & (self.prims[row] == hits.prim) & (self.group[row] == g[live])
+        live, row = live[same], row[same]
+        weight = cos_r[live] * 2.0 * np.pi * one_minus[live] / self.group_share[g[live]]
+        out[live] = self.radiance[row] * weight[:, None].astype(_F32)
+        return out
+
+
+#: An emitter (one object's emissive triangles) is compact when the mean area it shows a receiver,
+#: a quarter of its area (Cauchy's formula; its triangles counted once), fills at least this share
+#: of its bounding sphere's disc: a ball (1), a cube (0.64), a squat cylinder; not a panel (0.16),
+#: a tube or a strip of neon. Outside its sphere a compact emitter is sampled by directions in the
+#: sphere's cone (`MeshLights._cone_light`): nearly every ray meets it, where points chosen on
+#: its triangles by power fell half on its far side and weighed 1 / d^2 next to it (a glowing ball
+#: on a floor lit by nothing else: Diffuse Direct rel L1 0.31 against Cycles at 16 samples).
+COMPACT_FILL = 0.3
+#: Receivers within this share of a compact emitter's radius beyond its bounding sphere (or inside
+#: it) sample its triangles instead: the cone there is nearly a hemisphere.
+CONE_MARGIN = 1e-3
+
+
+def _compact_groups(owner, v0, e1, e2, area, choose) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(group (k,) int64, spheres (G, 4) float64, share (G,) float64) of the emissive triangles
+    (corners v0, v0 + e1, v0 + e2, areas, choice probabilities) by their object `owner` (k,):
+    the compact objects (COMPACT_FILL) of at least 4 triangles, -1 for the rest."""
+    k = owner.shape[0]
+    group = np.full(k, -1, np.int64)
+    spheres, shares = [], []
+    _keys, inverse = np.unique(owner, return_inverse=True)
+    order = np.argsort(inverse, kind="stable")
+    for rows in np.split(order, np.flatnonzero(np.diff(inverse[order])) + 1):
+        if rows.size < 4:
+            continue
+        pts = np.concatenate([v0[rows], v0[rows] + e1[rows], v0[rows] + e2[rows]]).astype(np.float64)
+        centre = 0.5 * (pts.min(axis=0) + pts.max(axis=0))
+        radius = float(np.sqrt(((pts - centre) ** 2).sum(axis=1).max()))
+        if not (radius > 0.0 and np.isfinite(radius)):
+            continue
+        if 0.25 * float(area[rows].sum()) >= COMPACT_FILL * np.pi * radius * radius:
+            group[rows] = len(spheres)
+            spheres.append((*centre, radius))
+            shares.append(float(choose[rows].sum()))
+    return group, np.asarray(spheres, np.float64).reshape(-1, 4), np.asarray(shares, np.float64)
 
 
 #: Solid angle (sr) above which a triangle is sampled in its solid angle rather than its area:

@@ -148,7 +148,8 @@ class SurfaceTable:
         emission to the camera and to glossy lobes, but not to diffuse receivers, which sample
         it (`diffuse_emission`). Textured emission stays the rays' alone."""
         skip = np.isin(self.material_index, np.asarray(self.glowing, np.int32)) if self.glowing else None
-        self.emitters = MeshLights.from_packed(self._positions, self.records[:-1, _EMIT], skip)
+        self.emitters = MeshLights.from_packed(self._positions, self.records[:-1, _EMIT], skip,
+                                               np.asarray(self._geometry.object_index))
         self.sampled = np.zeros(self.records.shape[0], bool)
         if self.emitters is not None:
             self.sampled[self.emitters.prims] = True
