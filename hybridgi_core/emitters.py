@@ -170,13 +170,19 @@ class MeshLights:
         u1, u2 = rng.random((2, count), dtype=_F32)
         origin = np.repeat(p + n * _F32(epsilon), samples, axis=0)
         receiver = np.repeat(n, samples, axis=0)
+        # Samples of compact emitters go through their bounding sphere's cone (`_cone_light`);
+        # the rest sample the chosen triangle, as follows.
+        cone = self._cone_samples(tri, origin, tracer)
+        by_triangle = np.ones(count, bool)
+        by_triangle[cone] = False
         # Triangles that subtend much of the receiver's sky (near ones) are sampled uniformly in
         # their solid angle (Arvo 1995): a point sampled by area right next to a receiver gave
         # 1 / d^2 fireflies (a panel 2 cm under a ceiling lights the ceiling by its back).
         # A triangle within NEAR_RADII of its bounding radius may subtend more than
         # NEAR_SOLID_ANGLE (pi (r / (d - r))^2 bounds it): only those get their solid angle.
         to_centre = self.centre[tri] - origin
-        maybe = np.flatnonzero(np.einsum("ij,ij->i", to_centre, to_centre) < (NEAR_RADII * self.radius[tri]) ** 2)
+        maybe = np.flatnonzero((np.einsum("ij,ij->i", to_centre, to_centre) < (NEAR_RADII * self.radius[tri]) ** 2)
+                               & by_triangle)
         near = np.zeros(count, bool)
         omega = np.zeros(count, np.float64)
         if maybe.size:
@@ -185,10 +191,10 @@ class MeshLights:
             units = [c / np.maximum(np.linalg.norm(c, axis=1, keepdims=True), 1e-300) for c in corners]
             omega[maybe] = _solid_angle(*units)
             near[maybe] = omega[maybe] > NEAR_SOLID_ANGLE
-        direction = np.empty((count, 3), np.float64)
-        dist = np.empty(count, np.float64)
+        direction = np.zeros((count, 3), np.float64)  # cone samples keep 0: no weight below
+        dist = np.zeros(count, np.float64)
         weight = np.zeros(count, np.float64)
-        far = np.flatnonzero(~near)
+        far = np.flatnonzero(~near & by_triangle)
         if far.size:
             a, b = u1[far], u2[far]
             fold = a + b > 1
@@ -215,9 +221,6 @@ class MeshLights:
             weight[close] = omega[close] / self.choose[tri[close]]  # solid-angle measure: pdf choose / omega
         cos_r = np.einsum("ij,ij->i", receiver, direction)
         weight = np.where((cos_r > 0) & np.isfinite(weight) & (dist > 0), cos_r * weight, 0.0)
-        cone = self._cone_samples(tri, origin, tracer)
-        if cone.size:
-            weight[cone] = 0.0  # estimated below, by rays into their emitter's bounding sphere
         if tracer is not None:
             # Shadow rays stop epsilon short of the emitter (it must not hide its own point).
             reach = dist.astype(_F32) - _F32(epsilon)
