@@ -54,7 +54,7 @@ class PixelPass:
         a, b = self.bounds[i], self.bounds[i + 1]
         if self.lookup is None and rays > 0:
             self.lookup = hit_lookup(system, bounced=system.settings.indirect_quality == MULTI_BOUNCE)
-        tiles = (pix[a:b], width, self.frame) if pix is not None and pixel_gather.TILED_RAYS else None
+        tiles = None if pix is None else (pix[a:b], width, self.frame)
         gi = pixel_gather.trace_pixels(system, points[a:b], normals[a:b], rays, self.frame + i, visible[a:b],
                                        lookup=self.lookup, pixels=tiles)
         self.parts.append(gi)

@@ -31,7 +31,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .environment import LUMA as ENV_LUMA
-from .lights import AREA_MIN_DISTANCE_FRACTION, shadow_query
+from .lights import AREA_MIN_DISTANCE_FRACTION, _onb, shadow_query
 
 _F32 = np.float32
 #: Rec. 709 luminance (the environment's weights, as float32): the power that chooses a triangle.
@@ -264,11 +264,9 @@ class MeshLights:
         cos_t = 1.0 - np.asarray(u1, np.float64) * one_minus
         sin_t = np.sqrt(np.maximum(1.0 - cos_t * cos_t, 0.0))
         phi = 2.0 * np.pi * np.asarray(u2, np.float64)
-        helper = np.where(np.abs(axis[:, 2:3]) < 0.9, [[0.0, 0.0, 1.0]], [[1.0, 0.0, 0.0]])
-        t1 = np.cross(axis, helper)
-        t1 /= np.linalg.norm(t1, axis=1, keepdims=True)
-        t2 = np.cross(axis, t1)
-        d = (np.cos(phi) * sin_t)[:, None] * t1 + (np.sin(phi) * sin_t)[:, None] * t2 + cos_t[:, None] * axis
+        t1, t2 = _onb(axis[:, 0], axis[:, 1], axis[:, 2])
+        a, b = np.cos(phi) * sin_t, np.sin(phi) * sin_t
+        d = np.stack([a * t1[k] + b * t2[k] + cos_t * axis[:, k] for k in range(3)], axis=1)
         cos_r = np.einsum("ij,ij->i", receiver.astype(np.float64), d)
         out = np.zeros((tri.shape[0], 3), _F32)
         live = np.flatnonzero(cos_r > 0)

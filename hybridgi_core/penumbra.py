@@ -310,7 +310,7 @@ def _coarse_first_pass(direct, points, normals, pix, shape, frame, first, group,
         part = np.zeros((candidates.size, g, 3), np.float32)
         one = direct(points[candidates], normals[candidates], frame + CHECK_SEED_OFFSET, samples=1,
                      exact=known, per_lamp=part, lights=group, ratio_samples=1, **_smooth(smooth, candidates))
-        saw = part.max(axis=2) > 0
+        saw = rows_above(part.reshape(-1, 3), 0.0).reshape(part.shape[:2])
         v = verdict[candidates]
         agree = np.where(v == 1, saw, np.where(v == -1, ~saw, True)).all(axis=1)
         good = candidates[agree]

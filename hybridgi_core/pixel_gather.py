@@ -257,7 +257,8 @@ def trace_pixels(system, points: np.ndarray, normals: np.ndarray, rays: int, fra
     normals under normals a normal map bent (the G-buffer's `surface`), or None: found by a ray
     each in scenes with normal maps (`bump.smooth_normals`). pixels : (pix (n,), width, key) the
     points' flat indices in an image `width` pixels wide and the pass's key: the pixels of each
-    tile of that image draw their rays as one net (`tiled_nets`); None: a random shift each."""
+    tile of that image draw their rays as one net (`tiled_nets`, unless TILED_RAYS is off); None:
+    a random shift each."""
     cache, s = system.cache, system.settings
     points = np.ascontiguousarray(points, np.float32)
     normals = np.array(normals, np.float32).reshape(-1, 3)
@@ -286,7 +287,7 @@ def trace_pixels(system, points: np.ndarray, normals: np.ndarray, rays: int, fra
         starts = range(0, n, per)
         vis = (lambda a: None) if corner_visible is None else (lambda a: corner_visible[a:a + per])
         surf = (lambda a: None) if surfaces is None else (lambda a: surfaces[a:a + per])
-        tiles = (lambda a: None) if pixels is None else (
+        tiles = (lambda a: None) if pixels is None or not TILED_RAYS else (
             lambda a: (pixels[0][a:a + per], pixels[1], (s.seed + SEED_OFFSET) * 7919 + pixels[2]))
         jobs = [system.updater.pool.submit(_chunk, system, lookup, points[a:a + per], normals[a:a + per], vis(a),
                                            rays, frame_rng(s.seed + SEED_OFFSET, frame * 7919 + i), screen, surf(a),
@@ -1259,7 +1260,7 @@ def full_res_images(system, position_lo: np.ndarray, normal_lo: np.ndarray, pix:
     if lookup is None and rays > 0:
         lookup = hit_lookup(system, bounced=system.settings.indirect_quality == MULTI_BOUNCE)
     gi = trace_pixels(system, points, normals, rays, frame, corner_visible, lookup=lookup, screen=screen,
-                      surfaces=surfaces, pixels=(pix, position_lo.shape[1], frame) if TILED_RAYS else None)
+                      surfaces=surfaces, pixels=(pix, position_lo.shape[1], frame))
     return full_res_resolve(system, gi, position_lo, pix, points, normals, view, frame, rays, full_points,
                             full_normals, full_pix, full_size, passes, plane_sigma, normal_power, refine, lookup,
                             screen, surfaces=surfaces, full_surfaces=full_surfaces, filter=filter,

@@ -25,6 +25,8 @@ import functools
 
 import numpy as np
 
+from .lights import _radical_inverse_base2
+
 #: Pixels per tile side; the tile's TILE^2 pixels take TILE^2 consecutive blocks of the sequence.
 TILE = 4
 _BITS = 32
@@ -39,10 +41,11 @@ def sobol2(n: int) -> np.ndarray:
     area 2^-m."""
     i = np.arange(n, dtype=np.uint64)
     out = np.zeros((n, 2), np.uint64)
+    # van der Corput: i's bits reversed (exact in float64 as a fraction of 2^32).
+    out[:, 0] = (_radical_inverse_base2(i) * 2.0**_BITS).astype(np.uint64)
     v = np.uint64(1 << (_BITS - 1))
     for j in range(_BITS):
         bit = ((i >> np.uint64(j)) & np.uint64(1)).astype(bool)
-        out[bit, 0] ^= np.uint64(1 << (_BITS - 1 - j))  # the bit reversal: van der Corput
         out[bit, 1] ^= v
         v = v ^ (v >> np.uint64(1))
     result = out.astype(np.uint32)
