@@ -657,7 +657,7 @@ class ViewportWorker:
         if state.pixel_key is not None and state.pixel_key != key and not state.refines(key):
             state.reset_pixels()  # passes over an older cache (the pass in progress too)
         if state.pixel_pass is None or state.pixel_pass.key != key:
-            state.pixel_pass = _pixels.PixelPass(key, points.shape[0], state.passes_over(key))
+            state.pixel_pass = _pixels.PixelPass(key, points.shape[0], state.passes_over(key), state.screen_light())
         pass_ = state.pixel_pass
         self._count_rays(pass_.trace_next(system, points, normals, state.visible, self.options.pixel_rays, pix,
                                           r.position.shape[1]))

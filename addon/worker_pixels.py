@@ -28,8 +28,11 @@ FRAMES_PER_PASS = 1024
 class PixelPass:
     """One pass in progress over the GI points of a view, against one cache version (`key`)."""
 
-    def __init__(self, key, n_points: int, index: int):
+    def __init__(self, key, n_points: int, index: int, screen=None):
         self.key = key
+        #: The view's lamp light the hits read where the camera sees them (`ViewState.screen_light`;
+        #: None: every hit traces its own shadow rays), one for the whole pass.
+        self.screen = screen
         self.index = index  # the pass's number among the view's passes (its frames)
         self.bounds = list(range(0, n_points, SLICE_POINTS)) + [n_points]
         self.parts: list[pixel_gather.PixelGI] = []
@@ -56,7 +59,7 @@ class PixelPass:
             self.lookup = hit_lookup(system, bounced=system.settings.indirect_quality == MULTI_BOUNCE)
         tiles = None if pix is None else (pix[a:b], width, self.frame)
         gi = pixel_gather.trace_pixels(system, points[a:b], normals[a:b], rays, self.frame + i, visible[a:b],
-                                       lookup=self.lookup, pixels=tiles)
+                                       lookup=self.lookup, pixels=tiles, screen=self.screen)
         self.parts.append(gi)
         return gi.rays
 
@@ -92,4 +95,4 @@ def full_res(system, pass_: PixelPass, position_lo: np.ndarray, pix: np.ndarray,
     return pixel_gather.full_res_resolve(
         system, pass_.gathered(), position_lo, pix, points, normals, view, pass_.frame, rays, full[0], full[1],
         full[2], (w, h), passes=raster.pixel_filter, plane_sigma=raster.bilateral_plane_sigma,
-        normal_power=raster.bilateral_normal_power, lookup=pass_.lookup)
+        normal_power=raster.bilateral_normal_power, lookup=pass_.lookup, screen=pass_.screen)

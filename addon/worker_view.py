@@ -9,6 +9,7 @@ import numpy as np
 from hybridgi_core import glossy_image as _glossy
 from hybridgi_core import visible as _visible
 from hybridgi_core.lights import RATIO_MIN_SAMPLES
+from hybridgi_core.screen_light import ScreenLight
 
 from .worker_messages import ViewRequest, ViewResult, frozen
 
@@ -139,6 +140,19 @@ class ViewState:
     def passes(self) -> int:
         """Passes of the light that is published: fine once it has one, else the coarse one."""
         return self._fine.passes if self._fine is not None else 0
+
+    def screen_light(self) -> ScreenLight | None:
+        """The view's lamp light as the pixel rays' hits read it (`screen_light`): the fine level's
+        once it has a pass, else the coarse one's (None before either has one). Why: the hits the
+        camera sees then take the view's own lamp light, averaged over several samples, instead of
+        one shadow ray per hit and lamp, as final renders shade them."""
+        level = self._fine if self._fine is not None and self._fine.passes > 0 else self.coarse
+        if level.passes == 0:
+            return None
+        points, normals, pix = level.points
+        h, w = level.position.shape[:2]
+        light = level.mean().reshape(-1, 4)[pix, :3]
+        return ScreenLight.from_pixels(self.request.view, self.request.proj, (w, h), points, normals, pix, light)
 
     def relit(self, scene_gen: int) -> None:
         """Lamps changed and nothing else: the visible cells and the corner mask (geometry alone)

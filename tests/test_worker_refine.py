@@ -547,3 +547,35 @@ def test_a_still_view_takes_the_final_renders_glossy_light_and_an_edit_drops_it(
         assert state.fine_glossy is None and "fine_glossy_dropped" in wk._steps
     finally:
         wk.close()
+
+
+def test_pixel_rays_read_the_views_lamp_light_of_its_finest_lit_level(worker):
+    """The pixel passes' hits that the camera sees read the view's own lamp light
+    (`ViewState.screen_light`, as final renders' hits read theirs): none before a direct pass,
+    the coarse level's after the first, the full-res level's once it has a pass."""
+    view = sys.modules[worker.__name__.rsplit(".", 1)[0] + ".worker_view"]
+    from hybridgi_core.visible import pixels_to_points  # noqa: PLC0415
+
+    scene = procedural.cornell()
+    settings = CacheSettings(resolution=10, rays_per_cell=8)
+    w, h = 32, 24
+    pos, nrm, view_matrix, ok = pinhole_gbuffer(scene, settings, w, h)
+    full_pos, full_nrm, _, _ = pinhole_gbuffer(scene, settings, 2 * w, 2 * h)
+    cam = procedural.describe("cornell").camera
+    half_w = 0.5 * cam.sensor_width_mm / cam.lens_mm  # the pinhole's tan(horizontal half-angle)
+    proj = np.array([[1 / half_w, 0, 0, 0], [0, w / (h * half_w), 0, 0], [0, 0, -1.0, -0.2], [0, 0, -1, 0]])
+    request = worker.ViewRequest(("k",), pos, nrm, full_pos, full_nrm, view_matrix, proj)
+    gi_points = pixels_to_points(pos, nrm)
+    state = view.ViewState(request, 0, gi_points, np.zeros(0))
+    assert state.screen_light() is None
+    points, normals, _ = gi_points
+    coarse_light = np.repeat(points[:, :1] + 10.0, 3, axis=1).astype(np.float32)
+    state.coarse.add(coarse_light, 4)
+    found, light = state.screen_light().lookup(points, normals)
+    assert found.size > 0.95 * points.shape[0]
+    np.testing.assert_allclose(light, coarse_light[found], rtol=1e-6)
+    fine = state.fine_level()
+    fine.add(np.full((fine.points[0].shape[0], 3), 5.0, np.float32), 16)
+    found, light = state.screen_light().lookup(points, normals)
+    assert found.size > 0.9 * points.shape[0]
+    np.testing.assert_array_equal(light, 5.0)
