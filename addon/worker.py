@@ -19,6 +19,7 @@ import logging
 import threading
 import time
 from collections.abc import Callable
+from concurrent import futures
 from types import MappingProxyType
 
 import numpy as np
@@ -129,6 +130,8 @@ class ViewportWorker:
         self._updates = 0
         self._view_ms = 0.0  # wall time of lighting a new view (moving average)
         self._steps: dict[str, float] = {}
+        #: The thread a still view's pixel pass traces on (`worker_pixels.PixelPass.start`).
+        self._pixel_thread: futures.ThreadPoolExecutor | None = None
         self._thread = threading.Thread(target=self._run, name=name, daemon=True)
         self._thread.start()
         _prefetch_glossy_tables()
@@ -204,7 +207,7 @@ class ViewportWorker:
             while True:
                 with self._cond:
                     while not self._stop and not self._edits and not self._has_work():
-                        if not self._idle:
+                        if not self._idle and not self._tracing():
                             self._idle = True
                             # Cheap: the last step packed the cache already (pack=False).
                             self._published = self._build_published(idle=True, pack=False)
@@ -225,6 +228,9 @@ class ViewportWorker:
             log.exception("viewport worker failed")
             self._fail(f"internal error: {type(err).__name__}: {err}")
         finally:
+            self._drop_pixels()
+            if self._pixel_thread is not None:
+                self._pixel_thread.shutdown(wait=True)
             if self._session is not None:
                 self._session.close()
                 self._session = None
@@ -238,6 +244,11 @@ class ViewportWorker:
         state = self._view_state
         if self._view is not None and (state is None or not state.current(self._view, self._scene_version)):
             return True
+        if self._tracing():
+            # The pass's rays hold both cores: the worker waits for them (`_pixel_pass`). A full-res
+            # direct pass beside them took as long as after them (spheres 640x360: the pixel pass
+            # and the direct pass 0.44 and 0.75 s together, 0.37 and 0.33 s in turn).
+            return False
         if state is not None and (state.mask is None or state.passes < self.options.direct_passes):
             return True
         if state is not None and (self._glossy_due(state) or self._fine_glossy_due(state)):
@@ -258,6 +269,9 @@ class ViewportWorker:
         if resync:
             self._session.set_settings(settings)
         lamps_only = False
+        if edits or resync or (view is not None and self._view_state is not None
+                               and view is not self._view_state.request):
+            self._drop_pixels()  # its rays read the system the edits change, for a view that is gone
         if edits or resync:
             lamps_only = self._apply(edits, resync)
         self._applied_gen = edit_gen
@@ -647,35 +661,62 @@ class ViewportWorker:
         return state.pixel_key != self._pixel_key(system) or state.pixel_passes < self.options.pixel_passes
 
     def _pixel_pass(self, system, state: ViewState) -> None:
-        """One slice of a pass of per-pixel final-gather rays at the GI pixels (`worker_pixels`:
-        the final renders' algorithm and filter settings); a finished pass is averaged into the
-        view's running sum. A pass over another cache version starts over."""
-        t0 = time.perf_counter()
+        """A pass of per-pixel final-gather rays at the GI pixels (`worker_pixels`: the final
+        renders' algorithm and filter settings): started on its own thread, and once it is done
+        filtered here and averaged into the view's running sum. A pass over another cache
+        version starts over."""
         r = state.request
         points, normals, pix = state.gi_points
         key = self._pixel_key(system)
         if state.pixel_key is not None and state.pixel_key != key and not state.refines(key):
             state.reset_pixels()  # passes over an older cache (the pass in progress too)
-        if state.pixel_pass is None or state.pixel_pass.key != key:
-            state.pixel_pass = _pixels.PixelPass(key, points.shape[0], state.passes_over(key), state.screen_light())
-        pass_ = state.pixel_pass
-        self._count_rays(pass_.trace_next(system, points, normals, state.visible, self.options.pixel_rays, pix,
-                                          r.position.shape[1]))
-        self._steps["pixel_rays"] = (time.perf_counter() - t0) * 1e3
-        if pass_.done:
-            t1 = time.perf_counter()
-            raster = _raster_settings.RasterSettings()
-            if r.full_res and r.direct_position.shape[:2] != r.position.shape[:2]:
-                full = _pixels.full_res(system, pass_, r.position, pix, points, normals, r.view,
-                                        self.options.pixel_rays, state.fine_level().points,
-                                        r.direct_position.shape[:2], raster)
-                indirect, direct = full.indirect, full.direct
-                self._count_rays(full.gi.rays - sum(p.rays for p in pass_.parts))  # the detail pixels' rays
-            else:
-                indirect, direct = _pixels.images(pass_.gathered(), r.position, pix, points, normals, r.view, raster)
+        if state.pixel_pass is not None and state.pixel_pass.key != key:
+            state.pixel_pass.drop()
             state.pixel_pass = None
-            state.add_pixels(indirect, direct, key)
-            self._steps["pixel_filter"] = (time.perf_counter() - t1) * 1e3
+        if state.pixel_pass is None:
+            if self._pixel_thread is None:
+                self._pixel_thread = futures.ThreadPoolExecutor(1, thread_name_prefix="hybridgi-viewport-pixels")
+            state.pixel_pass = _pixels.PixelPass(key, state.passes_over(key), state.screen_light())
+            state.pixel_pass.start(self._pixel_thread, system, points, normals, state.visible,
+                                   self.options.pixel_rays, pix, r.position.shape[1], on_done=self._wake)
+            return
+        pass_ = state.pixel_pass
+        if not pass_.done:
+            return
+        state.pixel_pass = None
+        gi = pass_.result()
+        self._count_rays(gi.rays)
+        self._steps["pixel_rays"] = pass_.ms
+        t1 = time.perf_counter()
+        raster = _raster_settings.RasterSettings()
+        if r.full_res and r.direct_position.shape[:2] != r.position.shape[:2]:
+            rays = gi.rays
+            full = _pixels.full_res(system, pass_, gi, r.position, pix, points, normals, r.view,
+                                    self.options.pixel_rays, state.fine_level().points,
+                                    r.direct_position.shape[:2], raster)
+            indirect, direct = full.indirect, full.direct
+            self._count_rays(full.gi.rays - rays)  # the detail pixels' rays
+        else:
+            indirect, direct = _pixels.images(gi, r.position, pix, points, normals, r.view, raster)
+        state.add_pixels(indirect, direct, key)
+        self._steps["pixel_filter"] = (time.perf_counter() - t1) * 1e3
+
+    def _tracing(self) -> bool:
+        """A pixel pass of the view is tracing on its own thread (worker thread only)."""
+        state = self._view_state
+        return state is not None and state.pixel_pass is not None and state.pixel_pass.running
+
+    def _drop_pixels(self) -> None:
+        """Stop the view's pixel pass in flight, if any, and wait for it (`PixelPass.drop`)."""
+        state = self._view_state
+        if state is not None and state.pixel_pass is not None:
+            state.pixel_pass.drop()
+            state.pixel_pass = None
+
+    def _wake(self) -> None:
+        """Called by the pixel thread when its pass ends: the waiting worker goes on."""
+        with self._cond:
+            self._cond.notify_all()
 
     # --- cache ---------------------------------------------------------------------------------
 

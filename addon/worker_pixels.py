@@ -1,15 +1,24 @@
-"""The viewport worker's per-pixel final gather of a still view, one slice of pixels a step
-(worker thread only, pure numpy + embreex).
+"""The viewport worker's per-pixel final gather of a still view, traced beside the worker's
+other steps (pure numpy + embreex, never bpy).
 
 Final renders call `pixel_gather.gi_images` once per frame. A viewport pass of 32 rays at the GI
-resolution costs 1-1.5 s on 2 busy cores, too long for one worker step: a lamp or camera edit
-would wait for all of it. So the rays are traced in slices of SLICE_POINTS pixels, one slice a
-step (`pixel_gather.trace_pixels`, each slice its own frame numbers), and the last step filters
-the whole image's residual and makes the textures exactly as `gi_images` does from its rays
-(`images`); a new view, a lamp edit or another cache drops the pass in progress.
+resolution costs 0.4-1 s on 2 busy cores, too long for one worker step: a lamp or camera edit
+would wait for all of it. So the pass is the final render's one `pixel_gather.trace_pixels`
+call over every GI pixel, run on a thread of its own (`PixelPass.start`) while the worker waits
+for it, or for an edit or a new view, which stop it between two of its work items
+(`PixelPass.drop`); once it is done the worker filters the whole image's residual and makes the
+textures exactly as `gi_images` does from its rays (`images`, `full_res`).
+
+Why one call, not slices of it a step each: each slice ended with a barrier on the pool (the
+slower of its two work items) and a worker step; the Cornell box's 14 slices of 4096 pixels took
+0.56 s where the same rays in one call take ~0.4 s.
 """
 
 from __future__ import annotations
+
+import threading
+import time
+from concurrent import futures
 
 import numpy as np
 
@@ -17,59 +26,76 @@ from hybridgi_core import pixel_gather
 from hybridgi_core.levels import hit_lookup
 from hybridgi_core.settings import MULTI_BOUNCE
 
-#: GI pixels per step of a pass (2 of `pixel_gather`'s work items at 32 rays, one per thread of
-#: a 2-core pool: ~0.2 s a step on 2 busy cores; 8192 took 0.35-0.45 s).
-SLICE_POINTS = 4096
-#: Frame numbers per pass: slice i of pass k traces frame FRAME_BASE + k * FRAMES_PER_PASS + i.
+#: Frame numbers per pass: pass k traces frame FRAME_BASE + k * FRAMES_PER_PASS.
 FRAME_BASE = 1 << 24
 FRAMES_PER_PASS = 1024
 
 
 class PixelPass:
-    """One pass in progress over the GI points of a view, against one cache version (`key`)."""
+    """One pass over the GI points of a view, against one cache version (`key`), traced on a
+    thread of its own. The worker thread owns it: `start`, `done`, `result` and `drop` are called
+    there; the thread only traces."""
 
-    def __init__(self, key, n_points: int, index: int, screen=None):
+    def __init__(self, key, index: int, screen=None):
         self.key = key
+        self.index = index  # the pass's number among the view's passes (its frames)
         #: The view's lamp light the hits read where the camera sees them (`ViewState.screen_light`;
         #: None: every hit traces its own shadow rays), one for the whole pass.
         self.screen = screen
-        self.index = index  # the pass's number among the view's passes (its frames)
-        self.bounds = list(range(0, n_points, SLICE_POINTS)) + [n_points]
-        self.parts: list[pixel_gather.PixelGI] = []
-        #: The cache as the slices' hits read it, built once per pass (one per slice cost ~17 ms
-        #: each on the Cornell box's 48^3 grid, a fifth of a slice).
+        #: The cache as the hits read it, built by the pass (the detail pixels' rays read it too).
         self.lookup = None
-
-    @property
-    def done(self) -> bool:
-        return len(self.parts) >= len(self.bounds) - 1
+        self.ms = 0.0  # the pass's own wall time
+        self._stop = threading.Event()
+        self._future: futures.Future | None = None
 
     @property
     def frame(self) -> int:
-        """The frame number of the pass's first slice (its detail pixels draw from frame + DETAIL_FRAME)."""
+        """The frame number of the pass (its detail pixels draw from frame + DETAIL_FRAME)."""
         return FRAME_BASE + self.index * FRAMES_PER_PASS
 
-    def trace_next(self, system, points, normals, visible, rays: int, pix=None, width: int = 0) -> int:
-        """Trace the next slice; returns its rays. pix, width : the points' flat pixel indices in
-        the GI image and its width: the slices' rays stratify with their neighbours' across the
-        whole pass (`tiled_nets`, one key per pass)."""
-        i = len(self.parts)
-        a, b = self.bounds[i], self.bounds[i + 1]
-        if self.lookup is None and rays > 0:
-            self.lookup = hit_lookup(system, bounced=system.settings.indirect_quality == MULTI_BOUNCE)
-        tiles = None if pix is None else (pix[a:b], width, self.frame)
-        gi = pixel_gather.trace_pixels(system, points[a:b], normals[a:b], rays, self.frame + i, visible[a:b],
-                                       lookup=self.lookup, pixels=tiles, screen=self.screen)
-        self.parts.append(gi)
-        return gi.rays
+    @property
+    def started(self) -> bool:
+        return self._future is not None
 
-    def gathered(self) -> pixel_gather.PixelGI:
-        """The slices as one `PixelGI` over every point."""
-        cat = lambda name: np.concatenate([getattr(p, name) for p in self.parts])  # noqa: E731
-        return pixel_gather.PixelGI(cat("direct"), cat("indirect"), cat("ao"), cat("cache_direct"),
-                                    cat("cache_indirect"), cat("cache_ao"), variance=cat("variance"),
-                                    indirect_variance=cat("indirect_variance"), sh=cat("sh"),
-                                    rays=sum(p.rays for p in self.parts))
+    @property
+    def running(self) -> bool:
+        return self._future is not None and not self._future.done()
+
+    @property
+    def done(self) -> bool:
+        return self._future is not None and self._future.done()
+
+    def start(self, executor, system, points, normals, visible, rays: int, pix=None, width: int = 0,
+              on_done=None) -> None:
+        """Trace the pass on `executor` (one thread; the rays' work items go to the system's pool).
+        pix, width : the points' flat pixel indices in the GI image and its width: each tile's
+        rays stratify together (`tiled_nets`, one key per pass). on_done() is called from that
+        thread when the pass ends (to wake the worker)."""
+        tiles = None if pix is None else (pix, width, self.frame)
+
+        def trace() -> pixel_gather.PixelGI:
+            t0 = time.perf_counter()
+            if rays > 0:
+                self.lookup = hit_lookup(system, bounced=system.settings.indirect_quality == MULTI_BOUNCE)
+            gi = pixel_gather.trace_pixels(system, points, normals, rays, self.frame, visible, lookup=self.lookup,
+                                           pixels=tiles, screen=self.screen, stop=self._stop.is_set)
+            self.ms = (time.perf_counter() - t0) * 1e3
+            return gi
+
+        self._future = executor.submit(trace)
+        if on_done is not None:
+            self._future.add_done_callback(lambda _f: on_done())
+
+    def result(self) -> pixel_gather.PixelGI:
+        """The finished pass's rays (raises what the tracing raised)."""
+        return self._future.result()
+
+    def drop(self) -> None:
+        """Stop the pass between two of its work items and wait for it: the system it reads may
+        change next. Its result is thrown away."""
+        self._stop.set()
+        if self._future is not None:
+            futures.wait([self._future])
 
 
 def images(gi, position_lo: np.ndarray, pix: np.ndarray, points: np.ndarray, normals: np.ndarray,
@@ -85,14 +111,14 @@ def images(gi, position_lo: np.ndarray, pix: np.ndarray, points: np.ndarray, nor
     return pixel_gather.textures(cache + filtered[pix], pix, h, w)
 
 
-def full_res(system, pass_: PixelPass, position_lo: np.ndarray, pix: np.ndarray, points: np.ndarray,
+def full_res(system, pass_: PixelPass, gi, position_lo: np.ndarray, pix: np.ndarray, points: np.ndarray,
              normals: np.ndarray, view: np.ndarray, rays: int, full: tuple, full_shape: tuple[int, int],
              raster) -> pixel_gather.FullResGI:
-    """A whole image's rays resolved at every full-res pixel as final renders resolve theirs
+    """A whole image's rays `gi` (the finished pass's) resolved at every full-res pixel as final renders resolve theirs
     (`pixel_gather.full_res_resolve`); full : (points, normals, flat pixels) of the full-res
     G-buffer of shape full_shape (h, w). The detail pixels' rays are traced here."""
     h, w = full_shape
     return pixel_gather.full_res_resolve(
-        system, pass_.gathered(), position_lo, pix, points, normals, view, pass_.frame, rays, full[0], full[1],
+        system, gi, position_lo, pix, points, normals, view, pass_.frame, rays, full[0], full[1],
         full[2], (w, h), passes=raster.pixel_filter, plane_sigma=raster.bilateral_plane_sigma,
         normal_power=raster.bilateral_normal_power, lookup=pass_.lookup, screen=pass_.screen)

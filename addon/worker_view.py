@@ -169,6 +169,8 @@ class ViewState:
         self.dirty = True
 
     def reset_pixels(self) -> None:
+        if self.pixel_pass is not None:
+            self.pixel_pass.drop()  # its rays were traced over what is reset
         self.pixel_sum, self.pixel_passes, self.pixel_key, self.pixel_pass = None, 0, None, None
         self.pixel_next = None
 

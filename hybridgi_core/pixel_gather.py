@@ -36,7 +36,9 @@ numpy + embreex only (bpy-free; the raster pipeline uploads the result, `raster/
 
 from __future__ import annotations
 
+import functools
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -245,7 +247,8 @@ def trace_pixels(system, points: np.ndarray, normals: np.ndarray, rays: int, fra
                  corner_visible: np.ndarray | None = None, lookup: HitLookup | None = None,
                  chunk_rays: int = CHUNK_RAYS, screen: ScreenLight | None = None,
                  surfaces: np.ndarray | None = None, min_chunks: int = 1,
-                 pixels: tuple[np.ndarray, int, int] | None = None) -> PixelGI:
+                 pixels: tuple[np.ndarray, int, int] | None = None,
+                 stop: Callable[[], bool] | None = None) -> PixelGI:
     """Per-pixel gather at points (n, 3) with unit normals (n, 3) of `system` (a GISystem):
     `rays` rays each, the cache's SH as control variate (module docstring). corner_visible :
     (n, 8) bool occlusion of the 8 neighbour cells (`GISystem.corner_visibility`), as the image
@@ -258,7 +261,8 @@ def trace_pixels(system, points: np.ndarray, normals: np.ndarray, rays: int, fra
     each in scenes with normal maps (`bump.smooth_normals`). pixels : (pix (n,), width, key) the
     points' flat indices in an image `width` pixels wide and the pass's key: the pixels of each
     tile of that image draw their rays as one net (`tiled_nets`, unless TILED_RAYS is off); None:
-    a random shift each."""
+    a random shift each. stop : polled before each work item; once it returns True the items not
+    yet begun are skipped (their pixels stay zero: the caller throws the result away)."""
     cache, s = system.cache, system.settings
     points = np.ascontiguousarray(points, np.float32)
     normals = np.array(normals, np.float32).reshape(-1, 3)
@@ -289,7 +293,8 @@ def trace_pixels(system, points: np.ndarray, normals: np.ndarray, rays: int, fra
         surf = (lambda a: None) if surfaces is None else (lambda a: surfaces[a:a + per])
         tiles = (lambda a: None) if pixels is None or not TILED_RAYS else (
             lambda a: (pixels[0][a:a + per], pixels[1], (s.seed + SEED_OFFSET) * 7919 + pixels[2]))
-        jobs = [system.updater.pool.submit(_chunk, system, lookup, points[a:a + per], normals[a:a + per], vis(a),
+        chunk = _chunk if stop is None else functools.partial(_unless_stopped, stop)
+        jobs = [system.updater.pool.submit(chunk, system, lookup, points[a:a + per], normals[a:a + per], vis(a),
                                            rays, frame_rng(s.seed + SEED_OFFSET, frame * 7919 + i), screen, surf(a),
                                            tiles(a))
                 for i, a in enumerate(starts)]
@@ -303,6 +308,14 @@ def trace_pixels(system, points: np.ndarray, normals: np.ndarray, rays: int, fra
     cd, ci, ca = out[:, 9:12], out[:, 12:15], out[:, 15]
     return PixelGI(out[:, 0:3] + cd, out[:, 3:6] + ci, out[:, 6] + ca, cd, ci, ca, variance=out[:, 7:9],
                    indirect_variance=out[:, 16], sh=sh_all, rays=n * rays, steps_ms=steps)
+
+
+def _unless_stopped(stop: Callable[[], bool], system, lookup, p, *args):
+    """`_chunk`, or zeros without work once stop() holds (`trace_pixels(stop=)`)."""
+    if stop():
+        return (np.zeros((p.shape[0], 17), np.float32),
+                np.zeros((p.shape[0], system.cache.settings.sh_coeffs, 7), np.float32), {})
+    return _chunk(system, lookup, p, *args)
 
 
 def _chunk(system, lookup: HitLookup | None, p, nrm, corner_visible, rays, rng, screen=None, surf=None, tiles=None):

@@ -746,3 +746,29 @@ def test_light_between_an_emitter_and_the_floor_it_touches_is_not_lost():
     assert (bounced > 0.5 * emitted.mean(axis=1)).all()  # the case: bounces are most of the light
     np.testing.assert_allclose(got.direct.mean(axis=1), emitted.mean(axis=1), rtol=0.03)
     np.testing.assert_allclose(got.indirect.mean(axis=1), bounced, rtol=0.12)
+
+
+def test_trace_pixels_skips_the_work_items_after_a_stop():
+    """`trace_pixels(stop=)` polls stop before each work item: once it holds, the items not yet
+    begun are skipped (zeros), whichever pool thread takes them; without a stop every item is
+    traced, the same as before."""
+    with GISystem(ground_and_wall(albedo=0.5), CacheSettings(resolution=8, rays_per_cell=16, threads=2)) as gi:
+        gi.warm_up(2)
+        rng = np.random.default_rng(3)
+        points = np.zeros((400, 3), np.float32)
+        points[:, 0] = rng.uniform(0.5, 5.0, 400)
+        points[:, 1] = rng.uniform(-10.0, 10.0, 400)
+        normals = np.tile(UP, (400, 1))
+        polls = []
+
+        def stop():
+            polls.append(1)
+            return len(polls) > 1  # the first item runs, every later one is stopped
+
+        whole = pixel_gather.trace_pixels(gi, points, normals, 16, 1, chunk_rays=16 * 50)
+        part = pixel_gather.trace_pixels(gi, points, normals, 16, 1, chunk_rays=16 * 50, stop=stop)
+    assert len(polls) == 8  # 400 pixels, 50 an item
+    traced = np.any(part.sh != 0, axis=(1, 2))
+    assert traced.sum() == 50
+    np.testing.assert_array_equal(part.sh[traced], whole.sh[traced])
+    assert np.all(whole.sh.any(axis=(1, 2)))

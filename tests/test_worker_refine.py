@@ -12,6 +12,7 @@ import contextlib
 import dataclasses
 import importlib
 import sys
+import threading
 import types
 from pathlib import Path
 
@@ -416,10 +417,12 @@ def test_pixel_passes_of_a_still_view_agree_with_the_converged_cache(worker):
     assert q.view.gi_indirect is None and q.view.pixel_passes == 0
 
 
-def test_sliced_pixel_pass_makes_the_final_renders_textures(worker):
-    """A pixel pass traced slice by slice (`worker_pixels`) and filtered at the end is exactly
-    `pixel_gather.gi_images` when one slice holds every pixel (the same rays), and with slices its
-    light agrees with it to the rays' noise: the slices only draw other random numbers."""
+def test_a_pixel_pass_makes_the_final_renders_textures_and_a_dropped_one_stops(worker):
+    """A viewport pixel pass (`worker_pixels`: traced on a thread of its own, filtered at the end)
+    is exactly `pixel_gather.gi_images` (the same rays, the same filter); a dropped one stops
+    (`trace_pixels(stop=)`)."""
+    from concurrent import futures  # noqa: PLC0415
+
     from hybridgi_core import pixel_gather  # noqa: PLC0415
     from hybridgi_core.raster.settings import RasterSettings  # noqa: PLC0415
     from hybridgi_core.visible import pixels_to_points  # noqa: PLC0415
@@ -429,7 +432,7 @@ def test_sliced_pixel_pass_makes_the_final_renders_textures(worker):
     settings = CacheSettings(resolution=10, rays_per_cell=32, threads=2)
     pos, nrm, view_matrix, _ = pinhole_gbuffer(scene, settings, 64, 48)
     raster = RasterSettings()
-    with GISystem(scene, settings) as gi:
+    with GISystem(scene, settings) as gi, futures.ThreadPoolExecutor(1) as thread:
         gi.warm_up(8)
         points, normals, pix = pixels_to_points(pos, nrm)
         visible = gi.corner_visibility(points, normals)
@@ -437,39 +440,28 @@ def test_sliced_pixel_pass_makes_the_final_renders_textures(worker):
             gi, pos, nrm, pix, points, normals, visible, view_matrix, pixels.FRAME_BASE, 16,
             passes=raster.pixel_filter, plane_sigma=raster.bilateral_plane_sigma,
             normal_power=raster.bilateral_normal_power)
-        out = []
-        for slice_points in (points.shape[0], 500):
-            old = pixels.SLICE_POINTS
-            pixels.SLICE_POINTS = slice_points
-            try:
-                p = pixels.PixelPass("k", points.shape[0], 0)
-                while not p.done:
-                    p.trace_next(gi, points, normals, visible, 16)
-            finally:
-                pixels.SLICE_POINTS = old
-            assert len(p.parts) == -(-points.shape[0] // slice_points)
-            out.append(pixels.images(p.gathered(), pos, pix, points, normals, view_matrix, raster))
-    np.testing.assert_array_equal(out[0][0], ref_ind)
-    np.testing.assert_array_equal(out[0][1], ref_dir)
-    sliced = out[1][0][..., :3].reshape(-1, 3)[pix]
-    whole = ref_ind[..., :3].reshape(-1, 3)[pix]
-    assert not np.array_equal(sliced, whole)
-    assert abs(sliced.sum() / whole.sum() - 1.0) < 0.03
+        done = threading.Event()
+        p = pixels.PixelPass("k", 0)
+        p.start(thread, gi, points, normals, visible, 16, on_done=done.set)
+        assert done.wait(60) and p.done
+        out = pixels.images(p.result(), pos, pix, points, normals, view_matrix, raster)
+        # A pass dropped before its thread begins traces nothing: every work item sees the stop.
+        q = pixels.PixelPass("k", 1)
+        q.drop()
+        q.start(thread, gi, points, normals, visible, 16)
+        futures.wait([q._future])
+        assert not np.any(q.result().sh)
+    np.testing.assert_array_equal(out[0], ref_ind)
+    np.testing.assert_array_equal(out[1], ref_dir)
 
 
 def test_a_still_view_finishes_its_pixel_passes_and_goes_idle(worker):
-    """Sliced pixel passes end: with many slices per pass the worker still completes the passes
-    asked for and then has nothing left to do."""
-    pixels = sys.modules[worker.__name__.rsplit(".", 1)[0] + ".worker_pixels"]
+    """Pixel passes traced on their own thread end: the worker waits for each, completes the
+    passes asked for and then has nothing left to do."""
     scene = procedural.cornell()
     settings = CacheSettings(resolution=8, rays_per_cell=16, threads=2)
     view = pinhole_gbuffer(scene, settings, 40, 30)
-    old = pixels.SLICE_POINTS
-    pixels.SLICE_POINTS = 100  # ~10 slices a pass
-    try:
-        p = converge(worker, scene, settings, view, pixel_rays=4, pixel_passes=3)
-    finally:
-        pixels.SLICE_POINTS = old
+    p = converge(worker, scene, settings, view, pixel_rays=4, pixel_passes=3)
     assert p.stats.idle and p.view.pixel_passes == 3 and p.view.gi_indirect is not None
 
 
