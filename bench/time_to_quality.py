@@ -26,14 +26,16 @@ Per scene (every bundled scene in blend_scenes/, then ../shared/scenes/*.blend w
 - the renders each time to the target reads (`quality_ladder.crossing_rungs`) again, --repeat - 1
   more times in rounds alternating the peers; each keeps its fastest run (`retime`).
 - the HybridGI viewport, driven headless with the scene camera by bench/ttq_viewport.py (see its
-  docstring): the displayed image at 0.1, 0.25, 0.5, 1, 2, 4 s after the first draw, and again
-  after a light move, in two timelines:
+  docstring): the displayed image at 0.1, 0.25, 0.5, 0.75, 1, 1.5, 2, 4 s after the first draw,
+  and again after a light move, in two timelines:
     * wall: the main thread redraws continuously, as Blender does while the engine tags redraws,
       so llvmpipe's raster passes take CPU from the worker (what a user of this machine sees);
     * worker: the main thread draws once (posting the view) and then sleeps; the worker's
       publications are captured at the checkpoints and drawn afterwards. A real GPU rasterizes in
       milliseconds and asynchronously, so this is the timeline a machine with a GPU would show
-      (the GI itself runs on the CPU either way);
+      (the GI itself runs on the CPU either way). The worker builds the scene before that draw,
+      timed alone and counted on the clock, which starts at the draw's end; after a light move
+      it starts at the edit (the worker re-lights the view it has; no draw first);
   plus the viewport's "settled" image (after a further settle), its own converged error.
 
 Errors, against the reference over its geometry pixels (Depth pass): relative L1 of Combined and of
@@ -150,7 +152,7 @@ QUICK_LADDER = LADDER[:3] + tuple(r for r in LADDER if r[0].endswith("(default)"
 GPU_PASS_STEPS = ("targets", "gbuffer", "downsample", "gather", "ssao", "bilateral", "deferred", "accumulate",
                   "atrous", "upsample")
 
-VIEWPORT_CHECKPOINTS = (0.1, 0.25, 0.5, 1.0, 2.0, 4.0)
+VIEWPORT_CHECKPOINTS = (0.1, 0.25, 0.5, 0.75, 1.0, 1.5, 2.0, 4.0)
 TIMELINES = ("wall", "worker", "wall_light", "worker_light")
 
 
