@@ -1308,8 +1308,8 @@ def full_res_resolve(system, gi: PixelGI, position_lo: np.ndarray, pix: np.ndarr
                      filter=None, upsample=None) -> FullResGI:
     """`full_res_images` after its GI pixels' rays `gi` (`trace_pixels` at points, frame, rays):
     the filter, the per-pixel resolve and the detail pixels' own rays (frame + DETAIL_FRAME; lookup:
-    the HitLookup the GI pixels' rays read, None builds one). The viewport's worker traces `gi` in
-    slices over several steps and resolves it here. screen : as `trace_pixels`', for the detail
+    the HitLookup the GI pixels' rays read, None builds one). The viewport's worker traces `gi` on
+    a thread of its own and resolves it here. screen : as `trace_pixels`', for the detail
     pixels' rays and the resolver's. surfaces, full_surfaces : the GI pixels' and the full-res
     pixels' smooth surface normals where a material bends normals (`full_res_images`), or None.
     filter, upsample : as `full_res_images`'. Step times: "planes" (the filter's input images),
