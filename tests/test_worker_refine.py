@@ -13,6 +13,7 @@ import dataclasses
 import importlib
 import sys
 import threading
+import time
 import types
 from pathlib import Path
 
@@ -571,3 +572,47 @@ def test_pixel_rays_read_the_views_lamp_light_of_its_finest_lit_level(worker):
     found, light = state.screen_light().lookup(points, normals)
     assert found.size > 0.9 * points.shape[0]
     np.testing.assert_array_equal(light, 5.0)
+
+
+def test_edits_and_views_that_arrive_while_a_pixel_pass_traces_stop_it_and_the_view_still_settles(worker):
+    """Lamp edits and new views posted while a pixel pass traces on its thread (at random moments
+    of it) drop the pass; the worker never fails or hangs, and the last view settles with its
+    pixel passes, traced over the last lamps."""
+    scene = procedural.cornell()
+    settings = CacheSettings(resolution=10, rays_per_cell=16, threads=2)
+    pos, nrm, view_matrix, _ = pinhole_gbuffer(scene, settings, 96, 72)
+    options = worker.WorkerOptions(direct_passes=2, solver_batches=1, first_batch_rays=8, pixel_rays=64,
+                                   pixel_passes=2)
+    wk = worker.ViewportWorker(settings, options)
+    rng = np.random.default_rng(7)
+    dropped = 0
+    try:
+        wk.post_edit(worker.FullScene(scene))
+        lamps = scene.lights
+        for i in range(6):
+            # A new request object each time: a new view for the worker (same camera).
+            wk.post_view(worker.ViewRequest(("k", i), pos, nrm, pos, nrm, view_matrix, np.eye(4)))
+            key = ("k", i)
+            assert wk.wait(lambda p, key=key: p.error is not None or p.view is not None and p.view.key == key, 60)
+            deadline = time.perf_counter() + 5.0
+            while not wk._tracing() and time.perf_counter() < deadline:  # a pass under way
+                time.sleep(0.002)
+            dropped += wk._tracing()
+            time.sleep(float(rng.uniform(0.0, 0.05)))
+            lamps = [dataclasses.replace(lt, power=lt.power * float(rng.uniform(0.5, 1.5))) for lt in lamps]
+            wk.post_edit(worker.SetShading(lights=lamps))
+        assert wk.wait_idle(120)
+        p = wk.latest()
+    finally:
+        wk.close()
+    assert dropped >= 3  # the edits did arrive while passes traced
+    assert p.error is None and p.view.key == ("k", 5)
+    assert p.view.pixel_passes == 2 and p.view.gi_indirect is not None
+    assert np.isfinite(p.view.gi_indirect).all()
+    # The same view of the last lamps, lit by a worker that saw nothing else: the same light
+    # (to the rays' noise; other frame numbers).
+    final = dataclasses.replace(scene, lights=lamps)
+    with still_view(worker, final, settings, options, pos, nrm, view_matrix) as fresh:
+        q = fresh.latest()
+    ours, theirs = p.view.gi_indirect[..., :3].sum(), q.view.gi_indirect[..., :3].sum()
+    assert abs(ours / theirs - 1.0) < 0.03
