@@ -671,8 +671,7 @@ class ViewportWorker:
         if state.pixel_key is not None and state.pixel_key != key and not state.refines(key):
             state.reset_pixels()  # passes over an older cache (the pass in progress too)
         if state.pixel_pass is not None and state.pixel_pass.key != key:
-            state.pixel_pass.drop()
-            state.pixel_pass = None
+            state.drop_pixel_pass()
         if state.pixel_pass is None:
             if self._pixel_thread is None:
                 self._pixel_thread = futures.ThreadPoolExecutor(1, thread_name_prefix="hybridgi-viewport-pixels")
@@ -707,11 +706,9 @@ class ViewportWorker:
         return state is not None and state.pixel_pass is not None and state.pixel_pass.running
 
     def _drop_pixels(self) -> None:
-        """Stop the view's pixel pass in flight, if any, and wait for it (`PixelPass.drop`)."""
-        state = self._view_state
-        if state is not None and state.pixel_pass is not None:
-            state.pixel_pass.drop()
-            state.pixel_pass = None
+        """Stop the view's pixel pass in flight, if any, and wait for it (`ViewState.drop_pixel_pass`)."""
+        if self._view_state is not None:
+            self._view_state.drop_pixel_pass()
 
     def _wake(self) -> None:
         """Called by the pixel thread when its pass ends: the waiting worker goes on."""

@@ -54,10 +54,6 @@ class PixelPass:
         return FRAME_BASE + self.index * FRAMES_PER_PASS
 
     @property
-    def started(self) -> bool:
-        return self._future is not None
-
-    @property
     def running(self) -> bool:
         return self._future is not None and not self._future.done()
 
@@ -114,9 +110,9 @@ def images(gi, position_lo: np.ndarray, pix: np.ndarray, points: np.ndarray, nor
 def full_res(system, pass_: PixelPass, gi, position_lo: np.ndarray, pix: np.ndarray, points: np.ndarray,
              normals: np.ndarray, view: np.ndarray, rays: int, full: tuple, full_shape: tuple[int, int],
              raster) -> pixel_gather.FullResGI:
-    """A whole image's rays `gi` (the finished pass's) resolved at every full-res pixel as final renders resolve theirs
-    (`pixel_gather.full_res_resolve`); full : (points, normals, flat pixels) of the full-res
-    G-buffer of shape full_shape (h, w). The detail pixels' rays are traced here."""
+    """A finished pass's rays `gi` resolved at every full-res pixel as final renders resolve
+    theirs (`pixel_gather.full_res_resolve`); full : (points, normals, flat pixels) of the
+    full-res G-buffer of shape full_shape (h, w). The detail pixels' rays are traced here."""
     h, w = full_shape
     return pixel_gather.full_res_resolve(
         system, gi, position_lo, pix, points, normals, view, pass_.frame, rays, full[0], full[1],

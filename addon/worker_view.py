@@ -168,10 +168,15 @@ class ViewState:
         self.reset_pixels()
         self.dirty = True
 
-    def reset_pixels(self) -> None:
+    def drop_pixel_pass(self) -> None:
+        """Stop the pixel pass in flight, if any, wait for it and forget it (`PixelPass.drop`)."""
         if self.pixel_pass is not None:
-            self.pixel_pass.drop()  # its rays were traced over what is reset
-        self.pixel_sum, self.pixel_passes, self.pixel_key, self.pixel_pass = None, 0, None, None
+            self.pixel_pass.drop()
+            self.pixel_pass = None
+
+    def reset_pixels(self) -> None:
+        self.drop_pixel_pass()  # its rays were traced over what is reset
+        self.pixel_sum, self.pixel_passes, self.pixel_key = None, 0, None
         self.pixel_next = None
 
     def refines(self, key) -> bool:

@@ -31,7 +31,8 @@ posts the view to the worker; the scene sync in view_update comes before and is 
 Then the same after a light move: the first lamp moves (a sun turns 25 degrees about Z, any other
 lamp moves 30% of the way towards the middle of the scene), the view re-converges, and the lamp
 moves back to where the reference has it; the timelines start at that move (the wall one at
-the first draw after it), from a cache converged for the other position. So the image is compared with the one reference.
+the first draw after it), from a cache converged for the other position. So the image is
+compared with the one reference.
 
 Last, "settled": the worker session's view once it is idle (up to CONVERGE_TIMEOUT_S), the
 viewport's own converged error.
@@ -171,13 +172,15 @@ def wall_timeline(view: Viewport, checkpoints, folder: Path, name: str) -> list[
     return shots
 
 
-def worker_timeline(view: Viewport, checkpoints, folder: Path, name: str, head_s: float | None = None) -> list[dict]:
+def worker_timeline(view: Viewport, checkpoints, folder: Path, name: str,
+                    head_s: float | None = None) -> list[dict]:
     """head_s : None: the first draw posts the view (a new session), and the clock starts at its
-    end with the worker's scene build (`applied`, head_s) already counted; a number: no draw
-    first (a lamp edit of a posted view, which the worker lights without one), the clock starts
-    now. Either way llvmpipe's raster, milliseconds on a GPU, never runs beside the worker's
-    steps on the timeline: the first draw's G-buffer took 0.17-0.2 s of both cores here and slowed
-    the scene build beside it ~10x (spheres 640x360: 20 ms alone, 210 ms beside it)."""
+    end with the worker's scene build (`Viewport.applied`) already counted; a number: no draw
+    first (a lamp edit of a posted view, which the worker lights without one), the clock started
+    head_s ago. Either way llvmpipe's raster, milliseconds on a GPU, never runs beside the
+    worker's steps on the timeline: the first draw's G-buffer took 0.17-0.23 s of both cores here
+    and slowed the scene build beside it ~10x (spheres 640x360: 23 ms alone, 212 ms beside it);
+    the view it posts is handed to the worker once it returns."""
     session = view.session
     captured = []
     first_ms = None
