@@ -353,17 +353,30 @@ class FramePipeline:
                     translucent = self._translucent_shares(system)
                 with stats.step("direct"):
                     hit, same = subframe_surfaces(centre, position, normal, surface)
-                    direct = subframe_direct(system, centre, position, normal,
-                                             frame + s * SUBFRAME_SEED_STRIDE,
-                                             max(min(self.direct_samples, SUBFRAME_MIN_SAMPLES),
-                                                 self.direct_samples // offsets.shape[0]), surfaces=(hit, same),
-                                             surface=surface, emitters=screen.emitters_sampled,
-                                             translucent=translucent)
+                # The subframe's GI resolve (numpy, mostly one core) runs on the stage thread beside
+                # its direct light (shadow rays on the pool), as the centre's light runs beside the
+                # cache update.
+                gi_job = None
                 if full_gi is not None and full_gi.resolver is not None:
+                    gi_job = self._stage_thread().submit(
+                        subframe_gi, full_gi.resolver, full_gi.indirect, full_gi.direct, hit, same, position,
+                        normal, offset, frame + s * SUBFRAME_SEED_STRIDE,
+                        max(RATIO_MIN_SAMPLES, self.settings.pixel_rays // offsets.shape[0]), surface=surface)
+                try:
+                    with stats.step("direct"):
+                        direct = subframe_direct(system, centre, position, normal,
+                                                 frame + s * SUBFRAME_SEED_STRIDE,
+                                                 max(min(self.direct_samples, SUBFRAME_MIN_SAMPLES),
+                                                     self.direct_samples // offsets.shape[0]), surfaces=(hit, same),
+                                                 surface=surface, emitters=screen.emitters_sampled,
+                                                 translucent=translucent)
+                finally:
+                    if gi_job is not None:
+                        with stats.step("subframe_gi"):
+                            futures.wait([gi_job])  # nothing of this frame runs on after it is abandoned
+                if gi_job is not None:
                     with stats.step("subframe_gi"):
-                        gi, gi_low = self._subframe_gi(full_gi, gbuf, hit, same, position, normal, offset,
-                                                       frame + s * SUBFRAME_SEED_STRIDE, offsets.shape[0], stats,
-                                                       surface)
+                        gi, gi_low = self._subframe_gi_textures(gi_job.result(), gbuf, stats)
             with stats.step("direct"):
                 self._direct_tex = upload_texture_2d(direct.reshape(self.height, self.width, 4), "RGBA32F")
             shaded = self.shade(gbuf, gi_low, view, proj, self._direct_tex,
@@ -634,15 +647,12 @@ class FramePipeline:
             p.resize(self.width, self.height)
         return self._full_copy.execute(gbuf), self._bilateral_full
 
-    def _subframe_gi(self, full_gi, gbuf, hit, same, position, normal, offset, seed_frame, count, stats,
-                     surface=None):
-        """A jittered subframe's full-res GI textures (`subpixel.subframe_gi`: the centre's where it
-        sees the centre's surface, resolved at its own samples elsewhere) and their guide, a copy of
-        the subframe's own G-buffer: (gi textures, guide)."""
-        indirect, direct, traced = subframe_gi(full_gi.resolver, full_gi.indirect, full_gi.direct, hit, same,
-                                               position, normal, offset, seed_frame,
-                                               max(RATIO_MIN_SAMPLES, self.settings.pixel_rays // count),
-                                               surface=surface)
+    def _subframe_gi_textures(self, resolved, gbuf, stats):
+        """A jittered subframe's full-res GI textures from `subpixel.subframe_gi`'s (indirect,
+        direct, rays traced) (the centre's where it sees the centre's surface, resolved at its own
+        samples elsewhere) and their guide, a copy of the subframe's own G-buffer: (gi textures,
+        guide)."""
+        indirect, direct, traced = resolved
         stats.rays += traced
         guide = self._full_copy.execute(gbuf)
         shape = (self.height, self.width, 4)
