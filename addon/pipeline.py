@@ -25,7 +25,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from hybridgi_core import errors, visible
-from hybridgi_core.raster import gbuffer
+from hybridgi_core.raster import gbuffer, world_background
 from hybridgi_core.raster.frame import FramePipeline
 from hybridgi_core.raster.gather import max_texture_size
 from hybridgi_core.session import GISession
@@ -178,7 +178,7 @@ def render_frame(engine, depsgraph):
     if snapshot.geometry.triangle_count == 0:
         animation.unregister_session(key)  # nothing to keep a cache of
         engine.report({"WARNING"}, "HybridGI: the scene has no geometry to render; only the world is shown")
-        _write_background(engine, depsgraph, width, height, world)
+        _write_background(engine, depsgraph, width, height, world, snapshot.world.background_map, view, proj)
         _record(scene, t0, steps, width, height, rays=0, cells=0, animation_mode=props.animation_mode)
         return
 
@@ -223,6 +223,7 @@ def render_frame(engine, depsgraph):
         steps["targets"] = (time.perf_counter() - ts) * 1e3
         ts = time.perf_counter()
         pipeline.upload(snapshot)
+        pipeline.set_world(snapshot.world)
         steps["upload"] = (time.perf_counter() - ts) * 1e3
 
         warmup_start = time.perf_counter()
@@ -513,12 +514,17 @@ def film_exposure(scene) -> np.float32:
     return np.float32(value if np.isfinite(value) and value >= 0.0 else 1.0)
 
 
-def _write_background(engine, depsgraph, width, height, world):
+def _write_background(engine, depsgraph, width, height, world, background_map=None, view=None, proj=None):
+    """A frame without geometry: the world as the camera sees it (its map along each pixel
+    centre's ray where it has one, else its colour), no light passes."""
     render = depsgraph.scene.render
     result = _Result(engine, render, width, height, depsgraph.view_layer.name)
     bg = np.zeros((height, width, 4), np.float32)
     if not render.film_transparent:
         bg[...] = (*(np.asarray(world, np.float32) * film_exposure(depsgraph.scene)).tolist(), 1.0)
+        if background_map is not None and view is not None:
+            rays = world_background.pixel_directions(view, proj, width, height)
+            bg[..., :3] = background_map.radiance(rays).reshape(height, width, 3) * film_exposure(depsgraph.scene)
     result.set("Combined", bg)
     for name in ("Diffuse Direct", "Diffuse Indirect", "Diffuse Color", "Ambient Occlusion", "Normal", "Glossy Direct",
                  "Glossy Indirect", "Glossy Color"):

@@ -2286,16 +2286,17 @@ def read_world(world, wait=True):
     diffuse = bool(getattr(visibility, "diffuse", True))
     glossy = bool(getattr(visibility, "glossy", True))
     background = found.background_color if camera else np.zeros(3, np.float32)
+    background_map = found.background_map if camera else None
     if not diffuse:
         if glossy:
             log.warning("world %r is hidden from diffuse rays only: it lights nothing, its glossy reflections "
                         "included (Cycles keeps those)", world.name)
-        return snap.World(ao_distance=found.ao_distance, background=background), []
+        return snap.World(ao_distance=found.ao_distance, background=background, background_map=background_map), []
     if not glossy:
         log.warning("world %r: its visibility to glossy rays off is not followed (glossy surfaces still "
                     "reflect it)", world.name)
     if not camera:
-        found = replace(found, background=background)
+        found = replace(found, background=background, background_map=None)
     return found, lamps
 
 
@@ -2324,7 +2325,8 @@ def _read_world(world, wait=True):
             sky_map = environment.SkyMap(split.sky_map * np.float32(strength), split.to_world)
         return snap.World(color=(split.sky * strength).astype(np.float32), ao_distance=ao_distance,
                           sky_sh=(split.sky_sh * strength).astype(np.float32),
-                          sky_map=sky_map), [sun] if sun is not None else []
+                          sky_map=sky_map, background_map=_background_map(split, strength)), \
+            [sun] if sun is not None else []
     if node.type != "BACKGROUND":
         log.warning("world %r: %s could not be read; using the viewport colour", world.name, node.bl_idname)
         return snap.World(color=_rgb(world.color), ao_distance=ao_distance), []
@@ -2355,8 +2357,16 @@ def _read_light_path_world(world, node, ao_distance, outputs, wait):
     sky_map = None if split.sky_map is None else environment.SkyMap(split.sky_map * np.float32(strength), split.to_world)
     return snap.World(color=(split.sky * strength).astype(np.float32), ao_distance=ao_distance,
                       sky_sh=(split.sky_sh * strength).astype(np.float32), sky_map=sky_map,
-                      background=(camera_split.sky * camera_strength).astype(np.float32)), \
+                      background=(camera_split.sky * camera_strength).astype(np.float32),
+                      background_map=_background_map(camera_split, camera_strength)), \
         [sun] if sun is not None else []
+
+
+def _background_map(split, strength: float):
+    """The `BackgroundMap` the camera sees of a split world map (None: none kept)."""
+    if split.background is None:
+        return None
+    return environment.BackgroundMap(split.background, float(strength), split.to_world)
 
 
 # --- partial re-reads (shading edits in the viewport) ---------------------------------------

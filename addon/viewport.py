@@ -310,6 +310,7 @@ class ViewportSession:
             direct = gpu_state.resolve_full.execute(gbuf.position, gbuf.normal, source)
             lit = gpu_state.resolve_low.execute(low.position, low.normal, source)
         world = self.mirror.snapshot.world.background_color
+        pipeline.set_world(self.mirror.snapshot.world)  # its map uploaded once per world edit
         with stats.step("upload_results"):
             gi = self._pixel_textures(gpu_state, published, view_key)
         gi_low, gi_bilateral = low, None
@@ -406,7 +407,7 @@ class ViewportSession:
         shaded = pipeline_.shade(gbuf, low, view, proj, direct, corner_visible=inputs["mask"],
                                  irradiance=inputs["lit"], debug_view=inputs["debug_view"],
                                  world_color=inputs["world"], stats=stats, gi=inputs["gi"], glossy=glossy,
-                                 bilateral=inputs.get("bilateral"))
+                                 bilateral=inputs.get("bilateral"), camera_proj=jittered)
         with stats.step("accumulate"):
             pipeline_.accumulate.execute(shaded, gbuf, first=False)
         aa.drawn += 1

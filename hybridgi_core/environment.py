@@ -32,6 +32,10 @@ SUN_MIN_SHARE = 0.2
 LUMA = np.array([0.2126, 0.7152, 0.0722], np.float64)
 #: Rows of the equirectangular sky map rays read (columns: twice as many); ~2.8 degrees a texel.
 SKY_MAP_ROWS = 64
+#: Widest map the camera's background keeps (texels across; wider maps are halved until they
+#: fit): 11 texels a degree, what a 1920-pixel view of 40 degrees or wider shows. A 4096 x 2048
+#: map is 48 MiB of half floats on the GPU (RGBA); an 8K HDRI would be four times that.
+BACKGROUND_MAX_WIDTH = 4096
 
 
 @dataclass(frozen=True)
@@ -54,6 +58,9 @@ class EnvironmentSplit:
     sky_sh: np.ndarray
     sky_map: np.ndarray | None = None
     to_world: np.ndarray | None = None  # (3, 3) the map's texture -> world directions, as given
+    #: (h, w, 3) float16 the whole map, sun included, at most BACKGROUND_MAX_WIDTH texels across
+    #: (`background_pixels`): what the camera sees of the world (`BackgroundMap`)
+    background: np.ndarray | None = None
 
 
 def equirect_directions(height: int, width: int) -> tuple[np.ndarray, np.ndarray]:
@@ -72,6 +79,7 @@ def equirect_directions(height: int, width: int) -> tuple[np.ndarray, np.ndarray
 
 def split_environment(pixels: np.ndarray, to_world: np.ndarray | None = None) -> EnvironmentSplit:
     """Split an (h, w, 3) linear equirectangular radiance map (see the module docstring)."""
+    background = background_pixels(pixels)  # from the caller's (float32) map: 4x faster than float64
     pixels = np.nan_to_num(np.asarray(pixels, np.float64), nan=0.0, posinf=0.0, neginf=0.0).clip(min=0.0)
     h, w = pixels.shape[:2]
     dirs, solid = equirect_directions(h, w)
@@ -112,7 +120,46 @@ def split_environment(pixels: np.ndarray, to_world: np.ndarray | None = None) ->
     sky_sh = basis(flat, 2).astype(np.float64).T @ (filled.reshape(-1, 3) * weight.reshape(-1, 1))
     return EnvironmentSplit(sun, irradiance.astype(np.float32), angle, sky.astype(np.float32), sky_sh.astype(np.float32),
                             sky_map=downsample_equirect(filled, solid, SKY_MAP_ROWS),
-                            to_world=None if to_world is None else np.asarray(to_world, np.float64))
+                            to_world=None if to_world is None else np.asarray(to_world, np.float64),
+                            background=background)
+
+
+def background_pixels(pixels: np.ndarray, max_width: int = BACKGROUND_MAX_WIDTH) -> np.ndarray:
+    """(h', w', 3) float16 of an (h, w, 3) equirectangular map for the camera's background: 2 x 2
+    box means until it is at most `max_width` texels across (an odd row or column is dropped),
+    non-finite and negative values as 0, values beyond half-float range clamped to it (a sun
+    disc's 1e5-1e6 stays within: 65504 is the limit, a brighter texel would turn infinite)."""
+    p = np.nan_to_num(np.asarray(pixels, np.float32), nan=0.0, posinf=0.0, neginf=0.0)
+    np.maximum(p, 0.0, out=p)
+    while p.shape[1] > max_width and p.shape[0] >= 2:
+        h, w = p.shape[0] // 2 * 2, p.shape[1] // 2 * 2
+        p = p[:h, :w].reshape(h // 2, 2, w // 2, 2, 3).mean(axis=(1, 3), dtype=np.float32)
+    return np.minimum(p, np.float32(np.finfo(np.float16).max)).astype(np.float16)
+
+
+@dataclass(frozen=True)
+class BackgroundMap:
+    """What the camera sees of the world, by direction: an equirectangular radiance map (Blender's
+    layout, `equirect_directions`) times `strength`, rotated by `to_world` (texture -> world
+    directions, a Mapping node's inverse; None: unrotated).
+
+    Why: the light of an environment map is split into a sun, an SH sky and a coarse map
+    (`split_environment`), none of which is what an artist sees behind the scene; the camera
+    sees the HDRI itself, as in Cycles. The GPU draws it per pixel (`raster.world_background`);
+    `radiance` is the same lookup in numpy."""
+
+    pixels: np.ndarray  # (h, w, 3) float16 (`background_pixels`)
+    strength: float = 1.0
+    to_world: np.ndarray | None = None
+
+    def radiance(self, directions: np.ndarray) -> np.ndarray:
+        """(n, 3) float32 radiance towards unit world directions (n, 3), bilinear as the GPU reads."""
+        sky = SkyMap(np.asarray(self.pixels, np.float32), self.to_world)
+        return sky.radiance(directions) * np.float32(self.strength)
+
+    def texture_from_world(self) -> np.ndarray:
+        """(3, 3) float64 world -> texture directions."""
+        return np.eye(3) if self.to_world is None else np.linalg.inv(np.asarray(self.to_world, np.float64))
 
 
 def downsample_equirect(pixels: np.ndarray, solid: np.ndarray, rows: int) -> np.ndarray:

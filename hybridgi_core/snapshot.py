@@ -379,6 +379,8 @@ class World:
     background : (3,) float32 what the camera sees of the world where it differs from `color`
         (a world hidden from diffuse rays lights nothing but is still seen; one hidden from the
         camera is black); None: `color`.
+    background_map : `environment.BackgroundMap` of what the camera sees by direction (an
+        environment image or a baked world tree), or None: `background_color` everywhere.
     """
 
     color: np.ndarray = field(default_factory=lambda: np.zeros(3, np.float32))
@@ -386,6 +388,7 @@ class World:
     sky_sh: np.ndarray | None = None
     sky_map: object | None = None
     background: np.ndarray | None = None
+    background_map: object | None = None
 
     @property
     def background_color(self) -> np.ndarray:

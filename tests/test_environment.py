@@ -76,3 +76,42 @@ def test_non_finite_pixels_do_not_reach_the_lamp_or_the_sky():
     pixels[11, 20] = np.inf
     split = split_environment(pixels)
     assert np.isfinite(split.sun_irradiance).all() and np.isfinite(split.sky).all() and np.isfinite(split.sky_sh).all()
+
+
+def test_the_camera_sees_the_whole_map_its_sun_included():
+    """What the camera sees of an HDRI world (`EnvironmentSplit.background`, `BackgroundMap`): the
+    map itself, sun disc and all, read along each direction as the sky map is (the light's split
+    fills the disc and keeps a coarse copy; the background is neither)."""
+    from hybridgi_core.environment import BackgroundMap, SkyMap
+
+    direction = np.array([0.3, -0.5, 0.6])
+    pixels, disc = sky_with_sun(direction, sun_radiance=900.0)
+    split = split_environment(pixels)
+    assert split.background.dtype == np.float16 and split.background.shape == (H, W, 3)
+    np.testing.assert_allclose(split.background.astype(np.float64), pixels, rtol=1e-3)
+    quarter = np.array([[0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [1.0, 0.0, 0.0]])  # texture -> world
+    seen = BackgroundMap(split.background, strength=0.5, to_world=quarter)
+    dirs = np.random.default_rng(1).normal(size=(500, 3))
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    want = SkyMap(pixels.astype(np.float32), quarter).radiance(dirs) * 0.5
+    np.testing.assert_allclose(seen.radiance(dirs), want, rtol=2e-3, atol=1e-4)
+    d = quarter @ (direction / np.linalg.norm(direction))  # the sun, in world directions
+    assert seen.radiance(d[None])[0, 0] > 0.5 * 900.0 * 0.5  # the disc itself, not the filled sky
+
+
+def test_a_wide_background_map_is_halved_until_it_fits_and_stays_finite():
+    from hybridgi_core.environment import background_pixels
+
+    rng = np.random.default_rng(2)
+    pixels = rng.uniform(0.0, 4.0, (64, 256, 3))
+    pixels[3, 5] = (np.nan, np.inf, -2.0)
+    pixels[7, 9] = 1e7  # its 4 x 4 block's mean beyond half-float range: clamped, not infinite
+    out = background_pixels(pixels, max_width=64)
+    assert out.shape == (16, 64, 3) and out.dtype == np.float16 and np.isfinite(out).all()
+    clean = np.nan_to_num(pixels, nan=0.0, posinf=0.0, neginf=0.0).clip(min=0.0)
+    means = clean.reshape(16, 4, 64, 4, 3).mean(axis=(1, 3))
+    keep = np.ones((16, 64), bool)
+    keep[1, 2] = False  # that block, clamped at 65504
+    np.testing.assert_allclose(out.astype(np.float64)[keep], means[keep], rtol=2e-3)
+    assert out[1, 2, 0] == np.float16(np.finfo(np.float16).max)
+    assert background_pixels(pixels, max_width=256).shape == (64, 256, 3)  # small enough: as it is

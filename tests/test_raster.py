@@ -585,6 +585,50 @@ def test_deferred_relative_bounce_and_debug_views(raster):
     np.testing.assert_allclose(out["combined"][inner & (cols >= W // 2)][:, 0], SS_AO, rtol=2e-3)
 
 
+@pytest.mark.parametrize("ortho", [False, True])
+def test_deferred_background_is_the_world_map_along_each_pixels_ray(raster, ortho):
+    """The pixels without geometry show the world's map (`world_background`) where the world has
+    one: per pixel, the map read along the ray through the projection the G-buffer was drawn
+    with, as `BackgroundMap.radiance` reads it in numpy (a rotated map, a jittered projection,
+    perspective and orthographic); the uniform colour where it has none."""
+    from hybridgi_core.environment import BackgroundMap
+    from hybridgi_core.raster.subpixel import jittered_projection
+    from hybridgi_core.raster.world_background import WorldTexture, pixel_directions
+
+    gbuf, direct, filtered, hit = deferred_inputs(raster)
+    view = look_at((0.0, 0.0, 3.0), (0.0, 0.0, 0.0), up=(0.0, 1.0, 0.0))
+    proj = orthographic(1.2) if ortho else perspective(50.0)
+    proj = jittered_projection(proj, (0.3, -0.2), W, H)
+    raster["gbuffer"].execute(view, proj)  # the G-buffer this shade reads, drawn with `proj`
+    hit = raster["gbuffer"].read("position")[..., 3] > 0.5
+    # A map with detail in both directions, seen from the front (-Z looks at the horizon's texels).
+    rows, cols = 64, 128
+    v, u = np.meshgrid((np.arange(rows) + 0.5) / rows, (np.arange(cols) + 0.5) / cols, indexing="ij")
+    pixels = np.stack([1.0 + np.sin(9 * np.pi * u), 1.0 + np.cos(7 * np.pi * v), 0.5 + u * v], axis=-1)
+    c, s = np.cos(0.7), np.sin(0.7)
+    rotate = np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
+    background = BackgroundMap(pixels.astype(np.float16), strength=2.5, to_world=rotate)
+    world = WorldTexture()
+    world.update(background)
+    out = shade(raster, (gbuf, direct, filtered, hit), world=world, camera=(view, proj))
+    bg = ~hit
+    assert bg.sum() > 500
+    want = background.radiance(pixel_directions(view, proj, W, H)).reshape(H, W, 3)
+    # Within the GPU's bilinear weights (8 bits on llvmpipe: ~0.006 on these steep gradients).
+    np.testing.assert_allclose(out["combined"][bg][:, :3], want[bg], rtol=2e-3, atol=1e-2)
+    assert np.all(out["combined"][bg][:, 3] == 0.0)
+    if ortho:  # every ray looks down -Z: one texel's radiance, not the uniform colour
+        np.testing.assert_allclose(want[bg], np.broadcast_to(background.radiance(np.array([[0.0, 0.0, -1.0]])),
+                                                             (bg.sum(), 3)), rtol=1e-5)
+        assert np.abs(want[bg][0] - np.asarray(WORLD)).min() > 0.5
+    else:
+        assert want[bg].std(axis=0).min() > 0.1  # a map, not a colour: the check could fail
+    # No map: the uniform colour, as before.
+    world.update(None)
+    out = shade(raster, (gbuf, direct, filtered, hit), world=world, camera=(view, proj))
+    np.testing.assert_allclose(out["combined"][bg], np.broadcast_to([*WORLD, 0.0], (bg.sum(), 4)), atol=1e-6)
+
+
 # ----------------------------------------------------------------------------------------------
 # read-back / upload helpers and lifecycle
 # ----------------------------------------------------------------------------------------------
@@ -824,3 +868,27 @@ def test_gpu_accumulation_equals_the_numpy_film(gpu_context):
         np.testing.assert_allclose(acc.read("combined"), arrays["combined"], rtol=1e-6)
     finally:
         acc.free()
+
+
+def test_pixel_directions_are_the_rays_through_the_pixel_centres():
+    """`world_background.pixel_directions` (the CPU background of a frame without geometry):
+    the centre of a perspective view looks along the camera's -Z, a corner pixel along its own
+    ray; an orthographic view's rays are all the camera's -Z."""
+    from hybridgi_core.raster.world_background import pixel_directions
+
+    view = look_at((1.0, -2.0, 0.5), (0.0, 1.0, 0.3))
+    forward = np.array([-1.0, 3.0, -0.2]) / np.linalg.norm([-1.0, 3.0, -0.2])
+    w, h = 5, 3
+    proj = np.array(perspective(60.0))
+    proj[0, 0] = proj[1, 1] * h / w  # this image's aspect
+    d = pixel_directions(view, proj, w, h).reshape(h, w, 3)
+    np.testing.assert_allclose(d[1, 2], forward, atol=1e-6)
+    # The top-right pixel (rows bottom-up): its centre at x = 0.8, y = 2/3 of the half-extent.
+    right, up = np.cross(forward, [0.0, 0.0, 1.0]), None
+    right /= np.linalg.norm(right)
+    up = np.cross(right, forward)
+    t = np.tan(np.radians(30.0))
+    ray = forward + 0.8 * t * w / h * right + (2.0 / 3.0) * t * up
+    np.testing.assert_allclose(d[2, 4], ray / np.linalg.norm(ray), atol=1e-6)
+    flat = pixel_directions(view, orthographic(1.0), w, h)
+    np.testing.assert_allclose(flat, np.broadcast_to(forward, flat.shape), atol=1e-6)

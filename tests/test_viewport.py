@@ -696,6 +696,46 @@ def test_a_sky_world_bakes_in_the_background_then_lights_the_view(view, addon, t
         bpy.data.worlds.remove(world)
 
 
+def test_the_view_shows_an_hdri_world_behind_the_scene(view, addon):
+    """An Environment Texture world: the view's pixels without geometry show the map along their
+    rays, as final renders and Cycles show it (`world_background`), not the uniform colour the
+    light keeps of it; the still view's anti-aliasing subframes read it along their own rays."""
+    from mathutils import Matrix  # noqa: PLC0415
+
+    from hybridgi_cli import blender_compat  # noqa: PLC0415
+    from hybridgi_core.raster.world_background import pixel_directions  # noqa: PLC0415
+
+    bpy = addon.bpy
+    scene = bpy.context.scene
+    old = scene.world
+    world = blender_compat.new_world(bpy, "hdri")
+    env = world.node_tree.nodes.new("ShaderNodeTexEnvironment")
+    env.image = bpy.data.images.load(os.path.join(bpy.utils.system_resource("DATAFILES"), "studiolights", "world",
+                                                  "sunrise.exr"))
+    world.node_tree.links.new(env.outputs["Color"], world.node_tree.nodes["Background"].inputs["Color"])
+    scene.world = world
+    # The camera turned half a turn about its own vertical: it looks away from the box, at the sky.
+    cam = scene.camera.matrix_world
+    eye = cam.translation.copy()
+    turned = Matrix.Translation(eye) @ Matrix.Rotation(np.pi, 4, "Z") @ Matrix.Translation(-eye) @ cam
+    view.region_data.view_matrix = turned.inverted()
+    try:
+        image = _converged_image(view)
+        image = _finish_redraws(view)
+        seen = view.session.mirror.snapshot.world.background_map
+        assert seen is not None
+        want = seen.radiance(pixel_directions(np.array(view.region_data.view_matrix),
+                                              np.array(view.region_data.window_matrix), W, H)).reshape(H, W, 3)
+        error = float(np.abs(image[..., :3] - want).sum() / np.abs(want).sum())
+        uniform = float(np.abs(want.mean(axis=(0, 1)) - want).sum() / np.abs(want).sum())
+        print(f"view background vs the map: {error:.4f} (their mean colour: {uniform:.4f})")
+        assert uniform > 0.05  # the sky varies across the view: the check could fail
+        assert error < 0.04, (error, uniform)
+    finally:
+        scene.world = old
+        bpy.data.worlds.remove(world)
+
+
 def test_a_procedural_material_bakes_in_the_background_then_textures_the_view(view, addon, tmp_path, monkeypatch):
     """As a world bake: the view draws the material's constant colour at once, Blender bakes the
     colour input on a thread, and the next redraw reads the materials again with the texture."""

@@ -25,9 +25,10 @@ SCENE = textwrap.dedent("""
     from mathutils import Vector
     bpy.ops.wm.read_homefile(use_empty=True)
     scene = bpy.context.scene
-    bpy.ops.mesh.primitive_plane_add(size=12.0)
-    bpy.ops.mesh.primitive_cube_add(size=1.0, location=(0.0, 0.0, 0.5))
-    bpy.ops.mesh.primitive_cube_add(size=0.6, location=(2.0, 1.0, 0.3))
+    if sys.argv[-3] != "empty":  # "empty": the camera and the world alone
+        bpy.ops.mesh.primitive_plane_add(size=12.0)
+        bpy.ops.mesh.primitive_cube_add(size=1.0, location=(0.0, 0.0, 0.5))
+        bpy.ops.mesh.primitive_cube_add(size=0.6, location=(2.0, 1.0, 0.3))
     cam = bpy.data.objects.new("camera", bpy.data.cameras.new("camera"))
     cam.location = (5.0, -5.0, 4.5)
     cam.rotation_euler = (Vector((0.3, 0.3, 0.0)) - cam.location).to_track_quat("-Z", "Y").to_euler()
@@ -70,8 +71,8 @@ def render(blend, prefix, *extra):
 
 @pytest.mark.parametrize(("kind", "rotation"), [("hdri", 0.0), ("hdri", 2.0), ("sky", 1.0)])
 def test_world_sun_casts_its_shadow_as_in_cycles(tmp_path, kind, rotation):
-    """An HDRI (read directly) and a Sky Texture with its sun disc (baked by Cycles in a subprocess).
-    Measured Diffuse Direct errors: HDRI 0.029 / 0.026 (rotations 0 / 2), sky 0.061 with rays
+    """An HDRI (read directly) and a Sky Texture with its sun disc (baked by Cycles in a subprocess),
+    lighting the scene and seen behind it. Measured Diffuse Direct errors: HDRI 0.029 / 0.026 (rotations 0 / 2), sky 0.061 with rays
     reading the sky map (its L2 SH: 0.055 / 0.052 / 0.069; the map's mean spread over a uniform
     sky: 0.33-0.36; the sky's unlinked colour: 0.79)."""
     blend = tmp_path / "world.blend"
@@ -89,6 +90,15 @@ def test_world_sun_casts_its_shadow_as_in_cycles(tmp_path, kind, rotation):
     contrast, ref_contrast = luma[shadow].mean() / luma[lit].mean(), ref_luma[shadow].mean() / ref_luma[lit].mean()
     print(f"{kind} rotation {rotation}: Diffuse Direct error {error:.3f}, shadow/lit {contrast:.2f} (Cycles {ref_contrast:.2f})")
     assert contrast < ref_contrast + 0.25, (contrast, ref_contrast)
+    # Behind the scene the camera sees the world itself, as in Cycles: the map along each pixel's
+    # ray (`world_background`), not the uniform colour the light keeps of it.
+    sky = ~geometry
+    seen, ref_seen = layer(ours, "Combined")[sky][:, :3], layer(cycles, "Combined")[sky][:, :3]
+    background_error = float(np.abs(seen - ref_seen).sum() / np.abs(ref_seen).sum())
+    uniform_error = float(np.abs(ref_seen.mean(axis=0) - ref_seen).sum() / np.abs(ref_seen).sum())
+    print(f"background ({sky.sum()} pixels): {background_error:.4f} (their mean colour: {uniform_error:.4f})")
+    assert sky.sum() > 200
+    assert background_error < 0.25 * uniform_error, (background_error, uniform_error)
 
 
 def test_a_missing_environment_image_is_cycles_magenta_at_once(tmp_path):
@@ -114,3 +124,21 @@ def test_a_missing_environment_image_is_cycles_magenta_at_once(tmp_path):
         error = float(np.abs(mine - reference)[geometry].sum() / np.abs(reference)[geometry].sum())
         print(f"{name}: {error:.3f}")
         assert error < bound, (name, error)
+
+
+def test_a_scene_without_geometry_shows_its_hdri_world(tmp_path):
+    """No geometry at all: the frame is the world as the camera sees it, the map along each pixel's
+    ray (rotated by its Mapping node) as in Cycles, not its uniform colour; a warning says why."""
+    blend = tmp_path / "world.blend"
+    subprocess.run([sys.executable, "-c", SCENE, "empty", str(blend), "1.0"], check=True, capture_output=True)
+    env = {**os.environ, "XDG_CACHE_HOME": str(tmp_path / "cache")}
+    run = run_render(blend, tmp_path / "hg", RES, env=env)
+    assert run.returncode == 0, run.stderr[-3000:]
+    assert "no geometry" in run.stderr, run.stderr[-2000:]
+    ours = exr.read_channels(json.loads(run.stdout.strip().splitlines()[-1])["exr"])
+    cycles = render(blend, tmp_path / "cy", "--engine", "CYCLES", "--samples", "64")
+    seen, reference = layer(ours, "Combined")[..., :3], layer(cycles, "Combined")[..., :3]
+    error = float(np.abs(seen - reference).sum() / np.abs(reference).sum())
+    uniform = float(np.abs(reference.mean(axis=(0, 1)) - reference).sum() / np.abs(reference).sum())
+    print(f"Combined vs Cycles: {error:.4f} (their mean colour: {uniform:.4f})")
+    assert error < 0.25 * uniform, (error, uniform)

@@ -27,6 +27,7 @@ from .glsl import load_glsl
 from .passes import RasterError, RasterPass, check_size, compile_spec, fullscreen_spec, low_res_size, make_target
 from .readback import read_framebuffer, upload_texture_2d
 from .settings import AO_BLEND_MODES, DEBUG_AO_SPLIT, DEBUG_FINAL, RasterSettings
+from .world_background import WORLD_TYPEDEF
 
 log = logging.getLogger(__name__)
 
@@ -63,6 +64,13 @@ class DeferredPass(RasterPass):
         self._targets = None
         self._fb = None
         self._no_glossy = None
+        self._no_world = None
+
+    def _no_glossy_texture(self):
+        """A 1x1 texture for a sampler the shader does not read."""
+        if self._no_glossy is None:
+            self._no_glossy = upload_texture_2d(np.zeros((1, 1, 4), np.float32), "RGBA16F")
+        return self._no_glossy
 
     def _build_shaders(self) -> dict:
         spec = fullscreen_spec(
@@ -73,9 +81,12 @@ class DeferredPass(RasterPass):
                       (2, "FLOAT_2D", "full_position_tx"), (3, "FLOAT_2D", "emission_tx"),
                       (4, "FLOAT_2D", "full_depth_tx"), (5, "FLOAT_2D", "direct_tx"),
                       (6, "FLOAT_2D", "h_indirect_tx"), (7, "FLOAT_2D", "h_direct_tx"),
-                      (8, "FLOAT_2D", "h_ssao_tx"), (9, "FLOAT_2D", "glossy_tx")),
+                      (8, "FLOAT_2D", "h_ssao_tx"), (9, "FLOAT_2D", "glossy_tx"), (10, "FLOAT_2D", "world_tx")),
             push=BILATERAL_PUSH + (("VEC4", "world_color"), ("INT", "blend_mode"),
-                                   ("INT", "debug_view"), ("INT", "relative_bounce"), ("INT", "has_glossy")),
+                                   ("INT", "debug_view"), ("INT", "relative_bounce"), ("INT", "has_glossy"),
+                                   ("INT", "has_world_map")),
+            typedefs=WORLD_TYPEDEF,
+            ubos=((0, "WorldBlock", "world"),),
             outputs=tuple((slot, "FLOAT" if ch == 1 else "VEC4", f"out_{name}")
                           for slot, (name, _f, ch) in enumerate(DEFERRED_TARGETS)),
         )
@@ -92,10 +103,11 @@ class DeferredPass(RasterPass):
         self._targets = None
         self._fb = None
         self._no_glossy = None
+        self._no_world = None
 
     def execute(self, gbuffer, direct, filtered: FilteredGI, world_color=(0.0, 0.0, 0.0),
                 blend_mode: str | None = None, debug_view: int = DEBUG_FINAL,
-                relative_bounce: bool = False, glossy=None) -> ShadedFrame:
+                relative_bounce: bool = False, glossy=None, world=None, camera=None) -> ShadedFrame:
         """Shade one frame.
 
         gbuffer : GBuffer of the resize size
@@ -107,6 +119,9 @@ class DeferredPass(RasterPass):
         relative_bounce : SSAOPass.relative_bounce of the frame (bounce without irradiance input)
         glossy : full-res RGBA texture, rgb = the lamps' glossy reflection (radiance, added to
             Combined; `glossy.glossy_direct`), or None
+        world : `world_background.WorldTexture` whose map the background shows (instead of
+            world_color), or None; camera : its (view, proj), the projection `gbuffer` was drawn
+            with (a subframe's jittered one)
         """
         self._require()
         mode = blend_mode or self.settings.ao_blend
@@ -131,12 +146,20 @@ class DeferredPass(RasterPass):
         shader.uniform_sampler("h_ssao_tx", filtered.ssao)
         if glossy is not None:
             check_size(glossy, self.width, self.height, "glossy radiance")
-        elif self._no_glossy is None:
-            self._no_glossy = upload_texture_2d(np.zeros((1, 1, 4), np.float32), "RGBA16F")
-        shader.uniform_sampler("glossy_tx", glossy if glossy is not None else self._no_glossy)
+        shader.uniform_sampler("glossy_tx", glossy if glossy is not None else self._no_glossy_texture())
         shader.uniform_int("has_glossy", 1 if glossy is not None else 0)
         set_bilateral_uniforms(shader, self.settings, filtered.factor)
         shader.uniform_float("world_color", (*wc.tolist(), 1.0))
+        mapped = world is not None and world.texture is not None and camera is not None
+        if mapped:
+            shader.uniform_block("world", world.ubo(*camera))
+            shader.uniform_sampler("world_tx", world.texture)
+        else:
+            if self._no_world is None:
+                self._no_world = _NoWorld()
+            shader.uniform_block("world", self._no_world.ubo())
+            shader.uniform_sampler("world_tx", self._no_glossy_texture())
+        shader.uniform_int("has_world_map", 1 if mapped else 0)
         shader.uniform_int("blend_mode", AO_BLEND_MODES.index(mode))
         shader.uniform_int("debug_view", int(debug_view))
         shader.uniform_int("relative_bounce", 1 if relative_bounce else 0)
@@ -156,3 +179,17 @@ class DeferredPass(RasterPass):
             if tname == name:
                 return read_framebuffer(self._fb, slot, self.width, self.height, ch, out=out)
         raise KeyError(name)
+
+
+class _NoWorld:
+    """A zero `WorldBlock` for draws without a world map (the block must be bound all the same)."""
+
+    def __init__(self) -> None:
+        self._ubo = None
+
+    def ubo(self):
+        import gpu  # noqa: PLC0415
+
+        if self._ubo is None:
+            self._ubo = gpu.types.GPUUniformBuf(np.zeros(36, np.float32))
+        return self._ubo

@@ -14,13 +14,29 @@
 #define BLEND_MUL 0
 #define BLEND_MIN 1
 
+/* The world map's radiance towards this pixel (world_background.py): the view direction through
+ * the projection the G-buffer was drawn with, in Blender's equirectangular layout
+ * (u = (pi - atan2(y, x)) / 2pi, v = 0.5 + asin(z) / pi), past the texture's wrap column. */
+vec3 world_background()
+{
+  vec2 ndc = gl_FragCoord.xy / vec2(textureSize(full_position_tx, 0)) * 2.0 - 1.0;
+  vec4 a = world.inv_view_proj * vec4(ndc, -1.0, 1.0);
+  vec4 b = world.inv_view_proj * vec4(ndc, 1.0, 1.0);
+  vec3 d = (world.texture_from_world * vec4(b.xyz / b.w - a.xyz / a.w, 0.0)).xyz;
+  d /= max(length(d), 1e-30);
+  float u = (M_PI - atan(d.y, d.x)) / (2.0 * M_PI);
+  float v = 0.5 + asin(clamp(d.z, -1.0, 1.0)) / M_PI;
+  float width = world.params.y;
+  return texture(world_tx, vec2((u * (width - 2.0) + 1.0) / width, v)).rgb * world.params.x;
+}
+
 void main()
 {
   ivec2 px = ivec2(gl_FragCoord.xy);
   vec4 P = texelFetch(full_position_tx, px, 0);
   if (P.w < 0.5) {
     /* Background: the world's radiance in Combined (alpha 0, as a transparent film would). */
-    out_combined = vec4(world_color.rgb, 0.0);
+    out_combined = vec4((has_world_map != 0) ? world_background() : world_color.rgb, 0.0);
     out_diffuse_direct = vec4(0.0);
     out_diffuse_indirect = vec4(0.0);
     out_diffuse_color = vec4(0.0);

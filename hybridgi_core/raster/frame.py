@@ -51,6 +51,7 @@ from .subpixel import (
     worth_extra,
 )
 from .upsample import UpsamplePass
+from .world_background import WorldTexture
 
 log = logging.getLogger(__name__)
 
@@ -159,6 +160,8 @@ class FramePipeline:
         self.bilateral = BilateralPass(self.settings)
         self.deferred = DeferredPass(self.settings)
         self.accumulate = AccumulatePass()
+        #: The world map the background shows (`set_world`).
+        self.world = WorldTexture()
         #: The pixel rays' edge-aware filter at the GI resolution (`pixel_gather.filter_residual`
         #: on the GPU; sized on use).
         self.atrous = AtrousPass()
@@ -208,6 +211,7 @@ class FramePipeline:
         if self._stage is not None:
             self._stage.shutdown(wait=True)
             self._stage = None
+        self.world.free()
         self._direct_tex = None
         self.width = self.height = 0
 
@@ -221,9 +225,16 @@ class FramePipeline:
         stats.low_res = (self.downsample.low_width, self.downsample.low_height)
         return gbuf, low
 
+    def set_world(self, world) -> None:
+        """The world the background shows (a snapshot `World`): its map once uploaded
+        (`world_background.WorldTexture`; kept while the same map comes back), else the
+        `world_color` each `shade` is given."""
+        self.world.update(getattr(world, "background_map", None))
+
     def shade(self, gbuf, low, view: np.ndarray, proj: np.ndarray, direct, corner_visible=None,
               irradiance=None, debug_view: int = DEBUG_FINAL, world_color=(0.0, 0.0, 0.0),
-              stats: FrameStats | None = None, gi=None, glossy=None, bilateral=None) -> ShadedFrame:
+              stats: FrameStats | None = None, gi=None, glossy=None, bilateral=None,
+              camera_proj: np.ndarray | None = None) -> ShadedFrame:
         """Steps 6-9 on the GPU, the cache already uploaded (`self.gather.upload`).
 
         direct : full-res RGBA texture of lamp irradiance (W/m^2) at the G-buffer's pixels
@@ -235,6 +246,8 @@ class FramePipeline:
         glossy : full-res RGBA texture of the lamps' glossy reflection (radiance, added to
             Combined), or None
         bilateral : the BilateralPass to use (of `low`'s factor); None = the pipeline's own
+        camera_proj : the projection `gbuf` was drawn with, where it differs from `proj` (a jittered
+            subframe's): the background map is looked up along its pixels' rays (`set_world`)
         """
         stats = stats if stats is not None else FrameStats()
         if gi is not None:
@@ -250,7 +263,8 @@ class FramePipeline:
         with stats.step("deferred"):
             shaded = self.deferred.execute(gbuf, direct, filtered, world_color=world_color,
                                            debug_view=debug_view, relative_bounce=self.ssao.relative_bounce,
-                                           glossy=glossy)
+                                           glossy=glossy, world=self.world,
+                                           camera=(view, proj if camera_proj is None else camera_proj))
         return shaded
 
     def render(self, system, view: np.ndarray, proj: np.ndarray, frame: int, warmup: int = 0,
@@ -342,11 +356,12 @@ class FramePipeline:
         jittered = offsets.shape[0] > 1
         if jittered:
             texture_filter = subframe_texture_filter(offsets.shape[0], self.filter_size)
+        camera_proj = proj
         for s, offset in enumerate(offsets):
             if jittered:
                 with stats.step("gbuffer"):  # the raster and its read-back, as "downsample" counts its own
-                    gbuf = self.gbuffer.execute(view, jittered_projection(proj, offset, self.width, self.height),
-                                                texture_filter=texture_filter)
+                    camera_proj = jittered_projection(proj, offset, self.width, self.height)
+                    gbuf = self.gbuffer.execute(view, camera_proj, texture_filter=texture_filter)
                     normal = self.gbuffer.read("normal")
                     position = self.gbuffer.read("position")
                     surface = self.gbuffer.read_surface(normal)
@@ -382,7 +397,8 @@ class FramePipeline:
             shaded = self.shade(gbuf, gi_low, view, proj, self._direct_tex,
                                 corner_visible=mask.reshape(low.height, low.width, 8), irradiance=lit_tex,
                                 debug_view=debug_view, world_color=world_color, stats=stats, gi=gi,
-                                glossy=self._glossy_tex if glossy is not None else None, bilateral=gi_bilateral)
+                                glossy=self._glossy_tex if glossy is not None else None, bilateral=gi_bilateral,
+                                camera_proj=camera_proj)
             with stats.step("accumulate"):
                 self.accumulate.execute(shaded, gbuf, first=s == 0)
         with stats.step("film"):
