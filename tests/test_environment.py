@@ -115,3 +115,34 @@ def test_a_wide_background_map_is_halved_until_it_fits_and_stays_finite():
     np.testing.assert_allclose(out.astype(np.float64)[keep], means[keep], rtol=2e-3)
     assert out[1, 2, 0] == np.float16(np.finfo(np.float16).max)
     assert background_pixels(pixels, max_width=256).shape == (64, 256, 3)  # small enough: as it is
+
+
+def test_a_large_map_splits_on_a_filtered_copy_with_its_sun_at_full_resolution():
+    """A map wider than SPLIT_WIDTH (a 4K HDRI): the sun is measured at the map's own resolution
+    (in the rows it can reach), the sky it leaves from a box-filtered copy. Both as an exact
+    full-resolution split gives them: the sun's direction, irradiance and size, the sky's SH, its
+    uniform mean, and no sun left in the map the rays read."""
+    from hybridgi_core.environment import SPLIT_WIDTH
+
+    h, w = 2 * SPLIT_WIDTH // 2, 2 * SPLIT_WIDTH  # one halving
+    dirs, solid = equirect_directions(h, w)
+    direction = np.array([-0.4, 0.7, 0.35]) / np.linalg.norm([-0.4, 0.7, 0.35])
+    sky = 0.3 + 0.2 * np.clip(dirs[..., 2:3], 0.0, None) * np.array([0.8, 1.0, 1.3])  # a gradient
+    disc = dirs @ direction > np.cos(np.radians(0.6))
+    pixels = np.where(disc[..., None], 3000.0, sky).astype(np.float32)
+    quarter = np.array([[0, -1.0, 0], [1.0, 0, 0], [0, 0, 1.0]])
+    split = split_environment(pixels, to_world=quarter)
+    weight = np.broadcast_to(solid[:, None], disc.shape)
+    d_world = quarter @ direction
+    assert np.degrees(np.arccos(np.clip(split.sun_direction @ d_world, -1, 1))) < 0.05
+    expected = 3000.0 * float((weight[disc] * np.clip(dirs[disc] @ direction, 0, None)).sum())
+    np.testing.assert_allclose(split.sun_irradiance, expected, rtol=0.01)
+    np.testing.assert_allclose(split.sun_angle, 2 * np.sqrt(weight[disc].sum() / np.pi), rtol=1e-6)
+    # The sky: the gradient, as the full-resolution projections of the map without its sun give it.
+    world_dirs = dirs @ quarter.T
+    from hybridgi_core.sh import basis
+
+    want_sh = basis(world_dirs.reshape(-1, 3), 2).T @ (sky.reshape(-1, 3) * weight.reshape(-1, 1))
+    np.testing.assert_allclose(split.sky_sh, want_sh, rtol=2e-3, atol=2e-3 * np.abs(want_sh).max())
+    assert split.sky_map.max() < 0.6  # the sun is the lamp's, none of it left where rays escape
+    assert split.background.shape == (h, w, 3) and split.background.max() > 2000  # the camera sees it
