@@ -1696,11 +1696,12 @@ def _color_socket(socket, textures, material_name):
     return value, None
 
 
-def _direct_image(node, output) -> bool:
+def _direct_image(node, output, alpha: bool = False) -> bool:
     """Whether an Image Texture's colour is what the core samples itself: the mesh's default
     UV map, flat projection, repeated (anything else, e.g. a UV Map node or box mapping, is
-    baked)."""
-    if node.type != "TEX_IMAGE" or output != "Color" or node.image is None:
+    baked). alpha : the socket is an opacity (`_alpha_map`), which reads the image's Alpha
+    output itself too."""
+    if node.type != "TEX_IMAGE" or output not in (("Color", "Alpha") if alpha else ("Color",)) or node.image is None:
         return False
     vector = node.inputs.get("Vector")
     return (vector is None or _source(vector)[0] is None) and node.projection == "FLAT" and node.extension == "REPEAT"
@@ -1752,7 +1753,10 @@ def bake_sockets(material) -> list[tuple[str, str]]:
             socket = node.inputs.get(scalar)
             source, output = _source(socket) if socket is not None and socket.is_linked else (None, None)
             if source is not None and _fold(socket, 0) is None:
-                (images if _direct_image(source, output) else out).append((node.name, socket.identifier))
+                # An image's alpha straight into Alpha (a leaf card's cutout) is read as it is, not
+                # baked per mesh (a tree of 40 cards: 40 bakes and materials, 0.19 s of each sync).
+                direct = _direct_image(source, output, alpha=scalar == "Alpha")
+                (images if direct else out).append((node.name, socket.identifier))
         name = BAKED_INPUTS.get(node.type)
         socket = node.inputs.get(name) if name else None
         if socket is None or not socket.is_linked:

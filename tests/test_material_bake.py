@@ -383,6 +383,26 @@ def test_an_alpha_from_nodes_is_baked_into_a_cutout(bpy_module, empty_scene, syn
     assert sorted(got) == [("leaf0", pytest.approx(0.5, abs=0.1)), ("leaf1", pytest.approx(0.5, abs=0.1))]
 
 
+def test_an_images_alpha_straight_into_alpha_is_read_not_baked(bpy_module, empty_scene, sync):
+    """A leaf card's cutout (an Image Texture's Alpha output into the Principled BSDF's Alpha, on
+    the mesh's UVs) is read from the image as it is (`_alpha_map`): no bake, so every card shares
+    one material instead of a bake and a material per mesh. Through a UV Map node it is baked."""
+    bpy = bpy_module
+    image = bpy.data.images.new("cutout", 8, 8, alpha=True, float_buffer=True)
+    material = bpy.data.materials.new("card")
+    material.use_nodes = True
+    tree = material.node_tree
+    bsdf = tree.nodes["Principled BSDF"]
+    texture = tree.nodes.new("ShaderNodeTexImage")
+    texture.image = image
+    tree.links.new(texture.outputs["Color"], bsdf.inputs["Base Color"])
+    tree.links.new(texture.outputs["Alpha"], bsdf.inputs["Alpha"])
+    assert sync.bake_sockets(material) == []
+    uv = tree.nodes.new("ShaderNodeUVMap")
+    tree.links.new(uv.outputs["UV"], texture.inputs["Vector"])
+    assert ("Principled BSDF", bsdf.inputs["Alpha"].identifier) in sync.bake_sockets(material)
+
+
 def test_constant_emission_stays_constant(bpy_module, empty_scene, sync, cache_home):
     bpy = bpy_module
     material = _emissive(bpy, "lamp", strength_from_checker=False)
