@@ -21,13 +21,21 @@ import numpy as np
 log = logging.getLogger(__name__)
 
 
+#: Bytes a store's folder may hold on disk before its least recently used bakes are deleted.
+#: Why: every edit of a procedural material or world is a new key; without a bound the folder
+#: only grew (3.8 GiB of material bakes after a day of renders and tests).
+DISK_LIMIT = 1 << 30
+
+
 class BakeStore:
-    def __init__(self, folder: str, kept: int, disk_dtype=None):
+    def __init__(self, folder: str, kept: int, disk_dtype=None, disk_limit: int = DISK_LIMIT):
         """folder : name under ~/.cache/hybridgi (XDG_CACHE_HOME honoured); kept : arrays held in
-        memory (the oldest go first); disk_dtype : dtype written to disk (None: the array's)."""
+        memory (the oldest go first); disk_dtype : dtype written to disk (None: the array's);
+        disk_limit : bytes the folder keeps (`prune`)."""
         self.folder = folder
         self.kept = kept
         self.disk_dtype = disk_dtype
+        self.disk_limit = disk_limit
         self._memory: dict[str, np.ndarray] = {}
         self._jobs: dict[str, threading.Thread] = {}
         self._lock = threading.Lock()
@@ -51,6 +59,10 @@ class BakeStore:
             array = np.load(disk).astype(np.float32, copy=False)
         except (OSError, ValueError):
             return None
+        try:
+            os.utime(disk)  # recently used: the last to go when the folder is pruned
+        except OSError:
+            pass
         self._remember(key, array)
         return array
 
@@ -63,10 +75,37 @@ class BakeStore:
             tmp = disk.with_suffix(".tmp.npy")
             np.save(tmp, array if self.disk_dtype is None else array.astype(self.disk_dtype))
             os.replace(tmp, disk)
+            self.prune()
         except OSError as err:
             log.debug("%s bake not cached on disk: %s", self.folder, err)
         self._remember(key, array)
         return array
+
+    def prune(self) -> int:
+        """Delete the least recently used bakes (by modification time: `get` touches what it
+        reads) until the folder holds at most `disk_limit` bytes; returns how many went."""
+        files = []
+        for path in self.directory().glob("*.npy"):
+            try:
+                stat = path.stat()
+            except OSError:
+                continue  # another process pruned it meanwhile
+            files.append((stat.st_mtime, stat.st_size, path))
+        total = sum(size for _t, size, _p in files)
+        removed = 0
+        for _t, size, path in sorted(files):
+            if total <= self.disk_limit:
+                break
+            try:
+                path.unlink()
+            except OSError:
+                continue
+            total -= size
+            removed += 1
+        if removed:
+            log.info("%s bakes: %d least recently used deleted (the folder keeps %d MiB)", self.folder, removed,
+                     self.disk_limit >> 20)
+        return removed
 
     def forget_memory(self) -> None:
         """Drop the in-memory copies (the disk keeps them)."""
