@@ -48,6 +48,9 @@ CHUNK_RAYS = 32768
 #: Cycles); 16 keeps those to lamp sampling (0.16) and still sends a roughness-0.1 chrome ball's
 #: lamp (ratio ~150) to the rays.
 BSDF_LAMP_RATIO = 16.0
+#: Directions drawn from the sky map's power per receiver (`SkySampler`), weighed against the
+#: lobe's own samples by multiple importance sampling (`_sky_mis`), where the world has a map.
+SKY_SAMPLES = 2
 #: A-trous passes over the traced light (`filter_reflections`): 1 averages a 5 x 5 neighbourhood
 #: of the same surface, about 25 x `rays` samples, at ~1.5 pixels of blur.
 FILTER_PASSES = 1
@@ -248,8 +251,84 @@ def _chunk(system, lookup, p, nrm, eye, rough, rays, rng, lamps=None, lights=(),
                                                  flat_dirs[live], reach)
     w = weight.reshape(m, rays, 1)
     total = w.sum(axis=1)
-    mean = (radiance.reshape(m, rays, 9) * w).sum(axis=1) / np.maximum(total, _F32(1e-12))
+    sky = system.updater.scene.world.sky_map if live.size else None
+    sky_sum = None
+    if sky is not None and SKY_SAMPLES > 0:
+        sky_sum = _sky_mis(system, sky, p, nrm, eye, rough, rays, rng, radiance, flat_dirs, live, hits)
+    weighted = (radiance.reshape(m, rays, 9) * w).sum(axis=1)
+    if sky_sum is not None:
+        weighted[:, 0:3] += sky_sum
+    mean = weighted / np.maximum(total, _F32(1e-12))
     return np.concatenate([mean[:, 0:6], total, mean[:, 6:9]], axis=1)
+
+
+def _ggx_terms(n: np.ndarray, v: np.ndarray, wi: np.ndarray, alpha: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(D(h), G1(v), G2(v, wi)) float32 of GGX lobes (alpha (N,)) at unit normals n, views v and
+    reflection directions wi (N, 3), h their half vector (Smith height-correlated G2, as
+    `sample_reflections` weighs its samples)."""
+    dot = lambda a, b: a[:, 0] * b[:, 0] + a[:, 1] * b[:, 1] + a[:, 2] * b[:, 2]  # noqa: E731
+    h = v + wi
+    h /= np.maximum(np.sqrt(dot(h, h)), _F32(1e-30))[:, None]
+    a2 = alpha * alpha
+    nh = np.clip(dot(n, h), 0.0, 1.0)
+    d = a2 / (_F32(np.pi) * (nh * nh * (a2 - 1.0) + 1.0) ** 2)
+    lam_v = _lambda(a2, np.maximum(dot(n, v), _F32(1e-4)))
+    lam_l = _lambda(a2, np.maximum(dot(n, wi), _F32(1e-6)))
+    return d.astype(_F32), (1.0 / (1.0 + lam_v)).astype(_F32), (1.0 / (1.0 + lam_v + lam_l)).astype(_F32)
+
+
+def _sky_mis(system, sky, p, nrm, eye, rough, rays, rng, radiance, flat_dirs, live, hits) -> np.ndarray:
+    """(m, 3) the sky's part of m receivers' weighted radiance sum (the numerator of `_chunk`'s
+    mean, in units of its ray weights) from SKY_SAMPLES directions drawn by the map's power
+    (`environment.SkySampler`) besides the lobe's `rays`, by the balance heuristic: a sample of
+    either kind that sees the sky brings L D G2 / (4 n.v (N_b p_b + N_s p_s)) x N_b (p_b the lobe's
+    visible-normal density, p_s the sampler's). The lobe's own rays that escaped keep their share
+    N_b p_b / (N_b p_b + N_s p_s) of their radiance (scaled in `radiance` here).
+
+    Why: the map's compact bright regions (a sun too weak to become a lamp, a window) are met by a
+    lobe's rays once in many pixels, at 60-900 x the sky's mean: fireflies on rough metal."""
+    m = p.shape[0]
+    sampler = sky.sampler()
+    alpha = (np.maximum(np.asarray(rough, _F32), _F32(1e-3)) ** 2).astype(_F32)
+    nb, ns = _F32(rays), _F32(SKY_SAMPLES)
+    # The lobe's rays that escaped: their share of the sky's light.
+    escaped = live[hits.prim < 0]
+    if escaped.size:
+        owner = escaped // rays
+        wi = flat_dirs[escaped]
+        n, v = nrm[owner], eye[owner]
+        d, g1, _g2 = _ggx_terms(n, v, wi, alpha[owner])
+        nv = np.maximum(np.einsum("ij,ij->i", n, v), _F32(1e-4))
+        pb = g1 * d / (4.0 * nv)
+        share = nb * pb / np.maximum(nb * pb + ns * sampler.pdf(wi), _F32(1e-30))
+        radiance[escaped, 0:3] *= share[:, None]
+    # The sampler's directions.
+    k = m * SKY_SAMPLES
+    u = rng.random((3, k))
+    dirs, ps = sampler.sample(u[0], u[1], u[2])
+    owner = np.repeat(np.arange(m), SKY_SAMPLES)
+    n, v = nrm[owner], eye[owner]
+    above = np.flatnonzero(np.einsum("ij,ij->i", n, dirs) > 0)
+    out = np.zeros((m, 3), _F32)
+    if above.size == 0:
+        return out
+    owner, n, v, wi, ps = owner[above], n[above], v[above], dirs[above], ps[above]
+    tracer = system.tracer
+    s = system.settings
+    tfar = _F32(s.ray_length) if s.ray_length > 0 else _F32(np.inf)
+    origins = p[owner] + n * _F32(tracer.epsilon)
+    seen = np.flatnonzero(tracer.intersect(origins, wi, tfar, trusted=True).prim < 0)
+    if seen.size == 0:
+        return out
+    owner, n, v, wi, ps = owner[seen], n[seen], v[seen], wi[seen], ps[seen]
+    d, g1, g2 = _ggx_terms(n, v, wi, alpha[owner])
+    nv = np.maximum(np.einsum("ij,ij->i", n, v), _F32(1e-4))
+    pb = g1 * d / (4.0 * nv)
+    weight = nb * d * g2 / (4.0 * nv * np.maximum(nb * pb + ns * ps, _F32(1e-30)))
+    light = sky.radiance(wi) * weight[:, None]
+    for c in range(3):
+        out[:, c] = np.bincount(owner, weights=light[:, c], minlength=m)
+    return out
 
 
 def filter_reflections(direct: np.ndarray, indirect: np.ndarray, total: np.ndarray, points: np.ndarray,

@@ -206,3 +206,98 @@ def test_a_chrome_ball_shows_the_area_lamp_as_a_sharp_highlight(tmp_path):
     # The highlight's energy is kept: the ball's Glossy Direct sums to Cycles' within 25%.
     ref_sum = layer(cycles, "Glossy Direct")[ball].sum()
     assert abs(layer(rays, "Glossy Direct")[ball].sum() - ref_sum) < 0.25 * ref_sum
+
+
+def _open_sky_system(sky_map):
+    """A GISystem stand-in whose every ray escapes to a world with `sky_map` (what `_chunk` and
+    `hit_radiance` read of it)."""
+    from types import SimpleNamespace
+
+    from hybridgi_core.settings import CacheSettings
+    from hybridgi_core.snapshot import World
+
+    class Misses:
+        epsilon = 1e-4
+
+        def intersect(self, origins, dirs, tfar=np.inf, trusted=False):
+            k = np.asarray(dirs).shape[0]
+            return SimpleNamespace(prim=np.full(k, -1, np.int64), t=np.full(k, np.inf, np.float32),
+                                   u=np.zeros(k, np.float32), v=np.zeros(k, np.float32))
+
+    world = World(color=np.full(3, 0.3, np.float32), sky_map=sky_map)
+    scene = SimpleNamespace(world=world, surfaces=SimpleNamespace(emissive=False), lights=[])
+    return SimpleNamespace(settings=CacheSettings(), tracer=Misses(), updater=SimpleNamespace(scene=scene))
+
+
+def test_sky_samples_find_a_compact_bright_region_without_bias(monkeypatch):
+    """Glossy lobes under a map with a small region 400 x brighter than the rest (a sun too weak
+    to be split off): the lobe's rays alone meet it once in many receivers (fireflies); with
+    directions drawn by the map's power, weighed against the lobe's by the balance heuristic
+    (`_sky_mis`), each receiver's estimate has the same mean (the lobe's mean radiance, here by
+    quadrature over the sphere) and about half the spread."""
+    from hybridgi_core import reflection
+    from hybridgi_core.environment import SkyMap
+    from hybridgi_core.sampling import frame_rng
+
+    rows = 32
+    pixels = np.full((rows, 2 * rows, 3), 0.5, np.float32)
+    pixels[20, 40] = 200.0  # a texel of ~5.5 degrees, 30 degrees above the horizon
+    system = _open_sky_system(SkyMap(pixels))
+    rng = np.random.default_rng(7)
+    m = 48
+    # Half the receivers mirror their view about 15 degrees off the region, the rest anywhere.
+    lat, lon = (20.5 / rows - 0.5) * np.pi, np.pi - 2 * np.pi * 40.5 / (2 * rows)
+    region = np.array([np.cos(lat) * np.cos(lon), np.cos(lat) * np.sin(lon), np.sin(lat)])
+    to_eye = rng.normal(size=(m, 3))
+    to_eye[:, 2] = np.abs(to_eye[:, 2]) + 0.3
+    to_eye /= np.linalg.norm(to_eye, axis=1, keepdims=True)
+    mirror = region + rng.normal(scale=0.2, size=(m, 3))
+    mirror[m // 2:] = rng.normal(size=(m - m // 2, 3))
+    mirror /= np.linalg.norm(mirror, axis=1, keepdims=True)
+    normals = to_eye + mirror
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    rough = rng.uniform(0.15, 0.5, m)
+    points = np.zeros((m, 3), np.float32)
+
+    def estimates(rays, sky_samples, runs):
+        """(runs, m) each run's weighted radiance sum (luminance) and (runs, m) its weight sum."""
+        monkeypatch.setattr(reflection, "SKY_SAMPLES", sky_samples)
+        num, den = [], []
+        for r in range(runs):
+            out = reflection._chunk(system, None, points, normals.astype(np.float32), to_eye.astype(np.float32),
+                                    rough, rays, frame_rng(3, r))
+            den.append(out[:, 6])
+            num.append((out[:, 0:3] @ np.float32([0.2126, 0.7152, 0.0722])) * out[:, 6])
+        return np.array(num), np.array(den)
+
+    # The lobe's mean radiance by quadrature over the sphere: sum L f cos / sum f cos (F = 1).
+    from hybridgi_core.environment import equirect_directions
+
+    grid, solid = equirect_directions(256, 512)
+    grid, solid = grid.reshape(-1, 3).astype(np.float32), np.repeat(solid, 512).astype(np.float32)
+    sky_luma = system.updater.scene.world.sky_map.radiance(grid) @ np.float32([0.2126, 0.7152, 0.0722])
+    truth = np.empty(m)
+    for i in range(m):
+        n, v = normals[i:i + 1].astype(np.float32), to_eye[i:i + 1].astype(np.float32)
+        up = grid @ n[0] > 0
+        d, _g1, g2 = reflection._ggx_terms(np.repeat(n, up.sum(), 0), np.repeat(v, up.sum(), 0), grid[up],
+                                           np.full(up.sum(), np.float32(rough[i]) ** 2))
+        f = d * g2 * solid[up]
+        truth[i] = (f * sky_luma[up]).sum() / f.sum()
+    runs = 300
+    lobe_only = estimates(8, 0, runs)
+    mixed = estimates(8, 2, runs)
+    # Unbiased: the weighted sums estimate (weight sums x) the lobe's mean radiance, over the runs
+    # as the quadrature gives it (to their standard error and 1% for the quadrature's texels).
+    num, den = mixed
+    ratio = num.sum(axis=0) / den.sum(axis=0)
+    spread = (num / den.mean(axis=0)).std(axis=0) / np.sqrt(runs)
+    err = np.abs(ratio - truth) / (spread + 0.01 * truth)
+    assert np.median(err) < 1.5 and err.max() < 4.0, err
+    lobe_only, mixed = lobe_only[0] / lobe_only[1], mixed[0] / mixed[1]  # each run's estimate
+    # And far less noisy, where the region matters (receivers whose lobe reaches it).
+    bright = truth > 1.5 * np.median(truth)
+    assert bright.sum() >= 5
+    ratio = mixed.std(axis=0)[bright] / lobe_only.std(axis=0)[bright]
+    print(f"noise with sky samples / without: median {np.median(ratio):.2f}")
+    assert np.median(ratio) < 0.6  # measured 0.54
