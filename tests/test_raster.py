@@ -623,6 +623,14 @@ def test_deferred_background_is_the_world_map_along_each_pixels_ray(raster, orth
         assert np.abs(want[bg][0] - np.asarray(WORLD)).min() > 0.5
     else:
         assert want[bg].std(axis=0).min() > 0.1  # a map, not a colour: the check could fail
+    # A strength edit (the same split's pixels) keeps the texture; other pixels upload anew.
+    texture = world.texture
+    world.update(BackgroundMap(background.pixels, strength=1.0, to_world=rotate))
+    assert world.texture is texture
+    out = shade(raster, (gbuf, direct, filtered, hit), world=world, camera=(view, proj))
+    np.testing.assert_allclose(out["combined"][bg][:, :3], want[bg] / 2.5, rtol=2e-3, atol=1e-2)
+    world.update(BackgroundMap(background.pixels.copy(), strength=1.0, to_world=rotate))
+    assert world.texture is not texture
     # No map: the uniform colour, as before.
     world.update(None)
     out = shade(raster, (gbuf, direct, filtered, hit), world=world, camera=(view, proj))

@@ -81,11 +81,14 @@ class WorldTexture:
         self._ubo = None
 
     def update(self, background) -> None:
-        """Show `background` (a BackgroundMap, or None: the uniform colour)."""
-        if background is self.background:
-            return
+        """Show `background` (a BackgroundMap, or None: the uniform colour). The texture is uploaded
+        again only for other pixels: a world edit that changes the strength alone (its slider
+        dragged in the viewport: the same split, `sync._cached_split`) keeps it, a uniform."""
+        same_pixels = (background is not None and self.background is not None
+                       and background.pixels is self.background.pixels)
         self.background = background
-        self.texture = None if background is None else upload_texture_2d(wrapped(background.pixels), "RGBA16F")
+        if not same_pixels:
+            self.texture = None if background is None else upload_texture_2d(wrapped(background.pixels), "RGBA16F")
 
     def ubo(self, view: np.ndarray, proj: np.ndarray):
         """The `WorldBlock` buffer for a draw with `view` / `proj` (a map must be set)."""
