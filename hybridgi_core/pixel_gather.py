@@ -262,8 +262,37 @@ def trace_pixels(system, points: np.ndarray, normals: np.ndarray, rays: int, fra
     points' flat indices in an image `width` pixels wide and the pass's key: the pixels of each
     tile of that image draw their rays as one net (`tiled_nets`, unless TILED_RAYS is off); None:
     a random shift each. stop : polled before each work item; once it returns True the items not
-    yet begun are skipped (their pixels stay zero: the caller throws the result away)."""
-    cache, s = system.cache, system.settings
+    yet begun are skipped (their pixels stay zero: the caller throws the result away).
+    `begin_pixels` and `finish_pixels` in one call."""
+    return finish_pixels(begin_pixels(system, points, normals, rays, frame, corner_visible, lookup, chunk_rays,
+                                      surfaces, min_chunks, pixels, stop), screen)
+
+
+@dataclass
+class BegunPixels:
+    """`begin_pixels`' work in flight: each work item's first half (`_chunk_trace`) on the pool,
+    in order, and what `finish_pixels` needs to shade them."""
+
+    system: object
+    n: int
+    rays: int
+    per: int
+    jobs: list
+    stop: Callable[[], bool] | None = None
+
+
+def begin_pixels(system, points: np.ndarray, normals: np.ndarray, rays: int, frame: int,
+                 corner_visible: np.ndarray | None = None, lookup: HitLookup | None = None,
+                 chunk_rays: int = CHUNK_RAYS, surfaces: np.ndarray | None = None, min_chunks: int = 1,
+                 pixels: tuple[np.ndarray, int, int] | None = None,
+                 stop: Callable[[], bool] | None = None) -> BegunPixels:
+    """The first half of `trace_pixels` (arguments as its own, without `screen`): every work
+    item's cache gather and rays traced, submitted to the system's pool now; `finish_pixels`
+    shades them. Why apart: the rays need the cache and the geometry only, the shading the
+    frame's lamp light; a final render traces them while its centre's lamp light still runs
+    (spheres: 0.25 s of 1.5 cores), then shades them. The same work items and random numbers as
+    one call: the result does not change."""
+    s = system.settings
     points = np.ascontiguousarray(points, np.float32)
     normals = np.array(normals, np.float32).reshape(-1, 3)
     # Rays are built from the normal without checks (`trusted`): a pixel without a usable normal
@@ -276,13 +305,7 @@ def trace_pixels(system, points: np.ndarray, normals: np.ndarray, rays: int, fra
         surfaces = np.array(surfaces, np.float32).reshape(-1, 3)
         surfaces[bad] = normals[bad]
     n = points.shape[0]
-    steps: dict[str, float] = {}
-    # Columns: residual direct rgb, indirect rgb, AO | luminance and AO variances | the cache's
-    # direct rgb, indirect rgb, AO. Everything per chunk of pixels on the worker pool, so no
-    # per-pixel (n, 8, K, 3) temporaries exist for the whole image at once.
-    out = np.zeros((n, 17), np.float32)
-    k = cache.settings.sh_coeffs
-    sh_all = np.zeros((n, k, 7), np.float32)
+    jobs, per = [], 1
     if n:
         if lookup is None and rays > 0:
             lookup = hit_lookup(system, bounced=s.indirect_quality == MULTI_BOUNCE)
@@ -293,36 +316,51 @@ def trace_pixels(system, points: np.ndarray, normals: np.ndarray, rays: int, fra
         surf = (lambda a: None) if surfaces is None else (lambda a: surfaces[a:a + per])
         tiles = (lambda a: None) if pixels is None or not TILED_RAYS else (
             lambda a: (pixels[0][a:a + per], pixels[1], (s.seed + SEED_OFFSET) * 7919 + pixels[2]))
-        chunk = _chunk if stop is None else functools.partial(_unless_stopped, stop)
-        jobs = [system.updater.pool.submit(chunk, system, lookup, points[a:a + per], normals[a:a + per], vis(a),
-                                           rays, frame_rng(s.seed + SEED_OFFSET, frame * 7919 + i), screen, surf(a),
-                                           tiles(a))
+        trace = _chunk_trace if stop is None else functools.partial(_unless_stopped, stop, _chunk_trace)
+        jobs = [system.updater.pool.submit(trace, system, lookup, points[a:a + per], normals[a:a + per], vis(a),
+                                           rays, frame_rng(s.seed + SEED_OFFSET, frame * 7919 + i), surf(a), tiles(a))
                 for i, a in enumerate(starts)]
-        for a, job in zip(starts, jobs, strict=True):
-            values, coeffs, times = job.result()
-            out[a:a + per] = values
-            sh_all[a:a + per] = coeffs
-            for k, v in times.items():
-                steps[k] = steps.get(k, 0.0) + v
+    return BegunPixels(system, n, rays, per, jobs, stop)
+
+
+def finish_pixels(begun: BegunPixels, screen: ScreenLight | None = None) -> PixelGI:
+    """`trace_pixels`' result from its first half (`begin_pixels`): each work item's rays shaded
+    on the pool once traced, with the frame's lamp light per pixel `screen`."""
+    system, n, per = begun.system, begun.n, begun.per
+    steps: dict[str, float] = {}
+    # Columns: residual direct rgb, indirect rgb, AO | luminance and AO variances | the cache's
+    # direct rgb, indirect rgb, AO. Everything per chunk of pixels on the worker pool, so no
+    # per-pixel (n, 8, K, 3) temporaries exist for the whole image at once.
+    out = np.zeros((n, 17), np.float32)
+    sh_all = np.zeros((n, system.cache.settings.sh_coeffs, 7), np.float32)
+    pool = system.updater.pool
+    # (A stop skips work items in their first half: an item traced is shaded, one skipped is not.)
+    shaded = [pool.submit(_chunk_shade, job.result(), screen) for job in begun.jobs]
+    for i, job in enumerate(shaded):
+        values, coeffs, times = job.result()
+        out[i * per:(i + 1) * per] = values
+        sh_all[i * per:(i + 1) * per] = coeffs
+        for key, v in times.items():
+            steps[key] = steps.get(key, 0.0) + v
     # Residual means (estimate - the cache along the same rays) plus the cache's exact integrals.
     cd, ci, ca = out[:, 9:12], out[:, 12:15], out[:, 15]
     return PixelGI(out[:, 0:3] + cd, out[:, 3:6] + ci, out[:, 6] + ca, cd, ci, ca, variance=out[:, 7:9],
-                   indirect_variance=out[:, 16], sh=sh_all, rays=n * rays, steps_ms=steps)
+                   indirect_variance=out[:, 16], sh=sh_all, rays=n * begun.rays, steps_ms=steps)
 
 
-def _unless_stopped(stop: Callable[[], bool], system, lookup, p, *args):
-    """`_chunk`, or zeros without work once stop() holds (`trace_pixels(stop=)`)."""
-    if stop():
-        return (np.zeros((p.shape[0], 17), np.float32),
-                np.zeros((p.shape[0], system.cache.settings.sh_coeffs, 7), np.float32), {})
-    return _chunk(system, lookup, p, *args)
+def _unless_stopped(stop: Callable[[], bool], work, system, lookup, p, *args):
+    """`work` (`_chunk_trace`), or, once stop() holds, a state without rays whose shading is zeros
+    for the pixels (`trace_pixels(stop=)`: the caller throws them away)."""
+    if not stop():
+        return work(system, lookup, p, *args)
+    return dict(res=np.zeros((p.shape[0], 17), np.float32),
+                coeffs=np.zeros((p.shape[0], system.cache.settings.sh_coeffs, 7), np.float32), times={})
 
 
-def _chunk(system, lookup: HitLookup | None, p, nrm, corner_visible, rays, rng, screen=None, surf=None, tiles=None):
-    """Worker: (m, 17) of m pixels: mean residuals pi/N sum (L - L_cache) (direct rgb, indirect
-    rgb, AO as 1/N sum (v - V_cache)), the variances of the luminance and AO means, the cache
-    gather's direct rgb, indirect rgb and AO, the variance of the indirect luminance mean;
-    (m, K, 7) the blended SH; and step times. surf : (m, 3) smooth surface normals, or None.
+def _chunk_trace(system, lookup: HitLookup | None, p, nrm, corner_visible, rays, rng, surf=None, tiles=None) -> dict:
+    """Worker, a work item's first half: the cache's gather at the pixels and their rays traced
+    (what needs the cache and the geometry, not the frame's lamp light). Its state for
+    `_chunk_shade`, whose random numbers follow on from the same generator.
 
     Bent normals (a normal map's): the rays bring their light times Cycles' bump shadowing term,
     so the cache's part is the same lobe's (`bump.irradiance_kernel`: nothing from below the
@@ -360,7 +398,7 @@ def _chunk(system, lookup: HitLookup | None, p, nrm, corner_visible, rays, rng, 
     coeffs[~covered, 0, 6] = np.float32(1.0 / SH_Y00)  # open: constant visibility 1
     times["cache_sh"] = (time.perf_counter() - tic) * 1e3
     if rays <= 0:
-        return res, coeffs, times
+        return dict(res=res, coeffs=coeffs, times=times)
     tic = time.perf_counter()
     uv = None if tiles is None else tiled_uv(tiles[0], tiles[1], rays, tiles[2])
     dirs = cosine_directions(nrm, rays, rng, uv).reshape(-1, 3)
@@ -368,7 +406,25 @@ def _chunk(system, lookup: HitLookup | None, p, nrm, corner_visible, rays, rng, 
     tfar = np.float32(s.ray_length) if s.ray_length > 0 else np.float32(np.inf)
     hits = tracer.intersect(origins, dirs, tfar, trusted=True)
     times["trace"] = (time.perf_counter() - tic) * 1e3
+    return dict(system=system, lookup=lookup, p=p, nrm=nrm, covered=covered, rays=rays, rng=rng, res=res,
+                coeffs=coeffs, times=times, sh_d=sh_d, sh_i=sh_i, sh_a=sh_a, smooth=smooth, k=k, dirs=dirs,
+                origins=origins, hits=hits)
 
+
+def _chunk_shade(state: dict, screen: ScreenLight | None = None):
+    """Worker, a work item's second half: the traced rays' hits shaded (with the frame's lamp light
+    per pixel, `screen`): (m, 17) of m pixels: mean residuals pi/N sum (L - L_cache) (direct rgb,
+    indirect rgb, AO as 1/N sum (v - V_cache)), the variances of the luminance and AO means, the
+    cache gather's direct rgb, indirect rgb and AO, the variance of the indirect luminance mean;
+    (m, K, 7) the blended SH; and step times."""
+    res, coeffs, times = state["res"], state["coeffs"], state["times"]
+    if "hits" not in state:
+        return res, coeffs, times  # no rays
+    system, lookup, p, nrm, rays, rng = (state[k] for k in ("system", "lookup", "p", "nrm", "rays", "rng"))
+    sh_d, sh_i, sh_a, covered, smooth, k = (state[k] for k in ("sh_d", "sh_i", "sh_a", "covered", "smooth", "k"))
+    dirs, origins, hits = state["dirs"], state["origins"], state["hits"]
+    s = system.settings
+    m = p.shape[0]
     tic = time.perf_counter()
     near = np.float32(NEAR_BOUNCE_CELLS * system.cache.grid.cell_size)
     # A sky that varies with direction: where it is open, its exact light less what the rays

@@ -53,7 +53,7 @@ class ScreenLight:
     irradiance: np.ndarray
     valid: np.ndarray
     #: The frame's pixels sample the emissive triangles (`emitters.py`): the pixel rays leaving
-    #: them drop what they find of those (`pixel_gather._chunk`). `irradiance` never holds it.
+    #: them drop what they find of those (`pixel_gather._chunk_shade`). `irradiance` never holds it.
     emitters_sampled: bool = False
 
     @classmethod
