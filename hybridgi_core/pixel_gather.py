@@ -37,8 +37,10 @@ numpy + embreex only (bpy-free; the raster pipeline uploads the result, `raster/
 from __future__ import annotations
 
 import functools
+import threading
 import time
 from collections.abc import Callable
+from concurrent import futures
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -279,19 +281,68 @@ class BegunPixels:
     per: int
     jobs: list
     stop: Callable[[], bool] | None = None
+    lookup: HitLookup | None = None  # the cache as the hits read it (the resolve's detail rays read it too)
+    surfaces: np.ndarray | None = None  # the pixels' smooth surface normals, or None
+    feeder: _Trickle | None = None  # submits the items one at a time (`begin_pixels(trickle=True)`)
+
+    def flush(self) -> None:
+        """Let every item not yet submitted go to the pool at once."""
+        if self.feeder is not None:
+            self.feeder.flush()
+
+
+#: Work items a trickled `begin_pixels` keeps on the pool at once until `flush`.
+TRICKLE_ITEMS = 1
+
+
+class _Trickle:
+    """Submits work items to a pool from a thread of its own, at most `TRICKLE_ITEMS` in flight
+    until `flush` (then all): each item's result lands in its own future, in order.
+
+    Why: the pool is first in, first out; a frame's pixel rays submitted whole while its centre's
+    lamp light still works on the same pool queued that light's later passes behind all of them
+    (spheres: the light 0.51 -> 0.74 s, the frame no sooner). A trickle takes what the light
+    leaves of the cores and little more (morse_apartment r32: -0.07 s of 1.37; spheres, whose
+    light keeps both cores busy: the same)."""
+
+    def __init__(self, pool, calls: list):
+        self.futures = [futures.Future() for _ in calls]
+        self._pool, self._calls = pool, calls
+        self._room = threading.Semaphore(TRICKLE_ITEMS)
+        self._thread = threading.Thread(target=self._run, name="hybridgi-trickle", daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        for future, (fn, args) in zip(self.futures, self._calls, strict=True):
+            self._room.acquire()
+            job = self._pool.submit(fn, *args)
+            job.add_done_callback(functools.partial(self._landed, future))
+
+    def _landed(self, future: futures.Future, job: futures.Future) -> None:
+        self._room.release()
+        error = job.exception()
+        if error is not None:
+            future.set_exception(error)
+        else:
+            future.set_result(job.result())
+
+    def flush(self) -> None:
+        for _ in self._calls:
+            self._room.release()
 
 
 def begin_pixels(system, points: np.ndarray, normals: np.ndarray, rays: int, frame: int,
                  corner_visible: np.ndarray | None = None, lookup: HitLookup | None = None,
                  chunk_rays: int = CHUNK_RAYS, surfaces: np.ndarray | None = None, min_chunks: int = 1,
                  pixels: tuple[np.ndarray, int, int] | None = None,
-                 stop: Callable[[], bool] | None = None) -> BegunPixels:
+                 stop: Callable[[], bool] | None = None, trickle: bool = False) -> BegunPixels:
     """The first half of `trace_pixels` (arguments as its own, without `screen`): every work
-    item's cache gather and rays traced, submitted to the system's pool now; `finish_pixels`
-    shades them. Why apart: the rays need the cache and the geometry only, the shading the
-    frame's lamp light; a final render traces them while its centre's lamp light still runs
-    (spheres: 0.25 s of 1.5 cores), then shades them. The same work items and random numbers as
-    one call: the result does not change."""
+    item's cache gather and rays traced, submitted to the system's pool now (trickle: one at a
+    time until `finish_pixels`, `_Trickle`); `finish_pixels` shades them. Why apart: the rays
+    need the cache and the geometry only, the shading the frame's lamp light; a final render
+    traces them while its centre's lamp light still runs (morse_apartment: 0.13 s after the
+    cache update), then shades them. The same work items and random numbers as one call: the
+    result does not change."""
     s = system.settings
     points = np.ascontiguousarray(points, np.float32)
     normals = np.array(normals, np.float32).reshape(-1, 3)
@@ -317,15 +368,20 @@ def begin_pixels(system, points: np.ndarray, normals: np.ndarray, rays: int, fra
         tiles = (lambda a: None) if pixels is None or not TILED_RAYS else (
             lambda a: (pixels[0][a:a + per], pixels[1], (s.seed + SEED_OFFSET) * 7919 + pixels[2]))
         trace = _chunk_trace if stop is None else functools.partial(_unless_stopped, stop, _chunk_trace)
-        jobs = [system.updater.pool.submit(trace, system, lookup, points[a:a + per], normals[a:a + per], vis(a),
-                                           rays, frame_rng(s.seed + SEED_OFFSET, frame * 7919 + i), surf(a), tiles(a))
-                for i, a in enumerate(starts)]
-    return BegunPixels(system, n, rays, per, jobs, stop)
+        calls = [(trace, (system, lookup, points[a:a + per], normals[a:a + per], vis(a), rays,
+                          frame_rng(s.seed + SEED_OFFSET, frame * 7919 + i), surf(a), tiles(a)))
+                 for i, a in enumerate(starts)]
+        if trickle:
+            feeder = _Trickle(system.updater.pool, calls)
+            return BegunPixels(system, n, rays, per, feeder.futures, stop, lookup, surfaces, feeder)
+        jobs = [system.updater.pool.submit(fn, *args) for fn, args in calls]
+    return BegunPixels(system, n, rays, per, jobs, stop, lookup, surfaces)
 
 
 def finish_pixels(begun: BegunPixels, screen: ScreenLight | None = None) -> PixelGI:
     """`trace_pixels`' result from its first half (`begin_pixels`): each work item's rays shaded
     on the pool once traced, with the frame's lamp light per pixel `screen`."""
+    begun.flush()
     system, n, per = begun.system, begun.n, begun.per
     steps: dict[str, float] = {}
     # Columns: residual direct rgb, indirect rgb, AO | luminance and AO variances | the cache's
@@ -1292,7 +1348,8 @@ def full_res_images(system, position_lo: np.ndarray, normal_lo: np.ndarray, pix:
                     full_size: tuple[int, int], passes: int = 3, plane_sigma: float = 0.02,
                     normal_power: float = 8.0, refine: float = REFINE_SPREAD,
                     screen: ScreenLight | None = None, full_surfaces: np.ndarray | None = None,
-                    filter=None, upsample=None, lookup: HitLookup | None = None) -> FullResGI:
+                    filter=None, upsample=None, lookup: HitLookup | None = None,
+                    begun: BegunPixels | None = None) -> FullResGI:
     """Pixel rays at the GI resolution, resolved at the full resolution (W, H = full_size).
 
     The GI pixels trace as `gi_images` does; their estimates (not only the residuals) are filtered
@@ -1322,18 +1379,34 @@ def full_res_images(system, position_lo: np.ndarray, normal_lo: np.ndarray, pix:
     upsample : likewise for `upsample_full` over the whole image (`raster.upsample.UpsamplePass`);
     its time is the step "upsample_pass". None: `upsample_full` on the worker pool.
     lookup : the cache's HitLookup the hits read (None: `levels.hit_lookup`'s, built here).
+    begun : the GI pixels' rays already traced (`begin_full_res`), shaded here with `screen`.
     """
+    if begun is None:
+        begun = begin_full_res(system, position_lo, pix, points, normals, corner_visible, frame, rays, full_points,
+                               full_pix, full_size, full_surfaces, lookup)
+    gi = finish_pixels(begun, screen)
+    lookup, surfaces = begun.lookup, begun.surfaces
+    return full_res_resolve(system, gi, position_lo, pix, points, normals, view, frame, rays, full_points,
+                            full_normals, full_pix, full_size, passes, plane_sigma, normal_power, refine, lookup,
+                            screen, surfaces=surfaces, full_surfaces=full_surfaces, filter=filter,
+                            upsample=upsample)
+
+
+def begin_full_res(system, position_lo: np.ndarray, pix: np.ndarray, points: np.ndarray, normals: np.ndarray,
+                   corner_visible: np.ndarray, frame: int, rays: int, full_points: np.ndarray, full_pix: np.ndarray,
+                   full_size: tuple[int, int], full_surfaces: np.ndarray | None = None,
+                   lookup: HitLookup | None = None, trickle: bool = False) -> BegunPixels:
+    """`full_res_images`' GI pixel rays traced (`begin_pixels`: their shading waits for the
+    frame's lamp light; trickle: as its), with the lookup and smooth surface normals it reads."""
     surfaces = None
     if full_surfaces is not None:
         surfaces = low_res_surfaces(position_lo, pix, normals, full_points, full_surfaces, full_pix, full_size)
     if lookup is None and rays > 0:
         lookup = hit_lookup(system, bounced=system.settings.indirect_quality == MULTI_BOUNCE)
-    gi = trace_pixels(system, points, normals, rays, frame, corner_visible, lookup=lookup, screen=screen,
-                      surfaces=surfaces, pixels=(pix, position_lo.shape[1], frame))
-    return full_res_resolve(system, gi, position_lo, pix, points, normals, view, frame, rays, full_points,
-                            full_normals, full_pix, full_size, passes, plane_sigma, normal_power, refine, lookup,
-                            screen, surfaces=surfaces, full_surfaces=full_surfaces, filter=filter,
-                            upsample=upsample)
+    begun = begin_pixels(system, points, normals, rays, frame, corner_visible, lookup=lookup, surfaces=surfaces,
+                         pixels=(pix, position_lo.shape[1], frame), trickle=trickle)
+    begun.surfaces = surfaces  # as given (begin_pixels mends a copy's rows of unusable normals)
+    return begun
 
 
 def low_res_surfaces(position_lo: np.ndarray, pix: np.ndarray, normals: np.ndarray, full_points: np.ndarray,

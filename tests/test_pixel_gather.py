@@ -772,3 +772,37 @@ def test_trace_pixels_skips_the_work_items_after_a_stop():
     assert traced.sum() == 50
     np.testing.assert_array_equal(part.sh[traced], whole.sh[traced])
     assert np.all(whole.sh.any(axis=(1, 2)))
+
+
+def test_pixel_rays_traced_ahead_and_shaded_later_are_the_same_rays(monkeypatch):
+    """`begin_pixels` (the work items' cache gather and traced rays, trickled to the pool one at a
+    time while the frame's lamp light runs) then `finish_pixels` (their shading) give bit for bit
+    what one `trace_pixels` call gives; an error in a traced item reaches `finish_pixels`."""
+    with GISystem(ground_and_wall(albedo=0.5), CacheSettings(resolution=8, rays_per_cell=16, threads=2)) as gi:
+        gi.warm_up(2)
+        rng = np.random.default_rng(4)
+        points = np.zeros((300, 3), np.float32)
+        points[:, 0] = rng.uniform(0.5, 5.0, 300)
+        points[:, 1] = rng.uniform(-10.0, 10.0, 300)
+        normals = np.tile(UP, (300, 1))
+        whole = pixel_gather.trace_pixels(gi, points, normals, 16, 5, chunk_rays=16 * 40)
+        for trickle in (False, True):
+            begun = pixel_gather.begin_pixels(gi, points, normals, 16, 5, chunk_rays=16 * 40, trickle=trickle)
+            assert len(begun.jobs) == 8
+            later = pixel_gather.finish_pixels(begun)
+            for name in ("direct", "indirect", "ao", "cache_direct", "sh", "variance"):
+                np.testing.assert_array_equal(getattr(later, name), getattr(whole, name), err_msg=name)
+
+        calls = []
+
+        def failing(*args):
+            calls.append(1)
+            if len(calls) == 3:
+                raise RuntimeError("a traced item failed")
+            return real(*args)
+
+        real = pixel_gather._chunk_trace
+        monkeypatch.setattr(pixel_gather, "_chunk_trace", failing)
+        begun = pixel_gather.begin_pixels(gi, points, normals, 16, 5, chunk_rays=16 * 40, trickle=True)
+        with pytest.raises(RuntimeError, match="a traced item failed"):
+            pixel_gather.finish_pixels(begun)
