@@ -748,17 +748,22 @@ def test_light_between_an_emitter_and_the_floor_it_touches_is_not_lost():
     np.testing.assert_allclose(got.indirect.mean(axis=1), bounced, rtol=0.12)
 
 
+def _ground_points(gi, n: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """(n, 3) points on the ground of `ground_and_wall` facing up, its cache warmed up first."""
+    gi.warm_up(2)
+    rng = np.random.default_rng(seed)
+    points = np.zeros((n, 3), np.float32)
+    points[:, 0] = rng.uniform(0.5, 5.0, n)
+    points[:, 1] = rng.uniform(-10.0, 10.0, n)
+    return points, np.tile(UP, (n, 1))
+
+
 def test_trace_pixels_skips_the_work_items_after_a_stop():
     """`trace_pixels(stop=)` polls stop before each work item: once it holds, the items not yet
     begun are skipped (zeros), whichever pool thread takes them; without a stop every item is
     traced, the same as before."""
     with GISystem(ground_and_wall(albedo=0.5), CacheSettings(resolution=8, rays_per_cell=16, threads=2)) as gi:
-        gi.warm_up(2)
-        rng = np.random.default_rng(3)
-        points = np.zeros((400, 3), np.float32)
-        points[:, 0] = rng.uniform(0.5, 5.0, 400)
-        points[:, 1] = rng.uniform(-10.0, 10.0, 400)
-        normals = np.tile(UP, (400, 1))
+        points, normals = _ground_points(gi, 400, seed=3)
         polls = []
 
         def stop():
@@ -779,12 +784,7 @@ def test_pixel_rays_traced_ahead_and_shaded_later_are_the_same_rays(monkeypatch)
     time while the frame's lamp light runs) then `finish_pixels` (their shading) give bit for bit
     what one `trace_pixels` call gives; an error in a traced item reaches `finish_pixels`."""
     with GISystem(ground_and_wall(albedo=0.5), CacheSettings(resolution=8, rays_per_cell=16, threads=2)) as gi:
-        gi.warm_up(2)
-        rng = np.random.default_rng(4)
-        points = np.zeros((300, 3), np.float32)
-        points[:, 0] = rng.uniform(0.5, 5.0, 300)
-        points[:, 1] = rng.uniform(-10.0, 10.0, 300)
-        normals = np.tile(UP, (300, 1))
+        points, normals = _ground_points(gi, 300, seed=4)
         whole = pixel_gather.trace_pixels(gi, points, normals, 16, 5, chunk_rays=16 * 40)
         for trickle in (False, True):
             begun = pixel_gather.begin_pixels(gi, points, normals, 16, 5, chunk_rays=16 * 40, trickle=trickle)
