@@ -759,23 +759,25 @@ def _ground_points(gi, n: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
 
 
 def test_trace_pixels_skips_the_work_items_after_a_stop():
-    """`trace_pixels(stop=)` polls stop before each work item: once it holds, the items not yet
-    begun are skipped (zeros), whichever pool thread takes them; without a stop every item is
-    traced, the same as before."""
+    """`trace_pixels(stop=)` polls stop before each work item's rays are traced and again before a
+    traced item is shaded: once it holds, what has not begun is skipped (zeros), whichever pool
+    thread takes it; without a stop every item is traced and shaded, the same as before."""
     with GISystem(ground_and_wall(albedo=0.5), CacheSettings(resolution=8, rays_per_cell=16, threads=2)) as gi:
         points, normals = _ground_points(gi, 400, seed=3)
         polls = []
 
         def stop():
             polls.append(1)
-            return len(polls) > 1  # the first item runs, every later one is stopped
+            return len(polls) > 9  # the 8 items' rays and the first shading(s) run, the rest stop
 
         whole = pixel_gather.trace_pixels(gi, points, normals, 16, 1, chunk_rays=16 * 50)
         part = pixel_gather.trace_pixels(gi, points, normals, 16, 1, chunk_rays=16 * 50, stop=stop)
-    assert len(polls) == 8  # 400 pixels, 50 an item
-    traced = np.any(part.sh != 0, axis=(1, 2))
-    assert traced.sum() == 50
-    np.testing.assert_array_equal(part.sh[traced], whole.sh[traced])
+    assert len(polls) == 16  # 400 pixels, 50 an item: 8 before tracing, 8 before shading
+    shaded = np.any(part.direct != 0, axis=1) | np.any(part.indirect != 0, axis=1)
+    # The first item shaded, a second at most (two pool threads may poll in either order).
+    assert shaded.sum() in (50, 100)
+    np.testing.assert_array_equal(part.direct[shaded], whole.direct[shaded])
+    np.testing.assert_array_equal(part.sh[shaded], whole.sh[shaded])
     assert np.all(whole.sh.any(axis=(1, 2)))
 
 
