@@ -16,6 +16,7 @@ texture directions to world directions (the inverse of a Mapping node's transfor
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -32,6 +33,8 @@ SUN_MIN_SHARE = 0.2
 LUMA = np.array([0.2126, 0.7152, 0.0722], np.float64)
 #: Rows of the equirectangular sky map rays read (columns: twice as many); ~2.8 degrees a texel.
 SKY_MAP_ROWS = 64
+#: Directions `BackgroundMap.radiance` reads at once.
+BLOCK_DIRECTIONS = 1 << 18
 #: Widest map the camera's background keeps (texels across; wider maps are halved until they
 #: fit): 11 texels a degree, what a 1920-pixel view of 40 degrees or wider shows. A 4096 x 2048
 #: map is 48 MiB of half floats on the GPU (RGBA); an 8K HDRI would be four times that.
@@ -249,9 +252,19 @@ class BackgroundMap:
     to_world: np.ndarray | None = None
 
     def radiance(self, directions: np.ndarray) -> np.ndarray:
-        """(n, 3) float32 radiance towards unit world directions (n, 3), bilinear as the GPU reads."""
-        sky = SkyMap(np.asarray(self.pixels, np.float32), self.to_world)
-        return sky.radiance(directions) * np.float32(self.strength)
+        """(n, 3) float32 radiance towards unit world directions (n, 3), bilinear as the GPU reads;
+        in blocks of BLOCK_DIRECTIONS (an empty 4K frame's 8M directions in one piece cost ~1 GB)."""
+        d = np.asarray(directions, np.float32).reshape(-1, 3)
+        out = np.empty((d.shape[0], 3), np.float32)
+        for a in range(0, d.shape[0], BLOCK_DIRECTIONS):
+            out[a:a + BLOCK_DIRECTIONS] = self._sky.radiance(d[a:a + BLOCK_DIRECTIONS])
+        out *= np.float32(self.strength)
+        return out
+
+    @functools.cached_property
+    def _sky(self) -> SkyMap:
+        """The map as a float32 `SkyMap` (made once: a 4096-wide map is 100 MB)."""
+        return SkyMap(np.asarray(self.pixels, np.float32), self.to_world)
 
     def texture_from_world(self) -> np.ndarray:
         """(3, 3) float64 world -> texture directions."""
