@@ -300,8 +300,9 @@ def uv_tangents(positions, normals, uvs, triangles, corner_vert):
 
 def transformed(local, matrices, slot_to_material, first_object):
     """`Geometry` of instances of `local`, one per (4, 4) matrix of `matrices` (I, 4, 4), finite,
-    instance i with object index first_object + i: a scattered mesh (thousands of rocks or leaves
-    of one instancer) is transformed in a few batched numpy calls, not a dozen calls per instance.
+    instance i with object index first_object + i (or first_object[i]: an (I,) array): a
+    scattered mesh (thousands of rocks or leaves of one instancer) is transformed in a few
+    batched numpy calls, not a dozen calls per instance.
 
     slot_to_material : (S,) int32 global material index of each material slot (at least one).
     A zero scale on one axis flattens the object, as in Cycles, which still renders it (a plane
@@ -354,11 +355,24 @@ def transformed(local, matrices, slot_to_material, first_object):
         normals=normals.reshape(-1, 3),
         uvs=local.uvs if count == 1 else np.tile(local.uvs, (count, 1)),
         material_index=np.tile(np.asarray(slot_to_material, np.int32)[slots], count),
-        object_index=np.repeat(np.arange(first_object, first_object + count, dtype=np.int32), n_tri),
+        object_index=np.repeat(np.arange(first_object, first_object + count, dtype=np.int32) if np.ndim(first_object) == 0
+                               else np.asarray(first_object, np.int32), n_tri),
         tangents=tangents,
         normal_uvs=(None if local.normal_uvs is None else
                     local.normal_uvs if count == 1 else np.tile(local.normal_uvs, (count, 1))),
     )
+
+
+def _instance_part(batch, i: int, corners: int, n_tri: int):
+    """Instance i of a `transformed` batch of a mesh of `corners` corners and `n_tri` triangles
+    as a `Geometry` of its own (views of the batch; its triangles numbered from its corners)."""
+    rows = slice(i * corners, (i + 1) * corners)
+    tris = slice(i * n_tri, (i + 1) * n_tri)
+    return snap.Geometry(
+        positions=batch.positions[rows], triangles=batch.triangles[tris] - np.int32(i * corners),
+        normals=batch.normals[rows], uvs=batch.uvs[rows], material_index=batch.material_index[tris],
+        object_index=batch.object_index[tris], tangents=None if batch.tangents is None else batch.tangents[rows],
+        normal_uvs=None if batch.normal_uvs is None else batch.normal_uvs[rows])
 
 
 def _listed(names, shown=5) -> str:
@@ -385,8 +399,10 @@ class _SnapshotBuilder:
         self.without_material = set()  # object names (Cycles gives them a glossy default)
         self.collection_flags = collection_flags or {}
         self.ignored: dict[str, set[str]] = {}  # what is approximated -> object names, warned once
-        self.parts = []
-        self._run = None  # (key, local mesh, slot materials, first object index, [matrix]) to place
+        #: Instances to place (`_add_placed`): key -> [local mesh, slot materials, [object index],
+        #: [matrix]], and (key, instance) in the order they came.
+        self._groups = {}
+        self._order = []
         self.objects = []
         self.lights = []
         self.lamp_notes: dict[str, set[str]] = {}  # what of a lamp is approximated -> lamp names
@@ -485,20 +501,26 @@ class _SnapshotBuilder:
                                                 casts_shadow=bool(getattr(obj, "visible_shadow", True))))
 
     def _add_placed(self, local, slot_to_material, matrix):
-        """Queue one instance of `local` (object index: the next ObjectInfo's). Consecutive
-        instances of one mesh with the same materials (an instancer's) are transformed together
-        (`transformed`), in the order they came: the snapshot is the same as one by one."""
+        """Queue one instance of `local` (object index: the next ObjectInfo's). Every instance of
+        one mesh with the same materials is transformed in one batch (`transformed`), wherever it
+        came: a collection of a trunk and a crown instanced 300 times alternates between the two,
+        ~0.5 ms of numpy calls an instance one by one (0.3 s of a landscape's sync)."""
         key = (id(local), tuple(slot_to_material))
-        if self._run is None or self._run[0] != key:
-            self._flush_run()
-            self._run = (key, local, slot_to_material, len(self.objects), [])
-        self._run[4].append(matrix)
+        group = self._groups.setdefault(key, [local, slot_to_material, [], []])
+        group[2].append(len(self.objects))
+        group[3].append(matrix)
+        self._order.append((key, len(group[3]) - 1))
 
-    def _flush_run(self):
-        if self._run is not None:
-            _key, local, slot_to_material, first, matrices = self._run
-            self.parts.append(transformed(local, np.stack(matrices), slot_to_material, first))
-            self._run = None
+    def _placed_parts(self) -> list:
+        """The queued instances' `Geometry`, in the order they came (the snapshot the same as one
+        by one: each instance a view of its batch, its triangles numbered from its own corners)."""
+        batches = {key: transformed(local, np.stack(matrices), slot_to_material, np.asarray(objects, np.int32))
+                   for key, (local, slot_to_material, objects, matrices) in self._groups.items()}
+        parts = []
+        for key, i in self._order:
+            local, batch = self._groups[key][0], batches[key]
+            parts.append(_instance_part(batch, i, local.positions.shape[0], local.triangles.shape[0]))
+        return parts
 
     def _note_ignored(self, obj):
         for prop, meaning in IGNORED_VISIBILITY.items():
@@ -528,9 +550,9 @@ class _SnapshotBuilder:
                         "is" if len(names) == 1 else "are", meaning)
 
     def finish(self, world):
-        self._flush_run()
+        parts = self._placed_parts()
         self._warn_glossy()
-        geometry = snap.concat_geometry(self.parts)  # new arrays, handed over whole
+        geometry = snap.concat_geometry(parts)  # new arrays, handed over whole
         return snap.make_snapshot(geometry, self.materials, self.lights, world, self.objects, owned=True)
 
     def _warn_glossy(self):

@@ -510,6 +510,45 @@ def test_scattered_instances_are_placed_one_by_one(bpy_module, scene, sync):
         assert np.all(np.einsum("ij,ij->i", geo.normals[tris[:, 0]], outward) > 0), f"instance {i}: normals"
 
 
+def test_alternating_instances_are_transformed_by_mesh_and_kept_in_order(bpy_module, scene, sync):
+    """A collection of two objects instanced several times alternates between their meshes; every
+    instance of one mesh is transformed in one batch (`sync._SnapshotBuilder._add_placed`), and the
+    snapshot keeps the order they came in: object i's triangles are the i-th instance's mesh
+    under its own matrix, its triangles numbered within the joined geometry."""
+    bpy = bpy_module
+    collection = bpy.data.collections.new("tree")
+    add_cube(bpy, scene, "trunk", collection=collection)
+    leaves = add_mesh(bpy, scene, "leaves", [(0, 0, 0), (1, 0, 0), (1, 1, 0), (0, 1, 0)], [(0, 1, 2, 3)],
+                      collection=collection)
+    leaves.location = (0.0, 0.0, 2.0)
+    for i in range(4):
+        empty = bpy.data.objects.new(f"tree{i}", None)
+        empty.instance_type = "COLLECTION"
+        empty.instance_collection = collection
+        empty.location, empty.rotation_euler = (3.0 * i, 0.0, 0.0), (0.0, 0.0, 0.4 * i)
+        scene.collection.objects.link(empty)
+
+    snap = snapshot(sync, bpy)
+    geo = snap.geometry
+    names = [o.name for o in snap.objects]
+    assert sorted(names) == sorted(f"tree{i}/{part}" for i in range(4) for part in ("trunk", "leaves"))
+    # Each object's triangles are contiguous and in the objects' order.
+    assert np.all(np.diff(geo.object_index) >= 0)
+    assert np.array_equal(np.unique(geo.object_index), np.arange(len(names)))
+    for index, name in enumerate(names):
+        tree, part = name.split("/")
+        matrix = np.array(bpy.data.objects[tree].matrix_world) @ np.array(bpy.data.objects[part].matrix_world)
+        tris = geo.triangles[geo.object_index == index]
+        assert tris.shape[0] == (12 if part == "trunk" else 2)
+        corners = geo.positions[tris].reshape(-1, 3)
+        local = (corners - matrix[:3, 3]) @ np.linalg.inv(matrix[:3, :3]).T
+        if part == "trunk":
+            np.testing.assert_allclose(np.abs(local), 1.0, atol=1e-4)  # the unit cube's corners
+        else:
+            np.testing.assert_allclose(local[:, 2], 0.0, atol=1e-5)
+            assert local[:, :2].min() > -1e-5 and local[:, :2].max() < 1.0 + 1e-5
+
+
 def test_geometry_nodes_instances(bpy_module, scene, sync):
     bpy = bpy_module
     tree = bpy.data.node_groups.new("scatter", "GeometryNodeTree")
