@@ -521,10 +521,11 @@ def _write_background(engine, depsgraph, width, height, world, background_map=No
     result = _Result(engine, render, width, height, depsgraph.view_layer.name)
     bg = np.zeros((height, width, 4), np.float32)
     if not render.film_transparent:
-        bg[...] = (*(np.asarray(world, np.float32) * film_exposure(depsgraph.scene)).tolist(), 1.0)
+        exposure = film_exposure(depsgraph.scene)
+        bg[...] = (*(np.asarray(world, np.float32) * exposure).tolist(), 1.0)
         if background_map is not None and view is not None:
             rays = world_background.pixel_directions(view, proj, width, height)
-            bg[..., :3] = background_map.radiance(rays).reshape(height, width, 3) * film_exposure(depsgraph.scene)
+            bg[..., :3] = background_map.radiance(rays).reshape(height, width, 3) * exposure
     result.set("Combined", bg)
     for name in ("Diffuse Direct", "Diffuse Indirect", "Diffuse Color", "Ambient Occlusion", "Normal", "Glossy Direct",
                  "Glossy Indirect", "Glossy Color"):

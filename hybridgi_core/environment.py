@@ -132,7 +132,8 @@ def split_environment(pixels: np.ndarray, to_world: np.ndarray | None = None) ->
     dirs, solid = equirect_directions(wh, ww)
     dirs = _to_world(dirs, to_world)
     weight = np.broadcast_to(solid[:, None], (wh, ww))
-    peak_dir = _to_world(equirect_directions(h, w, slice(peak[0], peak[0] + 1))[0][:, peak[1]], to_world)[0]
+    peak_tex = equirect_directions(h, w, slice(peak[0], peak[0] + 1))[0][0, peak[1]]
+    peak_dir = _to_world(peak_tex[None], to_world)[0]
     # Light from the whole map on a surface facing the peak (the filtered copy: the share test).
     total_light = float(((work @ LUMA) * weight * np.clip(dirs @ peak_dir, 0.0, None)).sum())
     sun = None
@@ -145,8 +146,9 @@ def split_environment(pixels: np.ndarray, to_world: np.ndarray | None = None) ->
         band = full[rows].astype(np.float64)
         b_dirs, b_solid = equirect_directions(h, w, rows)
         if _rotation(to_world):  # cosines in texture space: the band's directions stay unturned
-            to_peak = b_dirs @ (peak_dir if to_world is None else np.asarray(to_world, np.float64).T @ peak_dir)
-            b_dirs = _to_world(b_dirs, to_world) if to_world is None else _LazyWorld(b_dirs, to_world)
+            to_peak = b_dirs @ peak_tex
+            if to_world is not None:
+                b_dirs = _LazyWorld(b_dirs, to_world)
         else:
             b_dirs = _to_world(b_dirs, to_world)
             to_peak = b_dirs @ peak_dir  # cosine of each pixel's angle to the brightest one
@@ -169,7 +171,7 @@ def split_environment(pixels: np.ndarray, to_world: np.ndarray | None = None) ->
             band[region] = fill
             full[rows] = band
             # The filtered copy again, in the rows the fill reaches.
-            f = 1 << _halvings(w, h, SPLIT_WIDTH)
+            f = w // ww  # the copy's texels per side of the map's (halvings of even sides: exact)
             lo, hi = rows.start // f, min(-(-rows.stop // f), wh)
             work[lo:hi] = _box_equirect(full[lo * f:hi * f], SPLIT_WIDTH, lo * f, h)
     # The uniform sky: the cosine-weighted mean over the upper hemisphere (irradiance / pi of an
@@ -200,16 +202,6 @@ def _box_equirect(pixels: np.ndarray, max_width: int, first: int = 0, total: int
         p = (cols[0::2] * ct + cols[1::2] * cb) / (2.0 * (ct + cb))
         first, total = first // 2, total // 2
     return p
-
-
-def _halvings(width: int, height: int, max_width: int) -> int:
-    """How many times `_box_equirect` halves a map `width` texels across."""
-    k = 0
-    while width > max_width and width % 2 == 0 and height % 2 == 0:
-        width //= 2
-        height //= 2
-        k += 1
-    return k
 
 
 class _LazyWorld:

@@ -283,7 +283,7 @@ class BegunPixels:
     jobs: list
     stop: Callable[[], bool] | None = None
     lookup: HitLookup | None = None  # the cache as the hits read it (the resolve's detail rays read it too)
-    surfaces: np.ndarray | None = None  # the pixels' smooth surface normals, or None
+    surfaces: np.ndarray | None = None  # the pixels' smooth surface normals as given, or None
     feeder: _Trickle | None = None  # submits the items one at a time (`begin_pixels(trickle=True)`)
 
     def flush(self) -> None:
@@ -353,9 +353,10 @@ def begin_pixels(system, points: np.ndarray, normals: np.ndarray, rays: int, fra
     bad = ~(np.abs(length - 1.0) < 0.1)
     if bad.any():
         normals[bad] = (0.0, 0.0, 1.0)
+    mended = None
     if surfaces is not None:
-        surfaces = np.array(surfaces, np.float32).reshape(-1, 3)
-        surfaces[bad] = normals[bad]
+        mended = np.array(surfaces, np.float32).reshape(-1, 3)
+        mended[bad] = normals[bad]
     n = points.shape[0]
     jobs, per = [], 1
     if n:
@@ -365,10 +366,10 @@ def begin_pixels(system, points: np.ndarray, normals: np.ndarray, rays: int, fra
         per = min(most, max(-(-n // max(1, min_chunks)), MIN_SPLIT_RAYS // max(rays, 8)))
         starts = range(0, n, per)
         vis = (lambda a: None) if corner_visible is None else (lambda a: corner_visible[a:a + per])
-        surf = (lambda a: None) if surfaces is None else (lambda a: surfaces[a:a + per])
+        surf = (lambda a: None) if mended is None else (lambda a: mended[a:a + per])
         tiles = (lambda a: None) if pixels is None or not TILED_RAYS else (
             lambda a: (pixels[0][a:a + per], pixels[1], (s.seed + SEED_OFFSET) * 7919 + pixels[2]))
-        trace = _chunk_trace if stop is None else functools.partial(_unless_stopped, stop, _chunk_trace)
+        trace = _chunk_trace if stop is None else functools.partial(_trace_unless_stopped, stop)
         calls = [(trace, (system, lookup, points[a:a + per], normals[a:a + per], vis(a), rays,
                           frame_rng(s.seed + SEED_OFFSET, frame * 7919 + i), surf(a), tiles(a)))
                  for i, a in enumerate(starts)]
@@ -416,11 +417,11 @@ def _shade_unless_stopped(stop: Callable[[], bool], state: dict, screen: ScreenL
     return _chunk_shade(state, screen)
 
 
-def _unless_stopped(stop: Callable[[], bool], work, system, lookup, p, *args):
-    """`work` (`_chunk_trace`), or, once stop() holds, a state without rays whose shading is zeros
-    for the pixels (`trace_pixels(stop=)`: the caller throws them away)."""
+def _trace_unless_stopped(stop: Callable[[], bool], system, lookup, p, *args):
+    """`_chunk_trace`, or, once stop() holds, a state without rays whose shading is zeros for the
+    pixels (`trace_pixels(stop=)`: the caller throws them away)."""
     if not stop():
-        return work(system, lookup, p, *args)
+        return _chunk_trace(system, lookup, p, *args)
     return dict(res=np.zeros((p.shape[0], 17), np.float32),
                 coeffs=np.zeros((p.shape[0], system.cache.settings.sh_coeffs, 7), np.float32), times={})
 
@@ -1415,10 +1416,8 @@ def begin_full_res(system, position_lo: np.ndarray, pix: np.ndarray, points: np.
         surfaces = low_res_surfaces(position_lo, pix, normals, full_points, full_surfaces, full_pix, full_size)
     if lookup is None and rays > 0:
         lookup = hit_lookup(system, bounced=system.settings.indirect_quality == MULTI_BOUNCE)
-    begun = begin_pixels(system, points, normals, rays, frame, corner_visible, lookup=lookup, surfaces=surfaces,
-                         pixels=(pix, position_lo.shape[1], frame), trickle=trickle)
-    begun.surfaces = surfaces  # as given (begin_pixels mends a copy's rows of unusable normals)
-    return begun
+    return begin_pixels(system, points, normals, rays, frame, corner_visible, lookup=lookup, surfaces=surfaces,
+                        pixels=(pix, position_lo.shape[1], frame), trickle=trickle)
 
 
 def low_res_surfaces(position_lo: np.ndarray, pix: np.ndarray, normals: np.ndarray, full_points: np.ndarray,

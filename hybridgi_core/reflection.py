@@ -277,6 +277,15 @@ def _ggx_terms(n: np.ndarray, v: np.ndarray, wi: np.ndarray, alpha: np.ndarray) 
     return d.astype(_F32), (1.0 / (1.0 + lam_v)).astype(_F32), (1.0 / (1.0 + lam_v + lam_l)).astype(_F32)
 
 
+def _lobe_densities(n: np.ndarray, v: np.ndarray, wi: np.ndarray, alpha: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """((N,) density p_b of `sample_reflections` drawing wi, (N,) the lobe's f cos without Fresnel
+    there) for GGX lobes (alpha (N,)) at unit normals n and views v (N, 3): G1 D / (4 n.v) and
+    D G2 / (4 n.v), whose ratio is the samples' weight G2 / G1."""
+    d, g1, g2 = _ggx_terms(n, v, wi, alpha)
+    four_nv = 4.0 * np.maximum(np.einsum("ij,ij->i", n, v), _F32(1e-4))
+    return g1 * d / four_nv, d * g2 / four_nv
+
+
 def _sky_mis(system, sky, p, nrm, eye, rough, rays, rng, radiance, flat_dirs, live, hits) -> np.ndarray:
     """(m, 3) the sky's part of m receivers' weighted radiance sum (the numerator of `_chunk`'s
     mean, in units of its ray weights) from SKY_SAMPLES directions drawn by the map's power
@@ -296,10 +305,7 @@ def _sky_mis(system, sky, p, nrm, eye, rough, rays, rng, radiance, flat_dirs, li
     if escaped.size:
         owner = escaped // rays
         wi = flat_dirs[escaped]
-        n, v = nrm[owner], eye[owner]
-        d, g1, _g2 = _ggx_terms(n, v, wi, alpha[owner])
-        nv = np.maximum(np.einsum("ij,ij->i", n, v), _F32(1e-4))
-        pb = g1 * d / (4.0 * nv)
+        pb, _fcos = _lobe_densities(nrm[owner], eye[owner], wi, alpha[owner])
         share = nb * pb / np.maximum(nb * pb + ns * sampler.pdf(wi), _F32(1e-30))
         radiance[escaped, 0:3] *= share[:, None]
     # The sampler's directions.
@@ -321,10 +327,8 @@ def _sky_mis(system, sky, p, nrm, eye, rough, rays, rng, radiance, flat_dirs, li
     if seen.size == 0:
         return out
     owner, n, v, wi, ps = owner[seen], n[seen], v[seen], wi[seen], ps[seen]
-    d, g1, g2 = _ggx_terms(n, v, wi, alpha[owner])
-    nv = np.maximum(np.einsum("ij,ij->i", n, v), _F32(1e-4))
-    pb = g1 * d / (4.0 * nv)
-    weight = nb * d * g2 / (4.0 * nv * np.maximum(nb * pb + ns * ps, _F32(1e-30)))
+    pb, fcos = _lobe_densities(n, v, wi, alpha[owner])
+    weight = nb * fcos / np.maximum(nb * pb + ns * ps, _F32(1e-30))
     light = sky.radiance(wi) * weight[:, None]
     for c in range(3):
         out[:, c] = np.bincount(owner, weights=light[:, c], minlength=m)

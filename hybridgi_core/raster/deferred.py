@@ -63,14 +63,17 @@ class DeferredPass(RasterPass):
         self.settings = settings or RasterSettings()
         self._targets = None
         self._fb = None
-        self._no_glossy = None
-        self._no_world = None
+        self._blank = None  # (1x1 texture, zero WorldBlock) bound where the shader reads neither
 
-    def _no_glossy_texture(self):
-        """A 1x1 texture for a sampler the shader does not read."""
-        if self._no_glossy is None:
-            self._no_glossy = upload_texture_2d(np.zeros((1, 1, 4), np.float32), "RGBA16F")
-        return self._no_glossy
+    def _blanks(self):
+        """(a 1x1 texture, a zero `WorldBlock`) for the glossy and world bindings of a draw
+        without them (made on first use)."""
+        import gpu  # noqa: PLC0415
+
+        if self._blank is None:
+            self._blank = (upload_texture_2d(np.zeros((1, 1, 4), np.float32), "RGBA16F"),
+                           gpu.types.GPUUniformBuf(np.zeros(36, np.float32)))
+        return self._blank
 
     def _build_shaders(self) -> dict:
         spec = fullscreen_spec(
@@ -102,8 +105,7 @@ class DeferredPass(RasterPass):
     def _release_targets(self) -> None:
         self._targets = None
         self._fb = None
-        self._no_glossy = None
-        self._no_world = None
+        self._blank = None
 
     def execute(self, gbuffer, direct, filtered: FilteredGI, world_color=(0.0, 0.0, 0.0),
                 blend_mode: str | None = None, debug_view: int = DEBUG_FINAL,
@@ -146,19 +148,14 @@ class DeferredPass(RasterPass):
         shader.uniform_sampler("h_ssao_tx", filtered.ssao)
         if glossy is not None:
             check_size(glossy, self.width, self.height, "glossy radiance")
-        shader.uniform_sampler("glossy_tx", glossy if glossy is not None else self._no_glossy_texture())
+        shader.uniform_sampler("glossy_tx", glossy if glossy is not None else self._blanks()[0])
         shader.uniform_int("has_glossy", 1 if glossy is not None else 0)
         set_bilateral_uniforms(shader, self.settings, filtered.factor)
         shader.uniform_float("world_color", (*wc.tolist(), 1.0))
         mapped = world is not None and world.texture is not None and camera is not None
-        if mapped:
-            shader.uniform_block("world", world.ubo(*camera))
-            shader.uniform_sampler("world_tx", world.texture)
-        else:
-            if self._no_world is None:
-                self._no_world = _NoWorld()
-            shader.uniform_block("world", self._no_world.ubo())
-            shader.uniform_sampler("world_tx", self._no_glossy_texture())
+        blank_texture, blank_block = self._blanks() if not mapped else (None, None)
+        shader.uniform_block("world", world.ubo(*camera) if mapped else blank_block)
+        shader.uniform_sampler("world_tx", world.texture if mapped else blank_texture)
         shader.uniform_int("has_world_map", 1 if mapped else 0)
         shader.uniform_int("blend_mode", AO_BLEND_MODES.index(mode))
         shader.uniform_int("debug_view", int(debug_view))
@@ -180,16 +177,3 @@ class DeferredPass(RasterPass):
                 return read_framebuffer(self._fb, slot, self.width, self.height, ch, out=out)
         raise KeyError(name)
 
-
-class _NoWorld:
-    """A zero `WorldBlock` for draws without a world map (the block must be bound all the same)."""
-
-    def __init__(self) -> None:
-        self._ubo = None
-
-    def ubo(self):
-        import gpu  # noqa: PLC0415
-
-        if self._ubo is None:
-            self._ubo = gpu.types.GPUUniformBuf(np.zeros(36, np.float32))
-        return self._ubo

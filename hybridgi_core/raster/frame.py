@@ -295,8 +295,8 @@ class FramePipeline:
         # the wait): the seconds without the GPU passes count all of it.
         full = pixels_to_points(position, normal)  # (points, normals, flat pixels) of the full-res G-buffer
         full_smooth = None if surface is normal else pixels_to_points(position, surface)[1]
-        pending = self._stage_thread().submit(self._centre_direct, system, view, proj, frame, position, normal,
-                                              surface, translucent, (*full, full_smooth))
+        pending = self._stage_thread().submit(self._centre_direct, system, view, proj, frame, (*full, full_smooth),
+                                              translucent)
         begun = None
         try:
             try:
@@ -476,20 +476,15 @@ class FramePipeline:
             return None
         return translucent_mod.pixel_shares(table, self.gbuffer.read("material").reshape(-1))
 
-    def _centre_direct(self, system, view, proj, frame, position, normal, surface, translucent=None,
-                       full=None) -> CentreLight:
+    def _centre_direct(self, system, view, proj, frame, full, translucent=None) -> CentreLight:
         """The centre raster's lamp light at full resolution (on the stage thread): adaptive in
         penumbrae (`penumbra.adaptive_direct`), each lamp's share for the subframes' light edges,
-        and the `ScreenLight` the pixel rays' hits that the camera sees read it from. translucent
-        : (h w, 3) the pixels' translucent shares or None: their lamps are sampled on the back
-        too (`translucent.mix_back`). full : the G-buffer's (points, normals, flat pixels, smooth
-        normals or None) where the caller has them."""
+        and the `ScreenLight` the pixel rays' hits that the camera sees read it from. full : the
+        G-buffer's (points, normals, flat pixels, smooth normals or None: `pixels_to_points`).
+        translucent : (h w, 3) the pixels' translucent shares or None: their lamps are sampled on
+        the back too (`translucent.mix_back`)."""
         tic = time.perf_counter()
-        if full is None:
-            p_full, n_full, pix_full = pixels_to_points(position, normal)
-            s_full = None if surface is normal else pixels_to_points(position, surface)[1]
-        else:
-            p_full, n_full, pix_full, s_full = full
+        p_full, n_full, pix_full, s_full = full
         direct = np.zeros((self.height * self.width, 4), np.float32)
         camera = filter_camera(system.scene.lights, camera_eye(view, proj))
         lamps = len(system.scene.lights)
