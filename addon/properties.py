@@ -233,8 +233,9 @@ class HybridGISettings(bpy.types.PropertyGroup):
         name="Glossy Samples",
         description="Lamp samples per final-render pixel and lamp of the glossy lobes (shadow rays included) "
         "where a first 4 find the highlight noisy; elsewhere those 4 are kept. Lobes of roughness 0.45 and above "
-        "are filtered over their surface afterwards. Lamps much larger than a smooth lobe are left to the "
-        "Reflection Rays",
+        "are filtered over their surface afterwards. Area lamps on lobes of roughness 0.25 and above take no "
+        "samples: their light is exact, shadowed as the diffuse light is. Lamps much larger than a smooth lobe "
+        "are left to the Reflection Rays",
         default=32, min=1, max=256, soft_max=64,
     )
 

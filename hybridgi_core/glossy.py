@@ -305,13 +305,34 @@ def _lobe_terms(mats: GlossyMaterials, rows, n, v, lx, ly, lz):
             remap = (sp.fresnel_dielectric(cos_hi, mats.eta[slot, rows][:, None]).astype(_F32) - f0_real) / np.maximum(
                 _F32(1.0) - f0_real, _F32(1e-12))
             terms[0] = np.clip(remap, 0.0, 1.0).astype(_F32)
-        rough = mats.lobe_rough[slot, rows]
-        e = sp._lerp_table(sp.tables()[0], [rough, mu_i[:, 0]])[:, None]
-        e_avg = mats.e_avg[slot, rows][:, None]
-        scale = np.where(mats.ms[slot, rows][:, None], sp.multiscatter_factor(mats.fss[slot, rows], e, e_avg), 1.0)
-        view = _view_factor(mats.view[slot, rows], mu_view)
-        out.append((common, terms, (k * (scale * view[:, None])[:, None, :]).astype(_F32)))
+        out.append((common, terms, slot_coefficients(mats, slot, rows, mu_i[:, 0], mu_view)[0]))
     return out
+
+
+def slot_coefficients(mats: GlossyMaterials, slot: int, rows, mu, mu_view=None) -> tuple[np.ndarray, np.ndarray]:
+    """(k (m, 4, 3) float32, e (m,)) of lobe `slot` at m receivers of materials `rows` seen at
+    cosines mu (> 0): the Fresnel terms' coefficients (`GlossyMaterials.k`) times the lobe's
+    multiple-scattering and view factors, and its single-scattering albedo E (F = 1). The lobe's
+    BRDF x cos is D G2 / (4 cos_i) x sum_j k_j term_j (`_lobe_terms`), which integrates to E."""
+    mu_view = np.clip(mu, 0.0, 1.0) if mu_view is None else mu_view
+    k = mats.k[slot, rows]
+    rough = mats.lobe_rough[slot, rows]
+    e = sp._lerp_table(sp.tables()[0], [rough, mu])
+    e_avg = mats.e_avg[slot, rows][:, None]
+    scale = np.where(mats.ms[slot, rows][:, None], sp.multiscatter_factor(mats.fss[slot, rows], e[:, None], e_avg),
+                     1.0)
+    view = _view_factor(mats.view[slot, rows], mu_view)
+    return (k * (scale * view[:, None])[:, None, :]).astype(_F32), e
+
+
+def fresnel_terms(mats: GlossyMaterials, slot: int, rows, cos_hi) -> np.ndarray:
+    """(m, 4) the terms the coefficients of `slot_coefficients` weigh at cos(h, i) = cos_hi (m,):
+    1, the dielectric Fresnel remapped to 0..1, (1 - c)^5 and c (1 - c)^6 (`_lobe_terms`)."""
+    c = np.clip(np.asarray(cos_hi, np.float64), 0.0, 1.0)
+    f0 = mats.f0_real[slot, rows]
+    remap = np.clip((sp.fresnel_dielectric(c, mats.eta[slot, rows]) - f0) / np.maximum(1.0 - f0, 1e-12), 0.0, 1.0)
+    s5 = (1.0 - c) ** 5
+    return np.stack([np.ones_like(c), remap, s5, s5 * (1.0 - c) * c], axis=1)
 
 
 def under_sheen(material, layer) -> list:

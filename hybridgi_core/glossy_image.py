@@ -19,7 +19,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from . import glossy
+from . import glossy, glossy_ltc
 from .evaluate import HitLookup
 from .glossy import cache_reflection, glossy_color
 from .glossy_noise import adaptive_lamp_glossy
@@ -121,7 +121,8 @@ def cache_glossy(system, points, normals, to_eye, rows) -> GlossyLight:
 
 def frame_glossy(system, points, normals, pix, shape: tuple[int, int], material, albedo, irradiance, view, eye,
                  frame: int, samples: int, reflection_rays: int, lookup: HitLookup | None = None,
-                 pool=None, between=None, tint: np.ndarray | None = None) -> GlossyLight:
+                 pool=None, between=None, tint: np.ndarray | None = None,
+                 visibility: np.ndarray | None = None) -> GlossyLight:
     """The glossy light of an image's receivers as final renders compute it: the lamps' light
     (`glossy_noise.adaptive_lamp_glossy`: `samples` per lamp only where a first pass is noisy
     against the receiver's diffuse lamp light, then `reflection.filter_lamp_glossy`) and the light
@@ -138,8 +139,11 @@ def frame_glossy(system, points, normals, pix, shape: tuple[int, int], material,
     between : called between its steps (the viewport's worker raises there when an edit or a
     newer view waits); tint : (n, 2) the textured metals' texel coordinates per receiver (the
     G-buffer albedo and emission targets' alphas: `glossy.metal_tint_basis`), or None: the
-    metallic lobes' share of the light takes the texel's colour over the mean's. Pure numpy: the
-    final render's pipeline and the viewport's worker both call it."""
+    metallic lobes' share of the light takes the texel's colour over the mean's. visibility :
+    (n, L) each lamp's visibility at the receivers (`glossy_ltc.visibility`) or None: given, the
+    area lamps' light of the lobes `glossy_ltc` covers is its closed form, shadowed by it, and
+    lamp sampling takes the rest. Pure numpy: the final render's pipeline and the viewport's
+    worker both call it."""
     between = between or (lambda: None)
     points = np.asarray(points).reshape(-1, 3)
     normals = np.asarray(normals).reshape(-1, 3)
@@ -159,15 +163,28 @@ def frame_glossy(system, points, normals, pix, shape: tuple[int, int], material,
     if reflection_rays > 0 and lit.size:
         skip[lit] = bsdf_lamps(system.scene.lights, points[lit], normals[lit], rough) & (traced_share(rough) > 0)[:, None]
     level = (np.asarray(albedo, np.float32).reshape(-1, 3) * irradiance) @ LUMA / np.float32(np.pi)
-    direct[:] = adaptive_lamp_glossy(system, points, normals, to_eye, rows, pix, shape, frame, samples, skip, level)[0]
+    closed = glossy_ltc.covered(system.scene.lights, mats, rows, visibility, points, normals, to_eye) & ~skip
+    exact = np.zeros((n, 3), np.float32)
+    if closed.any():
+        exact = glossy_ltc.lamp_light(system.scene.lights, mats, points, normals, to_eye, rows, visibility, closed,
+                                      pool=pool)
+        level = level + exact @ LUMA
+    direct[:] = adaptive_lamp_glossy(system, points, normals, to_eye, rows, pix, shape, frame, samples,
+                                     skip | closed, level)[0]
     if lit.size:
         between()
         q = pix[lit]
-        direct[lit] = filter_lamp_glossy(direct[lit], rough, points[lit], normals[lit], q, shape, view, pool=pool)
+        # Only the sampled part is noisy: receivers whose every lamp the closed form gives skip the filter.
+        sampled = np.flatnonzero((~(skip[lit] | closed[lit])).any(axis=1))
+        if sampled.size:
+            at = lit[sampled]
+            direct[at] = filter_lamp_glossy(direct[at], rough[sampled], points[at], normals[at], q[sampled], shape,
+                                            view, pool=pool)
         between()
         sky, bounced[lit], lamp = _reflections(system, points[lit], normals[lit], to_eye[lit], rough, frame, q,
                                                shape, view, skip[lit], reflection_rays, lookup, pool, between)
         direct[lit] += colour[lit] * (sky + lamp)
+    direct += exact
     if tint is not None and getattr(mats, "tint_bases", None):
         _tint_metals(mats, np.asarray(material).reshape(-1), rows, np.asarray(tint, np.float32).reshape(-1, 2),
                      direct, colour)

@@ -97,7 +97,8 @@ def adaptive_direct(direct, points: np.ndarray, normals: np.ndarray, pix: np.nda
                     smooth: np.ndarray | None = None,
                     per_lamp: np.ndarray | None = None,
                     rough: np.ndarray | None = None,
-                    exact_lamps: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+                    exact_lamps: np.ndarray | None = None,
+                    exact_out: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Lamp irradiance (n, 3) at the pixels `pix` (flat indices into an image of `shape` (h, w))
     with `samples` shadow rays per lamp in penumbrae and FIRST_SAMPLES elsewhere, and the (n,)
     bool mask of the pixels that got the full count (for some lamp).
@@ -114,7 +115,11 @@ def adaptive_direct(direct, points: np.ndarray, normals: np.ndarray, pix: np.nda
     shadowing term) and the guide of the penumbra filter's surfaces; None: `normals`. per_lamp :
     an optional (n, lamps, 3) output, each lamp's share of the light (with more than one lamp).
     exact_lamps : (lamps,) bool, the lamps one sample gives exactly (`lights.one_sample_exact`);
-    given, the first pass of the lamps that are all such runs on probes (`_coarse_first_pass`)."""
+    given, the first pass of the lamps that are all such runs on probes (`_coarse_first_pass`).
+    exact_out : an optional (n, lamps) float64 output (NaN-filled by the caller), the area lamps'
+    exact unshadowed irradiance wherever the first pass computed it (without colour: `direct`'s
+    exact=): with each lamp's light, the visibility the glossy lobes' closed-form lamp light is
+    shadowed by (`glossy_ltc`)."""
     guide = normals if smooth is None else smooth
     first = min(FIRST_SAMPLES, samples)
     if samples <= first:
@@ -123,7 +128,7 @@ def adaptive_direct(direct, points: np.ndarray, normals: np.ndarray, pix: np.nda
                 np.ones(points.shape[0], bool))
     if lamps > 1:
         return _per_lamp(direct, points, normals, pix, shape, frame, samples, first, camera, pool, lamps, smooth,
-                         per_lamp, _weak_lamps(rough), exact_lamps)
+                         per_lamp, _weak_lamps(rough), exact_lamps, exact_out)
     partial = np.zeros(points.shape[0], bool)
     reuse = {"exact": np.full((points.shape[0], lamps), np.nan)} if lamps > 0 else {}
     if lamps == 1 and _coarse(exact_lamps, [0], points.shape[0]):
@@ -133,13 +138,17 @@ def adaptive_direct(direct, points: np.ndarray, normals: np.ndarray, pix: np.nda
         partial = grid[:, 0]
     else:
         light = direct(points, normals, frame, samples=first, partial=partial, **reuse, **_smooth(smooth))
+    if exact_out is not None and lamps == 1:
+        exact_out[:] = reuse["exact"]
     if not partial.any():
         return light, partial
     full = _grown(partial, pix, shape)
     redo = np.flatnonzero(full)
+    again = {k: v[redo] for k, v in reuse.items()}
     light[redo] = _resample(direct, points, normals, guide, pix, shape, redo, light[redo], frame + SEED_OFFSET,
-                            samples, first, camera, pool, **{k: v[redo] for k, v in reuse.items()},
-                            **_smooth(smooth, redo))
+                            samples, first, camera, pool, **again, **_smooth(smooth, redo))
+    if exact_out is not None and lamps == 1:
+        exact_out[redo] = again["exact"]  # those the first pass's rays all missed, computed now
     return light, full
 
 
@@ -205,7 +214,7 @@ def _first_pass(direct, points, normals, frame, first, group, weak, partial, exa
 
 
 def _per_lamp(direct, points, normals, pix, shape, frame, samples, first, camera, pool, lamps, smooth=None,
-              per_lamp=None, weak=None, exact_lamps=None):
+              per_lamp=None, weak=None, exact_lamps=None, exact_out=None):
     """`adaptive_direct` of several lamps, each lamp's penumbra on its own: a pixel re-samples
     only the lamps whose rays disagreed around it. Why: a room lit by several soft lamps (an
     area lamp and ceiling lamps with a radius) has some lamp's penumbra over most of the image,
@@ -239,13 +248,17 @@ def _per_lamp(direct, points, normals, pix, shape, frame, samples, first, camera
             full |= grown
             redo = np.flatnonzero(grown)
             was = share[redo, k]
+            known = exact[redo, k : k + 1]
             mixed = _resample(direct, points, normals, guide, pix, shape, redo, was,
                               frame + SEED_OFFSET + j * LAMP_SEED_STRIDE, samples, first, camera, pool,
-                              exact=exact[redo, k : k + 1], lights=[j], **_smooth(smooth, redo))
+                              exact=known, lights=[j], **_smooth(smooth, redo))
+            exact[redo, k] = known[:, 0]
             light[redo] += mixed - was
             share[redo, k] = mixed
         if per_lamp is not None:
             per_lamp[:, g0 : g0 + len(group)] = share
+        if exact_out is not None:
+            exact_out[:, g0 : g0 + len(group)] = exact
     np.maximum(light, 0.0, out=light)  # the differences' rounding must not leave a dark pixel below 0
     return light, full
 

@@ -50,14 +50,36 @@ def cosine_solid_angle(polygon: np.ndarray, points: np.ndarray, normals: np.ndar
     below the receiver's horizon. Irradiance = radiance x this."""
     p = np.asarray(points, np.float64).reshape(-1, 3)
     nrm = np.asarray(normals, np.float64).reshape(-1, 3)
-    n = p.shape[0]
-    out = np.zeros(n)
-    if n == 0:
-        return out
+    if p.shape[0] == 0:
+        return np.zeros(0)
     # Component planes (n, k): whole-array arithmetic, no einsum or cross-product loops.
     v = [polygon[None, :, c] - p[:, c, None] for c in range(3)]  # receiver -> vertex
-    nc = [nrm[:, c, None] for c in range(3)]
+    return form_factor(v, [nrm[:, c, None] for c in range(3)])
+
+
+def form_factor(v: list[np.ndarray], nc: list[np.ndarray] | None = None) -> np.ndarray:
+    """(n,) float64: the integral of max(0, n . w) over the directions w of a convex polygon,
+    per row, given as three (n, k) planes of its vertices relative to the receiver; nc: the
+    normal's three components, (n, 1) each. 0 where the polygon lies wholly below the horizon."""
     h = v[0] * nc[0] + v[1] * nc[1] + v[2] * nc[2]  # heights above the tangent plane
+    return _by_rows(v, h, lambda planes, rows, valid: _lambert(planes, [c[rows] for c in nc], valid), ())
+
+
+def vector_form_factor(v: list[np.ndarray]) -> np.ndarray:
+    """(n, 3) float64: the vector form factor of a convex polygon (three (n, k) vertex planes)
+    clipped to the horizon z >= 0 (`ltc`'s cosine space): its z is the polygon's integral of
+    max(0, w_z) (`form_factor` of normal +z), its direction the cosine-weighted mean direction of
+    the polygon's visible part (the way the light arrives, for the Fresnel of the glossy lobes)."""
+    return _by_rows(v, v[2], lambda planes, rows, valid: _lambert_vector(planes, valid), (3,))
+
+
+def _by_rows(v: list[np.ndarray], h: np.ndarray, lambert, tail: tuple) -> np.ndarray:
+    """`lambert(planes, rows, valid)` per row of the polygons' planes v above the heights h (n, k):
+    rows wholly above their horizon unclipped, rows partly above clipped, the rest 0."""
+    n = v[0].shape[0]
+    out = np.zeros((n, *tail))
+    if n == 0:
+        return out
     above = h > 0
     # Vertex columns, not reductions over rows of k (numpy's are ~5x slower for small k).
     whole, some = above[:, 0].copy(), above[:, 0].copy()
@@ -65,20 +87,37 @@ def cosine_solid_angle(polygon: np.ndarray, points: np.ndarray, normals: np.ndar
         whole &= above[:, j]
         some |= above[:, j]
     share = np.count_nonzero(whole) / n
+    every = slice(None)
     if share == 1.0:
-        return _lambert(v, nc, None)
+        return lambert(v, every, None)
     if share >= WHOLE_ROWS_SHARE:
         # Most rows see the whole polygon: the unclipped sum over every row costs less than
         # gathering those rows; the others are overwritten below (0 or clipped).
-        out = _lambert(v, nc, None)
+        out = lambert(v, every, None)
         out[~whole] = 0.0
     elif share > 0.0:
-        out[whole] = _lambert([c[whole] for c in v], [c[whole] for c in nc], None)
+        out[whole] = lambert([c[whole] for c in v], whole, None)
     part = np.flatnonzero(some & ~whole)
     if part.size:
         clipped, valid = _clip_to_horizon([c[part] for c in v], h[part])
-        out[part] = _lambert(clipped, [c[part] for c in nc], valid)
+        out[part] = lambert(clipped, part, valid)
     return out
+
+
+def clip_above(v: list[np.ndarray], h: np.ndarray) -> list[np.ndarray]:
+    """Three (n, 2k) vertex planes: the convex polygons v (three (n, k) planes) clipped to h >= 0
+    (h (n, k) the vertices' heights), each row's vertices first in boundary order, then its last
+    vertex repeated (an edge of no length adds nothing to Lambert's sums); a row wholly below
+    keeps its first vertex everywhere (no area)."""
+    if not (h < 0).any():
+        return v
+    clipped, valid = _clip_to_horizon(v, h)
+    order = np.argsort(~valid, axis=1, kind="stable")
+    clipped = [np.take_along_axis(c, order, axis=1) for c in clipped]
+    count = valid.sum(axis=1)
+    j = np.arange(clipped[0].shape[1])[None, :]
+    src = np.where(j < count[:, None], j, np.maximum(count[:, None] - 1, 0))
+    return [np.take_along_axis(c, src, axis=1) for c in clipped]
 
 
 def _clip_to_horizon(v: list[np.ndarray], h: np.ndarray):
@@ -105,17 +144,7 @@ def _lambert(v: list[np.ndarray], nc: list[np.ndarray], valid: np.ndarray | None
     """Lambert's sum over each row's vertices (component planes (m, k); valid (m, k) or None for
     all), taken in order and closed cyclically."""
     m, k = v[0].shape
-    if valid is None:
-        take = _next_vertex
-        live = None
-    else:
-        order = np.argsort(~valid, axis=1, kind="stable")  # valid vertices first, order kept
-        v = [np.take_along_axis(c, order, axis=1) for c in v]
-        count = valid.sum(axis=1)
-        j = np.arange(k)[None, :]
-        nxt = np.where(j + 1 < count[:, None], j + 1, 0)
-        take = lambda c: np.take_along_axis(c, nxt, axis=1)  # noqa: E731
-        live = j < count[:, None]
+    v, take, live = _ordered(v, valid)
     inv = 1.0 / np.maximum(np.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2]), 1e-300)
     a = [c * inv for c in v]
     b = [take(c) for c in a]
@@ -131,6 +160,37 @@ def _lambert(v: list[np.ndarray], nc: list[np.ndarray], valid: np.ndarray | None
     for j in range(1, k):
         total += term[:, j]
     return 0.5 * np.abs(total)
+
+
+def _ordered(v: list[np.ndarray], valid: np.ndarray | None):
+    """(planes, next-vertex function, live mask or None): each row's valid vertices first in
+    their order, closed cyclically over them (`_clip_to_horizon`'s rows)."""
+    if valid is None:
+        return v, _next_vertex, None
+    k = v[0].shape[1]
+    order = np.argsort(~valid, axis=1, kind="stable")  # valid vertices first, order kept
+    v = [np.take_along_axis(c, order, axis=1) for c in v]
+    count = valid.sum(axis=1)
+    j = np.arange(k)[None, :]
+    nxt = np.where(j + 1 < count[:, None], j + 1, 0)
+    return v, (lambda c: np.take_along_axis(c, nxt, axis=1)), j < count[:, None]
+
+
+def _lambert_vector(v: list[np.ndarray], valid: np.ndarray | None) -> np.ndarray:
+    """(m, 3) Lambert's vector sum over each row's vertices (as `_lambert`, before the normal),
+    oriented to +z (a polygon's winding does not matter)."""
+    v, take, live = _ordered(v, valid)
+    inv = 1.0 / np.maximum(np.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2]), 1e-300)
+    a = [c * inv for c in v]
+    b = [take(c) for c in a]
+    cross = [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]]
+    sin = np.sqrt(cross[0] * cross[0] + cross[1] * cross[1] + cross[2] * cross[2])
+    scale = np.arctan2(sin, a[0] * b[0] + a[1] * b[1] + a[2] * b[2]) / np.maximum(sin, 1e-300)
+    if live is not None:
+        scale = np.where(live, scale, 0.0)
+    out = np.stack([0.5 * (c * scale).sum(axis=1) for c in cross], axis=1)
+    out[out[:, 2] < 0] *= -1.0
+    return out
 
 
 def _next_vertex(c: np.ndarray) -> np.ndarray:

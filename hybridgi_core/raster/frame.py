@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .. import glossy_image, pixel_gather
+from .. import glossy_image, glossy_ltc, pixel_gather
 from .. import translucent as translucent_mod
 from ..emitters import emitter_samples, worth_sampling
 from ..evaluate import HitLookup
@@ -102,6 +102,9 @@ class CentreLight:
     pix: np.ndarray
     smooth: np.ndarray | None
     ms: float
+    #: (n, lamps) float32 each lamp's visibility at the points (`glossy_ltc.visibility`; NaN
+    #: unknown), or None: the glossy lobes' closed-form area-lamp light is shadowed by it.
+    visibility: np.ndarray | None = None
 
 
 #: Fewest shadow rays per lamp a jittered subframe traces at a pixel that sees another surface
@@ -337,7 +340,7 @@ class FramePipeline:
         # stage thread while this one traces them (both on the pool), as the lamp light ran
         # beside the cache update; both read one HitLookup of the cache.
         glossy_job = self._start_glossy(system, view, proj, p_full, n_full, pix_full, frame, lookup,
-                                        direct[pix_full, :3])
+                                        direct[pix_full, :3], centre_light.visibility)
         try:
             if self.settings.pixel_rays > 0:
                 with stats.step("pixel_rays"):
@@ -495,11 +498,23 @@ class FramePipeline:
         rough = rough_lights(system.scene.lights, p_full, n_full) if lamps > 1 else None
         # The lamps whose first pass may run on probes (`penumbra._coarse_first_pass`).
         exact_lamps = one_sample_exact_lamps(system.scene.lights)
-        direct[pix_full, :3] = adaptive_direct(system.direct, p_full, n_full, pix_full, (self.height, self.width),
-                                               frame, self.direct_samples, camera=camera,
-                                               pool=system.updater.pool, lamps=lamps,
-                                               smooth=s_full, per_lamp=shares, rough=rough,
-                                               exact_lamps=exact_lamps)[0]
+        # Each lamp's exact unshadowed light and share: the glossy lobes' closed-form area-lamp
+        # light is shadowed by their ratio (`glossy_ltc`).
+        ltc_lamps = lamps <= SUBFRAME_LAMP_LIMIT and glossy_image.has_glossy(system) and bool(
+            glossy_ltc.eligible_lamps(system.scene.lights).any())
+        exact = np.full((p_full.shape[0], lamps), np.nan) if ltc_lamps else None
+        per_lamp = shares
+        if ltc_lamps and lamps > 1 and per_lamp is None:
+            per_lamp = np.zeros((p_full.shape[0], lamps, 3), np.float32)
+        light = adaptive_direct(system.direct, p_full, n_full, pix_full, (self.height, self.width),
+                                frame, self.direct_samples, camera=camera, pool=system.updater.pool, lamps=lamps,
+                                smooth=s_full, per_lamp=per_lamp, rough=rough, exact_lamps=exact_lamps,
+                                exact_out=exact)[0]
+        direct[pix_full, :3] = light
+        visibility = None
+        if ltc_lamps:
+            visibility = glossy_ltc.visibility(per_lamp if lamps > 1 else light[:, None, :], exact,
+                                               system.scene.lights)
         t_full = None if translucent is None else translucent[pix_full]
         rows = translucent_mod.lit_from_behind(t_full)
         if rows.size:
@@ -515,6 +530,8 @@ class FramePipeline:
                                    else None, exact_lamps=exact_lamps)[0]
             t = t_full[rows]
             direct[pix_full[rows], :3] = translucent_mod.blend(direct[pix_full[rows], :3], back, t)
+            if visibility is not None:
+                visibility[rows] = np.nan  # a blend of both sides' light: lamp sampling there
             if shares is not None:
                 shares[rows] = translucent_mod.blend(shares[rows], back_shares, t[:, None, :])
         lamp_light = None
@@ -531,7 +548,7 @@ class FramePipeline:
             direct[pix_full, :3] += system.emitter_light(p_full, n_full, frame, emitter_samples(self.direct_samples))
             screen = dataclasses.replace(screen, emitters_sampled=True)
         return CentreLight(direct, lamp_light, screen, p_full, n_full, pix_full, s_full,
-                           (time.perf_counter() - tic) * 1e3)
+                           (time.perf_counter() - tic) * 1e3, visibility)
 
     def _subframe_count(self, centre, full_gi, stats) -> int:
         """Subframes of this frame: `subframes`, plus `extra_subframes` when the centre raster's GI
@@ -597,7 +614,7 @@ class FramePipeline:
         return HitLookup(system.cache, bounced=system.settings.indirect_quality == MULTI_BOUNCE)
 
     def _start_glossy(self, system, view, proj, points, normals, pix, frame, lookup: HitLookup | None,
-                      irradiance: np.ndarray) -> futures.Future | None:
+                      irradiance: np.ndarray, visibility: np.ndarray | None = None) -> futures.Future | None:
         """Submit to the stage thread the glossy light of the centre raster's pixels
         (`glossy_image.frame_glossy`: the lamps', sky's and emitters' reflection by the glossy lobes
         and the light of other surfaces they reflect); None without glossy lobes. The G-buffer's
@@ -605,7 +622,8 @@ class FramePipeline:
         lookup : the cache's HitLookup to reuse (None: the reflection rays build their own).
         irradiance : (n, 3) the pixels' diffuse lamp irradiance: the lamps' glossy light is
         sampled `glossy_samples` times only where it is noisy against the pixels' lamp light
-        (`glossy_noise`). `_finish_glossy` waits for it and uploads the result."""
+        (`glossy_noise`). visibility : (n, lamps) the lamps' visibility (`CentreLight.visibility`)
+        or None. `_finish_glossy` waits for it and uploads the result."""
         if not glossy_image.has_glossy(system):
             return None
         material = self.gbuffer.read("material").reshape(-1)[pix]
@@ -621,7 +639,7 @@ class FramePipeline:
             light = glossy_image.frame_glossy(system, points, normals, pix, shape, material, albedo[:, :3],
                                               irradiance, view, eye, frame, self.glossy_samples,
                                               self.settings.reflection_rays, lookup, pool=system.updater.pool,
-                                              tint=tint)
+                                              tint=tint, visibility=visibility)
             return light, (time.perf_counter() - t0) * 1e3
 
         return self._stage_thread().submit(job)

@@ -1,0 +1,154 @@
+"""The glossy lobes' light from area lamps in closed form, shadowed by the diffuse light's visibility.
+
+Why: lamp sampling (`glossy_noise.adaptive_lamp_glossy`: 4 samples per pixel and lamp, 32 where
+noisy, each with a shadow ray and the lobe's terms) was most of a glossy frame: 1.3 M samples,
+~1.5 s of a core for bunny_npm at 640x360. Each lobe's unshadowed light from a polygonal lamp is
+its albedo x the lamp's radiance x the integral of its linearly transformed cosine over the
+polygon (`ltc.polygon_integral`; the lobe's Fresnel taken where that light arrives on average,
+the rest of its albedo as `glossy._lobe_terms` has it); the shadows are the centre raster's diffuse light of the same
+lamp over its exact unshadowed irradiance (`penumbra.adaptive_direct`'s exact_out), the ratio
+estimator the diffuse light itself uses (`polygon_light`): exact wherever the lamp is wholly seen
+or wholly hidden, a cosine-weighted visibility in penumbrae.
+
+What stays with lamp sampling: lamps other than area lamps (points, spots and suns are small:
+few samples are exact), area lamps with a Spread below 180 degrees, collimated beams, sheared
+lamps, lamps hidden from diffuse rays (no diffuse visibility to borrow), pixels whose visibility
+is unknown (a weak lamp's single ray, the translucent back's blend), Beckmann lobes, and lobes
+smoother than MIN_ROUGHNESS (a smooth lobe's highlight is the lamp's shape, where a mismatch of
+the diffuse and the glossy visibility shows).
+
+numpy only (no bpy).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from . import glossy, ltc, polygon_light
+from .lights import _area_shape
+from .pixel_gather import LUMA
+
+#: Smoothest lobe (Blender roughness) whose area-lamp light is taken in closed form.
+MIN_ROUGHNESS = 0.25
+#: Most grazing view (its cosine to the normal) whose lamp light is taken in closed form.
+MIN_VIEW_COSINE = 0.3
+#: Receivers per pool job.
+CHUNK = 1 << 14
+
+
+def eligible_lamps(lights) -> np.ndarray:
+    """(L,) bool: the area lamps whose glossy light the closed form gives (module docstring)."""
+    out = np.zeros(len(lights), bool)
+    for j, light in enumerate(lights):
+        glossy = light.for_glossy()
+        if light.kind != "AREA" or float(light.power) <= 0.0 or float(glossy.power) == 0.0:
+            continue
+        if float(light.spread) < np.pi or not np.isfinite(float(glossy.power)):
+            continue
+        shape = _area_shape(light)
+        out[j] = shape.area > 0 and shape.rectangular
+    return out
+
+
+def eligible_rows(mats) -> np.ndarray:
+    """(m,) bool: the material rows whose every live lobe is GGX (single or multiple scattering)
+    and at least MIN_ROUGHNESS rough."""
+    live = np.abs(mats.k).sum(axis=(2, 3)) > 0  # (L, m)
+    ok = ~live | (~mats.beckmann & (mats.lobe_rough >= MIN_ROUGHNESS))
+    return ok.all(axis=0) & live.any(axis=0)
+
+
+def visibility(lamp_light: np.ndarray, exact: np.ndarray, lights) -> np.ndarray:
+    """(n, L) float32 each lamp's visibility at n receivers: its diffuse light's luminance
+    (lamp_light (n, L, 3)) over its exact unshadowed irradiance (exact (n, L), colourless) times
+    its colour's; 0 where it gives no light, NaN where its exact light is unknown (lamp sampling
+    takes that pixel), at most 1."""
+    colour = np.array([float(np.asarray(light.color, np.float64) @ LUMA) for light in lights])
+    lum = lamp_light @ LUMA.astype(np.float32)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        vis = lum / (exact * colour[None, :])
+    vis = np.where(lum > 0, vis, 0.0)
+    vis = np.where(np.isfinite(vis) | (lum <= 0), np.clip(vis, 0.0, 1.0), np.nan)
+    return vis.astype(np.float32)
+
+
+def covered(lights, mats, rows: np.ndarray, vis: np.ndarray | None, points: np.ndarray,
+            normals: np.ndarray, to_eye: np.ndarray) -> np.ndarray:
+    """(n, L) bool: the (receiver, lamp) pairs `lamp_light` gives (the rest take lamp sampling):
+    an eligible lamp and material, a known visibility, a view at least MIN_VIEW_COSINE from
+    grazing and the lamp wholly above the receiver's horizon. Why: the fit's cosine has a horizon
+    of its own, tilted from the surface's; a lamp the surface cuts (the Stanford dragon's scales
+    3 cm from its small lamp) read 10-30% off either way, and grazing views (no LTC fits the
+    lobe there: L1 0.3-0.5) 22% (morse_apartment's floor seen at cos 0.07), where a lamp wholly
+    above a surface seen from above reads within ~2% (bunny_npm), against 256 lamp samples."""
+    n = rows.shape[0]
+    out = np.zeros((n, len(lights)), bool)
+    if vis is None or n == 0:
+        return out
+    lamps = eligible_lamps(lights)
+    if not lamps.any():
+        return out
+    ok_rows = eligible_rows(mats)
+    good = (rows >= 0) & ok_rows[np.clip(rows, 0, ok_rows.size - 1)]
+    p = np.asarray(points, np.float64).reshape(-1, 3)
+    nrm = np.asarray(normals, np.float64).reshape(-1, 3)
+    good &= np.einsum("ij,ij->i", nrm, np.asarray(to_eye, np.float64).reshape(-1, 3)) >= MIN_VIEW_COSINE
+    out[:] = good[:, None] & lamps[None, :] & np.isfinite(vis)
+    offset = np.einsum("ij,ij->i", p, nrm)
+    for j in np.flatnonzero(lamps):
+        shape = _area_shape(lights[j])
+        polygon = polygon_light.lamp_polygon(shape.centre, shape.half_u, shape.half_v, shape.round)
+        # Heights of the vertices above each receiver's tangent plane, column by column.
+        for vertex in polygon:
+            out[:, j] &= nrm @ vertex > offset
+    return out
+
+
+def lamp_light(lights, mats, points, normals, to_eye, rows, vis: np.ndarray, pairs: np.ndarray,
+               pool=None) -> np.ndarray:
+    """(n, 3) float32 the glossy radiance towards the eye of the (receiver, lamp) pairs (n, L)
+    marks: per lobe, its albedo (the Fresnel where the light arrives) x lamp radiance x
+    `ltc.polygon_integral`, times the lamp's
+    visibility vis (n, L). pool : blocks of CHUNK receivers on it (the frame's pixel rays
+    finish before the glossy light: the tail would run on one core)."""
+    n = points.shape[0]
+    if pool is None or n <= CHUNK:
+        return _lamp_light(lights, mats, points, normals, to_eye, rows, vis, pairs)
+    starts = range(0, n, CHUNK)
+    jobs = [pool.submit(_lamp_light, lights, mats, *(a[s : s + CHUNK] for a in (points, normals, to_eye, rows, vis,
+                                                                              pairs)))
+            for s in starts]
+    return np.concatenate([job.result() for job in jobs])
+
+
+def _lamp_light(lights, mats, points, normals, to_eye, rows, vis, pairs) -> np.ndarray:
+    n = points.shape[0]
+    out = np.zeros((n, 3), np.float64)
+    mu = np.clip(np.einsum("ij,ij->i", normals, to_eye), 0.0, 1.0)
+    for j, light in enumerate(lights):
+        sel = np.flatnonzero(pairs[:, j] & (vis[:, j] > 0))
+        if sel.size == 0:
+            continue
+        lamp = light.for_glossy()
+        shape = _area_shape(lamp)
+        polygon = polygon_light.lamp_polygon(shape.centre, shape.half_u, shape.half_v, shape.round)
+        # The polygon faces the receivers on its emitting side only (one-sided lamps).
+        front = ((points[sel] - shape.centre.astype(np.float64)) @ shape.normal.astype(np.float64)) > 0
+        sel = sel[front]
+        if sel.size == 0:
+            continue
+        radiance = float(lamp.power) / (np.pi * shape.area) * np.asarray(lamp.color, np.float64)
+        r = rows[sel]
+        total = np.zeros((sel.size, 3))
+        for slot in range(mats.k.shape[0]):
+            live = np.abs(mats.k[slot, r]).sum(axis=(1, 2)) > 0
+            if not live.any():
+                continue
+            at, rl = sel[live], r[live]
+            share, cos_hv = ltc.polygon_integral(polygon, points[at], normals[at], to_eye[at],
+                                                 mats.lobe_rough[slot, rl])
+            k, e = glossy.slot_coefficients(mats, slot, rl, np.maximum(mu[at], 1e-4))
+            fresnel = np.einsum("mj,mjc->mc", glossy.fresnel_terms(mats, slot, rl, cos_hv), k)
+            total[live] += (e * share)[:, None] * fresnel
+        out[sel] += total * radiance[None, :] * vis[sel, j, None]
+    return out.astype(np.float32)
