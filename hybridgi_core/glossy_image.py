@@ -163,12 +163,9 @@ def frame_glossy(system, points, normals, pix, shape: tuple[int, int], material,
     if reflection_rays > 0 and lit.size:
         skip[lit] = bsdf_lamps(system.scene.lights, points[lit], normals[lit], rough) & (traced_share(rough) > 0)[:, None]
     level = (np.asarray(albedo, np.float32).reshape(-1, 3) * irradiance) @ LUMA / np.float32(np.pi)
-    closed = glossy_ltc.covered(system.scene.lights, mats, rows, visibility, points, normals, to_eye) & ~skip
-    exact = np.zeros((n, 3), np.float32)
-    if closed.any():
-        exact = glossy_ltc.lamp_light(system.scene.lights, mats, points, normals, to_eye, rows, visibility, closed,
-                                      pool=pool)
-        level = level + exact @ LUMA
+    exact, closed = glossy_ltc.closed_form(system.scene.lights, mats, points, normals, to_eye, rows, visibility, skip,
+                                           level, pool)
+    level = level + exact @ LUMA
     direct[:] = adaptive_lamp_glossy(system, points, normals, to_eye, rows, pix, shape, frame, samples,
                                      skip | closed, level)[0]
     if lit.size:

@@ -25,6 +25,7 @@ from __future__ import annotations
 import numpy as np
 
 from . import glossy, ltc, polygon_light
+from .glossy_noise import NOISE
 from .lights import _area_shape
 from .pixel_gather import LUMA
 
@@ -32,6 +33,12 @@ from .pixel_gather import LUMA
 MIN_ROUGHNESS = 0.25
 #: Most grazing view (its cosine to the normal) whose lamp light is taken in closed form.
 MIN_VIEW_COSINE = 0.3
+#: How far off the closed form is taken to read where it is not `trusted` (10-30% on a lamp the
+#: horizon cuts or a grazing view, 2-3 x in a lobe's tail): such a pair is taken where this share
+#: of its light is within the noise lamp sampling may leave. 1: where all of it is (640x360, r24
+#: rung: dragon_npm Combined 0.0553 with lamp sampling alone, 0.0558 at 1, 0.0577 at 0.3;
+#: bunny_npm 0.0265 at either; the dragon's lamp samples 1.34 M -> 0.40 M, the bunny's -> 0.06 M).
+UNTRUSTED_ERROR = 1.0
 #: Receivers per pool job.
 CHUNK = 1 << 14
 
@@ -72,31 +79,52 @@ def visibility(lamp_light: np.ndarray, exact: np.ndarray, lights) -> np.ndarray:
     return vis.astype(np.float32)
 
 
-def covered(lights, mats, rows: np.ndarray, vis: np.ndarray | None, points: np.ndarray,
-            normals: np.ndarray, to_eye: np.ndarray) -> np.ndarray:
-    """(n, L) bool: the (receiver, lamp) pairs `lamp_light` gives (the rest take lamp sampling):
-    an eligible lamp and material, a known visibility, a view at least MIN_VIEW_COSINE from
-    grazing and the lamp wholly above the receiver's horizon. Why: the fit's cosine has a horizon
-    of its own, tilted from the surface's; a lamp the surface cuts (the Stanford dragon's scales
-    3 cm from its small lamp) read 10-30% off either way, and grazing views (no LTC fits the
-    lobe there: L1 0.3-0.5) 22% (morse_apartment's floor seen at cos 0.07), where a lamp wholly
-    above a surface seen from above reads within ~2% (bunny_npm), against 256 lamp samples."""
-    n = rows.shape[0]
-    out = np.zeros((n, len(lights)), bool)
+def closed_form(lights, mats, points, normals, to_eye, rows, vis: np.ndarray | None, skip: np.ndarray,
+                level: np.ndarray, pool=None) -> tuple[np.ndarray, np.ndarray]:
+    """((n, 3) float32 the glossy radiance towards the eye of the (receiver, lamp) pairs taken in
+    closed form, (n, L) bool those pairs); lamp sampling takes the rest (`glossy_noise`).
+
+    A pair is a candidate where its lamp and material are eligible, its visibility vis (n, L) is
+    known (None: no pair) and `skip` (n, L) leaves it (the reflection rays' lamps). It is taken
+    where the closed form is trusted (`trusted`), or where its light is so dim against the
+    pixel's lamp light (level (n,): the diffuse light's luminance, plus the closed forms') that
+    UNTRUSTED_ERROR of it is within the noise lamp sampling leaves (`glossy_noise.NOISE`): the
+    lamp a receiver's horizon cuts or a grazing view, where it reads 10-30% off, are most of a
+    glossy frame's pixels (two thirds of bunny_npm's) and little of its glossy light."""
+    n = points.shape[0]
+    pairs = np.zeros((n, len(lights)), bool)
     if vis is None or n == 0:
-        return out
+        return np.zeros((n, 3), np.float32), pairs
     lamps = eligible_lamps(lights)
-    if not lamps.any():
-        return out
     ok_rows = eligible_rows(mats)
     good = (rows >= 0) & ok_rows[np.clip(rows, 0, ok_rows.size - 1)]
+    pairs[:] = good[:, None] & lamps[None, :] & np.isfinite(vis) & ~skip
+    if not pairs.any():
+        return np.zeros((n, 3), np.float32), pairs
+    light = lamp_light(lights, mats, points, normals, to_eye, rows, vis, pairs, pool)  # (n, L, 3)
+    lum = light @ LUMA.astype(np.float32)
+    scale = np.asarray(level, np.float32).reshape(-1) + lum.sum(axis=1)
+    dim = lum * np.float32(UNTRUSTED_ERROR) <= np.float32(NOISE) * scale[:, None]
+    pairs &= trusted(lights, points, normals, to_eye) | dim
+    return np.einsum("nl,nlc->nc", pairs.astype(np.float32), light), pairs
+
+
+def trusted(lights, points: np.ndarray, normals: np.ndarray, to_eye: np.ndarray) -> np.ndarray:
+    """(n, L) bool: where the closed form reads the lamp within ~2% (bunny_npm against 256 lamp
+    samples): a view at least MIN_VIEW_COSINE from grazing and the lamp wholly above the
+    receiver's horizon. Why: the fit's cosine has a horizon of its own, tilted from the
+    surface's, so a lamp the surface cuts (the Stanford dragon's scales 3 cm from its small lamp)
+    reads 10-30% off either way; and no LTC fits the lobe of a grazing view (the fit's L1 0.3-0.5:
+    morse_apartment's floor seen at cos 0.07 read 22% off)."""
     p = np.asarray(points, np.float64).reshape(-1, 3)
     nrm = np.asarray(normals, np.float64).reshape(-1, 3)
-    good &= np.einsum("ij,ij->i", nrm, np.asarray(to_eye, np.float64).reshape(-1, 3)) >= MIN_VIEW_COSINE
-    out[:] = good[:, None] & lamps[None, :] & np.isfinite(vis)
+    out = np.zeros((p.shape[0], len(lights)), bool)
+    out[:] = (np.einsum("ij,ij->i", nrm, np.asarray(to_eye, np.float64).reshape(-1, 3)) >= MIN_VIEW_COSINE)[:, None]
     offset = np.einsum("ij,ij->i", p, nrm)
-    for j in np.flatnonzero(lamps):
-        shape = _area_shape(lights[j])
+    for j, light in enumerate(lights):
+        if light.kind != "AREA":
+            continue
+        shape = _area_shape(light)
         polygon = polygon_light.lamp_polygon(shape.centre, shape.half_u, shape.half_v, shape.round)
         # Heights of the vertices above each receiver's tangent plane, column by column.
         for vertex in polygon:
@@ -106,11 +134,11 @@ def covered(lights, mats, rows: np.ndarray, vis: np.ndarray | None, points: np.n
 
 def lamp_light(lights, mats, points, normals, to_eye, rows, vis: np.ndarray, pairs: np.ndarray,
                pool=None) -> np.ndarray:
-    """(n, 3) float32 the glossy radiance towards the eye of the (receiver, lamp) pairs (n, L)
-    marks: per lobe, its albedo (the Fresnel where the light arrives) x lamp radiance x
-    `ltc.polygon_integral`, times the lamp's
-    visibility vis (n, L). pool : blocks of CHUNK receivers on it (the frame's pixel rays
-    finish before the glossy light: the tail would run on one core)."""
+    """(n, L, 3) float32 the glossy radiance towards the eye of each lamp of the (receiver, lamp)
+    pairs (n, L) marks (0 elsewhere): per lobe, its albedo (the Fresnel where the light arrives)
+    x lamp radiance x `ltc.polygon_integral`, times the lamp's visibility vis (n, L). pool :
+    blocks of CHUNK receivers on it (the frame's pixel rays finish before the glossy light: the
+    tail would run on one core)."""
     n = points.shape[0]
     if pool is None or n <= CHUNK:
         return _lamp_light(lights, mats, points, normals, to_eye, rows, vis, pairs)
@@ -123,7 +151,7 @@ def lamp_light(lights, mats, points, normals, to_eye, rows, vis: np.ndarray, pai
 
 def _lamp_light(lights, mats, points, normals, to_eye, rows, vis, pairs) -> np.ndarray:
     n = points.shape[0]
-    out = np.zeros((n, 3), np.float64)
+    out = np.zeros((n, len(lights), 3), np.float32)
     mu = np.clip(np.einsum("ij,ij->i", normals, to_eye), 0.0, 1.0)
     for j, light in enumerate(lights):
         sel = np.flatnonzero(pairs[:, j] & (vis[:, j] > 0))
@@ -150,5 +178,5 @@ def _lamp_light(lights, mats, points, normals, to_eye, rows, vis, pairs) -> np.n
             k, e = glossy.slot_coefficients(mats, slot, rl, np.maximum(mu[at], 1e-4))
             fresnel = np.einsum("mj,mjc->mc", glossy.fresnel_terms(mats, slot, rl, cos_hv), k)
             total[live] += (e * share)[:, None] * fresnel
-        out[sel] += total * radiance[None, :] * vis[sel, j, None]
-    return out.astype(np.float32)
+        out[sel, j] = total * radiance[None, :] * vis[sel, j, None]
+    return out

@@ -82,22 +82,16 @@ def _floor_lamp(power=120.0, size=0.8, height=2.0, x=0.0):
                                    sp.SpecularLayer(roughness=0.35, weight=0.5, metallic=0.6,
                                                     metal_color=(0.9, 0.6, 0.2))])
 def test_the_closed_form_agrees_with_unshadowed_lamp_sampling(layer):
-    """The same receivers, materials and lamp: `glossy_ltc.lamp_light` against `glossy.glossy_direct`
-    with many samples and no shadow rays (every lamp wholly visible)."""
+    """The same receivers, materials and lamp: `glossy_ltc.closed_form` against
+    `glossy.glossy_direct` with many samples and no shadow rays (every lamp wholly visible)."""
     mats = glossy.GlossyMaterials.from_materials([Material(specular=layer)])
     lamp = _floor_lamp()
-    rng = np.random.default_rng(2)
-    n = 64
-    points = np.column_stack([rng.uniform(-2, 2, n), rng.uniform(-2, 2, n), np.zeros(n)])
-    normals = np.tile([0.0, 0.0, 1.0], (n, 1))
-    eye = np.array([3.0, -1.0, 2.5])
-    to_eye = eye - points
-    to_eye /= np.linalg.norm(to_eye, axis=1, keepdims=True)
-    rows = np.zeros(n, np.int64)
-    vis = np.ones((n, 1), np.float32)
-    pairs = glossy_ltc.covered([lamp], mats, rows, vis, points, normals, to_eye)
+    points, normals, to_eye = _floor(64)
+    rows = np.zeros(len(points), np.int64)
+    vis = np.ones((len(points), 1), np.float32)
+    got, pairs = glossy_ltc.closed_form([lamp], mats, points, normals, to_eye, rows, vis, ~vis.astype(bool),
+                                        np.zeros(len(points)))
     assert pairs.all()
-    got = glossy_ltc.lamp_light([lamp], mats, points, normals, to_eye, rows, vis, pairs)
     sampled = glossy.glossy_direct([lamp], points, normals, to_eye, rows.astype(np.int32), mats, None,
                                    np.random.default_rng(0), samples=4096)
     lum = np.array([0.2126, 0.7152, 0.0722])
@@ -105,6 +99,14 @@ def test_the_closed_form_agrees_with_unshadowed_lamp_sampling(layer):
     # the floor and 2-3 x in the lobe's tail without); no bias over the floor.
     np.testing.assert_allclose(got @ lum, sampled @ lum, rtol=0.05)
     assert abs(float((got @ lum).sum() / (sampled @ lum).sum()) - 1.0) < 0.02
+
+
+def _floor(n, eye=(3.0, -1.0, 2.5)):
+    """n receivers on the floor z = 0 under `_floor_lamp`, seen from `eye`: points, normals, to_eye."""
+    rng = np.random.default_rng(2)
+    points = np.column_stack([rng.uniform(-2, 2, n), rng.uniform(-2, 2, n), np.zeros(n)])
+    to_eye = np.asarray(eye) - points
+    return points, np.tile([0.0, 0.0, 1.0], (n, 1)), to_eye / np.linalg.norm(to_eye, axis=1, keepdims=True)
 
 
 def test_the_diffuse_visibility_shadows_the_closed_form():
@@ -120,15 +122,18 @@ def test_the_diffuse_visibility_shadows_the_closed_form():
     diffuse = np.stack([2.0 * colour, 1.0 * colour, 0.0 * colour])[:, None, :]
     vis = glossy_ltc.visibility(diffuse, exact, [lamp])
     np.testing.assert_allclose(vis[:, 0], [1.0, 0.5, 0.0], atol=1e-6)
-    light = glossy_ltc.lamp_light([lamp], mats, points, normals, to_eye, rows, vis, glossy_ltc.covered([lamp], mats,
-                                                                                                     rows, vis, points,
-                                                                                                     normals, to_eye))
-    assert light[0].min() > 0
+    light, pairs = glossy_ltc.closed_form([lamp], mats, points, normals, to_eye, rows, vis, np.zeros((3, 1), bool),
+                                          np.zeros(3))
+    assert pairs.all() and light[0].min() > 0
     np.testing.assert_allclose(light[1], 0.5 * light[0], rtol=1e-5)
     assert not light[2].any()
+    # An unknown visibility: lamp sampling.
+    vis[1] = np.nan
+    assert glossy_ltc.closed_form([lamp], mats, points, normals, to_eye, rows, vis, np.zeros((3, 1), bool),
+                                  np.zeros(3))[1][:, 0].tolist() == [True, False, True]
 
 
-def test_unknown_visibility_and_other_lamps_stay_with_lamp_sampling():
+def test_other_lamps_and_smooth_lobes_stay_with_lamp_sampling():
     mats = glossy.GlossyMaterials.from_materials([Material(specular=sp.SpecularLayer(roughness=0.5)),
                                                   Material(specular=sp.SpecularLayer(roughness=0.1))])
     area = _floor_lamp()
@@ -139,18 +144,33 @@ def test_unknown_visibility_and_other_lamps_stay_with_lamp_sampling():
     hidden.glossy_power = 100.0
     lights = [area, point, spread, hidden]
     assert list(glossy_ltc.eligible_lamps(lights)) == [True, False, False, False]
-    rows = np.array([0, 0, 1, -1])
-    vis = np.array([[1.0, 1.0, 1.0, 1.0], [np.nan, 1.0, 1.0, 1.0], [1.0, 1.0, 1.0, 1.0], [1.0, 1.0, 1.0, 1.0]],
-                   np.float32)
-    points = np.zeros((4, 3))
-    up = np.tile([0.0, 0.0, 1.0], (4, 1))
-    pairs = glossy_ltc.covered(lights, mats, rows, vis, points, up, up)
-    # Only the rough material's receiver whose area lamp's visibility is known.
-    assert pairs.tolist() == [[True, False, False, False], [False] * 4, [False] * 4, [False] * 4]
-    assert not glossy_ltc.covered(lights, mats, rows, None, points, up, up).any()
-    # A lamp the receiver's horizon cuts (a wall beside it) or hides, or a grazing view: lamp sampling.
-    side = np.tile([1.0, 0.0, 0.0], (4, 1))
-    assert not glossy_ltc.covered(lights, mats, rows, vis, points + [0.2, 0.0, 0.0], side, side).any()
-    assert not glossy_ltc.covered(lights, mats, rows, vis, points, -up, -up).any()
-    grazing = np.tile([0.98, 0.0, 0.2], (4, 1))
-    assert not glossy_ltc.covered(lights, mats, rows, vis, points, up, grazing).any()
+    rows = np.array([0, 1, -1])
+    points, up = np.zeros((3, 3)), np.tile([0.0, 0.0, 1.0], (3, 1))
+    vis = np.ones((3, 4), np.float32)
+    skip = np.zeros((3, 4), bool)
+    pairs = glossy_ltc.closed_form(lights, mats, points, up, up, rows, vis, skip, np.zeros(3))[1]
+    assert pairs.tolist() == [[True, False, False, False], [False] * 4, [False] * 4]
+    # The reflection rays' lamps (`skip`) and a frame without visibilities: none.
+    skip[0, 0] = True
+    assert not glossy_ltc.closed_form(lights, mats, points, up, up, rows, vis, skip, np.zeros(3))[1].any()
+    assert not glossy_ltc.closed_form(lights, mats, points, up, up, rows, None, skip, np.zeros(3))[1].any()
+
+
+def test_an_untrusted_closed_form_is_taken_only_where_its_light_is_dim():
+    """A lamp the receiver's horizon cuts (a wall beside it), or a grazing view: the closed form
+    only where its light is dim against the pixel's diffuse lamp light."""
+    mats = glossy.GlossyMaterials.from_materials([Material(specular=sp.SpecularLayer(roughness=0.5))])
+    lamp = _floor_lamp()
+    side = np.tile([1.0, 0.0, 0.0], (2, 1))
+    points = np.array([[0.2, 0.0, 1.9]] * 2)
+    eye = np.tile([0.8, 0.0, 0.6], (2, 1))
+    assert not glossy_ltc.trusted([lamp], points, side, eye).any()
+    grazing = np.tile([0.98, 0.0, 0.2], (2, 1))
+    up = np.tile([0.0, 0.0, 1.0], (2, 1))
+    assert not glossy_ltc.trusted([lamp], np.zeros((2, 3)), up, grazing).any()
+    assert glossy_ltc.trusted([lamp], np.zeros((2, 3)), up, eye).all()
+    vis = np.ones((2, 1), np.float32)
+    light, pairs = glossy_ltc.closed_form([lamp], mats, points, side, eye, np.zeros(2, np.int64), vis,
+                                          np.zeros((2, 1), bool), np.array([0.0, 1e6]))
+    assert pairs[:, 0].tolist() == [False, True]
+    assert not light[0].any() and light[1].min() > 0
