@@ -132,9 +132,6 @@ def polygon_integral(polygon: np.ndarray, points: np.ndarray, normals: np.ndarra
     lx = rel[0] * x[:, 0:1] + rel[1] * x[:, 1:2] + rel[2] * x[:, 2:3]
     ly = rel[0] * y[:, 0:1] + rel[1] * y[:, 1:2] + rel[2] * y[:, 2:3]
     lz = rel[0] * n[:, 0:1] + rel[1] * n[:, 1:2] + rel[2] * n[:, 2:3]
-    # The lobe is 0 below the surface, the LTC is not (the matrix tilts the horizon): clip to the
-    # surface's horizon first, the LTC's own in the cosine space after.
-    lx, ly, lz = polygon_light.clip_above([lx, ly, lz], lz)
     a, b, c, d = (m[:, i : i + 1] for i in range(4))
     f = polygon_light.vector_form_factor([a * lx + b * lz, ly, c * lx + d * lz])
     # Back through M: the x-z block of M^-1 inverted, y unchanged.

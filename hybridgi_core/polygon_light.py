@@ -104,22 +104,6 @@ def _by_rows(v: list[np.ndarray], h: np.ndarray, lambert, tail: tuple) -> np.nda
     return out
 
 
-def clip_above(v: list[np.ndarray], h: np.ndarray) -> list[np.ndarray]:
-    """Three (n, 2k) vertex planes: the convex polygons v (three (n, k) planes) clipped to h >= 0
-    (h (n, k) the vertices' heights), each row's vertices first in boundary order, then its last
-    vertex repeated (an edge of no length adds nothing to Lambert's sums); a row wholly below
-    keeps its first vertex everywhere (no area)."""
-    if not (h < 0).any():
-        return v
-    clipped, valid = _clip_to_horizon(v, h)
-    order = np.argsort(~valid, axis=1, kind="stable")
-    clipped = [np.take_along_axis(c, order, axis=1) for c in clipped]
-    count = valid.sum(axis=1)
-    j = np.arange(clipped[0].shape[1])[None, :]
-    src = np.where(j < count[:, None], j, np.maximum(count[:, None] - 1, 0))
-    return [np.take_along_axis(c, src, axis=1) for c in clipped]
-
-
 def _clip_to_horizon(v: list[np.ndarray], h: np.ndarray):
     """Sutherland-Hodgman against the plane h = 0 (keep h >= 0): three (m, 2k) vertex component
     planes and a (m, 2k) mask of the vertices that exist, in boundary order (a convex polygon
