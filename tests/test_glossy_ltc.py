@@ -124,9 +124,15 @@ def test_the_diffuse_visibility_shadows_the_closed_form():
     np.testing.assert_allclose(vis[:, 0], [1.0, 0.5, 0.0], atol=1e-6)
     light, pairs = glossy_ltc.closed_form([lamp], mats, points, normals, to_eye, rows, vis, np.zeros((3, 1), bool),
                                           np.zeros(3))
-    assert pairs.all() and light[0].min() > 0
+    # The penumbra's pixel is left to lamp sampling (the lobe weighs the lamp otherwise than
+    # the cosine), unless its light is dim against the pixel's diffuse light: then it is shadowed
+    # by the diffuse visibility too.
+    assert pairs[:, 0].tolist() == [True, False, True]
+    assert light[0].min() > 0 and not light[1:].any()
+    light, pairs = glossy_ltc.closed_form([lamp], mats, points, normals, to_eye, rows, vis, np.zeros((3, 1), bool),
+                                          np.full(3, 1e6))
+    assert pairs.all()
     np.testing.assert_allclose(light[1], 0.5 * light[0], rtol=1e-5)
-    assert not light[2].any()
     # An unknown visibility: lamp sampling.
     vis[1] = np.nan
     assert glossy_ltc.closed_form([lamp], mats, points, normals, to_eye, rows, vis, np.zeros((3, 1), bool),
