@@ -35,8 +35,8 @@ MIN_VIEW_COSINE = 0.3
 #: How far off the closed form is taken to read where it is not `trusted` (10-30% on a lamp the
 #: horizon cuts or a grazing view, 2-3 x in a lobe's tail): such a pair is taken where this share
 #: of its light is within the noise lamp sampling may leave. 1: where all of it is (640x360, r24
-#: rung: dragon_npm Combined 0.0553 with lamp sampling alone, 0.0558 at 1, 0.0577 at 0.3;
-#: bunny_npm 0.0265 at either; the dragon's lamp samples 1.34 M -> 0.40 M, the bunny's -> 0.06 M).
+#: rung: dragon_npm Combined 0.0553 with lamp sampling alone, 0.0558 at 1, 0.0577 at 0.3; the
+#: dragon's lamp samples 1.34 M -> 0.40 M).
 UNTRUSTED_ERROR = 1.0
 #: Visibility within this of 0 or 1 is a lamp wholly seen or hidden (the ratio estimator's
 #: float32 rounding), where the diffuse light's visibility is the lobe's too.
@@ -49,10 +49,10 @@ def eligible_lamps(lights) -> np.ndarray:
     """(L,) bool: the area lamps whose glossy light the closed form gives (module docstring)."""
     out = np.zeros(len(lights), bool)
     for j, light in enumerate(lights):
-        glossy = light.for_glossy()
-        if light.kind != "AREA" or float(light.power) <= 0.0 or float(glossy.power) == 0.0:
+        seen = light.for_glossy()
+        if light.kind != "AREA" or float(light.power) <= 0.0 or float(seen.power) == 0.0:
             continue
-        if float(light.spread) < np.pi or not np.isfinite(float(glossy.power)):
+        if float(light.spread) < np.pi or not np.isfinite(float(seen.power)):
             continue
         shape = _area_shape(light)
         out[j] = shape.area > 0 and shape.rectangular
