@@ -26,6 +26,7 @@ import numpy as np
 
 from hybridgi_core import errors
 from hybridgi_core import glossy_image as _glossy
+from hybridgi_core import glossy_ltc as _glossy_ltc
 from hybridgi_core import glossy_noise as _glossy_noise
 from hybridgi_core import lights as _lights
 from hybridgi_core import penumbra as _penumbra
@@ -445,16 +446,20 @@ class ViewportWorker:
             direct = _interruptible(system, lambda: self._superseded(state))
             # Its first pass on probes where the lamps allow (`penumbra._coarse_first_pass`).
             exact_lamps = _lights.one_sample_exact_lamps(system.scene.lights)
+            # The glossy closed form's visibility (`glossy_ltc`), for the fine glossy light.
+            exact, per_lamp = _glossy_ltc.direct_outputs(system, points.shape[0]) if shares is None else (None, None)
             try:
                 light, full = (_penumbra.adaptive_direct(
                     direct, points, normals, pix, shape, self._frame * MAX_DIRECT_BLOCKS, samples,
                     camera=camera, pool=system.updater.pool, lamps=len(system.scene.lights),
-                    exact_lamps=exact_lamps)
+                    exact_lamps=exact_lamps, per_lamp=per_lamp, exact_out=exact)
                     if points.shape[0] else (None, np.zeros(0, bool)))
             except _Superseded:
                 self._steps["direct_dropped"] = (time.perf_counter() - t0) * 1e3
                 return
             rays = points.shape[0] * min(samples, _penumbra.FIRST_SAMPLES) + int(full.sum()) * samples
+            if light is not None:
+                level.visibility = _glossy_ltc.lamp_visibility(system.scene.lights, light, per_lamp, exact)
             if light is not None and shares is not None:
                 try:
                     light = _translucent.mix_back(light, shares, lambda rows: _penumbra.adaptive_direct(
@@ -559,7 +564,7 @@ class ViewportWorker:
                     system, points, normals, pix, (h, w), np.asarray(r.full_material).reshape(-1)[pix],
                     np.asarray(r.full_albedo).reshape(-1, 4)[pix, :3], irradiance, r.view,
                     camera_eye(r.view, r.proj), self._frame, r.glossy_samples, r.reflection_rays,
-                    pool=system.updater.pool, between=between, tint=tint)
+                    pool=system.updater.pool, between=between, tint=tint, visibility=level.visibility)
             except _Superseded:
                 self._steps["fine_glossy_dropped"] = (time.perf_counter() - t0) * 1e3
                 return

@@ -26,6 +26,9 @@ class DirectLevel:
         self.sum[points[2], 3] = 1.0
         self.passes = 0
         self.weight = 0  # the passes' samples (a pass's light counts by its samples)
+        #: (n, lamps) the last full-resolution pass's lamp visibility at the points
+        #: (`glossy_ltc.lamp_visibility`), or None: the fine glossy light's closed form.
+        self.visibility = None
 
     def add(self, light: np.ndarray, samples: int) -> None:
         """One pass's light (n, 3) at the level's points, traced with `samples` rays per pixel."""

@@ -165,14 +165,19 @@ def test_other_lamps_and_smooth_lobes_stay_with_lamp_sampling():
     assert list(glossy_ltc.eligible_lamps(lights)) == [True, False, False, False]
     rows = np.array([0, 1, -1])
     points, up = np.zeros((3, 3)), np.tile([0.0, 0.0, 1.0], (3, 1))
-    vis = np.ones((3, 4), np.float32)
-    skip = np.zeros((3, 4), bool)
-    pairs = glossy_ltc.closed_form(lights, mats, points, up, up, rows, vis, skip, np.zeros(3))[1]
-    assert pairs.tolist() == [[True, False, False, False], [False] * 4, [False] * 4]
+    vis = np.ones((3, 1), np.float32)
+    skip = np.zeros((3, 1), bool)
+    pairs = glossy_ltc.closed_form([area], mats, points, up, up, rows, vis, skip, np.zeros(3))[1]
+    # The rough material's receiver only (the smooth lobe's and the background's: lamp sampling).
+    assert pairs[:, 0].tolist() == [True, False, False]
+    # A receiver that samples another lamp anyway keeps the area lamp with it.
+    both = glossy_ltc.closed_form([area, point], mats, points, up, up, rows, np.ones((3, 2), np.float32),
+                                  np.zeros((3, 2), bool), np.zeros(3))[1]
+    assert not both.any()
     # The reflection rays' lamps (`skip`) and a frame without visibilities: none.
     skip[0, 0] = True
-    assert not glossy_ltc.closed_form(lights, mats, points, up, up, rows, vis, skip, np.zeros(3))[1].any()
-    assert not glossy_ltc.closed_form(lights, mats, points, up, up, rows, None, skip, np.zeros(3))[1].any()
+    assert not glossy_ltc.closed_form([area], mats, points, up, up, rows, vis, skip, np.zeros(3))[1].any()
+    assert not glossy_ltc.closed_form([area], mats, points, up, up, rows, None, skip, np.zeros(3))[1].any()
 
 
 def test_an_untrusted_closed_form_is_taken_only_where_its_light_is_dim():

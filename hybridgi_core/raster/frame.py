@@ -500,21 +500,13 @@ class FramePipeline:
         exact_lamps = one_sample_exact_lamps(system.scene.lights)
         # Each lamp's exact unshadowed light and share: the glossy lobes' closed-form area-lamp
         # light is shadowed by their ratio (`glossy_ltc`).
-        ltc_lamps = lamps <= SUBFRAME_LAMP_LIMIT and glossy_image.has_glossy(system) and bool(
-            glossy_ltc.eligible_lamps(system.scene.lights).any())
-        exact = np.full((p_full.shape[0], lamps), np.nan) if ltc_lamps else None
-        per_lamp = shares
-        if ltc_lamps and lamps > 1 and per_lamp is None:
-            per_lamp = np.zeros((p_full.shape[0], lamps, 3), np.float32)
+        exact, per_lamp = glossy_ltc.direct_outputs(system, p_full.shape[0], shares)
         light = adaptive_direct(system.direct, p_full, n_full, pix_full, (self.height, self.width),
                                 frame, self.direct_samples, camera=camera, pool=system.updater.pool, lamps=lamps,
                                 smooth=s_full, per_lamp=per_lamp, rough=rough, exact_lamps=exact_lamps,
                                 exact_out=exact)[0]
         direct[pix_full, :3] = light
-        visibility = None
-        if ltc_lamps:
-            visibility = glossy_ltc.visibility(per_lamp if lamps > 1 else light[:, None, :], exact,
-                                               system.scene.lights)
+        visibility = glossy_ltc.lamp_visibility(system.scene.lights, light, per_lamp, exact)
         t_full = None if translucent is None else translucent[pix_full]
         rows = translucent_mod.lit_from_behind(t_full)
         if rows.size:
