@@ -128,7 +128,7 @@ def adaptive_direct(direct, points: np.ndarray, normals: np.ndarray, pix: np.nda
                 np.ones(points.shape[0], bool))
     if lamps > 1:
         return _per_lamp(direct, points, normals, pix, shape, frame, samples, first, camera, pool, lamps, smooth,
-                         per_lamp, _weak_lamps(rough), exact_lamps, exact_out)
+                         per_lamp, weak_lamps(rough), exact_lamps, exact_out)
     partial = np.zeros(points.shape[0], bool)
     reuse = {"exact": np.full((points.shape[0], lamps), np.nan)} if lamps > 0 else {}
     if lamps == 1 and _coarse(exact_lamps, [0], points.shape[0]):
@@ -174,7 +174,7 @@ def _smooth(smooth: np.ndarray | None, rows: np.ndarray | None = None) -> dict:
     return {"smooth": smooth if rows is None else smooth[rows]}
 
 
-def _weak_lamps(rough: np.ndarray | None) -> np.ndarray | None:
+def weak_lamps(rough: np.ndarray | None) -> np.ndarray | None:
     """(n, lamps) bool: the lamps under WEAK_SHARE of all the lamps' rough light at each point
     (non-finite rough light counts 0: a NaN-power lamp is weak everywhere), or None for none."""
     if rough is None:
@@ -279,7 +279,7 @@ def _coarse_first_pass(direct, points, normals, pix, shape, frame, first, group,
     2. Each lamp's probes that saw it wholly (light, no disagreeing ray) or not at all are eroded
        by COARSE_REACH probe steps: a pixel all of whose probes around it agree is a candidate
        (a probe missing there, background or another surface's edge, or in a penumbra, makes it
-       none); a lamp weak at the pixel (`_weak_lamps`) agrees with anything.
+       none); a lamp weak at the pixel (`weak_lamps`) agrees with anything.
     3. Candidates take one sample per lamp (`direct(ratio_samples=1)`: the exact light times its
        ray's visibility) and keep it where every lamp's ray agrees with its probes (seen where
        they saw the lamp, unseen where they did not); a ray that disagrees (a thin shadow or gap

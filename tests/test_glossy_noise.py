@@ -109,3 +109,30 @@ def test_noisy_highlights_take_the_samples_and_the_estimate_stays_unbiased():
     err_adaptive = np.abs(estimates - converged)[:, polished & lit].mean()
     err_first = np.abs(np.array(first) - converged)[:, polished & lit].mean()
     assert err_adaptive < 0.6 * err_first, (err_adaptive, err_first)
+
+
+def test_a_weak_lamp_takes_one_unbiased_sample_and_is_never_resampled():
+    """A dim round lamp beside the area lamp (under `penumbra.WEAK_SHARE` of their light at every
+    receiver) takes one sample per receiver, in a call of its own, never in the noisy pixels'
+    second pass; the mean over frames is its light all the same (the area lamp skipped, as the
+    reflection rays' or the closed form's lamps are, so that its own noise stays out)."""
+    points, normals, to_eye, rows, mats = _floor()
+    matrix = np.eye(4)
+    matrix[:3, 3] = (1.0, 1.0, 1.5)
+    faint = Light(kind="POINT", color=np.ones(3, np.float32), power=0.5, matrix=matrix, radius=0.3)
+    system = _System([_lamp(), faint], mats)
+    pix = np.arange(SIDE * SIDE)
+    skip = np.zeros((pix.size, 2), bool)
+    skip[:, 0] = True
+    level = np.zeros(pix.size, np.float32)
+    frames = 400
+    total = np.zeros((pix.size, 3))
+    for f in range(frames):
+        system.calls.clear()
+        light, _ = adaptive_lamp_glossy(system, points, normals, to_eye, rows, pix, (SIDE, SIDE), f, 32, skip, level)
+        total += light
+        assert system.calls == [(pix.size, 1)]  # one sample at every receiver, no other pass
+    expected = glossy.glossy_direct([faint], points, normals, to_eye, rows, mats, None, frame_rng(3, 0), 4096) @ LUMA
+    got = (total / frames) @ LUMA
+    assert expected.sum() > 0
+    assert abs(got.sum() / expected.sum() - 1.0) < 0.03
