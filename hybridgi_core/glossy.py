@@ -302,9 +302,7 @@ def _lobe_terms(mats: GlossyMaterials, rows, n, v, lx, ly, lz):
         terms = [None, s5 if np.any(k[:, 2]) else None, s6c if np.any(k[:, 3]) else None]
         if np.any(k[:, 1]):
             f0_real = mats.f0_real[slot, rows][:, None].astype(_F32)
-            remap = (sp.fresnel_dielectric(cos_hi, mats.eta[slot, rows][:, None]).astype(_F32) - f0_real) / np.maximum(
-                _F32(1.0) - f0_real, _F32(1e-12))
-            terms[0] = np.clip(remap, 0.0, 1.0).astype(_F32)
+            terms[0] = _fresnel_remap(cos_hi, mats.eta[slot, rows][:, None], f0_real).astype(_F32)
         out.append((common, terms, slot_coefficients(mats, slot, rows, mu_i[:, 0], mu_view)[0]))
     return out
 
@@ -329,10 +327,21 @@ def fresnel_terms(mats: GlossyMaterials, slot: int, rows, cos_hi) -> np.ndarray:
     """(m, 4) the terms the coefficients of `slot_coefficients` weigh at cos(h, i) = cos_hi (m,):
     1, the dielectric Fresnel remapped to 0..1, (1 - c)^5 and c (1 - c)^6 (`_lobe_terms`)."""
     c = np.clip(np.asarray(cos_hi, np.float64), 0.0, 1.0)
-    f0 = mats.f0_real[slot, rows]
-    remap = np.clip((sp.fresnel_dielectric(c, mats.eta[slot, rows]) - f0) / np.maximum(1.0 - f0, 1e-12), 0.0, 1.0)
+    remap = _fresnel_remap(c, mats.eta[slot, rows], mats.f0_real[slot, rows])
     s5 = (1.0 - c) ** 5
     return np.stack([np.ones_like(c), remap, s5, s5 * (1.0 - c) * c], axis=1)
+
+
+def _fresnel_remap(cos_hi, eta, f0):
+    """The dielectric Fresnel at cos(h, i) = cos_hi for IOR eta, mapped from [f0, 1] to [0, 1]
+    (`GlossyLobe.coefficients`' remap term), in cos_hi's precision."""
+    fresnel = sp.fresnel_dielectric(cos_hi, eta).astype(cos_hi.dtype)
+    return np.clip((fresnel - f0) / np.maximum(cos_hi.dtype.type(1.0) - f0, cos_hi.dtype.type(1e-12)), 0.0, 1.0)
+
+
+def glows(light) -> bool:
+    """Whether the glossy lobes see `light` (its `for_glossy` view) at all: a power and colour above 0."""
+    return float(light.power) != 0.0 and bool(np.any(light.color != 0))
 
 
 def under_sheen(material, layer) -> list:
@@ -568,7 +577,7 @@ def glossy_direct(lights, points, normals, to_eye, rows, mats: GlossyMaterials, 
     if variance is not None:
         variance[:] = 0.0
     # The lamps as glossy lobes see them (Specular factor, glossy ray visibility).
-    active = [g for g in (lt.for_glossy() for lt in lights) if float(g.power) != 0.0 and np.any(g.color != 0)]
+    active = [g for g in (lt.for_glossy() for lt in lights) if glows(g)]
     if not active or not mats.any or pts.shape[0] == 0:
         return out
     valid = (rows >= 0) & finite_rows(pts) & finite_rows(nrm) & finite_rows(eye)

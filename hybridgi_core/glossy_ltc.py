@@ -62,12 +62,6 @@ def eligible_lamps(lights) -> np.ndarray:
     return out
 
 
-def _glowing(lights) -> np.ndarray:
-    """(L,) bool: the lamps the glossy lobes see at all (a glossy power and colour above 0)."""
-    return np.array([float(g.power) != 0.0 and bool(np.any(g.color != 0)) for g in (lt.for_glossy() for lt in lights)],
-                    bool)
-
-
 def eligible_rows(mats) -> np.ndarray:
     """(m,) bool: the material rows whose every live lobe is GGX (single or multiple scattering)
     and at least MIN_ROUGHNESS rough."""
@@ -144,7 +138,7 @@ def closed_form(lights, mats, points, normals, to_eye, rows, vis: np.ndarray | N
     # Only receivers whose every lamp could leave lamp sampling: one that samples another lamp
     # anyway saves little by one lamp fewer (morse_apartment samples its four round lamps at every
     # pixel; its area lamp's closed form cost 146 ms of a 1.3 s frame and saved no sampling time).
-    sampled = ~(pairs | skip) & _glowing(lights)[None, :]
+    sampled = ~(pairs | skip) & np.array([glossy.glows(lt.for_glossy()) for lt in lights])[None, :]
     pairs &= ~sampled.any(axis=1)[:, None]
     if not pairs.any():
         return np.zeros((n, 3), np.float32), pairs

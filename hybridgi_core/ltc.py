@@ -61,13 +61,14 @@ def ggx_lobe(alpha2: np.ndarray, mu: np.ndarray, wi: np.ndarray) -> np.ndarray:
     return np.where(wi[:, 2] > 0, d * g2 / (4.0 * mu), 0.0)
 
 
-def density(m_inv: np.ndarray, wi: np.ndarray) -> np.ndarray:
-    """(N,) the LTC of inverse matrix m_inv (3, 3) at unit directions wi (N, 3): the clamped
-    cosine / pi at M^-1 wi / |M^-1 wi| times the Jacobian |det M^-1| / |M^-1 wi|^3."""
-    lo = wi @ m_inv.T
-    length = np.linalg.norm(lo, axis=1)
-    cos = np.maximum(lo[:, 2] / np.maximum(length, 1e-30), 0.0)
-    return cos / np.pi * abs(np.linalg.det(m_inv)) / np.maximum(length, 1e-30) ** 3
+def density(params: np.ndarray, wi: np.ndarray) -> np.ndarray:
+    """(N,) the LTC of M^-1 = [[a, 0, b], [0, 1, 0], [c, 0, d]] at unit directions wi (N, 3);
+    params (4,) one (a, b, c, d) for all, or (N, 4) one per direction: the clamped cosine / pi at
+    M^-1 wi / |M^-1 wi| times the Jacobian |det M^-1| / |M^-1 wi|^3."""
+    a, b, c, d = np.moveaxis(np.asarray(params, np.float64), -1, 0)
+    lo = np.stack([a * wi[:, 0] + b * wi[:, 2], wi[:, 1], c * wi[:, 0] + d * wi[:, 2]], axis=1)
+    length = np.maximum(np.linalg.norm(lo, axis=1), 1e-30)
+    return np.maximum(lo[:, 2] / length, 0.0) / np.pi * np.abs(a * d - b * c) / length**3
 
 
 @lru_cache(maxsize=1)
@@ -164,9 +165,6 @@ def _correction(m: np.ndarray, rough: np.ndarray, mu: np.ndarray, w: np.ndarray,
     share outside the lamp: 2.5% mean error there."""
     alpha2 = np.maximum(rough, MIN_FIT_ROUGHNESS) ** 4
     lobe = ggx_lobe(alpha2, mu, w) / np.maximum(sp._lerp_table(sp.tables()[0], [rough, mu]), 1e-6)
-    a, b, c, d = m.T
-    lo = np.stack([a * w[:, 0] + b * w[:, 2], w[:, 1], c * w[:, 0] + d * w[:, 2]], axis=1)
-    length = np.maximum(np.linalg.norm(lo, axis=1), 1e-30)
-    fitted = np.maximum(lo[:, 2] / length, 0.0) / np.pi * np.abs(a * d - b * c) / length**3
+    fitted = density(m, w)
     ratio = np.where(fitted > 0, np.minimum(lobe / np.maximum(fitted, 1e-30), MAX_CORRECTION), 1.0)
     return 1.0 + (ratio - 1.0) * (1.0 - np.clip(integral, 0.0, 1.0))

@@ -127,43 +127,39 @@ def _clip_to_horizon(v: list[np.ndarray], h: np.ndarray):
 def _lambert(v: list[np.ndarray], nc: list[np.ndarray], valid: np.ndarray | None) -> np.ndarray:
     """Lambert's sum over each row's vertices (component planes (m, k); valid (m, k) or None for
     all), taken in order and closed cyclically."""
-    m, k = v[0].shape
-    v, take, live = _ordered(v, valid)
-    inv = 1.0 / np.maximum(np.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2]), 1e-300)
-    a = [c * inv for c in v]
-    b = [take(c) for c in a]
-    cx = a[1] * b[2] - a[2] * b[1]
-    cy = a[2] * b[0] - a[0] * b[2]
-    cz = a[0] * b[1] - a[1] * b[0]
-    sin = np.sqrt(cx * cx + cy * cy + cz * cz)
-    angle = np.arctan2(sin, a[0] * b[0] + a[1] * b[1] + a[2] * b[2])
-    term = angle * (cx * nc[0] + cy * nc[1] + cz * nc[2]) / np.maximum(sin, 1e-300)
-    if live is not None:
-        term = np.where(live, term, 0.0)
+    cross, scale = _edges(v, valid)
+    term = scale * (cross[0] * nc[0] + cross[1] * nc[1] + cross[2] * nc[2])
     total = term[:, 0].copy()  # summed column by column, in numpy's order for k < 8
-    for j in range(1, k):
+    for j in range(1, term.shape[1]):
         total += term[:, j]
     return 0.5 * np.abs(total)
-
-
-def _ordered(v: list[np.ndarray], valid: np.ndarray | None):
-    """(planes, next-vertex function, live mask or None): each row's valid vertices first in
-    their order, closed cyclically over them (`_clip_to_horizon`'s rows)."""
-    if valid is None:
-        return v, _next_vertex, None
-    k = v[0].shape[1]
-    order = np.argsort(~valid, axis=1, kind="stable")  # valid vertices first, order kept
-    v = [np.take_along_axis(c, order, axis=1) for c in v]
-    count = valid.sum(axis=1)
-    j = np.arange(k)[None, :]
-    nxt = np.where(j + 1 < count[:, None], j + 1, 0)
-    return v, (lambda c: np.take_along_axis(c, nxt, axis=1)), j < count[:, None]
 
 
 def _lambert_vector(v: list[np.ndarray], valid: np.ndarray | None) -> np.ndarray:
     """(m, 3) Lambert's vector sum over each row's vertices (as `_lambert`, before the normal),
     oriented to +z (a polygon's winding does not matter)."""
-    v, take, live = _ordered(v, valid)
+    cross, scale = _edges(v, valid)
+    out = np.stack([0.5 * (c * scale).sum(axis=1) for c in cross], axis=1)
+    out[out[:, 2] < 0] *= -1.0
+    return out
+
+
+def _edges(v: list[np.ndarray], valid: np.ndarray | None) -> tuple[list[np.ndarray], np.ndarray]:
+    """(cross, scale): each edge's unit vertices' cross product (three (m, k) planes) and its
+    angle over that cross product's length ((m, k), 0 for the slots `valid` leaves empty), the
+    terms of Lambert's sums. Each row's valid vertices are taken first, in their order, and
+    closed cyclically over them (`_clip_to_horizon`'s rows); valid None: all of them."""
+    m, k = v[0].shape
+    if valid is None:
+        take, live = _next_vertex, None
+    else:
+        order = np.argsort(~valid, axis=1, kind="stable")  # valid vertices first, order kept
+        v = [np.take_along_axis(c, order, axis=1) for c in v]
+        count = valid.sum(axis=1)
+        j = np.arange(k)[None, :]
+        nxt = np.where(j + 1 < count[:, None], j + 1, 0)
+        take = lambda c: np.take_along_axis(c, nxt, axis=1)  # noqa: E731
+        live = j < count[:, None]
     inv = 1.0 / np.maximum(np.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2]), 1e-300)
     a = [c * inv for c in v]
     b = [take(c) for c in a]
@@ -172,9 +168,7 @@ def _lambert_vector(v: list[np.ndarray], valid: np.ndarray | None) -> np.ndarray
     scale = np.arctan2(sin, a[0] * b[0] + a[1] * b[1] + a[2] * b[2]) / np.maximum(sin, 1e-300)
     if live is not None:
         scale = np.where(live, scale, 0.0)
-    out = np.stack([0.5 * (c * scale).sum(axis=1) for c in cross], axis=1)
-    out[out[:, 2] < 0] *= -1.0
-    return out
+    return cross, scale
 
 
 def _next_vertex(c: np.ndarray) -> np.ndarray:

@@ -45,7 +45,7 @@ def lobe(alpha: float, v: np.ndarray, wi: np.ndarray) -> np.ndarray:
 
 
 def lobe_samples(alpha: float, v: np.ndarray, u1: np.ndarray, u2: np.ndarray):
-    """(directions (N, 3), pdf (N,)) of the lobe's visible normals (Heitz, JCGT 2018) reflected."""
+    """(N, 3) the lobe's visible normals (Heitz, JCGT 2018) reflected: directions drawn by `_pdf_lobe`."""
     vh = np.array([alpha * v[0], alpha * v[1], v[2]])
     vh /= np.linalg.norm(vh)
     t1 = np.cross([0.0, 0.0, 1.0], vh)
@@ -60,21 +60,14 @@ def lobe_samples(alpha: float, v: np.ndarray, u1: np.ndarray, u2: np.ndarray):
     nh = p1[:, None] * t1 + p2[:, None] * t2 + pn[:, None] * vh
     h = np.stack([alpha * nh[:, 0], alpha * nh[:, 1], np.maximum(nh[:, 2], 1e-9)], axis=1)
     h /= np.linalg.norm(h, axis=1, keepdims=True)
-    vdh = h @ v
-    wi = 2.0 * vdh[:, None] * h - v[None, :]
-    a2 = alpha * alpha
-    x = h[:, 2] ** 2 * (a2 - 1.0) + 1.0
-    d = a2 / (np.pi * x * x)
-    g1 = 1.0 / (1.0 + _lambda(a2, v[2]))
-    pdf = g1 * d * np.maximum(vdh, 0.0) / v[2] / np.maximum(4.0 * vdh, 1e-12)
-    return wi, pdf
+    return 2.0 * (h @ v)[:, None] * h - v[None, :]
 
 
-def cosine_samples(u1: np.ndarray, u2: np.ndarray):
+def cosine_samples(u1: np.ndarray, u2: np.ndarray) -> np.ndarray:
+    """(N, 3) cosine-distributed directions of the upper hemisphere (pdf z / pi)."""
     r = np.sqrt(u1)
     phi = 2.0 * np.pi * u2
-    wi = np.stack([r * np.cos(phi), r * np.sin(phi), np.sqrt(np.maximum(1.0 - u1, 0.0))], axis=1)
-    return wi, wi[:, 2] / np.pi
+    return np.stack([r * np.cos(phi), r * np.sin(phi), np.sqrt(np.maximum(1.0 - u1, 0.0))], axis=1)
 
 
 def _objective(params, wi, target, q):
@@ -83,7 +76,7 @@ def _objective(params, wi, target, q):
     det = abs(np.linalg.det(m_inv))
     if det < 1e-12 or not np.all(np.isfinite(m_inv)):
         return 1e9
-    g = ltc.density(m_inv, wi)
+    g = ltc.density(params, wi)
     m = np.linalg.inv(m_inv)
     row = m[2] / np.linalg.norm(m[2])
     below = 1.0 - 0.5 * (1.0 + row[2])
@@ -126,14 +119,13 @@ def fit_cell(rough: float, mu: float, x0: np.ndarray, uv) -> tuple[np.ndarray, f
     alpha = max(rough, ltc.MIN_FIT_ROUGHNESS) ** 2
     mu = max(mu, ltc.MIN_MU)
     v = np.array([np.sqrt(1.0 - mu * mu), 0.0, mu])
-    l1, _ = lobe_samples(alpha, v, *uv)
-    l2, _ = cosine_samples(*uv)
-    wi = np.concatenate([l1, l2])
+    l1 = lobe_samples(alpha, v, *uv)
+    wi = np.concatenate([l1, cosine_samples(*uv)])
     # Balance heuristic over both sets: q = (pdf_lobe + pdf_cos) / 2 per sample.
-    _, pdf_lobe_all = _pdf_lobe(alpha, v, wi)
-    q = 0.5 * (pdf_lobe_all + np.maximum(wi[:, 2], 0.0) / np.pi)
+    pdf = _pdf_lobe(alpha, v, wi)
+    q = 0.5 * (pdf + np.maximum(wi[:, 2], 0.0) / np.pi)
     f = lobe(alpha, v, wi)
-    albedo = float(np.mean(lobe(alpha, v, l1) / np.maximum(_pdf_lobe(alpha, v, l1)[1], 1e-30)))
+    albedo = float(np.mean(f[: l1.shape[0]] / np.maximum(pdf[: l1.shape[0]], 1e-30)))
     target = f / max(albedo, 1e-12)
     keep = q > 0
     obj = lambda x: _objective(x, wi[keep], target[keep], q[keep])  # noqa: E731
@@ -143,8 +135,8 @@ def fit_cell(rough: float, mu: float, x0: np.ndarray, uv) -> tuple[np.ndarray, f
     return x, err
 
 
-def _pdf_lobe(alpha, v, wi):
-    """The visible-normal reflection pdf of directions wi (N, 3)."""
+def _pdf_lobe(alpha, v, wi) -> np.ndarray:
+    """(N,) the visible-normal reflection pdf of directions wi (N, 3) (`lobe_samples`)."""
     h = wi + v[None, :]
     h /= np.maximum(np.linalg.norm(h, axis=1, keepdims=True), 1e-12)
     a2 = alpha * alpha
@@ -152,8 +144,7 @@ def _pdf_lobe(alpha, v, wi):
     d = a2 / (np.pi * x * x)
     g1 = 1.0 / (1.0 + _lambda(a2, v[2]))
     vdh = np.maximum(h @ v, 0.0)
-    pdf = np.where(vdh > 0, g1 * d / (4.0 * v[2]), 0.0)
-    return h, pdf
+    return np.where(vdh > 0, g1 * d / (4.0 * v[2]), 0.0)
 
 
 def fit_table(size: int) -> tuple[np.ndarray, np.ndarray]:
