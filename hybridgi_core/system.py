@@ -78,22 +78,24 @@ class GISystem:
         self.dynamic_objects = frozenset(dynamic_objects)
         self._static_rays = self._static_ray_geometry(scene)
         self.ray_geometry = self._with_dynamic(scene)
-        # The surface table (numpy) builds on a thread of its own while Embree builds the BVH
-        # here: neither reads the other, and each leaves a core idle much of its time (the
-        # atrium's 320k triangles: ~70 ms each, ~80 ms together).
-        with ThreadPoolExecutor(1, thread_name_prefix="hybridgi-build") as side:
+        self.cache = cache if cache is not None else IrradianceCache.for_scene(scene, settings)
+        # The surface table and the cells the surfaces read (numpy) build on a thread of their own
+        # while Embree builds the BVH here: none reads another, and each leaves a core idle much
+        # of its time (the atrium's 320k triangles: ~70 ms each, ~80 ms together; its surface
+        # cells, ~50 ms, were computed alone on the warm-up's critical path).
+        with ThreadPoolExecutor(2, thread_name_prefix="hybridgi-build") as side:
             table = side.submit(SurfaceTable, self.ray_geometry, scene.materials, reflect=settings.bounce_light,
                                 filter_glossy=settings.filter_glossy)
+            cells = side.submit(self._cells_on, None)
             try:
                 self.tracer = EmbreeTracer(self.ray_geometry, self.dynamic_objects, threads=1)
             finally:
                 self.surfaces = table.result()
+                self._surface_cells: np.ndarray | None = cells.result()
         self._set_cutouts(scene)
-        self.cache = cache if cache is not None else IrradianceCache.for_scene(scene, settings)
         self.updater = CacheUpdater(self.cache, self.tracer, ShadingScene(self.surfaces, scene.lights, scene.world), self.tracer.epsilon)
         #: Stored probe hits and the fixed-point solver of final renders (and of re-lighting).
         self.solver = GISolver(self.cache, self.tracer, self.updater.scene, self.tracer.epsilon, self.updater.pool)
-        self._surface_cells: np.ndarray | None = None
         #: Finer camera-centred levels over level 0 (`levels.CacheLevels`), built per frame by
         #: `build_levels`; None: level 0 alone (every reader then takes the single-grid path).
         self.levels: CacheLevels | None = None
@@ -176,19 +178,24 @@ class GISystem:
     def surface_cells(self) -> np.ndarray:
         """Cells any surface of the scene reads: what further bounces need converged."""
         if self._surface_cells is None:
-            self._surface_cells = self._cells_on(np.arange(self.ray_geometry.triangle_count))
+            self._surface_cells = self._cells_on(None)
         return self._surface_cells
 
-    def _cells_on(self, rows: np.ndarray) -> np.ndarray:
-        """Cells the surfaces of triangles `rows` of the ray geometry read (sampled points)."""
+    def _cells_on(self, rows: np.ndarray | None) -> np.ndarray:
+        """Cells the surfaces of triangles `rows` of the ray geometry read (sampled points; None:
+        every triangle). Corners gathered per column with np.take and the points made for the
+        sampled triangles only: the whole mesh's (T, 3, 3) corners by fancy indexing were half of
+        the atrium's 110 ms here."""
         g = self.ray_geometry
-        p = g.positions[g.triangles[rows]]
-        e1, e2 = p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]
+        tris = g.triangles if rows is None else np.take(g.triangles, rows, axis=0)
+        count = tris.shape[0]
+        c0, c1, c2 = (np.take(g.positions, tris[:, k], axis=0) for k in range(3))
+        e1, e2 = c1 - c0, c2 - c0
         # The edges' cross product gives both the areas and (at the sampled triangles) the face
         # normals: `Geometry.face_normals` over all of them cost as much again (atrium: ~60 ms).
         cross = np.cross(e1, e2)
-        area = np.linalg.norm(cross, axis=1)
-        if rows.size == 0 or area.sum() <= 0:
+        area = np.sqrt(np.einsum("ij,ij->i", cross, cross))
+        if count == 0 or area.sum() <= 0:
             return np.zeros(0, np.int64)
         rng = np.random.default_rng(12345)
         # Enough points that every cell-sized patch of surface gets some, whatever the triangle
@@ -197,12 +204,12 @@ class GISystem:
         # points per cell area leave a cell missed with odds ~exp(-8 SURFACE_DENSITY).
         cell_area = self.cache.grid.cell_size**2
         n = int(np.clip(SURFACE_DENSITY * area.sum() / cell_area, 1000, SURFACE_SAMPLES))
-        tri = rng.choice(rows.size, size=n, p=area / area.sum())
+        tri = rng.choice(count, size=n, p=area / area.sum())
         a, b = rng.random((2, n, 1), dtype=np.float32)
         flip = (a + b) > 1
         a, b = np.where(flip, 1 - a, a), np.where(flip, 1 - b, b)
-        pts = p[tri, 0] + a * e1[tri] + b * e2[tri]
-        fn = cross[tri] / area[tri, None]  # sampled triangles have area > 0 (drawn by it)
+        pts = np.take(c0, tri, axis=0) + a * np.take(e1, tri, axis=0) + b * np.take(e2, tri, axis=0)
+        fn = np.take(cross, tri, axis=0) / np.take(area, tri)[:, None]  # drawn by area: > 0
         # Both sides: open meshes are seen from both.
         return np.union1d(self.visible_cells(pts, fn), self.visible_cells(pts, -fn))
 
