@@ -143,7 +143,52 @@ def frame_glossy(system, points, normals, pix, shape: tuple[int, int], material,
     (n, L) each lamp's visibility at the receivers (`glossy_ltc.visibility`) or None: given, the
     area lamps' light of the lobes `glossy_ltc` covers is its closed form, shadowed by it, and
     lamp sampling takes the rest. Pure numpy: the final render's pipeline and the viewport's
-    worker both call it."""
+    worker both call it. `begin_glossy` and `finish_glossy` in one: a final render runs the
+    first on its stage thread and the second, whose filters are GPU passes there, on its own."""
+    return finish_glossy(begin_glossy(system, points, normals, pix, shape, material, albedo, irradiance, view, eye,
+                                      frame, samples, reflection_rays, lookup, pool, between, tint, visibility))
+
+
+@dataclass
+class GlossyDraft:
+    """`begin_glossy`'s unfiltered glossy light, what `finish_glossy` filters and blends.
+
+    direct : (n, 3) the lamps' sampled light (filtered at `lamp_rows`, whose roughness is
+    `lamp_rough`), colour : (n, 3) Glossy Color, exact : (n, 3) the closed forms' lamp light;
+    lit : the receivers whose lobes reflect, traced : (t,) the rows of lit whose reflection rays'
+    light (t, 3) x 2 `ray_direct`, `ray_indirect` (`ray_total` (t,) found some) is filtered, with
+    their weight `share` (t,) against the cache's sky and bounced light (lit's, (l, 3) each) and
+    the area lamps the rays met `lamp` (l, 3)."""
+
+    direct: np.ndarray
+    colour: np.ndarray
+    exact: np.ndarray
+    lit: np.ndarray
+    lamp_rows: np.ndarray
+    lamp_rough: np.ndarray
+    traced: np.ndarray
+    ray_direct: np.ndarray
+    ray_indirect: np.ndarray
+    ray_total: np.ndarray
+    share: np.ndarray
+    sky: np.ndarray
+    bounced: np.ndarray
+    lamp: np.ndarray
+    points: np.ndarray
+    normals: np.ndarray
+    pix: np.ndarray
+    shape: tuple
+    view: np.ndarray
+    pool: object
+    between: object
+    tint: tuple | None  # (mats, material texels, rows, (n, 2) coordinates) of textured metals
+
+
+def begin_glossy(system, points, normals, pix, shape: tuple[int, int], material, albedo, irradiance, view, eye,
+                 frame: int, samples: int, reflection_rays: int, lookup: HitLookup | None = None,
+                 pool=None, between=None, tint: np.ndarray | None = None,
+                 visibility: np.ndarray | None = None) -> GlossyDraft:
+    """`frame_glossy`'s rays and samples (arguments as its), before its filters: numpy, any thread."""
     between = between or (lambda: None)
     points = np.asarray(points).reshape(-1, 3)
     normals = np.asarray(normals).reshape(-1, 3)
@@ -154,8 +199,6 @@ def frame_glossy(system, points, normals, pix, shape: tuple[int, int], material,
     mu = np.clip(np.einsum("ij,ij->i", normals, to_eye), 0.0, 1.0)
     colour = np.zeros((n, 3), np.float32)
     colour[:] = glossy_color(mats, rows, mu)
-    direct = np.zeros((n, 3), np.float32)
-    bounced = np.zeros((n, 3), np.float32)
     lit = np.flatnonzero(rows_above(colour, 0.0))
     rough = mats.rough[rows[lit]]
     # Area lamps in lobes much narrower than they are: the reflection rays estimate them.
@@ -166,25 +209,55 @@ def frame_glossy(system, points, normals, pix, shape: tuple[int, int], material,
     exact, closed = glossy_ltc.closed_form(system.scene.lights, mats, points, normals, to_eye, rows, visibility, skip,
                                            level, pool)
     level = level + exact @ LUMA
+    direct = np.zeros((n, 3), np.float32)
     direct[:] = adaptive_lamp_glossy(system, points, normals, to_eye, rows, pix, shape, frame, samples,
                                      skip | closed, level)[0]
-    if lit.size:
-        between()
-        q = pix[lit]
-        # Only the sampled part is noisy: receivers whose every lamp the closed form gives skip the filter.
-        sampled = np.flatnonzero((~(skip[lit] | closed[lit])).any(axis=1))
-        if sampled.size:
-            at = lit[sampled]
-            direct[at] = filter_lamp_glossy(direct[at], rough[sampled], points[at], normals[at], q[sampled], shape,
-                                            view, pool=pool)
-        between()
-        sky, bounced[lit], lamp = _reflections(system, points[lit], normals[lit], to_eye[lit], rough, frame, q,
-                                               shape, view, skip[lit], reflection_rays, lookup, pool, between)
-        direct[lit] += colour[lit] * (sky + lamp)
-    direct += exact
+    # Only the sampled part is noisy: receivers whose every lamp the closed form gives skip the filter.
+    sampled = np.flatnonzero((~(skip[lit] | closed[lit])).any(axis=1))
+    parts = _traced_reflections(system, points[lit], normals[lit], to_eye[lit], rough, frame, pix[lit], shape,
+                                skip[lit], reflection_rays, lookup, between) if lit.size else None
+    if parts is None:
+        empty = np.zeros((0, 3), np.float32)
+        parts = (np.zeros(0, np.int64), empty, empty, np.zeros(0, np.float32), np.zeros(0, np.float32), empty, empty,
+                 empty)
+    metals = None
     if tint is not None and getattr(mats, "tint_bases", None):
-        _tint_metals(mats, np.asarray(material).reshape(-1), rows, np.asarray(tint, np.float32).reshape(-1, 2),
-                     direct, colour)
+        metals = (mats, np.asarray(material).reshape(-1), rows, np.asarray(tint, np.float32).reshape(-1, 2))
+    return GlossyDraft(direct, colour, exact, lit, lit[sampled], rough[sampled], *parts, points, normals, pix, shape,
+                       view, pool, between, metals)
+
+
+def finish_glossy(draft: GlossyDraft, filter=None) -> GlossyLight:
+    """The GlossyLight of a `begin_glossy` draft: its filters (`reflection.filter_lamp_glossy`,
+    `filter_reflections`) and the blends that follow them. filter : a callable with
+    `pixel_gather.filter_residual`'s signature for their whole-image passes (a final render's GPU
+    pass, `raster.atrous.AtrousPass`); None: numpy."""
+    d = draft
+    direct = d.direct.copy()
+    bounced = np.zeros_like(direct)
+    lit = d.lit
+    if lit.size:
+        d.between()
+        if d.lamp_rows.size:
+            at = d.lamp_rows
+            direct[at] = filter_lamp_glossy(direct[at], d.lamp_rough, d.points[at], d.normals[at], d.pix[at], d.shape,
+                                            d.view, pool=d.pool, filter=filter)
+        d.between()
+        sky, bounced[lit] = d.sky.copy(), d.bounced.copy()
+        sel = d.traced
+        if sel.size:
+            at = lit[sel]
+            ray_direct, ray_indirect = filter_reflections(d.ray_direct, d.ray_indirect, d.ray_total, d.points[at],
+                                                          d.normals[at], d.pix[at], d.shape, d.view, pool=d.pool,
+                                                          filter=filter)
+            t = (d.share * (d.ray_total > 0))[:, None]
+            sky[sel] += t * (ray_direct - sky[sel])
+            bounced[at] += t * (ray_indirect - bounced[at])
+        direct[lit] += d.colour[lit] * (sky + d.lamp)
+    direct += d.exact
+    colour = d.colour.copy()
+    if d.tint is not None:
+        _tint_metals(*d.tint, direct, colour)
     return GlossyLight(direct, colour, bounced)
 
 
@@ -203,21 +276,23 @@ def _tint_metals(mats, material, rows, tint, direct, colour) -> None:
         colour[sel] *= factor
 
 
-def _reflections(system, points, normals, to_eye, rough, frame, pix, shape, view, lamps, rays, lookup, pool, between):
-    """(sky, bounced, lamp), each (n, 3): what the lobes at the receivers reflect, the world's and
-    emitters' light (Glossy Direct), other surfaces' (Glossy Indirect) and the area lamps `lamps`
-    (n, L) marks as the rays met them (`reflection.bsdf_lamps`; lamp sampling skipped them),
-    before Glossy Color. Reflection rays (`reflection.traced_reflection`, filtered edge-aware over
-    the image: `reflection.filter_reflections`) where the lobes are smooth enough, blended into
-    the cache's split-sum estimates (`glossy.cache_reflection`) as they grow rough; the cache is
-    read only where its estimate counts (rough lobes, rays that found no light). lookup : the
-    cache's HitLookup to reuse (None: built here; the whole grid's table costs ~50 ms on a 48^3
-    grid)."""
+def _traced_reflections(system, points, normals, to_eye, rough, frame, pix, shape, lamps, rays, lookup, between):
+    """(traced (t,), direct, indirect (t, 3), total (t,), share (t,), sky, bounced, lamp (n, 3)):
+    what the lobes at the receivers reflect before Glossy Color, unfiltered (`finish_glossy`
+    filters and blends it): reflection rays (`reflection.traced_reflection`) at the receivers
+    `traced` whose lobes are smooth enough, their light from the world and emitters (Glossy
+    Direct), other surfaces (Glossy Indirect) and `total`, with their weight against the cache's
+    split-sum estimates (`glossy.cache_reflection`) `share`; those estimates (sky, bounced) at
+    every receiver, read only where they count (rough lobes, rays that found no light: the rest
+    zero); and the area lamps `lamps` (n, L) marks as the rays met them (lamp sampling skipped
+    them). lookup : the cache's HitLookup to reuse (None: built here; the whole grid's table costs
+    ~50 ms on a 48^3 grid)."""
     n = points.shape[0]
     share = traced_share(rough) if rays > 0 else np.zeros(n)
     sel = np.flatnonzero(share > 0)
     lamp = np.zeros((n, 3), np.float32)
-    traced = np.zeros(n, np.float32)
+    empty = np.zeros((0, 3), np.float32)
+    direct, indirect, total = empty, empty, np.zeros(0, np.float32)
     if sel.size:
         if lookup is None:
             lookup = HitLookup(system.cache, bounced=system.settings.indirect_quality == MULTI_BOUNCE)
@@ -225,17 +300,13 @@ def _reflections(system, points, normals, to_eye, rough, frame, pix, shape, view
                                                                to_eye[sel], rough[sel], rays, frame, lamps[sel],
                                                                pixels=(pix[sel], shape[1]))
         between()
-        direct, indirect = filter_reflections(direct, indirect, total, points[sel], normals[sel], pix[sel], shape,
-                                              view, pool=pool)
-        traced[sel] = share[sel] * (total > 0)
     sky = np.zeros((n, 3), np.float32)
     bounced = np.zeros((n, 3), np.float32)
-    need = np.flatnonzero(traced < 1.0)
+    # The cache's estimate where the rays' weight is under 1 (or they may find no light).
+    need = np.ones(n, bool)
+    need[sel] = share[sel] * (total > 0) < 1.0
+    need = np.flatnonzero(need)
     if need.size:
         sky[need], bounced[need] = cache_reflection(system.cache, points[need], normals[need], to_eye[need],
                                                     rough[need])
-    if sel.size:
-        t = traced[sel, None]
-        sky[sel] += t * (direct - sky[sel])
-        bounced[sel] += t * (indirect - bounced[sel])
-    return sky, bounced, lamp
+    return sel, direct, indirect, total, share[sel].astype(np.float32), sky, bounced, lamp

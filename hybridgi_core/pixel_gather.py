@@ -920,7 +920,7 @@ def _stretch_into(qp: np.ndarray, pos: np.ndarray, qu: np.ndarray, view: np.ndar
 
 def filter_at_pixels(values: np.ndarray, keep: np.ndarray, points: np.ndarray, normals: np.ndarray, pix: np.ndarray,
                      shape: tuple[int, int], camera, passes: int, pool=None, plane_sigma: float = 0.02,
-                     normal_power: float = 8.0) -> np.ndarray:
+                     normal_power: float = 8.0, filter=None) -> np.ndarray:
     """`filter_residual` of per-pixel values (n, c <= 7) at flat pixels `pix` of an image of
     `shape`, only the pixels `keep` (n,) read and written (others keep their value); points,
     normals : (n, 3) the pixels' surfaces, camera (3,) the eye. Returns (n, c) float32.
@@ -928,16 +928,19 @@ def filter_at_pixels(values: np.ndarray, keep: np.ndarray, points: np.ndarray, n
     Up to SPARSE_FILTER_SHARE of the image kept (a penumbra, a glossy surface: Cornell 640x360's
     penumbra is 12k of 230k pixels) the taps are gathered at the kept pixels only
     (`_filter_sparse`, bit-identical; Cornell's penumbra filter 127 -> ~10 ms on one thread);
-    beyond it the whole-image filter's contiguous planes are faster."""
+    beyond it the whole-image filter's contiguous planes are faster. filter : a callable with
+    `filter_residual`'s signature and answer for that whole-image filter (a final render's GPU
+    pass, `raster.atrous.AtrousPass`); None: `filter_residual`."""
     if np.count_nonzero(keep) <= SPARSE_FILTER_SHARE * shape[0] * shape[1]:
         return _filter_sparse(values, keep, points, normals, pix, shape, camera, passes, plane_sigma, normal_power,
                               pool)
-    return _filter_dense(values, keep, points, normals, pix, shape, camera, passes, plane_sigma, normal_power, pool)
+    return _filter_dense(values, keep, points, normals, pix, shape, camera, passes, plane_sigma, normal_power, pool,
+                         filter)
 
 
 def _filter_dense(values: np.ndarray, keep: np.ndarray, points: np.ndarray, normals: np.ndarray, pix: np.ndarray,
                   shape: tuple[int, int], camera, passes: int, plane_sigma: float = 0.02, normal_power: float = 8.0,
-                  pool=None) -> np.ndarray:
+                  pool=None, filter=None) -> np.ndarray:
     """`filter_at_pixels` through the whole-image `filter_residual` (the values scattered into
     image planes, filtered, gathered back)."""
     h, w = shape
@@ -951,9 +954,9 @@ def _filter_dense(values: np.ndarray, keep: np.ndarray, points: np.ndarray, norm
     pos[pix] = points
     nrm = np.zeros((h * w, 3), np.float32)
     nrm[pix] = normals
-    out = filter_residual(image.reshape(h, w, c), pos.reshape(h, w, 3), nrm.reshape(h, w, 3), valid.reshape(h, w),
-                          np.asarray(camera, np.float32), passes, plane_sigma, normal_power,
-                          pool=pool).reshape(h * w, c)
+    out = (filter or filter_residual)(image.reshape(h, w, c), pos.reshape(h, w, 3), nrm.reshape(h, w, 3),
+                                      valid.reshape(h, w), np.asarray(camera, np.float32), passes, plane_sigma,
+                                      normal_power, pool=pool).reshape(h * w, c)
     return np.where(keep[:, None], out[pix], values).astype(np.float32)
 
 

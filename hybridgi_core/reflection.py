@@ -343,31 +343,32 @@ def _sky_mis(system, sky, p, nrm, eye, rough, rays, rng, radiance, flat_dirs, li
 
 def filter_reflections(direct: np.ndarray, indirect: np.ndarray, total: np.ndarray, points: np.ndarray,
                        normals: np.ndarray, pix: np.ndarray, shape: tuple[int, int], view: np.ndarray,
-                       passes: int = FILTER_PASSES, pool=None) -> tuple[np.ndarray, np.ndarray]:
+                       passes: int = FILTER_PASSES, pool=None, filter=None) -> tuple[np.ndarray, np.ndarray]:
     """The traced light (n, 3) x 2 of receivers at flat pixels `pix` of an image of `shape`,
     averaged edge-aware (`pixel_gather.filter_at_pixels`: taps on the same plane and facing the
     same way) over the receivers whose rays found light (total > 0). A few rays per pixel leave
     a polished floor's reflection of a bright edge speckled; the neighbours on its surface see
-    nearly the same reflection."""
+    nearly the same reflection. filter : as `filter_at_pixels`'."""
     if passes <= 0 or pix.size == 0:
         return direct, indirect
     camera = np.linalg.inv(np.asarray(view, np.float64))[:3, 3]
     out = filter_at_pixels(np.concatenate([direct, indirect], axis=1), total > 0, points, normals, pix, shape,
-                           camera, passes, pool)
+                           camera, passes, pool, filter=filter)
     return out[:, 0:3], out[:, 3:6]
 
 
 def filter_lamp_glossy(light: np.ndarray, rough: np.ndarray, points: np.ndarray, normals: np.ndarray,
-                       pix: np.ndarray, shape: tuple[int, int], view: np.ndarray, pool=None) -> np.ndarray:
+                       pix: np.ndarray, shape: tuple[int, int], view: np.ndarray, pool=None, filter=None) -> np.ndarray:
     """(n, 3) the lamps' glossy radiance `light` of receivers at flat pixels `pix` of an image of
     `shape` seen through `view` (lamp sampling, `lamp_glossy_without`), averaged one a-trous pass over each receiver's surface (same plane,
     normal within the filter's cos^8) where the lobe is at least LAMP_FILTER_ROUGHNESS rough.
 
     Why: 16 lamp samples of a roughness-0.5 lobe under an area lamp larger than the lobe speckle
     the highlight (the default Principled BSDF's Glossy Direct on the Stanford dragon: 0.035 of
-    Combined against Cycles, 0.018 filtered); Cycles' denoised image has none of it."""
+    Combined against Cycles, 0.018 filtered); Cycles' denoised image has none of it. filter : as
+    `filter_at_pixels`'."""
     keep = np.asarray(rough) >= LAMP_FILTER_ROUGHNESS
     if not keep.any():
         return light
     camera = np.linalg.inv(np.asarray(view, np.float64))[:3, 3]
-    return filter_at_pixels(light, keep, points, normals, pix, shape, camera, 1, pool)
+    return filter_at_pixels(light, keep, points, normals, pix, shape, camera, 1, pool, filter=filter)

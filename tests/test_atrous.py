@@ -74,3 +74,38 @@ def test_gpu_atrous_without_passes_or_pixels_returns_the_masked_input(gpu_contex
         assert not out.any()
     finally:
         atrous.free()
+
+
+@pytest.mark.parametrize("channels", [3, 6])
+def test_the_glossy_filters_take_the_gpu_pass_for_whole_images_only(gpu_context, channels):
+    """`filter_at_pixels(filter=)`, as a final render's glossy light calls it (`finish_glossy`):
+    a dense mask goes through the GPU pass with numpy's answer; a sparse one stays on numpy's
+    gathered taps (the pass is not called)."""
+    from hybridgi_core.pixel_gather import SPARSE_FILTER_SHARE, filter_at_pixels
+    from hybridgi_core.raster.atrous import AtrousPass
+
+    residual, position, normal, valid, camera, _ = _scene()
+    pix = np.flatnonzero(valid.reshape(-1))
+    values = np.ascontiguousarray(residual.reshape(-1, 7)[pix, :channels])
+    points, normals = position.reshape(-1, 3)[pix], normal.reshape(-1, 3)[pix]
+    dense = np.arange(pix.size) % 7 != 0
+    sparse = np.arange(pix.size) % 10 == 0
+    assert dense.sum() > SPARSE_FILTER_SHARE * H * W > sparse.sum()
+    calls = []
+    atrous = AtrousPass()
+
+    def gpu(*args, **kwargs):
+        calls.append(args[0].shape)
+        return atrous(*args, **kwargs)
+
+    try:
+        results = [(filter_at_pixels(values, keep, points, normals, pix, (H, W), camera, 1),
+                    filter_at_pixels(values, keep, points, normals, pix, (H, W), camera, 1, filter=gpu))
+                   for keep in (dense, sparse)]
+    finally:
+        atrous.free()
+    assert calls == [(H, W, channels)]
+    for keep, (ref, got) in zip((dense, sparse), results, strict=True):
+        np.testing.assert_allclose(got, ref, rtol=2e-4, atol=2e-5)
+        assert np.abs(got[keep] - values[keep]).max() > 1e-3  # filtered
+        np.testing.assert_array_equal(got[~keep], values[~keep])  # the rest as it was

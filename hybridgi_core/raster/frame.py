@@ -170,8 +170,11 @@ class FramePipeline:
         self.atrous = AtrousPass()
         #: Their full-res interpolation (`pixel_gather.upsample_full` on the GPU; sized on use).
         self.upsample = UpsamplePass()
+        #: The glossy light's edge-aware filters over the full-res image (`glossy_image.finish_glossy`
+        #: through `pixel_gather.filter_at_pixels`: the same a-trous pass at the full resolution).
+        self.glossy_atrous = AtrousPass()
         self._passes = (self.gbuffer, self.downsample, self.gather, self.ssao, self.bilateral, self.deferred,
-                        self.accumulate, self.atrous, self.upsample)
+                        self.accumulate, self.atrous, self.upsample, self.glossy_atrous)
         #: Final renders with pixel rays resolve the GI at full resolution on the CPU
         #: (`pixel_gather.full_res_images`): a copy of the centre raster's G-buffer (the guide of
         #: those full-res GI samples, as the downsampled G-buffer guides the low-res ones; the
@@ -607,9 +610,10 @@ class FramePipeline:
 
     def _start_glossy(self, system, view, proj, points, normals, pix, frame, lookup: HitLookup | None,
                       irradiance: np.ndarray, visibility: np.ndarray | None = None) -> futures.Future | None:
-        """Submit to the stage thread the glossy light of the centre raster's pixels
-        (`glossy_image.frame_glossy`: the lamps', sky's and emitters' reflection by the glossy lobes
-        and the light of other surfaces they reflect); None without glossy lobes. The G-buffer's
+        """Submit to the stage thread the glossy light of the centre raster's pixels before its
+        filters (`glossy_image.begin_glossy`: the lamps', sky's and emitters' reflection by the
+        glossy lobes and the light of other surfaces they reflect; `_finish_glossy` filters it on
+        the GPU); None without glossy lobes. The G-buffer's
         targets are read here, on the thread that owns the GPU context; the job is numpy only.
         lookup : the cache's HitLookup to reuse (None: the reflection rays build their own).
         irradiance : (n, 3) the pixels' diffuse lamp irradiance: the lamps' glossy light is
@@ -628,11 +632,11 @@ class FramePipeline:
 
         def job():
             t0 = time.perf_counter()
-            light = glossy_image.frame_glossy(system, points, normals, pix, shape, material, albedo[:, :3],
+            draft = glossy_image.begin_glossy(system, points, normals, pix, shape, material, albedo[:, :3],
                                               irradiance, view, eye, frame, self.glossy_samples,
                                               self.settings.reflection_rays, lookup, pool=system.updater.pool,
                                               tint=tint, visibility=visibility)
-            return light, (time.perf_counter() - t0) * 1e3
+            return draft, (time.perf_counter() - t0) * 1e3
 
         return self._stage_thread().submit(job)
 
@@ -641,12 +645,22 @@ class FramePipeline:
         glossy lobes: `_start_glossy`'s result laid out over the image, direct + colour x bounced
         uploaded for the deferred pass. Subframes reuse it: a highlight is smooth at the pixel
         scale, and silhouettes are where its share is least. Step "glossy": the job's own time
-        (it overlapped the pixel rays) and the upload."""
+        (it overlapped the pixel rays), its filters' blends (`glossy_image.finish_glossy`; the
+        filters themselves are GPU passes: step "atrous") and the upload."""
         if job is None:
             return None, None, None
-        light, ms = job.result()
+        draft, ms = job.result()
         stats.steps_ms["glossy"] = stats.steps_ms.get("glossy", 0.0) + ms
+
+        def gpu_filter(*args, **kwargs):
+            with stats.step("atrous"):
+                return self.glossy_atrous(*args, **kwargs)
+
         with stats.step("glossy"):
+            atrous_before = stats.steps_ms.get("atrous", 0.0)
+            light = glossy_image.finish_glossy(draft, filter=gpu_filter)
+            # The step holds the blends only: the filter passes are "atrous"'s.
+            stats.steps_ms["glossy"] -= stats.steps_ms.get("atrous", 0.0) - atrous_before
             glossy, colour, indirect = (np.zeros((self.height * self.width, 4), np.float32) for _ in range(3))
             glossy[pix, :3] = light.direct
             colour[pix, :3] = light.colour
