@@ -79,19 +79,18 @@ class GISystem:
         self._static_rays = self._static_ray_geometry(scene)
         self.ray_geometry = self._with_dynamic(scene)
         self.cache = cache if cache is not None else IrradianceCache.for_scene(scene, settings)
-        # The surface table and the cells the surfaces read (numpy) build on a thread of their own
-        # while Embree builds the BVH here: none reads another, and each leaves a core idle much
-        # of its time (the atrium's 320k triangles: ~70 ms each, ~80 ms together; its surface
-        # cells, ~50 ms, were computed alone on the warm-up's critical path).
-        with ThreadPoolExecutor(2, thread_name_prefix="hybridgi-build") as side:
+        # The surface table (numpy) builds on a thread of its own while Embree builds the BVH
+        # here: neither reads the other, and each leaves a core idle much of its time (the
+        # atrium's 320k triangles: ~70 ms each, ~80 ms together). (The surface cells on a second
+        # side thread saved nothing more: the three contend for the two cores.)
+        with ThreadPoolExecutor(1, thread_name_prefix="hybridgi-build") as side:
             table = side.submit(SurfaceTable, self.ray_geometry, scene.materials, reflect=settings.bounce_light,
                                 filter_glossy=settings.filter_glossy)
-            cells = side.submit(self._cells_on, None)
             try:
                 self.tracer = EmbreeTracer(self.ray_geometry, self.dynamic_objects, threads=1)
             finally:
                 self.surfaces = table.result()
-                self._surface_cells: np.ndarray | None = cells.result()
+        self._surface_cells: np.ndarray | None = None  # `surface_cells`, made on use
         self._set_cutouts(scene)
         self.updater = CacheUpdater(self.cache, self.tracer, ShadingScene(self.surfaces, scene.lights, scene.world), self.tracer.epsilon)
         #: Stored probe hits and the fixed-point solver of final renders (and of re-lighting).
@@ -184,8 +183,8 @@ class GISystem:
     def _cells_on(self, rows: np.ndarray | None) -> np.ndarray:
         """Cells the surfaces of triangles `rows` of the ray geometry read (sampled points; None:
         every triangle). Corners gathered per column with np.take and the points made for the
-        sampled triangles only: the whole mesh's (T, 3, 3) corners by fancy indexing were half of
-        the atrium's 110 ms here."""
+        sampled triangles only: the whole mesh's (T, 3, 3) corners by fancy indexing were most of
+        the time here (the atrium's warm-up 289 -> 267 ms, mean of 4)."""
         g = self.ray_geometry
         tris = g.triangles if rows is None else np.take(g.triangles, rows, axis=0)
         count = tris.shape[0]

@@ -432,9 +432,11 @@ class FramePipeline:
                                 camera_proj=camera_proj)
             with stats.step("accumulate"):
                 self.accumulate.execute(shaded, gbuf, first=s == 0)
+        with stats.step("accumulate"):  # the sums' read-back, as "gbuffer" counts the G-buffer's
+            sums = self.accumulate.read_all()
         with stats.step("film"):
             film.set_filter(reconstruction_taps(self.accumulate.count, self.filter_size, self.filter_type))
-            film.set_sums(self.accumulate.read_all(), self.accumulate.count)
+            film.set_sums(sums, self.accumulate.count)
             film.set_glossy(glossy, glossy_col, self.height, self.width, indirect=glossy_ind)
         self.film = film
         return shaded, stats
