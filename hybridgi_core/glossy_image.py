@@ -214,6 +214,7 @@ def begin_glossy(system, points, normals, pix, shape: tuple[int, int], material,
                                      skip | closed, level)[0]
     # Only the sampled part is noisy: receivers whose every lamp the closed form gives skip the filter.
     sampled = np.flatnonzero((~(skip[lit] | closed[lit])).any(axis=1))
+    between()  # (an edit that waits stops the viewport's worker before the reflection rays)
     parts = _traced_reflections(system, points[lit], normals[lit], to_eye[lit], rough, frame, pix[lit], shape,
                                 skip[lit], reflection_rays, lookup, between) if lit.size else None
     if parts is None:

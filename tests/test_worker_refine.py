@@ -16,6 +16,7 @@ import threading
 import time
 import types
 from pathlib import Path
+from unittest import mock
 
 import numpy as np
 import pytest
@@ -529,6 +530,19 @@ def test_a_still_view_takes_the_final_renders_glossy_light_and_an_edit_drops_it(
             wk._session.system, points, normals, pix, on.shape, unknown, request.full_albedo.reshape(-1, 4)[pix, :3],
             level.mean().reshape(-1, 4)[pix, :3], request.view, worker.camera_eye(request.view, request.proj), 1, 8, 2)
         assert not none.radiance.any()
+        # Its first stop comes after the lamps' samples, before the reflection rays are traced.
+        class Stop(Exception):
+            pass
+
+        def stop():
+            raise Stop
+
+        with mock.patch.object(glossy_image, "traced_reflection") as traced, pytest.raises(Stop):
+            glossy_image.frame_glossy(
+                wk._session.system, points, normals, pix, on.shape, request.full_material.reshape(-1)[pix],
+                request.full_albedo.reshape(-1, 4)[pix, :3], level.mean().reshape(-1, 4)[pix, :3], request.view,
+                worker.camera_eye(request.view, request.proj), 1, 8, 2, between=stop)
+        assert not traced.called
         # A newer view waits: the next fine glossy pass stops between its steps.
         with wk._cond:  # the idle worker thread waits on it meanwhile
             state.fine_glossy, state.fine_glossy_key = None, None
