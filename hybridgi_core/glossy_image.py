@@ -216,11 +216,7 @@ def begin_glossy(system, points, normals, pix, shape: tuple[int, int], material,
     sampled = np.flatnonzero((~(skip[lit] | closed[lit])).any(axis=1))
     between()  # (an edit that waits stops the viewport's worker before the reflection rays)
     parts = _traced_reflections(system, points[lit], normals[lit], to_eye[lit], rough, frame, pix[lit], shape,
-                                skip[lit], reflection_rays, lookup, between) if lit.size else None
-    if parts is None:
-        empty = np.zeros((0, 3), np.float32)
-        parts = (np.zeros(0, np.int64), empty, empty, np.zeros(0, np.float32), np.zeros(0, np.float32), empty, empty,
-                 empty)
+                                skip[lit], reflection_rays, lookup, between)
     metals = None
     if tint is not None and getattr(mats, "tint_bases", None):
         metals = (mats, np.asarray(material).reshape(-1), rows, np.asarray(tint, np.float32).reshape(-1, 2))
