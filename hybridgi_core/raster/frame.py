@@ -26,6 +26,7 @@ from ..screen_light import ScreenLight
 from ..settings import MULTI_BOUNCE
 from ..system import UPDATES_PER_BATCH
 from ..visible import pixels_to_points
+from . import thread_cpu
 from .accumulate import AccumulatePass
 from .atrous import AtrousPass
 from .bilateral import BilateralPass
@@ -69,6 +70,15 @@ SUBFRAME_LAMP_LIMIT = 8
 EXTRA_SUBFRAMES = 24
 
 
+#: Steps of a final render's steps_ms that are GPU work (llvmpipe here, milliseconds on a GPU):
+#: the render targets' allocation (`addon/pipeline.py`), the G-buffer, downsample (+ its
+#: read-back), gather (+ the cache texture's upload), SSAO, bilateral, deferred, the film's
+#: accumulation, the pixel rays' and glossy light's a-trous filters and full-res interpolation
+#: (each + its upload and read-back). The benchmark's seconds without GPU passes subtract them.
+GPU_PASS_STEPS = ("targets", "gbuffer", "downsample", "gather", "ssao", "bilateral", "deferred", "accumulate",
+                  "atrous", "upsample")
+
+
 @dataclass
 class FrameStats:
     steps_ms: dict[str, float] = field(default_factory=dict)
@@ -81,11 +91,31 @@ class FrameStats:
 
     @contextmanager
     def step(self, name: str):
+        """Time a step into steps_ms[name]; a GPU pass (GPU_PASS_STEPS) also counts the worker
+        threads' CPU time beside it (`thread_cpu`)."""
         t0 = time.perf_counter()
+        others = thread_cpu.other_threads_ns() if name in GPU_PASS_STEPS else None
         try:
             yield
         finally:
             self.steps_ms[name] = self.steps_ms.get(name, 0.0) + (time.perf_counter() - t0) * 1e3
+            if others is not None:
+                self._add_overlap(others)
+
+    def gpu_pass(self, fn):
+        """`fn` (a GPU pass whose time another step records) wrapped so that the worker threads'
+        CPU time during its calls counts as `step`'s GPU passes count theirs."""
+        def run(*args, **kwargs):
+            others = thread_cpu.other_threads_ns()
+            try:
+                return fn(*args, **kwargs)
+            finally:
+                self._add_overlap(others)
+        return run
+
+    def _add_overlap(self, others: dict) -> None:
+        key = thread_cpu.GPU_OVERLAP_STEP
+        self.steps_ms[key] = self.steps_ms.get(key, 0.0) + thread_cpu.cpu_ms_since(others)
 
 
 @dataclass
@@ -683,7 +713,8 @@ class FramePipeline:
             system, position_lo, normal_lo, pix, points, normals, visible, view, frame, s.pixel_rays,
             p_full, n_full, pix_full, (self.width, self.height), passes=s.pixel_filter,
             plane_sigma=s.bilateral_plane_sigma, normal_power=s.bilateral_normal_power, screen=screen,
-            full_surfaces=full_surfaces, filter=self.atrous, upsample=self.upsample, lookup=lookup, begun=begun)
+            full_surfaces=full_surfaces, filter=stats.gpu_pass(self.atrous), upsample=stats.gpu_pass(self.upsample),
+            lookup=lookup, begun=begun)
         stats.rays += out.gi.rays
         steps = dict(out.steps_ms)
         stats.steps_ms["atrous"] = stats.steps_ms.get("atrous", 0.0) + steps.pop("filter", 0.0)  # a GPU pass
