@@ -878,6 +878,69 @@ def test_gpu_accumulation_equals_the_numpy_film(gpu_context):
         acc.free()
 
 
+@pytest.mark.parametrize("filter_type, size, count", [("BLACKMAN_HARRIS", 1.5, 3), ("GAUSSIAN", 1.5, 1), ("BOX", 1.0, 2)])
+def test_gpu_film_resolve_equals_the_numpy_film(gpu_context, filter_type, size, count):
+    """The film's GPU resolve (FilmResolvePass: the pixel filter and Cycles' colour divisions over
+    the accumulated sums) reads as the numpy FilmAccumulator reads the same sums, for a 3-tap and
+    a 5-tap filter and none: channels without colour (the mean of the others), pixels whose own
+    samples saw none (0 though a neighbour's filtered colour reaches them), the image's edges."""
+    from types import SimpleNamespace
+
+    from hybridgi_core.raster import film_resolve
+    from hybridgi_core.raster.accumulate import AccumulatePass
+    from hybridgi_core.raster.deferred import ShadedFrame
+    from hybridgi_core.raster.readback import upload_texture_2d
+    from hybridgi_core.raster.subpixel import FilmAccumulator, reconstruction_taps
+
+    taps = reconstruction_taps(count, size, filter_type)
+    assert film_resolve.supports(taps) and taps.size == {"BLACKMAN_HARRIS": 3, "GAUSSIAN": 5, "BOX": 1}[filter_type]
+    rng = np.random.default_rng(11)
+    acc = AccumulatePass()
+    acc.resize(W, H)
+    resolve = film_resolve.FilmResolvePass()
+    resolve.resize(W, H)
+    try:
+        for s in range(count):
+            arrays = {name: rng.random((H, W, 4), dtype=np.float32) for name in
+                      ("combined", "diffuse_direct", "diffuse_indirect", "diffuse_color", "normal")}
+            colour = arrays["diffuse_color"]
+            colour[rng.random((H, W)) < 0.2, 1] = 0.0  # a channel without colour
+            colour[3:6, 4:9, :3] = 0.0  # pixels that see no colour at all, among others that do
+            arrays["ao"] = rng.random((H, W, 1), dtype=np.float32)
+            position = rng.random((H, W, 4), dtype=np.float32)
+            position[..., 3] = 1.0
+            tex = {n: upload_texture_2d(a, "R32F" if n == "ao" else "RGBA32F") for n, a in arrays.items()}
+            shaded = ShadedFrame(tex["combined"], tex["diffuse_direct"], tex["diffuse_indirect"],
+                                 tex["diffuse_color"], tex["ao"], W, H)
+            acc.execute(shaded, SimpleNamespace(normal=tex["normal"], position=upload_texture_2d(position)),
+                        first=s == 0)
+        ref = FilmAccumulator()
+        ref.set_filter(taps)
+        ref.set_sums(acc.read_all(), acc.count)
+        resolve.execute(acc, taps)
+        got = FilmAccumulator()
+        got.set_filter(taps)
+        got.set_resolved(resolve.read_all(), acc.count)
+        for name in ("combined", "combined_premultiplied", "diffuse_direct", "diffuse_indirect",
+                     "diffuse_color", "ao", "normal"):
+            np.testing.assert_allclose(got.read(name), ref.read(name), rtol=1e-5, atol=1e-6, err_msg=name)
+        if taps.size > 1:
+            assert (ref.read("diffuse_direct")[3:6, 4:9, :3] == 0).all()  # the mask is exercised
+            assert (ref.read("diffuse_color")[3:6, 4:9, :3] > 0).any()
+    finally:
+        acc.free()
+        resolve.free()
+
+
+def test_film_resolve_refuses_filters_wider_than_it_takes():
+    from hybridgi_core.raster import film_resolve
+    from hybridgi_core.raster.subpixel import reconstruction_taps
+
+    wide = reconstruction_taps(1, 10.0, "GAUSSIAN")
+    assert not film_resolve.supports(wide)  # the frame keeps the numpy film for it
+    assert film_resolve.supports(reconstruction_taps(8, 1.5, "BLACKMAN_HARRIS"))
+
+
 def test_pixel_directions_are_the_rays_through_the_pixel_centres():
     """`world_background.pixel_directions` (the CPU background of a frame without geometry):
     the centre of a perspective view looks along the camera's -Z, a corner pixel along its own

@@ -26,7 +26,7 @@ from ..screen_light import ScreenLight
 from ..settings import MULTI_BOUNCE
 from ..system import UPDATES_PER_BATCH
 from ..visible import pixels_to_points
-from . import thread_cpu
+from . import film_resolve, thread_cpu
 from .accumulate import AccumulatePass
 from .atrous import AtrousPass
 from .bilateral import BilateralPass
@@ -73,10 +73,10 @@ EXTRA_SUBFRAMES = 24
 #: Steps of a final render's steps_ms that are GPU work (llvmpipe here, milliseconds on a GPU):
 #: the render targets' allocation (`addon/pipeline.py`), the G-buffer, downsample (+ its
 #: read-back), gather (+ the cache texture's upload), SSAO, bilateral, deferred, the film's
-#: accumulation, the pixel rays' and glossy light's a-trous filters and full-res interpolation
-#: (each + its upload and read-back). The benchmark's seconds without GPU passes subtract them.
+#: accumulation and its resolve, the pixel rays' and glossy light's a-trous filters and full-res
+#: interpolation (each + its upload and read-back). The benchmark's seconds without GPU passes subtract them.
 GPU_PASS_STEPS = ("targets", "gbuffer", "downsample", "gather", "ssao", "bilateral", "deferred", "accumulate",
-                  "atrous", "upsample")
+                  "atrous", "upsample", "film_resolve")
 
 
 @dataclass
@@ -203,8 +203,10 @@ class FramePipeline:
         #: The glossy light's edge-aware filters over the full-res image (`glossy_image.finish_glossy`
         #: through `pixel_gather.filter_at_pixels`: the same a-trous pass at the full resolution).
         self.glossy_atrous = AtrousPass()
+        #: The film's pixel filter and divisions over the accumulated sums (sized on use).
+        self.film_resolve = film_resolve.FilmResolvePass()
         self._passes = (self.gbuffer, self.downsample, self.gather, self.ssao, self.bilateral, self.deferred,
-                        self.accumulate, self.atrous, self.upsample, self.glossy_atrous)
+                        self.accumulate, self.atrous, self.upsample, self.glossy_atrous, self.film_resolve)
         #: Final renders with pixel rays resolve the GI at full resolution on the CPU
         #: (`pixel_gather.full_res_images`): a copy of the centre raster's G-buffer (the guide of
         #: those full-res GI samples, as the downsampled G-buffer guides the low-res ones; the
@@ -462,11 +464,18 @@ class FramePipeline:
                                 camera_proj=camera_proj)
             with stats.step("accumulate"):
                 self.accumulate.execute(shaded, gbuf, first=s == 0)
-        with stats.step("accumulate"):  # the sums' read-back, as "gbuffer" counts the G-buffer's
-            sums = self.accumulate.read_all()
-        with stats.step("film"):
-            film.set_filter(reconstruction_taps(self.accumulate.count, self.filter_size, self.filter_type))
+        taps = reconstruction_taps(self.accumulate.count, self.filter_size, self.filter_type)
+        film.set_filter(taps)
+        if film_resolve.supports(taps):
+            with stats.step("film_resolve"):  # the filter and divisions on the GPU, and the read-back
+                self.film_resolve.resize(self.width, self.height)
+                self.film_resolve.execute(self.accumulate, taps)
+                film.set_resolved(self.film_resolve.read_all(), self.accumulate.count)
+        else:  # a filter wider than the GPU pass takes: the numpy reference
+            with stats.step("accumulate"):  # the sums' read-back, as "gbuffer" counts the G-buffer's
+                sums = self.accumulate.read_all()
             film.set_sums(sums, self.accumulate.count)
+        with stats.step("film"):
             film.set_glossy(glossy, glossy_col, self.height, self.width, indirect=glossy_ind)
         self.film = film
         return shaded, stats
@@ -707,7 +716,8 @@ class FramePipeline:
         (the three full-res textures, the centre G-buffer's copy that guides them, the factor-1
         bilateral pass that reads them)."""
         s = self.settings
-        guide, bilateral = self.full_res_guide(gbuf)
+        with stats.step("downsample"):  # the G-buffer's factor-1 copy: a GPU pass
+            guide, bilateral = self.full_res_guide(gbuf)
         p_full, n_full, pix_full = full
         out = pixel_gather.full_res_images(
             system, position_lo, normal_lo, pix, points, normals, visible, view, frame, s.pixel_rays,
@@ -752,7 +762,8 @@ class FramePipeline:
         guide)."""
         indirect, direct, traced = resolved
         stats.rays += traced
-        guide = self._full_copy.execute(gbuf)
+        with stats.step("downsample"):  # the subframe's G-buffer copy: a GPU pass
+            guide = self._full_copy.execute(gbuf)
         shape = (self.height, self.width, 4)
         # New textures, not updated in place: an update waits for the previous subframe's passes.
         return (upload_texture_2d(indirect.reshape(shape), "RGBA32F"), upload_texture_2d(direct.reshape(shape), "RGBA32F"),

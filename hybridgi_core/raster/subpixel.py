@@ -540,6 +540,7 @@ class FilmAccumulator:
         self._depth = None
         self._taps = np.ones(1)
         self._filtered: dict[str, np.ndarray] = {}
+        self._resolved: dict[str, np.ndarray] = {}  # passes resolved on the GPU (`set_resolved`)
 
     def set_filter(self, taps: np.ndarray) -> None:
         """Filter every pass but Depth by the separable `taps` (`reconstruction_taps`) as it is
@@ -582,6 +583,16 @@ class FilmAccumulator:
         # float32 as the GPU summed them: no copies of every full-resolution pass.
         self._sums = {name: np.asarray(v, np.float32) for name, v in sums.items()}
         self._filtered = {}
+        self._resolved = {}
+        self.count = int(count)
+
+    def set_resolved(self, passes: dict[str, np.ndarray], count: int) -> None:
+        """Take the passes of `count` subframes resolved elsewhere (`film_resolve.FilmResolvePass`,
+        the GPU twin of `read`: the same filter, set with `set_filter` first, and divisions):
+        `read` returns them as they are."""
+        self._resolved = {name: np.asarray(v, np.float32) for name, v in passes.items()}
+        self._sums = {}
+        self._filtered = {}
         self.count = int(count)
 
     def set_glossy(self, radiance, colour, height: int, width: int, indirect=None) -> None:
@@ -612,6 +623,7 @@ class FilmAccumulator:
 
     def _accumulate(self, name: str, value: np.ndarray) -> None:
         self._filtered.pop(name, None)
+        self._resolved.pop(name, None)
         total = self._sums.get(name)
         if total is None:
             self._sums[name] = np.array(value, np.float64)
@@ -628,6 +640,8 @@ class FilmAccumulator:
             return self._depth
         if self.count == 0:
             raise KeyError(f"{name}: no subframe was added")
+        if name in self._resolved:
+            return self._resolved[name]
         if name in COLOR_DIVIDED_PASSES:
             out = _divide_even(self._sum(name), self._sum("diffuse_color"), self.count)
             if self._taps.size > 1:
