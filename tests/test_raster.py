@@ -932,39 +932,6 @@ def test_gpu_film_resolve_equals_the_numpy_film(gpu_context, filter_type, size, 
         resolve.free()
 
 
-@pytest.mark.parametrize("size, with_indirect", [(1.5, True), (1.5, False), (0.5, True)])
-def test_gpu_glossy_passes_equal_the_numpy_film(gpu_context, size, with_indirect):
-    """The glossy passes' GPU resolve (FilmResolvePass.glossy) equals FilmAccumulator.set_glossy:
-    Glossy Color filtered, Direct and Indirect divided by it where the pixel's own colour is,
-    0 elsewhere (pixels without glossy colour beside ones with it)."""
-    from hybridgi_core.raster import film_resolve
-    from hybridgi_core.raster.subpixel import FilmAccumulator, reconstruction_taps
-
-    taps = reconstruction_taps(4, size, "BLACKMAN_HARRIS")
-    rng = np.random.default_rng(7)
-    radiance = rng.random((H * W, 4), dtype=np.float32)
-    colour = rng.random((H * W, 4), dtype=np.float32)
-    colour[rng.random(H * W) < 0.3, :3] = 0.0  # no glossy lobe there
-    colour[rng.random(H * W) < 0.1, 2] = 0.0
-    indirect = rng.random((H * W, 4), dtype=np.float32) if with_indirect else None
-    ref = FilmAccumulator()
-    ref.set_filter(taps)
-    ref.set_glossy(radiance, colour, H, W, indirect=indirect)
-    resolve = film_resolve.FilmResolvePass()
-    resolve.resize(W, H)
-    try:
-        got = FilmAccumulator()
-        got.set_glossy_passes(resolve.glossy(radiance, colour, indirect, taps))
-    finally:
-        resolve.free()
-    for name in film_resolve.GLOSSY_PASSES:
-        np.testing.assert_allclose(got.read(name), ref.read(name), rtol=1e-5, atol=1e-6, err_msg=name)
-    bare = ~(colour[:, :3] > 1e-8).any(axis=1).reshape(H, W)
-    assert bare.any() and (ref.read("glossy_direct")[bare] == 0).all()
-    if taps.size > 1:
-        assert (ref.read("glossy_color")[bare] > 0).any()  # a neighbour's colour reaches them
-
-
 def test_film_resolve_refuses_filters_wider_than_it_takes():
     from hybridgi_core.raster import film_resolve
     from hybridgi_core.raster.subpixel import reconstruction_taps

@@ -475,12 +475,8 @@ class FramePipeline:
             with stats.step("accumulate"):  # the sums' read-back, as "gbuffer" counts the G-buffer's
                 sums = self.accumulate.read_all()
             film.set_sums(sums, self.accumulate.count)
-        if glossy is not None and film_resolve.supports(taps):
-            with stats.step("film_resolve"):  # the glossy passes' filter and divisions on the GPU
-                film.set_glossy_passes(self.film_resolve.glossy(glossy, glossy_col, glossy_ind, taps))
-        else:
-            with stats.step("film"):
-                film.set_glossy(glossy, glossy_col, self.height, self.width, indirect=glossy_ind)
+        with stats.step("film"):
+            film.set_glossy(glossy, glossy_col, self.height, self.width, indirect=glossy_ind)
         self.film = film
         return shaded, stats
 

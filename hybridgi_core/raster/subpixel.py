@@ -617,11 +617,6 @@ class FilmAccumulator:
         self._extra = {"glossy_color": colour, "glossy_direct": direct.astype(np.float32),
                        "glossy_indirect": np.where(colour > 1e-8, light, 0.0).astype(np.float32)}
 
-    def set_glossy_passes(self, passes: dict[str, np.ndarray]) -> None:
-        """The glossy passes as `set_glossy` makes them, made elsewhere
-        (`film_resolve.FilmResolvePass.glossy`, its GPU twin)."""
-        self._extra = {name: np.asarray(v, np.float32) for name, v in passes.items()}
-
     def set_depth(self, depth: np.ndarray) -> None:
         """The Depth pass: one point sample per pixel, not filtered (see the module docstring)."""
         self._depth = np.array(depth, np.float32)
