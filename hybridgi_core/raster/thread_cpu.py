@@ -23,6 +23,8 @@ GPU_OVERLAP_STEP = "gpu_overlap_cpu"
 #: Threads of the viewport's worker, never a final render's.
 VIEWPORT_PREFIX = "hybridgi-viewport"
 _TASKS = Path("/proc/self/task")
+#: Whether this system has per-thread schedstat (checked once: elsewhere nothing is read).
+_AVAILABLE = (_TASKS / str(threading.get_native_id()) / "schedstat").exists()
 
 
 def _run_ns(native_id: int) -> int:
@@ -36,6 +38,8 @@ def _run_ns(native_id: int) -> int:
 def other_threads_ns() -> dict[int, int]:
     """{native thread id: CPU nanoseconds} of this process's other Python threads (not the
     caller's, not the viewport's), {} where /proc has no per-thread schedstat."""
+    if not _AVAILABLE:
+        return {}
     me = threading.get_native_id()
     out = {}
     for t in threading.enumerate():
