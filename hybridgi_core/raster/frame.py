@@ -10,7 +10,7 @@ import dataclasses
 import logging
 import time
 from concurrent import futures
-from contextlib import contextmanager
+from contextlib import contextmanager, nullcontext
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -94,28 +94,29 @@ class FrameStats:
         """Time a step into steps_ms[name]; a GPU pass (GPU_PASS_STEPS) also counts the worker
         threads' CPU time beside it (`thread_cpu`)."""
         t0 = time.perf_counter()
-        others = thread_cpu.other_threads_ns() if name in GPU_PASS_STEPS else None
         try:
-            yield
+            with self._beside_gpu() if name in GPU_PASS_STEPS else nullcontext():
+                yield
         finally:
             self.steps_ms[name] = self.steps_ms.get(name, 0.0) + (time.perf_counter() - t0) * 1e3
-            if others is not None:
-                self._add_overlap(others)
 
     def gpu_pass(self, fn):
         """`fn` (a GPU pass whose time another step records) wrapped so that the worker threads'
         CPU time during its calls counts as `step`'s GPU passes count theirs."""
         def run(*args, **kwargs):
-            others = thread_cpu.other_threads_ns()
-            try:
+            with self._beside_gpu():
                 return fn(*args, **kwargs)
-            finally:
-                self._add_overlap(others)
         return run
 
-    def _add_overlap(self, others: dict) -> None:
-        key = thread_cpu.GPU_OVERLAP_STEP
-        self.steps_ms[key] = self.steps_ms.get(key, 0.0) + thread_cpu.cpu_ms_since(others)
+    @contextmanager
+    def _beside_gpu(self):
+        """Add the worker threads' CPU milliseconds while the block runs to GPU_OVERLAP_STEP."""
+        others = thread_cpu.other_threads_ns()
+        try:
+            yield
+        finally:
+            key = thread_cpu.GPU_OVERLAP_STEP
+            self.steps_ms[key] = self.steps_ms.get(key, 0.0) + thread_cpu.cpu_ms_since(others)
 
 
 @dataclass

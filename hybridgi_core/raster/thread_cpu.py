@@ -8,7 +8,7 @@ on during those passes: its CPU time there is subtracted with them, though on a 
 would still need its CPU. `GPU_OVERLAP_STEP` counts it (milliseconds of one core), so that the
 benchmark adds it back.
 
-Linux only (per-thread `/proc/thread-self/task/<tid>/schedstat`, nanoseconds on a CPU); elsewhere
+Linux only (per-thread `/proc/self/task/<tid>/schedstat`, nanoseconds on a CPU); elsewhere
 nothing is counted. Threads named VIEWPORT_PREFIX (the viewport's worker, its pixel thread) are
 not the frame's and are left out.
 """
