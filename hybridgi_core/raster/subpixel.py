@@ -33,6 +33,7 @@ Pure numpy: the pipeline reads the targets and hands them in.
 
 from __future__ import annotations
 
+from concurrent import futures
 from dataclasses import dataclass
 
 import numpy as np
@@ -40,6 +41,7 @@ import numpy as np
 from ..penumbra import LAMP_SEED_STRIDE
 from ..pixel_gather import LUMA, write_texels
 from ..rows import rows_above
+from ..system import DIRECT_BLOCK_RAYS
 from ..translucent import BACK_SEED_OFFSET, mix_back
 from ..visible import pixels_to_points
 
@@ -486,42 +488,79 @@ def subframe_direct(system, centre: CentreSample, position: np.ndarray, normal: 
         return rows[keep], mix_back(light, translucent[rows[keep]], back)
 
     fresh = hit & ~same
+    # The lamps' rays (and the emitters') are independent calls of their own seeds: one job each
+    # on the system's pool, so that a subframe's few thousand fresh and edge pixels (each call
+    # below a block of `GISystem.direct`, which would run it on this thread alone) use both cores.
+    jobs = _Jobs(system, samples)
     emitted = None
     if emitters and fresh.any():
-        rows = np.flatnonzero(fresh)
-        p, n, keep = pixels_to_points(pos[rows][None], nrm[rows][None])
-        emitted = np.zeros((n_pix, 3), np.float32)
-        emitted[rows[keep]] = system.emitter_light(p, n, seed_frame, samples)
+        e_rows = np.flatnonzero(fresh)
+        e_p, e_n, e_keep = pixels_to_points(pos[e_rows][None], nrm[e_rows][None])
+        emitted = jobs.submit(e_p.shape[0], system.emitter_light, e_p, e_n, seed_frame, samples)
     if lamp_edge is None:
-        if fresh.any():
-            rows, light = lit(np.flatnonzero(fresh), seed_frame)
+        rows = np.flatnonzero(fresh)
+        lamps = [jobs.submit(rows.size, lit, rows, seed_frame)] if rows.size else []
+    else:
+        # Lamp by lamp: another surface (a silhouette) takes every lamp's light from its own rays;
+        # on the centre's surface only the lamps whose edge crosses the pixel are traced again, the
+        # others keep the centre's share, as a pixel without any edge keeps all of them. Lamp k
+        # draws from seed_frame + k x LAMP_SEED_STRIDE, as the centre's penumbra passes do: lamp
+        # 0's rays are those of the one-lamp image (a lamp that emits nothing beside it changes
+        # no pixel).
+        lamps = []
+        for k in range(lamp_edge.shape[1]):
+            want = np.flatnonzero(fresh | lamp_edge[:, k])
+            if want.size:
+                lamps.append((k, jobs.submit(want.size, lit, want, seed_frame + k * LAMP_SEED_STRIDE, lights=[k])))
+    jobs.run_large()
+    if lamp_edge is None:
+        for job in lamps:
+            rows, light = job.result()
             direct[rows, :3] = light
         if emitted is not None:
-            direct[:, :3] += emitted
+            direct[e_rows[e_keep], :3] += emitted.result()
         return direct
-    # Lamp by lamp: another surface (a silhouette) takes every lamp's light from its own rays; on
-    # the centre's surface only the lamps whose edge crosses the pixel are traced again, the
-    # others keep the centre's share, as a pixel without any edge keeps all of them. Lamp k draws
-    # from seed_frame + k x LAMP_SEED_STRIDE, as the centre's penumbra passes do: lamp 0's rays are
-    # those of the one-lamp image (a lamp that emits nothing beside it changes no pixel).
     touched = []
-    for k in range(lamp_edge.shape[1]):
-        want = np.flatnonzero(fresh | lamp_edge[:, k])
-        if want.size == 0:
-            continue
-        rows, light = lit(want, seed_frame + k * LAMP_SEED_STRIDE, lights=[k])
+    for k, job in lamps:
+        rows, light = job.result()
         edge = lamp_edge[rows, k]
         light[edge] -= centre.lamp_light[rows[edge], k]
         direct[rows, :3] += light
         touched.append(rows)
     if emitted is not None:
-        direct[:, :3] += emitted
+        direct[e_rows[e_keep], :3] += emitted.result()
     if touched:
         # The differences' rounding, where they were taken (elsewhere nothing is below 0; a
         # strided pass over the whole image cost ~4 ms a subframe).
         rows = np.unique(np.concatenate(touched))
         direct[rows, :3] = np.maximum(direct[rows, :3], 0.0)
     return direct
+
+
+class _Jobs:
+    """A subframe's light calls: each call of at most one block of `GISystem.direct`'s rays is a
+    job on the system's worker pool, submitted at once; a larger one runs on this thread after
+    them (`run_large`), where it splits its own blocks over the pool (on a pool thread it would
+    trace them one after another). On a thread of the pool itself every call runs at once (a
+    worker waiting on jobs queued behind itself deadlocks). `submit` returns a future."""
+
+    def __init__(self, system, samples: int):
+        updater = getattr(system, "updater", None)
+        self._pool = None if updater is None or updater.on_pool_thread() else updater.pool
+        self._most = max(1, DIRECT_BLOCK_RAYS // max(samples, 1))  # points per call that go to the pool
+        self._large: list = []
+
+    def submit(self, points: int, fn, *args, **kwargs) -> futures.Future:
+        if self._pool is not None and points <= self._most:
+            return self._pool.submit(fn, *args, **kwargs)
+        future = futures.Future()
+        self._large.append((future, fn, args, kwargs))
+        return future
+
+    def run_large(self) -> None:
+        for future, fn, args, kwargs in self._large:
+            future.set_result(fn(*args, **kwargs))
+        self._large = []
 
 
 class FilmAccumulator:
