@@ -27,6 +27,14 @@ void main()
   float wloose = 0.0;
   vec3 best = vec3(0.0);
   float wbest = 0.0;
+  /* A source at this frame's resolution (a still view's full-res passes) is interpolated
+   * bilinearly: its own pixel's light at the pixel centre, as final renders shade it, not a blur
+   * of 1 px across every lamp's shadow edge; a jittered subframe takes its 2x2 taps as the pixel
+   * filter's sample would. Lower-resolution sources (a moving view's coarse pass) keep the
+   * Gaussian taps. */
+  bool sharp = all(equal(src_size.xy, textureSize(position_tx, 0)));
+  vec3 tent = vec3(0.0);
+  float wtent = 0.0;
   for (int j = -1; j <= 2; j++) {
     for (int i = -1; i <= 2; i++) {
       ivec2 q = base + ivec2(i, j);
@@ -48,6 +56,9 @@ void main()
       float wg = exp(-4.0 * plane * plane - lateral * lateral);
       acc += ws * wn * wg * D.rgb;
       wsum += ws * wn * wg;
+      float wt = max(1.0 - abs(d.x), 0.0) * max(1.0 - abs(d.y), 0.0) * wn * wg;
+      tent += wt * D.rgb;
+      wtent += wt;
       if (ws * wn * wg > wbest) {
         wbest = ws * wn * wg;
         best = D.rgb;
@@ -58,6 +69,9 @@ void main()
   }
   if (nearest != 0 && wbest > 1e-6) {
     out_direct = vec4(best, 1.0);
+  }
+  else if (sharp && wtent > 0.05) {
+    out_direct = vec4(tent / wtent, 1.0);
   }
   else if (wsum > 1e-3) {
     out_direct = vec4(acc / wsum, 1.0);
