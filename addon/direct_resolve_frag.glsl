@@ -33,6 +33,23 @@ void main()
    * filter's sample would. Lower-resolution sources (a moving view's coarse pass) keep the
    * Gaussian taps. */
   bool sharp = all(equal(src_size.xy, textureSize(position_tx, 0)));
+  /* A jittered subframe where a light edge crosses the pixel takes the light the worker traced
+   * at its own point (`edge_tx`, a = 1 there) when it sees the source pixel's surface: the
+   * normals agree and the point lies on that pixel's tangent plane, as final renders'
+   * `subpixel.same_surface` decides (SAME_COS 0.95, SAME_PLANE and SAME_REACH x view depth). */
+  if (use_edge != 0 && sharp) {
+    vec4 E = texelFetch(edge_tx, px, 0);
+    vec4 Q = texelFetch(src_position_tx, px, 0);
+    if (E.a > 0.5 && Q.w > 0.5) {
+      vec3 M = texelFetch(src_normal_tx, px, 0).xyz;
+      float d = max(view_depth(src_view_z, Q.xyz), 1e-6);
+      vec3 delta = P.xyz - Q.xyz;
+      if (dot(N, M) > 0.95 && abs(dot(M, delta)) < 0.005 * d && length(delta) < 0.05 * d) {
+        out_direct = vec4(E.rgb, 1.0);
+        return;
+      }
+    }
+  }
   vec3 tent = vec3(0.0);
   float wtent = 0.0;
   for (int j = -1; j <= 2; j++) {

@@ -299,8 +299,9 @@ class ViewportSession:
         proj = camera.proj.astype(np.float32)
         gbuf, low = pipeline.rasterize(view, proj, stats)
         debug_cells = present_mode == PRESENT_CELLS
+        # (The subframes' pattern too: the worker traces its light edges for each of them.)
         view_key = (camera.key, width, height, self.mirror.geometry_gen, self._raster.downsample, debug_cells,
-                    self._raster.pixel_full_res)
+                    self._raster.pixel_full_res, aa.config)
         if view_key != self._posted_key and not published.empty:
             self._post_view(gpu_state, gbuf, camera, view_key, stats, debug_cells)
         with stats.step("upload_results"):
@@ -400,7 +401,8 @@ class ViewportSession:
         # or the full-res GI's copy of the centre's.
         low = inputs["gi_low"] if inputs.get("gi_low") is not None else pipeline_.downsample.outputs()
         with stats.step("resolve"):
-            direct = gpu_state.resolve_full.execute(gbuf.position, gbuf.normal, gpu_state.source)
+            edge = gpu_state.source.edge_texture(aa.drawn - 1, aa.offsets)
+            direct = gpu_state.resolve_full.execute(gbuf.position, gbuf.normal, gpu_state.source, edge=edge)
             glossy = None
             if gpu_state.glossy_source is not None:
                 glossy = gpu_state.resolve_glossy.execute(gbuf.position, gbuf.normal, gpu_state.glossy_source)
@@ -524,6 +526,7 @@ class ViewportSession:
                 direct_material=direct_material,
                 glossy_samples=self._glossy_samples if full_material is not None else 0,
                 reflection_rays=gpu_state.pipeline.settings.reflection_rays,
+                aa_offsets=self.aa.offsets.copy() if self.aa.offsets.shape[0] and not debug_cells else None,
             )
             self.worker.post_view(request)
         self._posted_key = view_key

@@ -5,7 +5,7 @@ Main thread only (they use `gpu`); their GLSL lives beside this module.
 """
 
 import logging
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -77,10 +77,10 @@ class DirectResolvePass(_passes.RasterPass):
             _glsl.load_glsl("common_lib.glsl") + load_addon_glsl("direct_resolve_frag.glsl"),
             samplers=((0, "FLOAT_2D", "position_tx"), (1, "FLOAT_2D", "normal_tx"),
                       (2, "FLOAT_2D", "src_position_tx"), (3, "FLOAT_2D", "src_normal_tx"),
-                      (4, "FLOAT_2D", "src_direct_tx")),
-            # 64 + 16 + 16 + 16 + 4 = 116 bytes: under the 128-byte push-constant limit.
+                      (4, "FLOAT_2D", "src_direct_tx"), (5, "FLOAT_2D", "edge_tx")),
+            # 64 + 16 + 16 + 16 + 4 + 4 = 120 bytes: under the 128-byte push-constant limit.
             push=(("MAT4", "src_view_proj"), ("VEC4", "src_view_z"), ("VEC4", "src_footprint"),
-                  ("IVEC4", "src_size"), ("INT", "nearest")),
+                  ("IVEC4", "src_size"), ("INT", "nearest"), ("INT", "use_edge")),
             outputs=((0, "VEC4", "out_direct"),),
         )
         return {"main": _passes.compile_spec(spec)}
@@ -94,7 +94,10 @@ class DirectResolvePass(_passes.RasterPass):
     def _release_targets(self) -> None:
         self._target = self._fb = None
 
-    def execute(self, position, normal, source, nearest: bool = False):
+    def execute(self, position, normal, source, nearest: bool = False, edge=None):
+        """edge : a jittered subframe's light at the source's light edges (`DirectSource.edge_texture`,
+        the source's own pixels, a = 1 where traced), taken as it is where the subframe sees the
+        source pixel's surface; None: none."""
         self._require()
         shader = self._shader()
         shader.uniform_sampler("position_tx", position)
@@ -102,6 +105,8 @@ class DirectResolvePass(_passes.RasterPass):
         shader.uniform_sampler("src_position_tx", source.position)
         shader.uniform_sampler("src_normal_tx", source.normal)
         shader.uniform_sampler("src_direct_tx", source.direct)
+        shader.uniform_sampler("edge_tx", source.direct if edge is None else edge)  # (unread without one)
+        shader.uniform_int("use_edge", 0 if edge is None else 1)
         view_proj = source.proj @ source.view
         # A flat list is read column-major, as GLSL stores a mat4.
         shader.uniform_float("src_view_proj", view_proj.T.ravel().astype(np.float32).tolist())
@@ -130,10 +135,32 @@ class DirectSource:
     width: int
     height: int
     footprint: tuple  # (a, b): a source pixel spans a * view depth + b world units
+    #: The result's light of the jittered subframes at its light edges (`worker.EdgeLight`), or None
+    edges: object = None
+    _edge_textures: dict = field(default_factory=dict)
+
+    def edge_texture(self, index: int, offsets: np.ndarray):
+        """Subframe `index`'s light at the light edges as a texture of the source's size (a = 1
+        where traced, 0 elsewhere), uploaded once per subframe; None when the result has none
+        for this subframe pattern (`offsets` (K, 2), the draw's)."""
+        edges = self.edges
+        if (edges is None or not 0 <= index < edges.light.shape[0] or edges.pix.size == 0
+                or edges.offsets.shape != np.shape(offsets)
+                or not np.allclose(edges.offsets, np.asarray(offsets, np.float32), atol=1e-6)):
+            return None
+        if index not in self._edge_textures:
+            image = np.zeros((self.height * self.width, 4), np.float32)
+            image[edges.pix, :3] = edges.light[index]
+            image[edges.pix, 3] = 1.0
+            self._edge_textures[index] = _readback.upload_texture_2d(image.reshape(self.height, self.width, 4),
+                                                                     "RGBA32F")
+        return self._edge_textures[index]
 
     @classmethod
     def upload(cls, result: worker.ViewResult) -> "DirectSource":
-        return cls._of(result, result.direct, "RGBA32F", result.position, result.normal)
+        source = cls._of(result, result.direct, "RGBA32F", result.position, result.normal)
+        source.edges = result.edges
+        return source
 
     @classmethod
     def glossy_of(cls, result: worker.ViewResult, direct: "DirectSource | None" = None) -> "DirectSource":

@@ -85,6 +85,22 @@ class ViewRequest:
     direct_material: np.ndarray | None = None
     glossy_samples: int = 0
     reflection_rays: int = 0
+    #: (K, 2) pixel offsets of the jittered subframes the draw accumulates while the view holds
+    #: still (`viewport_aa`), or None: the worker traces the lamps' light at its light edges for
+    #: each of them (`EdgeLight`)
+    aa_offsets: np.ndarray | None = None
+
+
+@dataclass(frozen=True)
+class EdgeLight:
+    """The lamps' light of a still view's jittered subframes where a light edge crosses a pixel
+    of the direct light's resolution (`ViewportWorker._edge_pass`): pix (m,) int32 flat pixel
+    indices (rows bottom-up), light (K, m, 3) float32 W/m^2 at each subframe's own point on the
+    pixel's surface (`subpixel.plane_jitter`), offsets (K, 2) the subframes' pixel offsets."""
+
+    pix: np.ndarray
+    light: np.ndarray
+    offsets: np.ndarray
 
 
 @dataclass(frozen=True)
@@ -170,6 +186,8 @@ class ViewResult:
     glossy_position: np.ndarray | None = None
     glossy_normal: np.ndarray | None = None
     glossy_passes: int = 0
+    #: The lamps' light of the jittered subframes at the light edges (`EdgeLight`), or None
+    edges: EdgeLight | None = None
 
 
 @dataclass(frozen=True)

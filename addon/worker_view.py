@@ -127,6 +127,9 @@ class ViewState:
         #: on geometry: `glossy_image.frame_glossy`) and the cache and lighting it was made with.
         self.fine_glossy: np.ndarray | None = None
         self.fine_glossy_key = None
+        #: The lamps' light of the draw's jittered subframes at the light edges (`EdgeLight`),
+        #: traced once the full-res light and a pixel pass are in (`ViewportWorker._edge_pass`).
+        self.edges = None
         self.dirty = False
 
     def fine_level(self) -> DirectLevel:
@@ -168,6 +171,7 @@ class ViewState:
         if self.glossy is not None:
             self.glossy.reset_lamps()  # the cache's part stays until the cache re-solves
         self.fine_glossy, self.fine_glossy_key = None, None
+        self.edges = None
         self.reset_pixels()
         self.dirty = True
 
@@ -235,7 +239,7 @@ class ViewState:
             gi_position=r.position, gi_normal=r.normal,
             gi_indirect=None if self.pixel_sum is None else frozen(self.pixel_sum[0] / self.pixel_passes),
             gi_direct=None if self.pixel_sum is None else frozen(self.pixel_sum[1] / self.pixel_passes),
-            pixel_passes=self.pixel_passes,
+            pixel_passes=self.pixel_passes, edges=self.edges if level is fine else None,
             **self._glossy_fields(),
         )
 

@@ -49,7 +49,11 @@ def passes(bpy_module, gpu_context):
     return importlib.import_module(f"{package.__name__}.viewport_passes")
 
 
-def _resolve(passes, source_size: tuple[int, int], shift: float) -> np.ndarray:
+def _resolve(passes, source_size: tuple[int, int], shift: float, edges=None, offsets=None, index: int = 0,
+             lift: float = 0.0) -> np.ndarray:
+    """The resolve at the plane's pixel centres shifted by `shift` px (lifted off the plane by
+    `lift` at x >= EDGE), from a source of `source_size` lit at x < EDGE; edges : the result's
+    `EdgeLight` (with the draw's `offsets` and subframe `index`), or None."""
     from hybridgi_core.raster.readback import upload_texture_2d
 
     proj, view = _proj(), np.eye(4, dtype=np.float32)
@@ -60,12 +64,14 @@ def _resolve(passes, source_size: tuple[int, int], shift: float) -> np.ndarray:
     light[:, : EDGE * sw // W, :3] = 2.0
     source = passes.DirectSource(1, upload_texture_2d(light, "RGBA32F"), upload_texture_2d(src_pos, "RGBA32F"),
                                  upload_texture_2d(src_nrm, "RGBA16F"), view, proj, sw, sh,
-                                 passes.pixel_footprint(proj, sh))
+                                 passes.pixel_footprint(proj, sh), edges)
     pos, nrm = _plane(proj, W, H, shift)
+    pos[:, EDGE:, 2] += lift
     resolve = passes.DirectResolvePass("RGBA32F")
     resolve.resize(W, H)
     try:
-        resolve.execute(upload_texture_2d(pos, "RGBA32F"), upload_texture_2d(nrm, "RGBA16F"), source)
+        edge = None if edges is None else source.edge_texture(index, offsets)
+        resolve.execute(upload_texture_2d(pos, "RGBA32F"), upload_texture_2d(nrm, "RGBA16F"), source, edge=edge)
         return resolve.read()
     finally:
         resolve.free()
@@ -93,3 +99,32 @@ def test_lower_resolution_source_is_interpolated_smoothly(passes):
     ramp = red[EDGE - 3: EDGE + 3]
     assert ((ramp > 0.05) & (ramp < 1.95)).sum() >= 2  # a soft ramp, not a step
     assert (np.diff(ramp) <= 1e-5).all()
+
+
+def test_a_subframe_takes_the_workers_light_at_its_own_point_on_a_light_edge(passes):
+    """`EdgeLight` of two subframes at the two pixels either side of the shadow edge: subframe 1
+    shows its own traced light there (where it sees the source pixel's surface), every other
+    pixel the resolve of the centre light; a point off the pixel's plane, another pattern or a
+    subframe the worker did not trace fall back to the resolve."""
+    row = 3
+    pix = np.array([row * W + EDGE - 1, row * W + EDGE], np.int32)
+    light = np.array([[[0.3] * 3, [0.4] * 3], [[0.7] * 3, [0.9] * 3]], np.float32)
+    offsets = np.array([[0.25, 0.1], [-0.3, 0.2]], np.float32)
+    edges = passes.worker.EdgeLight(pix, light, offsets)
+
+    out = _resolve(passes, (W, H), 0.0, edges, offsets, index=1)
+    np.testing.assert_allclose(out[row, EDGE - 1 : EDGE + 1, 0], [0.7, 0.9], atol=1e-5)
+    others = np.ones((H, W), bool)
+    others[row, EDGE - 1 : EDGE + 1] = False
+    expected = np.where(np.arange(W) < EDGE, 2.0, 0.0)[None, :].repeat(H, 0)
+    np.testing.assert_allclose(out[..., 0][others], expected[others], atol=1e-5)
+    np.testing.assert_allclose(_resolve(passes, (W, H), 0.0, edges, offsets, index=0)[row, EDGE - 1, 0], 0.3,
+                               atol=1e-5)
+    # Off the source pixel's plane (lifted 0.2 at 5 m): not that surface, the resolve's light.
+    lifted = _resolve(passes, (W, H), 0.0, edges, offsets, index=1, lift=0.2)
+    assert lifted[row, EDGE - 1, 0] == pytest.approx(0.7, abs=1e-5)
+    assert abs(lifted[row, EDGE, 0] - 0.9) > 0.5
+    # Another subframe pattern, or a subframe past the traced ones: the resolve alone.
+    for other, index in ((offsets[::-1].copy(), 1), (offsets, 2)):
+        plain = _resolve(passes, (W, H), 0.0, edges, other, index=index)
+        np.testing.assert_allclose(plain[row, EDGE - 1 : EDGE + 1, 0], [2.0, 0.0], atol=1e-5)

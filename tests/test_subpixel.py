@@ -13,6 +13,7 @@ from hybridgi_core.raster.subpixel import (
     filter_offsets,
     filter_support,
     jittered_projection,
+    plane_jitter,
     reconstruction_taps,
     subpixel_offsets,
 )
@@ -102,6 +103,51 @@ def test_the_jittered_projection_moves_the_image_by_the_offset(ortho):
     # Sampling at centre + d: what lay at d lands on the centre, so the image moves by -d.
     assert x1 - x0 == pytest.approx(-0.25, abs=1e-4)
     assert y1 - y0 == pytest.approx(0.5, abs=1e-4)
+
+
+@pytest.mark.parametrize("ortho", [False, True])
+def test_plane_jitter_finds_what_each_subframe_sees_at_the_pixel(ortho):
+    """The point `plane_jitter` gives pixel p and offset o lies on p's tangent plane, and the
+    subframe's projection (`jittered_projection`) puts it on p's centre: what that subframe's
+    raster sees at p where the surface continues. A ray grazing the plane, or a point that would
+    move too far, keeps the centre point."""
+    w, h = 64, 48
+    if ortho:
+        proj = np.diag([0.25, 1.0 / 3.0, -0.1, 1.0])
+    else:
+        f = 1.0 / np.tan(0.4)
+        proj = np.array([[f * h / w, 0, 0, 0], [0, f, 0, 0], [0, 0, -1.002, -0.2002], [0, 0, -1.0, 0]])
+    view = np.eye(4)
+    view[:3, :3] = np.array([[1, 0, 0], [0, 0.8, -0.6], [0, 0.6, 0.8]])  # tilted about x
+    view[:3, 3] = (0.3, -0.2, -1.0)
+    normal = np.array([0.2, 0.3, 1.0]) / np.linalg.norm([0.2, 0.3, 1.0])
+    inverse = np.linalg.inv(proj @ view)
+    pix = np.array([5 + 7 * w, 30 + 20 * w, 63 + 47 * w])
+
+    def on_plane(x, y):  # the camera ray through image point (x, y) met with the plane n.p = -3
+        ends = [inverse @ np.array([x / w * 2 - 1, y / h * 2 - 1, z, 1.0]) for z in (-1.0, 1.0)]
+        a, b = (e[:3] / e[3] for e in ends)
+        return a + (b - a) * (-3.0 - a @ normal) / ((b - a) @ normal)
+
+    centres = np.array([on_plane(p % w + 0.5, p // w + 0.5) for p in pix])
+    offsets = np.array([[0.3, -0.2], [-0.45, 0.4], [0.0, 0.0]])
+    got = plane_jitter(centres, np.tile(normal, (3, 1)), pix, w, h, view, proj, offsets)
+    assert got.shape == (3, 3, 3) and got.dtype == np.float32
+    for k, offset in enumerate(offsets):
+        m = jittered_projection(proj, offset, w, h).astype(np.float64) @ view
+        clip = np.c_[got[k].astype(np.float64), np.ones(3)] @ m.T
+        xy = (clip[:, :2] / clip[:, 3:] * 0.5 + 0.5) * (w, h) - 0.5
+        np.testing.assert_allclose(xy, np.c_[pix % w, pix // w], atol=2e-3)
+        np.testing.assert_allclose(got[k] @ normal, -3.0, atol=1e-4)
+    np.testing.assert_allclose(got[2], centres, atol=1e-5)  # no offset: the centre itself
+    # A plane seen edge-on (the normal across the pixel's own view ray): the centre point stays.
+    x, y = pix[0] % w + 0.5, pix[0] // w + 0.5
+    ends = [inverse @ np.array([x / w * 2 - 1, y / h * 2 - 1, z, 1.0]) for z in (-1.0, 1.0)]
+    ray = ends[1][:3] / ends[1][3] - ends[0][:3] / ends[0][3]
+    side = np.cross(ray, [1.0, 0.0, 0.0])
+    side /= np.linalg.norm(side)
+    kept = plane_jitter(centres[:1], side[None], pix[:1], w, h, view, proj, offsets[:1])
+    np.testing.assert_allclose(kept[0], centres[:1], atol=1e-6)
 
 
 def test_the_film_averages_passes_and_keeps_one_depth():

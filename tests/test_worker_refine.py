@@ -630,3 +630,49 @@ def test_edits_and_views_that_arrive_while_a_pixel_pass_traces_stop_it_and_the_v
         q = fresh.latest()
     ours, theirs = p.view.gi_indirect[..., :3].sum(), q.view.gi_indirect[..., :3].sum()
     assert abs(ours / theirs - 1.0) < 0.03
+
+
+def test_a_still_view_traces_each_subframes_light_at_its_light_edges(worker):
+    """With the draw's subframe pattern in the request, a still view's result carries the lamps'
+    light of every subframe at the pixels a light edge crosses (`EdgeLight`), traced at the
+    subframe's own point on the pixel's surface: on geometry, at the full-res light's pixels,
+    about the centre light there on average; made again after a lamp edit; none without a
+    pattern."""
+    from hybridgi_core.raster.subpixel import subpixel_offsets
+
+    scene = procedural.cornell()
+    settings = CacheSettings(resolution=10, rays_per_cell=16, threads=2)
+    pos, nrm, view_matrix, _ = pinhole_gbuffer(scene, settings)
+    full_pos, full_nrm, _, _ = pinhole_gbuffer(scene, settings, 64, 48)
+    cam = procedural.describe("cornell").camera
+    half_w = 0.5 * cam.sensor_width_mm / cam.lens_mm
+    near, far = 0.1, 100.0
+    proj = np.array([[1 / half_w, 0, 0, 0], [0, 64 / (48 * half_w), 0, 0],
+                     [0, 0, (far + near) / (near - far), 2 * far * near / (near - far)], [0, 0, -1, 0]])
+    offsets = subpixel_offsets(4, 1.5, "BLACKMAN_HARRIS").astype(np.float32)
+    options = worker.WorkerOptions(direct_passes=2, solver_batches=1, first_batch_rays=8, pixel_rays=0)
+    wk = worker.ViewportWorker(settings, options)
+    try:
+        wk.post_edit(worker.FullScene(scene))
+        wk.post_view(worker.ViewRequest(("k",), pos, nrm, full_pos, full_nrm, view_matrix, proj, aa_offsets=offsets))
+        assert wk.wait_idle(120)
+        result = wk.latest().view
+        edges = result.edges
+        assert edges is not None and result.direct.shape[:2] == (48, 64)
+        m = edges.pix.size
+        assert m > 20 and edges.light.shape == (4, m, 3)
+        np.testing.assert_array_equal(edges.offsets, offsets)
+        assert (full_pos.reshape(-1, 4)[edges.pix, 3] > 0.5).all()
+        assert np.isfinite(edges.light).all() and (edges.light >= 0).all()
+        centre = result.direct.reshape(-1, 4)[edges.pix, :3].sum()
+        assert edges.light.mean(axis=0).sum() == pytest.approx(centre, rel=0.25)
+        lamps = [dataclasses.replace(lt, power=2.0 * lt.power) for lt in scene.lights]
+        wk.post_edit(worker.SetShading(lights=lamps))
+        assert wk.wait_idle(120)
+        relit = wk.latest().view.edges
+        assert relit is not None and relit is not edges
+        assert relit.light.sum() == pytest.approx(2.0 * edges.light.sum() * relit.pix.size / m, rel=0.3)
+    finally:
+        wk.close()
+    with still_view(worker, scene, settings, options, pos, nrm, view_matrix, (full_pos, full_nrm)) as wk:
+        assert wk.latest().view.passes == 2 and wk.latest().view.edges is None  # no pattern, no edges

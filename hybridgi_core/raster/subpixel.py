@@ -333,6 +333,47 @@ def lamp_edges(lamp_light: np.ndarray, total: np.ndarray, contrast: float = LIGH
                      for k in range(sums.shape[1])], axis=1)
 
 
+def plane_jitter(points: np.ndarray, normals: np.ndarray, pix: np.ndarray, width: int, height: int,
+                 view: np.ndarray, proj: np.ndarray, offsets: np.ndarray) -> np.ndarray:
+    """(K, m, 3) float32: where each of m pixels (flat indices `pix` into a `width` x `height`
+    image, rows bottom-up) would see its own surface in K jittered subframes (pixel `offsets`
+    (K, 2), as `jittered_projection` samples them): the camera ray through the pixel centre plus
+    the offset, met with the tangent plane of the pixel's point (m, 3) and unit normal (m, 3).
+
+    Why: a still viewport shades its jittered subframes from the worker's light at the pixel
+    centres; where a lamp's edge crosses a pixel each subframe needs the light at its own point,
+    as final renders trace it there (`subframe_direct`). On a surface that continues across the
+    pixel that point lies on the centre's tangent plane. Rows where the ray grazes the plane, or
+    the point would move more than SAME_REACH x view depth, keep the centre point."""
+    points = np.asarray(points, np.float64).reshape(-1, 3)
+    normals = np.asarray(normals, np.float64).reshape(-1, 3)
+    offsets = np.asarray(offsets, np.float64).reshape(-1, 2)
+    m, k = points.shape[0], offsets.shape[0]
+    out = np.broadcast_to(points.astype(np.float32), (k, m, 3)).copy()
+    if m == 0 or k == 0:
+        return out
+    view = np.asarray(view, np.float64).reshape(4, 4)
+    inverse = np.linalg.inv(np.asarray(proj, np.float64).reshape(4, 4) @ view)
+    x = (np.asarray(pix) % width).astype(np.float64)
+    y = (np.asarray(pix) // width).astype(np.float64)
+    depth = np.maximum(-(points @ view[2, :3] + view[2, 3]), 1e-9)
+    for i, (ox, oy) in enumerate(offsets):
+        ndc = np.stack([(x + 0.5 + ox) / width * 2.0 - 1.0, (y + 0.5 + oy) / height * 2.0 - 1.0], axis=1)
+        ends = []
+        for z in (-1.0, 1.0):  # the ray's points on the near and far planes
+            h = np.concatenate([ndc, np.full((m, 1), z), np.ones((m, 1))], axis=1) @ inverse.T
+            ends.append(h[:, :3] / h[:, 3:4])
+        origin, direction = ends[0], ends[1] - ends[0]
+        facing = np.einsum("ij,ij->i", direction, normals)
+        length = np.linalg.norm(direction, axis=1)
+        ok = np.abs(facing) > 1e-3 * length
+        t = np.einsum("ij,ij->i", points - origin, normals) / np.where(ok, facing, 1.0)
+        moved = origin + direction * t[:, None]
+        ok &= np.linalg.norm(moved - points, axis=1) <= SAME_REACH * depth
+        out[i, ok] = moved[ok]
+    return out
+
+
 def subframe_surfaces(centre: CentreSample, position: np.ndarray, normal: np.ndarray,
                       surface: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """((h * w,) bool, (h * w,) bool): pixels where the subframe (read-backs (h, w, 4) /
