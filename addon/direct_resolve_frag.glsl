@@ -2,8 +2,9 @@
  * this frame's pixels: each pixel projects through the source camera and averages the 4x4 source
  * pixels around it, weighted by screen distance, normal agreement and distance to the pixel's
  * plane (joint-bilateral). Pixels the source never saw (disocclusions) fall back to the normal-
- * weighted taps (a = 0.5), then to no lamp light (a = 0): never garbage, never NaN. With `nearest`,
- * the best-weighted tap is taken as is (colour codes such as the Cache Cells view must not mix). */
+ * weighted taps (a = 0.5), then to no lamp light (a = 0): never garbage, never NaN. With `nearest`
+ * (flags.x), the best-weighted tap is taken as is (colour codes such as the Cache Cells view must
+ * not mix). */
 void main()
 {
   ivec2 px = ivec2(gl_FragCoord.xy);
@@ -34,17 +35,20 @@ void main()
    * Gaussian taps. */
   bool sharp = all(equal(src_size.xy, textureSize(position_tx, 0)));
   /* A jittered subframe where a light edge crosses the pixel takes the light the worker traced
-   * at its own point (`edge_tx`, a = 1 there) when it sees the source pixel's surface: the
-   * normals agree and the point lies on that pixel's tangent plane, as final renders'
+   * at its own point (the edge light: `edge_index_tx` holds the pixel's row in the list or -1,
+   * `edge_light_tx` the rows' subframes) when it sees the source pixel's surface: the normals
+   * agree and the point lies on that pixel's tangent plane, as final renders'
    * `subpixel.same_surface` decides (SAME_COS 0.95, SAME_PLANE and SAME_REACH x view depth). */
-  if (use_edge != 0 && sharp) {
-    vec4 E = texelFetch(edge_tx, px, 0);
+  if (flags.y >= 0 && sharp) {
+    float row = texelFetch(edge_index_tx, px, 0).r;
     vec4 Q = texelFetch(src_position_tx, px, 0);
-    if (E.a > 0.5 && Q.w > 0.5) {
+    if (row >= 0.0 && Q.w > 0.5) {
+      int at = int(row + 0.5) * flags.z + flags.y;
+      vec4 E = texelFetch(edge_light_tx, ivec2(at % EDGE_LIST_WIDTH, at / EDGE_LIST_WIDTH), 0);
       vec3 M = texelFetch(src_normal_tx, px, 0).xyz;
       float d = max(view_depth(src_view_z, Q.xyz), 1e-6);
       vec3 delta = P.xyz - Q.xyz;
-      if (dot(N, M) > 0.95 && abs(dot(M, delta)) < 0.005 * d && length(delta) < 0.05 * d) {
+      if (E.a > 0.5 && dot(N, M) > 0.95 && abs(dot(M, delta)) < 0.005 * d && length(delta) < 0.05 * d) {
         out_direct = vec4(E.rgb, 1.0);
         return;
       }
@@ -84,7 +88,7 @@ void main()
       wloose += ws * wn;
     }
   }
-  if (nearest != 0 && wbest > 1e-6) {
+  if (flags.x != 0 && wbest > 1e-6) {
     out_direct = vec4(best, 1.0);
   }
   else if (sharp && wtent > 0.05) {

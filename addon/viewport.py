@@ -401,8 +401,9 @@ class ViewportSession:
         # or the full-res GI's copy of the centre's.
         low = inputs["gi_low"] if inputs.get("gi_low") is not None else pipeline_.downsample.outputs()
         with stats.step("resolve"):
-            edge = gpu_state.source.edge_texture(aa.drawn - 1, aa.offsets)
-            direct = gpu_state.resolve_full.execute(gbuf.position, gbuf.normal, gpu_state.source, edge=edge)
+            source = gpu_state.source
+            direct = gpu_state.resolve_full.execute(gbuf.position, gbuf.normal, source,
+                                                    subframe=source.edge_subframe(aa.drawn - 1, aa.offsets))
             glossy = None
             if gpu_state.glossy_source is not None:
                 glossy = gpu_state.resolve_glossy.execute(gbuf.position, gbuf.normal, gpu_state.glossy_source)

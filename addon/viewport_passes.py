@@ -5,7 +5,7 @@ Main thread only (they use `gpu`); their GLSL lives beside this module.
 """
 
 import logging
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -74,13 +74,16 @@ class DirectResolvePass(_passes.RasterPass):
     def _build_shaders(self) -> dict:
         spec = _passes.fullscreen_spec(
             "hybridgi_direct_resolve",
-            _glsl.load_glsl("common_lib.glsl") + load_addon_glsl("direct_resolve_frag.glsl"),
+            f"#define EDGE_LIST_WIDTH {EDGE_LIST_WIDTH}\n" + _glsl.load_glsl("common_lib.glsl")
+            + load_addon_glsl("direct_resolve_frag.glsl"),
             samplers=((0, "FLOAT_2D", "position_tx"), (1, "FLOAT_2D", "normal_tx"),
                       (2, "FLOAT_2D", "src_position_tx"), (3, "FLOAT_2D", "src_normal_tx"),
-                      (4, "FLOAT_2D", "src_direct_tx"), (5, "FLOAT_2D", "edge_tx")),
-            # 64 + 16 + 16 + 16 + 4 + 4 = 120 bytes: under the 128-byte push-constant limit.
+                      (4, "FLOAT_2D", "src_direct_tx"), (5, "FLOAT_2D", "edge_index_tx"),
+                      (6, "FLOAT_2D", "edge_light_tx")),
+            # 64 + 16 + 16 + 16 + 16 = 128 bytes: the push-constant limit. flags: (nearest, the
+            # subframe's index among the edge light's subframes or -1, their count, 0).
             push=(("MAT4", "src_view_proj"), ("VEC4", "src_view_z"), ("VEC4", "src_footprint"),
-                  ("IVEC4", "src_size"), ("INT", "nearest"), ("INT", "use_edge")),
+                  ("IVEC4", "src_size"), ("IVEC4", "flags")),
             outputs=((0, "VEC4", "out_direct"),),
         )
         return {"main": _passes.compile_spec(spec)}
@@ -94,10 +97,10 @@ class DirectResolvePass(_passes.RasterPass):
     def _release_targets(self) -> None:
         self._target = self._fb = None
 
-    def execute(self, position, normal, source, nearest: bool = False, edge=None):
-        """edge : a jittered subframe's light at the source's light edges (`DirectSource.edge_texture`,
-        the source's own pixels, a = 1 where traced), taken as it is where the subframe sees the
-        source pixel's surface; None: none."""
+    def execute(self, position, normal, source, nearest: bool = False, subframe: int = -1):
+        """subframe : the jittered subframe drawn, its index in the source's edge light
+        (`DirectSource.edge_textures`: its light traced at its own point where a light edge
+        crosses a source pixel, taken where the subframe sees that pixel's surface); -1: none."""
         self._require()
         shader = self._shader()
         shader.uniform_sampler("position_tx", position)
@@ -105,15 +108,19 @@ class DirectResolvePass(_passes.RasterPass):
         shader.uniform_sampler("src_position_tx", source.position)
         shader.uniform_sampler("src_normal_tx", source.normal)
         shader.uniform_sampler("src_direct_tx", source.direct)
-        shader.uniform_sampler("edge_tx", source.direct if edge is None else edge)  # (unread without one)
-        shader.uniform_int("use_edge", 0 if edge is None else 1)
+        edges = source.edge_textures() if subframe >= 0 else None
+        if edges is None or subframe >= source.edges.light.shape[0]:
+            edges, subframe = (source.direct, source.direct), -1  # (bound, never read)
+        shader.uniform_sampler("edge_index_tx", edges[0])
+        shader.uniform_sampler("edge_light_tx", edges[1])
         view_proj = source.proj @ source.view
         # A flat list is read column-major, as GLSL stores a mat4.
         shader.uniform_float("src_view_proj", view_proj.T.ravel().astype(np.float32).tolist())
         shader.uniform_float("src_view_z", [float(v) for v in source.view[2]])
         shader.uniform_float("src_footprint", (*source.footprint, 0.0, 0.0))
         shader.uniform_int("src_size", (source.width, source.height, 0, 0))
-        shader.uniform_int("nearest", 1 if nearest else 0)
+        count = 0 if subframe < 0 else int(source.edges.light.shape[0])
+        shader.uniform_int("flags", (1 if nearest else 0, subframe, count, 0))
         self._draw_fullscreen(self._fb, shader, (self.width, self.height))
         return self._target
 
@@ -137,24 +144,38 @@ class DirectSource:
     footprint: tuple  # (a, b): a source pixel spans a * view depth + b world units
     #: The result's light of the jittered subframes at its light edges (`worker.EdgeLight`), or None
     edges: object = None
-    _edge_textures: dict = field(default_factory=dict)
+    _edge_textures: tuple | None = None
 
-    def edge_texture(self, index: int, offsets: np.ndarray):
-        """Subframe `index`'s light at the light edges as a texture of the source's size (a = 1
-        where traced, 0 elsewhere), uploaded once per subframe; None when the result has none
-        for this subframe pattern (`offsets` (K, 2), the draw's)."""
+    def edge_textures(self) -> tuple | None:
+        """(index, light) textures of the edge light, uploaded once: index (h, w) R32F, the row of
+        each source pixel in the list or -1; light, the rows' K subframes' rgb in a list of
+        EDGE_LIST_WIDTH texels a line (row r, subframe k at texel r * K + k). Sparse: a few % of
+        the pixels, where K full-size textures would take K x 16 bytes a pixel (a 4K view's 8
+        subframes, 1 GB). None without edge light."""
+        edges = self.edges
+        if edges is None or edges.pix.size == 0:
+            return None
+        if self._edge_textures is None:
+            index = np.full(self.height * self.width, -1.0, np.float32)
+            index[edges.pix] = np.arange(edges.pix.size, dtype=np.float32)
+            k = edges.light.shape[0]
+            flat = np.zeros((-(-edges.pix.size * k // EDGE_LIST_WIDTH) * EDGE_LIST_WIDTH, 4), np.float32)
+            flat[: edges.pix.size * k, :3] = edges.light.transpose(1, 0, 2).reshape(-1, 3)  # row-major: r, then k
+            flat[: edges.pix.size * k, 3] = 1.0
+            up = _readback.upload_texture_2d
+            self._edge_textures = (up(index.reshape(self.height, self.width, 1), "R32F"),
+                                   up(flat.reshape(-1, EDGE_LIST_WIDTH, 4), "RGBA32F"))
+        return self._edge_textures
+
+    def edge_subframe(self, index: int, offsets: np.ndarray) -> int:
+        """The draw's subframe `index` (of its pattern `offsets` (K, 2)) as an index into the
+        edge light, or -1 when the result has none for this pattern."""
         edges = self.edges
         if (edges is None or not 0 <= index < edges.light.shape[0] or edges.pix.size == 0
                 or edges.offsets.shape != np.shape(offsets)
                 or not np.allclose(edges.offsets, np.asarray(offsets, np.float32), atol=1e-6)):
-            return None
-        if index not in self._edge_textures:
-            image = np.zeros((self.height * self.width, 4), np.float32)
-            image[edges.pix, :3] = edges.light[index]
-            image[edges.pix, 3] = 1.0
-            self._edge_textures[index] = _readback.upload_texture_2d(image.reshape(self.height, self.width, 4),
-                                                                     "RGBA32F")
-        return self._edge_textures[index]
+            return -1
+        return index
 
     @classmethod
     def upload(cls, result: worker.ViewResult) -> "DirectSource":
@@ -189,6 +210,10 @@ class DirectSource:
         zero = np.zeros((1, 1, 4), np.float32)
         eye = np.eye(4)
         return cls(-1, up(zero, "RGBA32F"), up(zero, "RGBA32F"), up(zero, "RGBA16F"), eye, eye, 1, 1, (1.0, 0.0))
+
+
+#: Texels a line of the edge light's list texture (`DirectSource.edge_textures`).
+EDGE_LIST_WIDTH = 4096
 
 
 def pixel_footprint(proj: np.ndarray, height: int) -> tuple[float, float]:

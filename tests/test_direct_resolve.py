@@ -70,8 +70,9 @@ def _resolve(passes, source_size: tuple[int, int], shift: float, edges=None, off
     resolve = passes.DirectResolvePass("RGBA32F")
     resolve.resize(W, H)
     try:
-        edge = None if edges is None else source.edge_texture(index, offsets)
-        resolve.execute(upload_texture_2d(pos, "RGBA32F"), upload_texture_2d(nrm, "RGBA16F"), source, edge=edge)
+        subframe = -1 if edges is None else source.edge_subframe(index, offsets)
+        resolve.execute(upload_texture_2d(pos, "RGBA32F"), upload_texture_2d(nrm, "RGBA16F"), source,
+                        subframe=subframe)
         return resolve.read()
     finally:
         resolve.free()
@@ -101,11 +102,14 @@ def test_lower_resolution_source_is_interpolated_smoothly(passes):
     assert (np.diff(ramp) <= 1e-5).all()
 
 
-def test_a_subframe_takes_the_workers_light_at_its_own_point_on_a_light_edge(passes):
+@pytest.mark.parametrize("list_width", [4096, 3])
+def test_a_subframe_takes_the_workers_light_at_its_own_point_on_a_light_edge(passes, monkeypatch, list_width):
     """`EdgeLight` of two subframes at the two pixels either side of the shadow edge: subframe 1
     shows its own traced light there (where it sees the source pixel's surface), every other
     pixel the resolve of the centre light; a point off the pixel's plane, another pattern or a
-    subframe the worker did not trace fall back to the resolve."""
+    subframe the worker did not trace fall back to the resolve. The list read right where it
+    wraps onto its next line too."""
+    monkeypatch.setattr(passes, "EDGE_LIST_WIDTH", list_width)  # 3: the list wraps onto a second line
     row = 3
     pix = np.array([row * W + EDGE - 1, row * W + EDGE], np.int32)
     light = np.array([[[0.3] * 3, [0.4] * 3], [[0.7] * 3, [0.9] * 3]], np.float32)
