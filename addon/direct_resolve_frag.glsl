@@ -34,21 +34,23 @@ void main()
    * filter's sample would. Lower-resolution sources (a moving view's coarse pass) keep the
    * Gaussian taps. */
   bool sharp = all(equal(src_size.xy, textureSize(position_tx, 0)));
-  /* A jittered subframe where a light edge crosses the pixel takes the light the worker traced
-   * at its own point (the edge light: `edge_index_tx` holds the pixel's row in the list or -1,
-   * `edge_light_tx` the rows' subframes) when it sees the source pixel's surface: the normals
-   * agree and the point lies on that pixel's tangent plane, as final renders'
-   * `subpixel.same_surface` decides (SAME_COS 0.95, SAME_PLANE and SAME_REACH x view depth). */
+  /* A jittered subframe at a pixel whose light or surface changes within it takes the light the
+   * worker traced at what that subframe's ray meets (the edge light: `edge_index_tx` holds the
+   * pixel's row in the lists or -1; `edge_light_tx`, `edge_point_tx`, `edge_normal_tx` each
+   * row's subframes) when this raster saw the same: the normals agree and the point lies on the
+   * traced point's tangent plane and near it, as final renders' `subpixel.same_surface` decides
+   * (SAME_COS 0.95, SAME_PLANE and SAME_REACH x view depth). */
   if (flags.y >= 0 && sharp) {
     float row = texelFetch(edge_index_tx, px, 0).r;
-    vec4 Q = texelFetch(src_position_tx, px, 0);
-    if (row >= 0.0 && Q.w > 0.5) {
+    if (row >= 0.0) {
       int at = int(row + 0.5) * flags.z + flags.y;
-      vec4 E = texelFetch(edge_light_tx, ivec2(at % EDGE_LIST_WIDTH, at / EDGE_LIST_WIDTH), 0);
-      vec3 M = texelFetch(src_normal_tx, px, 0).xyz;
-      float d = max(view_depth(src_view_z, Q.xyz), 1e-6);
-      vec3 delta = P.xyz - Q.xyz;
-      if (E.a > 0.5 && dot(N, M) > 0.95 && abs(dot(M, delta)) < 0.005 * d && length(delta) < 0.05 * d) {
+      ivec2 t = ivec2(at % EDGE_LIST_WIDTH, at / EDGE_LIST_WIDTH);
+      vec4 E = texelFetch(edge_light_tx, t, 0);
+      vec3 Pe = texelFetch(edge_point_tx, t, 0).xyz;
+      vec3 Ne = texelFetch(edge_normal_tx, t, 0).xyz;
+      float d = max(view_depth(src_view_z, P.xyz), 1e-6);
+      vec3 delta = P.xyz - Pe;
+      if (E.a > 0.5 && dot(N, Ne) > 0.95 && abs(dot(Ne, delta)) < 0.005 * d && length(delta) < 0.05 * d) {
         out_direct = vec4(E.rgb, 1.0);
         return;
       }

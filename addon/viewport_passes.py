@@ -79,7 +79,8 @@ class DirectResolvePass(_passes.RasterPass):
             samplers=((0, "FLOAT_2D", "position_tx"), (1, "FLOAT_2D", "normal_tx"),
                       (2, "FLOAT_2D", "src_position_tx"), (3, "FLOAT_2D", "src_normal_tx"),
                       (4, "FLOAT_2D", "src_direct_tx"), (5, "FLOAT_2D", "edge_index_tx"),
-                      (6, "FLOAT_2D", "edge_light_tx")),
+                      (6, "FLOAT_2D", "edge_light_tx"), (7, "FLOAT_2D", "edge_point_tx"),
+                      (8, "FLOAT_2D", "edge_normal_tx")),
             # 64 + 16 + 16 + 16 + 16 = 128 bytes: the push-constant limit. flags: (nearest, the
             # subframe's index among the edge light's subframes or -1, their count, 0).
             push=(("MAT4", "src_view_proj"), ("VEC4", "src_view_z"), ("VEC4", "src_footprint"),
@@ -110,9 +111,10 @@ class DirectResolvePass(_passes.RasterPass):
         shader.uniform_sampler("src_direct_tx", source.direct)
         edges = source.edge_textures() if subframe >= 0 else None
         if edges is None or subframe >= source.edges.light.shape[0]:
-            edges, subframe = (source.direct, source.direct), -1  # (bound, never read)
-        shader.uniform_sampler("edge_index_tx", edges[0])
-        shader.uniform_sampler("edge_light_tx", edges[1])
+            edges, subframe = (source.direct,) * 4, -1  # (bound, never read)
+        for name, texture in zip(("edge_index_tx", "edge_light_tx", "edge_point_tx", "edge_normal_tx"), edges,
+                                 strict=True):
+            shader.uniform_sampler(name, texture)
         view_proj = source.proj @ source.view
         # A flat list is read column-major, as GLSL stores a mat4.
         shader.uniform_float("src_view_proj", view_proj.T.ravel().astype(np.float32).tolist())
@@ -147,24 +149,33 @@ class DirectSource:
     _edge_textures: tuple | None = None
 
     def edge_textures(self) -> tuple | None:
-        """(index, light) textures of the edge light, uploaded once: index (h, w) R32F, the row of
-        each source pixel in the list or -1; light, the rows' K subframes' rgb in a list of
-        EDGE_LIST_WIDTH texels a line (row r, subframe k at texel r * K + k). Sparse: a few % of
-        the pixels, where K full-size textures would take K x 16 bytes a pixel (a 4K view's 8
-        subframes, 1 GB). None without edge light."""
+        """(index, light, point, normal) textures of the edge light, uploaded once: index (h, w)
+        R32F, the row of each source pixel in the lists or -1; the lists, EDGE_LIST_WIDTH texels
+        a line (row r, subframe k at texel r * K + k): the lamps' light (a = 1 where the
+        subframe's ray met a surface), the point it met (a = 1) and its normal. Sparse: a few %
+        of the pixels, where K full-size textures would take K x 16 bytes a pixel each (a 4K
+        view's 8 subframes, 1 GB). None without edge light."""
         edges = self.edges
         if edges is None or edges.pix.size == 0:
             return None
         if self._edge_textures is None:
             index = np.full(self.height * self.width, -1.0, np.float32)
             index[edges.pix] = np.arange(edges.pix.size, dtype=np.float32)
-            k = edges.light.shape[0]
-            flat = np.zeros((-(-edges.pix.size * k // EDGE_LIST_WIDTH) * EDGE_LIST_WIDTH, 4), np.float32)
-            flat[: edges.pix.size * k, :3] = edges.light.transpose(1, 0, 2).reshape(-1, 3)  # row-major: r, then k
-            flat[: edges.pix.size * k, 3] = 1.0
+            k, m = edges.light.shape[:2]
+            lines = -(-m * k // EDGE_LIST_WIDTH)
+            hit = np.linalg.norm(edges.normal, axis=2) > 0.5  # (K, m): the ray met a surface
+
+            def listed(values: np.ndarray, alpha: np.ndarray) -> np.ndarray:
+                flat = np.zeros((lines * EDGE_LIST_WIDTH, 4), np.float32)
+                flat[: m * k, :3] = values.transpose(1, 0, 2).reshape(-1, 3)  # row-major: r, then k
+                flat[: m * k, 3] = alpha.T.reshape(-1)
+                return flat.reshape(lines, EDGE_LIST_WIDTH, 4)
+
             up = _readback.upload_texture_2d
             self._edge_textures = (up(index.reshape(self.height, self.width, 1), "R32F"),
-                                   up(flat.reshape(-1, EDGE_LIST_WIDTH, 4), "RGBA32F"))
+                                   up(listed(edges.light, hit), "RGBA32F"),
+                                   up(listed(edges.point, hit), "RGBA32F"),
+                                   up(listed(edges.normal, hit), "RGBA16F"))
         return self._edge_textures
 
     def edge_subframe(self, index: int, offsets: np.ndarray) -> int:

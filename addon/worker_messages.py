@@ -93,13 +93,16 @@ class ViewRequest:
 
 @dataclass(frozen=True)
 class EdgeLight:
-    """The lamps' light of a still view's jittered subframes where a light edge crosses a pixel
-    of the direct light's resolution (`ViewportWorker._edge_pass`): pix (m,) int32 flat pixel
-    indices (rows bottom-up), light (K, m, 3) float32 W/m^2 at each subframe's own point on the
-    pixel's surface (`subpixel.plane_jitter`), offsets (K, 2) the subframes' pixel offsets."""
+    """The lamps' light of a still view's jittered subframes where a pixel's light or surface
+    changes within it (`ViewportWorker._edge_pass`): pix (m,) int32 flat pixel indices of the
+    direct light's resolution (rows bottom-up); for each of the K subframes (`offsets` (K, 2)
+    pixel offsets) what its ray through the pixel meets, point (K, m, 3) and unit normal
+    (K, m, 3) (zero where it meets nothing), and the lamps' light there, light (K, m, 3) W/m^2."""
 
     pix: np.ndarray
     light: np.ndarray
+    point: np.ndarray
+    normal: np.ndarray
     offsets: np.ndarray
 
 

@@ -105,16 +105,24 @@ def test_lower_resolution_source_is_interpolated_smoothly(passes):
 @pytest.mark.parametrize("list_width", [4096, 3])
 def test_a_subframe_takes_the_workers_light_at_its_own_point_on_a_light_edge(passes, monkeypatch, list_width):
     """`EdgeLight` of two subframes at the two pixels either side of the shadow edge: subframe 1
-    shows its own traced light there (where it sees the source pixel's surface), every other
-    pixel the resolve of the centre light; a point off the pixel's plane, another pattern or a
-    subframe the worker did not trace fall back to the resolve. The list read right where it
+    shows its own traced light there (where the raster sees the point its ray met), every other
+    pixel the resolve of the centre light; a ray that met nothing, a point off the traced one's
+    plane, another pattern or a subframe the worker did not trace fall back to the resolve. The list read right where it
     wraps onto its next line too."""
     monkeypatch.setattr(passes, "EDGE_LIST_WIDTH", list_width)  # 3: the list wraps onto a second line
     row = 3
     pix = np.array([row * W + EDGE - 1, row * W + EDGE], np.int32)
     light = np.array([[[0.3] * 3, [0.4] * 3], [[0.7] * 3, [0.9] * 3]], np.float32)
     offsets = np.array([[0.25, 0.1], [-0.3, 0.2]], np.float32)
-    edges = passes.worker.EdgeLight(pix, light, offsets)
+    # What each subframe's ray met there: the draw below rasterizes the pixel centres (shift 0),
+    # so the points are those; the second subframe met nothing at the second pixel.
+    centres = _plane(_proj(), W, H)[0].reshape(-1, 4)[pix, :3]
+    point = np.stack([centres, centres]).astype(np.float32)
+    normal = np.zeros((2, 2, 3), np.float32)
+    normal[..., 2] = 1.0
+    edges = passes.worker.EdgeLight(pix, light, point, normal, offsets)
+    missed = passes.worker.EdgeLight(pix, light, point, normal * np.array([[[1.0], [1.0]], [[1.0], [0.0]]], np.float32),
+                                     offsets)
 
     out = _resolve(passes, (W, H), 0.0, edges, offsets, index=1)
     np.testing.assert_allclose(out[row, EDGE - 1 : EDGE + 1, 0], [0.7, 0.9], atol=1e-5)
@@ -124,7 +132,10 @@ def test_a_subframe_takes_the_workers_light_at_its_own_point_on_a_light_edge(pas
     np.testing.assert_allclose(out[..., 0][others], expected[others], atol=1e-5)
     np.testing.assert_allclose(_resolve(passes, (W, H), 0.0, edges, offsets, index=0)[row, EDGE - 1, 0], 0.3,
                                atol=1e-5)
-    # Off the source pixel's plane (lifted 0.2 at 5 m): not that surface, the resolve's light.
+    # Where the subframe's ray met nothing: the resolve's light.
+    np.testing.assert_allclose(_resolve(passes, (W, H), 0.0, missed, offsets, index=1)[row, EDGE - 1 : EDGE + 1, 0],
+                               [0.7, 0.0], atol=1e-5)
+    # Off the traced point's plane (lifted 0.2 at 5 m): not what the ray met, the resolve's light.
     lifted = _resolve(passes, (W, H), 0.0, edges, offsets, index=1, lift=0.2)
     assert lifted[row, EDGE - 1, 0] == pytest.approx(0.7, abs=1e-5)
     assert abs(lifted[row, EDGE, 0] - 0.9) > 0.5

@@ -13,9 +13,10 @@ from hybridgi_core.raster.subpixel import (
     filter_offsets,
     filter_support,
     jittered_projection,
-    plane_jitter,
     reconstruction_taps,
+    subframe_rays,
     subpixel_offsets,
+    surface_edges,
 )
 
 
@@ -106,11 +107,10 @@ def test_the_jittered_projection_moves_the_image_by_the_offset(ortho):
 
 
 @pytest.mark.parametrize("ortho", [False, True])
-def test_plane_jitter_finds_what_each_subframe_sees_at_the_pixel(ortho):
-    """The point `plane_jitter` gives pixel p and offset o lies on p's tangent plane, and the
-    subframe's projection (`jittered_projection`) puts it on p's centre: what that subframe's
-    raster sees at p where the surface continues. A ray grazing the plane, or a point that would
-    move too far, keeps the centre point."""
+def test_subframe_rays_pass_where_each_subframe_samples_the_pixel(ortho):
+    """The ray `subframe_rays` gives pixel p and offset o starts on the near plane, and every
+    point along it lands on p's centre under the subframe's projection (`jittered_projection`):
+    what that subframe's raster sees at p is what the ray meets first."""
     w, h = 64, 48
     if ortho:
         proj = np.diag([0.25, 1.0 / 3.0, -0.1, 1.0])
@@ -120,34 +120,46 @@ def test_plane_jitter_finds_what_each_subframe_sees_at_the_pixel(ortho):
     view = np.eye(4)
     view[:3, :3] = np.array([[1, 0, 0], [0, 0.8, -0.6], [0, 0.6, 0.8]])  # tilted about x
     view[:3, 3] = (0.3, -0.2, -1.0)
-    normal = np.array([0.2, 0.3, 1.0]) / np.linalg.norm([0.2, 0.3, 1.0])
-    inverse = np.linalg.inv(proj @ view)
     pix = np.array([5 + 7 * w, 30 + 20 * w, 63 + 47 * w])
-
-    def on_plane(x, y):  # the camera ray through image point (x, y) met with the plane n.p = -3
-        ends = [inverse @ np.array([x / w * 2 - 1, y / h * 2 - 1, z, 1.0]) for z in (-1.0, 1.0)]
-        a, b = (e[:3] / e[3] for e in ends)
-        return a + (b - a) * (-3.0 - a @ normal) / ((b - a) @ normal)
-
-    centres = np.array([on_plane(p % w + 0.5, p // w + 0.5) for p in pix])
     offsets = np.array([[0.3, -0.2], [-0.45, 0.4], [0.0, 0.0]])
-    got = plane_jitter(centres, np.tile(normal, (3, 1)), pix, w, h, view, proj, offsets)
-    assert got.shape == (3, 3, 3) and got.dtype == np.float32
+    origins, dirs = subframe_rays(pix, w, h, view, proj, offsets)
+    assert origins.shape == dirs.shape == (3, 3, 3) and dirs.dtype == np.float32
+    np.testing.assert_allclose(np.linalg.norm(dirs, axis=2), 1.0, atol=1e-6)
     for k, offset in enumerate(offsets):
         m = jittered_projection(proj, offset, w, h).astype(np.float64) @ view
-        clip = np.c_[got[k].astype(np.float64), np.ones(3)] @ m.T
-        xy = (clip[:, :2] / clip[:, 3:] * 0.5 + 0.5) * (w, h) - 0.5
-        np.testing.assert_allclose(xy, np.c_[pix % w, pix // w], atol=2e-3)
-        np.testing.assert_allclose(got[k] @ normal, -3.0, atol=1e-4)
-    np.testing.assert_allclose(got[2], centres, atol=1e-5)  # no offset: the centre itself
-    # A plane seen edge-on (the normal across the pixel's own view ray): the centre point stays.
-    x, y = pix[0] % w + 0.5, pix[0] // w + 0.5
-    ends = [inverse @ np.array([x / w * 2 - 1, y / h * 2 - 1, z, 1.0]) for z in (-1.0, 1.0)]
-    ray = ends[1][:3] / ends[1][3] - ends[0][:3] / ends[0][3]
-    side = np.cross(ray, [1.0, 0.0, 0.0])
-    side /= np.linalg.norm(side)
-    kept = plane_jitter(centres[:1], side[None], pix[:1], w, h, view, proj, offsets[:1])
-    np.testing.assert_allclose(kept[0], centres[:1], atol=1e-6)
+        for t in (0.0, 2.0, 7.5):
+            clip = np.c_[origins[k].astype(np.float64) + t * dirs[k], np.ones(3)] @ m.T
+            xy = (clip[:, :2] / clip[:, 3:] * 0.5 + 0.5) * (w, h) - 0.5
+            np.testing.assert_allclose(xy, np.c_[pix % w, pix // w], atol=2e-3)
+            if t == 0.0:
+                np.testing.assert_allclose(clip[:, 2] / clip[:, 3], -1.0, atol=1e-4)  # the near plane
+
+
+def test_surface_edges_mark_both_sides_of_a_crease_a_step_and_a_silhouette():
+    """A floor (z = 0, normal +z) meeting a wall (x = 5, normal -x) between columns 4 and 5, a
+    step up at row 3 of the floor, the background at column 7: the pixels either side of each
+    are edges, the flat floor and wall inside are not; a gently curved surface is none."""
+    h, w = 6, 8
+    pos = np.zeros((h, w, 4), np.float32)
+    nrm = np.zeros((h, w, 4), np.float32)
+    xs, ys = np.meshgrid(np.arange(w, dtype=np.float32), np.arange(h, dtype=np.float32))
+    floor = xs <= 4
+    pos[..., 0], pos[..., 1], pos[..., 3] = xs, ys, 1.0
+    pos[..., 2] = np.where(floor, np.where(ys >= 3, 0.5, 0.0), xs - 4)
+    nrm[..., 2] = np.where(floor, 1.0, 0.0)
+    nrm[..., 0] = np.where(floor, 0.0, -1.0)
+    pos[:, 7, 3] = 0.0  # background
+    depth = np.full((h, w), 10.0, np.float32)
+    edge = surface_edges(pos, nrm, depth)
+    assert edge[:, 4].all() and edge[:, 5].all()  # the crease
+    assert edge[2, :4].all() and edge[3, :4].all()  # the step (0.5 at depth 10: off the plane)
+    assert edge[:, 6].all() and edge[:, 7].all()  # the silhouette, both sides
+    assert not edge[[0, 1, 4, 5], :4].any()
+    # A sphere-like bulge: normals turn by 2 degrees a pixel, points stay on each other's planes.
+    angle = np.radians(2.0) * xs
+    curved_pos = np.stack([np.sin(angle) * 20, ys, 20 - np.cos(angle) * 20, np.ones_like(xs)], axis=-1)
+    curved_nrm = np.stack([-np.sin(angle), np.zeros_like(xs), np.cos(angle), np.zeros_like(xs)], axis=-1)
+    assert not surface_edges(curved_pos.astype(np.float32), curved_nrm.astype(np.float32), depth * 100).any()
 
 
 def test_the_film_averages_passes_and_keeps_one_depth():

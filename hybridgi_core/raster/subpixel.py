@@ -333,45 +333,63 @@ def lamp_edges(lamp_light: np.ndarray, total: np.ndarray, contrast: float = LIGH
                      for k in range(sums.shape[1])], axis=1)
 
 
-def plane_jitter(points: np.ndarray, normals: np.ndarray, pix: np.ndarray, width: int, height: int,
-                 view: np.ndarray, proj: np.ndarray, offsets: np.ndarray) -> np.ndarray:
-    """(K, m, 3) float32: where each of m pixels (flat indices `pix` into a `width` x `height`
-    image, rows bottom-up) would see its own surface in K jittered subframes (pixel `offsets`
-    (K, 2), as `jittered_projection` samples them): the camera ray through the pixel centre plus
-    the offset, met with the tangent plane of the pixel's point (m, 3) and unit normal (m, 3).
+def subframe_rays(pix: np.ndarray, width: int, height: int, view: np.ndarray, proj: np.ndarray,
+                  offsets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(origins, directions), each (K, m, 3) float32 (unit directions): the camera rays through
+    m pixels (flat indices `pix` into a `width` x `height` image, rows bottom-up) at K jittered
+    subframes' samples (pixel centre + `offsets` (K, 2), as `jittered_projection` samples them),
+    from the near plane (perspective and orthographic cameras alike).
 
     Why: a still viewport shades its jittered subframes from the worker's light at the pixel
-    centres; where a lamp's edge crosses a pixel each subframe needs the light at its own point,
-    as final renders trace it there (`subframe_direct`). On a surface that continues across the
-    pixel that point lies on the centre's tangent plane. Rows where the ray grazes the plane, or
-    the point would move more than SAME_REACH x view depth, keep the centre point."""
-    points = np.asarray(points, np.float64).reshape(-1, 3)
-    normals = np.asarray(normals, np.float64).reshape(-1, 3)
+    centres; where a pixel's light or surface changes within it (a shadow edge, a facet's edge,
+    a silhouette) each subframe needs the light of what it sees itself, as final renders trace
+    it there (`subframe_direct`); the worker finds that by casting these rays."""
+    pix = np.asarray(pix).reshape(-1)
     offsets = np.asarray(offsets, np.float64).reshape(-1, 2)
-    m, k = points.shape[0], offsets.shape[0]
-    out = np.broadcast_to(points.astype(np.float32), (k, m, 3)).copy()
-    if m == 0 or k == 0:
-        return out
-    view = np.asarray(view, np.float64).reshape(4, 4)
-    inverse = np.linalg.inv(np.asarray(proj, np.float64).reshape(4, 4) @ view)
-    x = (np.asarray(pix) % width).astype(np.float64)
-    y = (np.asarray(pix) // width).astype(np.float64)
-    depth = np.maximum(-(points @ view[2, :3] + view[2, 3]), 1e-9)
+    m, k = pix.size, offsets.shape[0]
+    inverse = np.linalg.inv(np.asarray(proj, np.float64).reshape(4, 4) @ np.asarray(view, np.float64).reshape(4, 4))
+    x = (pix % width).astype(np.float64)
+    y = (pix // width).astype(np.float64)
+    origins = np.zeros((k, m, 3), np.float32)
+    directions = np.zeros((k, m, 3), np.float32)
     for i, (ox, oy) in enumerate(offsets):
         ndc = np.stack([(x + 0.5 + ox) / width * 2.0 - 1.0, (y + 0.5 + oy) / height * 2.0 - 1.0], axis=1)
         ends = []
         for z in (-1.0, 1.0):  # the ray's points on the near and far planes
             h = np.concatenate([ndc, np.full((m, 1), z), np.ones((m, 1))], axis=1) @ inverse.T
             ends.append(h[:, :3] / h[:, 3:4])
-        origin, direction = ends[0], ends[1] - ends[0]
-        facing = np.einsum("ij,ij->i", direction, normals)
-        length = np.linalg.norm(direction, axis=1)
-        ok = np.abs(facing) > 1e-3 * length
-        t = np.einsum("ij,ij->i", points - origin, normals) / np.where(ok, facing, 1.0)
-        moved = origin + direction * t[:, None]
-        ok &= np.linalg.norm(moved - points, axis=1) <= SAME_REACH * depth
-        out[i, ok] = moved[ok]
-    return out
+        d = ends[1] - ends[0]
+        origins[i] = ends[0]
+        directions[i] = d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-30)
+    return origins, directions
+
+
+def surface_edges(position: np.ndarray, normal: np.ndarray, depth: np.ndarray) -> np.ndarray:
+    """(h, w) bool: pixels with a 4-neighbour on another surface than their own (normals apart by
+    more than SAME_COS, or off the tangent plane by more than SAME_PLANE x view depth) or on none
+    (geometry beside the background, both sides): where a jittered subframe may see another
+    surface, or another facet of a faceted one. position, normal (h, w, >= 3; position's w = 1
+    on geometry), depth (h, w) view depth."""
+    position = np.asarray(position, np.float32)
+    h, w = position.shape[:2]
+    geo = position[..., 3] > 0.5
+    p, n = position[..., :3], np.asarray(normal, np.float32)[..., :3]
+    d = np.maximum(np.asarray(depth, np.float32).reshape(h, w), np.float32(1e-6))
+    edge = np.zeros((h, w), bool)
+    for axis in (0, 1):
+        a = [slice(None), slice(None)]
+        b = [slice(None), slice(None)]
+        a[axis], b[axis] = slice(0, -1), slice(1, None)
+        a, b = tuple(a), tuple(b)
+        both = geo[a] & geo[b]
+        cos = np.einsum("ijk,ijk->ij", n[a], n[b])
+        delta = p[b] - p[a]
+        off = np.maximum(np.abs(np.einsum("ijk,ijk->ij", n[a], delta)) / d[a],
+                         np.abs(np.einsum("ijk,ijk->ij", n[b], delta)) / d[b])
+        differ = (geo[a] != geo[b]) | (both & ((cos < SAME_COS) | (off > SAME_PLANE)))
+        edge[a] |= differ
+        edge[b] |= differ
+    return edge
 
 
 def subframe_surfaces(centre: CentreSample, position: np.ndarray, normal: np.ndarray,
