@@ -36,6 +36,7 @@ from hybridgi_core.raster import gather as _gather_layout
 from hybridgi_core.raster import settings as _raster_settings
 from hybridgi_core.raster import subpixel as _subpixel
 from hybridgi_core.raster.gbuffer import camera_eye
+from hybridgi_core.rows import rows_above
 from hybridgi_core.session import GISession
 
 from . import worker_pixels as _pixels
@@ -523,6 +524,11 @@ class ViewportWorker:
         edge = _subpixel.light_edges(total) | (_subpixel.surface_edges(level.position, level.normal, depth)
                                                & _subpixel.light_edges(total, SURFACE_EDGE_CONTRAST))
         pix = np.flatnonzero(edge.reshape(-1)).astype(np.int32)
+        shares = _shares(system, r, False, pix)
+        if shares is not None:
+            # Translucent pixels take their lamps' light on the back too (`translucent.mix_back`):
+            # the resolve of the full-res light, which has it, serves them.
+            pix = pix[~rows_above(shares, 0.0)]
         offsets = np.asarray(r.aa_offsets, np.float32).reshape(-1, 2)
         k, m = offsets.shape[0], pix.size
         light, point, normal = (np.zeros((k, m, 3), np.float32) for _ in range(3))

@@ -688,3 +688,49 @@ def test_a_still_view_traces_each_subframes_light_at_its_light_edges(worker):
         wk.close()
     with still_view(worker, scene, settings, options, pos, nrm, view_matrix, (full_pos, full_nrm)) as wk:
         assert wk.latest().view.passes == 2 and wk.latest().view.edges is None  # no pattern, no edges
+
+
+def test_edge_light_leaves_translucent_pixels_to_the_resolve(worker):
+    """A translucent surface's pixels take their lamps' light on the back too, which the
+    full-res light has and the edge rays do not: the edge light leaves them out (the draw
+    resolves the full-res light there), while the same material opaque has edge pixels."""
+    from hybridgi_core.raster.subpixel import subpixel_offsets
+
+    scene = procedural.cornell()
+    settings = CacheSettings(resolution=10, rays_per_cell=16, threads=2)
+    pos, nrm, view_matrix, _ = pinhole_gbuffer(scene, settings)
+    full_pos, full_nrm, _, _ = pinhole_gbuffer(scene, settings, 64, 48)
+    cam = procedural.describe("cornell").camera
+    half_w = 0.5 * cam.sensor_width_mm / cam.lens_mm
+    proj = np.array([[1 / half_w, 0, 0, 0], [0, 64 / (48 * half_w), 0, 0], [0, 0, -1.002, -0.2002], [0, 0, -1, 0]])
+    # The full-res material texels (index + 1, 0 = background), as the G-buffer's.
+    m = cam.matrix()
+    x = ((np.arange(64) + 0.5) / 64 * 2 - 1) * half_w
+    y = ((np.arange(48) + 0.5) / 48 * 2 - 1) * half_w * 48 / 64
+    xx, yy = np.meshgrid(x, y)
+    d = np.stack([xx.ravel(), yy.ravel(), -np.ones(xx.size)], 1) @ m[:3, :3].T
+    d = (d / np.linalg.norm(d, axis=1, keepdims=True)).astype(np.float32)
+    with GISystem(scene, settings) as primary:
+        prim = primary.tracer.intersect(np.repeat(m[None, :3, 3], d.shape[0], 0).astype(np.float32), d).prim
+    texels = np.where(prim >= 0, scene.geometry.material_index[np.maximum(prim, 0)] + 1, 0).astype(np.float32)
+    offsets = subpixel_offsets(4, 1.5, "BLACKMAN_HARRIS").astype(np.float32)
+    options = worker.WorkerOptions(direct_passes=1, solver_batches=1, first_batch_rays=8, pixel_rays=0)
+
+    def edge_materials(snapshot) -> np.ndarray:
+        wk = worker.ViewportWorker(settings, options)
+        try:
+            wk.post_edit(worker.FullScene(snapshot))
+            wk.post_view(worker.ViewRequest(("k",), pos, nrm, full_pos, full_nrm, view_matrix, proj,
+                                            direct_material=texels.reshape(48, 64), aa_offsets=offsets))
+            assert wk.wait_idle(120)
+            return texels[wk.latest().view.edges.pix]
+        finally:
+            wk.close()
+
+    opaque = edge_materials(scene)
+    walls = np.unique(opaque[opaque > 0], return_counts=True)
+    leaf = walls[0][np.argmax(walls[1])]  # the material with the most edge pixels
+    materials = list(scene.materials)
+    materials[int(leaf) - 1] = dataclasses.replace(materials[int(leaf) - 1], translucent=[0.5, 0.5, 0.5])
+    translucent = edge_materials(dataclasses.replace(scene, materials=materials))
+    assert (translucent != leaf).all() and translucent.size > 0
