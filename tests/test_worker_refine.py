@@ -58,6 +58,26 @@ def pinhole_gbuffer(scene, settings, w=32, h=24):
     return pos.reshape(h, w, 4), nrm.reshape(h, w, 4), np.linalg.inv(m), ok
 
 
+def cornell_view_with_pattern():
+    """(scene, settings, GI (pos, nrm), full-res (pos, nrm), view, proj, half width of the
+    camera's image plane at unit distance, the final render's 4-subframe pattern): the Cornell
+    camera as `pinhole_gbuffer` traces it, at 32x24 GI and 64x48 full-res pixels, with the
+    perspective projection that matches it."""
+    from hybridgi_core.raster.subpixel import subpixel_offsets
+
+    scene = procedural.cornell()
+    settings = CacheSettings(resolution=10, rays_per_cell=16, threads=2)
+    pos, nrm, view_matrix, _ = pinhole_gbuffer(scene, settings)
+    full_pos, full_nrm, _, _ = pinhole_gbuffer(scene, settings, 64, 48)
+    cam = procedural.describe("cornell").camera
+    half_w = 0.5 * cam.sensor_width_mm / cam.lens_mm
+    near, far = 0.1, 100.0
+    proj = np.array([[1 / half_w, 0, 0, 0], [0, 64 / (48 * half_w), 0, 0],
+                     [0, 0, (far + near) / (near - far), 2 * far * near / (near - far)], [0, 0, -1, 0]])
+    offsets = subpixel_offsets(4, 1.5, "BLACKMAN_HARRIS").astype(np.float32)
+    return scene, settings, (pos, nrm), (full_pos, full_nrm), view_matrix, proj, half_w, offsets
+
+
 @contextlib.contextmanager
 def still_view(worker, scene, settings, options, pos, nrm, view_matrix, full=None):
     """A worker that was given `scene` and one still view (G-buffer pos / nrm; `full`: the
@@ -638,18 +658,7 @@ def test_a_still_view_traces_each_subframes_light_at_its_light_edges(worker):
     (`EdgeLight`), traced at what the subframe's ray through the pixel meets: within the pixel
     of the centre's point, about the centre light there on average; made again after a lamp
     edit; none without a pattern."""
-    from hybridgi_core.raster.subpixel import subpixel_offsets
-
-    scene = procedural.cornell()
-    settings = CacheSettings(resolution=10, rays_per_cell=16, threads=2)
-    pos, nrm, view_matrix, _ = pinhole_gbuffer(scene, settings)
-    full_pos, full_nrm, _, _ = pinhole_gbuffer(scene, settings, 64, 48)
-    cam = procedural.describe("cornell").camera
-    half_w = 0.5 * cam.sensor_width_mm / cam.lens_mm
-    near, far = 0.1, 100.0
-    proj = np.array([[1 / half_w, 0, 0, 0], [0, 64 / (48 * half_w), 0, 0],
-                     [0, 0, (far + near) / (near - far), 2 * far * near / (near - far)], [0, 0, -1, 0]])
-    offsets = subpixel_offsets(4, 1.5, "BLACKMAN_HARRIS").astype(np.float32)
+    scene, settings, (pos, nrm), (full_pos, full_nrm), view_matrix, proj, half_w, offsets = cornell_view_with_pattern()
     options = worker.WorkerOptions(direct_passes=2, solver_batches=1, first_batch_rays=8, pixel_rays=0)
     wk = worker.ViewportWorker(settings, options)
     try:
@@ -694,15 +703,8 @@ def test_edge_light_leaves_translucent_pixels_to_the_resolve(worker):
     """A translucent surface's pixels take their lamps' light on the back too, which the
     full-res light has and the edge rays do not: the edge light leaves them out (the draw
     resolves the full-res light there), while the same material opaque has edge pixels."""
-    from hybridgi_core.raster.subpixel import subpixel_offsets
-
-    scene = procedural.cornell()
-    settings = CacheSettings(resolution=10, rays_per_cell=16, threads=2)
-    pos, nrm, view_matrix, _ = pinhole_gbuffer(scene, settings)
-    full_pos, full_nrm, _, _ = pinhole_gbuffer(scene, settings, 64, 48)
+    scene, settings, (pos, nrm), (full_pos, full_nrm), view_matrix, proj, half_w, offsets = cornell_view_with_pattern()
     cam = procedural.describe("cornell").camera
-    half_w = 0.5 * cam.sensor_width_mm / cam.lens_mm
-    proj = np.array([[1 / half_w, 0, 0, 0], [0, 64 / (48 * half_w), 0, 0], [0, 0, -1.002, -0.2002], [0, 0, -1, 0]])
     # The full-res material texels (index + 1, 0 = background), as the G-buffer's.
     m = cam.matrix()
     x = ((np.arange(64) + 0.5) / 64 * 2 - 1) * half_w
@@ -713,7 +715,6 @@ def test_edge_light_leaves_translucent_pixels_to_the_resolve(worker):
     with GISystem(scene, settings) as primary:
         prim = primary.tracer.intersect(np.repeat(m[None, :3, 3], d.shape[0], 0).astype(np.float32), d).prim
     texels = np.where(prim >= 0, scene.geometry.material_index[np.maximum(prim, 0)] + 1, 0).astype(np.float32)
-    offsets = subpixel_offsets(4, 1.5, "BLACKMAN_HARRIS").astype(np.float32)
     options = worker.WorkerOptions(direct_passes=1, solver_batches=1, first_batch_rays=8, pixel_rays=0)
 
     def edge_materials(snapshot) -> np.ndarray:
