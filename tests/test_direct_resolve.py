@@ -107,7 +107,8 @@ def test_a_subframe_takes_the_workers_light_at_its_own_point_on_a_light_edge(pas
     """`EdgeLight` of two subframes at the two pixels either side of the shadow edge: subframe 1
     shows its own traced light there (where the raster sees the point its ray met), every other
     pixel the resolve of the centre light; a ray that met nothing, a point off the traced one's
-    plane, another pattern or a subframe the worker did not trace fall back to the resolve. The list read right where it
+    plane, a normal bent away from the traced one, another pattern or a subframe the worker did
+    not trace fall back to the resolve. The list read right where it
     wraps onto its next line too."""
     monkeypatch.setattr(passes, "EDGE_LIST_WIDTH", list_width)  # 3: the list wraps onto a second line
     row = 3
@@ -139,6 +140,12 @@ def test_a_subframe_takes_the_workers_light_at_its_own_point_on_a_light_edge(pas
     lifted = _resolve(passes, (W, H), 0.0, edges, offsets, index=1, lift=0.2)
     assert lifted[row, EDGE - 1, 0] == pytest.approx(0.7, abs=1e-5)
     assert abs(lifted[row, EDGE, 0] - 0.9) > 0.5
+    # A normal the raster bent (a normal map) 5 degrees off the traced one: the resolve's light.
+    tilt = np.radians(5.0)
+    bent = passes.worker.EdgeLight(pix, light, point, np.broadcast_to(
+        np.array([np.sin(tilt), 0.0, np.cos(tilt)], np.float32), normal.shape).copy(), offsets)
+    np.testing.assert_allclose(_resolve(passes, (W, H), 0.0, bent, offsets, index=1)[row, EDGE - 1 : EDGE + 1, 0],
+                               [2.0, 0.0], atol=1e-5)
     # Another subframe pattern, or a subframe past the traced ones: the resolve alone.
     for other, index in ((offsets[::-1].copy(), 1), (offsets, 2)):
         plain = _resolve(passes, (W, H), 0.0, edges, other, index=index)
