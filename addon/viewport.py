@@ -527,7 +527,7 @@ class ViewportSession:
                 direct_material=direct_material,
                 glossy_samples=self._glossy_samples if full_material is not None else 0,
                 reflection_rays=gpu_state.pipeline.settings.reflection_rays,
-                aa_offsets=self.aa.offsets.copy() if self.aa.offsets.shape[0] and not debug_cells else None,
+                aa_offsets=self.aa.offsets.copy() if self.aa.offsets.shape[0] else None,  # (none in Cache Cells)
             )
             self.worker.post_view(request)
         self._posted_key = view_key

@@ -109,8 +109,8 @@ class DirectResolvePass(_passes.RasterPass):
         shader.uniform_sampler("src_position_tx", source.position)
         shader.uniform_sampler("src_normal_tx", source.normal)
         shader.uniform_sampler("src_direct_tx", source.direct)
-        edges = source.edge_textures() if subframe >= 0 else None
-        if edges is None or subframe >= source.edges.light.shape[0]:
+        edges = source.edge_textures() if subframe >= 0 else None  # (subframe: `source.edge_subframe`'s)
+        if edges is None:
             edges, subframe = (source.direct,) * 4, -1  # (bound, never read)
         for name, texture in zip(("edge_index_tx", "edge_light_tx", "edge_point_tx", "edge_normal_tx"), edges,
                                  strict=True):

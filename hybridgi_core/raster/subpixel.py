@@ -44,6 +44,7 @@ from ..rows import rows_above
 from ..system import DIRECT_BLOCK_RAYS
 from ..translucent import BACK_SEED_OFFSET, mix_back
 from ..visible import pixels_to_points
+from .world_background import camera_rays
 
 #: Blackman-Harris coefficients as Cycles' `filter_func_blackman_harris` uses them.
 BH_COEFFS = (0.35875, -0.48829, 0.14128, -0.01168)
@@ -244,13 +245,23 @@ LIGHT_EDGE_CONTRAST = 0.25
 def same_surface(position0: np.ndarray, normal0: np.ndarray, position: np.ndarray,
                  normal: np.ndarray, depth0: np.ndarray) -> np.ndarray:
     """(n,) bool: pixels whose subframe sample (position, normal) lies on the centre sample's
-    surface (position0, normal0; view depth depth0). (n, >= 3) float32 arrays (xyz used) and (n,);
-    rows without geometry in either must be masked by the caller."""
+    surface (position0, normal0; view depth depth0): `same_plane`, and within SAME_REACH x depth0
+    of it. (n, >= 3) float32 arrays (xyz used) and (n,); rows without geometry in either must be
+    masked by the caller."""
+    d = [position[:, k] - position0[:, k] for k in range(3)]
+    reach = d[0] * d[0] + d[1] * d[1] + d[2] * d[2]
+    return same_plane(position0, normal0, position, normal, depth0) & (reach <= (SAME_REACH * depth0) ** 2)
+
+
+def same_plane(position0: np.ndarray, normal0: np.ndarray, position: np.ndarray, normal: np.ndarray,
+               depth0: np.ndarray) -> np.ndarray:
+    """(n,) bool: the samples (position, normal) face as the samples (position0, normal0) do (their
+    normals within SAME_COS) and lie on their tangent planes (within SAME_PLANE x depth0, the
+    latter's view depths). Arrays as `same_surface`'s."""
     d = [position[:, k] - position0[:, k] for k in range(3)]
     cos = normal[:, 0] * normal0[:, 0] + normal[:, 1] * normal0[:, 1] + normal[:, 2] * normal0[:, 2]
     plane = np.abs(d[0] * normal0[:, 0] + d[1] * normal0[:, 1] + d[2] * normal0[:, 2])
-    reach = d[0] * d[0] + d[1] * d[1] + d[2] * d[2]
-    return (cos >= SAME_COS) & (plane <= SAME_PLANE * depth0) & (reach <= (SAME_REACH * depth0) ** 2)
+    return (cos >= SAME_COS) & (plane <= SAME_PLANE * depth0)
 
 
 @dataclass
@@ -347,26 +358,20 @@ def subframe_rays(pix: np.ndarray, width: int, height: int, view: np.ndarray, pr
     pix = np.asarray(pix).reshape(-1)
     offsets = np.asarray(offsets, np.float64).reshape(-1, 2)
     m, k = pix.size, offsets.shape[0]
-    inverse = np.linalg.inv(np.asarray(proj, np.float64).reshape(4, 4) @ np.asarray(view, np.float64).reshape(4, 4))
     x = (pix % width).astype(np.float64)
     y = (pix // width).astype(np.float64)
     origins = np.zeros((k, m, 3), np.float32)
     directions = np.zeros((k, m, 3), np.float32)
     for i, (ox, oy) in enumerate(offsets):
-        ndc = np.stack([(x + 0.5 + ox) / width * 2.0 - 1.0, (y + 0.5 + oy) / height * 2.0 - 1.0], axis=1)
-        ends = []
-        for z in (-1.0, 1.0):  # the ray's points on the near and far planes
-            h = np.concatenate([ndc, np.full((m, 1), z), np.ones((m, 1))], axis=1) @ inverse.T
-            ends.append(h[:, :3] / h[:, 3:4])
-        d = ends[1] - ends[0]
-        origins[i] = ends[0]
-        directions[i] = d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-30)
+        origins[i], directions[i] = camera_rays(view, proj, (x + 0.5 + ox) / width * 2.0 - 1.0,
+                                                (y + 0.5 + oy) / height * 2.0 - 1.0)
     return origins, directions
 
 
 def surface_edges(position: np.ndarray, normal: np.ndarray, depth: np.ndarray) -> np.ndarray:
-    """(h, w) bool: pixels with a 4-neighbour on another surface than their own (normals apart by
-    more than SAME_COS, or off the tangent plane by more than SAME_PLANE x view depth) or on none
+    """(h, w) bool: pixels with a 4-neighbour on another surface than their own (not `same_plane`
+    either way: normals apart by more than SAME_COS, or off the tangent plane by more than
+    SAME_PLANE x view depth) or on none
     (geometry beside the background, both sides): where a jittered subframe may see another
     surface, or another facet of a faceted one. position, normal (h, w, >= 3; position's w = 1
     on geometry), depth (h, w) view depth."""
@@ -381,12 +386,11 @@ def surface_edges(position: np.ndarray, normal: np.ndarray, depth: np.ndarray) -
         b = [slice(None), slice(None)]
         a[axis], b[axis] = slice(0, -1), slice(1, None)
         a, b = tuple(a), tuple(b)
-        both = geo[a] & geo[b]
-        cos = np.einsum("ijk,ijk->ij", n[a], n[b])
-        delta = p[b] - p[a]
-        off = np.maximum(np.abs(np.einsum("ijk,ijk->ij", n[a], delta)) / d[a],
-                         np.abs(np.einsum("ijk,ijk->ij", n[b], delta)) / d[b])
-        differ = (geo[a] != geo[b]) | (both & ((cos < SAME_COS) | (off > SAME_PLANE)))
+        pa, na, da = p[a].reshape(-1, 3), n[a].reshape(-1, 3), d[a].reshape(-1)
+        pb, nb, db = p[b].reshape(-1, 3), n[b].reshape(-1, 3), d[b].reshape(-1)
+        # Each on the other's tangent plane, facing alike (`same_plane`, both ways).
+        same = (same_plane(pa, na, pb, nb, da) & same_plane(pb, nb, pa, na, db)).reshape(geo[a].shape)
+        differ = (geo[a] != geo[b]) | (geo[a] & geo[b] & ~same)
         edge[a] |= differ
         edge[b] |= differ
     return edge

@@ -53,22 +53,30 @@ def world_block(background, view: np.ndarray, proj: np.ndarray, width: int) -> n
     return np.concatenate([inv.T.ravel(), rot.T.ravel(), params]).astype(np.float32)
 
 
-def pixel_directions(view: np.ndarray, proj: np.ndarray, width: int, height: int) -> np.ndarray:
-    """(h * w, 3) float32 unit world directions of the rays through the pixel centres (rows
-    bottom-up, as the G-buffer's), as the deferred pass finds them: between the near and the far
-    plane's points of each pixel."""
+def camera_rays(view: np.ndarray, proj: np.ndarray, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(points (n, 3), unit directions (n, 3)) float64 of the camera rays through NDC (x, y) (n,):
+    from the near plane's point towards the far plane's, as the deferred pass finds them
+    (perspective and orthographic cameras alike)."""
     inv = np.linalg.inv(np.asarray(proj, np.float64).reshape(4, 4) @ np.asarray(view, np.float64).reshape(4, 4))
-    x = (np.arange(width) + 0.5) / width * 2.0 - 1.0
-    y = (np.arange(height) + 0.5) / height * 2.0 - 1.0
-    ndc = np.stack(np.broadcast_arrays(x[None, :], y[:, None], 0.0, 1.0), axis=-1).reshape(-1, 4)
+    ndc = np.stack(np.broadcast_arrays(np.asarray(x, np.float64), np.asarray(y, np.float64), 0.0, 1.0),
+                   axis=-1).reshape(-1, 4)
 
     def at(z):
         ndc[:, 2] = z
         q = ndc @ inv.T
         return q[:, :3] / q[:, 3:4]
 
-    d = at(1.0) - at(-1.0)
-    return (d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-30)).astype(np.float32)
+    near = at(-1.0)
+    d = at(1.0) - near
+    return near, d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-30)
+
+
+def pixel_directions(view: np.ndarray, proj: np.ndarray, width: int, height: int) -> np.ndarray:
+    """(h * w, 3) float32 unit world directions of the rays through the pixel centres (rows
+    bottom-up, as the G-buffer's), as the deferred pass finds them (`camera_rays`)."""
+    x = (np.arange(width) + 0.5) / width * 2.0 - 1.0
+    y = (np.arange(height) + 0.5) / height * 2.0 - 1.0
+    return camera_rays(view, proj, x[None, :], y[:, None])[1].astype(np.float32)
 
 
 class WorldTexture:
