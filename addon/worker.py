@@ -647,7 +647,8 @@ class ViewportWorker:
                     system, points, normals, pix, (h, w), np.asarray(r.full_material).reshape(-1)[pix],
                     np.asarray(r.full_albedo).reshape(-1, 4)[pix, :3], irradiance, r.view,
                     camera_eye(r.view, r.proj), self._frame, r.glossy_samples, r.reflection_rays,
-                    pool=system.updater.pool, between=between, tint=tint, visibility=level.visibility)
+                    pool=system.updater.pool, between=between, tint=tint, visibility=level.visibility,
+                    screen=state.screen_light())
             except _Superseded:
                 self._steps["fine_glossy_dropped"] = (time.perf_counter() - t0) * 1e3
                 return

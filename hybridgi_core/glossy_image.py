@@ -122,7 +122,7 @@ def cache_glossy(system, points, normals, to_eye, rows) -> GlossyLight:
 def frame_glossy(system, points, normals, pix, shape: tuple[int, int], material, albedo, irradiance, view, eye,
                  frame: int, samples: int, reflection_rays: int, lookup: HitLookup | None = None,
                  pool=None, between=None, tint: np.ndarray | None = None,
-                 visibility: np.ndarray | None = None) -> GlossyLight:
+                 visibility: np.ndarray | None = None, screen=None) -> GlossyLight:
     """The glossy light of an image's receivers as final renders compute it: the lamps' light
     (`glossy_noise.adaptive_lamp_glossy`: `samples` per lamp only where a first pass is noisy
     against the receiver's diffuse lamp light, then `reflection.filter_lamp_glossy`) and the light
@@ -142,11 +142,13 @@ def frame_glossy(system, points, normals, pix, shape: tuple[int, int], material,
     metallic lobes' share of the light takes the texel's colour over the mean's. visibility :
     (n, L) each lamp's visibility at the receivers (`glossy_ltc.visibility`) or None: given, the
     area lamps' light of the lobes `glossy_ltc` covers is its closed form, shadowed by it, and
-    lamp sampling takes the rest. Pure numpy: the final render's pipeline and the viewport's
-    worker both call it. `begin_glossy` and `finish_glossy` in one: a final render runs the
+    lamp sampling takes the rest. screen : the frame's `screen_light.ScreenLight` or None (the
+    reflection rays' hits the image shows read their lamp light there). Pure numpy: the final
+    render's pipeline and the viewport's worker both call it. `begin_glossy` and `finish_glossy` in one: a final render runs the
     first on its stage thread and the second, whose filters are GPU passes there, on its own."""
     return finish_glossy(begin_glossy(system, points, normals, pix, shape, material, albedo, irradiance, view, eye,
-                                      frame, samples, reflection_rays, lookup, pool, between, tint, visibility))
+                                      frame, samples, reflection_rays, lookup, pool, between, tint, visibility,
+                                      screen))
 
 
 @dataclass
@@ -187,8 +189,10 @@ class GlossyDraft:
 def begin_glossy(system, points, normals, pix, shape: tuple[int, int], material, albedo, irradiance, view, eye,
                  frame: int, samples: int, reflection_rays: int, lookup: HitLookup | None = None,
                  pool=None, between=None, tint: np.ndarray | None = None,
-                 visibility: np.ndarray | None = None) -> GlossyDraft:
-    """`frame_glossy`'s rays and samples (arguments as its), before its filters: numpy, any thread."""
+                 visibility: np.ndarray | None = None, screen=None) -> GlossyDraft:
+    """`frame_glossy`'s rays and samples (arguments as its), before its filters: numpy, any thread.
+    screen : the frame's `screen_light.ScreenLight` or None: the reflection rays' hits that the
+    image shows take their lamp light from it, as the pixel rays' do, instead of shadow rays."""
     between = between or (lambda: None)
     points = np.asarray(points).reshape(-1, 3)
     normals = np.asarray(normals).reshape(-1, 3)
@@ -216,7 +220,7 @@ def begin_glossy(system, points, normals, pix, shape: tuple[int, int], material,
     sampled = np.flatnonzero((~(skip[lit] | closed[lit])).any(axis=1))
     between()  # (an edit that waits stops the viewport's worker before the reflection rays)
     parts = _traced_reflections(system, points[lit], normals[lit], to_eye[lit], rough, frame, pix[lit], shape,
-                                skip[lit], reflection_rays, lookup, between)
+                                skip[lit], reflection_rays, lookup, between, screen)
     metals = None
     if tint is not None and getattr(mats, "tint_bases", None):
         metals = (mats, np.asarray(material).reshape(-1), rows, np.asarray(tint, np.float32).reshape(-1, 2))
@@ -273,7 +277,8 @@ def _tint_metals(mats, material, rows, tint, direct, colour) -> None:
         colour[sel] *= factor
 
 
-def _traced_reflections(system, points, normals, to_eye, rough, frame, pix, shape, lamps, rays, lookup, between):
+def _traced_reflections(system, points, normals, to_eye, rough, frame, pix, shape, lamps, rays, lookup, between,
+                        screen=None):
     """(traced (t,), direct, indirect (t, 3), total (t,), share (t,), sky, bounced, lamp (n, 3)):
     what the lobes at the receivers reflect before Glossy Color, unfiltered (`finish_glossy`
     filters and blends it): reflection rays (`reflection.traced_reflection`) at the receivers
@@ -295,7 +300,7 @@ def _traced_reflections(system, points, normals, to_eye, rough, frame, pix, shap
             lookup = HitLookup(system.cache, bounced=system.settings.indirect_quality == MULTI_BOUNCE)
         direct, indirect, total, lamp[sel] = traced_reflection(system, lookup, points[sel], normals[sel],
                                                                to_eye[sel], rough[sel], rays, frame, lamps[sel],
-                                                               pixels=(pix[sel], shape[1]))
+                                                               pixels=(pix[sel], shape[1]), screen=screen)
         between()
     sky = np.zeros((n, 3), np.float32)
     bounced = np.zeros((n, 3), np.float32)

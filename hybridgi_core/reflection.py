@@ -192,14 +192,16 @@ def _row_patterns(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 def traced_reflection(system, lookup, points: np.ndarray, normals: np.ndarray, to_eye: np.ndarray,
                       rough: np.ndarray, rays: int, frame: int, lamps: np.ndarray | None = None,
-                      pixels: tuple[np.ndarray, int] | None = None
+                      pixels: tuple[np.ndarray, int] | None = None, screen=None
                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """(direct (n, 3), indirect (n, 3), weight sum (n,), lamp (n, 3)) float32: the mean radiance
     `rays` reflection rays per receiver bring from the world or emitters, from other surfaces and
     from the area lamps `lamps` (n, L) marks for it (`bsdf_lamps`; None: none), on the worker
     pool. A receiver whose samples all went below the horizon has weight sum 0 (its estimate is
     0: keep the cache's there). pixels : (pix (n,), width) the receivers' flat pixel indices in an
-    image `width` wide: each tile's rays stratify together (`tiled_nets`), for the image filter."""
+    image `width` wide: each tile's rays stratify together (`tiled_nets`), for the image filter.
+    screen : the frame's `screen_light.ScreenLight` or None: hits the image shows read their lamp
+    light there (`pixel_gather.hit_radiance`), others trace their own shadow rays."""
     pts = np.ascontiguousarray(points, _F32).reshape(-1, 3)
     n = pts.shape[0]
     out = np.zeros((n, 10), _F32)
@@ -217,7 +219,7 @@ def traced_reflection(system, lookup, points: np.ndarray, normals: np.ndarray, t
     tiles = (lambda a: None) if pixels is None else (lambda a: (pixels[0][a:a + per], pixels[1], seed * 7919 + frame))
     jobs = [system.updater.pool.submit(_chunk, system, lookup, pts[a:a + per], nrm[a:a + per], eye[a:a + per],
                                        rough[a:a + per], rays, frame_rng(seed, frame * 7919 + i),
-                                       None if lamps is None else lamps[a:a + per], lights, tiles(a))
+                                       None if lamps is None else lamps[a:a + per], lights, tiles(a), screen)
             for i, a in enumerate(starts)]
     for a, job in zip(starts, jobs, strict=True):
         out[a:a + per] = job.result()
@@ -252,7 +254,7 @@ def _lamp_radiance(lights, lamps: np.ndarray, origins: np.ndarray, dirs: np.ndar
     return out
 
 
-def _chunk(system, lookup, p, nrm, eye, rough, rays, rng, lamps=None, lights=(), tiles=None):
+def _chunk(system, lookup, p, nrm, eye, rough, rays, rng, lamps=None, lights=(), tiles=None, screen=None):
     """Worker: (m, 10) weighted mean direct rgb, indirect rgb, the weight sum and the marked
     area lamps' rgb of m receivers. tiles : (pix, width, key) for `tiled_nets.tiled_uv`, or None."""
     m = p.shape[0]
@@ -269,7 +271,7 @@ def _chunk(system, lookup, p, nrm, eye, rough, rays, rng, lamps=None, lights=(),
         tfar = _F32(s.ray_length) if s.ray_length > 0 else _F32(np.inf)
         hits = tracer.intersect(origins[live], flat_dirs[live], tfar, trusted=True)
         radiance[live, 0:6] = hit_radiance(system, lookup, origins[live], flat_dirs[live], hits, rng,
-                                           glossy_lamps=False)
+                                           glossy_lamps=False, screen=screen)
         if lamps is not None:
             reach = np.where(hits.prim >= 0, hits.t, np.inf)
             radiance[live, 6:9] = _lamp_radiance(lights, np.repeat(lamps, rays, axis=0)[live], origins[live],

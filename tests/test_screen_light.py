@@ -134,3 +134,24 @@ def test_pixel_rays_with_the_screens_light_match_their_own_shadow_rays(sunlit_co
     assert read.indirect.mean() == pytest.approx(own.indirect.mean(), rel=0.03)
     # The wrong buffer is read: most hits (on the wall the camera sees) double their light.
     assert wrong.indirect.mean() > 1.5 * own.indirect.mean()
+
+
+def test_reflection_rays_with_the_screens_light_match_their_own_shadow_rays(sunlit_corner):
+    """Glossy reflection rays (`reflection.traced_reflection`) read the lamp light of the hits the
+    image shows from the frame's buffer too: the floor beside the wall, seen from the camera's
+    side, reflects the sunlit wall as with the hits' own shadow rays, and a wrong buffer shows."""
+    from hybridgi_core.evaluate import HitLookup
+    from hybridgi_core.reflection import traced_reflection
+
+    gi = sunlit_corner
+    p = np.array([[0.3, y, 0.0] for y in np.linspace(-1.0, 1.0, 16)], np.float32)
+    n = np.tile(UP, (p.shape[0], 1))
+    to_eye = np.array([6.0, 0.0, 3.0], np.float32) - p
+    to_eye /= np.linalg.norm(to_eye, axis=1, keepdims=True)
+    rough = np.full(p.shape[0], 0.5)
+    lookup = HitLookup(gi.cache, bounced=True)
+    own, read, wrong = (traced_reflection(gi, lookup, p, n, to_eye, rough, 256, 0, screen=screen)[1]
+                        for screen in (None, _camera_screen(gi), _camera_screen(gi, scale=2.0)))
+    assert own.mean() > 0.1  # the sunlit wall in the floor's lobe
+    assert read.mean() == pytest.approx(own.mean(), rel=0.03)
+    assert wrong.mean() > 1.5 * own.mean()

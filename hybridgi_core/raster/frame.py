@@ -376,7 +376,7 @@ class FramePipeline:
         # stage thread while this one traces them (both on the pool), as the lamp light ran
         # beside the cache update; both read one HitLookup of the cache.
         glossy_job = self._start_glossy(system, view, proj, p_full, n_full, pix_full, frame, lookup,
-                                        direct[pix_full, :3], centre_light.visibility)
+                                        direct[pix_full, :3], centre_light.visibility, screen)
         try:
             if self.settings.pixel_rays > 0:
                 with stats.step("pixel_rays"):
@@ -651,7 +651,8 @@ class FramePipeline:
         return HitLookup(system.cache, bounced=system.settings.indirect_quality == MULTI_BOUNCE)
 
     def _start_glossy(self, system, view, proj, points, normals, pix, frame, lookup: HitLookup | None,
-                      irradiance: np.ndarray, visibility: np.ndarray | None = None) -> futures.Future | None:
+                      irradiance: np.ndarray, visibility: np.ndarray | None = None,
+                      screen: ScreenLight | None = None) -> futures.Future | None:
         """Submit to the stage thread the glossy light of the centre raster's pixels before its
         filters (`glossy_image.begin_glossy`: the lamps', sky's and emitters' reflection by the
         glossy lobes and the light of other surfaces they reflect; `_finish_glossy` filters it on
@@ -661,7 +662,8 @@ class FramePipeline:
         irradiance : (n, 3) the pixels' diffuse lamp irradiance: the lamps' glossy light is
         sampled `glossy_samples` times only where it is noisy against the pixels' lamp light
         (`glossy_noise`). visibility : (n, lamps) the lamps' visibility (`CentreLight.visibility`)
-        or None. `_finish_glossy` waits for it and uploads the result."""
+        or None. screen : the frame's ScreenLight (the reflection rays' hits the image shows read
+        their lamp light there). `_finish_glossy` waits for it and uploads the result."""
         if not glossy_image.has_glossy(system):
             return None
         material = self.gbuffer.read("material").reshape(-1)[pix]
@@ -677,7 +679,7 @@ class FramePipeline:
             draft = glossy_image.begin_glossy(system, points, normals, pix, shape, material, albedo[:, :3],
                                               irradiance, view, eye, frame, self.glossy_samples,
                                               self.settings.reflection_rays, lookup, pool=system.updater.pool,
-                                              tint=tint, visibility=visibility)
+                                              tint=tint, visibility=visibility, screen=screen)
             return draft, (time.perf_counter() - t0) * 1e3
 
         return self._stage_thread().submit(job)
