@@ -68,8 +68,8 @@ def form_factor(v: list[np.ndarray], nc: list[np.ndarray] | None = None) -> np.n
 def vector_form_factor(v: list[np.ndarray]) -> np.ndarray:
     """(n, 3) float64: the vector form factor of a convex polygon (three (n, k) vertex planes)
     clipped to the horizon z >= 0 (`ltc`'s cosine space): its z is the polygon's integral of
-    max(0, w_z) (`form_factor` of normal +z), its direction the cosine-weighted mean direction of
-    the polygon's visible part (the way the light arrives, for the Fresnel of the glossy lobes)."""
+    max(0, w_z) (`form_factor` of normal +z), its direction the mean direction (by solid angle)
+    of the polygon's visible part (the way the light arrives, for the Fresnel of the glossy lobes)."""
     return _by_rows(v, v[2], lambda planes, rows, valid: _lambert_vector(planes, valid), (3,))
 
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from hybridgi_core.lights import direct_irradiance
-from hybridgi_core.polygon_light import cosine_solid_angle, lamp_polygon
+from hybridgi_core.polygon_light import cosine_solid_angle, lamp_polygon, vector_form_factor
 from tests.test_lights import TriangleTracer, area_light, quad, rot_x, translation
 
 
@@ -49,6 +49,38 @@ def test_lamp_straddling_the_horizon_is_clipped():
     assert want > 0 and abs(got - want) < 5e-3 * want
     below = lamp_polygon(np.array([0.0, 1.0, -1.0]), np.array([0.5, 0, 0]), np.array([0, 0, 0.4]), False)
     assert cosine_solid_angle(below, np.zeros((1, 3)), normal[None])[0] == 0.0
+
+
+def test_a_batch_of_whole_cut_and_hidden_receivers_matches_monte_carlo():
+    """One call over receivers that see a tilted lamp whole, cut by their horizon (a corner or
+    an edge below it) and not at all: each row as Monte Carlo integrates it alone; and the
+    vector form factor's z is the same integral for the normal +z, its direction the mean
+    direction (by solid angle) of the lamp's part above the horizon."""
+    poly = lamp_polygon(np.array([0.2, 0.1, 1.0]), np.array([0.6, 0.0, 0.2]), np.array([0.0, 0.5, 0.0]), False)
+    points = np.array([[0.0, 0.0, 0.0], [0.0, 0.0, 1.05], [1.6, 0.0, 1.0], [0.0, 0.0, 2.0], [0.3, -0.2, 0.9]])
+    normals = np.tile([0.0, 0.0, 1.0], (points.shape[0], 1))
+    normals[4] = np.array([0.3, 0.0, 1.0]) / np.linalg.norm([0.3, 0.0, 1.0])
+    got = cosine_solid_angle(poly, points, normals)
+    for i in range(points.shape[0]):
+        want = _mc_cosine_solid_angle(poly, points[i], normals[i])
+        assert abs(got[i] - want) < 5e-3 * max(want, 1e-3), (i, got[i], want)
+    assert got[3] == 0.0 and 0.0 < got[1] < 0.5 * got[0] and 0.0 < got[2] < got[0]
+    rel = [poly[None, :, c] - points[:, c, None] for c in range(3)]
+    vector = vector_form_factor(rel)
+    np.testing.assert_allclose(vector[:4, 2], got[:4], rtol=1e-12, atol=1e-15)
+    # Direction: the mean direction of the lamp's points above the horizon, by solid angle.
+    rng = np.random.default_rng(7)
+    u, v = rng.random((2, 200_000))
+    corner = poly[0]
+    x = corner + u[:, None] * (poly[1] - corner) + v[:, None] * (poly[3] - corner)
+    for i in (0, 1, 2):
+        w = x - points[i]
+        d2 = (w * w).sum(1)
+        w /= np.sqrt(d2)[:, None]
+        lamp_n = np.cross(poly[1] - poly[0], poly[3] - poly[0])
+        g = (w[:, 2] > 0) * np.abs(w @ lamp_n) / np.linalg.norm(lamp_n) / d2
+        mean = (w * g[:, None]).mean(0)
+        np.testing.assert_allclose(vector[i] / np.linalg.norm(vector[i]), mean / np.linalg.norm(mean), atol=3e-3)
 
 
 def test_ellipse_polygon_keeps_the_area_and_the_cosine_integral():
