@@ -46,6 +46,7 @@ class _System:
     def __init__(self, lights, mats):
         self.scene = SimpleNamespace(lights=lights)
         self.glossy_materials = mats
+        self.settings = SimpleNamespace(seed=0)
         self.calls = []
 
     def glossy(self, points, normals, to_eye, rows, frame, samples=None, lights=None, variance=None):
@@ -133,6 +134,35 @@ def test_a_weak_lamp_takes_one_unbiased_sample_and_is_never_resampled():
         total += light
         assert system.calls == [(pix.size, 1)]  # one sample at every receiver, no other pass
     expected = glossy.glossy_direct([faint], points, normals, to_eye, rows, mats, None, frame_rng(3, 0), 4096) @ LUMA
+    got = (total / frames) @ LUMA
+    assert expected.sum() > 0
+    assert abs(got.sum() / expected.sum() - 1.0) < 0.03
+
+
+def test_several_weak_lamps_take_one_sample_of_one_of_them():
+    """Two dim round lamps beside the area lamp: each receiver samples one of them once (drawn by
+    its rough light, weighted by 1 / its chance), in one call per drawn lamp that together cover
+    every receiver once; the mean over frames is both lamps' light."""
+    points, normals, to_eye, rows, mats = _floor()
+    faint = []
+    for x, power in ((1.0, 0.5), (-1.0, 0.3)):
+        matrix = np.eye(4)
+        matrix[:3, 3] = (x, 1.0, 1.5)
+        faint.append(Light(kind="POINT", color=np.ones(3, np.float32), power=power, matrix=matrix, radius=0.3))
+    system = _System([_lamp(), *faint], mats)
+    pix = np.arange(SIDE * SIDE)
+    skip = np.zeros((pix.size, 3), bool)
+    skip[:, 0] = True
+    level = np.zeros(pix.size, np.float32)
+    frames = 600
+    total = np.zeros((pix.size, 3))
+    for f in range(frames):
+        system.calls.clear()
+        light, _ = adaptive_lamp_glossy(system, points, normals, to_eye, rows, pix, (SIDE, SIDE), f, 32, skip, level)
+        total += light
+        assert len(system.calls) == 2 and sum(c[0] for c in system.calls) == pix.size
+        assert all(c[1] == 1 for c in system.calls)
+    expected = glossy.glossy_direct(faint, points, normals, to_eye, rows, mats, None, frame_rng(3, 0), 4096) @ LUMA
     got = (total / frames) @ LUMA
     assert expected.sum() > 0
     assert abs(got.sum() / expected.sum() - 1.0) < 0.03
