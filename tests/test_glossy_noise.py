@@ -112,57 +112,51 @@ def test_noisy_highlights_take_the_samples_and_the_estimate_stays_unbiased():
     assert err_adaptive < 0.6 * err_first, (err_adaptive, err_first)
 
 
-def test_a_weak_lamp_takes_one_unbiased_sample_and_is_never_resampled():
-    """A dim round lamp beside the area lamp (under `penumbra.WEAK_SHARE` of their light at every
-    receiver) takes one sample per receiver, in a call of its own, never in the noisy pixels'
-    second pass; the mean over frames is its light all the same (the area lamp skipped, as the
-    reflection rays' or the closed form's lamps are, so that its own noise stays out)."""
-    points, normals, to_eye, rows, mats = _floor()
+def _faint(x: float, power: float) -> Light:
     matrix = np.eye(4)
-    matrix[:3, 3] = (1.0, 1.0, 1.5)
-    faint = Light(kind="POINT", color=np.ones(3, np.float32), power=0.5, matrix=matrix, radius=0.3)
-    system = _System([_lamp(), faint], mats)
+    matrix[:3, 3] = (x, 1.0, 1.5)
+    return Light(kind="POINT", color=np.ones(3, np.float32), power=power, matrix=matrix, radius=0.3)
+
+
+def _weak_lamps_over_frames(faint: list, frames: int, check_calls) -> None:
+    """The mean over frames of `adaptive_lamp_glossy` at the floor beside the area lamp (skipped,
+    as the reflection rays' or the closed form's lamps are, so that its own noise stays out)
+    with the dim lamps `faint`, each frame's calls to `glossy` checked by check_calls: within 3%
+    of the dim lamps' light."""
+    points, normals, to_eye, rows, mats = _floor()
+    system = _System([_lamp(), *faint], mats)
     pix = np.arange(SIDE * SIDE)
-    skip = np.zeros((pix.size, 2), bool)
+    skip = np.zeros((pix.size, 1 + len(faint)), bool)
     skip[:, 0] = True
     level = np.zeros(pix.size, np.float32)
-    frames = 400
     total = np.zeros((pix.size, 3))
     for f in range(frames):
         system.calls.clear()
         light, _ = adaptive_lamp_glossy(system, points, normals, to_eye, rows, pix, (SIDE, SIDE), f, 32, skip, level)
         total += light
-        assert system.calls == [(pix.size, 1)]  # one sample at every receiver, no other pass
-    expected = glossy.glossy_direct([faint], points, normals, to_eye, rows, mats, None, frame_rng(3, 0), 4096) @ LUMA
+        check_calls(system.calls, pix.size)
+    expected = glossy.glossy_direct(faint, points, normals, to_eye, rows, mats, None, frame_rng(3, 0), 4096) @ LUMA
     got = (total / frames) @ LUMA
     assert expected.sum() > 0
     assert abs(got.sum() / expected.sum() - 1.0) < 0.03
+
+
+def test_a_weak_lamp_takes_one_unbiased_sample_and_is_never_resampled():
+    """A dim round lamp beside the area lamp (under `penumbra.WEAK_SHARE` of their light at every
+    receiver) takes one sample per receiver, in a call of its own, never in the noisy pixels'
+    second pass; the mean over frames is its light all the same."""
+    def one_call(calls, n):
+        assert calls == [(n, 1)]  # one sample at every receiver, no other pass
+
+    _weak_lamps_over_frames([_faint(1.0, 0.5)], 400, one_call)
 
 
 def test_several_weak_lamps_take_one_sample_of_one_of_them():
     """Two dim round lamps beside the area lamp: each receiver samples one of them once (drawn by
     its rough light, weighted by 1 / its chance), in one call per drawn lamp that together cover
     every receiver once; the mean over frames is both lamps' light."""
-    points, normals, to_eye, rows, mats = _floor()
-    faint = []
-    for x, power in ((1.0, 0.5), (-1.0, 0.3)):
-        matrix = np.eye(4)
-        matrix[:3, 3] = (x, 1.0, 1.5)
-        faint.append(Light(kind="POINT", color=np.ones(3, np.float32), power=power, matrix=matrix, radius=0.3))
-    system = _System([_lamp(), *faint], mats)
-    pix = np.arange(SIDE * SIDE)
-    skip = np.zeros((pix.size, 3), bool)
-    skip[:, 0] = True
-    level = np.zeros(pix.size, np.float32)
-    frames = 600
-    total = np.zeros((pix.size, 3))
-    for f in range(frames):
-        system.calls.clear()
-        light, _ = adaptive_lamp_glossy(system, points, normals, to_eye, rows, pix, (SIDE, SIDE), f, 32, skip, level)
-        total += light
-        assert len(system.calls) == 2 and sum(c[0] for c in system.calls) == pix.size
-        assert all(c[1] == 1 for c in system.calls)
-    expected = glossy.glossy_direct(faint, points, normals, to_eye, rows, mats, None, frame_rng(3, 0), 4096) @ LUMA
-    got = (total / frames) @ LUMA
-    assert expected.sum() > 0
-    assert abs(got.sum() / expected.sum() - 1.0) < 0.03
+    def one_per_lamp(calls, n):
+        assert len(calls) == 2 and sum(c[0] for c in calls) == n
+        assert all(c[1] == 1 for c in calls)
+
+    _weak_lamps_over_frames([_faint(1.0, 0.5), _faint(-1.0, 0.3)], 600, one_per_lamp)
