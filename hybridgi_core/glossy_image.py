@@ -144,8 +144,9 @@ def frame_glossy(system, points, normals, pix, shape: tuple[int, int], material,
     area lamps' light of the lobes `glossy_ltc` covers is its closed form, shadowed by it, and
     lamp sampling takes the rest. screen : the frame's `screen_light.ScreenLight` or None (the
     reflection rays' hits the image shows read their lamp light there). Pure numpy: the final
-    render's pipeline and the viewport's worker both call it. `begin_glossy` and `finish_glossy` in one: a final render runs the
-    first on its stage thread and the second, whose filters are GPU passes there, on its own."""
+    render's pipeline and the viewport's worker both call it. `begin_glossy` and `finish_glossy`
+    in one: a final render runs the first on its stage thread and the second, whose filters are
+    GPU passes there, on its own."""
     return finish_glossy(begin_glossy(system, points, normals, pix, shape, material, albedo, irradiance, view, eye,
                                       frame, samples, reflection_rays, lookup, pool, between, tint, visibility,
                                       screen))
