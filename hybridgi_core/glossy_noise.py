@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .lights import rough_lights
+from .lights import draw_lamps, rough_lights
 from .penumbra import dilate, weak_lamps
 from .pixel_gather import LUMA
 from .reflection import lamp_glossy_without
@@ -92,21 +92,20 @@ def _weak_lamps_light(system, points, normals, to_eye, rows, frame: int, weak: n
     for ~0.2% of the light; one draw: ~50 ms)."""
     n, lamps = weak.shape
     out = np.zeros((n, 3), np.float32)
-    r = np.where(weak, np.nan_to_num(np.asarray(rough, np.float64), nan=0.0, posinf=0.0, neginf=0.0), 0.0)
+    r = np.where(weak, np.nan_to_num(np.asarray(rough, np.float32), nan=0.0, posinf=0.0, neginf=0.0), 0.0)
     np.maximum(r, 0.0, out=r)
     total = r.sum(axis=1)
     live = np.flatnonzero(total > 0)  # weak lamps with no rough light at all give no glossy light either
     if live.size == 0:
         return out
-    r, total = r[live], total[live]
-    cdf = np.cumsum(r, axis=1)
-    u = frame_rng(system.settings.seed + WEAK_PICK_SEED, frame).random(live.size) * total
-    pick = np.minimum((cdf <= u[:, None]).sum(axis=1), lamps - 1)
-    empty = r[np.arange(live.size), pick] <= 0  # rounding at the top of the cdf
-    pick[empty] = np.argmax(r[empty], axis=1)
-    chance = r[np.arange(live.size), pick] / total
+    p = (r[live] / total[live, None]).astype(np.float32)
+    pick = draw_lamps(p, 1, frame_rng(system.settings.seed + WEAK_PICK_SEED, frame))[:, 0]
+    at = np.arange(live.size)
+    empty = p[at, pick] <= 0  # (a lamp that is not weak there: u at 0 or past the cdf's rounding)
+    pick[empty] = np.argmax(p[empty], axis=1)
+    chance = p[at, pick]
     skip = np.ones((live.size, lamps), bool)
-    skip[np.arange(live.size), pick] = False
+    skip[at, pick] = False
     light = lamp_glossy_without(system, points[live], normals[live], to_eye[live], rows[live], frame, 1, skip)
-    out[live] = light / chance.astype(np.float32)[:, None]
+    out[live] = light / chance[:, None]
     return out

@@ -1036,16 +1036,24 @@ def _pick_lamps(lights: list[Light], pts: np.ndarray, nrm: np.ndarray, budget: i
     n, count = pts.shape[0], len(lights)
     p = _with_floor(rough_lights(lights, pts, nrm))
     p /= p.sum(axis=1, keepdims=True)
-    cdf = np.cumsum(p, axis=1)
-    u = (rng.random((n, 1), dtype=_F32) + np.arange(budget, dtype=_F32)[None, :]) / _F32(budget)
-    # Draw k takes the first lamp whose cdf reaches u_k.
-    chosen = np.minimum(np.count_nonzero(cdf[:, None, :] < u[:, :, None], axis=2), count - 1)
+    chosen = draw_lamps(p, budget, rng)
     draws = np.zeros((n, count), _F32)
     rows = np.arange(n)
     for k in range(budget):  # each row once per draw: plain fancy += is exact
         draws[rows, chosen[:, k]] += _F32(1.0)
     draws /= _F32(budget) * p
     return draws
+
+
+def draw_lamps(p: np.ndarray, budget: int, rng: np.random.Generator) -> np.ndarray:
+    """(n, budget) lamp indices: `budget` systematic draws per row from the probabilities p (n, L)
+    float32 (rows summing to 1): one uniform per row, shifted by 1 / budget per draw; draw k takes
+    the first lamp whose cdf reaches u_k (a lamp whose p is 0 only where rounding leaves u past
+    the cdf's end or u is 0: callers that allow zeros check)."""
+    n, count = p.shape
+    cdf = np.cumsum(p, axis=1)
+    u = (rng.random((n, 1), dtype=_F32) + np.arange(budget, dtype=_F32)[None, :]) / _F32(budget)
+    return np.minimum(np.count_nonzero(cdf[:, None, :] < u[:, :, None], axis=2), count - 1)
 
 
 def _roulette_lamps(lights: list[Light], pts: np.ndarray, nrm: np.ndarray, budget: int,

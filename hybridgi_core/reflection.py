@@ -31,6 +31,7 @@ import numpy as np
 
 from .lights import _area_shape, _onb, spread_attenuation, stratified_uv
 from .pixel_gather import filter_at_pixels, hit_radiance
+from .rows import row_patterns
 from .sampling import frame_rng
 from .specular import _lambda
 from .tiled_nets import tiled_uv
@@ -155,7 +156,7 @@ def lamp_glossy_without(system, points, normals, to_eye, rows, frame: int, sampl
     # One call per set of skipped lamps, with the lamps it leaves: the closed form (`glossy_ltc`)
     # skips an area lamp at most receivers, and a call per lamp cost morse_apartment's four round
     # lamps four passes over the same receivers.
-    patterns, inverse = _row_patterns(skip)
+    patterns, inverse = row_patterns(skip)
     for k, pattern in enumerate(patterns):
         if pattern.all():
             continue
@@ -168,26 +169,6 @@ def lamp_glossy_without(system, points, normals, to_eye, rows, frame: int, sampl
         if var is not None:
             variance[sel] = var
     return out
-
-
-def _row_patterns(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(patterns (k, L) bool, inverse (n,)): `np.unique(mask, axis=0, return_inverse=True)` of an
-    (n, L) bool mask, in its order. Up to 20 columns each row is one integer and the patterns a
-    table lookup: unique over rows sorts them through a structured view, 91 ms of bunny_npm's 640x360
-    glossy light for its one lamp (this: ~2 ms)."""
-    mask = np.asarray(mask, bool)
-    columns = mask.shape[1]
-    if columns > 20:
-        patterns, inverse = np.unique(mask, axis=0, return_inverse=True)
-        return patterns, inverse.reshape(-1)
-    keys = np.zeros(mask.shape[0], np.int64)
-    for j in range(columns):  # the first column the highest bit: the patterns' order is np.unique's
-        keys |= mask[:, j].astype(np.int64) << (columns - 1 - j)
-    present = np.flatnonzero(np.bincount(keys, minlength=1 << columns))
-    index = np.zeros(1 << columns, np.int64)
-    index[present] = np.arange(present.size)
-    bits = np.left_shift(1, np.arange(columns - 1, -1, -1, dtype=np.int64))
-    return (present[:, None] & bits) != 0, index[keys]
 
 
 def traced_reflection(system, lookup, points: np.ndarray, normals: np.ndarray, to_eye: np.ndarray,

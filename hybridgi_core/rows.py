@@ -77,3 +77,24 @@ def equal_rows(*columns: np.ndarray) -> np.ndarray:
 def float_bits(values: np.ndarray) -> np.ndarray:
     """float32 values as uint32 keys for `equal_rows`: equal keys for equal values (-0.0 as 0.0)."""
     return (np.asarray(values, np.float32) + np.float32(0.0)).view(np.uint32)
+
+
+def row_patterns(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(patterns (k, L) bool, inverse (n,)): `np.unique(mask, axis=0, return_inverse=True)` of an
+    (n, L) bool mask, in its order. Up to 20 columns each row is one integer and the patterns a
+    table lookup (`equal_rows`' lexsort would number them alike, for a sort's cost): unique over
+    rows sorts them through a structured view, 91 ms of bunny_npm's 640x360 glossy light for its
+    one lamp (this: ~2 ms; `reflection.lamp_glossy_without`)."""
+    mask = np.asarray(mask, bool)
+    columns = mask.shape[1]
+    if columns > 20:
+        patterns, inverse = np.unique(mask, axis=0, return_inverse=True)
+        return patterns, inverse.reshape(-1)
+    keys = np.zeros(mask.shape[0], np.int64)
+    for j in range(columns):  # the first column the highest bit: the patterns' order is np.unique's
+        keys |= mask[:, j].astype(np.int64) << (columns - 1 - j)
+    present = np.flatnonzero(np.bincount(keys, minlength=1 << columns))
+    index = np.zeros(1 << columns, np.int64)
+    index[present] = np.arange(present.size)
+    bits = np.left_shift(1, np.arange(columns - 1, -1, -1, dtype=np.int64))
+    return (present[:, None] & bits) != 0, index[keys]

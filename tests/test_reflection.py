@@ -302,20 +302,3 @@ def test_sky_samples_find_a_compact_bright_region_without_bias(monkeypatch):
     print(f"noise with sky samples / without: median {np.median(ratio):.2f}")
     assert np.median(ratio) < 0.6  # measured 0.54
 
-
-def test_row_patterns_are_numpy_unique_over_rows():
-    """The skip patterns' grouping (`reflection._row_patterns`) is np.unique(axis=0)'s: the same
-    patterns in the same order and the same inverse, for one lamp, several, and more than the
-    integer keys hold (its fallback), and for no receivers."""
-    from hybridgi_core.reflection import _row_patterns
-
-    rng = np.random.default_rng(3)
-    for rows, columns in ((500, 1), (2000, 5), (300, 20), (300, 24), (0, 3)):
-        mask = rng.random((rows, columns)) < 0.3
-        if rows:
-            mask[: rows // 2, :] = mask[0]  # repeated rows
-        patterns, inverse = _row_patterns(mask)
-        want, want_inverse = np.unique(mask, axis=0, return_inverse=True)
-        assert patterns.dtype == bool and patterns.shape == want.shape
-        assert (patterns == want).all() and (inverse == want_inverse.reshape(-1)).all()
-        assert (patterns[inverse] == mask).all()

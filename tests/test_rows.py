@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from hybridgi_core.rows import equal_rows, float_bits
+from hybridgi_core.rows import equal_rows, float_bits, row_patterns
 
 
 def test_equal_rows_groups_as_numpy_unique_over_rows():
@@ -28,3 +28,20 @@ def test_equal_rows_groups_as_numpy_unique_over_rows():
     assert len(set(zip(group.tolist(), want.tolist(), strict=True))) == groups
     order = np.lexsort((bits[:, 1], bits[:, 0], vertex))
     assert (np.diff(group[order]) >= 0).all()
+
+
+def test_row_patterns_are_numpy_unique_over_rows():
+    """The skip patterns' grouping (`row_patterns`, as `reflection.lamp_glossy_without` groups
+    receivers by their skipped lamps) is np.unique(axis=0)'s: the same patterns in the same
+    order and the same inverse, for one lamp, several, and more than the integer keys hold (its
+    fallback), and for no receivers."""
+    rng = np.random.default_rng(3)
+    for rows, columns in ((500, 1), (2000, 5), (300, 20), (300, 24), (0, 3)):
+        mask = rng.random((rows, columns)) < 0.3
+        if rows:
+            mask[: rows // 2, :] = mask[0]  # repeated rows
+        patterns, inverse = row_patterns(mask)
+        want, want_inverse = np.unique(mask, axis=0, return_inverse=True)
+        assert patterns.dtype == bool and patterns.shape == want.shape
+        assert (patterns == want).all() and (inverse == want_inverse.reshape(-1)).all()
+        assert (patterns[inverse] == mask).all()
