@@ -38,10 +38,10 @@ void main()
    * worker traced at what that subframe's ray meets (the edge light: `edge_index_tx` holds the
    * pixel's row in the lists or -1; `edge_light_tx`, `edge_point_tx`, `edge_normal_tx` each
    * row's subframes) when this raster saw the same: the point lies on the traced point's tangent
-   * plane and near it, as final renders' `subpixel.same_surface` decides (SAME_PLANE and
-   * SAME_REACH x view depth), and the normals agree within 2.6 degrees: the ray met the very
-   * point the raster drew, whose interpolated normal is the same, unless a normal map bent the
-   * raster's (the worker's light is at the unbent normal; the resolve of the full-res light,
+   * plane and near it, as final renders' `subpixel.same_surface` decides (its SAME_PLANE and
+   * SAME_REACH x view depth, defined from it), and the normals agree within 2.6 degrees: the ray
+   * met the very point the raster drew, whose interpolated normal is the same, unless a normal
+   * map bent the raster's (the worker's light is at the unbent normal; the resolve of the full-res light,
    * traced at the bent normals, serves there). */
   if (flags.y >= 0 && sharp) {
     float row = texelFetch(edge_index_tx, px, 0).r;
@@ -53,7 +53,7 @@ void main()
       vec3 Ne = texelFetch(edge_normal_tx, t, 0).xyz;
       float d = max(view_depth(src_view_z, P.xyz), 1e-6);
       vec3 delta = P.xyz - Pe;
-      if (E.a > 0.5 && dot(N, Ne) > 0.999 && abs(dot(Ne, delta)) < 0.005 * d && length(delta) < 0.05 * d) {
+      if (E.a > 0.5 && dot(N, Ne) > 0.999 && abs(dot(Ne, delta)) < SAME_PLANE * d && length(delta) < SAME_REACH * d) {
         out_direct = vec4(E.rgb, 1.0);
         return;
       }

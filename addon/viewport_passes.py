@@ -14,6 +14,7 @@ from hybridgi_core.raster import gather as _gather
 from hybridgi_core.raster import glsl as _glsl
 from hybridgi_core.raster import passes as _passes
 from hybridgi_core.raster import readback as _readback
+from hybridgi_core.raster import subpixel as _subpixel
 
 from . import worker
 
@@ -74,7 +75,8 @@ class DirectResolvePass(_passes.RasterPass):
     def _build_shaders(self) -> dict:
         spec = _passes.fullscreen_spec(
             "hybridgi_direct_resolve",
-            f"#define EDGE_LIST_WIDTH {EDGE_LIST_WIDTH}\n" + _glsl.load_glsl("common_lib.glsl")
+            f"#define EDGE_LIST_WIDTH {EDGE_LIST_WIDTH}\n#define SAME_PLANE {_subpixel.SAME_PLANE!r}\n"
+            f"#define SAME_REACH {_subpixel.SAME_REACH!r}\n" + _glsl.load_glsl("common_lib.glsl")
             + load_addon_glsl("direct_resolve_frag.glsl"),
             samplers=((0, "FLOAT_2D", "position_tx"), (1, "FLOAT_2D", "normal_tx"),
                       (2, "FLOAT_2D", "src_position_tx"), (3, "FLOAT_2D", "src_normal_tx"),
