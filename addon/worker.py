@@ -25,11 +25,13 @@ from types import MappingProxyType
 import numpy as np
 
 from hybridgi_core import errors
+from hybridgi_core import gi_carry as _gi_carry
 from hybridgi_core import glossy_image as _glossy
 from hybridgi_core import glossy_ltc as _glossy_ltc
 from hybridgi_core import glossy_noise as _glossy_noise
 from hybridgi_core import lights as _lights
 from hybridgi_core import penumbra as _penumbra
+from hybridgi_core import pixel_gather as _pixel_gather
 from hybridgi_core import translucent as _translucent
 from hybridgi_core import visible as _visible
 from hybridgi_core.raster import gather as _gather_layout
@@ -326,7 +328,10 @@ class ViewportWorker:
             self._solve_step(schedule, state)
             finished = schedule.solved_once and not was_solved or not schedule.has_work
             if finished and not moving:
-                # The converged cache goes out now, not after the refinement below.
+                # The converged cache goes out now, not after the refinement below; after a lamp
+                # edit with the view's pixel passes carried over (`_carry`).
+                if self._carry_due(state):
+                    self._carry(system, state)
                 self._publish(force=True)
                 finished = False
         if state is not None and state.request.debug_cells:
@@ -335,6 +340,8 @@ class ViewportWorker:
             # Refinements of a view that held still for a whole step.
             if state.mask is None:
                 self._trace_mask(system, state)
+            elif self._carry_due(state):
+                self._carry(system, state)
             elif self._glossy_due(state) and schedule.solved_once:
                 self._glossy_pass(system, state, self.options.direct_samples)
             elif self._fine_glossy_due(state):
@@ -572,7 +579,10 @@ class ViewportWorker:
         full-res pass and a pixel pass), so the image waits for neither behind the other."""
         if state.passes >= self.options.direct_passes or not self._schedule.solved_once:
             return False
-        return state.passes < state.pixel_passes or not self._pixels_due(state)
+        # A lamp edit's carried passes (`_carry`) stand for a pixel pass: its GI is the image's
+        # (the lamp light's sharpness its larger error then).
+        pixel_passes = max(state.pixel_passes, int(state.carried is not None))
+        return state.passes < pixel_passes or not self._pixels_due(state)
 
     def _glossy_due(self, state: ViewState) -> bool:
         """A glossy pass of a still view is due: fewer than `glossy_passes`, alternating with the
@@ -786,8 +796,30 @@ class ViewportWorker:
             self._count_rays(full.gi.rays - rays)  # the detail pixels' rays
         else:
             indirect, direct = _pixels.images(gi, r.position, pix, points, normals, r.view, raster)
-        state.add_pixels(indirect, direct, key)
+        state.add_pixels(indirect, direct, key, gi.channels()[1])
+        _carry_map(state, indirect.shape[:2])  # a lamp edit's carry needs it: made now, while the view is still
         self._steps["pixel_filter"] = (time.perf_counter() - t1) * 1e3
+
+    def _carry_due(self, state: ViewState) -> bool:
+        """A lamp edit's carried pixel GI is due: the view had pixel passes before it, none since,
+        and the cache has solved over the re-lit hits."""
+        return (state.carry is not None and state.carried is None and state.pixel_sum is None
+                and state.visible is not None and self._schedule.solved_once)
+
+    def _carry(self, system, state: ViewState) -> None:
+        """The view's pixel passes from before a lamp edit, scaled to the re-lit cache
+        (`gi_carry`), shown until the first pixel pass over it: the re-lit image without waiting
+        ~0.6 s for its rays."""
+        t0 = time.perf_counter()
+        points, normals, pix = state.gi_points
+        indirect, direct, cache_old = state.carry
+        cache_new = _pixel_gather.trace_pixels(system, points, normals, 0, 0, state.visible).channels()[1]
+        nearest, full_pix = _carry_map(state, indirect.shape[:2])
+        ratio, extra = _gi_carry.smoothed_change(cache_old, cache_new, pix, normals, state.request.position.shape[:2])
+        carried = _gi_carry.carried(indirect, direct, ratio, extra, nearest, full_pix)
+        state.carried = (frozen(carried[0]), frozen(carried[1]))
+        state.dirty = True
+        self._steps["carry"] = (time.perf_counter() - t0) * 1e3
 
     def _tracing(self) -> bool:
         """A pixel pass of the view is tracing on its own thread (worker thread only)."""
@@ -952,6 +984,21 @@ class _Superseded(Exception):
 
 
 # --- snapshot helpers (pure numpy) ----------------------------------------------------------------
+
+
+def _carry_map(state: ViewState, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """(nearest GI point, flat pixel) of each geometry pixel of the view's pixel-pass textures of
+    `shape` (`gi_carry.nearest_lo_point`), made once per view (the geometry is the view's)."""
+    if state.carry_map is None:
+        points, _normals, pix = state.gi_points
+        h, w = state.request.position.shape[:2]
+        if shape == (h, w):
+            state.carry_map = (np.arange(pix.shape[0]), pix)
+        else:
+            full_points, _n, full_pix = state.fine_level().points
+            state.carry_map = (_gi_carry.nearest_lo_point(full_points, full_pix, shape[1], points, pix, (h, w)),
+                               full_pix)
+    return state.carry_map
 
 
 def _shares(system, request, coarse: bool, pix: np.ndarray) -> np.ndarray | None:

@@ -119,6 +119,14 @@ class ViewState:
         self.pixel_key = None
         self.pixel_pass = None  # `worker_pixels.PixelPass` in progress
         self.pixel_next: list | None = None  # [sum, passes, key] over a refined cache (`refines`)
+        #: The sum of the passes' cache values at the GI points ((n, 7), `PixelGI.channels`),
+        #: beside `pixel_sum` (and in `pixel_next`'s fourth item): what a lamp edit's carry scales.
+        self.pixel_cache: np.ndarray | None = None
+        #: A lamp edit's carried pixel GI (`gi_carry`): (indirect, direct, cache) of the passes
+        #: before it, and the carried (indirect, direct) once the re-lit cache is solved.
+        self.carry: tuple | None = None
+        self.carried: tuple | None = None
+        self.carry_map: tuple | None = None  # (nearest GI point, flat pixel) of each textured pixel
         self.cell_colors: np.ndarray | None = None  # Cache Cells view, when the request asks
         self.cells_key = None
         self.cells_at = 0.0
@@ -172,6 +180,11 @@ class ViewState:
             self.glossy.reset_lamps()  # the cache's part stays until the cache re-solves
         self.fine_glossy, self.fine_glossy_key = None, None
         self.edges = None
+        if self.pixel_sum is not None and self.pixel_cache is not None:
+            n = self.pixel_passes
+            self.carry = (self.pixel_sum[0] / n, self.pixel_sum[1] / n, self.pixel_cache / n)
+        # else: an edit before the last one's pixel pass carries the same passes again
+        self.carried = None
         self.reset_pixels()
         self.dirty = True
 
@@ -184,7 +197,7 @@ class ViewState:
     def reset_pixels(self) -> None:
         self.drop_pixel_pass()  # its rays were traced over what is reset
         self.pixel_sum, self.pixel_passes, self.pixel_key = None, 0, None
-        self.pixel_next = None
+        self.pixel_next, self.pixel_cache = None, None
 
     def refines(self, key) -> bool:
         """Whether passes over `key` refine the shown ones: the same cache and lighting epoch,
@@ -200,25 +213,30 @@ class ViewState:
             return self.pixel_next[1] if self.pixel_next is not None and self.pixel_next[2] == key else 0
         return self.pixel_passes
 
-    def add_pixels(self, indirect: np.ndarray, direct: np.ndarray, key) -> None:
-        """One pixel-ray pass over the cache `key`; a pass over another cache starts over, one
-        over a refined cache is summed apart until it replaces the shown ones (`refines`)."""
+    def add_pixels(self, indirect: np.ndarray, direct: np.ndarray, key, cache: np.ndarray) -> None:
+        """One pixel-ray pass over the cache `key` (cache: its (n, 7) values at the GI points);
+        a pass over another cache starts over, one over a refined cache is summed apart until it
+        replaces the shown ones (`refines`)."""
         if self.refines(key):
-            nxt = self.pixel_next if self.pixel_next is not None and self.pixel_next[2] == key else [None, 0, key]
+            nxt = self.pixel_next if self.pixel_next is not None and self.pixel_next[2] == key else [None, 0, key, None]
             nxt[0] = [indirect.copy(), direct.copy()] if nxt[0] is None else [nxt[0][0] + indirect, nxt[0][1] + direct]
+            nxt[3] = cache.copy() if nxt[3] is None else nxt[3] + cache
             nxt[1] += 1
             self.pixel_next = nxt
             if nxt[1] >= self.pixel_passes:
-                self.pixel_sum, self.pixel_passes, self.pixel_key, self.pixel_next = nxt[0], nxt[1], key, None
+                self.pixel_sum, self.pixel_passes, self.pixel_key, self.pixel_cache = nxt[0], nxt[1], key, nxt[3]
+                self.pixel_next = None
                 self.dirty = True
             return
         if key != self.pixel_key:
             self.reset_pixels()
         if self.pixel_sum is None:
             self.pixel_sum = [indirect.copy(), direct.copy()]
+            self.pixel_cache = cache.copy()
         else:
             self.pixel_sum[0] += indirect
             self.pixel_sum[1] += direct
+            self.pixel_cache += cache
         self.pixel_passes += 1
         self.pixel_key = key
         self.dirty = True
@@ -231,14 +249,18 @@ class ViewState:
         fine = self._fine
         level = fine if fine is not None and fine.samples_per_pixel >= self.coarse.samples_per_pixel else self.coarse
         r = self.request
+        gi = (None, None)
+        if self.pixel_sum is not None:
+            gi = (frozen(self.pixel_sum[0] / self.pixel_passes), frozen(self.pixel_sum[1] / self.pixel_passes))
+        elif self.carried is not None:
+            gi = self.carried  # a lamp edit's carried passes until its own pass (`gi_carry`)
         return ViewResult(
             key=r.key, serial=serial, scene_gen=self.scene_gen, position=level.position, normal=level.normal,
             view=r.view, proj=r.proj, direct=frozen(level.mean()), passes=level.passes,
             corner_mask=None if self.mask is None else frozen(self.mask.copy()),
             cells=None if self.cell_colors is None else frozen(self.cell_colors.copy()),
             gi_position=r.position, gi_normal=r.normal,
-            gi_indirect=None if self.pixel_sum is None else frozen(self.pixel_sum[0] / self.pixel_passes),
-            gi_direct=None if self.pixel_sum is None else frozen(self.pixel_sum[1] / self.pixel_passes),
+            gi_indirect=gi[0], gi_direct=gi[1],
             pixel_passes=self.pixel_passes, edges=self.edges if level is fine else None,
             **self._glossy_fields(),
         )

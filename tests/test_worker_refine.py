@@ -219,6 +219,46 @@ def test_a_lamp_edit_relights_the_cache_before_the_full_res_direct_pass(worker, 
     assert fine == [True] * 4
 
 
+def test_a_lamp_edit_carries_the_views_pixel_passes_until_its_own(worker, monkeypatch):
+    """After a lamp edit of a still view with pixel passes, the re-lit cache's solve publishes
+    the old passes scaled to it (`gi_carry`): the lamp's power doubled, its GI doubled; the
+    first pass over the re-lit cache then replaces them, and it agrees with the carried image
+    far better than with the old one."""
+    scene = procedural.cornell()
+    settings = CacheSettings(resolution=10, rays_per_cell=16, threads=2)
+    pos, nrm, view_matrix, ok = pinhole_gbuffer(scene, settings)
+    carried, passes = [], []
+    carry, pixel_pass = worker.ViewportWorker._carry, worker.ViewportWorker._pixel_pass
+
+    def record_carry(self, system, state):
+        old = state.carry[0].copy()
+        carry(self, system, state)
+        assert state.pixel_sum is None and state.result(0).gi_indirect is state.carried[0]  # what goes out
+        carried.append((old, state.carried[0].copy()))
+
+    def record_pass(self, system, state):
+        pixel_pass(self, system, state)
+        if state.pixel_sum is not None and state.pixel_passes == 1 and carried and not passes:
+            passes.append(state.pixel_sum[0].copy())
+
+    monkeypatch.setattr(worker.ViewportWorker, "_carry", record_carry)
+    monkeypatch.setattr(worker.ViewportWorker, "_pixel_pass", record_pass)
+    options = worker.WorkerOptions(direct_passes=1, solver_batches=1, first_batch_rays=8, pixel_rays=8,
+                                   pixel_passes=1)
+    with still_view(worker, scene, settings, options, pos, nrm, view_matrix) as wk:
+        assert not carried  # no lamp edit yet
+        lamps = [dataclasses.replace(lt, power=2.0 * lt.power) for lt in scene.lights]
+        wk.post_edit(worker.SetShading(lights=lamps))
+        assert wk.wait_idle(120)
+    assert len(carried) == 1 and len(passes) == 1
+    old, new = (x.reshape(-1, 4)[ok.ravel(), :3] for x in carried[0])
+    traced = passes[0].reshape(-1, 4)[ok.ravel(), :3]
+    assert old.mean() > 0.05  # lit: the comparisons are not of zeros
+    l1 = lambda a, b: float(np.abs(a - b).sum() / np.abs(b).sum())  # noqa: E731
+    assert l1(new, 2.0 * old) < 0.05
+    assert l1(new, traced) < 0.25 * l1(old, traced)
+
+
 def test_a_still_view_alternates_pixel_passes_and_full_res_direct_passes(worker, monkeypatch):
     """Once the cache has solved, a still view's pixel passes and full-res direct passes take
     turns, a pixel pass first: the pixel rays' GI removes the larger error."""
@@ -313,16 +353,17 @@ def test_pixel_passes_over_a_further_reshaded_cache_replace_the_shown_ones_when_
     state = view.ViewState(request, 0, (np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0, np.intp)), np.zeros(0))
     img = lambda v: np.full((2, 2, 4), v, np.float32)  # noqa: E731
     first, later = (1, 5, False), (1, 5, True)
-    state.add_pixels(img(1.0), img(1.0), first)
-    state.add_pixels(img(3.0), img(3.0), first)
+    none = np.zeros((0, 7), np.float32)  # no GI points: no cache values
+    state.add_pixels(img(1.0), img(1.0), first, none)
+    state.add_pixels(img(3.0), img(3.0), first, none)
     assert state.refines(later) and state.passes_over(later) == 0 and state.passes_over(first) == 2
-    state.add_pixels(img(10.0), img(10.0), later)
+    state.add_pixels(img(10.0), img(10.0), later, none)
     assert state.pixel_key == first and state.pixel_passes == 2 and state.passes_over(later) == 1
     np.testing.assert_array_equal(state.result(0).gi_indirect, img(2.0))
-    state.add_pixels(img(20.0), img(20.0), later)
+    state.add_pixels(img(20.0), img(20.0), later, none)
     assert state.pixel_key == later and state.pixel_passes == 2 and state.pixel_next is None
     np.testing.assert_array_equal(state.result(1).gi_indirect, img(15.0))
-    state.add_pixels(img(7.0), img(7.0), (1, 6, True))  # a new epoch: the passes start over
+    state.add_pixels(img(7.0), img(7.0), (1, 6, True), none)  # a new epoch: the passes start over
     assert state.pixel_passes == 1
     np.testing.assert_array_equal(state.result(2).gi_indirect, img(7.0))
 
