@@ -298,7 +298,9 @@ def run_timelines(viewport, args, width, height, folder, checkpoints, timed, tim
         away, back = lamp_move(light, scene_centre())
         away()
         view.draw()
-        view.settle()
+        # The artist's view before the move is a refined one (its pixel passes, edges, glossy
+        # light: what a lamp edit may carry over), not one whose cache just converged.
+        view.settle(idle=True)
         t_light = time.perf_counter()
         back()
         if prefix == "worker":
