@@ -1,6 +1,8 @@
 """The stored-hit solver: fixed point == retraced bounces, exact invalidation, re-lighting without
 probe rays, deterministic final-render warm-up."""
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -217,6 +219,43 @@ def test_light_change_reshades_stored_hits_without_probe_rays(table):
     assert tracer.occluded_rays > 0
     assert stats.iterations > 0
     np.testing.assert_allclose(after, 2.0 * before, rtol=5e-3)
+
+
+def _relit(energy, warm: bool, lamp_at=(5.0, 5.0, 8.0)):
+    """(indirect at three floor points, iterations) of the room's cache solved, then re-solved
+    from its stored hits after a lamp edit (power `energy`, position `lamp_at`), with or without
+    the warm start (`GISolver._warm_start`)."""
+    s = CacheSettings(resolution=10, rays_per_cell=32)
+    pts = np.array([[3.0, 3.0, 0.0], [7.0, 6.0, 0.0], [5.0, 2.0, 0.0]], np.float32)
+    up = np.tile(np.array([[0.0, 0.0, 1.0]], np.float32), (3, 1))
+    edited = room_with_ball(energy=energy)
+    lamp = edited.lights[0]
+    matrix = np.array(lamp.matrix, np.float64)
+    matrix[:3, 3] = lamp_at
+    edited = dataclasses.replace(edited, lights=[dataclasses.replace(lamp, matrix=matrix)])
+    with GISystem(room_with_ball(), s) as gi:
+        gi.solve(batches=2)
+        gi.set_lights(edited)
+        gi.on_lights_changed()
+        if not warm:
+            gi.solver._warm = None
+        stats = gi.resolve()
+        return gi.gather(pts, up).indirect, stats.iterations
+
+
+def test_a_lamp_edit_solves_from_the_old_solution_scaled_by_the_first_bounces_change():
+    """After a lamp edit the iterations start from the old solution times each cell's change of
+    first bounce: a change of power is then solved in a few iterations (the fixed point scales
+    with it; what is left is the old solve's filtered tail) and a moved lamp no later; either way
+    the same fixed point as iterations from the old solution."""
+    warm, n_warm = _relit(750.0, warm=True)
+    cold, n_cold = _relit(750.0, warm=False)
+    assert 2 * n_warm < n_cold
+    np.testing.assert_allclose(warm, cold, rtol=2e-3)
+    moved, n_moved = _relit(300.0, warm=True, lamp_at=(3.0, 6.0, 6.0))
+    moved_cold, n_moved_cold = _relit(300.0, warm=False, lamp_at=(3.0, 6.0, 6.0))
+    assert n_moved <= n_moved_cold
+    np.testing.assert_allclose(moved, moved_cold, rtol=1e-2)
 
 
 def test_material_change_reshades_the_stored_hits():
