@@ -190,12 +190,10 @@ class GISolver:
         self._materials_stale = False
         self._relight_all = False  # every stored hit's lamp light is stale (lights_changed)
         self._sources = None  # (cells, b) of the fixed point; None: to compute
-        #: (chunks, each chunk's first bounce) the cache's solution was last iterated with, and
-        #: those of the solution a shading edit found, for the next solve's warm start
-        #: (`_warm_start`); the last sources' chunks and their own first bounce.
+        #: (cells, b) the cache's solution was last iterated with, and that of the solution a
+        #: shading edit found, for the next solve's warm start (`_warm_start`).
         self._solved_with = None
         self._warm = None
-        self._source_parts = None
         #: First of the BOUNCE_BATCHES batches whose hits carry A (the viewport moves it past a
         #: first batch traced with fewer rays once a full one exists).
         self.bounce_from = 0
@@ -541,9 +539,7 @@ class GISolver:
         # not count yet; `resolve` re-shades every stale hit before it solves.
         chunks = [c for c in self.chunks if c.e_lamp is not None and not c.lamp_stale.any()]
         jobs = [self._pool.submit(self._project_hits, c, rows, True) for c in chunks]
-        coeffs = [j.result() for j in jobs]
-        self._sources = self._mean_over_batches(coeffs, chunks)
-        self._source_parts = (chunks, coeffs)  # each chunk's own, for a later warm start
+        self._sources = self._mean_over_batches([j.result() for j in jobs], chunks)
         stats.add("source", (time.perf_counter() - tic) * 1e3)
 
     def _mean_over_batches(self, coeffs: list[np.ndarray], chunks: list[StoredHits]):
@@ -592,7 +588,7 @@ class GISolver:
         src_cells, src = self._sources
         if self._warm is not None:
             self._warm_start(src_cells, src)
-        self._solved_with = self._source_parts
+        self._solved_with = self._sources
         new = src.copy()
         bounced = s.indirect_quality == MULTI_BOUNCE
         if bounced:
@@ -634,21 +630,18 @@ class GISolver:
     def _warm_start(self, cells: np.ndarray, src: np.ndarray) -> None:
         """After a shading edit, start the iterations from the new first bounce plus the old
         solution's further bounces, scaled by how much the edit changed the first bounce's total
-        (per colour channel): x0 = b_new + g (x_old - b_old), b_old over the same stored hits as
-        b_new (the batches re-shaded so far: their noise cancels). A change of power or colour
-        scales b and the fixed point x = b + A x alike, so x0 is the new solution; a moved lamp
-        changes the first bounce where it lands, while the further bounces, smooth, keep their
-        sum. The fixed point does not depend on where the iterations start, only how many they
-        take (a room's point lamp at 2.5 x its power: 14 -> 3 iterations, moved: 5 -> 3, the
-        same light to 0.1%; the old solution times each cell's change of b took 7 for the move:
-        the further bounces do not follow the first one's local change). Once per edit."""
-        old_chunks, old_coeffs = self._warm
+        (per colour channel): x0 = b_new + g (x_old - b_old). A change of power or colour scales
+        b and the fixed point x = b + A x alike, so x0 is the new solution; a moved lamp changes
+        the first bounce where it lands, while the further bounces, smooth, keep their sum. The
+        fixed point does not depend on where the iterations start, only how many they take (a
+        room's point lamp at 2.5 x its power: 14 -> 3 iterations, moved: 5 -> 3, the same light
+        to 0.1%; the viewport's Cornell box, b_new of its short first batch alone: power 7 -> 3,
+        moved 5 -> 3). The old solution times each cell's change of b took 7 for the room's move
+        (the further bounces do not follow the first one's local change); b_old over the same
+        re-shaded hits as b_new, not all of them, needed as many iterations and kept every chunk's
+        sources. Once per edit."""
+        old_cells, old = self._warm
         self._warm = None
-        now = {id(c) for c in self.chunks if c.e_lamp is not None and not c.lamp_stale.any()}
-        same = [(c, x) for c, x in zip(old_chunks, old_coeffs, strict=True) if id(c) in now]
-        if not same:
-            return
-        old_cells, old = self._mean_over_batches([x for _, x in same], [c for c, _ in same])
         both, i_new, i_old = np.intersect1d(cells, old_cells, assume_unique=True, return_indices=True)
         if not both.size:
             return
