@@ -797,7 +797,6 @@ class ViewportWorker:
         else:
             indirect, direct = _pixels.images(gi, r.position, pix, points, normals, r.view, raster)
         state.add_pixels(indirect, direct, key, gi.channels()[1])
-        _carry_map(state, indirect.shape[:2])  # a lamp edit's carry needs it: made now, while the view is still
         self._steps["pixel_filter"] = (time.perf_counter() - t1) * 1e3
 
     def _carry_due(self, state: ViewState) -> bool:
@@ -988,7 +987,9 @@ class _Superseded(Exception):
 
 def _carry_map(state: ViewState, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
     """(nearest GI point, flat pixel) of each geometry pixel of the view's pixel-pass textures of
-    `shape` (`gi_carry.nearest_lo_point`), made once per view (the geometry is the view's)."""
+    `shape` (`gi_carry.nearest_lo_point`), made once per view (the geometry is the view's), by its
+    first lamp edit's carry: ~50 ms at 640x360, which every new view's first pixel pass would
+    otherwise pay before its image goes out."""
     if state.carry_map is None:
         points, _normals, pix = state.gi_points
         h, w = state.request.position.shape[:2]

@@ -24,8 +24,8 @@ from __future__ import annotations
 
 import numpy as np
 
-#: Largest factor a pixel's residual is scaled by (a lamp moved next to a surface the old light
-#: barely reached: the cache's part is still exact, only the residual's scale is bounded).
+#: Largest factor the old image is scaled by (a lamp moved next to a surface the old light barely
+#: reached: `extra` brings the rest of the new cache light there, without the old image's detail).
 RATIO_MAX = 8.0
 #: The ratio's floor, as a share of the image's mean cache light.
 FLOOR = 0.02

@@ -612,7 +612,8 @@ class GISolver:
         # ONE_BOUNCE hits read only the direct band, which iterations do not change: one is exact.
         # Else converged once the tail the extrapolation will add is a small share of the light.
         q = self.tail_ratio()
-        small = delta <= CONVERGED * max(norm, 1e-30)
+        limit = CONVERGED * max(norm, 1e-30)
+        small = delta <= limit
         if self._warmed:
             # Its first updates fall faster than the tail (the start's error is mostly fine
             # detail): a small update ends it once the tail it bounds, at the larger of the last
@@ -620,7 +621,7 @@ class GISolver:
             d = self._deltas
             q_hat = (min(max(d[-1] / d[-2], d[-2] / d[-3]), MAX_TAIL_RATIO)
                      if len(d) >= 3 and d[-2] > 0 and d[-3] > 0 else None)
-            small = q_hat is not None and delta * q_hat / (1.0 - q_hat) <= CONVERGED * max(norm, 1e-30)
+            small = q_hat is not None and delta * q_hat / (1.0 - q_hat) <= limit
         self.converged = (not bounced) or small or (q is not None and delta * q / (1.0 - q) <= TAIL_SHARE * norm)
         stats.iterations = 1
         stats.cells = int(src_cells.size)
