@@ -167,6 +167,9 @@ NEAR_BOUNCE_DEPTH = 2
 #: (4) / 0.0068 (8), morse 0.0480 -> 0.0478; elsewhere the same errors for +100 ms of pixel rays
 #: (the Cornell box's corners: its cache holds their lamp-lit bounces well), so emitters only.
 EMITTER_NEAR_BOUNCE_DEPTH = 6
+#: Share of the near hits past NEAR_BOUNCE_DEPTH near bounces that trace one more
+#: (`_near_roulette`; the others read the cache, the survivors' difference to it is scaled up).
+NEAR_SURVIVAL = 0.5
 #: B3-spline taps of one a-trous pass (5 x 5, Dammertz et al. 2010).
 _B3 = np.array([1.0, 4.0, 6.0, 4.0, 1.0], np.float32) / 16.0
 #: Fewest rows of own pixels a band must add to its halos for the filter to split the image.
@@ -561,7 +564,7 @@ def _open_sky_band(res: np.ndarray, lum_cv: np.ndarray, sky_open, sky: np.ndarra
 def hit_radiance(system, lookup: HitLookup | None, origins: np.ndarray, dirs: np.ndarray, hits, rng,
                  times: dict | None = None, glossy_lamps: bool = True, screen: ScreenLight | None = None,
                  near: float = 0.0, near_rng: np.random.Generator | None = None, depth: int | None = None,
-                 sky: np.ndarray | None = None, sampled_emitters: bool = False) -> np.ndarray:
+                 sky: np.ndarray | None = None, sampled_emitters: bool = False, level: int = 0) -> np.ndarray:
     """(N, 6) float32 radiance coming back along rays (origins, dirs (N, 3)) from their `hits`:
     rgb straight from the world or an emitter (what Cycles counts as direct light) | rgb the hit
     surface reflects (its lamp light through shadow rays, plus the cache read at the hit for the
@@ -576,7 +579,9 @@ def hit_radiance(system, lookup: HitLookup | None, origins: np.ndarray, dirs: np
     to `depth` bounces (None: NEAR_BOUNCE_DEPTH, EMITTER_NEAR_BOUNCE_DEPTH with emissive surfaces).
     sky : (N, 3) the world's radiance along the rays if the caller has it (`World.radiance`).
     sampled_emitters : the rays leave pixels whose direct light samples the emissive triangles
-    (`emitters.py`): what they find of those is not counted again (further bounces still are)."""
+    (`emitters.py`): what they find of those is not counted again (further bounces still are).
+    level : near bounces already traced before these rays (from NEAR_BOUNCE_DEPTH on, the near
+    hits go on by Russian roulette, `_near_roulette`)."""
     s, scene = system.settings, system.updater.scene
     if depth is None:
         depth = EMITTER_NEAR_BOUNCE_DEPTH if scene.surfaces.emissive else NEAR_BOUNCE_DEPTH
@@ -615,12 +620,16 @@ def hit_radiance(system, lookup: HitLookup | None, origins: np.ndarray, dirs: np
             close = np.take(hits.t, hit) < near if near > 0 and near_rng is not None else None
             if close is None or not close.any():
                 e_in += lookup.irradiance(position, surf.normal).T
-            else:
+            elif level < NEAR_BOUNCE_DEPTH:
                 far, close = np.flatnonzero(~close), np.flatnonzero(close)
                 if far.size:
                     e_in[far] += lookup.irradiance(np.take(position, far, axis=0), np.take(surf.normal, far, axis=0)).T
                 e_in[close] += _near_bounce(system, lookup, np.take(position, close, axis=0),
-                                            np.take(surf.normal, close, axis=0), near_rng, times, screen, near, depth)
+                                            np.take(surf.normal, close, axis=0), near_rng, times, screen, near, depth,
+                                            level)
+            else:
+                _near_roulette(system, lookup, e_in, position, surf.normal, close, near_rng, times, screen, near,
+                               depth, level)
         e_in *= brdf
         if lamp is not None:
             e_in += lamp
@@ -650,7 +659,8 @@ def _add_shiny_highlights(system, lamp: np.ndarray, glossy_part: np.ndarray, brd
 
 
 def _near_bounce(system, lookup, position: np.ndarray, normal: np.ndarray, rng: np.random.Generator,
-                 times: dict | None, screen: ScreenLight | None, near: float = 0.0, depth: int = 1) -> np.ndarray:
+                 times: dict | None, screen: ScreenLight | None, near: float = 0.0, depth: int = 1,
+                 level: int = 0) -> np.ndarray:
     """(m, 3) irradiance of the further bounces at hits (position, normal (m, 3)) from one cosine
     ray each: pi x the radiance it brings back (world or emitter; with Multi Bounce also its hit's
     lamp light and the cache read there), the one-sample estimate of what `lookup` reads from the
@@ -665,7 +675,7 @@ def _near_bounce(system, lookup, position: np.ndarray, normal: np.ndarray, rng: 
     hits = system.tracer.intersect(origins, dirs, tfar, trusted=True)
     if s.indirect_quality == MULTI_BOUNCE:
         rad = hit_radiance(system, lookup, origins, dirs, hits, rng, times, screen=screen, near=near,
-                           near_rng=rng if depth > 1 else None, depth=depth - 1)
+                           near_rng=rng if depth > 1 else None, depth=depth - 1, level=level + 1)
         e = rad[:, 0:3] + rad[:, 3:6]
     else:  # one bounce: the hit's sky and emitters only, as the direct-only lookup holds
         e = hit_radiance(system, None, origins, dirs, hits, rng, None, screen=screen)[:, 0:3]
@@ -673,6 +683,25 @@ def _near_bounce(system, lookup, position: np.ndarray, normal: np.ndarray, rng: 
     if times is not None:
         times["near_bounce"] = times.get("near_bounce", 0.0) + (time.perf_counter() - tic) * 1e3
     return e
+
+
+def _near_roulette(system, lookup, e_in: np.ndarray, position: np.ndarray, normal: np.ndarray, close: np.ndarray,
+                   rng: np.random.Generator, times: dict | None, screen: ScreenLight | None, near: float, depth: int,
+                   level: int) -> None:
+    """e_in (m, 3) += the further bounces at hits (position, normal) past NEAR_BOUNCE_DEPTH near
+    bounces (an emitter's contact, `EMITTER_NEAR_BOUNCE_DEPTH`): every hit reads the cache, and a
+    near hit (close (m,) bool) traces its `_near_bounce` with probability NEAR_SURVIVAL, adding
+    (traced - cache) / NEAR_SURVIVAL: unbiased against the traced estimate, as a path tracer's
+    roulette is. Why: the rays between a sphere and its floor keep meeting near hits (spheres:
+    78k, 48k, 32k, 24k, 18k, 15k over the six levels), and the deep levels cost as much as the first
+    two while each round brings back ~0.5 of the last."""
+    cache = lookup.irradiance(position, normal).T
+    e_in += cache
+    traced = np.flatnonzero(close & (rng.random(close.size, dtype=np.float32) < np.float32(NEAR_SURVIVAL)))
+    if traced.size:
+        bounce = _near_bounce(system, lookup, np.take(position, traced, axis=0), np.take(normal, traced, axis=0), rng,
+                              times, screen, near, depth, level)
+        e_in[traced] += (bounce - np.take(cache, traced, axis=0)) * np.float32(1.0 / NEAR_SURVIVAL)
 
 
 def _lamp_light_at_hits(system, screen: ScreenLight | None, position: np.ndarray, normal: np.ndarray,

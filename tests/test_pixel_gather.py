@@ -748,6 +748,41 @@ def test_light_between_an_emitter_and_the_floor_it_touches_is_not_lost():
     np.testing.assert_allclose(got.indirect.mean(axis=1), bounced, rtol=0.12)
 
 
+def test_deep_near_bounces_go_on_by_roulette_without_losing_light(monkeypatch):
+    """Past NEAR_BOUNCE_DEPTH near bounces (the glowing ball's contact) half the near hits trace
+    one more and scale their difference to the cache up (`_near_roulette`): the contact's light
+    is the full chain's within its noise, for far fewer deep rays."""
+    from blend_scenes.procedural import _placement, transformed, uv_sphere
+
+    ball = transformed(uv_sphere(0.25, 48, 24), _placement((0.0, 0.0, 0.25)))
+    ball = geometry_from_arrays(ball.positions, ball.triangles, 1, 1)
+    floor = quad([[-4, -4, 0], [4, -4, 0], [4, 4, 0], [-4, 4, 0]])
+    mats = [Material("floor", np.full(3, 0.7, np.float32)),
+            Material("glow", np.full(3, 0.8, np.float32), emission=np.full(3, 4.0, np.float32))]
+    scene = make_snapshot(concat_geometry([floor, ball]), mats, [], World(color=np.zeros(3, np.float32)))
+    deep = []
+    near_bounce = pixel_gather._near_bounce
+
+    def counted(system, lookup, position, *args):
+        if args[-1] >= pixel_gather.NEAR_BOUNCE_DEPTH:  # level
+            deep.append(position.shape[0])
+        return near_bounce(system, lookup, position, *args)
+
+    monkeypatch.setattr(pixel_gather, "_near_bounce", counted)
+    with GISystem(scene, CacheSettings(resolution=48, rays_per_cell=32)) as gi:
+        gi.warm_up(6)
+        p, n = points_up([0.0, -0.02, 0.0], [0.0, -0.05, 0.0], [0.0, -0.1, 0.0])
+        got, rays = {}, {}
+        for survival in (1.0, pixel_gather.NEAR_SURVIVAL):
+            monkeypatch.setattr(pixel_gather, "NEAR_SURVIVAL", survival)
+            deep.clear()
+            got[survival] = pixel_gather.trace_pixels(gi, p, n, 8192, frame=0).indirect.mean(axis=1)
+            rays[survival] = sum(deep)
+    assert pixel_gather.NEAR_SURVIVAL < 1.0
+    np.testing.assert_allclose(got[pixel_gather.NEAR_SURVIVAL], got[1.0], rtol=0.05)
+    assert rays[pixel_gather.NEAR_SURVIVAL] < 0.5 * rays[1.0], rays
+
+
 def _ground_points(gi, n: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
     """(n, 3) points on the ground of `ground_and_wall` facing up, its cache warmed up first."""
     gi.warm_up(2)
