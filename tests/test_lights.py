@@ -751,6 +751,22 @@ def test_lamp_budget_picks_lamps_without_bias_and_traces_fewer_rays():
         direct_irradiance(lamps, pts, nrm, tracer, rng, samples=2, lamp_budget=2, partial=np.zeros(pts.shape[0], bool))
 
 
+def test_two_lamps_within_the_budget_are_both_shaded_at_every_hit():
+    """With fewer than ROULETTE_MIN_LAMPS sampled lamps a lamp budget draws nothing: each hit is
+    shaded by both lamps, the same rays and light as without a budget, even where one lamp is
+    under 1 / budget of the light (the rough light per hit would cost what the skipped rays save)."""
+    strong = area_light(translation(0.0, 0.0, 2.0), power=4000.0)
+    dim = point_light((2.0, 2.0, 1.5), radius=0.3, power=2.0)
+    assert lights_mod.ROULETTE_MIN_LAMPS > 2
+    tracer, pts, nrm = _budget_floor()
+    tracer.rays = 0
+    plain = direct_irradiance([strong, dim], pts, nrm, tracer, np.random.default_rng(3), samples=1)
+    plain_rays, tracer.rays = tracer.rays, 0
+    budget = direct_irradiance([strong, dim], pts, nrm, tracer, np.random.default_rng(3), samples=1, lamp_budget=8)
+    np.testing.assert_array_equal(budget, plain)
+    assert tracer.rays == plain_rays
+
+
 def test_lamp_budget_of_all_lamps_skips_dim_lamps_by_roulette_without_bias():
     """direct_irradiance(lamp_budget=k) with no more sampled lamps than k: a lamp whose share of
     the rough light is at least 1 / k is shaded at every receiver (weight 1), a dimmer one with
