@@ -723,11 +723,8 @@ def _path_traced(system, points, normals, bounces, rays, rng):
     return np.float32(np.pi) * radiance(points, normals, bounces, rays)
 
 
-def test_light_between_an_emitter_and_the_floor_it_touches_is_not_lost():
-    """A glowing ball on a floor: light goes back and forth between them near the contact, each
-    round about half the last, where the cache's cells (coarser than the contact) hold a third
-    of it. The pixel rays' near bounces follow it (NEAR_BOUNCE_DEPTH) as a path tracer does:
-    at depth 2 the indirect light 2-5 cm from the contact was 45% short."""
+def _glowing_ball_on_floor():
+    """A glowing ball (radius 0.25 m, emission 4) resting on an 8 m grey floor, in the dark."""
     from blend_scenes.procedural import _placement, transformed, uv_sphere
 
     ball = transformed(uv_sphere(0.25, 48, 24), _placement((0.0, 0.0, 0.25)))
@@ -735,7 +732,15 @@ def test_light_between_an_emitter_and_the_floor_it_touches_is_not_lost():
     floor = quad([[-4, -4, 0], [4, -4, 0], [4, 4, 0], [-4, 4, 0]])
     mats = [Material("floor", np.full(3, 0.7, np.float32)),
             Material("glow", np.full(3, 0.8, np.float32), emission=np.full(3, 4.0, np.float32))]
-    scene = make_snapshot(concat_geometry([floor, ball]), mats, [], World(color=np.zeros(3, np.float32)))
+    return make_snapshot(concat_geometry([floor, ball]), mats, [], World(color=np.zeros(3, np.float32)))
+
+
+def test_light_between_an_emitter_and_the_floor_it_touches_is_not_lost():
+    """A glowing ball on a floor: light goes back and forth between them near the contact, each
+    round about half the last, where the cache's cells (coarser than the contact) hold a third
+    of it. The pixel rays' near bounces follow it (NEAR_BOUNCE_DEPTH) as a path tracer does:
+    at depth 2 the indirect light 2-5 cm from the contact was 45% short."""
+    scene = _glowing_ball_on_floor()
     with GISystem(scene, CacheSettings(resolution=48, rays_per_cell=32)) as gi:
         gi.warm_up(6)
         p, n = points_up([0.0, -0.02, 0.0], [0.0, -0.05, 0.0])
@@ -752,14 +757,7 @@ def test_deep_near_bounces_go_on_by_roulette_without_losing_light(monkeypatch):
     """Past NEAR_BOUNCE_DEPTH near bounces (the glowing ball's contact) half the near hits trace
     one more and scale their difference to the cache up (`_near_roulette`): the contact's light
     is the full chain's within its noise, for far fewer deep rays."""
-    from blend_scenes.procedural import _placement, transformed, uv_sphere
-
-    ball = transformed(uv_sphere(0.25, 48, 24), _placement((0.0, 0.0, 0.25)))
-    ball = geometry_from_arrays(ball.positions, ball.triangles, 1, 1)
-    floor = quad([[-4, -4, 0], [4, -4, 0], [4, 4, 0], [-4, 4, 0]])
-    mats = [Material("floor", np.full(3, 0.7, np.float32)),
-            Material("glow", np.full(3, 0.8, np.float32), emission=np.full(3, 4.0, np.float32))]
-    scene = make_snapshot(concat_geometry([floor, ball]), mats, [], World(color=np.zeros(3, np.float32)))
+    scene = _glowing_ball_on_floor()
     deep = []
     near_bounce = pixel_gather._near_bounce
 
