@@ -618,9 +618,8 @@ class GISolver:
             # Its first updates fall faster than the tail (the start's error is mostly fine
             # detail): a small update ends it once the tail it bounds, at the larger of the last
             # two ratios, is small too.
-            d = self._deltas
-            q_hat = (min(max(d[-1] / d[-2], d[-2] / d[-3]), MAX_TAIL_RATIO)
-                     if len(d) >= 3 and d[-2] > 0 and d[-3] > 0 else None)
+            ratios = self._last_ratios()
+            q_hat = None if ratios is None else min(max(ratios), MAX_TAIL_RATIO)
             small = q_hat is not None and delta * q_hat / (1.0 - q_hat) <= limit
         self.converged = (not bounced) or small or (q is not None and delta * q / (1.0 - q) <= TAIL_SHARE * norm)
         stats.iterations = 1
@@ -659,13 +658,21 @@ class GISolver:
         """The ratio q of the last two iterations' updates when the series looks geometric: the
         last two ratios agree to RATIO_AGREEMENT and 0 < q < MAX_TAIL_RATIO; else None. (Early
         ratios are smaller than the asymptotic one: the first bounces' fast-decaying modes.)"""
-        d = self._deltas
-        if len(d) < 3 or d[-2] <= 0 or d[-3] <= 0:
+        ratios = self._last_ratios()
+        if ratios is None:
             return None
-        q, q_prev = d[-1] / d[-2], d[-2] / d[-3]
+        q, q_prev = ratios
         if not (0.0 < q < MAX_TAIL_RATIO) or abs(q - q_prev) > RATIO_AGREEMENT * q:
             return None
         return q
+
+    def _last_ratios(self) -> tuple[float, float] | None:
+        """(d[-1] / d[-2], d[-2] / d[-3]) of the series' updates d, or None before three
+        updates or where a divisor is not positive."""
+        d = self._deltas
+        if len(d) < 3 or d[-2] <= 0 or d[-3] <= 0:
+            return None
+        return d[-1] / d[-2], d[-2] / d[-3]
 
     def extrapolate(self) -> bool:
         """Add the geometric tail of the bounce series: the last update times q / (1 - q).
