@@ -66,7 +66,8 @@ class Harness:
     call's arguments are kept, and once its own shading is done the variants run `rounds` times."""
 
     def __init__(self, variants: list[str], rounds: int):
-        self.variants, self.rounds = variants, rounds
+        self.variants = {v: parse_variant(v) for v in variants}  # a malformed one fails before the render
+        self.rounds = rounds
         self.begun_args = None
         self.results: dict[str, dict[str, list[float]]] = {}
         self._begin, self._finish = pixel_gather.begin_pixels, pixel_gather.finish_pixels
@@ -93,8 +94,8 @@ class Harness:
         args, kwargs = self.begun_args
         self.results = {v: {"wall_ms": [], "cpu_ms": []} for v in self.variants}
         for _ in range(self.rounds):
-            for v in self.variants:
-                old = patched(parse_variant(v))
+            for v, variant in self.variants.items():
+                old = patched(variant)
                 try:
                     wall, cpu = time.perf_counter(), time.process_time()
                     self._finish(self._begin(*args, **kwargs), screen)
@@ -112,10 +113,10 @@ def main(argv=None) -> int:
     ap.add_argument("--res", default="640x360")
     ap.add_argument("--set", action="append", default=[], dest="settings", metavar="NAME=VALUE")
     args = ap.parse_args(argv)
-    variants = [""] + args.variant
-    for v in variants:
-        parse_variant(v)  # a malformed variant fails before the render
-    harness = Harness(variants, args.rounds)
+    try:
+        harness = Harness([""] + args.variant, args.rounds)
+    except (ValueError, SyntaxError) as error:
+        ap.error(f"--variant: {error} (expected module:NAME=VALUE,... with Python literals)")
     harness.install()
     from hybridgi_cli import main as cli
 
@@ -129,10 +130,10 @@ def main(argv=None) -> int:
         return 1
     rows = {}
     for v, r in harness.results.items():
-        rows[v or "as is"] = {k: {"median": round(statistics.median(x), 1), "min": round(min(x), 1)}
-                              for k, x in r.items()}
-        w, c = rows[v or "as is"]["wall_ms"], rows[v or "as is"]["cpu_ms"]
-        print(f"{v or 'as is':60s} wall {w['median']:7.1f} (min {w['min']:7.1f})  cpu {c['median']:7.1f} "
+        name = v or "as is"
+        rows[name] = {k: {"median": round(statistics.median(x), 1), "min": round(min(x), 1)} for k, x in r.items()}
+        w, c = rows[name]["wall_ms"], rows[name]["cpu_ms"]
+        print(f"{name:60s} wall {w['median']:7.1f} (min {w['min']:7.1f})  cpu {c['median']:7.1f} "
               f"(min {c['min']:7.1f}) ms", file=sys.stderr)
     print(json.dumps({"blend": args.blend, "rounds": args.rounds, "variants": rows}))
     return code or 0
