@@ -1364,23 +1364,22 @@ class Upsampled:
 UPSAMPLE_CHUNK = 16384
 
 
-def _upsample_parallel(system, sh_lo, cache_lo, residual_lo, position_lo, normal_lo, valid_lo, points, normals, pix,
+def _upsample_parallel(pool, sh_lo, cache_lo, residual_lo, position_lo, normal_lo, valid_lo, points, normals, pix,
                        width, factor, camera, plane_sigma, normal_power, rep_xy, offset=(0.0, 0.0),
                        records=None, surfaces=None) -> Upsampled:
-    """`upsample_full` over chunks of pixels on the system's worker pool (numpy releases the GIL);
-    a single chunk runs in line."""
+    """`upsample_full` over chunks of pixels on a worker pool (numpy releases the GIL); a single
+    chunk, or no pool, runs in line."""
     if records is None:
         records = tap_records(cache_lo, residual_lo, position_lo, normal_lo, valid_lo, rep_xy)
-    if points.shape[0] <= UPSAMPLE_CHUNK:
+    if points.shape[0] <= UPSAMPLE_CHUNK or pool is None:
         return upsample_full(sh_lo, cache_lo, residual_lo, position_lo, normal_lo, valid_lo, points, normals, pix,
                              width, factor, camera, plane_sigma, normal_power, rep_xy=rep_xy, offset=offset,
                              records=records, surfaces=surfaces)
     starts = range(0, points.shape[0], UPSAMPLE_CHUNK)
-    jobs = [system.updater.pool.submit(upsample_full, sh_lo, cache_lo, residual_lo, position_lo, normal_lo, valid_lo,
-                                       points[a:a + UPSAMPLE_CHUNK], normals[a:a + UPSAMPLE_CHUNK],
-                                       pix[a:a + UPSAMPLE_CHUNK], width, factor, camera, plane_sigma, normal_power,
-                                       rep_xy=rep_xy, offset=offset, records=records,
-                                       surfaces=None if surfaces is None else surfaces[a:a + UPSAMPLE_CHUNK])
+    jobs = [pool.submit(upsample_full, sh_lo, cache_lo, residual_lo, position_lo, normal_lo, valid_lo,
+                        points[a:a + UPSAMPLE_CHUNK], normals[a:a + UPSAMPLE_CHUNK], pix[a:a + UPSAMPLE_CHUNK],
+                        width, factor, camera, plane_sigma, normal_power, rep_xy=rep_xy, offset=offset,
+                        records=records, surfaces=None if surfaces is None else surfaces[a:a + UPSAMPLE_CHUNK])
             for a in starts]
     parts = [job.result() for job in jobs]
     return Upsampled(*(np.concatenate([getattr(p, f) for p in parts])
@@ -1471,27 +1470,38 @@ def low_res_surfaces(position_lo: np.ndarray, pix: np.ndarray, normals: np.ndarr
     return out
 
 
-def full_res_resolve(system, gi: PixelGI, position_lo: np.ndarray, pix: np.ndarray, points: np.ndarray,
-                     normals: np.ndarray, view: np.ndarray, frame: int, rays: int, full_points: np.ndarray,
-                     full_normals: np.ndarray, full_pix: np.ndarray, full_size: tuple[int, int], passes: int = 3,
-                     plane_sigma: float = 0.02, normal_power: float = 8.0, refine: float = REFINE_SPREAD,
-                     lookup: HitLookup | None = None, screen: ScreenLight | None = None,
-                     surfaces: np.ndarray | None = None, full_surfaces: np.ndarray | None = None,
-                     filter=None, upsample=None) -> FullResGI:
-    """`full_res_images` after its GI pixels' rays `gi` (`trace_pixels` at points, frame, rays):
-    the filter, the per-pixel resolve and the detail pixels' own rays (frame + DETAIL_FRAME; lookup:
-    the HitLookup the GI pixels' rays read, None builds one). The viewport's worker traces `gi` on
-    a thread of its own and resolves it here. screen : as `trace_pixels`', for the detail
-    pixels' rays and the resolver's. surfaces, full_surfaces : the GI pixels' and the full-res
-    pixels' smooth surface normals where a material bends normals (`full_res_images`), or None.
-    filter, upsample : as `full_res_images`'. Step times: "planes" (the filter's input images),
-    "filter" (the filter alone), "upsample" (without "upsample_pass", the `upsample` callable's),
-    "detail" and the GI pixels' own."""
+@dataclass
+class _Interpolated:
+    """A resolve's GI at every full-res pixel before its detail pixels (`_interpolate`): the
+    upsampled taps `up`, their value (cache + residual, (n, 7)) and what the detail pixels and
+    the `GIResolver` read."""
+
+    up: Upsampled
+    value: np.ndarray
+    sh_lo: np.ndarray
+    cache_lo: np.ndarray
+    filtered: np.ndarray
+    pos: np.ndarray
+    nrm: np.ndarray
+    valid: np.ndarray
+    rep_xy: np.ndarray
+    records: np.ndarray
+    camera: np.ndarray
+    factor: int
+    steps: dict
+
+
+def _interpolate(gi: PixelGI, position_lo: np.ndarray, pix: np.ndarray, points: np.ndarray, normals: np.ndarray,
+                 view: np.ndarray, full_points: np.ndarray, full_normals: np.ndarray, full_pix: np.ndarray,
+                 full_size: tuple[int, int], passes: int, plane_sigma: float, normal_power: float, pool=None,
+                 surfaces: np.ndarray | None = None, full_surfaces: np.ndarray | None = None, filter=None,
+                 upsample=None) -> _Interpolated:
+    """`full_res_resolve`'s first half: the GI pixels' estimates filtered and interpolated at every
+    full-res pixel (`filter` / `upsample`: GPU passes, or None: numpy on `pool`). Step times
+    "planes", "filter", "upsample_pass" (the `upsample` callable's) and "upsample" (the rest)."""
     width, height = full_size
     h, w = position_lo.shape[:2]
     factor = max(1, int(round(width / w)))
-    if lookup is None and rays > 0:
-        lookup = hit_lookup(system, bounced=system.settings.indirect_quality == MULTI_BOUNCE)
     tic = time.perf_counter()
     est, cache, valid, res, pos, nrm, camera, var = image_planes(gi, pix, points,
                                                                  normals if surfaces is None else surfaces, view, h, w)
@@ -1518,7 +1528,7 @@ def full_res_resolve(system, gi: PixelGI, position_lo: np.ndarray, pix: np.ndarr
     smooth = (filter or filter_residual)(est_img.reshape(h, w, 7), pos.reshape(h, w, 3), nrm.reshape(h, w, 3),
                                          valid.reshape(h, w), camera, passes, plane_sigma, normal_power,
                                          variance=guides.reshape(h, w, -1), noise_sigma=FULL_RES_NOISE_SIGMA,
-                                         pool=system.updater.pool, stretch=STRETCH).reshape(h * w, 7)
+                                         pool=pool, stretch=STRETCH).reshape(h * w, 7)
     steps["filter"] = (time.perf_counter() - tic) * 1e3
     tic = time.perf_counter()
     filtered = (smooth - (est_img - res)) * valid[:, None]  # as a residual of each GI pixel's own cache
@@ -1539,13 +1549,80 @@ def full_res_resolve(system, gi: PixelGI, position_lo: np.ndarray, pix: np.ndarr
                       rep_xy=rep_xy, records=records)
         steps["upsample_pass"] = (time.perf_counter() - pass_tic) * 1e3
     else:
-        up = _upsample_parallel(system, sh_lo, cache_lo, filtered, pos.reshape(h, w, 3), nrm.reshape(h, w, 3),
+        up = _upsample_parallel(pool, sh_lo, cache_lo, filtered, pos.reshape(h, w, 3), nrm.reshape(h, w, 3),
                                 valid.reshape(h, w), full_points, full_normals, full_pix, width, factor, camera,
                                 plane_sigma, normal_power, rep_xy, records=records, surfaces=full_surfaces)
-    resolver = GIResolver(system, sh_lo, cache_lo, filtered, pos.reshape(h, w, 3), nrm.reshape(h, w, 3),
-                          valid.reshape(h, w), rep_xy, width, factor, camera, plane_sigma, normal_power, lookup, rays,
-                          records, screen)
-    value = up.cache + up.residual
+    steps["upsample"] = (time.perf_counter() - tic) * 1e3 - steps.get("upsample_pass", 0.0)
+    return _Interpolated(up, up.cache + up.residual, sh_lo, cache_lo, filtered, pos.reshape(h, w, 3),
+                         nrm.reshape(h, w, 3), valid.reshape(h, w), rep_xy, records, camera, factor, steps)
+
+
+def full_res_preview(gi: PixelGI, position_lo: np.ndarray, pix: np.ndarray, points: np.ndarray, normals: np.ndarray,
+                     view: np.ndarray, full_points: np.ndarray, full_normals: np.ndarray, full_pix: np.ndarray,
+                     full_size: tuple[int, int], passes: int = 3, plane_sigma: float = 0.02,
+                     normal_power: float = 8.0, filter=None, upsample=None) -> tuple[np.ndarray, np.ndarray]:
+    """(indirect, direct) (H, W, 4) textures of `full_res_resolve` without its detail pixels' rays:
+    the filtered GI pixels interpolated at every full-res pixel. The pixels no GI pixel around
+    shares a surface with (a thin post, the far side of a crease: the orphans, which trace their
+    own rays there) take the cache's light of their taps read at their own normal (`_orphan_light`)
+    instead of nothing. Reads the arrays only (no system, no rays): the viewport's draw makes it
+    with the GPU's filter and upsample passes the moment a pixel pass's rays are in, while its
+    worker resolves the same rays with their detail pixels (car 640x360: 0.4 s of numpy)."""
+    inter = _interpolate(gi, position_lo, pix, points, normals, view, full_points, full_normals, full_pix, full_size,
+                         passes, plane_sigma, normal_power, filter=filter, upsample=upsample)
+    width, height = full_size
+    orphan = np.flatnonzero(inter.up.best < DETAIL_MATCH)
+    if orphan.size:
+        inter.value[orphan] = _orphan_light(inter, full_points, full_normals, full_pix, orphan, width)
+    return textures(inter.value, full_pix, height, width)
+
+
+def _orphan_light(inter: _Interpolated, full_points: np.ndarray, full_normals: np.ndarray, full_pix: np.ndarray,
+                  orphan: np.ndarray, width: int) -> np.ndarray:
+    """(m, 7) the light of the full-res pixels `orphan` without their own rays: their taps' cache
+    SH read at the pixel's own normal, the taps weighed by distance only (a wall pixel among
+    ground taps reads the ground's radiance towards the wall's normal: half the open sky where
+    the ground sees all of it), without the taps' residuals, which belong to their surface."""
+    points = np.ascontiguousarray(np.take(full_points, orphan, axis=0), np.float32)
+    normals = np.ascontiguousarray(np.take(full_normals, orphan, axis=0), np.float32)
+    up = upsample_full(inter.sh_lo, inter.cache_lo, inter.filtered, inter.pos, inter.nrm, inter.valid, points,
+                       normals, np.take(full_pix, orphan), width, inter.factor, inter.camera, plane_sigma=1e6,
+                       normal_power=0.0, rep_xy=inter.rep_xy, records=inter.records, stretch=None)
+    return up.cache
+
+
+def full_res_resolve(system, gi: PixelGI, position_lo: np.ndarray, pix: np.ndarray, points: np.ndarray,
+                     normals: np.ndarray, view: np.ndarray, frame: int, rays: int, full_points: np.ndarray,
+                     full_normals: np.ndarray, full_pix: np.ndarray, full_size: tuple[int, int], passes: int = 3,
+                     plane_sigma: float = 0.02, normal_power: float = 8.0, refine: float = REFINE_SPREAD,
+                     lookup: HitLookup | None = None, screen: ScreenLight | None = None,
+                     surfaces: np.ndarray | None = None, full_surfaces: np.ndarray | None = None,
+                     filter=None, upsample=None) -> FullResGI:
+    """`full_res_images` after its GI pixels' rays `gi` (`trace_pixels` at points, frame, rays):
+    the filter, the per-pixel resolve and the detail pixels' own rays (frame + DETAIL_FRAME; lookup:
+    the HitLookup the GI pixels' rays read, None builds one). The viewport's worker traces `gi` on
+    a thread of its own and resolves it here. screen : as `trace_pixels`', for the detail
+    pixels' rays and the resolver's. surfaces, full_surfaces : the GI pixels' and the full-res
+    pixels' smooth surface normals where a material bends normals (`full_res_images`), or None.
+    filter, upsample : as `full_res_images`'. Step times: "planes" (the filter's input images),
+    "filter" (the filter alone), "upsample" (without "upsample_pass", the `upsample` callable's),
+    "detail" and the GI pixels' own."""
+    width, height = full_size
+    if lookup is None and rays > 0:
+        lookup = hit_lookup(system, bounced=system.settings.indirect_quality == MULTI_BOUNCE)
+    inter = _interpolate(gi, position_lo, pix, points, normals, view, full_points, full_normals, full_pix, full_size,
+                         passes, plane_sigma, normal_power, system.updater.pool, surfaces, full_surfaces, filter,
+                         upsample)
+    steps = inter.steps
+    up, value = inter.up, inter.value
+    full_points = np.ascontiguousarray(full_points, np.float32)
+    full_normals = np.ascontiguousarray(full_normals, np.float32)
+    if full_surfaces is not None:
+        full_surfaces = np.ascontiguousarray(full_surfaces, np.float32)
+    resolver = GIResolver(system, inter.sh_lo, inter.cache_lo, inter.filtered, inter.pos, inter.nrm, inter.valid,
+                          inter.rep_xy, width, inter.factor, inter.camera, plane_sigma, normal_power, lookup, rays,
+                          inter.records, screen)
+    tic = time.perf_counter()
     orphan = up.best < DETAIL_MATCH
     light = np.maximum((value[:, 0:3] + value[:, 3:6]) @ LUMA, np.float32(1e-6))
     # How far the taps disagree, in units of the threshold, at pixels whose taps span a crease, a
@@ -1560,8 +1637,7 @@ def full_res_resolve(system, gi: PixelGI, position_lo: np.ndarray, pix: np.ndarr
     if varying.size > budget:
         varying = varying[np.argsort(-score[varying], kind="stable")[:budget]]
     detail = np.union1d(np.flatnonzero(orphan), varying)
-
-    steps["upsample"] = (time.perf_counter() - tic) * 1e3 - steps.get("upsample_pass", 0.0)
+    steps["upsample"] += (time.perf_counter() - tic) * 1e3
     if detail.size and rays > 0:
         tic = time.perf_counter()
         dp, dn = np.take(full_points, detail, axis=0), np.take(full_normals, detail, axis=0)
@@ -1628,10 +1704,10 @@ class GIResolver:
         normals = np.ascontiguousarray(normals, np.float32)
         if points.shape[0] == 0:
             return np.zeros((0, 7), np.float32), 0
-        up = _upsample_parallel(self.system, self.sh_lo, self.cache_lo, self.residual_lo, self.position_lo,
-                                self.normal_lo, self.valid_lo, points, normals, pix, self.width, self.factor,
-                                self.camera, self.plane_sigma, self.normal_power, self.rep_xy, offset=offset,
-                                records=self.records, surfaces=surfaces)
+        up = _upsample_parallel(self.system.updater.pool, self.sh_lo, self.cache_lo, self.residual_lo,
+                                self.position_lo, self.normal_lo, self.valid_lo, points, normals, pix, self.width,
+                                self.factor, self.camera, self.plane_sigma, self.normal_power, self.rep_xy,
+                                offset=offset, records=self.records, surfaces=surfaces)
         value = up.cache + up.residual
         orphan = np.flatnonzero(up.best < DETAIL_MATCH)
         rays = self.rays if rays is None else int(rays)

@@ -4,6 +4,7 @@ Cycles at a contact."""
 
 from __future__ import annotations
 
+import dataclasses
 import subprocess
 import sys
 import textwrap
@@ -574,6 +575,42 @@ def test_full_res_images_trace_own_rays_on_thin_geometry(wall_system):
     assert out.detail >= 1
     np.testing.assert_allclose(np.delete(direct, wall), np.pi, rtol=0.01)
     assert direct[wall] == pytest.approx(np.pi / 2, rel=0.1), direct[wall]
+
+
+def test_the_preview_is_the_resolve_without_its_detail_pixels(wall_system):
+    """`full_res_preview` (what the viewport's draw resolves on the GPU while its worker resolves
+    the same rays) is `full_res_resolve` without the detail pixels' own rays: bit for bit where
+    none traced; the wall pixel no GI pixel stands for reads the ground taps' cache at its own
+    normal (about half the sky, as its own rays find) instead of nothing."""
+    w = h = 8
+    wall = 3 * w + 3
+    full, normals, _ = _patch_full_res(wall_system, wall, w=w)
+    low_full = full.reshape(h, w, 3)[0::2, 0::2]
+    hl, wl = low_full.shape[:2]
+    position_lo = np.concatenate([low_full, np.ones((hl, wl, 1), np.float32)], -1)
+    points, lo_normals = low_full.reshape(-1, 3), np.tile(UP, (hl * wl, 1))
+    pix = np.arange(hl * wl)
+    view = np.eye(4, dtype=np.float32)
+    view[:3, 3] = (-40.2, -0.2, -5.0)
+    gi = pixel_gather.trace_pixels(wall_system, points, lo_normals, 64, 0,
+                                   wall_system.corner_visibility(points, lo_normals))
+    args = (position_lo, pix, points, lo_normals, view)
+    full_args = (full, normals, np.arange(w * h), (w, h))
+    preview = pixel_gather.full_res_preview(gi, *args, *full_args)
+    none = pixel_gather.full_res_resolve(wall_system, dataclasses.replace(gi), *args, 0, 0, *full_args)
+    traced = pixel_gather.full_res_resolve(wall_system, dataclasses.replace(gi), *args, 0, 256, *full_args)
+    assert none.detail == traced.detail >= 1  # the same pixels are picked; only traced ones get rays
+    rest = np.ones(w * h, bool)
+    rest[wall] = False
+    for a, b in ((preview[0], none.indirect), (preview[1], none.direct)):
+        np.testing.assert_array_equal(a.reshape(-1, 4)[rest], b.reshape(-1, 4)[rest])
+    changed = np.flatnonzero(np.any(preview[1].reshape(-1, 4) != traced.direct.reshape(-1, 4), axis=1))
+    assert wall in changed and changed.size <= traced.detail
+    assert none.direct.reshape(-1, 4)[wall, 0] == 0.0  # no tap shares its surface: nothing to interpolate
+    # (The low-order SH of the open ground's radiance read sideways: 1.84, nearer half the sky
+    # than the ground's pi.)
+    assert 0.8 * np.pi / 2 < preview[1].reshape(-1, 4)[wall, 0] < 0.65 * np.pi
+    assert traced.direct.reshape(-1, 4)[wall, 0] == pytest.approx(np.pi / 2, rel=0.1)
 
 
 def test_a_subframe_sample_on_a_surface_the_centre_missed_gets_its_own_light(wall_system):
