@@ -35,6 +35,7 @@ from hybridgi_core import cache as _cache
 from hybridgi_core import errors
 from hybridgi_core import glossy as _glossy_core
 from hybridgi_core import grid as _grid
+from hybridgi_core import pixel_gather as _pixel_gather
 from hybridgi_core import settings as _settings
 from hybridgi_core.raster import downsample as _downsample
 from hybridgi_core.raster import frame as _frame
@@ -139,6 +140,7 @@ class _GPUState:
         self.mask_serial = None
         self.pixel_tx = None  # (indirect, direct, SSAO) textures of the worker's pixel rays
         self.pixel_serial = None
+        self.pixel_shape = None  # their (h, w)
         self.cache_frame = None  # the CacheFrame on the GPU
         self.width = self.height = 0
 
@@ -312,10 +314,12 @@ class ViewportSession:
             lit = gpu_state.resolve_low.execute(low.position, low.normal, source)
         world = self.mirror.snapshot.world.background_color
         pipeline.set_world(self.mirror.snapshot.world)  # its map uploaded once per world edit
+        with stats.step("resolve"):
+            self._resolve_pending(gpu_state, published, view_key)
         with stats.step("upload_results"):
             gi = self._pixel_textures(gpu_state, published, view_key)
         gi_low, gi_bilateral = low, None
-        if gi is not None and published.view.gi_indirect.shape[:2] != (low.height, low.width):
+        if gi is not None and gpu_state.pixel_shape != (low.height, low.width):
             with stats.step("resolve"):  # full-res GI (`ViewRequest.full_res`): its guide, a copy of this G-buffer
                 gi_low, gi_bilateral = pipeline.full_res_guide(gbuf)
         with stats.step("resolve"):
@@ -539,16 +543,27 @@ class ViewportSession:
         (final renders' `_pixel_gi`), uploaded once per serial; None when it has none (a moving
         or new view, a cache still converging): the cache gather stands in."""
         result = published.view
-        if result is None or result.gi_indirect is None or result.key != view_key:
+        if result is None or result.key != view_key:
             return None
+        if result.gi_indirect is None:
+            # A pass the worker has not resolved yet: `_resolve_pending` uploaded the draw's own.
+            pending = result.gi_pending
+            if pending is None or gpu_state.pixel_serial != ("pending", pending.serial):
+                return None
+            return gpu_state.pixel_tx
         if gpu_state.pixel_serial != result.serial:
-            neutral = np.zeros(result.gi_indirect.shape, np.float32)
-            neutral[..., 3] = 1.0  # no occlusion, no near-field bounce: the rays saw the near field
-            gpu_state.pixel_tx = (_readback.upload_texture_2d(result.gi_indirect, "RGBA32F"),
-                                  _readback.upload_texture_2d(result.gi_direct, "RGBA32F"),
-                                  _readback.upload_texture_2d(neutral, "RGBA16F"))
-            gpu_state.pixel_serial = result.serial
+            _upload_pixels(gpu_state, result.serial, result.gi_indirect, result.gi_direct)
         return gpu_state.pixel_tx
+
+    def _resolve_pending(self, gpu_state: _GPUState, published, view_key) -> None:
+        """The GI textures of the view's pixel pass whose rays the worker published before
+        resolving them (`worker.PendingGI`): resolved once, here, by the GPU's passes."""
+        result = published.view
+        if result is None or result.key != view_key or result.gi_indirect is not None or result.gi_pending is None:
+            return
+        pending = result.gi_pending
+        if gpu_state.pixel_serial != ("pending", pending.serial):
+            _upload_pixels(gpu_state, ("pending", pending.serial), *_pending_images(gpu_state.pipeline, pending))
 
     def _upload_results(self, gpu_state: _GPUState, published, view_key):
         """Cache textures and the view's light, each uploaded once per published serial."""
@@ -585,6 +600,29 @@ class ViewportSession:
         if self.gpu is not None:
             self.gpu.free()
             self.gpu = None
+
+
+def _upload_pixels(gpu_state: _GPUState, serial, indirect: np.ndarray, direct: np.ndarray) -> None:
+    """The (indirect, direct, SSAO) textures `FramePipeline.shade` takes of pixel-ray GI images."""
+    neutral = np.zeros(indirect.shape, np.float32)
+    neutral[..., 3] = 1.0  # no occlusion, no near-field bounce: the rays saw the near field
+    gpu_state.pixel_tx = (_readback.upload_texture_2d(indirect, "RGBA32F"),
+                          _readback.upload_texture_2d(direct, "RGBA32F"),
+                          _readback.upload_texture_2d(neutral, "RGBA16F"))
+    gpu_state.pixel_serial = serial
+    gpu_state.pixel_shape = indirect.shape[:2]
+
+
+def _pending_images(pipeline, pending: worker.PendingGI) -> tuple[np.ndarray, np.ndarray]:
+    """(indirect, direct) full-res GI images of a pixel pass the worker has not resolved yet
+    (`worker.PendingGI`), resolved here by the GPU's filter and interpolation passes as final
+    renders resolve theirs (`pixel_gather.full_res_preview`: without the detail pixels, which the
+    worker's own resolve adds)."""
+    (h, w), (full_points, full_normals, full_pix) = pending.full_shape, pending.full
+    return _pixel_gather.full_res_preview(
+        pending.gi, pending.position_lo, pending.pix, pending.points, pending.normals, pending.view, full_points,
+        full_normals, full_pix, (w, h), pending.passes, pending.plane_sigma, pending.normal_power,
+        filter=pipeline.atrous, upsample=pipeline.upsample)
 
 
 _EMPTY = {}

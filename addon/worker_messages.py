@@ -148,6 +148,33 @@ class CacheFrame:
 
 
 @dataclass(frozen=True)
+class PendingGI:
+    """A still view's first pixel pass, its rays in and not yet resolved by the worker: what
+    `pixel_gather.full_res_preview` resolves it from (the main thread, with the GPU's filter and
+    upsample passes). Why: the worker's numpy resolve (filter, interpolation, detail pixels) takes
+    0.3-0.4 s of 2 busy cores at 640x360, a GPU's filter and interpolation a millisecond; the
+    view shows the rays' light as soon as they are in while the worker finishes the resolve.
+
+    serial : unique per pass (the draw resolves each once); gi : the pass's `PixelGI` (a copy:
+    never written again); position_lo : the request's GI-resolution positions; pix, points,
+    normals : the GI pixels; full : (points, normals, flat pixels) of the direct-resolution
+    G-buffer, full_shape its (h, w); passes, plane_sigma, normal_power : the filter's settings."""
+
+    serial: int
+    gi: object
+    position_lo: np.ndarray
+    pix: np.ndarray
+    points: np.ndarray
+    normals: np.ndarray
+    view: np.ndarray
+    full: tuple
+    full_shape: tuple
+    passes: int
+    plane_sigma: float
+    normal_power: float
+
+
+@dataclass(frozen=True)
 class ViewResult:
     """Light of one `ViewRequest`: arrays float32, rows bottom-up like the request.
 
@@ -179,6 +206,9 @@ class ViewResult:
     gi_indirect: np.ndarray | None = None
     gi_direct: np.ndarray | None = None
     pixel_passes: int = 0
+    #: The first pixel pass's rays before the worker has resolved them (gi_indirect is None
+    #: then): the draw resolves them itself (`PendingGI`).
+    gi_pending: PendingGI | None = None
     #: The glossy layers' light towards this view's camera (`glossy_image`: the lamps' part, the
     #: mean over `glossy_passes` passes, plus the cache's split-sum part): (h, w, 4) rgb radiance
     #: added to Combined, a = 1 where computed, at glossy_position / glossy_normal (the request's

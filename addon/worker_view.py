@@ -126,6 +126,8 @@ class ViewState:
         #: before it, and the carried (indirect, direct) once the re-lit cache is solved.
         self.carry: tuple | None = None
         self.carried: tuple | None = None
+        #: The first pixel pass over the view's cache, rays in, resolve under way (`PendingGI`).
+        self.pending = None
         self.carry_map: tuple | None = None  # (nearest GI point, flat pixel) of each textured pixel
         self.cell_colors: np.ndarray | None = None  # Cache Cells view, when the request asks
         self.cells_key = None
@@ -197,6 +199,7 @@ class ViewState:
     def reset_pixels(self) -> None:
         self.drop_pixel_pass()  # its rays were traced over what is reset
         self.pixel_sum, self.pixel_passes, self.pixel_key = None, 0, None
+        self.pending = None
         self.pixel_next, self.pixel_cache = None, None
 
     def refines(self, key) -> bool:
@@ -230,6 +233,7 @@ class ViewState:
             return
         if key != self.pixel_key:
             self.reset_pixels()
+        self.pending = None  # resolved: the worker's own textures replace the draw's
         if self.pixel_sum is None:
             self.pixel_sum = [indirect.copy(), direct.copy()]
             self.pixel_cache = cache.copy()
@@ -250,8 +254,11 @@ class ViewState:
         level = fine if fine is not None and fine.samples_per_pixel >= self.coarse.samples_per_pixel else self.coarse
         r = self.request
         gi = (None, None)
+        pending = None
         if self.pixel_sum is not None:
             gi = (frozen(self.pixel_sum[0] / self.pixel_passes), frozen(self.pixel_sum[1] / self.pixel_passes))
+        elif self.pending is not None:
+            pending = self.pending  # the pass's own rays, resolved by the draw, before a carried image
         elif self.carried is not None:
             gi = self.carried  # a lamp edit's carried passes until its own pass (`gi_carry`)
         return ViewResult(
@@ -260,7 +267,7 @@ class ViewState:
             corner_mask=None if self.mask is None else frozen(self.mask.copy()),
             cells=None if self.cell_colors is None else frozen(self.cell_colors.copy()),
             gi_position=r.position, gi_normal=r.normal,
-            gi_indirect=gi[0], gi_direct=gi[1],
+            gi_indirect=gi[0], gi_direct=gi[1], gi_pending=pending,
             pixel_passes=self.pixel_passes, edges=self.edges if level is fine else None,
             **self._glossy_fields(),
         )

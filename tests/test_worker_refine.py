@@ -289,6 +289,74 @@ def test_a_still_view_alternates_pixel_passes_and_full_res_direct_passes(worker,
     assert order == ["p", "d", "p", "d"]
 
 
+def test_a_first_full_res_pixel_pass_goes_to_the_draw_before_the_workers_resolve(worker, monkeypatch):
+    """A still view's first full-res pixel pass is published as soon as its rays are in
+    (`ViewResult.gi_pending`, which the draw resolves on the GPU), then the view's first full-res
+    direct pass and its edge light are traced, and only then does the worker resolve the rays
+    itself (filter, interpolation, detail pixels). The draw's image is that resolve without the
+    detail pixels' rays: the same light everywhere else."""
+    from hybridgi_core import pixel_gather  # noqa: PLC0415
+
+    pixels = sys.modules[worker.__name__.rsplit(".", 1)[0] + ".worker_pixels"]
+    scene, settings, (pos, nrm), (full_pos, full_nrm), view_matrix, proj, _, offsets = cornell_view_with_pattern()
+    order, pending, resolved = [], [], []
+    direct_pass, edge_pass, publish = (worker.ViewportWorker._direct_pass, worker.ViewportWorker._edge_pass,
+                                       worker.ViewportWorker._publish)
+    full_res = pixels.full_res
+
+    def record_direct(self, system, state, level=None):
+        direct_pass(self, system, state, level)
+        if level is None:
+            order.append("direct")
+
+    def record_edges(self, system, state):
+        edge_pass(self, system, state)
+        order.append("edges")
+
+    def record_publish(self, force=True):
+        publish(self, force)
+        view = self._published.view
+        if view is not None and view.gi_pending is not None and not pending:
+            assert view.gi_indirect is None  # the draw resolves the rays: no other image goes out with them
+            pending.append(view.gi_pending)
+            order.append("pending")
+
+    def record_resolve(*args, **kwargs):
+        out = full_res(*args, **kwargs)
+        resolved.append(out)
+        order.append("resolve")
+        return out
+
+    monkeypatch.setattr(worker.ViewportWorker, "_direct_pass", record_direct)
+    monkeypatch.setattr(worker.ViewportWorker, "_edge_pass", record_edges)
+    monkeypatch.setattr(worker.ViewportWorker, "_publish", record_publish)
+    monkeypatch.setattr(pixels, "full_res", record_resolve)
+    options = worker.WorkerOptions(direct_passes=2, solver_batches=1, first_batch_rays=8, pixel_rays=8,
+                                   pixel_passes=1)
+    wk = worker.ViewportWorker(settings, options)
+    try:
+        wk.post_edit(worker.FullScene(scene))
+        wk.post_view(worker.ViewRequest(("k",), pos, nrm, full_pos, full_nrm, view_matrix, proj, full_res=True,
+                                        aa_offsets=offsets))
+        assert wk.wait_idle(120)
+        final = wk.latest().view
+    finally:
+        wk.close()
+    assert order[:4] == ["pending", "direct", "edges", "resolve"], order
+    assert final.gi_pending is None and final.gi_indirect.shape[:2] == full_pos.shape[:2]
+    p = pending[0]
+    (h, w), (points, normals, pix) = p.full_shape, p.full
+    indirect, direct = pixel_gather.full_res_preview(p.gi, p.position_lo, p.pix, p.points, p.normals, p.view,
+                                                     points, normals, pix, (w, h), p.passes, p.plane_sigma,
+                                                     p.normal_power)
+    lit = np.flatnonzero(full_pos.reshape(-1, 4)[:, 3] > 0)
+    a = np.concatenate([indirect, direct], -1).reshape(-1, 8)[lit]
+    b = np.concatenate([final.gi_indirect, final.gi_direct], -1).reshape(-1, 8)[lit]
+    assert a[:, :3].mean() > 0.05  # lit: the comparison is not of zeros
+    differ = ~np.all(np.isclose(a, b, rtol=1e-4, atol=1e-6), axis=1)
+    assert 0 < differ.sum() <= resolved[0].detail
+
+
 def test_after_a_lamp_edit_the_other_batches_reshade_as_a_refinement(worker):
     """After a lamp edit the first re-shaded batch's solve is the view's cache (stable: pixel
     passes may be traced over it) and the other batches' re-shade may wait for the view's own
