@@ -809,11 +809,11 @@ class ViewportWorker:
     def _pending(self, system, state: ViewState, gi, raster) -> None:
         """The view's first pixel pass over its cache has its rays: published for the draw to
         resolve on the GPU (`PendingGI`), then the view's first full-res direct pass if it has
-        none, and only then the worker's own resolve (its filter, interpolation and detail
-        pixels in numpy, 0.3-0.4 s at 640x360 on 2 busy cores). Why: the image waited for that
-        resolve and then for the direct pass (car 640x360, worker timeline: within the target at
-        0.98 s); the rays' light with the full-res lamp light shows ~0.4 s sooner, the detail
-        pixels (0.0033 -> 0.0032 on the car) follow."""
+        none (and its edge light), and only then the worker's own resolve (its filter,
+        interpolation and detail pixels in numpy, 0.3-0.4 s at 640x360 on 2 busy cores). Why: the
+        image waited for that resolve and then for the direct pass (car 640x360, worker timeline:
+        within its target at 1.0 s, now at 0.75 s; Cornell after a light move 1.5 -> 1.0 s); the
+        detail pixels (car: 0.0033 -> 0.0032) follow."""
         r = state.request
         points, normals, pix = state.gi_points
         self._pending_serial += 1
@@ -826,7 +826,10 @@ class ViewportWorker:
         if state.passes == 0 and self.options.direct_passes > 0:
             self._direct_pass(system, state)
             self._publish(force=True)
-        if self._edges_due(state) and not self._superseded(state):
+        # The edge light too, unless the view's final-render glossy light is to come (after the
+        # resolve, `_fine_glossy_due`): the larger error in a glossy scene (morse_apartment, worker
+        # timeline: 0.058 -> 0.071 at 1.5 s with its five lamps' edges first).
+        if state.glossy is None and self._edges_due(state) and not self._superseded(state):
             self._edge_pass(system, state)
             self._publish(force=True)
 

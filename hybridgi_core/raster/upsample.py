@@ -8,7 +8,8 @@ thousand samples (`GIResolver`) and of pixels a normal map bends (their bent lob
 `tests/test_upsample.py` holds the two equal.
 
 Calling an `UpsamplePass` with `upsample_full`'s arguments returns its `Upsampled`; a
-`FramePipeline` hands it to `full_res_images` as its `upsample`.
+`FramePipeline` hands it to `full_res_images` as its `upsample`, and the viewport's draw to
+`pixel_gather.full_res_preview` for a pixel pass its worker has not resolved yet.
 """
 
 from __future__ import annotations
