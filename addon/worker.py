@@ -334,6 +334,10 @@ class ViewportWorker:
                 # edit with the view's pixel passes carried over (`_carry`).
                 if self._carry_due(state):
                     self._carry(system, state)
+                elif self._pixels_next(state):
+                    # Its rays start first: packing the cache (0.05-0.09 s at 640x360 on the
+                    # worker thread) then runs beside them, not before them.
+                    self._pixel_pass(system, state)
                 self._publish(force=True)
                 finished = False
         if state is not None and state.request.debug_cells:
@@ -743,6 +747,13 @@ class ViewportWorker:
         """A still view's own light is not complete: its mask, glossy or direct passes, or pixel passes."""
         return (state.mask is None or self._glossy_due(state) or state.passes < self.options.direct_passes
                 or self._pixels_due(state) or self._fine_glossy_due(state) or self._edges_due(state))
+
+    def _pixels_next(self, state: ViewState) -> bool:
+        """A pixel pass is the still view's next refinement (`_step`'s order: none of the others is
+        due) and none is under way."""
+        return (state.pixel_pass is None and state.mask is not None and not self._carry_due(state)
+                and not self._glossy_due(state) and not self._fine_glossy_due(state) and not self._edges_due(state)
+                and not self._direct_due(state) and self._pixels_due(state))
 
     def _pixel_key(self, system) -> tuple:
         """What a view's pixel passes were traced over: the cache, its lighting epoch (events
