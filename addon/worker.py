@@ -334,8 +334,8 @@ class ViewportWorker:
                 # edit with the view's pixel passes carried over (`_carry`).
                 if self._carry_due(state):
                     self._carry(system, state)
-                elif self._pixels_next(state):
-                    # Its rays start first: packing the cache (0.05-0.09 s at 640x360 on the
+                elif state.pixel_pass is None and self._refinement(state) == "pixels":
+                    # A pixel pass is the view's next refinement: its rays start first: packing the cache (0.05-0.09 s at 640x360 on the
                     # worker thread) then runs beside them, not before them.
                     self._pixel_pass(system, state)
                 self._publish(force=True)
@@ -344,20 +344,7 @@ class ViewportWorker:
             self._cell_colors(system, state, force=moving or not schedule.has_work)
         if state is not None and not moving:
             # Refinements of a view that held still for a whole step.
-            if state.mask is None:
-                self._trace_mask(system, state)
-            elif self._carry_due(state):
-                self._carry(system, state)
-            elif self._glossy_due(state) and schedule.solved_once:
-                self._glossy_pass(system, state, self.options.direct_samples)
-            elif self._fine_glossy_due(state):
-                self._fine_glossy(system, state)
-            elif self._edges_due(state):
-                self._edge_pass(system, state)
-            elif self._direct_due(state):
-                self._direct_pass(system, state)
-            elif self._pixels_due(state):
-                self._pixel_pass(system, state)
+            self._refine(system, state, self._refinement(state))
         # A finished solve is published at once; iterations in between at SOLVE_PUBLISH_INTERVAL_S.
         self._publish(force=finished)
 
@@ -748,12 +735,42 @@ class ViewportWorker:
         return (state.mask is None or self._glossy_due(state) or state.passes < self.options.direct_passes
                 or self._pixels_due(state) or self._fine_glossy_due(state) or self._edges_due(state))
 
-    def _pixels_next(self, state: ViewState) -> bool:
-        """A pixel pass is the still view's next refinement (`_step`'s order: none of the others is
-        due) and none is under way."""
-        return (state.pixel_pass is None and state.mask is not None and not self._carry_due(state)
-                and not self._glossy_due(state) and not self._fine_glossy_due(state) and not self._edges_due(state)
-                and not self._direct_due(state) and self._pixels_due(state))
+    def _refinement(self, state: ViewState) -> str | None:
+        """The still view's next refinement (`_refine`), the first due in this order: its corner
+        mask, a lamp edit's carried GI, glossy passes, the final render's glossy light, the edge
+        light, full-res direct passes, pixel passes; None when none is due."""
+        if state.mask is None:
+            return "mask"
+        if self._carry_due(state):
+            return "carry"
+        if self._glossy_due(state) and self._schedule.solved_once:
+            return "glossy"
+        if self._fine_glossy_due(state):
+            return "fine_glossy"
+        if self._edges_due(state):
+            return "edges"
+        if self._direct_due(state):
+            return "direct"
+        if self._pixels_due(state):
+            return "pixels"
+        return None
+
+    def _refine(self, system, state: ViewState, refinement: str | None) -> None:
+        """One step of the refinement `_refinement` named."""
+        if refinement == "mask":
+            self._trace_mask(system, state)
+        elif refinement == "carry":
+            self._carry(system, state)
+        elif refinement == "glossy":
+            self._glossy_pass(system, state, self.options.direct_samples)
+        elif refinement == "fine_glossy":
+            self._fine_glossy(system, state)
+        elif refinement == "edges":
+            self._edge_pass(system, state)
+        elif refinement == "direct":
+            self._direct_pass(system, state)
+        elif refinement == "pixels":
+            self._pixel_pass(system, state)
 
     def _pixel_key(self, system) -> tuple:
         """What a view's pixel passes were traced over: the cache, its lighting epoch (events
