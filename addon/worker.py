@@ -804,15 +804,24 @@ class ViewportWorker:
         if state.pixel_pass is None:
             if self._pixel_thread is None:
                 self._pixel_thread = futures.ThreadPoolExecutor(1, thread_name_prefix="hybridgi-viewport-pixels")
-            state.pixel_pass = _pixels.PixelPass(key, state.passes_over(key), state.screen_light())
-            state.pixel_pass.start(self._pixel_thread, system, points, normals, state.visible,
-                                   self.options.pixel_rays, pix, r.position.shape[1], on_done=self._wake)
+            state.pixel_pass = _pixels.PixelPass(key, state.pass_number(key), state.screen_light())
+            if state.reshade_due:
+                # A lamp edit's first pass: the kept rays shaded again (no ray traced again).
+                state.reshade_due = False
+                state.pixel_pass.start_reshade(self._pixel_thread, system, state.kept, state.visible,
+                                               on_done=self._wake)
+            else:
+                state.pixel_pass.start(self._pixel_thread, system, points, normals, state.visible,
+                                       self.options.pixel_rays, pix, r.position.shape[1], on_done=self._wake,
+                                       keep=True)
             return
         pass_ = state.pixel_pass
         if not pass_.done:
             return
         state.pixel_pass = None
         gi = pass_.result()
+        if pass_.traced is not None:
+            state.kept = pass_.traced
         self._count_rays(gi.rays)
         self._steps["pixel_rays"] = pass_.ms
         t1 = time.perf_counter()

@@ -29,6 +29,10 @@ from hybridgi_core.settings import MULTI_BOUNCE
 #: Frame numbers per pass: pass k traces frame FRAME_BASE + k * FRAMES_PER_PASS.
 FRAME_BASE = 1 << 24
 FRAMES_PER_PASS = 1024
+#: Most rays a pass keeps traced for a lamp edit to shade again (`PixelPass.keep`): ~40 bytes a
+#: ray (directions, origins, hits), so ~170 MB at most; a larger view (GI pixels x rays) traces
+#: its passes again after a lamp edit instead.
+KEEP_RAYS_MAX = 1 << 22
 
 
 class PixelPass:
@@ -44,6 +48,9 @@ class PixelPass:
         self.screen = screen
         #: The cache as the hits read it, built by the pass (the detail pixels' rays read it too).
         self.lookup = None
+        #: The pass's traced rays (`pixel_gather.BegunPixels`), kept when the pass ran to its end
+        #: and `start(keep=True)`: a lamp edit's first pass shades them again (`start_reshade`).
+        self.traced: pixel_gather.BegunPixels | None = None
         self.ms = 0.0  # the pass's own wall time
         self._stop = threading.Event()
         self._future: futures.Future | None = None
@@ -62,23 +69,47 @@ class PixelPass:
         return self._future is not None and self._future.done()
 
     def start(self, executor, system, points, normals, visible, rays: int, pix=None, width: int = 0,
-              on_done=None) -> None:
+              on_done=None, keep: bool = False) -> None:
         """Trace the pass on `executor` (one thread; the rays' work items go to the system's pool).
         pix, width : the points' flat pixel indices in the GI image and its width: each tile's
         rays stratify together (`tiled_nets`, one key per pass). on_done() is called from that
-        thread when the pass ends (to wake the worker)."""
+        thread when the pass ends (to wake the worker). keep : hold the traced rays once the pass
+        ran to its end (`traced`), if they are at most KEEP_RAYS_MAX."""
         tiles = None if pix is None else (pix, width, self.frame)
+        keep = keep and rays > 0 and points.shape[0] * rays <= KEEP_RAYS_MAX
 
         def trace() -> pixel_gather.PixelGI:
             t0 = time.perf_counter()
             if rays > 0:
                 self.lookup = hit_lookup(system, bounced=system.settings.indirect_quality == MULTI_BOUNCE)
-            gi = pixel_gather.trace_pixels(system, points, normals, rays, self.frame, visible, lookup=self.lookup,
-                                           pixels=tiles, screen=self.screen, stop=self._stop.is_set)
+            begun = pixel_gather.begin_pixels(system, points, normals, rays, self.frame, visible, lookup=self.lookup,
+                                              pixels=tiles, stop=self._stop.is_set)
+            gi = pixel_gather.finish_pixels(begun, self.screen)
+            if keep and not self._stop.is_set() and begun.traced:
+                self.traced = begun
             self.ms = (time.perf_counter() - t0) * 1e3
             return gi
 
-        self._future = executor.submit(trace)
+        self._run(executor, trace, on_done)
+
+    def start_reshade(self, executor, system, traced: pixel_gather.BegunPixels, visible, on_done=None) -> None:
+        """Shade an earlier pass's traced rays again on `executor` (`pixel_gather.reshade_pixels`:
+        the system's current cache and this pass's `screen` light, no ray traced again): a lamp
+        edit's first pass over a still view. The rays stay kept (`traced`) for the next edit."""
+
+        def reshade() -> pixel_gather.PixelGI:
+            t0 = time.perf_counter()
+            self.lookup = hit_lookup(system, bounced=system.settings.indirect_quality == MULTI_BOUNCE)
+            gi = pixel_gather.reshade_pixels(traced, system, self.frame, visible, lookup=self.lookup,
+                                             screen=self.screen, stop=self._stop.is_set)
+            self.traced = traced
+            self.ms = (time.perf_counter() - t0) * 1e3
+            return gi
+
+        self._run(executor, reshade, on_done)
+
+    def _run(self, executor, fn, on_done) -> None:
+        self._future = executor.submit(fn)
         if on_done is not None:
             self._future.add_done_callback(lambda _f: on_done())
 

@@ -126,6 +126,15 @@ class ViewState:
         #: before it, and the carried (indirect, direct) once the re-lit cache is solved.
         self.carry: tuple | None = None
         self.carried: tuple | None = None
+        #: The traced rays of the view's last pixel pass that kept them (`PixelPass.traced`): a lamp
+        #: edit's first pass shades them again (`reshade_due`) instead of tracing new ones.
+        self.kept = None
+        self.reshade_due = False
+        #: Pixel passes are numbered from frame_base (their frames, so their directions); a lamp
+        #: edit moves it past every number used (frames_used), so the passes after a re-shaded one
+        #: never trace its directions again.
+        self.frame_base = 0
+        self.frames_used = 0
         #: The first pixel pass over the view's cache, rays in, resolve under way (`PendingGI`).
         self.pending = None
         self.carry_map: tuple | None = None  # (nearest GI point, flat pixel) of each textured pixel
@@ -188,6 +197,9 @@ class ViewState:
         # else: an edit before the last one's pixel pass carries the same passes again
         self.carried = None
         self.reset_pixels()
+        # The pixels' rays hit what they hit before: the first pass shades a kept pass again.
+        self.reshade_due = self.kept is not None
+        self.frame_base = self.frames_used
         self.dirty = True
 
     def drop_pixel_pass(self) -> None:
@@ -211,10 +223,16 @@ class ViewState:
                 and key[:2] == self.pixel_key[:2])
 
     def passes_over(self, key) -> int:
-        """Passes summed so far over `key` (the next pass's number: its frames)."""
+        """Passes summed so far over `key`."""
         if self.refines(key):
             return self.pixel_next[1] if self.pixel_next is not None and self.pixel_next[2] == key else 0
         return self.pixel_passes
+
+    def pass_number(self, key) -> int:
+        """The next pass's number over `key` (its frames: `PixelPass.index`), counted as used."""
+        number = self.frame_base + self.passes_over(key)
+        self.frames_used = max(self.frames_used, number + 1)
+        return number
 
     def add_pixels(self, indirect: np.ndarray, direct: np.ndarray, key, cache: np.ndarray) -> None:
         """One pixel-ray pass over the cache `key` (cache: its (n, 7) values at the GI points);

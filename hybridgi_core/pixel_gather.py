@@ -107,6 +107,9 @@ MIN_SPLIT_RAYS = 16384
 REFINE_COVER = 0.85
 #: Frame offset of the detail pixels' ray stream (other directions than the GI pixels').
 DETAIL_FRAME = 1 << 20
+#: Frame offset of a re-shaded pass's shading samples (`reshade_pixels`): a stream apart from the
+#: traced passes'.
+RESHADE_FRAME = 1 << 21
 #: NOISE_SIGMA of `full_res_images`: the per-pixel interpolation already averages over the GI pixels
 #: around each pixel, so the filter may stop at smaller differences than NOISE_SIGMA. 1.5, not 1.0
 #: (640x360 vs 1024-spp Cycles, Combined, r32 x32 p32 s4 rung: Cornell 0.0220 -> 0.0215, spheres
@@ -289,6 +292,11 @@ class BegunPixels:
     surfaces: np.ndarray | None = None  # the pixels' smooth surface normals as given, or None
     feeder: _Trickle | None = None  # submits the items one at a time (`begin_pixels(trickle=True)`)
 
+    @property
+    def traced(self) -> bool:
+        """Every work item's rays are traced (none stopped): what `reshade_pixels` can shade again."""
+        return self.rays > 0 and all(j.done() and not j.exception() and "hits" in j.result() for j in self.jobs)
+
     def flush(self) -> None:
         """Let every item not yet submitted go to the pool at once."""
         if self.feeder is not None:
@@ -409,6 +417,35 @@ def finish_pixels(begun: BegunPixels, screen: ScreenLight | None = None) -> Pixe
                    indirect_variance=out[:, 16], sh=sh_all, rays=n * begun.rays, steps_ms=steps)
 
 
+def reshade_pixels(begun: BegunPixels, system, frame: int, corner_visible: np.ndarray | None = None,
+                   lookup: HitLookup | None = None, screen: ScreenLight | None = None,
+                   stop: Callable[[], bool] | None = None) -> PixelGI:
+    """An earlier pass's rays shaded again over the system's current cache and lamp light, none
+    of them traced again (their hits' shadow and near-bounce rays are): `trace_pixels`' result
+    for the same points and directions, from `begun`, that pass's traced work items
+    (`BegunPixels.traced`). For a lamp edit of a still view, whose geometry and pixels hold: the
+    trace of the rays is a third of a pass (atrium 640x360: 350 of ~1000 ms of the pool's threads). frame : seeds the shading's random numbers (a stream apart from the traced rays').
+    corner_visible : (n, 8) as `trace_pixels` takes it; lookup : the current cache as the hits
+    read it (None: built here); screen, stop : as `trace_pixels`'. The result counts no rays."""
+    s = system.settings
+    if lookup is None and begun.rays > 0 and begun.n:
+        lookup = hit_lookup(system, bounced=s.indirect_quality == MULTI_BOUNCE)
+    pool = system.updater.pool
+    per = begun.per
+    jobs = []
+    for i, job in enumerate(begun.jobs):
+        state = job.result()
+        vis = None if corner_visible is None else corner_visible[i * per:(i + 1) * per]
+        if "hits" not in state:
+            raise ValueError("reshade_pixels: a work item without traced rays (keep passes that ran to their end)")
+        rng = frame_rng(s.seed + SEED_OFFSET, RESHADE_FRAME + frame * 7919 + i)
+        jobs.append(pool.submit(_restate, state, system, lookup, vis, rng))
+    again = BegunPixels(system, begun.n, begun.rays, per, jobs, stop, lookup, begun.surfaces)
+    gi = finish_pixels(again, screen)
+    gi.rays = 0
+    return gi
+
+
 def _shade_unless_stopped(stop: Callable[[], bool], state: dict, screen: ScreenLight | None = None):
     """`_chunk_shade`, or zeros for the pixels once stop() holds (polled only for an item whose
     rays were traced): a pass dropped after its rays were traced skips their shading, the larger
@@ -437,16 +474,10 @@ def _chunk_trace(system, lookup: HitLookup | None, p, nrm, corner_visible, rays,
     Bent normals (a normal map's): the rays bring their light times Cycles' bump shadowing term,
     so the cache's part is the same lobe's (`bump.irradiance_kernel`: nothing from below the
     smooth surface) and the control variate is weighed by the same term, ray by ray: the
-    residual is then what the cache misses, not the light under the surface the cosine of the
+    residual is then what the cache misses, not the light under the surface the cache of the
     bent normal would read (3.2 x the ridges' Diffuse Indirect)."""
-    times = {}
     s = system.settings
-    tic = time.perf_counter()
     m = p.shape[0]
-    res = np.zeros((m, 17), np.float32)
-    levels = getattr(system, "levels", None)
-    sh_d, sh_i, sh_a, covered = (cache_sh_at(system.cache, p, nrm, corner_visible) if levels is None
-                                 else levels.sh_at(p, nrm, corner_visible))
     tracer = system.tracer
     eps = np.float32(tracer.epsilon)
     # A normal map bends the shading normal away from the surface: rays leave along the smooth
@@ -454,6 +485,33 @@ def _chunk_trace(system, lookup: HitLookup | None, p, nrm, corner_visible, rays,
     smooth = surf
     if smooth is None and has_normal_maps(system.scene) and m:
         smooth = smooth_normals(system.surfaces, tracer, p, nrm, float(eps))
+    state = _cache_part(system, p, nrm, corner_visible, smooth)
+    if rays <= 0:
+        return state
+    times = state["times"]
+    tic = time.perf_counter()
+    uv = None if tiles is None else tiled_uv(tiles[0], tiles[1], rays, tiles[2])
+    dirs = cosine_directions(nrm, rays, rng, uv).reshape(-1, 3)
+    origins = np.repeat(p + (nrm if smooth is None else smooth) * eps, rays, axis=0)
+    tfar = np.float32(s.ray_length) if s.ray_length > 0 else np.float32(np.inf)
+    hits = tracer.intersect(origins, dirs, tfar, trusted=True)
+    times["trace"] = (time.perf_counter() - tic) * 1e3
+    state.update(system=system, lookup=lookup, p=p, nrm=nrm, rays=rays, rng=rng, smooth=smooth, dirs=dirs,
+                 origins=origins, hits=hits)
+    return state
+
+
+def _cache_part(system, p, nrm, corner_visible, smooth) -> dict:
+    """The cache's side of a work item (`_chunk_trace`): its SH gathered at the pixels p (m, 3)
+    with normals nrm, their irradiance (the control variate's exact integral, res[:, 9:16]) and
+    the blended SH (coeffs); `smooth` the smooth normals under bent ones (or None)."""
+    times = {}
+    tic = time.perf_counter()
+    m = p.shape[0]
+    res = np.zeros((m, 17), np.float32)
+    levels = getattr(system, "levels", None)
+    sh_d, sh_i, sh_a, covered = (cache_sh_at(system.cache, p, nrm, corner_visible) if levels is None
+                                 else levels.sh_at(p, nrm, corner_visible))
     k = sh_d.shape[1]
     kernel = None if smooth is None else irradiance_kernel(smooth, nrm, 2 if k == 9 else 1)
     # The cache's own irradiance at the pixels, what the GPU gather reads (unclamped here: the
@@ -469,18 +527,15 @@ def _chunk_trace(system, lookup: HitLookup | None, p, nrm, corner_visible, rays,
     coeffs[~covered, :, 6] = 0.0
     coeffs[~covered, 0, 6] = np.float32(1.0 / SH_Y00)  # open: constant visibility 1
     times["cache_sh"] = (time.perf_counter() - tic) * 1e3
-    if rays <= 0:
-        return dict(res=res, coeffs=coeffs, times=times)
-    tic = time.perf_counter()
-    uv = None if tiles is None else tiled_uv(tiles[0], tiles[1], rays, tiles[2])
-    dirs = cosine_directions(nrm, rays, rng, uv).reshape(-1, 3)
-    origins = np.repeat(p + (nrm if smooth is None else smooth) * eps, rays, axis=0)
-    tfar = np.float32(s.ray_length) if s.ray_length > 0 else np.float32(np.inf)
-    hits = tracer.intersect(origins, dirs, tfar, trusted=True)
-    times["trace"] = (time.perf_counter() - tic) * 1e3
-    return dict(system=system, lookup=lookup, p=p, nrm=nrm, covered=covered, rays=rays, rng=rng, res=res,
-                coeffs=coeffs, times=times, sh_d=sh_d, sh_i=sh_i, sh_a=sh_a, smooth=smooth, k=k, dirs=dirs,
-                origins=origins, hits=hits)
+    return dict(res=res, coeffs=coeffs, times=times, sh_d=sh_d, sh_i=sh_i, sh_a=sh_a, covered=covered, k=k)
+
+
+def _restate(state: dict, system, lookup: HitLookup | None, corner_visible, rng) -> dict:
+    """Worker: a traced work item's state (`_chunk_trace`) over the system's current cache: its
+    rays and hits as they were, the cache's side gathered again, the hits to read `lookup` and
+    draw their shading's random numbers from `rng` (`reshade_pixels`)."""
+    fresh = _cache_part(system, state["p"], state["nrm"], corner_visible, state["smooth"])
+    return {**state, **fresh, "system": system, "lookup": lookup, "rng": rng}
 
 
 def _chunk_shade(state: dict, screen: ScreenLight | None = None):

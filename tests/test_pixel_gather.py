@@ -878,3 +878,42 @@ def test_pixel_rays_traced_ahead_and_shaded_later_are_the_same_rays(monkeypatch)
         begun = pixel_gather.begin_pixels(gi, points, normals, 16, 5, chunk_rays=16 * 40, trickle=True)
         with pytest.raises(RuntimeError, match="a traced item failed"):
             pixel_gather.finish_pixels(begun)
+
+
+def test_a_kept_pass_shades_again_under_new_light_without_tracing_its_rays(monkeypatch):
+    """`reshade_pixels` shades a finished pass's traced rays (`BegunPixels.traced`) over another
+    system of the same geometry: under a sky twice as bright (its cache warmed up alike) every
+    pixel's light is twice the re-shade's under the first sky, to float rounding (the same hits,
+    the same random numbers: the light is linear in the sky), and the AO is the same. Over the
+    first system the sky it sees is the pass's to the bit (its misses are that pass's; a pass of
+    other directions sees another), and it traces none of the pass's rays again."""
+    scene = ground_and_wall(albedo=0.5)
+    brighter = dataclasses.replace(scene, world=World(color=np.full(3, 2.0, np.float32), ao_distance=1.0))
+    settings = CacheSettings(resolution=8, rays_per_cell=16, threads=2)
+    with GISystem(scene, settings) as gi, GISystem(brighter, settings) as gi2:
+        for system in (gi, gi2):
+            system.warm_up(4)
+        points, normals = _ground_points(gi, 300, seed=4)
+        rays = []
+        for system in (gi, gi2):
+            intersect = system.tracer.intersect
+            monkeypatch.setattr(system.tracer, "intersect",
+                                lambda o, *a, _f=intersect, **k: rays.append(len(o)) or _f(o, *a, **k))
+        begun = pixel_gather.begin_pixels(gi, points, normals, 16, 5, chunk_rays=16 * 40)
+        traced = pixel_gather.finish_pixels(begun)
+        assert begun.traced
+        pass_rays, rays[:] = sum(rays), []
+        again = pixel_gather.reshade_pixels(begun, gi, 7)
+        reshade_rays = sum(rays)
+        twice = pixel_gather.reshade_pixels(begun, gi2, 7)
+        other = pixel_gather.trace_pixels(gi, points, normals, 16, 6, chunk_rays=16 * 40)
+    # The pass's own rays (16 a point) are not traced again: its hits' near bounces and AO rays are.
+    assert again.rays == 0 and reshade_rays < pass_rays - 0.75 * traced.rays
+    assert traced.direct.mean() > 0.5  # lit: the comparisons are not of zeros
+    for name in ("direct", "indirect", "cache_direct", "cache_indirect"):
+        np.testing.assert_allclose(getattr(twice, name), 2.0 * getattr(again, name), rtol=1e-3, atol=1e-4,
+                                   err_msg=name)
+    np.testing.assert_allclose(twice.ao, again.ao, atol=1e-6)
+    # The sky each point sees through its rays is the pass's: its misses, not other directions'.
+    np.testing.assert_array_equal(again.direct, traced.direct)
+    assert np.abs(other.direct - traced.direct).mean() > 0.05

@@ -876,3 +876,53 @@ def test_edge_light_leaves_translucent_pixels_to_the_resolve(worker):
     materials[int(leaf) - 1] = dataclasses.replace(materials[int(leaf) - 1], translucent=[0.5, 0.5, 0.5])
     translucent = edge_materials(dataclasses.replace(scene, materials=materials))
     assert (translucent != leaf).all() and translucent.size > 0
+
+
+def test_a_lamp_edit_shades_the_views_last_pass_again_before_tracing_new_rays(worker, monkeypatch):
+    """After a lamp edit of a still view, the first pixel pass over the re-lit cache shades the
+    rays of the view's last pass again (`PixelPass.start_reshade`: none traced again) and the
+    passes after it trace directions of their own (numbers past every one used before the
+    edit). The lamp's power doubled: the re-shaded pass is twice the pass whose rays it shades
+    (the same hits; its light differs only by the shading's own samples) and far closer to that
+    than the fresh pass after it, whose directions differ."""
+    scene = procedural.cornell()
+    settings = CacheSettings(resolution=10, rays_per_cell=16, threads=2)
+    pos, nrm, view_matrix, ok = pinhole_gbuffer(scene, settings)
+    events, images = [], []
+    pass_type = worker._pixels.PixelPass
+    start, reshade = pass_type.start, pass_type.start_reshade
+    add = worker.ViewState.add_pixels
+
+    def record_start(self, *args, **kwargs):
+        events.append(("trace", self.index))
+        return start(self, *args, **kwargs)
+
+    def record_reshade(self, executor, system, traced, *args, **kwargs):
+        events.append(("reshade", self.index, id(traced)))
+        return reshade(self, executor, system, traced, *args, **kwargs)
+
+    def record_add(self, indirect, direct, key, cache):
+        images.append((indirect + direct).reshape(-1, 4)[ok.ravel(), :3].copy())
+        kept.append(id(self.kept) if self.kept is not None else None)
+        return add(self, indirect, direct, key, cache)
+
+    kept = []
+    monkeypatch.setattr(pass_type, "start", record_start)
+    monkeypatch.setattr(pass_type, "start_reshade", record_reshade)
+    monkeypatch.setattr(worker.ViewState, "add_pixels", record_add)
+    options = worker.WorkerOptions(direct_passes=1, solver_batches=1, first_batch_rays=8, pixel_rays=8,
+                                   pixel_passes=2)
+    with still_view(worker, scene, settings, options, pos, nrm, view_matrix) as wk:
+        assert [e[0] for e in events] == ["trace", "trace"]
+        before = len(images)
+        lamps = [dataclasses.replace(lt, power=2.0 * lt.power) for lt in scene.lights]
+        wk.post_edit(worker.SetShading(lights=lamps))
+        assert wk.wait_idle(120)
+    assert [e[0] for e in events[2:]] == ["reshade", "trace"]
+    assert events[2][2] == kept[before]  # the last pass's rays before the edit
+    numbers = [e[1] for e in events]
+    assert len(set(numbers)) == len(numbers)  # no pass draws another's directions
+    last, again, fresh = images[before - 1], images[before], images[before + 1]
+    assert last.mean() > 0.05  # lit: the comparisons are not of zeros
+    l1 = lambda a, b: float(np.abs(a - b).sum() / np.abs(b).sum())  # noqa: E731
+    assert l1(again, 2.0 * last) < 0.5 * l1(fresh, 2.0 * last)
