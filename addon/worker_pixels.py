@@ -29,10 +29,10 @@ from hybridgi_core.settings import MULTI_BOUNCE
 #: Frame numbers per pass: pass k traces frame FRAME_BASE + k * FRAMES_PER_PASS.
 FRAME_BASE = 1 << 24
 FRAMES_PER_PASS = 1024
-#: Most rays a pass keeps traced for a lamp edit to shade again (`PixelPass.keep`): ~40 bytes a
-#: ray (directions, origins, hits), so ~170 MB at most; a larger view (GI pixels x rays) traces
-#: its passes again after a lamp edit instead.
-KEEP_RAYS_MAX = 1 << 22
+#: Most rays a pass keeps traced for a lamp edit to shade again (`PixelPass.start(keep=)`): 28
+#: bytes a ray (its direction and hit, `BegunPixels.slim`), so ~235 MB at most (a 1280x720 view's
+#: 230k GI pixels of 32 rays: 206 MB); a larger view traces its passes again after a lamp edit.
+KEEP_RAYS_MAX = 1 << 23
 
 
 class PixelPass:
@@ -86,6 +86,7 @@ class PixelPass:
                                               pixels=tiles, stop=self._stop.is_set)
             gi = pixel_gather.finish_pixels(begun, self.screen)
             if keep and not self._stop.is_set() and begun.traced:
+                begun.slim()
                 self.traced = begun
             self.ms = (time.perf_counter() - t0) * 1e3
             return gi

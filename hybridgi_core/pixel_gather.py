@@ -297,6 +297,13 @@ class BegunPixels:
         """Every work item's rays are traced (none stopped): what `reshade_pixels` can shade again."""
         return self.rays > 0 and all(j.done() and not j.exception() and "hits" in j.result() for j in self.jobs)
 
+    def slim(self) -> None:
+        """Drop what `reshade_pixels` makes again from the traced items (the rays' origins: the
+        points pushed off their surfaces), so that kept rays cost their directions and hits only
+        (28 bytes a ray)."""
+        for job in self.jobs:
+            job.result().pop("origins", None)
+
     def flush(self) -> None:
         """Let every item not yet submitted go to the pool at once."""
         if self.feeder is not None:
@@ -535,6 +542,9 @@ def _restate(state: dict, system, lookup: HitLookup | None, corner_visible, rng)
     rays and hits as they were, the cache's side gathered again, the hits to read `lookup` and
     draw their shading's random numbers from `rng` (`reshade_pixels`)."""
     fresh = _cache_part(system, state["p"], state["nrm"], corner_visible, state["smooth"])
+    if "origins" not in state:  # slimmed (`BegunPixels.slim`): pushed off as `_chunk_trace` does
+        lift = state["nrm"] if state["smooth"] is None else state["smooth"]
+        fresh["origins"] = np.repeat(state["p"] + lift * np.float32(system.tracer.epsilon), state["rays"], axis=0)
     return {**state, **fresh, "system": system, "lookup": lookup, "rng": rng}
 
 
