@@ -277,6 +277,10 @@ def trace_pixels(system, points: np.ndarray, normals: np.ndarray, rays: int, fra
                                       surfaces, min_chunks, pixels, stop), screen)
 
 
+#: What `BegunPixels.slim` keeps of a traced work item's state (`_chunk_trace`).
+_KEPT = frozenset(("p", "nrm", "smooth", "rays", "dirs", "hits"))
+
+
 @dataclass
 class BegunPixels:
     """`begin_pixels`' work in flight: each work item's first half (`_chunk_trace`) on the pool,
@@ -298,11 +302,15 @@ class BegunPixels:
         return self.rays > 0 and all(j.done() and not j.exception() and "hits" in j.result() for j in self.jobs)
 
     def slim(self) -> None:
-        """Drop what `reshade_pixels` makes again from the traced items (the rays' origins: the
-        points pushed off their surfaces), so that kept rays cost their directions and hits only
-        (28 bytes a ray)."""
+        """Keep of the traced items only what `reshade_pixels` does not make again: each item's
+        points, normals and ray count, its rays' directions and hits (28 bytes a ray); not their
+        origins (the points pushed off their surfaces), the cache's side or the cache lookup the
+        hits read (a table of the whole grid)."""
         for job in self.jobs:
-            job.result().pop("origins", None)
+            state = job.result()
+            for key in [k for k in state if k not in _KEPT]:
+                del state[key]
+        self.lookup = None
 
     def flush(self) -> None:
         """Let every item not yet submitted go to the pool at once."""
