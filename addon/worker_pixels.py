@@ -12,6 +12,11 @@ textures exactly as `gi_images` does from its rays (`images`, `full_res`).
 Why one call, not slices of it a step each: each slice ended with a barrier on the pool (the
 slower of its two work items) and a worker step; the Cornell box's 14 slices of 4096 pixels took
 0.56 s where the same rays in one call take ~0.4 s.
+
+A pass keeps its traced rays (`PixelPass.traced`): after a lamp edit the view's pixels and
+geometry hold, so its first pass shades them again over the re-lit cache (`start_reshade`,
+`pixel_gather.reshade_pixels`) instead of tracing new ones: a third less work (Cornell 640x360,
+after a light move: 192 vs 270 ms).
 """
 
 from __future__ import annotations
