@@ -439,7 +439,8 @@ def reshade_pixels(begun: BegunPixels, system, frame: int, corner_visible: np.nd
     of them traced again (their hits' shadow and near-bounce rays are): `trace_pixels`' result
     for the same points and directions, from `begun`, that pass's traced work items
     (`BegunPixels.traced`). For a lamp edit of a still view, whose geometry and pixels hold: the
-    trace of the rays is a third of a pass (atrium 640x360: 350 of ~1000 ms of the pool's threads). frame : seeds the shading's random numbers (a stream apart from the traced rays').
+    trace of the rays is a third of a pass (atrium 640x360: 350 of ~1000 ms of the pool's
+    threads). frame : seeds the shading's random numbers (a stream apart from the traced rays');
     corner_visible : (n, 8) as `trace_pixels` takes it; lookup : the current cache as the hits
     read it (None: built here); screen, stop : as `trace_pixels`'. The result counts no rays."""
     s = system.settings
@@ -489,7 +490,7 @@ def _chunk_trace(system, lookup: HitLookup | None, p, nrm, corner_visible, rays,
     Bent normals (a normal map's): the rays bring their light times Cycles' bump shadowing term,
     so the cache's part is the same lobe's (`bump.irradiance_kernel`: nothing from below the
     smooth surface) and the control variate is weighed by the same term, ray by ray: the
-    residual is then what the cache misses, not the light under the surface the cache of the
+    residual is then what the cache misses, not the light under the surface the cosine of the
     bent normal would read (3.2 x the ridges' Diffuse Indirect)."""
     s = system.settings
     m = p.shape[0]
