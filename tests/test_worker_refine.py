@@ -926,3 +926,48 @@ def test_a_lamp_edit_shades_the_views_last_pass_again_before_tracing_new_rays(wo
     assert last.mean() > 0.05  # lit: the comparisons are not of zeros
     l1 = lambda a, b: float(np.abs(a - b).sum() / np.abs(b).sum())  # noqa: E731
     assert l1(again, 2.0 * last) < 0.5 * l1(fresh, 2.0 * last)
+
+
+def test_lamp_edits_that_arrive_while_a_view_reshades_its_rays_stop_it_and_the_view_still_settles(worker,
+                                                                                                   monkeypatch):
+    """A still view under a run of lamp edits, each posted while a pixel pass (traced or
+    re-shaded) is under way: every edit's first pass re-shades the kept rays, a re-shade an edit
+    cuts short leaves them kept for the next, and the view settles with its pixel passes over
+    the last lamps, as lit as a worker that saw only those lamps."""
+    scene = procedural.cornell()
+    settings = CacheSettings(resolution=10, rays_per_cell=16, threads=2)
+    pos, nrm, view_matrix, _ = pinhole_gbuffer(scene, settings, 96, 72)
+    options = worker.WorkerOptions(direct_passes=2, solver_batches=1, first_batch_rays=8, pixel_rays=64,
+                                   pixel_passes=2)
+    reshades = []
+    reshade = worker._pixels.PixelPass.start_reshade
+
+    def record(self, executor, system, traced, *args, **kwargs):
+        reshades.append(id(traced))
+        return reshade(self, executor, system, traced, *args, **kwargs)
+
+    monkeypatch.setattr(worker._pixels.PixelPass, "start_reshade", record)
+    rng = np.random.default_rng(11)
+    dropped = 0
+    with still_view(worker, scene, settings, options, pos, nrm, view_matrix) as wk:
+        lamps = scene.lights
+        for _ in range(6):
+            lamps = [dataclasses.replace(lt, power=lt.power * float(rng.uniform(0.5, 1.5))) for lt in lamps]
+            wk.post_edit(worker.SetShading(lights=lamps))
+            deadline = time.perf_counter() + 5.0
+            while not wk._tracing() and time.perf_counter() < deadline:  # the edit's pass under way
+                time.sleep(0.002)
+            dropped += wk._tracing()
+            time.sleep(float(rng.uniform(0.0, 0.03)))
+        # The last edit's passes run to their end.
+        lamps = [dataclasses.replace(lt, power=lt.power * 1.25) for lt in lamps]
+        wk.post_edit(worker.SetShading(lights=lamps))
+        assert wk.wait_idle(120)
+        p = wk.latest()
+    assert dropped >= 3 and len(reshades) >= 2  # the edits did arrive while passes ran
+    assert p.error is None and p.view.pixel_passes == 2 and np.isfinite(p.view.gi_indirect).all()
+    final = dataclasses.replace(scene, lights=lamps)
+    with still_view(worker, final, settings, options, pos, nrm, view_matrix) as fresh:
+        q = fresh.latest()
+    ours, theirs = p.view.gi_indirect[..., :3].sum(), q.view.gi_indirect[..., :3].sum()
+    assert abs(ours / theirs - 1.0) < 0.03
