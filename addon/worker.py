@@ -808,8 +808,10 @@ class ViewportWorker:
             if state.reshade_due:
                 # A lamp edit's first pass: the kept rays shaded again (no ray traced again).
                 state.reshade_due = False
+                side = state.relit_side
+                side = side[1] if side is not None and side[0] == system.cache.version else None
                 state.pixel_pass.start_reshade(self._pixel_thread, system, state.kept, state.visible,
-                                               on_done=self._wake)
+                                               on_done=self._wake, side=side)
             else:
                 state.pixel_pass.start(self._pixel_thread, system, points, normals, state.visible,
                                        self.options.pixel_rays, pix, r.position.shape[1], on_done=self._wake,
@@ -883,7 +885,10 @@ class ViewportWorker:
         t0 = time.perf_counter()
         points, normals, pix = state.gi_points
         indirect, direct, cache_old = state.carry
-        cache_new = _pixel_gather.trace_pixels(system, points, normals, 0, 0, state.visible).channels()[1]
+        side = _pixel_gather.cache_side(system, points, normals, state.visible)
+        cache_new = side["res"][:, 9:16]
+        # The re-shade of the view's kept rays over this cache takes the same gather (`_pixel_pass`).
+        state.relit_side = (system.cache.version, side)
         nearest, full_pix = _carry_map(state, indirect.shape[:2])
         ratio, extra = _gi_carry.smoothed_change(cache_old, cache_new, pix, normals, state.request.position.shape[:2])
         carried = _gi_carry.carried(indirect, direct, ratio, extra, nearest, full_pix)

@@ -98,16 +98,18 @@ class PixelPass:
 
         self._run(executor, trace, on_done)
 
-    def start_reshade(self, executor, system, traced: pixel_gather.BegunPixels, visible, on_done=None) -> None:
+    def start_reshade(self, executor, system, traced: pixel_gather.BegunPixels, visible, on_done=None,
+                      side: dict | None = None) -> None:
         """Shade an earlier pass's traced rays again on `executor` (`pixel_gather.reshade_pixels`:
         the system's current cache and this pass's `screen` light, no ray traced again): a lamp
-        edit's first pass over a still view. The rays stay kept (`traced`) for the next edit."""
+        edit's first pass over a still view. The rays stay kept (`traced`) for the next edit.
+        side : the current cache's `pixel_gather.cache_side` at the pass's points, if made."""
 
         def reshade() -> pixel_gather.PixelGI:
             t0 = time.perf_counter()
             self.lookup = hit_lookup(system, bounced=system.settings.indirect_quality == MULTI_BOUNCE)
             gi = pixel_gather.reshade_pixels(traced, system, self.frame, visible, lookup=self.lookup,
-                                             screen=self.screen, stop=self._stop.is_set)
+                                             screen=self.screen, stop=self._stop.is_set, side=side)
             self.traced = traced
             self.ms = (time.perf_counter() - t0) * 1e3
             return gi

@@ -130,6 +130,9 @@ class ViewState:
         #: edit's first pass shades them again (`reshade_due`) instead of tracing new ones.
         self.kept = None
         self.reshade_due = False
+        #: (cache version, `pixel_gather.cache_side` at the GI points) made by a lamp edit's carry,
+        #: which the re-shade over the same cache takes instead of gathering it again.
+        self.relit_side = None
         #: Pixel passes are numbered from frame_base (their frames, so their directions); a lamp
         #: edit moves it past every number used (frames_used), so the passes after a re-shaded one
         #: never trace its directions again.
@@ -199,6 +202,7 @@ class ViewState:
         self.reset_pixels()
         # The pixels' rays hit what they hit before: the first pass shades a kept pass again.
         self.reshade_due = self.kept is not None
+        self.relit_side = None
         self.frame_base = self.frames_used
         self.dirty = True
 

@@ -279,6 +279,8 @@ def trace_pixels(system, points: np.ndarray, normals: np.ndarray, rays: int, fra
 
 #: What `BegunPixels.slim` keeps of a traced work item's state (`_chunk_trace`).
 _KEPT = frozenset(("p", "nrm", "smooth", "rays", "dirs", "hits"))
+#: The per-point arrays of a work item's cache side (`_cache_part`, `cache_side`).
+_SIDE_ARRAYS = ("res", "coeffs", "sh_d", "sh_i", "sh_a", "covered")
 
 
 @dataclass
@@ -372,13 +374,7 @@ def begin_pixels(system, points: np.ndarray, normals: np.ndarray, rays: int, fra
     result does not change."""
     s = system.settings
     points = np.ascontiguousarray(points, np.float32)
-    normals = np.array(normals, np.float32).reshape(-1, 3)
-    # Rays are built from the normal without checks (`trusted`): a pixel without a usable normal
-    # (a degenerate triangle's zero) gathers around +Z rather than sending zero directions.
-    length = np.linalg.norm(normals, axis=1)
-    bad = ~(np.abs(length - 1.0) < 0.1)
-    if bad.any():
-        normals[bad] = (0.0, 0.0, 1.0)
+    normals, bad = _usable_normals(normals)
     mended = None
     if surfaces is not None:
         mended = np.array(surfaces, np.float32).reshape(-1, 3)
@@ -404,6 +400,18 @@ def begin_pixels(system, points: np.ndarray, normals: np.ndarray, rays: int, fra
             return BegunPixels(system, n, rays, per, feeder.futures, stop, lookup, surfaces, feeder)
         jobs = [system.updater.pool.submit(fn, *args) for fn, args in calls]
     return BegunPixels(system, n, rays, per, jobs, stop, lookup, surfaces)
+
+
+def _usable_normals(normals: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """((n, 3) float32 copy of normals, (n,) bool which were replaced): rays are built from the
+    normal without checks (`trusted`), so a pixel without a usable normal (a degenerate
+    triangle's zero) gathers around +Z rather than sending zero directions."""
+    normals = np.array(normals, np.float32).reshape(-1, 3)
+    length = np.linalg.norm(normals, axis=1)
+    bad = ~(np.abs(length - 1.0) < 0.1)
+    if bad.any():
+        normals[bad] = (0.0, 0.0, 1.0)
+    return normals, bad
 
 
 def finish_pixels(begun: BegunPixels, screen: ScreenLight | None = None) -> PixelGI:
@@ -434,7 +442,7 @@ def finish_pixels(begun: BegunPixels, screen: ScreenLight | None = None) -> Pixe
 
 def reshade_pixels(begun: BegunPixels, system, frame: int, corner_visible: np.ndarray | None = None,
                    lookup: HitLookup | None = None, screen: ScreenLight | None = None,
-                   stop: Callable[[], bool] | None = None) -> PixelGI:
+                   stop: Callable[[], bool] | None = None, side: dict | None = None) -> PixelGI:
     """An earlier pass's rays shaded again over the system's current cache and lamp light, none
     of them traced again (their hits' shadow and near-bounce rays are): `trace_pixels`' result
     for the same points and directions, from `begun`, that pass's traced work items
@@ -442,7 +450,9 @@ def reshade_pixels(begun: BegunPixels, system, frame: int, corner_visible: np.nd
     trace of the rays is a third of a pass (atrium 640x360: 350 of ~1000 ms of the pool's
     threads). frame : seeds the shading's random numbers (a stream apart from the traced rays');
     corner_visible : (n, 8) as `trace_pixels` takes it; lookup : the current cache as the hits
-    read it (None: built here); screen, stop : as `trace_pixels`'. The result counts no rays."""
+    read it (None: built here); screen, stop : as `trace_pixels`'. side : the current cache's
+    `cache_side` at the pass's points, if made already (pixels without smooth normals only: a
+    normal map's kernel is the pass's own). The result counts no rays."""
     s = system.settings
     if lookup is None and begun.rays > 0 and begun.n:
         lookup = hit_lookup(system, bounced=s.indirect_quality == MULTI_BOUNCE)
@@ -455,11 +465,36 @@ def reshade_pixels(begun: BegunPixels, system, frame: int, corner_visible: np.nd
         if "hits" not in state:
             raise ValueError("reshade_pixels: a work item without traced rays (keep passes that ran to their end)")
         rng = frame_rng(s.seed + SEED_OFFSET, RESHADE_FRAME + frame * 7919 + i)
-        jobs.append(pool.submit(_restate, state, system, lookup, vis, rng))
+        part = None
+        if side is not None and state["smooth"] is None:
+            part = {key: side[key][i * per:(i + 1) * per] for key in _SIDE_ARRAYS}
+            part.update(k=side["k"], times={})
+        jobs.append(pool.submit(_restate, state, system, lookup, vis, rng, part))
     again = BegunPixels(system, begun.n, begun.rays, per, jobs, stop, lookup, begun.surfaces)
     gi = finish_pixels(again, screen)
     gi.rays = 0
     return gi
+
+
+def cache_side(system, points: np.ndarray, normals: np.ndarray, corner_visible: np.ndarray | None = None,
+               chunk: int = 8192) -> dict:
+    """The cache's side of `trace_pixels` at points (n, 3) with normals (n, 3), without rays: per
+    point its gather (`_cache_part`: res[:, 9:16] the cache's direct rgb, indirect rgb and AO, as
+    `PixelGI.channels()[1]`; the blended SH), in blocks of `chunk` points on the system's pool. A
+    lamp edit's carry reads it and the re-shade of the view's kept rays over the same cache takes
+    it (`reshade_pixels(side=)`) instead of gathering again."""
+    points = np.ascontiguousarray(points, np.float32)
+    normals = _usable_normals(normals)[0]  # as `begin_pixels` mends them
+    pool = system.updater.pool
+    jobs = [pool.submit(_cache_part, system, points[a:a + chunk], normals[a:a + chunk],
+                        None if corner_visible is None else corner_visible[a:a + chunk], None)
+            for a in range(0, points.shape[0], chunk)]
+    parts = [j.result() for j in jobs]
+    if not parts:
+        parts = [_cache_part(system, points, normals, corner_visible, None)]
+    side = {key: np.concatenate([part[key] for part in parts]) for key in _SIDE_ARRAYS}
+    side["k"] = parts[0]["k"]
+    return side
 
 
 def _shade_unless_stopped(stop: Callable[[], bool], state: dict, screen: ScreenLight | None = None):
@@ -546,11 +581,16 @@ def _cache_part(system, p, nrm, corner_visible, smooth) -> dict:
     return dict(res=res, coeffs=coeffs, times=times, sh_d=sh_d, sh_i=sh_i, sh_a=sh_a, covered=covered, k=k)
 
 
-def _restate(state: dict, system, lookup: HitLookup | None, corner_visible, rng) -> dict:
+def _restate(state: dict, system, lookup: HitLookup | None, corner_visible, rng, part: dict | None = None) -> dict:
     """Worker: a traced work item's state (`_chunk_trace`) over the system's current cache: its
-    rays and hits as they were, the cache's side gathered again, the hits to read `lookup` and
-    draw their shading's random numbers from `rng` (`reshade_pixels`)."""
-    fresh = _cache_part(system, state["p"], state["nrm"], corner_visible, state["smooth"])
+    rays and hits as they were, the cache's side gathered again (or `part`, its rows of a
+    `cache_side` over the same cache), the hits to read `lookup` and draw their shading's random
+    numbers from `rng` (`reshade_pixels`). The arrays of `part` are copied: the shading writes
+    into res."""
+    if part is None:
+        fresh = _cache_part(system, state["p"], state["nrm"], corner_visible, state["smooth"])
+    else:
+        fresh = {key: (v.copy() if isinstance(v, np.ndarray) else v) for key, v in part.items()}
     if "origins" not in state:  # slimmed (`BegunPixels.slim`): pushed off as `_chunk_trace` does
         lift = state["nrm"] if state["smooth"] is None else state["smooth"]
         fresh["origins"] = np.repeat(state["p"] + lift * np.float32(system.tracer.epsilon), state["rays"], axis=0)

@@ -918,3 +918,25 @@ def test_a_kept_pass_shades_again_under_new_light_without_tracing_its_rays(monke
     # The sky each point sees through its rays is the pass's: its misses, not other directions'.
     np.testing.assert_array_equal(again.direct, traced.direct)
     assert np.abs(other.direct - traced.direct).mean() > 0.05
+
+
+def test_a_cache_side_made_once_serves_the_carry_and_the_reshade():
+    """`cache_side` is the cache's part of `trace_pixels` without rays, to the bit (what a lamp
+    edit's carry reads), and a re-shade that takes it gives, to the bit, what one that gathers
+    the cache itself gives; the shading does not write into it."""
+    with GISystem(ground_and_wall(albedo=0.5), CacheSettings(resolution=8, rays_per_cell=16, threads=2)) as gi:
+        points, normals = _ground_points(gi, 300, seed=4)
+        normals[7] = 0.0  # a pixel without a usable normal is mended alike
+        begun = pixel_gather.begin_pixels(gi, points, normals, 16, 5, chunk_rays=16 * 40)
+        pixel_gather.finish_pixels(begun)
+        begun.slim()
+        side = pixel_gather.cache_side(gi, points, normals, chunk=128)
+        before = {k: v.copy() for k, v in side.items() if isinstance(v, np.ndarray)}
+        np.testing.assert_array_equal(side["res"][:, 9:16],
+                                      pixel_gather.trace_pixels(gi, points, normals, 0, 0).channels()[1])
+        own = pixel_gather.reshade_pixels(begun, gi, 7)
+        shared = pixel_gather.reshade_pixels(begun, gi, 7, side=side)
+    for name in ("direct", "indirect", "ao", "cache_direct", "cache_indirect", "cache_ao", "sh", "variance"):
+        np.testing.assert_array_equal(getattr(shared, name), getattr(own, name), err_msg=name)
+    for key, value in before.items():
+        np.testing.assert_array_equal(side[key], value, err_msg=key)
