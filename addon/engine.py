@@ -4,7 +4,7 @@ import logging
 
 import bpy
 
-from hybridgi_core import errors
+from hybridgi_core import errors, heap
 
 from . import compat
 
@@ -82,7 +82,8 @@ def render_frame(engine, depsgraph):
     global LAST_ERROR
     LAST_ERROR = None
     try:
-        _pipeline().render_frame(engine, depsgraph)
+        with heap.held():  # the frame's freed arrays serve its next ones, not the kernel
+            _pipeline().render_frame(engine, depsgraph)
     except errors.HybridGIError as err:
         _fail(engine, str(err))
     except Exception as err:

@@ -24,7 +24,7 @@ from types import MappingProxyType
 
 import numpy as np
 
-from hybridgi_core import errors
+from hybridgi_core import errors, heap
 from hybridgi_core import gi_carry as _gi_carry
 from hybridgi_core import glossy_image as _glossy
 from hybridgi_core import glossy_ltc as _glossy_ltc
@@ -215,6 +215,10 @@ class ViewportWorker:
     # --- worker thread --------------------------------------------------------------------------
 
     def _run(self) -> None:
+        with heap.held():  # each pass's freed arrays serve the next pass's, not the kernel
+            self._loop()
+
+    def _loop(self) -> None:
         try:
             while True:
                 with self._cond:

@@ -29,6 +29,7 @@ import tempfile
 import time
 from pathlib import Path
 
+from hybridgi_core import heap
 from hybridgi_core.cycles_reference import CYCLES_REFERENCE
 
 from . import blender_compat, dev_install, interrupt, output, tracebacks
@@ -197,18 +198,24 @@ def run_render(args) -> int:
         if addon is not None:
             check_core_settings(scene)
         first, last = args.frames or (scene.frame_current, scene.frame_current)
-        count = last - first + 1
-        for i, frame in enumerate(range(first, last + 1), 1):
-            progress(f"frame {frame} ({i}/{count}): rendering with {args.engine}")
-            png, exr = output.frame_paths(prefix, frame)
-            with output.FrameFiles(png, exr) as files:
-                record = render_frame(bpy, scene, frame, files, args.engine, addon)
-                with output.COMMIT_LOCK:
-                    files.commit()
-                    out.write(json.dumps(record) + "\n")
-                    out.flush()
-            progress(f"frame {frame} ({i}/{count}): {record['seconds']:.2f} s -> {record['png']}")
+        # HybridGI's frames keep the heap between them too (each frame holds it: `heap.held`);
+        # another engine's render is left to its own allocator.
+        with heap.held() if args.engine == "HYBRIDGI" else contextlib.nullcontext():
+            for i, frame in enumerate(range(first, last + 1), 1):
+                _render_one(bpy, scene, args, prefix, out, addon, frame, f"{i}/{last - first + 1}")
     return 0
+
+
+def _render_one(bpy, scene, args, prefix, out, addon, frame: int, of: str) -> None:
+    progress(f"frame {frame} ({of}): rendering with {args.engine}")
+    png, exr = output.frame_paths(prefix, frame)
+    with output.FrameFiles(png, exr) as files:
+        record = render_frame(bpy, scene, frame, files, args.engine, addon)
+        with output.COMMIT_LOCK:
+            files.commit()
+            out.write(json.dumps(record) + "\n")
+            out.flush()
+    progress(f"frame {frame} ({of}): {record['seconds']:.2f} s -> {record['png']}")
 
 
 def run_check(args) -> int:
