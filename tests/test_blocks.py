@@ -106,3 +106,44 @@ def test_triangle_sizes_fold_each_objects_box_over_blocks(monkeypatch):
     e1 = corners[:, 1].astype(np.float64) - corners[:, 0]
     e2 = corners[:, 2].astype(np.float64) - corners[:, 0]
     assert np.allclose(area2[finite], np.linalg.norm(np.cross(e1, e2), axis=1)[finite], rtol=1e-12)
+
+
+@pytest.mark.parametrize("threaded", [False, True])
+def test_concat_geometry_joins_parts_as_concatenation_does(monkeypatch, threaded):
+    """Copies spread over threads (`concat_geometry`) give the parts' rows in order, triangles
+    renumbered past the corners before them, float64 parts cast as astype casts them, the parts
+    without tangents zero there and those without normal-map UVs their own UVs."""
+    from hybridgi_core import snapshot
+
+    monkeypatch.setattr(snapshot, "CONCAT_THREADED_ROWS", 1 if threaded else 1 << 30)
+    monkeypatch.setattr(blocks, "MAX_THREADS", 4)
+    rng = np.random.default_rng(7)
+    parts = []
+    for i, (n_vert, n_tri) in enumerate([(30, 10), (3, 1), (60, 20), (9, 3)]):
+        g = Geometry(rng.random((n_vert, 3)) * 1e3,  # float64: cast on the way
+                     rng.integers(0, n_vert, (n_tri, 3)).astype(np.int32), rng.random((n_vert, 3)).astype(np.float32),
+                     rng.random((n_vert, 2)).astype(np.float32), np.full(n_tri, i % 2, np.int32),
+                     np.full(n_tri, i, np.int32),
+                     tangents=rng.random((n_vert, 4)).astype(np.float32) if i == 1 else None,
+                     normal_uvs=rng.random((n_vert, 2)).astype(np.float32) if i == 2 else None)
+        parts.append(g)
+    joined = snapshot.concat_geometry(parts)
+    offsets = np.cumsum([0] + [p.positions.shape[0] for p in parts[:-1]])
+    expected = {
+        "positions": np.concatenate([p.positions for p in parts]).astype(np.float32),
+        "triangles": np.concatenate([p.triangles + o for p, o in zip(parts, offsets, strict=True)]),
+        "normals": np.concatenate([p.normals for p in parts]),
+        "uvs": np.concatenate([p.uvs for p in parts]),
+        "material_index": np.concatenate([p.material_index for p in parts]),
+        "object_index": np.concatenate([p.object_index for p in parts]),
+        "tangents": np.concatenate([p.tangents if p.tangents is not None else np.zeros((p.positions.shape[0], 4))
+                                    for p in parts]).astype(np.float32),
+        "normal_uvs": np.concatenate([p.uvs if p.normal_uvs is None else p.normal_uvs for p in parts]),
+    }
+    for name, want in expected.items():
+        got = getattr(joined, name)
+        assert got.dtype == (np.int32 if name.endswith(("triangles", "_index")) else np.float32), name
+        assert np.array_equal(got, want), name
+    plain = snapshot.concat_geometry([parts[0], parts[3]])
+    assert plain.tangents is None and plain.normal_uvs is None
+    assert snapshot.concat_geometry([]).triangle_count == 0
