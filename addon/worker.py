@@ -284,12 +284,12 @@ class ViewportWorker:
         resync = settings != self._session.settings
         if resync:
             self._session.set_settings(settings)
-        lamps_only = False
+        relit = None
         if edits or resync or (view is not None and self._view_state is not None
                                and view is not self._view_state.request):
             self._drop_pixels()  # its rays read the system the edits change, for a view that is gone
         if edits or resync:
-            lamps_only = self._apply(edits, resync)
+            relit = self._apply(edits, resync)
         self._applied_gen = edit_gen
         self._steps["sync"] = (time.perf_counter() - t0) * 1e3
         system = self._session.system
@@ -299,11 +299,13 @@ class ViewportWorker:
         schedule = self._schedule
         schedule.attach(system)
         state = self._view_state
-        if lamps_only and state is not None and view is state.request:
-            # Same view, same geometry: keep its cells and mask, light it again at once.
+        if relit is not None and state is not None and view is state.request:
+            # Same view, same geometry: keep its cells and mask, light it again at once (new
+            # diffuse colours leave the lamps' light as it was).
             t_view = time.perf_counter()
-            state.relit(self._scene_version)
-            self._direct_pass(system, state, state.coarse)
+            state.relit(self._scene_version, lamps=relit == "lamps")
+            if relit == "lamps":
+                self._direct_pass(system, state, state.coarse)
             self._publish()
             self._steps["relit_view"] = (time.perf_counter() - t_view) * 1e3
         moving = view is not None and (state is None or not state.current(view, self._scene_version))
@@ -354,9 +356,10 @@ class ViewportWorker:
 
     # --- scene ----------------------------------------------------------------------------------
 
-    def _apply(self, edits: list, resync: bool) -> bool:
-        """Apply the edits to the session. Returns whether only lamps changed (the view's cells
-        and corner mask still hold)."""
+    def _apply(self, edits: list, resync: bool) -> str | None:
+        """Apply the edits to the session. Returns "lamps" when only lamps changed (and perhaps
+        diffuse colours), "colours" when only diffuse colours did (`SceneChanges.colours_only`):
+        the view's cells, corner mask and kept rays still hold; else None."""
         t0 = time.perf_counter()
         snapshot = self._snapshot
         positions = normals = None
@@ -386,7 +389,7 @@ class ViewportWorker:
             else:
                 raise TypeError(f"unknown scene edit {type(edit).__name__}")
         if snapshot is None:
-            return False
+            return None
         snapshot = _with_geometry(snapshot, positions, normals)
         self._snapshot = snapshot
         self._scene_version += 1
@@ -396,20 +399,23 @@ class ViewportWorker:
             self._empty = True
             self._view_state = None
             self._cache_ref = None
-            return False
+            return None
         self._empty = False
         # The session raised the cache's events (stored hits marked stale); policy here: solve
         # again from the stored hits (a new system starts over: `SolveSchedule.attach`).
         self._schedule.attach(self._session.system)
-        lamps_only = False
+        relit = None
         if not report.rebuilt:
             ch = report.changes
             self._schedule.changed(shading=ch.shading_changed, geometry=bool(ch.boxes) or resync,
                                    materials=ch.world_changed or bool(ch.materials_changed))
-            lamps_only = (ch.lights_changed and not resync and not ch.geometry_changed and not ch.boxes
-                          and not ch.world_changed and not ch.materials_changed)
+            # A diffuse colour's edit is lit again as a lamp's is: the view's pixels see the same
+            # points, its rays hit what they hit, only the light they bring changed.
+            if ((ch.lights_changed or ch.colours_only) and not resync and not ch.geometry_changed
+                    and not ch.boxes and not ch.world_changed and (not ch.materials_changed or ch.colours_only)):
+                relit = "lamps" if ch.lights_changed else "colours"
         self._steps["apply"] = (time.perf_counter() - t0) * 1e3
-        return lamps_only
+        return relit
 
     # --- view -----------------------------------------------------------------------------------
 

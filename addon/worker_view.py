@@ -182,18 +182,22 @@ class ViewState:
         light = level.mean().reshape(-1, 4)[pix, :3]
         return ScreenLight.from_pixels(self.request.view, self.request.proj, (w, h), points, normals, pix, light)
 
-    def relit(self, scene_gen: int) -> None:
-        """Lamps changed and nothing else: the visible cells and the corner mask (geometry alone)
-        stay; the direct light starts over (the worker traces its coarse pass at once). Saves
-        the light move a new view's visible cells and mask (~0.1-0.2 s on 2 busy cores)."""
+    def relit(self, scene_gen: int, lamps: bool = True) -> None:
+        """Lamps or diffuse colours changed and nothing else: the visible cells and the corner
+        mask (geometry alone) stay; with `lamps` the direct light starts over (the worker traces
+        its coarse pass at once), else (new colours only) the lamps' light at the pixels and its
+        edges stay too. Saves the light move a new view's visible cells and mask (~0.1-0.2 s on 2
+        busy cores), and a colour's edit the view's lamp passes as well."""
         self.scene_gen = scene_gen
         r = self.request
-        self.coarse = DirectLevel(r.position, r.normal, self.gi_points, self.coarse.samples)
-        self._fine = None
-        if self.glossy is not None:
-            self.glossy.reset_lamps()  # the cache's part stays until the cache re-solves
+        if lamps:
+            self.coarse = DirectLevel(r.position, r.normal, self.gi_points, self.coarse.samples)
+            self._fine = None
+            if self.glossy is not None:
+                self.glossy.reset_lamps()  # the cache's part stays until the cache re-solves
+            self.edges = None
+        # The final render's glossy light reflects other surfaces (reflection rays): their colours.
         self.fine_glossy, self.fine_glossy_key = None, None
-        self.edges = None
         if self.pixel_sum is not None and self.pixel_cache is not None:
             n = self.pixel_passes
             self.carry = (self.pixel_sum[0] / n, self.pixel_sum[1] / n, self.pixel_cache / n)

@@ -36,6 +36,12 @@ class SceneChanges:
     lights_changed : a lamp was added, removed or edited
     world_changed : the world's radiance or AO distance changed
     materials_changed : names of materials whose shading inputs changed (added or removed count)
+    colours_only : every material in materials_changed kept all but its diffuse colour (its base
+        colour and its colour texture's texels, the texture's size kept): it reflects other
+        light, nothing in the image or the rays' scene moved, no light source changed
+    cutouts_changed : a material's holes for rays changed (alpha texels, clear glass, shadow
+        skips; `cutout.Cutouts`), or a material with some was added or removed: rays meet other
+        surfaces, so stored hits are stale as after a geometry edit
     light_flux_change : largest relative change of a lamp's flux, the sky's or an emitter's
         radiance (0 = none; 1 = doubled or gone); inf when lamps were added or removed
     light_moved : metres, the farthest any lamp moved
@@ -50,6 +56,8 @@ class SceneChanges:
     lights_changed: bool = False
     world_changed: bool = False
     materials_changed: list[str] = field(default_factory=list)
+    colours_only: bool = False
+    cutouts_changed: bool = False
     light_flux_change: float = 0.0
     light_moved: float = 0.0
     boxes: list[Box] = field(default_factory=list)
@@ -231,7 +239,24 @@ def _material_key(material: Material) -> tuple:
             getattr(material, "clear", False), getattr(material, "refractive", False),
             _bytes_or_none(getattr(material, "translucent", None)),
             _bytes_or_none(getattr(material, "sheen", None)), getattr(material, "sheen_roughness", 0.5),
-            getattr(material, "sheen_layered", False), maps)
+            getattr(material, "sheen_layered", False), maps, _cutout_key(material))
+
+
+def _cutout_key(material: Material) -> tuple:
+    """What of a material rays see through (`cutout.Cutouts`): its alpha texels, clear glass,
+    shadow skips. A change moves the rays' hits, not only their light."""
+    alpha = getattr(material, "alpha", None)
+    return (None if alpha is None else (alpha.shape, float(alpha.sum(dtype=np.float64))),
+            getattr(material, "clear", False), getattr(material, "refractive", False),
+            getattr(material, "shadow_transparent", False))
+
+
+def _colourless_key(material: Material) -> tuple:
+    """`_material_key` without the diffuse colour: the base colour and the colour texture's texels
+    (its size stays in), what `SceneChanges.colours_only` lets differ."""
+    key = _material_key(material)
+    texture = key[2]
+    return (None,) + key[1:2] + (None if texture is None else texture[0],) + key[3:]
 
 
 def _bytes_or_none(array) -> bytes | None:
@@ -273,15 +298,23 @@ def _diff_shading(old: SceneSnapshot, new: SceneSnapshot, changes: SceneChanges)
     # A material baked per mesh (`Material.bake_id`) appears once per mesh under its one name:
     # the k-th of a name pairs with the k-th before.
     old_materials = _by_name(old.materials)
+    colours_only = True
     for key, m in _by_name(new.materials).items():
         before = old_materials.pop(key, None)
         if before is None or _material_key(before) != _material_key(m):
             changes.materials_changed.append(m.name)
+            colours_only = colours_only and before is not None and _colourless_key(before) == _colourless_key(m)
+            no_holes = _cutout_key(Material())
+            if _cutout_key(m) != (no_holes if before is None else _cutout_key(before)):
+                changes.cutouts_changed = True
             if before is not None:
                 flux = max(flux, _relative_change(before.emission, m.emission))
             elif np.any(m.emission > 0):
                 flux = float("inf")
     changes.materials_changed += sorted({name for name, _k in old_materials})  # removed
+    if any(_cutout_key(m) != _cutout_key(Material()) for m in old_materials.values()):
+        changes.cutouts_changed = True
+    changes.colours_only = bool(changes.materials_changed) and colours_only and not old_materials
     if any(np.any(m.emission > 0) for m in old_materials.values()):
         flux = float("inf")
     changes.light_flux_change = flux

@@ -7,6 +7,7 @@ every cache event itself, doing the least work that keeps the cache right:
 |---|---|
 | nothing | nothing |
 | lamps, world, materials | shading inputs swapped; `on_lights_changed()` |
+| a material's holes for rays (alpha, clear glass, shadow skips) | ray scene rebuilt, cache kept, as for new triangles |
 | vertices of dynamic objects | dynamic Embree scene rebuilt; `on_geometry_changed(boxes)` |
 | vertices of a static object | it becomes dynamic (one rebuild of the ray scene), then as above |
 | objects appeared, vanished, re-topologised | ray scene rebuilt, the cache kept when its settings and grid still fit; `on_geometry_changed(boxes)` where they were and are |
@@ -99,7 +100,8 @@ class GISession:
             report.rebuilt = report.fresh = True
         else:
             displaced = set(changes.displaced)
-            if changes.topology_changed or not displaced <= self.dynamic_names:
+            # New holes for rays (alpha, clear glass) move the rays' hits as new triangles would.
+            if changes.topology_changed or changes.cutouts_changed or not displaced <= self.dynamic_names:
                 self.dynamic_names |= displaced
                 report.fresh = not self._rebuild(snapshot, keep_cache=True)
                 report.rebuilt = True

@@ -127,6 +127,32 @@ def test_world_and_material_changes_are_named():
     assert diff_snapshots(_scene(geo, materials=twice), _scene(geo, materials=list(twice))).materials_changed == []
 
 
+
+def test_a_diffuse_colour_edit_is_told_apart_from_other_material_edits():
+    """`colours_only`: the changed materials differ in their base colour or their colour
+    texture's texels only (the viewport lights such an edit again as a lamp's, keeping the view)."""
+    geo = [ROOM]
+    texels = np.full((4, 4, 3), 0.5, np.float32)
+    base = _scene(geo, materials=[Material("grey"), Material("wood", texture=texels)])
+
+    def edit(**changes):
+        materials = [Material("grey"), dataclasses.replace(base.materials[1], **changes)]
+        return diff_snapshots(base, _scene(geo, materials=materials))
+
+    for colour_edit in (edit(base_color=np.array([0.1, 0.2, 0.7], np.float32)), edit(texture=texels * 0.5)):
+        assert colour_edit.materials_changed == ["wood"] and colour_edit.colours_only
+        assert not colour_edit.lights_changed and colour_edit.light_flux_change == 0.0
+    for other in (edit(texture=np.full((8, 8, 3), 0.5, np.float32)),  # another image
+                  edit(texture=None), edit(emission=np.full(3, 2.0, np.float32)), edit(clear=True),
+                  edit(alpha=np.ones((4, 4), np.float32))):
+        assert other.materials_changed == ["wood"] and not other.colours_only
+    assert not diff_snapshots(base, base).colours_only  # nothing changed: no colour edit either
+    added = diff_snapshots(base, _scene(geo, materials=[*base.materials, Material("new")]))
+    assert added.materials_changed == ["new"] and not added.colours_only
+    both = diff_snapshots(base, _scene(geo, lights=[_light(x=3.0)], materials=[Material("grey"),
+                                       dataclasses.replace(base.materials[1], base_color=np.zeros(3, np.float32))]))
+    assert both.lights_changed and both.colours_only
+
 def test_object_boxes_in_one_pass_match_per_object_boxes():
     rng = np.random.default_rng(3)
     objects = [(f"o{i}", _cube(rng.uniform(0, 9, 3), rng.uniform(0.1, 1))) for i in range(50)]

@@ -108,3 +108,33 @@ def test_cells_inside_a_moving_object_are_not_shaded_and_restart_when_it_leaves(
     s.system.update(everything, frame=4)
     assert cache.valid[freed].all() and (cache.samples[freed] == 1).all()
     s.close()
+
+
+def test_new_holes_in_a_material_rebuild_the_rays_scene_and_keep_the_cache():
+    """An alpha edit (`SceneChanges.cutouts_changed`) moves what rays hit: the ray scene is built
+    again over the new holes, the cache kept, as for new triangles; a colour edit only re-shades."""
+    from tests.test_cutout import _quad
+
+    def screen_scene(alpha=None, colour=0.8):
+        floor, screen = _quad(0.0, 1), _quad(1.0, 0)
+        floor.object_index[:], screen.object_index[:] = 0, 1
+        materials = [Material("screen", base_color=np.full(3, colour, np.float32), alpha=alpha), Material("floor")]
+        light = Light("SUN", np.ones(3), 3.0, np.eye(4))
+        return make_snapshot(concat_geometry([floor, screen]), materials, [light], World(),
+                             [ObjectInfo("floor"), ObjectInfo("screen")])
+
+    s = GISession(CacheSettings(resolution=8, rays_per_cell=8))
+    assert s.sync(screen_scene()).rebuilt
+    s.system.warm_up(1)
+    down = np.array([[0, 0, -1.0]], np.float32)
+    origin = np.array([[0.25, 0.5, 2.0]], np.float32)
+    assert abs(s.system.tracer.intersect(origin, down).t[0] - 1.0) < 1e-3  # the screen is solid
+    recoloured = s.sync(screen_scene(colour=0.3))
+    assert recoloured.changes.colours_only and not recoloured.rebuilt
+    holes = np.ones((4, 8), np.float32)
+    holes[:, :4] = 0.0  # its left half cut out
+    cut = s.sync(screen_scene(alpha=holes, colour=0.3))
+    assert cut.changes.cutouts_changed and not cut.changes.colours_only
+    assert cut.rebuilt and not cut.fresh and s.system.cache.samples.max() > 0  # the cache survived
+    assert abs(s.system.tracer.intersect(origin, down).t[0] - 2.0) < 1e-3  # through the hole to the floor
+    s.close()

@@ -971,3 +971,52 @@ def test_lamp_edits_that_arrive_while_a_view_reshades_its_rays_stop_it_and_the_v
         q = fresh.latest()
     ours, theirs = p.view.gi_indirect[..., :3].sum(), q.view.gi_indirect[..., :3].sum()
     assert abs(ours / theirs - 1.0) < 0.03
+
+
+def test_a_colour_edit_keeps_the_view_and_its_lamp_light_and_shades_its_rays_again(worker, monkeypatch):
+    """A diffuse colour's edit (`SceneChanges.colours_only`) of a still view is lit again as a
+    lamp's is, and keeps the lamps' light too: no new view (its cells and mask stay), no lamp
+    pass, the first pixel pass re-shades the kept rays over the re-solved cache; the view
+    settles where a worker given the new colours from the start does, away from the old colours'.
+    An emission's edit still starts the view over."""
+    scene = procedural.cornell()
+    settings = CacheSettings(resolution=10, rays_per_cell=16, threads=2)
+    view = pinhole_gbuffer(scene, settings)
+    pos, nrm, view_matrix, ok = view
+    events = []
+    for name in ("_begin_view", "_direct_pass"):
+        original = getattr(worker.ViewportWorker, name)
+        monkeypatch.setattr(worker.ViewportWorker, name,
+                            lambda self, *a, _f=original, _n=name, **k: events.append(_n) or _f(self, *a, **k))
+    pass_type = worker._pixels.PixelPass
+    start, reshade = pass_type.start, pass_type.start_reshade
+    monkeypatch.setattr(pass_type, "start", lambda self, *a, **k: events.append("trace") or start(self, *a, **k))
+    monkeypatch.setattr(pass_type, "start_reshade",
+                        lambda self, *a, **k: events.append("reshade") or reshade(self, *a, **k))
+    options = dict(direct_passes=1, solver_batches=1, first_batch_rays=8, pixel_rays=16, pixel_passes=2)
+    # The red wall turned blue: the other walls and the floor take blue light instead of red.
+    blue = [dataclasses.replace(m, base_color=np.array([0.05, 0.08, 0.6], np.float32)) if m.name == "red" else m
+            for m in scene.materials]
+    gi = lambda published: published.view.gi_indirect.reshape(-1, 4)[ok.ravel(), :3].copy()  # noqa: E731
+    with still_view(worker, scene, settings, worker.WorkerOptions(**options), pos, nrm, view_matrix) as wk:
+        before_edit, old = len(events), gi(wk.latest())
+        wk.post_edit(worker.SetShading(materials=blue))
+        assert wk.wait_idle(120)
+        recoloured = events[before_edit:]
+        new = gi(wk.latest())
+        glowing = [dataclasses.replace(m, emission=np.full(3, 2.0, np.float32)) if m.name == "green" else m
+                   for m in blue]
+        before_glow = len(events)
+        wk.post_edit(worker.SetShading(materials=glowing))
+        assert wk.wait_idle(120)
+        glowed = events[before_glow:]
+    assert "_begin_view" not in recoloured and "_direct_pass" not in recoloured, recoloured
+    assert recoloured[0] == "reshade" and "trace" in recoloured
+    assert "_begin_view" in glowed  # an emission is a light source: the view starts over
+    with still_view(worker, dataclasses.replace(scene, materials=blue), settings, worker.WorkerOptions(**options),
+                    pos, nrm, view_matrix) as fresh_wk:
+        fresh = gi(fresh_wk.latest())
+    l1 = lambda a, b: float(np.abs(a - b).sum() / np.abs(b).sum())  # noqa: E731
+    assert l1(old, fresh) > 0.1  # the colour matters to the view's GI
+    assert l1(new, fresh) < 0.25 * l1(old, fresh), (l1(new, fresh), l1(old, fresh))
+    assert (new[:, 2] / new.sum(axis=1)).mean() > (old[:, 2] / old.sum(axis=1)).mean()  # bluer
