@@ -883,13 +883,13 @@ class ViewportWorker:
             self._publish(force=True)
 
     def _carry_due(self, state: ViewState) -> bool:
-        """A lamp edit's carried pixel GI is due: the view had pixel passes before it, none since,
-        and the cache has solved over the re-lit hits."""
+        """A lamp (or colour) edit's carried pixel GI is due: the view had pixel passes before it,
+        none since, and the cache has solved over the re-lit hits."""
         return (state.carry is not None and state.carried is None and state.pixel_sum is None
                 and state.visible is not None and self._schedule.solved_once)
 
     def _carry(self, system, state: ViewState) -> None:
-        """The view's pixel passes from before a lamp edit, scaled to the re-lit cache
+        """The view's pixel passes from before a lamp (or colour) edit, scaled to the re-lit cache
         (`gi_carry`), shown until the first pixel pass over it: the re-lit image without waiting
         ~0.6 s for its rays."""
         t0 = time.perf_counter()
