@@ -4,7 +4,7 @@ import logging
 
 import bpy
 
-from hybridgi_core import errors, heap
+from hybridgi_core import errors, gil, heap
 
 from . import compat
 
@@ -82,7 +82,9 @@ def render_frame(engine, depsgraph):
     global LAST_ERROR
     LAST_ERROR = None
     try:
-        with heap.held():  # the frame's freed arrays serve its next ones, not the kernel
+        # The frame's freed arrays serve its next ones, not the kernel; its threads hand the GIL
+        # to each other sooner.
+        with heap.held(), gil.quick_handoff():
             _pipeline().render_frame(engine, depsgraph)
     except errors.HybridGIError as err:
         _fail(engine, str(err))

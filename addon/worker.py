@@ -24,7 +24,7 @@ from types import MappingProxyType
 
 import numpy as np
 
-from hybridgi_core import errors, heap
+from hybridgi_core import errors, gil, heap
 from hybridgi_core import gi_carry as _gi_carry
 from hybridgi_core import glossy_image as _glossy
 from hybridgi_core import glossy_ltc as _glossy_ltc
@@ -215,7 +215,9 @@ class ViewportWorker:
     # --- worker thread --------------------------------------------------------------------------
 
     def _run(self) -> None:
-        with heap.held():  # each pass's freed arrays serve the next pass's, not the kernel
+        # Each pass's freed arrays serve the next pass's, not the kernel; the pool's threads hand
+        # the GIL to each other sooner.
+        with heap.held(), gil.quick_handoff():
             self._loop()
 
     def _loop(self) -> None:
