@@ -3,32 +3,21 @@
 from __future__ import annotations
 
 import sys
-import threading
 
 import pytest
 
 from hybridgi_core import gil
+from tests.threads import held_on_another_thread
 
 
 def test_the_interval_is_short_while_any_holder_is_inside_and_restored_after_the_last():
     before = sys.getswitchinterval()
     assert before != gil.SWITCH_INTERVAL_S
-    inside, go = threading.Event(), threading.Event()
-
-    def worker():
+    with held_on_another_thread(gil.quick_handoff):
+        assert sys.getswitchinterval() == pytest.approx(gil.SWITCH_INTERVAL_S)
         with gil.quick_handoff():
-            inside.set()
-            go.wait(5)
-
-    t = threading.Thread(target=worker)
-    t.start()
-    assert inside.wait(5)
-    assert sys.getswitchinterval() == pytest.approx(gil.SWITCH_INTERVAL_S)
-    with gil.quick_handoff():
-        assert gil.holders() == 2
-    assert sys.getswitchinterval() == pytest.approx(gil.SWITCH_INTERVAL_S)  # the worker still holds it
-    go.set()
-    t.join(5)
+            assert gil.holders() == 2
+        assert sys.getswitchinterval() == pytest.approx(gil.SWITCH_INTERVAL_S)  # the other thread holds it
     assert gil.holders() == 0 and sys.getswitchinterval() == pytest.approx(before)
 
 

@@ -5,12 +5,12 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
-import threading
 from pathlib import Path
 
 import pytest
 
 from hybridgi_core import heap
+from tests.threads import held_on_another_thread
 
 GLIBC = heap._glibc() is not None
 MIB = 1 << 20
@@ -22,6 +22,7 @@ MIB = 1 << 20
 PROBE = """
 import resource, numpy as np
 from hybridgi_core import heap
+from tests.threads import held_on_another_thread
 def faults(nbytes):
     np.ones(nbytes // 8)
     before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
@@ -61,23 +62,12 @@ def test_held_scopes_nest_across_threads_and_the_last_one_releases(monkeypatch):
             return 1
 
     monkeypatch.setattr(heap, "_libc", [FakeLibc()])
-    inside, go = threading.Event(), threading.Event()
-
-    def worker():
+    with held_on_another_thread(heap.held):
         with heap.held():
-            inside.set()
-            go.wait(5)
-
-    t = threading.Thread(target=worker)
-    t.start()
-    assert inside.wait(5)
-    with heap.held():
-        assert heap.holders() == 2
-    assert heap.holders() == 1 and ("trim", 0) not in calls  # the worker still holds it
-    applied = [c for c in calls if c[0] == "mallopt"]
-    assert applied == [("mallopt", p, v) for p, v in heap.HELD]  # applied once, by the first
-    go.set()
-    t.join(5)
+            assert heap.holders() == 2
+        assert heap.holders() == 1 and ("trim", 0) not in calls  # the other thread still holds it
+        applied = [c for c in calls if c[0] == "mallopt"]
+        assert applied == [("mallopt", p, v) for p, v in heap.HELD]  # applied once, by the first
     assert heap.holders() == 0
     assert calls[-1] == ("trim", 0)
     assert [c for c in calls if c[0] == "mallopt"][len(heap.HELD):] == [("mallopt", p, v) for p, v in heap.RELEASED]
