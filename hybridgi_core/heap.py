@@ -4,10 +4,10 @@ Why: a frame allocates and frees the same large numpy temporaries over and over 
 radiance, per-pixel planes: 1-40 MB each), and glibc hands such blocks back to the kernel when
 they are freed (mmap'd blocks at once, the heap's top above the trim threshold), so the next
 array of that size is faulted in afresh, a page fault and a zeroed page per 4 KiB. On this 2-core
-VM the atrium's final render at 640x360 took ~110k of its faults in the render itself and ran
-1.55 s without its GPU passes; with the heap held (no mmap'd blocks, no trimming) 1.39 s, the
-image bit for bit the same (the viewport worker: Cornell's first pass after a light move published
-~5% sooner). Where page faults are cheaper (bare metal) the gain is smaller, never a loss.
+VM the atrium's final render at 640x360 took 138k faults in the render itself and ran 1.50-1.60 s
+without its GPU passes; with the heap held (no mmap'd blocks, no trimming) 105-111k and
+1.40-1.45 s, the image bit for bit the same (the viewport worker: Cornell's first pass after a
+light move published ~5% sooner). Where page faults are cheaper (bare metal) the gain is smaller.
 
 `held()` is the scope: the settings apply while at least one render or viewport worker is inside
 one (counted across threads), and when the last leaves, the freed memory goes back to the kernel
