@@ -543,13 +543,20 @@ def _chunk_trace(system, lookup: HitLookup | None, p, nrm, corner_visible, rays,
     tic = time.perf_counter()
     uv = None if tiles is None else tiled_uv(tiles[0], tiles[1], rays, tiles[2])
     dirs = cosine_directions(nrm, rays, rng, uv).reshape(-1, 3)
-    origins = np.repeat(p + (nrm if smooth is None else smooth) * eps, rays, axis=0)
+    origins = _ray_origins(p, nrm, smooth, eps, rays)
     tfar = np.float32(s.ray_length) if s.ray_length > 0 else np.float32(np.inf)
     hits = tracer.intersect(origins, dirs, tfar, trusted=True)
     times["trace"] = (time.perf_counter() - tic) * 1e3
     state.update(system=system, lookup=lookup, p=p, nrm=nrm, rays=rays, rng=rng, smooth=smooth, dirs=dirs,
                  origins=origins, hits=hits)
     return state
+
+
+def _ray_origins(p: np.ndarray, nrm: np.ndarray, smooth: np.ndarray | None, eps: np.float32, rays: int) -> np.ndarray:
+    """(m rays, 3) origins of the `rays` rays of each pixel p (m, 3): pushed off along the smooth
+    surface normal (`nrm` where no normal map bends it) by eps. One formula for `_chunk_trace`
+    and `_restate`, whose re-shade must start its rays where the trace started them."""
+    return np.repeat(p + (nrm if smooth is None else smooth) * eps, rays, axis=0)
 
 
 def _cache_part(system, p, nrm, corner_visible, smooth) -> dict:
@@ -591,9 +598,9 @@ def _restate(state: dict, system, lookup: HitLookup | None, corner_visible, rng,
         fresh = _cache_part(system, state["p"], state["nrm"], corner_visible, state["smooth"])
     else:
         fresh = {key: (v.copy() if isinstance(v, np.ndarray) else v) for key, v in part.items()}
-    if "origins" not in state:  # slimmed (`BegunPixels.slim`): pushed off as `_chunk_trace` does
-        lift = state["nrm"] if state["smooth"] is None else state["smooth"]
-        fresh["origins"] = np.repeat(state["p"] + lift * np.float32(system.tracer.epsilon), state["rays"], axis=0)
+    if "origins" not in state:  # slimmed (`BegunPixels.slim`): made again as `_chunk_trace` made them
+        fresh["origins"] = _ray_origins(state["p"], state["nrm"], state["smooth"],
+                                        np.float32(system.tracer.epsilon), state["rays"])
     return {**state, **fresh, "system": system, "lookup": lookup, "rng": rng}
 
 
