@@ -4,7 +4,8 @@ import logging
 
 import bpy
 
-from hybridgi_core import errors, gil, heap
+from hybridgi_core import errors
+from hybridgi_core.rendering import rendering
 
 from . import compat
 
@@ -82,9 +83,7 @@ def render_frame(engine, depsgraph):
     global LAST_ERROR
     LAST_ERROR = None
     try:
-        # The frame's freed arrays serve its next ones, not the kernel; its threads hand the GIL
-        # to each other sooner.
-        with heap.held(), gil.quick_handoff():
+        with rendering():  # freed arrays kept, a short GIL switch interval
             _pipeline().render_frame(engine, depsgraph)
     except errors.HybridGIError as err:
         _fail(engine, str(err))

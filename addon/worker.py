@@ -24,7 +24,7 @@ from types import MappingProxyType
 
 import numpy as np
 
-from hybridgi_core import errors, gil, heap
+from hybridgi_core import errors
 from hybridgi_core import gi_carry as _gi_carry
 from hybridgi_core import glossy_image as _glossy
 from hybridgi_core import glossy_ltc as _glossy_ltc
@@ -38,6 +38,7 @@ from hybridgi_core.raster import gather as _gather_layout
 from hybridgi_core.raster import settings as _raster_settings
 from hybridgi_core.raster import subpixel as _subpixel
 from hybridgi_core.raster.gbuffer import camera_eye
+from hybridgi_core.rendering import rendering
 from hybridgi_core.rows import rows_above
 from hybridgi_core.session import GISession
 
@@ -215,9 +216,7 @@ class ViewportWorker:
     # --- worker thread --------------------------------------------------------------------------
 
     def _run(self) -> None:
-        # Each pass's freed arrays serve the next pass's, not the kernel; the pool's threads hand
-        # the GIL to each other sooner.
-        with heap.held(), gil.quick_handoff():
+        with rendering():  # each pass's freed arrays serve the next; a short GIL switch interval
             self._loop()
 
     def _loop(self) -> None:

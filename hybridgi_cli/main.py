@@ -29,8 +29,8 @@ import tempfile
 import time
 from pathlib import Path
 
-from hybridgi_core import gil, heap
 from hybridgi_core.cycles_reference import CYCLES_REFERENCE
+from hybridgi_core.rendering import rendering
 
 from . import blender_compat, dev_install, interrupt, output, tracebacks
 
@@ -198,21 +198,12 @@ def run_render(args) -> int:
         if addon is not None:
             check_core_settings(scene)
         first, last = args.frames or (scene.frame_current, scene.frame_current)
-        with _tuned_for(args.engine):
+        # HybridGI's frames keep its render settings between them too (`rendering`, which each
+        # frame holds as well); another engine's render is left to its own allocator and interval.
+        with rendering() if args.engine == "HYBRIDGI" else contextlib.nullcontext():
             for i, frame in enumerate(range(first, last + 1), 1):
                 _render_one(bpy, scene, args, prefix, out, addon, frame, f"{i}/{last - first + 1}")
     return 0
-
-
-def _tuned_for(engine: str) -> contextlib.ExitStack:
-    """HybridGI's frames keep the heap and the GIL's short switch interval between them too (each
-    frame holds both: `heap.held`, `gil.quick_handoff`); another engine's render is left to its
-    own allocator and interval."""
-    stack = contextlib.ExitStack()
-    if engine == "HYBRIDGI":
-        stack.enter_context(heap.held())
-        stack.enter_context(gil.quick_handoff())
-    return stack
 
 
 def _render_one(bpy, scene, args, prefix, out, addon, frame: int, of: str) -> None:

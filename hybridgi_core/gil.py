@@ -16,36 +16,32 @@ is inside one (counted across threads) and the one before it restored when the l
 
 from __future__ import annotations
 
-import contextlib
 import sys
-import threading
+
+from .counted_scope import CountedScope
 
 #: Seconds between the interpreter's requests that the thread holding the GIL release it.
 SWITCH_INTERVAL_S = 0.0005
 
-_lock = threading.Lock()
-_holders = [0]
 _before: list[float] = []
 
 
-@contextlib.contextmanager
-def quick_handoff():
-    """Run the block with the GIL switch interval at SWITCH_INTERVAL_S (see the module docstring);
-    nestable and thread-safe: the first holder sets it, the last one restores the one before."""
-    with _lock:
-        _holders[0] += 1
-        if _holders[0] == 1:
-            _before[:] = [sys.getswitchinterval()]
-            sys.setswitchinterval(SWITCH_INTERVAL_S)
-    try:
-        yield
-    finally:
-        with _lock:
-            _holders[0] -= 1
-            if _holders[0] == 0 and _before:
-                sys.setswitchinterval(_before.pop())
+def _shorten() -> None:
+    _before[:] = [sys.getswitchinterval()]
+    sys.setswitchinterval(SWITCH_INTERVAL_S)
+
+
+def _restore() -> None:
+    if _before:
+        sys.setswitchinterval(_before.pop())
+
+
+#: Run a block with the GIL switch interval at SWITCH_INTERVAL_S (see the module docstring):
+#: `with quick_handoff():`; nestable and thread-safe, the first holder sets it, the last one
+#: restores the one before.
+quick_handoff = CountedScope(_shorten, _restore)
 
 
 def holders() -> int:
     """How many `quick_handoff()` scopes are open (tests)."""
-    return _holders[0]
+    return quick_handoff.holders

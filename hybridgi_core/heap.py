@@ -26,7 +26,8 @@ import logging
 import os
 import platform
 import sys
-import threading
+
+from .counted_scope import CountedScope
 
 log = logging.getLogger(__name__)
 
@@ -46,8 +47,6 @@ RELEASED = ((M_MMAP_MAX, 65536), (M_MMAP_THRESHOLD, 32 << 20), (M_TRIM_THRESHOLD
 USER_SETTINGS = ("MALLOC_MMAP_MAX_", "MALLOC_MMAP_THRESHOLD_", "MALLOC_TRIM_THRESHOLD_", "MALLOC_TOP_PAD_",
                  "GLIBC_TUNABLES")
 
-_lock = threading.Lock()
-_holders = [0]
 _libc: list = []
 
 
@@ -74,28 +73,31 @@ def _apply(lib, settings) -> bool:
     return all(lib.mallopt(param, value) == 1 for param, value in settings)
 
 
+def _hold() -> None:
+    if not _apply(_glibc(), HELD):
+        log.info("heap: mallopt refused a setting; malloc partly tuned")
+
+
+def _release() -> None:
+    lib = _glibc()
+    _apply(lib, RELEASED)
+    lib.malloc_trim(0)
+
+
+_scope = CountedScope(_hold, _release)
+
+
 @contextlib.contextmanager
 def held():
     """Keep freed memory in the heap for reuse while the block runs (see the module docstring);
     nestable and thread-safe: the first holder applies the settings, the last one releases."""
-    lib = _glibc()
-    if lib is None:
+    if _glibc() is None:
         yield
         return
-    with _lock:
-        _holders[0] += 1
-        if _holders[0] == 1 and not _apply(lib, HELD):
-            log.info("heap: mallopt refused a setting; malloc partly tuned")
-    try:
+    with _scope():
         yield
-    finally:
-        with _lock:
-            _holders[0] -= 1
-            if _holders[0] == 0:
-                _apply(lib, RELEASED)
-                lib.malloc_trim(0)
 
 
 def holders() -> int:
     """How many `held()` scopes are open (tests)."""
-    return _holders[0]
+    return _scope.holders

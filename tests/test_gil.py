@@ -26,3 +26,15 @@ def test_a_failing_block_restores_the_interval():
     with pytest.raises(ValueError), gil.quick_handoff():
         raise ValueError("a frame failed")
     assert gil.holders() == 0 and sys.getswitchinterval() == pytest.approx(before)
+
+
+def test_the_render_scope_holds_the_short_interval_and_the_heap_together():
+    from hybridgi_core import heap
+    from hybridgi_core.rendering import rendering
+
+    before = sys.getswitchinterval()
+    tuned = heap._glibc() is not None
+    with rendering():
+        assert gil.holders() == 1 and heap.holders() == int(tuned)
+        assert sys.getswitchinterval() == pytest.approx(gil.SWITCH_INTERVAL_S)
+    assert gil.holders() == 0 and heap.holders() == 0 and sys.getswitchinterval() == pytest.approx(before)
