@@ -239,7 +239,8 @@ def _material_key(material: Material) -> tuple:
             getattr(material, "clear", False), getattr(material, "refractive", False),
             _bytes_or_none(getattr(material, "translucent", None)),
             _bytes_or_none(getattr(material, "sheen", None)), getattr(material, "sheen_roughness", 0.5),
-            getattr(material, "sheen_layered", False), maps, _cutout_key(material))
+            getattr(material, "sheen_layered", False), maps,
+            _cutout_key(material))  # last: `_diff_shading` reads it there
 
 
 def _cutout_key(material: Material) -> tuple:
@@ -251,10 +252,9 @@ def _cutout_key(material: Material) -> tuple:
             getattr(material, "shadow_transparent", False))
 
 
-def _colourless_key(material: Material) -> tuple:
-    """`_material_key` without the diffuse colour: the base colour and the colour texture's texels
-    (its size stays in), what `SceneChanges.colours_only` lets differ."""
-    key = _material_key(material)
+def _colourless(key: tuple) -> tuple:
+    """A `_material_key` without the diffuse colour: the base colour and the colour texture's
+    texels (its size stays in), what `SceneChanges.colours_only` lets differ."""
     texture = key[2]
     return (None,) + key[1:2] + (None if texture is None else texture[0],) + key[3:]
 
@@ -299,20 +299,22 @@ def _diff_shading(old: SceneSnapshot, new: SceneSnapshot, changes: SceneChanges)
     # the k-th of a name pairs with the k-th before.
     old_materials = _by_name(old.materials)
     colours_only = True
+    no_holes = _cutout_key(Material())
     for key, m in _by_name(new.materials).items():
         before = old_materials.pop(key, None)
-        if before is None or _material_key(before) != _material_key(m):
+        # Each key once (a colour texture's sum reads every texel).
+        was, now = (None if before is None else _material_key(before)), _material_key(m)
+        if was != now:
             changes.materials_changed.append(m.name)
-            colours_only = colours_only and before is not None and _colourless_key(before) == _colourless_key(m)
-            no_holes = _cutout_key(Material())
-            if _cutout_key(m) != (no_holes if before is None else _cutout_key(before)):
+            colours_only = colours_only and was is not None and _colourless(was) == _colourless(now)
+            if now[-1] != (no_holes if was is None else was[-1]):  # `_cutout_key`, the key's last part
                 changes.cutouts_changed = True
             if before is not None:
                 flux = max(flux, _relative_change(before.emission, m.emission))
             elif np.any(m.emission > 0):
                 flux = float("inf")
     changes.materials_changed += sorted({name for name, _k in old_materials})  # removed
-    if any(_cutout_key(m) != _cutout_key(Material()) for m in old_materials.values()):
+    if any(_cutout_key(m) != no_holes for m in old_materials.values()):
         changes.cutouts_changed = True
     changes.colours_only = bool(changes.materials_changed) and colours_only and not old_materials
     if any(np.any(m.emission > 0) for m in old_materials.values()):
