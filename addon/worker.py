@@ -466,13 +466,15 @@ class ViewportWorker:
             direct = _interruptible(system, lambda: self._superseded(state))
             # Its first pass on probes where the lamps allow (`penumbra._coarse_first_pass`).
             exact_lamps = _lights.one_sample_exact_lamps(system.scene.lights)
+            # Weak lamps and the penumbra pass's rays by the lamps' light, as in final renders.
+            rough = _lights.rough_lights(system.scene.lights, points, normals) if system.scene.lights else None
             # The glossy closed form's visibility (`glossy_ltc`), for the fine glossy light.
             exact, per_lamp = _glossy_ltc.direct_outputs(system, points.shape[0]) if shares is None else (None, None)
             try:
                 light, full = (_penumbra.adaptive_direct(
                     direct, points, normals, pix, shape, self._frame * MAX_DIRECT_BLOCKS, samples,
                     camera=camera, pool=system.updater.pool, lamps=len(system.scene.lights),
-                    exact_lamps=exact_lamps, per_lamp=per_lamp, exact_out=exact)
+                    exact_lamps=exact_lamps, per_lamp=per_lamp, exact_out=exact, rough=rough)
                     if points.shape[0] else (None, np.zeros(0, bool)))
             except _Superseded:
                 self._steps["direct_dropped"] = (time.perf_counter() - t0) * 1e3
@@ -485,7 +487,9 @@ class ViewportWorker:
                     light = _translucent.mix_back(light, shares, lambda rows: _penumbra.adaptive_direct(
                         direct, points[rows], -normals[rows], pix[rows], shape,
                         (self._frame + _translucent.BACK_SEED_OFFSET) * MAX_DIRECT_BLOCKS, samples, camera=camera,
-                        pool=system.updater.pool, lamps=len(system.scene.lights), exact_lamps=exact_lamps)[0])
+                        pool=system.updater.pool, lamps=len(system.scene.lights), exact_lamps=exact_lamps,
+                        rough=None if rough is None else _lights.rough_lights(system.scene.lights, points[rows],
+                                                                              -normals[rows]))[0])
                 except _Superseded:
                     self._steps["direct_dropped"] = (time.perf_counter() - t0) * 1e3
                     return

@@ -6,7 +6,17 @@ from __future__ import annotations
 import numpy as np
 
 from hybridgi_core.lights import RATIO_MIN_SAMPLES, direct_irradiance, one_sample_exact, rough_lights
-from hybridgi_core.penumbra import COARSE_MIN_PIXELS, FIRST_SAMPLES, WEAK_SHARE, adaptive_direct, dilate
+from hybridgi_core.penumbra import (
+    COARSE_MIN_PIXELS,
+    FIRST_SAMPLES,
+    MAX_SHARE,
+    MIN_SHARE,
+    TIERS,
+    WEAK_SHARE,
+    adaptive_direct,
+    dilate,
+    sample_counts,
+)
 from tests.test_lights import TriangleTracer, area_light, point_light, quad, sun_light, translation
 
 # A floor image of 48 x 48 pixels over [-4, 4]^2, a 1 m square lamp 2 m up, a blocker that
@@ -246,7 +256,8 @@ def test_weak_lamps_trace_one_ray_and_the_strong_lamp_its_one_lamp_rays():
         np.testing.assert_allclose(shares.sum(axis=1), light, rtol=1e-5, atol=1e-6)
     assert rays[1] < 0.75 * rays[0], rays
     assert errors[1] < 1.05 * errors[0] + 1e-4, errors
-    alone, _ = adaptive_direct(_direct([strong], tracer), pts, nrm, pix, (H, W), frame=3, samples=32, lamps=1)
+    alone, _ = adaptive_direct(_direct([strong], tracer), pts, nrm, pix, (H, W), frame=3, samples=32, lamps=1,
+                               rough=rough[:, :1])
     np.testing.assert_array_equal(shares[:, 0], alone)
 
 
@@ -352,3 +363,46 @@ def test_sun_disc_is_exact_where_nothing_shadows_it():
     # Below ratio_samples, each sample's own cosine (the plain estimate): not all equal.
     plain = direct_irradiance([sun], pts, nrm, None, np.random.default_rng(0), samples=2)
     assert np.ptp(plain[:, 0]) > 1e-3 * exact
+
+
+def test_sample_counts_spend_the_rays_where_the_lamp_is_bright_for_the_same_expected_error():
+    """sample_counts: rays ~ the rough light^(2/3) on the tiers, within MIN_SHARE..MAX_SHARE of
+    `samples`, fewer in all for the expected error (sum e / sqrt(first + n)) of `samples` each;
+    a lamp whose light is even over the penumbra, none known or none at all: `samples` each."""
+    first, samples = FIRST_SAMPLES, 48
+    e = np.geomspace(0.01, 10.0, 500)[np.random.default_rng(0).permutation(500)]
+    n = sample_counts(e, first, samples)
+    order = np.argsort(e)
+    assert (np.diff(n[order]) >= 0).all()  # brighter never fewer
+    tiers = set(np.rint(samples * np.asarray(TIERS)).astype(int))
+    assert set(n.tolist()) <= tiers and MIN_SHARE * samples <= n.min() and n.max() <= MAX_SHARE * samples
+    uniform = (e / np.sqrt(first + samples)).sum()
+    assert (e / np.sqrt(first + n)).sum() < 1.03 * uniform  # the tiers' rounding
+    assert n.sum() < 0.85 * samples * e.size
+    for even in (np.full(100, 3.0), None, np.zeros(100), np.full(100, np.nan)):
+        n = sample_counts(even, first, samples)
+        assert n.size == (0 if even is None else 100) and (n == samples).all()
+
+
+def test_a_penumbra_falling_off_from_its_lamp_takes_fewer_rays_for_the_same_light():
+    """A 1 m area lamp 1 m above a floor and a blocker beside it: the penumbra runs from under the
+    lamp to metres away, where the lamp's light is a fraction of it. adaptive_direct(rough=)
+    traces fewer shadow rays there and is as close to the converged light (six frames)."""
+    lamp = area_light(translation(-2.0, 0.0, 1.0), power=300.0)
+    tracer = TriangleTracer(quad((-1.2, 0.0, 0.6), (0.5, 0, 0), (0, 2.0, 0)))
+    pts, nrm = _floor()
+    pix = np.arange(H * W)
+    ref = direct_irradiance([lamp], pts, nrm, tracer, np.random.default_rng(7), samples=4096)
+    rough = rough_lights([lamp], pts, nrm)
+    rays, errors = [], []
+    for given in (None, rough):
+        tracer.rays, err = 0, 0.0
+        for frame in range(6):
+            light, full = adaptive_direct(_direct([lamp], tracer), pts, nrm, pix, (H, W), frame=frame, samples=32,
+                                          lamps=1, rough=given)
+            err += np.abs(light - ref).sum() / ref.sum()
+        assert 0.2 < full.mean() < 0.8
+        rays.append(tracer.rays)
+        errors.append(err / 6)
+    assert rays[1] < 0.85 * rays[0], rays
+    assert errors[1] < 1.05 * errors[0], errors

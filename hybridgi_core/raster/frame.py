@@ -539,8 +539,9 @@ class FramePipeline:
         # Each lamp's share, for the subframes' light edges per lamp (`subpixel.lamp_edges`).
         shares = (np.zeros((p_full.shape[0], lamps, 3), np.float32)
                   if self.subframes > 1 and 1 < lamps <= SUBFRAME_LAMP_LIMIT else None)
-        # Several lamps: each traces its first pass's rays where it is not weak (`penumbra.WEAK_SHARE`).
-        rough = rough_lights(system.scene.lights, p_full, n_full) if lamps > 1 else None
+        # Several lamps: each traces its first pass's rays where it is not weak (`penumbra.WEAK_SHARE`);
+        # the penumbra pass's rays go where the lamp's light is (`penumbra.sample_counts`).
+        rough = rough_lights(system.scene.lights, p_full, n_full) if lamps else None
         # The lamps whose first pass may run on probes (`penumbra._coarse_first_pass`).
         exact_lamps = one_sample_exact_lamps(system.scene.lights)
         # Each lamp's exact unshadowed light and share: the glossy lobes' closed-form area-lamp
@@ -563,7 +564,7 @@ class FramePipeline:
                                    frame + translucent_mod.BACK_SEED_OFFSET, self.direct_samples, camera=camera,
                                    pool=system.updater.pool, lamps=lamps,
                                    smooth=None if s_full is None else -s_full[rows], per_lamp=back_shares,
-                                   rough=rough_lights(system.scene.lights, p_full[rows], flipped) if lamps > 1
+                                   rough=rough_lights(system.scene.lights, p_full[rows], flipped) if lamps
                                    else None, exact_lamps=exact_lamps)[0]
             t = t_full[rows]
             direct[pix_full[rows], :3] = translucent_mod.blend(direct[pix_full[rows], :3], back, t)
