@@ -2125,10 +2125,22 @@ def light_from_blender(light, matrix_world, name="", obj=None, notes=None):
             scale = area * (np.pi / 4 if shape in ("DISK", "ELLIPSE") else 1.0)
             power *= scale
             glossy_power *= scale
+    # Cycles subtracts the light of a negative power (or colour); HybridGI's samplers and
+    # penumbra estimates take light as positive: such a lamp left speckles and rings where it
+    # reached, and lit nothing. It is switched off, named.
+    negative = power < 0 or glossy_power < 0 or bool((color < 0).any())
+    if negative:
+        notes.setdefault(NEGATIVE_LIGHT, set()).add(name)
     if own_notes:
         warn_lamp_notes(notes)
+    if negative:
+        return None
     return snap.Light(kind=kind, color=color, power=power, matrix=matrix, name=name,
                       glossy_power=None if glossy_power == power else glossy_power, **fields)
+
+
+#: The lamp note of a negative power or colour (a subtractive lamp: not rendered).
+NEGATIVE_LIGHT = "negative power or colour: subtractive light is not rendered; switched off"
 
 
 def warn_lamp_notes(notes) -> None:
