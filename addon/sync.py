@@ -19,7 +19,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from hybridgi_core import environment, hair, surface_mix
+from hybridgi_core import environment, hair, points, surface_mix
 from hybridgi_core import snapshot as snap
 from hybridgi_core import specular as sp
 from hybridgi_core.blackbody import blackbody_rgb
@@ -126,6 +126,8 @@ class _LocalMesh:
     normal_uvs: np.ndarray | None = None
 
 
+#: Object types whose geometry is rendered (Curves as tubes, point clouds as spheres).
+SURFACE_TYPES = ("MESH", "CURVES", "POINTCLOUD")
 #: Strands of one particle hair system read (one `co_hair` call per point each).
 MAX_PARTICLE_STRANDS = 50_000
 #: Corners x instances that `transformed` maps in one block.
@@ -170,6 +172,34 @@ def _hair_arrays(curves, name):
     return _LocalMesh(positions=tubes.positions, normals=tubes.normals,
                       uvs=np.full((tubes.positions.shape[0], 2), np.nan, np.float32), triangles=tubes.triangles,
                       slot=slot)
+
+
+def _pointcloud_arrays(cloud, name):
+    """`_LocalMesh` of a PointCloud's points as spheres (`hybridgi_core.points`; no UVs), or None."""
+    n = len(cloud.points)
+    if n == 0:
+        return None
+    positions = np.empty(n * 3, np.float32)
+    cloud.attributes["position"].data.foreach_get("vector", positions)
+    radius = cloud.attributes.get("radius")
+    radii = np.full(n, points.DEFAULT_RADIUS, np.float32)
+    if radius is not None and radius.domain == "POINT" and radius.data_type == "FLOAT":
+        radius.data.foreach_get("value", radii)
+    spheres = points.spheres(positions, radii)
+    if spheres.thinned > 1:
+        log.warning("point cloud %r: %d points are more than %d triangles; every %d-th is kept, widened to cover "
+                    "as much", name, n, hair.TRIANGLE_BUDGET, spheres.thinned)
+    if spheres.triangles.shape[0] == 0:
+        return None
+    slot = np.zeros(spheres.triangles.shape[0], np.int32)
+    index = cloud.attributes.get("material_index")
+    if index is not None and index.domain == "POINT" and index.data_type == "INT":
+        per_point = np.empty(n, np.int32)
+        index.data.foreach_get("value", per_point)
+        slot = per_point[spheres.point]
+    return _LocalMesh(positions=spheres.positions, normals=spheres.normals,
+                      uvs=np.full((spheres.positions.shape[0], 2), np.nan, np.float32),
+                      triangles=spheres.triangles, slot=slot)
 
 
 def mesh_arrays(mesh):
@@ -396,6 +426,7 @@ class _SnapshotBuilder:
         self._object_outputs = {}  # material name -> `object_info_outputs`, read once per sync
         self._variant_warned = set()
         self.without_material = set()  # object names (Cycles gives them a glossy default)
+        self.volumes = set()  # Volume objects' names: not rendered, warned once
         self.collection_flags = collection_flags or {}
         self.ignored: dict[str, set[str]] = {}  # what is approximated -> object names, warned once
         #: Instances to place (`_add_placed`): key -> [local mesh, slot materials, [object index],
@@ -421,11 +452,18 @@ class _SnapshotBuilder:
             return
         if obj.type == "MESH" and instance.show_particles and len(obj.particle_systems):
             self._add_particle_hair(instance)
-        # Meshes, and Curves (hair) as tubes: curves, text, surfaces and metaballs also arrive as
-        # a mesh instance of their evaluated geometry (converting them too would count them twice).
-        if obj.type not in ("MESH", "CURVES") or not instance.show_self:
+        if obj.type == "VOLUME" and instance.show_self:
+            # Cycles renders a Volume object's grids (smoke, clouds, Mesh to Volume) through its
+            # volume shader; HybridGI renders surfaces only: named, left out, the rest rendered.
+            self.volumes.add(obj.name if not instance.is_instance or instance.parent is None
+                             else instance.parent.name)
             return
-        local = self._local_mesh(obj) if obj.type == "MESH" else self._hair_mesh(obj)
+        # Meshes, Curves (hair) as tubes and point clouds as spheres: curves, text, surfaces and
+        # metaballs also arrive as a mesh instance of their evaluated geometry (converting them too
+        # would count them twice).
+        if obj.type not in SURFACE_TYPES or not instance.show_self:
+            return
+        local = self._local_mesh(obj) if obj.type == "MESH" else self._shape_mesh(obj)
         if local is None:
             return
         parent = instance.parent if instance.is_instance else None
@@ -542,6 +580,11 @@ class _SnapshotBuilder:
     def warn_unsupported(self):
         """One warning per kind of setting HybridGI does not follow, naming the objects."""
         warn_lamp_notes(self.lamp_notes)
+        if self.volumes:
+            names = sorted(self.volumes)
+            shown = ", ".join(repr(n) for n in names[:5]) + (f" and {len(names) - 5} more" if len(names) > 5 else "")
+            log.warning("Volume %s %s: HybridGI renders surfaces only; %s left out", "objects" if len(names) > 1
+                        else "object", shown, "they are" if len(names) > 1 else "it is")
         for meaning, names in sorted(self.ignored.items()):
             shown = ", ".join(sorted(names)[:5]) + (f" and {len(names) - 5} more" if len(names) > 5 else "")
             objects = "object" if len(names) == 1 else "objects"
@@ -566,11 +609,13 @@ class _SnapshotBuilder:
         more = f" (and {len(names) - 5} more materials)" if len(names) > 5 else ""
         log.warning("Shader features approximated: %s%s", listed, more)
 
-    def _hair_mesh(self, obj):
-        """`_LocalMesh` of a Curves object's strands as tubes (`hybridgi_core.hair`; no UVs), or None."""
+    def _shape_mesh(self, obj):
+        """`_LocalMesh` of a Curves object's strands as tubes (`hybridgi_core.hair`) or a
+        PointCloud's points as spheres (`hybridgi_core.points`), no UVs; or None."""
         key = obj.data.as_pointer()
         if key not in self._meshes:
-            self._meshes[key] = _hair_arrays(obj.data, obj.name)
+            arrays = _hair_arrays if obj.type == "CURVES" else _pointcloud_arrays
+            self._meshes[key] = arrays(obj.data, obj.name)
         return self._meshes[key]
 
     def _local_mesh(self, obj):
@@ -2080,10 +2125,22 @@ def light_from_blender(light, matrix_world, name="", obj=None, notes=None):
             scale = area * (np.pi / 4 if shape in ("DISK", "ELLIPSE") else 1.0)
             power *= scale
             glossy_power *= scale
+    # Cycles subtracts the light of a negative power (or colour); HybridGI's samplers and
+    # penumbra estimates take light as positive: such a lamp left speckles and rings where it
+    # reached, and lit nothing. It is switched off, named.
+    negative = power < 0 or glossy_power < 0 or bool((color < 0).any())
+    if negative:
+        notes.setdefault(NEGATIVE_LIGHT, set()).add(name)
     if own_notes:
         warn_lamp_notes(notes)
+    if negative:
+        return None
     return snap.Light(kind=kind, color=color, power=power, matrix=matrix, name=name,
                       glossy_power=None if glossy_power == power else glossy_power, **fields)
+
+
+#: The lamp note of a negative power or colour (a subtractive lamp: not rendered).
+NEGATIVE_LIGHT = "negative power or colour: subtractive light is not rendered; switched off"
 
 
 def warn_lamp_notes(notes) -> None:

@@ -37,6 +37,10 @@ ZERO_AREA_RELATIVE = 1e-14
 #: Textures larger than this many texels per side are box-filtered down on entry (a 16k texture
 #: would otherwise mean gigabytes of float32 copies and a GPU upload over the device's limit).
 MAX_TEXTURE_SIZE = 4096
+#: The largest colour or radiance component read as a value: Blender stores an "inf" typed into a
+#: colour or strength field as FLT_MAX (3.4e38), which is finite but overflows the first float32
+#: sum or square it meets (every pixel then NaN); no light level a scene means comes near it.
+MAX_FINITE_COLOR = 1e15
 #: Largest side of `Material.metal_texture` (a second colour texture, its tint only).
 METAL_TEXTURE_SIZE = 1024
 
@@ -559,9 +563,10 @@ def fit_texture(texture: np.ndarray, max_size: int = MAX_TEXTURE_SIZE, what: str
 
 def _finite_color(value, fallback: float, what: str) -> np.ndarray:
     color = np.asarray(value, np.float32).reshape(3)
-    if not np.isfinite(color).all():
+    finite = np.abs(color) <= MAX_FINITE_COLOR  # NaN fails the comparison too
+    if not finite.all():
         log.warning("%s %s is not finite; using %g", what, color.tolist(), fallback)
-        color = np.where(np.isfinite(color), color, np.float32(fallback)).astype(np.float32)
+        color = np.where(finite, color, np.float32(fallback)).astype(np.float32)
     return color
 
 

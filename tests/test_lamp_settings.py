@@ -185,6 +185,25 @@ def test_lamp_settings_are_read_as_cycles_renders_them(bpy_module, empty_scene, 
 
 
 @pytest.mark.blender
+def test_negative_lamps_are_switched_off_and_named(bpy_module, empty_scene, sync, caplog):
+    # Cycles subtracts a negative lamp's light; HybridGI's samplers took it as positive light
+    # (the lamp lit nothing, its penumbra and glossy estimates left speckles and rings).
+    bpy, scene = bpy_module, empty_scene
+    add_light(bpy, scene, "negative", "POINT", energy=-500.0)
+    add_light(bpy, scene, "negative_area", energy=-20.0)
+    tinted = add_light(bpy, scene, "negative_node", "POINT", energy=100.0)
+    tinted.data.use_nodes = True
+    tinted.data.node_tree.nodes["Emission"].inputs["Strength"].default_value = -1.0
+    add_light(bpy, scene, "zero", "POINT", energy=0.0)
+    add_light(bpy, scene, "positive", "POINT", energy=100.0)
+    with caplog.at_level(logging.WARNING):
+        found = lamps(sync, bpy)
+    assert sorted(found) == ["positive", "zero"]
+    warned = [r.getMessage() for r in caplog.records if "negative" in r.getMessage()]
+    assert len(warned) == 1 and all(f"'{n}'" in warned[0] for n in ("negative", "negative_area", "negative_node"))
+
+
+@pytest.mark.blender
 def test_lamp_node_trees(bpy_module, empty_scene, sync, caplog):
     bpy, scene = bpy_module, empty_scene
     emission = add_light(bpy, scene, "emission", "POINT", energy=100.0)

@@ -57,6 +57,12 @@ def scenes(tmp_path_factory):
             own.objects.link(block)
             scene.view_layers.new("NoBlock").layer_collection.children["block"].exclude = True
         variant("two_layers", second_layer)
+        def mirrored_camera(d):
+            rig = d.objects.new("rig", None)
+            bpy.context.scene.collection.objects.link(rig)
+            rig.scale = (-1.0, 1.0, 1.0)
+            bpy.context.scene.camera.parent = rig
+        variant("mirrored_camera", mirrored_camera)
         variant("centimetres", placed(0.01, 0.0))
         variant("far_away", placed(1.0, 1.0e5))
     """)
@@ -154,6 +160,18 @@ def test_zero_scale_on_one_axis_flattens_the_object_instead_of_dropping_it(scene
     # The flattened block lies on the floor (z = 0 in its own space): its top face remains.
     assert record["triangles"] >= _full_record["triangles"] - 8  # only the side faces lost their area
     assert np.isfinite(layer(ch, "Combined")).all()
+
+
+def test_a_camera_under_a_mirroring_parent_renders_the_mirror_image(scenes, full, tmp_path):
+    # Cycles renders the mirrored view; HybridGI's G-buffer took every triangle for a back face
+    # and flipped its normal away from the camera (dark, no shadows): here Combined 0.95 off the
+    # unmirrored render's mirror image, 0.03 after (the subframes' jitter is not mirrored).
+    _record, ch = rendered(scenes / "mirrored_camera.blend", tmp_path / "m")
+    mirrored, reference = layer(ch, "Combined")[:, ::-1, :3], layer(full, "Combined")[..., :3]
+    assert np.abs(mirrored - reference).sum() / np.abs(reference).sum() < 0.06
+    # World-space normals: the mirror is in the view, not the scene; they face the camera.
+    normal = cli_renders.layer(ch, "Normal", "XYZ")[:, ::-1]
+    assert np.abs(normal - cli_renders.layer(full, "Normal", "XYZ")).mean() < 0.05
 
 
 @pytest.mark.parametrize(("name", "tolerance"), [("centimetres", 0.03), ("far_away", 0.06)])

@@ -127,6 +127,12 @@ def test_non_finite_lights_world_and_colours_are_sanitised():
     assert light.power == 0.0 and np.isfinite(light.color).all()
     assert np.isfinite(snap.World(color=(math.nan, 0.1, 0.2)).color).all()
     assert np.isfinite(snap.Material(base_color=(math.inf, 0.5, 0.5)).base_color).all()
+    # Blender stores an "inf" typed into Emission Strength as FLT_MAX: finite, but every pixel of
+    # the render was NaN (the CLI refused the frame).
+    flt_max = float(np.finfo(np.float32).max)
+    assert snap.Material(emission=(flt_max, 0.5 * flt_max, 1.0)).emission.tolist() == [0.0, 0.0, 1.0]
+    assert snap.World(color=(1e38, 0.1, 0.2)).color.tolist() == pytest.approx([0.0, 0.1, 0.2])
+    assert snap.Material(emission=(1e6, 1e6, 1e6)).emission.tolist() == [1e6, 1e6, 1e6]  # a bright lamp panel
     with pytest.raises(snap.InvalidGeometryError, match="transform is not finite"):
         snap.Light("SUN", (1, 1, 1), 1.0, np.full((4, 4), np.nan), name="sun")
 

@@ -587,6 +587,55 @@ def test_text_and_curves_are_counted_once(bpy_module, scene, sync):
     assert [o.name for o in snap.objects] == ["text"]
 
 
+def _geometry_nodes(bpy, obj, *chain):
+    """A Geometry Nodes modifier on `obj` whose tree runs its geometry through the nodes of
+    `chain`, (node type, {input: value}) each, one after the other."""
+    tree = bpy.data.node_groups.new("nodes", "GeometryNodeTree")
+    tree.interface.new_socket("Geometry", in_out="INPUT", socket_type="NodeSocketGeometry")
+    tree.interface.new_socket("Geometry", in_out="OUTPUT", socket_type="NodeSocketGeometry")
+    out = tree.nodes.new("NodeGroupInput").outputs[0]
+    for node_type, inputs in chain:
+        node = tree.nodes.new(node_type)
+        for name, value in inputs.items():
+            node.inputs[name].default_value = value
+        tree.links.new(out, node.inputs[0])
+        out = node.outputs[0]
+    tree.links.new(out, tree.nodes.new("NodeGroupOutput").inputs[0])
+    obj.modifiers.new("nodes", "NODES").node_group = tree
+
+
+def test_point_clouds_are_spheres_as_cycles_renders_them(bpy_module, scene, sync):
+    # Mesh to Points gave a PointCloud instance that was dropped without a word (Cycles renders
+    # each point as a sphere of its radius).
+    bpy = bpy_module
+    cube = add_cube(bpy, scene)
+    mat, _bsdf = principled(bpy, "yellow", (0.9, 0.8, 0.1))
+    _geometry_nodes(bpy, cube, ("GeometryNodeMeshToPoints", {"Radius": 0.25}),
+                    ("GeometryNodeSetMaterial", {"Material": mat}))
+
+    snap = snapshot(sync, bpy)
+
+    assert snap.geometry.triangle_count == 8 * 80  # one 80-triangle icosphere per cube vertex
+    assert [o.name for o in snap.objects] == ["cube"] and [m.name for m in snap.materials] == ["yellow"]
+    distance = np.linalg.norm(snap.geometry.positions, axis=1)
+    assert distance.min() > np.sqrt(3) - 0.26 and distance.max() < np.sqrt(3) + 0.26
+
+
+def test_volume_objects_are_named_and_left_out(bpy_module, scene, sync, caplog):
+    bpy = bpy_module
+    add_cube(bpy, scene, "floor")
+    fog = add_cube(bpy, scene, "fog")
+    _geometry_nodes(bpy, fog, ("GeometryNodeMeshToVolume", {}))
+    scene.collection.objects.link(bpy.data.objects.new("smoke", bpy.data.volumes.new("smoke")))
+
+    with caplog.at_level(logging.WARNING):
+        snap = snapshot(sync, bpy)
+
+    assert [o.name for o in snap.objects] == ["floor"]
+    warned = [r.getMessage() for r in caplog.records if "Volume objects" in r.getMessage()]
+    assert len(warned) == 1 and "'fog'" in warned[0] and "'smoke'" in warned[0], caplog.text
+
+
 def test_empty_scene_gives_empty_snapshot(bpy_module, scene, sync):
     snap = snapshot(sync, bpy_module)
     assert snap.geometry.triangle_count == 0 and snap.objects == []

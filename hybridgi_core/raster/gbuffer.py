@@ -23,6 +23,7 @@ replace only the position buffer (`update_positions`). One draw call per materia
 from __future__ import annotations
 
 import logging
+from contextlib import contextmanager
 from dataclasses import dataclass
 
 import numpy as np
@@ -152,6 +153,29 @@ class _MaterialDraw:
     rough: object = None  # GPUTexture of the roughness texture, or None
     rough_range: tuple = (0.0, 1.0, 1.0, 1.0)  # TEXTURE_ROUGHNESS's (lo, hi, metallic steps, roughness steps)
     metal: object = None  # GPUTexture of `Material.metal_texture`, or None
+
+
+def view_mirrors(view: np.ndarray) -> bool:
+    """Whether `view` (4, 4) world->camera mirrors (a camera under a negative scale): its
+    triangles then wind the other way on screen."""
+    return float(np.linalg.det(np.asarray(view, np.float64).reshape(4, 4)[:3, :3])) < 0.0
+
+
+@contextmanager
+def mirrored_winding(view: np.ndarray):
+    """Clockwise triangles are front faces while `view` mirrors, so that gl_FrontFacing still
+    tells the side a triangle's normal points to (a camera under a mirroring parent, which
+    Cycles renders mirrored, had every normal flipped away from it: a dark image without shadows)."""
+    import gpu  # noqa: PLC0415
+
+    mirrors = view_mirrors(view)
+    if mirrors:
+        gpu.state.front_facing_set(True)
+    try:
+        yield
+    finally:
+        if mirrors:
+            gpu.state.front_facing_set(False)
 
 
 def camera_eye(view: np.ndarray, proj: np.ndarray) -> tuple:
@@ -454,7 +478,7 @@ class GBufferPass(RasterPass):
             self._fb_depth_only.clear(color=(BACKGROUND_DEPTH, 0.0, 0.0, 0.0))
         with self._fb.bind():
             gpu.state.viewport_set(0, 0, self.width, self.height)
-            with draw_state(depth_test="LESS", depth_mask=True):
+            with draw_state(depth_test="LESS", depth_mask=True), mirrored_winding(view):
                 gpu.state.face_culling_set("NONE")
                 for draw in self._draws:
                     shader.uniform_block("camera", self._ubo)
