@@ -684,9 +684,8 @@ class ViewportWorker:
             return
         t0 = time.perf_counter()
         self._frame += 1
-        glossy.lamp_sum += _split(system.glossy, (glossy.points, glossy.normals, glossy.to_eye, glossy.rows),
-                                  self._frame, samples, system.updater.pool)
-        glossy.passes += 1
+        glossy.add(_split(system.glossy, (glossy.points, glossy.normals, glossy.to_eye, glossy.rows),
+                          self._frame, samples, system.updater.pool), samples)
         self._count_rays(glossy.pix.size * samples * max(len(system.scene.lights), 1))
         self._steps["glossy"] = (time.perf_counter() - t0) * 1e3
         state.dirty = True

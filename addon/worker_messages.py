@@ -210,7 +210,7 @@ class ViewResult:
     #: then): the draw resolves them itself (`PendingGI`).
     gi_pending: PendingGI | None = None
     #: The glossy layers' light towards this view's camera (`glossy_image`: the lamps' part, the
-    #: mean over `glossy_passes` passes, plus the cache's split-sum part): (h, w, 4) rgb radiance
+    #: mean of `glossy_passes` passes by their samples, plus the cache's split-sum part): (h, w, 4) rgb radiance
     #: added to Combined, a = 1 where computed, at glossy_position / glossy_normal (the request's
     #: GI-resolution arrays: a highlight is smooth at the pixel scale; the direct light's once a
     #: still view has the final render's glossy light, `glossy_image.frame_glossy`); None when no

@@ -996,7 +996,7 @@ def test_a_lamp_edit_updates_the_glossy_light_at_once(view, addon):
     assert settled.shape[:2] == (H, W)  # the final render's glossy light
     state = session.worker._view_state.glossy  # the idle worker's (nothing writes it now)
     before = float(state.image()[..., :3].sum())  # the GI pixels' running glossy light
-    lamps = float((state.lamp_sum / state.passes).sum())
+    lamps = float(state.lamp_mean().sum())
     assert lamps > 0.05 * before, (lamps, before)  # the lamp's highlights are part of it
     view.follow_edits()
     light = next(o for o in addon.bpy.data.objects if o.type == "LIGHT")
