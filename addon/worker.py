@@ -604,11 +604,11 @@ class ViewportWorker:
     def _fine_glossy_key(self, system, state: ViewState) -> tuple:
         return (*self._pixel_key(system), state.scene_gen)
 
-    def _fine_glossy_due(self, state: ViewState) -> bool:
+    def _fine_glossy_due(self, state: ViewState, pending: bool = False) -> bool:
         """The final render's glossy light of a still view is due (`_fine_glossy`): the request
         carries what it needs, the view has a full-resolution direct pass and a pixel pass over
-        the cache as it is now (the image's larger errors go first), and it was not made over this
-        cache and lighting yet."""
+        the cache as it is now (the image's larger errors go first; pending: the first one's rays
+        are in, `_pending`), and it was not made over this cache and lighting yet."""
         r = state.request
         if (state.glossy is None or r.full_material is None or r.full_albedo is None or r.glossy_samples <= 0
                 or state.passes < 1 or not self._schedule.stable):
@@ -620,7 +620,8 @@ class ViewportWorker:
                 or r.full_albedo.shape[:2] != r.full_material.shape[:2]):
             return False  # not the direct light's pixels
         key = self._fine_glossy_key(system, state)
-        if self.options.pixel_rays > 0 and (state.pixel_key != key[:-1] or state.pixel_passes < 1):
+        if (not pending and self.options.pixel_rays > 0
+                and (state.pixel_key != key[:-1] or state.pixel_passes < 1)):
             return False
         return state.fine_glossy_key != key
 
@@ -879,10 +880,17 @@ class ViewportWorker:
         if state.passes == 0 and self.options.direct_passes > 0:
             self._direct_pass(system, state)
             self._publish(force=True)
-        # The edge light too, unless the view's final-render glossy light is to come (after the
-        # resolve, `_fine_glossy_due`): the larger error in a glossy scene (morse_apartment, worker
-        # timeline: 0.058 -> 0.071 at 1.5 s with its five lamps' edges first).
-        if state.glossy is None and self._edges_due(state) and not self._superseded(state):
+        # Then the view's final-render glossy light (`_fine_glossy`), the larger error in a glossy
+        # scene than the worker's own resolve of the rays the draw shows already (bunny_npm 640x360,
+        # worker timeline: the resolve 0.0333 -> 0.0335, the glossy light then 0.0237), or, without
+        # glossy layers, the edge light (morse_apartment: 0.058 -> 0.071 at 1.5 s with its five
+        # lamps' edges before its glossy light).
+        if self._superseded(state):
+            return
+        if self._fine_glossy_due(state, pending=True):
+            self._fine_glossy(system, state)
+            self._publish(force=True)
+        elif state.glossy is None and self._edges_due(state):
             self._edge_pass(system, state)
             self._publish(force=True)
 
