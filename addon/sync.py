@@ -1213,7 +1213,7 @@ def _glossy_lobe(shader, kind, textures, name):
     else:
         colour = np.maximum(_mean_colour_input(shader.inputs["Color"], textures, name, node=shader, notes=notes), 0.0)
         if kind == "BSDF_GLASS":
-            ior = max(_constant_value(shader.inputs["IOR"], name), 1e-5)
+            ior = max(_constant_value(shader.inputs["IOR"], name, 1.5), 1e-5)
             notes.append("Glass BSDF: only its reflection is rendered (the transmitted light is not)")
             if distribution == "MULTI_GGX":
                 distribution = "GGX"  # Cycles compensates the glass's energy with tables of its own
@@ -1273,8 +1273,8 @@ def _roughness(shader, textures, name, default=0.5, texels=_UNREAD):
         texels = _roughness_map(shader, textures, name)
     if texels is not None:
         _note(textures, name, shader, "Roughness from a texture (its mean)")
-        return float(np.clip(np.mean(texels, dtype=np.float64), 0.0, 1.0))
-    return _scalar_value(socket, textures, name)
+        return float(np.clip(np.nan_to_num(np.mean(texels, dtype=np.float64), nan=default), 0.0, 1.0))
+    return _scalar_value(socket, textures, name, default)
 
 
 def _roughness_map(shader, textures, name):
@@ -1297,14 +1297,16 @@ def _roughness_map(shader, textures, name):
     return None if pixels is None else np.asarray(pixels, np.float32).reshape(*pixels.shape[:2], 3) @ surface_mix.GRAY
 
 
-def _scalar_value(socket, textures, name) -> float:
-    """A float input's constant; one that `bake_sockets` bakes (`BAKED_SCALARS`), fed by nodes
-    while its bake is on the way (`textures.pending`: the viewport shows the socket's value
-    meanwhile), gives its own value without a warning."""
+def _scalar_value(socket, textures, name, fallback: float = 0.0) -> float:
+    """A float input's constant (`_constant_value`, `fallback` where not finite); one that
+    `bake_sockets` bakes (`BAKED_SCALARS`), fed by nodes while its bake is on the way
+    (`textures.pending`: the viewport shows the socket's value meanwhile), gives its own value
+    without a warning."""
     if (textures.pending and socket.is_linked and socket.name in BAKED_SCALARS.get(socket.node.type, ())
             and _fold(socket, 0) is None):
-        return float(socket.default_value)
-    return _constant_value(socket, name)
+        value = float(socket.default_value)
+        return value if np.isfinite(value) else float(fallback)
+    return _constant_value(socket, name, fallback)
 
 
 def _specular_layer(shader, name, base, texture, metallic, transmission, roughness, coat=0.0, coat_tint=None):
@@ -1318,7 +1320,7 @@ def _specular_layer(shader, name, base, texture, metallic, transmission, roughne
     tint = _input(shader, "Specular Tint")
     colour_tint = tint is not None and hasattr(tint.default_value, "__len__")
     return SpecularLayer(roughness=roughness,
-                         ior=_constant_value(_input(shader, "IOR"), name) if _input(shader, "IOR") else 1.5,
+                         ior=_constant_value(_input(shader, "IOR"), name, 1.5) if _input(shader, "IOR") else 1.5,
                          level=_constant_value(level, name) if level is not None else 0.5,
                          tint=_constant_color(tint, name) if colour_tint else np.ones(3, np.float32),
                          multiscatter=getattr(shader, "distribution", "MULTI_GGX") == "MULTI_GGX",
@@ -1388,7 +1390,7 @@ def _factor_table(socket, name, depth=0):
         return None
     kind = node.type
     if kind == "FRESNEL":
-        return surface_mix.fresnel_factor(_constant_value(node.inputs["IOR"], name))
+        return surface_mix.fresnel_factor(_constant_value(node.inputs["IOR"], name, 1.5))
     if kind == "LAYER_WEIGHT":
         return surface_mix.layer_weight_factor(_constant_value(node.inputs["Blend"], name), output)
     if kind == "MATH":
@@ -1508,14 +1510,26 @@ def _constant_color(socket, material_name):
     return np.broadcast_to(np.asarray(value, np.float32), (3,)).copy()
 
 
-def _constant_value(socket, material_name):
+def _constant_value(socket, material_name, fallback: float = 0.0):
+    """A float input's constant (the mean of a colour's), its own value where nodes feed it (with a
+    warning); `fallback`, with a warning naming the input, where that is not finite (a NaN typed
+    into Roughness turned the material's base colour into NaN, and the log named the colour)."""
     if socket is None:
         return 0.0
     value = _fold(socket, 0)
     if value is None:
         log.warning("material %r: %s from a node is not supported; using its value", material_name, socket.name)
-        return float(socket.default_value)
-    return float(np.mean(value))
+        value = socket.default_value
+    value = float(np.mean(value))
+    if not np.isfinite(value) or abs(value) > MAX_FINITE_INPUT:
+        log.warning("material %r: %s %s is not finite; using %g", material_name, socket.name, value, fallback)
+        return float(fallback)
+    return value
+
+
+#: The largest magnitude a material's float input is read as (Blender stores an "inf" typed into
+#: a field as FLT_MAX, finite but overflowing the first product it meets; as `snapshot.MAX_FINITE_COLOR`).
+MAX_FINITE_INPUT = 1e15
 
 
 def _fold(socket, depth):

@@ -155,6 +155,27 @@ def test_missing_image_is_cycles_missing_texture_magenta(bpy_module, scene, sync
     assert any("could not be read" in r.getMessage() and "missing.png" in r.getMessage() for r in caplog.records)
 
 
+def test_a_non_finite_roughness_or_ior_is_named_and_replaced(bpy_module, scene, sync, caplog):
+    """A NaN typed into a Principled BSDF's Roughness made its base colour NaN, and the log named
+    the colour ("base colour [nan, ...] is not finite"); an inf IOR its Fresnel. The input itself
+    is named and takes Blender's default, and the colour stays the artist's."""
+    bpy = bpy_module
+    mat, bsdf = principled(bpy, "odd", (0.2, 0.4, 0.6))
+    bsdf.inputs["Roughness"].default_value = float("nan")
+    bsdf.inputs["IOR"].default_value = float("inf")
+    add_cube(bpy, scene).data.materials.append(mat)
+
+    with caplog.at_level(logging.WARNING):
+        material = snapshot(sync, bpy).materials[0]
+
+    messages = [r.getMessage() for r in caplog.records]
+    assert any("'odd'" in m and "Roughness" in m and "not finite" in m for m in messages), messages
+    assert any("'odd'" in m and "IOR" in m and "not finite" in m for m in messages), messages
+    assert not any("base colour" in m for m in messages), messages
+    assert np.isfinite(material.base_color).all() and material.base_color[2] > material.base_color[0] > 0
+    assert material.specular is None or np.isfinite(material.specular.roughness)
+
+
 def test_shader_kinds(bpy_module, scene, sync, caplog):
     bpy = bpy_module
     glowing, bsdf = principled(bpy, "glowing", (0.5, 0.5, 0.5))
