@@ -168,7 +168,7 @@ def _hair_arrays(curves, name):
     if index is not None and index.domain == "CURVE":
         per_curve = np.empty(n_curves, np.int32)
         index.data.foreach_get("value", per_curve)
-        slot = per_curve[tubes.curve]
+        slot = per_curve[tubes.source]
     return _LocalMesh(positions=tubes.positions, normals=tubes.normals,
                       uvs=np.full((tubes.positions.shape[0], 2), np.nan, np.float32), triangles=tubes.triangles,
                       slot=slot)
@@ -196,7 +196,7 @@ def _pointcloud_arrays(cloud, name):
     if index is not None and index.domain == "POINT" and index.data_type == "INT":
         per_point = np.empty(n, np.int32)
         index.data.foreach_get("value", per_point)
-        slot = per_point[spheres.point]
+        slot = per_point[spheres.source]
     return _LocalMesh(positions=spheres.positions, normals=spheres.normals,
                       uvs=np.full((spheres.positions.shape[0], 2), np.nan, np.float32),
                       triangles=spheres.triangles, slot=slot)

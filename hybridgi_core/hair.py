@@ -21,19 +21,21 @@ TRIANGLE_BUDGET = 2_000_000
 
 
 @dataclass
-class Tubes:
-    """positions, normals : (V, 3) float32 object space; triangles : (T, 3) int32; curve : (T,)
-    int32 the strand each triangle belongs to; thinned : every thinned-th strand was kept (1: all)."""
+class ShapeMesh:
+    """Triangles made of a shape's elements (strands as tubes here, points as spheres in
+    `points.py`). positions, normals : (V, 3) float32 object space; triangles : (T, 3) int32;
+    source : (T,) int32 the element (strand, point) each triangle belongs to; thinned : every
+    thinned-th element was kept (1: all)."""
 
     positions: np.ndarray
     normals: np.ndarray
     triangles: np.ndarray
-    curve: np.ndarray
+    source: np.ndarray
     thinned: int = 1
 
 
 def tubes(points: np.ndarray, offsets: np.ndarray, radii: np.ndarray, sides: int = SIDES,
-          budget: int = TRIANGLE_BUDGET) -> Tubes:
+          budget: int = TRIANGLE_BUDGET) -> ShapeMesh:
     """Tubes around strands.
 
     points : (P, 3) float32 control points of every strand, strand c's from offsets[c] to
@@ -53,7 +55,7 @@ def tubes(points: np.ndarray, offsets: np.ndarray, radii: np.ndarray, sides: int
     keep = np.flatnonzero(counts >= 2)[::thinned]
     widen = np.sqrt(thinned)
     if keep.size == 0:
-        return Tubes(np.zeros((0, 3), np.float32), np.zeros((0, 3), np.float32), np.zeros((0, 3), np.int32),
+        return ShapeMesh(np.zeros((0, 3), np.float32), np.zeros((0, 3), np.float32), np.zeros((0, 3), np.int32),
                      np.zeros(0, np.int32), thinned)
     # Point indices of the kept strands, and which strand / position along it each one is.
     n = counts[keep]
@@ -92,5 +94,5 @@ def tubes(points: np.ndarray, offsets: np.ndarray, radii: np.ndarray, sides: int
     finite = np.isfinite(positions).all(axis=2).reshape(-1)
     ok = finite[tris].all(axis=1)
     curve = np.repeat(keep[strand[starts]], 2 * sides)
-    return Tubes(positions.reshape(-1, 3).astype(np.float32), radial.reshape(-1, 3).astype(np.float32),
+    return ShapeMesh(positions.reshape(-1, 3).astype(np.float32), radial.reshape(-1, 3).astype(np.float32),
                  tris[ok].astype(np.int32), curve[ok].astype(np.int32), thinned)

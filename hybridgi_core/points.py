@@ -10,11 +10,9 @@ sqrt(n) so that the points still cover about as much of what is behind them (the
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
 
-from .hair import TRIANGLE_BUDGET
+from .hair import TRIANGLE_BUDGET, ShapeMesh
 
 #: Blender's radius of a point without a "radius" attribute (Cycles' default too).
 DEFAULT_RADIUS = 0.01
@@ -48,19 +46,7 @@ _ICO = _icosahedron()
 SPHERES = (_subdivided(*_ICO), _ICO)
 
 
-@dataclass
-class Spheres:
-    """positions, normals : (V, 3) float32 object space; triangles : (T, 3) int32; point : (T,)
-    int32 the point each triangle belongs to; thinned : every thinned-th point was kept (1: all)."""
-
-    positions: np.ndarray
-    normals: np.ndarray
-    triangles: np.ndarray
-    point: np.ndarray
-    thinned: int = 1
-
-
-def spheres(points: np.ndarray, radii: np.ndarray, budget: int = TRIANGLE_BUDGET) -> Spheres:
+def spheres(points: np.ndarray, radii: np.ndarray, budget: int = TRIANGLE_BUDGET) -> ShapeMesh:
     """Spheres of `radii` (n,) float32 around `points` (n, 3) float32; points with a radius that is
     not finite and above 0, or a position that is not finite, are left out (Cycles draws nothing)."""
     points = np.asarray(points, np.float32).reshape(-1, 3)
@@ -78,7 +64,7 @@ def spheres(points: np.ndarray, radii: np.ndarray, budget: int = TRIANGLE_BUDGET
     normals = np.broadcast_to(unit_v.astype(np.float32), (n, nv, 3))
     positions = points[keep][:, None, :] + normals * r[:, None, None]
     triangles = unit_f[None, :, :] + (np.arange(n, dtype=np.int32) * nv)[:, None, None]
-    return Spheres(positions=positions.reshape(-1, 3).astype(np.float32),
+    return ShapeMesh(positions=positions.reshape(-1, 3).astype(np.float32),
                    normals=np.ascontiguousarray(normals.reshape(-1, 3)),
                    triangles=triangles.reshape(-1, 3).astype(np.int32),
-                   point=np.repeat(keep.astype(np.int32), unit_f.shape[0]), thinned=thinned)
+                   source=np.repeat(keep.astype(np.int32), unit_f.shape[0]), thinned=thinned)

@@ -26,16 +26,16 @@ def test_tubes_wind_outwards_around_each_strand():
     ring = np.linalg.norm(t.positions[:, :2] - np.round(t.positions[:, :1]) * [1, 0], axis=1)
     np.testing.assert_allclose(ring, 0.1, rtol=1e-5)
     np.testing.assert_allclose(np.linalg.norm(t.normals, axis=1), 1.0, rtol=1e-5)
-    assert t.curve.tolist() == sorted(t.curve.tolist()) and set(t.curve.tolist()) == {0, 1, 2}
+    assert t.source.tolist() == sorted(t.source.tolist()) and set(t.source.tolist()) == {0, 1, 2}
 
 
 def test_single_point_strands_and_nan_points_give_nothing():
     points, offsets, radii = strands(2, 3)
     t = hair.tubes(points[:4], np.array([0, 1, 4]), radii[:4])  # strand 0 has one point
-    assert set(t.curve.tolist()) == {1}
+    assert set(t.source.tolist()) == {1}
     points[1] = np.nan  # its neighbours' tangents go with it: strand 0 is dropped, strand 1 kept
     t = hair.tubes(points, offsets, radii)
-    assert np.isfinite(t.positions[t.triangles]).all() and set(t.curve.tolist()) == {1}
+    assert np.isfinite(t.positions[t.triangles]).all() and set(t.source.tolist()) == {1}
     assert t.triangles.shape[0] == 2 * 2 * hair.SIDES
 
 

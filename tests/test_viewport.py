@@ -9,6 +9,7 @@ The Cornell box is built from `blend_scenes/build.py` into a temporary folder. I
 
 from __future__ import annotations
 
+import contextlib
 import importlib
 import json
 import os
@@ -942,13 +943,10 @@ def test_a_view_of_one_sample_per_pixel_is_filtered_as_its_final_render(view, ad
     assert near < 0.4 * far, (near, far)
 
 
-def test_the_draw_resolves_a_pixel_pass_the_worker_has_not_resolved_yet(view, addon, monkeypatch):
-    """While the worker resolves a still view's first pixel pass (filter, interpolation and detail
-    pixels in numpy: 0.3-0.4 s at 640x360), the draw already shows the pass's light: it resolves
-    the published rays (`ViewResult.gi_pending`) with the GPU's filter and upsample passes, as
-    `pixel_gather.full_res_preview` does in numpy, and the image is then near the settled one."""
-    from hybridgi_core import pixel_gather  # noqa: PLC0415
-
+@contextlib.contextmanager
+def _resolve_held(view, addon, monkeypatch):
+    """Post the view and hold the worker at its own resolve of the first pixel pass (its rays in,
+    published for the draw, `gi_pending`) for the block's length."""
     pixels = addon.worker._pixels
     full_res = pixels.full_res
     entered, release = threading.Event(), threading.Event()
@@ -963,6 +961,19 @@ def test_the_draw_resolves_a_pixel_pass_the_worker_has_not_resolved_yet(view, ad
     view.draw()  # posts the view
     try:
         assert entered.wait(TIMEOUT_S), "no pixel pass reached the worker's resolve"
+        yield
+    finally:
+        release.set()
+
+
+def test_the_draw_resolves_a_pixel_pass_the_worker_has_not_resolved_yet(view, addon, monkeypatch):
+    """While the worker resolves a still view's first pixel pass (filter, interpolation and detail
+    pixels in numpy: 0.3-0.4 s at 640x360), the draw already shows the pass's light: it resolves
+    the published rays (`ViewResult.gi_pending`) with the GPU's filter and upsample passes, as
+    `pixel_gather.full_res_preview` does in numpy, and the image is then near the settled one."""
+    from hybridgi_core import pixel_gather  # noqa: PLC0415
+
+    with _resolve_held(view, addon, monkeypatch):
         result = view.session.worker.latest().view
         pending = result.gi_pending
         assert pending is not None and result.gi_indirect is None
@@ -970,8 +981,6 @@ def test_the_draw_resolves_a_pixel_pass_the_worker_has_not_resolved_yet(view, ad
         gpu_state = view.session.gpu
         assert gpu_state.pixel_serial == ("pending", pending.serial)
         shown = np.array(gpu_state.pixel_tx[0].read().to_list(), np.float32).reshape(-1, 4)
-    finally:
-        release.set()
     (h, w), (points, normals, pix) = pending.full_shape, pending.full
     indirect, _ = pixel_gather.full_res_preview(pending.gi, pending.position_lo, pending.pix, pending.points,
                                                 pending.normals, pending.view, points, normals, pix, (w, h),
@@ -991,25 +1000,10 @@ def test_a_glossy_view_shows_the_final_renders_glossy_light_before_the_worker_re
     the worker's own resolve of those rays (0.3-0.4 s of numpy at 640x360 that changed the image
     far less: bunny_npm 0.0333 -> 0.0335, the glossy light then 0.0237)."""
     _make_glossy(addon)
-    pixels = addon.worker._pixels
-    full_res = pixels.full_res
-    entered, release = threading.Event(), threading.Event()
-
-    def held(*args, **kwargs):
-        entered.set()
-        release.wait(TIMEOUT_S)
-        return full_res(*args, **kwargs)
-
-    monkeypatch.setattr(pixels, "full_res", held)
-    view.update()
-    view.draw()  # posts the view
-    try:
-        assert entered.wait(TIMEOUT_S), "no pixel pass reached the worker's resolve"
+    with _resolve_held(view, addon, monkeypatch):
         result = view.session.worker.latest().view
         assert result.gi_pending is not None and result.gi_indirect is None  # not resolved yet
         assert result.glossy is not None and result.glossy.shape[:2] == (H, W)  # the final render's, every pixel
-    finally:
-        release.set()
 
 
 def test_a_lamp_edit_updates_the_glossy_light_at_once(view, addon):
