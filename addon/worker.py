@@ -424,6 +424,9 @@ class ViewportWorker:
         """Visible cells and a first, coarse pass of direct light at the GI resolution: what a
         moving camera needs at once; the direct light's own resolution follows while it holds still."""
         t0 = time.perf_counter()
+        # The cells this camera sees are its open space, whatever the faces around them say
+        # (`open_space.py`): the solver's next traced batch opens those it finds inside.
+        system.viewpoint = np.linalg.inv(np.asarray(view.view, np.float64).reshape(4, 4))[:3, 3]
         points, normals, pix = _visible.pixels_to_points(view.position, view.normal)
         cells = system.visible_cells(points, normals)
         state = ViewState(view, self._scene_version, (points, normals, pix), cells, self.options.coarse_share)

@@ -7,7 +7,9 @@ Per cell (N cells, K = 4 or 9 SH coefficients, D = depth_texels):
 - ao_sh (N, K): visibility within the AO distance, 1 = open
 - depth (N, D*D, 2): mean and mean square probe-ray distance per octahedral texel (Chebyshev test)
 - backface (N,): share of rays hitting back faces; above `inside_threshold` the cell sits inside
-  geometry and is disabled, so it does not darken its neighbours
+  geometry and is disabled, so it does not darken its neighbours, unless it is `open`
+- open (N,): cells the camera saw unblocked, in its own space however the faces around them
+  point (`open_space.py`: a room modelled with its normals facing out)
 - samples (N,), last_frame (N,): shaded updates blended so far and the frame of the latest update.
   Cells inside geometry are traced (their rays keep the inside test and depth current) but not
   shaded: nothing reads their radiance. A cell that comes out of geometry restarts at 0 samples,
@@ -61,6 +63,7 @@ class IrradianceCache:
         self.depth[..., 0] = self.depth_cap
         self.depth[..., 1] = self.depth_cap**2
         self.backface = np.zeros(n, np.float32)
+        self.open = np.zeros(n, bool)
         self.samples = np.zeros(n, np.int32)
         self.last_frame = np.full(n, -(2**31), np.int64)
         self.urgency = np.zeros(n, np.float32)
@@ -75,8 +78,8 @@ class IrradianceCache:
 
     @property
     def inside(self) -> np.ndarray:
-        """(N,) bool: cells disabled because they sit inside geometry."""
-        return self.backface > self.settings.inside_threshold
+        """(N,) bool: cells disabled because they sit inside geometry (not `open` to the camera)."""
+        return (self.backface > self.settings.inside_threshold) & ~self.open
 
     @property
     def valid(self) -> np.ndarray:
@@ -151,7 +154,9 @@ class IrradianceCache:
             cells, dist = self.grid.cells_near(lo, hi, radius)
             falloff = np.clip(1.0 - (dist / radius) ** 2, 0.0, 1.0).astype(np.float32)
             np.maximum.at(self.urgency, cells, falloff)
-            # Depth moments and inside flags near the change are stale: let them re-form quickly.
+            # Depth moments and inside flags near the change are stale: let them re-form quickly
+            # (and the camera look again: the change may have closed a space).
+            self.open[cells] = False
             touched.append(cells)
         if not touched:
             return np.zeros(0, np.int64)

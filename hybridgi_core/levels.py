@@ -313,6 +313,7 @@ def build_levels(system, points: np.ndarray, normals: np.ndarray, depth: np.ndar
         if cells.size == 0:
             break
         solver = GISolver(cache, system.tracer, system.updater.scene, system.tracer.epsilon, system.updater.pool)
+        solver.viewpoint = system.viewpoint  # its cells the camera sees are open too (`open_space.py`)
         solver.begin(cells)
         for b in range(max(1, batches)):
             stats.merge(solver.trace_batch(b))

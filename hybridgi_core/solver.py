@@ -43,6 +43,7 @@ from .cache import CellSamples, IrradianceCache
 from .evaluate import HitLookup, evaluate_rows, irradiance_rows, monomials
 from .lampcache import LampLightTable
 from .lights import HIT_LAMP_BUDGET, direct_irradiance
+from .open_space import open_to
 from .sampling import frame_rng, octahedral_texel, spherical_fibonacci
 from .settings import AO_ONLY, MULTI_BOUNCE
 
@@ -186,6 +187,8 @@ class GISolver:
         self.cells = np.zeros(0, np.int64)
         self.chunks: list[StoredHits] = []
         self.batches = 0
+        #: (3,) the camera's position, or None: cells it sees are never inside geometry (`open_space.py`).
+        self.viewpoint = None
         self._lookup_valid = None  # cache.valid the stored flats were looked up with
         self._materials_stale = False
         self._relight_all = False  # every stored hit's lamp light is stale (lights_changed)
@@ -451,6 +454,9 @@ class GISolver:
                 part = _sample_rows(c.samples, rows)
                 part.sh_indirect = cache.sh_indirect[part.cells]
                 cache.blend(part, WARMUP_FRAME_BASE + b, alpha=1.0 / (i + 1))
+        # The back faces' shares changed: the cells the camera sees among those now flagged inside
+        # are open space all the same (`open_space.py`).
+        open_to(cache, self.tracer, self.viewpoint, float(self.epsilon))
         if hits_moved:
             self._lookup_valid = None
         self._sources = None  # validity may have changed: look the hits' cells up again

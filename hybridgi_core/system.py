@@ -20,6 +20,7 @@ from .glossy import GlossyMaterials, glossy_direct
 from .levels import CacheLevels, build_levels
 from .lights import RATIO_MIN_SAMPLES, _pick_lamps, direct_irradiance
 from .lod import decimate
+from .open_space import open_to
 from .rows import column_bounds
 from .sampling import frame_rng
 from .settings import MULTI_BOUNCE, CacheSettings
@@ -214,7 +215,19 @@ class GISystem:
 
     def update(self, cells: np.ndarray, frame: int, alpha: float | None = None) -> UpdateStats:
         """Steps 4-5 for these cells."""
-        return self.updater.update(cells, frame, alpha)
+        stats = self.updater.update(cells, frame, alpha)
+        open_to(self.cache, self.tracer, self.viewpoint, float(self.tracer.epsilon))
+        return stats
+
+    @property
+    def viewpoint(self):
+        """(3,) the camera's position (or None): the cells it sees are never inside geometry,
+        however the faces around them point (`open_space.py`); the solver's too."""
+        return self.solver.viewpoint
+
+    @viewpoint.setter
+    def viewpoint(self, position) -> None:
+        self.solver.viewpoint = None if position is None else np.asarray(position, np.float32).reshape(3).copy()
 
     def warm_up(self, iterations: int, cells: np.ndarray | None = None, start: int = 0, total: int | None = None) -> list[SolveStats]:
         """Converge the cache before a final render, deterministically: trace once, re-shade many.

@@ -240,3 +240,4 @@ def test_corner_visibility_split_over_workers_is_the_single_call(monkeypatch):
         one = corner_visibility(gi.cache, gi.tracer, pts, nrm, float(gi.tracer.epsilon))
     assert split.shape == (1050, 8) and one.any() and not one.all()
     np.testing.assert_array_equal(split, one)
+

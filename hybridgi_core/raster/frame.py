@@ -315,6 +315,10 @@ class FramePipeline:
         replaces the frame's `system.update(cells, frame)` of the visible cells (an incremental
         render refreshes what changed around them too, with its own rays)."""
         stats = FrameStats()
+        if warmup > 0 or update:
+            # The cells this camera sees are its open space, whatever the faces around them say
+            # (`open_space.py`: a room modelled with its normals facing out).
+            system.viewpoint = np.linalg.inv(np.asarray(view, np.float64).reshape(4, 4))[:3, 3]
         gbuf, low = self.rasterize(view, proj, stats)
         with stats.step("downsample"):
             normal_lo, position_lo = self.downsample.read_normal_position()
