@@ -10,8 +10,12 @@ outside, through the walls (a room of single-sided walls with a window, 320x180 
 Diffuse Indirect 65% low; a camera inside a closed 1 m cube: grey instead of black).
 
 The camera cannot be inside a solid: a cell whose centre it sees unblocked lies in its open
-space, whatever the faces around it say (`open_to`): one occlusion ray from the camera to each
-such cell, at most once per cell while the geometry around it holds.
+space, whatever the faces around it say, and so does a cell next to an open one with nothing
+between their centres (`open_to`: one occlusion ray from the camera to each cell flagged inside,
+then from each newly open cell to its flagged face neighbours, until none opens; a solid's inside
+stays closed, its surface blocks both). The Cornell box with every normal flipped, 640x360
+against the unflipped box: Combined 0.0925 with the cells the camera sees opened (those behind
+its blocks stayed off), 0.0029 with their neighbours too.
 """
 
 from __future__ import annotations
@@ -38,7 +42,37 @@ def open_to(cache, tracer, viewpoint, epsilon: float) -> np.ndarray:
     dirs = to / dist[:, None]
     blocked = tracer.occluded(np.tile(eye, (cand.size, 1)), dirs, dist - np.float32(epsilon), trusted=True)
     seen = cand[~blocked]
-    if seen.size:
+    opened = [seen]
+    while seen.size:
         cache.open[seen] = True
+        seen = _open_neighbours(cache, tracer, seen, epsilon)
+        opened.append(seen)
+    opened = np.concatenate(opened)
+    if opened.size:
         cache.version += 1
-    return seen
+    return opened
+
+
+#: Face neighbours of a cell, (i, j, k) steps.
+_STEPS = np.array([(1, 0, 0), (-1, 0, 0), (0, 1, 0), (0, -1, 0), (0, 0, 1), (0, 0, -1)], np.int64)
+
+
+def _open_neighbours(cache, tracer, cells: np.ndarray, epsilon: float) -> np.ndarray:
+    """The face neighbours of the open `cells` that are flagged inside and that one occlusion ray
+    from an open cell's centre reaches unblocked (each tested from one of its open neighbours)."""
+    grid = cache.grid
+    ijk = grid.unflatten(cells)[:, None, :] + _STEPS[None, :, :]  # (n, 6, 3)
+    within = np.all((ijk >= 0) & (ijk < np.asarray(grid.dims, np.int64)), axis=-1)
+    src = np.broadcast_to(cells[:, None], within.shape)[within]
+    nb = grid.flatten(ijk[within])
+    shut = cache.inside[nb]
+    src, nb = src[shut], nb[shut]
+    nb, first = np.unique(nb, return_index=True)
+    if nb.size == 0:
+        return nb
+    src = src[first]
+    a = np.asarray(cache.centers[src], np.float32)
+    to = np.asarray(cache.centers[nb], np.float32) - a
+    dist = np.float32(grid.cell_size)
+    blocked = tracer.occluded(a, to / dist, np.full(nb.size, dist - np.float32(epsilon), np.float32), trusted=True)
+    return nb[~blocked]

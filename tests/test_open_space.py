@@ -56,9 +56,10 @@ def test_a_room_with_its_normals_facing_out_is_lit_as_one_facing_in_once_the_cam
 def test_the_cornell_box_with_every_normal_flipped_renders_as_the_cornell_box(tmp_path):
     """Through the real engine: the Cornell box with every face's normal flipped (Cycles renders
     both the same) keeps its bounce light. Measured at 160x120 (quick settings): Diffuse Indirect
-    mean 0.1558 against 0.0752 flipped before (its cells switched off as inside geometry), 0.1373
-    now (cells just outside its walls see their faces' fronts now, and a few inner surfaces read
-    them); Diffuse Direct the same."""
+    mean 0.1558, flipped 0.0752 before (its cells switched off as inside geometry), 0.1373 with the
+    cells the camera sees open, 0.1572 with their open neighbours too (the cells behind the blocks);
+    Diffuse Direct the same. 640x360, default settings, flipped against unflipped: Combined 0.0925
+    -> 0.0029."""
     cornell_variants(tmp_path, "bpy.ops.wm.open_mainfile(filepath=src)\n"
                                "for m in bpy.data.meshes:\n    m.flip_normals()\n"
                                "bpy.ops.wm.save_as_mainfile(filepath=out + '/flipped.blend')\n")
@@ -68,4 +69,4 @@ def test_the_cornell_box_with_every_normal_flipped_renders_as_the_cornell_box(tm
         means[name] = [float(layer(channels, p).mean()) for p in ("Diffuse Indirect", "Diffuse Direct")]
     (di, dd), (di_flipped, dd_flipped) = means["cornell"], means["flipped"]
     assert di > 0.05 and abs(dd_flipped / dd - 1.0) < 0.02, means
-    assert di_flipped > 0.8 * di, means
+    assert abs(di_flipped / di - 1.0) < 0.05, means
