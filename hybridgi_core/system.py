@@ -322,6 +322,9 @@ class GISystem:
         again). Returns the touched flat cells (int64) of the fall-off."""
         touched = self.cache.on_geometry_changed(boxes)
         self.invalidate_boxes(boxes)
+        # The event closed the cells near it: those still in the camera's space open again now,
+        # not at the next traced batch (a change that leaves every stored ray as it was has none).
+        open_to(self.cache, self.tracer, self.viewpoint, float(self.tracer.epsilon))
         return touched
 
     def on_lights_changed(self, resolve: bool = False) -> SolveStats:

@@ -70,3 +70,24 @@ def test_the_cornell_box_with_every_normal_flipped_renders_as_the_cornell_box(tm
     (di, dd), (di_flipped, dd_flipped) = means["cornell"], means["flipped"]
     assert di > 0.05 and abs(dd_flipped / dd - 1.0) < 0.02, means
     assert abs(di_flipped / di - 1.0) < 0.05, means
+
+
+def test_a_geometry_event_closes_the_cells_near_it_and_the_open_ones_open_again_at_once():
+    """A geometry event closes the cells near it (the change may have shut a space); those still in
+    the camera's space open again at once, the ones behind an occluder too (from their open
+    neighbours), not at the next traced batch, which a change leaving every stored ray as it was
+    never brings: the room would keep a dark hole around an edited object."""
+    room = box([0, 0, 0], [4, 4, 2], inward=False)
+    block = box([2.2, 1.2, 0], [2.8, 2.8, 1.5], inward=False, obj=1)
+    light = Light("POINT", np.ones(3), 300.0, np.array([[1, 0, 0, 1], [0, 1, 0, 1], [0, 0, 1, 1.5], [0, 0, 0, 1]]))
+    scene = make_snapshot(concat_geometry([room, block]), [Material()], [light], World())
+    with GISystem(scene, CacheSettings(resolution=12, rays_per_cell=32)) as gi:
+        gi.viewpoint = (0.5, 2.0, 1.0)
+        gi.warm_up(2)
+        behind = (gi.cache.centers[:, 0] > 3.0) & (gi.cache.centers[:, 2] < 1.4)  # hidden by the block
+        opened = gi.cache.open.copy()
+        assert opened[behind].any()  # reached from the open neighbours around the block
+        valid = gi.cache.valid.copy()
+        gi.on_geometry_changed([(np.array([2.2, 1.2, 0.0]), np.array([2.8, 2.8, 1.5]))])
+        np.testing.assert_array_equal(gi.cache.open, opened)
+        np.testing.assert_array_equal(gi.cache.valid, valid)
