@@ -45,13 +45,19 @@ def open_to(cache, tracer, viewpoint, epsilon: float) -> np.ndarray:
     seen = cand[~blocked]
     cache.open[seen] = True
     opened = [seen]
-    # From every open cell (not only those the camera just saw: a geometry event closes the
-    # cells near it, behind an occluder too), then from each newly opened one, until none opens.
-    seen = _open_neighbours(cache, tracer, np.flatnonzero(cache.open), epsilon) if cache.open.any() else seen
-    while seen.size:
+    # Then the flagged cells next to an open one (any: a geometry event closes the cells near it,
+    # behind an occluder too), and the flagged neighbours of each newly opened one, until none
+    # opens. Driven from the flagged side: a room's thousands of open cells cost nothing once
+    # open, only the few flagged cells that stay (a wall's inside) are looked at again.
+    targets = np.flatnonzero(cache.inside)
+    while targets.size:
+        seen = _reached(cache, tracer, targets, epsilon)
+        if seen.size == 0:
+            break
         cache.open[seen] = True
         opened.append(seen)
-        seen = _open_neighbours(cache, tracer, seen, epsilon)
+        nb, ok = _face_neighbours(cache.grid, seen)
+        targets = np.unique(nb[ok & cache.inside[nb]])
     opened = np.concatenate(opened)
     if opened.size:
         cache.version += 1
@@ -62,22 +68,26 @@ def open_to(cache, tracer, viewpoint, epsilon: float) -> np.ndarray:
 _STEPS = np.array([(1, 0, 0), (-1, 0, 0), (0, 1, 0), (0, -1, 0), (0, 0, 1), (0, 0, -1)], np.int64)
 
 
-def _open_neighbours(cache, tracer, cells: np.ndarray, epsilon: float) -> np.ndarray:
-    """The face neighbours of the open `cells` that are flagged inside and that one occlusion ray
-    from an open cell's centre reaches unblocked (each tested from one of its open neighbours)."""
-    grid = cache.grid
+def _face_neighbours(grid, cells: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """((n, 6) flat face neighbours of `cells` (n,), clamped into the grid; (n, 6) bool: within it)."""
     ijk = grid.unflatten(cells)[:, None, :] + _STEPS[None, :, :]  # (n, 6, 3)
-    within = np.all((ijk >= 0) & (ijk < np.asarray(grid.dims, np.int64)), axis=-1)
-    src = np.broadcast_to(cells[:, None], within.shape)[within]
-    nb = grid.flatten(ijk[within])
-    shut = cache.inside[nb]
-    src, nb = src[shut], nb[shut]
-    nb, first = np.unique(nb, return_index=True)
-    if nb.size == 0:
-        return nb
-    src = src[first]
+    dims = np.asarray(grid.dims, np.int64)
+    within = np.all((ijk >= 0) & (ijk < dims), axis=-1)
+    return grid.flatten(np.clip(ijk, 0, dims - 1)), within
+
+
+def _reached(cache, tracer, targets: np.ndarray, epsilon: float) -> np.ndarray:
+    """The flagged cells `targets` with an open face neighbour whose centre one occlusion ray
+    joins to theirs unblocked (tested from one such neighbour each)."""
+    nb, ok = _face_neighbours(cache.grid, targets)
+    ok &= cache.open[nb]
+    has = ok.any(axis=1)
+    if not has.any():
+        return np.zeros(0, np.int64)
+    cells = targets[has]
+    src = nb[has][np.arange(cells.size), ok[has].argmax(axis=1)]
     a = np.asarray(cache.centers[src], np.float32)
-    to = np.asarray(cache.centers[nb], np.float32) - a
-    dist = np.float32(grid.cell_size)
-    blocked = tracer.occluded(a, to / dist, np.full(nb.size, dist - np.float32(epsilon), np.float32), trusted=True)
-    return nb[~blocked]
+    to = np.asarray(cache.centers[cells], np.float32) - a
+    dist = np.float32(cache.grid.cell_size)
+    blocked = tracer.occluded(a, to / dist, np.full(cells.size, dist - np.float32(epsilon), np.float32), trusted=True)
+    return cells[~blocked]
