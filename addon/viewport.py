@@ -206,18 +206,9 @@ class ViewportSession:
         """Bring the worker's scene up to `depsgraph`: the first call snapshots everything, later
         calls read `depsgraph.updates` and send only what changed."""
         self.scene_name = scene.name
-        try:
-            settings = viewport_cache_settings(scene)
-            self.settings_error = None
-        except errors.HybridGIError as err:
-            # A setting out of range (a NaN typed in a field): say so on every redraw, and keep
-            # the worker in step with the scene under the settings it has until it is fixed.
-            if self.settings_error != str(err):
-                log.error("HybridGI viewport: %s", err)
-            self.settings_error = str(err)
-            if self.worker is None or not self.worker.alive:
-                return
-            settings = None
+        settings = self._read_settings(scene)
+        if settings is None and (self.worker is None or not self.worker.alive):
+            return
         if self.worker is None or not self.worker.alive:
             # A first sync, or a fresh start after the worker failed: it knows no scene, no view.
             self.worker = worker.ViewportWorker(settings, self.options)
@@ -230,6 +221,31 @@ class ViewportSession:
             return
         changes = updates.classify_updates(depsgraph, self.mirror.structure)
         self.apply_changes(depsgraph, changes)
+
+    def _read_settings(self, scene):
+        """The scene's cache settings, or None while one is invalid: a setting out of range (a NaN
+        typed in a field) is said on every redraw (`settings_error`), and the worker keeps in step
+        with the scene under the settings it has until it is fixed."""
+        try:
+            settings = viewport_cache_settings(scene)
+        except errors.HybridGIError as err:
+            if self.settings_error != str(err):
+                log.error("HybridGI viewport: %s", err)
+            self.settings_error = str(err)
+            return None
+        self.settings_error = None
+        return settings
+
+    def refresh_settings(self, scene) -> None:
+        """Hand the worker the scene's cache settings if they changed since the last sync. A
+        Python-defined property set from a script tags no depsgraph update, so no view_update
+        follows it (nor does any edit of one in the bpy module): each redraw reads them, as
+        Cycles re-reads its own settings in its draw."""
+        if self.worker is None or not self.worker.alive:
+            return
+        settings = self._read_settings(scene)
+        if settings is not None:
+            self.worker.set_settings(settings)
 
     def apply_changes(self, depsgraph, changes: updates.DepsgraphUpdates) -> None:
         mirror = self.mirror
@@ -274,6 +290,7 @@ class ViewportSession:
         published = self.worker.latest()
         if published.error is not None:
             raise errors.HybridGIError(f"viewport GI stopped: {published.error}")
+        self.refresh_settings(scene)
         props = scene.hybridgi
         debug_view, present_mode = debug_view_of(props)
         # Cycles' Film > Exposure scales what the viewport shows, as final renders' light passes.

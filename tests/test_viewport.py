@@ -660,6 +660,25 @@ def test_an_invalid_setting_is_shown_as_an_error_not_as_converged(view, addon):
     assert not view.engine.status.startswith("Error") and "cells" in view.engine.status
 
 
+def test_a_cache_setting_edited_without_a_depsgraph_update_reaches_the_view(view, addon):
+    """A Python-defined setting set from a script tags no depsgraph update (no view_update
+    follows: the bpy module's `view_layer.update()` calls no handler for it); the next redraw
+    reads the settings, as Cycles re-reads its own in draw. The view kept the old cache: 441
+    cells at Resolution 10 after Resolution 4 (62 cells in a new view)."""
+    bpy = addon.bpy
+    _converged_image(view)
+    view.follow_edits()
+    before = view.session.worker.latest().cache.grid.dims
+    bpy.context.scene.hybridgi.resolution = 4
+    bpy.context.view_layer.update()
+    view.draw()
+    published = view.converge()
+    view.draw()
+    assert published.cache.settings.resolution == 4
+    assert published.cache.grid.dims != before
+    assert not view.engine.status.startswith("Error")
+
+
 def test_a_sky_world_bakes_in_the_background_then_lights_the_view(view, addon, tmp_path, monkeypatch):
     """The viewport never waits for a world bake: it draws with the world's uniform colour, the
     map bakes on a thread, and the next redraw reads the world again: its sun becomes a lamp."""
