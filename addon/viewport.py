@@ -460,7 +460,10 @@ class ViewportSession:
             self._post(self.mirror.set_shading(materials=sync.scene_materials(self.mirror.snapshot)))
 
     def needs_redraw(self) -> bool:
-        """More to show: the worker is busy or published something not drawn yet."""
+        """More to show: the worker is busy or published something not drawn yet. Busy by its
+        inbox too (`worker.idle`): right after an edit or a new view its last record still says
+        idle, and a draw that asked for no redraw then left the old image up until the redraw
+        timer's next idle check (`overlay.POLL_IDLE_S`)."""
         if self.worker is None:
             return False
         if world_bake.pending() or material_bake.pending():
@@ -472,8 +475,8 @@ class ViewportSession:
             None if published.cache is None else published.cache.serial,
             None if published.view is None else published.view.serial,
         )
-        return (not published.stats.idle or serials != self._drawn_serials or self.mirror.gpu_dirty is not None
-                or self._aa_due(published))
+        return (not published.stats.idle or not self.worker.idle or serials != self._drawn_serials
+                or self.mirror.gpu_dirty is not None or self._aa_due(published))
 
     def _ensure_gpu(self, props, published, width: int, height: int) -> _GPUState:
         cell = published.cache.grid.cell_size if published.cache is not None else None

@@ -660,6 +660,29 @@ def test_an_invalid_setting_is_shown_as_an_error_not_as_converged(view, addon):
     assert not view.engine.status.startswith("Error") and "cells" in view.engine.status
 
 
+def test_the_view_asks_for_redraws_right_after_an_edit(view, addon):
+    """The draw right after an edit (or a new view's first draw) sees the worker's last record,
+    which is idle until the worker takes the edit up: it must still ask Blender for another
+    redraw, or the view shows the old image (status "converged") until the idle redraw timer's
+    next check, up to `overlay.POLL_IDLE_S` later."""
+    bpy = addon.bpy
+    view.update()
+    view.draw()
+    assert view.session.needs_redraw()
+    view.converge()
+    _finish_redraws(view)
+    view.follow_edits()
+    light = next(o for o in bpy.data.objects if o.type == "LIGHT")
+    for _ in range(3):
+        light.data.energy *= 1.1
+        bpy.context.view_layer.update()  # view_update: the edit is posted
+        tagged = view.engine.redraws
+        view.draw()
+        assert view.engine.redraws > tagged, "the draw after an edit asked for no redraw"
+        view.converge()
+        _finish_redraws(view)
+
+
 def test_a_cache_setting_edited_without_a_depsgraph_update_reaches_the_view(view, addon):
     """A Python-defined setting set from a script tags no depsgraph update (no view_update
     follows: the bpy module's `view_layer.update()` calls no handler for it); the next redraw
