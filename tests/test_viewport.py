@@ -683,6 +683,28 @@ def test_the_view_asks_for_redraws_right_after_an_edit(view, addon):
         _finish_redraws(view)
 
 
+def test_a_slot_given_another_material_relights_the_view_as_a_new_view_lights_it(view, addon):
+    """The short block's slot given the red material: a full sync whose positions are all the
+    same, which the worker's diff took for no change (the cache kept the white block's light:
+    7.7% off a new view of the edited scene)."""
+    bpy = addon.bpy
+    _converged_image(view)
+    view.follow_edits()
+    bpy.data.objects["short_block"].data.materials[0] = bpy.data.materials["red"]
+    bpy.context.view_layer.update()
+    view.draw()
+    view.converge()
+    live = _finish_redraws(view)
+    fresh = View(addon)
+    try:
+        _converged_image(fresh)
+        want = _finish_redraws(fresh)
+    finally:
+        fresh.close()
+    error = float(np.abs(_luma(live) - _luma(want)).mean() / _luma(want).mean())
+    assert error < 0.02, error
+
+
 def test_a_cache_setting_edited_without_a_depsgraph_update_reaches_the_view(view, addon):
     """A Python-defined setting set from a script tags no depsgraph update (no view_update
     follows: the bpy module's `view_layer.update()` calls no handler for it); the next redraw
