@@ -252,7 +252,7 @@ class ViewportSession:
         edits = []
         if not changes.full:
             for name, matrix in changes.moved.items():
-                edit = mirror.move(name, matrix)
+                edit = mirror.move(name, matrix, changes.moved_ids.get(name))
                 if edit is None:
                     changes.full = True
                     break
