@@ -53,6 +53,10 @@ class SceneMirror:
             return None
         if object_id is not None and self._ids.get(name) != object_id:
             return None
+        if not _invertible(self._matrices[name][:3, :3]):
+            # Placed flat at the full sync (a scale of 0): its vertices there cannot be taken
+            # back to object space, and its collapsed triangles are not in the snapshot at all.
+            return None
         local = self._local.get(name)
         if local is None:
             local = self._local[name] = self._object_local(name)
@@ -133,3 +137,12 @@ class SceneMirror:
     @property
     def gpu_positions(self):
         return self._positions if self._positions is not None else self.snapshot.geometry.positions
+
+
+#: Condition number of an object's 3x3 placement above which its object-space vertices are not
+#: recovered from the world-space ones (a scale of 0, or 1e-6 of the other axes').
+MAX_CONDITION = 1e6
+
+
+def _invertible(linear: np.ndarray) -> bool:
+    return bool(np.isfinite(linear).all()) and float(np.linalg.cond(linear)) < MAX_CONDITION

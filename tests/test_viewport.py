@@ -425,6 +425,47 @@ def test_moving_an_object_after_two_objects_swapped_names_moves_that_object(view
     assert error < 0.02, error
 
 
+@pytest.mark.parametrize("flat", [(0.0, 1.0, 1.0), (0.0, 0.0, 0.0)])
+def test_an_object_scaled_to_zero_and_back_shows_again(view, addon, flat):
+    """An object scaled flat is synced with a singular matrix; the move back was computed
+    relative to it: inverting it raised LinAlgError in view_update at every later move of the
+    object (flattened on one axis), or the object had no triangles left to move and the move
+    was dropped (scaled to 0): the view kept the flat object (20% off a new view)."""
+    bpy = addon.bpy
+    _converged_image(view)
+    failures = []
+
+    def handler(_scene, depsgraph):  # Blender prints a handler's exception and goes on
+        try:
+            addon.viewport.view_update(view.engine, view.context, depsgraph)
+        except Exception as err:
+            failures.append(err)
+
+    bpy.app.handlers.depsgraph_update_post.append(handler)
+    try:
+        block = bpy.data.objects["short_block"]
+        block.scale = flat
+        bpy.context.view_layer.update()
+        view.draw()
+        view.converge()
+        block.scale = (1.0, 1.0, 1.0)
+        bpy.context.view_layer.update()
+        view.draw()
+        view.converge()
+        live = _finish_redraws(view)
+    finally:
+        bpy.app.handlers.depsgraph_update_post.remove(handler)
+    assert not failures, failures
+    fresh = View(addon)
+    try:
+        _converged_image(fresh)
+        want = _finish_redraws(fresh)
+    finally:
+        fresh.close()
+    error = float(np.abs(_luma(live) - _luma(want)).mean() / _luma(want).mean())
+    assert error < 0.02, error
+
+
 def test_deleting_an_object_while_the_worker_traces_is_safe(view, addon):
     from mathutils import Matrix  # noqa: PLC0415
 
