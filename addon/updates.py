@@ -36,6 +36,8 @@ class DepsgraphUpdates:
     full : only a whole new snapshot expresses it (geometry data edited, instancers, objects added,
         deleted, hidden or shown, a material slot changed)
     moved : plain object name -> (4, 4) float64 world matrix, for objects only moved
+    moved_ids : plain object name -> `object_id` of the object moved: a rename sends no update,
+        so a name may have passed to another object since the last full snapshot
     boxes : object name -> world (lo, hi) box of every geometry object moved or edited
     lights, world, materials : lamps / the world / materials changed; material_names : which
         materials to read again (None = all: an image or a node group changed)
@@ -44,6 +46,7 @@ class DepsgraphUpdates:
 
     full: bool = False
     moved: dict = field(default_factory=dict)
+    moved_ids: dict = field(default_factory=dict)
     boxes: dict = field(default_factory=dict)
     lights: bool = False
     world: bool = False
@@ -85,6 +88,7 @@ def classify_updates(depsgraph, structure_key=None) -> DepsgraphUpdates:
                     c.full = True
                 elif update.is_updated_transform:
                     c.moved[id_.name] = np.array(id_.matrix_world, np.float64)
+                    c.moved_ids[id_.name] = object_id(id_)
                 elif update.is_updated_shading:
                     shading_only = True  # a material slot changed, or a material edit (below)
             elif update.is_updated_transform and id_.is_instancer:
@@ -124,6 +128,21 @@ def scene_structure(depsgraph) -> tuple:
          inst.parent.name if inst.is_instance and inst.parent is not None else "")
         for inst in depsgraph.object_instances
     )
+
+
+def object_id(obj) -> int | None:
+    """The object's identity for this Blender session, whatever its name (the original's
+    `session_uid`: an evaluated copy's is 0); None where Blender has none."""
+    return getattr(getattr(obj, "original", obj), "session_uid", None)
+
+
+def plain_object_ids(depsgraph) -> dict[str, int | None]:
+    """Name -> `object_id` of every plain (non-instanced) geometry object."""
+    return {
+        inst.object.name: object_id(inst.object)
+        for inst in depsgraph.object_instances
+        if not inst.is_instance and inst.object.type in GEOMETRY_TYPES
+    }
 
 
 def plain_object_matrices(depsgraph) -> dict[str, np.ndarray]:

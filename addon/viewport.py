@@ -206,18 +206,9 @@ class ViewportSession:
         """Bring the worker's scene up to `depsgraph`: the first call snapshots everything, later
         calls read `depsgraph.updates` and send only what changed."""
         self.scene_name = scene.name
-        try:
-            settings = viewport_cache_settings(scene)
-            self.settings_error = None
-        except errors.HybridGIError as err:
-            # A setting out of range (a NaN typed in a field): say so on every redraw, and keep
-            # the worker in step with the scene under the settings it has until it is fixed.
-            if self.settings_error != str(err):
-                log.error("HybridGI viewport: %s", err)
-            self.settings_error = str(err)
-            if self.worker is None or not self.worker.alive:
-                return
-            settings = None
+        settings = self._read_settings(scene)
+        if settings is None and (self.worker is None or not self.worker.alive):
+            return
         if self.worker is None or not self.worker.alive:
             # A first sync, or a fresh start after the worker failed: it knows no scene, no view.
             self.worker = worker.ViewportWorker(settings, self.options)
@@ -231,12 +222,37 @@ class ViewportSession:
         changes = updates.classify_updates(depsgraph, self.mirror.structure)
         self.apply_changes(depsgraph, changes)
 
+    def _read_settings(self, scene):
+        """The scene's cache settings, or None while one is invalid: a setting out of range (a NaN
+        typed in a field) is said on every redraw (`settings_error`), and the worker keeps in step
+        with the scene under the settings it has until it is fixed."""
+        try:
+            settings = viewport_cache_settings(scene)
+        except errors.HybridGIError as err:
+            if self.settings_error != str(err):
+                log.error("HybridGI viewport: %s", err)
+            self.settings_error = str(err)
+            return None
+        self.settings_error = None
+        return settings
+
+    def refresh_settings(self, scene) -> None:
+        """Hand the worker the scene's cache settings if they changed since the last sync. A
+        Python-defined property set from a script tags no depsgraph update, so no view_update
+        follows it (nor does any edit of one in the bpy module): each redraw reads them, as
+        Cycles re-reads its own settings in its draw."""
+        if self.worker is None or not self.worker.alive:
+            return
+        settings = self._read_settings(scene)
+        if settings is not None:
+            self.worker.set_settings(settings)
+
     def apply_changes(self, depsgraph, changes: updates.DepsgraphUpdates) -> None:
         mirror = self.mirror
         edits = []
         if not changes.full:
             for name, matrix in changes.moved.items():
-                edit = mirror.move(name, matrix)
+                edit = mirror.move(name, matrix, changes.moved_ids.get(name))
                 if edit is None:
                     changes.full = True
                     break
@@ -274,6 +290,7 @@ class ViewportSession:
         published = self.worker.latest()
         if published.error is not None:
             raise errors.HybridGIError(f"viewport GI stopped: {published.error}")
+        self.refresh_settings(scene)
         props = scene.hybridgi
         debug_view, present_mode = debug_view_of(props)
         # Cycles' Film > Exposure scales what the viewport shows, as final renders' light passes.
@@ -443,7 +460,10 @@ class ViewportSession:
             self._post(self.mirror.set_shading(materials=sync.scene_materials(self.mirror.snapshot)))
 
     def needs_redraw(self) -> bool:
-        """More to show: the worker is busy or published something not drawn yet."""
+        """More to show: the worker is busy or published something not drawn yet. Busy by its
+        inbox too (`worker.idle`): right after an edit or a new view its last record still says
+        idle, and a draw that asked for no redraw then left the old image up until the redraw
+        timer's next idle check (`overlay.POLL_IDLE_S`)."""
         if self.worker is None:
             return False
         if world_bake.pending() or material_bake.pending():
@@ -455,8 +475,8 @@ class ViewportSession:
             None if published.cache is None else published.cache.serial,
             None if published.view is None else published.view.serial,
         )
-        return (not published.stats.idle or serials != self._drawn_serials or self.mirror.gpu_dirty is not None
-                or self._aa_due(published))
+        return (not published.stats.idle or not self.worker.idle or serials != self._drawn_serials
+                or self.mirror.gpu_dirty is not None or self._aa_due(published))
 
     def _ensure_gpu(self, props, published, width: int, height: int) -> _GPUState:
         cell = published.cache.grid.cell_size if published.cache is not None else None

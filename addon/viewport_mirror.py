@@ -25,6 +25,7 @@ class SceneMirror:
         self.geometry_gen = 0  # bumped whenever the G-buffer's geometry changes
         self.gpu_dirty = None  # None | "positions" | "full": what the G-buffer must re-upload
         self._matrices: dict = {}
+        self._ids: dict = {}  # name -> `updates.object_id` at the full sync
         self._local: dict = {}
         self._positions = None
         self._normals = None
@@ -37,16 +38,24 @@ class SceneMirror:
         self.structure = updates.scene_structure(depsgraph)
         # Placement of every plain (non-instanced) object: moves are applied relative to it.
         self._matrices = updates.plain_object_matrices(depsgraph)
+        self._ids = updates.plain_object_ids(depsgraph)
         self._local.clear()
         self._positions = self._normals = self._tangents = None
         self.geometry_gen += 1
         self.gpu_dirty = "full"
         return FullScene(self.snapshot)
 
-    def move(self, name: str, matrix: np.ndarray):
+    def move(self, name: str, matrix: np.ndarray, object_id=None):
         """Edit for a plain object now placed by `matrix`: a MoveVertices, () when the object has
-        no triangles, or None when only a full sync can express the change (instances, mirroring)."""
+        no triangles, or None when only a full sync can express the change (instances, mirroring,
+        a name that belonged to another object at the full sync: `object_id` differs)."""
         if name not in self._matrices:
+            return None
+        if object_id is not None and self._ids.get(name) != object_id:
+            return None
+        if not _invertible(self._matrices[name][:3, :3]):
+            # Placed flat at the full sync (a scale of 0): its vertices there cannot be taken
+            # back to object space, and its collapsed triangles are not in the snapshot at all.
             return None
         local = self._local.get(name)
         if local is None:
@@ -128,3 +137,12 @@ class SceneMirror:
     @property
     def gpu_positions(self):
         return self._positions if self._positions is not None else self.snapshot.geometry.positions
+
+
+#: Condition number of an object's 3x3 placement above which its object-space vertices are not
+#: recovered from the world-space ones (a scale of 0, or 1e-6 of the other axes').
+MAX_CONDITION = 1e6
+
+
+def _invertible(linear: np.ndarray) -> bool:
+    return bool(np.isfinite(linear).all()) and float(np.linalg.cond(linear)) < MAX_CONDITION

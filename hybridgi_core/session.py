@@ -100,8 +100,10 @@ class GISession:
             report.rebuilt = report.fresh = True
         else:
             displaced = set(changes.displaced)
-            # New holes for rays (alpha, clear glass) move the rays' hits as new triangles would.
-            if changes.topology_changed or changes.cutouts_changed or not displaced <= self.dynamic_names:
+            # New holes for rays (alpha, clear glass) move the rays' hits as new triangles would;
+            # triangles that read other materials, UVs or normals need the surface table anew.
+            if (changes.topology_changed or changes.cutouts_changed or changes.resurfaced
+                    or not displaced <= self.dynamic_names):
                 self.dynamic_names |= displaced
                 report.fresh = not self._rebuild(snapshot, keep_cache=True)
                 report.rebuilt = True
