@@ -183,6 +183,20 @@ def _luma(img):
     return img[..., :3] @ LUMA
 
 
+def _off_a_new_view(view, addon) -> float:
+    """Relative L1 of luminance between the edited `view`, settled, and a new view of the scene
+    as it is now, settled."""
+    view.converge()
+    live = _finish_redraws(view)
+    fresh = View(addon)
+    try:
+        _converged_image(fresh)
+        want = _finish_redraws(fresh)
+    finally:
+        fresh.close()
+    return float(np.abs(_luma(live) - _luma(want)).mean() / _luma(want).mean())
+
+
 def _converged_image(view):
     view.update()
     view.draw()  # posts the first view request
@@ -413,15 +427,7 @@ def test_moving_an_object_after_two_objects_swapped_names_moves_that_object(view
     tall.location.y += 0.2  # the tall block, now named short_block
     bpy.context.view_layer.update()
     view.draw()
-    view.converge()
-    live = _finish_redraws(view)
-    fresh = View(addon)
-    try:
-        _converged_image(fresh)
-        want = _finish_redraws(fresh)
-    finally:
-        fresh.close()
-    error = float(np.abs(_luma(live) - _luma(want)).mean() / _luma(want).mean())
+    error = _off_a_new_view(view, addon)
     assert error < 0.02, error
 
 
@@ -451,18 +457,10 @@ def test_an_object_scaled_to_zero_and_back_shows_again(view, addon, flat):
         block.scale = (1.0, 1.0, 1.0)
         bpy.context.view_layer.update()
         view.draw()
-        view.converge()
-        live = _finish_redraws(view)
     finally:
         bpy.app.handlers.depsgraph_update_post.remove(handler)
     assert not failures, failures
-    fresh = View(addon)
-    try:
-        _converged_image(fresh)
-        want = _finish_redraws(fresh)
-    finally:
-        fresh.close()
-    error = float(np.abs(_luma(live) - _luma(want)).mean() / _luma(want).mean())
+    error = _off_a_new_view(view, addon)
     assert error < 0.02, error
 
 
@@ -761,15 +759,7 @@ def test_a_slot_given_another_material_relights_the_view_as_a_new_view_lights_it
     bpy.data.objects["short_block"].data.materials[0] = bpy.data.materials["red"]
     bpy.context.view_layer.update()
     view.draw()
-    view.converge()
-    live = _finish_redraws(view)
-    fresh = View(addon)
-    try:
-        _converged_image(fresh)
-        want = _finish_redraws(fresh)
-    finally:
-        fresh.close()
-    error = float(np.abs(_luma(live) - _luma(want)).mean() / _luma(want).mean())
+    error = _off_a_new_view(view, addon)
     assert error < 0.02, error
 
 
