@@ -149,29 +149,12 @@ def _hair_arrays(curves, name):
     n_points, n_curves = len(curves.points), len(curves.curves)
     if n_points < 2 or n_curves == 0:
         return None
-    points = np.empty(n_points * 3, np.float32)
-    curves.position_data.foreach_get("vector", points)
+    points_ = np.empty(n_points * 3, np.float32)
+    curves.position_data.foreach_get("vector", points_)
     offsets = np.empty(n_curves + 1, np.int32)
     curves.curve_offset_data.foreach_get("value", offsets)
-    radius = curves.attributes.get("radius")
-    radii = np.full(n_points, 0.01, np.float32)  # Blender's radius where the attribute is missing
-    if radius is not None and radius.domain == "POINT" and radius.data_type == "FLOAT":
-        radius.data.foreach_get("value", radii)
-    tubes = hair.tubes(points, offsets, radii)
-    if tubes.thinned > 1:
-        log.warning("hair %r: %d strands are more than %d triangles; every %d-th is kept, widened to cover as much",
-                    name, n_curves, hair.TRIANGLE_BUDGET, tubes.thinned)
-    if tubes.triangles.shape[0] == 0:
-        return None
-    slot = np.zeros(tubes.triangles.shape[0], np.int32)
-    index = curves.attributes.get("material_index")
-    if index is not None and index.domain == "CURVE":
-        per_curve = np.empty(n_curves, np.int32)
-        index.data.foreach_get("value", per_curve)
-        slot = per_curve[tubes.source]
-    return _LocalMesh(positions=tubes.positions, normals=tubes.normals,
-                      uvs=np.full((tubes.positions.shape[0], 2), np.nan, np.float32), triangles=tubes.triangles,
-                      slot=slot)
+    tubes = hair.tubes(points_, offsets, _radii(curves.attributes, n_points))
+    return _shape_local(tubes, curves.attributes, "CURVE", n_curves, ("hair", "strands"), name)
 
 
 def _pointcloud_arrays(cloud, name):
@@ -181,25 +164,37 @@ def _pointcloud_arrays(cloud, name):
         return None
     positions = np.empty(n * 3, np.float32)
     cloud.attributes["position"].data.foreach_get("vector", positions)
-    radius = cloud.attributes.get("radius")
+    spheres = points.spheres(positions, _radii(cloud.attributes, n))
+    return _shape_local(spheres, cloud.attributes, "POINT", n, ("point cloud", "points"), name)
+
+
+def _radii(attributes, n: int) -> np.ndarray:
+    """(n,) float32 the points' "radius" attribute, Blender's radius where it is missing."""
     radii = np.full(n, points.DEFAULT_RADIUS, np.float32)
+    radius = attributes.get("radius")
     if radius is not None and radius.domain == "POINT" and radius.data_type == "FLOAT":
         radius.data.foreach_get("value", radii)
-    spheres = points.spheres(positions, radii)
-    if spheres.thinned > 1:
-        log.warning("point cloud %r: %d points are more than %d triangles; every %d-th is kept, widened to cover "
-                    "as much", name, n, hair.TRIANGLE_BUDGET, spheres.thinned)
-    if spheres.triangles.shape[0] == 0:
+    return radii
+
+
+def _shape_local(shape, attributes, domain: str, count: int, words: tuple[str, str], name):
+    """`_LocalMesh` of a `hair.ShapeMesh` made of `count` elements (strands, points) of the object
+    `name`, or None when it has no triangle: a warning when it was thinned, each triangle's slot
+    its element's material_index (on `domain`), no UVs. words : (what it is, its elements)."""
+    if shape.thinned > 1:
+        log.warning("%s %r: %d %s are more than %d triangles; every %d-th is kept, widened to cover as much",
+                    words[0], name, count, words[1], hair.TRIANGLE_BUDGET, shape.thinned)
+    if shape.triangles.shape[0] == 0:
         return None
-    slot = np.zeros(spheres.triangles.shape[0], np.int32)
-    index = cloud.attributes.get("material_index")
-    if index is not None and index.domain == "POINT" and index.data_type == "INT":
-        per_point = np.empty(n, np.int32)
-        index.data.foreach_get("value", per_point)
-        slot = per_point[spheres.source]
-    return _LocalMesh(positions=spheres.positions, normals=spheres.normals,
-                      uvs=np.full((spheres.positions.shape[0], 2), np.nan, np.float32),
-                      triangles=spheres.triangles, slot=slot)
+    slot = np.zeros(shape.triangles.shape[0], np.int32)
+    index = attributes.get("material_index")
+    if index is not None and index.domain == domain and index.data_type == "INT":
+        per_element = np.empty(count, np.int32)
+        index.data.foreach_get("value", per_element)
+        slot = per_element[shape.source]
+    return _LocalMesh(positions=shape.positions, normals=shape.normals,
+                      uvs=np.full((shape.positions.shape[0], 2), np.nan, np.float32), triangles=shape.triangles,
+                      slot=slot)
 
 
 def mesh_arrays(mesh):
@@ -581,10 +576,9 @@ class _SnapshotBuilder:
         """One warning per kind of setting HybridGI does not follow, naming the objects."""
         warn_lamp_notes(self.lamp_notes)
         if self.volumes:
-            names = sorted(self.volumes)
-            shown = ", ".join(repr(n) for n in names[:5]) + (f" and {len(names) - 5} more" if len(names) > 5 else "")
-            log.warning("Volume %s %s: HybridGI renders surfaces only; %s left out", "objects" if len(names) > 1
-                        else "object", shown, "they are" if len(names) > 1 else "it is")
+            many = len(self.volumes) > 1
+            log.warning("Volume %s %s: HybridGI renders surfaces only; %s left out", "objects" if many else "object",
+                        _listed(self.volumes), "they are" if many else "it is")
         for meaning, names in sorted(self.ignored.items()):
             shown = ", ".join(sorted(names)[:5]) + (f" and {len(names) - 5} more" if len(names) > 5 else "")
             objects = "object" if len(names) == 1 else "objects"
