@@ -108,7 +108,8 @@ class GISession:
                 report.fresh = not self._rebuild(snapshot, keep_cache=True)
                 report.rebuilt = True
             elif displaced:
-                self.system.move_dynamic(snapshot)
+                # The diff's boxes (where the displaced objects were and are) are raised below.
+                self.system.move_dynamic(snapshot, invalidate=not changes.boxes)
             if not report.fresh:
                 if changes.boxes:
                     report.touched = self.system.on_geometry_changed(changes.boxes)

@@ -31,6 +31,7 @@ numpy + embreex only (worker threads).
 
 from __future__ import annotations
 
+import functools
 import logging
 import time
 from concurrent.futures import ThreadPoolExecutor
@@ -777,13 +778,18 @@ class GISolver:
         pad = np.float32(self.epsilon) * 4
         tfar = np.float32(s.ray_length) if s.ray_length > 0 else np.float32(np.inf)
         touched = []
+        padded = [(lo - pad, hi + pad) for lo, hi in boxes]
         for chunk in self.chunks:
             m, r = chunk.cells.size, chunk.r
-            origins = np.repeat(self.cache.centers[chunk.cells], r, axis=0)
             reach = np.minimum(chunk.t, tfar)
             crosses = np.zeros(m * r, bool)
-            for lo, hi in boxes:
-                crosses |= segments_meet_box(origins, chunk.ray_dirs, reach, lo - pad, hi + pad)
+            # Only the rays of cells whose longest ray reaches the boxes can meet them.
+            centres = self.cache.centers[chunk.cells]
+            near = np.flatnonzero(points_near_box(centres, reach.reshape(m, r).max(axis=1), *_union(padded)))
+            if near.size:
+                rays = (near[:, None] * r + np.arange(r)).ravel()
+                crosses[rays] = segments_meet_boxes(np.repeat(centres[near], r, axis=0), chunk.ray_dirs[rays],
+                                                    reach[rays], padded)
             if crosses.any():
                 chunk.ray_stale = crosses if chunk.ray_stale is None else chunk.ray_stale | crosses
                 touched.append(chunk.cells[crosses.reshape(m, r).any(axis=1)])
@@ -830,19 +836,11 @@ class GISolver:
             return
         p = chunk.positions(self.cache.centers)
         for lt in self.scene.lights:
-            if lt.kind == "SUN":
-                d = np.broadcast_to(-np.asarray(lt.direction, np.float32), p.shape)
-                reach = np.full(p.shape[0], np.inf, np.float32)
-                grow = np.float32(0.0)
-                # A sun disc spreads its rays by the angle: grow the box with distance instead of
-                # a fixed pad; a cone test is overkill: a small angle is covered by 2x the pad.
-            else:
-                to = np.asarray(lt.position, np.float32) - p
-                reach = np.linalg.norm(to, axis=1).astype(np.float32)
-                d = to / np.maximum(reach, np.float32(1e-12))[:, None]
-                grow = np.float32(_light_extent(lt))
-            for lo, hi in boxes:
-                chunk.lamp_stale |= segments_meet_box(p, d, reach, lo - pad - grow, hi + pad + grow)
+            # A sun disc spreads its rays by the angle: grow the box with distance instead of a
+            # fixed pad; a cone test is overkill: a small angle is covered by 2x the pad.
+            grow = np.float32(0.0 if lt.kind == "SUN" else _light_extent(lt))
+            d, reach = _to_lamp(lt, p)
+            chunk.lamp_stale |= segments_meet_boxes(p, d, reach, [(lo - pad - grow, hi + pad + grow) for lo, hi in boxes])
 
     def lights_changed(self) -> None:
         """Lamps, world or materials changed: every stored hit is re-shaded at the next resolve."""
@@ -1017,6 +1015,17 @@ def _sample_rows(s: CellSamples, rows: np.ndarray) -> CellSamples:
     )
 
 
+def _to_lamp(light, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(unit directions (n, 3), reach (n,)) of shadow segments from points to a lamp's centre;
+    a sun's: its direction, to infinity."""
+    if light.kind == "SUN":
+        d = np.broadcast_to(-np.asarray(light.direction, np.float32), points.shape)
+        return d, np.full(points.shape[0], np.inf, np.float32)
+    to = np.asarray(light.position, np.float32) - points
+    reach = np.sqrt(np.einsum("ij,ij->i", to, to)).astype(np.float32)
+    return to / np.maximum(reach, np.float32(1e-12))[:, None], reach
+
+
 def _light_extent(light) -> float:
     """Metres around a lamp's centre that its shadow rays may aim at."""
     if light.kind == "AREA":
@@ -1026,19 +1035,59 @@ def _light_extent(light) -> float:
 
 
 def segments_meet_box(origins: np.ndarray, dirs: np.ndarray, reach: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
-    """(n,) bool: the segments origin + s dir, 0 <= s <= reach (inf allowed), meet the box [lo, hi].
+    """(n,) bool: the segments origin + s dir, 0 <= s <= reach (inf allowed), meet the box [lo, hi]
+    ((3,) each, or (n, 3): a box per segment).
 
-    Slab test; directions need not be normalized, zero components are handled as parallel slabs."""
-    with np.errstate(divide="ignore", invalid="ignore"):
-        inv = np.float32(1.0) / dirs
-        t0 = (lo - origins) * inv
-        t1 = (hi - origins) * inv
-    # A zero direction component gives +-inf (or nan when the origin is on the slab): inside the
-    # slab means any s, outside means none.
-    par = dirs == 0
-    inside = (origins >= lo) & (origins <= hi)
-    near = np.where(par, np.where(inside, -np.inf, np.inf), np.minimum(t0, t1))
-    far = np.where(par, np.where(inside, np.inf, -np.inf), np.maximum(t0, t1))
-    enter = np.maximum(near.max(axis=1), 0.0)
-    leave = np.minimum(far.min(axis=1), reach)
+    Slab test; directions need not be normalized, zero components are handled as parallel slabs.
+    One axis at a time on (n,) columns: the (n, 3) form's max/min over axis 1 cost ~9x this
+    (400k segments: 45 -> 5 ms), and an incremental frame tests every stored ray."""
+    enter = np.zeros(origins.shape[0], np.float32)
+    leave = np.array(reach, np.float32, copy=True)
+    lo, hi = np.asarray(lo, np.float32), np.asarray(hi, np.float32)
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        for a in range(3):
+            o, d, lo_a, hi_a = origins[:, a], dirs[:, a], lo[..., a], hi[..., a]
+            inv = np.float32(1.0) / d
+            t0 = (lo_a - o) * inv
+            t1 = (hi_a - o) * inv
+            near, far = np.minimum(t0, t1), np.maximum(t0, t1)
+            # A zero direction component gives +-inf (or nan when the origin is on the slab):
+            # inside the slab means any s, outside means none.
+            par = np.flatnonzero(d == 0)
+            if par.size:
+                if lo_a.ndim:
+                    lo_a, hi_a = lo_a[par], hi_a[par]
+                inside = (o[par] >= lo_a) & (o[par] <= hi_a)
+                near[par] = np.where(inside, -np.inf, np.inf)
+                far[par] = np.where(inside, np.inf, -np.inf)
+            np.maximum(enter, near, out=enter)
+            np.minimum(leave, far, out=leave)
     return enter <= leave
+
+
+def segments_meet_boxes(origins: np.ndarray, dirs: np.ndarray, reach: np.ndarray, boxes) -> np.ndarray:
+    """(n,) bool: the segments (as `segments_meet_box`) meet any of boxes [(lo, hi), ...] (each
+    (3,) or (n, 3)). One slab test against the boxes' union first, the boxes themselves only on
+    the segments that meet it: a move's boxes (its old and new places) lie close together, and
+    each full test is a pass over every stored ray."""
+    if len(boxes) == 1:
+        return segments_meet_box(origins, dirs, reach, *boxes[0])
+    out = np.zeros(origins.shape[0], bool)
+    cand = np.flatnonzero(segments_meet_box(origins, dirs, reach, *_union(boxes)))
+    if cand.size:
+        o, d, t = origins[cand], dirs[cand], reach[cand]
+        rows = [(lo[cand] if np.ndim(lo) == 2 else lo, hi[cand] if np.ndim(hi) == 2 else hi) for lo, hi in boxes]
+        out[cand] = np.logical_or.reduce([segments_meet_box(o, d, t, lo, hi) for lo, hi in rows])
+    return out
+
+
+def _union(boxes) -> tuple[np.ndarray, np.ndarray]:
+    """(lo, hi) of the box around boxes [(lo, hi), ...] (each (3,) or (n, 3): per row)."""
+    return functools.reduce(np.minimum, [lo for lo, _ in boxes]), functools.reduce(np.maximum, [hi for _, hi in boxes])
+
+
+def points_near_box(points: np.ndarray, radius: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """(n,) bool: the box [lo, hi] comes within radius (n,) of points (n, 3): the cull before a
+    slab test of segments that start at the points and reach at most that far."""
+    gap = np.maximum(np.maximum(lo - points, points - hi), np.float32(0.0))
+    return np.einsum("ij,ij->i", gap, gap) <= radius * radius

@@ -126,10 +126,13 @@ class GISystem:
             return self._static_rays
         return concat_geometry([self._static_rays, scene.geometry.subset(self._dynamic_mask(scene))])
 
-    def move_dynamic(self, scene: SceneSnapshot) -> None:
+    def move_dynamic(self, scene: SceneSnapshot, invalidate: bool = True) -> None:
         """Take the dynamic objects' new vertex positions from `scene` (same topology).
 
         Rebuilds only the small dynamic Embree scene and those triangles' surface records.
+        invalidate : mark the stored rays that meet the moved triangles' old and new boxes stale;
+        False when the caller raises `on_geometry_changed` with boxes covering them anyway (a
+        session's sync: each mark is a pass over every stored ray).
         """
         old = self.ray_geometry
         self.scene = scene
@@ -138,7 +141,7 @@ class GISystem:
         self._set_cutouts(scene)
         rows = np.arange(self._static_rays.triangle_count, self.ray_geometry.triangle_count)
         self.surfaces.update_rows(self.ray_geometry, rows)
-        if self.solver.has_hits:
+        if invalidate and self.solver.has_hits:
             self.solver.invalidate_boxes(_moved_boxes(old, self.ray_geometry, rows))
         if self._surface_cells is not None and rows.size:
             # Surfaces that moved read new cells: further bounces need those converged too

@@ -138,3 +138,28 @@ def test_new_holes_in_a_material_rebuild_the_rays_scene_and_keep_the_cache():
     assert cut.rebuilt and not cut.fresh and s.system.cache.samples.max() > 0  # the cache survived
     assert abs(s.system.tracer.intersect(origin, down).t[0] - 2.0) < 1e-3  # through the hole to the floor
     s.close()
+
+
+def test_a_dynamic_objects_move_marks_the_same_stored_rays_through_the_session_as_moving_it_directly():
+    """The session raises the diff's boxes once (`move_dynamic(invalidate=False)`): its stale
+    rays and shadow marks hold every one the system's own invalidation of the moved triangles
+    marks (here exactly those: the diff's boxes are the moved triangles')."""
+    marks = []
+    for through_session in (True, False):
+        s = GISession(CacheSettings(resolution=12, rays_per_cell=16))
+        s.sync(scene(ball_x=2.0))
+        s.sync(scene(ball_x=2.5))  # the ball turns dynamic (one rebuild)
+        s.system.solve(batches=1)
+        for chunk in s.system.solver.chunks:
+            chunk.lamp_stale[:] = False
+        if through_session:
+            report = s.sync(scene(ball_x=4.0))
+            assert not report.rebuilt and report.moved == ["ball"]
+        else:
+            s.system.move_dynamic(scene(ball_x=4.0))
+        marks.append([(c.ray_stale.copy(), c.lamp_stale.copy()) for c in s.system.solver.chunks])
+        s.close()
+    assert any(r.any() for r, _ in marks[0]) and any(lamp.any() for _, lamp in marks[0])
+    for (ra, la), (rb, lb) in zip(marks[0], marks[1], strict=True):
+        assert not (rb & ~ra).any() and not (lb & ~la).any()
+        assert ra.sum() == rb.sum() and la.sum() == lb.sum()

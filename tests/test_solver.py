@@ -168,6 +168,32 @@ def test_invalidation_marks_exactly_the_rays_that_reach_the_moved_box(ray_length
         assert (d <= ray_length + 1e-3).all()
 
 
+@pytest.mark.parametrize("kind", ["POINT", "SUN", "AREA"])
+def test_shadow_marks_of_a_moved_box_are_those_of_every_stored_hits_segment_to_the_lamp(kind):
+    """`_mark_shadows` culls by cell before it tests hits: it must flag exactly the hits whose own
+    segment to the lamp (grown by its extent) meets the box, as testing every hit does."""
+    s = CacheSettings(resolution=12, rays_per_cell=32)
+    tilt = np.array([[1, 0, 0, 5], [0, 0.8, -0.6, 5], [0, 0.6, 0.8, 8], [0, 0, 0, 1.0]])
+    light = Light(kind, np.ones(3), 300.0 if kind != "SUN" else 3.0, tilt, radius=0.3, size=1.5)
+    snap = dataclasses.replace(room_with_ball(), lights=[light])
+    lo, hi = np.array([3.0, 2.0, 1.0], np.float32), np.array([4.0, 3.5, 2.0], np.float32)
+    with GISystem(snap, s) as gi:
+        gi.solve(batches=1)
+        pad = np.float32(gi.solver.epsilon) * 4
+        grow = np.float32(0.0 if kind == "SUN" else solver_mod._light_extent(light))
+        expect, marked = [], []
+        for chunk in gi.solver.chunks:
+            p = chunk.positions(gi.cache.centers)
+            d, reach = solver_mod._to_lamp(light, p)
+            expect.append(segments_meet_box(p, d, reach, lo - pad - grow, hi + pad + grow))
+            chunk.lamp_stale[:] = False
+        gi.solver.invalidate_boxes([(lo, hi)])
+        marked = [chunk.lamp_stale.copy() for chunk in gi.solver.chunks]
+    expect, marked = np.concatenate(expect), np.concatenate(marked)
+    assert 0 < expect.sum() < expect.size
+    np.testing.assert_array_equal(marked, expect)
+
+
 def test_resolve_after_a_move_retraces_only_stale_rays_and_matches_a_fresh_solve():
     s = CacheSettings(resolution=12, rays_per_cell=32, ray_length=3.0)
     a_lo, b_lo = (2.0, 4.5, 0.0), (3.0, 4.5, 0.0)
