@@ -527,7 +527,7 @@ class GISolver:
         self._ensure_lookup()
 
     def _rows(self, coeffs: np.ndarray) -> np.ndarray:
-        """(K*3, R) irradiance table of the cells stored hits read, from (N, K, 3) radiance SH."""
+        """(R, K*3) irradiance table of the cells stored hits read, from (N, K, 3) radiance SH."""
         return irradiance_rows(coeffs[self._read_cells], self._read_valid)
 
     def _lookup_chunk(self, chunk: StoredHits, lookup: HitLookup) -> np.ndarray:
