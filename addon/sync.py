@@ -73,7 +73,9 @@ def snapshot_from_depsgraph(depsgraph, dynamic_names=frozenset(), wait_for_world
     builder.bake_materials()
     world, world_lamps = read_world(depsgraph.scene.world, wait_for_world)
     builder.lights += world_lamps
-    return builder.finish(world)
+    camera = depsgraph.scene.camera
+    viewpoint = None if camera is None else tuple(camera.evaluated_get(depsgraph).matrix_world.translation)
+    return builder.finish(world, viewpoint)
 
 
 #: Cycles' per-object ray visibility HybridGI does not follow (the object takes part as if on):
@@ -585,11 +587,12 @@ class _SnapshotBuilder:
             log.warning("%s %s %s %s; HybridGI renders it like any other object", objects, shown,
                         "is" if len(names) == 1 else "are", meaning)
 
-    def finish(self, world):
+    def finish(self, world, viewpoint=None):
         parts = self._placed_parts()
         self._warn_glossy()
         geometry = snap.concat_geometry(parts)  # new arrays, handed over whole
-        return snap.make_snapshot(geometry, self.materials, self.lights, world, self.objects, owned=True)
+        return snap.make_snapshot(geometry, self.materials, self.lights, world, self.objects, owned=True,
+                                  viewpoint=viewpoint)
 
     def _warn_glossy(self):
         """One warning per sync for the shader features HybridGI still approximates (Principled,

@@ -68,6 +68,9 @@ class IrradianceCache:
         self.last_frame = np.full(n, -(2**31), np.int64)
         self.urgency = np.zeros(n, np.float32)
         self.centers = grid.centers()
+        #: (K, 3) radiance SH a surface beyond the grid reads (`outside.py`: the world above its
+        #: horizon), or None: such surfaces read the grid's edge cells. Set by the system.
+        self.outside: np.ndarray | None = None
         #: Bumped on every blend; GPU uploads compare it to skip unchanged caches.
         self.version = 0
 

@@ -23,6 +23,7 @@ import numpy as np
 from . import sh
 from .bump import irradiance_kernel
 from .cache import IrradianceCache
+from .outside import beyond
 from .sampling import octahedral_texel
 
 #: Minimum weights, as in DDGI: keep every valid neighbour slightly in play so the result never
@@ -167,7 +168,9 @@ class HitLookup:
     Further bounces are low frequency and costly in bulk (one per probe ray), so a hit reads the
     single cell in front of it instead of the 8-neighbour visibility-weighted gather. A hit whose
     cell cannot be read (never sampled, or inside geometry) takes the best valid one of the 8
-    cells around it, in front of its tangent plane (`_best_front_neighbour`).
+    cells around it, in front of its tangent plane (`_best_front_neighbour`). A hit more than
+    half a cell beyond the grid reads a cell of its own, index N (`outside.py`), where the cache
+    has an `outside` light.
 
     Irradiance is a polynomial in the normal (SH up to L2): the table holds it on the monomials
     1, y, z, x, xy, yz, z^2, xz, x^2 - y^2 with every SH and cosine constant folded in, one
@@ -187,10 +190,14 @@ class HitLookup:
         k = cache.settings.sh_coeffs
         self.terms = k
         self.table = None
+        #: The cache's light beyond the grid (`outside.py`), or None (beyond reads the edge).
+        self.outside = cache.outside
         if table:
             if coeffs is None:
                 coeffs = cache.sh_direct + cache.sh_indirect if bounced else cache.sh_direct
             self.table = irradiance_rows(coeffs, self.valid)  # (N, K*3), `evaluate_rows`
+            if self.outside is not None:  # row N: what a surface beyond the grid reads
+                self.table = np.concatenate([self.table, irradiance_poly(self.outside[None])])
         self.origin = np.asarray(grid.lo, np.float32)
         self.inv_cell = np.float32(1.0 / grid.cell_size)
         self.bias = np.float32(HIT_LOOKUP_BIAS * grid.cell_size)
@@ -214,7 +221,8 @@ class HitLookup:
         return self.evaluate(self.cells(points, normals), monomials(normals, self.terms))
 
     def cells(self, points: np.ndarray, normals: np.ndarray) -> np.ndarray:
-        """(n,) intp cell each hit reads: the one in front of it, else its best valid neighbour.
+        """(n,) intp cell each hit reads: the one in front of it, else its best valid neighbour;
+        N (the grid's cell count) beyond the grid where the cache has an `outside` light.
 
         Depends only on the grid and on which cells are valid, so stored probe hits
         (`solver.StoredHits`) keep it across fixed-point iterations."""
@@ -230,7 +238,13 @@ class HitLookup:
         flat = ijk[:, 0].astype(np.intp)
         flat += ijk[:, 1] * self.strides[1]
         flat += ijk[:, 2] * self.strides[2]
-        bad = np.flatnonzero(~np.take(self.valid, flat))
+        valid = np.take(self.valid, flat)
+        if self.outside is not None:
+            out = np.flatnonzero(beyond(g, self.top + 1))
+            if out.size:
+                flat[out] = self.valid.shape[0]  # the outside cell
+                valid[out] = True
+        bad = np.flatnonzero(~valid)
         if bad.size:  # row gathers through np.take: ~5x faster than fancy indexing (numpy 1.26)
             g_bad = np.take(g, bad, axis=0)
             g_bad -= np.float32(0.5)

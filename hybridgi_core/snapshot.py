@@ -442,6 +442,9 @@ class SceneSnapshot:
     lights: list[Light] = field(default_factory=list)
     world: World = field(default_factory=World)
     objects: list[ObjectInfo] = field(default_factory=list)
+    #: (3,) float32 world position of the scene's camera, or None (no camera): where the cache's
+    #: grid is spent (`focus_bounds`).
+    viewpoint: np.ndarray | None = None
 
     def bounds(self) -> tuple[np.ndarray, np.ndarray]:
         """(lo, hi) float32 corners of the geometry's bounding box."""
@@ -461,6 +464,11 @@ class SceneSnapshot:
         never are, so a room keeps its bounds while things move inside it), and only when it is
         over GROUND_RATIO times the extent of the rest; the rest's box then grows by `margin` of
         its extent on each side (bounce light from the floor around it), within the full bounds.
+        A camera (`viewpoint`) inside the rest's box looks at the objects from among them (a room
+        with windows, a street), not at the floor around them from outside: the box is then the
+        rest's own. Why: a 5 m room on a 40 m ground spread its 48 cells over 11.7 m, 23 cm cells
+        at 15 cm walls, and the sunlit ground's light leaked through them into the room (320x180
+        vs Cycles, the room's Diffuse Indirect +12.5% with the margin, +0.3% without).
         """
         if self.geometry.triangle_count == 0:
             raise EmptySceneError("the scene has no triangles")
@@ -480,7 +488,8 @@ class SceneSnapshot:
         flo, fhi = blo[~ground].min(axis=0), bhi[~ground].max(axis=0)
         # The ground's own height still counts: cells must reach down to it.
         flo[2] = min(float(flo[2]), float(lo[2]))
-        pad = margin * (fhi - flo).max()
+        among = self.viewpoint is not None and bool(np.all((self.viewpoint >= flo) & (self.viewpoint <= fhi)))
+        pad = 0.0 if among else margin * (fhi - flo).max()
         return np.maximum(flo - pad, lo).astype(np.float32), np.minimum(fhi + pad, hi).astype(np.float32)
 
 
@@ -707,14 +716,19 @@ def make_snapshot(
     world: World | None = None,
     objects: list[ObjectInfo] | None = None,
     owned: bool = False,
+    viewpoint=None,
 ) -> SceneSnapshot:
     """Validated snapshot: sanitized geometry, at least one material and one object entry.
-    owned : the caller gives `geometry`'s arrays up (`sanitized`)."""
+    owned : the caller gives `geometry`'s arrays up (`sanitized`). viewpoint : the camera's
+    position or None (a non-finite one counts as none)."""
     materials = materials or [Material()]
     n_obj = int(np.max(geometry.object_index, initial=-1)) + 1
     objects = objects if objects is not None else [ObjectInfo(f"object_{i}") for i in range(n_obj)]
     geometry = sanitized(geometry, len(materials), len(objects), owned=owned)
-    return SceneSnapshot(geometry, materials, list(lights or []), world or World(), objects)
+    if viewpoint is not None:
+        viewpoint = np.asarray(viewpoint, np.float32).reshape(3)
+        viewpoint = viewpoint if np.isfinite(viewpoint).all() else None
+    return SceneSnapshot(geometry, materials, list(lights or []), world or World(), objects, viewpoint)
 
 
 def geometry_from_arrays(

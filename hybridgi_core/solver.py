@@ -482,7 +482,7 @@ class GISolver:
         # Hits read few of the grid's cells: index a table of those only (the grid's whole table
         # cost more to rebuild per iteration than the iteration's own gathers). A mask over the
         # grid, not np.unique / searchsorted: no sort of the ~2M hits' cells.
-        read = np.zeros(self.cache.grid.count, bool)
+        read = np.zeros(self.cache.grid.count + 1, bool)  # + the outside cell (`outside.py`)
         old = self._read_cells if same else None
         if old is not None:
             read[old] = True
@@ -498,7 +498,7 @@ class GISolver:
         for c, flat in zip(todo, flats, strict=True):
             c.flat = slot[flat]
         self._ensure_pairs()
-        self._read_valid = valid[self._read_cells]
+        self._read_valid = np.append(valid, True)[self._read_cells]
         self._lookup_valid = valid
         self._sources = None
 
@@ -526,9 +526,15 @@ class GISolver:
         lookups (~1M hits: 0.4-0.5 s on 2 busy cores, in the first iteration before)."""
         self._ensure_lookup()
 
-    def _rows(self, coeffs: np.ndarray) -> np.ndarray:
-        """(R, K*3) irradiance table of the cells stored hits read, from (N, K, 3) radiance SH."""
-        return irradiance_rows(coeffs[self._read_cells], self._read_valid)
+    def _rows(self, coeffs: np.ndarray, outside: np.ndarray | None = None) -> np.ndarray:
+        """(R, K*3) irradiance table of the cells stored hits read, from (N, K, 3) radiance SH;
+        the outside cell (index N, last when read) from `outside` (K, 3), zero when None."""
+        cells, n = self._read_cells, coeffs.shape[0]
+        if not (cells.size and cells[-1] == n):
+            return irradiance_rows(coeffs[cells], self._read_valid)
+        beyond = np.zeros((1, *coeffs.shape[1:]), np.float32) if outside is None else outside[None]
+        return np.concatenate([irradiance_rows(coeffs[cells[:-1]], self._read_valid[:-1]),
+                               irradiance_rows(beyond)])
 
     def _lookup_chunk(self, chunk: StoredHits, lookup: HitLookup) -> np.ndarray:
         """Worker: the grid cell each of the chunk's hits reads."""
@@ -541,7 +547,7 @@ class GISolver:
         if self._sources is not None:
             return
         tic = time.perf_counter()
-        rows = self._rows(self.cache.sh_direct)
+        rows = self._rows(self.cache.sh_direct, self.cache.outside)  # beyond the grid: the sky alone
         # Chunks whose lamp light is still to re-shade (`relight_batch` goes batch by batch) do
         # not count yet; `resolve` re-shades every stale hit before it solves.
         chunks = [c for c in self.chunks if c.e_lamp is not None and not c.lamp_stale.any()]

@@ -21,6 +21,7 @@ from .levels import CacheLevels, build_levels
 from .lights import RATIO_MIN_SAMPLES, _pick_lamps, direct_irradiance
 from .lod import decimate
 from .open_space import open_to
+from .outside import sky_above_horizon
 from .rows import column_bounds
 from .sampling import frame_rng
 from .settings import MULTI_BOUNCE, CacheSettings
@@ -80,6 +81,7 @@ class GISystem:
         self._static_rays = self._static_ray_geometry(scene)
         self.ray_geometry = self._with_dynamic(scene)
         self.cache = cache if cache is not None else IrradianceCache.for_scene(scene, settings)
+        self.cache.outside = sky_above_horizon(scene.world, settings.sh_coeffs)
         # The surface table (numpy) builds on a thread of its own while Embree builds the BVH
         # here: neither reads the other, and each leaves a core idle much of its time (the
         # atrium's 320k triangles: ~70 ms each, ~80 ms together). (The surface cells on a second
@@ -155,6 +157,7 @@ class GISystem:
         was 58 of a lamp edit's 60 ms on the atrium's 320k triangles)."""
         same_materials = scene.materials is self.scene.materials
         self.scene = scene
+        self.cache.outside = sky_above_horizon(scene.world, self.settings.sh_coeffs)
         self.updater.scene = ShadingScene(self.surfaces, scene.lights, scene.world)
         if not same_materials:
             self.surfaces.set_materials(scene.materials)
