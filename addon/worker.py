@@ -34,6 +34,7 @@ from hybridgi_core import penumbra as _penumbra
 from hybridgi_core import pixel_gather as _pixel_gather
 from hybridgi_core import translucent as _translucent
 from hybridgi_core import visible as _visible
+from hybridgi_core.camera import camera_position
 from hybridgi_core.raster import gather as _gather_layout
 from hybridgi_core.raster import settings as _raster_settings
 from hybridgi_core.raster import subpixel as _subpixel
@@ -426,7 +427,7 @@ class ViewportWorker:
         t0 = time.perf_counter()
         # The cells this camera sees are its open space, whatever the faces around them say
         # (`open_space.py`): the solver's next traced batch opens those it finds inside.
-        system.viewpoint = np.linalg.inv(np.asarray(view.view, np.float64).reshape(4, 4))[:3, 3]
+        system.viewpoint = camera_position(view.view)
         points, normals, pix = _visible.pixels_to_points(view.position, view.normal)
         cells = system.visible_cells(points, normals)
         state = ViewState(view, self._scene_version, (points, normals, pix), cells, self.options.coarse_share)

@@ -47,6 +47,7 @@ import numpy as np
 
 from . import sh
 from .bump import has_normal_maps, irradiance_kernel, shadowing_term, smooth_normals
+from .camera import camera_position
 from .environment import LUMA as ENV_LUMA
 from .evaluate import HitLookup, corner_weights
 from .glossy import glossy_direct
@@ -1246,7 +1247,7 @@ def image_planes(gi: PixelGI, pix: np.ndarray, points: np.ndarray, normals: np.n
     pos[pix] = points
     nrm = np.zeros((h * w, 3), np.float32)
     nrm[pix] = normals
-    camera = np.linalg.inv(np.asarray(view, np.float64))[:3, 3].astype(np.float32)
+    camera = camera_position(view).astype(np.float32)
     var = np.zeros((h * w, 2), np.float32)
     var[pix] = gi.variance
     return est, cache, valid, res, pos, nrm, camera, var

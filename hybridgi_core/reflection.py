@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from .camera import camera_position
 from .lights import _area_shape, _onb, spread_attenuation, stratified_uv
 from .pixel_gather import filter_at_pixels, hit_radiance
 from .rows import row_patterns
@@ -353,7 +354,7 @@ def filter_reflections(direct: np.ndarray, indirect: np.ndarray, total: np.ndarr
     nearly the same reflection. filter : as `filter_at_pixels`'."""
     if passes <= 0 or pix.size == 0:
         return direct, indirect
-    camera = np.linalg.inv(np.asarray(view, np.float64))[:3, 3]
+    camera = camera_position(view)
     out = filter_at_pixels(np.concatenate([direct, indirect], axis=1), total > 0, points, normals, pix, shape,
                            camera, passes, pool, filter=filter)
     return out[:, 0:3], out[:, 3:6]
@@ -372,5 +373,5 @@ def filter_lamp_glossy(light: np.ndarray, rough: np.ndarray, points: np.ndarray,
     keep = np.asarray(rough) >= LAMP_FILTER_ROUGHNESS
     if not keep.any():
         return light
-    camera = np.linalg.inv(np.asarray(view, np.float64))[:3, 3]
+    camera = camera_position(view)
     return filter_at_pixels(light, keep, points, normals, pix, shape, camera, 1, pool, filter=filter)

@@ -17,6 +17,7 @@ import numpy as np
 
 from .. import glossy_image, glossy_ltc, pixel_gather
 from .. import translucent as translucent_mod
+from ..camera import camera_position
 from ..emitters import emitter_samples, worth_sampling
 from ..evaluate import HitLookup
 from ..lights import RATIO_MIN_SAMPLES, one_sample_exact_lamps, rough_lights
@@ -318,7 +319,7 @@ class FramePipeline:
         if warmup > 0 or update:
             # The cells this camera sees are its open space, whatever the faces around them say
             # (`open_space.py`: a room modelled with its normals facing out).
-            system.viewpoint = np.linalg.inv(np.asarray(view, np.float64).reshape(4, 4))[:3, 3]
+            system.viewpoint = camera_position(view)
         gbuf, low = self.rasterize(view, proj, stats)
         with stats.step("downsample"):
             normal_lo, position_lo = self.downsample.read_normal_position()

@@ -29,6 +29,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .. import glossy, sheen
+from ..camera import camera_position
 from ..rows import finite_rows
 from ..specular import WEIGHT_SAMPLES, diffuse_weight_row
 from .glsl import ShaderSpec, load_glsl
@@ -186,7 +187,7 @@ def camera_eye(view: np.ndarray, proj: np.ndarray) -> tuple:
     if abs(proj[3, 3] - 1.0) < 1e-9 and abs(proj[3, 2]) < 1e-9:
         back = view[2, :3] / max(np.linalg.norm(view[2, :3]), 1e-30)
         return (*back.tolist(), 0.0)
-    return (*np.linalg.inv(view)[:3, 3].tolist(), 1.0)
+    return (*camera_position(view).tolist(), 1.0)
 
 
 def weight_table(materials) -> np.ndarray:
