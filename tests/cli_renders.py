@@ -64,6 +64,35 @@ def pass_error(ours: dict, reference: dict, name: str, mask: np.ndarray) -> floa
     return float(np.abs(a - b).sum() / np.abs(b).sum())
 
 
+#: bpy code (after `import bpy` and `from mathutils import Vector`) of the helpers the scene
+#: scripts share: a Principled material of a colour, a camera looking at a point (the scene's),
+#: a sun shining along a direction.
+STAGE_HELPERS = """
+def material(name, rgb, roughness=0.5):
+    m = bpy.data.materials.new(name)
+    m.use_nodes = True
+    bsdf = m.node_tree.nodes["Principled BSDF"]
+    bsdf.inputs["Base Color"].default_value = (*rgb, 1.0)
+    bsdf.inputs["Roughness"].default_value = roughness
+    return m
+def camera_at(location, target, lens=None):
+    cam = bpy.data.objects.new("camera", bpy.data.cameras.new("camera"))
+    cam.location = location
+    cam.rotation_euler = (Vector(target) - cam.location).to_track_quat("-Z", "Y").to_euler()
+    if lens is not None:
+        cam.data.lens = lens
+    bpy.context.scene.collection.objects.link(cam)
+    bpy.context.scene.camera = cam
+    return cam
+def sun_towards(direction, energy):
+    sun = bpy.data.objects.new("sun", bpy.data.lights.new("sun", "SUN"))
+    sun.data.energy = energy
+    sun.rotation_euler = Vector(direction).to_track_quat("-Z", "Y").to_euler()
+    bpy.context.scene.collection.objects.link(sun)
+    return sun
+"""
+
+
 #: bpy code (for `run_bpy` scripts, after `import math, bpy`) of a stage for one object: an empty
 #: scene, a camera 3.2 m in front of the origin looking slightly down, a 3-degree sun, a grey-blue
 #: world and a 20 m floor 1 m below; then a smooth unit UV sphere at the origin, the active object.

@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from tests.cli_renders import CYCLES, QUICK, layer, rendered
+from tests.cli_renders import CYCLES, QUICK, STAGE_HELPERS, layer, rendered
 
 RES = "64x48"
 
@@ -29,17 +29,9 @@ pytestmark = [pytest.mark.blender, pytest.mark.slow]
 
 #: A floor, a wall, a red cube and a blue ball under a sun and a grey world; argv[-2] names the
 #: variant (`VARIANTS`), argv[-1] the .blend to write.
-SCENE = textwrap.dedent("""
-    import math, os, sys, bpy
-    from mathutils import Vector
+SCENE = "import math, os, sys, bpy\nfrom mathutils import Vector\n" + STAGE_HELPERS + textwrap.dedent("""
     bpy.ops.wm.read_homefile(use_empty=True)
     scene = bpy.context.scene
-    def material(name, color):
-        m = bpy.data.materials.new(name)
-        m.use_nodes = True
-        m.node_tree.nodes["Principled BSDF"].inputs["Base Color"].default_value = (*color, 1.0)
-        m.node_tree.nodes["Principled BSDF"].inputs["Roughness"].default_value = 0.5
-        return m
     def add(op, name, mat, **kw):
         op(**kw)
         ob = bpy.context.active_object
@@ -51,15 +43,8 @@ SCENE = textwrap.dedent("""
         location=(-1.2, 0.2, 0.5), rotation=(0, 0, 0.4))
     add(bpy.ops.mesh.primitive_uv_sphere_add, "ball", material("blue", (0.15, 0.35, 0.8)), radius=0.6,
         location=(1.1, 0.0, 0.6))
-    cam = bpy.data.objects.new("camera", bpy.data.cameras.new("camera"))
-    cam.location = (0.0, -6.5, 2.0)
-    cam.rotation_euler = (Vector((0.0, 0.3, 1.2)) - cam.location).to_track_quat("-Z", "Y").to_euler()
-    scene.collection.objects.link(cam)
-    scene.camera = cam
-    sun = bpy.data.objects.new("sun", bpy.data.lights.new("sun", "SUN"))
-    sun.data.energy = 3.0
-    sun.rotation_euler = Vector((0.5, 0.6, -1.0)).to_track_quat("-Z", "Y").to_euler()
-    scene.collection.objects.link(sun)
+    cam = camera_at((0.0, -6.5, 2.0), (0.0, 0.3, 1.2))
+    sun = sun_towards((0.5, 0.6, -1.0), 3.0)
     world = bpy.data.worlds.new("world")
     world.use_nodes = True
     tree = world.node_tree

@@ -11,7 +11,7 @@ from hybridgi_core.grid import CacheGrid
 from hybridgi_core.outside import sky_above_horizon
 from hybridgi_core.settings import CacheSettings
 from hybridgi_core.snapshot import ObjectInfo, World, concat_geometry, geometry_from_arrays, make_snapshot
-from tests.cli_renders import CYCLES, layer, rendered, run_bpy
+from tests.cli_renders import CYCLES, STAGE_HELPERS, layer, rendered, run_bpy
 from tests.shapes import box
 
 SKY = np.array([0.3, 0.35, 0.45], np.float32)
@@ -78,15 +78,11 @@ def test_a_camera_among_the_objects_spends_the_grid_on_them_not_on_the_ground_ar
 
 
 WINDOW_ROOM = """
-import bpy, sys
+import bpy
 from mathutils import Vector
 bpy.ops.wm.read_homefile(use_empty=True)
+""" + STAGE_HELPERS + """
 scene = bpy.context.scene
-def material(name, rgb):
-    m = bpy.data.materials.new(name)
-    m.use_nodes = True
-    m.node_tree.nodes["Principled BSDF"].inputs["Base Color"].default_value = (*rgb, 1)
-    return m
 white, grey = material("white", (0.8, 0.8, 0.8)), material("grey", (0.5, 0.5, 0.45))
 def box(lo, hi):
     bpy.ops.mesh.primitive_cube_add(size=1.0, location=[(a + b) / 2 for a, b in zip(lo, hi)])
@@ -101,16 +97,8 @@ for lo, hi in (((-X - T, -Y - T, -T), (X + T, Y + T, 0)), ((-X - T, -Y - T, Z), 
     box(lo, hi)
 bpy.ops.mesh.primitive_plane_add(size=40.0, location=(0, 0, -T - 0.01))
 bpy.context.active_object.data.materials.append(grey)
-cam = bpy.data.objects.new("cam", bpy.data.cameras.new("cam"))
-cam.location = (1.6, 2.2, 1.7)
-cam.rotation_euler = (Vector((-0.6, -1.5, 0.5)) - cam.location).to_track_quat("-Z", "Y").to_euler()
-cam.data.lens = 22.0
-scene.collection.objects.link(cam)
-scene.camera = cam
-sun = bpy.data.objects.new("sun", bpy.data.lights.new("sun", "SUN"))
-sun.data.energy = 3.0
-sun.rotation_euler = Vector((0.5, 0.6, -1.0)).to_track_quat("-Z", "Y").to_euler()
-scene.collection.objects.link(sun)
+camera_at((1.6, 2.2, 1.7), (-0.6, -1.5, 0.5), lens=22.0)
+sun_towards((0.5, 0.6, -1.0), 3.0)
 scene.world = bpy.data.worlds.new("sky")
 scene.world.use_nodes = True
 scene.world.node_tree.nodes["Background"].inputs["Color"].default_value = (0.3, 0.35, 0.45, 1)

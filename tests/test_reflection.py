@@ -18,7 +18,7 @@ from hybridgi_core.reflection import (
     sample_reflections,
     traced_share,
 )
-from tests.cli_renders import layer, rendered
+from tests.cli_renders import STAGE_HELPERS, layer, rendered
 
 RES = "96x72"
 
@@ -82,18 +82,10 @@ def test_rough_lobes_keep_the_cache_estimate():
     np.testing.assert_allclose(share, [1.0, 1.0, 0.5, 0.0, 0.0])
 
 
-SCENE = textwrap.dedent("""
-    import sys, bpy
-    from mathutils import Vector
+SCENE = "import sys, bpy\nfrom mathutils import Vector\n" + STAGE_HELPERS + textwrap.dedent("""
     bpy.ops.wm.read_homefile(use_empty=True)
     scene = bpy.context.scene
-    def principled(name, colour, rough):
-        m = bpy.data.materials.new(name)
-        m.use_nodes = True
-        bsdf = m.node_tree.nodes["Principled BSDF"]
-        bsdf.inputs["Base Color"].default_value = (*colour, 1.0)
-        bsdf.inputs["Roughness"].default_value = rough
-        return m
+    principled = material
     bpy.ops.mesh.primitive_plane_add(size=12.0)
     bpy.context.active_object.data.materials.append(principled("polished", (0.05, 0.05, 0.05), float(sys.argv[-2])))
     for name, colour, x in (("red", (0.8, 0.1, 0.1), -1.0), ("green", (0.1, 0.7, 0.1), 1.1)):
