@@ -195,9 +195,8 @@ class HitLookup:
         if table:
             if coeffs is None:
                 coeffs = cache.sh_direct + cache.sh_indirect if bounced else cache.sh_direct
-            self.table = irradiance_rows(coeffs, self.valid)  # (N, K*3), `evaluate_rows`
-            if self.outside is not None:  # row N: what a surface beyond the grid reads
-                self.table = np.concatenate([self.table, irradiance_poly(self.outside[None])])
+            # (N, K*3) for `evaluate_rows`; row N: what a surface beyond the grid reads.
+            self.table = irradiance_rows(coeffs, self.valid, self.outside)
         self.origin = np.asarray(grid.lo, np.float32)
         self.inv_cell = np.float32(1.0 / grid.cell_size)
         self.bias = np.float32(HIT_LOOKUP_BIAS * grid.cell_size)
@@ -271,9 +270,14 @@ def evaluate_rows(rows: np.ndarray, index: np.ndarray, mono: np.ndarray) -> np.n
     return e
 
 
-def irradiance_rows(coeffs: np.ndarray, valid: np.ndarray | None = None) -> np.ndarray:
+def irradiance_rows(coeffs: np.ndarray, valid: np.ndarray | None = None,
+                    outside: np.ndarray | None = None) -> np.ndarray:
     """(n, K*3) float32 irradiance polynomial of radiance SH coeffs (n, K, 3) on the `monomials`,
-    one contiguous row per cell (`irradiance_poly`), for `evaluate_rows`."""
+    one contiguous row per cell (`irradiance_poly`), for `evaluate_rows`; with `outside` (K, 3)
+    one more row, n, of that light: the outside cell (`outside.py`) the hits beyond the grid read."""
+    if outside is not None:
+        coeffs = np.concatenate([coeffs, np.asarray(outside, np.float32)[None]])
+        valid = None if valid is None else np.append(valid, True)
     return irradiance_poly(coeffs, valid)
 
 

@@ -532,9 +532,8 @@ class GISolver:
         cells, n = self._read_cells, coeffs.shape[0]
         if not (cells.size and cells[-1] == n):
             return irradiance_rows(coeffs[cells], self._read_valid)
-        beyond = np.zeros((1, *coeffs.shape[1:]), np.float32) if outside is None else outside[None]
-        return np.concatenate([irradiance_rows(coeffs[cells[:-1]], self._read_valid[:-1]),
-                               irradiance_rows(beyond)])
+        beyond = np.zeros(coeffs.shape[1:], np.float32) if outside is None else outside
+        return irradiance_rows(coeffs[cells[:-1]], self._read_valid[:-1], beyond)
 
     def _lookup_chunk(self, chunk: StoredHits, lookup: HitLookup) -> np.ndarray:
         """Worker: the grid cell each of the chunk's hits reads."""
@@ -785,13 +784,14 @@ class GISolver:
         tfar = np.float32(s.ray_length) if s.ray_length > 0 else np.float32(np.inf)
         touched = []
         padded = [(lo - pad, hi + pad) for lo, hi in boxes]
+        around = _union(padded)
         for chunk in self.chunks:
             m, r = chunk.cells.size, chunk.r
             reach = np.minimum(chunk.t, tfar)
             crosses = np.zeros(m * r, bool)
             # Only the rays of cells whose longest ray reaches the boxes can meet them.
             centres = self.cache.centers[chunk.cells]
-            near = np.flatnonzero(points_near_box(centres, reach.reshape(m, r).max(axis=1), *_union(padded)))
+            near = np.flatnonzero(points_near_box(centres, reach.reshape(m, r).max(axis=1), *around))
             if near.size:
                 rays = (near[:, None] * r + np.arange(r)).ravel()
                 crosses[rays] = segments_meet_boxes(np.repeat(centres[near], r, axis=0), chunk.ray_dirs[rays],
