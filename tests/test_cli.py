@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import importlib
 import json
+import logging
 import os
 import struct
 import subprocess
@@ -148,6 +149,38 @@ def test_check_registers_the_engine_from_this_checkout():
     assert record["engine_registered"] is True
     assert record["addon"] == "bl_ext.hybridgi_dev.hybridgi"
     assert Path(record["path"]) == REPO / "addon"
+
+
+REGISTERED_MODULES = """
+import json, sys
+sys.path.insert(0, sys.argv[1])
+import bpy
+from hybridgi_cli import dev_install
+addon = dev_install.enable()
+print(json.dumps({name: f"{addon.__name__}.{name}" in sys.modules for name in ("pipeline", "viewport")}))
+"""
+
+
+def test_registering_imports_the_pipeline_and_viewport_before_the_first_render():
+    # Blender writes no bytecode: a module first imported by a render compiles inside its seconds.
+    env = dict(os.environ)
+    env.pop("BLENDER_USER_RESOURCES", None)
+    run = subprocess.run([sys.executable, "-c", REGISTERED_MODULES, str(REPO)], capture_output=True, text=True,
+                         timeout=120, env=env, cwd=REPO)
+    assert run.returncode == 0, run.stderr[-2000:]
+    assert json.loads(run.stdout.strip().splitlines()[-1]) == {"pipeline": True, "viewport": True}
+
+
+def test_a_pipeline_that_fails_to_import_at_registration_is_logged_not_raised(addon, monkeypatch, caplog):
+    engine_mod = importlib.import_module(f"{addon.__name__}.engine")
+
+    def broken():
+        raise ImportError("no module named embreex")
+
+    monkeypatch.setattr(engine_mod, "_pipeline", broken)
+    with caplog.at_level(logging.WARNING, logger=engine_mod.log.name):
+        engine_mod._preload()
+    assert "pipeline module did not import at registration: no module named embreex" in caplog.text
 
 
 @pytest.mark.parametrize(
