@@ -16,6 +16,7 @@ to the lamps' and the pixel rays' code; where no image gives it (the viewport's 
 from __future__ import annotations
 
 from functools import lru_cache
+from pathlib import Path
 
 import numpy as np
 
@@ -70,19 +71,43 @@ def shadowing_term(smooth: np.ndarray, normals: np.ndarray, wi: np.ndarray) -> n
 
 #: Samples of the bend angle (0 .. 90 degrees) in `_lobe_moments`' table.
 LOBE_ANGLES = 128
-#: Directions of the table's quadrature (a spherical Fibonacci set): 0.18 s once per process;
-#: moments within 0.004 (of pi) of 256 x 65536's.
+#: Directions of the table's quadrature (a spherical Fibonacci set): moments within 0.004 (of pi)
+#: of 256 x 65536's.
 LOBE_DIRECTIONS = 16384
+#: The table as `compute_lobe_moments` makes it, shipped so that a render of normal-mapped
+#: surfaces does not compute it in every process (44 ms of a one-frame headless render). Rebuild
+#: with `python -m hybridgi_core.bump`; tests/test_bump checks that it matches.
+LOBE_FILE = Path(__file__).with_name("bump_lobe_moments.npz")
+#: What the shipped file was computed from: a file of other sizes is ignored (then computed here).
+LOBE_KEY = np.array([LOBE_ANGLES, LOBE_DIRECTIONS])
 #: Shading normals within this cosine of the smooth normal count as unbent (`irradiance_kernel`).
 UNBENT_COS = 1.0 - 1e-6
 
 
 @lru_cache(maxsize=1)
 def _lobe_moments() -> np.ndarray:
+    """`compute_lobe_moments()`'s table: the shipped `LOBE_FILE` when it was made for these sizes,
+    else computed; once per process."""
+    try:
+        with np.load(LOBE_FILE) as data:
+            if np.array_equal(data["key"], LOBE_KEY):
+                return data["moments"]
+    except (OSError, KeyError, ValueError):
+        pass
+    return compute_lobe_moments()
+
+
+def write_lobe_moments(path: Path = LOBE_FILE) -> None:
+    """Write `compute_lobe_moments()` to `path` (the shipped file), keyed by the table's sizes."""
+    with open(path, "wb") as f:
+        np.savez_compressed(f, key=LOBE_KEY, moments=compute_lobe_moments())
+
+
+def compute_lobe_moments() -> np.ndarray:
     """(LOBE_ANGLES, 7) float64 moments of the lobe K(w) = max(0, N.w) x shadowing_term(Ns, N, w)
     in the frame where Ns = z and N = (sin t, 0, cos t), t = i / (LOBE_ANGLES - 1) x 90 degrees:
     int K, int x K, int z K, int x^2 K, int y^2 K, int z^2 K, int x z K (the others are 0 by the
-    lobe's mirror symmetry in y). A quadrature over a Fibonacci sphere, once per process."""
+    lobe's mirror symmetry in y). A quadrature over a Fibonacci sphere."""
     i = np.arange(LOBE_DIRECTIONS) + 0.5
     z = 1.0 - 2.0 * i / LOBE_DIRECTIONS
     r = np.sqrt(np.maximum(1.0 - z * z, 0.0))
@@ -182,3 +207,8 @@ def irradiance_kernel(smooth: np.ndarray, normals: np.ndarray, order: int) -> np
     out = np.array(plain, _F32)
     out[bent] = k
     return out
+
+
+if __name__ == "__main__":
+    write_lobe_moments()
+    print(f"wrote {LOBE_FILE}")  # noqa: T201 (a developer command)

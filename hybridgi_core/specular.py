@@ -133,24 +133,30 @@ TABLES_FILE = Path(__file__).with_name("specular_tables.npz")
 TABLES_KEY = np.array([E_SIZE, S_SIZE, _QUAD_U, _QUAD_PHI])
 
 
+def _shipped(*names: str) -> tuple | None:
+    """The arrays `names` of `TABLES_FILE` when it was made for these grid sizes, else None."""
+    try:
+        with np.load(TABLES_FILE) as data:
+            if np.array_equal(data["key"], TABLES_KEY):
+                return tuple(data[name] for name in names)
+    except (OSError, KeyError, ValueError):
+        pass
+    return None
+
+
 @lru_cache(maxsize=1)
 def tables():
     """(E (rough, mu), E_avg (rough,), s (z, rough, mu)) float64: the shipped `TABLES_FILE` when
     it was made for these grid sizes, else `compute_tables()`; once per process."""
-    try:
-        with np.load(TABLES_FILE) as data:
-            if np.array_equal(data["key"], TABLES_KEY):
-                return data["e"], data["e_avg"], data["s"]
-    except (OSError, KeyError, ValueError):
-        pass
-    return compute_tables()
+    return _shipped("e", "e_avg", "s") or compute_tables()
 
 
 def write_tables(path: Path = TABLES_FILE) -> None:
-    """Write `compute_tables()` to `path` (the shipped file), keyed by the grid sizes."""
+    """Write `compute_tables()` and `compute_schlick_table()` to `path` (the shipped file), keyed
+    by the grid sizes."""
     e, e_avg, s = compute_tables()
     with open(path, "wb") as f:
-        np.savez_compressed(f, key=TABLES_KEY, e=e, e_avg=e_avg, s=s)
+        np.savez_compressed(f, key=TABLES_KEY, e=e, e_avg=e_avg, s=s, s5=compute_schlick_table())
 
 
 def compute_tables():
@@ -179,7 +185,15 @@ def compute_tables():
 @lru_cache(maxsize=1)
 def schlick_table() -> np.ndarray:
     """(rough, mu) visible-normal mean of (1 - cos(h, i))^5, Cycles' ggx_gen_schlick_s at exponent
-    5: the metallic lobe's albedo is mix(F0, 1, this) (F82 tint's extra term ignored, as Cycles does)."""
+    5: the metallic lobe's albedo is mix(F0, 1, this) (F82 tint's extra term ignored, as Cycles does).
+    The shipped `TABLES_FILE`'s when it has it (a metal's first render computed it: 20 ms), else
+    `compute_schlick_table()`; once per process."""
+    shipped = _shipped("s5")
+    return shipped[0] if shipped is not None else compute_schlick_table()
+
+
+def compute_schlick_table() -> np.ndarray:
+    """`schlick_table` by quadrature."""
     r, mu = np.meshgrid(_grid(S_SIZE), _grid(S_SIZE), indexing="ij")
     w, cos_hi = _lobe_samples(r.ravel(), mu.ravel())
     s5 = ((w > 0) * (1.0 - cos_hi) ** 5).sum(axis=1) / w.shape[1]  # as the Fresnel table above

@@ -75,6 +75,24 @@ def test_map_bend_factor_is_the_bent_lobes_share_of_the_cosine_lobe():
     assert map_bend_factor(NormalMap(texture=big)) == pytest.approx(want, rel=2e-3)
 
 
+def test_shipped_lobe_moments_are_the_computed_ones(tmp_path, monkeypatch):
+    """Renders of normal maps load `bump_lobe_moments.npz` instead of computing it: it must be
+    what `compute_lobe_moments` gives now (rebuild it with `python -m hybridgi_core.bump`), and a
+    file made for other sizes must be ignored, not read."""
+    from hybridgi_core import bump
+
+    bump._lobe_moments.cache_clear()
+    try:
+        np.testing.assert_allclose(bump._lobe_moments(), bump.compute_lobe_moments(), rtol=0, atol=1e-12)
+        stale = tmp_path / "stale.npz"
+        np.savez(stale, key=bump.LOBE_KEY + 1, moments=np.zeros((bump.LOBE_ANGLES, 7)))
+        monkeypatch.setattr(bump, "LOBE_FILE", stale)
+        bump._lobe_moments.cache_clear()
+        np.testing.assert_allclose(bump._lobe_moments(), bump.compute_lobe_moments(), rtol=0, atol=1e-12)
+    finally:
+        bump._lobe_moments.cache_clear()
+
+
 def test_irradiance_kernel_is_cycles_bent_lobe_over_the_sh():
     """`irradiance_kernel`: sum_k kernel_k L_k = int L(w) max(0, N.w) term(Ns, N, w) dw for any
     L2 SH radiance (a Monte Carlo reference over the sphere); exactly the cosine convolution

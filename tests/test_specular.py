@@ -88,6 +88,8 @@ def test_shipped_tables_are_the_computed_ones(tmp_path):
     made for other grid sizes must be ignored, not read."""
     for shipped, computed in zip(sp.tables(), sp.compute_tables(), strict=True):
         np.testing.assert_allclose(shipped, computed, rtol=0, atol=1e-12)
+    sp.schlick_table.cache_clear()
+    np.testing.assert_allclose(sp.schlick_table(), sp.compute_schlick_table(), rtol=0, atol=1e-12)
     stale = tmp_path / "stale.npz"
     sp.write_tables(stale)
     with np.load(stale) as data:
@@ -96,10 +98,13 @@ def test_shipped_tables_are_the_computed_ones(tmp_path):
     try:
         sp.TABLES_FILE = stale
         sp.tables.cache_clear()
+        sp.schlick_table.cache_clear()
         np.testing.assert_allclose(sp.tables()[0], sp.compute_tables()[0], rtol=0, atol=1e-12)
+        np.testing.assert_allclose(sp.schlick_table(), sp.compute_schlick_table(), rtol=0, atol=1e-12)
     finally:
         sp.TABLES_FILE = old
         sp.tables.cache_clear()
+        sp.schlick_table.cache_clear()
 
 
 def test_average_albedo_falls_with_roughness():
