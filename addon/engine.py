@@ -110,9 +110,10 @@ def _viewport():
 
 def _preload():
     """Import the pipeline and viewport modules when the add-on registers, as Cycles imports its
-    engine module, not in the first render or draw: Blender writes no bytecode, so every process
-    compiles them from source, 35-42 ms of the first render's seconds here (the car's 0.4 s
-    final render: a tenth). Registration must not depend on them (embreex missing, a broken
+    engine module, not in the first render or draw: a process imports (and, where no bytecode is
+    cached, compiles) them once, and that was inside the first render's seconds, 34-42 ms here
+    (PYTHONDONTWRITEBYTECODE, as on CI; the CLI's development install is a fresh copy each run):
+    a tenth of the car's 0.4 s final render, every frame of a one-frame headless job. Registration must not depend on them (embreex missing, a broken
     install): a failure is logged, and the first render imports them again and reports it."""
     for name, load in (("pipeline", _pipeline), ("viewport", _viewport)):
         try:
