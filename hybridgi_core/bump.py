@@ -20,6 +20,8 @@ from pathlib import Path
 
 import numpy as np
 
+from . import shipped
+
 _F32 = np.float32
 
 
@@ -88,19 +90,13 @@ UNBENT_COS = 1.0 - 1e-6
 def _lobe_moments() -> np.ndarray:
     """`compute_lobe_moments()`'s table: the shipped `LOBE_FILE` when it was made for these sizes,
     else computed; once per process."""
-    try:
-        with np.load(LOBE_FILE) as data:
-            if np.array_equal(data["key"], LOBE_KEY):
-                return data["moments"]
-    except (OSError, KeyError, ValueError):
-        pass
-    return compute_lobe_moments()
+    table = shipped.load(LOBE_FILE, LOBE_KEY, "moments")
+    return table[0] if table is not None else compute_lobe_moments()
 
 
 def write_lobe_moments(path: Path = LOBE_FILE) -> None:
     """Write `compute_lobe_moments()` to `path` (the shipped file), keyed by the table's sizes."""
-    with open(path, "wb") as f:
-        np.savez_compressed(f, key=LOBE_KEY, moments=compute_lobe_moments())
+    shipped.write(path, LOBE_KEY, moments=compute_lobe_moments())
 
 
 def compute_lobe_moments() -> np.ndarray:

@@ -30,6 +30,8 @@ from pathlib import Path
 
 import numpy as np
 
+from . import shipped
+
 #: Grid sizes: (rough, mu) of the GGX albedo, (z, rough, mu) of the Fresnel average (Cycles: 32, 16).
 E_SIZE = 32
 S_SIZE = 16
@@ -135,13 +137,7 @@ TABLES_KEY = np.array([E_SIZE, S_SIZE, _QUAD_U, _QUAD_PHI])
 
 def _shipped(*names: str) -> tuple | None:
     """The arrays `names` of `TABLES_FILE` when it was made for these grid sizes, else None."""
-    try:
-        with np.load(TABLES_FILE) as data:
-            if np.array_equal(data["key"], TABLES_KEY):
-                return tuple(data[name] for name in names)
-    except (OSError, KeyError, ValueError):
-        pass
-    return None
+    return shipped.load(TABLES_FILE, TABLES_KEY, *names)
 
 
 @lru_cache(maxsize=1)
@@ -155,8 +151,7 @@ def write_tables(path: Path = TABLES_FILE) -> None:
     """Write `compute_tables()` and `compute_schlick_table()` to `path` (the shipped file), keyed
     by the grid sizes."""
     e, e_avg, s = compute_tables()
-    with open(path, "wb") as f:
-        np.savez_compressed(f, key=TABLES_KEY, e=e, e_avg=e_avg, s=s, s5=compute_schlick_table())
+    shipped.write(path, TABLES_KEY, e=e, e_avg=e_avg, s=s, s5=compute_schlick_table())
 
 
 def compute_tables():
@@ -188,8 +183,8 @@ def schlick_table() -> np.ndarray:
     5: the metallic lobe's albedo is mix(F0, 1, this) (F82 tint's extra term ignored, as Cycles does).
     The shipped `TABLES_FILE`'s when it has it (a metal's first render computed it: 20 ms), else
     `compute_schlick_table()`; once per process."""
-    shipped = _shipped("s5")
-    return shipped[0] if shipped is not None else compute_schlick_table()
+    table = _shipped("s5")
+    return table[0] if table is not None else compute_schlick_table()
 
 
 def compute_schlick_table() -> np.ndarray:
