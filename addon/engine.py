@@ -113,8 +113,9 @@ def _preload():
     engine module, not in the first render or draw: a process imports (and, where no bytecode is
     cached, compiles) them once, and that was inside the first render's seconds, 34-42 ms here
     (PYTHONDONTWRITEBYTECODE, as on CI; the CLI's development install is a fresh copy each run):
-    a tenth of the car's 0.4 s final render, every frame of a one-frame headless job. Registration must not depend on them (embreex missing, a broken
-    install): a failure is logged, and the first render imports them again and reports it."""
+    a tenth of the car's 0.4 s final render, every frame of a one-frame headless job.
+    Registration must not depend on them (embreex missing, a broken install): a failure is
+    logged, and the first render imports them again and reports it."""
     for name, load in (("pipeline", _pipeline), ("viewport", _viewport)):
         try:
             load()

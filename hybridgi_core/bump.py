@@ -78,7 +78,7 @@ LOBE_ANGLES = 128
 LOBE_DIRECTIONS = 16384
 #: The table as `compute_lobe_moments` makes it, shipped so that a render of normal-mapped
 #: surfaces does not compute it in every process (44 ms of a one-frame headless render). Rebuild
-#: with `python -m hybridgi_core.bump`; tests/test_bump checks that it matches.
+#: with `python -m hybridgi_core.bump`; tests/test_normal_map checks that it matches.
 LOBE_FILE = Path(__file__).with_name("bump_lobe_moments.npz")
 #: What the shipped file was computed from: a file of other sizes is ignored (then computed here).
 LOBE_KEY = np.array([LOBE_ANGLES, LOBE_DIRECTIONS])
