@@ -324,11 +324,15 @@ def uv_tangents(positions, normals, uvs, triangles, corner_vert):
     return out
 
 
-def transformed(local, matrices, slot_to_material, first_object):
+def transformed(local, matrices, slot_to_material, first_object, out=None):
     """`Geometry` of instances of `local`, one per (4, 4) matrix of `matrices` (I, 4, 4), finite,
     instance i with object index first_object + i (or first_object[i]: an (I,) array): a
     scattered mesh (thousands of rocks or leaves of one instancer) is transformed in a few
     batched numpy calls, not a dozen calls per instance.
+
+    out : optional (positions, normals), (I, corners, 3) float32 arrays (views of the snapshot's
+    whole arrays: `_SnapshotBuilder._placed_parts`) the instances' positions and normals are
+    written into, instead of new arrays that `concat_geometry` would copy there.
 
     slot_to_material : (S,) int32 global material index of each material slot (at least one).
     A zero scale on one axis flattens the object, as in Cycles, which still renders it (a plane
@@ -343,8 +347,11 @@ def transformed(local, matrices, slot_to_material, first_object):
     # normals all turn along the squashed axis. Only their direction counts (renormalized below).
     sign = np.where(det < 0, -1.0, 1.0)[:, None, None]
     to_world, to_normal = linear.transpose(0, 2, 1), _cofactor(linear).transpose(0, 2, 1) * sign
-    positions = np.empty((count, corners, 3), np.float32)
-    normals = np.empty((count, corners, 3), np.float32)
+    if out is None:
+        positions = np.empty((count, corners, 3), np.float32)
+        normals = np.empty((count, corners, 3), np.float32)
+    else:
+        positions, normals = out
     # In blocks of corners: the float64 temporaries of a 900k-triangle mesh (2.6 M corners, 60 MB
     # each) stay in cache and their pages are reused, not faulted in afresh (its positions' matmul
     # 76-507 ms in one go, 37-115 ms in blocks on this 2-core VM). The same arithmetic row by
@@ -545,16 +552,34 @@ class _SnapshotBuilder:
         group[3].append(matrix)
         self._order.append((key, len(group[3]) - 1))
 
-    def _placed_parts(self) -> list:
+    def _placed_parts(self) -> tuple[list, dict]:
         """The queued instances' `Geometry`, in the order they came (the snapshot the same as one
-        by one: each instance a view of its batch, its triangles numbered from its own corners)."""
-        batches = {key: transformed(local, np.stack(matrices), slot_to_material, np.asarray(objects, np.int32))
-                   for key, (local, slot_to_material, objects, matrices) in self._groups.items()}
+        by one: each instance a view of its batch, its triangles numbered from its own corners),
+        and the snapshot's whole positions and normals, which the batches whose instances came one
+        after another (every mesh used once, a particle system's copies) are transformed into in
+        place: `concat_geometry` (its `out`) then copies only the others. Why: the atrium's 960k
+        corners' positions and normals were written twice, 23 MB faulted in twice (its sync's
+        concatenation 40 ms)."""
+        corners = [self._groups[key][0].positions.shape[0] for key, _i in self._order]
+        starts = np.cumsum([0] + corners).tolist()
+        whole = {"positions": np.empty((starts[-1], 3), np.float32), "normals": np.empty((starts[-1], 3), np.float32)}
+        first_at, runs = {}, {}
+        for k, (key, i) in enumerate(self._order):
+            first_at.setdefault(key, k)
+            runs[key] = runs.get(key, True) and k == first_at[key] + i  # instance i at its run's i-th place
+        batches = {}
+        for key, (local, slot_to_material, objects, matrices) in self._groups.items():
+            out = None
+            if runs[key]:
+                n, a = len(matrices), starts[first_at[key]]
+                rows = slice(a, a + n * local.positions.shape[0])
+                out = tuple(whole[name][rows].reshape(n, -1, 3) for name in ("positions", "normals"))
+            batches[key] = transformed(local, np.stack(matrices), slot_to_material, np.asarray(objects, np.int32), out)
         parts = []
         for key, i in self._order:
             local, batch = self._groups[key][0], batches[key]
             parts.append(_instance_part(batch, i, local.positions.shape[0], local.triangles.shape[0]))
-        return parts
+        return parts, whole
 
     def _note_ignored(self, obj):
         for prop, meaning in IGNORED_VISIBILITY.items():
@@ -588,9 +613,9 @@ class _SnapshotBuilder:
                         "is" if len(names) == 1 else "are", meaning)
 
     def finish(self, world, viewpoint=None):
-        parts = self._placed_parts()
+        parts, whole = self._placed_parts()
         self._warn_glossy()
-        geometry = snap.concat_geometry(parts)  # new arrays, handed over whole
+        geometry = snap.concat_geometry(parts, out=whole)  # new arrays, handed over whole
         return snap.make_snapshot(geometry, self.materials, self.lights, world, self.objects, owned=True,
                                   viewpoint=viewpoint)
 

@@ -766,16 +766,19 @@ def geometry_from_arrays(
 CONCAT_THREADED_ROWS = 65536
 
 
-def concat_geometry(parts: list[Geometry]) -> Geometry:
+def concat_geometry(parts: list[Geometry], out: dict | None = None) -> Geometry:
     """Join geometries, offsetting triangle indices.
 
     Each part's rows are copied into arrays of the whole, the copies spread over threads (numpy
     copies without the GIL) from CONCAT_THREADED_ROWS corners on: the atrium's 960k corners took
     39 ms of one core in np.concatenate's copies, mostly first touches of the new arrays. The
-    same values, cast as `astype` casts."""
+    same values, cast as `astype` casts. out : optional arrays of the whole, by field name (the
+    right shape and dtype), used instead of new ones; a part's rows already there (the same
+    memory: written in place by their maker) are not copied again."""
     if not parts:
         return Geometry(np.zeros((0, 3), np.float32), np.zeros((0, 3), np.int32), np.zeros((0, 3), np.float32),
                         np.zeros((0, 2), np.float32), np.zeros(0, np.int32), np.zeros(0, np.int32))
+    given = out or {}
     v_starts = np.cumsum([0] + [p.positions.shape[0] for p in parts]).tolist()
     t_starts = np.cumsum([0] + [p.triangles.shape[0] for p in parts]).tolist()
     n_v, n_t = v_starts[-1], t_starts[-1]
@@ -791,6 +794,11 @@ def concat_geometry(parts: list[Geometry]) -> Geometry:
         out["normal_uvs"] = np.empty((n_v, 2), np.float32)
     if any(p.tangents is not None for p in parts):
         out["tangents"] = np.empty((n_v, 4), np.float32)
+    for name, array in given.items():
+        if array.shape != out[name].shape or array.dtype != out[name].dtype:
+            raise ValueError(f"concat_geometry: out[{name!r}] is {array.dtype} {array.shape}, "
+                             f"not {out[name].dtype} {out[name].shape}")
+        out[name] = array
     per_triangle = ("triangles", "material_index", "object_index")
     copies = []  # (destination rows, source or None for zeros, triangle index offset or None)
     for p, v0, v1, t0, t1 in zip(parts, v_starts[:-1], v_starts[1:], t_starts[:-1], t_starts[1:], strict=True):
@@ -799,6 +807,8 @@ def concat_geometry(parts: list[Geometry]) -> Geometry:
             if name == "normal_uvs" and src is None:
                 src = p.uvs  # a part without a normal-map UV map reads its own
             rows = dst[t0:t1] if name in per_triangle else dst[v0:v1]
+            if src is not None and _same_rows(rows, src):
+                continue  # written there in place
             copies.append((rows, src, v0 if name == "triangles" else None))
 
     def copy(a, b):
@@ -812,3 +822,9 @@ def concat_geometry(parts: list[Geometry]) -> Geometry:
 
     for_blocks(len(copies), copy, 1 if n_v >= CONCAT_THREADED_ROWS else len(copies))
     return Geometry(**out)
+
+
+def _same_rows(dst: np.ndarray, src: np.ndarray) -> bool:
+    """Whether `src` is the very memory of `dst` (the same start, shape, strides and dtype)."""
+    return (src.shape == dst.shape and src.dtype == dst.dtype and src.strides == dst.strides
+            and src.__array_interface__["data"][0] == dst.__array_interface__["data"][0])

@@ -147,3 +147,34 @@ def test_concat_geometry_joins_parts_as_concatenation_does(monkeypatch, threaded
     plain = snapshot.concat_geometry([parts[0], parts[3]])
     assert plain.tangents is None and plain.normal_uvs is None
     assert snapshot.concat_geometry([]).triangle_count == 0
+
+
+def test_concat_geometry_keeps_rows_written_in_place_and_copies_the_rest():
+    """`concat_geometry(out=)`: the whole's arrays are the ones given; a part whose positions (or
+    normals) are already those rows of them (its maker wrote there: `sync._placed_parts`) is not
+    copied, the others are; the result is the plain concatenation's. A wrong array is refused."""
+    from hybridgi_core import snapshot
+
+    rng = np.random.default_rng(3)
+    sizes = [(12, 4), (6, 2), (9, 3)]
+    n_v = sum(v for v, _t in sizes)
+    whole = {"positions": np.full((n_v, 3), np.nan, np.float32), "normals": np.full((n_v, 3), np.nan, np.float32)}
+    parts, start = [], 0
+    for i, (n_vert, n_tri) in enumerate(sizes):
+        pos = rng.random((n_vert, 3)).astype(np.float32)
+        nrm = rng.random((n_vert, 3)).astype(np.float32)
+        if i != 1:  # parts 0 and 2 were written in place, part 1 was not
+            whole["positions"][start:start + n_vert], whole["normals"][start:start + n_vert] = pos, nrm
+            pos, nrm = whole["positions"][start:start + n_vert], whole["normals"][start:start + n_vert]
+        parts.append(Geometry(pos, rng.integers(0, n_vert, (n_tri, 3)).astype(np.int32), nrm,
+                              rng.random((n_vert, 2)).astype(np.float32), np.zeros(n_tri, np.int32),
+                              np.full(n_tri, i, np.int32)))
+        start += n_vert
+    want = snapshot.concat_geometry([Geometry(p.positions.copy(), p.triangles, p.normals.copy(), p.uvs,
+                                              p.material_index, p.object_index) for p in parts])
+    got = snapshot.concat_geometry(parts, out=whole)
+    assert got.positions is whole["positions"] and got.normals is whole["normals"]
+    for name in ("positions", "normals", "triangles", "uvs", "object_index"):
+        assert np.array_equal(getattr(got, name), getattr(want, name)), name
+    with pytest.raises(ValueError, match="positions"):
+        snapshot.concat_geometry(parts, out={"positions": np.zeros((n_v, 3), np.float64)})
