@@ -355,8 +355,14 @@ def test_sanitized_shares_arrays_only_when_handed_over_and_nothing_is_dropped():
         results = []
         for owned in (False, True):
             g = geometry(tris)
+            g.normals *= 2.0  # not unit: sanitized normalizes them (in place only where handed over)
+            before = g.normals.copy()
             out = snap.sanitized(g, 1, 1, owned=owned)
             assert np.shares_memory(out.positions, g.positions) == (owned and not dropped)
+            assert np.shares_memory(out.normals, g.normals) == (owned and not dropped)
+            if not owned:
+                np.testing.assert_array_equal(g.normals, before)  # the caller's arrays untouched
+            np.testing.assert_allclose(np.linalg.norm(out.normals, axis=1), 1.0, rtol=1e-6)
             results.append(out)
         assert results[0].triangle_count == results[1].triangle_count == 1
         for name in ("positions", "triangles", "normals", "uvs", "material_index", "object_index"):
