@@ -677,18 +677,19 @@ def _unit_normals(geometry: Geometry) -> np.ndarray:
     normals = geometry.normals
     writable = normals.dtype == np.float32 and normals.flags.c_contiguous and normals.flags.writeable
     out = normals if writable else np.empty(normals.shape, np.float32)
+    # Broken rows, judged by the normals as given (in place, a tiny one is unit by then).
+    fix = np.zeros(normals.shape[0], bool)
 
     def block(a, b) -> bool:  # whether the block holds a broken normal
         n = normals[a:b]
         norm = row_norms(n)  # np.linalg.norm's sums in its order
+        fix[a:b] = ~((norm >= 1e-6) & np.isfinite(norm))
         with np.errstate(invalid="ignore"):  # inf / inf where a normal is broken: redone below
             out[a:b] = n / np.maximum(norm, 1e-12)[:, None]
-        return bool((~((norm >= 1e-6) & np.isfinite(norm))).any())
+        return bool(fix[a:b].any())
 
     if not any(for_blocks(normals.shape[0], block)) or not geometry.triangle_count:
         return out
-    norm = np.sqrt(np.add.reduce(normals * normals, axis=1))
-    fix = ~((norm >= 1e-6) & np.isfinite(norm))
     fn = geometry.face_normals()
     vert_fn = np.zeros_like(normals)
     vert_fn[geometry.triangles.ravel()] = np.repeat(fn, 3, axis=0)

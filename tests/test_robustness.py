@@ -342,6 +342,19 @@ def test_gpu_gather_uploads_depth_moments_only_for_the_chebyshev_test(raster, mo
         assert sum(fmt == "RG32F" and size >= depth_size for fmt, size in formats) == 1
 
 
+def test_a_vanishing_normal_takes_the_face_normal_whether_handed_over_or_not():
+    """A normal too short to trust (|n| < 1e-6) takes its face's normal, also where `sanitized`
+    normalizes the caller's handed-over normals in place (it must be judged before it is scaled)."""
+    pos = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]], np.float32)
+    for owned in (False, True):
+        g = snap.geometry_from_arrays(pos.copy(), np.array([[0, 1, 2]], np.int32))
+        g.normals[:] = (0.0, 0.0, -1.0)
+        g.normals[1] = (1e-7, 0.0, 0.0)
+        out = snap.sanitized(g, 1, 1, owned=owned)
+        np.testing.assert_allclose(out.normals[1], (0.0, 0.0, 1.0), atol=1e-6)  # the face's, not +x
+        np.testing.assert_allclose(out.normals[0], (0.0, 0.0, -1.0))
+
+
 def test_sanitized_shares_arrays_only_when_handed_over_and_nothing_is_dropped():
     """sanitized(owned=False) never shares an array with its input (the caller may keep and change
     it); owned=True (a sync's fresh concatenation) takes the arrays as they are where every
