@@ -329,18 +329,18 @@ class GBufferPass(RasterPass):
             # The attributes a scene without UVs or normal maps leaves at zero share one block of
             # zeros: each new array of a million corners is its pages' first touch, ~2 ms a MB
             # on this VM (the atrium's upload: UVs 20 -> 0 ms, tangents 5.5 -> 0 ms).
-            zeros = np.zeros((n_vert, 4), np.float32)
+            tangents = getattr(geo, "tangents", None)
+            zeros = np.zeros((n_vert, 4), np.float32) if tangents is None or not uv_valid.any() else None
             # Rows that are not finite are drawn without their UVs (uv_valid, which the shader
             # reads): any value stands there.
             if uv_valid.all():
                 clean_uvs = np.ascontiguousarray(uvs)
-            elif not uv_valid.any():
+            elif not uv_valid.any():  # (zeros made above)
                 clean_uvs = zeros.reshape(-1)[: 2 * n_vert].reshape(n_vert, 2)
             else:
                 clean_uvs = np.where(uv_valid[:, None] > 0.0, uvs, np.float32(0.0))
             self._attr_vbo.attr_fill("uv", clean_uvs)
             self._attr_vbo.attr_fill("uv_valid", uv_valid)
-            tangents = getattr(geo, "tangents", None)
             # Zero tangents: no frame there, the shader keeps the smooth normal.
             tangents = (zeros if tangents is None
                         else np.nan_to_num(np.asarray(tangents, np.float32).reshape(n_vert, 4), nan=0.0))
