@@ -787,11 +787,11 @@ def concat_geometry(parts: list[Geometry], out: dict | None = None) -> Geometry:
     if not parts:
         return Geometry(np.zeros((0, 3), np.float32), np.zeros((0, 3), np.int32), np.zeros((0, 3), np.float32),
                         np.zeros((0, 2), np.float32), np.zeros(0, np.int32), np.zeros(0, np.int32))
-    given = out or {}
+    given = out or {}  # arrays of the whole the caller made
     v_starts = np.cumsum([0] + [p.positions.shape[0] for p in parts]).tolist()
     t_starts = np.cumsum([0] + [p.triangles.shape[0] for p in parts]).tolist()
     n_v, n_t = v_starts[-1], t_starts[-1]
-    out = {
+    whole = {
         "positions": np.empty((n_v, 3), np.float32),
         "normals": np.empty((n_v, 3), np.float32),
         "uvs": np.empty((n_v, 2), np.float32),
@@ -800,18 +800,18 @@ def concat_geometry(parts: list[Geometry], out: dict | None = None) -> Geometry:
         "object_index": np.empty(n_t, np.int32),
     }
     if any(getattr(p, "normal_uvs", None) is not None for p in parts):
-        out["normal_uvs"] = np.empty((n_v, 2), np.float32)
+        whole["normal_uvs"] = np.empty((n_v, 2), np.float32)
     if any(p.tangents is not None for p in parts):
-        out["tangents"] = np.empty((n_v, 4), np.float32)
+        whole["tangents"] = np.empty((n_v, 4), np.float32)
     for name, array in given.items():
-        if array.shape != out[name].shape or array.dtype != out[name].dtype:
+        if array.shape != whole[name].shape or array.dtype != whole[name].dtype:
             raise ValueError(f"concat_geometry: out[{name!r}] is {array.dtype} {array.shape}, "
-                             f"not {out[name].dtype} {out[name].shape}")
-        out[name] = array
+                             f"not {whole[name].dtype} {whole[name].shape}")
+        whole[name] = array
     per_triangle = ("triangles", "material_index", "object_index")
     copies = []  # (destination rows, source or None for zeros, triangle index offset or None)
     for p, v0, v1, t0, t1 in zip(parts, v_starts[:-1], v_starts[1:], t_starts[:-1], t_starts[1:], strict=True):
-        for name, dst in out.items():
+        for name, dst in whole.items():
             src = getattr(p, name)
             if name == "normal_uvs" and src is None:
                 src = p.uvs  # a part without a normal-map UV map reads its own
@@ -830,7 +830,7 @@ def concat_geometry(parts: list[Geometry], out: dict | None = None) -> Geometry:
                 np.add(src, offset, out=dst, casting="unsafe")
 
     for_blocks(len(copies), copy, 1 if n_v >= CONCAT_THREADED_ROWS else len(copies))
-    return Geometry(**out)
+    return Geometry(**whole)
 
 
 def _same_rows(dst: np.ndarray, src: np.ndarray) -> bool:
