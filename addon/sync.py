@@ -19,7 +19,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from hybridgi_core import environment, hair, points, surface_mix
+from hybridgi_core import corner_triangles, environment, hair, points, surface_mix
 from hybridgi_core import snapshot as snap
 from hybridgi_core import specular as sp
 from hybridgi_core.blackbody import blackbody_rgb
@@ -206,8 +206,7 @@ def mesh_arrays(mesh):
     makes foreach_get several times slower).
     """
     n_poly = len(mesh.polygons)
-    n_tri = len(mesh.loop_triangles)
-    if n_poly == 0 or n_tri == 0:
+    if n_poly == 0:
         return None
     n_vert = len(mesh.vertices)
     n_corner = len(mesh.loops)
@@ -216,10 +215,10 @@ def mesh_arrays(mesh):
     mesh.attributes["position"].data.foreach_get("vector", vert_pos)
     corner_vert = np.empty(n_corner, np.int32)
     mesh.attributes[".corner_vert"].data.foreach_get("value", corner_vert)
-    triangles = np.empty(n_tri * 3, np.int32)
-    mesh.loop_triangles.foreach_get("loops", triangles)
-    tri_poly = np.empty(n_tri, np.int32)
-    mesh.loop_triangle_polygons.foreach_get("value", tri_poly)
+    positions = np.take(vert_pos.reshape(-1, 3), corner_vert, axis=0)  # ~5x fancy indexing's speed
+    triangles, tri_poly = _corner_triangles(mesh, n_poly, n_corner, positions)
+    if triangles.shape[0] == 0:
+        return None
     normals = np.empty(n_corner * 3, np.float32)
     mesh.corner_normals.foreach_get("vector", normals)
 
@@ -238,15 +237,35 @@ def mesh_arrays(mesh):
         material_attr.data.foreach_get("value", poly_slot)
         slot = poly_slot[tri_poly]
     else:
-        slot = np.zeros(n_tri, np.int32)
+        slot = np.zeros(triangles.shape[0], np.int32)
 
     return _LocalMesh(
-        positions=np.take(vert_pos.reshape(-1, 3), corner_vert, axis=0),  # ~5x fancy indexing's speed
+        positions=positions,
         normals=normals.reshape(-1, 3),
         uvs=uvs,
-        triangles=triangles.reshape(-1, 3),
+        triangles=triangles,
         slot=slot,
     )
+
+
+def _corner_triangles(mesh, n_poly: int, n_corner: int, positions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(triangles (T, 3) corner indices, each triangle's face (T,)) int32: Blender's
+    `loop_triangles`, made here where the faces are triangles and quads (`corner_triangles`:
+    reading them costs a getter call per triangle), read from Blender where a face is an n-gon."""
+    if corner_triangles.all_triangles(n_poly, n_corner):
+        return corner_triangles.of_triangles(n_poly)
+    if n_corner <= 4 * n_poly:  # else some face has 5 corners or more
+        sizes = np.empty(n_poly, np.int32)
+        mesh.polygons.foreach_get("loop_total", sizes)
+        made = corner_triangles.from_sizes(sizes, positions)
+        if made is not None:
+            return made
+    n_tri = len(mesh.loop_triangles)
+    triangles = np.empty(n_tri * 3, np.int32)
+    mesh.loop_triangles.foreach_get("loops", triangles)
+    tri_poly = np.empty(n_tri, np.int32)
+    mesh.loop_triangle_polygons.foreach_get("value", tri_poly)
+    return triangles.reshape(-1, 3), tri_poly
 
 
 def mesh_tangents(mesh, uv_map=""):

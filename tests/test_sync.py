@@ -678,6 +678,46 @@ def test_nan_vertices_are_dropped(bpy_module, scene, sync):
     assert np.isfinite(geo.positions).all()
 
 
+def blender_triangles(mesh) -> tuple[np.ndarray, np.ndarray]:
+    n = len(mesh.loop_triangles)
+    triangles, faces = np.empty(3 * n, np.int32), np.empty(n, np.int32)
+    mesh.loop_triangles.foreach_get("loops", triangles)
+    mesh.loop_triangle_polygons.foreach_get("value", faces)
+    return triangles.reshape(-1, 3), faces
+
+
+@pytest.mark.parametrize("kind", ["triangles", "quads and triangles", "with an n-gon"])
+def test_the_sync_triangulates_as_blender_does(bpy_module, scene, sync, kind):
+    """`mesh_arrays` makes triangle and quad meshes' triangles itself (`corner_triangles`): the
+    same as Blender's loop_triangles, concave and bent quads included; n-gons are read."""
+    bpy = bpy_module
+    rng = np.random.default_rng(7)
+    sizes = {"triangles": [3] * 300, "quads and triangles": [4, 4, 3] * 200, "with an n-gon": [4, 3, 6] * 50}[kind]
+    verts, faces, at = [], [], 0
+    for size in sizes:
+        # Corners around a circle, jittered in and out (concave quads) and off the plane (bent).
+        angles = np.sort(rng.uniform(0, 2 * np.pi, size))
+        radius = rng.uniform(0.2, 1.0, size)
+        centre = rng.uniform(-10, 10, 3)
+        verts += [tuple(centre + (r * np.cos(a), r * np.sin(a), rng.normal(0, 0.3))) for a, r in zip(angles, radius, strict=True)]
+        faces.append(tuple(range(at, at + size)))
+        at += size
+    mesh = bpy.data.meshes.new(kind)
+    mesh.from_pydata(verts, [], faces)
+    mesh.update()
+    slots = rng.integers(0, 3, len(faces)).astype(np.int32)
+    mesh.attributes.new("material_index", "INT", "FACE").data.foreach_set("value", slots)
+    local = sync.mesh_arrays(mesh)
+    triangles, tri_faces = blender_triangles(mesh)
+    np.testing.assert_array_equal(local.triangles, triangles)
+    np.testing.assert_array_equal(local.slot, slots[tri_faces])
+    if kind == "quads and triangles":
+        from hybridgi_core import corner_triangles
+        quads = np.flatnonzero(np.array(sizes) == 4)
+        starts = np.concatenate([[0], np.cumsum(sizes)[:-1]])
+        assert corner_triangles.quad_flips(local.positions, starts[quads]).any()  # some quads flip
+
+
 def test_principled_specular_layers_are_read_and_approximations_named_once(bpy_module, scene, sync, caplog):
     bpy = bpy_module
     add_cube(bpy, scene, "bare")  # no material: Cycles' default surface, a glossy Principled BSDF
