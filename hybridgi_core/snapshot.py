@@ -593,7 +593,7 @@ def sanitized(geometry: Geometry, n_materials: int, n_objects: int, owned: bool 
     tris = np.asarray(geometry.triangles)
     if tris.size and (tris.ndim != 2 or tris.shape[1] != 3):
         raise InvalidGeometryError(f"triangles must be (T, 3), got {tris.shape}")
-    tris = tris.reshape(-1, 3).astype(np.int32)
+    tris = tris.reshape(-1, 3).astype(np.int32, copy=False)  # `subset` copies unless owned
     n_vert = pos.shape[0]
     if tris.size and (tris.min() < 0 or tris.max() >= n_vert):
         raise InvalidGeometryError("triangle indices out of range of the positions")
