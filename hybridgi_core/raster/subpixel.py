@@ -248,9 +248,9 @@ def same_surface(position0: np.ndarray, normal0: np.ndarray, position: np.ndarra
     surface (position0, normal0; view depth depth0): `same_plane`, and within SAME_REACH x depth0
     of it. (n, >= 3) float32 arrays (xyz used) and (n,); rows without geometry in either must be
     masked by the caller."""
-    d = [position[:, k] - position0[:, k] for k in range(3)]
+    d = _offsets(position0, position)
     reach = d[0] * d[0] + d[1] * d[1] + d[2] * d[2]
-    return same_plane(position0, normal0, position, normal, depth0) & (reach <= (SAME_REACH * depth0) ** 2)
+    return _same_plane(d, normal0, normal, depth0) & (reach <= (SAME_REACH * depth0) ** 2)
 
 
 def same_plane(position0: np.ndarray, normal0: np.ndarray, position: np.ndarray, normal: np.ndarray,
@@ -258,7 +258,16 @@ def same_plane(position0: np.ndarray, normal0: np.ndarray, position: np.ndarray,
     """(n,) bool: the samples (position, normal) face as the samples (position0, normal0) do (their
     normals within SAME_COS) and lie on their tangent planes (within SAME_PLANE x depth0, the
     latter's view depths). Arrays as `same_surface`'s."""
-    d = [position[:, k] - position0[:, k] for k in range(3)]
+    return _same_plane(_offsets(position0, position), normal0, normal, depth0)
+
+
+def _offsets(position0: np.ndarray, position: np.ndarray) -> list[np.ndarray]:
+    """The x, y, z columns of position - position0 ((n,) each), taken once for both tests."""
+    return [position[:, k] - position0[:, k] for k in range(3)]
+
+
+def _same_plane(d: list[np.ndarray], normal0: np.ndarray, normal: np.ndarray, depth0: np.ndarray) -> np.ndarray:
+    """`same_plane` of samples `_offsets` d from the centre samples."""
     cos = normal[:, 0] * normal0[:, 0] + normal[:, 1] * normal0[:, 1] + normal[:, 2] * normal0[:, 2]
     plane = np.abs(d[0] * normal0[:, 0] + d[1] * normal0[:, 1] + d[2] * normal0[:, 2])
     return (cos >= SAME_COS) & (plane <= SAME_PLANE * depth0)
@@ -295,13 +304,15 @@ class CentreSample:
         lamp_light : (h * w, L, 3) each lamp's share of `direct`, or None."""
         h, w = position.shape[:2]
         n = h * w
-        total = np.asarray(direct)[:, :3].sum(axis=1).reshape(h, w)
+        total = _rgb_sum(np.asarray(direct)).reshape(h, w)
         lamp_edge = None
         if lamp_light is None:
             edge = light_edges(total).reshape(n)
         else:
             lamp_edge = lamp_edges(lamp_light, total)
-            edge = lamp_edge.any(axis=1)
+            edge = lamp_edge[:, 0].copy()  # any() over the lamps, column by column (a reduction
+            for k in range(1, lamp_edge.shape[1]):  # over rows of a few lamps is ~5x slower)
+                edge |= lamp_edge[:, k]
         return cls(direct, position.reshape(n, -1), normal.reshape(n, -1), depth.reshape(n), edge,
                    None if surface is None or surface is normal else surface.reshape(n, -1),
                    lamp_light, lamp_edge)
@@ -321,15 +332,31 @@ def light_edges(light: np.ndarray, contrast: float = LIGHT_EDGE_CONTRAST, scale:
     scale = light if scale is None else np.asarray(scale, np.float32)
     edge = np.zeros(light.shape, bool)
     for axis in (0, 1):
-        a = np.delete(light, -1, axis=axis)
-        b = np.delete(light, 0, axis=axis)
-        big = np.maximum(np.delete(scale, -1, axis=axis), np.delete(scale, 0, axis=axis))
-        jump = np.abs(a - b) > np.float32(contrast) * np.maximum(big, np.float32(1e-12))
-        lo = [(0, 0), (0, 0)]
-        hi = [(0, 0), (0, 0)]
-        lo[axis], hi[axis] = (1, 0), (0, 1)
-        edge |= np.pad(jump, lo) | np.pad(jump, hi)
+        a, b = _neighbours(axis)
+        big = np.maximum(scale[a], scale[b])
+        np.maximum(big, np.float32(1e-12), out=big)
+        big *= np.float32(contrast)
+        step = light[a] - light[b]
+        np.abs(step, out=step)
+        jump = step > big
+        edge[a] |= jump  # the pair's first pixel and its second (views: no padded copies)
+        edge[b] |= jump
     return edge
+
+
+def _neighbours(axis: int) -> tuple[tuple[slice, slice], tuple[slice, slice]]:
+    """Index pairs of every pixel and its next neighbour along `axis` of an (h, w) image."""
+    a, b = [slice(None), slice(None)], [slice(None), slice(None)]
+    a[axis], b[axis] = slice(0, -1), slice(1, None)
+    return tuple(a), tuple(b)
+
+
+def _rgb_sum(rgb: np.ndarray) -> np.ndarray:
+    """r + g + b of the last axis's first three channels, left to right as numpy's sum over that
+    axis adds them (the same bits): three strided adds, not a reduction over rows of three."""
+    total = rgb[..., 0] + rgb[..., 1]
+    total += rgb[..., 2]
+    return total
 
 
 def lamp_edges(lamp_light: np.ndarray, total: np.ndarray, contrast: float = LIGHT_EDGE_CONTRAST) -> np.ndarray:
@@ -339,7 +366,7 @@ def lamp_edges(lamp_light: np.ndarray, total: np.ndarray, contrast: float = LIGH
     has some lamp's shadow edge on a quarter of its pixels, and a subframe re-lit them by every
     lamp (morse_apartment 640x360: 12.5k pixels x 5 lamps x 6 rays per subframe, 50 ms each)."""
     h, w = total.shape
-    sums = lamp_light.sum(axis=2)  # (h * w, L)
+    sums = _rgb_sum(lamp_light)  # (h * w, L)
     return np.stack([light_edges(sums[:, k].reshape(h, w), contrast, scale=total).reshape(-1)
                      for k in range(sums.shape[1])], axis=1)
 
