@@ -119,9 +119,12 @@ LADDER = (
     # since the GI pixels' rays stratify with their neighbours' (`tiled_nets`): 640x360, one run,
     # against the next rung: atrium 0.0235 at 1.94 s (0.0228 at 2.19), spheres 0.0075 at 1.60 s
     # (0.0069 at 1.70), Cornell 0.0214 at 1.44 s (0.0203 at 1.60), dragon 0.0480 at 2.54 s
-    # (0.0464 at 2.80).
-    ("r48 x16 w6 p24 s8", ("resolution=48", "rays_per_cell=16", "warmup_iterations=6", "pixel_rays=24",
-                           "pixel_samples=8")),
+    # (0.0464 at 2.80). 24 shadow samples in penumbrae, as the cheaper rungs: Combined 48 -> 24
+    # atrium 0.02352 -> 0.02356, Cornell 0.02138 -> 0.02145, spheres 0.00758 -> 0.00757, car
+    # 0.00318 both, morse 0.04932 -> 0.04931, bunny 0.02422 -> 0.02432, dragon 0.04951 -> 0.04977;
+    # the atrium's -gpu seconds, 5 alternating runs, median 1.33 -> 1.27.
+    ("r48 x16 w6 p24 s8 ss24", ("resolution=48", "rays_per_cell=16", "warmup_iterations=6", "pixel_rays=24",
+                                "pixel_samples=8", "shadow_samples=24")),
     # The default's cache and subframes with the r32 rung's pixel rays and a shorter warm-up (the
     # fixed-point solve converges in it): where the cache's resolution matters more than its
     # rays (640x360, one run, against the r40 rung beside it: atrium 0.0233 at 2.24 s, r40 0.0245
