@@ -288,6 +288,36 @@ def test_gbuffer_texture_reaches_albedo_and_nan_uvs_fall_back(raster):
                                np.broadcast_to(textured.mean_albedo, (on_right.sum(), 3)), atol=2e-3)
 
 
+def test_gbuffer_plain_vertex_layout_draws_what_the_full_one_draws(raster):
+    """Scenes without normal maps upload vertices without tangents and map UVs (`upload`'s
+    "plain" layout, half the bytes): the same G-buffer, bit for bit, as the full layout with zero
+    tangents and the texture UVs as the maps', bump maps and textures included."""
+    from dataclasses import replace
+
+    from hybridgi_core.snapshot import BumpMap, NormalMap
+
+    rng = np.random.default_rng(5)
+    tex = rng.uniform(0.05, 1.0, (4, 5, 3)).astype(np.float32)
+    ramp = np.broadcast_to(np.linspace(0.0, 2.0, 16, dtype=np.float32)[None, :], (4, 16)).copy()
+    materials = [Material(base_color=np.array([0.5, 1.0, 0.8], np.float32), texture=tex),
+                 Material(name="bump", normal_map=NormalMap(bump=BumpMap(ramp, 1.0, 0.3)))]
+    uv = [[-0.4, -0.3], [1.7, -0.3], [1.7, 1.2], [-0.4, 1.2]]
+    geo = concat_geometry([quad((-2.0, -1.0, 0.0), (1.9, 0.0, 0.0), (0.0, 2.0, 0.0), uv=uv, material=0),
+                           quad((0.1, -1.0, 0.2), (1.9, 0.0, 0.0), (0.0, 2.0, 0.3), uv=uv, material=1)])
+    view = look_at((0.3, -0.5, 5.0), (0.0, 0.0, 0.0), up=(0.0, 1.0, 0.0))
+    gb = raster["gbuffer"]
+    images = {}
+    for layout, tangents in (("plain", None), ("main", np.zeros((geo.positions.shape[0], 4), np.float32))):
+        gb.upload(make_snapshot(replace(geo, tangents=tangents), materials))
+        assert gb._layout == layout
+        gb.execute(view, perspective(35.0))
+        images[layout] = {n: gb.read(n) for n in ("albedo", "normal", "position", "emission", "depth")}
+        images[layout]["surface"] = gb.read_surface(images[layout]["normal"])
+    assert (images["plain"]["position"][..., 3] > 0.5).sum() > 1000
+    for name, image in images["plain"].items():
+        np.testing.assert_array_equal(image, images["main"][name], err_msg=name)
+
+
 def test_gbuffer_blender_camera_matrices_and_update_positions(raster, bpy_module):
     import mathutils
 

@@ -237,6 +237,7 @@ class GBufferPass(RasterPass):
         self._ubo = None
         self._pos_vbo = None
         self._attr_vbo = None
+        self._layout = "main"  # the vertex layout of the uploaded scene (`upload`)
         self._draws: list[_MaterialDraw] = []
         self._dummy_texture = None
         self._weight_texture = None
@@ -248,12 +249,23 @@ class GBufferPass(RasterPass):
 
     # -- lifecycle ---------------------------------------------------------------------------
     def _build_shaders(self) -> dict:
-        spec = ShaderSpec(
-            name="hybridgi_gbuffer",
-            vertex=load_glsl("common_lib.glsl", "gbuffer_vert.glsl"),
+        return {}  # one per vertex layout, compiled when a scene first draws with it (`_shader`)
+
+    def _shader(self, key: str = "main"):
+        if key not in self._shaders:
+            self._shaders[key] = compile_spec(self._spec(key))
+        return self._shaders[key]
+
+    def _spec(self, layout: str) -> ShaderSpec:
+        """The G-buffer shader of vertex layout "main" (tangents and the maps' own UVs) or "plain"
+        (`upload`: neither, gbuffer_plain_vert.glsl)."""
+        plain = layout == "plain"
+        vertex_in = ((0, "VEC3", "pos"), (1, "VEC3", "nor"), (2, "VEC2", "uv"), (3, "FLOAT", "uv_valid"))
+        return ShaderSpec(
+            name=f"hybridgi_gbuffer_{layout}",
+            vertex=load_glsl("common_lib.glsl", "gbuffer_plain_vert.glsl" if plain else "gbuffer_vert.glsl"),
             fragment=load_glsl("common_lib.glsl", "gbuffer_frag.glsl"),
-            vertex_in=((0, "VEC3", "pos"), (1, "VEC3", "nor"), (2, "VEC2", "uv"), (3, "FLOAT", "uv_valid"),
-                       (4, "VEC4", "tangent"), (5, "VEC2", "nuv")),
+            vertex_in=vertex_in if plain else vertex_in + ((4, "VEC4", "tangent"), (5, "VEC2", "nuv")),
             varyings=(("smooth", "VEC3", "world_pos"), ("smooth", "VEC3", "world_nor"),
                       ("smooth", "VEC2", "tex_uv"), ("smooth", "FLOAT", "uv_ok"), ("smooth", "VEC4", "world_tan"),
                       ("smooth", "VEC2", "map_uv")),
@@ -270,7 +282,6 @@ class GBufferPass(RasterPass):
             outputs=tuple((slot, "FLOAT" if ch == 1 else "VEC4", f"out_{name}")
                           for slot, (name, _fmt, ch) in enumerate(GBUFFER_TARGETS)),
         )
-        return {"main": compile_spec(spec)}
 
     def _allocate(self, width: int, height: int) -> None:
         import gpu  # noqa: PLC0415
@@ -317,20 +328,29 @@ class GBufferPass(RasterPass):
         n_vert = int(geo.positions.shape[0])
         uvs = np.asarray(geo.uvs, np.float32).reshape(n_vert, 2)
         uv_valid = finite_rows(uvs).astype(np.float32)
+        tangents = getattr(geo, "tangents", None)
+        map_uvs = getattr(geo, "normal_uvs", None)
+        # Without normal maps (no tangents, no texture of one) and UVs of the maps' own, the
+        # vertices leave out the tangent and map UV: 24 bytes a vertex instead of 48, half the
+        # buffer to fill and for every raster to read (the car's 430k corners: 21 -> 10 MB).
+        normal_maps = any(getattr(getattr(m, "normal_map", None), "texture", None) is not None
+                          for m in snapshot.materials)
+        self._layout = "plain" if tangents is None and map_uvs is None and not normal_maps else "main"
         fmt = gpu.types.GPUVertFormat()
         fmt.attr_add(id="nor", comp_type="F32", len=3, fetch_mode="FLOAT")
         fmt.attr_add(id="uv", comp_type="F32", len=2, fetch_mode="FLOAT")
         fmt.attr_add(id="uv_valid", comp_type="F32", len=1, fetch_mode="FLOAT")
-        fmt.attr_add(id="tangent", comp_type="F32", len=4, fetch_mode="FLOAT")
-        fmt.attr_add(id="nuv", comp_type="F32", len=2, fetch_mode="FLOAT")
+        if self._layout == "main":
+            fmt.attr_add(id="tangent", comp_type="F32", len=4, fetch_mode="FLOAT")
+            fmt.attr_add(id="nuv", comp_type="F32", len=2, fetch_mode="FLOAT")
         self._attr_vbo = gpu.types.GPUVertBuf(fmt, max(n_vert, 1))
         if n_vert:
             self._attr_vbo.attr_fill("nor", np.ascontiguousarray(geo.normals, np.float32).reshape(n_vert, 3))
             # The attributes a scene without UVs or normal maps leaves at zero share one block of
             # zeros: each new array of a million corners is its pages' first touch, ~2 ms a MB
             # on this VM (the atrium's upload: UVs 20 -> 0 ms, tangents 5.5 -> 0 ms).
-            tangents = getattr(geo, "tangents", None)
-            zeros = np.zeros((n_vert, 4), np.float32) if tangents is None or not uv_valid.any() else None
+            zeros = (np.zeros((n_vert, 4), np.float32)
+                     if (tangents is None and self._layout == "main") or not uv_valid.any() else None)
             # Rows that are not finite are drawn without their UVs (uv_valid, which the shader
             # reads): any value stands there.
             if uv_valid.all():
@@ -341,15 +361,15 @@ class GBufferPass(RasterPass):
                 clean_uvs = np.where(uv_valid[:, None] > 0.0, uvs, np.float32(0.0))
             self._attr_vbo.attr_fill("uv", clean_uvs)
             self._attr_vbo.attr_fill("uv_valid", uv_valid)
-            # Zero tangents: no frame there, the shader keeps the smooth normal.
-            tangents = (zeros if tangents is None
-                        else np.nan_to_num(np.asarray(tangents, np.float32).reshape(n_vert, 4), nan=0.0))
-            self._attr_vbo.attr_fill("tangent", np.ascontiguousarray(tangents))
-            # The normal and bump maps' UVs (`Geometry.normal_uvs`: the mesh's own under a baked
-            # colour's atlas), else the texture UVs.
-            map_uvs = getattr(geo, "normal_uvs", None)
-            self._attr_vbo.attr_fill("nuv", clean_uvs if map_uvs is None else np.ascontiguousarray(np.nan_to_num(
-                np.asarray(map_uvs, np.float32).reshape(n_vert, 2), nan=0.0, posinf=0.0, neginf=0.0)))
+            if self._layout == "main":
+                # Zero tangents: no frame there, the shader keeps the smooth normal.
+                tangents = (zeros if tangents is None
+                            else np.nan_to_num(np.asarray(tangents, np.float32).reshape(n_vert, 4), nan=0.0))
+                self._attr_vbo.attr_fill("tangent", np.ascontiguousarray(tangents))
+                # The normal and bump maps' UVs (`Geometry.normal_uvs`: the mesh's own under a
+                # baked colour's atlas), else the texture UVs.
+                self._attr_vbo.attr_fill("nuv", clean_uvs if map_uvs is None else np.ascontiguousarray(np.nan_to_num(
+                    np.asarray(map_uvs, np.float32).reshape(n_vert, 2), nan=0.0, posinf=0.0, neginf=0.0)))
         self._vertex_count = n_vert
         if self._dummy_texture is None:
             self._dummy_texture = upload_texture_2d(np.ones((1, 1, 4), np.float32), "RGBA16F")
@@ -481,7 +501,7 @@ class GBufferPass(RasterPass):
             self._ubo = gpu.types.GPUUniformBuf(data)
         else:
             self._ubo.update(data)
-        shader = self._shader()
+        shader = self._shader(self._layout)
         eye = camera_eye(view, proj)
         with self._fb.bind():
             gpu.state.viewport_set(0, 0, self.width, self.height)
@@ -501,11 +521,13 @@ class GBufferPass(RasterPass):
                     shader.uniform_int("has_texture", draw.flags)
                     shader.uniform_float("texture_filter", float(texture_filter))
                     shader.uniform_int("material_row", draw.row)
-                    shader.uniform_float("normal_strength", draw.normal_strength)
+                    if self._layout == "main":  # (the plain layout has no normal map: its
+                        # compiler may drop what only a normal map reads)
+                        shader.uniform_float("normal_strength", draw.normal_strength)
+                        shader.uniform_sampler("normal_tx", draw.normal or self._dummy_texture)
                     shader.uniform_float("bump_strength", draw.bump_strength)
                     shader.uniform_float("bump_distance", draw.bump_distance)
                     shader.uniform_sampler("albedo_tx", draw.texture or self._dummy_texture)
-                    shader.uniform_sampler("normal_tx", draw.normal or self._dummy_texture)
                     shader.uniform_sampler("bump_tx", draw.bump or self._dummy_texture)
                     shader.uniform_sampler("emission_tx", draw.glow or self._dummy_texture)
                     shader.uniform_sampler("rough_tx", draw.rough or self._dummy_texture)
