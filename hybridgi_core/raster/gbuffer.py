@@ -258,12 +258,12 @@ class GBufferPass(RasterPass):
 
     def _spec(self, layout: str) -> ShaderSpec:
         """The G-buffer shader of vertex layout "main" (tangents and the maps' own UVs) or "plain"
-        (`upload`: neither, gbuffer_plain_vert.glsl)."""
+        (`upload`: neither; gbuffer_vert.glsl's PLAIN_LAYOUT)."""
         plain = layout == "plain"
         vertex_in = ((0, "VEC3", "pos"), (1, "VEC3", "nor"), (2, "VEC2", "uv"), (3, "FLOAT", "uv_valid"))
         return ShaderSpec(
             name=f"hybridgi_gbuffer_{layout}",
-            vertex=load_glsl("common_lib.glsl", "gbuffer_plain_vert.glsl" if plain else "gbuffer_vert.glsl"),
+            vertex=("#define PLAIN_LAYOUT\n" if plain else "") + load_glsl("common_lib.glsl", "gbuffer_vert.glsl"),
             fragment=load_glsl("common_lib.glsl", "gbuffer_frag.glsl"),
             vertex_in=vertex_in if plain else vertex_in + ((4, "VEC4", "tangent"), (5, "VEC2", "nuv")),
             varyings=(("smooth", "VEC3", "world_pos"), ("smooth", "VEC3", "world_nor"),
