@@ -252,8 +252,6 @@ def _corner_triangles(mesh, n_poly: int, n_corner: int, positions: np.ndarray) -
     """(triangles (T, 3) corner indices, each triangle's face (T,)) int32: Blender's
     `loop_triangles`, made here where the faces are triangles and quads (`corner_triangles`:
     reading them costs a getter call per triangle), read from Blender where a face is an n-gon."""
-    if corner_triangles.all_triangles(n_poly, n_corner):
-        return corner_triangles.of_triangles(n_poly)
     if n_corner <= 4 * n_poly:  # else some face has 5 corners or more
         sizes = np.empty(n_poly, np.int32)
         mesh.polygons.foreach_get("loop_total", sizes)

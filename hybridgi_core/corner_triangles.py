@@ -3,9 +3,10 @@ computed from the faces' sizes and corner positions instead of read from Blender
 
 Why: `loop_triangles.foreach_get` calls a getter per triangle (~25 ns a corner) and makes Blender
 compute the triangles first: the atrium's 320k triangles cost 24 ms to read (35 ms the first
-time) of its 135 ms sync; the dragon's 200k, 16 ms. A mesh of triangles needs nothing read at all
-(its triangles are its faces' corners in order), one of triangles and quads only its faces' sizes
-(`MeshPolygon.loop_total`, ~30 ns a face).
+time) of its 135 ms sync; the dragon's 200k, 16 ms. The faces' sizes (`MeshPolygon.loop_total`,
+~30 ns a face) are all it takes for a mesh of triangles and quads. (Not even those for three
+corners a face on average: a script can make a face of two corners, which Blender triangulates
+as nothing, beside a quad.)
 
 The same triangles as Blender's `corner_tris_calc` (Blender 4.0 on: face i's corners are
 offsets[i] .. offsets[i + 1] - 1, the offsets the sizes' running sum): a triangle (0 1 2); a quad
@@ -21,12 +22,6 @@ from __future__ import annotations
 import numpy as np
 
 
-def all_triangles(faces: int, corners: int) -> bool:
-    """Every face of a mesh with `faces` faces and `corners` corners is a triangle: a face has
-    3 corners or more, so 3 a face on average is 3 each (no size need be read)."""
-    return faces > 0 and corners == 3 * faces
-
-
 def of_triangles(faces: int) -> tuple[np.ndarray, np.ndarray]:
     """(triangles (F, 3) int32 corner indices, triangle_faces (F,) int32) of a mesh of `faces`
     triangles: face i is the triangle of corners 3i, 3i + 1, 3i + 2."""
@@ -39,8 +34,13 @@ def from_sizes(sizes: np.ndarray, corner_positions: np.ndarray) -> tuple[np.ndar
 
     corner_positions : (L, 3) float32, the position of each corner's vertex."""
     sizes = np.asarray(sizes)
-    if sizes.size == 0 or sizes.min() < 3 or sizes.max() > 4:
+    if sizes.size == 0:
         return None
+    smallest, largest = int(sizes.min()), int(sizes.max())
+    if smallest < 3 or largest > 4:  # an n-gon, or a face Blender's validation would remove
+        return None
+    if largest == 3:
+        return of_triangles(sizes.size)
     starts = np.zeros(sizes.size, np.int64)
     np.cumsum(sizes[:-1], out=starts[1:])
     per_face = sizes.astype(np.int64) - 2  # 1 triangle a triangle, 2 a quad

@@ -25,14 +25,13 @@ def corners_3d(points_2d) -> np.ndarray:
     return np.concatenate([p, np.zeros((p.shape[0], 1), np.float32)], axis=1)
 
 
-def test_only_three_corners_a_face_on_average_means_every_face_a_triangle():
-    assert ct.all_triangles(4, 12)
-    assert not ct.all_triangles(4, 13)  # one quad among them
-    assert not ct.all_triangles(0, 0)
-    triangles, faces = ct.of_triangles(3)
+def test_a_mesh_of_triangles_is_its_faces_corners_in_order():
+    triangles, faces = ct.from_sizes(np.array([3, 3, 3]), np.zeros((9, 3), np.float32))
     assert triangles.tolist() == [[0, 1, 2], [3, 4, 5], [6, 7, 8]]
     assert faces.tolist() == [0, 1, 2]
     assert triangles.dtype == faces.dtype == np.int32
+    # Three corners a face on average is not enough to tell: a face of two beside a quad.
+    assert ct.from_sizes(np.array([2, 4]), np.zeros((6, 3), np.float32)) is None
 
 
 def test_a_convex_quad_splits_along_its_first_diagonal():

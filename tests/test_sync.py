@@ -686,13 +686,15 @@ def blender_triangles(mesh) -> tuple[np.ndarray, np.ndarray]:
     return triangles.reshape(-1, 3), faces
 
 
-@pytest.mark.parametrize("kind", ["triangles", "quads and triangles", "with an n-gon"])
+@pytest.mark.parametrize("kind", ["triangles", "quads and triangles", "with an n-gon", "with a face of two corners"])
 def test_the_sync_triangulates_as_blender_does(bpy_module, scene, sync, kind):
     """`mesh_arrays` makes triangle and quad meshes' triangles itself (`corner_triangles`): the
-    same as Blender's loop_triangles, concave and bent quads included; n-gons are read."""
+    same as Blender's loop_triangles, concave and bent quads included; n-gons are read, and so is
+    a mesh a script gave a face of two corners (three a face on average with its quads)."""
     bpy = bpy_module
     rng = np.random.default_rng(7)
-    sizes = {"triangles": [3] * 300, "quads and triangles": [4, 4, 3] * 200, "with an n-gon": [4, 3, 6] * 50}[kind]
+    sizes = {"triangles": [3] * 300, "quads and triangles": [4, 4, 3] * 200, "with an n-gon": [4, 3, 6] * 50,
+             "with a face of two corners": [2, 4] * 50}[kind]
     verts, faces, at = [], [], 0
     for size in sizes:
         # Corners around a circle, jittered in and out (concave quads) and off the plane (bent).

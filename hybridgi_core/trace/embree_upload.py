@@ -150,10 +150,14 @@ def upload(scene, device, vertices: np.ndarray, triangles: np.ndarray) -> bool:
         # Written in place through numpy views of Embree's buffers (one pass each: no padded copy
         # to memmove, ~30 MB of first touches fewer for the atrium's 960k corners); the pad
         # float 0, as the padded copy had it.
-        v4 = _view(vb, (n_vert, 4), np.float32)
-        v4[:, :3] = vertices
-        v4[:, 3] = 0.0
-        _view(ib, (n_tri, 3), np.uint32)[...] = triangles
+        try:
+            v4 = _view(vb, (n_vert, 4), np.float32)
+            v4[:, :3] = vertices
+            v4[:, 3] = 0.0
+            _view(ib, (n_tri, 3), np.uint32)[...] = triangles
+        except BaseException:
+            lib.rtcReleaseGeometry(geom)  # (arrays of another shape: nothing attached)
+            raise
         lib.rtcCommitGeometry(geom)
         lib.rtcAttachGeometry(handle, geom)
         lib.rtcReleaseGeometry(geom)  # the scene holds its own reference
