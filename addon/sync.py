@@ -25,7 +25,7 @@ from hybridgi_core import specular as sp
 from hybridgi_core.blackbody import blackbody_rgb
 from hybridgi_core.blocks import for_blocks
 from hybridgi_core.glossy import MIN_ROUGHNESS
-from hybridgi_core.rows import equal_rows, float_bits
+from hybridgi_core.rows import cross_rows, equal_rows, float_bits
 from hybridgi_core.specular import SpecularLayer
 
 from . import compat, material_bake, world_bake
@@ -252,7 +252,7 @@ def _corner_triangles(mesh, n_poly: int, n_corner: int, positions: np.ndarray) -
     """(triangles (T, 3) corner indices, each triangle's face (T,)) int32: Blender's
     `loop_triangles`, made here where the faces are triangles and quads (`corner_triangles`:
     reading them costs a getter call per triangle), read from Blender where a face is an n-gon."""
-    if n_corner <= 4 * n_poly:  # else some face has 5 corners or more
+    if n_poly >= corner_triangles.MIN_FACES and n_corner <= 4 * n_poly:  # (else a face has 5 corners or more)
         sizes = np.empty(n_poly, np.int32)
         mesh.polygons.foreach_get("loop_total", sizes)
         made = corner_triangles.from_sizes(sizes, positions)
@@ -432,7 +432,8 @@ def _listed(names, shown=5) -> str:
 
 def _cofactor(m):
     """(I, 3, 3) cofactor matrices of `m` (I, 3, 3) (det(m) inv(m).T where m is invertible)."""
-    return np.stack([np.cross(m[:, 1], m[:, 2]), np.cross(m[:, 2], m[:, 0]), np.cross(m[:, 0], m[:, 1])], axis=1)
+    return np.stack([cross_rows(m[:, 1], m[:, 2]), cross_rows(m[:, 2], m[:, 0]), cross_rows(m[:, 0], m[:, 1])],
+                    axis=1)
 
 
 class _SnapshotBuilder:
@@ -443,6 +444,7 @@ class _SnapshotBuilder:
         self._baked = {}  # (material, mesh pointer, slot) -> material index
         self._bakes = []  # (material index, bpy material, [BakeJob])
         self._atlas_meshes = {}  # (mesh pointer, baked slots) -> _LocalMesh with atlas UVs
+        self._sockets = {}  # material pointer -> its `bake_sockets` (one walk of its tree per sync)
         self._variants = {}  # (material, mesh pointer, slot) -> the Object Info value sets baked
         self._object_outputs = {}  # material name -> `object_info_outputs`, read once per sync
         self._variant_warned = set()
@@ -679,7 +681,7 @@ class _SnapshotBuilder:
             return [self._material(material) for material in materials], local
         baked = {}
         for s, material in enumerate(materials):
-            sockets = bake_sockets(material) if material is not None else []
+            sockets = self._bake_sockets(material)
             if sockets and (slots == s).any():
                 baked[s] = sockets
         indices = [self._material(material) if s not in baked
@@ -692,6 +694,16 @@ class _SnapshotBuilder:
                 self._atlas_meshes[key] = with_atlas(local, slots, sorted(baked))
             local = self._atlas_meshes[key]
         return indices, local
+
+    def _bake_sockets(self, material) -> list[tuple[str, str]]:
+        """`bake_sockets` of `material` (None: none), walked once per sync however many objects
+        use it (1000 objects of one material: 60 ms of walks)."""
+        if material is None:
+            return []
+        key = material.as_pointer()
+        if key not in self._sockets:
+            self._sockets[key] = bake_sockets(material)
+        return self._sockets[key]
 
     def _with_tangents(self, obj, local, used):
         """`local` with the tangents of the normal-map UV map its materials `used` (global

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from hybridgi_core.rows import equal_rows, float_bits, row_patterns
+from hybridgi_core.rows import cross_rows, equal_rows, float_bits, row_patterns
 
 
 def test_equal_rows_groups_as_numpy_unique_over_rows():
@@ -45,3 +45,13 @@ def test_row_patterns_are_numpy_unique_over_rows():
         assert patterns.dtype == bool and patterns.shape == want.shape
         assert (patterns == want).all() and (inverse == want_inverse.reshape(-1)).all()
         assert (patterns[inverse] == mask).all()
+
+
+def test_cross_rows_is_np_cross_bit_for_bit():
+    rng = np.random.default_rng(11)
+    for dtype in (np.float32, np.float64):
+        a = (rng.normal(size=(1000, 3)) * 10.0 ** rng.integers(-8, 8, (1000, 1))).astype(dtype)
+        b = rng.normal(size=(1000, 3)).astype(dtype)
+        got = cross_rows(a, b)
+        assert got.dtype == dtype
+        np.testing.assert_array_equal(got, np.cross(a, b))

@@ -694,7 +694,7 @@ def test_the_sync_triangulates_as_blender_does(bpy_module, scene, sync, kind):
     bpy = bpy_module
     rng = np.random.default_rng(7)
     sizes = {"triangles": [3] * 300, "quads and triangles": [4, 4, 3] * 200, "with an n-gon": [4, 3, 6] * 50,
-             "with a face of two corners": [2, 4] * 50}[kind]
+             "with a face of two corners": [2, 4] * 150}[kind]
     verts, faces, at = [], [], 0
     for size in sizes:
         # Corners around a circle, jittered in and out (concave quads) and off the plane (bent).
