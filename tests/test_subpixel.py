@@ -389,6 +389,27 @@ def test_a_normal_maps_bends_are_one_surface_to_gi_edges_and_subframes():
     assert hit.all() and same.tolist() == [True, True, True, False, True, True, True, True]
 
 
+def test_a_step_of_faint_light_is_no_light_edge():
+    """`light_edges`' floor: a relative step far below the frame's light (a wall's grazing sliver
+    of a high sun, noisy from pixel to pixel) is not traced again in the subframes; the same step
+    between lit pixels is. `CentreSample.from_gbuffer` sets the floor from the frame's light."""
+    from hybridgi_core.raster.subpixel import LIGHT_EDGE_FLOOR, CentreSample, edge_floor, light_edges
+
+    lit = np.array([[30.0, 30.0, 30.0, 0.03, 0.02, 0.03, 0.02, 30.0, 15.0]], np.float32)
+    floor = edge_floor(lit)
+    assert np.isclose(floor, LIGHT_EDGE_FLOOR * lit[lit > 0].mean())
+    assert light_edges(lit).ravel().tolist() == [False, False, True, True, True, True, True, True, True]
+    # With the floor: the faint pixels' steps among themselves go; the steps to and from the lit
+    # pixels (30 -> 0.03, 0.02 -> 30) and between lit ones (30 -> 15) stay.
+    assert light_edges(lit, floor=floor).ravel().tolist() == [False, False, True, True, False, False, True,
+                                                              True, True]
+    position, normal, depth = _plane_row(lit.shape[1])
+    direct = np.zeros((lit.size, 4), np.float32)
+    direct[:, :3] = lit.reshape(-1, 1)
+    centre = CentreSample.from_gbuffer(direct, position, normal, depth)
+    assert centre.light_edge.tolist() == light_edges(lit, floor=floor).ravel().tolist()
+
+
 def test_a_light_edge_is_traced_again_only_for_the_lamp_that_makes_it():
     """Two lamps over one plane, a shadow edge of lamp 0 only: its light-edge pixels take lamp 0's
     light from the subframe's own rays and keep the centre's share of lamp 1; pixels away from

@@ -240,6 +240,15 @@ SAME_PLANE = 0.005
 SAME_REACH = 0.05
 #: Relative lamp-light step between neighbouring centre pixels that marks a light edge (`light_edges`).
 LIGHT_EDGE_CONTRAST = 0.25
+#: ... and a step of at least this share of the frame's mean lamp light (`edge_floor`). Why: under
+#: a high sun (its disc of 1 degree) every wall gets a grazing sliver of it, ~1/1000 of the lit
+#: floors' and noisy, whose neighbours differ by more than the contrast everywhere: a scene of
+#: 1000 cubes marked 2/3 of its pixels and re-lit them in every subframe (their lamp light 1.58 s
+#: of a 7.1 s frame at 640x360). With this floor 0.65 s and 5.95 s; Combined against Cycles 256
+#: spp (320x180) 0.0647 -> 0.0653 (0.01: 0.0651 at 6.85 s); the benchmark scenes' Combined equal
+#: or lower (640x360: bunny_npm 0.02708 -> 0.02701, its lamp light 479 -> 380 ms; dragon_npm
+#: 0.04977 -> 0.04963; atrium 0.02356 -> 0.02355; Cornell, spheres, car, morse within 0.0001).
+LIGHT_EDGE_FLOOR = 0.03
 
 
 def same_surface(position0: np.ndarray, normal0: np.ndarray, position: np.ndarray,
@@ -305,11 +314,12 @@ class CentreSample:
         h, w = position.shape[:2]
         n = h * w
         total = _rgb_sum(np.asarray(direct)).reshape(h, w)
+        floor = edge_floor(total)
         lamp_edge = None
         if lamp_light is None:
-            edge = light_edges(total).reshape(n)
+            edge = light_edges(total, floor=floor).reshape(n)
         else:
-            lamp_edge = lamp_edges(lamp_light, total)
+            lamp_edge = lamp_edges(lamp_light, total, floor=floor)
             edge = lamp_edge[:, 0].copy()  # any() over the lamps, column by column (a reduction
             for k in range(1, lamp_edge.shape[1]):  # over rows of a few lamps is ~5x slower)
                 edge |= lamp_edge[:, k]
@@ -318,7 +328,15 @@ class CentreSample:
                    lamp_light, lamp_edge)
 
 
-def light_edges(light: np.ndarray, contrast: float = LIGHT_EDGE_CONTRAST, scale: np.ndarray | None = None) -> np.ndarray:
+def edge_floor(total: np.ndarray) -> float:
+    """The lamp light under which a step is no light edge (`light_edges`' floor): LIGHT_EDGE_FLOOR
+    of the mean lamp light of the pixels it lights."""
+    lit = total[total > 0.0]
+    return float(LIGHT_EDGE_FLOOR * lit.mean()) if lit.size else 0.0
+
+
+def light_edges(light: np.ndarray, contrast: float = LIGHT_EDGE_CONTRAST, scale: np.ndarray | None = None,
+                floor: float = 0.0) -> np.ndarray:
     """(h, w) bool: pixels whose lamp light differs from a 4-neighbour's by more than `contrast`
     of the larger of the two (of their `scale`, (h, w), when given): a shadow's or a light's
     boundary crosses the pixel's footprint.
@@ -334,7 +352,7 @@ def light_edges(light: np.ndarray, contrast: float = LIGHT_EDGE_CONTRAST, scale:
     for axis in (0, 1):
         a, b = _neighbours(axis)
         big = np.maximum(scale[a], scale[b])
-        np.maximum(big, np.float32(1e-12), out=big)
+        np.maximum(big, np.float32(max(floor / max(contrast, 1e-12), 1e-12)), out=big)
         big *= np.float32(contrast)
         step = light[a] - light[b]
         np.abs(step, out=step)
@@ -359,7 +377,8 @@ def _rgb_sum(rgb: np.ndarray) -> np.ndarray:
     return total
 
 
-def lamp_edges(lamp_light: np.ndarray, total: np.ndarray, contrast: float = LIGHT_EDGE_CONTRAST) -> np.ndarray:
+def lamp_edges(lamp_light: np.ndarray, total: np.ndarray, contrast: float = LIGHT_EDGE_CONTRAST,
+               floor: float = 0.0) -> np.ndarray:
     """(h * w, L) bool: where lamp l's light (lamp_light (h * w, L, 3)) steps between neighbours by
     more than `contrast` of the pixels' total lamp light (total (h, w)): the light edges of
     `light_edges`, each put down to the lamps whose light makes it. A room lit by five soft lamps
@@ -367,7 +386,7 @@ def lamp_edges(lamp_light: np.ndarray, total: np.ndarray, contrast: float = LIGH
     lamp (morse_apartment 640x360: 12.5k pixels x 5 lamps x 6 rays per subframe, 50 ms each)."""
     h, w = total.shape
     sums = _rgb_sum(lamp_light)  # (h * w, L)
-    return np.stack([light_edges(sums[:, k].reshape(h, w), contrast, scale=total).reshape(-1)
+    return np.stack([light_edges(sums[:, k].reshape(h, w), contrast, scale=total, floor=floor).reshape(-1)
                      for k in range(sums.shape[1])], axis=1)
 
 
