@@ -4,7 +4,7 @@ computed from the faces' sizes and corner positions instead of read from Blender
 Why: `loop_triangles.foreach_get` calls a getter per triangle (~25 ns a corner) and makes Blender
 compute the triangles first: the atrium's 320k triangles cost 24 ms to read (35 ms the first
 time) of its 135 ms sync; the dragon's 200k, 16 ms. The faces' sizes (`MeshPolygon.loop_total`,
-~30 ns a face) are all it takes for a mesh of triangles and quads. (Not even those for three
+~30 ns a face) are all it takes for a mesh of triangles and quads. (They are read even at three
 corners a face on average: a script can make a face of two corners, which Blender triangulates
 as nothing, beside a quad.)
 

@@ -428,10 +428,7 @@ def surface_edges(position: np.ndarray, normal: np.ndarray, depth: np.ndarray) -
     d = np.maximum(np.asarray(depth, np.float32).reshape(h, w), np.float32(1e-6))
     edge = np.zeros((h, w), bool)
     for axis in (0, 1):
-        a = [slice(None), slice(None)]
-        b = [slice(None), slice(None)]
-        a[axis], b[axis] = slice(0, -1), slice(1, None)
-        a, b = tuple(a), tuple(b)
+        a, b = _neighbours(axis)
         pa, na, da = p[a].reshape(-1, 3), n[a].reshape(-1, 3), d[a].reshape(-1)
         pb, nb, db = p[b].reshape(-1, 3), n[b].reshape(-1, 3), d[b].reshape(-1)
         # Each on the other's tangent plane, facing alike (`same_plane`, both ways).
@@ -531,10 +528,7 @@ def gi_edges(centre: CentreSample, indirect: np.ndarray, height: int, width: int
     for axis in (0, 1):
         if out.shape[axis] < 2:
             continue
-        a = [slice(None), slice(None)]
-        b = [slice(None), slice(None)]
-        a[axis], b[axis] = slice(0, -1), slice(1, None)
-        a, b = tuple(a), tuple(b)
+        a, b = _neighbours(axis)
         both = geo[a] & geo[b]
         m = pos[a].shape[0] * pos[a].shape[1]
         same = same_surface(pos[a].reshape(m, pos.shape[-1]), nrm[a].reshape(m, nrm.shape[-1]),
