@@ -716,7 +716,8 @@ def hit_radiance(system, lookup: HitLookup | None, origins: np.ndarray, dirs: np
     if hit.size:
         # np.take: row gathers ~5x faster than fancy indexing (numpy 1.26).
         prim, hit_dirs = np.take(hits.prim, hit), np.take(dirs, hit, axis=0)
-        surf = scene.surfaces.probe_hits(prim, np.take(hits.u, hit), np.take(hits.v, hit), hit_dirs)
+        hit_u, hit_v = np.take(hits.u, hit), np.take(hits.v, hit)
+        surf = scene.surfaces.probe_hits(prim, hit_u, hit_v, hit_dirs)
         radiance[hit, 0:3] = (scene.surfaces.diffuse_emission(surf.emission, prim) if sampled_emitters
                               else surf.emission)
         position = hit_dirs * np.take(hits.t, hit)[:, None]
@@ -730,12 +731,21 @@ def hit_radiance(system, lookup: HitLookup | None, origins: np.ndarray, dirs: np
         if times is not None:
             times["shadow"] = times.get("shadow", 0.0) + (time.perf_counter() - ts) * 1e3
         brdf = surf.brdf
-        lamp = None
+        lamp, lamp_rows = None, None  # lamp light the hits reflect apart from `brdf` (at lamp_rows; None: all)
         if not glossy_lamps:
-            glossy_part = scene.surfaces.glossy_brdf(prim)
+            glossy_part = scene.surfaces.glossy_brdf(prim, hit_u, hit_v)
             lamp = e_in * (brdf - glossy_part)
             e_in = np.zeros_like(e_in)
             _add_shiny_highlights(system, lamp, glossy_part, brdf, prim, position, surf.normal, hit_dirs, rng)
+        else:
+            shiny = _shiny_hits(scene.surfaces, prim, hit_u, hit_v, brdf)
+            if shiny is not None:
+                # Metals show a lamp only in their highlight, as a reflection ray's hit does.
+                lamp_rows, glossy_part = shiny
+                sub = [np.take(a, lamp_rows, axis=0) for a in (brdf, prim, position, surf.normal, hit_dirs)]
+                lamp = np.take(e_in, lamp_rows, axis=0) * (sub[0] - glossy_part)
+                e_in[lamp_rows] = 0.0
+                _add_shiny_highlights(system, lamp, glossy_part, *sub, rng)
         # Further bounces read the cache at the hit, as probe-ray hits do; hits nearer than
         # `near` trace them one ray further instead (`_near_bounce`).
         if lookup is not None:
@@ -753,10 +763,40 @@ def hit_radiance(system, lookup: HitLookup | None, origins: np.ndarray, dirs: np
                 _near_roulette(system, lookup, e_in, position, surf.normal, close, near_rng, times, screen, near,
                                depth, level)
         e_in *= brdf
-        if lamp is not None:
+        if lamp is not None and lamp_rows is None:
             e_in += lamp
+        elif lamp is not None:
+            e_in[lamp_rows] += lamp
         radiance[hit, 3:6] = e_in  # one scatter (`+=` on fancy indices gathers and scatters)
     return radiance
+
+
+def _shiny_hits(surfaces, prim: np.ndarray, u: np.ndarray, v: np.ndarray,
+                brdf: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    """(indices, their (k, 3) glossy brdf (`SurfaceTable.glossy_brdf`)) of the hits (prim (m,)
+    >= 0 at barycentrics u, v, their brdf (m, 3)) whose glossy share of the brdf's luminance
+    exceeds SHINY_SHARE (metals), or None where there are none. Why: a final-gather ray that
+    meets a metal sees a lamp only where the metal's lobe reflects it towards the ray (what
+    Cycles' light sampling at that hit finds), not its lamp light spread evenly as the cache's
+    diffuse stand-in spreads it. Only materials that can be shiny are looked at per hit (a
+    texture's darkest diffuse counted as none, a Metallic texture's metal texel): a scene
+    without metals pays nothing."""
+    glossy_lum = surfaces.glossy @ LUMA
+    diffuse_lum = surfaces.albedo @ LUMA
+    if surfaces.textured:
+        diffuse_lum = diffuse_lum.copy()
+        diffuse_lum[surfaces.textured] = 0.0
+    for m, (_lo, hi) in surfaces.metal_glossy.items():
+        glossy_lum[m] = max(float(glossy_lum[m]), float(hi @ LUMA))
+    maybe = glossy_lum > np.float32(SHINY_SHARE) * (glossy_lum + diffuse_lum)
+    if not maybe.any():
+        return None
+    cand = np.flatnonzero(np.take(maybe, np.take(surfaces.material_index, prim)))
+    if cand.size == 0:
+        return None
+    glossy_part = surfaces.glossy_brdf(np.take(prim, cand), np.take(u, cand), np.take(v, cand))
+    keep = glossy_part @ LUMA > np.float32(SHINY_SHARE) * (np.take(brdf, cand, axis=0) @ LUMA)
+    return (cand[keep], glossy_part[keep]) if keep.any() else None
 
 
 def _add_shiny_highlights(system, lamp: np.ndarray, glossy_part: np.ndarray, brdf: np.ndarray, prim: np.ndarray,

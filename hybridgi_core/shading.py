@@ -14,7 +14,7 @@ update's CPU time.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -23,7 +23,7 @@ from .blocks import for_blocks
 from .bump import map_bend_factor
 from .emitters import MeshLights
 from .snapshot import Geometry, Material
-from .specular import FILTER_GLOSSY, hemispherical_glossy_albedo
+from .specular import FILTER_GLOSSY, SpecularLayer, hemispherical_glossy_albedo
 
 # Record layout (floats): unit geometric normal | albedo / pi | emission | spare
 _NG, _BRDF, _EMIT = (slice(3 * i, 3 * i + 3) for i in range(3))
@@ -112,14 +112,19 @@ class SurfaceTable:
         # A sheen's colour joins them the same way (untextured, its hemispherical mean albedo).
         self.glossy = np.array([hemispherical_glossy_albedo(m.specular, self.filter_glossy) + sheen.hit_albedo(m)
                                 for m in materials], np.float32).reshape(-1, 3)
+        # A Metallic texture's hits take their texel's glossy albedo (`_metal_glossy`), not the mean.
+        self.metal_glossy = {i: g for i, g in ((i, _metal_glossy(m, self.filter_glossy)) for i, m in enumerate(materials))
+                             if g is not None}
         if self.bends:
             self.glossy *= self.bend[:, None]
+            self.metal_glossy = {i: (lo * self.bend[i], hi * self.bend[i]) for i, (lo, hi) in self.metal_glossy.items()}
             weight = weight * self.bend[:, None]
         self.albedo = np.array([m.base_color for m in materials], np.float32).reshape(-1, 3) * weight
         self.mean_albedo = np.array([m.mean_albedo for m in materials], np.float32).reshape(-1, 3) * weight
         if not self.reflect:
             self.glossy, self.albedo, self.mean_albedo = (np.zeros_like(a) for a in (self.glossy, self.albedo,
                                                                                        self.mean_albedo))
+            self.metal_glossy = {}
         self.emission = np.array([m.emission for m in materials], np.float32).reshape(-1, 3)
         self.textured = [i for i, m in enumerate(materials) if m.texture is not None]
         # Materials whose emission varies over the surface: hits read it at their UV.
@@ -176,11 +181,33 @@ class SurfaceTable:
         their brdf carries for a normal map's bend."""
         return self.bend[np.take(self.material_index, prim)]
 
-    def glossy_brdf(self, prim: np.ndarray) -> np.ndarray:
+    def glossy_brdf(self, prim: np.ndarray, u: np.ndarray | None = None, v: np.ndarray | None = None) -> np.ndarray:
         """(n, 3) float32 the part of the hits' brdf (prim (n,) >= 0) that stands for their glossy
         lobes (`set_materials`): what a ray seeing the surface from one direction should not
-        take as lamp light reflected towards it (a lobe shows a lamp only in its highlight)."""
-        return self.glossy[np.take(self.material_index, prim)] * _INV_PI
+        take as lamp light reflected towards it (a lobe shows a lamp only in its highlight).
+        With the hits' barycentrics u, v, a Metallic texture's texel (`_metal_glossy`)."""
+        material = np.take(self.material_index, prim)
+        out = self.glossy[material] * _INV_PI
+        if u is not None and v is not None:
+            for m in self.metal_glossy:
+                sel = np.flatnonzero(material == m)
+                if sel.size:
+                    out[sel] = self._texel_glossy(m, prim[sel], u[sel], v[sel]) * _INV_PI
+        return out
+
+    def _texel_glossy(self, m: int, prim: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+        """(n, 3) float32 the glossy albedo of material m's hits (prim, u, v) at their texels of its
+        Metallic texture (the mean where a hit has no UVs)."""
+        out = np.tile(self.glossy[m], (prim.size, 1))
+        uv, known = self._hit_uvs(prim, u, v)
+        if known.any():
+            out[known] = self._metal_at(m, uv[known])
+        return out
+
+    def _metal_at(self, m: int, uv: np.ndarray) -> np.ndarray:
+        """(n, 3) float32 material m's glossy albedo at its Metallic texture's texels uv (n, 2)."""
+        lo, hi = self.metal_glossy[m]
+        return lo + sample_texture(self.materials[m].metallic_map[..., None], uv) * (hi - lo)
 
     def emission_of(self, prim: np.ndarray, u: np.ndarray | None = None, v: np.ndarray | None = None) -> np.ndarray:
         """(n, 3) float32 emission of triangles prim at barycentrics (u, v); 0 for -1. Without
@@ -251,9 +278,29 @@ class SurfaceTable:
             uv, known = self._hit_uvs(prim[sel], u[sel], v[sel])
             col = np.tile((self.mean_albedo[m] + self.glossy[m]) * _INV_PI, (sel.size, 1))
             col[known] = (self.albedo[m] * _INV_PI) * sample_texture(self.materials[m].texture, uv[known])
-            col[known] += self.glossy[m] * _INV_PI
+            col[known] += (self._metal_at(m, uv[known]) if m in self.metal_glossy else self.glossy[m]) * _INV_PI
             brdf[sel] = col
         return brdf
+
+
+def _metal_glossy(material: Material, filter_glossy: float) -> tuple[np.ndarray, np.ndarray] | None:
+    """((3,), (3,)) float32 the hit glossy albedo (`specular.hemispherical_glossy_albedo`, plus
+    its sheen's) of a material with a Metallic texture at a dielectric texel and at a metal
+    texel, or None for any other material. Why: its lobes' weights are linear in the texel's
+    metallic (dielectric (1 - metallic) W, metal metallic), and the mean metallic gave a floor
+    half of metal half its glossy light at every hit: seven times a dielectric texel's, a half
+    of a metal texel's (128x96 against Cycles 1024 spp: Diffuse Indirect +26%)."""
+    layer = material.specular
+    if getattr(material, "metallic_map", None) is None or not isinstance(layer, SpecularLayer):
+        return None
+    mean = float(layer.metallic)
+    if mean >= 1.0:
+        return None  # every texel metal: the mean is each texel's
+    dielectric = replace(layer, metallic=0.0, weight=float(layer.weight) / (1.0 - mean))
+    metal = replace(layer, metallic=1.0, weight=0.0)
+    extra = sheen.hit_albedo(material)
+    return ((hemispherical_glossy_albedo(dielectric, filter_glossy) + extra).astype(np.float32),
+            (hemispherical_glossy_albedo(metal, filter_glossy) + extra).astype(np.float32))
 
 
 def _pack_corners(per_vertex: np.ndarray, triangles: np.ndarray) -> np.ndarray:

@@ -197,14 +197,19 @@ def test_metallic_from_a_texture_is_followed_per_pixel(tmp_path, variant):
     the Metallic read as its socket's value, 0: the metal squares were diffuse grey. Measured
     here (64x48): Diffuse Color 0.633 -> 0.008, Diffuse Direct 0.430 -> 0.048, Combined 0.319 ->
     0.050 (0.207 with the diffuse per texel but every pixel's lobes at the mean metallic); with
-    a wall behind, 128x96, default settings: 0.927 -> 0.011, 0.692 -> 0.059, 0.253 -> 0.112."""
+    a wall behind, 128x96, default settings: 0.927 -> 0.011, 0.692 -> 0.059, 0.253 -> 0.112.
+    Ray hits take their texel's glossy albedo too (`shading._metal_glossy`), and a hit on metal
+    reflects the lamps only in its highlight (`pixel_gather._shiny_hits`): before, the mean
+    metallic gave every hit of the floor half a metal's glossy light, spread as diffuse light.
+    Measured here, checker / image: Diffuse Indirect 0.324 / 0.405 -> 0.240 / 0.222, Combined
+    0.045 / 0.059 -> 0.035 / 0.038."""
     ours, cycles = both(tmp_path, build(tmp_path, variant))
     geometry = layer(cycles, "Depth", "Z")[..., 0] < 1e9
     errors = {name: rel_l1(layer(ours, name)[geometry], layer(cycles, name)[geometry])
-              for name in ("Diffuse Color", "Diffuse Direct", "Combined")}
+              for name in ("Diffuse Color", "Diffuse Direct", "Diffuse Indirect", "Combined")}
     print(errors)
     assert errors["Diffuse Color"] < 0.05 and errors["Diffuse Direct"] < 0.1, errors
-    assert errors["Combined"] < 0.1, errors
+    assert errors["Diffuse Indirect"] < 0.3 and errors["Combined"] < 0.045, errors
 
 
 def test_metal_reflects_the_sun_in_metal(tmp_path):

@@ -53,6 +53,37 @@ def test_probe_hits_read_texture_base_colour_emission_and_misses():
     assert up.backface[0]
 
 
+def test_a_metallic_textures_hits_take_their_texels_glossy_albedo():
+    """A Metallic texture (left texel metal, right dielectric): a hit's glossy albedo and brdf are
+    its texel's (`shading._metal_glossy`: the lobes' weights are linear in the metallic), not the
+    material's mean for every hit; the mean texel gives the mean. Before, every hit of the floor
+    took half a metal's glossy albedo."""
+    from hybridgi_core import specular as sp
+
+    metal_map = np.array([[1.0, 0.0]], np.float32)
+    base = np.full((1, 2, 3), 0.8, np.float32) * (1.0 - metal_map)[..., None]  # the diffuse base per texel
+    layer = sp.SpecularLayer(roughness=0.4, metallic=0.5, weight=0.5, metal_color=np.float32([0.9, 0.6, 0.3]))
+    mats = [Material("metal", np.ones(3, np.float32), base, specular=layer, metallic_map=metal_map), Material()]
+    table = SurfaceTable(floor_quads(), mats)
+    lo = sp.hemispherical_glossy_albedo(sp.SpecularLayer(roughness=0.4, metallic=0.0, weight=1.0))
+    hi = sp.hemispherical_glossy_albedo(sp.SpecularLayer(roughness=0.4, metallic=1.0, weight=0.0,
+                                                         metal_color=np.float32([0.9, 0.6, 0.3])))
+    np.testing.assert_allclose(0.5 * (lo + hi), table.glossy[0], rtol=1e-5)  # linear in the metallic
+    assert hi[0] > 5 * lo[0]
+    # Hits at the centres of the metal and the dielectric texel (triangle (0, 1, 2): u weighs vertex 1).
+    prim = np.array([0, 0], np.int32)
+    u = np.array([0.125, 0.875], np.float32)
+    v = np.zeros(2, np.float32)
+    down = np.tile([[0, 0, -1.0]], (2, 1)).astype(np.float32)
+    texel = np.array([0.75, 0.25], np.float32)[:, None]  # the metal's share of each hit's bilinear taps
+    glossy = lo + texel * (hi - lo)
+    np.testing.assert_allclose(table.glossy_brdf(prim, u, v), glossy / np.pi, rtol=1e-5)
+    np.testing.assert_allclose(table.glossy_brdf(prim), np.tile(table.glossy[0], (2, 1)) / np.pi, rtol=1e-6)
+    hits = table.probe_hits(prim, u, v, down)
+    diffuse = table.albedo[0] * (0.8 * (1.0 - texel))
+    np.testing.assert_allclose(hits.brdf, (diffuse + glossy) / np.pi, rtol=1e-5)
+
+
 def test_hits_read_an_emission_texture_at_their_uv():
     glow = np.zeros((1, 2, 3), np.float32)
     glow[0, 0] = (8.0, 0.0, 0.0)  # u < 0.5 red
