@@ -50,21 +50,16 @@ from .bump import has_normal_maps, irradiance_kernel, shadowing_term, smooth_nor
 from .camera import camera_position
 from .environment import LUMA as ENV_LUMA
 from .evaluate import HitLookup, corner_weights
-from .glossy import glossy_direct
 from .levels import hit_lookup
 from .lights import HIT_LAMP_BUDGET, _onb, concentric_disk, direct_irradiance, stratified_uv
 from .rows import mean_over_rays
 from .sampling import frame_rng
 from .screen_light import ScreenLight
 from .settings import AO_ONLY, MULTI_BOUNCE
+from .shiny import highlights, shiny_hits, shiny_share
 from .sky_ratio import open_share, open_sky_estimate, sky_irradiance
 from .tiled_nets import tiled_uv
 
-#: A reflection ray's hit is lit by its glossy lobes' own lamp highlight (`_add_shiny_highlights`)
-#: where the glossy share of its brdf's luminance exceeds this (metals), with this many lamp
-#: samples per hit and lamp.
-SHINY_SHARE = 0.5
-SHINY_SAMPLES = 2
 #: Rec.709 luminance weights (the colour channels' filter guide), as the float32 arrays they weigh.
 LUMA = ENV_LUMA.astype(np.float32)
 
@@ -738,7 +733,7 @@ def hit_radiance(system, lookup: HitLookup | None, origins: np.ndarray, dirs: np
             e_in = np.zeros_like(e_in)
             _add_shiny_highlights(system, lamp, glossy_part, brdf, prim, position, surf.normal, hit_dirs, rng)
         else:
-            shiny = _shiny_hits(scene.surfaces, prim, hit_u, hit_v, brdf)
+            shiny = shiny_hits(scene.surfaces, prim, hit_u, hit_v, brdf)
             if shiny is not None:
                 # Metals show a lamp only in their highlight, as a reflection ray's hit does.
                 lamp_rows, glossy_part = shiny
@@ -771,53 +766,22 @@ def hit_radiance(system, lookup: HitLookup | None, origins: np.ndarray, dirs: np
     return radiance
 
 
-def _shiny_hits(surfaces, prim: np.ndarray, u: np.ndarray, v: np.ndarray,
-                brdf: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
-    """(indices, their (k, 3) glossy brdf (`SurfaceTable.glossy_brdf`)) of the hits (prim (m,)
-    >= 0 at barycentrics u, v, their brdf (m, 3)) whose glossy share of the brdf's luminance
-    exceeds SHINY_SHARE (metals), or None where there are none. Why: a final-gather ray that
-    meets a metal sees a lamp only where the metal's lobe reflects it towards the ray (what
-    Cycles' light sampling at that hit finds), not its lamp light spread evenly as the cache's
-    diffuse stand-in spreads it. Only materials that can be shiny are looked at per hit (a
-    texture's darkest diffuse counted as none, a Metallic texture's metal texel): a scene
-    without metals pays nothing."""
-    glossy_lum = surfaces.glossy @ LUMA
-    diffuse_lum = surfaces.albedo @ LUMA
-    if surfaces.textured:
-        diffuse_lum = diffuse_lum.copy()
-        diffuse_lum[surfaces.textured] = 0.0
-    for m, (_lo, hi) in surfaces.metal_glossy.items():
-        glossy_lum[m] = max(float(glossy_lum[m]), float(hi @ LUMA))
-    maybe = glossy_lum > np.float32(SHINY_SHARE) * (glossy_lum + diffuse_lum)
-    if not maybe.any():
-        return None
-    cand = np.flatnonzero(np.take(maybe, np.take(surfaces.material_index, prim)))
-    if cand.size == 0:
-        return None
-    glossy_part = surfaces.glossy_brdf(np.take(prim, cand), np.take(u, cand), np.take(v, cand))
-    keep = glossy_part @ LUMA > np.float32(SHINY_SHARE) * (np.take(brdf, cand, axis=0) @ LUMA)
-    return (cand[keep], glossy_part[keep]) if keep.any() else None
-
-
 def _add_shiny_highlights(system, lamp: np.ndarray, glossy_part: np.ndarray, brdf: np.ndarray, prim: np.ndarray,
                           position: np.ndarray, normal: np.ndarray, dirs: np.ndarray, rng) -> None:
     """lamp (m, 3) += the lamps' light that the glossy lobes of the shiny hits (those whose glossy
     share is most of their brdf: metals) reflect back along the rays `dirs` (m, 3), with its
-    shadow rays (`glossy.glossy_direct`, SHINY_SAMPLES per lamp). Why: a reflection ray that meets
+    shadow rays (`shiny.highlights`). Why: a reflection ray that meets
     a metal sees the lamps in its highlight, not spread over it; without this its lamp light was
     dropped whole (a rough metal floor reflecting a rough metal wall under a sun: Glossy Indirect
     0.100 against Cycles' 0.291). Dielectric coats keep the cache's light only: their highlight
     is a few percent of what they reflect."""
-    shiny = np.flatnonzero(glossy_part @ LUMA > np.float32(SHINY_SHARE) * (brdf @ LUMA))
+    shiny = np.flatnonzero(shiny_share(glossy_part, brdf))
     if shiny.size == 0 or not system.scene.lights:
         return
-    rows = np.take(system.updater.scene.surfaces.material_index, np.take(prim, shiny)).astype(np.int64)
-    to_origin = -np.take(dirs, shiny, axis=0)
-    n = np.take(normal, shiny, axis=0)
-    n = np.where((np.einsum("ij,ij->i", n, to_origin) < 0)[:, None], -n, n)  # the side the ray came from
-    lamp[shiny] += glossy_direct(system.scene.lights, np.take(position, shiny, axis=0), n, to_origin, rows,
-                                 system.glossy_materials, system.tracer, rng, SHINY_SAMPLES,
-                                 float(system.tracer.epsilon))
+    lamp[shiny] += highlights(system.scene.lights, system.glossy_materials, system.tracer,
+                              system.updater.scene.surfaces.material_index, np.take(prim, shiny),
+                              np.take(position, shiny, axis=0), np.take(normal, shiny, axis=0),
+                              np.take(dirs, shiny, axis=0), rng)
 
 
 def _near_bounce(system, lookup, position: np.ndarray, normal: np.ndarray, rng: np.random.Generator,
