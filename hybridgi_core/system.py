@@ -18,7 +18,7 @@ from .cutout import Cutouts, glass_transmission
 from .evaluate import Gathered, corner_visibility, gather
 from .glossy import GlossyMaterials, glossy_direct
 from .levels import CacheLevels, build_levels
-from .lights import RATIO_MIN_SAMPLES, _pick_lamps, direct_irradiance
+from .lights import GLOSSY_LAMP_BUDGET, RATIO_MIN_SAMPLES, _pick_lamps, direct_irradiance
 from .lod import decimate
 from .open_space import open_to
 from .outside import sky_above_horizon
@@ -53,11 +53,6 @@ MAX_WARMUP_ITERATIONS = 16
 #: `lights.CHUNK_RAYS`); 64k: Cornell 640x360's "direct" step 500-527 -> 435-459 ms (3 interleaved
 #: runs each, idle host).
 DIRECT_BLOCK_RAYS = 1 << 16
-#: With more lamps than this, the glossy lobes' lamp light draws this many per receiver by their
-#: rough light (`lights._pick_lamps`: systematic draws weighted by one over their probability,
-#: unbiased), as Cycles' light tree picks lamps, instead of sampling every lamp at every pixel:
-#: 120 point lamps over a monkey (320x180) took 7.8 s of glossy lamp samples.
-GLOSSY_LAMP_BUDGET = 8
 #: Frame offset between the lamps' sample streams of the picked glossy light.
 GLOSSY_LAMP_STRIDE = 1 << 12
 #: G-buffer points per block of `GISystem.corner_visibility` (8 occlusion rays each).
@@ -483,7 +478,7 @@ class GISystem:
         return self._glossy_materials
 
     def _glossy_picked(self, points, normals, to_eye, rows, frame: int, samples: int, lights: list,
-                       variance: np.ndarray | None) -> np.ndarray:
+                       variance: np.ndarray | None, allowed: np.ndarray | None = None) -> np.ndarray:
         """`glossy` of many lamps: GLOSSY_LAMP_BUDGET draws of them per receiver (`_pick_lamps`),
         each drawn lamp's light (its own sample stream) times its weight; the variance output
         scales by the squared weights (the draws' own spread is not counted)."""
@@ -491,7 +486,7 @@ class GISystem:
         nrm = np.asarray(normals, np.float32).reshape(-1, 3)
         eye = np.asarray(to_eye, np.float32).reshape(-1, 3)
         rows = np.asarray(rows).reshape(-1)
-        weights = _pick_lamps(lights, pts, nrm, GLOSSY_LAMP_BUDGET, frame_rng(self.settings.seed + 5, frame))
+        weights = _pick_lamps(lights, pts, nrm, GLOSSY_LAMP_BUDGET, frame_rng(self.settings.seed + 5, frame), allowed)
         out = np.zeros((pts.shape[0], 3), np.float32)
         if variance is not None:
             variance[:] = 0.0
@@ -509,11 +504,13 @@ class GISystem:
 
     def glossy(self, points: np.ndarray, normals: np.ndarray, to_eye: np.ndarray, rows: np.ndarray, frame: int,
                samples: int | None = None, lights: list | None = None,
-               variance: np.ndarray | None = None) -> np.ndarray:
+               variance: np.ndarray | None = None, allowed: np.ndarray | None = None) -> np.ndarray:
         """Lamp radiance (n, 3) the glossy lobes of materials `rows` reflect towards the eye, with
         shadow rays (`glossy.glossy_direct`; its own samples, seeded apart from `direct`'s), of
         the scene's lamps or of `lights`, a subset of them. variance : an optional (n,) output,
-        the estimate's luminance variance (`glossy_direct`'s)."""
+        the estimate's luminance variance (`glossy_direct`'s). allowed : optional (n, L) bool,
+        with more than GLOSSY_LAMP_BUDGET lamps, the lamps each receiver's light is of (its
+        draws are among them, `_glossy_picked`)."""
         rng = frame_rng(self.settings.seed + 2, frame)
         samples = samples or self.settings.light_samples
         eps = float(self.tracer.epsilon)
@@ -521,7 +518,9 @@ class GISystem:
         per_block = max(1, DIRECT_BLOCK_RAYS // samples)
         lights, mats = self.scene.lights if lights is None else lights, self.glossy_materials
         if len(lights) > GLOSSY_LAMP_BUDGET and n:
-            return self._glossy_picked(points, normals, to_eye, rows, frame, samples, lights, variance)
+            return self._glossy_picked(points, normals, to_eye, rows, frame, samples, lights, variance, allowed)
+        if allowed is not None:
+            raise ValueError("glossy: allowed lamps per receiver need more than GLOSSY_LAMP_BUDGET lamps")
         if n <= per_block or not lights:
             return glossy_direct(lights, points, normals, to_eye, rows, mats, self.tracer, rng, samples, eps,
                                  variance=variance)
