@@ -218,30 +218,12 @@ def test_many_lamps_are_drawn_per_pixel_and_their_glossy_light_stays_unbiased(mo
     are taken (each frame: the budget's draws per receiver, not the 24 lamps)."""
     from hybridgi_core import system as system_module
     from hybridgi_core.settings import CacheSettings
-    from hybridgi_core.snapshot import geometry_from_arrays, make_snapshot
     from hybridgi_core.system import GISystem
 
-    rng = np.random.default_rng(4)
-    lamps = []
-    for i in range(24):
-        matrix = np.eye(4)
-        matrix[:3, 3] = (rng.uniform(-3, 3), rng.uniform(-3, 3), rng.uniform(0.5, 2.0))
-        lamps.append(Light(kind="POINT", color=np.ones(3, np.float32), power=float(5 + 10 * (i % 4)), matrix=matrix))
-    floor = geometry_from_arrays([[-5, -5, 0], [5, -5, 0], [5, 5, 0], [-5, 5, 0]], [[0, 1, 2], [0, 2, 3]])
-    snap = make_snapshot(floor, [Material(specular=sp.SpecularLayer(roughness=0.5))], lamps)
-    pts = np.column_stack([rng.uniform(-2, 2, 64), rng.uniform(-2, 2, 64), np.zeros(64)]).astype(np.float32)
-    up = np.tile([[0, 0, 1.0]], (64, 1)).astype(np.float32)
-    eye = np.tile([[0.0, -0.6, 0.8]], (64, 1)).astype(np.float32)
-    rows = np.zeros(64, np.int32)
+    snap, lamps, (pts, up, eye, rows), _ = _floor_under_point_lamps(24, 64, seed=4)
     calls = []
-    real = glossy.glossy_direct
-
-    def counted(lights, points, *args, **kwargs):
-        calls.append(len(lights) * np.asarray(points).reshape(-1, 3).shape[0])
-        return real(lights, points, *args, **kwargs)
-
     with GISystem(snap, CacheSettings(resolution=4, rays_per_cell=16)) as gi:
-        monkeypatch.setattr(system_module, "glossy_direct", counted)
+        monkeypatch.setattr(system_module, "glossy_direct", _counting(calls))
         # 8 lamps a call (the budget): every lamp sampled at every receiver.
         every = np.mean([sum(gi.glossy(pts, up, eye, rows, f, samples=16, lights=lamps[k:k + 8]) for k in (0, 8, 16))
                          for f in range(8)], axis=0)
@@ -264,37 +246,19 @@ def test_many_lamps_each_receiver_skipping_its_own_are_drawn_in_one_pass(monkeyp
     from hybridgi_core import reflection
     from hybridgi_core import system as system_module
     from hybridgi_core.settings import CacheSettings
-    from hybridgi_core.snapshot import geometry_from_arrays, make_snapshot
     from hybridgi_core.system import GISystem
 
-    rng = np.random.default_rng(6)
-    lamps = []
-    for i in range(16):
-        matrix = np.eye(4)
-        matrix[:3, 3] = (rng.uniform(-3, 3), rng.uniform(-3, 3), rng.uniform(0.5, 2.0))
-        lamps.append(Light(kind="POINT", color=np.ones(3, np.float32), power=float(5 + 10 * (i % 4)), matrix=matrix))
-    floor = geometry_from_arrays([[-5, -5, 0], [5, -5, 0], [5, 5, 0], [-5, 5, 0]], [[0, 1, 2], [0, 2, 3]])
-    snap = make_snapshot(floor, [Material(specular=sp.SpecularLayer(roughness=0.5))], lamps)
     n = 48
-    pts = np.column_stack([rng.uniform(-2, 2, n), rng.uniform(-2, 2, n), np.zeros(n)]).astype(np.float32)
-    up = np.tile([[0, 0, 1.0]], (n, 1)).astype(np.float32)
-    eye = np.tile([[0.0, -0.6, 0.8]], (n, 1)).astype(np.float32)
-    rows = np.zeros(n, np.int32)
+    snap, lamps, (pts, up, eye, rows), rng = _floor_under_point_lamps(16, n, seed=6)
     skip = rng.random((n, 16)) < 0.5  # a pattern of its own at nearly every receiver
     skip[0] = True  # keeps none
     calls = []
-    real = glossy.glossy_direct
-
-    def counted(lights, points, *args, **kwargs):
-        calls.append(len(lights) * np.asarray(points).reshape(-1, 3).shape[0])
-        return real(lights, points, *args, **kwargs)
-
     with GISystem(snap, CacheSettings(resolution=4, rays_per_cell=16)) as gi:
         # Each lamp alone at every receiver, kept where the receiver keeps it: the truth.
         each = np.stack([np.mean([gi.glossy(pts, up, eye, rows, f, samples=16, lights=[lt]) for f in range(4)], axis=0)
                          for lt in lamps], axis=1)  # (n, L, 3)
         kept = (each * (~skip)[:, :, None]).sum(axis=1)
-        monkeypatch.setattr(system_module, "glossy_direct", counted)
+        monkeypatch.setattr(system_module, "glossy_direct", _counting(calls))
         picked = np.mean([reflection.lamp_glossy_without(gi, pts, up, eye, rows, f, 16, skip) for f in range(64)],
                          axis=0)
     assert len(calls) <= 64 * 16  # one picked pass a frame: a call per lamp at most
@@ -302,3 +266,33 @@ def test_many_lamps_each_receiver_skipping_its_own_are_drawn_in_one_pass(monkeyp
     assert (picked[0] == 0).all() and kept[1:].sum(axis=1).min() > 0
     np.testing.assert_allclose(picked.sum(axis=1).mean(), kept.sum(axis=1).mean(), rtol=0.04)
     np.testing.assert_allclose(picked[1:].sum(axis=1), kept[1:].sum(axis=1), rtol=0.3)
+
+
+def _floor_under_point_lamps(count: int, n: int, seed: int):
+    """(snapshot, lamps, (points, normals, to_eye, rows) of n receivers on the floor, the rng
+    drawn from): a floor of a rough dielectric under `count` point lamps of four powers."""
+    from hybridgi_core.snapshot import geometry_from_arrays, make_snapshot
+
+    rng = np.random.default_rng(seed)
+    lamps = []
+    for i in range(count):
+        matrix = np.eye(4)
+        matrix[:3, 3] = (rng.uniform(-3, 3), rng.uniform(-3, 3), rng.uniform(0.5, 2.0))
+        lamps.append(Light(kind="POINT", color=np.ones(3, np.float32), power=float(5 + 10 * (i % 4)), matrix=matrix))
+    floor = geometry_from_arrays([[-5, -5, 0], [5, -5, 0], [5, 5, 0], [-5, 5, 0]], [[0, 1, 2], [0, 2, 3]])
+    snap = make_snapshot(floor, [Material(specular=sp.SpecularLayer(roughness=0.5))], lamps)
+    pts = np.column_stack([rng.uniform(-2, 2, n), rng.uniform(-2, 2, n), np.zeros(n)]).astype(np.float32)
+    receivers = (pts, np.tile([[0, 0, 1.0]], (n, 1)).astype(np.float32),
+                 np.tile([[0.0, -0.6, 0.8]], (n, 1)).astype(np.float32), np.zeros(n, np.int32))
+    return snap, lamps, receivers, rng
+
+
+def _counting(calls: list):
+    """`glossy.glossy_direct` that appends each call's lamps x receivers to `calls`."""
+    real = glossy.glossy_direct
+
+    def counted(lights, points, *args, **kwargs):
+        calls.append(len(lights) * np.asarray(points).reshape(-1, 3).shape[0])
+        return real(lights, points, *args, **kwargs)
+
+    return counted
