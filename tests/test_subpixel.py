@@ -284,6 +284,45 @@ def test_a_subframe_traces_shadow_rays_only_where_it_sees_another_surface():
 
 
 
+def test_a_subframe_of_many_lamps_traces_them_in_groups_that_sum_to_all_of_them():
+    """Over LAMP_GROUP lamps a subframe's fresh pixels take their lamps in groups (a job each on
+    the pool, lamp group g0 seeded seed_frame + g0 x LAMP_SEED_STRIDE): the groups' sum is every
+    lamp's light, where one job of every lamp ran on one core."""
+    from types import SimpleNamespace
+
+    from hybridgi_core.penumbra import LAMP_GROUP, LAMP_SEED_STRIDE
+    from hybridgi_core.raster.subpixel import CentreSample, subframe_direct
+
+    count = LAMP_GROUP + 4
+
+    class System:
+        scene = SimpleNamespace(lights=[object()] * count)
+
+        def __init__(self):
+            self.calls = []
+
+        def direct(self, points, normals, frame, samples, lights=None):
+            lights = list(range(count)) if lights is None else lights
+            self.calls.append((points.shape[0], frame, tuple(lights)))
+            return np.full((points.shape[0], 3), float(sum(j + 1 for j in lights)), np.float32)
+
+    h, w = 1, 4
+    position0 = np.array([[[0, 0, -5, 1], [1, 0, -5, 1], [2, 0, -5, 1], [0, 0, 0, 0]]], np.float32)
+    normal0 = np.tile(np.array([0, 0, 1, 0], np.float32), (h, w, 1))
+    depth0 = np.array([[[5.0], [5.0], [5.0], [1e10]]], np.float32)
+    direct0 = np.tile(np.array([1.0, 2.0, 3.0, 1.0], np.float32), (h * w, 1))
+    centre = CentreSample.from_gbuffer(direct0, position0, normal0, depth0)
+    position = position0.copy()
+    position[0, 1, 2] = -7.0  # a surface 2 m behind: fresh
+    system = System()
+    got = subframe_direct(system, centre, position, normal0.copy(), seed_frame=3, samples=4)
+    every = float(sum(range(1, count + 1)))
+    assert got[1, :3].tolist() == [every] * 3  # the groups' sum
+    assert got[0].tolist() == [1.0, 2.0, 3.0, 1.0] and not got[3].any()
+    assert sorted(system.calls) == [(1, 3, tuple(range(LAMP_GROUP))),
+                                    (1, 3 + LAMP_GROUP * LAMP_SEED_STRIDE, tuple(range(LAMP_GROUP, count)))]
+
+
 def _plane_row(w):
     """(position, normal, depth) read-backs of a 1 x w centre raster of the plane z = -5 facing
     the camera, one metre a pixel."""
