@@ -239,8 +239,8 @@ def test_many_lamps_are_drawn_per_pixel_and_their_glossy_light_stays_unbiased(mo
 def test_many_lamps_each_receiver_skipping_its_own_are_drawn_in_one_pass(monkeypatch):
     """Over GLOSSY_LAMP_BUDGET lamps, `reflection.lamp_glossy_without` draws each receiver's lamps
     among those it keeps (`_pick_lamps(allowed=)`) in one picked pass, not a picked pass per
-    pattern of skipped lamps (a room lit by 50 point lamps met ~1300 patterns: 36 of its 50 CPU
-    seconds, 320x180): the mean over frames is the light of the kept lamps alone, a receiver
+    pattern of skipped lamps (a room lit by 50 point lamps met ~1300 patterns: 36 s of CPU in a
+    47-s profiled 320x180 render): the mean over frames is the light of the kept lamps alone, a receiver
     that keeps none gets none, and the lamp samples stay within one pass's budget per frame."""
     from hybridgi_core import lights as lights_module
     from hybridgi_core import reflection
