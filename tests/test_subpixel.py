@@ -254,7 +254,7 @@ def test_a_subframe_traces_shadow_rays_only_where_it_sees_another_surface():
     """Same plane, slightly shifted point: the centre's light (its full sample count) is reused;
     a point on a surface behind (silhouette) or turned away (crease) is traced with the
     subframe's share of the samples; background stays 0."""
-    from hybridgi_core.raster.subpixel import CentreSample, subframe_direct
+    from hybridgi_core.raster.subpixel import subframe_direct
 
     class System:
         def __init__(self):
@@ -264,12 +264,7 @@ def test_a_subframe_traces_shadow_rays_only_where_it_sees_another_surface():
             self.calls.append((points.shape[0], frame, samples))
             return np.full((points.shape[0], 3), 7.0, np.float32)
 
-    h, w = 1, 4
-    position0 = np.array([[[0, 0, -5, 1], [1, 0, -5, 1], [2, 0, -5, 1], [0, 0, 0, 0]]], np.float32)
-    normal0 = np.tile(np.array([0, 0, 1, 0], np.float32), (h, w, 1))
-    depth0 = np.array([[[5.0], [5.0], [5.0], [1e10]]], np.float32)
-    direct0 = np.tile(np.array([1.0, 2.0, 3.0, 1.0], np.float32), (h * w, 1))
-    centre = CentreSample.from_gbuffer(direct0, position0, normal0, depth0)
+    centre, position0, normal0 = _three_plane_pixels_and_sky()
     position = position0.copy()
     position[0, 0, 0] += 0.01  # same plane, a sub-pixel step along it
     position[0, 1, 2] = -7.0  # a surface 2 m behind
@@ -291,7 +286,7 @@ def test_a_subframe_of_many_lamps_traces_them_in_groups_that_sum_to_all_of_them(
     from types import SimpleNamespace
 
     from hybridgi_core.penumbra import LAMP_GROUP, LAMP_SEED_STRIDE
-    from hybridgi_core.raster.subpixel import CentreSample, subframe_direct
+    from hybridgi_core.raster.subpixel import subframe_direct
 
     count = LAMP_GROUP + 4
 
@@ -306,12 +301,7 @@ def test_a_subframe_of_many_lamps_traces_them_in_groups_that_sum_to_all_of_them(
             self.calls.append((points.shape[0], frame, tuple(lights)))
             return np.full((points.shape[0], 3), float(sum(j + 1 for j in lights)), np.float32)
 
-    h, w = 1, 4
-    position0 = np.array([[[0, 0, -5, 1], [1, 0, -5, 1], [2, 0, -5, 1], [0, 0, 0, 0]]], np.float32)
-    normal0 = np.tile(np.array([0, 0, 1, 0], np.float32), (h, w, 1))
-    depth0 = np.array([[[5.0], [5.0], [5.0], [1e10]]], np.float32)
-    direct0 = np.tile(np.array([1.0, 2.0, 3.0, 1.0], np.float32), (h * w, 1))
-    centre = CentreSample.from_gbuffer(direct0, position0, normal0, depth0)
+    centre, position0, normal0 = _three_plane_pixels_and_sky()
     position = position0.copy()
     position[0, 1, 2] = -7.0  # a surface 2 m behind: fresh
     system = System()
@@ -321,6 +311,19 @@ def test_a_subframe_of_many_lamps_traces_them_in_groups_that_sum_to_all_of_them(
     assert got[0].tolist() == [1.0, 2.0, 3.0, 1.0] and not got[3].any()
     assert sorted(system.calls) == [(1, 3, tuple(range(LAMP_GROUP))),
                                     (1, 3 + LAMP_GROUP * LAMP_SEED_STRIDE, tuple(range(LAMP_GROUP, count)))]
+
+
+def _three_plane_pixels_and_sky():
+    """(CentreSample, position, normal read-backs) of a 1 x 4 centre raster: three pixels of the
+    plane z = -5 facing the camera, their direct light (1, 2, 3), and the background."""
+    from hybridgi_core.raster.subpixel import CentreSample
+
+    h, w = 1, 4
+    position0 = np.array([[[0, 0, -5, 1], [1, 0, -5, 1], [2, 0, -5, 1], [0, 0, 0, 0]]], np.float32)
+    normal0 = np.tile(np.array([0, 0, 1, 0], np.float32), (h, w, 1))
+    depth0 = np.array([[[5.0], [5.0], [5.0], [1e10]]], np.float32)
+    direct0 = np.tile(np.array([1.0, 2.0, 3.0, 1.0], np.float32), (h * w, 1))
+    return CentreSample.from_gbuffer(direct0, position0, normal0, depth0), position0, normal0
 
 
 def _plane_row(w):
