@@ -22,6 +22,7 @@ from . import sheen
 from .blocks import for_blocks
 from .bump import map_bend_factor
 from .emitters import MeshLights
+from .shiny import may_shine
 from .snapshot import Geometry, Material
 from .specular import FILTER_GLOSSY, SpecularLayer, hemispherical_glossy_albedo
 
@@ -127,6 +128,8 @@ class SurfaceTable:
             self.metal_glossy = {}
         self.emission = np.array([m.emission for m in materials], np.float32).reshape(-1, 3)
         self.textured = [i for i, m in enumerate(materials) if m.texture is not None]
+        # The materials whose hits may be shiny (metals: `shiny.shiny_hits` looks at their hits only).
+        self.may_shine = may_shine(self.glossy, self.albedo, self.textured, self.metal_glossy)
         # Materials whose emission varies over the surface: hits read it at their UV.
         self.glowing = [i for i, m in enumerate(materials) if getattr(m, "emission_texture", None) is not None]
         self.emissive = bool(self.emission.any()) or bool(self.glowing)

@@ -42,16 +42,9 @@ def shiny_hits(surfaces, prim: np.ndarray, u: np.ndarray, v: np.ndarray,
                brdf: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
     """(indices, their (k, 3) glossy brdf (`SurfaceTable.glossy_brdf`)) of the shiny hits among
     hits (prim (m,) >= 0 at barycentrics u, v, their brdf (m, 3)), or None where there are none.
-    Only materials that can be shiny are looked at per hit (a texture's darkest diffuse counted
-    as none, a Metallic texture's metal texel): a scene without metals pays nothing."""
-    glossy_lum = surfaces.glossy @ _LUMA
-    diffuse_lum = surfaces.albedo @ _LUMA
-    if surfaces.textured:
-        diffuse_lum = diffuse_lum.copy()
-        diffuse_lum[surfaces.textured] = 0.0
-    for m, (_lo, hi) in surfaces.metal_glossy.items():
-        glossy_lum[m] = max(float(glossy_lum[m]), float(hi @ _LUMA))
-    maybe = glossy_lum > np.float32(SHINY_SHARE) * (glossy_lum + diffuse_lum)
+    Only materials that can be shiny (`SurfaceTable.may_shine`) are looked at per hit: a scene
+    without metals pays one check."""
+    maybe = surfaces.may_shine
     if not maybe.any() or prim.size == 0:
         return None
     cand = np.flatnonzero(np.take(maybe, np.take(surfaces.material_index, prim)))
@@ -60,6 +53,19 @@ def shiny_hits(surfaces, prim: np.ndarray, u: np.ndarray, v: np.ndarray,
     glossy_part = surfaces.glossy_brdf(np.take(prim, cand), np.take(u, cand), np.take(v, cand))
     keep = shiny_share(glossy_part, np.take(brdf, cand, axis=0))
     return (cand[keep], glossy_part[keep]) if keep.any() else None
+
+
+def may_shine(glossy: np.ndarray, albedo: np.ndarray, textured: list[int], metal_glossy: dict) -> np.ndarray:
+    """(M,) bool the materials (hit glossy albedo (M, 3), diffuse albedo (M, 3), the textured ones'
+    indices, `shading._metal_glossy`'s ends by index) some of whose hits may be shiny: a
+    texture's darkest diffuse counted as none, a Metallic texture's metal texel as its glossy."""
+    glossy_lum = glossy @ _LUMA
+    diffuse_lum = albedo @ _LUMA
+    if textured:
+        diffuse_lum[textured] = 0.0
+    for m, (_lo, hi) in metal_glossy.items():
+        glossy_lum[m] = max(float(glossy_lum[m]), float(hi @ _LUMA))
+    return glossy_lum > np.float32(SHINY_SHARE) * (glossy_lum + diffuse_lum)
 
 
 def shiny_share(glossy_part: np.ndarray, brdf: np.ndarray) -> np.ndarray:
