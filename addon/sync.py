@@ -679,19 +679,22 @@ class _SnapshotBuilder:
         if obj.type != "MESH" or not bakes:
             # Hair tubes have no UVs to bake over, nor tangents: each material's own values.
             return [self._material(material) for material in materials], local
-        baked = {}
+        baked, bumped = {}, set()
         for s, material in enumerate(materials):
             sockets = self._bake_sockets(material)
             if sockets and (slots == s).any():
                 baked[s] = sockets
+                if any(material.node_tree.nodes[node].type in ("BUMP", "DISPLACEMENT") for node, _ in sockets
+                       if node in material.node_tree.nodes):
+                    bumped.add(s)
         indices = [self._material(material) if s not in baked
                    else self._baked_material(material, obj, local, slots, s, baked[s], dynamic, instance)
                    for s, material in enumerate(materials)]
         local = self._with_tangents(obj, local, [indices[s] for s in np.unique(slots).tolist()])
         if baked:
-            key = (obj.data.as_pointer(), tuple(sorted(baked)))
+            key = (obj.data.as_pointer(), tuple(sorted(baked)), tuple(sorted(bumped)))
             if key not in self._atlas_meshes:
-                self._atlas_meshes[key] = with_atlas(local, slots, sorted(baked))
+                self._atlas_meshes[key] = with_atlas(local, slots, sorted(baked), bumped)
             local = self._atlas_meshes[key]
         return indices, local
 
@@ -815,6 +818,7 @@ def material_from_blender(material, textures=None, baked=None, pending=False):
     textures = textures if textures is not None else _TextureCache()
     textures.baked = baked or {}
     textures.pending = pending
+    textures.queued = set(bake_sockets(material)) if pending else set()
     name = material.name
     tree = material.node_tree
     if tree is None:
@@ -1153,7 +1157,8 @@ def _displacement_bump(material, tree, textures, name):
     height = _height_map(node, node.inputs["Height"], textures, name, "Displacement height")
     if height is None:
         return None
-    return snap.BumpMap(height=height, strength=1.0, distance=_constant_value(node.inputs["Scale"], name))
+    return snap.BumpMap(height=height, strength=1.0, distance=_constant_value(node.inputs["Scale"], name),
+                        on_atlas=_baked_height(node, textures))
 
 
 def _height_map(node, socket, textures, name, what_for):
@@ -1163,11 +1168,12 @@ def _height_map(node, socket, textures, name, what_for):
     source, output = _source(socket)
     if source is None:
         return None  # a constant height bends nothing
-    vector = source.inputs.get("Vector") if source.type == "TEX_IMAGE" else None
-    direct = (source.type == "TEX_IMAGE" and source.image is not None
-              and output in ("Color", "Alpha") and (vector is None or _source(vector)[0] is None)
-              and source.projection == "FLAT" and source.extension == "REPEAT")
-    if not direct:
+    baked = textures.baked.get((node.name, socket.identifier))
+    if baked is not None:  # a procedural height: Blender's own values over the atlas (`height_bakes`)
+        return _smoothed((np.asarray(baked, np.float32)[..., :3] @ surface_mix.GRAY.astype(np.float32)))
+    if not _direct_image(source, output, alpha=True):
+        if (node.name, socket.identifier) in textures.queued:
+            return None  # its bake is under way (the viewport) or failed (`material_bake` warned)
         what = "an image through a mapping or projection" if source.type == "TEX_IMAGE" else source.bl_idname
         _note(textures, name, node, f"{what_for} from {what} (rendered with the smooth normal)")
         return None
@@ -1176,6 +1182,19 @@ def _height_map(node, socket, textures, name, what_for):
         return np.ones(tuple(source.image.size)[::-1], np.float32) if height is None else height  # no alpha: flat
     colour = textures.get(source.image, name)
     return None if colour is None else (colour @ surface_mix.GRAY.astype(np.float32)).astype(np.float32)
+
+
+def _smoothed(height: np.ndarray) -> np.ndarray:
+    """(h, w) float32 `height` under a [1 2 1] / 4 filter along both axes (edges repeated): a
+    bake's few jittered samples per texel leave ~10% noise in its texel-to-texel differences,
+    which a bump differencing half a texel apart turns into grain."""
+    h = np.asarray(height, np.float32)
+    for axis in (0, 1):
+        padded = np.concatenate([np.take(h, [0], axis=axis), h, np.take(h, [-1], axis=axis)], axis=axis)
+        n = h.shape[axis]
+        h = (np.take(padded, range(0, n), axis=axis) + 2.0 * np.take(padded, range(1, n + 1), axis=axis)
+             + np.take(padded, range(2, n + 2), axis=axis)) * np.float32(0.25)
+    return h.astype(np.float32)
 
 
 def _bump_map(node, textures, name):
@@ -1187,7 +1206,12 @@ def _bump_map(node, textures, name):
         return None
     distance = _constant_value(node.inputs["Distance"], name)
     return snap.BumpMap(height=height, strength=_constant_value(node.inputs["Strength"], name),
-                        distance=-distance if node.invert else distance)
+                        distance=-distance if node.invert else distance, on_atlas=_baked_height(node, textures))
+
+
+def _baked_height(node, textures) -> bool:
+    """Whether the Height of `node` (a Bump or Displacement node) is read from its bake."""
+    return (node.name, node.inputs["Height"].identifier) in textures.baked
 
 
 def _image_channels(socket):
@@ -1900,7 +1924,49 @@ def bake_sockets(material) -> list[tuple[str, str]]:
             continue
         if _fold(socket, 0) is None:
             out.append((node.name, socket.identifier))
+    out += height_bakes(material, [tree.nodes[n] for n in seen if n in tree.nodes])
     return out + images if out else out
+
+
+def height_bakes(material, shaders) -> list[tuple[str, str]]:
+    """[(node name, "Height" identifier)] of the bump height Blender must evaluate for
+    `material`, whose surface `shaders` were walked: a Bump node on their Normal input or the
+    Material Output's Displacement node (Bump Only or Both), fed by a procedural or an image
+    through a mapping (`_height_map` reads a plain image itself). Its bake lies on the atlas,
+    so the bump of a slot that bakes it reads the atlas UVs (`with_atlas(bumped=)`); only where
+    it is the material's one normal-bending map (a tangent-space map keeps the mesh's UVs and
+    tangents, and two heights would need both UV sets): else none, and the height is noted as
+    rendered with the smooth normal, as before."""
+    tree = material.node_tree
+    heights = {}
+    for node in shaders:
+        socket = _input(node, "Normal")
+        if socket is None or not socket.is_linked or node.type in ("MIX_SHADER", "ADD_SHADER"):
+            continue
+        source, _output = _source(socket)
+        if source is None:
+            continue
+        if source.type != "BUMP" or _source(source.inputs["Normal"])[0] is not None:
+            return []  # a normal map (under the bump or alone) reads the mesh's own UVs
+        heights[source.name] = source
+    output = tree.get_output_node(OUTPUT_TARGET)
+    socket = None if output is None else output.inputs.get("Displacement")
+    if socket is not None and socket.is_linked:
+        source, _output = _source(socket)
+        method = getattr(material, "displacement_method", None) or getattr(
+            getattr(material, "cycles", None), "displacement_method", "BUMP")
+        if source is not None and source.type == "DISPLACEMENT" and method != "DISPLACEMENT":
+            heights[source.name] = source
+    if len(heights) != 1:
+        return []
+    node = next(iter(heights.values()))
+    height = node.inputs.get("Height")
+    if height is None or not height.is_linked or getattr(node, "grouped", False) or _fold(height, 0) is not None:
+        return []
+    source, output = _source(height)
+    if source is None or _direct_image(source, output, alpha=True):
+        return []
+    return [(node.name, height.identifier)]
 
 
 #: Object Info value sets baked per mesh slot of a material that reads them (`_object_variant`).
@@ -2002,9 +2068,10 @@ def bake_job(material, node, socket, mesh, local, triangles):
                                  normals=np.ascontiguousarray(local.normals[corners], np.float32))
 
 
-def with_atlas(local, slots, baked_slots):
+def with_atlas(local, slots, baked_slots, bumped=frozenset()):
     """`_LocalMesh` whose triangles in `baked_slots` have corners of their own (appended) with
-    the atlas UVs of their bake, in the order `bake_job` lists them."""
+    the atlas UVs of their bake, in the order `bake_job` lists them. Slots in `bumped` baked
+    their bump height too (`height_bakes`): their normal-map UVs are the atlas's as well."""
     positions, normals, uvs = [local.positions], [local.normals], [local.uvs]
     # The normal and bump maps keep reading the mesh's own UVs (their tangents follow those).
     own_uvs = local.uvs if local.normal_uvs is None else local.normal_uvs
@@ -2019,8 +2086,9 @@ def with_atlas(local, slots, baked_slots):
         normals.append(local.normals[corners])
         if tangents is not None:
             tangents.append(local.tangents[corners])
-        normal_uvs.append(own_uvs[corners])
-        uvs.append(material_bake.atlas_uvs(len(sel), material_bake.bake_size(len(sel))).reshape(-1, 2))
+        atlas = material_bake.atlas_uvs(len(sel), material_bake.bake_size(len(sel))).reshape(-1, 2)
+        normal_uvs.append(atlas if s in bumped else own_uvs[corners])
+        uvs.append(atlas)
         triangles[sel] = start + np.arange(corners.size, dtype=np.int32).reshape(-1, 3)
         start += corners.size
     return _LocalMesh(positions=np.concatenate(positions), normals=np.concatenate(normals),
@@ -2051,6 +2119,7 @@ class _TextureCache:
         self._images = {}
         self.baked = {}  # (node name, input identifier) -> baked texture of the material being read
         self.pending = False
+        self.queued = set()  # (node name, input identifier) of the material's bakes, when pending
         self.glossy = set()  # materials with glossy lobes
         self.approximated: dict[str, set[str]] = {}  # material -> what of its nodes is approximated
 

@@ -149,11 +149,15 @@ class BumpMap:
         luminance, or its alpha), row 0 at v = 0
     strength : the node's Strength (at least 0, as Cycles clamps it)
     distance : the node's Distance in metres, negated when the node inverts
+    on_atlas : the height is Blender's bake of a procedural over the material's atlas (its UVs
+        are the `Geometry.normal_uvs` of its triangles): its differences step half a texel, not
+        the pixel's footprint, which would cross into the atlas's next triangle
     """
 
     height: np.ndarray
     strength: float = 1.0
     distance: float = 1.0
+    on_atlas: bool = False
 
     def __post_init__(self) -> None:
         height = np.asarray(self.height, np.float32)
@@ -162,7 +166,8 @@ class BumpMap:
         self.distance = float(self.distance) if np.isfinite(self.distance) else 0.0
 
     def key(self) -> tuple:
-        return self.height.shape, float(self.height.sum(dtype=np.float64)), self.strength, self.distance
+        return (self.height.shape, float(self.height.sum(dtype=np.float64)), self.strength, self.distance,
+                bool(self.on_atlas))
 
 
 @dataclass

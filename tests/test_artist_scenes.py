@@ -65,6 +65,24 @@ SCENE = "import math, os, sys, bpy\nfrom mathutils import Vector\n" + STAGE_HELP
         tree.links.new(backdrop.outputs[0], mix.inputs[2])
         tree.links.new(mix.outputs[0], tree.nodes["World Output"].inputs["Surface"])
         bpy.data.objects.remove(sun)
+    if variant == "displacement_wave":
+        # A procedural height (Wave bands) into the Material Output's Displacement (Bump Only).
+        floor = bpy.data.objects["floor"].active_material.node_tree
+        wave = floor.nodes.new("ShaderNodeTexWave")
+        wave.inputs["Scale"].default_value = 3.0
+        displace = floor.nodes.new("ShaderNodeDisplacement")
+        displace.inputs["Scale"].default_value = 0.3
+        floor.links.new(wave.outputs["Fac"], displace.inputs["Height"])
+        floor.links.new(displace.outputs["Displacement"], floor.nodes["Material Output"].inputs["Displacement"])
+    if variant == "bump_noise":
+        # The common node set-up: a Noise texture's Fac into a Bump node on the BSDF's Normal.
+        floor = bpy.data.objects["floor"].active_material.node_tree
+        noise = floor.nodes.new("ShaderNodeTexNoise")
+        noise.inputs["Scale"].default_value = 2.0
+        bump = floor.nodes.new("ShaderNodeBump")
+        bump.inputs["Distance"].default_value = 1.0
+        floor.links.new(noise.outputs["Fac"], bump.inputs["Height"])
+        floor.links.new(bump.outputs["Normal"], floor.nodes["Principled BSDF"].inputs["Normal"])
     if variant == "metallic_checker":
         # A metallic mask from a texture (PBR assets' Metallic map): half the floor is metal.
         floor = bpy.data.objects["floor"].active_material.node_tree
@@ -285,15 +303,20 @@ def test_surfaces_shadow_rays_pass_let_the_sun_through(tmp_path, variant):
     assert errors["Diffuse Direct"] < 0.1 and errors["Combined"] < 0.1, errors
 
 
-def test_displacement_renders_as_its_bump(tmp_path):
-    """A height image into a Displacement node on the Material Output: Cycles' default method,
-    Bump Only, bends the shading normal as a Bump node of Distance = Scale. Before, the output's
-    Displacement was ignored without a word; a procedural height is now named in the
-    approximations warning. Measured here (64x48): Diffuse Direct 0.064 -> 0.020, Combined
-    0.064 -> 0.021; 128x96, default settings, a wall behind: 0.102 -> 0.015, 0.087 -> 0.015."""
-    ours, cycles = both(tmp_path, build(tmp_path, "displacement_image"))
+@pytest.mark.parametrize("variant, limit", [("displacement_image", 0.05), ("displacement_wave", 0.07),
+                                            ("bump_noise", 0.024)])
+def test_displacement_renders_as_its_bump(tmp_path, variant, limit):
+    """A height into a Displacement node on the Material Output (Cycles' default method, Bump
+    Only, bends the shading normal as a Bump node of Distance = Scale), or into a Bump node on
+    the BSDF's Normal. An image's height is read as it is; a procedural one (Wave bands, Noise)
+    is baked by Blender over the material's atlas and bumped there (`sync.height_bakes`).
+    Measured here (64x48; Diffuse Direct, Combined): the image 0.064 / 0.064 (ignored) -> 0.020
+    / 0.019; the Wave 0.144 / 0.146 (the smooth normal) -> 0.040 / 0.036; the Noise bump 0.029 /
+    0.036 -> 0.016 / 0.018. At 128x96 against Cycles 64 spp + OIDN, default settings, a wall
+    behind, the Wave: Combined 0.199 -> 0.036."""
+    ours, cycles = both(tmp_path, build(tmp_path, variant))
     geometry = layer(cycles, "Depth", "Z")[..., 0] < 1e9
     errors = {name: rel_l1(layer(ours, name)[geometry], layer(cycles, name)[geometry])
               for name in ("Diffuse Direct", "Combined")}
     print(errors)
-    assert errors["Diffuse Direct"] < 0.05 and errors["Combined"] < 0.05, errors
+    assert errors["Diffuse Direct"] < limit and errors["Combined"] < limit, errors

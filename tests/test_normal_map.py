@@ -281,14 +281,23 @@ def test_sync_reads_normal_map_tangents_and_warns_once_for_bump(bpy_module, empt
     mapped = _normal_mapped(bpy, "mapped", image, strength=0.7)
     _plane(bpy, empty_scene, "turned", Matrix.Rotation(math.radians(90), 4, "Z"), mapped)
     _plane(bpy, empty_scene, "mirrored", Matrix.Diagonal((-2.0, 1.0, 1.0, 1.0)), mapped)
-    # Unsupported normal inputs: a procedural Bump height, an object-space map. Both keep the
-    # smooth normal, with one warning.
+    # A procedural Bump height: Blender bakes it over the material's atlas, which its bump then
+    # reads (`sync.height_bakes`).
     bumpy = _normal_mapped(bpy, "bumpy", image)
     tree = bumpy.node_tree
     bump = tree.nodes.new("ShaderNodeBump")
     tree.links.new(tree.nodes.new("ShaderNodeTexNoise").outputs["Fac"], bump.inputs["Height"])
     tree.links.new(bump.outputs["Normal"], tree.nodes["Principled BSDF"].inputs["Normal"])
     _plane(bpy, empty_scene, "bumped", Matrix.Translation((0, 0, -2)), bumpy)
+    # Unsupported normal inputs: a procedural Bump height over a normal map (the map keeps the
+    # mesh's UVs: no bake), an object-space map. They keep the smooth normal, with one warning.
+    over_map = _normal_mapped(bpy, "over_map", image)
+    tree = over_map.node_tree
+    bump = tree.nodes.new("ShaderNodeBump")
+    tree.links.new(tree.nodes.new("ShaderNodeTexNoise").outputs["Fac"], bump.inputs["Height"])
+    tree.links.new(tree.nodes["Normal Map"].outputs["Normal"], bump.inputs["Normal"])
+    tree.links.new(bump.outputs["Normal"], tree.nodes["Principled BSDF"].inputs["Normal"])
+    _plane(bpy, empty_scene, "over_map", Matrix.Translation((0, 0, -8)), over_map)
     _plane(bpy, empty_scene, "object_space", Matrix.Translation((0, 0, -4)),
            _normal_mapped(bpy, "object_space", image, space="OBJECT"))
     # A Bump over the image's luminance, inverted, on top of the normal map (its Normal input).
@@ -310,7 +319,10 @@ def test_sync_reads_normal_map_tangents_and_warns_once_for_bump(bpy_module, empt
     assert material.normal_map is not None and material.normal_map.strength == pytest.approx(0.7)
     # Non-Color: the raw values, not linearized.
     np.testing.assert_allclose(material.normal_map.texture.reshape(-1, 3), [[0.25, 0.5, 0.9]] * 8, atol=3e-3)
-    assert snap.materials[names.index("bumpy")].normal_map is None
+    baked = snap.materials[names.index("bumpy")].normal_map
+    assert baked is not None and baked.texture is None and baked.bump.on_atlas
+    assert 0.2 < baked.bump.height.mean() < 0.8 and baked.bump.height.std() > 0.01  # the noise's values
+    assert snap.materials[names.index("over_map")].normal_map is None
     both = snap.materials[names.index("chained")].normal_map
     assert both.texture is not None and both.bump is not None
     assert both.bump.distance == pytest.approx(-0.2) and both.bump.strength == pytest.approx(0.6)
@@ -330,8 +342,13 @@ def test_sync_reads_normal_map_tangents_and_warns_once_for_bump(bpy_module, empt
     np.testing.assert_allclose(tangents_of("turned"), np.tile([0, 1, 0, 1], (4, 1)), atol=1e-5)
     np.testing.assert_allclose(tangents_of("mirrored"), np.tile([-1, 0, 0, -1], (4, 1)), atol=1e-5)
     np.testing.assert_allclose(tangents_of("bumped"), 0.0)  # no normal map: no tangents
+    # The baked bump reads the atlas: its triangles' map UVs are their texture UVs.
+    verts = np.unique(geo.triangles[geo.object_index == objects.index("bumped")])
+    np.testing.assert_array_equal(geo.normal_uvs[verts], geo.uvs[verts])
+    assert geo.uvs[verts].min() >= 0.0 and geo.uvs[verts].max() <= 1.0
     warned = [r.getMessage() for r in caplog.records if "Bump" in r.getMessage()]
-    assert len(warned) == 1 and "bumpy" in warned[0] and "object space" in warned[0], warned
+    assert len(warned) == 1 and "over_map" in warned[0] and "object space" in warned[0], warned
+    assert "bumpy" not in warned[0]
 
 
 @pytest.mark.blender

@@ -88,6 +88,9 @@ TEXTURE_ALPHA = 2
 TEXTURE_NORMAL = 4
 #: The material's `bump_tx` holds a Bump node's height (`snapshot.BumpMap`), in red.
 TEXTURE_BUMP = 8
+#: With TEXTURE_BUMP: the height lies on a bake's atlas (`BumpMap.on_atlas`): its differences
+#: step half a texel, as a footprint's step would read the next triangle's cell.
+TEXTURE_BUMP_ATLAS = 256
 #: The material's `emission_tx` holds its emitted radiance per texel (`Material.emission_texture`).
 TEXTURE_EMISSION = 16
 #: The alpha of `emission_tx` holds the Metallic per texel (`Material.metallic_map`): the material
@@ -412,7 +415,7 @@ class GBufferPass(RasterPass):
                 height = np.zeros((*normal_map.bump.height.shape, 4), np.float32)
                 height[..., 0] = normal_map.bump.height
                 bump = upload_texture_2d(height, "RGBA32F")  # height differences need the precision
-                flags |= TEXTURE_BUMP
+                flags |= TEXTURE_BUMP | (TEXTURE_BUMP_ATLAS if normal_map.bump.on_atlas else 0)
             glow_texture = getattr(material, "emission_texture", None)
             metal = getattr(material, "metallic_map", None)
             glow = None

@@ -7,7 +7,9 @@
  * a tangent-space normal map, applied in the frame of `world_tan` (xyz tangent, w bitangent sign)
  * as Cycles' Normal Map node applies it (svm_node_normal_map), `normal_strength` its Strength.
  * Bit 8: `bump_tx` (red) is a Bump node's height, applied after the map as Cycles' svm_node_set_bump
- * with `bump_strength` and `bump_distance` (negative: inverted). Bit 16: `emission_tx` is the emitted
+ * with `bump_strength` and `bump_distance` (negative: inverted); bit 256 with it: the height lies on a
+ * bake's atlas, differenced at most a texel apart (a wider footprint would cross into the next triangle's
+ * cell). Bit 16: `emission_tx` is the emitted
  * radiance per texel (an emissive texture), averaged over the pixel's footprint like the colour;
  * without it (or without UVs) the constant `emission`. Bit 32: `emission_tx`'s alpha is the
  * Metallic per texel, added as half of it to `out_material`'s r. Bit 64: a holdout, drawn as a
@@ -136,6 +138,9 @@ vec3 bumped_normal(vec3 n_in, vec3 dpdx, vec3 dpdy, vec2 du, vec2 dv)
 {
   vec2 size = vec2(textureSize(bump_tx, 0));
   vec2 h_step = max(0.5 / size, 0.5 * max(abs(du), abs(dv)));
+  if ((has_texture & 256) != 0) {
+    h_step = min(h_step, 1.0 / size);
+  }
   float hu = (sample_repeat_bilinear4(bump_tx, map_uv + vec2(h_step.x, 0.0)).r -
               sample_repeat_bilinear4(bump_tx, map_uv - vec2(h_step.x, 0.0)).r) / (2.0 * h_step.x);
   float hv = (sample_repeat_bilinear4(bump_tx, map_uv + vec2(0.0, h_step.y)).r -
