@@ -19,6 +19,7 @@ non-animated seed): static parts of an animation keep one noise pattern instead 
 """
 
 import logging
+import math
 import time
 from dataclasses import dataclass
 
@@ -28,6 +29,7 @@ from hybridgi_core import errors, visible
 from hybridgi_core.raster import gbuffer, world_background
 from hybridgi_core.raster.frame import FramePipeline
 from hybridgi_core.raster.gather import max_texture_size
+from hybridgi_core.raster.lens import Lens
 from hybridgi_core.session import GISession
 from hybridgi_core.settings import CacheSettings
 from hybridgi_core.system import GISystem
@@ -86,6 +88,33 @@ def pixel_filter(scene):
     return "BLACKMAN_HARRIS", float(scene.render.filter_size)
 
 
+def camera_lens(depsgraph, scene) -> Lens | None:
+    """The scene camera's thin lens as Cycles sets it up (`blender/camera.cpp`): radius = focal
+    length / (2 f-stop), the focus distance along the view axis (to the focus object when one is
+    set), blades, rotation, ratio; None without depth of field or for a non-perspective camera."""
+    cam = scene.camera
+    data = getattr(cam, "data", None)
+    dof = getattr(data, "dof", None)
+    if dof is None or not dof.use_dof or data.type != "PERSP" or scene.hybridgi.pixel_samples <= 1:
+        return None
+    fstop = max(float(dof.aperture_fstop), 1e-5)
+    radius = float(data.lens) * 1e-3 / (2.0 * fstop)
+    focus = float(dof.focus_distance)
+    target = dof.focus_object
+    if target is not None:
+        eye = cam.evaluated_get(depsgraph).matrix_world.normalized()
+        at = target.evaluated_get(depsgraph).matrix_world.translation
+        bone = getattr(dof, "focus_subtarget", "")
+        if bone and target.type == "ARMATURE" and target.pose is not None and bone in target.pose.bones:
+            at = target.evaluated_get(depsgraph).matrix_world @ target.pose.bones[bone].head
+        axis = eye.col[2].xyz.normalized()
+        focus = abs(axis.dot(eye.translation - at))
+    if not (math.isfinite(radius) and math.isfinite(focus)) or radius <= 0.0:
+        return None
+    return Lens(radius=radius, focus=max(focus, 1e-6), blades=int(dof.aperture_blades),
+                rotation=float(dof.aperture_rotation), ratio=max(float(dof.aperture_ratio), 1e-3))
+
+
 def camera_matrices(depsgraph, scene, width, height):
     """(view, proj) numpy 4x4 of the scene camera, as Blender's own engines build them."""
     cam = scene.camera
@@ -137,7 +166,12 @@ def unsupported_settings(scene, view_layer) -> list[str]:
     camera = scene.camera
     dof = getattr(getattr(camera, "data", None), "dof", None)
     if dof is not None and getattr(dof, "use_dof", False):
-        notes.append(f"depth of field of camera {camera.name!r} is not rendered (everything is in focus)")
+        if camera.data.type != "PERSP":
+            notes.append(f"depth of field of {camera.data.type.lower()} camera {camera.name!r} is not rendered "
+                         "(everything is in focus)")
+        elif scene.hybridgi.pixel_samples <= 1:
+            notes.append(f"depth of field of camera {camera.name!r} needs Pixel Samples above 1 (its lens points "
+                         "are the subframes): everything is in focus")
     passes = [label for flag, label in UNWRITTEN_PASSES if getattr(view_layer, flag, False)]
     if passes:
         notes.append(f"passes not written: {', '.join(passes)}")
@@ -214,7 +248,8 @@ def render_frame(engine, depsgraph):
     pipeline = FramePipeline(props.raster_settings(cell_size=system.cache.grid.cell_size),
                              subframes=1 if cells_view else props.pixel_samples,
                              filter_size=filter_size, filter_type=filter_type,
-                             direct_samples=props.shadow_samples, glossy_samples=props.glossy_samples)
+                             direct_samples=props.shadow_samples, glossy_samples=props.glossy_samples,
+                             lens=None if cells_view else camera_lens(depsgraph, scene))
     try:
         # GPU render targets (~40 at 640x360): llvmpipe allocates them in ~0.35 s of CPU, a GPU in
         # milliseconds, so they are a step of their own (a GPU pass in bench/time_to_quality.py).

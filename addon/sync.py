@@ -1170,7 +1170,7 @@ def _height_map(node, socket, textures, name, what_for):
         return None  # a constant height bends nothing
     baked = textures.baked.get((node.name, socket.identifier))
     if baked is not None:  # a procedural height: Blender's own values over the atlas (`height_bakes`)
-        return _smoothed((np.asarray(baked, np.float32)[..., :3] @ surface_mix.GRAY.astype(np.float32)))
+        return _smoothed(np.asarray(baked, np.float32)[..., :3] @ surface_mix.GRAY.astype(np.float32))
     if not _direct_image(source, output, alpha=True):
         if (node.name, socket.identifier) in textures.queued:
             return None  # its bake is under way (the viewport) or failed (`material_bake` warned)

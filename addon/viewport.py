@@ -194,7 +194,7 @@ class ViewportSession:
         self._world_bakes_seen = world_bake.STORE.completed
         self._material_bakes_seen = material_bake.STORE.completed
         self.aa = viewport_aa.Accumulation()
-        self._aa_source = None  # (pixel samples, filter size, filter type) of self.aa
+        self._aa_source = None  # (pixel samples, filter size, filter type, lens) of self.aa
         #: Add anti-aliasing subframes while the worker is still busy (hardware GPUs); a software
         #: renderer waits for it to be idle (`viewport_aa`). None: decided on the first draw.
         self.aa_while_busy: bool | None = None
@@ -297,7 +297,7 @@ class ViewportSession:
         exposure = float(film_exposure(scene))
         with stats.step("settings"):
             gpu_state = self._ensure_gpu(props, published, width, height)
-            aa = self._aa_pattern(scene, present_mode)
+            aa = self._aa_pattern(scene, present_mode, camera.lens)
         serials = (
             None if published.cache is None else published.cache.serial,
             None if published.view is None else published.view.serial,
@@ -374,22 +374,23 @@ class ViewportSession:
 
     # --- anti-aliasing (`viewport_aa`) -------------------------------------------------------------
 
-    def _aa_pattern(self, scene, present_mode: int) -> viewport_aa.Accumulation:
-        """The session's `Accumulation`, remade when the scene's pixel samples or filter changed;
-        none in the Cache Cells view (a cell colour per pixel centre, as final renders draw it)."""
+    def _aa_pattern(self, scene, present_mode: int, lens=None) -> viewport_aa.Accumulation:
+        """The session's `Accumulation`, remade when the scene's pixel samples, filter or the lens
+        looked through (`ViewCamera.lens`) changed; none in the Cache Cells view (a cell colour per
+        pixel centre, as final renders draw it)."""
         count = int(getattr(scene.hybridgi, "pixel_samples", 1))
         if present_mode == PRESENT_CELLS or not self.antialias:
             count = 1
         filter_type, filter_size = pipeline.pixel_filter(scene)
-        if (count, filter_size, filter_type) != self._aa_source:
-            self.aa = viewport_aa.Accumulation.pattern(count, filter_size, filter_type)
-            self._aa_source = (count, filter_size, filter_type)
+        if (count, filter_size, filter_type, lens) != self._aa_source:
+            self.aa = viewport_aa.Accumulation.pattern(count, filter_size, filter_type, lens)
+            self._aa_source = (count, filter_size, filter_type, lens)
         return self.aa
 
     def _present_filter(self, samples: int):
         """The pixel filter the view shows an image of `samples` samples per pixel through, as final
         renders' film filters theirs (`subpixel.reconstruction_taps`)."""
-        _count, filter_size, filter_type = self._aa_source
+        _count, filter_size, filter_type, _lens = self._aa_source
         return _subpixel.reconstruction_taps(samples, filter_size, filter_type)
 
     def _aa_due(self, published) -> bool:
@@ -416,7 +417,7 @@ class ViewportSession:
             with stats.step("accumulate"):  # the centre image, still in the targets
                 pipeline_.accumulate.execute(inputs["shaded"], inputs["gbuf"], first=True)
         with stats.step("gbuffer"):
-            jittered = _subpixel.jittered_projection(proj, aa.next_offset(), gpu_state.width, gpu_state.height)
+            view, jittered = aa.next_camera(view, proj, gpu_state.width, gpu_state.height)
             gbuf = pipeline_.gbuffer.execute(view, jittered, texture_filter=aa.texture_filter)
         # Still the centre's (the GI's guide, as final renders keep it): the downsampled G-buffer,
         # or the full-res GI's copy of the centre's.
@@ -685,7 +686,9 @@ def view_draw(engine, context, depsgraph) -> None:
     region = context.region
     pixel_size = max(int(engine.get_preview_pixel_size(scene)), 1)
     width, height = max(region.width // pixel_size, 1), max(region.height // pixel_size, 1)
-    camera = ViewCamera.from_region_data(context.region_data)
+    # Through the scene camera, its depth of field too (its lens points in the subframes).
+    through = getattr(context.region_data, "view_perspective", "") == "CAMERA"
+    camera = ViewCamera.from_region_data(context.region_data, pipeline.camera_lens(depsgraph, scene) if through else None)
     session.poll_world(depsgraph)
     try:
         texture = session.draw(scene, camera, width, height, opaque=not scene.render.film_transparent)

@@ -22,12 +22,13 @@ class ViewCamera:
 
     view: np.ndarray
     proj: np.ndarray
+    lens: object = None  # the scene camera's `raster.lens.Lens` when the view looks through it with depth of field
 
     @classmethod
-    def from_region_data(cls, rv3d) -> ViewCamera:
+    def from_region_data(cls, rv3d, lens=None) -> ViewCamera:
         # window_matrix already frames the region as drawn: perspective, orthographic or the
         # camera view with its zoom and offset (the passepartout area included).
-        return cls(np.array(rv3d.view_matrix, np.float64), np.array(rv3d.window_matrix, np.float64))
+        return cls(np.array(rv3d.view_matrix, np.float64), np.array(rv3d.window_matrix, np.float64), lens)
 
     @property
     def key(self) -> bytes:

@@ -65,6 +65,18 @@ SCENE = "import math, os, sys, bpy\nfrom mathutils import Vector\n" + STAGE_HELP
         tree.links.new(backdrop.outputs[0], mix.inputs[2])
         tree.links.new(mix.outputs[0], tree.nodes["World Output"].inputs["Surface"])
         bpy.data.objects.remove(sun)
+    if variant == "depth_of_field":
+        # A wide aperture focused on the cube over a checkered floor and wall: what lies nearer
+        # and farther blurs.
+        cam.data.dof.use_dof = True
+        cam.data.dof.aperture_fstop = 0.05
+        cam.data.dof.focus_object = bpy.data.objects["cube"]
+        checker = material("checker", (0.8, 0.8, 0.8))
+        tree = checker.node_tree
+        squares = tree.nodes.new("ShaderNodeTexChecker")
+        squares.inputs["Scale"].default_value = 30.0
+        tree.links.new(squares.outputs["Color"], tree.nodes["Principled BSDF"].inputs["Base Color"])
+        bpy.data.objects["floor"].data.materials[0] = checker
     if variant == "displacement_wave":
         # A procedural height (Wave bands) into the Material Output's Displacement (Bump Only).
         floor = bpy.data.objects["floor"].active_material.node_tree
@@ -301,6 +313,20 @@ def test_surfaces_shadow_rays_pass_let_the_sun_through(tmp_path, variant):
               "Diffuse Direct mean": (float(direct.mean()), float(reference.mean()))}
     print(errors)
     assert errors["Diffuse Direct"] < 0.1 and errors["Combined"] < 0.1, errors
+
+
+def test_depth_of_field_blurs_as_cycles_thin_lens(tmp_path):
+    """A camera with depth of field (f/0.05, focused on the cube by its focus object) over a
+    checkered floor: each subframe of the pixel filter renders through its own lens point, the
+    plane of focus kept in place (`raster/lens.py`). Before, everything was in focus (warned).
+    Measured here (64x48): Combined 0.113 -> 0.047, Diffuse Color 0.114 -> 0.045; 160x120
+    against 256 spp + OIDN 0.188 -> 0.049."""
+    ours, cycles = both(tmp_path, build(tmp_path, "depth_of_field"))
+    geometry = layer(cycles, "Depth", "Z")[..., 0] < 1e9
+    errors = {name: rel_l1(layer(ours, name)[geometry], layer(cycles, name)[geometry])
+              for name in ("Combined", "Diffuse Color")}
+    print(errors)
+    assert errors["Combined"] < 0.07 and errors["Diffuse Color"] < 0.07, errors
 
 
 @pytest.mark.parametrize("variant, limit", [("displacement_image", 0.05), ("displacement_wave", 0.07),

@@ -931,7 +931,8 @@ def _make_glossy(m, roughness: float = 0.35) -> None:
                 node.inputs["Roughness"].default_value = roughness
 
 
-def _final_render(m, view, subframes: int, reflection_rays: int | None = None, filter_size: float = 1.5) -> dict:
+def _final_render(m, view, subframes: int, reflection_rays: int | None = None, filter_size: float = 1.5,
+                  lens=None) -> dict:
     """The final render's filtered passes for the viewport's camera and the scene it synced
     (with `reflection_rays` instead of the scene's setting when given; Cycles' Blackman-Harris
     pixel filter of `filter_size` px)."""
@@ -947,7 +948,7 @@ def _final_render(m, view, subframes: int, reflection_rays: int | None = None, f
         raster = props.raster_settings(cell_size=system.cache.grid.cell_size)
         if reflection_rays is not None:
             raster = raster.with_(reflection_rays=reflection_rays)
-        pipe = FramePipeline(raster, subframes=subframes, filter_size=filter_size)
+        pipe = FramePipeline(raster, subframes=subframes, filter_size=filter_size, lens=lens)
         try:
             pipe.resize(W, H)
             pipe.upload(snapshot)
@@ -1045,6 +1046,27 @@ def test_still_view_antialiases_towards_the_final_render_and_restarts_on_a_camer
     view.region_data.view_matrix = Matrix.Rotation(0.02, 4, "Y") @ view.region_data.view_matrix
     view.draw()
     assert session.last_stats.redrawn and session.last_stats.subframe == 0 and session.aa.drawn == 1
+
+
+def test_a_view_through_a_camera_with_depth_of_field_settles_on_the_final_renders_blur(view, addon):
+    """Looking through the scene camera with depth of field, the still view's subframes each take
+    a lens point too (`viewport_aa.Accumulation.next_camera`), as final renders' do: the settled
+    image is the final render's blurred one, far from the pinhole image it starts from."""
+    scene = addon.bpy.context.scene
+    dof = scene.camera.data.dof
+    dof.use_dof, dof.aperture_fstop, dof.focus_distance = True, 0.05, 2.0
+    centre = _converged_image(view)
+    session = view.session
+    assert session.aa.lens is not None and session.aa.total >= 17  # at least lens.MIN_SUBFRAMES
+    settled = _finish_redraws(view)
+    pipeline = importlib.import_module(addon.viewport.__name__.rsplit(".", 1)[0] + ".pipeline")
+    lens = pipeline.camera_lens(addon.bpy.context.evaluated_depsgraph_get(), scene)
+    final = _final_render(addon, view, subframes=scene.hybridgi.pixel_samples, lens=lens)
+    combined = final["combined"][..., :3]
+    whole = np.ones(combined.shape[:2], bool)
+    err_centre, err_settled = _rel_l1(centre[..., :3], combined, whole), _rel_l1(settled[..., :3], combined, whole)
+    print(err_centre, err_settled)
+    assert err_settled < 0.5 * err_centre, (err_settled, err_centre)
 
 
 def test_a_view_of_one_sample_per_pixel_is_filtered_as_its_final_render(view, addon):

@@ -35,6 +35,7 @@ from .deferred import DeferredPass, ShadedFrame
 from .downsample import DownsamplePass
 from .gather import GatherPass, gather_levels
 from .gbuffer import GBufferPass, camera_eye
+from .lens import MIN_SUBFRAMES, Lens, centre_offsets, focus_offset, lens_points, lens_view
 from .passes import low_res_size
 from .readback import upload_texture_2d
 from .settings import DEBUG_FINAL, RasterSettings
@@ -160,7 +161,7 @@ class FramePipeline:
     def __init__(self, settings: RasterSettings | None = None, direct_samples: int = 48,
                  gather: GatherPass | None = None, subframes: int = 1, filter_size: float = 1.5,
                  filter_type: str = "BLACKMAN_HARRIS", glossy_samples: int = 32,
-                 extra_subframes: int = EXTRA_SUBFRAMES):
+                 extra_subframes: int = EXTRA_SUBFRAMES, lens: Lens | None = None):
         """gather : a GatherPass (subclass) to use instead of a plain one; the viewport's takes
         cache textures its worker thread packed.
         subframes : jittered subframes per `render` (the pixel filter, `subpixel.py`); 1 = one
@@ -169,7 +170,9 @@ class FramePipeline:
         glossy_samples : lamp samples per pixel and lamp of the glossy lobes where a first pass
             finds the highlight noisy (`glossy_noise`; filtered where the lobe is rough,
             `reflection.filter_lamp_glossy`).
-        extra_subframes : subframes a frame adds where thin surfaces need them (`_subframe_count`)."""
+        extra_subframes : subframes a frame adds where thin surfaces need them (`_subframe_count`).
+        lens : the camera's thin lens (`lens.py`): depth of field, each subframe through its own
+            lens point (at least `lens.MIN_SUBFRAMES` of them when subframes > 1); None: a pinhole."""
         self.settings = settings or RasterSettings()
         #: Shadow-ray samples per pixel and lamp for the full-res direct light in penumbrae (the
         #: rest of the image traces `penumbra.FIRST_SAMPLES`): soft shadows of area lights and suns
@@ -186,6 +189,7 @@ class FramePipeline:
         #: More subframes for a frame whose thin surfaces of far other bounce light than what lies
         #: behind them cover a share of the image (`_subframe_count`); 0 = never.
         self.extra_subframes = int(extra_subframes)
+        self.lens = lens if lens is not None and lens.active else None
         #: The last `render`'s passes, filtered over its subframes (FilmAccumulator).
         self.film = None
         self.gbuffer = GBufferPass()
@@ -416,21 +420,29 @@ class FramePipeline:
         film = FilmAccumulator()
         film.set_depth(self.gbuffer.read("depth"))  # the centre sample, as Cycles' one sample
         count = self.subframes
+        lens = self.lens if count > 1 else None
         if count > 1:
             centre = CentreSample.from_gbuffer(direct, position, normal, film.read("depth"), surface=surface,
                                                lamp_light=lamp_light)
-            count = self._subframe_count(centre, full_gi, stats)
+            count = self._subframe_count(centre, full_gi, stats, max(count, MIN_SUBFRAMES) if lens else count)
         stats.subframes = count
         offsets = subpixel_offsets(count, self.filter_size, self.filter_type)
         jittered = offsets.shape[0] > 1
         if jittered:
             texture_filter = subframe_texture_filter(offsets.shape[0], self.filter_size)
-        camera_proj = proj
+        apertures = lens_points(offsets.shape[0], lens) if lens is not None and jittered else None
+        camera_proj, sub_view = proj, view
         for s, offset in enumerate(offsets):
             if jittered:
                 with stats.step("gbuffer"):  # the raster and its read-back, as "downsample" counts its own
-                    camera_proj = jittered_projection(proj, offset, self.width, self.height)
-                    gbuf = self.gbuffer.execute(view, camera_proj, texture_filter=texture_filter)
+                    shift, at = offset, offset
+                    if apertures is not None:
+                        # This subframe's eye at its lens point, the plane of focus kept in place.
+                        sub_view = lens_view(view, apertures[s])
+                        shift = offset + focus_offset(proj, apertures[s], lens, self.width, self.height)
+                        at = self._centre_locator(view, proj)
+                    camera_proj = jittered_projection(proj, shift, self.width, self.height)
+                    gbuf = self.gbuffer.execute(sub_view, camera_proj, texture_filter=texture_filter)
                     normal = self.gbuffer.read("normal")
                     position = self.gbuffer.read("position")
                     surface = self.gbuffer.read_surface(normal)
@@ -444,7 +456,7 @@ class FramePipeline:
                 if full_gi is not None and full_gi.resolver is not None:
                     gi_job = self._stage_thread().submit(
                         subframe_gi, full_gi.resolver, full_gi.indirect, full_gi.direct, hit, same, position,
-                        normal, offset, frame + s * SUBFRAME_SEED_STRIDE,
+                        normal, at, frame + s * SUBFRAME_SEED_STRIDE,
                         max(RATIO_MIN_SAMPLES, self.settings.pixel_rays // offsets.shape[0]), surface=surface)
                 try:
                     with stats.step("direct"):
@@ -463,7 +475,7 @@ class FramePipeline:
                         gi, gi_low = self._subframe_gi_textures(gi_job.result(), gbuf, stats)
             with stats.step("direct"):
                 self._direct_tex = upload_texture_2d(direct.reshape(self.height, self.width, 4), "RGBA32F")
-            shaded = self.shade(gbuf, gi_low, view, proj, self._direct_tex,
+            shaded = self.shade(gbuf, gi_low, sub_view, proj, self._direct_tex,
                                 corner_visible=mask.reshape(low.height, low.width, 8), irradiance=lit_tex,
                                 debug_view=debug_view, world_color=world_color, stats=stats, gi=gi,
                                 glossy=self._glossy_tex if glossy is not None else None, bilateral=gi_bilateral,
@@ -593,21 +605,26 @@ class FramePipeline:
         return CentreLight(direct, lamp_light, screen, p_full, n_full, pix_full, s_full,
                            (time.perf_counter() - tic) * 1e3, visibility)
 
-    def _subframe_count(self, centre, full_gi, stats) -> int:
-        """Subframes of this frame: `subframes`, plus `extra_subframes` when the centre raster's GI
+    def _centre_locator(self, view, proj):
+        """(points, flat pixels) -> where the centre raster shows the points (`lens.centre_offsets`)."""
+        return lambda points, pix: centre_offsets(points, pix, self.width, self.height, view, proj)
+
+    def _subframe_count(self, centre, full_gi, stats, base: int | None = None) -> int:
+        """Subframes of this frame: `base` (default `subframes`), plus `extra_subframes` when the centre raster's GI
         edges (`subpixel.gi_edges`: thin surfaces of far other bounce light than what lies behind
         them) are a share of the image (`subpixel.worth_extra`). Why the whole frame: a subframe's
         cost is its raster passes over every pixel, so more of them at a few pixels cost as much
         as at all (yard 320x240 DI: 8 + 24 at the marked pixels 0.095, 32 everywhere 0.091, at the
         same seconds), and one Hammersley set of 32 is better stratified than 8 and 24 apart."""
+        base = self.subframes if base is None else int(base)
         if self.extra_subframes <= 0 or full_gi is None:
-            return self.subframes
+            return base
         edges = gi_edges(centre, full_gi.indirect, self.height, self.width)
         if not worth_extra(edges):
-            return self.subframes
+            return base
         stats.extra_pixels = int(edges.sum())
-        log.debug("%d GI edge pixels: %d + %d subframes", stats.extra_pixels, self.subframes, self.extra_subframes)
-        return self.subframes + self.extra_subframes
+        log.debug("%d GI edge pixels: %d + %d subframes", stats.extra_pixels, base, self.extra_subframes)
+        return base + self.extra_subframes
 
     def _gather_levels(self, levels, low, points, normals, pix, visible, view, proj, lit_tex):
         """The GPU gather of each cache level (its own corner mask: columns 8k .. 8k + 7 of

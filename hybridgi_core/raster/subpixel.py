@@ -470,7 +470,9 @@ def subframe_gi(resolver, centre_indirect: np.ndarray, centre_direct: np.ndarray
     centre's surface, resolved at the subframe's own sample elsewhere (`pixel_gather.GIResolver.at`,
     `rays` rays where no GI pixel shares its surface), the background's where it sees none.
     hit, same : `subframe_surfaces`. surface : the subframe's `surface` read-back where a material
-    bends normals, else None.
+    bends normals, else None. offset : the subframe's jitter (pixels), or a callable
+    (points, flat pixels) -> per-point (dx, dy) where the centre image shows the points elsewhere
+    (a lens subframe: `lens.centre_offsets`).
 
     Why: the film weights each sample's light by its own colour; a post's edge pixel whose
     subframe sees the ground behind it (or a bar the centre raster missed) must bring that
@@ -490,7 +492,8 @@ def subframe_gi(resolver, centre_indirect: np.ndarray, centre_direct: np.ndarray
         smooth = None
         if surface is not None and surface is not normal:
             smooth = pixels_to_points(position.reshape(n_pix, -1)[fresh][None], surface.reshape(n_pix, -1)[fresh][None])[1]
-        value, traced = resolver.at(p, n, rows, offset, seed_frame, rays, surfaces=smooth)
+        at = offset(p, rows) if callable(offset) else offset
+        value, traced = resolver.at(p, n, rows, at, seed_frame, rays, surfaces=smooth)
         write_texels(indirect, direct, rows, value)
     return indirect, direct, traced
 
