@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import logging
 from contextlib import contextmanager
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -193,11 +193,20 @@ def camera_eye(view: np.ndarray, proj: np.ndarray) -> tuple:
     return (*camera_position(view).tolist(), 1.0)
 
 
+#: Rows of diffuse weights a material with a Roughness texture adds to `weight_table`, at
+#: roughnesses spread over its `glossy.roughness_range`: the G-buffer interpolates them by the
+#: pixel's roughness texel (a checker of roughness 0 and 1 on a floor: Cycles' Diffuse Color
+#: differs ~8% between its squares at grazing views, which the mean roughness's row missed).
+ROUGH_WEIGHT_ROWS = 8
+
+
 def weight_table(materials) -> np.ndarray:
-    """(n_materials, WEIGHT_SAMPLES, 4) float32: row m holds, at cosines i / (WEIGHT_SAMPLES - 1)
-    between the normal and the view, the factor on material m's diffuse colour in red (its
-    specular layer's diffuse weight, 1 without one, times a layered sheen's) and the colour its
-    sheen adds in green-blue-alpha (`sheen.weight_row`; zeros without one)."""
+    """(rows, WEIGHT_SAMPLES, 4) float32: row m < n_materials holds, at cosines
+    i / (WEIGHT_SAMPLES - 1) between the normal and the view, the factor on material m's diffuse
+    colour in red (its specular layer's diffuse weight, 1 without one, times a layered sheen's)
+    and the colour its sheen adds in green-blue-alpha (`sheen.weight_row`; zeros without one).
+    After them, ROUGH_WEIGHT_ROWS rows per material with a roughness texture, its layer at
+    roughnesses spread over its range (`rough_weight_rows` says where they start)."""
     if not materials:
         empty = np.zeros((1, WEIGHT_SAMPLES, 4), np.float32)
         empty[..., 0] = 1.0
@@ -205,20 +214,46 @@ def weight_table(materials) -> np.ndarray:
     mu = np.linspace(0.0, 1.0, WEIGHT_SAMPLES)
     table = np.stack([sheen.weight_row(m, mu) for m in materials])
     table[:, :, 0] *= np.stack([diffuse_weight_row(getattr(m, "specular", None)) for m in materials])
+    extra = []
+    for m, material in enumerate(materials):
+        span = glossy.roughness_range(material)
+        if span is None:
+            continue
+        for r in np.linspace(span[0], span[1], ROUGH_WEIGHT_ROWS):
+            row = table[m].copy()
+            layer = replace(material.specular, roughness=float(r))
+            row[:, 0] *= diffuse_weight_row(layer) / np.maximum(diffuse_weight_row(material.specular), 1e-6)
+            extra.append(row)
+    if extra:
+        table = np.concatenate([table, np.stack(extra)])
     return table.astype(np.float32)
 
 
+def rough_weight_rows(materials) -> np.ndarray:
+    """(n_materials,) float32 the `weight_table` row where each material's roughness rows start,
+    -1 for a material without them."""
+    first = np.full(max(len(materials), 1), -1.0, np.float32)
+    at = len(materials)
+    for m, material in enumerate(materials):
+        if glossy.roughness_range(material) is not None:
+            first[m] = at
+            at += ROUGH_WEIGHT_ROWS
+    return first
+
+
 def tint_table(materials) -> np.ndarray:
-    """(n_materials, 3, 4) float32: row m holds material m's `glossy.metal_tint_basis` (mean
-    texel, first axis, second axis) in rgb, alpha 1 where it has one and its colour texture is
-    the one drawn, 2 where it is `Material.metal_texture` (`metal_tx`), 0 without (the G-buffer
-    writes zeros for its texel coordinates)."""
-    table = np.zeros((max(len(materials), 1), 3, 4), np.float32)
+    """(n_materials, 4, 4) float32: row m holds material m's `glossy.metal_tint_basis` (mean
+    texel, first axis, second axis) in rgb of its first three texels, alpha 1 where it has one
+    and its colour texture is the one drawn, 2 where it is `Material.metal_texture` (`metal_tx`),
+    0 without (the G-buffer writes zeros for its texel coordinates); its fourth texel's red is
+    where its roughness rows of `weight_table` start (`rough_weight_rows`, -1: none)."""
+    table = np.zeros((max(len(materials), 1), 4, 4), np.float32)
+    table[:, 3, 0] = rough_weight_rows(materials)
     for m, material in enumerate(materials):
         basis = glossy.metal_tint_basis(material)
         if basis is not None:
-            table[m, :, :3] = basis
-            table[m, :, 3] = 2.0 if getattr(material, "metallic_map", None) is not None else 1.0
+            table[m, :3, :3] = basis
+            table[m, :3, 3] = 2.0 if getattr(material, "metallic_map", None) is not None else 1.0
     return table
 
 
@@ -267,7 +302,7 @@ class GBufferPass(RasterPass):
         return ShaderSpec(
             name=f"hybridgi_gbuffer_{layout}",
             vertex=("#define PLAIN_LAYOUT\n" if plain else "") + load_glsl("common_lib.glsl", "gbuffer_vert.glsl"),
-            fragment=load_glsl("common_lib.glsl", "gbuffer_frag.glsl"),
+            fragment=f"#define ROUGH_WEIGHT_ROWS {ROUGH_WEIGHT_ROWS}\n" + load_glsl("common_lib.glsl", "gbuffer_frag.glsl"),
             vertex_in=vertex_in if plain else vertex_in + ((4, "VEC4", "tangent"), (5, "VEC2", "nuv")),
             varyings=(("smooth", "VEC3", "world_pos"), ("smooth", "VEC3", "world_nor"),
                       ("smooth", "VEC2", "tex_uv"), ("smooth", "FLOAT", "uv_ok"), ("smooth", "VEC4", "world_tan"),

@@ -18,16 +18,31 @@
  * the smooth normal before a map or bump bends it (what the CPU takes for the surface: edges, filter guides, ray
  * origins, the bump shadowing term). */
 
-/* The diffuse factor (r) and added sheen colour (gba) at cosine mu, linear between the table's
- * samples at i / (n - 1). */
-vec4 diffuse_weight(float mu)
+/* Row `row` of the weight table at cosine mu, linear between its samples at i / (n - 1). */
+vec4 weight_row(int row, float mu)
 {
   int n = textureSize(weight_tx, 0).x;
   float x = clamp(mu, 0.0, 1.0) * float(n - 1);
   int i0 = min(int(x), n - 2);
-  vec4 a = texelFetch(weight_tx, ivec2(i0, material_row), 0);
-  vec4 b = texelFetch(weight_tx, ivec2(i0 + 1, material_row), 0);
+  vec4 a = texelFetch(weight_tx, ivec2(i0, row), 0);
+  vec4 b = texelFetch(weight_tx, ivec2(i0 + 1, row), 0);
   return mix(a, b, x - float(i0));
+}
+
+/* The diffuse factor (r) and added sheen colour (gba) at cosine mu: the material's row, or with a
+ * Roughness texture (rough_t: the texel's place in rough_range, < 0 without one) its
+ * ROUGH_WEIGHT_ROWS rows from `tint_tx`'s fourth texel on, linear between them
+ * (gbuffer.weight_table). */
+vec4 diffuse_weight(float mu, float rough_t)
+{
+  float first = texelFetch(tint_tx, ivec2(3, material_row), 0).r;
+  if (rough_t < 0.0 || first < 0.0) {
+    return weight_row(material_row, mu);
+  }
+  float y = rough_t * float(ROUGH_WEIGHT_ROWS - 1);
+  int r0 = min(int(y), ROUGH_WEIGHT_ROWS - 2);
+  int row = int(first + 0.5) + r0;
+  return mix(weight_row(row, mu), weight_row(row + 1, mu), y - float(r0));
 }
 
 ivec2 wrap_texel(ivec2 i, ivec2 n)
@@ -225,7 +240,17 @@ void main()
   if ((has_texture & 8) != 0 && uv_ok > 0.999) {
     n = valid_reflection(facet, to_eye, bumped_normal(n, dpdx, dpdy, map_du, map_dv));
   }
-  vec4 weight = diffuse_weight(dot(n, to_eye));
+  /* A Roughness texture's texel, as its place in rough_range (the glossy variant below and the
+   * diffuse weight); without UVs the middle. */
+  float rough_t = -1.0;
+  if ((has_texture & 128) != 0) {
+    rough_t = 0.5;
+    if (uv_ok > 0.999) {
+      float r = sample_footprint(rough_tx, tex_uv, du, dv).x;
+      rough_t = clamp((r - rough_range.x) / max(rough_range.y - rough_range.x, 1e-6), 0.0, 1.0);
+    }
+  }
+  vec4 weight = diffuse_weight(dot(n, to_eye), rough_t);
   albedo = albedo * weight.r + weight.gba;
   out_albedo = vec4(albedo, tint.x);
   out_normal = vec4(n, 1.0);
@@ -248,11 +273,7 @@ void main()
     /* A Roughness texture: the fraction codes the glossy variant, (metallic step x roughness
      * steps + roughness step + 0.5) / variants, rough_range = (lo, hi, metallic steps, roughness
      * steps) (glossy_image.material_rows decodes it). Without UVs, the middle step. */
-    float t = 0.5;
-    if (uv_ok > 0.999) {
-      float r = sample_footprint(rough_tx, tex_uv, du, dv).x;
-      t = clamp((r - rough_range.x) / max(rough_range.y - rough_range.x, 1e-6), 0.0, 1.0);
-    }
+    float t = rough_t;
     float steps = rough_range.w;
     float ri = floor(t * (steps - 1.0) + 0.5);
     float mi = (metal >= 0.0) ? floor(metal * (rough_range.z - 1.0) + 0.5) : 0.0;
