@@ -25,7 +25,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from hybridgi_core import errors, visible
+from hybridgi_core import catcher, errors, visible
 from hybridgi_core.raster import gbuffer, world_background
 from hybridgi_core.raster.frame import FramePipeline
 from hybridgi_core.raster.gather import max_texture_size
@@ -286,7 +286,8 @@ def render_frame(engine, depsgraph):
         engine.update_stats("HybridGI", "Writing passes")
         ts = time.perf_counter()
         _write_result(engine, depsgraph, pipeline, width, height, world,
-                      cache=system.cache if cells_view else None, levels=system.levels)
+                      cache=system.cache if cells_view else None, levels=system.levels,
+                      catchers=None if cells_view else _ShadowCatchers(system, snapshot.world, view, proj))
         steps["write"] = (time.perf_counter() - ts) * 1e3
         if job is not None:
             job.finish(scene.frame_current)
@@ -497,16 +498,52 @@ class _Result:
         self.engine.end_result(self.result)
 
 
-def _write_result(engine, depsgraph, pipeline, width, height, world, cache=None, levels=None):
+@dataclass
+class _ShadowCatchers:
+    """What composes a frame's shadow-catcher pixels (`catcher.py`): the system (its lamps' light
+    without shadows), the world behind them, the camera."""
+
+    system: object
+    world: object
+    view: np.ndarray
+    proj: np.ndarray
+
+    def apply(self, pipeline, combined, passes, transparent: bool) -> None:
+        """Compose the catcher pixels of `combined` (h, w, 4) and zero their light `passes`
+        (name -> (h, w, 3) arrays), in place, as Cycles does."""
+        pixels = pipeline.catchers
+        if pixels is None:
+            return
+        h, w = combined.shape[:2]
+        film = pipeline.film
+        light = (film.read("diffuse_direct") + film.read("diffuse_indirect"))[..., :3].reshape(-1, 3)[pixels.pix]
+        ratio = catcher.light_ratio(self.system, pixels, light * np.float32(np.pi), DIRECT_SEED_FRAME)
+        background = None
+        if not transparent:
+            rays = world_background.pixel_directions(self.view, self.proj, w, h)[pixels.pix]
+            seen = getattr(self.world, "background_map", None)
+            background = (seen.radiance(rays) if seen is not None
+                          else np.broadcast_to(np.asarray(self.world.background_color, np.float32), (rays.shape[0], 3)))
+        catcher.compose(combined, pixels.pix, ratio, background, transparent)
+        for name in passes:
+            passes[name].reshape(-1, passes[name].shape[-1])[pixels.pix] = 0.0
+
+
+def _write_result(engine, depsgraph, pipeline, width, height, world, cache=None, levels=None, catchers=None):
     """Write the pipeline's filtered passes (`FramePipeline.film`) into the render result; with
     `cache`, Combined shows the Cache Cells debug view instead (each pixel coloured by the cell it
-    reads; with `levels`, the system's finer cache levels, in each level's hue)."""
+    reads; with `levels`, the system's finer cache levels, in each level's hue). catchers : the
+    frame's `_ShadowCatchers` (their pixels are the pipeline's `catchers`), or None."""
     render = depsgraph.scene.render
     result = _Result(engine, render, width, height, depsgraph.view_layer.name)
     film = pipeline.film
     # A transparent film's background adds nothing to a pixel's colour: each subframe's colour
     # counts with its alpha (premultiplied, as Cycles writes it).
     combined = film.read("combined_premultiplied" if render.film_transparent else "combined").copy()
+    light = {name: film.read(name).copy() for name in ("diffuse_direct", "diffuse_indirect", "glossy_direct",
+                                                       "glossy_indirect")}
+    if catchers is not None:
+        catchers.apply(pipeline, combined, light, bool(render.film_transparent))
     if cache is not None:
         points, normals, pix = visible.pixels_to_points(pipeline.gbuffer.read("position"), pipeline.gbuffer.read("normal"))
         flat = combined.reshape(-1, 4)
@@ -529,14 +566,14 @@ def _write_result(engine, depsgraph, pipeline, width, height, world, cache=None,
     exposure = film_exposure(depsgraph.scene)
     combined[..., :3] *= exposure
     result.set("Combined", combined)
-    result.set("Diffuse Direct", film.read("diffuse_direct") * exposure)
-    result.set("Diffuse Indirect", film.read("diffuse_indirect") * exposure)
+    result.set("Diffuse Direct", light["diffuse_direct"] * exposure)
+    result.set("Diffuse Indirect", light["diffuse_indirect"] * exposure)
     result.set("Diffuse Color", film.read("diffuse_color"))
     result.set("Ambient Occlusion", np.repeat(film.read("ao"), 3, axis=-1))
     result.set("Depth", depth)
     result.set("Normal", film.read("normal"))  # the average of the hits' normals, 0 on the background
-    result.set("Glossy Direct", film.read("glossy_direct") * exposure)
-    result.set("Glossy Indirect", film.read("glossy_indirect") * exposure)
+    result.set("Glossy Direct", light["glossy_direct"] * exposure)
+    result.set("Glossy Indirect", light["glossy_indirect"] * exposure)
     result.set("Glossy Color", film.read("glossy_color"))
     result.end()
 

@@ -83,7 +83,6 @@ def snapshot_from_depsgraph(depsgraph, dynamic_names=frozenset(), wait_for_world
 IGNORED_VISIBILITY = {
     "visible_diffuse": "hidden from diffuse rays",
     "visible_glossy": "hidden from glossy rays",
-    "is_shadow_catcher": "a shadow catcher",
 }
 
 
@@ -503,13 +502,15 @@ class _SnapshotBuilder:
         casts_shadow = bool(getattr(obj, "visible_shadow", True)) and (
             parent is None or parent.name == obj.name or bool(getattr(parent, "visible_shadow", True)))
         holdout = bool(getattr(obj, "is_holdout", False)) or "holdout" in self.collection_flags.get(obj.name, ())
+        catcher = bool(getattr(obj, "is_shadow_catcher", False))
         if parent is not None and parent.name != obj.name:
             camera_visible = camera_visible and bool(getattr(parent, "visible_camera", True))
             holdout = holdout or bool(getattr(parent, "is_holdout", False)) or (
                 "holdout" in self.collection_flags.get(parent.name, ()))
+            catcher = catcher or bool(getattr(parent, "is_shadow_catcher", False))
         self._note_ignored(obj)
         self.objects.append(snap.ObjectInfo(name=name, dynamic=dynamic, camera_visible=camera_visible,
-                                            holdout=holdout, casts_shadow=casts_shadow))
+                                            holdout=holdout, casts_shadow=casts_shadow, shadow_catcher=catcher))
 
     def _add_particle_hair(self, instance):
         """Particle systems of type Hair rendered as strands (Render As Path) as tubes, in world

@@ -438,6 +438,9 @@ class ObjectInfo:
     holdout: bool = False
     #: blocks shadow rays (Object > Visibility > Ray Visibility > Shadow; False: lamps shine through it)
     casts_shadow: bool = True
+    #: a shadow catcher (Object > Visibility > Shadow Catcher): the camera sees the world behind it
+    #: times what the other objects do to its light (`catcher.py`); rays see it as usual
+    shadow_catcher: bool = False
 
 
 @dataclass

@@ -18,6 +18,7 @@ import numpy as np
 from .. import glossy_image, glossy_ltc, pixel_gather
 from .. import translucent as translucent_mod
 from ..camera import camera_position
+from ..catcher import CatcherPixels
 from ..emitters import emitter_samples, worth_sampling
 from ..evaluate import HitLookup
 from ..lights import RATIO_MIN_SAMPLES, one_sample_exact_lamps, rough_lights
@@ -34,7 +35,7 @@ from .bilateral import BilateralPass
 from .deferred import DeferredPass, ShadedFrame
 from .downsample import DownsamplePass
 from .gather import GatherPass, gather_levels
-from .gbuffer import GBufferPass, camera_eye
+from .gbuffer import GBufferPass, camera_eye, catcher_mask
 from .lens import MIN_SUBFRAMES, Lens, centre_offsets, focus_offset, lens_points, lens_view
 from .passes import low_res_size
 from .readback import upload_texture_2d
@@ -150,6 +151,18 @@ class CentreLight:
 SUBFRAME_MIN_SAMPLES = PENUMBRA_FIRST_SAMPLES
 
 
+def catcher_pixels(position: np.ndarray, normal: np.ndarray) -> CatcherPixels | None:
+    """The centre raster's shadow-catcher pixels (`gbuffer.catcher_mask`) with their points and
+    smooth normals, or None where it sees none."""
+    mask = catcher_mask(position).reshape(-1)
+    if not mask.any():
+        return None
+    pix = np.flatnonzero(mask)
+    pos = np.asarray(position, np.float32).reshape(-1, 4)
+    nrm = np.asarray(normal, np.float32).reshape(pos.shape[0], -1)[:, :3]
+    return CatcherPixels(pix, np.ascontiguousarray(pos[pix, :3]), np.ascontiguousarray(nrm[pix]))
+
+
 class FramePipeline:
     """Owns the passes of one view; `resize`, `upload`, then `render` per frame; `free` at the end.
 
@@ -192,6 +205,8 @@ class FramePipeline:
         self.lens = lens if lens is not None and lens.active else None
         #: The last `render`'s passes, filtered over its subframes (FilmAccumulator).
         self.film = None
+        #: The last `render`'s centre pixels that see a shadow catcher (`catcher.CatcherPixels`), or None.
+        self.catchers = None
         self.gbuffer = GBufferPass()
         self.downsample = DownsamplePass(self.settings.downsample)
         self.gather = gather if gather is not None else GatherPass()
@@ -337,6 +352,7 @@ class FramePipeline:
             # The smooth surface under normal maps (`normal` itself where none bends it).
             surface = self.gbuffer.read_surface(normal)
             translucent = self._translucent_shares(system)
+            self.catchers = catcher_pixels(position, surface)
         # The centre's lamp light needs the full-res G-buffer only, not the cache: it runs on a
         # thread of its own while this one updates the cache, so that the serial parts of each
         # overlap the other's work on the pool. Only CPU steps run beside it (no GPU pass before

@@ -103,8 +103,16 @@ TEXTURE_HOLDOUT = 64
 #: the material target's fraction then codes the pixel's glossy variant, `rough_range` = (lo, hi,
 #: metallic steps, roughness steps) of `glossy.GlossyMaterials` (`glossy_image.material_rows`).
 TEXTURE_ROUGHNESS = 128
+#: A shadow catcher's triangles (`ObjectInfo.shadow_catcher`): drawn as any surface, position w 2
+#: (`catcher_mask`), which the final render's film composes as Cycles does (`catcher.py`).
+TEXTURE_CATCHER = 512
 #: Depth a hole writes: beyond the background's (never the nearest of a downsampled block).
 HOLDOUT_DEPTH = 1.5 * BACKGROUND_DEPTH
+
+
+def catcher_mask(position: np.ndarray) -> np.ndarray:
+    """bool mask of the pixels whose raster saw a shadow catcher (TEXTURE_CATCHER: position w 2)."""
+    return np.asarray(position)[..., 3] > 1.5
 
 
 def holdout_mask(depth: np.ndarray) -> np.ndarray:
@@ -421,6 +429,8 @@ class GBufferPass(RasterPass):
         # Holdouts (objects, collections, the Holdout shader) are drawn as holes (TEXTURE_HOLDOUT).
         holes = [i for i, o in enumerate(snapshot.objects) if getattr(o, "holdout", False)]
         hole = np.isin(geo.object_index, holes) if holes else np.zeros(tris.shape[0], bool)
+        catchers = [i for i, o in enumerate(snapshot.objects) if getattr(o, "shadow_catcher", False)]
+        catch = np.isin(geo.object_index, catchers) if catchers else np.zeros(tris.shape[0], bool)
         self._draws = []
         self._weight_texture = upload_texture_2d(weight_table(snapshot.materials), "RGBA16F")
         self._tint_texture = upload_texture_2d(tint_table(snapshot.materials), "RGBA32F")
@@ -431,7 +441,8 @@ class GBufferPass(RasterPass):
             if getattr(material, "holdout", False):
                 parts = ((None, TEXTURE_HOLDOUT, tris[mine]),)
             else:
-                parts = ((None, 0, tris[mine & ~hole]), (None, TEXTURE_HOLDOUT, tris[mine & hole]))
+                parts = ((None, 0, tris[mine & ~hole & ~catch]), (None, TEXTURE_CATCHER, tris[mine & ~hole & catch]),
+                         (None, TEXTURE_HOLDOUT, tris[mine & hole]))
             parts = [(flag, sel) for _none, flag, sel in parts if sel.shape[0]]
             if not parts:
                 continue

@@ -13,7 +13,7 @@
  * radiance per texel (an emissive texture), averaged over the pixel's footprint like the colour;
  * without it (or without UVs) the constant `emission`. Bit 32: `emission_tx`'s alpha is the
  * Metallic per texel, added as half of it to `out_material`'s r. Bit 64: a holdout, drawn as a
- * hole (the background's zeros at a depth beyond it). Bit 128: `rough_tx` (red) is the Roughness
+ * hole (the background's zeros at a depth beyond it). Bit 512: a shadow catcher, position w 2. Bit 128: `rough_tx` (red) is the Roughness
  * per texel, coded with the metallic into the material index's fraction. `out_material`'s gba is
  * the smooth normal before a map or bump bends it (what the CPU takes for the surface: edges, filter guides, ray
  * origins, the bump shadowing term). */
@@ -282,6 +282,9 @@ void main()
   out_emission = vec4(emitted, tint.y);
   out_depth = view_depth(camera.view_z, world_pos);
   out_material = vec4(row, n_surface);
+  if ((has_texture & 512) != 0) {
+    out_position.w = 2.0; /* a shadow catcher (gbuffer.py TEXTURE_CATCHER, catcher.py) */
+  }
   if ((has_texture & 64) != 0) {
     /* A holdout: a hole the background shows through, marked by its depth (gbuffer.py HOLDOUT_DEPTH). */
     out_albedo = vec4(0.0);
