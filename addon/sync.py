@@ -1121,7 +1121,9 @@ def _normal_map(shader, textures, name):
     if pixels is None:
         return only_bump
     if not _direct_image(image_node, "Color"):
-        _note(textures, name, node, "normal map image through a mapping or projection (rendered with the smooth normal)")
+        what = ("a UDIM (tiled) normal map image" if getattr(image_node.image, "source", "") == "TILED"
+                else "normal map image through a mapping or projection")
+        _note(textures, name, node, f"{what} (rendered with the smooth normal)")
         return only_bump
     if channels != (0, 1, 2) or any(flips):
         pixels = pixels[..., list(channels)]
@@ -1854,10 +1856,12 @@ def _color_socket(socket, textures, material_name):
 
 def _direct_image(node, output, alpha: bool = False) -> bool:
     """Whether an Image Texture's colour is what the core samples itself: the mesh's default
-    UV map, flat projection, repeated (anything else, e.g. a UV Map node or box mapping, is
-    baked). alpha : the socket is an opacity (`_alpha_map`), which reads the image's Alpha
-    output itself too."""
+    UV map, flat projection, repeated, one image (anything else, e.g. a UV Map node, box mapping
+    or a UDIM image's tiles, which the mesh's UVs pick beyond 0..1, is baked). alpha : the socket
+    is an opacity (`_alpha_map`), which reads the image's Alpha output itself too."""
     if node.type != "TEX_IMAGE" or output not in (("Color", "Alpha") if alpha else ("Color",)) or node.image is None:
+        return False
+    if getattr(node.image, "source", "FILE") == "TILED":
         return False
     vector = node.inputs.get("Vector")
     return (vector is None or _source(vector)[0] is None) and node.projection == "FLAT" and node.extension == "REPEAT"
