@@ -523,7 +523,8 @@ def _round_lamp_samples(light: Light, p, rng, samples):
         root = np.sqrt(np.maximum(r2 - dist[:, None] ** 2 + bc * bc, 0.0))
         t = bc + np.where(inside[:, None], root, -root)
         q = p[:, None, :] + dirs * t[..., None]
-        weight = (power / (2.0 * np.pi * r2 * samples)) * omc
+        # Uniform in the cone: one weight per receiver, the same for each of its samples.
+        weight = np.broadcast_to((power / (2.0 * np.pi * r2 * samples)) * omc, (m, samples)).copy()
     if light.kind == "SPOT":
         cone = spot_attenuation(light, -dirs.reshape(-1, 3).astype(_F32)).reshape(m, samples)
         if not light.soft_falloff:

@@ -99,6 +99,27 @@ def test_the_cache_reflects_the_sky_as_direct_and_nothing_as_bounced():
     assert bounced.max() < 0.01
 
 
+@pytest.mark.parametrize("kind", ["POINT", "SPOT"])
+def test_a_lamp_with_radius_and_without_soft_falloff_lights_the_lobes(kind):
+    """A sphere lamp (Soft Falloff off) 1.5 m above a glossy floor: one weight per receiver, one
+    per sample. Its samples' weights came out (n, 1) and `glossy_direct` raised on them (every
+    render of such a lamp failed); far from the lamp it lights the lobes as the soft-falloff disc
+    does (both subtend the same small solid angle)."""
+    layer = sp.SpecularLayer(roughness=0.5)
+    mats = glossy.GlossyMaterials.from_materials([Material(specular=layer)])
+    matrix = np.eye(4)
+    matrix[:3, 3] = (0.0, 0.0, 1.5)
+    out = {}
+    for soft in (True, False):
+        lamp = Light(kind, np.ones(3, np.float32), 100.0, matrix, radius=0.05, soft_falloff=soft,
+                     spot_size=2.5, spot_blend=0.0)
+        out[soft] = glossy.glossy_direct([lamp], np.zeros((6, 3)), np.tile([[0.0, 0.0, 1.0]], (6, 1)),
+                                         np.tile([[0.0, 0.6, 0.8]], (6, 1)), np.zeros(6, np.int32), mats, None,
+                                         np.random.default_rng(2), samples=16)
+    assert out[False].shape == (6, 3) and (out[False] > 0).all()
+    np.testing.assert_allclose(out[False], out[True], rtol=0.02)
+
+
 @pytest.mark.parametrize(("kind", "soft"), [("POINT", True), ("POINT", False), ("SPOT", True), ("SPOT", False)])
 def test_lamp_samples_of_a_lamp_with_radius_give_the_diffuse_irradiance(kind, soft):
     """The glossy lobes see the emitter the diffuse pass does (`lights._radius_chunk`): the
