@@ -1439,12 +1439,63 @@ def _mix_surface(shader, kind, textures, name, depth):
                 hole_first = kinds[0] == "BSDF_TRANSPARENT"
                 part = parts[1] if hole_first else parts[0]
                 return replace(part, alpha=fac_map if hole_first else 1.0 - fac_map)
-        fac = _view_factor(shader.inputs["Fac"], name)
+        socket = shader.inputs["Fac"]
+        fac_map = textures.baked.get((shader.name, socket.identifier))
+        if fac_map is not None or (shader.name, socket.identifier) in textures.queued:
+            # A mask per texel (`_texel_factor`, baked): the parts mix at its mean, their
+            # colours per texel (`_texel_mix`); while it bakes (the viewport), at its own value.
+            fac_map = None if fac_map is None else np.asarray(fac_map, np.float32)[..., :3].mean(axis=-1)
+            mean = float(np.clip(fac_map.mean(), 0.0, 1.0)) if fac_map is not None else float(
+                np.clip(socket.default_value, 0.0, 1.0))
+            plain = [replace(p, texture=None, base=p.mean_colour().astype(np.float32)) for p in parts]
+            part, notes = surface_mix.mix(plain, [surface_mix.constant_factor(1.0 - mean),
+                                                  surface_mix.constant_factor(mean)], name)
+            for note in notes:
+                if fac_map is None or "one colour kept" not in note:  # the texels keep theirs
+                    _note(textures, name, shader, note)
+            return part if fac_map is None else _texel_mix(parts, fac_map, part)
+        fac = _view_factor(socket, name)
         weights = [1.0 - fac, fac]
     part, notes = surface_mix.mix(parts, weights, name)
     for note in notes:
         _note(textures, name, shader, note)
     return part
+
+
+def _texel_factor(socket) -> bool:
+    """Whether a Mix Shader's linked Fac varies over the surface (a texture, an attribute, math on
+    them) rather than over the view only (`_factor_table`'s nodes: Fresnel, Layer Weight, and
+    Math, Ramps, Invert, Map Range over them), walking its nodes without evaluating them."""
+    stack, seen = [socket], 0
+    while stack and seen < 64:
+        node, _output = _source(stack.pop())
+        seen += 1
+        if node is None or node.type in VIEW_FACTOR_NODES:
+            continue
+        if node.type not in ("MATH", "INVERT", "VALTORGB", "MAP_RANGE", "CLAMP"):
+            return True
+        stack += [s for s in node.inputs if s.is_linked]
+    return False
+
+
+def _texel_mix(parts, fac_map, mixed):
+    """`mixed` (the parts' mix at the mask's mean factor) with its diffuse colour per texel:
+    (1 - f) c0 + f c1 of the parts' colours (base x texture, read on the mask's texels, times the
+    cosine mean of their diffuse weights) over the mask `fac_map` (h, w) in 0..1; the mix's
+    relative view dependence, lobes, emission and the rest keep the mean factor's."""
+    shape = fac_map.shape
+    f = np.clip(np.asarray(fac_map, np.float32), 0.0, 1.0)[..., None]
+    colours = []
+    for part in parts:
+        table = float(surface_mix._cosine_mean(np.asarray(part.base_table(), np.float64)))
+        if part.texture is None:
+            colours.append(np.broadcast_to(np.asarray(part.base, np.float32) * table, (*shape, 3)))
+        else:
+            colours.append(_resampled(np.asarray(part.texture, np.float32), shape) * np.asarray(part.base, np.float32)
+                           * table)
+    albedo = (1.0 - f) * colours[0] + f * colours[1]
+    base = np.maximum(albedo.reshape(-1, 3).mean(axis=0), np.float32(1e-6))
+    return replace(mixed, base=base.astype(np.float32), texture=(albedo / base).astype(np.float32))
 
 
 def _view_factor(socket, name):
@@ -1899,6 +1950,10 @@ def bake_sockets(material) -> list[tuple[str, str]]:
                 source, output = _source(fac)
                 if source is not None and source.type not in VIEW_FACTOR_NODES:
                     (images if _direct_image(source, output) else out).append((node.name, fac.identifier))
+            elif fac is not None and fac.is_linked and _fold(fac, 0) is None and _texel_factor(fac):
+                # Two surfaces mixed by a mask (dirt, wear, a second material): its value per texel,
+                # which mixes their colours (`_mix_surface`).
+                out.append((node.name, fac.identifier))
             continue
         if getattr(node, "grouped", False):
             continue  # inside a node group: the bake process edits the material's own tree only
