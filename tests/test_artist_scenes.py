@@ -51,6 +51,15 @@ SCENE = "import math, os, sys, bpy\nfrom mathutils import Vector\n" + STAGE_HELP
     tree.nodes["Background"].inputs["Color"].default_value = (0.3, 0.3, 0.3, 1.0)
     scene.world = world
     variant = sys.argv[-2]
+    floor = bpy.data.objects["floor"].active_material.node_tree
+    def node(kind, tree=floor, **values):  # a new node of the floor's material, these input values
+        made = tree.nodes.new(kind)
+        for key, value in values.items():
+            made.inputs[key].default_value = value
+        return made
+    def link(a, out, b, inp, tree=floor):
+        tree.links.new(a.outputs[out], b.inputs[inp])
+    principled, output = floor.nodes["Principled BSDF"], floor.nodes["Material Output"]
     if variant == "hdri_backdrop":
         # The common HDRI set-up: the HDRI lights, the camera sees a plain backdrop (Is Camera Ray).
         env = tree.nodes.new("ShaderNodeTexEnvironment")
@@ -67,16 +76,11 @@ SCENE = "import math, os, sys, bpy\nfrom mathutils import Vector\n" + STAGE_HELP
         bpy.data.objects.remove(sun)
     if variant == "mix_mask":
         # Two surfaces on the floor, a blue and the grey, mixed by a checker mask.
-        floor = bpy.data.objects["floor"].active_material.node_tree
-        blue = floor.nodes.new("ShaderNodeBsdfPrincipled")
-        blue.inputs["Base Color"].default_value = (0.1, 0.3, 0.8, 1.0)
-        squares = floor.nodes.new("ShaderNodeTexChecker")
-        squares.inputs["Scale"].default_value = 5.0
-        mix = floor.nodes.new("ShaderNodeMixShader")
-        floor.links.new(squares.outputs["Fac"], mix.inputs["Fac"])
-        floor.links.new(floor.nodes["Principled BSDF"].outputs[0], mix.inputs[1])
-        floor.links.new(blue.outputs[0], mix.inputs[2])
-        floor.links.new(mix.outputs[0], floor.nodes["Material Output"].inputs["Surface"])
+        mix = node("ShaderNodeMixShader")
+        link(node("ShaderNodeTexChecker", Scale=5.0), "Fac", mix, "Fac")
+        link(principled, 0, mix, 1)
+        link(node("ShaderNodeBsdfPrincipled", **{"Base Color": (0.1, 0.3, 0.8, 1.0)}), 0, mix, 2)
+        link(mix, 0, output, "Surface")
     if variant == "udim":
         # A UDIM image (two tiles: 1001 red, 1002 green) on the floor, whose UVs lie in tile 1002.
         import numpy as np
@@ -90,51 +94,33 @@ SCENE = "import math, os, sys, bpy\nfrom mathutils import Vector\n" + STAGE_HELP
         udim.source = "TILED"
         udim.filepath = f"{stem}.<UDIM>.png"
         udim.reload()
-        floor = bpy.data.objects["floor"]
-        for loop in floor.data.uv_layers.active.data:
+        for loop in bpy.data.objects["floor"].data.uv_layers.active.data:
             loop.uv = (loop.uv[0] + 1.0, loop.uv[1])
-        tree = floor.active_material.node_tree
-        image = tree.nodes.new("ShaderNodeTexImage")
+        image = node("ShaderNodeTexImage")
         image.image = udim
-        tree.links.new(image.outputs["Color"], tree.nodes["Principled BSDF"].inputs["Base Color"])
+        link(image, "Color", principled, "Base Color")
     if variant == "shadow_catcher":
         bpy.data.objects["floor"].is_shadow_catcher = True
     if variant == "roughness_checker":
         # Roughness 0 and 1 in squares on the floor (a Roughness map, baked from the checker).
-        floor = bpy.data.objects["floor"].active_material.node_tree
-        squares = floor.nodes.new("ShaderNodeTexChecker")
-        squares.inputs["Scale"].default_value = 4.0
-        floor.links.new(squares.outputs["Fac"], floor.nodes["Principled BSDF"].inputs["Roughness"])
+        link(node("ShaderNodeTexChecker", Scale=4.0), "Fac", principled, "Roughness")
     if variant == "depth_of_field":
         # A wide aperture focused on the cube over a checkered floor and wall: what lies nearer
         # and farther blurs.
         cam.data.dof.use_dof = True
         cam.data.dof.aperture_fstop = 0.05
         cam.data.dof.focus_object = bpy.data.objects["cube"]
-        checker = material("checker", (0.8, 0.8, 0.8))
-        tree = checker.node_tree
-        squares = tree.nodes.new("ShaderNodeTexChecker")
-        squares.inputs["Scale"].default_value = 30.0
-        tree.links.new(squares.outputs["Color"], tree.nodes["Principled BSDF"].inputs["Base Color"])
-        bpy.data.objects["floor"].data.materials[0] = checker
+        link(node("ShaderNodeTexChecker", Scale=30.0), "Color", principled, "Base Color")
     if variant == "displacement_wave":
         # A procedural height (Wave bands) into the Material Output's Displacement (Bump Only).
-        floor = bpy.data.objects["floor"].active_material.node_tree
-        wave = floor.nodes.new("ShaderNodeTexWave")
-        wave.inputs["Scale"].default_value = 3.0
-        displace = floor.nodes.new("ShaderNodeDisplacement")
-        displace.inputs["Scale"].default_value = 0.3
-        floor.links.new(wave.outputs["Fac"], displace.inputs["Height"])
-        floor.links.new(displace.outputs["Displacement"], floor.nodes["Material Output"].inputs["Displacement"])
+        displace = node("ShaderNodeDisplacement", Scale=0.3)
+        link(node("ShaderNodeTexWave", Scale=3.0), "Fac", displace, "Height")
+        link(displace, "Displacement", output, "Displacement")
     if variant == "bump_noise":
         # The common node set-up: a Noise texture's Fac into a Bump node on the BSDF's Normal.
-        floor = bpy.data.objects["floor"].active_material.node_tree
-        noise = floor.nodes.new("ShaderNodeTexNoise")
-        noise.inputs["Scale"].default_value = 2.0
-        bump = floor.nodes.new("ShaderNodeBump")
-        bump.inputs["Distance"].default_value = 1.0
-        floor.links.new(noise.outputs["Fac"], bump.inputs["Height"])
-        floor.links.new(bump.outputs["Normal"], floor.nodes["Principled BSDF"].inputs["Normal"])
+        bump = node("ShaderNodeBump", Distance=1.0)
+        link(node("ShaderNodeTexNoise", Scale=2.0), "Fac", bump, "Height")
+        link(bump, "Normal", principled, "Normal")
     if variant == "metallic_checker":
         # A metallic mask from a texture (PBR assets' Metallic map): half the floor is metal.
         floor = bpy.data.objects["floor"].active_material.node_tree
@@ -242,6 +228,15 @@ def both(tmp_path: Path, blend: Path, *extra):
 
 def rel_l1(a, b) -> float:
     return float(np.abs(a - b).sum() / np.abs(b).sum())
+
+
+def variant_errors(tmp_path: Path, variant: str, names, *extra):
+    """({pass: rel L1 over Cycles' geometry pixels}, ours, Cycles', geometry) of a variant's renders."""
+    ours, cycles = both(tmp_path, build(tmp_path, variant), *extra)
+    geometry = layer(cycles, "Depth", "Z")[..., 0] < 1e9
+    errors = {name: rel_l1(layer(ours, name)[geometry], layer(cycles, name)[geometry]) for name in names}
+    print(errors)
+    return errors, ours, cycles, geometry
 
 
 def test_world_mixing_a_backdrop_by_is_camera_ray_lights_with_the_hdri(tmp_path):
@@ -362,11 +357,7 @@ def test_two_surfaces_mixed_by_a_mask_keep_each_texels_colour(tmp_path):
     emission at its mean). Before, the factor took the socket's own value (warned). Measured here
     (64x48): Combined 0.219 -> 0.021, Diffuse Color 0.217 -> 0.006; 128x96 against 64 spp +
     OIDN: 0.266 -> 0.017."""
-    ours, cycles = both(tmp_path, build(tmp_path, "mix_mask"))
-    geometry = layer(cycles, "Depth", "Z")[..., 0] < 1e9
-    errors = {name: rel_l1(layer(ours, name)[geometry], layer(cycles, name)[geometry])
-              for name in ("Combined", "Diffuse Color")}
-    print(errors)
+    errors = variant_errors(tmp_path, "mix_mask", ("Combined", "Diffuse Color"))[0]
     assert errors["Combined"] < 0.05 and errors["Diffuse Color"] < 0.03, errors
 
 
@@ -375,11 +366,7 @@ def test_a_udim_image_is_read_from_the_tile_its_uvs_pick(tmp_path):
     tile. The image reader took the first tile's pixels for every UV (wrapped); a tiled image is
     now baked by Blender over the material's atlas, as colours through nodes are. Measured here
     (64x48): Combined 1.088 -> 0.021, Diffuse Color 0.936 -> 0.005."""
-    ours, cycles = both(tmp_path, build(tmp_path, "udim"))
-    geometry = layer(cycles, "Depth", "Z")[..., 0] < 1e9
-    errors = {name: rel_l1(layer(ours, name)[geometry], layer(cycles, name)[geometry])
-              for name in ("Combined", "Diffuse Color")}
-    print(errors)
+    errors = variant_errors(tmp_path, "udim", ("Combined", "Diffuse Color"))[0]
     assert errors["Combined"] < 0.05 and errors["Diffuse Color"] < 0.02, errors
 
 
@@ -393,12 +380,9 @@ def test_a_shadow_catcher_shows_the_world_behind_it_times_its_shadows(tmp_path, 
     weigh more: the film takes the centre raster's pixels as the catcher's, where Cycles' samples
     split an edge pixel (opaque Combined 0.039, Diffuse Direct 0.10 from the edges' dilution)."""
     extra = ("--set", "render.film_transparent=true") if transparent else ()
-    ours, cycles = both(tmp_path, build(tmp_path, "shadow_catcher"), *extra)
-    geometry = layer(cycles, "Depth", "Z")[..., 0] < 1e9
-    errors = {name: rel_l1(layer(ours, name)[geometry], layer(cycles, name)[geometry])
-              for name in ("Combined", "Diffuse Direct", "Diffuse Indirect")}
+    errors, ours, cycles, geometry = variant_errors(tmp_path, "shadow_catcher", ("Combined", "Diffuse Direct"), *extra)
     alpha = float(np.abs(layer(ours, "Combined", "A") - layer(cycles, "Combined", "A"))[geometry].mean())
-    print(errors, alpha)
+    print(alpha)
     assert errors["Combined"] < (0.12 if transparent else 0.06) and errors["Diffuse Direct"] < 0.15, errors
     assert alpha < 0.02, alpha
 
@@ -410,11 +394,7 @@ def test_a_roughness_texture_sets_each_pixels_diffuse_weight(tmp_path):
     texture's range by the pixel's texel (`gbuffer.weight_table`, ROUGH_WEIGHT_ROWS); before,
     every pixel took the mean roughness's. Measured here (64x48): Diffuse Color 0.080 -> 0.003,
     Combined 0.083 -> 0.017; 128x96 against 64 spp + OIDN: 0.029 -> 0.002, 0.033 -> 0.008."""
-    ours, cycles = both(tmp_path, build(tmp_path, "roughness_checker"))
-    geometry = layer(cycles, "Depth", "Z")[..., 0] < 1e9
-    errors = {name: rel_l1(layer(ours, name)[geometry], layer(cycles, name)[geometry])
-              for name in ("Combined", "Diffuse Color")}
-    print(errors)
+    errors = variant_errors(tmp_path, "roughness_checker", ("Combined", "Diffuse Color"))[0]
     assert errors["Diffuse Color"] < 0.02 and errors["Combined"] < 0.04, errors
 
 
@@ -424,11 +404,7 @@ def test_depth_of_field_blurs_as_cycles_thin_lens(tmp_path):
     plane of focus kept in place (`raster/lens.py`). Before, everything was in focus (warned).
     Measured here (64x48): Combined 0.113 -> 0.047, Diffuse Color 0.114 -> 0.045; 160x120
     against 256 spp + OIDN 0.188 -> 0.049."""
-    ours, cycles = both(tmp_path, build(tmp_path, "depth_of_field"))
-    geometry = layer(cycles, "Depth", "Z")[..., 0] < 1e9
-    errors = {name: rel_l1(layer(ours, name)[geometry], layer(cycles, name)[geometry])
-              for name in ("Combined", "Diffuse Color")}
-    print(errors)
+    errors = variant_errors(tmp_path, "depth_of_field", ("Combined", "Diffuse Color"))[0]
     assert errors["Combined"] < 0.07 and errors["Diffuse Color"] < 0.07, errors
 
 
