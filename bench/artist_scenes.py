@@ -727,6 +727,59 @@ def displacement_image():
     nt.links.new(disp.outputs["Displacement"], nt.nodes["Material Output"].inputs["Displacement"])
 
 
+@case
+def mix_mask():
+    """Two surfaces on the floor, the grey and a blue, mixed by a checker mask (dirt, wear)."""
+    base()
+    nt = bpy.data.objects["floor"].active_material.node_tree
+    blue = nt.nodes.new("ShaderNodeBsdfPrincipled")
+    blue.inputs["Base Color"].default_value = (0.1, 0.3, 0.8, 1.0)
+    chk = nt.nodes.new("ShaderNodeTexChecker")
+    chk.inputs["Scale"].default_value = 5.0
+    mix = nt.nodes.new("ShaderNodeMixShader")
+    nt.links.new(chk.outputs["Fac"], mix.inputs["Fac"])
+    nt.links.new(nt.nodes["Principled BSDF"].outputs[0], mix.inputs[1])
+    nt.links.new(blue.outputs[0], mix.inputs[2])
+    nt.links.new(mix.outputs[0], nt.nodes["Material Output"].inputs["Surface"])
+
+
+@case
+def bump_noise():
+    """A Noise texture into a Bump node on the floor's Normal (procedural bump)."""
+    base()
+    nt = bpy.data.objects["floor"].active_material.node_tree
+    noise = nt.nodes.new("ShaderNodeTexNoise")
+    noise.inputs["Scale"].default_value = 2.0
+    bump = nt.nodes.new("ShaderNodeBump")
+    bump.inputs["Distance"].default_value = 1.0
+    nt.links.new(noise.outputs["Fac"], bump.inputs["Height"])
+    nt.links.new(bump.outputs["Normal"], nt.nodes["Principled BSDF"].inputs["Normal"])
+
+
+@case
+def dof_strong():
+    """A wide aperture (f/0.05) focused on the cube over a checkered floor."""
+    s = base()
+    nt = bpy.data.objects["floor"].active_material.node_tree
+    chk = nt.nodes.new("ShaderNodeTexChecker")
+    chk.inputs["Scale"].default_value = 30.0
+    nt.links.new(chk.outputs["Color"], nt.nodes["Principled BSDF"].inputs["Base Color"])
+    s.camera.data.dof.use_dof = True
+    s.camera.data.dof.aperture_fstop = 0.05
+    s.camera.data.dof.focus_object = bpy.data.objects["cube"]
+
+
+@case
+def sphere_lamp():
+    """A point lamp of radius 1 m with Soft Falloff off (a glowing sphere) instead of the sun."""
+    s = base()
+    bpy.data.objects.remove(bpy.data.objects["sun"])
+    lamp = bpy.data.objects.new("lamp", bpy.data.lights.new("lamp", "POINT"))
+    lamp.data.energy, lamp.data.shadow_soft_size, lamp.data.use_soft_falloff = 600.0, 1.0, False
+    lamp.location = (1.0, -1.0, 2.2)
+    s.collection.objects.link(lamp)
+
+
 if __name__ == "__main__":
     out = Path(sys.argv[1])
     out.mkdir(parents=True, exist_ok=True)
