@@ -736,6 +736,16 @@ def test_principled_specular_layers_are_read_and_approximations_named_once(bpy_m
     bsdf.inputs["Sheen Weight"].default_value = 0.2
     bsdf.inputs["Anisotropic"].default_value = 0.5
     add_cube(bpy, scene, "lacquered").data.materials.append(coated)
+    for name, roughness in (("rough", 0.8), ("smooth", 0.0)):
+        from hybridgi_cli import blender_compat
+
+        diffuse = blender_compat.new_material(bpy, name)
+        tree = diffuse.node_tree
+        node = tree.nodes.new("ShaderNodeBsdfDiffuse")
+        node.inputs["Roughness"].default_value = roughness
+        out = next(n for n in tree.nodes if n.type == "OUTPUT_MATERIAL")
+        tree.links.new(node.outputs[0], out.inputs["Surface"])
+        add_cube(bpy, scene, f"{name}_cube").data.materials.append(diffuse)
     with caplog.at_level(logging.WARNING):
         snap = snapshot(sync, bpy)
     layers = {m.name: m.specular for m in snap.materials}
@@ -750,5 +760,7 @@ def test_principled_specular_layers_are_read_and_approximations_named_once(bpy_m
     assert "shiny" not in notes[0] and "matte" not in notes[0]
     coated_material = next(m for m in snap.materials if m.name == "coated")
     np.testing.assert_allclose(coated_material.sheen, 0.2)
+    # A rough diffuse base (Cycles' Oren-Nayar) is rendered Lambertian: named, not silent.
+    assert "rough diffuse" in notes[0] and "'rough'" in notes[0] and "'smooth'" not in notes[0]
     assert coated_material.sheen_layered
     assert not [r for r in caplog.records if "lacks the glossy part" in r.getMessage()]
