@@ -115,6 +115,11 @@ def bake_size(n_triangles: int) -> int:
     return int(min(MAX_SIZE, max(MIN_SIZE, 2 ** math.ceil(math.log2(cells * TEXELS_PER_CELL)))))
 
 
+def cell_texels(n_triangles: int) -> float:
+    """Texels along one atlas cell (two triangles) of a bake of `n_triangles`."""
+    return bake_size(n_triangles) / max(1, math.ceil(math.sqrt(math.ceil(n_triangles / 2))))
+
+
 def atlas_uvs(n_triangles: int, size: int) -> np.ndarray:
     """(n, 3, 2) float32 UVs in [0, 1]: triangle 2k and 2k+1 share cell k (row-major), the first
     below the cell's diagonal, the second above it, each inset by PAD texels and GAP apart."""

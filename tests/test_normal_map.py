@@ -352,6 +352,36 @@ def test_sync_reads_normal_map_tangents_and_warns_once_for_bump(bpy_module, empt
 
 
 @pytest.mark.blender
+def test_a_procedural_bump_on_a_mesh_too_fine_for_its_atlas_keeps_the_smooth_normal(bpy_module, empty_scene, sync,
+                                                                                   caplog):
+    """A Noise bump on a 180x180 grid (64,800 triangles): its atlas cells would be a few texels
+    wide, and differences across them read the next triangles (the Stanford dragon came out 18%
+    too dark), so the height is not baked for it: the smooth normal, noted
+    (`sync.MIN_BUMP_CELL_TEXELS`); the same material on a plane is bumped."""
+    from mathutils import Matrix
+
+    from hybridgi_cli import blender_compat
+
+    bpy = bpy_module
+    mat = blender_compat.new_material(bpy, "noisy")
+    tree = mat.node_tree
+    bump = tree.nodes.new("ShaderNodeBump")
+    tree.links.new(tree.nodes.new("ShaderNodeTexNoise").outputs["Fac"], bump.inputs["Height"])
+    tree.links.new(bump.outputs["Normal"], tree.nodes["Principled BSDF"].inputs["Normal"])
+    bpy.ops.mesh.primitive_grid_add(x_subdivisions=181, y_subdivisions=181, size=2.0)
+    grid = bpy.context.active_object
+    grid.data.materials.append(mat)
+    _plane(bpy, empty_scene, "plain", Matrix.Translation((0, 0, -3)), mat)
+    with caplog.at_level(logging.WARNING):
+        snap = sync.snapshot_from_depsgraph(bpy.context.evaluated_depsgraph_get())
+    maps = [m.normal_map for m in snap.materials if m.name == "noisy"]
+    assert sum(m is not None and m.bump is not None and m.bump.on_atlas for m in maps) == 1  # the plane's
+    assert any(m is None for m in maps)  # the grid's
+    notes = [r.getMessage() for r in caplog.records if "approximated" in r.getMessage()]
+    assert any("'noisy'" in n and "Bump height from ShaderNodeTexNoise" in n for n in notes), notes
+
+
+@pytest.mark.blender
 def test_ngon_fallback_tangents_agree_with_mikktspace(bpy_module, empty_scene, sync):
     bpy = bpy_module
     bpy.ops.mesh.primitive_uv_sphere_add(segments=24, ring_count=12)
