@@ -19,7 +19,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from hybridgi_core import corner_triangles, environment, hair, points, surface_mix
+from hybridgi_core import corner_triangles, environment, hair, ies, points, surface_mix
 from hybridgi_core import snapshot as snap
 from hybridgi_core import specular as sp
 from hybridgi_core.blackbody import blackbody_rgb
@@ -2312,7 +2312,8 @@ def light_from_blender(light, matrix_world, name="", obj=None, notes=None):
     color = _rgb(light.color)
     if use_temperature:
         color = color * _rgb(light.temperature_color)
-    color = color * _light_nodes(light, name, notes)
+    factor, profile = _light_nodes(light, name, notes)
+    color = color * factor
     # The Diffuse and Specular factors are EEVEE's: Cycles renders a lamp with diffuse_factor 0.5
     # (or specular_factor 0) as with 1 (Cornell, Diffuse Direct mean 0.384 either way).
     power = glossy_power = float(light.energy) * 2.0**exposure
@@ -2324,6 +2325,7 @@ def light_from_blender(light, matrix_world, name="", obj=None, notes=None):
     kind = light.type
     fields = {"cast_shadow": compat.light_casts_shadow(light)}
     if kind in ("POINT", "SPOT"):
+        fields["profile"] = profile
         fields["radius"] = float(light.shadow_soft_size)
         fields["soft_falloff"] = compat.soft_falloff(light)
         if kind == "SPOT":
@@ -2372,13 +2374,14 @@ def warn_lamp_notes(notes) -> None:
         log.warning("light %s: %s", _listed(names), meaning)
 
 
-def _light_nodes(light, name, notes) -> np.ndarray:
-    """(3,) factor a light's node tree puts on its colour x strength, as Cycles multiplies the
-    emission its Light Output receives: an Emission node's Color x Strength where both are
-    constants or the Color a Blackbody node of a constant temperature (through reroutes); 1
-    without nodes; 0 with nothing linked to the output. Anything else keeps its own value and is
-    noted."""
-    one = np.ones(3, np.float32)
+def _light_nodes(light, name, notes):
+    """((3,) factor a light's node tree puts on its colour x strength, as Cycles multiplies the
+    emission its Light Output receives; its IES profile or None): an Emission node's Color x
+    Strength where both are constants or the Color a Blackbody node of a constant temperature
+    (through reroutes), the Strength an IES Texture's (`_ies_profile`: the profile, times the
+    factor); 1 without nodes; 0 with nothing linked to the output. Anything else keeps its own
+    value and is noted."""
+    one, zero = (np.ones(3, np.float32), None), (np.zeros(3, np.float32), None)
     tree = light.node_tree if getattr(light, "use_nodes", False) else None
     if tree is None:
         return one
@@ -2387,11 +2390,11 @@ def _light_nodes(light, name, notes) -> np.ndarray:
     if surface is None or not surface.is_linked:
         if surface is not None and output is not None:
             # An output with nothing linked emits nothing in Cycles.
-            return np.zeros(3, np.float32)
+            return zero
         return one
     node, _ = _source(surface)
     if node is None:  # a muted link or node: nothing reaches the output
-        return np.zeros(3, np.float32)
+        return zero
     if node.type != "EMISSION":
         notes.setdefault(f"its node tree's {node.bl_idname} is not read (the lamp renders as without nodes)",
                          set()).add(name)
@@ -2402,10 +2405,50 @@ def _light_nodes(light, name, notes) -> np.ndarray:
     if source is not None and source.type == "BLACKBODY" and _source(source.inputs["Temperature"])[0] is None:
         # Cycles renders a Blackbody node as it renders the light's own Temperature.
         color, source = blackbody_rgb(source.inputs["Temperature"].default_value), None
-    if source is not None or _source(strength_in)[0] is not None:
+    profile = None
+    if _source(strength_in)[0] is not None:
+        profile = _ies_profile(strength_in, name, notes)
+    if source is not None or (_source(strength_in)[0] is not None and profile is None):
         notes.setdefault("an Emission Color or Strength fed by a node is not read (its own value is used)",
                          set()).add(name)
-    return (color * float(strength_in.default_value)).astype(np.float32)
+    strength = 1.0 if profile is not None else float(strength_in.default_value)
+    return (color * strength).astype(np.float32), profile
+
+
+def _ies_profile(socket, name, notes):
+    """`ies.IESProfile` of an IES Texture node feeding a lamp's Emission Strength (directly, or
+    times a constant by a Math Multiply), its own Strength and that constant folded in; its
+    Vector must be unlinked (the lamp's own frame). None for anything else, or a file Cycles
+    would not read (noted)."""
+    node, _ = _source(socket)
+    scale = 1.0
+    if node is not None and node.type == "MATH" and node.operation == "MULTIPLY":
+        a, b = (_source(node.inputs[i])[0] for i in (0, 1))
+        constants = [float(node.inputs[i].default_value) for i, n in enumerate((a, b)) if n is None]
+        linked = [n for n in (a, b) if n is not None]
+        if len(linked) != 1 or len(constants) != 1:
+            return None
+        node, scale = linked[0], constants[0]
+    if node is None or node.type != "TEX_IES" or _source(node.inputs["Vector"])[0] is not None:
+        return None
+    import bpy  # noqa: PLC0415
+
+    try:
+        if node.mode == "EXTERNAL":
+            with open(bpy.path.abspath(node.filepath), encoding="latin-1") as handle:
+                text = handle.read()
+        else:
+            text = node.ies.as_string() if node.ies is not None else ""
+    except OSError as err:
+        notes.setdefault(f"its IES file could not be read ({err.__class__.__name__}): it renders as without it",
+                         set()).add(name)
+        return None
+    profile = ies.parse(text)
+    if profile is None:
+        notes.setdefault("its IES profile is not one Cycles reads (it renders as without it)", set()).add(name)
+        return None
+    factor = scale * float(node.inputs["Strength"].default_value)
+    return ies.IESProfile(profile.h, profile.v, (profile.table * np.float32(factor)).astype(np.float32))
 
 
 #: Environment maps already split, by what they depend on (`_environment_key`): a world that did

@@ -259,7 +259,8 @@ def _is_affine(before: np.ndarray, after: np.ndarray) -> bool:
 def _light_key(light: Light) -> tuple:
     return (light.kind, light.color.tobytes(), float(light.power), light.matrix.tobytes(), light.radius,
             light.soft_falloff, light.spot_size, light.spot_blend, light.angle, light.shape, light.size, light.size_y,
-            light.spread, light.cast_shadow, light.glossy_power)
+            light.spread, light.cast_shadow, light.glossy_power,
+            None if getattr(light, "profile", None) is None else light.profile.key())
 
 
 def _material_key(material: Material) -> tuple:

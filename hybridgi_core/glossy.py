@@ -495,7 +495,7 @@ def _round_lamp_samples(light: Light, p, rng, samples):
         d2 = np.maximum((w * w).sum(-1), 1e-8)
         dirs = w / np.sqrt((w * w).sum(-1).clip(1e-16))[..., None]
         weight = (power / (4.0 * np.pi)) / d2
-        if light.kind == "SPOT":
+        if light.directional:
             weight = weight * spot_attenuation(light, -to.astype(_F32))[:, None]
         return dirs, weight, q
     axis = to / dist[:, None]  # receiver -> lamp
@@ -525,7 +525,7 @@ def _round_lamp_samples(light: Light, p, rng, samples):
         q = p[:, None, :] + dirs * t[..., None]
         # Uniform in the cone: one weight per receiver, the same for each of its samples.
         weight = np.broadcast_to((power / (2.0 * np.pi * r2 * samples)) * omc, (m, samples)).copy()
-    if light.kind == "SPOT":
+    if light.directional:
         cone = spot_attenuation(light, -dirs.reshape(-1, 3).astype(_F32)).reshape(m, samples)
         if not light.soft_falloff:
             cone[dist <= radius] = 1.0

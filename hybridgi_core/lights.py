@@ -271,7 +271,8 @@ def smoothstep01(x: np.ndarray) -> np.ndarray:
 
 
 def spot_attenuation(light: Light, to_point: np.ndarray) -> np.ndarray:
-    """(k,) float32 cone factor of a SPOT for world directions lamp -> receiver.
+    """(k,) float32 cone factor of a SPOT for world directions lamp -> receiver, times its IES
+    profile where it has one (`Light.profile`: a POINT's too; `Light.directional`).
 
     to_point : (k, 3) float32, not necessarily unit. The direction is taken into the lamp's local
     frame with the inverse matrix (as Cycles' `spot_light_to_local`), so a non-uniformly scaled
@@ -290,12 +291,18 @@ def spot_attenuation(light: Light, to_point: np.ndarray) -> np.ndarray:
         local = to_point @ inv.T
         local_z = local[:, 2]
         norm = np.linalg.norm(local, axis=1)
+    profile = getattr(light, "profile", None)
+    shaped = None if profile is None else profile(to_point if inv is None else local)
+    if light.kind != "SPOT":
+        return np.ones(to_point.shape[0], _F32) if shaped is None else shaped
     cos_axis = -local_z / np.maximum(norm, 1e-30)
     cos_half = np.cos(0.5 * float(light.spot_size))
     blend = float(light.spot_blend)
     if blend <= 0.0:
-        return (cos_axis > cos_half).astype(_F32)
-    return smoothstep01((cos_axis - cos_half) / ((1.0 - cos_half) * blend)).astype(_F32)
+        cone = (cos_axis > cos_half).astype(_F32)
+    else:
+        cone = smoothstep01((cos_axis - cos_half) / ((1.0 - cos_half) * blend)).astype(_F32)
+    return cone if shaped is None else cone * shaped
 
 
 # --------------------------------------------------------------------------------------------
@@ -393,7 +400,7 @@ def _point_chunk(light, p, nrm, tracer, rng, samples, epsilon, partial=None, ope
     inv_d = 1.0 / np.sqrt(d2)
     cos_r = (wx * nrm[0] + wy * nrm[1] + wz * nrm[2]) * inv_d
     e = (float(light.power) / (4.0 * np.pi)) * np.maximum(cos_r, 0.0) / d2
-    if light.kind == "SPOT":
+    if light.directional:
         e *= spot_attenuation(light, -np.stack([wx, wy, wz], axis=1))
     if opened is not None:
         opened.append(e.copy())
@@ -496,7 +503,7 @@ def _radius_chunk(light, p, nrm, tracer, rng, samples, epsilon, partial=None, op
         full = (power / (4.0 * np.pi)) * cos_r[live] / (d2[live] + r2)
         dx, dy, dz = dx * inv_t, dy * inv_t, dz * inv_t
     f = f.astype(_F32)
-    if light.kind == "SPOT":
+    if light.directional:
         att = spot_attenuation(light, -np.stack([dx.ravel(), dy.ravel(), dz.ravel()], axis=1)).reshape(k, s)
         att[into] = 1.0
         fa = f * att
@@ -517,7 +524,7 @@ def _radius_chunk(light, p, nrm, tracer, rng, samples, epsilon, partial=None, op
         # Where the samples' weights differ for reasons other than shadows (the spot's cone edge
         # crosses the emitter), they are noisy as in a penumbra: same count.
         varied = np.zeros(k, bool)
-        if light.kind == "SPOT":
+        if light.directional:
             varied |= att.min(axis=1) != att.max(axis=1)
         partial[live[varied]] = True
     w = (fa * ratio[:, None]).ravel()
@@ -1016,6 +1023,8 @@ def _rough_light(light: Light, pts: np.ndarray, nrm: np.ndarray) -> np.ndarray:
     if light.kind == "SPOT":
         inside = -(v @ axis) / d >= _F32(np.cos(min(float(light.spot_size) * 0.5 + 0.1, np.pi)))
         e = np.where(inside, e, _F32(0.0))
+    elif light.directional:  # an IES profile
+        e = e * spot_attenuation(light, -v.astype(_F32))
     return e.astype(_F32)
 
 

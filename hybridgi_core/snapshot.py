@@ -310,6 +310,8 @@ class Light:
     cast_shadow : False traces no shadow rays for this lamp (Blender's "Shadow" checkbox off).
     glossy_power : the power glossy lobes see (0 when the lamp object is hidden from glossy rays);
         None: `power`. `power` is what diffuse surfaces see (0 when hidden from diffuse rays).
+    profile : POINT/SPOT only: an `ies.IESProfile` (an IES Texture node on the lamp's emission
+        strength, times its Strength) that scales its radiance per direction, or None
     """
 
     kind: str
@@ -328,6 +330,7 @@ class Light:
     spread: float = np.pi
     cast_shadow: bool = True
     glossy_power: float | None = None
+    profile: object | None = None
 
     def __post_init__(self) -> None:
         if self.kind not in LIGHT_KINDS:
@@ -363,6 +366,12 @@ class Light:
     @property
     def position(self) -> np.ndarray:
         return self.matrix[:3, 3].astype(np.float32)
+
+    @property
+    def directional(self) -> bool:
+        """Whether its radiance depends on the direction it leaves in: a spot's cone, an IES
+        profile (`lights.spot_attenuation` weighs both)."""
+        return self.kind == "SPOT" or (self.profile is not None and self.kind == "POINT")
 
     @property
     def direction(self) -> np.ndarray:
