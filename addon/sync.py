@@ -1972,7 +1972,8 @@ def bake_plan(material) -> tuple[list, list, list]:
                 source, output = _source(fac)
                 if source is not None and source.type not in VIEW_FACTOR_NODES:
                     (images if _direct_image(source, output) else out).append((node.name, fac.identifier))
-            elif fac is not None and fac.is_linked and _fold(fac, 0) is None and _texel_factor(fac):
+            elif (fac is not None and fac.is_linked and not getattr(node, "grouped", False) and _fold(fac, 0) is None
+                  and _texel_factor(fac)):
                 # Two surfaces mixed by a mask (dirt, wear, a second material): its value per texel,
                 # which mixes their colours (`_mix_surface`).
                 out.append((node.name, fac.identifier))
