@@ -2315,6 +2315,9 @@ def light_from_blender(light, matrix_world, name="", obj=None, notes=None):
         color = color * _rgb(light.temperature_color)
     factor, profile = _light_nodes(light, name, notes)
     color = color * factor
+    if profile is not None and light.type not in ("POINT", "SPOT"):
+        notes.setdefault("an IES profile on an area or sun lamp is not read (it renders at Strength 1)", set()).add(name)
+        profile = None
     # The Diffuse and Specular factors are EEVEE's: Cycles renders a lamp with diffuse_factor 0.5
     # (or specular_factor 0) as with 1 (Cornell, Diffuse Direct mean 0.384 either way).
     power = glossy_power = float(light.energy) * 2.0**exposure
