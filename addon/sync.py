@@ -982,6 +982,9 @@ def _shader_surface(shader, textures, name, depth=0):
                                        clear=clear, refract=refract, sheen=sheen_colour,
                                        sheen_roughness=sheen_roughness,
                                        sheen_layered=True, translucent=translucent)
+    if kind in ("BSDF_HAIR_PRINCIPLED", "BSDF_HAIR"):
+        _note(textures, name, shader, "hair BSDF (rendered as a diffuse fibre of its overall colour)")
+        return surface_mix.SurfacePart(base=_hair_colour(shader, name))
     if kind == "BSDF_DIFFUSE":
         rough = _input(shader, "Roughness")
         if rough is not None and (rough.is_linked or _constant_value(rough, name) > 0):
@@ -1468,6 +1471,48 @@ def _mix_surface(shader, kind, textures, name, depth):
     for note in notes:
         _note(textures, name, shader, note)
     return part
+
+
+#: Cycles' melanin absorption per unit concentration (kernel/closure/bsdf_principled_hair*.h,
+#: `sigma_from_concentration`): eumelanin, pheomelanin.
+EUMELANIN_SIGMA = np.array([0.506, 0.841, 1.653])
+PHEOMELANIN_SIGMA = np.array([0.343, 0.733, 1.924])
+
+
+def _hair_reflectance_scale(radial_roughness: float) -> float:
+    """Cycles' `sigma_from_reflectance` denominator at azimuthal roughness x: sigma = (ln c / it)^2."""
+    x = float(np.clip(radial_roughness, 0.0, 1.0))
+    return 5.969 - 0.215 * x + 2.532 * x**2 - 10.73 * x**3 + 5.574 * x**4 + 0.245 * x**5
+
+
+def _hair_colour(shader, name) -> np.ndarray:
+    """(3,) the diffuse colour a hair BSDF is rendered with: its fibre reflectance c (the Principled
+    Hair's Direct Coloring colour, or exp(-sqrt(sigma) k) of its absorption, from melanin and tint
+    or given, inverting Cycles' `sigma_from_reflectance`; a Hair BSDF's Color), brightened as a
+    lock of fibres scatters light among them: 0.022 + 2.7c / (1 + 1.4c), fitted to Cycles' hair
+    patches of melanin 0.6, absorption (0.25, 0.6, 1.2) and colour (0.6, 0.3, 0.1) under a sun and
+    a grey sky (the 0.022 is the fibres' white primary reflection)."""
+    if shader.type == "BSDF_HAIR":
+        c = _constant_color(shader.inputs["Color"], name)
+    else:
+        k = _hair_reflectance_scale(_constant_value(_input(shader, "Radial Roughness") or shader.inputs["Roughness"],
+                                                    name, 0.3))
+        mode = getattr(shader, "parametrization", "COLOR")
+        if mode == "COLOR":
+            c = _constant_color(shader.inputs["Color"], name)
+        else:
+            if mode == "MELANIN":
+                melanin = -math.log(max(1.0 - _constant_value(shader.inputs["Melanin"], name, 0.8), 1e-4))
+                red = float(np.clip(_constant_value(shader.inputs["Melanin Redness"], name, 1.0), 0.0, 1.0))
+                sigma = melanin * ((1.0 - red) * EUMELANIN_SIGMA + red * PHEOMELANIN_SIGMA)
+                tint = np.clip(_constant_color(shader.inputs["Tint"], name), 1e-4, 1.0)
+                sigma = sigma + (np.log(tint) / k) ** 2
+            else:
+                sigma = np.maximum(np.asarray(_constant_color(shader.inputs["Absorption Coefficient"], name),
+                                              np.float64), 0.0)
+            c = np.exp(-np.sqrt(sigma) * k)
+    c = np.clip(np.asarray(c, np.float64), 0.0, 1.0)
+    return np.clip(0.022 + 2.7 * c / (1.0 + 1.4 * c), 0.0, 1.0).astype(np.float32)
 
 
 def _texel_factor(socket) -> bool:
