@@ -441,6 +441,8 @@ class _SnapshotBuilder:
         self.wait = wait
         self.render_mode = render_mode  # a render's depsgraph: particle paths at their render steps
         self._baked = {}  # (material, mesh pointer, slot) -> material index
+        self._optional_left = OPTIONAL_BAKE_JOBS  # mask and height bakes this sync may still queue
+        self._optional_granted = set()  # (material, mesh pointer, slot) whose optional bakes were queued
         self._bakes = []  # (material index, bpy material, [BakeJob])
         self._atlas_meshes = {}  # (mesh pointer, baked slots) -> _LocalMesh with atlas UVs
         self._sockets = {}  # material pointer -> its `bake_sockets` (one walk of its tree per sync)
@@ -682,12 +684,14 @@ class _SnapshotBuilder:
             return [self._material(material) for material in materials], local
         baked, bumped = {}, set()
         for s, material in enumerate(materials):
-            own, heights, images = self._bake_sockets(material)
+            own, masks, heights, images = self._bake_sockets(material)
             count = int((slots == s).sum())
             if heights and material_bake.cell_texels(count) < MIN_BUMP_CELL_TEXELS:
                 heights = []  # too fine a mesh for the atlas: the smooth normal, noted (`_height_map`)
-            if (own or heights) and count:
-                baked[s] = own + heights + images
+            if (masks or heights) and not self._optional_bakes(material, obj, s, len(masks) + len(heights)):
+                masks, heights = [], []  # past the sync's budget: their own values, noted
+            if (own or masks or heights) and count:
+                baked[s] = own + masks + heights + images
                 if heights:
                     bumped.add(s)
         indices = [self._material(material) if s not in baked
@@ -701,11 +705,23 @@ class _SnapshotBuilder:
             local = self._atlas_meshes[key]
         return indices, local
 
-    def _bake_sockets(self, material) -> tuple[list, list, list]:
+    def _optional_bakes(self, material, obj, slot, jobs: int) -> bool:
+        """Whether this mesh slot's mask and height bakes (`jobs` of them) fit the sync's
+        OPTIONAL_BAKE_JOBS; a slot already granted (another instance of the mesh) always does."""
+        key = (material.name_full, obj.data.as_pointer(), slot)
+        if key in self._optional_granted:
+            return True
+        if self._optional_left < jobs:
+            return False
+        self._optional_left -= jobs
+        self._optional_granted.add(key)
+        return True
+
+    def _bake_sockets(self, material) -> tuple[list, list, list, list]:
         """`bake_plan` of `material` (None: none), walked once per sync however many objects
         use it (1000 objects of one material: 60 ms of walks)."""
         if material is None:
-            return [], [], []
+            return [], [], [], []
         key = material.as_pointer()
         if key not in self._sockets:
             self._sockets[key] = bake_plan(material)
@@ -1981,25 +1997,27 @@ ROUGH_DIFFUSE_NOTE = "a rough diffuse (Oren-Nayar roughness: rendered Lambertian
 
 
 def bake_sockets(material) -> list[tuple[str, str]]:
-    """Every pair of `bake_plan(material)` (its bump height with the rest, and its images where
-    anything else is baked)."""
-    own, heights, images = bake_plan(material)
-    needed = own + heights
+    """Every pair of `bake_plan(material)` (its masks and bump height with the rest, and its
+    images where anything else is baked)."""
+    own, masks, heights, images = bake_plan(material)
+    needed = own + masks + heights
     return needed + images if needed else needed
 
 
-def bake_plan(material) -> tuple[list, list, list]:
-    """(own, heights, images): (node name, input identifier) of every diffuse colour input of `material`'s surface
+def bake_plan(material) -> tuple[list, list, list, list]:
+    """(own, masks, heights, images): (node name, input identifier) of every diffuse colour input of `material`'s surface
     (through Mix / Add Shaders) that needs Blender to evaluate it: linked to anything but a
     readable image, a constant, or a muted link; and (node name, EMISSION_BAKE) of every
     emission whose colour or strength is linked to anything but constants or an image's colour
-    under a constant strength; its bump height Blender must evaluate (`height_bakes`), apart, as a
-    mesh too fine for its atlas keeps the smooth normal; and its images on these inputs, which are
-    baked too once anything else is (its triangles are then on the bake's atlas UVs)."""
+    under a constant strength; apart, the masks its Mix Shaders mix surfaces by (`_texel_factor`)
+    and its bump height Blender must evaluate (`height_bakes`), which a sync bakes only within
+    OPTIONAL_BAKE_JOBS (and a height only on a mesh coarse enough for its atlas); and its images
+    on these inputs, which are baked too once anything else is (its triangles are then on the
+    bake's atlas UVs)."""
     tree = getattr(material, "node_tree", None)
     if tree is None:
-        return [], [], []
-    out, images = [], []
+        return [], [], [], []
+    out, images, masks = [], [], []
     stack, seen = [_linked_node(_surface_input(tree))], set()
     while stack:
         node = stack.pop()
@@ -2021,7 +2039,7 @@ def bake_plan(material) -> tuple[list, list, list]:
                   and _texel_factor(fac)):
                 # Two surfaces mixed by a mask (dirt, wear, a second material): its value per texel,
                 # which mixes their colours (`_mix_surface`).
-                out.append((node.name, fac.identifier))
+                masks.append((node.name, fac.identifier))
             continue
         if getattr(node, "grouped", False):
             continue  # inside a node group: the bake process edits the material's own tree only
@@ -2052,7 +2070,7 @@ def bake_plan(material) -> tuple[list, list, list]:
             continue
         if _fold(socket, 0) is None:
             out.append((node.name, socket.identifier))
-    return out, height_bakes(material, [tree.nodes[n] for n in seen if n in tree.nodes]), images
+    return out, masks, height_bakes(material, [tree.nodes[n] for n in seen if n in tree.nodes]), images
 
 
 def height_bakes(material, shaders) -> list[tuple[str, str]]:
@@ -2201,6 +2219,11 @@ def bake_job(material, node, socket, mesh, local, triangles):
 #: Diffuse Direct 18% too dark; its Combined 0.153 -> 0.180 against Cycles). Such a mesh keeps
 #: the smooth normal, noted.
 MIN_BUMP_CELL_TEXELS = 16
+#: Mask and bump-height bakes (`bake_plan`'s optional ones: without them the factor keeps its own
+#: value and the normal is smooth, as before they were baked) one sync queues at most, each mesh
+#: slot's together: a bake is 0.2-4 s of the first render (cached after), and a scene of a hundred
+#: rocks under one Noise bump would have spent minutes on them. Past it, noted as before.
+OPTIONAL_BAKE_JOBS = 24
 
 
 def with_atlas(local, slots, baked_slots, bumped=frozenset()):

@@ -382,6 +382,44 @@ def test_a_procedural_bump_on_a_mesh_too_fine_for_its_atlas_keeps_the_smooth_nor
 
 
 @pytest.mark.blender
+def test_procedural_bumps_are_baked_within_the_syncs_budget(bpy_module, empty_scene, sync, caplog, monkeypatch):
+    """Mask and height bakes are optional (the factor's own value, the smooth normal, without
+    them): a sync queues at most OPTIONAL_BAKE_JOBS, so a scene of many meshes under a Noise bump
+    does not spend minutes of its first render baking; the rest is noted as before. Here a budget
+    of one: the first plane is bumped, the next two keep the smooth normal, and an instance of the
+    first plane's mesh shares its bake without spending more."""
+    from mathutils import Matrix
+
+    from hybridgi_cli import blender_compat
+
+    bpy = bpy_module
+    monkeypatch.setattr(sync, "OPTIONAL_BAKE_JOBS", 1)
+    mat = blender_compat.new_material(bpy, "noisy")
+    tree = mat.node_tree
+    bump = tree.nodes.new("ShaderNodeBump")
+    tree.links.new(tree.nodes.new("ShaderNodeTexNoise").outputs["Fac"], bump.inputs["Height"])
+    tree.links.new(bump.outputs["Normal"], tree.nodes["Principled BSDF"].inputs["Normal"])
+    first = _plane(bpy, empty_scene, "p0", Matrix.Translation((0, 0, 0)), mat)
+    for i in (1, 2):
+        _plane(bpy, empty_scene, f"p{i}", Matrix.Translation((0, 0, -3.0 * i)), mat)
+    twin = bpy.data.objects.new("twin", first.data)
+    twin.matrix_world = Matrix.Translation((3, 0, 0))
+    empty_scene.collection.objects.link(twin)
+    with caplog.at_level(logging.WARNING):
+        snap = sync.snapshot_from_depsgraph(bpy.context.evaluated_depsgraph_get())
+    maps = [m.normal_map for m in snap.materials if m.name == "noisy"]
+    assert sum(m is not None and m.bump is not None for m in maps) == 1  # p0 and its twin share it
+    objects = [o.name for o in snap.objects]
+    index = snap.geometry.material_index
+    bumped = {i for i, m in enumerate(snap.materials) if m.name == "noisy" and m.normal_map is not None}
+    for name, expected in (("p0", True), ("twin", True), ("p1", False), ("p2", False)):
+        mats = set(index[snap.geometry.object_index == objects.index(name)].tolist())
+        assert bool(mats & bumped) == expected, name
+    notes = [r.getMessage() for r in caplog.records if "approximated" in r.getMessage()]
+    assert any("Bump height from ShaderNodeTexNoise" in n for n in notes), notes
+
+
+@pytest.mark.blender
 def test_ngon_fallback_tangents_agree_with_mikktspace(bpy_module, empty_scene, sync):
     bpy = bpy_module
     bpy.ops.mesh.primitive_uv_sphere_add(segments=24, ring_count=12)
