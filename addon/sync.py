@@ -1505,9 +1505,11 @@ def _hair_colour(shader, name) -> np.ndarray:
     """(3,) the diffuse colour a hair BSDF is rendered with: its fibre reflectance c (the Principled
     Hair's Direct Coloring colour, or exp(-sqrt(sigma) k) of its absorption, from melanin and tint
     or given, inverting Cycles' `sigma_from_reflectance`; a Hair BSDF's Color), brightened as a
-    lock of fibres scatters light among them: 0.022 + 2.7c / (1 + 1.4c), fitted to Cycles' hair
+    lock of fibres scatters light among them: 0.022 + 2.7c / (1 + 2c), fitted to Cycles' hair
     patches of melanin 0.6, absorption (0.25, 0.6, 1.2) and colour (0.6, 0.3, 0.1) under a sun and
-    a grey sky (the 0.022 is the fibres' white primary reflection)."""
+    a grey sky, and of melanin 0.3 and colour (0.3, 0.5, 0.7) under an area lamp (the 0.022 is the
+    fibres' white primary reflection). Dark hair is within ~10%; a light colour's fibres scatter
+    forwards differently under each light (-10% under the sun, +12% under the area lamp)."""
     if shader.type == "BSDF_HAIR":
         c = _constant_color(shader.inputs["Color"], name)
     else:
@@ -1528,7 +1530,7 @@ def _hair_colour(shader, name) -> np.ndarray:
                                               np.float64), 0.0)
             c = np.exp(-np.sqrt(sigma) * k)
     c = np.clip(np.asarray(c, np.float64), 0.0, 1.0)
-    return np.clip(0.022 + 2.7 * c / (1.0 + 1.4 * c), 0.0, 1.0).astype(np.float32)
+    return np.clip(0.022 + 2.7 * c / (1.0 + 2.0 * c), 0.0, 1.0).astype(np.float32)
 
 
 def _texel_factor(socket) -> bool:
