@@ -104,6 +104,21 @@ def sun(s, strength=3.0, direction=(0.5, 0.6, -1.0)):
     return o
 
 
+def floor_node(kind, **inputs):
+    """A new node of the floor's material with these input values (names with spaces: a dict)."""
+    node = bpy.data.objects["floor"].active_material.node_tree.nodes.new(kind)
+    for key, value in inputs.items():
+        node.inputs[key].default_value = value
+    return node
+
+
+def floor_link(a, output, b, socket):
+    """Link node a's `output` into node b's `socket` (or the floor material's node of that name)."""
+    nt = bpy.data.objects["floor"].active_material.node_tree
+    b = nt.nodes[b] if isinstance(b, str) else b
+    nt.links.new(a.outputs[output], b.inputs[socket])
+
+
 def world(s, color=(0.3, 0.3, 0.3)):
     w = bpy.data.worlds.new("world")
     w.use_nodes = True
@@ -688,14 +703,9 @@ def particle_hair():
 def displacement_bump():
     """A height texture into the Material Output's Displacement (Cycles' default: Bump Only)."""
     base()
-    m = bpy.data.objects["floor"].active_material
-    nt = m.node_tree
-    wave = nt.nodes.new("ShaderNodeTexWave")
-    wave.inputs["Scale"].default_value = 3.0
-    disp = nt.nodes.new("ShaderNodeDisplacement")
-    disp.inputs["Scale"].default_value = 0.3
-    nt.links.new(wave.outputs["Fac"], disp.inputs["Height"])
-    nt.links.new(disp.outputs["Displacement"], nt.nodes["Material Output"].inputs["Displacement"])
+    disp = floor_node("ShaderNodeDisplacement", Scale=0.3)
+    floor_link(floor_node("ShaderNodeTexWave", Scale=3.0), "Fac", disp, "Height")
+    floor_link(disp, "Displacement", "Material Output", "Displacement")
 
 
 @case
@@ -731,39 +741,27 @@ def displacement_image():
 def mix_mask():
     """Two surfaces on the floor, the grey and a blue, mixed by a checker mask (dirt, wear)."""
     base()
-    nt = bpy.data.objects["floor"].active_material.node_tree
-    blue = nt.nodes.new("ShaderNodeBsdfPrincipled")
-    blue.inputs["Base Color"].default_value = (0.1, 0.3, 0.8, 1.0)
-    chk = nt.nodes.new("ShaderNodeTexChecker")
-    chk.inputs["Scale"].default_value = 5.0
-    mix = nt.nodes.new("ShaderNodeMixShader")
-    nt.links.new(chk.outputs["Fac"], mix.inputs["Fac"])
-    nt.links.new(nt.nodes["Principled BSDF"].outputs[0], mix.inputs[1])
-    nt.links.new(blue.outputs[0], mix.inputs[2])
-    nt.links.new(mix.outputs[0], nt.nodes["Material Output"].inputs["Surface"])
+    mix = floor_node("ShaderNodeMixShader")
+    floor_link(floor_node("ShaderNodeTexChecker", Scale=5.0), "Fac", mix, "Fac")
+    floor_link(bpy.data.objects["floor"].active_material.node_tree.nodes["Principled BSDF"], 0, mix, 1)
+    floor_link(floor_node("ShaderNodeBsdfPrincipled", **{"Base Color": (0.1, 0.3, 0.8, 1.0)}), 0, mix, 2)
+    floor_link(mix, 0, "Material Output", "Surface")
 
 
 @case
 def bump_noise():
     """A Noise texture into a Bump node on the floor's Normal (procedural bump)."""
     base()
-    nt = bpy.data.objects["floor"].active_material.node_tree
-    noise = nt.nodes.new("ShaderNodeTexNoise")
-    noise.inputs["Scale"].default_value = 2.0
-    bump = nt.nodes.new("ShaderNodeBump")
-    bump.inputs["Distance"].default_value = 1.0
-    nt.links.new(noise.outputs["Fac"], bump.inputs["Height"])
-    nt.links.new(bump.outputs["Normal"], nt.nodes["Principled BSDF"].inputs["Normal"])
+    bump = floor_node("ShaderNodeBump", Distance=1.0)
+    floor_link(floor_node("ShaderNodeTexNoise", Scale=2.0), "Fac", bump, "Height")
+    floor_link(bump, "Normal", "Principled BSDF", "Normal")
 
 
 @case
 def dof_strong():
     """A wide aperture (f/0.05) focused on the cube over a checkered floor."""
     s = base()
-    nt = bpy.data.objects["floor"].active_material.node_tree
-    chk = nt.nodes.new("ShaderNodeTexChecker")
-    chk.inputs["Scale"].default_value = 30.0
-    nt.links.new(chk.outputs["Color"], nt.nodes["Principled BSDF"].inputs["Base Color"])
+    floor_link(floor_node("ShaderNodeTexChecker", Scale=30.0), "Color", "Principled BSDF", "Base Color")
     s.camera.data.dof.use_dof = True
     s.camera.data.dof.aperture_fstop = 0.05
     s.camera.data.dof.focus_object = bpy.data.objects["cube"]
