@@ -510,6 +510,9 @@ class _SnapshotBuilder:
             holdout = holdout or bool(getattr(parent, "is_holdout", False)) or (
                 "holdout" in self.collection_flags.get(parent.name, ()))
             catcher = catcher or bool(getattr(parent, "is_shadow_catcher", False))
+        if catcher and not self.render_mode:
+            # Final renders compose it (`catcher.py`); the viewport draws the plain surface.
+            self.ignored.setdefault("a shadow catcher (composed in final renders only)", set()).add(name)
         self._note_ignored(obj)
         self.objects.append(snap.ObjectInfo(name=name, dynamic=dynamic, camera_visible=camera_visible,
                                             holdout=holdout, casts_shadow=casts_shadow, shadow_catcher=catcher))

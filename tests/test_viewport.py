@@ -1069,6 +1069,25 @@ def test_a_view_through_a_camera_with_depth_of_field_settles_on_the_final_render
     assert err_settled < 0.5 * err_centre, (err_settled, err_centre)
 
 
+def test_a_shadow_catcher_in_the_view_is_named_as_a_final_render_feature(addon, caplog):
+    """Final renders compose a shadow catcher (`catcher.py`); the viewport draws the plain
+    surface, and says so once per sync rather than silently."""
+    import logging  # noqa: PLC0415
+
+    bpy = addon.bpy
+    floor = next(o for o in bpy.context.scene.objects if o.type == "MESH")
+    floor.is_shadow_catcher = True
+    v = View(addon)
+    try:
+        with caplog.at_level(logging.WARNING):
+            v.update()
+        notes = [r.getMessage() for r in caplog.records if "shadow catcher" in r.getMessage()]
+        assert len(notes) == 1 and floor.name in notes[0] and "final renders only" in notes[0], notes
+    finally:
+        v.close()
+        floor.is_shadow_catcher = False
+
+
 def test_a_view_of_one_sample_per_pixel_is_filtered_as_its_final_render(view, addon):
     """With one pixel sample the view shows its pixel-centre image through Cycles' pixel filter
     over the neighbours, as a final render of one sample writes it (`subpixel.reconstruction_taps`,
