@@ -6,13 +6,16 @@ import numpy as np
 import pytest
 
 from hybridgi_core.raster.lens import (
+    MIN_SUBFRAMES,
     Lens,
     centre_offsets,
+    coc_pixels,
     concentric_disk,
     focus_offset,
     lens_points,
     lens_view,
     regular_polygon,
+    subframes_for,
 )
 from hybridgi_core.raster.subpixel import jittered_projection
 
@@ -112,3 +115,19 @@ def test_a_lens_must_be_finite_and_positive():
     with pytest.raises(ValueError):
         Lens(radius=float("nan"), focus=1.0)
     assert not Lens(radius=0.0, focus=1.0).active
+
+
+def test_a_lens_that_blurs_nothing_visibly_keeps_the_frames_subframes():
+    """The circle of confusion (pixels) of the nearest and farthest surfaces decides: under a
+    pixel, the frame keeps its own subframes (a weak depth of field does not pay for 16)."""
+    proj = _perspective()
+    strong = Lens(radius=0.35, focus=6.7)
+    depth = np.array([3.0, 6.7, 9.0, 1.0e10])  # the background's depth is left out
+    coc = coc_pixels(strong, proj, depth, W)
+    np.testing.assert_allclose(coc, 0.35 * (1 / 3.0 - 1 / 6.7) * proj[0, 0] * W / 2, rtol=1e-9)
+    assert subframes_for(strong, 8, coc) == MIN_SUBFRAMES and subframes_for(strong, 32, coc) == 32
+    weak = Lens(radius=0.001, focus=6.7)
+    assert coc_pixels(weak, proj, depth, W) < 1.0
+    assert subframes_for(weak, 8, coc_pixels(weak, proj, depth, W)) == 8
+    assert subframes_for(None, 8, 100.0) == 8
+    assert coc_pixels(strong, proj, np.array([1.0e10]), W) == 0.0  # nothing but the background

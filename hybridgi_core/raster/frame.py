@@ -36,7 +36,7 @@ from .deferred import DeferredPass, ShadedFrame
 from .downsample import DownsamplePass
 from .gather import GatherPass, gather_levels
 from .gbuffer import GBufferPass, camera_eye, catcher_mask
-from .lens import MIN_SUBFRAMES, Lens, centre_offsets, focus_offset, lens_points, lens_view
+from .lens import SHARP_COC_PX, Lens, centre_offsets, coc_pixels, focus_offset, lens_points, lens_view, subframes_for
 from .passes import low_res_size
 from .readback import upload_texture_2d
 from .settings import DEBUG_FINAL, RasterSettings
@@ -440,7 +440,10 @@ class FramePipeline:
         if count > 1:
             centre = CentreSample.from_gbuffer(direct, position, normal, film.read("depth"), surface=surface,
                                                lamp_light=lamp_light)
-            count = self._subframe_count(centre, full_gi, stats, max(count, MIN_SUBFRAMES) if lens else count)
+            coc = coc_pixels(lens, proj, film.read("depth"), self.width) if lens is not None else 0.0
+            if coc < SHARP_COC_PX:
+                lens = None  # nothing it sees blurs visibly: the pinhole's subframes
+            count = self._subframe_count(centre, full_gi, stats, subframes_for(lens, count, coc))
         stats.subframes = count
         offsets = subpixel_offsets(count, self.filter_size, self.filter_type)
         jittered = offsets.shape[0] > 1

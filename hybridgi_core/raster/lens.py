@@ -30,6 +30,9 @@ import numpy as np
 #: Subframes a frame with depth of field takes at least: its lens samples are what blurs the
 #: out-of-focus surfaces (fewer show as ghost copies of them; Pixel Samples above this take more).
 MIN_SUBFRAMES = 16
+#: Circle of confusion (radius, pixels) below which no surface the camera sees is visibly blurred:
+#: the frame keeps its own subframe count (a lens that barely blurs does not pay for 16).
+SHARP_COC_PX = 1.0
 
 
 @dataclass(frozen=True)
@@ -130,6 +133,27 @@ def focus_offset(proj: np.ndarray, point, lens: Lens, width: int, height: int) -
     p = np.asarray(proj, np.float64).reshape(4, 4)
     return np.array([-p[0, 0] * float(point[0]) * width / (2.0 * lens.focus),
                      -p[1, 1] * float(point[1]) * height / (2.0 * lens.focus)])
+
+
+def coc_pixels(lens: Lens, proj: np.ndarray, depth: np.ndarray, width: int) -> float:
+    """The largest circle of confusion (radius, pixels) over view depths `depth` (metres along
+    the view axis; non-finite or beyond 1e9: the background, ignored): radius x |1/d - 1/focus|
+    in focal-length units, times P00 width / 2 (`focus_offset`'s scale)."""
+    d = np.asarray(depth, np.float64).reshape(-1)
+    d = d[np.isfinite(d) & (d > 0.0) & (d < 1e9)]
+    if d.size == 0:
+        return 0.0
+    p00 = abs(float(np.asarray(proj, np.float64).reshape(4, 4)[0, 0]))
+    spread = max(abs(1.0 / float(d.min()) - 1.0 / lens.focus), abs(1.0 / float(d.max()) - 1.0 / lens.focus))
+    return float(lens.radius * spread * p00 * width / 2.0)
+
+
+def subframes_for(lens: Lens | None, count: int, coc: float) -> int:
+    """A frame's subframe count under `lens` (None: `count`): at least MIN_SUBFRAMES lens points
+    where the largest circle of confusion `coc` (pixels, `coc_pixels`) is visible, else `count`."""
+    if lens is None or coc < SHARP_COC_PX:
+        return count
+    return max(count, MIN_SUBFRAMES)
 
 
 def centre_offsets(points: np.ndarray, pix: np.ndarray, width: int, height: int, view: np.ndarray,
