@@ -49,6 +49,7 @@ log = logging.getLogger(__name__)
 #: meshes get detail, the largest (200k triangles) still the average colour of each triangle.
 TEXELS_PER_CELL = 24
 MIN_SIZE, MAX_SIZE = 512, 2048
+SIZE_STEP = 64
 #: Texels kept free around each triangle of a cell, and between its two triangles: the bake's
 #: margin fills them, so bilinear lookups near an edge never read the neighbouring triangle.
 PAD, GAP = 1.5, 1.0
@@ -110,9 +111,10 @@ class BakeJob:
 
 
 def bake_size(n_triangles: int) -> int:
-    """Texture side (a power of two) for an atlas of `n_triangles`."""
+    """Texture side for an atlas of `n_triangles`: TEXELS_PER_CELL per cell, rounded up to a
+    multiple of SIZE_STEP and clamped to [MIN_SIZE, MAX_SIZE]."""
     cells = max(1, math.ceil(math.sqrt(math.ceil(n_triangles / 2))))
-    return int(min(MAX_SIZE, max(MIN_SIZE, 2 ** math.ceil(math.log2(cells * TEXELS_PER_CELL)))))
+    return int(min(MAX_SIZE, max(MIN_SIZE, -(-cells * TEXELS_PER_CELL // SIZE_STEP) * SIZE_STEP)))
 
 
 def cell_texels(n_triangles: int) -> float:

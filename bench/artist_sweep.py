@@ -34,7 +34,9 @@ def render(blend, prefix, *extra):
 
 
 def layer(ch, name, comps="RGB"):
-    return np.stack([ch[f"ViewLayer.{name}.{c}"] for c in comps], -1)
+    """A pass of the first view layer, whatever the scene calls it (morse_apartment: RenderLayer)."""
+    prefix = min(key.split(".", 1)[0] for key in ch if key.endswith(f".{name}.{comps[0]}"))
+    return np.stack([ch[f"{prefix}.{name}.{c}"] for c in comps], -1)
 
 
 def rel(a, b):
