@@ -143,3 +143,11 @@ class BakeStore:
         with self._lock:
             self._jobs[name] = thread
         thread.start()
+
+    def join(self, name: str, timeout: float | None = None) -> None:
+        """Wait for the background bake of that name, if one runs (a final render that started
+        it early waits here for it instead of baking the same again)."""
+        with self._lock:
+            job = self._jobs.get(name)
+        if job is not None:
+            job.join(timeout)

@@ -469,3 +469,35 @@ def test_a_sky_textures_sun_is_as_wide_as_the_node_draws_it(bpy_module, empty_sc
     assert elevation == pytest.approx(math.degrees(0.3), abs=0.2)
     sky.sun_disc = False  # no disc: the node's size is not used (the glow around the sun is what the map shows)
     assert all(lamp.angle > math.radians(2.0) for lamp in sync.read_world(world)[1])
+
+
+@pytest.mark.blender
+@pytest.mark.slow
+def test_a_final_sync_starts_its_worlds_bake_first_and_bakes_it_once(bpy_module, empty_scene, sync, tmp_path,
+                                                                      monkeypatch):
+    """A final render's sync starts the world's bake before it reads the meshes
+    (`sync.start_world_bakes`), so Blender renders the map while the meshes are read and the
+    materials baked; reading the world then waits for that bake instead of running another."""
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))  # the bake runs, never read from an earlier one
+    bpy, scene = bpy_module, empty_scene
+    world = bpy.data.worlds.new("early sky")
+    if world.node_tree is None:  # before 5.0
+        world.use_nodes = True
+    tree = world.node_tree
+    sky = tree.nodes.new("ShaderNodeTexSky")
+    sky.sun_elevation, sky.sun_rotation = 0.4, 2.0
+    tree.links.new(sky.outputs["Color"], tree.nodes["Background"].inputs["Color"])
+    scene.world = world
+    bake = sync.world_bake
+    runs = []
+    real_run = bake._run
+    monkeypatch.setattr(bake, "_run", lambda *args: runs.append(args[-1]) or real_run(*args))
+    sync.start_world_bakes(world)
+    assert bake.STORE.running(bake.world_key(world, "camera"))  # a Cycles process: not done in microseconds
+    _, lamps = sync.read_world(world)
+    assert len(runs) == 1
+    assert len(lamps) == 1  # the map's sun, from the early bake
+    elevation = math.degrees(math.asin(float(lamps[0].matrix[2, 2])))
+    assert elevation == pytest.approx(math.degrees(0.4), abs=0.2)
+    sync.start_world_bakes(world)  # baked: nothing starts
+    assert not bake.STORE.running(bake.world_key(world, "camera")) and len(runs) == 1
