@@ -210,8 +210,13 @@ void main()
     vec4 tint_mean = texelFetch(tint_tx, ivec2(0, material_row), 0);
     if (tint_mean.a > 0.5) {
       /* Alpha 2: under a Metallic texture the drawn colour is the diffuse base; the metal's own
-       * colour texture is `metal_tx`. */
-      vec3 source = (tint_mean.a > 1.5) ? sample_footprint(metal_tx, tex_uv, du, dv) : texel;
+       * colour is `metal_tx`'s, premultiplied by the Metallic in its alpha (`metal_texels`): the
+       * footprint's metal texels alone, or the mean (no tint) where there are none. */
+      vec3 source = texel;
+      if (tint_mean.a > 1.5) {
+        vec4 metal = sample_footprint4(metal_tx, tex_uv, du, dv);
+        source = (metal.a > 1e-4) ? metal.rgb / metal.a : tint_mean.rgb;
+      }
       vec3 d = source - tint_mean.rgb;
       tint = vec2(dot(d, texelFetch(tint_tx, ivec2(1, material_row), 0).rgb),
                   dot(d, texelFetch(tint_tx, ivec2(2, material_row), 0).rgb));
