@@ -3,7 +3,9 @@ one colour map): the G-buffer reads the metal's colour over a pixel's footprint 
 texels alone (`gbuffer.metal_texels`: colour x Metallic, Metallic in alpha), not from every texel
 there. Red metal stripes a fifth of a blue-grey plate, 64x48 against Cycles 64 spp + OIDN, over
 the plate: Glossy Color 0.294 -> 0.179 (over 4x4 blocks 0.271 -> 0.119; the rest is the stripes'
-aliasing, Diffuse Color 0.059 either way), Combined 0.214 -> 0.098."""
+aliasing, Diffuse Color 0.059 either way), Combined 0.214 -> 0.098; at roughness 0.6 the lamps'
+glossy light is filtered over the lobes' colour (`glossy_image.finish_glossy`): Combined 0.193 ->
+0.076."""
 
 from __future__ import annotations
 
@@ -19,7 +21,7 @@ from tests.cli_renders import CYCLES, QUICK, layer, pass_error, rendered, run_bp
 RES = "64x48"
 
 #: A 4 m plate seen from 45 degrees under a sun and a grey world: Base Color an image of red
-#: stripes (a fifth of it) on blue-grey, Metallic an image of the same stripes, Roughness 0.4;
+#: stripes (a fifth of it) on blue-grey, Metallic an image of the same stripes, Roughness ROUGH;
 #: the view layer writes the glossy passes.
 SCENE = textwrap.dedent("""
     import math, bpy
@@ -56,7 +58,7 @@ SCENE = textwrap.dedent("""
         m.use_nodes = True
     tree = m.node_tree
     bsdf = tree.nodes["Principled BSDF"]
-    bsdf.inputs["Roughness"].default_value = 0.4
+    bsdf.inputs["Roughness"].default_value = ROUGH
     for name, rgb, socket, colour in (("colours", colours, "Base Color", True),
                                       ("metal", stripe[..., None].astype(np.float32), "Metallic", False)):
         node = tree.nodes.new("ShaderNodeTexImage")
@@ -91,16 +93,20 @@ def test_metal_texels_are_premultiplied_by_their_metallic():
 
 @pytest.mark.blender
 @pytest.mark.slow
-def test_metal_stripes_reflect_their_own_colour(tmp_path):
-    """Glossy Color and Combined over the plate against Cycles: the stripes' red metal reflects
-    red, not the plate's mean colour (mean red Glossy Color 0.138 against Cycles' 0.198; now 0.220)."""
+@pytest.mark.parametrize("rough", [0.4, 0.6])
+def test_metal_stripes_reflect_their_own_colour_and_light(tmp_path, rough):
+    """Glossy Color, Glossy Direct and Combined over the plate against Cycles: the stripes' red
+    metal reflects red, not the plate's mean colour (mean red Glossy Color 0.138 against Cycles'
+    0.198; now 0.220); at roughness 0.6, where the lamps' sampled glossy light is filtered, it is
+    filtered over each lobe's colour at normal incidence (`glossy_image.finish_glossy`), so the
+    stripes keep their highlight (Glossy Direct 0.584 -> 0.038, Combined 0.193 -> 0.076)."""
     blend = tmp_path / "plate.blend"
-    run_bpy(SCENE, OUT=str(blend))
+    run_bpy(SCENE, OUT=str(blend), ROUGH=rough)
     ours = rendered(blend, tmp_path / "h", RES, *QUICK)
     cycles = rendered(blend, tmp_path / "c", RES, *CYCLES)
     mask = layer(cycles, "Depth", "Z")[..., 0] < 1e9
     assert mask.sum() > 1000
-    glossy = pass_error(ours, cycles, "Glossy Color", mask)
-    combined = pass_error(ours, cycles, "Combined", mask)
-    assert glossy < 0.23, glossy
-    assert combined < 0.14, combined
+    errors = {name: pass_error(ours, cycles, name, mask) for name in ("Glossy Color", "Glossy Direct", "Combined")}
+    assert errors["Glossy Color"] < 0.23, errors
+    assert errors["Glossy Direct"] < 0.1, errors
+    assert errors["Combined"] < 0.14, errors
