@@ -68,7 +68,8 @@ def snapshot_from_depsgraph(depsgraph, dynamic_names=frozenset(), wait_for_world
     if wait_for_world:
         start_world_bakes(depsgraph.scene.world)
     builder = _SnapshotBuilder(frozenset(dynamic_names), _collection_flags(depsgraph.view_layer),
-                               wait=wait_for_world, render_mode=getattr(depsgraph, "mode", "RENDER") == "RENDER")
+                               wait=wait_for_world, render_mode=getattr(depsgraph, "mode", "RENDER") == "RENDER",
+                               texture_limit=texture_limit(depsgraph.scene))
     for instance in depsgraph.object_instances:
         builder.add_instance(instance)
     builder.warn_unsupported()
@@ -438,7 +439,8 @@ def _cofactor(m):
 
 
 class _SnapshotBuilder:
-    def __init__(self, dynamic_names, collection_flags=None, wait=True, render_mode=True):
+    def __init__(self, dynamic_names, collection_flags=None, wait=True, render_mode=True,
+                 texture_limit=snap.MAX_TEXTURE_SIZE):
         self.dynamic_names = dynamic_names
         self.wait = wait
         self.render_mode = render_mode  # a render's depsgraph: particle paths at their render steps
@@ -466,7 +468,7 @@ class _SnapshotBuilder:
         self._material_index = {}
         self._meshes = {}  # evaluated mesh pointer -> _LocalMesh | None, shared by its instances
         self._tangent_meshes = {}  # (mesh pointer, UV map) -> the _LocalMesh with its tangents
-        self._textures = _TextureCache()
+        self._textures = _TextureCache(texture_limit)
 
     def add_instance(self, instance):
         obj = instance.object
@@ -2276,11 +2278,35 @@ def srgb_to_linear(c):
     return np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4).astype(np.float32)
 
 
+#: Texels a material's texture keeps per side, per pixel of the render's longer side (rounded up
+#: to a power of two), within MIN_TEXTURE_LIMIT..`snapshot.MAX_TEXTURE_SIZE` (`texture_limit`).
+TEXELS_PER_PIXEL = 2
+MIN_TEXTURE_LIMIT = 1024
+
+
+def texture_limit(scene) -> int:
+    """Texels per side the scene's material textures are read at, at most: twice the render's
+    longer side (a UV island or a close-up magnifies its part of a texture), a power of two, 1024
+    to 4096. Why: a PBR asset's 4k maps were read, filtered and uploaded whole for any image (four
+    of them on a plate and a ball: the first 320x180 render 11.8 s, 7.9 s once cached, Cycles 16
+    spp + OIDN 1.5 s), and a map minified 8 times or more aliases through the G-buffer's 8 x 8
+    footprint taps where a smaller copy is its average."""
+    render = scene.render
+    side = max(int(render.resolution_x), int(render.resolution_y)) * float(render.resolution_percentage) / 100.0
+    want = 1 << max(0, math.ceil(math.log2(max(TEXELS_PER_PIXEL * side, 1.0))))
+    return int(min(snap.MAX_TEXTURE_SIZE, max(MIN_TEXTURE_LIMIT, want)))
+
+
 class _TextureCache:
     """Image -> (h, w, 3) float32 linear RGB and (h, w) alpha (row 0 at v = 0), each image read
-    once per sync."""
+    once per sync, at most `limit` texels a side (`texture_limit`; None: the scene's)."""
 
-    def __init__(self):
+    def __init__(self, limit: int | None = None):
+        if limit is None:
+            import bpy  # noqa: PLC0415
+
+            limit = texture_limit(bpy.context.scene) if bpy.context.scene is not None else snap.MAX_TEXTURE_SIZE
+        self.limit = int(limit)
         self._images = {}
         self.baked = {}  # (node name, input identifier) -> baked texture of the material being read
         self.pending = False
@@ -2296,7 +2322,7 @@ class _TextureCache:
         image = image.original
         key = image.name_full
         if key not in self._images:
-            self._images[key] = read_image(image)
+            self._images[key] = read_image(image, self.limit)
             if self._images[key] is None:
                 # A file that is gone (a .blend moved away from its textures, a path of another
                 # machine): Cycles reads it as its missing-texture magenta, opaque, and shows the
@@ -2322,23 +2348,31 @@ def image_pixels(image):
     return None if read is None else read[0]
 
 
-def read_image(image):
+def read_image(image, limit: int = snap.MAX_TEXTURE_SIZE):
     """((h, w, 3) float32 linear RGB, (h, w) float32 alpha or None without an alpha channel) of
     a Blender image, or None when it has no pixels. One read of the pixel buffer for both.
 
-    An image larger than the core keeps (`snapshot.MAX_TEXTURE_SIZE` per side) is scaled by
-    Blender first, on a copy: a 16k texture is never copied whole into float32 arrays."""
+    An image larger than `limit` texels a side (at most what the core keeps,
+    `snapshot.MAX_TEXTURE_SIZE`) is box-filtered down by an integer factor, in linear values:
+    a file's image whose values are linear (float, or data such as Non-Color) is scaled by
+    Blender on a copy first (a 16k texture is never copied whole into float32 arrays; 0.05 s for
+    a 4k map); an sRGB one is read whole and averaged after decoding (Blender's scale averages
+    the encoded bytes: a fine black and white checker read 0.21 for 0.5), as is an image Blender
+    cannot scale on a copy (generated or painted ones come back blank)."""
     width, height = image.size
     largest = max(width, height)
-    if largest > snap.MAX_TEXTURE_SIZE:
+    limit = min(int(limit), snap.MAX_TEXTURE_SIZE)
+    factor = -(-largest // limit) if largest > limit else 1  # ceil: the box filter's integer factor
+    space = image.colorspace_settings.name
+    encoded = not image.is_float and space in SRGB_SPACES
+    if factor > 1 and not encoded and image.source == "FILE" and not image.is_dirty:
         import bpy  # noqa: PLC0415
 
-        factor = -(-largest // snap.MAX_TEXTURE_SIZE)  # ceil: the box filter's integer factor
         copy = image.copy()
         try:
             copy.scale(max(width // factor, 1), max(height // factor, 1))
             log.info("image %r: %dx%d read at 1/%d size", image.name, width, height, factor)
-            return read_image(copy)
+            return read_image(copy, limit)
         finally:
             bpy.data.images.remove(copy)
     channels = image.channels
@@ -2353,13 +2387,38 @@ def read_image(image):
     else:
         rgb = np.repeat(pixels[:, :, :1], 3, axis=2)  # grey (+ alpha)
     # Byte buffers hold the file's encoded values; float buffers are already scene-linear.
-    space = image.colorspace_settings.name
-    if not image.is_float and space in SRGB_SPACES:
-        rgb = srgb_to_linear(rgb)
+    if encoded:
+        rgb = _srgb_bytes_to_linear(rgb)
     elif not image.is_float and space not in LINEAR_SPACES:
         log.warning("image %r: colour space %r is read as linear Rec.709", image.name, space)
     alpha = np.ascontiguousarray(pixels[:, :, -1], np.float32) if channels in (2, 4) else None
+    if factor > 1:
+        rgb = _box_reduced(rgb, factor)
+        alpha = None if alpha is None else _box_reduced(alpha[..., None], factor)[..., 0]
+        log.info("image %r: %dx%d read at 1/%d size", image.name, width, height, factor)
     return np.ascontiguousarray(rgb, np.float32), alpha
+
+
+#: sRGB decoding of the 256 values a byte image's texel holds (`_srgb_bytes_to_linear`).
+_SRGB_BYTES = srgb_to_linear(np.arange(256, dtype=np.float32) / np.float32(255.0))
+
+
+def _srgb_bytes_to_linear(rgb: np.ndarray) -> np.ndarray:
+    """(h, w, 3) float32 linear values of a byte image's encoded sRGB values (k / 255): a table of
+    256 entries, not the transfer curve per texel (0.6 s for a 4k map)."""
+    index = (rgb * np.float32(255.0) + np.float32(0.5)).astype(np.uint8)  # exact: k / 255 in 0..1
+    return _SRGB_BYTES[index]
+
+
+def _box_reduced(values: np.ndarray, factor: int) -> np.ndarray:
+    """(h / factor, w / factor, c) float32 means of factor x factor blocks of values (h, w, c),
+    the edge repeated to a multiple of the factor."""
+    h, w, c = values.shape
+    ph, pw = -(-h // factor) * factor, -(-w // factor) * factor
+    if (ph, pw) != (h, w):
+        values = np.pad(values, ((0, ph - h), (0, pw - w), (0, 0)), mode="edge")
+    values = values.reshape(ph // factor, factor, pw, c).mean(axis=1, dtype=np.float32)
+    return values.reshape(ph // factor, pw // factor, factor, c).mean(axis=2, dtype=np.float32)
 
 
 # --- lights and world ----------------------------------------------------------------------
