@@ -126,6 +126,56 @@ def metal_tint_basis(material) -> np.ndarray | None:
     return np.stack([mean, vectors[:, 2], vectors[:, 1]]).astype(np.float32)
 
 
+#: Grey metal colours (F0) at which `metal_albedo_curve` tabulates a metallic lobe's Glossy Color.
+METAL_CURVE_SIZE = 17
+
+
+#: View cosines at which `metal_albedo_curve` tabulates it.
+METAL_CURVE_COSINES = np.linspace(0.1, 1.0, 10)
+
+
+def metal_albedo_curve(layer) -> np.ndarray:
+    """(METAL_CURVE_SIZE, len(METAL_CURVE_COSINES)) the Glossy Color of a `SpecularLayer`'s
+    metallic lobe alone (its dielectric share off) for a grey metal colour F0 = 0, 1/16, ..., 1
+    at view cosines METAL_CURVE_COSINES. Why: a rough metal's albedo is not linear in F0
+    (multiple scattering gives back more of a bright metal's light: roughness 0.9 at normal
+    incidence, F0 0.34 -> 0.188, F0 0.9 -> 0.810, 4.3 x for 2.65 x the F0; 3.7 x at cosine 0.5),
+    so a textured metal's texel is weighed by this curve (`metal_tint_scale`), not by its ratio
+    to the mean colour."""
+    f0s = np.linspace(0.0, 1.0, METAL_CURVE_SIZE)
+    metal = replace(layer, weight=0.0, transmission=0.0)
+    return np.stack([np.asarray(sp.glossy_color(replace(metal, metal_color=np.full(3, f, np.float32)),
+                                                METAL_CURVE_COSINES)).reshape(-1, 3)[:, 0] for f in f0s])
+
+
+def metal_tint_scale(mats, rows: np.ndarray, ratio: np.ndarray, mu: np.ndarray) -> np.ndarray:
+    """(k, 3) float32 the factor on the metallic lobe's light of k receivers of glossy `rows`
+    seen at cosines mu (k,) whose texel is `ratio` (k, 3) times their lobe's colour
+    (`metal_tint`): its albedo at the texel's F0 over its albedo at the lobe's
+    (`metal_albedo_curve`, bilinear); the ratio itself where that albedo is 0."""
+    f0 = mats.metal_f0[rows]
+    curve = mats.metal_curve[rows]  # (k, F, C)
+    texel = np.clip(f0 * ratio, 0.0, 1.0)
+    cosines = METAL_CURVE_COSINES
+    x = np.clip((np.asarray(mu, np.float64) - cosines[0]) / (cosines[-1] - cosines[0]), 0.0, 1.0) * (cosines.size - 1)
+    j0 = np.minimum(np.floor(x).astype(np.int64), cosines.size - 2)
+    wj = (x - j0)[:, None]
+    k = np.arange(rows.shape[0])[:, None]
+    at_view = curve[k, :, j0[:, None]][:, 0] * (1.0 - wj) + curve[k, :, j0[:, None] + 1][:, 0] * wj  # (k, F)
+
+    def along(f):
+        y = f * (METAL_CURVE_SIZE - 1)
+        i0 = np.clip(np.floor(y).astype(np.int64), 0, METAL_CURVE_SIZE - 2)
+        w = y - i0
+        lo = np.take_along_axis(at_view, i0, axis=1)
+        hi = np.take_along_axis(at_view, i0 + 1, axis=1)
+        return lo + w * (hi - lo)
+
+    base = along(f0)
+    scale = np.divide(along(texel), base, out=np.asarray(ratio, np.float64).copy(), where=base > 1e-6)
+    return scale.astype(np.float32)
+
+
 def metal_tint(basis: np.ndarray, s: np.ndarray, t: np.ndarray) -> np.ndarray:
     """(n, 3) the texel over the mean colour, per channel, from coordinates s, t (n,) along the
     axes of `metal_tint_basis` (clipped to 0..8; 1 where the mean's channel is 0)."""
@@ -181,6 +231,11 @@ class GlossyMaterials:
     #: (m,) the metallic lobe's share of each row's Glossy Color at normal incidence (a lone
     #: Principled BSDF's; 0 for the rest): what a pixel's metal tint scales (`metal_tint_basis`)
     metal_share: np.ndarray | None = None
+    #: (n, 3) the metallic lobe's colour (F0) of the rows of materials with a tint basis, and
+    #: (n, METAL_CURVE_SIZE, cosines) its albedo against a grey F0 and the view cosine
+    #: (`metal_albedo_curve`); zeros elsewhere.
+    metal_f0: np.ndarray | None = None
+    metal_curve: np.ndarray | None = None
     #: material index -> `metal_tint_basis` of the textured metals
     tint_bases: dict | None = None
 
@@ -242,11 +297,17 @@ class GlossyMaterials:
         out.variant_steps = variant_steps
         out.tint_bases = {i: b for i, b in enumerate(metal_tint_basis(m) for m in materials) if b is not None}
         out.metal_share = np.zeros(n)
+        out.metal_f0 = np.zeros((n, 3))
+        out.metal_curve = np.zeros((n, METAL_CURVE_SIZE, METAL_CURVE_COSINES.size))
+        textured = {m for m, b in out.tint_bases.items() if b is not None}
         for i, layer in enumerate(layers):
             if isinstance(layer, sp.SpecularLayer) and layer.metallic > 0.0:
                 total = float(np.asarray(sp.glossy_color(layer, 1.0)).reshape(-1, 3)[0] @ LUMA)
                 metal = float(np.asarray(sp.glossy_color(replace(layer, weight=0.0), 1.0)).reshape(-1, 3)[0] @ LUMA)
                 out.metal_share[i] = float(np.clip(metal / total, 0.0, 1.0)) if total > 0 else 0.0
+                if owner[i] in textured:
+                    out.metal_f0[i] = np.asarray(layer.metal_color, np.float64).reshape(3)
+                    out.metal_curve[i] = metal_albedo_curve(layer)
         return out
 
     @property

@@ -187,7 +187,7 @@ class GlossyDraft:
     view: np.ndarray
     pool: object
     between: object
-    tint: tuple | None  # (mats, material texels, rows, (n, 2) coordinates) of textured metals
+    tint: tuple | None  # (mats, material texels, rows, (n, 2) coordinates, (n,) view cosines) of textured metals
     #: (len(lamp_rows), 3) their lobes' Glossy Color at normal incidence: the light is filtered
     #: over it (`finish_glossy`); None: as it is.
     lamp_f0: np.ndarray | None = None
@@ -230,7 +230,7 @@ def begin_glossy(system, points, normals, pix, shape: tuple[int, int], material,
                                 skip[lit], reflection_rays, lookup, between, screen)
     metals = None
     if tint is not None and getattr(mats, "tint_bases", None):
-        metals = (mats, np.asarray(material).reshape(-1), rows, np.asarray(tint, np.float32).reshape(-1, 2))
+        metals = (mats, np.asarray(material).reshape(-1), rows, np.asarray(tint, np.float32).reshape(-1, 2), mu)
     return GlossyDraft(direct, colour, exact, lit, lit[sampled], rough[sampled], *parts, points, normals, pix, shape,
                        view, pool, between, metals, mats.color_table[rows[lit[sampled]], -1])
 
@@ -277,17 +277,19 @@ def finish_glossy(draft: GlossyDraft, filter=None) -> GlossyLight:
     return GlossyLight(direct, colour, bounced)
 
 
-def _tint_metals(mats, material, rows, tint, direct, colour) -> None:
+def _tint_metals(mats, material, rows, tint, mu, direct, colour) -> None:
     """Scale, in place, the metallic lobes' share (`GlossyMaterials.metal_share`) of the glossy
-    light and colour of textured metals' receivers by their texel's colour over the texture
-    mean's (their lobe's F0 is the mean): per channel, 1 + share (texel / mean - 1)."""
+    light and colour of textured metals' receivers by their lobe's albedo at their texel's colour
+    over its albedo at the texture mean's (their lobe's F0 is the mean; `glossy.metal_tint_scale`):
+    per channel, 1 + share (scale - 1)."""
     index = material_rows(material)
     for m, basis in mats.tint_bases.items():
         sel = np.flatnonzero((index == m) & (rows >= 0))
         if sel.size == 0:
             continue
         share = mats.metal_share[rows[sel]].astype(np.float32)[:, None]
-        factor = 1.0 + share * (glossy.metal_tint(basis, tint[sel, 0], tint[sel, 1]) - 1.0)
+        ratio = glossy.metal_tint(basis, tint[sel, 0], tint[sel, 1])
+        factor = 1.0 + share * (glossy.metal_tint_scale(mats, rows[sel], ratio, mu[sel]) - 1.0)
         direct[sel] *= factor
         colour[sel] *= factor
 

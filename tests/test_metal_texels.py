@@ -10,10 +10,14 @@ glossy light is filtered over the lobes' colour (`glossy_image.finish_glossy`): 
 from __future__ import annotations
 
 import textwrap
+from dataclasses import replace
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
 
+from hybridgi_core import glossy
+from hybridgi_core import specular as sp
 from hybridgi_core.raster.gbuffer import metal_texels
 from hybridgi_core.snapshot import Material
 from tests.cli_renders import CYCLES, QUICK, layer, pass_error, rendered, run_bpy
@@ -91,15 +95,37 @@ def test_metal_texels_are_premultiplied_by_their_metallic():
     np.testing.assert_allclose(mean[:3] / mean[3], (0.9, 0.2, 0.1), rtol=1e-6)
 
 
+@pytest.mark.parametrize("mu", [1.0, 0.5, 0.25])
+def test_a_textured_metals_texel_is_weighed_by_its_lobes_albedo(mu):
+    """A rough metal lobe's albedo is not linear in its colour (multiple scattering): a texel of
+    F0 0.9 on a lobe whose F0 is the texture's mean 0.34 scales its light by the lobe's albedo
+    at 0.9 over at 0.34 at the view cosine (`glossy.metal_tint_scale`: 4.3 x at normal incidence
+    at roughness 0.9, 3.7 x at cosine 0.5), not by 0.9 / 0.34 = 2.65 as before; a texel of the
+    mean colour by 1."""
+    layer = sp.SpecularLayer(roughness=0.9, metallic=1.0, weight=0.0, metal_color=np.full(3, 0.34, np.float32))
+    mats = SimpleNamespace(metal_f0=np.full((1, 3), 0.34), metal_curve=glossy.metal_albedo_curve(layer)[None])
+    rows, mus = np.zeros(2, np.int64), np.full(2, mu)
+    ratio = np.array([[1.0, 1.0, 1.0], [0.9 / 0.34, 1.0, 0.5]])
+    scale = glossy.metal_tint_scale(mats, rows, ratio, mus)
+    np.testing.assert_allclose(scale[0], 1.0, rtol=1e-6)
+    want = [sp.glossy_color(replace(layer, metal_color=np.full(3, f, np.float32)), mu).reshape(-1, 3)[0, 0]
+            for f in (0.9, 0.34, 0.17)]
+    np.testing.assert_allclose(scale[1], [want[0] / want[1], 1.0, want[2] / want[1]], rtol=0.03)
+    assert scale[1, 0] > 0.9 / 0.34 * 1.2
+
+
 @pytest.mark.blender
 @pytest.mark.slow
-@pytest.mark.parametrize("rough", [0.4, 0.6])
+@pytest.mark.parametrize("rough", [0.4, 0.6, 0.9])
 def test_metal_stripes_reflect_their_own_colour_and_light(tmp_path, rough):
     """Glossy Color, Glossy Direct and Combined over the plate against Cycles: the stripes' red
     metal reflects red, not the plate's mean colour (mean red Glossy Color 0.138 against Cycles'
     0.198; now 0.220); at roughness 0.6, where the lamps' sampled glossy light is filtered, it is
     filtered over each lobe's colour at normal incidence (`glossy_image.finish_glossy`), so the
-    stripes keep their highlight (Glossy Direct 0.584 -> 0.038, Combined 0.193 -> 0.076)."""
+    stripes keep their highlight (Glossy Direct 0.584 -> 0.038, Combined 0.193 -> 0.076); at
+    roughness 0.9 the stripes' texels are weighed by their lobe's albedo (`metal_tint_scale`):
+    Combined 0.0707 -> 0.0607, the plate's mean red 0.298 -> 0.358 (Cycles 0.347). Cycles'
+    Glossy Color pass of a rough metal leaves out its multiple scattering: not compared there."""
     blend = tmp_path / "plate.blend"
     run_bpy(SCENE, OUT=str(blend), ROUGH=rough)
     ours = rendered(blend, tmp_path / "h", RES, *QUICK)
@@ -107,6 +133,7 @@ def test_metal_stripes_reflect_their_own_colour_and_light(tmp_path, rough):
     mask = layer(cycles, "Depth", "Z")[..., 0] < 1e9
     assert mask.sum() > 1000
     errors = {name: pass_error(ours, cycles, name, mask) for name in ("Glossy Color", "Glossy Direct", "Combined")}
-    assert errors["Glossy Color"] < 0.23, errors
+    if rough < 0.9:
+        assert errors["Glossy Color"] < 0.23, errors
     assert errors["Glossy Direct"] < 0.1, errors
-    assert errors["Combined"] < 0.14, errors
+    assert errors["Combined"] < (0.066 if rough == 0.9 else 0.14), errors
