@@ -2765,22 +2765,30 @@ def _light_path_outputs(tree) -> set[str]:
     return {o.name for n in _tree_nodes(tree) if n.type == "LIGHT_PATH" and not n.mute for o in n.outputs if o.is_linked}
 
 
-def _sun_light(split, strength, world_name):
-    """The SUN `Light` of a split map's sun (None without one or without light)."""
+def _sun_lights(split, strength, world_name) -> list:
+    """The SUN `Light`s of a split map: its sun, then its further compact regions
+    (`EnvironmentSplit.more_suns`: a studio map's softboxes); none without light."""
     if split.sun_direction is None:
-        return None
-    irradiance = split.sun_irradiance.astype(np.float64) * strength
+        return []
+    found = [_sun_light(split.sun_direction, split.sun_irradiance, split.sun_angle, strength, f"{world_name}/sun")]
+    found += [_sun_light(d, e, a, strength, f"{world_name}/sun {k + 2}") for k, (d, e, a) in enumerate(split.more_suns)]
+    return [lamp for lamp in found if lamp is not None]
+
+
+def _sun_light(direction, irradiance, angle, strength, name):
+    """A SUN `Light` towards `direction` of `irradiance` x strength (None without light)."""
+    irradiance = np.asarray(irradiance, np.float64) * strength
     power = float(irradiance.max())
     if power <= 0.0:
         return None
-    z = np.asarray(split.sun_direction, np.float64)  # the lamp's local +Z points at the sun
+    z = np.asarray(direction, np.float64)  # the lamp's local +Z points at the sun
     helper = np.array([1.0, 0.0, 0.0]) if abs(z[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
     x = np.cross(helper, z)
     x /= np.linalg.norm(x)
     matrix = np.eye(4)
     matrix[:3, 0], matrix[:3, 1], matrix[:3, 2] = x, np.cross(z, x), z
     return snap.Light(kind="SUN", color=(irradiance / power).astype(np.float32), power=power, matrix=matrix,
-                      angle=split.sun_angle, name=f"{world_name}/sun")
+                      angle=float(angle), name=name)
 
 
 def read_world(world, wait=True):
@@ -2834,14 +2842,13 @@ def _read_world(world, wait=True):
         split, strength = found
         log.info("world %r: %s and a sky map", world.name,
                  "a shadowed sun" if split.sun_direction is not None else "no sun")
-        sun = _sun_light(split, strength, world.name)
+        suns = _sun_lights(split, strength, world.name)
         sky_map = None
         if split.sky_map is not None:
             sky_map = environment.SkyMap(split.sky_map * np.float32(strength), split.to_world)
         return snap.World(color=(split.sky * strength).astype(np.float32), ao_distance=ao_distance,
                           sky_sh=(split.sky_sh * strength).astype(np.float32),
-                          sky_map=sky_map, background_map=_background_map(split, strength)), \
-            [sun] if sun is not None else []
+                          sky_map=sky_map, background_map=_background_map(split, strength)), suns
     if node.type != "BACKGROUND":
         log.warning("world %r: %s could not be read; using the viewport colour", world.name, node.bl_idname)
         return snap.World(color=_rgb(world.color), ao_distance=ao_distance), []
@@ -2868,13 +2875,12 @@ def _read_light_path_world(world, node, ao_distance, outputs, wait):
     (split, strength), (camera_split, camera_strength) = light, seen
     log.info("world %r: lit as diffuse rays see it (%s), seen as the camera sees it", world.name,
              "a shadowed sun" if split.sun_direction is not None else "no sun")
-    sun = _sun_light(split, strength, world.name)
+    suns = _sun_lights(split, strength, world.name)
     sky_map = None if split.sky_map is None else environment.SkyMap(split.sky_map * np.float32(strength), split.to_world)
     return snap.World(color=(split.sky * strength).astype(np.float32), ao_distance=ao_distance,
                       sky_sh=(split.sky_sh * strength).astype(np.float32), sky_map=sky_map,
                       background=(camera_split.sky * camera_strength).astype(np.float32),
-                      background_map=_background_map(camera_split, camera_strength)), \
-        [sun] if sun is not None else []
+                      background_map=_background_map(camera_split, camera_strength)), suns
 
 
 def _background_map(split, strength: float):

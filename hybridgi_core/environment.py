@@ -5,7 +5,8 @@ Spreading an HDRI's mean over the whole sky puts its sun's energy on surfaces th
 reaches (an atrium lit by `sunrise.exr` came out 2.3x too bright against Cycles).
 `split_environment` finds the map's brightest compact region (the sun disc and its glow), turns
 it into a SUN lamp (direction, irradiance, angular diameter, shadowed by the lamp code like any
-other), and keeps the rest three ways: a coarse map that escaping rays read by direction
+other), then up to MAX_SUNS - 1 further compact regions of at most MAX_MORE_SUN_ANGLE (a studio
+map's softboxes, an interior's windows and lamps) the same way, and keeps the rest three ways: a coarse map that escaping rays read by direction
 (`SkyMap`), its L2 SH, and its uniform mean (what a surface facing up receives from the upper
 hemisphere; the background colour).
 
@@ -29,6 +30,11 @@ SUN_SEARCH = np.radians(12.0)
 SUN_THRESHOLD = 0.02
 #: The region counts as a sun only if it carries this share of the light a surface facing it gets.
 SUN_MIN_SHARE = 0.2
+#: Compact bright regions split off a map as shadowed SUN lamps, at most (`split_environment`).
+MAX_SUNS = 4
+#: Widest angular diameter a further region may have to be split off (`split_environment`): a
+#: broad bright patch (forest.exr's sky through the trees, 20 degrees) lights better from the map.
+MAX_MORE_SUN_ANGLE = np.radians(15.0)
 #: Rec.709 luminance weights.
 LUMA = np.array([0.2126, 0.7152, 0.0722], np.float64)
 #: Rows of the equirectangular sky map rays read (columns: twice as many); ~2.8 degrees a texel.
@@ -67,6 +73,9 @@ class EnvironmentSplit:
     #: (h, w, 3) float16 the whole map, sun included, at most BACKGROUND_MAX_WIDTH texels across
     #: (`background_pixels`): what the camera sees of the world (`BackgroundMap`)
     background: np.ndarray | None = None
+    #: ((3,) direction, (3,) irradiance, angle) of each further compact bright region (a studio
+    #: map's other softboxes), split off as the sun is, brightest first (`MAX_SUNS` in all)
+    more_suns: tuple = ()
 
 
 def equirect_directions(height: int, width: int, rows: slice | None = None) -> tuple[np.ndarray, np.ndarray]:
@@ -124,56 +133,18 @@ def split_environment(pixels: np.ndarray, to_world: np.ndarray | None = None) ->
     full = _clean(pixels)
     background = background_pixels(full, clean=True)
     h, w = full.shape[:2]
-    luma_full = full @ LUMA.astype(np.float32)
-    peak = np.unravel_index(int(np.argmax(luma_full)), luma_full.shape)
-    peak_luma = float(luma_full[peak])
     work = _box_equirect(full, SPLIT_WIDTH).astype(np.float64)
     wh, ww = work.shape[:2]
     dirs, solid = equirect_directions(wh, ww)
     dirs = _to_world(dirs, to_world)
     weight = np.broadcast_to(solid[:, None], (wh, ww))
-    peak_tex = equirect_directions(h, w, slice(peak[0], peak[0] + 1))[0][0, peak[1]]
-    peak_dir = _to_world(peak_tex[None], to_world)[0]
-    # Light from the whole map on a surface facing the peak (the filtered copy: the share test).
-    total_light = float(((work @ LUMA) * weight * np.clip(dirs @ peak_dir, 0.0, None)).sum())
-    sun = None
-    irradiance = np.zeros(3)
-    angle = 0.0
-    if peak_luma > 0:
-        # The rows the sun's region can reach: within SUN_SEARCH of the peak's latitude.
-        reach = int(np.ceil(SUN_SEARCH / np.pi * h)) + 1
-        rows = slice(max(peak[0] - 2 * reach, 0), min(peak[0] + 2 * reach + 1, h))
-        band = full[rows].astype(np.float64)
-        b_dirs, b_solid = equirect_directions(h, w, rows)
-        if _rotation(to_world):  # cosines in texture space: the band's directions stay unturned
-            to_peak = b_dirs @ peak_tex
-            if to_world is not None:
-                b_dirs = _LazyWorld(b_dirs, to_world)
-        else:
-            b_dirs = _to_world(b_dirs, to_world)
-            to_peak = b_dirs @ peak_dir  # cosine of each pixel's angle to the brightest one
-        luma = band @ LUMA
-        b_weight = np.broadcast_to(b_solid[:, None], luma.shape)
-        region = (to_peak > np.cos(SUN_SEARCH)) & (luma > SUN_THRESHOLD * peak_luma)
-        region_light = float((luma * b_weight * np.clip(to_peak, 0.0, None))[region].sum())
-        if region_light > SUN_MIN_SHARE * total_light:
-            power = (luma * b_weight)[region]
-            sun = (b_dirs[region] * power[:, None]).sum(axis=0)
-            sun /= np.linalg.norm(sun)
-            # Irradiance on a surface facing the sun: the region's radiance times its solid angle.
-            irradiance = (band[region] * b_weight[region][:, None]
-                          * np.clip(b_dirs[region] @ sun, 0, None)[:, None]).sum(axis=0)
-            omega = float(b_weight[region].sum())
-            angle = float(2.0 * np.sqrt(omega / np.pi))
-            # The sky behind the sun: the ring around the region, not its glow.
-            ring = (to_peak > np.cos(2.0 * SUN_SEARCH)) & ~region
-            fill = (band[ring] * b_weight[ring][:, None]).sum(axis=0) / max(float(b_weight[ring].sum()), 1e-12)
-            band[region] = fill
-            full[rows] = band
-            # The filtered copy again, in the rows the fill reaches.
-            f = w // ww  # the copy's texels per side of the map's (halvings of even sides: exact)
-            lo, hi = rows.start // f, min(-(-rows.stop // f), wh)
-            work[lo:hi] = _box_equirect(full[lo * f:hi * f], SPLIT_WIDTH, lo * f, h)
+    suns = []
+    for _ in range(MAX_SUNS):
+        found = _take_sun(full, work, dirs, weight, to_world, MAX_MORE_SUN_ANGLE if suns else np.pi)
+        if found is None:
+            break
+        suns.append(found)
+    sun, irradiance, angle = suns[0] if suns else (None, np.zeros(3), 0.0)
     # The uniform sky: the cosine-weighted mean over the upper hemisphere (irradiance / pi of an
     # unoccluded surface facing up).
     up = np.clip(dirs[..., 2], 0.0, None) * weight
@@ -183,7 +154,65 @@ def split_environment(pixels: np.ndarray, to_world: np.ndarray | None = None) ->
     return EnvironmentSplit(sun, irradiance.astype(np.float32), angle, sky.astype(np.float32), sky_sh.astype(np.float32),
                             sky_map=downsample_equirect(work, solid, SKY_MAP_ROWS),
                             to_world=None if to_world is None else np.asarray(to_world, np.float64),
-                            background=background)
+                            background=background,
+                            more_suns=tuple((d, e.astype(np.float32), a) for d, e, a in suns[1:]))
+
+
+def _take_sun(full: np.ndarray, work: np.ndarray, dirs: np.ndarray, weight: np.ndarray, to_world,
+              widest: float = np.pi):
+    """(unit world direction, (3,) irradiance on a surface facing it, angular diameter) of the
+    compact region around the brightest pixel of `full` (the map at its own resolution), if it
+    carries SUN_MIN_SHARE of the light a surface facing it gets; its pixels are then filled with
+    the ring around them, in `full` and in its filtered copy `work` (both in place). None: no sun
+    (left as they are), as for a region wider than `widest` (radians)."""
+    h, w = full.shape[:2]
+    wh, ww = work.shape[:2]
+    luma_full = full @ LUMA.astype(np.float32)
+    peak = np.unravel_index(int(np.argmax(luma_full)), luma_full.shape)
+    peak_luma = float(luma_full[peak])
+    if peak_luma <= 0:
+        return None
+    peak_tex = equirect_directions(h, w, slice(peak[0], peak[0] + 1))[0][0, peak[1]]
+    peak_dir = _to_world(peak_tex[None], to_world)[0]
+    # Light from the whole map on a surface facing the peak (the filtered copy: the share test).
+    total_light = float(((work @ LUMA) * weight * np.clip(dirs @ peak_dir, 0.0, None)).sum())
+    # The rows the sun's region can reach: within SUN_SEARCH of the peak's latitude.
+    reach = int(np.ceil(SUN_SEARCH / np.pi * h)) + 1
+    rows = slice(max(peak[0] - 2 * reach, 0), min(peak[0] + 2 * reach + 1, h))
+    band = full[rows].astype(np.float64)
+    b_dirs, b_solid = equirect_directions(h, w, rows)
+    if _rotation(to_world):  # cosines in texture space: the band's directions stay unturned
+        to_peak = b_dirs @ peak_tex
+        if to_world is not None:
+            b_dirs = _LazyWorld(b_dirs, to_world)
+    else:
+        b_dirs = _to_world(b_dirs, to_world)
+        to_peak = b_dirs @ peak_dir  # cosine of each pixel's angle to the brightest one
+    luma = band @ LUMA
+    b_weight = np.broadcast_to(b_solid[:, None], luma.shape)
+    region = (to_peak > np.cos(SUN_SEARCH)) & (luma > SUN_THRESHOLD * peak_luma)
+    region_light = float((luma * b_weight * np.clip(to_peak, 0.0, None))[region].sum())
+    if region_light <= SUN_MIN_SHARE * total_light:
+        return None
+    power = (luma * b_weight)[region]
+    sun = (b_dirs[region] * power[:, None]).sum(axis=0)
+    sun /= np.linalg.norm(sun)
+    # Irradiance on a surface facing the sun: the region's radiance times its solid angle.
+    irradiance = (band[region] * b_weight[region][:, None] * np.clip(b_dirs[region] @ sun, 0, None)[:, None]).sum(axis=0)
+    omega = float(b_weight[region].sum())
+    angle = float(2.0 * np.sqrt(omega / np.pi))
+    if angle > widest:
+        return None
+    # The sky behind the sun: the ring around the region, not its glow.
+    ring = (to_peak > np.cos(2.0 * SUN_SEARCH)) & ~region
+    fill = (band[ring] * b_weight[ring][:, None]).sum(axis=0) / max(float(b_weight[ring].sum()), 1e-12)
+    band[region] = fill
+    full[rows] = band
+    # The filtered copy again, in the rows the fill reaches.
+    f = w // ww  # the copy's texels per side of the map's (halvings of even sides: exact)
+    lo, hi = rows.start // f, min(-(-rows.stop // f), wh)
+    work[lo:hi] = _box_equirect(full[lo * f:hi * f], SPLIT_WIDTH, lo * f, h)
+    return sun, irradiance, angle
 
 
 def _box_equirect(pixels: np.ndarray, max_width: int, first: int = 0, total: int | None = None) -> np.ndarray:

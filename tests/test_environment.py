@@ -49,6 +49,44 @@ def test_a_sun_becomes_a_lamp_with_its_direction_and_irradiance():
     np.testing.assert_allclose(up_and_down, 0.4, rtol=0.03)  # a uniform sky is uniform in SH too
 
 
+def test_a_studio_maps_softboxes_each_become_a_shadowed_lamp():
+    """Three compact bright regions over a dim sky (a studio map's softboxes): each is split off
+    with its direction and irradiance, brightest first, and the sky keeps only the dim rest. One
+    sun alone left the others in the sky map, where a pixel's cosine rays meet them rarely: the
+    studio.exr scene (160x90 against Cycles 256 spp) Combined 0.152, Diffuse Direct 0.195; now
+    0.040 and 0.022 (interior.exr 0.066 -> 0.023, night.exr 0.106 -> 0.060)."""
+    boxes = [(np.array([0.8, 0.2, 0.5]), 900.0, np.radians(4.0)), (np.array([-0.6, 0.5, 0.4]), 600.0, np.radians(5.0)),
+             (np.array([0.1, -0.9, 0.3]), 400.0, np.radians(3.0))]
+    dirs, solid = equirect_directions(H, W)
+    pixels = np.full((H, W, 3), 0.05, np.float64)
+    discs = []
+    for d, radiance, radius in boxes:
+        d = d / np.linalg.norm(d)
+        disc = dirs @ d > np.cos(radius)
+        pixels[disc] = radiance
+        discs.append((d, radiance, disc))
+    split = split_environment(pixels)
+    found = [(split.sun_direction, split.sun_irradiance)] + [(d, e) for d, e, _a in split.more_suns]
+    assert len(found) == 3
+    weight = np.broadcast_to(solid[:, None], (H, W))
+    for (d, radiance, disc), (direction, irradiance) in zip(discs, found, strict=True):
+        assert np.degrees(np.arccos(np.clip(direction @ d, -1, 1))) < 1.0
+        expected = radiance * float((weight[disc] * np.clip(dirs[disc] @ d, 0, None)).sum())
+        np.testing.assert_allclose(irradiance, expected, rtol=0.03)
+    np.testing.assert_allclose(split.sky, 0.05, rtol=0.05)
+
+
+def test_a_broad_bright_patch_stays_in_the_sky_map():
+    """After the sun, only compact regions are split off (`MAX_MORE_SUN_ANGLE`): a 25-degree bright
+    patch (forest.exr's sky through the trees) lights better from the map than as a disc."""
+    pixels, _ = sky_with_sun([0.3, -0.5, 0.6])
+    dirs, _solid = equirect_directions(H, W)
+    patch = dirs @ (np.array([-0.5, 0.5, 0.5]) / np.sqrt(0.75)) > np.cos(np.radians(12.5))
+    pixels[patch] = 20.0
+    split = split_environment(pixels)
+    assert split.sun_direction is not None and split.more_suns == ()
+
+
 def test_a_rotation_turns_the_sun_with_the_map():
     pixels, _ = sky_with_sun([1.0, 0.0, 0.3])
     quarter = np.array([[0, -1.0, 0], [1.0, 0, 0], [0, 0, 1.0]])  # +90 degrees about Z
