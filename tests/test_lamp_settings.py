@@ -452,15 +452,8 @@ def test_a_sky_textures_sun_is_as_wide_as_the_node_draws_it(bpy_module, empty_sc
     1.56 degrees wide and its shadows three times as soft as Cycles' (sky_yard 640x360: Combined
     0.0141 -> 0.0121 with the node's size). Its direction stays the map's (within 0.1 degree)."""
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))  # the bake runs, never read from an earlier one
-    bpy, scene = bpy_module, empty_scene
-    world = bpy.data.worlds.new("sky")
-    if world.node_tree is None:  # before 5.0
-        world.use_nodes = True
-    tree = world.node_tree
-    sky = tree.nodes.new("ShaderNodeTexSky")
-    sky.sun_disc, sky.sun_size, sky.sun_elevation, sky.sun_rotation = True, math.radians(0.545), 0.3, 1.0
-    tree.links.new(sky.outputs["Color"], tree.nodes["Background"].inputs["Color"])
-    scene.world = world
+    world, sky = _sky_world(bpy_module, empty_scene, "sky", sun_disc=True, sun_size=math.radians(0.545),
+                            sun_elevation=0.3, sun_rotation=1.0)
     _, lamps = sync.read_world(world)
     assert len(lamps) == 1
     sun = lamps[0]
@@ -479,15 +472,7 @@ def test_a_final_sync_starts_its_worlds_bake_first_and_bakes_it_once(bpy_module,
     (`sync.start_world_bakes`), so Blender renders the map while the meshes are read and the
     materials baked; reading the world then waits for that bake instead of running another."""
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))  # the bake runs, never read from an earlier one
-    bpy, scene = bpy_module, empty_scene
-    world = bpy.data.worlds.new("early sky")
-    if world.node_tree is None:  # before 5.0
-        world.use_nodes = True
-    tree = world.node_tree
-    sky = tree.nodes.new("ShaderNodeTexSky")
-    sky.sun_elevation, sky.sun_rotation = 0.4, 2.0
-    tree.links.new(sky.outputs["Color"], tree.nodes["Background"].inputs["Color"])
-    scene.world = world
+    world, _sky = _sky_world(bpy_module, empty_scene, "early sky", sun_elevation=0.4, sun_rotation=2.0)
     bake = sync.world_bake
     runs = []
     real_run = bake._run
@@ -501,3 +486,18 @@ def test_a_final_sync_starts_its_worlds_bake_first_and_bakes_it_once(bpy_module,
     assert elevation == pytest.approx(math.degrees(0.4), abs=0.2)
     sync.start_world_bakes(world)  # baked: nothing starts
     assert not bake.STORE.running(bake.world_key(world, "camera")) and len(runs) == 1
+
+
+def _sky_world(bpy, scene, name, **properties):
+    """(the world, its Sky Texture node) of a new world `name` whose Background shows a Sky
+    Texture with these node properties, made the scene's world."""
+    world = bpy.data.worlds.new(name)
+    if world.node_tree is None:  # before 5.0
+        world.use_nodes = True
+    tree = world.node_tree
+    sky = tree.nodes.new("ShaderNodeTexSky")
+    for key, value in properties.items():
+        setattr(sky, key, value)
+    tree.links.new(sky.outputs["Color"], tree.nodes["Background"].inputs["Color"])
+    scene.world = world
+    return world, sky

@@ -20,26 +20,18 @@ from hybridgi_core import glossy
 from hybridgi_core import specular as sp
 from hybridgi_core.raster.gbuffer import metal_texels
 from hybridgi_core.snapshot import Material
-from tests.cli_renders import CYCLES, QUICK, layer, pass_error, rendered, run_bpy
+from tests.cli_renders import CYCLES, QUICK, STAGE_HELPERS, layer, pass_error, rendered, run_bpy
 
 RES = "64x48"
 
 #: A 4 m plate seen from 45 degrees under a sun and a grey world: Base Color an image of red
 #: stripes (a fifth of it) on blue-grey, Metallic an image of the same stripes, Roughness ROUGH;
 #: the view layer writes the glossy passes.
-SCENE = textwrap.dedent("""
-    import math, bpy
-    import numpy as np
+SCENE = "import bpy\nimport numpy as np\nfrom mathutils import Vector\n" + STAGE_HELPERS + textwrap.dedent("""
     bpy.ops.wm.read_homefile(use_empty=True)
     scene = bpy.context.scene
-    cam = bpy.data.objects.new("cam", bpy.data.cameras.new("cam"))
-    cam.location, cam.rotation_euler = (0, -3.0, 3.0), (math.radians(45), 0, 0)
-    scene.collection.objects.link(cam)
-    scene.camera = cam
-    sun = bpy.data.objects.new("sun", bpy.data.lights.new("sun", "SUN"))
-    sun.data.energy = 3.0
-    sun.rotation_euler = (math.radians(-30), 0, 0)
-    scene.collection.objects.link(sun)
+    camera_at((0, -3.0, 3.0), (0, 0, 0))
+    sun_towards((0, -0.5, -0.866), 3.0)
     scene.world = bpy.data.worlds.new("grey")
     if scene.world.node_tree is None:
         scene.world.use_nodes = True
