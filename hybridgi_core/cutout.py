@@ -111,26 +111,37 @@ class Cutouts:
         if rows.size == 0:
             return out
         tri = prim[rows]
-        c = self._corner_uv[tri]
+        c = np.take(self._corner_uv, tri, axis=0)  # (k, 3, 2); take: a gather of whole rows
         uu, vv = u[rows, None], v[rows, None]
         uv = (1.0 - uu - vv) * c[:, 0] + uu * c[:, 1] + vv * c[:, 2]
-        mats = self._material[tri]
+        mats = np.take(self._material, tri) if len(self._alpha) > 1 else None
         for m, alpha in self._alpha.items():
-            sel = mats == m
-            if not sel.any():
+            sel = slice(None) if mats is None else np.flatnonzero(mats == m)
+            if mats is not None and sel.size == 0:
                 continue
-            h, w = alpha.shape
-            # Bilinear, repeating, texel centres at (i + 0.5) / size: as the G-buffer samples it.
-            st = uv[sel] * np.array([w, h], np.float32) - 0.5
-            f = np.floor(st)
-            t = st - f
-            x0 = f[:, 0].astype(np.int64) % w
-            y0 = f[:, 1].astype(np.int64) % h
-            x1, y1 = (x0 + 1) % w, (y0 + 1) % h
-            a = (alpha[y0, x0] * (1 - t[:, 0]) + alpha[y0, x1] * t[:, 0]) * (1 - t[:, 1]) \
-                + (alpha[y1, x0] * (1 - t[:, 0]) + alpha[y1, x1] * t[:, 0]) * t[:, 1]
-            out[rows[sel]] = a < ALPHA_CUTOFF
+            out[rows[sel]] = _bilinear(alpha, uv[sel]) < ALPHA_CUTOFF
         return out
+
+
+def _bilinear(alpha: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    """(k,) float32 of texture `alpha` (h, w) at `uv` (k, 2): bilinear, repeating, texel centres
+    at (i + 0.5) / size, as the G-buffer samples it; flat gathers (np.take), float32 (the rays'
+    holes took 1.6 s of CPU under a tree of 3000 alpha-cut leaves with 2-D fancy indexing)."""
+    h, w = alpha.shape
+    flat = alpha.reshape(-1)
+    s = uv[:, 0] * np.float32(w) - np.float32(0.5)
+    t = uv[:, 1] * np.float32(h) - np.float32(0.5)
+    fs, ft = np.floor(s), np.floor(t)
+    ds, dt = s - fs, t - ft
+    x0 = fs.astype(np.int64) % w
+    y0 = ft.astype(np.int64) % h
+    x1 = x0 + 1
+    x1[x1 == w] = 0
+    row0 = y0 * w
+    row1 = np.where(y0 + 1 == h, 0, row0 + w)
+    top = np.take(flat, row0 + x0) * (1 - ds) + np.take(flat, row0 + x1) * ds
+    bottom = np.take(flat, row1 + x0) * (1 - ds) + np.take(flat, row1 + x1) * ds
+    return top * (1 - dt) + bottom * dt
 
 
 #: Share of the light Cycles lets through refractive glass, (entering, leaving) its volume, under

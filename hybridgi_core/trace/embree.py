@@ -276,9 +276,23 @@ class EmbreeTracer:
 
         directions : (n, 3) or (1, 3); trusted : see `Tracer`. Through alpha cutouts, a ray is
         occluded only by a solid part: it is found as the closest hit (slower than Embree's any-hit
-        query, so only for scenes that have cutouts)."""
-        if self._cutouts is not None:
-            return self.intersect(origins, directions, tfar, trusted).prim >= 0
+        query, so only for scenes that have cutouts, and only for the rays the any-hit query finds
+        blocked by anything: a sunlit ground's shadow rays under a tree of alpha-cut leaves)."""
+        blocked = self._occluded_any(origins, directions, tfar, trusted)
+        if self._cutouts is None:
+            return blocked
+        rows = np.flatnonzero(blocked)
+        if rows.size:
+            o = np.asarray(origins, np.float32).reshape(-1, 3)[rows]
+            d = np.asarray(directions, np.float32).reshape(-1, 3)
+            d = d if d.shape[0] == 1 else d[rows]
+            far = np.asarray(tfar, np.float32)
+            far = far if far.ndim == 0 else far.reshape(-1)[rows]
+            blocked[rows] = self.intersect(o, d, far, trusted).prim >= 0
+        return blocked
+
+    def _occluded_any(self, origins, directions, tfar, trusted) -> np.ndarray:
+        """(n,) bool: any triangle of either scene, holes included, lies on the ray at 0 < t <= tfar."""
         o, d, tf, valid = self._embree_rays(origins, directions, tfar, trusted)
         n = o.shape[0]
         scenes = [s for s in (self._static, self._dynamic) if s is not None]
