@@ -994,7 +994,7 @@ def _shader_surface(shader, textures, name, depth=0):
         coat = _scalar_value(_input(shader, "Coat Weight"), textures, name) if _input(shader, "Coat Weight") else 0.0
         tint = _constant_color(_input(shader, "Coat Tint"), name) if _input(shader, "Coat Tint") else np.ones(3)
         roughness_map = _roughness_map(shader, textures, name)
-        roughness = _roughness(shader, textures, name, texels=roughness_map)
+        roughness = _roughness(shader, textures, name, texels=roughness_map, per_pixel=True)
         transmission = float(np.clip(transmission, 0, 1))
         # Rough transmission scatters as a Translucent BSDF would: part of the diffuse colour.
         share = frosted_share(roughness)
@@ -1411,18 +1411,21 @@ def _note_approximations(shader, textures, name, metallic, transmission, coat, r
 _UNREAD = object()
 
 
-def _roughness(shader, textures, name, default=0.5, texels=_UNREAD):
+def _roughness(shader, textures, name, default=0.5, texels=_UNREAD, per_pixel=False):
     """A closure's Roughness: its constant, or the mean of its texels (`_roughness_map`: an image
     it reads directly or what Blender baked of the nodes feeding it; a lobe has one roughness:
     noted), else its own value (`_constant_value` warns). texels : the map the caller already
-    read (None: a constant)."""
+    read (None: a constant). per_pixel : the caller keeps the map, whose texels the image's
+    pixels follow (a lone Principled BSDF's glossy variants, `glossy.roughness_range`): the note
+    says the mean serves the rays' hits only."""
     socket = _input(shader, "Roughness")
     if socket is None:
         return default
     if texels is _UNREAD:
         texels = _roughness_map(shader, textures, name)
     if texels is not None:
-        _note(textures, name, shader, "Roughness from a texture (its mean)")
+        _note(textures, name, shader, "Roughness from a texture (its mean at ray hits; per pixel in 6 steps for a lone Principled BSDF)"
+              if per_pixel else "Roughness from a texture (its mean)")
         return float(np.clip(np.nan_to_num(np.mean(texels, dtype=np.float64), nan=default), 0.0, 1.0))
     return _scalar_value(socket, textures, name, default)
 
