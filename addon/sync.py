@@ -70,7 +70,8 @@ def snapshot_from_depsgraph(depsgraph, dynamic_names=frozenset(), wait_for_world
         start_world_bakes(depsgraph.scene.world)
     builder = _SnapshotBuilder(frozenset(dynamic_names), _collection_flags(depsgraph.view_layer),
                                wait=wait_for_world, render_mode=getattr(depsgraph, "mode", "RENDER") == "RENDER",
-                               texture_limit=texture_limit(depsgraph.scene))
+                               texture_limit=texture_limit(depsgraph.scene),
+                               material_override=material_override(depsgraph))
     for instance in depsgraph.object_instances:
         builder.add_instance(instance)
     builder.warn_unsupported()
@@ -80,6 +81,19 @@ def snapshot_from_depsgraph(depsgraph, dynamic_names=frozenset(), wait_for_world
     camera = depsgraph.scene.camera
     viewpoint = None if camera is None else tuple(camera.evaluated_get(depsgraph).matrix_world.translation)
     return builder.finish(world, viewpoint)
+
+
+def material_override(depsgraph):
+    """The view layer's Material Override (View Layer > Filter, a clay render), evaluated
+    (its animated values), or None. Cycles and EEVEE render every surface with it, objects
+    without a material included; lamps and the world keep theirs."""
+    override = getattr(depsgraph.view_layer, "material_override", None)
+    if override is None:
+        return None
+    try:
+        return depsgraph.id_eval_get(override)
+    except (AttributeError, KeyError, RuntimeError, TypeError):
+        return override
 
 
 #: Cycles' per-object ray visibility HybridGI does not follow (the object takes part as if on):
@@ -477,8 +491,10 @@ def check_flattened_size(triangles: int, available: int | None = None) -> None:
 
 class _SnapshotBuilder:
     def __init__(self, dynamic_names, collection_flags=None, wait=True, render_mode=True,
-                 texture_limit=snap.MAX_TEXTURE_SIZE):
+                 texture_limit=snap.MAX_TEXTURE_SIZE, material_override=None):
         self.dynamic_names = dynamic_names
+        #: The view layer's Material Override: every slot's material when set (`material_override`).
+        self.material_override = material_override
         self.wait = wait
         self.render_mode = render_mode  # a render's depsgraph: particle paths at their render steps
         self._baked = {}  # (material, mesh pointer, slot) -> material index
@@ -717,7 +733,9 @@ class _SnapshotBuilder:
         """(global material index of each slot, the local mesh): slots whose material needs a
         bake get a material of their own for this mesh (and for this object's Object Info values
         where the material reads them: `object_values`), and its triangles the atlas UVs."""
-        materials = [slot.material for slot in obj.material_slots]
+        # One slot under a view layer's override: every slot index clips to it.
+        materials = ([self.material_override] if self.material_override is not None
+                     else [slot.material for slot in obj.material_slots])
         if not materials:
             materials = list(obj.data.materials)
         if not materials:

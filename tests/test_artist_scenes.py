@@ -189,6 +189,9 @@ SCENE = "import math, os, sys, bpy\nfrom mathutils import Vector\n" + STAGE_HELP
             tree.links.new(tree.nodes["Principled BSDF"].outputs[0], mix.inputs[1])
             tree.links.new(tree.nodes.new("ShaderNodeBsdfTransparent").outputs[0], mix.inputs[2])
             tree.links.new(mix.outputs[0], tree.nodes["Material Output"].inputs["Surface"])
+    if variant == "material_override":
+        # View Layer > Filter > Material Override: a clay render of every surface.
+        scene.view_layers[0].material_override = material("clay", (0.5, 0.5, 0.5))
     if variant == "displacement_image":
         # A height image into the Material Output's Displacement (Bump Only, Cycles' default).
         import numpy as np
@@ -448,6 +451,16 @@ def test_a_roughness_texture_sets_each_pixels_diffuse_weight(tmp_path):
     every pixel took the mean roughness's. Measured here (64x48): Diffuse Color 0.080 -> 0.003,
     Combined 0.083 -> 0.017; 128x96 against 64 spp + OIDN: 0.029 -> 0.002, 0.033 -> 0.008."""
     errors = variant_errors(tmp_path, "roughness_checker", ("Combined", "Diffuse Color"))[0]
+    assert errors["Diffuse Color"] < 0.02 and errors["Combined"] < 0.04, errors
+
+
+def test_a_view_layers_material_override_renders_every_surface_with_it(tmp_path):
+    """View Layer > Filter > Material Override (a clay render): Cycles renders every surface with
+    the override, the lamps and the world as they are (`sync.material_override`). Before, it was
+    ignored without a word: the red cube and blue ball kept their colours. Measured here (64x48):
+    Diffuse Color 0.467 -> 0.001, Combined 0.426 -> 0.013 (128x96 against 64 spp + OIDN: 0.451 ->
+    0.008)."""
+    errors = variant_errors(tmp_path, "material_override", ("Combined", "Diffuse Color"))[0]
     assert errors["Diffuse Color"] < 0.02 and errors["Combined"] < 0.04, errors
 
 
