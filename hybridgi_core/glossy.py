@@ -384,6 +384,72 @@ def slot_coefficients(mats: GlossyMaterials, slot: int, rows, mu, mu_view=None) 
     return (k * (scale * view[:, None])[:, None, :]).astype(_F32), e
 
 
+#: View cosines at which `traced_fresnel` tabulates each material's lobe coefficients (their
+#: multiple-scattering and view factors vary slowly with it).
+FRESNEL_MU_STEPS = 33
+
+
+def traced_fresnel(mats: GlossyMaterials, rows, mu, cos_hi) -> np.ndarray:
+    """(m, s) float32 the Fresnel (luminance, with each lobe's multiple-scattering and view factors)
+    of the lobes as rough as each receiver's traced one (`GlossyMaterials.rough`: a Principled
+    BSDF's specular and metallic lobes) at the half-vector cosines cos_hi (m, s) of its reflection
+    samples; rows (m,) material rows, mu (m,) view cosines. 1 where no lobe matches.
+
+    Why: Cycles' Glossy Direct and Indirect are the lobes' light over their albedo, Fresnel
+    included in both; at grazing views a dielectric's Fresnel rises steeply towards the mirror
+    direction, and a sample weight without it (G2 / G1) leans the mean towards the lobe's tail.
+    A floor reflecting a map bright on one side only, seen at 20 degrees: Glossy Direct +45%.
+    The coefficients are tabulated per material row at FRESNEL_MU_STEPS view cosines (per
+    receiver they cost 0.2 s of 1.6 M samples' 0.25 s)."""
+    rows = np.asarray(rows)
+    c = np.clip(np.asarray(cos_hi, _F32), 0.0, 1.0)
+    out = np.zeros(c.shape, _F32)
+    if rows.size == 0:
+        return out
+    luma = np.asarray(LUMA, _F32)
+    unique, inverse = np.unique(rows, return_inverse=True)
+    grid = np.linspace(1e-4, 1.0, FRESNEL_MU_STEPS)
+    step = np.clip(np.rint(np.clip(np.asarray(mu, np.float64), 0.0, 1.0) * (FRESNEL_MU_STEPS - 1)), 0,
+                   FRESNEL_MU_STEPS - 1).astype(np.int64)
+    traced = mats.rough[unique]
+    s5 = None
+    for slot in range(mats.alpha2.shape[0]):
+        mine_u = (np.abs(mats.lobe_rough[slot, unique] - traced) < 1e-6) & mats.k[slot, unique].any(axis=(1, 2))
+        if not mine_u.any():
+            continue
+        table = (slot_coefficients(mats, slot, np.repeat(unique, FRESNEL_MU_STEPS),
+                                   np.tile(grid, unique.size))[0] @ luma).astype(_F32)
+        table = table.reshape(unique.size, FRESNEL_MU_STEPS, 4)
+        mine = mine_u[inverse]
+        at = None if mine.all() else np.flatnonzero(mine)
+        k = table[inverse, step] if at is None else table[inverse[at], step[at]]
+        cc = c if at is None else c[at]
+        f = np.broadcast_to(k[:, 0:1], cc.shape).copy()
+        if np.any(k[:, 2:4]):
+            if s5 is None:
+                one_minus = _F32(1.0) - c
+                s5 = (one_minus * one_minus) ** 2 * one_minus
+            s5c = s5 if at is None else s5[at]
+            f += k[:, 2:3] * s5c + k[:, 3:4] * s5c * (_F32(1.0) - cc) * cc
+        if np.any(k[:, 1]):
+            sub = rows if at is None else rows[at]
+            eta = mats.eta[slot, sub][:, None].astype(_F32)
+            f0 = mats.f0_real[slot, sub][:, None].astype(_F32)
+            # Cycles' fresnel_dielectric_cos for eta > 1 (g > c >= 0: no division by 0), float32.
+            g = np.sqrt(eta * eta - _F32(1.0) + cc * cc)
+            a = (g - cc) / (g + cc)
+            b = (cc * (g + cc) - _F32(1.0)) / (cc * (g - cc) + _F32(1.0))
+            fresnel = _F32(0.5) * a * a * (_F32(1.0) + b * b)
+            f += k[:, 1:2] * np.clip((fresnel - f0) / np.maximum(_F32(1.0) - f0, _F32(1e-12)), 0.0, 1.0)
+        if at is None:
+            out += f
+        else:
+            out[at] += f
+    none = ~np.any(out > 0, axis=1)
+    out[none] = 1.0
+    return out
+
+
 def fresnel_terms(mats: GlossyMaterials, slot: int, rows, cos_hi) -> np.ndarray:
     """(m, 4) the terms the coefficients of `slot_coefficients` weigh at cos(h, i) = cos_hi (m,):
     1, the dielectric Fresnel remapped to 0..1, (1 - c)^5 and c (1 - c)^6 (`_lobe_terms`)."""

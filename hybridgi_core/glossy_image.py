@@ -227,7 +227,7 @@ def begin_glossy(system, points, normals, pix, shape: tuple[int, int], material,
     sampled = np.flatnonzero((~(skip[lit] | closed[lit])).any(axis=1))
     between()  # (an edit that waits stops the viewport's worker before the reflection rays)
     parts = _traced_reflections(system, points[lit], normals[lit], to_eye[lit], rough, frame, pix[lit], shape,
-                                skip[lit], reflection_rays, lookup, between, screen)
+                                skip[lit], reflection_rays, lookup, between, screen, rows[lit])
     metals = None
     if tint is not None and getattr(mats, "tint_bases", None):
         metals = (mats, np.asarray(material).reshape(-1), rows, np.asarray(tint, np.float32).reshape(-1, 2), mu)
@@ -295,7 +295,7 @@ def _tint_metals(mats, material, rows, tint, mu, direct, colour) -> None:
 
 
 def _traced_reflections(system, points, normals, to_eye, rough, frame, pix, shape, lamps, rays, lookup, between,
-                        screen=None):
+                        screen=None, rows=None):
     """(traced (t,), direct, indirect (t, 3), total (t,), share (t,), sky, bounced, lamp (n, 3)):
     what the lobes at the receivers reflect before Glossy Color, unfiltered (`finish_glossy`
     filters and blends it): reflection rays (`reflection.traced_reflection`) at the receivers
@@ -305,7 +305,8 @@ def _traced_reflections(system, points, normals, to_eye, rough, frame, pix, shap
     every receiver, read only where they count (rough lobes, rays that found no light: the rest
     zero); and the area lamps `lamps` (n, L) marks as the rays met them (lamp sampling skipped
     them). lookup : the cache's HitLookup to reuse (None: built here; the whole grid's table costs
-    ~50 ms on a 48^3 grid)."""
+    ~50 ms on a 48^3 grid). rows : (n,) the receivers' glossy material rows (their Fresnel weighs
+    the rays: `reflection.traced_reflection`), or None."""
     n = points.shape[0]
     share = traced_share(rough) if rays > 0 else np.zeros(n)
     sel = np.flatnonzero(share > 0)
@@ -317,7 +318,8 @@ def _traced_reflections(system, points, normals, to_eye, rough, frame, pix, shap
             lookup = HitLookup(system.cache, bounced=system.settings.indirect_quality == MULTI_BOUNCE)
         direct, indirect, total, lamp[sel] = traced_reflection(system, lookup, points[sel], normals[sel],
                                                                to_eye[sel], rough[sel], rays, frame, lamps[sel],
-                                                               pixels=(pix[sel], shape[1]), screen=screen)
+                                                               pixels=(pix[sel], shape[1]), screen=screen,
+                                                               rows=None if rows is None else rows[sel])
         between()
     sky = np.zeros((n, 3), np.float32)
     bounced = np.zeros((n, 3), np.float32)

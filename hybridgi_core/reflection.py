@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from . import glossy as glossy_mod
 from .camera import camera_position
 from .lights import GLOSSY_LAMP_BUDGET, _area_shape, _onb, spread_attenuation, stratified_uv
 from .pixel_gather import filter_at_pixels, hit_radiance
@@ -69,12 +70,13 @@ def traced_share(rough: np.ndarray) -> np.ndarray:
 
 
 def sample_reflections(normals: np.ndarray, to_eye: np.ndarray, rough: np.ndarray, u: np.ndarray,
-                       v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+                       v: np.ndarray, with_cos: bool = False) -> tuple[np.ndarray, ...]:
     """Reflection directions (m, s, 3) float32 and weights G2 / G1 (m, s) (0 below the horizon)
     of GGX lobes of roughness `rough` (m,) (alpha = rough^2, as Cycles maps it) at unit normals
     and view directions (m, 3), from uniform numbers u, v (m, s): Heitz's visible-normal sampling,
     in float32 as Cycles' kernel takes it (float64 cost twice the time: a third of the reflection
-    rays' CPU)."""
+    rays' CPU). with_cos : also (m, s) the cosine between the view and each sample's microfacet
+    normal (the Fresnel's angle)."""
     n = np.asarray(normals, _F32)
     e = np.asarray(to_eye, _F32)
     t1, t2 = _onb(n[:, 0:1], n[:, 1:2], n[:, 2:3])
@@ -117,6 +119,8 @@ def sample_reflections(normals: np.ndarray, to_eye: np.ndarray, rough: np.ndarra
     world = np.empty(lx.shape + (3,), _F32)
     for k in range(3):
         np.multiply(comps[k], inv, out=world[..., k], casting="same_kind")
+    if with_cos:
+        return world, weight.astype(_F32), np.clip(cos_vm, 0.0, 1.0).astype(_F32)
     return world, weight.astype(_F32)
 
 
@@ -180,7 +184,7 @@ def lamp_glossy_without(system, points, normals, to_eye, rows, frame: int, sampl
 
 def traced_reflection(system, lookup, points: np.ndarray, normals: np.ndarray, to_eye: np.ndarray,
                       rough: np.ndarray, rays: int, frame: int, lamps: np.ndarray | None = None,
-                      pixels: tuple[np.ndarray, int] | None = None, screen=None
+                      pixels: tuple[np.ndarray, int] | None = None, screen=None, rows: np.ndarray | None = None
                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """(direct (n, 3), indirect (n, 3), weight sum (n,), lamp (n, 3)) float32: the mean radiance
     `rays` reflection rays per receiver bring from the world or emitters, from other surfaces and
@@ -189,7 +193,9 @@ def traced_reflection(system, lookup, points: np.ndarray, normals: np.ndarray, t
     0: keep the cache's there). pixels : (pix (n,), width) the receivers' flat pixel indices in an
     image `width` wide: each tile's rays stratify together (`tiled_nets`), for the image filter.
     screen : the frame's `screen_light.ScreenLight` or None: hits the image shows read their lamp
-    light there (`pixel_gather.hit_radiance`), others trace their own shadow rays."""
+    light there (`pixel_gather.hit_radiance`), others trace their own shadow rays. rows : (n,)
+    the receivers' rows of `system.glossy_materials`: each sample is weighed by its lobes' Fresnel
+    (`glossy.traced_fresnel`), as Cycles' passes weigh their light; None: by G2 / G1 alone."""
     pts = np.ascontiguousarray(points, _F32).reshape(-1, 3)
     n = pts.shape[0]
     out = np.zeros((n, 10), _F32)
@@ -207,7 +213,8 @@ def traced_reflection(system, lookup, points: np.ndarray, normals: np.ndarray, t
     tiles = (lambda a: None) if pixels is None else (lambda a: (pixels[0][a:a + per], pixels[1], seed * 7919 + frame))
     jobs = [system.updater.pool.submit(_chunk, system, lookup, pts[a:a + per], nrm[a:a + per], eye[a:a + per],
                                        rough[a:a + per], rays, frame_rng(seed, frame * 7919 + i),
-                                       None if lamps is None else lamps[a:a + per], lights, tiles(a), screen)
+                                       None if lamps is None else lamps[a:a + per], lights, tiles(a), screen,
+                                       None if rows is None else np.asarray(rows)[a:a + per])
             for i, a in enumerate(starts)]
     for a, job in zip(starts, jobs, strict=True):
         out[a:a + per] = job.result()
@@ -242,12 +249,16 @@ def _lamp_radiance(lights, lamps: np.ndarray, origins: np.ndarray, dirs: np.ndar
     return out
 
 
-def _chunk(system, lookup, p, nrm, eye, rough, rays, rng, lamps=None, lights=(), tiles=None, screen=None):
+def _chunk(system, lookup, p, nrm, eye, rough, rays, rng, lamps=None, lights=(), tiles=None, screen=None, rows=None):
     """Worker: (m, 10) weighted mean direct rgb, indirect rgb, the weight sum and the marked
-    area lamps' rgb of m receivers. tiles : (pix, width, key) for `tiled_nets.tiled_uv`, or None."""
+    area lamps' rgb of m receivers. tiles : (pix, width, key) for `tiled_nets.tiled_uv`, or None.
+    rows : (m,) glossy material rows (their Fresnel weighs the samples), or None."""
     m = p.shape[0]
     u, v = stratified_uv(rng, m, rays) if tiles is None else tiled_uv(tiles[0], tiles[1], rays, tiles[2])
-    dirs, weight = sample_reflections(nrm, eye, rough, u, v)
+    dirs, weight, cos_hi = sample_reflections(nrm, eye, rough, u, v, with_cos=True)
+    if rows is not None:
+        mu = np.einsum("ij,ij->i", nrm, eye)
+        weight = weight * glossy_mod.traced_fresnel(system.glossy_materials, rows, mu, cos_hi)
     tracer = system.tracer
     eps = _F32(tracer.epsilon)
     origins = np.repeat(p + nrm * eps, rays, axis=0)
@@ -269,7 +280,7 @@ def _chunk(system, lookup, p, nrm, eye, rough, rays, rng, lamps=None, lights=(),
     sky = system.updater.scene.world.sky_map if live.size else None
     sky_sum = None
     if sky is not None and SKY_SAMPLES > 0:
-        sky_sum = _sky_mis(system, sky, p, nrm, eye, rough, rays, rng, radiance, flat_dirs, live, hits)
+        sky_sum = _sky_mis(system, sky, p, nrm, eye, rough, rays, rng, radiance, flat_dirs, live, hits, rows)
     weighted = (radiance.reshape(m, rays, 9) * w).sum(axis=1)
     if sky_sum is not None:
         weighted[:, 0:3] += sky_sum
@@ -301,7 +312,18 @@ def _lobe_densities(n: np.ndarray, v: np.ndarray, wi: np.ndarray, alpha: np.ndar
     return g1 * d / four_nv, d * g2 / four_nv
 
 
-def _sky_mis(system, sky, p, nrm, eye, rough, rays, rng, radiance, flat_dirs, live, hits) -> np.ndarray:
+def _sample_fresnel(mats, rows, nrm, eye, dirs) -> np.ndarray:
+    """(m, s) float32 `glossy.traced_fresnel` of m receivers (rows, unit normals and views (m, 3))
+    towards their s sample directions dirs (m, s, 3)."""
+    v = np.asarray(eye, _F32)
+    h = dirs + v[:, None, :]
+    h /= np.maximum(np.linalg.norm(h, axis=-1, keepdims=True), _F32(1e-30))
+    cos_hi = np.einsum("msk,mk->ms", h, v)
+    mu = np.einsum("ij,ij->i", np.asarray(nrm, _F32), v)
+    return glossy_mod.traced_fresnel(mats, rows, mu, cos_hi)
+
+
+def _sky_mis(system, sky, p, nrm, eye, rough, rays, rng, radiance, flat_dirs, live, hits, rows=None) -> np.ndarray:
     """(m, 3) the sky's part of m receivers' weighted radiance sum (the numerator of `_chunk`'s
     mean, in units of its ray weights) from SKY_SAMPLES directions drawn by the map's power
     (`environment.SkySampler`) besides the lobe's `rays`, by the balance heuristic: a sample of
@@ -343,6 +365,8 @@ def _sky_mis(system, sky, p, nrm, eye, rough, rays, rng, radiance, flat_dirs, li
         return out
     owner, n, v, wi, ps = owner[seen], n[seen], v[seen], wi[seen], ps[seen]
     pb, fcos = _lobe_densities(n, v, wi, alpha[owner])
+    if rows is not None:
+        fcos = fcos * _sample_fresnel(system.glossy_materials, np.asarray(rows)[owner], n, v, wi[:, None, :])[:, 0]
     weight = nb * fcos / np.maximum(nb * pb + ns * ps, _F32(1e-30))
     light = sky.radiance(wi) * weight[:, None]
     for c in range(3):

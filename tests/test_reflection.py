@@ -41,6 +41,39 @@ def test_visible_normal_weights_average_to_the_ggx_albedo(rough, mu):
     assert (dirs[w > 0][:, 2] > 0).all()  # every weighted sample is above the horizon
 
 
+@pytest.mark.parametrize("metallic, mu", [(0.0, 0.2), (0.0, 0.7), (1.0, 0.2), (0.5, 0.4)])
+def test_sample_weights_times_the_fresnel_are_the_lobes_brdf_over_their_density(metallic, mu):
+    """A visible-normal sample's weight G2 / G1 times `glossy.traced_fresnel` is the material's
+    glossy BRDF x cos over the sample's density, up to one factor per receiver (which the
+    weighted mean cancels): so the reflection rays' mean is the lobes' light over their albedo,
+    Fresnel included in both, as Cycles' Glossy passes are. A Principled BSDF of roughness 0.5,
+    dielectric, metal or between, seen at grazing and steep angles."""
+    from hybridgi_core import glossy  # noqa: PLC0415
+    from hybridgi_core.snapshot import Material  # noqa: PLC0415
+
+    layer = sp.SpecularLayer(roughness=0.5, weight=1.0 - metallic, metallic=metallic,
+                             metal_color=np.array([0.9, 0.6, 0.3], np.float32))
+    mats = glossy.GlossyMaterials.from_materials([Material(specular=layer)])
+    rng = np.random.default_rng(3)
+    u, v = rng.random((2, 1, 4000))
+    n, e = np.array([[0.0, 0.0, 1.0]]), _view(mu)
+    dirs, w, cos_hi = sample_reflections(n, e, mats.rough[[0]], u, v, with_cos=True)
+    weight = w * glossy.traced_fresnel(mats, np.array([0]), np.array([mu]), cos_hi)
+    brdf = glossy.lobes(mats, np.array([0]), n, e, dirs[..., 0], dirs[..., 1], dirs[..., 2]) @ glossy.LUMA
+    alpha2 = np.float32(0.5**4)
+    h = dirs + e[:, None, :]
+    h /= np.linalg.norm(h, axis=-1, keepdims=True)
+    nh = h[..., 2]
+    d = alpha2 / (np.pi * (nh * nh * (alpha2 - 1.0) + 1.0) ** 2)
+    density = d / (1.0 + sp._lambda(alpha2, mu)) / (4.0 * mu)  # G1 D / (4 n.v)
+    live = w > 0
+    ratio = weight[live] / (brdf[live] / density[live])
+    assert abs(ratio.max() / ratio.min() - 1.0) < 0.02, (ratio.min(), ratio.max())
+    plain = w[live] / (brdf[live] / density[live])  # without the Fresnel: not one factor
+    if metallic < 1.0:
+        assert plain.max() / plain.min() > 1.3, (plain.min(), plain.max())
+
+
 def test_a_near_mirror_reflects_about_the_normal_and_rotates_with_it():
     rng = np.random.default_rng(1)
     u, v = rng.random((2, 3, 64))
