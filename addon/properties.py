@@ -203,8 +203,8 @@ class HybridGISettings(bpy.types.PropertyGroup):
 
     reflection_rays: IntProperty(
         name="Reflection Rays",
-        description="Rays per pixel that a glossy surface (roughness up to 0.5, blended into the cache's mean "
-        "light up to 1: polished floors, metals, lacquer, the default Principled BSDF's specular) reflects, "
+        description="Rays per pixel that a glossy surface (every roughness: polished floors, metals, lacquer, "
+        "the default Principled BSDF's specular, rough plastics) reflects, "
         "shaded at their hits, so it mirrors the room rather than its average colour (final renders). "
         "0 = the cache's mean light for every glossy surface",
         default=8, min=0, max=256, soft_max=16,

@@ -110,9 +110,12 @@ def test_lamp_glossy_is_filtered_on_its_surface_only_where_the_lobe_is_rough():
     assert abs(out[wall & ~smooth].mean() / 10.0 - 1.0) < 0.05
 
 
-def test_rough_lobes_keep_the_cache_estimate():
-    share = traced_share(np.array([0.0, 0.5 * TRACE_ROUGHNESS, 0.75 * TRACE_ROUGHNESS, TRACE_ROUGHNESS, 1.0]))
-    np.testing.assert_allclose(share, [1.0, 1.0, 0.5, 0.0, 0.0])
+def test_every_lobe_is_traced_wholly_and_the_blend_falls_past_half_the_limit():
+    """Roughness at most 1 (every lobe) takes the traced estimate whole; the blend towards the
+    cache's mean would start at TRACE_ROUGHNESS / 2."""
+    np.testing.assert_allclose(traced_share(np.array([0.0, 0.5, 0.8, 1.0])), 1.0)
+    share = traced_share(np.array([0.5 * TRACE_ROUGHNESS, 0.75 * TRACE_ROUGHNESS, TRACE_ROUGHNESS]))
+    np.testing.assert_allclose(share, [1.0, 0.5, 0.0])
 
 
 SCENE = "import sys, bpy\nfrom mathutils import Vector\n" + STAGE_HELPERS + textwrap.dedent("""
