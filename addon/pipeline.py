@@ -148,6 +148,11 @@ UNWRITTEN_PASSES = (
     ("use_pass_cryptomatte_object", "Cryptomatte Object"), ("use_pass_cryptomatte_material", "Cryptomatte Material"),
     ("use_pass_cryptomatte_asset", "Cryptomatte Asset"),
 )
+#: Cycles' own view-layer passes (`view_layer.cycles`) HybridGI does not write.
+UNWRITTEN_CYCLES_PASSES = (
+    ("denoising_store_passes", "Denoising Data"), ("use_pass_shadow_catcher", "Shadow Catcher"),
+    ("use_pass_volume_direct", "Volume Direct"), ("use_pass_volume_indirect", "Volume Indirect"),
+)
 
 
 def unsupported_settings(scene, view_layer) -> list[str]:
@@ -173,6 +178,12 @@ def unsupported_settings(scene, view_layer) -> list[str]:
             notes.append(f"depth of field of camera {camera.name!r} needs Pixel Samples above 1 (its lens points "
                          "are the subframes): everything is in focus")
     passes = [label for flag, label in UNWRITTEN_PASSES if getattr(view_layer, flag, False)]
+    own = getattr(view_layer, "cycles", None)
+    passes += [label for flag, label in UNWRITTEN_CYCLES_PASSES if getattr(own, flag, False)]
+    # Shader AOVs and light groups add passes of their own to Cycles' render (a compositor tree
+    # may read them): name them, or the file silently lacks what the user set up.
+    passes += [f"AOV {aov.name!r}" for aov in getattr(view_layer, "aovs", ())]
+    passes += [f"light group {group.name!r} (Combined_{group.name})" for group in getattr(view_layer, "lightgroups", ())]
     if passes:
         notes.append(f"passes not written: {', '.join(passes)}")
     return notes

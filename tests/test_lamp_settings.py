@@ -296,6 +296,23 @@ def test_cycles_diffuse_bounce_limit_sets_the_indirect_quality(bpy_module, empty
 
 
 @pytest.mark.blender
+def test_passes_cycles_would_add_are_named_as_not_written(bpy_module, empty_scene, addon):
+    """Shader AOVs, light groups and Cycles' own passes (denoising data, volume) add passes to
+    Cycles' render that HybridGI does not write: each is named in the warning, none is silent."""
+    pipeline = importlib.import_module(f"{addon.__name__}.pipeline")
+    scene = empty_scene
+    layer = scene.view_layers[0]
+    assert not any("passes not written" in n for n in pipeline.unsupported_settings(scene, layer))
+    layer.aovs.add().name = "mask"
+    layer.lightgroups.add(name="key")
+    layer.cycles.denoising_store_passes = True
+    layer.cycles.use_pass_volume_direct = True
+    note = next(n for n in pipeline.unsupported_settings(scene, layer) if "passes not written" in n)
+    for name in ("AOV 'mask'", "Combined_key", "Denoising Data", "Volume Direct"):
+        assert name in note, note
+
+
+@pytest.mark.blender
 def test_cycles_filter_glossy_reaches_the_cache_settings(bpy_module, empty_scene, addon):
     scene = empty_scene
     assert scene.hybridgi.cache_settings(scene).filter_glossy == pytest.approx(scene.cycles.blur_glossy)
