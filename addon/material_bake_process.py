@@ -169,7 +169,9 @@ def run(job):
     for other in scene.objects:
         other.select_set(other is obj)
     bpy.context.view_layer.objects.active = obj
-    bpy.ops.object.bake(type="EMIT", margin=int(spec["margin"]), use_clear=True)
+    # The atlas named as the target: Blender bakes into the render UV map otherwise, which is the
+    # mesh's own where it has one (its UV layout, not the atlas the G-buffer reads).
+    bpy.ops.object.bake(type="EMIT", margin=int(spec["margin"]), use_clear=True, uv_layer="hybridgi_atlas")
     pixels = np.empty(size * size * 4, np.float32)
     image.pixels.foreach_get(pixels)
     np.save(os.path.join(folder, job["key"] + ".npy"), pixels.reshape(size, size, 4)[..., :3])

@@ -2268,6 +2268,7 @@ def bake_job(material, node, socket, mesh, local, triangles):
                 mesh.attributes[".corner_vert"].data.foreach_get("value", corner_vert)
             values = values[corner_vert]
         colors[attr.name] = values[corners]
+    _generic_attributes(material, mesh, corners, colors)
     texspace = (tuple(mesh.texspace_location), tuple(mesh.texspace_size))
     shader = material.node_tree.nodes[node]
     if socket == EMISSION_BAKE:
@@ -2279,6 +2280,52 @@ def bake_job(material, node, socket, mesh, local, triangles):
                                  positions=np.ascontiguousarray(local.positions[corners], np.float32),
                                  uv_maps=uv_maps, render_uv=render, colors=colors, texspace=texspace,
                                  normals=np.ascontiguousarray(local.normals[corners], np.float32))
+
+
+#: Attribute data types an Attribute node reads as numbers, their `foreach_get` key and width.
+_ATTRIBUTE_READS = {"FLOAT": ("value", 1), "INT": ("value", 1), "INT8": ("value", 1), "BOOLEAN": ("value", 1),
+                    "FLOAT2": ("vector", 2), "FLOAT_VECTOR": ("vector", 3)}
+
+
+def _generic_attributes(material, mesh, corners: np.ndarray, colors: dict) -> None:
+    """colors[name] = (len(corners), 4) float32 for every generic attribute (float, integer,
+    boolean, 2D or 3D vector; point, corner or face domain) that an Attribute node of `material`
+    names and that is not a colour attribute: the bake mesh carries it as a colour attribute of
+    that name, which the node reads as Cycles reads the original (a float f: Color and Vector
+    (f, f, f), Fac f; a vector: its components, Fac their mean).
+
+    Why: a Geometry Nodes field stored on the mesh (a height, a mask, a random value per point)
+    into a Color Ramp read 0 in the bake: a floor striped by a float attribute came out one
+    colour (Combined 0.394 against Cycles)."""
+    names = {node.attribute_name for node in _tree_nodes(material.node_tree)
+             if node.type == "ATTRIBUTE" and getattr(node, "attribute_type", "GEOMETRY") == "GEOMETRY"
+             and node.attribute_name} - set(colors)
+    corner_vert = corner_face = None
+    for name in sorted(names):
+        attr = mesh.attributes.get(name)
+        read = None if attr is None else _ATTRIBUTE_READS.get(attr.data_type)
+        if read is None or attr.domain not in ("POINT", "CORNER", "FACE"):
+            continue
+        key, width = read
+        values = np.empty(len(attr.data) * width, bool if attr.data_type == "BOOLEAN" else
+                          (np.int32 if attr.data_type in ("INT", "INT8") else np.float32))
+        attr.data.foreach_get(key, values)
+        values = values.astype(np.float32).reshape(-1, width)
+        if attr.domain == "POINT":
+            if corner_vert is None:
+                corner_vert = np.empty(len(mesh.loops), np.int32)
+                mesh.attributes[".corner_vert"].data.foreach_get("value", corner_vert)
+            values = values[corner_vert]
+        elif attr.domain == "FACE":
+            if corner_face is None:
+                totals = np.empty(len(mesh.polygons), np.int32)
+                mesh.polygons.foreach_get("loop_total", totals)
+                corner_face = np.repeat(np.arange(totals.size, dtype=np.int64), totals)
+            values = values[corner_face]
+        rgba = np.ones((values.shape[0], 4), np.float32)
+        rgba[:, :3] = values if width == 3 else (values[:, [0, 0, 0]] if width == 1 else
+                                                 np.concatenate([values, np.zeros_like(values[:, :1])], axis=1))
+        colors[name] = np.nan_to_num(rgba[corners], nan=0.0, posinf=0.0, neginf=0.0)
 
 
 #: Texels along an atlas cell (two triangles, `material_bake.cell_texels`) a baked bump height
