@@ -384,11 +384,6 @@ def slot_coefficients(mats: GlossyMaterials, slot: int, rows, mu, mu_view=None) 
     return (k * (scale * view[:, None])[:, None, :]).astype(_F32), e
 
 
-#: View cosines at which `traced_fresnel` tabulates each material's lobe coefficients (their
-#: multiple-scattering and view factors vary slowly with it).
-FRESNEL_MU_STEPS = 33
-
-
 def traced_fresnel(mats: GlossyMaterials, rows, mu, cos_hi) -> np.ndarray:
     """(m, s) float32 the Fresnel (luminance, with each lobe's multiple-scattering and view factors)
     of the lobes as rough as each receiver's traced one (`GlossyMaterials.rough`: a Principled
@@ -398,56 +393,60 @@ def traced_fresnel(mats: GlossyMaterials, rows, mu, cos_hi) -> np.ndarray:
     Why: Cycles' Glossy Direct and Indirect are the lobes' light over their albedo, Fresnel
     included in both; at grazing views a dielectric's Fresnel rises steeply towards the mirror
     direction, and a sample weight without it (G2 / G1) leans the mean towards the lobe's tail.
-    A floor reflecting a map bright on one side only, seen at 20 degrees: Glossy Direct +45%.
-    The coefficients are tabulated per material row at FRESNEL_MU_STEPS view cosines (per
-    receiver they cost 0.2 s of 1.6 M samples' 0.25 s)."""
+    A floor reflecting a map bright on one side only, seen at 20 degrees: Glossy Direct +45%."""
     rows = np.asarray(rows)
     c = np.clip(np.asarray(cos_hi, _F32), 0.0, 1.0)
     out = np.zeros(c.shape, _F32)
     if rows.size == 0:
         return out
-    luma = np.asarray(LUMA, _F32)
     unique, inverse = np.unique(rows, return_inverse=True)
-    grid = np.linspace(1e-4, 1.0, FRESNEL_MU_STEPS)
-    step = np.clip(np.rint(np.clip(np.asarray(mu, np.float64), 0.0, 1.0) * (FRESNEL_MU_STEPS - 1)), 0,
-                   FRESNEL_MU_STEPS - 1).astype(np.int64)
+    step = np.rint(np.clip(np.asarray(mu, np.float64), 0.0, 1.0) * (FRESNEL_MU_STEPS - 1)).astype(np.int64)
     traced = mats.rough[unique]
-    s5 = None
     for slot in range(mats.alpha2.shape[0]):
         mine_u = (np.abs(mats.lobe_rough[slot, unique] - traced) < 1e-6) & mats.k[slot, unique].any(axis=(1, 2))
         if not mine_u.any():
             continue
-        table = (slot_coefficients(mats, slot, np.repeat(unique, FRESNEL_MU_STEPS),
-                                   np.tile(grid, unique.size))[0] @ luma).astype(_F32)
-        table = table.reshape(unique.size, FRESNEL_MU_STEPS, 4)
-        mine = mine_u[inverse]
-        at = None if mine.all() else np.flatnonzero(mine)
-        k = table[inverse, step] if at is None else table[inverse[at], step[at]]
-        cc = c if at is None else c[at]
-        f = np.broadcast_to(k[:, 0:1], cc.shape).copy()
+        table = _coefficient_table(mats, slot, unique)
+        at = np.flatnonzero(mine_u[inverse])
+        k = table[inverse[at], step[at]]
+        cc = c[at]
+        f = k[:, 0:1] + np.zeros_like(cc)
         if np.any(k[:, 2:4]):
-            if s5 is None:
-                one_minus = _F32(1.0) - c
-                s5 = (one_minus * one_minus) ** 2 * one_minus
-            s5c = s5 if at is None else s5[at]
-            f += k[:, 2:3] * s5c + k[:, 3:4] * s5c * (_F32(1.0) - cc) * cc
+            one_minus = _F32(1.0) - cc
+            s5 = (one_minus * one_minus) ** 2 * one_minus
+            f += k[:, 2:3] * s5 + k[:, 3:4] * s5 * one_minus * cc
         if np.any(k[:, 1]):
-            sub = rows if at is None else rows[at]
-            eta = mats.eta[slot, sub][:, None].astype(_F32)
-            f0 = mats.f0_real[slot, sub][:, None].astype(_F32)
-            # Cycles' fresnel_dielectric_cos for eta > 1 (g > c >= 0: no division by 0), float32.
-            g = np.sqrt(eta * eta - _F32(1.0) + cc * cc)
-            a = (g - cc) / (g + cc)
-            b = (cc * (g + cc) - _F32(1.0)) / (cc * (g - cc) + _F32(1.0))
-            fresnel = _F32(0.5) * a * a * (_F32(1.0) + b * b)
-            f += k[:, 1:2] * np.clip((fresnel - f0) / np.maximum(_F32(1.0) - f0, _F32(1e-12)), 0.0, 1.0)
-        if at is None:
-            out += f
-        else:
-            out[at] += f
-    none = ~np.any(out > 0, axis=1)
-    out[none] = 1.0
+            f += k[:, 1:2] * _remapped_dielectric(cc, mats.eta[slot, rows[at]], mats.f0_real[slot, rows[at]])
+        out[at] += f
+    out[~np.any(out > 0, axis=1)] = 1.0
     return out
+
+
+#: View cosines at which `traced_fresnel` tabulates each material's lobe coefficients (their
+#: multiple-scattering and view factors vary slowly with it; per receiver they cost 0.2 s of
+#: 1.6 M reflection samples' 0.25 s).
+FRESNEL_MU_STEPS = 33
+
+
+def _coefficient_table(mats: GlossyMaterials, slot: int, rows: np.ndarray) -> np.ndarray:
+    """(len(rows), FRESNEL_MU_STEPS, 4) float32 the luminance of `slot_coefficients` of lobe
+    `slot` for material rows `rows` at FRESNEL_MU_STEPS view cosines over (0, 1]."""
+    grid = np.linspace(1e-4, 1.0, FRESNEL_MU_STEPS)
+    k = slot_coefficients(mats, slot, np.repeat(rows, FRESNEL_MU_STEPS), np.tile(grid, rows.size))[0]
+    return (k @ np.asarray(LUMA, _F32)).astype(_F32).reshape(rows.size, FRESNEL_MU_STEPS, 4)
+
+
+def _remapped_dielectric(c: np.ndarray, eta: np.ndarray, f0: np.ndarray) -> np.ndarray:
+    """(m, s) float32 Cycles' fresnel_dielectric_cos at cosines c (m, s) for IORs eta (m,) at least
+    1, mapped from [f0, 1] to [0, 1] (`_fresnel_remap` in float32 and without its NaN guards:
+    both denominators are kept from 0)."""
+    eta = np.asarray(eta, _F32)[:, None]
+    f0 = np.asarray(f0, _F32)[:, None]
+    g = np.sqrt(np.maximum(eta * eta - _F32(1.0) + c * c, _F32(0.0)))
+    a = (g - c) / np.maximum(g + c, _F32(1e-12))
+    b = (c * (g + c) - _F32(1.0)) / np.maximum(c * (g - c) + _F32(1.0), _F32(1e-12))
+    fresnel = _F32(0.5) * a * a * (_F32(1.0) + b * b)
+    return np.clip((fresnel - f0) / np.maximum(_F32(1.0) - f0, _F32(1e-12)), 0.0, 1.0)
 
 
 def fresnel_terms(mats: GlossyMaterials, slot: int, rows, cos_hi) -> np.ndarray:
