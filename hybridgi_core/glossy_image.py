@@ -2,8 +2,8 @@
 (`FramePipeline._glossy`: the same `GISystem.glossy`, `glossy_color` and `cache_reflection` calls).
 
 Final renders compute a frame's glossy light once at the centre raster's pixels (`frame_glossy`:
-the lamps' light sampled where it is noisy and filtered, traced reflections blended into the
-cache's split-sum estimate as the lobes grow rough). The viewport's worker computes the two parts
+the lamps' light sampled where it is noisy and filtered, traced reflections at every roughness,
+the cache's split-sum estimate only where a pixel's rays found nothing). The viewport's worker computes the two parts
 at its GI pixels while a view is new and refreshes each on its own clock: the lamps' part
 (`lamp_glossy`, shadow rays, noisy: averaged over passes while the view holds still, traced again
 at once after a lamp edit) and the cache's split-sum part (`cache_glossy`, no rays: read again
@@ -130,8 +130,8 @@ def frame_glossy(system, points, normals, pix, shape: tuple[int, int], material,
     (`glossy_noise.adaptive_lamp_glossy`: `samples` per lamp only where a first pass is noisy
     against the receiver's diffuse lamp light, then `reflection.filter_lamp_glossy`) and the light
     the lobes reflect (`reflection.traced_reflection`, `reflection_rays` per receiver, filtered
-    edge-aware over the image, where the lobes are smooth enough; blended into the cache's
-    split-sum estimate `glossy.cache_reflection` as they grow rough; area lamps in lobes much
+    edge-aware over the image, at every roughness (`reflection.TRACE_ROUGHNESS`; the cache's
+    split-sum estimate `glossy.cache_reflection` where the rays found nothing); area lamps in lobes much
     narrower than they are are left to those rays, `reflection.bsdf_lamps`).
 
     points, normals : (n, 3) receivers (unit normals), pix : (n,) their flat pixels in an image of
