@@ -483,3 +483,20 @@ def test_a_light_edge_is_traced_again_only_for_the_lamp_that_makes_it():
     got = subframe_direct(system, centre, position0.copy(), normal0.copy(), seed_frame=1, samples=4)
     assert system.calls == [(2, [0])]
     np.testing.assert_allclose(got[:, 0], [3.1, 3.1, 2.6, 2.6, 2.0, 2.0], rtol=1e-6)
+
+
+def test_extra_subframes_share_the_shadow_ray_floor_of_the_frames_own():
+    """A subframe lights its fresh pixels with the shadow samples split over the subframes, at
+    least SUBFRAME_MIN_SAMPLES over the Pixel Samples' own subframes; extra subframes (GI edges,
+    lens points) spread that floor's total instead of each keeping it."""
+    from hybridgi_core.raster.frame import SUBFRAME_MIN_SAMPLES, subframe_shadow_samples  # noqa: PLC0415
+
+    assert subframe_shadow_samples(48, 8, 8) == SUBFRAME_MIN_SAMPLES  # the frame's own: unchanged
+    assert subframe_shadow_samples(96, 8, 8) == 12  # the split where it is above the floor
+    assert subframe_shadow_samples(48, 1, 1) == 48
+    # 8 + 24 GI-edge subframes: the floor's 64 rays over 32; 2 + 24: 16 over 26 (at least 1);
+    # 16 lens points over 8 Pixel Samples: 64 over 16.
+    assert subframe_shadow_samples(48, 8, 32) == 2
+    assert subframe_shadow_samples(24, 2, 26) == 1
+    assert subframe_shadow_samples(24, 8, 16) == 4
+    assert subframe_shadow_samples(4, 8, 32) == 1
