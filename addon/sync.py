@@ -216,6 +216,13 @@ def _shape_local(shape, attributes, domain: str, count: int, words: tuple[str, s
                       slot=slot)
 
 
+def corner_verts(mesh) -> np.ndarray:
+    """(corners,) int32 the vertex of each face corner of a Blender mesh (its `.corner_vert`)."""
+    out = np.empty(len(mesh.loops), np.int32)
+    mesh.attributes[".corner_vert"].data.foreach_get("value", out)
+    return out
+
+
 def mesh_arrays(mesh):
     """`_LocalMesh` of a Blender mesh, or None when it has no polygons.
 
@@ -230,8 +237,7 @@ def mesh_arrays(mesh):
 
     vert_pos = np.empty(n_vert * 3, np.float32)
     mesh.attributes["position"].data.foreach_get("vector", vert_pos)
-    corner_vert = np.empty(n_corner, np.int32)
-    mesh.attributes[".corner_vert"].data.foreach_get("value", corner_vert)
+    corner_vert = corner_verts(mesh)
     positions = np.take(vert_pos.reshape(-1, 3), corner_vert, axis=0)  # ~5x fancy indexing's speed
     triangles, tri_poly = _corner_triangles(mesh, n_poly, n_corner, positions)
     if triangles.shape[0] == 0:
@@ -313,8 +319,7 @@ def mesh_tangents(mesh, uv_map=""):
 
 def _ngon_tangents(mesh, layer):
     n_corner = len(mesh.loops)
-    corner_vert = np.empty(n_corner, np.int32)
-    mesh.attributes[".corner_vert"].data.foreach_get("value", corner_vert)
+    corner_vert = corner_verts(mesh)
     vert_pos = np.empty(len(mesh.vertices) * 3, np.float32)
     mesh.attributes["position"].data.foreach_get("vector", vert_pos)
     triangles = np.empty(len(mesh.loop_triangles) * 3, np.int32)
@@ -2264,11 +2269,10 @@ def bake_job(material, node, socket, mesh, local, triangles):
         values = values.reshape(-1, 4)
         if attr.domain == "POINT":
             if corner_vert is None:
-                corner_vert = np.empty(len(mesh.loops), np.int32)
-                mesh.attributes[".corner_vert"].data.foreach_get("value", corner_vert)
+                corner_vert = corner_verts(mesh)
             values = values[corner_vert]
         colors[attr.name] = values[corners]
-    _generic_attributes(material, mesh, corners, colors)
+    _generic_attributes(material, mesh, corners, colors, corner_vert)
     texspace = (tuple(mesh.texspace_location), tuple(mesh.texspace_size))
     shader = material.node_tree.nodes[node]
     if socket == EMISSION_BAKE:
@@ -2287,7 +2291,7 @@ _ATTRIBUTE_READS = {"FLOAT": ("value", 1), "INT": ("value", 1), "INT8": ("value"
                     "FLOAT2": ("vector", 2), "FLOAT_VECTOR": ("vector", 3)}
 
 
-def _generic_attributes(material, mesh, corners: np.ndarray, colors: dict) -> None:
+def _generic_attributes(material, mesh, corners: np.ndarray, colors: dict, corner_vert=None) -> None:
     """colors[name] = (len(corners), 4) float32 for every generic attribute (float, integer,
     boolean, 2D or 3D vector; point, corner or face domain) that an Attribute node of `material`
     names and that is not a colour attribute: the bake mesh carries it as a colour attribute of
@@ -2296,11 +2300,12 @@ def _generic_attributes(material, mesh, corners: np.ndarray, colors: dict) -> No
 
     Why: a Geometry Nodes field stored on the mesh (a height, a mask, a random value per point)
     into a Color Ramp read 0 in the bake: a floor striped by a float attribute came out one
-    colour (Combined 0.394 against Cycles)."""
+    colour (Combined 0.394 against Cycles). corner_vert : `corner_verts(mesh)` if the caller
+    read it already (None: read here if a point attribute needs it)."""
     names = {node.attribute_name for node in _tree_nodes(material.node_tree)
              if node.type == "ATTRIBUTE" and getattr(node, "attribute_type", "GEOMETRY") == "GEOMETRY"
              and node.attribute_name} - set(colors)
-    corner_vert = corner_face = None
+    corner_face = None
     for name in sorted(names):
         attr = mesh.attributes.get(name)
         read = None if attr is None else _ATTRIBUTE_READS.get(attr.data_type)
@@ -2313,8 +2318,7 @@ def _generic_attributes(material, mesh, corners: np.ndarray, colors: dict) -> No
         values = values.astype(np.float32).reshape(-1, width)
         if attr.domain == "POINT":
             if corner_vert is None:
-                corner_vert = np.empty(len(mesh.loops), np.int32)
-                mesh.attributes[".corner_vert"].data.foreach_get("value", corner_vert)
+                corner_vert = corner_verts(mesh)
             values = values[corner_vert]
         elif attr.domain == "FACE":
             if corner_face is None:

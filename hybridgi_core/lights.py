@@ -432,9 +432,9 @@ def _point_chunk(light, p, nrm, tracer, rng, samples, epsilon, partial=None, ope
     return e
 
 
-def _cone_varies(light, centre, radius: float, ax, ay, az, t1, t2, d, px, py, pz) -> np.ndarray:
+def _cone_varies(light, centre, radius: float, t1, t2, px, py, pz) -> np.ndarray:
     """(k,) bool receivers (px, py, pz (k,)) over whose view of a POINT/SPOT emitter of `radius`
-    (axis a towards the lamp, its frame t1, t2 (3 x (k, 1)), distance d) the cone factor
+    (t1, t2 (3 x (k, 1)): the frame across the receiver's direction to it) the cone factor
     (`spot_attenuation`) changes: it differs between the emitter's centre and one of four points
     on its rim (the disc facing the receiver, or the sphere's outline) by more than 1e-4."""
     k = px.shape[0]
@@ -560,7 +560,8 @@ def _radius_chunk(light, p, nrm, tracer, rng, samples, epsilon, partial=None, op
         # biased at few samples (-6 to -10% at 2 samples near a soft spot's edge); there the plain
         # estimate is kept, unbiased at any count. Which receivers is decided from the emitter's
         # rim (`_cone_varies`), not from the samples: choosing by them biased the mix in turn.
-        ratio[_cone_varies(light, c, radius, ax, ay, az, t1, t2, d[live], px[:, 0], py[:, 0], pz[:, 0])] = 1.0
+        # (Inside the sphere the factor is 1, `att[into]`: the ratio stays.)
+        ratio[_cone_varies(light, c, radius, t1, t2, px[:, 0], py[:, 0], pz[:, 0]) & ~into] = 1.0
     if partial is not None:
         # Where the samples' weights differ for reasons other than shadows (the spot's cone edge
         # crosses the emitter), they are noisy as in a penumbra: same count.
@@ -1094,13 +1095,11 @@ def _rough_light(light: Light, pts: np.ndarray, nrm: np.ndarray) -> np.ndarray:
 def _reach_margin(light: Light, d: np.ndarray) -> np.ndarray:
     """(n,) float32 the sine of the angle a lamp's bounding sphere subtends at distances d (n,)
     from its centre (1 within it): a receiver reaches some of the lamp while its cosine to the
-    centre is above minus this. Area lamps: half the diagonal of their (scaled) extent; point
-    and spot lamps: their radius."""
+    centre is above minus this. Area lamps: their longer half-diagonal (`_area_shape`: scale and
+    shear included); point and spot lamps: their radius."""
     if light.kind == "AREA":
-        sx = float(light.size) * float(np.linalg.norm(light.matrix[:3, 0]))
-        sy = (float(light.size if light.shape in ("SQUARE", "DISK") else light.size_y)
-              * float(np.linalg.norm(light.matrix[:3, 1])))
-        reach = 0.5 * float(np.hypot(sx, sy))
+        shape = _area_shape(light)  # its bounding radius: the longer half-diagonal (sheared too)
+        reach = float(max(np.linalg.norm(shape.half_u + shape.half_v), np.linalg.norm(shape.half_u - shape.half_v)))
     else:
         reach = float(light.radius)
     if not np.isfinite(reach) or reach <= 0.0:
