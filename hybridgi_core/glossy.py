@@ -299,13 +299,12 @@ class GlossyMaterials:
         out.metal_share = np.zeros(n)
         out.metal_f0 = np.zeros((n, 3))
         out.metal_curve = np.zeros((n, METAL_CURVE_SIZE, METAL_CURVE_COSINES.size))
-        textured = {m for m, b in out.tint_bases.items() if b is not None}
         for i, layer in enumerate(layers):
             if isinstance(layer, sp.SpecularLayer) and layer.metallic > 0.0:
                 total = float(np.asarray(sp.glossy_color(layer, 1.0)).reshape(-1, 3)[0] @ LUMA)
                 metal = float(np.asarray(sp.glossy_color(replace(layer, weight=0.0), 1.0)).reshape(-1, 3)[0] @ LUMA)
                 out.metal_share[i] = float(np.clip(metal / total, 0.0, 1.0)) if total > 0 else 0.0
-                if owner[i] in textured:
+                if owner[i] in out.tint_bases:  # (its values are never None)
                     out.metal_f0[i] = np.asarray(layer.metal_color, np.float64).reshape(3)
                     out.metal_curve[i] = metal_albedo_curve(layer)
         return out
