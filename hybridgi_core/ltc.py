@@ -116,8 +116,9 @@ def polygon_integral(polygon: np.ndarray, points: np.ndarray, normals: np.ndarra
                      rough: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(integral (n,), cos_hv (n,)) float64: the integral of the fitted lobe (normalised: 1 over
     the sphere) over the convex polygon (k, 3) seen from each receiver (points, unit normals, unit
-    directions to the eye, (n, 3) each; rough (n,) the lobe's roughness), clipped to the horizon
-    of the cosine's space; and the cosine between the view and the half vector of the direction
+    directions to the eye, (n, 3) each; rough (n,) the lobe's roughness), clipped to the surface's
+    horizon and to the cosine's (tilted from it: between the two the lobe is 0 and the fit is
+    not, or the other way round); and the cosine between the view and the half vector of the direction
     the lobe's light arrives from on average (the polygon's vector form factor in the cosine's
     space, mapped back by M): where the caller takes the lobe's Fresnel. The integral is
     corrected towards the lobe's own value there (`_correction`). The lamp's glossy radiance is
@@ -134,7 +135,7 @@ def polygon_integral(polygon: np.ndarray, points: np.ndarray, normals: np.ndarra
     ly = rel[0] * y[:, 0:1] + rel[1] * y[:, 1:2] + rel[2] * y[:, 2:3]
     lz = rel[0] * n[:, 0:1] + rel[1] * n[:, 1:2] + rel[2] * n[:, 2:3]
     a, b, c, d = (m[:, i : i + 1] for i in range(4))
-    f = polygon_light.vector_form_factor([a * lx + b * lz, ly, c * lx + d * lz])
+    f = _form_factor_above(lx, ly, lz, a, b, c, d)
     # Back through M: the x-z block of M^-1 inverted, y unchanged.
     a, b, c, d = m.T
     det = a * d - b * c
@@ -150,6 +151,24 @@ def polygon_integral(polygon: np.ndarray, points: np.ndarray, normals: np.ndarra
     cos_hv = np.sqrt(np.clip(0.5 * (1.0 + w[:, 0] * sin + w[:, 2] * mu), 0.0, 1.0))
     integral = f[:, 2] / np.pi
     return integral * _correction(m, np.asarray(rough, np.float64), mu, w, integral), cos_hv
+
+
+def _form_factor_above(lx, ly, lz, a, b, c, d) -> np.ndarray:
+    """(n, 3) the vector form factor, in the cosine's space, of the polygons (local-frame vertex
+    planes lx, ly, lz (n, k)) mapped by M^-1 (its entries a, b, c, d (n, 1)): of their part above
+    the surface's horizon (lz >= 0), which `vector_form_factor` then clips to the cosine's."""
+    out = np.zeros((lx.shape[0], 3))
+    cut = (lz < 0.0).any(axis=1)
+    for rows, clip in ((np.flatnonzero(~cut), False), (np.flatnonzero(cut), True)):
+        if rows.size == 0:
+            continue
+        x, y, z = lx[rows], ly[rows], lz[rows]
+        if clip:
+            (x, y, z), count = polygon_light.clip_below([x, y, z], z)
+            rows, x, y, z = rows[count >= 3], x[count >= 3], y[count >= 3], z[count >= 3]
+        ar, br, cr, dr = a[rows], b[rows], c[rows], d[rows]
+        out[rows] = polygon_light.vector_form_factor([ar * x + br * z, y, cr * x + dr * z])
+    return out
 
 
 def _correction(m: np.ndarray, rough: np.ndarray, mu: np.ndarray, w: np.ndarray, integral: np.ndarray) -> np.ndarray:

@@ -124,6 +124,21 @@ def _clip_to_horizon(v: list[np.ndarray], h: np.ndarray):
     return out, np.stack([keep, crosses], axis=2).reshape(m, 2 * k)
 
 
+def clip_below(v: list[np.ndarray], h: np.ndarray) -> tuple[list[np.ndarray], np.ndarray]:
+    """(planes, count): convex polygons (three (m, k) vertex component planes) clipped to the
+    side h >= 0 of a plane through the receiver (heights h (m, k) of their vertices), as three
+    (m, 2k) planes whose first `count` (m,) vertices are the clipped polygon's and whose other
+    slots repeat its last vertex (edges of length 0 add nothing to Lambert's sums), so another
+    plane can clip them again (`ltc.polygon_integral`: the surface's horizon, then the cosine's).
+    A row with no vertex above the plane has count 0."""
+    clipped, valid = _clip_to_horizon(v, h)
+    order = np.argsort(~valid, axis=1, kind="stable")  # valid vertices first, order kept
+    count = valid.sum(axis=1)
+    j = np.arange(valid.shape[1])[None, :]
+    slot = np.take_along_axis(order, np.where(j < count[:, None], j, np.maximum(count - 1, 0)[:, None]), axis=1)
+    return [np.take_along_axis(c, slot, axis=1) for c in clipped], count
+
+
 def _lambert(v: list[np.ndarray], nc: list[np.ndarray], valid: np.ndarray | None) -> np.ndarray:
     """Lambert's sum over each row's vertices (component planes (m, k); valid (m, k) or None for
     all), taken in order and closed cyclically."""

@@ -56,13 +56,30 @@ def _square(centre, size, tilt=0.0):
     (0.8, 0.3, (0.5, 1.0, 1.0), 1.0),   # rough, grazing view, the lamp to the side
 ])
 def test_the_fitted_cosine_integrates_as_the_lobe_over_a_lamp(rough, mu, centre, size):
-    polygon = _square(centre, size, tilt=0.2)
+    _assert_lobe_integral(rough, mu, _square(centre, size, tilt=0.2))
+
+
+@pytest.mark.parametrize(("rough", "mu", "centre", "size", "tilt"), [
+    (0.5, 0.6, (-1.5, 0.0, 0.2), 0.6, 1.2),   # in the mirror direction, a third below the horizon: 12% high unclipped
+    (0.4, 0.7, (-1.0, 0.5, 0.1), 0.5, 1.4),   # beside it, half below
+    (0.3, 0.6, (-1.2, 0.0, 0.25), 0.5, 1.3),  # smoother lobe, a quarter below
+])
+def test_a_lamp_the_horizon_cuts_counts_only_its_part_above(rough, mu, centre, size, tilt):
+    """The lobe is 0 below the surface's horizon and the fitted cosine below its own, tilted one:
+    the lamp is clipped to both, so the part between them no longer counts (a lamp a curved
+    surface cuts: two thirds of bunny_npm's lit pixels took lamp samples for want of it)."""
+    polygon = _square(centre, size, tilt=tilt)
+    assert polygon[:, 2].min() < 0.0 < polygon[:, 2].max()
+    _assert_lobe_integral(rough, mu, polygon, absolute=1e-4)
+
+
+def _assert_lobe_integral(rough, mu, polygon, absolute=0.003):
     got = ltc.polygon_integral(polygon, np.zeros((1, 3)), np.array([[0.0, 0.0, 1.0]]),
                                np.array([[np.sqrt(1.0 - mu * mu), 0.0, mu]]), np.array([rough]))[0][0]
     expected = _lobe_over_rectangle(rough, mu, polygon)
     # Within a few percent: the fit's own L1 distance to the lobe (up to ~0.1 at these angles,
     # scripts/fit_ltc.py) corrected at the light's mean direction (`ltc._correction`).
-    assert got == pytest.approx(expected, rel=0.06, abs=0.003)
+    assert got == pytest.approx(expected, rel=0.06, abs=absolute)
 
 
 def test_the_lookup_reads_the_table_at_its_cells():
@@ -181,20 +198,22 @@ def test_other_lamps_and_smooth_lobes_stay_with_lamp_sampling():
 
 
 def test_an_untrusted_closed_form_is_taken_only_where_its_light_is_dim():
-    """A lamp the receiver's horizon cuts (a wall beside it), or a grazing view: the closed form
-    only where its light is dim against the pixel's diffuse lamp light."""
+    """A grazing view: the closed form only where its light is dim against the pixel's diffuse
+    lamp light. A lamp the receiver's horizon cuts (a wall beside it) is trusted: it is clipped."""
     mats = glossy.GlossyMaterials.from_materials([Material(specular=sp.SpecularLayer(roughness=0.5))])
     lamp = _floor_lamp()
     side = np.tile([1.0, 0.0, 0.0], (2, 1))
     points = np.array([[0.2, 0.0, 1.9]] * 2)
     eye = np.tile([0.8, 0.0, 0.6], (2, 1))
-    assert not glossy_ltc.trusted([lamp], points, side, eye).any()
+    assert glossy_ltc.trusted([lamp], side, eye).all()
     grazing = np.tile([0.98, 0.0, 0.2], (2, 1))
     up = np.tile([0.0, 0.0, 1.0], (2, 1))
-    assert not glossy_ltc.trusted([lamp], np.zeros((2, 3)), up, grazing).any()
-    assert glossy_ltc.trusted([lamp], np.zeros((2, 3)), up, eye).all()
+    glancing = np.tile([0.2, 0.0, 0.98], (2, 1)) / np.hypot(0.2, 0.98)  # 0.2 from grazing on the wall
+    assert not glossy_ltc.trusted([lamp], side, glancing).any()
+    assert not glossy_ltc.trusted([lamp], up, grazing).any()
+    assert glossy_ltc.trusted([lamp], up, eye).all()
     vis = np.ones((2, 1), np.float32)
-    light, pairs = glossy_ltc.closed_form([lamp], mats, points, side, eye, np.zeros(2, np.int64), vis,
+    light, pairs = glossy_ltc.closed_form([lamp], mats, points, side, glancing, np.zeros(2, np.int64), vis,
                                           np.zeros((2, 1), bool), np.array([0.0, 1e6]))
     assert pairs[:, 0].tolist() == [False, True]
     assert not light[0].any() and light[1].min() > 0
