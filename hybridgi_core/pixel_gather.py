@@ -45,11 +45,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from . import sh
+from . import hit_glossy, sh
 from .bump import has_normal_maps, irradiance_kernel, shadowing_term, smooth_normals
 from .camera import camera_position
 from .environment import LUMA as ENV_LUMA
-from .evaluate import HitLookup, corner_weights
+from .evaluate import HitLookup, corner_weights, monomials
 from .levels import hit_lookup
 from .lights import HIT_LAMP_BUDGET, _onb, concentric_disk, direct_irradiance, stratified_uv
 from .rows import mean_over_rays
@@ -774,10 +774,14 @@ def hit_radiance(system, lookup: HitLookup | None, origins: np.ndarray, dirs: np
                 _add_shiny_highlights(system, lamp, glossy_part, *sub, rng)
         # Further bounces read the cache at the hit, as probe-ray hits do; hits nearer than
         # `near` trace them one ray further instead (`_near_bounce`).
+        e_lamp = e_in.copy() if lookup is not None else None
+        cells = cache_light = None  # the cache cells the hits read and their light, where all of them do
         if lookup is not None:
             close = np.take(hits.t, hit) < near if near > 0 and near_rng is not None else None
             if close is None or not close.any():
-                e_in += lookup.irradiance(position, surf.normal).T
+                cells = lookup.cells(position, surf.normal)
+                cache_light = lookup.evaluate(cells, monomials(surf.normal, lookup.terms)).T
+                e_in += cache_light
             elif level < NEAR_BOUNCE_DEPTH:
                 far, close = np.flatnonzero(~close), np.flatnonzero(close)
                 if far.size:
@@ -788,7 +792,15 @@ def hit_radiance(system, lookup: HitLookup | None, origins: np.ndarray, dirs: np
             else:
                 _near_roulette(system, lookup, e_in, position, surf.normal, close, near_rng, times, screen, near,
                                depth, level)
+        if e_lamp is not None:
+            # The lobes' share of that light, seen from the ray (`hit_glossy`), not as diffuse.
+            e_lamp -= e_in
+            e_lamp *= scene.surfaces.glossy_brdf(prim, hit_u, hit_v)
+            e_lamp *= hit_glossy.view_ratio(system, lookup, prim, position, surf.normal, hit_dirs, cells,
+                                             cache_light) - np.float32(1.0)
         e_in *= brdf
+        if e_lamp is not None:
+            e_in -= e_lamp
         if lamp is not None and lamp_rows is None:
             e_in += lamp
         elif lamp is not None:

@@ -1,0 +1,108 @@
+"""The glossy lobes of a pixel ray's hit, seen from the ray: their view angle and the direction
+they reflect, read from the cache.
+
+Why: a hit reflects its lobes' share of the cache's light as if it were diffuse (the lobes'
+hemispherical albedo x irradiance / pi, `shading.SurfaceTable.set_materials`), the same towards
+every ray. A Principled floor seen at a grazing angle from a ball on it reflects several times its
+mean (the dielectric's Fresnel), and what it reflects is the bright sky above the horizon in the
+mirror direction, not the mean over its hemisphere. A ball and a torus on a roughness-0.6
+floor under courtyard.exr had Diffuse Indirect 8% low against Cycles (2% with the floor matte).
+
+The correction scales that diffuse share per hit by (Glossy Color at the ray's view cosine over
+its cosine-weighted mean) x (the cache's radiance through a lobe about the lobe's dominant
+direction over its irradiance / pi at the normal). Both factors are 1 on average over a uniform
+sky, so a hit's glossy energy only moves between view angles and directions. The lobe is Cycles'
+after a diffuse bounce: Filter Glossy blurs it to roughness >= 0.64 by default
+(`specular.hit_blur_roughness`); its L2 SH band factors are a Phong lobe's of the same width
+(Ramamoorthi and Hanrahan 2001: exp(-l^2 / 2s), s = 2 / alpha^2 - 2), its dominant direction
+Frostbite's (Lagarde and de Rousiers 2014: the mirror direction pulled towards the normal as
+the lobe widens). numpy only.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .evaluate import monomials
+from .specular import hit_blur_roughness
+
+_F32 = np.float32
+_LUMA = np.array([0.2126, 0.7152, 0.0722], np.float32)
+#: Largest factor a hit's glossy share is scaled by (a dark cache cell's irradiance beside a
+#: bright direction must not blow it up).
+MAX_RATIO = 8.0
+#: Irradiance below which a hit's ratio is taken as 1 (nothing to redistribute).
+MIN_IRRADIANCE = 1e-6
+
+
+def view_shape(mats) -> np.ndarray:
+    """(m, COLOR_TABLE_SIZE) float32 each material's Glossy Color luminance over the view cosine
+    divided by its cosine-weighted mean (2 int c(mu) mu dmu; 1 where that is 0), cached on mats."""
+    shape = getattr(mats, "_view_shape", None)
+    if shape is None:
+        lum = mats.color_table @ _LUMA  # (m, size)
+        mu = np.linspace(0.0, 1.0, lum.shape[1], dtype=np.float32)
+        mean = np.trapz(2.0 * lum * mu[None, :], mu, axis=1)
+        shape = np.where(mean[:, None] > 1e-8, lum / np.maximum(mean, 1e-8)[:, None], 1.0).astype(_F32)
+        mats._view_shape = shape
+    return shape
+
+
+def lobe_monomials(normals: np.ndarray, to_eye: np.ndarray, rough: np.ndarray, terms: int) -> np.ndarray:
+    """(terms, n) float32 `evaluate.monomials` that turn an irradiance row into pi x the radiance
+    through the lobe (roughness rough (n,)) about its dominant direction: the bands of the
+    dominant direction's monomials scaled by the lobe's band factors over the cosine's."""
+    alpha = np.clip(np.asarray(rough, _F32) ** 2, _F32(1e-3), _F32(1.0))
+    cos = np.einsum("ij,ij->i", normals, to_eye)
+    mirror = 2.0 * cos[:, None] * normals - to_eye
+    pull = (1.0 - alpha) * (np.sqrt(1.0 - alpha) + alpha)
+    d = normals + pull[:, None] * (mirror - normals)
+    d /= np.maximum(np.linalg.norm(d, axis=1), _F32(1e-12))[:, None]
+    mono = monomials(d, terms)
+    s = np.maximum(2.0 / (alpha * alpha) - 2.0, _F32(1e-3))
+    mono[1:4] *= (np.exp(-1.0 / (2.0 * s)) / _F32(2.0 / 3.0))[None, :]
+    if terms == 9:
+        band2 = (np.exp(-4.0 / (2.0 * s)) / _F32(0.25))[None, :]
+        z2 = mono[6].copy()
+        mono[4:9] *= band2
+        # z^2 carries 1/3 of band 0 (the table folds SH's -1 into the constant): keep it unscaled.
+        mono[6] = band2[0] * (z2 - _F32(1.0 / 3.0)) + _F32(1.0 / 3.0)
+    return mono.astype(_F32, copy=False)
+
+
+def view_ratio(system, lookup, prim: np.ndarray, position: np.ndarray, normal: np.ndarray,
+               hit_dirs: np.ndarray, cells: np.ndarray | None = None,
+               irradiance: np.ndarray | None = None) -> np.ndarray:
+    """(m, 3) float32 the factor by which hits (prim (m,) >= 0 at position, normal, reached along
+    hit_dirs (m, 3)) reflect the cache's light through their glossy lobes, against the diffuse
+    stand-in (see the module docstring); 1 where their material has no lobe. cells : (m,) the
+    cache cells the hits read (`HitLookup.cells`) and irradiance (m, 3) their light there at the
+    normal, if the caller has them."""
+    mats = system.glossy_materials
+    surfaces = system.updater.scene.surfaces
+    material = np.take(surfaces.material_index, prim)
+    out = np.ones((prim.shape[0], 3), _F32)
+    live = np.flatnonzero(np.take(mats.reflects, material))
+    if live.size == 0:
+        return out
+    rows = np.take(material, live)
+    nrm = np.take(normal, live, axis=0)
+    to_eye = -np.take(hit_dirs, live, axis=0)
+    cos = np.clip(np.einsum("ij,ij->i", nrm, to_eye), 0.0, 1.0)
+    shape = view_shape(mats)
+    size = shape.shape[1]
+    x = cos * _F32(size - 1)
+    i0 = np.minimum(x.astype(np.intp), size - 2)
+    frac = x - i0
+    flat_shape = shape.reshape(-1)
+    at = rows * size + i0
+    view = flat_shape[at] * (1.0 - frac) + flat_shape[at + 1] * frac
+    blur, weight = hit_blur_roughness(surfaces.filter_glossy)
+    rough = np.maximum(np.take(mats.rough, rows), _F32(float(blur @ weight)))
+    cells = lookup.cells(np.take(position, live, axis=0), nrm) if cells is None else np.take(cells, live)
+    lobe = lookup.evaluate(cells, lobe_monomials(nrm, to_eye, rough, lookup.terms)).T
+    irradiance = lookup.evaluate(cells, monomials(nrm, lookup.terms)).T if irradiance is None else \
+        np.take(irradiance, live, axis=0)
+    ratio = np.where(irradiance > MIN_IRRADIANCE, lobe / np.maximum(irradiance, MIN_IRRADIANCE), 1.0)
+    out[live] = np.clip(ratio * view[:, None], 0.0, MAX_RATIO)
+    return out
