@@ -21,6 +21,8 @@ the lobe widens). numpy only.
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 
 from .evaluate import monomials
@@ -48,26 +50,48 @@ def view_shape(mats) -> np.ndarray:
     return shape
 
 
-def lobe_monomials(normals: np.ndarray, to_eye: np.ndarray, rough: np.ndarray, terms: int) -> np.ndarray:
+@functools.lru_cache(maxsize=8)
+def _blur_roughness(filter_glossy: float) -> float:
+    """The mean roughness Filter Glossy blurs a hit's lobes to (`specular.hit_blur_roughness`)."""
+    blur, weight = hit_blur_roughness(filter_glossy)
+    return float(blur @ weight)
+
+
+def lobe_factors(mats, filter_glossy: float) -> np.ndarray:
+    """(m, 3) float32 per material: the pull of its blurred lobe's dominant direction from the
+    normal towards the mirror direction, and its L1 and L2 band factors over the cosine's (see
+    the module docstring); cached on mats."""
+    cached = getattr(mats, "_lobe_factors", None)
+    if cached is not None and cached[0] == filter_glossy:
+        return cached[1]
+    rough = np.maximum(np.asarray(mats.rough, np.float64), _blur_roughness(filter_glossy))
+    alpha = np.clip(rough * rough, 1e-3, 1.0)
+    s = np.maximum(2.0 / (alpha * alpha) - 2.0, 1e-3)
+    out = np.stack([(1.0 - alpha) * (np.sqrt(1.0 - alpha) + alpha), np.exp(-1.0 / (2.0 * s)) / (2.0 / 3.0),
+                    np.exp(-4.0 / (2.0 * s)) / 0.25], axis=1).astype(_F32)
+    mats._lobe_factors = (filter_glossy, out)
+    return out
+
+
+def lobe_monomials(normals: np.ndarray, to_eye: np.ndarray, factors: np.ndarray, terms: int) -> np.ndarray:
     """(terms, n) float32 `evaluate.monomials` that turn an irradiance row into pi x the radiance
-    through the lobe (roughness rough (n,)) about its dominant direction: the bands of the
-    dominant direction's monomials scaled by the lobe's band factors over the cosine's."""
-    alpha = np.clip(np.asarray(rough, _F32) ** 2, _F32(1e-3), _F32(1.0))
+    through a lobe about its dominant direction (factors (n, 3): `lobe_factors`' rows): the bands
+    of the dominant direction's monomials scaled by the lobe's band factors over the cosine's."""
     cos = np.einsum("ij,ij->i", normals, to_eye)
-    mirror = 2.0 * cos[:, None] * normals - to_eye
-    pull = (1.0 - alpha) * (np.sqrt(1.0 - alpha) + alpha)
-    d = normals + pull[:, None] * (mirror - normals)
-    d /= np.maximum(np.linalg.norm(d, axis=1), _F32(1e-12))[:, None]
+    d = (2.0 * cos)[:, None] * normals
+    d -= to_eye
+    d -= normals
+    d *= factors[:, 0:1]
+    d += normals
+    d /= np.sqrt(np.maximum(np.einsum("ij,ij->i", d, d), _F32(1e-24)))[:, None]
     mono = monomials(d, terms)
-    s = np.maximum(2.0 / (alpha * alpha) - 2.0, _F32(1e-3))
-    mono[1:4] *= (np.exp(-1.0 / (2.0 * s)) / _F32(2.0 / 3.0))[None, :]
+    mono[1:4] *= factors[:, 1]
     if terms == 9:
-        band2 = (np.exp(-4.0 / (2.0 * s)) / _F32(0.25))[None, :]
-        z2 = mono[6].copy()
-        mono[4:9] *= band2
         # z^2 carries 1/3 of band 0 (the table folds SH's -1 into the constant): keep it unscaled.
-        mono[6] = band2[0] * (z2 - _F32(1.0 / 3.0)) + _F32(1.0 / 3.0)
-    return mono.astype(_F32, copy=False)
+        mono[6] -= _F32(1.0 / 3.0)
+        mono[4:9] *= factors[:, 2]
+        mono[6] += _F32(1.0 / 3.0)
+    return mono
 
 
 def view_ratio(system, lookup, prim: np.ndarray, position: np.ndarray, normal: np.ndarray,
@@ -97,10 +121,9 @@ def view_ratio(system, lookup, prim: np.ndarray, position: np.ndarray, normal: n
     flat_shape = shape.reshape(-1)
     at = rows * size + i0
     view = flat_shape[at] * (1.0 - frac) + flat_shape[at + 1] * frac
-    blur, weight = hit_blur_roughness(surfaces.filter_glossy)
-    rough = np.maximum(np.take(mats.rough, rows), _F32(float(blur @ weight)))
+    factors = np.take(lobe_factors(mats, float(surfaces.filter_glossy)), rows, axis=0)
     cells = lookup.cells(np.take(position, live, axis=0), nrm) if cells is None else np.take(cells, live)
-    lobe = lookup.evaluate(cells, lobe_monomials(nrm, to_eye, rough, lookup.terms)).T
+    lobe = lookup.evaluate(cells, lobe_monomials(nrm, to_eye, factors, lookup.terms)).T
     irradiance = lookup.evaluate(cells, monomials(nrm, lookup.terms)).T if irradiance is None else \
         np.take(irradiance, live, axis=0)
     ratio = np.where(irradiance > MIN_IRRADIANCE, lobe / np.maximum(irradiance, MIN_IRRADIANCE), 1.0)

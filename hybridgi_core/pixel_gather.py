@@ -774,7 +774,8 @@ def hit_radiance(system, lookup: HitLookup | None, origins: np.ndarray, dirs: np
                 _add_shiny_highlights(system, lamp, glossy_part, *sub, rng)
         # Further bounces read the cache at the hit, as probe-ray hits do; hits nearer than
         # `near` trace them one ray further instead (`_near_bounce`).
-        e_lamp = e_in.copy() if lookup is not None else None
+        # (Near bounces' own hits, level > 0, keep the diffuse stand-in: `hit_glossy` at the first.)
+        e_lamp = e_in.copy() if lookup is not None and level == 0 else None
         cells = cache_light = None  # the cache cells the hits read and their light, where all of them do
         if lookup is not None:
             close = np.take(hits.t, hit) < near if near > 0 and near_rng is not None else None
