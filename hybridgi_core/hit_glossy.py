@@ -101,7 +101,7 @@ def view_ratio(system, lookup, prim: np.ndarray, position: np.ndarray, normal: n
     hit_dirs (m, 3)) reflect the cache's light through their glossy lobes, against the diffuse
     stand-in (see the module docstring); 1 where their material has no lobe. cells : (m,) the
     cache cells the hits read (`HitLookup.cells`) and irradiance (m, 3) their light there at the
-    normal, if the caller has them."""
+    normal, if the caller has them (lookup a `HitLookup` then)."""
     mats = system.glossy_materials
     surfaces = system.updater.scene.surfaces
     material = np.take(surfaces.material_index, prim)
@@ -122,7 +122,13 @@ def view_ratio(system, lookup, prim: np.ndarray, position: np.ndarray, normal: n
     at = rows * size + i0
     view = flat_shape[at] * (1.0 - frac) + flat_shape[at + 1] * frac
     factors = np.take(lobe_factors(mats, float(surfaces.filter_glossy)), rows, axis=0)
-    cells = lookup.cells(np.take(position, live, axis=0), nrm) if cells is None else np.take(cells, live)
+    if cells is None:
+        # A multi-level lookup (`levels.LevelLookup`): its coarsest level's light, smooth enough
+        # for a ratio of directions.
+        lookup = getattr(lookup, "lookups", (lookup,))[0]
+        cells = lookup.cells(np.take(position, live, axis=0), nrm)
+    else:
+        cells = np.take(cells, live)
     lobe = lookup.evaluate(cells, lobe_monomials(nrm, to_eye, factors, lookup.terms)).T
     irradiance = lookup.evaluate(cells, monomials(nrm, lookup.terms)).T if irradiance is None else \
         np.take(irradiance, live, axis=0)

@@ -779,10 +779,12 @@ def hit_radiance(system, lookup: HitLookup | None, origins: np.ndarray, dirs: np
         cells = cache_light = None  # the cache cells the hits read and their light, where all of them do
         if lookup is not None:
             close = np.take(hits.t, hit) < near if near > 0 and near_rng is not None else None
-            if close is None or not close.any():
+            if (close is None or not close.any()) and isinstance(lookup, HitLookup):
                 cells = lookup.cells(position, surf.normal)
                 cache_light = lookup.evaluate(cells, monomials(surf.normal, lookup.terms)).T
                 e_in += cache_light
+            elif close is None or not close.any():
+                e_in += lookup.irradiance(position, surf.normal).T
             elif level < NEAR_BOUNCE_DEPTH:
                 far, close = np.flatnonzero(~close), np.flatnonzero(close)
                 if far.size:
