@@ -44,7 +44,8 @@ def view_shape(mats) -> np.ndarray:
     if shape is None:
         lum = mats.color_table @ _LUMA  # (m, size)
         mu = np.linspace(0.0, 1.0, lum.shape[1], dtype=np.float32)
-        mean = np.trapz(2.0 * lum * mu[None, :], mu, axis=1)
+        f = 2.0 * lum * mu[None, :]  # the trapezoid rule (numpy 2 renamed np.trapz)
+        mean = (f[:, 1:] + f[:, :-1]).sum(axis=1) * (0.5 * float(mu[1] - mu[0]))
         shape = np.where(mean[:, None] > 1e-8, lum / np.maximum(mean, 1e-8)[:, None], 1.0).astype(_F32)
         mats._view_shape = shape
     return shape
