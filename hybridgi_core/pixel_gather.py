@@ -774,8 +774,9 @@ def hit_radiance(system, lookup: HitLookup | None, origins: np.ndarray, dirs: np
                 _add_shiny_highlights(system, lamp, glossy_part, *sub, rng)
         # Further bounces read the cache at the hit, as probe-ray hits do; hits nearer than
         # `near` trace them one ray further instead (`_near_bounce`).
-        # (Near bounces' own hits, level > 0, keep the diffuse stand-in: `hit_glossy` at the first.)
-        e_lamp = e_in.copy() if lookup is not None and level == 0 else None
+        # The lamp light alone, to tell the cache's from it (`hit_glossy`, at the first hits only:
+        # near bounces' own hits, level > 0, keep the lobes' diffuse stand-in).
+        lamp_only = e_in.copy() if lookup is not None and level == 0 else None
         cells = cache_light = None  # the cache cells the hits read and their light, where all of them do
         if lookup is not None:
             close = np.take(hits.t, hit) < near if near > 0 and near_rng is not None else None
@@ -795,15 +796,15 @@ def hit_radiance(system, lookup: HitLookup | None, origins: np.ndarray, dirs: np
             else:
                 _near_roulette(system, lookup, e_in, position, surf.normal, close, near_rng, times, screen, near,
                                depth, level)
-        if e_lamp is not None:
-            # The lobes' share of that light, seen from the ray (`hit_glossy`), not as diffuse.
-            e_lamp -= e_in
-            e_lamp *= scene.surfaces.glossy_brdf(prim, hit_u, hit_v)
-            e_lamp *= hit_glossy.view_ratio(system, lookup, prim, position, surf.normal, hit_dirs, cells,
-                                             cache_light) - np.float32(1.0)
+        shift = None  # what the glossy lobes reflect of the cache's light towards the ray, less their stand-in's
+        if lamp_only is not None:
+            shift = e_in - lamp_only
+            shift *= scene.surfaces.glossy_brdf(prim, hit_u, hit_v)
+            shift *= hit_glossy.view_ratio(system, lookup, prim, position, surf.normal, hit_dirs, cells,
+                                           cache_light) - np.float32(1.0)
         e_in *= brdf
-        if e_lamp is not None:
-            e_in -= e_lamp
+        if shift is not None:
+            e_in += shift
         if lamp is not None and lamp_rows is None:
             e_in += lamp
         elif lamp is not None:
