@@ -25,11 +25,13 @@ import functools
 
 import numpy as np
 
+from .environment import LUMA as ENV_LUMA
 from .evaluate import monomials
+from .glossy import glossy_color
 from .specular import hit_blur_roughness
 
 _F32 = np.float32
-_LUMA = np.array([0.2126, 0.7152, 0.0722], np.float32)
+LUMA = ENV_LUMA.astype(_F32)
 #: Largest factor a hit's glossy share is scaled by (a dark cache cell's irradiance beside a
 #: bright direction must not blow it up).
 MAX_RATIO = 8.0
@@ -37,18 +39,17 @@ MAX_RATIO = 8.0
 MIN_IRRADIANCE = 1e-6
 
 
-def view_shape(mats) -> np.ndarray:
-    """(m, COLOR_TABLE_SIZE) float32 each material's Glossy Color luminance over the view cosine
-    divided by its cosine-weighted mean (2 int c(mu) mu dmu; 1 where that is 0), cached on mats."""
-    shape = getattr(mats, "_view_shape", None)
-    if shape is None:
-        lum = mats.color_table @ _LUMA  # (m, size)
-        mu = np.linspace(0.0, 1.0, lum.shape[1], dtype=np.float32)
-        f = 2.0 * lum * mu[None, :]  # the trapezoid rule (numpy 2 renamed np.trapz)
-        mean = (f[:, 1:] + f[:, :-1]).sum(axis=1) * (0.5 * float(mu[1] - mu[0]))
-        shape = np.where(mean[:, None] > 1e-8, lum / np.maximum(mean, 1e-8)[:, None], 1.0).astype(_F32)
-        mats._view_shape = shape
-    return shape
+def color_mean(mats) -> np.ndarray:
+    """(m,) float32 each material's Glossy Color luminance averaged over the view, cosine-weighted
+    (2 int c(mu) mu dmu over `color_table`'s grid, by the trapezoid rule), cached on mats."""
+    mean = getattr(mats, "_color_mean", None)
+    if mean is None:
+        lum = mats.color_table @ LUMA  # (m, size)
+        mu = np.linspace(0.0, 1.0, lum.shape[1], dtype=_F32)
+        f = 2.0 * lum * mu[None, :]
+        mean = ((f[:, 1:] + f[:, :-1]).sum(axis=1) * (0.5 * float(mu[1] - mu[0]))).astype(_F32)
+        mats._color_mean = mean
+    return mean
 
 
 @functools.lru_cache(maxsize=8)
@@ -113,15 +114,10 @@ def view_ratio(system, lookup, prim: np.ndarray, position: np.ndarray, normal: n
     rows = np.take(material, live)
     nrm = np.take(normal, live, axis=0)
     to_eye = -np.take(hit_dirs, live, axis=0)
-    cos = np.clip(np.einsum("ij,ij->i", nrm, to_eye), 0.0, 1.0)
-    shape = view_shape(mats)
-    size = shape.shape[1]
-    x = cos * _F32(size - 1)
-    i0 = np.minimum(x.astype(np.intp), size - 2)
-    frac = x - i0
-    flat_shape = shape.reshape(-1)
-    at = rows * size + i0
-    view = flat_shape[at] * (1.0 - frac) + flat_shape[at + 1] * frac
+    # The Glossy Color at the ray's view over its cosine-weighted mean (1 where that is 0).
+    mean = np.take(color_mean(mats), rows)
+    view = np.where(mean > 1e-8, (glossy_color(mats, rows, np.einsum("ij,ij->i", nrm, to_eye)) @ LUMA)
+                    / np.maximum(mean, _F32(1e-8)), _F32(1.0))
     factors = np.take(lobe_factors(mats, float(surfaces.filter_glossy)), rows, axis=0)
     if cells is None:
         # A multi-level lookup (`levels.LevelLookup`): its coarsest level's light, smooth enough
