@@ -8,7 +8,8 @@ the richest (12 s), blotchy walls and almost no contact shadows, where Cycles + 
 points on the emitters, triangles chosen in proportion to their power (radiance luminance x
 area) and points uniform on each, and traces a shadow ray to each point.
 
-Emission is two-sided, as the rays read it (`shading.SurfaceTable.emission_of` on any hit).
+Emission is two-sided, as the rays read it (`shading.SurfaceTable.emission_of` on any hit), except
+where an object's emissive triangles close a volume: their inner side is never seen (`_sides`).
 Textured emission (`SurfaceTable.glowing`) is not sampled here: its radiance varies over the
 triangle, and rays keep estimating it.
 
@@ -30,6 +31,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from . import polygon_light
 from .environment import LUMA as ENV_LUMA
 from .lights import AREA_MIN_DISTANCE_FRACTION, _onb, shadow_query
 
@@ -86,6 +88,8 @@ class MeshLights:
     group : (k,) int64 the compact emitter (`COMPACT_FILL`) each triangle belongs to, -1 for none
     spheres : (G, 4) float64 each compact emitter's bounding sphere (centre, radius)
     group_share : (G,) float64 each compact emitter's share of the power (its triangles' choose)
+    side : (k,) int8 the side a triangle's light leaves by: +1 its normal's, -1 the other, 0 both
+        (`_sides`); None: both
     """
 
     prims: np.ndarray
@@ -102,6 +106,7 @@ class MeshLights:
     group: np.ndarray
     spheres: np.ndarray
     group_share: np.ndarray
+    side: np.ndarray | None = None
 
     @classmethod
     def from_triangles(cls, positions: np.ndarray, triangles: np.ndarray, emission: np.ndarray,
@@ -149,8 +154,9 @@ class MeshLights:
         centre = v0 + (e1 + e2) / _F32(3.0)
         radius = np.max([np.linalg.norm(v0 + e - centre, axis=1) for e in (0.0, e1, e2)], axis=0)
         group, spheres, share = _compact_groups(owner, v0, e1, e2, area, choose)
+        side = _sides(owner, v0, e1, e2) if prims.size <= EXACT_TRIANGLES else None
         return cls(prims, v0, e1, e2, (cross / twice[:, None]).astype(_F32), area, emission[prims], choose, cdf,
-                   centre, radius.astype(_F32), group, spheres, share)
+                   centre, radius.astype(_F32), group, spheres, share, side)
 
     def irradiance(self, points: np.ndarray, normals: np.ndarray, tracer, rng: np.random.Generator,
                    samples: int, epsilon: float) -> np.ndarray:
@@ -159,9 +165,126 @@ class MeshLights:
         pts = np.asarray(points, _F32).reshape(-1, 3)
         nrm = np.asarray(normals, _F32).reshape(-1, 3)
         out = np.zeros((pts.shape[0], 3), _F32)
+        block = self._ratio_block if self.prims.size <= EXACT_TRIANGLES else self._block
         for a in range(0, pts.shape[0], BLOCK):
-            out[a : a + BLOCK] = self._block(pts[a : a + BLOCK], nrm[a : a + BLOCK], tracer, rng, samples, epsilon)
+            out[a : a + BLOCK] = block(pts[a : a + BLOCK], nrm[a : a + BLOCK], tracer, rng, samples, epsilon)
         return out
+
+    def exact(self, points: np.ndarray, normals: np.ndarray) -> np.ndarray:
+        """(n, k) float64 the unshadowed irradiance (luminance-free: Lambert's form factor) each
+        triangle gives receivers (points, unit normals (n, 3)), on the sides it emits from."""
+        p = np.asarray(points, np.float64).reshape(-1, 3)
+        nrm = np.asarray(normals, np.float64).reshape(-1, 3)
+        k = self.prims.size
+        out = np.zeros((p.shape[0], k))
+        corners = [self.v0.astype(np.float64) + e for e in (0.0, self.e1.astype(np.float64), self.e2.astype(np.float64))]
+        side = np.zeros(k, np.int8) if self.side is None else self.side
+        for j in range(k):
+            rows = slice(None)
+            if side[j] != 0:  # a closed emitter: only receivers on its outer side see this face
+                height = (p - corners[0][j]) @ self.normal[j].astype(np.float64)
+                rows = np.flatnonzero(height * side[j] > 0)
+                if rows.size == 0:
+                    continue
+            out[rows, j] = polygon_light.cosine_solid_angle(np.stack([c[j] for c in corners]), p[rows], nrm[rows])
+        return out
+
+    def _ratio_block(self, p, n, tracer, rng, samples, epsilon):
+        """`irradiance` of a few triangles (EXACT_TRIANGLES at most) as the lamps' ratio estimator
+        (`polygon_light`, Heitz et al. 2018): each triangle's exact unshadowed irradiance (`exact`)
+        times the share of the samples' light that reaches the receiver. The samples pick a
+        triangle in proportion to its exact light at that receiver and a point on it (`_toward`).
+
+        Why: a receiver near a strip or panel drew its samples by the triangles' power, most of
+        them on faces it does not see, and a few 1 / d^2-weighted points on the one it does: a room
+        lit by a 3 m x 10 cm LED strip read its walls' Diffuse Direct -7% in speckles (rel L1 0.26
+        at 160x90 against Cycles). Unshadowed receivers are now exact; penumbrae keep the
+        samples' noise, in the share only."""
+        exact = self.exact(p, n)  # (m, k)
+        lum = exact * (self.radiance @ LUMA).astype(np.float64)[None, :]
+        total = lum.sum(axis=1)
+        light = (exact @ self.radiance.astype(np.float64)).astype(_F32)  # (m, 3) unshadowed
+        if tracer is None or samples <= 0:
+            return light
+        live = np.flatnonzero(total > 0)
+        if live.size == 0:
+            return light
+        cdf = np.cumsum(lum[live], axis=1) / total[live, None]
+        u = rng.random((live.size, samples))
+        tri = np.minimum((u[:, :, None] > cdf[:, None, :]).sum(axis=2), self.prims.size - 1).reshape(-1)
+        u1, u2 = rng.random((2, tri.size), dtype=_F32)
+        origin = np.repeat(p[live] + n[live] * _F32(epsilon), samples, axis=0)
+        receiver = np.repeat(n[live], samples, axis=0).astype(np.float64)
+        direction, dist, weight = self._toward(tri, origin, u1, u2, epsilon, samples)
+        cos_r = np.einsum("ij,ij->i", receiver, direction)
+        # Each sample's unshadowed estimate of its triangle's light over the chance of that triangle.
+        chance = np.take_along_axis(lum[live], tri.reshape(live.size, samples), axis=1).reshape(-1) / np.repeat(
+            total[live], samples)
+        unshadowed = np.where((cos_r > 0) & np.isfinite(weight) & (dist > 0) & (chance > 0),
+                              cos_r * weight * (self.radiance[tri] @ LUMA) / np.maximum(chance, 1e-300), 0.0)
+        seen = unshadowed.copy()
+        reach = dist.astype(_F32) - _F32(epsilon)
+        ray = np.flatnonzero((unshadowed > 0) & (reach > 0))
+        if ray.size:
+            blocked = np.asarray(shadow_query(tracer)(origin[ray], np.ascontiguousarray(direction[ray], _F32),
+                                                      reach[ray], trusted=True), bool)
+            seen[ray[blocked]] = 0.0
+        num = seen.reshape(live.size, samples).sum(axis=1)
+        den = unshadowed.reshape(live.size, samples).sum(axis=1)
+        share = np.where(den > 0, num / np.maximum(den, 1e-300), 1.0)
+        light[live] *= np.clip(share, 0.0, 1.0).astype(_F32)[:, None]
+        return light
+
+    def _toward(self, tri, origin, u1, u2, epsilon, samples):
+        """(direction (c, 3), distance (c,), weight (c,)) float64 of a point on each triangle `tri`
+        seen from `origin` (c, 3), from uniforms u1, u2 (c,); weight: its unshadowed irradiance
+        estimate over the radiance, for the triangle alone.
+
+        Triangles that subtend much of the receiver's sky (near ones) are sampled uniformly in
+        their solid angle (Arvo 1995; weight: that solid angle): a point sampled by area right
+        next to a receiver gave 1 / d^2 fireflies (a panel 2 cm under a ceiling lights the
+        ceiling by its back). A triangle within NEAR_RADII of its bounding radius may subtend
+        more than NEAR_SOLID_ANGLE (pi (r / (d - r))^2 bounds it): only those get their solid
+        angle. The rest by area (weight: cos_l area / d^2, floored as area lamps sampled by area
+        have it)."""
+        count = tri.size
+        direction = np.zeros((count, 3), np.float64)
+        dist = np.zeros(count, np.float64)
+        weight = np.zeros(count, np.float64)
+        to_centre = self.centre[tri] - origin
+        maybe = np.flatnonzero(np.einsum("ij,ij->i", to_centre, to_centre) < (NEAR_RADII * self.radius[tri]) ** 2)
+        near = np.zeros(count, bool)
+        omega = np.zeros(count, np.float64)
+        if maybe.size:
+            corners = [(self.v0[tri[maybe]] + e).astype(np.float64) - origin[maybe]
+                       for e in (0.0, self.e1[tri[maybe]], self.e2[tri[maybe]])]
+            units = [c / np.maximum(np.linalg.norm(c, axis=1, keepdims=True), 1e-300) for c in corners]
+            omega[maybe] = _solid_angle(*units)
+            near[maybe] = omega[maybe] > NEAR_SOLID_ANGLE
+        far = np.flatnonzero(~near)
+        if far.size:
+            a, b = u1[far], u2[far]
+            fold = a + b > 1
+            a, b = np.where(fold, 1 - a, a), np.where(fold, 1 - b, b)
+            t = tri[far]
+            w = (self.v0[t] + a[:, None] * self.e1[t] + b[:, None] * self.e2[t] - origin[far]).astype(np.float64)
+            d2 = np.einsum("ij,ij->i", w, w)
+            dist[far] = np.sqrt(d2)
+            direction[far] = w / np.maximum(dist[far], 1e-300)[:, None]
+            cos_l = np.abs(np.einsum("ij,ij->i", self.normal[t], direction[far]))
+            floor = np.maximum(AREA_MIN_DISTANCE_FRACTION**2 * self.area[t] / samples, epsilon * epsilon)
+            weight[far] = cos_l * self.area[t] / np.maximum(d2, floor)
+        close = np.flatnonzero(near)
+        if close.size:
+            pick = near[maybe]
+            d = _sample_spherical_triangle(*(u[pick] for u in units), u1[close], u2[close])
+            direction[close] = d
+            nl = self.normal[tri[close]].astype(np.float64)
+            # Distance to the triangle's plane along the sampled direction (inside the triangle).
+            along = np.einsum("ij,ij->i", nl, d)
+            dist[close] = np.einsum("ij,ij->i", nl, corners[0][pick]) / np.where(np.abs(along) > 1e-12, along, 1e-12)
+            weight[close] = omega[close]
+        return direction, dist, weight
 
     def _block(self, p, n, tracer, rng, samples, epsilon):
         m = p.shape[0]
@@ -175,50 +298,15 @@ class MeshLights:
         cone = self._cone_samples(tri, origin, tracer)
         by_triangle = np.ones(count, bool)
         by_triangle[cone] = False
-        # Triangles that subtend much of the receiver's sky (near ones) are sampled uniformly in
-        # their solid angle (Arvo 1995): a point sampled by area right next to a receiver gave
-        # 1 / d^2 fireflies (a panel 2 cm under a ceiling lights the ceiling by its back).
-        # A triangle within NEAR_RADII of its bounding radius may subtend more than
-        # NEAR_SOLID_ANGLE (pi (r / (d - r))^2 bounds it): only those get their solid angle.
-        to_centre = self.centre[tri] - origin
-        maybe = np.flatnonzero((np.einsum("ij,ij->i", to_centre, to_centre) < (NEAR_RADII * self.radius[tri]) ** 2)
-                               & by_triangle)
-        near = np.zeros(count, bool)
-        omega = np.zeros(count, np.float64)
-        if maybe.size:
-            corners = [(self.v0[tri[maybe]] + e).astype(np.float64) - origin[maybe]
-                       for e in (0.0, self.e1[tri[maybe]], self.e2[tri[maybe]])]
-            units = [c / np.maximum(np.linalg.norm(c, axis=1, keepdims=True), 1e-300) for c in corners]
-            omega[maybe] = _solid_angle(*units)
-            near[maybe] = omega[maybe] > NEAR_SOLID_ANGLE
         direction = np.zeros((count, 3), np.float64)  # cone samples keep 0: no weight below
         dist = np.zeros(count, np.float64)
         weight = np.zeros(count, np.float64)
-        far = np.flatnonzero(~near & by_triangle)
-        if far.size:
-            a, b = u1[far], u2[far]
-            fold = a + b > 1
-            a, b = np.where(fold, 1 - a, a), np.where(fold, 1 - b, b)
-            t = tri[far]
-            w = (self.v0[t] + a[:, None] * self.e1[t] + b[:, None] * self.e2[t] - origin[far]).astype(np.float64)
-            d2 = np.einsum("ij,ij->i", w, w)
-            dist[far] = np.sqrt(d2)
-            direction[far] = w / np.maximum(dist[far], 1e-300)[:, None]
-            cos_l = np.abs(np.einsum("ij,ij->i", self.normal[t], direction[far]))
-            # Area measure: pdf choose / area; the floor as area lamps sampled by area have it.
-            floor = np.maximum(AREA_MIN_DISTANCE_FRACTION**2 * self.area[t] / samples, epsilon * epsilon)
-            weight[far] = cos_l * self.area[t] / (self.choose[t] * np.maximum(d2, floor))
-        close = np.flatnonzero(near)
-        if close.size:
-            pick = near[maybe]
-            a0, a1, a2 = (u[pick] for u in units)
-            d = _sample_spherical_triangle(a0, a1, a2, u1[close], u2[close])
-            direction[close] = d
-            nl = self.normal[tri[close]].astype(np.float64)
-            # Distance to the triangle's plane along the sampled direction (inside the triangle).
-            along = np.einsum("ij,ij->i", nl, d)
-            dist[close] = np.einsum("ij,ij->i", nl, corners[0][pick]) / np.where(np.abs(along) > 1e-12, along, 1e-12)
-            weight[close] = omega[close] / self.choose[tri[close]]  # solid-angle measure: pdf choose / omega
+        picked = np.flatnonzero(by_triangle)
+        if picked.size:
+            t = tri[picked]
+            direction[picked], dist[picked], w = self._toward(t, origin[picked], u1[picked], u2[picked], epsilon,
+                                                              samples)
+            weight[picked] = w / self.choose[t]  # the triangle's chance: its power share
         cos_r = np.einsum("ij,ij->i", receiver, direction)
         weight = np.where((cos_r > 0) & np.isfinite(weight) & (dist > 0), cos_r * weight, 0.0)
         if tracer is not None:
@@ -316,6 +404,45 @@ def _compact_groups(owner, v0, e1, e2, area, choose) -> tuple[np.ndarray, np.nda
             spheres.append((*centre, radius))
             shares.append(float(choose[rows].sum()))
     return group, np.asarray(spheres, np.float64).reshape(-1, 4), np.asarray(shares, np.float64)
+
+
+#: Most emissive triangles whose light receivers take in closed form (`MeshLights._ratio_block`):
+#: each costs Lambert's formula at every receiver. A panel is 2, a strip or box 12; more (an
+#: emissive sphere, text, a subdivided panel) keep sampling by power.
+EXACT_TRIANGLES = 16
+
+
+def _sides(owner: np.ndarray, v0: np.ndarray, e1: np.ndarray, e2: np.ndarray) -> np.ndarray:
+    """(k,) int8: +1 for the triangles of an object (`owner`) whose emissive triangles close a
+    volume they face out of (every edge shared by two of them, in opposite directions, and the
+    volume their normals enclose positive), -1 where they face into it, 0 elsewhere (both sides).
+
+    Why: emission is two-sided, and the inner side of a closed emitter (an LED strip, a box) is
+    never seen; counted by the closed form (`MeshLights.exact`), it doubled the light its shadow
+    rays then had to take back, so no receiver was exact."""
+    k = owner.shape[0]
+    side = np.zeros(k, np.int8)
+    corners = np.stack([v0, v0 + e1, v0 + e2], axis=1).astype(np.float64)  # (k, 3, 3)
+    scale = max(float(np.abs(corners).max()), 1e-30) * 1e-6
+    _keys, inverse = np.unique(owner, return_inverse=True)
+    order = np.argsort(inverse, kind="stable")
+    for rows in np.split(order, np.flatnonzero(np.diff(inverse[order])) + 1):
+        if rows.size < 4:
+            continue
+        c = corners[rows]
+        _v, vid = np.unique(np.round(c.reshape(-1, 3) / scale).astype(np.int64), axis=0, return_inverse=True)
+        vid = vid.reshape(-1, 3)
+        directed = np.concatenate([vid[:, [0, 1]], vid[:, [1, 2]], vid[:, [2, 0]]])
+        if np.unique(directed, axis=0).shape[0] != directed.shape[0]:
+            continue  # an edge twice in one direction: not one consistently wound surface
+        _e, count = np.unique(np.sort(directed, axis=1), axis=0, return_counts=True)
+        if not (count == 2).all():
+            continue  # open: a panel, a strip without ends
+        volume = float(np.einsum("ij,ij->i", c[:, 0], np.cross(c[:, 1], c[:, 2])).sum()) / 6.0
+        extent = float(np.ptp(c.reshape(-1, 3), axis=0).max())
+        if abs(volume) > 1e-9 * extent**3:
+            side[rows] = 1 if volume > 0 else -1
+    return side
 
 
 #: Solid angle (sr) above which a triangle is sampled in its solid angle rather than its area:

@@ -27,9 +27,18 @@ def receivers(n=64):
     return points, normals, tilted
 
 
+@pytest.fixture
+def by_power(monkeypatch):
+    """Every emitter sampled by power (`MeshLights._block`), as emitters of many triangles are."""
+    monkeypatch.setattr(emitters, "EXACT_TRIANGLES", 0)
+
+
+@pytest.mark.parametrize("exact", [True, False])
 @pytest.mark.parametrize("facing_down", [True, False])
-def test_unshadowed_light_is_lamberts_closed_form(facing_down):
+def test_unshadowed_light_is_lamberts_closed_form(facing_down, exact, monkeypatch):
     """Both sides emit (as rays read emission): a panel facing away lights the floor the same."""
+    if not exact:
+        monkeypatch.setattr(emitters, "EXACT_TRIANGLES", 0)
     positions, triangles, emission, tris = panel(facing_down=facing_down)
     lights = MeshLights.from_triangles(positions, triangles, emission)
     points, up, tilted = receivers()
@@ -56,6 +65,80 @@ def test_an_occluder_casts_its_shadow_and_the_emitter_does_not_shadow_itself():
     np.testing.assert_allclose(shadowed[1], open_light[1], rtol=0.1)  # off to the side: lit
 
 
+def test_a_few_triangles_are_exact_where_unshadowed_and_scaled_by_their_shadow_elsewhere():
+    """Emitters of a few triangles take the lamps' ratio estimator: Lambert's closed form where
+    no shadow ray is blocked, to rounding with 4 samples; in a half shadow the same mean as
+    the triangles sampled by power with many samples."""
+    positions, triangles, emission, tris = panel(half=0.5)
+    lights = MeshLights.from_triangles(positions, triangles, emission)
+    points, up, _ = receivers()
+    polygon = np.array([tris[0][0], tris[0][1], tris[0][2], tris[1][2]], np.float64)
+    exact = cosine_solid_angle(polygon, points, up)[:, None] * np.array([3.0, 2.0, 1.0])
+    got = lights.irradiance(points, up, TriangleTracer(tris), np.random.default_rng(4), 4, 1e-4)
+    np.testing.assert_allclose(got, exact, rtol=1e-5, atol=1e-7)
+    # A blocker over half the panel: receivers under its edge see part of it.
+    blocker = np.asarray(quad((0.25, 0.0, 1.0), (0.25, 0.0, 0.0), (0.0, 0.6, 0.0)), np.float32)
+    tracer = TriangleTracer(np.concatenate([tris, blocker]))
+    at = np.array([[x, 0.0, 0.0] for x in (-0.6, -0.2, 0.0, 0.2, 0.6)], np.float32)
+    up5 = up[: at.shape[0]]
+    ratio = np.mean([lights.irradiance(at, up5, tracer, np.random.default_rng(s), 16, 1e-4) for s in range(40)], axis=0)
+    saved = emitters.EXACT_TRIANGLES
+    try:
+        emitters.EXACT_TRIANGLES = 0
+        sampled = lights.irradiance(at, up5, tracer, np.random.default_rng(5), 8192, 1e-4)
+    finally:
+        emitters.EXACT_TRIANGLES = saved
+    assert (sampled[:, 0] < 0.95 * cosine_solid_angle(polygon, at, up5) * 3.0).any()  # some are in shadow
+    np.testing.assert_allclose(ratio, sampled, rtol=0.04, atol=0.01 * sampled.max())
+
+
+def box_triangles(centre, half, inward=False):
+    """(12, 3, 3) the faces of an axis-aligned box, wound to face out (or in)."""
+    c, h = np.asarray(centre, np.float64), np.asarray(half, np.float64)
+    faces = []
+    for axis in range(3):
+        for sign in (-1.0, 1.0):
+            u, v = np.eye(3)[(axis + 1) % 3] * h, np.eye(3)[(axis + 2) % 3] * h
+            if sign < 0:
+                u, v = v, u  # keep the winding's normal pointing out of the box
+            faces += quad(c + sign * np.eye(3)[axis] * h, u, v)
+    tris = np.asarray(faces, np.float64)
+    return tris[:, ::-1] if inward else tris
+
+
+def test_a_closed_emitter_lights_only_by_its_outer_faces():
+    """An LED strip (a thin closed box) emits from both sides of its faces as rays read them, but
+    its inner side is never seen: its faces count on their outer side (`_sides`), so a receiver
+    that sees it whole is exact, and what it gets agrees with the triangles sampled by power and
+    shadowed by the strip itself."""
+    tris = box_triangles((0.0, 0.0, 1.0), (1.5, 0.05, 0.025)).astype(np.float32)
+    n = np.cross(tris[:, 1] - tris[:, 0], tris[:, 2] - tris[:, 0])
+    assert (np.einsum("ij,ij->i", n, tris.mean(axis=1) - [0.0, 0.0, 1.0]) > 0).all()  # the helper's winding
+    emission = np.tile(np.array([5.0, 4.0, 3.0], np.float32), (12, 1))
+    positions, triangles = tris.reshape(-1, 3), np.arange(36).reshape(12, 3)
+    one = np.zeros(12, np.int64)  # one object
+    lights = MeshLights.from_triangles(positions, triangles, emission, objects=one)
+    assert (lights.side == 1).all()
+    inward = box_triangles((0.0, 0.0, 1.0), (1.5, 0.05, 0.025), inward=True).astype(np.float32)
+    assert (MeshLights.from_triangles(inward.reshape(-1, 3), triangles, emission, objects=one).side == -1).all()
+    open_box = MeshLights.from_triangles(positions[:30], triangles[:10], emission[:10], objects=one[:10])
+    assert (open_box.side == 0).all()  # an end missing: both sides of every face
+    # Receivers on a wall behind the strip and a ceiling above it, facing it.
+    points = np.array([[x, 0.2, 1.0] for x in (-1.0, 0.0, 0.7)] + [[x, 0.0, 1.3] for x in (-0.5, 0.4)], np.float32)
+    normals = np.array([[0, -1, 0]] * 3 + [[0, 0, -1]] * 2, np.float32)
+    tracer = TriangleTracer(tris)
+    got = lights.irradiance(points, normals, tracer, np.random.default_rng(6), 4, 1e-4)
+    seen = lights.exact(points, normals) @ emission.astype(np.float64)
+    np.testing.assert_allclose(got, seen, rtol=1e-5)
+    saved = emitters.EXACT_TRIANGLES
+    try:
+        emitters.EXACT_TRIANGLES = 0
+        sampled = lights.irradiance(points, normals, tracer, np.random.default_rng(7), 20000, 1e-4)
+    finally:
+        emitters.EXACT_TRIANGLES = saved
+    np.testing.assert_allclose(got, sampled, rtol=0.03)
+
+
 def test_triangles_are_chosen_by_power_and_nothing_emitting_is_none():
     positions, triangles, emission, _ = panel()
     emission[1] *= 3.0
@@ -66,7 +149,7 @@ def test_triangles_are_chosen_by_power_and_nothing_emitting_is_none():
 
 
 @pytest.mark.parametrize("gap", [0.02, 0.002])
-def test_receivers_next_to_an_emitter_get_its_light_without_fireflies(gap):
+def test_receivers_next_to_an_emitter_get_its_light_without_fireflies(gap, by_power):
     """A panel a few mm from a ceiling lights it by its back (both sides emit). Sampled by area,
     the points right next to a receiver weigh 1 / d^2: fireflies. Near triangles are sampled in
     their solid angle: the estimate stays within a few % with 64 samples."""

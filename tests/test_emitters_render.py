@@ -68,7 +68,9 @@ SCENE = textwrap.dedent("""
 
 def test_a_room_lit_by_an_emissive_panel_has_cycles_direct_light():
     """Against the 128 spp here, pixels sampling the panel / rays alone: Diffuse Direct 0.028 /
-    0.227, Combined 0.141 / 0.174 (its Diffuse Indirect is the rays' either way)."""
+    0.227, Combined 0.141 / 0.174 (its Diffuse Indirect is the rays' either way). The panel's two
+    triangles in closed form, shadowed by the samples' share (`MeshLights._ratio_block`):
+    Diffuse Direct 0.026 -> 0.010."""
     import tempfile
     from pathlib import Path
 
@@ -86,5 +88,5 @@ def test_a_room_lit_by_an_emissive_panel_has_cycles_direct_light():
     ratio = float(mine.sum() / reference.sum())
     print(errors, f"Diffuse Direct sum ratio {ratio:.3f}")
     assert abs(ratio - 1.0) < 0.05, ratio  # the emitter's light counted once
-    assert errors["Diffuse Direct"] < 0.12, errors
+    assert errors["Diffuse Direct"] < 0.02, errors
     assert errors["Combined"] < 0.16, errors
