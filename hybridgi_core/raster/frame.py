@@ -633,7 +633,16 @@ class FramePipeline:
         # Emissive triangles sampled as lights at every pixel (`emitters.py`), where pixel rays
         # remove the cache's share of them (with pixel rays off the cache's gather keeps it).
         if self.settings.pixel_rays > 0 and worth_sampling(system.surfaces.emitters, system.scene.lights):
-            direct[pix_full, :3] += system.emitter_light(p_full, n_full, frame, emitter_samples(self.direct_samples))
+            samples = emitter_samples(self.direct_samples)
+            if system.surfaces.emitters.ratio:
+                # A few triangles in closed form: the shadow rays' share, adaptive in penumbrae as
+                # the lamps' (`emitters.MeshLights._ratio_block`).
+                direct[pix_full, :3] += adaptive_direct(
+                    lambda p, n, f, samples, partial=None, unshadowed=None: system.emitter_light(
+                        p, n, f, samples, partial, unshadowed), p_full, n_full, pix_full, (self.height, self.width),
+                    frame, samples, camera=camera, pool=system.updater.pool)[0]
+            else:
+                direct[pix_full, :3] += system.emitter_light(p_full, n_full, frame, samples)
             screen = dataclasses.replace(screen, emitters_sampled=True)
         return CentreLight(direct, lamp_light, screen, p_full, n_full, pix_full, s_full,
                            (time.perf_counter() - tic) * 1e3, visibility)
