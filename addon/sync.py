@@ -945,8 +945,9 @@ def material_from_blender(material, textures=None, baked=None, pending=False, qu
             "pass straight through it, without refraction, reflection or tint)")
         # Glass (most of the passing light refracted) stops the shadow rays of small lamps, as
         # Cycles' glass does (`lights.stopped_by_glass`).
+        ior, tint = part.glass if part.glass is not None else (1.5, None)
         return snap.Material(name=name, base_color=np.zeros(3, np.float32), clear=True,
-                             refractive=part.refract >= 0.5 * part.clear)
+                             refractive=part.refract >= 0.5 * part.clear, ior=ior, tint=tint)
     if part.clear > 0:
         _note(textures, name, shader, f"lets {part.clear:.0%} of its light through (rendered opaque)")
     specular = part.surface()
@@ -1064,6 +1065,7 @@ def _shader_surface(shader, textures, name, depth=0):
                                        roughness_map=roughness_map,
                                        metal_texture=metal_texture,
                                        clear=clear, refract=refract, sheen=sheen_colour,
+                                       glass=_glass_optics(shader, "Base Color", textures, name) if refract > 0 else None,
                                        sheen_roughness=sheen_roughness,
                                        sheen_layered=True, translucent=translucent)
     if kind in ("BSDF_HAIR_PRINCIPLED", "BSDF_HAIR"):
@@ -1082,12 +1084,15 @@ def _shader_surface(shader, textures, name, depth=0):
         # Glass transmits what it does not reflect: clear (`snapshot.Material.clear`) on its own.
         glass = 1.0 if kind == "BSDF_GLASS" else 0.0
         return surface_mix.SurfacePart(lobes=[_glossy_lobe(shader, kind, textures, name)], clear=glass,
-                                       refract=glass)
+                                       refract=glass,
+                                       glass=_glass_optics(shader, "Color", textures, name) if glass else None)
     if kind in ("BSDF_TRANSPARENT", "BSDF_REFRACTION"):
         # Light passes (straight through a Transparent BSDF, refracted through a Refraction BSDF:
         # rendered straight): clear on its own; no diffuse reflection (Cycles' Diffuse Color pass
         # is black there).
-        return surface_mix.SurfacePart(base=zero, clear=1.0, refract=1.0 if kind == "BSDF_REFRACTION" else 0.0)
+        return surface_mix.SurfacePart(base=zero, clear=1.0, refract=1.0 if kind == "BSDF_REFRACTION" else 0.0,
+                                       glass=(_glass_optics(shader, "Color", textures, name)
+                                              if kind == "BSDF_REFRACTION" else None))
     if kind == "BSDF_TRANSLUCENT":
         # Diffuse light from behind: Cycles counts it in the Diffuse passes (its colour in Diffuse
         # Color); the lamps' light is taken on the back of the surface (`Material.translucent`).
@@ -1399,6 +1404,15 @@ def _glossy_lobe(shader, kind, textures, name):
     if notes:
         _note(textures, name, shader, ", ".join(notes))
     return lobe
+
+
+def _glass_optics(shader, colour_socket: str, textures, name) -> tuple[float, np.ndarray]:
+    """(index of refraction, colour) of a refracting closure (a Glass or Refraction BSDF, a
+    Principled BSDF's transmission): what the camera's refraction paths take (`refraction.py`);
+    a textured colour by its mean."""
+    ior = _constant_value(_input(shader, "IOR"), name, fallback=1.5) if _input(shader, "IOR") is not None else 1.5
+    colour = _mean_colour_input(shader.inputs[colour_socket], textures, name, node=shader, notes=[])
+    return float(np.clip(ior, 1.0, 4.0)), np.clip(colour, 0.0, 1.0).astype(np.float32)
 
 
 def _mean_colour_input(socket, textures, name, node, notes):

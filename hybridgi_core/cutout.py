@@ -86,6 +86,14 @@ class Cutouts:
             passes &= ~((prim >= 0) & self._glass[np.maximum(prim, 0)])
         return passes | self.shadow_transparent(prim)
 
+    def camera_passes(self, prim: np.ndarray, u: np.ndarray, v: np.ndarray, directions=None) -> np.ndarray:
+        """(n,) bool: a camera ray passes the hit: a hole or clear surface, but not refractive glass,
+        which the camera's refraction paths stop at (`refraction.py`)."""
+        passes = self.transparent(prim, u, v)
+        if self._glass is not None:
+            passes &= ~((prim >= 0) & self._glass[np.maximum(prim, 0)])
+        return passes
+
     def shadow_transparent(self, prim: np.ndarray) -> np.ndarray:
         """(n,) bool: the hit triangle lets shadow rays through (prim -1: False)."""
         if self._shadow_skip is None:

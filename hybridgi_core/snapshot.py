@@ -229,6 +229,10 @@ class Material:
     #: a Refraction BSDF), not a Transparent BSDF's or an alpha's: Cycles' shadow rays stop at it,
     #: so the sun and point / spot lamps do not shine through it (`cutout.Cutouts.glass`)
     refractive: bool = False
+    #: a refractive material's index of refraction and colour (the tint of the light it refracts,
+    #: None: white): what the camera's refraction paths take (`refraction.py`)
+    ior: float = 1.5
+    tint: np.ndarray | None = None
     #: (3,) per channel, the share of the diffuse colour that is a Translucent BSDF's (lit from
     #: behind: Cycles counts it in the Diffuse passes), or None (all of it reflects)
     translucent: np.ndarray | None = None

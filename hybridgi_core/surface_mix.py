@@ -64,6 +64,8 @@ class SurfacePart:
     metal_texture: np.ndarray | None = None
     clear: float = 0.0
     refract: float = 0.0
+    #: (index of refraction, (3,) colour) of the light it refracts, or None (`snapshot.Material.ior`)
+    glass: tuple | None = None
     translucent: np.ndarray | None = None
     sheen: np.ndarray | None = None
     sheen_roughness: float = 0.5
@@ -181,6 +183,10 @@ def mix(parts: list[SurfacePart], weights: list[np.ndarray], name: str = "") -> 
     emission = sum(float(_cosine_mean(w)) * part.emission for part, w in zip(parts, weights, strict=True))
     clear = sum(float(_cosine_mean(w)) * part.clear for part, w in zip(parts, weights, strict=True))
     refract = sum(float(_cosine_mean(w)) * part.refract for part, w in zip(parts, weights, strict=True))
+    # The refracting part that weighs most gives the mix its index and colour.
+    refracting = [(float(_cosine_mean(w)) * part.refract, i) for i, (part, w) in enumerate(zip(parts, weights, strict=True))
+                  if part.glass is not None]
+    glass = parts[max(refracting)[1]].glass if refracting else None
     glow = _mixed_emission_texture(parts, weights, notes)
     alpha = next((part.alpha for part in parts if part.alpha is not None), None)
     # One shading normal per material: the normal map of the part weighing most (Cycles bends
@@ -193,7 +199,7 @@ def mix(parts: list[SurfacePart], weights: list[np.ndarray], name: str = "") -> 
     part = SurfacePart(base=np.asarray(base, np.float32), texture=texture, emission=np.asarray(emission, np.float32),
                        alpha=alpha, diffuse=None if np.allclose(diffuse, 1.0) else diffuse, lobes=lobes, normal=normal,
                        emission_texture=glow, clear=float(np.clip(clear, 0.0, 1.0)),
-                       refract=float(np.clip(refract, 0.0, 1.0)), translucent=translucent,
+                       refract=float(np.clip(refract, 0.0, 1.0)), glass=glass, translucent=translucent,
                        sheen=sheen_colour, sheen_roughness=sheen_roughness)
     return part, notes
 

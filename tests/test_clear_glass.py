@@ -163,7 +163,8 @@ def test_glass_stops_the_shadow_rays_of_small_lamps_only():
 @pytest.mark.blender
 @pytest.mark.slow
 def test_a_glazed_room_is_seen_through_and_lit_as_cycles_lights_it(rooms, tmp_path):
-    """The pane changes nothing of the view through it nor of the room's light but the sun's:
+    """The pane changes nothing of the room's light but the sun's, and the view through it as
+    Cycles' does (its Fresnel share and reflection: `refraction.py`):
     Cycles' shadow rays stop at glass and its sunlight through glass reaches the floor only along
     caustic paths (no sunlit patch at 1024 spp, clamped or not), so HybridGI's glass stops the
     sun too. The glazed room is closer to Cycles' glazed render than the open room is (the
@@ -180,10 +181,14 @@ def test_a_glazed_room_is_seen_through_and_lit_as_cycles_lights_it(rooms, tmp_pa
         light = layer(glazed, "Combined")
         outside = mask & (layer(glazed, "Depth", "Z")[..., 0] > 4.5)  # seen through the pane (3.8 m away)
         assert outside.sum() > 50
-        err = np.abs(light - combined)[outside].sum() / np.abs(combined)[outside].sum()
-        assert err < 0.03, (name, "through the pane", err)  # its bounce light from the room differs a little
         assert light[mask].sum() < 0.9 * combined[mask].sum(), name  # no sunlit patch inside
         cycles = layer(rendered(rooms / f"{name}.blend", tmp_path / f"c_{name}", RES, *CYCLES), "Combined")
+        # Through the pane: what lies beyond, less the pane's Fresnel share, plus its reflection of
+        # the room (`refraction.py`; Cycles' mean there is 3.5% under the open room's).
+        through = np.abs(light - cycles)[outside].sum() / np.abs(cycles)[outside].sum()
+        open_view = np.abs(combined - cycles)[outside].sum() / np.abs(cycles)[outside].sum()
+        assert through < open_view, (name, "through the pane", through, open_view)
+        assert abs(light[outside].mean() / cycles[outside].mean() - 1.0) < 0.02, name
         ours = np.abs(light - cycles)[mask].sum() / np.abs(cycles)[mask].sum()
         before = np.abs(combined - cycles)[mask].sum() / np.abs(cycles)[mask].sum()
         assert ours < before, (name, ours, before)

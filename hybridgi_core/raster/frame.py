@@ -15,15 +15,17 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .. import glossy_image, glossy_ltc, pixel_gather
+from .. import glossy_image, glossy_ltc, pixel_gather, refraction
 from .. import translucent as translucent_mod
 from ..camera import camera_position
 from ..catcher import CatcherPixels
 from ..emitters import emitter_samples, worth_sampling
 from ..evaluate import HitLookup
+from ..levels import hit_lookup
 from ..lights import RATIO_MIN_SAMPLES, one_sample_exact_lamps, rough_lights
 from ..penumbra import FIRST_SAMPLES as PENUMBRA_FIRST_SAMPLES
 from ..penumbra import adaptive_direct, filter_camera
+from ..sampling import frame_rng
 from ..screen_light import ScreenLight
 from ..settings import MULTI_BOUNCE
 from ..system import UPDATES_PER_BATCH
@@ -528,8 +530,24 @@ class FramePipeline:
             film.set_sums(sums, self.accumulate.count)
         with stats.step("film"):
             film.set_glossy(glossy, glossy_col, self.height, self.width, indirect=glossy_ind)
+        if debug_view == DEBUG_FINAL:
+            self._refraction(system, view, proj, frame, film, stats, (p_full, n_full, pix_full))
         self.film = film
         return shaded, stats
+
+    def _refraction(self, system, view, proj, frame: int, film, stats: FrameStats, full) -> None:
+        """The camera's refractive glass over the film (`refraction.py`): step "refraction".
+        full : the centre G-buffer's (points, normals, flat pixels)."""
+        if not getattr(system.tracer, "has_glass", False):
+            return
+        with stats.step("refraction"):
+            lookup = hit_lookup(system, bounced=system.settings.indirect_quality == MULTI_BOUNCE)
+            combined = film.read("combined").reshape(self.height * self.width, -1)
+            glass = refraction.render_glass(system, lookup, view, proj, self.width, self.height,
+                                            frame_rng(system.settings.seed + refraction.SEED_OFFSET, frame),
+                                            (*full, combined))
+            if glass is not None:
+                film.set_refraction(*glass)
 
     def _stage_thread(self) -> futures.ThreadPoolExecutor:
         """The thread a frame's centre lamp light runs on beside the cache update (made on use).

@@ -777,6 +777,26 @@ class FilmAccumulator:
         self._extra = {"glossy_color": colour, "glossy_direct": direct.astype(np.float32),
                        "glossy_indirect": np.where(colour > 1e-8, light, 0.0).astype(np.float32)}
 
+    def set_refraction(self, coverage: np.ndarray, radiance: np.ndarray) -> None:
+        """The camera's refractive glass (`refraction.render_glass`: coverage (h, w), radiance
+        (h, w, 3), rows bottom-up; set after the glossy passes): Combined becomes the see-through
+        image where a pixel's rays missed the glass and their paths' light where they met it; the
+        Diffuse and Glossy Color passes keep the share that missed (Cycles' light through glass
+        is its Transmission passes'), and the passes divided by them stay as they are."""
+        c = np.asarray(coverage, np.float32)[..., None]
+        combined = np.array(self.read("combined"), np.float32)
+        combined[..., :3] = (1.0 - c) * combined[..., :3] + c * np.asarray(radiance, np.float32)
+        extra = dict(getattr(self, "_extra", {}))
+        extra["combined"] = combined
+        for name in ("diffuse_color", "glossy_color"):
+            try:
+                value = np.array(self.read(name), np.float32)
+            except KeyError:
+                continue
+            value[..., :3] *= 1.0 - c
+            extra[name] = value
+        self._extra = extra
+
     def set_depth(self, depth: np.ndarray) -> None:
         """The Depth pass: one point sample per pixel, not filtered (see the module docstring)."""
         self._depth = np.array(depth, np.float32)

@@ -204,6 +204,17 @@ class EmbreeTracer:
             return hits
         return self._continue_past(origins, directions, tfar, hits, cutouts.transparent, self._intersect_once)
 
+    def intersect_glass(
+        self, origins: np.ndarray, directions: np.ndarray, tfar: float | np.ndarray = np.inf, trusted: bool = False
+    ) -> Hits:
+        """`intersect`, except that refractive glass stops the rays (other holes and clear
+        surfaces pass): the camera's refraction paths (`refraction.py`)."""
+        rules = self._glass
+        if rules is None:
+            return self.intersect(origins, directions, tfar, trusted)
+        hits = self._intersect_once(origins, directions, tfar, trusted)
+        return self._continue_past(origins, directions, tfar, hits, rules.camera_passes, self._intersect_once)
+
     def _continue_past(self, origins, directions, tfar, hits: Hits, passes, trace, layers: int = CUTOUT_LAYERS) -> Hits:
         """`hits` with the rays whose hit `passes(prim, u, v)` marks (an alpha cutout's hole, a
         triangle shadow rays pass) continued just beyond it by `trace` (an intersect), at most
