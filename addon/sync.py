@@ -940,14 +940,18 @@ def material_from_blender(material, textures=None, baked=None, pending=False, qu
         # pane, and its light reaches what lies behind), not the dark mirror its reflection alone
         # made of it (a room lit through a glass window was black). Its own notes are moot.
         textures.approximated.pop(name, None)
+        refractive = part.refract >= 0.5 * part.clear
         textures.approximated.setdefault(name, set()).add(
             f"lets {part.clear:.0%} of its light through: rendered as clear thin glass (light and the view "
-            "pass straight through it, without refraction, reflection or tint)")
+            "pass straight through it, without refraction, reflection or tint)" if not refractive else
+            f"lets {part.clear:.0%} of its light through: final renders show its refraction, reflection and "
+            "tint to the camera; light and the GI's rays pass straight through it (no caustics), and the "
+            "viewport shows it as clear thin glass")
         # Glass (most of the passing light refracted) stops the shadow rays of small lamps, as
         # Cycles' glass does (`lights.stopped_by_glass`).
         ior, tint = part.glass if part.glass is not None else (1.5, None)
         return snap.Material(name=name, base_color=np.zeros(3, np.float32), clear=True,
-                             refractive=part.refract >= 0.5 * part.clear, ior=ior, tint=tint)
+                             refractive=refractive, ior=ior, tint=tint)
     if part.clear > 0:
         _note(textures, name, shader, f"lets {part.clear:.0%} of its light through (rendered opaque)")
     specular = part.surface()
