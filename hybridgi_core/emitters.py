@@ -242,12 +242,7 @@ class MeshLights:
         unshadowed = np.where((cos_r > 0) & np.isfinite(weight) & (dist > 0) & (chance > 0),
                               cos_r * weight * (self.radiance[tri] @ LUMA) / np.maximum(chance, 1e-300), 0.0)
         seen = unshadowed.copy()
-        reach = dist.astype(_F32) - _F32(epsilon)
-        ray = np.flatnonzero((unshadowed > 0) & (reach > 0))
-        if ray.size:
-            blocked = np.asarray(shadow_query(tracer)(origin[ray], np.ascontiguousarray(direction[ray], _F32),
-                                                      reach[ray], trusted=True), bool)
-            seen[ray[blocked]] = 0.0
+        seen[_blocked(tracer, origin, direction, dist, unshadowed > 0, epsilon)] = 0.0
         num = seen.reshape(live.size, samples).sum(axis=1)
         den = unshadowed.reshape(live.size, samples).sum(axis=1)
         share = np.clip(np.where(den > 0, num / np.maximum(den, 1e-300), 1.0), 0.0, 1.0)
@@ -333,13 +328,7 @@ class MeshLights:
         cos_r = np.einsum("ij,ij->i", receiver, direction)
         weight = np.where((cos_r > 0) & np.isfinite(weight) & (dist > 0), cos_r * weight, 0.0)
         if tracer is not None:
-            # Shadow rays stop epsilon short of the emitter (it must not hide its own point).
-            reach = dist.astype(_F32) - _F32(epsilon)
-            ray = np.flatnonzero((weight > 0) & (reach > 0))
-            if ray.size:
-                blocked = np.asarray(shadow_query(tracer)(origin[ray], np.ascontiguousarray(direction[ray], _F32),
-                                                          reach[ray], trusted=True), bool)
-                weight[ray[blocked]] = 0.0
+            weight[_blocked(tracer, origin, direction, dist, weight > 0, epsilon)] = 0.0
         e = self.radiance[tri] * weight[:, None].astype(_F32)
         if cone.size:
             e[cone] = self._cone_light(tri[cone], origin[cone], receiver[cone], tracer, u1[cone], u2[cone])
@@ -390,6 +379,20 @@ class MeshLights:
         weight = cos_r[live] * 2.0 * np.pi * one_minus[live] / self.group_share[g[live]]
         out[live] = self.radiance[row] * weight[:, None].astype(_F32)
         return out
+
+
+def _blocked(tracer, origin: np.ndarray, direction: np.ndarray, dist: np.ndarray, live: np.ndarray,
+             epsilon: float) -> np.ndarray:
+    """Indices of the samples `live` (bool) marks whose shadow ray from `origin` along
+    `direction` is blocked before the emitter `dist` away; the rays stop epsilon short of it
+    (it must not hide its own point)."""
+    reach = dist.astype(_F32) - _F32(epsilon)
+    ray = np.flatnonzero(live & (reach > 0))
+    if ray.size == 0:
+        return ray
+    blocked = np.asarray(shadow_query(tracer)(origin[ray], np.ascontiguousarray(direction[ray], _F32), reach[ray],
+                                              trusted=True), bool)
+    return ray[blocked]
 
 
 #: An emitter (one object's emissive triangles) is compact when the mean area it shows a receiver,

@@ -65,6 +65,16 @@ def test_an_occluder_casts_its_shadow_and_the_emitter_does_not_shadow_itself():
     np.testing.assert_allclose(shadowed[1], open_light[1], rtol=0.1)  # off to the side: lit
 
 
+def sampled_by_power(lights, points, normals, tracer, samples, seed):
+    """`lights.irradiance` with its triangles sampled by power (`MeshLights._block`)."""
+    saved = emitters.EXACT_TRIANGLES
+    try:
+        emitters.EXACT_TRIANGLES = 0
+        return lights.irradiance(points, normals, tracer, np.random.default_rng(seed), samples, 1e-4)
+    finally:
+        emitters.EXACT_TRIANGLES = saved
+
+
 def test_a_few_triangles_are_exact_where_unshadowed_and_scaled_by_their_shadow_elsewhere():
     """Emitters of a few triangles take the lamps' ratio estimator: Lambert's closed form where
     no shadow ray is blocked, to rounding with 4 samples; in a half shadow the same mean as
@@ -82,12 +92,7 @@ def test_a_few_triangles_are_exact_where_unshadowed_and_scaled_by_their_shadow_e
     at = np.array([[x, 0.0, 0.0] for x in (-0.6, -0.2, 0.0, 0.2, 0.6)], np.float32)
     up5 = up[: at.shape[0]]
     ratio = np.mean([lights.irradiance(at, up5, tracer, np.random.default_rng(s), 16, 1e-4) for s in range(40)], axis=0)
-    saved = emitters.EXACT_TRIANGLES
-    try:
-        emitters.EXACT_TRIANGLES = 0
-        sampled = lights.irradiance(at, up5, tracer, np.random.default_rng(5), 8192, 1e-4)
-    finally:
-        emitters.EXACT_TRIANGLES = saved
+    sampled = sampled_by_power(lights, at, up5, tracer, 8192, 5)
     assert (sampled[:, 0] < 0.95 * cosine_solid_angle(polygon, at, up5) * 3.0).any()  # some are in shadow
     np.testing.assert_allclose(ratio, sampled, rtol=0.04, atol=0.01 * sampled.max())
 
@@ -130,13 +135,7 @@ def test_a_closed_emitter_lights_only_by_its_outer_faces():
     got = lights.irradiance(points, normals, tracer, np.random.default_rng(6), 4, 1e-4)
     seen = lights.exact(points, normals) @ emission.astype(np.float64)
     np.testing.assert_allclose(got, seen, rtol=1e-5)
-    saved = emitters.EXACT_TRIANGLES
-    try:
-        emitters.EXACT_TRIANGLES = 0
-        sampled = lights.irradiance(points, normals, tracer, np.random.default_rng(7), 20000, 1e-4)
-    finally:
-        emitters.EXACT_TRIANGLES = saved
-    np.testing.assert_allclose(got, sampled, rtol=0.03)
+    np.testing.assert_allclose(got, sampled_by_power(lights, points, normals, tracer, 20000, 7), rtol=0.03)
 
 
 def test_triangles_are_chosen_by_power_and_nothing_emitting_is_none():
