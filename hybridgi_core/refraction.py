@@ -11,7 +11,7 @@ interfaces (at each further one reflected or through, drawn by its Fresnel as Cy
 total internal reflection included), tinted at each refraction by the material's colour, to the surface or the world it ends
 on, the frame's own see-through Combined where the image shows that surface (a pane's view), else
 shaded as the pixel rays' hits are (`pixel_gather.hit_radiance`: lamp light through shadow rays,
-the cache for the rest). A pixel's Combined becomes the see-through image where its rays
+the cache for the rest), or the world as the camera sees it (the environment image itself). A pixel's Combined becomes the see-through image where its rays
 missed the glass and the paths' mean where they met it; its Diffuse and Glossy Color keep the share
 of rays that missed (Cycles counts light through glass in its Transmission passes, not there).
 
@@ -196,6 +196,12 @@ def _shade(system, lookup, origins: np.ndarray, dirs: np.ndarray, rng, hits: Hit
         part = Hits(hits.t[rest], hits.prim[rest], hits.u[rest], hits.v[rest])
         radiance = hit_radiance(system, lookup, o[rest], d[rest], part, rng, glossy_lamps=False)
         out[rest] = radiance[:, 0:3] + radiance[:, 3:6]
+    # Rays that leave the scene see the world as the camera does (the environment image at its
+    # own resolution), not the lighting's coarse sky map: a window's view of an HDRI.
+    background = getattr(system.scene.world, "background_map", None)
+    missed = np.flatnonzero(hits.prim < 0)
+    if background is not None and missed.size:
+        out[missed] = background.radiance(d[missed])
     return out
 
 

@@ -42,9 +42,11 @@ def test_camera_rays_pass_through_their_pixels():
     np.testing.assert_allclose(ndc, np.stack([x.ravel(), y.ravel()], axis=1), atol=1e-4)
 
 
-def glass_ball_system(tint=None, ior=1.5, world=0.7):
-    """A GISystem of a smooth glass ball of radius 0.5 at the origin under a uniform world."""
+def glass_ball_system(tint=None, ior=1.5, world=0.7, background=None):
+    """A GISystem of a smooth glass ball of radius 0.5 at the origin under a uniform world (seen
+    by the camera as `background`'s uniform environment image where given)."""
     from blend_scenes.procedural import uv_sphere
+    from hybridgi_core.environment import BackgroundMap
     from hybridgi_core.settings import CacheSettings
     from hybridgi_core.snapshot import Material, World, geometry_from_arrays, make_snapshot
     from hybridgi_core.system import GISystem
@@ -52,7 +54,8 @@ def glass_ball_system(tint=None, ior=1.5, world=0.7):
     ball = uv_sphere(0.5, 96, 48)
     geometry = geometry_from_arrays(ball.positions, ball.triangles, 0, 0, normals=ball.normals)
     glass = Material("glass", np.zeros(3, np.float32), clear=True, refractive=True, ior=ior, tint=tint)
-    scene = make_snapshot(geometry, [glass], [], World(color=np.full(3, world, np.float32)))
+    seen = None if background is None else BackgroundMap(np.full((8, 16, 3), background, np.float16))
+    scene = make_snapshot(geometry, [glass], [], World(color=np.full(3, world, np.float32), background_map=seen))
     return GISystem(scene, CacheSettings(resolution=8, rays_per_cell=8))
 
 
@@ -74,6 +77,16 @@ def test_clear_glass_under_a_uniform_world_shows_the_world():
     inner = np.abs(x) < 0.45
     np.testing.assert_allclose(light[inner], 0.7, rtol=0.01)
     assert (light[~glass] == 0).all()
+
+
+def test_paths_that_leave_see_the_world_as_the_camera_does():
+    """A path that leaves the scene shows the environment image the camera sees (its own
+    resolution), not the lighting's coarse sky map: here a uniform image of 0.9 over a lighting
+    colour of 0.7."""
+    x, origins, dirs = rays_at_ball(16)
+    with glass_ball_system(background=0.9) as system:
+        glass, light = refraction.glass_paths(system, hit_lookup(system, True), origins, dirs, np.random.default_rng(4))
+    np.testing.assert_allclose(light[np.abs(x) < 0.45], 0.9, rtol=0.01)
 
 
 def test_coloured_glass_tints_what_it_refracts_twice_not_what_it_reflects():
