@@ -93,8 +93,10 @@ def _refract(d: np.ndarray, n: np.ndarray, eta: np.ndarray) -> tuple[np.ndarray,
 
 
 def _interface(geometry, d, hits: Hits, ior, tint):
-    """At refractive hits: (point, normal facing the ray (float64), eta = n_from / n_to, the
-    Fresnel reflectance, the material's tint), the side taken from the geometric normal."""
+    """At refractive hits of rays d: (geometric normal, shading normal (the smooth one, unless it
+    turned past the ray), both facing the ray, float64; eta = n_from / n_to; the Fresnel
+    reflectance; the material's tint). Whether the ray enters is the geometric normal's say, as
+    in Cycles: a glass object whose normals point inwards is entered where it is left."""
     prim = hits.prim
     ng = _geometric_normals(geometry, prim)
     ns = _smooth_normals(geometry, prim, hits.u, hits.v)
@@ -117,7 +119,8 @@ def glass_paths(system, lookup, origins: np.ndarray, dirs: np.ndarray, rng, scre
     scene, tracer = system.scene, system.tracer
     geometry = tracer.geometry
     refractive = refractive_materials(scene)
-    ior = np.array([max(float(getattr(m, "ior", 1.5)), 1e-3) for m in scene.materials], np.float64)
+    ior = np.array([float(getattr(m, "ior", 1.5)) for m in scene.materials], np.float64)
+    ior = np.where(np.isfinite(ior) & (ior > 0.0), ior, 1.5)  # (sync clamps it to 1..4)
     tint = np.array([np.ones(3) if getattr(m, "tint", None) is None else np.asarray(m.tint, np.float64)
                      for m in scene.materials]).reshape(-1, 3)
     n = origins.shape[0]

@@ -67,11 +67,13 @@ def rays_at_ball(count=64):
     return x, origins, dirs
 
 
-def test_clear_glass_under_a_uniform_world_shows_the_world():
+@pytest.mark.parametrize("ior", [1.5, 1.1, float("nan")])
+def test_clear_glass_under_a_uniform_world_shows_the_world(ior):
     """Reflected or refracted, every path of clear glass ends on the same uniform world: the ball
-    shows its radiance (energy kept by the Fresnel split and the paths' internal reflections)."""
+    shows its radiance (energy kept by the Fresnel split and the paths' internal reflections).
+    A non-finite index (a snapshot made without sync, which clamps it) is taken as 1.5."""
     x, origins, dirs = rays_at_ball()
-    with glass_ball_system() as system:
+    with glass_ball_system(ior=ior) as system:
         glass, light = refraction.glass_paths(system, hit_lookup(system, True), origins, dirs, np.random.default_rng(1))
     np.testing.assert_array_equal(glass, np.abs(x) < 0.495)  # the disc (a 96-gon's edge)
     inner = np.abs(x) < 0.45
