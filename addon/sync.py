@@ -949,9 +949,9 @@ def material_from_blender(material, textures=None, baked=None, pending=False, qu
             "viewport shows it as clear thin glass")
         # Glass (most of the passing light refracted) stops the shadow rays of small lamps, as
         # Cycles' glass does (`lights.stopped_by_glass`).
-        ior, tint = part.glass if part.glass is not None else (1.5, None)
+        ior, tint, tinted_reflection = part.glass if part.glass is not None else (1.5, None, False)
         return snap.Material(name=name, base_color=np.zeros(3, np.float32), clear=True,
-                             refractive=refractive, ior=ior, tint=tint)
+                             refractive=refractive, ior=ior, tint=tint, tint_reflection=tinted_reflection)
     if part.clear > 0:
         _note(textures, name, shader, f"lets {part.clear:.0%} of its light through (rendered opaque)")
     specular = part.surface()
@@ -1410,13 +1410,14 @@ def _glossy_lobe(shader, kind, textures, name):
     return lobe
 
 
-def _glass_optics(shader, colour_socket: str, textures, name) -> tuple[float, np.ndarray]:
-    """(index of refraction, colour) of a refracting closure (a Glass or Refraction BSDF, a
-    Principled BSDF's transmission): what the camera's refraction paths take (`refraction.py`);
-    a textured colour by its mean."""
+def _glass_optics(shader, colour_socket: str, textures, name) -> tuple[float, np.ndarray, bool]:
+    """(index of refraction, colour, whether the colour tints the reflection too) of a refracting
+    closure: a Glass BSDF's Color tints both, as Cycles' does; a Principled BSDF's Base Color
+    and a Refraction BSDF's Color tint the refracted light only. What the camera's refraction
+    paths take (`refraction.py`); a textured colour by its mean."""
     ior = _constant_value(_input(shader, "IOR"), name, fallback=1.5) if _input(shader, "IOR") is not None else 1.5
     colour = _mean_colour_input(shader.inputs[colour_socket], textures, name, node=shader, notes=[])
-    return float(np.clip(ior, 1.0, 4.0)), np.clip(colour, 0.0, 1.0).astype(np.float32)
+    return float(np.clip(ior, 1.0, 4.0)), np.clip(colour, 0.0, 1.0).astype(np.float32), shader.type == "BSDF_GLASS"
 
 
 def _mean_colour_input(socket, textures, name, node, notes):

@@ -8,7 +8,8 @@ OIDN has 0.0088). Here, after a final render's frame, RAYS_PER_PIXEL stratified 
 pixel meet the glass where it comes first (`EmbreeTracer.intersect_glass`), and each follows its
 paths: the first interface's Fresnel reflection, and its refraction through up to MAX_INTERFACES
 interfaces (at each further one reflected or through, drawn by its Fresnel as Cycles' paths are;
-total internal reflection included), tinted at each refraction by the material's colour, to the surface or the world it ends
+total internal reflection included), tinted at each refraction by the material's colour (and at
+each reflection too for a Glass BSDF's, as Cycles tints them), to the surface or the world it ends
 on, the frame's own see-through Combined where the image shows that surface (a pane's view), else
 shaded as the pixel rays' hits are (`pixel_gather.hit_radiance`: lamp light through shadow rays,
 the cache for the rest), or the world as the camera sees it (the environment image itself). A pixel's Combined becomes the see-through image where its rays
@@ -123,6 +124,9 @@ def glass_paths(system, lookup, origins: np.ndarray, dirs: np.ndarray, rng, scre
     ior = np.where(np.isfinite(ior) & (ior > 0.0), ior, 1.5)  # (sync clamps it to 1..4)
     tint = np.array([np.ones(3) if getattr(m, "tint", None) is None else np.asarray(m.tint, np.float64)
                      for m in scene.materials]).reshape(-1, 3)
+    # The reflections' tint: a Glass BSDF's colour, white for the others (`Material.tint_reflection`).
+    mirror_tint = np.where(np.array([bool(getattr(m, "tint_reflection", False)) for m in scene.materials])[:, None],
+                           tint, 1.0)
     n = origins.shape[0]
     out = np.zeros((n, 3), _F32)
     first = tracer.intersect_glass(origins, dirs)
@@ -139,7 +143,9 @@ def glass_paths(system, lookup, origins: np.ndarray, dirs: np.ndarray, rng, scre
     ng, nrm, eta, fresnel, colour = _interface(geometry, d, h, ior, tint)
     # The reflection off the first interface.
     mirror = d - 2.0 * np.einsum("ij,ij->i", d, nrm)[:, None] * nrm
-    out[rows] = fresnel[:, None] * _shade(system, lookup, p + ng * eps, mirror, rng, screen=screen)
+    first_mat = np.asarray(geometry.material_index)[h.prim]
+    out[rows] = fresnel[:, None] * mirror_tint[first_mat] * _shade(system, lookup, p + ng * eps, mirror, rng,
+                                                                    screen=screen)
     # The refracted path.
     weight = ((1.0 - fresnel)[:, None] * colour)
     d, _tir = _refract(d, nrm, eta)  # entering: no total internal reflection
@@ -166,7 +172,7 @@ def glass_paths(system, lookup, origins: np.ndarray, dirs: np.ndarray, rng, scre
         # paths choose: the tint on the way through.
         back = tir | (rng.random(d.shape[0]) < fresnel)
         d = np.where(back[:, None], d - 2.0 * np.einsum("ij,ij->i", d, nrm)[:, None] * nrm, through)
-        weight = np.where(back[:, None], weight, weight * colour)
+        weight = weight * np.where(back[:, None], mirror_tint[np.asarray(geometry.material_index)[h.prim]], colour)
         origin = p + np.where(back[:, None], ng, -ng) * eps
     return glass, out
 

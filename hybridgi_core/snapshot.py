@@ -233,6 +233,9 @@ class Material:
     #: None: white): what the camera's refraction paths take (`refraction.py`)
     ior: float = 1.5
     tint: np.ndarray | None = None
+    #: the tint applies to its reflections too (a Glass BSDF's Color, as in Cycles; a Principled
+    #: BSDF's Base Color tints only what it refracts)
+    tint_reflection: bool = False
     #: (3,) per channel, the share of the diffuse colour that is a Translucent BSDF's (lit from
     #: behind: Cycles counts it in the Diffuse passes), or None (all of it reflects)
     translucent: np.ndarray | None = None

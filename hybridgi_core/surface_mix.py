@@ -64,7 +64,8 @@ class SurfacePart:
     metal_texture: np.ndarray | None = None
     clear: float = 0.0
     refract: float = 0.0
-    #: (index of refraction, (3,) colour) of the light it refracts, or None (`snapshot.Material.ior`)
+    #: (index of refraction, (3,) colour, whether the colour tints its reflection too) of the light
+    #: it refracts, or None (`snapshot.Material.ior`)
     glass: tuple | None = None
     translucent: np.ndarray | None = None
     sheen: np.ndarray | None = None

@@ -42,7 +42,7 @@ def test_camera_rays_pass_through_their_pixels():
     np.testing.assert_allclose(ndc, np.stack([x.ravel(), y.ravel()], axis=1), atol=1e-4)
 
 
-def glass_ball_system(tint=None, ior=1.5, world=0.7, background=None):
+def glass_ball_system(tint=None, ior=1.5, world=0.7, background=None, tint_reflection=False):
     """A GISystem of a smooth glass ball of radius 0.5 at the origin under a uniform world (seen
     by the camera as `background`'s uniform environment image where given)."""
     from blend_scenes.procedural import uv_sphere
@@ -53,7 +53,8 @@ def glass_ball_system(tint=None, ior=1.5, world=0.7, background=None):
 
     ball = uv_sphere(0.5, 96, 48)
     geometry = geometry_from_arrays(ball.positions, ball.triangles, 0, 0, normals=ball.normals)
-    glass = Material("glass", np.zeros(3, np.float32), clear=True, refractive=True, ior=ior, tint=tint)
+    glass = Material("glass", np.zeros(3, np.float32), clear=True, refractive=True, ior=ior, tint=tint,
+                     tint_reflection=tint_reflection)
     seen = None if background is None else BackgroundMap(np.full((8, 16, 3), background, np.float16))
     scene = make_snapshot(geometry, [glass], [], World(color=np.full(3, world, np.float32), background_map=seen))
     return GISystem(scene, CacheSettings(resolution=8, rays_per_cell=8))
@@ -91,18 +92,20 @@ def test_paths_that_leave_see_the_world_as_the_camera_does():
     np.testing.assert_allclose(light[np.abs(x) < 0.45], 0.9, rtol=0.01)
 
 
-def test_coloured_glass_tints_what_it_refracts_twice_not_what_it_reflects():
-    """Through the ball's middle: the Fresnel reflection (4% at normal incidence) keeps the world's
-    colour; the light refracted in is tinted at both interfaces, and what the far side reflects
-    back inside leaves by the near side, tinted the same (the paths choose by the Fresnel)."""
+@pytest.mark.parametrize("glass_bsdf", [False, True])
+def test_coloured_glass_tints_what_it_refracts_and_a_glass_bsdf_what_it_reflects(glass_bsdf):
+    """Through the ball's middle: the light refracted in is tinted at both interfaces, and what
+    the far side reflects back inside leaves by the near side, tinted the same (the paths choose
+    by the Fresnel). The Fresnel reflection (4% at normal incidence) keeps the world's colour under
+    a Principled BSDF's Base Color and takes a Glass BSDF's Color, as in Cycles."""
     tint = np.array([1.0, 0.5, 0.25], np.float32)
     x, origins, dirs = rays_at_ball(9)
-    with glass_ball_system(tint=tint) as system:
+    with glass_ball_system(tint=tint, tint_reflection=glass_bsdf) as system:
         _glass, light = refraction.glass_paths(system, hit_lookup(system, True), origins, dirs,
                                                np.random.default_rng(2))
     f0 = ((1.5 - 1.0) / (1.5 + 1.0)) ** 2
     middle = light[4]
-    expected = 0.7 * (f0 + (1.0 - f0) * tint**2)
+    expected = 0.7 * (f0 * (tint if glass_bsdf else 1.0) + (1.0 - f0) * tint**2)
     np.testing.assert_allclose(middle, expected, rtol=0.01)
 
 

@@ -307,6 +307,12 @@ def test_what_lets_most_light_through_is_clear_glass(bpy_module, scene, sync, ca
         bpy.data.materials.remove(mat)
     clear = {name for name, m in by_name.items() if m.clear}
     assert clear == {"glass", "transparent", "refraction", "alpha 0.2", "mostly clear"}
+    # The camera's refraction paths (`refraction.py`): a Glass BSDF's Color tints its reflection
+    # too, a Refraction BSDF's only what it refracts; both at their default index.
+    glass, refraction = by_name["glass"], by_name["refraction"]
+    assert glass.refractive and refraction.refractive and not by_name["transparent"].refractive
+    assert glass.tint_reflection and not refraction.tint_reflection
+    assert glass.ior == pytest.approx(1.5, abs=0.06) and refraction.ior == pytest.approx(1.5, abs=0.06)
     # The solid ones keep their surface: under a 0.3 mix, 70% of the Principled BSDF's diffuse
     # colour (0.8 under its specular layer's view-dependent weight).
     assert np.all((by_name["mostly solid"].base_color > 0.4) & (by_name["mostly solid"].base_color < 0.7 * 0.8))
