@@ -47,6 +47,13 @@ def refractive_materials(scene) -> np.ndarray:
                     bool)
 
 
+def camera_objects(scene) -> np.ndarray:
+    """(O,) bool: the scene's objects the camera sees as themselves (not hidden from it, not a
+    holdout); at least one entry."""
+    seen = [bool(getattr(o, "camera_visible", True)) and not bool(getattr(o, "holdout", False)) for o in scene.objects]
+    return np.array(seen or [True], bool)
+
+
 def camera_rays(view: np.ndarray, proj: np.ndarray, width: int, height: int, offset: tuple[float, float],
                 pix: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """(origins, unit directions) (n, 3) float32 of rays through the pixels `pix` (flat indices,
@@ -133,6 +140,9 @@ def glass_paths(system, lookup, origins: np.ndarray, dirs: np.ndarray, rng, scre
     glass = np.zeros(n, bool)
     hit = first.prim >= 0
     glass[hit] = refractive[np.asarray(geometry.material_index)[first.prim[hit]]]
+    # Glass the camera does not see (an object hidden from it, a holdout) keeps the raster's image.
+    shown = camera_objects(scene)
+    glass[hit] &= shown[np.clip(np.asarray(geometry.object_index)[first.prim[hit]], 0, shown.size - 1)]
     rows = np.flatnonzero(glass)
     if rows.size == 0:
         return glass, out
@@ -234,6 +244,8 @@ def render_glass(system, lookup, view: np.ndarray, proj: np.ndarray, width: int,
     centre = np.zeros(width * height, bool)
     hit = np.flatnonzero(first.prim >= 0)
     centre[hit] = refractive[np.asarray(system.tracer.geometry.material_index)[first.prim[hit]]]
+    shown = camera_objects(system.scene)
+    centre[hit] &= shown[np.clip(np.asarray(system.tracer.geometry.object_index)[first.prim[hit]], 0, shown.size - 1)]
     if not centre.any():
         return None
     todo = np.flatnonzero(dilate(centre.reshape(height, width), 1).reshape(-1))

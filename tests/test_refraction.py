@@ -82,6 +82,20 @@ def test_clear_glass_under_a_uniform_world_shows_the_world(ior):
     assert (light[~glass] == 0).all()
 
 
+@pytest.mark.parametrize("hidden", ["camera_visible", "holdout"])
+def test_glass_the_camera_does_not_see_stays_out_of_the_image(hidden):
+    """A glass object hidden from the camera (or a holdout) is no refraction of the camera's:
+    its pixels keep the raster's image (which never drew it)."""
+    from dataclasses import replace
+
+    x, origins, dirs = rays_at_ball(16)
+    with glass_ball_system() as system:
+        value = hidden == "holdout"
+        system.scene.objects[0] = replace(system.scene.objects[0], **{hidden: value})
+        glass, light = refraction.glass_paths(system, hit_lookup(system, True), origins, dirs, np.random.default_rng(5))
+    assert not glass.any() and not light.any()
+
+
 def test_paths_that_leave_see_the_world_as_the_camera_does():
     """A path that leaves the scene shows the environment image the camera sees (its own
     resolution), not the lighting's coarse sky map: here a uniform image of 0.9 over a lighting
