@@ -182,6 +182,28 @@ def test_the_film_averages_passes_and_keeps_one_depth():
         FilmAccumulator().read("combined")
 
 
+def test_refracting_glass_takes_its_share_of_a_pixel_over_the_raster():
+    """`set_refraction`: a pixel half covered by glass is half the raster's see-through light and
+    half the glass paths'; its Diffuse and Glossy Color keep the half that missed, the light
+    passes divided by them are unchanged, and a transparent film's Combined takes the glass as
+    opaque (its alpha grows by the glass's share)."""
+    acc = FilmAccumulator()
+    bg = np.array([[[0.1, 0.1, 0.1, 0.0], [0.8, 0.4, 0.2, 1.0]]], np.float32)
+    ones = np.ones((1, 2, 4), np.float32)
+    acc.add({"combined": bg, "diffuse_direct": ones, "diffuse_indirect": ones, "diffuse_color": bg,
+             "ao": ones[..., :1], "normal": ones[..., :3], "depth": np.full((1, 2, 1), 2.0, np.float32)})
+    acc.set_depth(np.full((1, 2, 1), 2.0, np.float32))
+    acc.set_glossy(None, None, 1, 2)
+    before = {name: acc.read(name).copy() for name in ("diffuse_color", "diffuse_direct", "combined_premultiplied")}
+    acc.set_refraction(np.array([[0.0, 0.5]], np.float32), np.full((1, 2, 3), 2.0, np.float32))
+    np.testing.assert_allclose(acc.read("combined")[0, 0], [0.1, 0.1, 0.1, 0.0])  # no glass: as it was
+    np.testing.assert_allclose(acc.read("combined")[0, 1], [1.4, 1.2, 1.1, 1.0])
+    np.testing.assert_allclose(acc.read("diffuse_color")[0, 1, :3], 0.5 * before["diffuse_color"][0, 1, :3])
+    np.testing.assert_array_equal(acc.read("diffuse_direct"), before["diffuse_direct"])
+    np.testing.assert_allclose(acc.read("combined_premultiplied")[0, 0], before["combined_premultiplied"][0, 0])
+    np.testing.assert_allclose(acc.read("combined_premultiplied")[0, 1, 3], 1.0)
+
+
 def test_one_sample_per_pixel_takes_the_filters_share_of_each_neighbour():
     """The taps of a one-subframe frame are Cycles' filter integrated over each pixel's footprint
     (here by quadrature of the window itself), K subframes keep 1 / K of the neighbours' share,

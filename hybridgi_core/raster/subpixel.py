@@ -784,10 +784,18 @@ class FilmAccumulator:
         Diffuse and Glossy Color passes keep the share that missed (Cycles' light through glass
         is its Transmission passes'), and the passes divided by them stay as they are."""
         c = np.asarray(coverage, np.float32)[..., None]
-        combined = np.array(self.read("combined"), np.float32)
-        combined[..., :3] = (1.0 - c) * combined[..., :3] + c * np.asarray(radiance, np.float32)
         extra = dict(getattr(self, "_extra", {}))
-        extra["combined"] = combined
+        # A transparent film's Combined too: glass is opaque to it, as Cycles' refracting glass is
+        # (its light through glass is no camera ray's, and the world it reaches is seen).
+        for name in ("combined", "combined_premultiplied"):
+            try:
+                value = np.array(self.read(name), np.float32)
+            except KeyError:
+                continue
+            value[..., :3] = (1.0 - c) * value[..., :3] + c * np.asarray(radiance, np.float32)
+            if value.shape[-1] > 3:
+                value[..., 3:4] = (1.0 - c) * value[..., 3:4] + c
+            extra[name] = value
         for name in ("diffuse_color", "glossy_color"):
             try:
                 value = np.array(self.read(name), np.float32)
