@@ -239,12 +239,12 @@ class MeshLights:
         # Each sample's unshadowed estimate of its triangle's light over the chance of that triangle.
         chance = np.take_along_axis(lum[live], tri.reshape(live.size, samples), axis=1).reshape(-1) / np.repeat(
             total[live], samples)
-        unshadowed = np.where((cos_r > 0) & np.isfinite(weight) & (dist > 0) & (chance > 0),
+        open_light = np.where((cos_r > 0) & np.isfinite(weight) & (dist > 0) & (chance > 0),
                               cos_r * weight * (self.radiance[tri] @ LUMA) / np.maximum(chance, 1e-300), 0.0)
-        seen = unshadowed.copy()
-        seen[_blocked(tracer, origin, direction, dist, unshadowed > 0, epsilon)] = 0.0
+        seen = open_light.copy()
+        seen[_blocked(tracer, origin, direction, dist, open_light > 0, epsilon)] = 0.0
         num = seen.reshape(live.size, samples).sum(axis=1)
-        den = unshadowed.reshape(live.size, samples).sum(axis=1)
+        den = open_light.reshape(live.size, samples).sum(axis=1)
         share = np.clip(np.where(den > 0, num / np.maximum(den, 1e-300), 1.0), 0.0, 1.0)
         light[live] *= share.astype(_F32)[:, None]
         if partial is not None:
@@ -408,6 +408,16 @@ COMPACT_FILL = 0.3
 CONE_MARGIN = 1e-3
 
 
+def _objects(owner: np.ndarray, least: int = 4):
+    """The row indices of each object's emissive triangles (`owner` (k,) their object), for the
+    objects of at least `least` triangles: fewer make no compact emitter and no closed one."""
+    _keys, inverse = np.unique(owner, return_inverse=True)
+    order = np.argsort(inverse, kind="stable")
+    for rows in np.split(order, np.flatnonzero(np.diff(inverse[order])) + 1):
+        if rows.size >= least:
+            yield rows
+
+
 def _compact_groups(owner, v0, e1, e2, area, choose) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(group (k,) int64, spheres (G, 4) float64, share (G,) float64) of the emissive triangles
     (corners v0, v0 + e1, v0 + e2, areas, choice probabilities) by their object `owner` (k,):
@@ -415,11 +425,7 @@ def _compact_groups(owner, v0, e1, e2, area, choose) -> tuple[np.ndarray, np.nda
     k = owner.shape[0]
     group = np.full(k, -1, np.int64)
     spheres, shares = [], []
-    _keys, inverse = np.unique(owner, return_inverse=True)
-    order = np.argsort(inverse, kind="stable")
-    for rows in np.split(order, np.flatnonzero(np.diff(inverse[order])) + 1):
-        if rows.size < 4:
-            continue
+    for rows in _objects(owner):
         pts = np.concatenate([v0[rows], v0[rows] + e1[rows], v0[rows] + e2[rows]]).astype(np.float64)
         centre = 0.5 * (pts.min(axis=0) + pts.max(axis=0))
         radius = float(np.sqrt(((pts - centre) ** 2).sum(axis=1).max()))
@@ -451,15 +457,10 @@ def _sides(owner: np.ndarray, v0: np.ndarray, e1: np.ndarray, e2: np.ndarray) ->
     Why: emission is two-sided, and the inner side of a closed emitter (an LED strip, a box) is
     never seen; counted by the closed form (`MeshLights.exact`), it doubled the light its shadow
     rays then had to take back, so no receiver was exact."""
-    k = owner.shape[0]
-    side = np.zeros(k, np.int8)
+    side = np.zeros(owner.shape[0], np.int8)
     corners = np.stack([v0, v0 + e1, v0 + e2], axis=1).astype(np.float64)  # (k, 3, 3)
     scale = max(float(np.abs(corners).max()), 1e-30) * 1e-6
-    _keys, inverse = np.unique(owner, return_inverse=True)
-    order = np.argsort(inverse, kind="stable")
-    for rows in np.split(order, np.flatnonzero(np.diff(inverse[order])) + 1):
-        if rows.size < 4:
-            continue
+    for rows in _objects(owner):
         c = corners[rows]
         _v, vid = np.unique(np.round(c.reshape(-1, 3) / scale).astype(np.int64), axis=0, return_inverse=True)
         vid = vid.reshape(-1, 3)

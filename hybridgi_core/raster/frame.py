@@ -655,10 +655,9 @@ class FramePipeline:
             if system.surfaces.emitters.ratio:
                 # A few triangles in closed form: the shadow rays' share, adaptive in penumbrae as
                 # the lamps' (`emitters.MeshLights._ratio_block`).
-                direct[pix_full, :3] += adaptive_direct(
-                    lambda p, n, f, samples, partial=None, unshadowed=None: system.emitter_light(
-                        p, n, f, samples, partial, unshadowed), p_full, n_full, pix_full, (self.height, self.width),
-                    frame, samples, camera=camera, pool=system.updater.pool)[0]
+                direct[pix_full, :3] += adaptive_direct(system.emitter_light, p_full, n_full, pix_full,
+                                                        (self.height, self.width), frame, samples, camera=camera,
+                                                        pool=system.updater.pool)[0]
             else:
                 direct[pix_full, :3] += system.emitter_light(p_full, n_full, frame, samples)
             screen = dataclasses.replace(screen, emitters_sampled=True)
