@@ -12,9 +12,10 @@ total internal reflection included), tinted at each refraction by the material's
 each reflection too for a Glass BSDF's, as Cycles tints them), to the surface or the world it ends
 on, the frame's own see-through Combined where the image shows that surface (a pane's view), else
 shaded as the pixel rays' hits are (`pixel_gather.hit_radiance`: lamp light through shadow rays,
-the cache for the rest), or the world as the camera sees it (the environment image itself). A pixel's Combined becomes the see-through image where its rays
-missed the glass and the paths' mean where they met it; its Diffuse and Glossy Color keep the share
-of rays that missed (Cycles counts light through glass in its Transmission passes, not there).
+the cache for the rest), or the world as the camera sees it (the environment image itself). A
+pixel's Combined becomes the see-through image where its rays missed the glass and the paths' mean
+where they met it; its Diffuse and Glossy Color keep the share of rays that missed (Cycles counts
+light through glass in its Transmission passes, not there).
 
 Not rendered: caustics (light refracted onto diffuse surfaces: glass casts the lamps' shadows),
 rough (frosted) glass (a Translucent BSDF's light, `sync.FROSTED_ROUGHNESS`), glass seen in
@@ -28,6 +29,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from .settings import MULTI_BOUNCE
 from .specular import fresnel_dielectric
 from .trace import Hits
 
@@ -52,6 +54,19 @@ def camera_objects(scene) -> np.ndarray:
     holdout); at least one entry."""
     seen = [bool(getattr(o, "camera_visible", True)) and not bool(getattr(o, "holdout", False)) for o in scene.objects]
     return np.array(seen or [True], bool)
+
+
+def camera_glass(scene, geometry, hits: Hits) -> np.ndarray:
+    """(n,) bool: the hits (`EmbreeTracer.intersect_glass`'s) on refractive glass the camera sees
+    (`refractive_materials`, `camera_objects`): glass hidden from it or a holdout keeps the
+    raster's image."""
+    out = np.zeros(hits.prim.shape[0], bool)
+    hit = np.flatnonzero(hits.prim >= 0)
+    prim = hits.prim[hit]
+    shown = camera_objects(scene)
+    out[hit] = (refractive_materials(scene)[np.asarray(geometry.material_index)[prim]]
+                & shown[np.clip(np.asarray(geometry.object_index)[prim], 0, shown.size - 1)])
+    return out
 
 
 def camera_rays(view: np.ndarray, proj: np.ndarray, width: int, height: int, offset: tuple[float, float],
@@ -87,6 +102,11 @@ def _geometric_normals(geometry, prim: np.ndarray) -> np.ndarray:
     return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)
 
 
+def _reflect(d: np.ndarray, n: np.ndarray) -> np.ndarray:
+    """(n, 3) the mirror directions of rays d (n, 3) off surfaces of unit normals n (n, 3)."""
+    return d - 2.0 * np.einsum("ij,ij->i", d, n)[:, None] * n
+
+
 def _refract(d: np.ndarray, n: np.ndarray, eta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(directions (n, 3), total internal reflection (n,) bool) of unit rays d crossing an
     interface of unit normal n (facing the ray: d . n < 0) with relative index eta (n,) = n_from /
@@ -95,8 +115,7 @@ def _refract(d: np.ndarray, n: np.ndarray, eta: np.ndarray) -> tuple[np.ndarray,
     k = 1.0 - eta * eta * (1.0 - cos_i * cos_i)
     tir = k < 0.0
     t = eta[:, None] * d + (eta * cos_i - np.sqrt(np.maximum(k, 0.0)))[:, None] * n
-    mirror = d + 2.0 * cos_i[:, None] * n
-    out = np.where(tir[:, None], mirror, t)
+    out = np.where(tir[:, None], _reflect(d, n), t)
     return out / np.maximum(np.linalg.norm(out, axis=1, keepdims=True), 1e-300), tir
 
 
@@ -134,15 +153,9 @@ def glass_paths(system, lookup, origins: np.ndarray, dirs: np.ndarray, rng, scre
     # The reflections' tint: a Glass BSDF's colour, white for the others (`Material.tint_reflection`).
     mirror_tint = np.where(np.array([bool(getattr(m, "tint_reflection", False)) for m in scene.materials])[:, None],
                            tint, 1.0)
-    n = origins.shape[0]
-    out = np.zeros((n, 3), _F32)
+    out = np.zeros((origins.shape[0], 3), _F32)
     first = tracer.intersect_glass(origins, dirs)
-    glass = np.zeros(n, bool)
-    hit = first.prim >= 0
-    glass[hit] = refractive[np.asarray(geometry.material_index)[first.prim[hit]]]
-    # Glass the camera does not see (an object hidden from it, a holdout) keeps the raster's image.
-    shown = camera_objects(scene)
-    glass[hit] &= shown[np.clip(np.asarray(geometry.object_index)[first.prim[hit]], 0, shown.size - 1)]
+    glass = camera_glass(scene, geometry, first)
     rows = np.flatnonzero(glass)
     if rows.size == 0:
         return glass, out
@@ -152,9 +165,8 @@ def glass_paths(system, lookup, origins: np.ndarray, dirs: np.ndarray, rng, scre
     p = origins[rows].astype(np.float64) + d * h.t[:, None].astype(np.float64)
     ng, nrm, eta, fresnel, colour = _interface(geometry, d, h, ior, tint)
     # The reflection off the first interface.
-    mirror = d - 2.0 * np.einsum("ij,ij->i", d, nrm)[:, None] * nrm
     first_mat = np.asarray(geometry.material_index)[h.prim]
-    out[rows] = fresnel[:, None] * mirror_tint[first_mat] * _shade(system, lookup, p + ng * eps, mirror, rng,
+    out[rows] = fresnel[:, None] * mirror_tint[first_mat] * _shade(system, lookup, p + ng * eps, _reflect(d, nrm), rng,
                                                                     screen=screen)
     # The refracted path.
     weight = ((1.0 - fresnel)[:, None] * colour)
@@ -181,7 +193,7 @@ def glass_paths(system, lookup, origins: np.ndarray, dirs: np.ndarray, rng, scre
         # Reflected (all of it where light cannot pass) or through, by the Fresnel, as Cycles'
         # paths choose: the tint on the way through.
         back = tir | (rng.random(d.shape[0]) < fresnel)
-        d = np.where(back[:, None], d - 2.0 * np.einsum("ij,ij->i", d, nrm)[:, None] * nrm, through)
+        d = np.where(back[:, None], _reflect(d, nrm), through)
         weight = weight * np.where(back[:, None], mirror_tint[np.asarray(geometry.material_index)[h.prim]], colour)
         origin = p + np.where(back[:, None], ng, -ng) * eps
     return glass, out
@@ -201,7 +213,14 @@ def _shade(system, lookup, origins: np.ndarray, dirs: np.ndarray, rng, hits: Hit
     if hits is None:
         hits = system.tracer.intersect(o, d)
     out = np.zeros((o.shape[0], 3), np.float64)
+    # Rays that leave the scene see the world as the camera does (the environment image at its
+    # own resolution), not the lighting's coarse sky map: a window's view of an HDRI.
+    background = getattr(system.scene.world, "background_map", None)
     rest = np.arange(o.shape[0])
+    if background is not None:
+        missed = np.flatnonzero(hits.prim < 0)
+        out[missed] = background.radiance(d[missed])
+        rest = np.flatnonzero(hits.prim >= 0)
     seen = np.flatnonzero(hits.prim >= 0)
     if screen is not None and seen.size:
         geometry = system.tracer.geometry
@@ -215,12 +234,6 @@ def _shade(system, lookup, origins: np.ndarray, dirs: np.ndarray, rng, hits: Hit
         part = Hits(hits.t[rest], hits.prim[rest], hits.u[rest], hits.v[rest])
         radiance = hit_radiance(system, lookup, o[rest], d[rest], part, rng, glossy_lamps=False)
         out[rest] = radiance[:, 0:3] + radiance[:, 3:6]
-    # Rays that leave the scene see the world as the camera does (the environment image at its
-    # own resolution), not the lighting's coarse sky map: a window's view of an HDRI.
-    background = getattr(system.scene.world, "background_map", None)
-    missed = np.flatnonzero(hits.prim < 0)
-    if background is not None and missed.size:
-        out[missed] = background.radiance(d[missed])
     return out
 
 
@@ -230,7 +243,9 @@ def render_glass(system, lookup, view: np.ndarray, proj: np.ndarray, width: int,
     (rows bottom-up): the share of each pixel's RAYS_PER_PIXEL rays that met it first and their
     paths' mean radiance; None where no ray met any. seen : (points, normals, flat pixels, see-
     through Combined (h w, >= 3)) of the frame's G-buffer, or None: the paths' ends the image
-    shows take their pixel's radiance (`_shade`)."""
+    shows take their pixel's radiance (`_shade`). lookup : what the paths' hits read of the cache
+    (the frame's), or None: built here once glass is seen (`levels.hit_lookup`)."""
+    from .levels import hit_lookup
     from .penumbra import dilate
     from .screen_light import ScreenLight
 
@@ -240,15 +255,12 @@ def render_glass(system, lookup, view: np.ndarray, proj: np.ndarray, width: int,
     # a pixel its centre ray misses): only those trace the stratified rays and their paths.
     o, d = camera_rays(view, proj, width, height, (0.5, 0.5))
     first = system.tracer.intersect_glass(o, d)
-    refractive = refractive_materials(system.scene)
-    centre = np.zeros(width * height, bool)
-    hit = np.flatnonzero(first.prim >= 0)
-    centre[hit] = refractive[np.asarray(system.tracer.geometry.material_index)[first.prim[hit]]]
-    shown = camera_objects(system.scene)
-    centre[hit] &= shown[np.clip(np.asarray(system.tracer.geometry.object_index)[first.prim[hit]], 0, shown.size - 1)]
+    centre = camera_glass(system.scene, system.tracer.geometry, first)
     if not centre.any():
         return None
     todo = np.flatnonzero(dilate(centre.reshape(height, width), 1).reshape(-1))
+    if lookup is None:
+        lookup = hit_lookup(system, bounced=system.settings.indirect_quality == MULTI_BOUNCE)
     screen = None
     if seen is not None:
         points, normals, pix, combined = seen

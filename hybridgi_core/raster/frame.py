@@ -21,7 +21,6 @@ from ..camera import camera_position
 from ..catcher import CatcherPixels
 from ..emitters import emitter_samples, worth_sampling
 from ..evaluate import HitLookup
-from ..levels import hit_lookup
 from ..lights import RATIO_MIN_SAMPLES, one_sample_exact_lamps, rough_lights
 from ..penumbra import FIRST_SAMPLES as PENUMBRA_FIRST_SAMPLES
 from ..penumbra import adaptive_direct, filter_camera
@@ -531,17 +530,18 @@ class FramePipeline:
         with stats.step("film"):
             film.set_glossy(glossy, glossy_col, self.height, self.width, indirect=glossy_ind)
         if debug_view == DEBUG_FINAL:
-            self._refraction(system, view, proj, frame, film, stats, (p_full, n_full, pix_full))
+            self._refraction(system, view, proj, frame, film, stats, (p_full, n_full, pix_full), lookup)
         self.film = film
         return shaded, stats
 
-    def _refraction(self, system, view, proj, frame: int, film, stats: FrameStats, full) -> None:
+    def _refraction(self, system, view, proj, frame: int, film, stats: FrameStats, full,
+                    lookup: HitLookup | None) -> None:
         """The camera's refractive glass over the film (`refraction.py`): step "refraction".
-        full : the centre G-buffer's (points, normals, flat pixels)."""
+        full : the centre G-buffer's (points, normals, flat pixels); lookup : the frame's
+        HitLookup or None (`_frame_lookup`: built there once glass is seen)."""
         if not getattr(system.tracer, "has_glass", False):
             return
         with stats.step("refraction"):
-            lookup = hit_lookup(system, bounced=system.settings.indirect_quality == MULTI_BOUNCE)
             combined = film.read("combined").reshape(self.height * self.width, -1)
             glass = refraction.render_glass(system, lookup, view, proj, self.width, self.height,
                                             frame_rng(system.settings.seed + refraction.SEED_OFFSET, frame),
