@@ -42,6 +42,7 @@ from .passes import low_res_size
 from .readback import upload_texture_2d
 from .settings import DEBUG_FINAL, RasterSettings
 from .ssao import SSAOPass
+from .subframe_glossy import subframe_glossy
 from .subpixel import (
     CentreSample,
     FilmAccumulator,
@@ -252,6 +253,7 @@ class FramePipeline:
         self.width = self.height = 0
         self._direct_tex = None
         self._glossy_tex = None
+        self._glossy_total = None  # (h w, 4) float32 what _glossy_tex holds, for the subframes' remap
         #: The stage thread (`_stage_thread`), made on first use.
         self._stage = None
 
@@ -467,6 +469,7 @@ class FramePipeline:
         apertures = lens_points(offsets.shape[0], lens) if lens is not None and jittered else None
         camera_proj, sub_view = proj, view
         for s, offset in enumerate(offsets):
+            sub_glossy = self._glossy_tex if glossy is not None else None
             if jittered:
                 with stats.step("gbuffer"):  # the raster and its read-back, as "downsample" counts its own
                     shift, at = offset, offset
@@ -483,6 +486,8 @@ class FramePipeline:
                     translucent = self._translucent_shares(system)
                 with stats.step("direct"):
                     hit, same = subframe_surfaces(centre, position, normal, surface)
+                if glossy is not None:
+                    sub_glossy = self._subframe_glossy(centre, hit, same, position, normal, surface, stats)
                 # The subframe's GI resolve (numpy, mostly one core) runs on the stage thread beside
                 # its direct light (shadow rays on the pool), as the centre's light runs beside the
                 # cache update.
@@ -512,7 +517,7 @@ class FramePipeline:
             shaded = self.shade(gbuf, gi_low, sub_view, proj, self._direct_tex,
                                 corner_visible=mask.reshape(low.height, low.width, 8), irradiance=lit_tex,
                                 debug_view=debug_view, world_color=world_color, stats=stats, gi=gi,
-                                glossy=self._glossy_tex if glossy is not None else None, bilateral=gi_bilateral,
+                                glossy=sub_glossy, bilateral=gi_bilateral,
                                 camera_proj=camera_proj)
             with stats.step("accumulate"):
                 self.accumulate.execute(shaded, gbuf, first=s == 0)
@@ -792,8 +797,21 @@ class FramePipeline:
             colour[pix, :3] = light.colour
             indirect[pix, :3] = light.bounced
             total = glossy + colour * indirect
+            self._glossy_total = total
             self._glossy_tex = upload_texture_2d(total.reshape(self.height, self.width, 4), "RGBA32F")
         return glossy, colour, indirect
+
+    def _subframe_glossy(self, centre: CentreSample, hit, same, position, normal, surface, stats: FrameStats):
+        """The glossy texture a jittered subframe adds: the centre's, with the pixels where the
+        subframe sees a neighbour's surface taking that neighbour's light (`subframe_glossy`).
+        Step "glossy"."""
+        with stats.step("glossy"):
+            bent = surface is not None and surface is not normal and centre.surface is not None
+            moved = subframe_glossy(self._glossy_total, centre, hit, same, position, surface if bent else normal,
+                                    self.width)
+            if moved is None:
+                return self._glossy_tex
+            return upload_texture_2d(moved.reshape(self.height, self.width, 4), "RGBA32F")
 
     def _pixel_gi_full(self, system, gbuf, position_lo, normal_lo, pix, points, normals, visible, view, frame,
                        full, stats, screen=None, full_surfaces=None, lookup: HitLookup | None = None, begun=None):
