@@ -319,7 +319,7 @@ class GlossyMaterials:
         return bool(self.live.any())
 
 
-def _lobe_terms(mats: GlossyMaterials, rows, n, v, lx, ly, lz):
+def _lobe_terms(mats: GlossyMaterials, rows, n, v, lx, ly, lz, widen=None):
     """The glossy lobes at m receivers towards s unit directions each, factored so that no
     (m, s, 3) array is needed: BRDF x cos = sum over slots of common (k0 + k1 remap + k2 s5 +
     k3 c s6) per channel.
@@ -328,7 +328,7 @@ def _lobe_terms(mats: GlossyMaterials, rows, n, v, lx, ly, lz):
     either horizon; terms, 3 x (m, s) or None where the slot's coefficient of it is 0: remap (the
     dielectric Fresnel mapped to 0..1), (1 - c)^5 and c (1 - c)^6 of c = cos(h, i); k (m, 4, 3):
     the slot's coefficients times its multiscatter factor and view factor at the receiver's view
-    angle)."""
+    angle). widen : (m,) alpha^2 each receiver's lobes gain (`specular_aa.footprint_alpha2`) or None."""
     mu_i = np.einsum("ij,ij->i", n, v)[:, None]
     nx, ny, nz = n[:, 0:1], n[:, 1:2], n[:, 2:3]
     mu_o = lx * nx + ly * ny + lz * nz
@@ -349,6 +349,8 @@ def _lobe_terms(mats: GlossyMaterials, rows, n, v, lx, ly, lz):
             continue
         a2 = mats.alpha2[slot, rows][:, None].astype(_F32)
         ok = facing & (a2 > 0)
+        if widen is not None:
+            a2 = np.where(a2 > 0, np.minimum(a2 + widen[:, None], _F32(1.0)), a2).astype(_F32)
         mu_o_ok = np.where(ok, mu_o, _F32(1.0))
         x = cos_nh * cos_nh * (a2 - _F32(1.0)) + _F32(1.0)
         d = a2 / (_F32(np.pi) * x * x)
@@ -686,7 +688,8 @@ def _rectangle_samples(shape, radiance, p, u, v, samples):
 
 
 def glossy_direct(lights, points, normals, to_eye, rows, mats: GlossyMaterials, tracer, rng, samples: int = 4,
-                  epsilon: float = 1e-4, variance: np.ndarray | None = None) -> np.ndarray:
+                  epsilon: float = 1e-4, variance: np.ndarray | None = None, widen: np.ndarray | None = None
+                  ) -> np.ndarray:
     """(n, 3) float32 lamp radiance the glossy lobes reflect towards the eye (Cycles' Glossy Direct
     times Glossy Color), with shadow rays.
 
@@ -694,7 +697,8 @@ def glossy_direct(lights, points, normals, to_eye, rows, mats: GlossyMaterials, 
     directions to the eye; rows : (n,) int32 material index (-1: none). variance : optional (n,)
     float32 output, the estimated variance of each receiver's result's luminance (Rec. 709), from
     the spread of its samples' luminances as if they were independent (the stratified samples
-    spread less: it errs high), summed over the lamps: where the highlight is noisy (`glossy_noise`)."""
+    spread less: it errs high), summed over the lamps: where the highlight is noisy (`glossy_noise`).
+    widen : optional (n,) alpha^2 the receivers' lobes gain (`specular_aa.footprint_alpha2`)."""
     pts = np.asarray(points, np.float64).reshape(-1, 3)
     nrm = np.asarray(normals, np.float64).reshape(-1, 3)
     eye = np.asarray(to_eye, np.float64).reshape(-1, 3)
@@ -723,7 +727,8 @@ def glossy_direct(lights, points, normals, to_eye, rows, mats: GlossyMaterials, 
                 continue
             dirs, weight, targets = drawn
             d32 = dirs.astype(_F32)
-            slots = _lobe_terms(mats, r, n32, v32, d32[..., 0], d32[..., 1], d32[..., 2])
+            slots = _lobe_terms(mats, r, n32, v32, d32[..., 0], d32[..., 1], d32[..., 2],
+                                None if widen is None else np.asarray(widen, _F32).reshape(-1)[idx])
             if not slots:
                 continue
             w32 = weight.astype(_F32)

@@ -27,6 +27,7 @@ from .pixel_gather import LUMA
 from .reflection import bsdf_lamps, filter_lamp_glossy, filter_reflections, traced_reflection, traced_share
 from .rows import rows_above
 from .settings import MULTI_BOUNCE
+from .specular_aa import footprint_alpha2
 
 #: Glossy colour below which a channel's lamp light is filtered as it is (`finish_glossy`).
 DEMODULATE_FLOOR = 1e-4
@@ -212,6 +213,9 @@ def begin_glossy(system, points, normals, pix, shape: tuple[int, int], material,
     colour[:] = glossy_color(mats, rows, mu)
     lit = np.flatnonzero(rows_above(colour, 0.0))
     rough = mats.rough[rows[lit]]
+    # The lamps' highlights through lobes widened by the spread of their pixels' normals (one
+    # sample stands for the pixel). Not the reflection rays': their filter spreads them further.
+    widen = footprint_alpha2(normals, pix, shape)
     # Area lamps in lobes much narrower than they are: the reflection rays estimate them.
     skip = np.zeros((n, len(system.scene.lights)), bool)
     if reflection_rays > 0 and lit.size:
@@ -222,7 +226,7 @@ def begin_glossy(system, points, normals, pix, shape: tuple[int, int], material,
     level = level + exact @ LUMA
     direct = np.zeros((n, 3), np.float32)
     direct[:] = adaptive_lamp_glossy(system, points, normals, to_eye, rows, pix, shape, frame, samples,
-                                     skip | closed, level)[0]
+                                     skip | closed, level, widen)[0]
     # Only the sampled part is noisy: receivers whose every lamp the closed form gives skip the filter.
     sampled = np.flatnonzero((~(skip[lit] | closed[lit])).any(axis=1))
     between()  # (an edit that waits stops the viewport's worker before the reflection rays)

@@ -42,18 +42,20 @@ WEAK_PICK_SEED = 9
 
 
 def adaptive_lamp_glossy(system, points, normals, to_eye, rows, pix: np.ndarray, shape: tuple[int, int],
-                         frame: int, samples: int, skip: np.ndarray, level: np.ndarray
-                         ) -> tuple[np.ndarray, np.ndarray]:
+                         frame: int, samples: int, skip: np.ndarray, level: np.ndarray,
+                         widen: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """((n, 3) float32 the lamps' glossy radiance at the pixels `pix` (flat indices into an image
     of `shape` (h, w)), (n,) bool the pixels that took `samples` samples per lamp; the others
     took FIRST_SAMPLES).
 
     points, normals, to_eye, rows, skip : as `reflection.lamp_glossy_without`'s. level : (n,)
-    the luminance of the pixels' other lamp light (diffuse), the scale of the noise they tolerate."""
+    the luminance of the pixels' other lamp light (diffuse), the scale of the noise they tolerate.
+    widen : optional (n,) alpha^2 the receivers' lobes gain (`specular_aa.footprint_alpha2`)."""
     n = np.asarray(points).reshape(-1, 3).shape[0]
     first = min(FIRST_SAMPLES, samples)
     if samples <= first or n == 0:
-        return lamp_glossy_without(system, points, normals, to_eye, rows, frame, samples, skip), np.ones(n, bool)
+        return (lamp_glossy_without(system, points, normals, to_eye, rows, frame, samples, skip, widen=widen),
+                np.ones(n, bool))
     # Lamps weak at a receiver (`penumbra.WEAK_SHARE` of its lamps' rough light) take one sample
     # of one of them there, never resampled (`_weak_lamps_light`): morse_apartment's four round
     # lamps beside its area lamp took 4-32 samples each per pixel for ~0.2% of its light.
@@ -63,10 +65,12 @@ def adaptive_lamp_glossy(system, points, normals, to_eye, rows, pix: np.ndarray,
     if weak is not None:
         weak &= ~skip
         if weak.any():
-            faint = _weak_lamps_light(system, points, normals, to_eye, rows, frame + WEAK_SEED_OFFSET, weak, rough)
+            faint = _weak_lamps_light(system, points, normals, to_eye, rows, frame + WEAK_SEED_OFFSET, weak, rough,
+                                      widen)
             skip = skip | weak
     variance = np.zeros(n, np.float32)
-    light = lamp_glossy_without(system, points, normals, to_eye, rows, frame, first, skip, variance=variance)
+    light = lamp_glossy_without(system, points, normals, to_eye, rows, frame, first, skip, variance=variance,
+                                widen=widen)
     light += faint
     scale = np.asarray(level, np.float32).reshape(-1) + light @ LUMA
     noisy = variance > np.square(np.float32(NOISE) * scale)
@@ -78,12 +82,13 @@ def adaptive_lamp_glossy(system, points, normals, to_eye, rows, pix: np.ndarray,
     again = dilate(image.reshape(h, w), DILATE).reshape(-1)[pix]
     redo = np.flatnonzero(again)
     light[redo] = lamp_glossy_without(system, points[redo], normals[redo], to_eye[redo], rows[redo],
-                                      frame + SEED_OFFSET, samples, skip[redo]) + faint[redo]
+                                      frame + SEED_OFFSET, samples, skip[redo],
+                                      widen=None if widen is None else widen[redo]) + faint[redo]
     return light, again
 
 
 def _weak_lamps_light(system, points, normals, to_eye, rows, frame: int, weak: np.ndarray,
-                      rough: np.ndarray) -> np.ndarray:
+                      rough: np.ndarray, widen: np.ndarray | None = None) -> np.ndarray:
     """(n, 3) float32 the glossy light of the lamps weak at each receiver (weak (n, L)): one
     sample of one of them, drawn in proportion to its rough light (rough (n, L),
     `lights.rough_lights`) and weighted by 1 / its probability. Unbiased; its noise stays within
@@ -106,6 +111,7 @@ def _weak_lamps_light(system, points, normals, to_eye, rows, frame: int, weak: n
     chance = p[at, pick]
     skip = np.ones((live.size, lamps), bool)
     skip[at, pick] = False
-    light = lamp_glossy_without(system, points[live], normals[live], to_eye[live], rows[live], frame, 1, skip)
+    light = lamp_glossy_without(system, points[live], normals[live], to_eye[live], rows[live], frame, 1, skip,
+                                widen=None if widen is None else widen[live])
     out[live] = light / chance[:, None]
     return out

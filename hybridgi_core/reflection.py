@@ -157,19 +157,21 @@ def bsdf_lamps(lights, points: np.ndarray, normals: np.ndarray, rough: np.ndarra
 
 
 def lamp_glossy_without(system, points, normals, to_eye, rows, frame: int, samples: int,
-                        skip: np.ndarray, variance: np.ndarray | None = None) -> np.ndarray:
+                        skip: np.ndarray, variance: np.ndarray | None = None,
+                        widen: np.ndarray | None = None) -> np.ndarray:
     """(n, 3) the lamps' glossy radiance by lamp sampling (`GISystem.glossy`), each receiver
     without the lamps `skip` (n, L) marks for it (the reflection rays estimate those).
-    variance : an optional (n,) output, the estimate's luminance variance (`glossy.glossy_direct`)."""
+    variance : an optional (n,) output, the estimate's luminance variance (`glossy.glossy_direct`).
+    widen : optional (n,) alpha^2 the receivers' lobes gain (`specular_aa.footprint_alpha2`)."""
     n = np.asarray(points).reshape(-1, 3).shape[0]
     if not skip.any():
-        return system.glossy(points, normals, to_eye, rows, frame, samples=samples, variance=variance)
+        return system.glossy(points, normals, to_eye, rows, frame, samples=samples, variance=variance, widen=widen)
     if len(system.scene.lights) > GLOSSY_LAMP_BUDGET:
         # Many lamps: one pass whose draws per receiver are among the lamps it keeps. A call per
         # pattern of skipped lamps (below) met ~1300 patterns over 50 lamps, each a picked pass of
         # its own: a room lit by 50 point lamps spent 36 s of CPU there in a 47-s profiled 320x180 render.
         return system.glossy(points, normals, to_eye, rows, frame, samples=samples, variance=variance,
-                             allowed=~np.asarray(skip, bool))
+                             allowed=~np.asarray(skip, bool), widen=widen)
     out = np.zeros((n, 3), _F32)
     if variance is not None:
         variance[:] = 0.0
@@ -185,7 +187,7 @@ def lamp_glossy_without(system, points, normals, to_eye, rows, frame: int, sampl
                                                  if not s]
         var = None if variance is None else np.zeros(sel.size, _F32)
         out[sel] = system.glossy(points[sel], normals[sel], to_eye[sel], rows[sel], frame, samples=samples,
-                                 lights=lights, variance=var)
+                                 lights=lights, variance=var, widen=None if widen is None else widen[sel])
         if var is not None:
             variance[sel] = var
     return out

@@ -483,7 +483,8 @@ class GISystem:
         return self._glossy_materials
 
     def _glossy_picked(self, points, normals, to_eye, rows, frame: int, samples: int, lights: list,
-                       variance: np.ndarray | None, allowed: np.ndarray | None = None) -> np.ndarray:
+                       variance: np.ndarray | None, allowed: np.ndarray | None = None,
+                       widen: np.ndarray | None = None) -> np.ndarray:
         """`glossy` of many lamps: GLOSSY_LAMP_BUDGET draws of them per receiver (`_pick_lamps`),
         each drawn lamp's light (its own sample stream) times its weight; the variance output
         scales by the squared weights (the draws' own spread is not counted)."""
@@ -502,33 +503,38 @@ class GISystem:
             w = weights[sel, j]
             var = None if variance is None else np.zeros(sel.size, np.float32)
             out[sel] += w[:, None] * self.glossy(pts[sel], nrm[sel], eye[sel], rows[sel],
-                                                 frame + (j + 1) * GLOSSY_LAMP_STRIDE, samples, [light], var)
+                                                 frame + (j + 1) * GLOSSY_LAMP_STRIDE, samples, [light], var,
+                                                 widen=None if widen is None else widen[sel])
             if var is not None:
                 variance[sel] += var * w * w
         return out
 
     def glossy(self, points: np.ndarray, normals: np.ndarray, to_eye: np.ndarray, rows: np.ndarray, frame: int,
                samples: int | None = None, lights: list | None = None,
-               variance: np.ndarray | None = None, allowed: np.ndarray | None = None) -> np.ndarray:
+               variance: np.ndarray | None = None, allowed: np.ndarray | None = None,
+               widen: np.ndarray | None = None) -> np.ndarray:
         """Lamp radiance (n, 3) the glossy lobes of materials `rows` reflect towards the eye, with
         shadow rays (`glossy.glossy_direct`; its own samples, seeded apart from `direct`'s), of
         the scene's lamps or of `lights`, a subset of them. variance : an optional (n,) output,
         the estimate's luminance variance (`glossy_direct`'s). allowed : optional (n, L) bool,
         with more than GLOSSY_LAMP_BUDGET lamps, the lamps each receiver's light is of (its
-        draws are among them, `_glossy_picked`)."""
+        draws are among them, `_glossy_picked`). widen : optional (n,) alpha^2 the receivers'
+        lobes gain (`specular_aa.footprint_alpha2`)."""
         rng = frame_rng(self.settings.seed + 2, frame)
+        if widen is not None:
+            widen = np.asarray(widen, np.float32).reshape(-1)
         samples = samples or self.settings.light_samples
         eps = float(self.tracer.epsilon)
         n = int(np.asarray(points).reshape(-1, 3).shape[0])
         per_block = max(1, DIRECT_BLOCK_RAYS // samples)
         lights, mats = self.scene.lights if lights is None else lights, self.glossy_materials
         if len(lights) > GLOSSY_LAMP_BUDGET and n:
-            return self._glossy_picked(points, normals, to_eye, rows, frame, samples, lights, variance, allowed)
+            return self._glossy_picked(points, normals, to_eye, rows, frame, samples, lights, variance, allowed, widen)
         if allowed is not None:
             raise ValueError("glossy: allowed lamps per receiver need more than GLOSSY_LAMP_BUDGET lamps")
         if n <= per_block or not lights:
             return glossy_direct(lights, points, normals, to_eye, rows, mats, self.tracer, rng, samples, eps,
-                                 variance=variance)
+                                 variance=variance, widen=widen)
         # Blocks on the worker pool, each with its own child generator (as `direct`), each
         # writing its own slice of `variance`.
         per_pixel = [np.asarray(a).reshape(n, -1) for a in (points, normals, to_eye)]
@@ -537,7 +543,8 @@ class GISystem:
         return np.concatenate(self._blocks([
             (glossy_direct, (lights, *(a[b : b + per_block] for a in per_pixel), rows[b : b + per_block], mats,
                              self.tracer, child, samples, eps),
-             {"variance": None if variance is None else variance[b : b + per_block]})
+             {"variance": None if variance is None else variance[b : b + per_block],
+              "widen": None if widen is None else widen[b : b + per_block]})
             for b, child in zip(starts, rng.spawn(len(starts)), strict=True)]))
 
 

@@ -49,10 +49,11 @@ class _System:
         self.settings = SimpleNamespace(seed=0)
         self.calls = []
 
-    def glossy(self, points, normals, to_eye, rows, frame, samples=None, lights=None, variance=None):
+    def glossy(self, points, normals, to_eye, rows, frame, samples=None, lights=None, variance=None, widen=None):
         self.calls.append((len(points), samples))
         return glossy.glossy_direct(self.scene.lights if lights is None else lights, points, normals, to_eye, rows,
-                                    self.glossy_materials, None, frame_rng(7, frame), samples, variance=variance)
+                                    self.glossy_materials, None, frame_rng(7, frame), samples, variance=variance,
+                                    widen=widen)
 
 
 def test_the_reported_variance_is_the_spread_of_the_estimates():
