@@ -192,6 +192,8 @@ class GlossyDraft:
     #: (len(lamp_rows), 3) their lobes' Glossy Color at normal incidence: the light is filtered
     #: over it (`finish_glossy`); None: as it is.
     lamp_f0: np.ndarray | None = None
+    #: (t,) the roughness of the traced receivers' lobes: how far their filter reaches (`filter_reflections`).
+    ray_rough: np.ndarray | None = None
 
 
 def begin_glossy(system, points, normals, pix, shape: tuple[int, int], material, albedo, irradiance, view, eye,
@@ -236,7 +238,7 @@ def begin_glossy(system, points, normals, pix, shape: tuple[int, int], material,
     if tint is not None and getattr(mats, "tint_bases", None):
         metals = (mats, np.asarray(material).reshape(-1), rows, np.asarray(tint, np.float32).reshape(-1, 2), mu)
     return GlossyDraft(direct, colour, exact, lit, lit[sampled], rough[sampled], *parts, points, normals, pix, shape,
-                       view, pool, between, metals, mats.color_table[rows[lit[sampled]], -1])
+                       view, pool, between, metals, mats.color_table[rows[lit[sampled]], -1], rough[parts[0]])
 
 
 def finish_glossy(draft: GlossyDraft, filter=None) -> GlossyLight:
@@ -269,7 +271,7 @@ def finish_glossy(draft: GlossyDraft, filter=None) -> GlossyLight:
             at = lit[sel]
             ray_direct, ray_indirect = filter_reflections(d.ray_direct, d.ray_indirect, d.ray_total, d.points[at],
                                                           d.normals[at], d.pix[at], d.shape, d.view, pool=d.pool,
-                                                          filter=filter)
+                                                          filter=filter, rough=d.ray_rough)
             t = (d.share * (d.ray_total > 0))[:, None]
             sky[sel] += t * (ray_direct - sky[sel])
             bounced[at] += t * (ray_indirect - bounced[at])

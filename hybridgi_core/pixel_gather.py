@@ -946,7 +946,8 @@ def filter_residual(residual: np.ndarray, position: np.ndarray, normal: np.ndarr
     the view distance, as the bilateral upsampling does). Pass i uses taps 2^i pixels apart;
     a tap's weight is the B3 spline x exp(-(plane distance / (plane_sigma x view distance))^2)
     x max(0, n_p . n_q)^normal_power: a tap on another surface, or on the same surface's other
-    side of a crease, does not count.
+    side of a crease, does not count. normal_power : one exponent, or an (h, w) float32 image of
+    each pixel's own (its taps' weight).
 
     variance : (h, w, 2) variances of the pixels' luminance (of direct + indirect) and AO, or
     (h, w, 3) of the luminance of all light, of the indirect light alone and AO (a second guide
@@ -1132,7 +1133,8 @@ def filter_at_pixels(values: np.ndarray, keep: np.ndarray, points: np.ndarray, n
                      normal_power: float = 8.0, filter=None) -> np.ndarray:
     """`filter_residual` of per-pixel values (n, c <= 7) at flat pixels `pix` of an image of
     `shape`, only the pixels `keep` (n,) read and written (others keep their value); points,
-    normals : (n, 3) the pixels' surfaces, camera (3,) the eye. Returns (n, c) float32.
+    normals : (n, 3) the pixels' surfaces, camera (3,) the eye; normal_power : one exponent or
+    (n,) each pixel's own (`filter_residual`). Returns (n, c) float32.
 
     Up to SPARSE_FILTER_SHARE of the image kept (a penumbra, a glossy surface: Cornell 640x360's
     penumbra is 12k of 230k pixels) the taps are gathered at the kept pixels only
@@ -1163,6 +1165,10 @@ def _filter_dense(values: np.ndarray, keep: np.ndarray, points: np.ndarray, norm
     pos[pix] = points
     nrm = np.zeros((h * w, 3), np.float32)
     nrm[pix] = normals
+    if isinstance(normal_power, np.ndarray):
+        power = np.full(h * w, np.float32(1.0), np.float32)
+        power[pix] = normal_power
+        normal_power = power.reshape(h, w)
     out = (filter or filter_residual)(image.reshape(h, w, c), pos.reshape(h, w, 3), nrm.reshape(h, w, 3),
                                       valid.reshape(h, w), np.asarray(camera, np.float32), passes, plane_sigma,
                                       normal_power, pool=pool).reshape(h * w, c)
@@ -1178,9 +1184,13 @@ def _dot3(a: np.ndarray, b: np.ndarray, out: np.ndarray, tmp: np.ndarray) -> Non
     out += tmp
 
 
-def _power_into(x: np.ndarray, exponent: float, out: np.ndarray) -> None:
+def _power_into(x: np.ndarray, exponent, out: np.ndarray) -> None:
     """out = x ** exponent, by squarings in place when the exponent is a power of two (the default
-    8: three multiplies instead of a transcendental pow per tap)."""
+    8: three multiplies instead of a transcendental pow per tap); an array exponent (x's shape)
+    per element."""
+    if isinstance(exponent, np.ndarray):
+        np.power(x, exponent, out=out)
+        return
     e = float(exponent)
     if e >= 1 and e == int(e) and int(e) & (int(e) - 1) == 0:
         np.copyto(out, x)
@@ -1222,6 +1232,7 @@ def _filter_sparse(values: np.ndarray, keep: np.ndarray, points: np.ndarray, nor
     dist = np.sqrt(sum((own_p[k] - np.float32(camera[k])) ** 2 for k in range(3)))
     inv_sigma = (1.0 / np.maximum(plane_sigma * dist, 1e-12)).astype(np.float32)
     own = own_p[0] * own_n[0] + own_p[1] * own_n[1] + own_p[2] * own_n[2]
+    own_power = np.asarray(normal_power, np.float32)[rows] if isinstance(normal_power, np.ndarray) else None
 
     def one_pass(step: int, part: slice) -> np.ndarray:
         """(c, k) the filtered values of the kept pixels `part` for taps `step` pixels apart."""
@@ -1239,7 +1250,7 @@ def _filter_sparse(values: np.ndarray, keep: np.ndarray, points: np.ndarray, nor
                 plane = (qp[0] * pn[0] + qp[1] * pn[1] + qp[2] * pn[2] - po) * ps
                 cos = np.maximum(qn[0] * pn[0] + qn[1] * pn[1] + qn[2] * pn[2], 0.0)
                 wt = np.empty_like(cos)
-                _power_into(cos, normal_power, wt)
+                _power_into(cos, normal_power if own_power is None else own_power[part], wt)
                 wt *= vf[q] * np.float32(_B3[dy] * _B3[dx])
                 wt *= np.exp(-plane * plane)
                 acc += wt * img[:, q]
@@ -1268,7 +1279,8 @@ def _filter_in_bands(pool, halo, residual, position, normal, valid, camera, pass
         rows = slice(lo, hi)
         jobs.append((a - lo, b - lo, pool.submit(
             filter_residual, residual[rows], position[rows], normal[rows], valid[rows], camera, passes,
-            plane_sigma, normal_power, None if variance is None else variance[rows], noise_sigma, None, stretch)))
+            plane_sigma, normal_power[rows] if isinstance(normal_power, np.ndarray) else normal_power,
+            None if variance is None else variance[rows], noise_sigma, None, stretch)))
     return np.concatenate([job.result()[i:j] for i, j, job in jobs], axis=0)
 
 

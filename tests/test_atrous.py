@@ -109,3 +109,31 @@ def test_the_glossy_filters_take_the_gpu_pass_for_whole_images_only(gpu_context,
         np.testing.assert_allclose(got, ref, rtol=2e-4, atol=2e-5)
         assert np.abs(got[keep] - values[keep]).max() > 1e-3  # filtered
         np.testing.assert_array_equal(got[~keep], values[~keep])  # the rest as it was
+
+
+def test_gpu_atrous_takes_each_pixels_own_normal_exponent(gpu_context):
+    """Per-pixel normal exponents (`reflection.reflection_power`) on normals that wobble by a few
+    degrees: the GPU pass equals the numpy reference, and the sharp half's filter reaches less far
+    than one exponent of 8 would (its pixels keep more of their own value)."""
+    from hybridgi_core.raster.atrous import AtrousPass
+
+    residual, position, normal, valid, camera, _ = _scene()
+    rng = np.random.default_rng(5)
+    normal = normal + 0.06 * rng.standard_normal(normal.shape).astype(np.float32)
+    normal /= np.linalg.norm(normal, axis=-1, keepdims=True)
+    power = np.where(np.arange(H)[:, None] < H // 2, np.float32(2000.0), np.float32(8.0)) * np.ones((1, W), np.float32)
+    args = (residual[..., :7], position, normal, valid, camera, 3, 0.02)
+    ref = filter_residual(*args, power)
+    atrous = AtrousPass()
+    try:
+        got = atrous(*args, power)
+    finally:
+        atrous.free()
+    np.testing.assert_allclose(got, ref, rtol=2e-4, atol=2e-5)
+    one = filter_residual(*args, 8.0)
+    raw = np.where(valid[..., None], residual[..., :7], 0.0)
+    sharp = (np.arange(H) < H // 2)[:, None] & valid
+    assert np.abs(ref - raw)[sharp].mean() < 0.5 * np.abs(one - raw)[sharp].mean()
+    # Beyond the passes' reach of the sharp half (2 + 4 + 8 rows), the exponent of 8 as before.
+    far = (np.arange(H) >= H // 2 + 14)[:, None] & valid
+    np.testing.assert_allclose(ref[far], one[far], rtol=1e-5, atol=1e-6)

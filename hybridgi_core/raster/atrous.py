@@ -63,7 +63,7 @@ class AtrousPass(RasterPass):
         self._sets = None
 
     def __call__(self, residual: np.ndarray, position: np.ndarray, normal: np.ndarray, valid: np.ndarray,
-                 camera: np.ndarray, passes: int = 3, plane_sigma: float = 0.02, normal_power: float = 8.0,
+                 camera: np.ndarray, passes: int = 3, plane_sigma: float = 0.02, normal_power=8.0,
                  variance: np.ndarray | None = None, noise_sigma: float = 2.0, pool=None,
                  stretch: float | None = None) -> np.ndarray:
         """`filter_residual` on the GPU: (h, w, c) float32 (c <= MAX_CHANNELS), its stretch term
@@ -88,7 +88,14 @@ class AtrousPass(RasterPass):
         pos[..., :3] = position
         pos[..., 3] = valid
         textures = [upload_texture_2d(a, "RGBA32F") for a in (planes[..., :4], planes[..., 4:], var, pos)]
-        nrm = upload_texture_2d(np.asarray(normal, np.float32), "RGBA32F", pad_value=0.0)
+        per_pixel = isinstance(normal_power, np.ndarray)
+        if per_pixel:  # each pixel's own exponent in its normal's w (the shader reads it for normal_power < 0)
+            n4 = np.zeros((h, w, 4), np.float32)
+            n4[..., :3] = np.asarray(normal, np.float32)[..., :3]
+            n4[..., 3] = normal_power
+            nrm = upload_texture_2d(n4, "RGBA32F")
+        else:
+            nrm = upload_texture_2d(np.asarray(normal, np.float32), "RGBA32F", pad_value=0.0)
         shader = self._shader()
         cam = np.zeros(4, np.float32)
         cam[:3] = np.asarray(camera, np.float32)[:3]
@@ -104,7 +111,7 @@ class AtrousPass(RasterPass):
             shader.uniform_int("step", 1 << i)
             shader.uniform_int("guides", 0 if variance is None else variance.shape[-1])
             shader.uniform_float("plane_sigma", float(plane_sigma))
-            shader.uniform_float("normal_power", float(normal_power))
+            shader.uniform_float("normal_power", -1.0 if per_pixel else float(normal_power))
             shader.uniform_float("noise_k2", float(noise_sigma) ** 2)
             shader.uniform_float("stretch", 0.0 if stretch is None else float(stretch))
             self._draw_fullscreen(fb, shader, (w, h))

@@ -1,5 +1,6 @@
 /* One a-trous pass of `pixel_gather.filter_residual` (see atrous.py): 5 x 5 taps `step` pixels
- * apart, weighted by the B3 spline, the tap's validity, max(0, n_p . n_q)^normal_power and
+ * apart, weighted by the B3 spline, the tap's validity, max(0, n_p . n_q)^normal_power (normal_power
+ * < 0: the pixel's own exponent, its normal's w) and
  * exp(-(plane distance / (plane_sigma x view distance))^2) (x the stretch term where stretch > 0:
  * `pixel_gather._stretch_into`); with variance guides (guides = 2 or
  * 3) also by exp(-(g_q - g_p)^2 / (noise_k2 (var_p + var_q) + 1e-12)) per guide (SVGF), the
@@ -30,7 +31,9 @@ void main()
     out_var = vec4(0.0);
     return;
   }
-  vec3 own_n = texelFetch(nrm_tx, p, 0).xyz;
+  vec4 own_nrm = texelFetch(nrm_tx, p, 0);
+  vec3 own_n = own_nrm.xyz;
+  float own_power = (normal_power < 0.0) ? own_nrm.w : normal_power;
   float own_plane = dot(own_pos.xyz, own_n);
   float own_dist = distance(own_pos.xyz, camera.xyz);
   float inv_sigma = 1.0 / max(plane_sigma * own_dist, 1e-12);
@@ -56,7 +59,7 @@ void main()
       }
       vec3 qn = texelFetch(nrm_tx, q, 0).xyz;
       float plane = (dot(qp.xyz, own_n) - own_plane) * inv_sigma;
-      float wt = power_of(max(dot(qn, own_n), 0.0), normal_power) * (B3[dy] * B3[dx]);
+      float wt = power_of(max(dot(qn, own_n), 0.0), own_power) * (B3[dy] * B3[dx]);
       if (stretch > 0.0 && (dx != 2 || dy != 2)) {
         wt *= stretch_weight(qp.xyz, own_pos.xyz, camera.xyz, own_view, own_dist2, stretch);
       }
