@@ -27,7 +27,7 @@ from .pixel_gather import LUMA
 from .reflection import bsdf_lamps, filter_lamp_glossy, filter_reflections, traced_reflection, traced_share
 from .rows import rows_above
 from .settings import MULTI_BOUNCE
-from .specular_aa import footprint_alpha2
+from .specular_aa import RAY_WIDEN_SHARE, footprint_alpha2, widened_roughness
 
 #: Glossy colour below which a channel's lamp light is filtered as it is (`finish_glossy`).
 DEMODULATE_FLOOR = 1e-4
@@ -216,8 +216,9 @@ def begin_glossy(system, points, normals, pix, shape: tuple[int, int], material,
     lit = np.flatnonzero(rows_above(colour, 0.0))
     rough = mats.rough[rows[lit]]
     # The lamps' highlights through lobes widened by the spread of their pixels' normals (one
-    # sample stands for the pixel). Not the reflection rays': their filter spreads them further.
+    # sample stands for the pixel); the reflection rays' lobes by half as much (`RAY_WIDEN_SHARE`).
     widen = footprint_alpha2(normals, pix, shape)
+    ray_rough = widened_roughness(rough, RAY_WIDEN_SHARE * widen[lit])
     # Area lamps in lobes much narrower than they are: the reflection rays estimate them.
     skip = np.zeros((n, len(system.scene.lights)), bool)
     if reflection_rays > 0 and lit.size:
@@ -232,13 +233,13 @@ def begin_glossy(system, points, normals, pix, shape: tuple[int, int], material,
     # Only the sampled part is noisy: receivers whose every lamp the closed form gives skip the filter.
     sampled = np.flatnonzero((~(skip[lit] | closed[lit])).any(axis=1))
     between()  # (an edit that waits stops the viewport's worker before the reflection rays)
-    parts = _traced_reflections(system, points[lit], normals[lit], to_eye[lit], rough, frame, pix[lit], shape,
+    parts = _traced_reflections(system, points[lit], normals[lit], to_eye[lit], ray_rough, frame, pix[lit], shape,
                                 skip[lit], reflection_rays, lookup, between, screen, rows[lit])
     metals = None
     if tint is not None and getattr(mats, "tint_bases", None):
         metals = (mats, np.asarray(material).reshape(-1), rows, np.asarray(tint, np.float32).reshape(-1, 2), mu)
     return GlossyDraft(direct, colour, exact, lit, lit[sampled], rough[sampled], *parts, points, normals, pix, shape,
-                       view, pool, between, metals, mats.color_table[rows[lit[sampled]], -1], rough[parts[0]])
+                       view, pool, between, metals, mats.color_table[rows[lit[sampled]], -1], ray_rough[parts[0]])
 
 
 def finish_glossy(draft: GlossyDraft, filter=None) -> GlossyLight:

@@ -88,3 +88,14 @@ def test_a_subpixel_highlight_no_longer_depends_on_where_it_falls():
         assert 0.65 < wide.sum() / mean.sum() < 1.35, (o, wide.sum(), mean.sum())
     wide, mean = _patch((0.0, 0.0), True)
     assert np.isclose(wide[4, 4], mean[4, 4], rtol=0.1), (wide[4, 4], mean[4, 4])
+
+
+def test_widened_roughness_adds_alpha2_and_keeps_unwidened_lobes():
+    rough = np.array([0.3, 0.3, 0.05, 1.0], np.float32)
+    add = np.array([0.0, 0.01, 0.01, 0.5], np.float32)
+    wide = specular_aa.widened_roughness(rough, add)
+    assert wide[0] == rough[0]  # nothing added: the very same value
+    assert np.isclose(wide[1] ** 4, 0.3**4 + 0.01, rtol=1e-5)
+    assert np.isclose(wide[2] ** 4, 0.05**4 + 0.01, rtol=1e-5)
+    assert wide[3] == 1.0  # at most 1
+
