@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 import pytest
 
@@ -522,3 +524,32 @@ def test_extra_subframes_share_the_shadow_ray_floor_of_the_frames_own():
     assert subframe_shadow_samples(24, 2, 26) == 1
     assert subframe_shadow_samples(24, 8, 16) == 4
     assert subframe_shadow_samples(4, 8, 32) == 1
+
+
+def test_extra_subframes_grow_with_the_frames_own():
+    """A frame whose GI edges pass the share adds at most EXTRA_PER_SUBFRAME extra subframes per
+    subframe of its own, EXTRA_SUBFRAMES at most: 2 Pixel Samples take 2 + 6, 8 take 8 + 24."""
+    from types import SimpleNamespace
+
+    from hybridgi_core.raster import frame as frame_mod
+    from hybridgi_core.raster.subpixel import CentreSample
+
+    h, w = 4, 8
+    # Alternate columns: a near plane and a far plane, their indirect light 20 x apart.
+    position = np.zeros((h, w, 4), np.float32)
+    position[..., 0] = np.arange(w) * 0.01
+    position[..., 2] = np.where(np.arange(w) % 2 == 0, -5.0, -9.0)
+    position[..., 3] = 1.0
+    normal = np.tile(np.array([0, 0, 1, 0], np.float32), (h, w, 1))
+    depth = -position[..., 2].reshape(-1)
+    centre = CentreSample(np.zeros((h * w, 4), np.float32), position.reshape(-1, 4), normal.reshape(-1, 4), depth)
+    indirect = np.zeros((h * w, 4), np.float32)
+    indirect[:, :3] = np.where(np.arange(w) % 2 == 0, 1.0, 0.05)[None, :].repeat(h, 0).reshape(-1, 1)
+    pipe = SimpleNamespace(extra_subframes=frame_mod.EXTRA_SUBFRAMES, subframes=8, height=h, width=w)
+    stats = SimpleNamespace(extra_pixels=0)
+    count = functools.partial(frame_mod.FramePipeline._subframe_count, pipe, centre, SimpleNamespace(indirect=indirect),
+                              stats)
+    assert count(2) == 2 + 2 * frame_mod.EXTRA_PER_SUBFRAME
+    assert count(8) == 8 + frame_mod.EXTRA_SUBFRAMES
+    assert count(16) == 16 + frame_mod.EXTRA_SUBFRAMES
+    assert stats.extra_pixels == h * w

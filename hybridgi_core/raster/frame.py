@@ -73,6 +73,10 @@ SUBFRAME_LAMP_LIMIT = 8
 #: Subframes a frame adds when thin surfaces of far other bounce light cover a share of its
 #: image (`FramePipeline._subframe_count`): 8 + 24, Pixel Samples = 32 for that frame.
 EXTRA_SUBFRAMES = 24
+#: At most this many extra subframes per subframe of the frame's own: a frame of 2 Pixel Samples
+#: took 24 more wherever its GI edges passed the share (26 subframes: 13x its raster passes and
+#: subframe shadow rays), where its own noise left their gain unseen; 8 Pixel Samples keep all 24.
+EXTRA_PER_SUBFRAME = 3
 
 
 #: Steps of a final render's steps_ms that are GPU work (llvmpipe here, milliseconds on a GPU):
@@ -674,7 +678,8 @@ class FramePipeline:
         return lambda points, pix: centre_offsets(points, pix, self.width, self.height, view, proj)
 
     def _subframe_count(self, centre, full_gi, stats, base: int | None = None) -> int:
-        """Subframes of this frame: `base` (default `subframes`), plus `extra_subframes` when the centre raster's GI
+        """Subframes of this frame: `base` (default `subframes`), plus `extra_subframes` (at most
+        EXTRA_PER_SUBFRAME x base) when the centre raster's GI
         edges (`subpixel.gi_edges`: thin surfaces of far other bounce light than what lies behind
         them) are a share of the image (`subpixel.worth_extra`). Why the whole frame: a subframe's
         cost is its raster passes over every pixel, so more of them at a few pixels cost as much
@@ -687,8 +692,9 @@ class FramePipeline:
         if not worth_extra(edges):
             return base
         stats.extra_pixels = int(edges.sum())
-        log.debug("%d GI edge pixels: %d + %d subframes", stats.extra_pixels, base, self.extra_subframes)
-        return base + self.extra_subframes
+        extra = min(self.extra_subframes, EXTRA_PER_SUBFRAME * base)
+        log.debug("%d GI edge pixels: %d + %d subframes", stats.extra_pixels, base, extra)
+        return base + extra
 
     def _gather_levels(self, levels, low, points, normals, pix, visible, view, proj, lit_tex):
         """The GPU gather of each cache level (its own corner mask: columns 8k .. 8k + 7 of
