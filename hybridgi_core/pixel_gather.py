@@ -624,7 +624,7 @@ def _chunk_shade(state: dict, screen: ScreenLight | None = None):
     # found blocked (`sky_ratio`), which needs the sky in every ray's direction, blocked or not.
     world = system.updater.scene.world
     sky_open = sky_irradiance(world) if smooth is None and s.indirect_quality != AO_ONLY else None
-    sky = world.radiance(dirs) if sky_open is not None else None
+    sky = _sky_along(world, dirs, hits, res[:, 9:12], sky_open, nrm, rays) if sky_open is not None else None
     radiance = hit_radiance(system, lookup, origins, dirs, hits, rng, times, screen=screen, near=near,
                             near_rng=np.random.default_rng(rng.bit_generator.seed_seq.spawn(1)[0]), sky=sky,
                             sampled_emitters=screen is not None and screen.emitters_sampled)
@@ -689,6 +689,24 @@ def _ao_rays(smooth: np.ndarray | None, nrm: np.ndarray, dirs: np.ndarray, y: np
     w = (cos_s > 0.0).astype(np.float32)
     total = np.maximum(w.sum(axis=1), np.float32(1e-6))
     return w, np.einsum("mr,mrk->mk", w, y) / total[:, None]
+
+
+def _sky_along(world, dirs: np.ndarray, hits, cache_direct: np.ndarray, sky_open, nrm: np.ndarray,
+               rays: int) -> np.ndarray:
+    """(m rays, 3) float32 the world's radiance along the rays `_open_sky_band` and `hit_radiance`
+    read it on: every ray of the pixels that take the open-sky estimate (`open_share` of the
+    cache's direct light `cache_direct` (m, 3) above 0), and the rays that escape; 0 along the
+    rest, which the band weighs by 0. Why: a room's pixels see the sky through a window only,
+    and the map's lookups along all of their blocked rays were ~0.3 s of CPU per 320x180 frame."""
+    share = open_share(cache_direct, sky_open.irradiance(nrm))
+    need = np.repeat(share > 0, rays) | (hits.prim < 0)
+    if need.all():
+        return world.radiance(dirs)
+    sky = np.zeros((dirs.shape[0], 3), np.float32)
+    sel = np.flatnonzero(need)
+    if sel.size:
+        sky[sel] = world.radiance(dirs[sel])
+    return sky
 
 
 def _open_sky_band(res: np.ndarray, lum_cv: np.ndarray, sky_open, sky: np.ndarray, hits, radiance: np.ndarray,

@@ -401,11 +401,14 @@ class GISolver:
         n = m * r
         values = np.empty((4, n), np.float32)
         world = self.scene.world
+        h = chunk.hit
         if world.sky_sh is None:
             values[0:3] = world.color[:, None]
-        else:
-            values[0:3] = world.radiance(chunk.ray_dirs).T  # a sky that varies with direction
-        h = chunk.hit
+        else:  # a sky that varies with direction, read along the rays that escape (hits: below)
+            values[0:3] = 0.0
+            miss = np.ones(n, bool)
+            miss[h] = False
+            values[0:3, miss] = world.radiance(chunk.ray_dirs[miss]).T
         if h.size and self.scene.surfaces.emissive:
             values[0:3, h] = self.scene.surfaces.emission_of(chunk.prim[h], chunk.u[h], chunk.v[h]).T
         elif h.size:

@@ -105,3 +105,27 @@ def test_pixel_rays_read_the_open_sky_without_noise_and_stay_unbiased_under_a_ro
     assert (many.max(axis=1) < 0.7 * exact.max()).all()  # the roof blocks part of the sky
     error = np.abs(frames.mean(axis=0) - many.mean(axis=0))
     assert (error < 3.0 * frames.std(axis=0) / np.sqrt(len(frames)) + 0.01 * many.mean(axis=0)).all(), error
+
+
+def test_the_sky_is_read_where_the_open_estimate_or_an_escaped_ray_needs_it():
+    """`pixel_gather._sky_along`: two pixels of 4 rays, the first open (its cache's direct light is
+    the unshadowed sky's), the second under a roof (a tenth of it). The open pixel's rays all read
+    the map, blocked or not; the roofed pixel's only where they escape (0 elsewhere: the open
+    estimate weighs that pixel by 0)."""
+    from types import SimpleNamespace
+
+    sky = _sky()
+    world = World(color=np.full(3, 0.5, np.float32), sky_map=sky, sky_sh=np.zeros((9, 3), np.float32))
+    table = sky_irradiance(world)
+    nrm = np.tile(np.array([0.0, 0.0, 1.0], np.float32), (2, 1))
+    unshadowed = table.irradiance(nrm)
+    cache_direct = np.stack([unshadowed[0], 0.1 * unshadowed[1]])
+    d = np.random.default_rng(2).normal(size=(8, 3)).astype(np.float32)
+    d[:, 2] = np.abs(d[:, 2])
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    prim = np.array([5, -1, 5, 5, 5, -1, 5, 5])  # rays 1 and 5 escape
+    got = pixel_gather._sky_along(world, d, SimpleNamespace(prim=prim), cache_direct, table, nrm, 4)
+    full = sky.radiance(d)
+    np.testing.assert_array_equal(got[:4], full[:4])
+    np.testing.assert_array_equal(got[5], full[5])
+    assert not got[[4, 6, 7]].any()
