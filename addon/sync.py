@@ -19,7 +19,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from hybridgi_core import corner_triangles, environment, hair, ies, points, surface_mix
+from hybridgi_core import corner_triangles, environment, flat_faces, hair, ies, points, surface_mix
 from hybridgi_core import snapshot as snap
 from hybridgi_core import specular as sp
 from hybridgi_core.blackbody import blackbody_rgb
@@ -134,6 +134,9 @@ class _LocalMesh:
     tangents : (L, 4) float32 object-space tangent and bitangent sign (`mesh_tangents`), or None
     normal_uvs : (L, 2) float32 the mesh's own UVs where `uvs` holds a bake's atlas (`with_atlas`:
         what normal and bump maps are read with), or None (`uvs`)
+    source : (L,) int64 the Blender corner each corner copies (corners appended for the bent
+        triangles of flat faces, `flat_faces`), what Blender's per-corner data is read at; None:
+        corner i is Blender's corner i
     """
 
     positions: np.ndarray
@@ -143,6 +146,11 @@ class _LocalMesh:
     slot: np.ndarray
     tangents: np.ndarray | None = None
     normal_uvs: np.ndarray | None = None
+    source: np.ndarray | None = None
+
+    def blender_corners(self, corners: np.ndarray) -> np.ndarray:
+        """The Blender corners of corners (indices into this mesh's corners)."""
+        return corners if self.source is None else self.source[corners]
 
 
 #: Object types whose geometry is rendered (Curves as tubes, point clouds as spheres).
@@ -262,12 +270,22 @@ def mesh_arrays(mesh):
     else:
         slot = np.zeros(triangles.shape[0], np.int32)
 
+    normals = normals.reshape(-1, 3)
+    source = None
+    smooth = np.empty(n_poly, bool)
+    mesh.polygons.foreach_get("use_smooth", smooth)
+    if not smooth.all():
+        bent = flat_faces.bent_flat_triangles(smooth, positions, normals, triangles, tri_poly)
+        if bent.size:
+            triangles, positions, normals, uvs, source = flat_faces.own_corners(bent, triangles, positions, normals,
+                                                                               uvs)
     return _LocalMesh(
         positions=positions,
-        normals=normals.reshape(-1, 3),
+        normals=normals,
         uvs=uvs,
         triangles=triangles,
         slot=slot,
+        source=source,
     )
 
 
@@ -811,6 +829,8 @@ class _SnapshotBuilder:
             tangents = mesh_tangents(obj.data, uv_map)
             if tangents is None:
                 log.warning("object %r: no UV map %r for its normal map; rendered without it", obj.name, uv_map)
+            if tangents is not None and local.source is not None:
+                tangents = tangents[local.source]
             self._tangent_meshes[key] = local if tangents is None else replace(local, tangents=tangents)
         return self._tangent_meshes[key]
 
@@ -2271,7 +2291,8 @@ _BAKE_JOBS: dict[str, list] = {}
 def bake_job(material, node, socket, mesh, local, triangles):
     """`BakeJob` of one input over the triangles (indices into `local.triangles`) of a mesh:
     their corners in object space, every UV map and colour attribute per corner."""
-    corners = local.triangles[triangles].ravel()
+    own = local.triangles[triangles].ravel()
+    corners = local.blender_corners(own)  # Blender's per-corner data is read at these
     uv_maps = {}
     for layer in mesh.uv_layers:
         uv = np.empty(len(mesh.loops) * 2, np.float32)
@@ -2300,9 +2321,9 @@ def bake_job(material, node, socket, mesh, local, triangles):
     else:
         source = _linked_node(next(s for s in shader.inputs if s.identifier == socket))
     return material_bake.BakeJob(material=material, node=node, socket=socket, source=getattr(source, "name", ""),
-                                 positions=np.ascontiguousarray(local.positions[corners], np.float32),
+                                 positions=np.ascontiguousarray(local.positions[own], np.float32),
                                  uv_maps=uv_maps, render_uv=render, colors=colors, texspace=texspace,
-                                 normals=np.ascontiguousarray(local.normals[corners], np.float32))
+                                 normals=np.ascontiguousarray(local.normals[own], np.float32))
 
 
 #: Attribute data types an Attribute node reads as numbers, their `foreach_get` key and width.
@@ -2373,6 +2394,7 @@ def with_atlas(local, slots, baked_slots, bumped=frozenset()):
     own_uvs = local.uvs if local.normal_uvs is None else local.normal_uvs
     normal_uvs = [own_uvs]
     tangents = None if local.tangents is None else [local.tangents]
+    sources = [local.blender_corners(np.arange(local.positions.shape[0]))]
     triangles = local.triangles.copy()
     start = local.positions.shape[0]
     for s in baked_slots:
@@ -2380,6 +2402,7 @@ def with_atlas(local, slots, baked_slots, bumped=frozenset()):
         corners = local.triangles[sel].ravel()
         positions.append(local.positions[corners])
         normals.append(local.normals[corners])
+        sources.append(local.blender_corners(corners))
         if tangents is not None:
             tangents.append(local.tangents[corners])
         atlas = material_bake.atlas_uvs(len(sel), material_bake.bake_size(len(sel))).reshape(-1, 2)
@@ -2390,7 +2413,7 @@ def with_atlas(local, slots, baked_slots, bumped=frozenset()):
     return _LocalMesh(positions=np.concatenate(positions), normals=np.concatenate(normals),
                       uvs=np.concatenate(uvs).astype(np.float32), triangles=triangles, slot=local.slot,
                       tangents=None if tangents is None else np.concatenate(tangents),
-                      normal_uvs=np.concatenate(normal_uvs).astype(np.float32))
+                      normal_uvs=np.concatenate(normal_uvs).astype(np.float32), source=np.concatenate(sources))
 
 
 def _rgb(color):
