@@ -63,12 +63,16 @@ BSDF_LAMP_RATIO = 16.0
 #: Directions drawn from the sky map's power per receiver (`SkySampler`), weighed against the
 #: lobe's own samples by multiple importance sampling (`_sky_mis`), where the world has a map.
 SKY_SAMPLES = 2
-#: A-trous passes over the traced light (`filter_reflections`), taps 1, 2 and 4 pixels apart: a
-#: rough floor's reflection of a bright sky is smooth over many pixels, and 8 rays each under one
-#: pass left it blotchy (HDRI probe, floor roughness 0.6: the floor's part of Combined 0.022 -> 0.012
-#: at 320x180 against Cycles 1024 spp). The lobe-width term (`reflection_power`) keeps curved sharp
-#: lobes from that reach.
-FILTER_PASSES = 3
+#: A-trous passes over the traced light (`filter_reflections`), taps 1 and 2 pixels apart: a rough
+#: floor's reflection of a bright sky is smooth over many pixels, and 8 rays each under one pass
+#: left it blotchy. The lobe-width term (`reflection_power`) keeps curved sharp lobes from that
+#: reach, but not a flat floor's view turning across the image, which the normals do not show: a
+#: third pass (taps 4 pixels apart) blurred a grazing floor's reflection at 64x48
+#: (`test_reflection_rays_weigh_their_light_by_the_fresnel` 0.040) and morse_apartment's. HDRI
+#: probes at 320x180 against Cycles 1024 spp, passes 1 / 2 / 3: a ball on a roughness-0.6 floor
+#: 0.0325 / 0.0225 / 0.0199, with a metal torus 0.0586 / 0.0466 / 0.0455, a coated ball 0.0293 at 2
+#: (0.0268 at 3); morse_apartment r32 0.04671 at 3, 0.04603 at 2.
+FILTER_PASSES = 2
 #: The filter's normal exponent for lobes so rough that the lobe-width term is weaker (as the
 #: pixel rays' filter has it).
 FILTER_NORMAL_POWER = 8.0
@@ -76,7 +80,7 @@ FILTER_NORMAL_POWER = 8.0
 #: the normals part by alpha / sqrt(2): a neighbour whose mirror direction is ~1.4 lobe widths
 #: away no longer counts. Why: with one exponent (8) a metal torus (roughness 0.3) under an HDRI
 #: spread its bright grazing crescent a pixel inwards and dimmed it; 3 passes of it read the torus
-#: 0.022 -> 0.073 of Combined. Measured on that probe (3 passes): 2 -> 0.0245, 4 -> 0.0197,
+#: 0.022 -> 0.073 of Combined. Measured on that probe (3 passes then): 2 -> 0.0245, 4 -> 0.0197,
 #: 8 -> 0.0201, 16 -> 0.0233.
 REFLECTION_SHARPNESS = 4.0
 #: Lobes at least this rough have their lamp-sampled Glossy Direct filtered (`filter_lamp_glossy`):
