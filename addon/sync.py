@@ -955,6 +955,8 @@ def material_from_blender(material, textures=None, baked=None, pending=False, qu
             part.normal = replace(part.normal, bump=displaced)
         else:
             _note(textures, name, shader, "a Bump node and a Displacement: rendered with the Bump node's only")
+    if part.cover <= COVER_NONE:
+        part = replace(part, clear=1.0, refract=0.0)
     if part.clear >= snap.ALPHA_CUTOFF:
         # Most of its light passes: a hole for the camera and for rays (as Cycles shows a clear
         # pane, and its light reaches what lies behind), not the dark mirror its reflection alone
@@ -974,6 +976,7 @@ def material_from_blender(material, textures=None, baked=None, pending=False, qu
                              refractive=refractive, ior=ior, tint=tint, tint_reflection=tinted_reflection)
     if part.clear > 0:
         _note(textures, name, shader, f"lets {part.clear:.0%} of its light through (rendered opaque)")
+    coverage = 1.0 if part.cover >= COVER_FULL else float(part.cover)
     specular = part.surface()
     if specular is not None and sp.surface_lobes(specular):
         textures.glossy.add(name)
@@ -984,7 +987,14 @@ def material_from_blender(material, textures=None, baked=None, pending=False, qu
                          roughness_map=part.roughness_map if part.layer is not None else None,
                          metal_texture=part.metal_texture if part.layer is not None else None,
                          shadow_transparent=shadow_transparent, translucent=part.translucent, sheen=part.sheen,
-                         sheen_roughness=part.sheen_roughness, sheen_layered=part.sheen_layered)
+                         sheen_roughness=part.sheen_roughness, sheen_layered=part.sheen_layered,
+                         coverage=coverage)
+
+
+#: A surface seen with at most this chance (`SurfacePart.cover`: a constant alpha, a Transparent
+#: BSDF mixed in) is clear glass; with at least COVER_FULL, opaque.
+COVER_NONE = 0.02
+COVER_FULL = 0.98
 
 
 def frosted_share(roughness: float) -> float:
@@ -1065,15 +1075,16 @@ def _shader_surface(shader, textures, name, depth=0):
         emission, glow = _emission(shader, shader.inputs["Emission Color"], shader.inputs["Emission Strength"],
                                    textures, name)
         diffuse = sp.diffuse_weight(layer, sp.view_grid())
-        # What passes straight through: the transmitted share of what is not cut away, and what a
-        # constant alpha cuts away (an alpha texture cuts holes instead: `alpha`).
+        # What passes straight through the surface: its transmitted share. A constant alpha is the
+        # share of the light the surface stops at all (`cover`, the surface seen with that chance;
+        # an alpha texture cuts holes instead: `alpha`).
         alpha_socket = shader.inputs["Alpha"]
         opacity = 1.0 if alpha_socket.is_linked else float(np.clip(_constant_value(alpha_socket, name), 0.0, 1.0))
-        passing = opacity * (1.0 - float(np.clip(metallic, 0, 1)))
+        passing = 1.0 - float(np.clip(metallic, 0, 1))
         refract = passing * transmission
         # Frosted light counts half towards clear glass: a surface that scatters most of what
         # passes looks like a surface (a white ball at transmission 0.5) until nearly all passes.
-        clear = (1.0 - opacity) + passing * (transmission - 0.5 * frosted)
+        clear = passing * (transmission - 0.5 * frosted)
         sheen_colour, sheen_roughness = _principled_sheen(shader, textures, name)
         translucent = None
         if frosted > 0:
@@ -1088,7 +1099,7 @@ def _shader_surface(shader, textures, name, depth=0):
                                        metallic_map=None if metallic_map is None else metallic_map[..., 0],
                                        roughness_map=roughness_map,
                                        metal_texture=metal_texture,
-                                       clear=clear, refract=refract, sheen=sheen_colour,
+                                       clear=clear, refract=refract, cover=opacity, sheen=sheen_colour,
                                        glass=_glass_optics(shader, "Base Color", textures, name) if refract > 0 else None,
                                        sheen_roughness=sheen_roughness,
                                        sheen_layered=True, translucent=translucent)
@@ -1593,10 +1604,31 @@ def _mix_surface(shader, kind, textures, name, depth):
             return part if fac_map is None else _texel_mix(parts, fac_map, part)
         fac = _view_factor(socket, name)
         weights = [1.0 - fac, fac]
+        covered = _covering_part(nodes, parts, weights)
+        if covered is not None:
+            return covered
     part, notes = surface_mix.mix(parts, weights, name)
     for note in notes:
         _note(textures, name, shader, note)
     return part
+
+
+def _covering_part(nodes, parts, weights):
+    """The part of Mix(a surface, a white Transparent BSDF) by a constant factor: the surface, seen
+    with the chance of its weight (`SurfacePart.cover`), rather than a surface that weight dims
+    (the mix of their colours). None for any other mix."""
+    kinds = [node.type if node is not None else None for node in nodes]
+    if kinds.count("BSDF_TRANSPARENT") != 1 or None in kinds or not all(np.all(w == w[0]) for w in weights):
+        return None
+    t = kinds.index("BSDF_TRANSPARENT")
+    colour = nodes[t].inputs["Color"]
+    if colour.is_linked or not np.allclose(tuple(colour.default_value)[:3], 1.0, atol=1e-3):
+        return None  # a tinted Transparent BSDF: the mix as it is
+    share = float(weights[1 - t][0])
+    if not 0.0 < share < 1.0:
+        return None
+    part = parts[1 - t]
+    return replace(part, cover=part.cover * share)
 
 
 #: Cycles' melanin absorption per unit concentration (kernel/closure/bsdf_principled_hair*.h,

@@ -41,6 +41,10 @@ class Cutouts:
             # Triangles without a usable UV (NaN) stay solid.
             self._has &= np.isfinite(self._corner_uv).all(axis=(1, 2))
         self._clear = np.isin(self._material, clear) if clear else None
+        # Surfaces seen with a chance (`Material.coverage`): per triangle, 1 elsewhere.
+        cover = np.array([1.0 if i in clear else float(getattr(m, "coverage", 1.0)) for i, m in enumerate(materials)]
+                         + [1.0], np.float32)
+        self._cover = cover[self._material] if (cover < 1.0).any() else None
         refractive = [i for i in clear if getattr(materials[i], "refractive", False)]
         self._glass = np.isin(self._material, refractive) if refractive else None
         # Rays crossing glass (`glass_transmission`): (entering, leaving) share that passes.
@@ -52,7 +56,7 @@ class Cutouts:
 
     @property
     def any(self) -> bool:
-        return bool(self._has.any()) or self._clear is not None
+        return bool(self._has.any()) or self._clear is not None or self._cover is not None
 
     @property
     def shadow_any(self) -> bool:
@@ -74,6 +78,16 @@ class Cutouts:
         leaving = np.einsum("ij,ij->i", self._glass_normal[prim[rows]], d) > 0
         share = np.where(leaving, np.float32(self._glass_pass[1]), np.float32(self._glass_pass[0]))
         out[rows] = _hash01(prim[rows], u[rows], v[rows]) < share
+
+    def _uncovered(self, out: np.ndarray, prim: np.ndarray, u: np.ndarray, v: np.ndarray) -> None:
+        """Pass, in `out`, the hits on surfaces seen with a chance (`Material.coverage`) that the
+        hash of the hit draws as not seen: a point of the surface is seen by every ray or by
+        none, and its share of seen points is the coverage."""
+        rows = np.flatnonzero(prim >= 0)
+        cover = self._cover[prim[rows]]
+        rows, cover = rows[cover < 1.0], cover[cover < 1.0]
+        if rows.size:
+            out[rows] |= _hash01(prim[rows], u[rows], v[rows]) >= cover
 
     def shadow_passes_glass(self, prim: np.ndarray, u: np.ndarray, v: np.ndarray,
                             directions: np.ndarray | None = None) -> np.ndarray:
@@ -114,6 +128,8 @@ class Cutouts:
             out[hit] = self._clear[prim[hit]]
             if self._glass_normal is not None and directions is not None:
                 self._thin_glass(out, prim, u, v, np.asarray(directions, np.float32).reshape(-1, 3))
+        if self._cover is not None:
+            self._uncovered(out, prim, u, v)
         rows = np.flatnonzero(hit)
         rows = rows[self._has[prim[rows]]]
         if rows.size == 0:

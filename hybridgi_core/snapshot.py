@@ -222,9 +222,14 @@ class Material:
     #: Transparent BSDF on that side: glass that lets the lamps through); other rays see the surface
     shadow_transparent: bool = False
     #: most of the light passes straight through it (a Transparent BSDF, glass, a Principled BSDF's
-    #: transmission, a constant alpha under ALPHA_CUTOFF): rendered as clear thin glass, a hole
+    #: transmission; a constant alpha is `coverage`): rendered as clear thin glass, a hole
     #: for the camera and for every ray (`cutout.py`), with no refraction and no reflection
     clear: bool = False
+    #: the share of the light its surface stops where the rest passes straight through (a constant
+    #: alpha, a Transparent BSDF mixed in by a constant factor): the camera and every ray see the
+    #: surface with that chance, drawn per pixel and subframe (the G-buffer) and per hit
+    #: (`cutout.py`); the material's other values are its surface's where it is seen. 1: opaque
+    coverage: float = 1.0
     #: a clear material whose light passes by refraction (glass, a Principled BSDF's transmission,
     #: a Refraction BSDF), not a Transparent BSDF's or an alpha's: Cycles' shadow rays stop at it,
     #: so the sun and point / spot lamps do not shine through it (`cutout.Cutouts.glass`)

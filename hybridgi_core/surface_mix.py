@@ -64,6 +64,10 @@ class SurfacePart:
     metal_texture: np.ndarray | None = None
     clear: float = 0.0
     refract: float = 0.0
+    #: the share of the light the part's surface stops, the rest passing straight through (a
+    #: constant alpha, a Transparent BSDF mixed in): its other values are the surface's where it
+    #: is seen (`snapshot.Material.coverage`); mixed by the cosine-weighted mean of each part's weight
+    cover: float = 1.0
     #: (index of refraction, (3,) colour, whether the colour tints its reflection too) of the light
     #: it refracts, or None (`snapshot.Material.ior`)
     glass: tuple | None = None
@@ -183,6 +187,7 @@ def mix(parts: list[SurfacePart], weights: list[np.ndarray], name: str = "") -> 
     sheen_colour, sheen_roughness = _mixed_sheen(parts, weights)
     emission = sum(float(_cosine_mean(w)) * part.emission for part, w in zip(parts, weights, strict=True))
     clear = sum(float(_cosine_mean(w)) * part.clear for part, w in zip(parts, weights, strict=True))
+    cover = sum(float(_cosine_mean(w)) * part.cover for part, w in zip(parts, weights, strict=True))
     refract = sum(float(_cosine_mean(w)) * part.refract for part, w in zip(parts, weights, strict=True))
     # The refracting part that weighs most gives the mix its index and colour.
     refracting = [(float(_cosine_mean(w)) * part.refract, i) for i, (part, w) in enumerate(zip(parts, weights, strict=True))
@@ -199,7 +204,7 @@ def mix(parts: list[SurfacePart], weights: list[np.ndarray], name: str = "") -> 
         notes.append("closures with different normal inputs mixed (one normal map kept for all)")
     part = SurfacePart(base=np.asarray(base, np.float32), texture=texture, emission=np.asarray(emission, np.float32),
                        alpha=alpha, diffuse=None if np.allclose(diffuse, 1.0) else diffuse, lobes=lobes, normal=normal,
-                       emission_texture=glow, clear=float(np.clip(clear, 0.0, 1.0)),
+                       emission_texture=glow, clear=float(np.clip(clear, 0.0, 1.0)), cover=float(np.clip(cover, 0.0, 1.0)),
                        refract=float(np.clip(refract, 0.0, 1.0)), glass=glass, translucent=translucent,
                        sheen=sheen_colour, sheen_roughness=sheen_roughness)
     return part, notes

@@ -79,6 +79,13 @@ EXTRA_SUBFRAMES = 24
 EXTRA_PER_SUBFRAME = 3
 
 
+def subframe_dither(index: int) -> float:
+    """Subframe `index`'s offset of the G-buffer's coverage thresholds (`GBufferPass.execute`'s
+    dither): the golden ratio's multiples, so the centre raster (0) and any run of subframes
+    spread over [0, 1) and a pixel sees a surface of coverage c in about c of its samples."""
+    return float(((index + 1) * 0.6180339887498949) % 1.0)
+
+
 #: Steps of a final render's steps_ms that are GPU work (llvmpipe here, milliseconds on a GPU):
 #: the render targets' allocation (`addon/pipeline.py`), the G-buffer, downsample (+ its
 #: read-back), gather (+ the cache texture's upload), SSAO, bilateral, deferred, the film's
@@ -483,7 +490,8 @@ class FramePipeline:
                         shift = offset + focus_offset(proj, apertures[s], lens, self.width, self.height)
                         at = self._centre_locator(view, proj)
                     camera_proj = jittered_projection(proj, shift, self.width, self.height)
-                    gbuf = self.gbuffer.execute(sub_view, camera_proj, texture_filter=texture_filter)
+                    gbuf = self.gbuffer.execute(sub_view, camera_proj, texture_filter=texture_filter,
+                                                dither=subframe_dither(s))
                     normal = self.gbuffer.read("normal")
                     position = self.gbuffer.read("position")
                     surface = self.gbuffer.read_surface(normal)

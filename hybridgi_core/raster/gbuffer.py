@@ -339,11 +339,12 @@ class GBufferPass(RasterPass):
             samplers=((0, "FLOAT_2D", "albedo_tx"), (1, "FLOAT_2D", "weight_tx"), (2, "FLOAT_2D", "normal_tx"),
                       (3, "FLOAT_2D", "bump_tx"), (4, "FLOAT_2D", "emission_tx"), (5, "FLOAT_2D", "rough_tx"),
                       (6, "FLOAT_2D", "tint_tx"), (7, "FLOAT_2D", "metal_tx")),
-            # 104 bytes of push constants per material; the camera (80 bytes) is a UBO.
+            # 108 bytes of push constants per material; the camera (80 bytes) is a UBO.
             push=(("VEC4", "base_color"), ("VEC4", "fallback_albedo"), ("VEC4", "emission"), ("VEC4", "eye"),
                   ("VEC4", "rough_range"),
                   ("INT", "has_texture"), ("FLOAT", "texture_filter"), ("INT", "material_row"),
-                  ("FLOAT", "normal_strength"), ("FLOAT", "bump_strength"), ("FLOAT", "bump_distance")),
+                  ("FLOAT", "normal_strength"), ("FLOAT", "bump_strength"), ("FLOAT", "bump_distance"),
+                  ("FLOAT", "dither")),
             typedefs=CAMERA_TYPEDEF,
             ubos=((0, "CameraBlock", "camera"),),
             outputs=tuple((slot, "FLOAT" if ch == 1 else "VEC4", f"out_{name}")
@@ -510,7 +511,7 @@ class GBufferPass(RasterPass):
             self._draws += [_MaterialDraw(
                 batch=None,
                 ibo=gpu.types.GPUIndexBuf(type="TRIS", seq=np.ascontiguousarray(sel)),
-                base_color=(*base.tolist(), 1.0),
+                base_color=(*base.tolist(), float(np.clip(getattr(material, "coverage", 1.0), 0.0, 1.0))),
                 fallback_albedo=(*np.asarray(material.mean_albedo, np.float32).reshape(3).tolist(), 1.0),
                 emission=(*np.asarray(material.emission, np.float32).reshape(3).tolist(), 1.0),
                 texture=texture,
@@ -554,10 +555,13 @@ class GBufferPass(RasterPass):
             draw.batch.vertbuf_add(self._attr_vbo)
 
     # -- frame -------------------------------------------------------------------------------
-    def execute(self, view: np.ndarray, proj: np.ndarray, texture_filter: float = TEXTURE_FILTER) -> GBuffer:
+    def execute(self, view: np.ndarray, proj: np.ndarray, texture_filter: float = TEXTURE_FILTER,
+                dither: float = 0.0) -> GBuffer:
         """Rasterize with camera `view` (4, 4) world->camera and `proj` (4, 4) camera->clip
         (numpy or mathutils matrices, perspective or orthographic). texture_filter : pixels of
-        screen footprint each pixel's texture taps cover (see gbuffer_frag.glsl).
+        screen footprint each pixel's texture taps cover (see gbuffer_frag.glsl). dither : this
+        raster's offset of the thresholds at which surfaces seen with a chance (`Material.coverage`)
+        show, in [0, 1): a subframe's own (`subframe_dither`).
 
         Returns the GBuffer textures at the size set by `resize` (background only before `upload`).
         """
@@ -595,6 +599,7 @@ class GBufferPass(RasterPass):
                         shader.uniform_sampler("normal_tx", draw.normal or self._dummy_texture)
                     shader.uniform_float("bump_strength", draw.bump_strength)
                     shader.uniform_float("bump_distance", draw.bump_distance)
+                    shader.uniform_float("dither", float(dither))
                     shader.uniform_sampler("albedo_tx", draw.texture or self._dummy_texture)
                     shader.uniform_sampler("bump_tx", draw.bump or self._dummy_texture)
                     shader.uniform_sampler("emission_tx", draw.glow or self._dummy_texture)

@@ -200,6 +200,15 @@ void main()
   if ((has_texture & 2) != 0 && uv_ok > 0.999 && sample_repeat_bilinear4(albedo_tx, tex_uv).a < 0.5) {
     discard; /* a cut-out hole: what is behind shows (the rays see through it too, cutout.py) */
   }
+  if (base_color.a < 1.0) {
+    /* A surface seen with a chance (Material.coverage, in base_color.a): each pixel's threshold
+     * (interleaved gradient noise, Jimenez 2014) moves by the golden ratio per subframe
+     * (`dither`), so a pixel's subframes see it in about that share of their samples. */
+    float threshold = fract(52.9829189 * fract(dot(gl_FragCoord.xy, vec2(0.06711056, 0.00583715))));
+    if (fract(threshold + dither) >= base_color.a) {
+      discard;
+    }
+  }
   /* A textured metal (`tint_tx` row: mean texel, two main axes of its texture's colours, alpha
    * 1: glossy.metal_tint_basis): the texel's coordinates along the axes go to the albedo and
    * emission targets' alphas, its metallic lobe's colour per pixel. */
