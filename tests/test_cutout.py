@@ -14,7 +14,7 @@ import pytest
 from hybridgi_core.cutout import Cutouts
 from hybridgi_core.snapshot import Material, concat_geometry, geometry_from_arrays
 from hybridgi_core.trace.embree import EmbreeTracer
-from tests.cli_renders import layer, rendered
+from tests.cli_renders import STAGE_HELPERS, layer, rendered
 
 
 def _quad(z, material, uv=True):
@@ -172,30 +172,19 @@ def test_alpha_cutout_screen_against_cycles(tmp_path):
     assert error < 0.05, error
 
 
-VEIL = textwrap.dedent("""
-    import math, sys, bpy
-    from mathutils import Vector
+VEIL = "import math, sys, bpy\nfrom mathutils import Vector\n" + STAGE_HELPERS + textwrap.dedent("""
     bpy.ops.wm.read_homefile(use_empty=True)
     scene = bpy.context.scene
-    def principled(name, colour, alpha=1.0):
-        material = bpy.data.materials.new(name)
-        material.use_nodes = True
-        bsdf = material.node_tree.nodes["Principled BSDF"]
-        bsdf.inputs["Base Color"].default_value = (*colour, 1.0)
-        bsdf.inputs["Alpha"].default_value = alpha
-        return material
     bpy.ops.mesh.primitive_plane_add(size=12.0)
-    bpy.context.active_object.data.materials.append(principled("floor", (0.6, 0.6, 0.6)))
+    bpy.context.active_object.data.materials.append(material("floor", (0.6, 0.6, 0.6)))
     bpy.ops.mesh.primitive_uv_sphere_add(radius=0.6, location=(0.2, 1.0, 0.6))
-    bpy.context.active_object.data.materials.append(principled("ball", (0.8, 0.3, 0.2)))
+    bpy.context.active_object.data.materials.append(material("ball", (0.8, 0.3, 0.2)))
     # A veil of alpha 0.35 in front of the ball, casting a 65% shadow.
+    veil = material("veil", (0.2, 0.4, 0.9))
+    veil.node_tree.nodes["Principled BSDF"].inputs["Alpha"].default_value = 0.35
     bpy.ops.mesh.primitive_plane_add(size=2.0, location=(0.0, -0.3, 1.0), rotation=(math.radians(90), 0.0, 0.2))
-    bpy.context.active_object.data.materials.append(principled("veil", (0.2, 0.4, 0.9), alpha=0.35))
-    camera = bpy.data.objects.new("camera", bpy.data.cameras.new("camera"))
-    camera.location = (0.0, -6.0, 2.5)
-    camera.rotation_euler = (Vector((0.0, 0.0, 0.8)) - camera.location).to_track_quat("-Z", "Y").to_euler()
-    scene.collection.objects.link(camera)
-    scene.camera = camera
+    bpy.context.active_object.data.materials.append(veil)
+    camera_at((0.0, -6.0, 2.5), (0.0, 0.0, 0.8))
     lamp = bpy.data.objects.new("key", bpy.data.lights.new("key", "AREA"))
     lamp.data.energy = 400.0
     lamp.data.size = 1.5
@@ -206,6 +195,7 @@ VEIL = textwrap.dedent("""
     scene.world.color = (0.15, 0.17, 0.2)
     bpy.ops.wm.save_as_mainfile(filepath=sys.argv[-1])
 """)
+
 
 
 @pytest.mark.blender

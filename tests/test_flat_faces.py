@@ -9,7 +9,7 @@ import pytest
 
 from hybridgi_core import flat_faces
 from hybridgi_core.corner_triangles import from_sizes
-from tests.cli_renders import layer, rendered, run_bpy
+from tests.cli_renders import STAGE_HELPERS, layer, rendered, run_bpy
 
 
 def _quad(lift: float):
@@ -57,8 +57,7 @@ def test_planar_or_smooth_faces_keep_their_corners():
     assert flat_faces.bent_flat_triangles(np.array([True]), positions, normals, triangles, tri_face).size == 0
 
 
-SCENE = """
-import bpy, mathutils
+SCENE = "import bpy\nfrom mathutils import Vector\n" + STAGE_HELPERS + """
 bpy.ops.wm.read_homefile(use_empty=True)
 scene = bpy.context.scene
 bpy.ops.mesh.primitive_grid_add(x_subdivisions=12, y_subdivisions=12, size=6)
@@ -68,18 +67,12 @@ texture.noise_scale = 0.8
 displace = grid.modifiers.new("displace", "DISPLACE")
 displace.texture = texture
 displace.strength = 0.8
-material = bpy.data.materials.new("ground")
-material.use_nodes = True
-grid.data.materials.append(material)
+grid.data.materials.append(material("ground", (0.8, 0.8, 0.8)))
 sun = bpy.data.objects.new("sun", bpy.data.lights.new("sun", "SUN"))
 scene.collection.objects.link(sun)
 sun.rotation_euler = (0.7, 0.0, 0.5)
 sun.data.energy = 3.0
-camera = bpy.data.objects.new("camera", bpy.data.cameras.new("camera"))
-scene.collection.objects.link(camera)
-scene.camera = camera
-camera.location = (5.0, -6.0, 5.0)
-camera.rotation_euler = (mathutils.Vector((0.0, 0.0, 0.0)) - camera.location).to_track_quat("-Z", "Y").to_euler()
+camera_at((5.0, -6.0, 5.0), (0.0, 0.0, 0.0))
 scene.world = bpy.data.worlds.new("world")
 scene.world.color = (0.2, 0.25, 0.3)
 bpy.ops.wm.save_as_mainfile(filepath=PATH)

@@ -9,38 +9,26 @@ import numpy as np
 import pytest
 
 from hybridgi_core.penumbra import dilate
-from tests.cli_renders import layer, rendered, run_bpy
+from tests.cli_renders import STAGE_HELPERS, layer, rendered, run_bpy
 
 RES = "128x72"
 
 pytestmark = [pytest.mark.blender, pytest.mark.slow]
 
-SCENE = """
-import math, bpy
-from mathutils import Vector
+SCENE = "import math, bpy\nfrom mathutils import Vector\n" + STAGE_HELPERS + """
 bpy.ops.wm.read_homefile(use_empty=True)
 scene = bpy.context.scene
-def principled(name, colour, roughness, metallic=0.0):
-    m = bpy.data.materials.new(name)
-    m.use_nodes = True
-    bsdf = m.node_tree.nodes["Principled BSDF"]
-    bsdf.inputs["Base Color"].default_value = (*colour, 1.0)
-    bsdf.inputs["Roughness"].default_value = roughness
-    bsdf.inputs["Metallic"].default_value = metallic
-    return m
 bpy.ops.mesh.primitive_plane_add(size=20.0)
-bpy.context.active_object.data.materials.append(principled("floor", (0.5, 0.5, 0.5), 0.6))
+bpy.context.active_object.data.materials.append(material("floor", (0.5, 0.5, 0.5), 0.6))
 bpy.ops.mesh.primitive_uv_sphere_add(radius=0.8, location=(-0.9, 0.0, 0.8), segments=64, ring_count=32)
 bpy.ops.object.shade_smooth()
-bpy.context.active_object.data.materials.append(principled("ball", (0.6, 0.05, 0.05), 0.05))
+bpy.context.active_object.data.materials.append(material("ball", (0.6, 0.05, 0.05), 0.05))
 bpy.ops.mesh.primitive_torus_add(location=(1.0, 0.2, 0.5), major_radius=0.6, minor_radius=0.25)
 bpy.ops.object.shade_smooth()
-bpy.context.active_object.data.materials.append(principled("torus", (0.9, 0.9, 0.92), 0.3, 1.0))
-camera = bpy.data.objects.new("camera", bpy.data.cameras.new("camera"))
-camera.location = (0.0, -5.0, 2.2)
-camera.rotation_euler = (Vector((0.0, 0.0, 0.5)) - camera.location).to_track_quat("-Z", "Y").to_euler()
-scene.collection.objects.link(camera)
-scene.camera = camera
+metal = material("torus", (0.9, 0.9, 0.92), 0.3)
+metal.node_tree.nodes["Principled BSDF"].inputs["Metallic"].default_value = 1.0
+bpy.context.active_object.data.materials.append(metal)
+camera_at((0.0, -5.0, 2.2), (0.0, 0.0, 0.5))
 sun = bpy.data.objects.new("sun", bpy.data.lights.new("sun", "SUN"))
 sun.data.energy = 4.0
 sun.data.angle = math.radians(1.0)
