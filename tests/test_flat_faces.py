@@ -9,7 +9,7 @@ import pytest
 
 from hybridgi_core import flat_faces
 from hybridgi_core.corner_triangles import from_sizes
-from tests.cli_renders import STAGE_HELPERS, layer, rendered, run_bpy
+from tests.cli_renders import STAGE_HELPERS, layer, pass_error, rendered, run_bpy
 
 
 def _quad(lift: float):
@@ -89,8 +89,7 @@ def test_a_displaced_flat_grid_is_shaded_facet_by_facet_as_in_cycles(tmp_path):
     ours = rendered(blend, tmp_path / "hg", "96x54")
     cycles = rendered(blend, tmp_path / "cy", "96x54", "--engine", "CYCLES", "--samples", "256")
     geometry = layer(cycles, "Depth", "Z")[..., 0] < 1e9
-    mine, ref = layer(ours, "Combined"), layer(cycles, "Combined")
-    error = float(np.abs(mine - ref)[geometry].sum() / np.abs(ref)[geometry].sum())
+    error = pass_error(ours, cycles, "Combined", geometry)
     print(f"Combined {error:.4f}")
     assert error < 0.04, error
     # The Normal pass is Cycles' facet by facet.
