@@ -154,8 +154,12 @@ class SurfaceTable:
         """The emissive triangles sampled as lights (`emitters.MeshLights`, None without), and the
         (T + 1,) mask of them (the -1 of missed rays last, False): rays that hit one bring its
         emission to the camera and to glossy lobes, but not to diffuse receivers, which sample
-        it (`diffuse_emission`). Textured emission stays the rays' alone."""
-        skip = np.isin(self.material_index, np.asarray(self.glowing, np.int32)) if self.glowing else None
+        it (`diffuse_emission`). Textured emission stays the rays' alone, and so does the emission
+        of surfaces seen with a chance (`Material.coverage`): the rays meet it with that chance,
+        where samples of it would light as if it were whole."""
+        rays_only = sorted(set(self.glowing) | {i for i, m in enumerate(self.materials)
+                                                  if getattr(m, "coverage", 1.0) < 1.0})
+        skip = np.isin(self.material_index, np.asarray(rays_only, np.int32)) if rays_only else None
         self.emitters = MeshLights.from_packed(self._positions, self.records[:-1, _EMIT], skip,
                                                np.asarray(self._geometry.object_index))
         self.sampled = np.zeros(self.records.shape[0], bool)

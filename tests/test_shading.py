@@ -183,3 +183,16 @@ def test_a_mix_shader_weighs_an_emission_texture_and_adds_the_other_emission():
     plain, _ = surface_mix.mix([flat, flat], [surface_mix.constant_factor(0.5)] * 2)
     assert plain.emission_texture is None
     np.testing.assert_allclose(plain.emission, [0.0, 4.0, 0.0], rtol=1e-6)
+
+
+def test_emitters_seen_with_a_chance_are_left_to_the_rays():
+    """An emissive quad seen with a chance (`Material.coverage` 0.5: a glowing veil of Alpha 0.5)
+    is not sampled as a light (`SurfaceTable.emitters`): rays meet its emission with that chance,
+    where samples would light as if it were whole. The same quad seen whole is sampled."""
+    glow = np.array([3.0, 2.0, 1.0], np.float32)
+    whole = SurfaceTable(floor_quads(), [Material("floor"), Material("lamp", emission=glow)])
+    assert whole.emitters is not None and whole.sampled[2:4].all()
+    veiled = SurfaceTable(floor_quads(), [Material("floor"), Material("lamp", emission=glow, coverage=0.5)])
+    assert veiled.emitters is None and not veiled.sampled.any()
+    # Its rays still bring the emission where they meet it.
+    np.testing.assert_allclose(veiled.emission_of(np.array([2])), [glow])
