@@ -91,14 +91,12 @@ class Cutouts:
 
     def shadow_passes_glass(self, prim: np.ndarray, u: np.ndarray, v: np.ndarray,
                             directions: np.ndarray | None = None) -> np.ndarray:
-        """(n,) bool: a shadow ray of a lamp that glass stops passes the hit: a hole or a triangle
-        shadow rays pass (`shadow_transparent`), but not refractive glass. Cycles' shadow rays stop
+        """(n,) bool: a shadow ray of a lamp that glass stops passes the hit: where a camera ray
+        passes (`camera_passes`: a hole, not refractive glass) or on a triangle shadow rays pass
+        (`shadow_transparent`). Cycles' shadow rays stop
         at glass closures, and the light it refracts reaches a diffuse surface only along caustic
         paths: a sun through a glazed window leaves no sunlit patch at 1024 spp, clamped or not."""
-        passes = self.transparent(prim, u, v)
-        if self._glass is not None:
-            passes &= ~((prim >= 0) & self._glass[np.maximum(prim, 0)])
-        return passes | self.shadow_transparent(prim)
+        return self.camera_passes(prim, u, v) | self.shadow_transparent(prim)
 
     def camera_passes(self, prim: np.ndarray, u: np.ndarray, v: np.ndarray, directions=None) -> np.ndarray:
         """(n,) bool: a camera ray passes the hit: a hole or clear surface, but not refractive glass,

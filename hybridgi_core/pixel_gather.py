@@ -624,7 +624,13 @@ def _chunk_shade(state: dict, screen: ScreenLight | None = None):
     # found blocked (`sky_ratio`), which needs the sky in every ray's direction, blocked or not.
     world = system.updater.scene.world
     sky_open = sky_irradiance(world) if smooth is None and s.indirect_quality != AO_ONLY else None
-    sky = _sky_along(world, dirs, hits, res[:, 9:12], sky_open, nrm, rays) if sky_open is not None else None
+    sky = unshadowed = share = None
+    if sky_open is not None:
+        # The sky's unshadowed light and the open-sky estimate's weight against the cache's
+        # direct light (res[:, 9:12]), which the rays do not change.
+        unshadowed = sky_open.irradiance(nrm)
+        share = open_share(res[:, 9:12], unshadowed)
+        sky = _sky_along(world, dirs, hits, share, rays)
     radiance = hit_radiance(system, lookup, origins, dirs, hits, rng, times, screen=screen, near=near,
                             near_rng=np.random.default_rng(rng.bit_generator.seed_seq.spawn(1)[0]), sky=sky,
                             sampled_emitters=screen is not None and screen.emitters_sampled)
@@ -655,7 +661,7 @@ def _chunk_shade(state: dict, screen: ScreenLight | None = None):
     # spread around their control variate: what the filter may average away as noise.
     lum_d = r[..., 0:3] @ LUMA - np.matmul(y_lit, (sh_d @ LUMA)[..., None])[..., 0]
     if sky_open is not None:
-        lum_d = _open_sky_band(res, lum_d, sky_open, sky, hits, radiance, nrm, rays)
+        lum_d = _open_sky_band(res, lum_d, unshadowed, share, sky, hits, radiance, rays)
     lum_i = r[..., 3:6] @ LUMA - np.matmul(y_lit, (sh_i @ LUMA)[..., None])[..., 0]
     ao = visible.reshape(m, rays) - np.where(covered[:, None], np.matmul(y, sh_a[..., None])[..., 0], np.float32(1.0))
     of_mean = np.float32(1.0 / max(rays - 1, 1))  # sample variance / N
@@ -691,14 +697,12 @@ def _ao_rays(smooth: np.ndarray | None, nrm: np.ndarray, dirs: np.ndarray, y: np
     return w, np.einsum("mr,mrk->mk", w, y) / total[:, None]
 
 
-def _sky_along(world, dirs: np.ndarray, hits, cache_direct: np.ndarray, sky_open, nrm: np.ndarray,
-               rays: int) -> np.ndarray:
+def _sky_along(world, dirs: np.ndarray, hits, share: np.ndarray, rays: int) -> np.ndarray:
     """(m rays, 3) float32 the world's radiance along the rays `_open_sky_band` and `hit_radiance`
-    read it on: every ray of the pixels that take the open-sky estimate (`open_share` of the
-    cache's direct light `cache_direct` (m, 3) above 0), and the rays that escape; 0 along the
-    rest, which the band weighs by 0. Why: a room's pixels see the sky through a window only,
-    and the map's lookups along all of their blocked rays were ~0.3 s of CPU per 320x180 frame."""
-    share = open_share(cache_direct, sky_open.irradiance(nrm))
+    read it on: every ray of the pixels that take the open-sky estimate (its weight `share` (m,),
+    `open_share`, above 0), and the rays that escape; 0 along the rest, which the band weighs by
+    0. Why: a room's pixels see the sky through a window only, and the map's lookups along all
+    of their blocked rays were ~0.3 s of CPU per 320x180 frame."""
     need = np.repeat(share > 0, rays) | (hits.prim < 0)
     if need.all():
         return world.radiance(dirs)
@@ -709,19 +713,20 @@ def _sky_along(world, dirs: np.ndarray, hits, cache_direct: np.ndarray, sky_open
     return sky
 
 
-def _open_sky_band(res: np.ndarray, lum_cv: np.ndarray, sky_open, sky: np.ndarray, hits, radiance: np.ndarray,
-                   nrm: np.ndarray, rays: int) -> np.ndarray:
+def _open_sky_band(res: np.ndarray, lum_cv: np.ndarray, unshadowed: np.ndarray, share: np.ndarray, sky: np.ndarray,
+                   hits, radiance: np.ndarray, rays: int) -> np.ndarray:
     """The direct band of m pixels under a sky map (`_chunk`): where the cache finds the sky mostly
     open, its exact unshadowed light less what the rays found blocked, plus the emitters they hit
     (`sky_ratio`), blended into the control-variate estimate by that openness (a weight the rays
     do not set: unbiased). Writes res[:, 0:3] (the residual against the cache's res[:, 9:12]) and
-    returns the (m, rays) per-ray luminance terms of the blend (lum_cv: the control variate's)."""
+    returns the (m, rays) per-ray luminance terms of the blend (lum_cv: the control variate's).
+    unshadowed : (m, 3) the sky's unshadowed irradiance at the pixels (`SkyIrradiance`); share :
+    (m,) the open estimate's weight (`open_share`)."""
     m = res.shape[0]
     escaped = hits.prim < 0
     emitted = np.where(escaped[:, None], np.float32(0.0), radiance[:, 0:3]).reshape(m, rays, 3)
-    unshadowed = sky_open.irradiance(nrm)
     sky_light, sky_terms = open_sky_estimate(unshadowed, sky, escaped, rays)
-    share = open_share(res[:, 9:12], unshadowed)[:, None]
+    share = share[:, None]
     open_res = sky_light + emitted.mean(axis=1) * np.float32(np.pi) - res[:, 9:12]
     res[:, 0:3] = share * open_res + (1 - share) * res[:, 0:3]
     return share * (sky_terms + emitted @ LUMA) + (1 - share) * lum_cv

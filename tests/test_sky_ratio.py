@@ -124,7 +124,9 @@ def test_the_sky_is_read_where_the_open_estimate_or_an_escaped_ray_needs_it():
     d[:, 2] = np.abs(d[:, 2])
     d /= np.linalg.norm(d, axis=1, keepdims=True)
     prim = np.array([5, -1, 5, 5, 5, -1, 5, 5])  # rays 1 and 5 escape
-    got = pixel_gather._sky_along(world, d, SimpleNamespace(prim=prim), cache_direct, table, nrm, 4)
+    share = open_share(cache_direct, unshadowed)
+    assert share[0] == 1.0 and share[1] == 0.0
+    got = pixel_gather._sky_along(world, d, SimpleNamespace(prim=prim), share, 4)
     full = sky.radiance(d)
     np.testing.assert_array_equal(got[:4], full[:4])
     np.testing.assert_array_equal(got[5], full[5])

@@ -46,6 +46,7 @@ from .subframe_glossy import subframe_glossy
 from .subpixel import (
     CentreSample,
     FilmAccumulator,
+    compared_normal,
     gi_edges,
     jittered_projection,
     reconstruction_taps,
@@ -820,9 +821,8 @@ class FramePipeline:
         subframe sees a neighbour's surface taking that neighbour's light (`subframe_glossy`).
         Step "glossy"."""
         with stats.step("glossy"):
-            bent = surface is not None and surface is not normal and centre.surface is not None
-            moved = subframe_glossy(self._glossy_total, centre, hit, same, position, surface if bent else normal,
-                                    self.width)
+            moved = subframe_glossy(self._glossy_total, centre, hit, same, position,
+                                    compared_normal(centre, normal, surface), self.width)
             if moved is None:
                 return self._glossy_tex
             return upload_texture_2d(moved.reshape(self.height, self.width, 4), "RGBA32F")

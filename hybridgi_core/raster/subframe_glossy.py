@@ -35,7 +35,7 @@ def subframe_glossy(glossy: np.ndarray, centre, hit: np.ndarray, same: np.ndarra
     centre's `glossy` (h w, 4) at every pixel that matters (the subframe sees the centre's surface
     or nothing). centre : the frame's `subpixel.CentreSample`; hit, same : `subframe_surfaces`;
     position, normal : the subframe's read-backs ((h, w, 4), (h, w, >= 3)), normal the one
-    `subframe_surfaces` compared (the smooth surface normal where a material bends normals)."""
+    `subframe_surfaces` compared (`subpixel.compared_normal`)."""
     need = np.flatnonzero(hit & ~same)
     if need.size == 0:
         return None

@@ -439,6 +439,18 @@ def surface_edges(position: np.ndarray, normal: np.ndarray, depth: np.ndarray) -
     return edge
 
 
+def bends_normals(centre: CentreSample, normal: np.ndarray, surface: np.ndarray | None) -> bool:
+    """Whether a subframe's `surface` read-back is the smooth surface under shading normals
+    (`normal`) that a material bends, with the centre's own (`CentreSample.surface`)."""
+    return surface is not None and surface is not normal and centre.surface is not None
+
+
+def compared_normal(centre: CentreSample, normal: np.ndarray, surface: np.ndarray | None) -> np.ndarray:
+    """The subframe normals surfaces are told apart by (`subframe_surfaces`, `subframe_glossy`):
+    the smooth surface read-back where a material bends normals, else the shading normals."""
+    return surface if bends_normals(centre, normal, surface) else normal
+
+
 def subframe_surfaces(centre: CentreSample, position: np.ndarray, normal: np.ndarray,
                       surface: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """((h * w,) bool, (h * w,) bool): pixels where the subframe (read-backs (h, w, 4) /
@@ -450,8 +462,8 @@ def subframe_surfaces(centre: CentreSample, position: np.ndarray, normal: np.nda
     pos = position.reshape(n_pix, -1)
     nrm = normal.reshape(n_pix, -1)
     hit = pos[:, 3] > 0.5
-    bent = surface is not None and surface is not normal and centre.surface is not None
-    geo = surface.reshape(n_pix, -1) if bent else nrm
+    bent = bends_normals(centre, normal, surface)
+    geo = compared_normal(centre, normal, surface).reshape(n_pix, -1)
     # Whole-image arrays (no gathers): the comparison is the bulk of a subframe's CPU work.
     same = hit & (centre.position[:, 3] > 0.5) & same_surface(centre.position, centre.surface_normal, pos, geo,
                                                               centre.depth)
