@@ -11,25 +11,19 @@ import textwrap
 import numpy as np
 import pytest
 
-from tests.cli_renders import layer, rendered
+from tests.cli_renders import STAGE_HELPERS, layer, rendered
 
 pytestmark = [pytest.mark.blender, pytest.mark.slow]
 
 RES = "128x72"
 
-SCENE = textwrap.dedent("""
-    import sys, math, bpy
-    from mathutils import Vector
+SCENE = "import sys, math, bpy\nfrom mathutils import Vector\n" + STAGE_HELPERS + textwrap.dedent("""
     bpy.ops.wm.read_homefile(use_empty=True)
     scene = bpy.context.scene
-    def material(name, color, emit=0.0):
-        m = bpy.data.materials.new(name)
-        if m.node_tree is None:
-            m.use_nodes = True
-        bsdf = m.node_tree.nodes["Principled BSDF"]
-        bsdf.inputs["Base Color"].default_value = (*color, 1.0)
-        bsdf.inputs["Roughness"].default_value = 0.8
+    def matte(name, color, emit=0.0):
+        m = material(name, color, 0.8)
         if emit:
+            bsdf = m.node_tree.nodes["Principled BSDF"]
             bsdf.inputs["Emission Color"].default_value = (1.0, 0.95, 0.85, 1.0)
             bsdf.inputs["Emission Strength"].default_value = emit
         return m
@@ -42,20 +36,15 @@ SCENE = textwrap.dedent("""
             bpy.ops.object.mode_set(mode="EDIT")
             bpy.ops.mesh.flip_normals()
             bpy.ops.object.mode_set(mode="OBJECT")
-    white = material("white", (0.75, 0.75, 0.75))
+    white = matte("white", (0.75, 0.75, 0.75))
     box((0, 0, 1.5), (5, 6, 3), white, inward=True)
     box((0.3, 0.8, 0.4), (1.2, 0.8, 0.8), white)
-    box((-1.5, 2.0, 0.9), (0.8, 0.6, 1.8), material("red", (0.7, 0.1, 0.1)))
+    box((-1.5, 2.0, 0.9), (0.8, 0.6, 1.8), matte("red", (0.7, 0.1, 0.1)))
     bpy.ops.mesh.primitive_plane_add(size=0.6, location=(0, 0.5, 2.98))
     panel = bpy.context.object
     panel.rotation_euler = (math.pi, 0, 0)
-    panel.data.materials.append(material("panel", (0.8, 0.8, 0.8), emit=60.0))
-    cam = bpy.data.objects.new("camera", bpy.data.cameras.new("camera"))
-    cam.data.lens = 24
-    cam.location = (0.5, -2.7, 1.6)
-    cam.rotation_euler = (Vector((0, 1.0, 1.0)) - cam.location).to_track_quat("-Z", "Y").to_euler()
-    scene.collection.objects.link(cam)
-    scene.camera = cam
+    panel.data.materials.append(matte("panel", (0.8, 0.8, 0.8), emit=60.0))
+    camera_at((0.5, -2.7, 1.6), (0, 1.0, 1.0), lens=24)
     world = bpy.data.worlds.new("w")
     world.color = (0, 0, 0)
     if world.node_tree is None:

@@ -7,6 +7,7 @@ import pytest
 
 from hybridgi_core import refraction
 from hybridgi_core.levels import hit_lookup
+from tests.cli_renders import STAGE_HELPERS
 
 
 def test_snell_and_total_internal_reflection():
@@ -151,26 +152,18 @@ def test_a_ball_inverts_the_view_behind_it(ior):
     assert (lum[x < 0] > 0.8).all() and (lum[x > 0] < 0.1).all(), lum  # straight through it was the other way
 
 
-BALL_SCENE = """
-import math, sys, bpy
+BALL_SCENE = "import math, sys, bpy\nfrom mathutils import Vector\n" + STAGE_HELPERS + """
 bpy.ops.wm.read_homefile(use_empty=True)
 scene = bpy.context.scene
-def material(name, colour, transmission=0.0):
-    m = bpy.data.materials.new(name)
-    if m.node_tree is None:
-        m.use_nodes = True
-    bsdf = m.node_tree.nodes["Principled BSDF"]
-    bsdf.inputs["Base Color"].default_value = (*colour, 1.0)
-    bsdf.inputs["Roughness"].default_value = 0.0 if transmission else 0.7
-    bsdf.inputs["Transmission Weight"].default_value = transmission
-    return m
+glass = material("glass", (1.0, 1.0, 1.0), 0.0)
+glass.node_tree.nodes["Principled BSDF"].inputs["Transmission Weight"].default_value = 1.0
 bpy.ops.mesh.primitive_plane_add(size=12)
-bpy.context.object.data.materials.append(material("floor", (0.7, 0.7, 0.7)))
+bpy.context.object.data.materials.append(material("floor", (0.7, 0.7, 0.7), 0.7))
 bpy.ops.mesh.primitive_cube_add(size=1, location=(0.0, 1.5, 0.5))
-bpy.context.object.data.materials.append(material("box", (0.8, 0.2, 0.1)))
+bpy.context.object.data.materials.append(material("box", (0.8, 0.2, 0.1), 0.7))
 bpy.ops.mesh.primitive_uv_sphere_add(radius=0.6, location=(-0.3, 0.0, 0.6), segments=48, ring_count=24)
 bpy.ops.object.shade_smooth()
-bpy.context.object.data.materials.append(material("glass", (1.0, 1.0, 1.0), transmission=1.0))
+bpy.context.object.data.materials.append(glass)
 sun = bpy.data.objects.new("sun", bpy.data.lights.new("sun", "SUN"))
 sun.data.energy = 3.0
 sun.rotation_euler = (math.radians(40), 0, math.radians(-60))
