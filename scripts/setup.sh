@@ -49,6 +49,19 @@ if [ ${#PY[@]} -eq 0 ]; then
   exit 1
 fi
 [ -x "$VENV/bin/python" ] || "${PY[@]}" -m venv "$VENV"
-"$VENV/bin/python" -m pip install -q --upgrade pip
-"$VENV/bin/python" -m pip install -q -e ".[dev]" "bpy==$BPY"
+
+# The bpy wheels are 300-430 MB: a dropped connection or a full disk must not end the set-up on a
+# first try nor leave a half-written environment behind. pip resumes a broken download itself
+# (--resume-retries, pip 25.1+); a failed install is tried again from the start after a pause.
+pip_install() {
+  local attempt
+  for attempt in 1 2 3; do
+    if "$VENV/bin/python" -m pip install -q --retries 10 --timeout 60 "$@"; then return 0; fi
+    echo "setup: pip install $* failed (try $attempt of 3); free disk: $(df -h . | awk 'NR==2 {print $4}')" >&2
+    [ "$attempt" -lt 3 ] && sleep $((attempt * 20))
+  done
+  return 1
+}
+pip_install --upgrade pip
+pip_install --resume-retries 20 -e ".[dev]" "bpy==$BPY"
 "$VENV/bin/python" -c "import bpy, embreex, fast_simplification, numpy; print('setup: ok, bpy', bpy.app.version_string, 'numpy', numpy.__version__)"
