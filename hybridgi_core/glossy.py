@@ -364,7 +364,7 @@ def _lobe_terms(mats: GlossyMaterials, rows, n, v, lx, ly, lz, widen=None):
         terms = [None, s5 if np.any(k[:, 2]) else None, s6c if np.any(k[:, 3]) else None]
         if np.any(k[:, 1]):
             f0_real = mats.f0_real[slot, rows][:, None].astype(_F32)
-            terms[0] = _fresnel_remap(cos_hi, mats.eta[slot, rows][:, None], f0_real).astype(_F32)
+            terms[0] = _remapped_dielectric(cos_hi, mats.eta[slot, rows], f0_real[:, 0])
         out.append((common, terms, slot_coefficients(mats, slot, rows, mu_i[:, 0], mu_view)[0]))
     return out
 
@@ -438,11 +438,14 @@ def _coefficient_table(mats: GlossyMaterials, slot: int, rows: np.ndarray) -> np
 
 
 def _remapped_dielectric(c: np.ndarray, eta: np.ndarray, f0: np.ndarray) -> np.ndarray:
-    """(m, s) float32 Cycles' fresnel_dielectric_cos at cosines c (m, s) for IORs eta (m,) at least
-    1, mapped from [f0, 1] to [0, 1] (`_fresnel_remap` in float32 and without its NaN guards:
-    both denominators are kept from 0)."""
+    """(m, s) float32 Cycles' fresnel_dielectric_cos at cosines c (m, s) in [0, 1] for IORs eta
+    (m,), mapped from [f0, 1] to [0, 1]: `_fresnel_remap` in float32 and without its NaN guards
+    (both denominators are kept from 0; a cosine of 0 is taken as 1e-6, where total internal
+    reflection and the grazing limit both give 1). Six times faster than the float64 form on the
+    lobes' (m, s) samples (`_lobe_terms`: 0.1 s of bunny_npm's frame)."""
     eta = np.asarray(eta, _F32)[:, None]
     f0 = np.asarray(f0, _F32)[:, None]
+    c = np.maximum(c, _F32(1e-6))
     g = np.sqrt(np.maximum(eta * eta - _F32(1.0) + c * c, _F32(0.0)))
     a = (g - c) / np.maximum(g + c, _F32(1e-12))
     b = (c * (g + c) - _F32(1.0)) / np.maximum(c * (g - c) + _F32(1.0), _F32(1e-12))
