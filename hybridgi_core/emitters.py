@@ -10,8 +10,12 @@ area) and points uniform on each, and traces a shadow ray to each point.
 
 Emission is two-sided, as the rays read it (`shading.SurfaceTable.emission_of` on any hit), except
 where an object's emissive triangles close a volume: their inner side is never seen (`_sides`).
-Textured emission (`SurfaceTable.glowing`) is not sampled here: its radiance varies over the
-triangle, and rays keep estimating it.
+
+Textured emission (a screen, a sign, a glTF emissive map: `SurfaceTable.glowing`) is sampled as
+well where the scene's emitters are few (`SurfaceTable._set_emitters`): a triangle is chosen by its mean radiance (`radiance`, the texture averaged over the
+triangle) and each sample reads the texture at its own point (`texture`). Left to the rays, a
+checkered neon sign lit its wall and floor 28% dim (Diffuse Direct against Cycles; the rays' rare
+bright hits are what the residual's filter spreads thinnest).
 
 Where it is used (final renders with pixel rays): the frame's full-res direct light adds it at
 every pixel (`FramePipeline._centre_direct`; subframes at the pixels that see another surface),
@@ -27,7 +31,8 @@ numpy only (no bpy).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from collections.abc import Callable
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -90,6 +95,10 @@ class MeshLights:
     group_share : (G,) float64 each compact emitter's share of the power (its triangles' choose)
     side : (k,) int8 the side a triangle's light leaves by: +1 its normal's, -1 the other, 0 both
         (`_sides`); None: both
+    glows : (k,) bool the triangles whose radiance varies over them (an emission texture), or None:
+        `radiance` is their mean, and a sample reads `texture`
+    texture : texture(prims (c,), u (c,), v (c,)) -> (c, 3) float32 the radiance of triangles
+        `prims` (indices in the traced geometry) at barycentrics u, v (`shading.SurfaceTable`)
     """
 
     prims: np.ndarray
@@ -107,23 +116,28 @@ class MeshLights:
     spheres: np.ndarray
     group_share: np.ndarray
     side: np.ndarray | None = None
+    glows: np.ndarray | None = None
+    texture: Callable | None = None
 
     @classmethod
     def from_triangles(cls, positions: np.ndarray, triangles: np.ndarray, emission: np.ndarray,
-                       skip: np.ndarray | None = None, objects: np.ndarray | None = None) -> MeshLights | None:
+                       skip: np.ndarray | None = None, objects: np.ndarray | None = None,
+                       glows: np.ndarray | None = None, texture: Callable | None = None) -> MeshLights | None:
         """From a geometry's (V, 3) positions, (T, 3) triangles and (T, 3) per-triangle emitted
-        radiance; skip : (T,) bool triangles left to the rays (textured emission); objects : (T,)
-        each triangle's object (None: one object each), which `COMPACT_FILL` judges. None when
-        nothing emits."""
+        radiance; skip : (T,) bool triangles left to the rays; objects : (T,)
+        each triangle's object (None: one object each), which `COMPACT_FILL` judges; glows,
+        texture as `from_packed`. None when nothing emits."""
         p = np.asarray(positions, np.float32)[np.asarray(triangles)]
         return cls.from_packed(np.concatenate([p[:, 0], p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]], axis=1), emission, skip,
-                               objects)
+                               objects, glows, texture)
 
     @classmethod
     def from_packed(cls, packed: np.ndarray, emission: np.ndarray, skip: np.ndarray | None = None,
-                    objects: np.ndarray | None = None) -> MeshLights | None:
+                    objects: np.ndarray | None = None, glows: np.ndarray | None = None,
+                    texture: Callable | None = None) -> MeshLights | None:
         """From `shading.SurfaceTable`'s (T, 9) packed corners (v0, v1 - v0, v2 - v0) and (T, 3)
-        emission; skip, objects as `from_triangles`."""
+        emission (a textured triangle's mean); skip, objects as `from_triangles`; glows : (T,) bool
+        the textured triangles, whose samples read `texture` (both or neither)."""
         emission = np.asarray(emission, np.float32).reshape(-1, 3)
         lum = emission @ LUMA
         lit = (lum > 0) & np.isfinite(lum)
@@ -134,7 +148,10 @@ class MeshLights:
             return None
         p = np.asarray(packed, np.float32)[prims]
         owner = prims if objects is None else np.asarray(objects).reshape(-1)[prims]
-        return cls._build(prims, p[:, 0:3], p[:, 3:6], p[:, 6:9], emission, lum, owner)
+        built = cls._build(prims, p[:, 0:3], p[:, 3:6], p[:, 6:9], emission, lum, owner)
+        if built is None or glows is None or texture is None or not np.asarray(glows, bool)[built.prims].any():
+            return built
+        return replace(built, glows=np.asarray(glows, bool)[built.prims], texture=texture)
 
     @classmethod
     def _build(cls, prims, v0, e1, e2, emission, lum, owner=None) -> MeshLights | None:
@@ -162,6 +179,17 @@ class MeshLights:
     def ratio(self) -> bool:
         """Whether receivers take the closed form and a shadowed share (`_ratio_block`): few triangles."""
         return self.prims.size <= EXACT_TRIANGLES
+
+    def radiance_at(self, tri: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+        """(c, 3) float32 the radiance of rows `tri` (c,) at barycentrics u, v (c,): a textured
+        triangle's texel there, the others' own."""
+        out = self.radiance[tri]
+        if self.glows is None:
+            return out
+        g = np.flatnonzero(self.glows[tri])
+        if g.size:
+            out[g] = self.texture(self.prims[tri[g]], np.asarray(u, _F32)[g], np.asarray(v, _F32)[g])
+        return out
 
     def irradiance(self, points: np.ndarray, normals: np.ndarray, tracer, rng: np.random.Generator,
                    samples: int, epsilon: float, partial: np.ndarray | None = None,
@@ -220,7 +248,7 @@ class MeshLights:
         light = (exact @ self.radiance.astype(np.float64)).astype(_F32)  # (m, 3) unshadowed
         if unshadowed is not None:
             unshadowed[:] = light
-        if tracer is None or samples <= 0:
+        if (tracer is None and self.glows is None) or samples <= 0:
             return light
         live = np.flatnonzero(total > 0)
         if live.size == 0:
@@ -234,15 +262,20 @@ class MeshLights:
         # A pass of few samples (the adaptive first pass: it finds the penumbrae, and where none or
         # all of its samples are blocked the estimate is exact whatever their weights) draws its
         # points by area, a third of the solid angle's cost (strip room 640x360: direct 1.9 -> 1.2 s).
-        direction, dist, weight = self._toward(tri, origin, u1, u2, epsilon, samples, solid=samples >= SOLID_SAMPLES)
+        direction, dist, weight, bary = self._toward(tri, origin, u1, u2, epsilon, samples,
+                                                     solid=samples >= SOLID_SAMPLES)
         cos_r = np.einsum("ij,ij->i", receiver, direction)
         # Each sample's unshadowed estimate of its triangle's light over the chance of that triangle.
         chance = np.take_along_axis(lum[live], tri.reshape(live.size, samples), axis=1).reshape(-1) / np.repeat(
             total[live], samples)
         open_light = np.where((cos_r > 0) & np.isfinite(weight) & (dist > 0) & (chance > 0),
                               cos_r * weight * (self.radiance[tri] @ LUMA) / np.maximum(chance, 1e-300), 0.0)
+        blocked = np.zeros(0, np.int64) if tracer is None else _blocked(tracer, origin, direction, dist,
+                                                                         open_light > 0, epsilon)
+        if self.glows is not None:
+            return self._textured_share(light, live, samples, tri, bary, open_light, blocked, partial)
         seen = open_light.copy()
-        seen[_blocked(tracer, origin, direction, dist, open_light > 0, epsilon)] = 0.0
+        seen[blocked] = 0.0
         num = seen.reshape(live.size, samples).sum(axis=1)
         den = open_light.reshape(live.size, samples).sum(axis=1)
         share = np.clip(np.where(den > 0, num / np.maximum(den, 1e-300), 1.0), 0.0, 1.0)
@@ -251,10 +284,36 @@ class MeshLights:
             partial[live[(share > 0.0) & (share < 1.0)]] = True
         return light
 
+    def _textured_share(self, light, live, samples, tri, bary, open_light, blocked, partial):
+        """`_ratio_block`'s shadowed share where some triangles are textured, per channel: the
+        samples' light with each one's texel, shadowed, over their light with their triangles'
+        mean radiance, unshadowed (whose expectation is the exact `light`): light x share is then
+        the textured, shadowed light in expectation, and exact where a receiver's triangles are
+        untextured and wholly seen. A receiver is `partial` where some of its samples were blocked
+        and some not, not where the texture merely varies: the penumbra pass's rays at every pixel
+        lit by a checkered sign read Combined 0.0262 in 2.45 s against 0.0280 in 1.88 s (320x180)."""
+        mean = self.radiance[tri] @ LUMA
+        scale = np.where(mean > 0, open_light / np.maximum(mean, 1e-30), 0.0)  # cos x weight / chance
+        seen = self.radiance_at(tri, *bary).astype(np.float64) * scale[:, None]
+        seen[blocked] = 0.0
+        den = (self.radiance[tri].astype(np.float64) * scale[:, None]).reshape(live.size, samples, 3).sum(axis=1)
+        num = seen.reshape(live.size, samples, 3).sum(axis=1)
+        share = np.where(den > 0, num / np.maximum(den, 1e-300), 1.0)
+        light[live] *= np.maximum(share, 0.0).astype(_F32)
+        if partial is not None:
+            lit = (open_light > 0).reshape(live.size, samples)
+            hidden = np.zeros(open_light.size, bool)
+            hidden[blocked] = True
+            hidden = hidden.reshape(live.size, samples)
+            partial[live[(hidden & lit).any(axis=1) & (~hidden & lit).any(axis=1)]] = True
+        return light
+
     def _toward(self, tri, origin, u1, u2, epsilon, samples, solid: bool = True):
-        """(direction (c, 3), distance (c,), weight (c,)) float64 of a point on each triangle `tri`
-        seen from `origin` (c, 3), from uniforms u1, u2 (c,); weight: its unshadowed irradiance
-        estimate over the radiance, for the triangle alone.
+        """(direction (c, 3), distance (c,), weight (c,), (u, v)) float64 of a point on each triangle
+        `tri` seen from `origin` (c, 3), from uniforms u1, u2 (c,); weight: its unshadowed
+        irradiance estimate over the radiance, for the triangle alone; u, v (c,) the point's
+        barycentrics (where a textured triangle's radiance is read; 0 for untextured ones sampled
+        by solid angle).
 
         Triangles that subtend much of the receiver's sky (near ones) are sampled uniformly in
         their solid angle (Arvo 1995; weight: that solid angle): a point sampled by area right
@@ -273,6 +332,8 @@ class MeshLights:
             to_centre = self.centre[tri] - origin
             maybe = np.flatnonzero(np.einsum("ij,ij->i", to_centre, to_centre) < (NEAR_RADII * self.radius[tri]) ** 2)
         omega = np.zeros(count, np.float64)
+        bu = np.zeros(count, np.float64)
+        bv = np.zeros(count, np.float64)
         if maybe.size:
             corners = [(self.v0[tri[maybe]] + e).astype(np.float64) - origin[maybe]
                        for e in (0.0, self.e1[tri[maybe]], self.e2[tri[maybe]])]
@@ -284,6 +345,7 @@ class MeshLights:
             a, b = u1[far], u2[far]
             fold = a + b > 1
             a, b = np.where(fold, 1 - a, a), np.where(fold, 1 - b, b)
+            bu[far], bv[far] = a, b
             t = tri[far]
             w = (self.v0[t] + a[:, None] * self.e1[t] + b[:, None] * self.e2[t] - origin[far]).astype(np.float64)
             d2 = np.einsum("ij,ij->i", w, w)
@@ -302,7 +364,22 @@ class MeshLights:
             along = np.einsum("ij,ij->i", nl, d)
             dist[close] = np.einsum("ij,ij->i", nl, corners[0][pick]) / np.where(np.abs(along) > 1e-12, along, 1e-12)
             weight[close] = omega[close]
-        return direction, dist, weight
+            if self.glows is not None:
+                bu[close], bv[close] = self._barycentrics(tri[close], origin[close] + d * dist[close, None])
+        return direction, dist, weight, (bu, bv)
+
+    def _barycentrics(self, tri: np.ndarray, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(u, v) float64 barycentrics of vertices 1 and 2 of the points (c, 3) in the planes of
+        triangles `tri` (c,), clipped to the triangle."""
+        e1, e2 = self.e1[tri].astype(np.float64), self.e2[tri].astype(np.float64)
+        w = points - self.v0[tri].astype(np.float64)
+        d00, d01, d11 = (np.einsum("ij,ij->i", a, b) for a, b in ((e1, e1), (e1, e2), (e2, e2)))
+        d20, d21 = np.einsum("ij,ij->i", w, e1), np.einsum("ij,ij->i", w, e2)
+        det = np.maximum(d00 * d11 - d01 * d01, 1e-300)
+        u = np.clip((d11 * d20 - d01 * d21) / det, 0.0, 1.0)
+        v = np.clip((d00 * d21 - d01 * d20) / det, 0.0, 1.0)
+        over = np.maximum(u + v, 1.0)
+        return u / over, v / over
 
     def _block(self, p, n, tracer, rng, samples, epsilon):
         m = p.shape[0]
@@ -322,14 +399,18 @@ class MeshLights:
         picked = np.flatnonzero(by_triangle)
         if picked.size:
             t = tri[picked]
-            direction[picked], dist[picked], w = self._toward(t, origin[picked], u1[picked], u2[picked], epsilon,
-                                                              samples)
+            direction[picked], dist[picked], w, (bu, bv) = self._toward(t, origin[picked], u1[picked], u2[picked],
+                                                                        epsilon, samples)
             weight[picked] = w / self.choose[t]  # the triangle's chance: its power share
         cos_r = np.einsum("ij,ij->i", receiver, direction)
         weight = np.where((cos_r > 0) & np.isfinite(weight) & (dist > 0), cos_r * weight, 0.0)
         if tracer is not None:
             weight[_blocked(tracer, origin, direction, dist, weight > 0, epsilon)] = 0.0
-        e = self.radiance[tri] * weight[:, None].astype(_F32)
+        if self.glows is None or not picked.size:
+            e = self.radiance[tri] * weight[:, None].astype(_F32)
+        else:
+            e = np.zeros((count, 3), _F32)
+            e[picked] = self.radiance_at(tri[picked], bu, bv) * weight[picked, None].astype(_F32)
         if cone.size:
             e[cone] = self._cone_light(tri[cone], origin[cone], receiver[cone], tracer, u1[cone], u2[cone])
         return e.reshape(m, samples, 3).mean(axis=1)
@@ -377,7 +458,7 @@ class MeshLights:
         same = (hits.prim >= 0) & (self.prims[row] == hits.prim) & (self.group[row] == g[live])
         live, row = live[same], row[same]
         weight = cos_r[live] * 2.0 * np.pi * one_minus[live] / self.group_share[g[live]]
-        out[live] = self.radiance[row] * weight[:, None].astype(_F32)
+        out[live] = self.radiance_at(row, hits.u[same], hits.v[same]) * weight[:, None].astype(_F32)
         return out
 
 

@@ -21,7 +21,7 @@ import numpy as np
 from . import sheen
 from .blocks import for_blocks
 from .bump import map_bend_factor
-from .emitters import MeshLights
+from .emitters import EXACT_TRIANGLES, LUMA, MeshLights
 from .shiny import may_shine
 from .snapshot import Geometry, Material
 from .specular import FILTER_GLOSSY, SpecularLayer, hemispherical_glossy_albedo
@@ -30,6 +30,26 @@ from .specular import FILTER_GLOSSY, SpecularLayer, hemispherical_glossy_albedo
 _NG, _BRDF, _EMIT = (slice(3 * i, 3 * i + 3) for i in range(3))
 RECORD_FLOATS = 16
 _INV_PI = np.float32(1.0 / np.pi)
+
+
+def _sub_centroids(levels: int) -> np.ndarray:
+    """(levels^2, 2) float32 barycentrics (of vertices 1 and 2) of the centroids of a triangle's
+    levels^2 sub-triangles (each edge cut in `levels`), the one nearest the triangle's centroid
+    first."""
+    up = [((i + 1.0 / 3.0) / levels, (j + 1.0 / 3.0) / levels) for i in range(levels) for j in range(levels - i)]
+    down = [((i + 2.0 / 3.0) / levels, (j + 2.0 / 3.0) / levels) for i in range(levels) for j in range(levels - i - 1)]
+    points = np.array(up + down, np.float32)
+    first = np.argmin(np.abs(points - np.float32(1.0 / 3.0)).sum(axis=1))
+    return points[np.r_[first, np.delete(np.arange(points.shape[0]), first)]]
+
+
+#: Where a textured emitter's triangles read their mean (`SurfaceTable._glowing_means`): the
+#: centroid, then the centroids of its 16 sub-triangles; past GLOW_MEAN_LIMIT texel reads in all,
+#: the centroid alone.
+GLOW_POINTS = _sub_centroids(4)
+GLOW_MEAN_LIMIT = 1 << 21
+#: Share of its material's mean emission a textured triangle's mean adds (`_glowing_means`).
+GLOW_FLOOR = 0.05
 
 
 @dataclass
@@ -154,17 +174,53 @@ class SurfaceTable:
         """The emissive triangles sampled as lights (`emitters.MeshLights`, None without), and the
         (T + 1,) mask of them (the -1 of missed rays last, False): rays that hit one bring its
         emission to the camera and to glossy lobes, but not to diffuse receivers, which sample
-        it (`diffuse_emission`). Textured emission stays the rays' alone, and so does the emission
-        of surfaces seen with a chance (`Material.coverage`): the rays meet it with that chance,
-        where samples of it would light as if it were whole."""
-        rays_only = sorted(set(self.glowing) | {i for i, m in enumerate(self.materials)
-                                                  if getattr(m, "coverage", 1.0) < 1.0})
+        it (`diffuse_emission`). A textured emitter's triangles are chosen by their own mean
+        radiance (`_glowing_means`) and its samples read the texture (`MeshLights.texture`), where
+        the scene's emitters are few enough for the ratio estimator (`emitters.EXACT_TRIANGLES`:
+        a screen, a sign, a panel). More are left to the rays: sampled by power, without the
+        closed form, a checkered sign of 98 triangles read Combined 0.0502 in 2.8 s against the
+        rays' 0.0467 in 1.5 s (320x180 against Cycles 1024 spp; its 2-triangle form 0.0403 ->
+        0.0262). The emission of surfaces seen with a chance (`Material.coverage`) stays the
+        rays' alone: the rays meet it with that chance, where samples of it would light as if it
+        were whole."""
+        rays_only = sorted(i for i, m in enumerate(self.materials) if getattr(m, "coverage", 1.0) < 1.0)
         skip = np.isin(self.material_index, np.asarray(rays_only, np.int32)) if rays_only else None
-        self.emitters = MeshLights.from_packed(self._positions, self.records[:-1, _EMIT], skip,
-                                               np.asarray(self._geometry.object_index))
+        emission, glows = self.records[:-1, _EMIT], None
+        if self.glowing:
+            glows = np.isin(self.material_index, np.asarray(self.glowing, np.int32))
+            steady = (emission @ LUMA > 0) & ~glows
+            if skip is not None:
+                glows &= ~skip
+                steady &= ~skip
+            if int(np.count_nonzero(glows)) + int(np.count_nonzero(steady)) <= EXACT_TRIANGLES:
+                emission = emission.copy()
+                emission[glows] = self._glowing_means(np.flatnonzero(glows))
+            else:
+                skip = glows if skip is None else skip | glows
+                glows = None
+        self.emitters = MeshLights.from_packed(self._positions, emission, skip, np.asarray(self._geometry.object_index),
+                                               glows, self._texel_emission)
         self.sampled = np.zeros(self.records.shape[0], bool)
         if self.emitters is not None:
             self.sampled[self.emitters.prims] = True
+
+    def _texel_emission(self, prim: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+        """(n, 3) float32 the emission of triangles prim (n,) >= 0 at barycentrics u, v (their
+        texture's texel there where they have one: `MeshLights.texture`)."""
+        return np.asarray(self._emission(np.take(self.records, prim, axis=0), prim, u, v), np.float32)
+
+    def _glowing_means(self, prims: np.ndarray) -> np.ndarray:
+        """(g, 3) float32 the mean emission over each textured triangle `prims` (g,): its texture
+        read at the centroids of its 16 sub-triangles (one centroid per triangle past
+        GLOW_MEAN_LIMIT reads), plus GLOW_FLOOR of the material's mean so that no triangle whose
+        texture glows somewhere between the points is never chosen."""
+        points = GLOW_POINTS if prims.size * GLOW_POINTS.shape[0] <= GLOW_MEAN_LIMIT else GLOW_POINTS[:1]
+        k = points.shape[0]
+        many = np.repeat(prims, k)
+        texels = self._texel_emission(many, np.tile(points[:, 0], prims.size), np.tile(points[:, 1], prims.size))
+        mean = texels.reshape(prims.size, k, 3).mean(axis=1)
+        own = np.take(self.emission, np.take(self.material_index, prims), axis=0)
+        return (mean + np.float32(GLOW_FLOOR) * own).astype(np.float32)
 
     def diffuse_emission(self, emission: np.ndarray, prim: np.ndarray) -> np.ndarray:
         """The emission (n, 3) of hits on triangles prim (n,) as a diffuse receiver's ray counts

@@ -151,10 +151,14 @@ def test_image_emission_colours_panel_and_room(scenes, tmp_path):
     assert abs(ratios[0] / ratios[2] - 1) < 0.2 and abs(ratios[1] / ratios[3] - 1) < 0.2, ratios
     geometry = layer(cycles, "Depth", "Z")[..., 0] < 1e9
     assert _rel_l1(direct[geometry], cycles_direct[geometry]) < 0.4
+    # The panel is sampled as a light reading its texels (`emitters.MeshLights.texture`): the
+    # room's Diffuse Direct 1.03 of Cycles' (0.89 when the rays alone found it).
+    assert abs(float(direct[geometry].mean()) / float(cycles_direct[geometry].mean()) - 1) < 0.08
 
 
-# Measured: panel Combined rel L1 0.040 (before 0.93); Diffuse Direct mean -22% (before -86%), rel
-# L1 0.36 (before 0.86). The constant panel of the same mean emission: -18%, 0.28.
+# Measured: panel Combined rel L1 0.040 (before 0.93); Diffuse Direct mean -5%, rel L1 0.20, the
+# room's Combined 0.073 with the panel sampled as a light reading its texels (left to the rays:
+# -25%, 0.35, 0.096; before the bake -86%, 0.86).
 def test_procedural_emission_strength_is_baked(scenes, tmp_path):
     ours, cycles = _renders(scenes, tmp_path, "checker")
     combined, reference = layer(ours, "Combined"), layer(cycles, "Combined")
@@ -162,5 +166,5 @@ def test_procedural_emission_strength_is_baked(scenes, tmp_path):
     assert _rel_l1(combined[PANEL], reference[PANEL]) < 0.15
     geometry = layer(cycles, "Depth", "Z")[..., 0] < 1e9
     direct, cycles_direct = layer(ours, "Diffuse Direct")[geometry], layer(cycles, "Diffuse Direct")[geometry]
-    assert abs(float(direct.mean()) / float(cycles_direct.mean()) - 1) < 0.35
-    assert _rel_l1(direct, cycles_direct) < 0.5
+    assert abs(float(direct.mean()) / float(cycles_direct.mean()) - 1) < 0.12
+    assert _rel_l1(direct, cycles_direct) < 0.28

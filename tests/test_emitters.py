@@ -8,6 +8,7 @@ import pytest
 from hybridgi_core import emitters
 from hybridgi_core.emitters import MeshLights
 from hybridgi_core.polygon_light import cosine_solid_angle
+from hybridgi_core.shading import GLOW_FLOOR, GLOW_POINTS
 from tests.test_lights import TriangleTracer, quad
 
 
@@ -223,3 +224,52 @@ def test_a_compact_emitter_is_sampled_through_its_bounding_sphere():
                                 for seed in range(100)]) for name, m in (("cone", cone), ("triangles", tris))}
     rms = {name: np.sqrt(((v - exact) ** 2).mean(axis=0)) / exact for name, v in runs.items()}
     assert (rms["cone"] < rms["triangles"] / 3).all(), rms
+
+
+def half_lit_panel(cuts: int = 1):
+    """A 1 m panel 2 m above the floor (in cuts x cuts quads) whose emission texture glows over
+    x < 0 only, as `MeshLights` sees it (glows, texture), and the untextured half it equals."""
+    tris = np.concatenate([quad((x, y, 2.0), (0.5 / cuts, 0.0, 0.0), (0.0, 0.5 / cuts, 0.0))
+                           for x in (np.arange(cuts) + 0.5) / cuts - 0.5
+                           for y in (np.arange(cuts) + 0.5) / cuts - 0.5]).astype(np.float32)
+    radiance = np.array([3.0, 2.0, 1.0], np.float32)
+
+    def texture(prims, u, v):
+        t = tris[prims]
+        x = t[:, 0, 0] + u * (t[:, 1, 0] - t[:, 0, 0]) + v * (t[:, 2, 0] - t[:, 0, 0])
+        return np.where((x < 0.0)[:, None], radiance, np.float32(0.0)).astype(np.float32)
+
+    k, m = tris.shape[0], GLOW_POINTS.shape[0]
+    texels = texture(np.repeat(np.arange(k), m), np.tile(GLOW_POINTS[:, 0], k), np.tile(GLOW_POINTS[:, 1], k))
+    mean = texels.reshape(k, m, 3).mean(axis=1) + np.float32(GLOW_FLOOR) * radiance  # `SurfaceTable._glowing_means`
+    lights = MeshLights.from_triangles(tris.reshape(-1, 3), np.arange(3 * k).reshape(k, 3), mean,
+                                       glows=np.ones(k, bool), texture=texture)
+    half = np.array([[-0.5, -0.5, 2.0], [0.0, -0.5, 2.0], [0.0, 0.5, 2.0], [-0.5, 0.5, 2.0]])
+    return lights, tris, half, radiance
+
+
+@pytest.mark.parametrize("cuts", [1, 4])
+def test_a_textured_emitter_lights_by_its_texels(cuts):
+    """A textured emitter's samples read their texel (`MeshLights.texture`): a panel glowing over
+    half of it lights the floor as that half alone does (Lambert's closed form), whether its two
+    triangles (each half lit) take the ratio estimator or its 32 are sampled by their means'
+    power (a mean of the floor's share where none of a triangle glows); under a blocker over the lit half's
+    centre the light falls, as the half's own samples say."""
+    lights, tris, half, radiance = half_lit_panel(cuts)
+    assert lights.glows.all() and lights.ratio == (cuts == 1)
+    points, up, tilted = receivers()
+    for normals in (up, tilted):
+        exact = cosine_solid_angle(half, points, normals)[:, None] * radiance
+        got = np.mean([lights.irradiance(points, normals, TriangleTracer(tris), np.random.default_rng(s), 64, 1e-4)
+                       for s in range(8)], axis=0)
+        np.testing.assert_allclose(got.mean(axis=0), exact.mean(axis=0), rtol=0.03)
+        np.testing.assert_allclose(got, exact, rtol=0.15, atol=0.02 * exact.max())
+    blocker = np.asarray(quad((-0.25, 0.0, 1.0), (0.15, 0.0, 0.0), (0.0, 0.15, 0.0)), np.float32)
+    at, up1 = np.array([[-0.25, 0.0, 0.0]], np.float32), up[:1]
+    shaded = np.mean([lights.irradiance(at, up1, TriangleTracer(np.concatenate([tris, blocker])),
+                                        np.random.default_rng(s), 64, 1e-4) for s in range(16)], axis=0)
+    whole = MeshLights.from_triangles(half[[0, 1, 2, 0, 2, 3]].astype(np.float32), np.arange(6).reshape(2, 3),
+                                      np.tile(radiance, (2, 1)))
+    truth = sampled_by_power(whole, at, up1, TriangleTracer(blocker), 20000, 9)
+    assert shaded[0, 0] < 0.9 * cosine_solid_angle(half, at, up1)[0] * radiance[0]  # the blocker shades it
+    np.testing.assert_allclose(shaded, truth, rtol=0.05)
