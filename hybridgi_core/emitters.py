@@ -12,7 +12,7 @@ Emission is two-sided, as the rays read it (`shading.SurfaceTable.emission_of` o
 where an object's emissive triangles close a volume: their inner side is never seen (`_sides`).
 
 Textured emission (a screen, a sign, a glTF emissive map: `SurfaceTable.glowing`) is sampled as
-well where the scene's emitters are few (`SurfaceTable._set_emitters`): a triangle is chosen by its mean radiance (`radiance`, the texture averaged over the
+well: a triangle is chosen by its mean radiance (`radiance`, the texture averaged over the
 triangle) and each sample reads the texture at its own point (`texture`). Left to the rays, a
 checkered neon sign lit its wall and floor 28% dim (Diffuse Direct against Cycles; the rays' rare
 bright hits are what the residual's filter spreads thinnest).
@@ -193,12 +193,17 @@ class MeshLights:
 
     def irradiance(self, points: np.ndarray, normals: np.ndarray, tracer, rng: np.random.Generator,
                    samples: int, epsilon: float, partial: np.ndarray | None = None,
-                   unshadowed: np.ndarray | None = None) -> np.ndarray:
+                   unshadowed: np.ndarray | None = None, cones: np.ndarray | None = None) -> np.ndarray:
         """(n, 3) float32 irradiance the emitters give receivers (points, unit normals (n, 3)),
         `samples` points each with a shadow ray (tracer None: unshadowed). With `ratio`, optional
         outputs as `GISystem.direct`'s for `penumbra.adaptive_direct`: partial (n,) bool, the
         receivers some but not all of whose samples' light was blocked (else untouched);
-        unshadowed (n, 3), the light without shadows (exact)."""
+        unshadowed (n, 3), the light without shadows (exact). Without `ratio` (sampled by power,
+        `_block`): unshadowed (n, 3), the light of the samples on triangles without their shadows
+        (the same samples' estimate), and cones (n, 3), the part of the returned light that
+        compact emitters' cones gave (shadowed by their rays' hits: in both the return and the
+        estimate of the light without shadows, which is the rest): `penumbra.filter_emitter_light`
+        filters the two apart."""
         pts = np.asarray(points, _F32).reshape(-1, 3)
         nrm = np.asarray(normals, _F32).reshape(-1, 3)
         out = np.zeros((pts.shape[0], 3), _F32)
@@ -209,7 +214,9 @@ class MeshLights:
                                               None if partial is None else partial[rows],
                                               None if unshadowed is None else unshadowed[rows])
             else:
-                out[rows] = self._block(pts[rows], nrm[rows], tracer, rng, samples, epsilon)
+                out[rows] = self._block(pts[rows], nrm[rows], tracer, rng, samples, epsilon,
+                                        None if unshadowed is None else unshadowed[rows],
+                                        None if cones is None else cones[rows])
         return out
 
     def exact(self, points: np.ndarray, normals: np.ndarray) -> np.ndarray:
@@ -381,7 +388,7 @@ class MeshLights:
         over = np.maximum(u + v, 1.0)
         return u / over, v / over
 
-    def _block(self, p, n, tracer, rng, samples, epsilon):
+    def _block(self, p, n, tracer, rng, samples, epsilon, unshadowed=None, cones=None):
         m = p.shape[0]
         count = m * samples
         tri = np.minimum(np.searchsorted(self.cdf, rng.random(count)), self.cdf.size - 1)
@@ -404,15 +411,24 @@ class MeshLights:
             weight[picked] = w / self.choose[t]  # the triangle's chance: its power share
         cos_r = np.einsum("ij,ij->i", receiver, direction)
         weight = np.where((cos_r > 0) & np.isfinite(weight) & (dist > 0), cos_r * weight, 0.0)
+        if self.glows is None or not picked.size:
+            radiance = self.radiance[tri]
+        else:
+            radiance = np.zeros((count, 3), _F32)
+            radiance[picked] = self.radiance_at(tri[picked], bu, bv)
+        if unshadowed is not None:
+            unshadowed[:] = (radiance * weight[:, None].astype(_F32)).reshape(m, samples, 3).mean(axis=1)
         if tracer is not None:
             weight[_blocked(tracer, origin, direction, dist, weight > 0, epsilon)] = 0.0
-        if self.glows is None or not picked.size:
-            e = self.radiance[tri] * weight[:, None].astype(_F32)
-        else:
-            e = np.zeros((count, 3), _F32)
-            e[picked] = self.radiance_at(tri[picked], bu, bv) * weight[picked, None].astype(_F32)
+        e = radiance * weight[:, None].astype(_F32)
         if cone.size:
             e[cone] = self._cone_light(tri[cone], origin[cone], receiver[cone], tracer, u1[cone], u2[cone])
+            if cones is not None:
+                part = np.zeros((count, 3), _F32)
+                part[cone] = e[cone]
+                cones[:] = part.reshape(m, samples, 3).mean(axis=1)
+        elif cones is not None:
+            cones[:] = 0.0
         return e.reshape(m, samples, 3).mean(axis=1)
 
     def _cone_samples(self, tri: np.ndarray, origin: np.ndarray, tracer) -> np.ndarray:

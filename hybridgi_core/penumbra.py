@@ -422,6 +422,34 @@ def _grown(partial: np.ndarray, pix: np.ndarray, shape: tuple[int, int]) -> np.n
     return dilate(image.reshape(h, w), DILATE).reshape(-1)[pix]
 
 
+#: A-trous passes over the light of emitters sampled by power before their shadows
+#: (`filter_emitter_light`), taps 1, 2, 4 pixels apart.
+EMITTER_OPEN_PASSES = 1
+
+
+def filter_emitter_light(light: np.ndarray, open_light: np.ndarray, cones: np.ndarray, points: np.ndarray,
+                         normals: np.ndarray, pix: np.ndarray, shape: tuple[int, int], camera,
+                         pool=None) -> np.ndarray:
+    """(n, 3) the light of emitters sampled by power (`emitters.MeshLights._block`: many
+    triangles, no closed form) at the pixels `pix`, denoised: the samples' light without their
+    shadows (open_light (n, 3), a smooth function of the receiver's place and normal) averaged
+    over EMITTER_OPEN_PASSES a-trous passes on the same surfaces, times the samples' visibility
+    (light over open_light) averaged as a penumbra's (`filter_penumbra`), plus the compact
+    emitters' cone light (cones (n, 3), part of light; kept per pixel).
+
+    Why: 16 samples per pixel of a sign in 98 triangles left its wall and floor grainy (320x180
+    against Cycles 1024 spp, Diffuse Direct rel L1 0.39; Cycles 16 spp + OIDN denoises its
+    own). Splitting visibility from the unshadowed light keeps the shadows' edges where the
+    filter reaches far."""
+    sampled = np.maximum(light - cones, 0.0)
+    seen = open_light.max(axis=1) > 0
+    visibility = np.where(seen[:, None], sampled / np.maximum(open_light, np.float32(1e-30)), 0.0).astype(np.float32)
+    smooth = filter_at_pixels(np.asarray(open_light, np.float32), seen, points, normals, pix, shape, camera,
+                              EMITTER_OPEN_PASSES, pool)
+    shade = filter_at_pixels(visibility, seen, points, normals, pix, shape, camera, FILTER_PASSES, pool)
+    return np.where(seen[:, None], smooth * np.clip(shade, 0.0, 1.0), sampled).astype(np.float32) + cones
+
+
 def filter_penumbra(light: np.ndarray, open_light: np.ndarray, points: np.ndarray, normals: np.ndarray,
                     pix: np.ndarray, shape: tuple[int, int], camera, pool=None) -> np.ndarray:
     """(n, 3) the penumbra pixels' light with its visibility (light / the unshadowed light)

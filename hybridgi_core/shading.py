@@ -21,7 +21,7 @@ import numpy as np
 from . import sheen
 from .blocks import for_blocks
 from .bump import map_bend_factor
-from .emitters import EXACT_TRIANGLES, LUMA, MeshLights
+from .emitters import MeshLights
 from .shiny import may_shine
 from .snapshot import Geometry, Material
 from .specular import FILTER_GLOSSY, SpecularLayer, hemispherical_glossy_albedo
@@ -175,12 +175,10 @@ class SurfaceTable:
         (T + 1,) mask of them (the -1 of missed rays last, False): rays that hit one bring its
         emission to the camera and to glossy lobes, but not to diffuse receivers, which sample
         it (`diffuse_emission`). A textured emitter's triangles are chosen by their own mean
-        radiance (`_glowing_means`) and its samples read the texture (`MeshLights.texture`), where
-        the scene's emitters are few enough for the ratio estimator (`emitters.EXACT_TRIANGLES`:
-        a screen, a sign, a panel). More are left to the rays: sampled by power, without the
-        closed form, a checkered sign of 98 triangles read Combined 0.0502 in 2.8 s against the
-        rays' 0.0467 in 1.5 s (320x180 against Cycles 1024 spp; its 2-triangle form 0.0403 ->
-        0.0262). The emission of surfaces seen with a chance (`Material.coverage`) stays the
+        radiance (`_glowing_means`) and its samples read the texture (`MeshLights.texture`). Left
+        to the rays a checkered neon sign lit its wall and floor dim and grainy (320x180 against
+        Cycles 1024 spp, Combined: its 2 triangles 0.0403 -> 0.0280, cut into 98 0.0467 ->
+        0.0401). The emission of surfaces seen with a chance (`Material.coverage`) stays the
         rays' alone: the rays meet it with that chance, where samples of it would light as if it
         were whole."""
         rays_only = sorted(i for i, m in enumerate(self.materials) if getattr(m, "coverage", 1.0) < 1.0)
@@ -188,16 +186,8 @@ class SurfaceTable:
         emission, glows = self.records[:-1, _EMIT], None
         if self.glowing:
             glows = np.isin(self.material_index, np.asarray(self.glowing, np.int32))
-            steady = (emission @ LUMA > 0) & ~glows
-            if skip is not None:
-                glows &= ~skip
-                steady &= ~skip
-            if int(np.count_nonzero(glows)) + int(np.count_nonzero(steady)) <= EXACT_TRIANGLES:
-                emission = emission.copy()
-                emission[glows] = self._glowing_means(np.flatnonzero(glows))
-            else:
-                skip = glows if skip is None else skip | glows
-                glows = None
+            emission = emission.copy()
+            emission[glows] = self._glowing_means(np.flatnonzero(glows))
         self.emitters = MeshLights.from_packed(self._positions, emission, skip, np.asarray(self._geometry.object_index),
                                                glows, self._texel_emission)
         self.sampled = np.zeros(self.records.shape[0], bool)

@@ -441,12 +441,14 @@ class GISystem:
             for a, child in zip(starts, rng.spawn(len(starts)), strict=True)]))
 
     def emitter_light(self, points: np.ndarray, normals: np.ndarray, frame: int, samples: int,
-                      partial: np.ndarray | None = None, unshadowed: np.ndarray | None = None) -> np.ndarray | None:
+                      partial: np.ndarray | None = None, unshadowed: np.ndarray | None = None,
+                      cones: np.ndarray | None = None) -> np.ndarray | None:
         """(n, 3) irradiance of the emissive triangles at receivers (`emitters.MeshLights`,
         `samples` points and shadow rays each), in blocks on the worker pool as `direct`'s; None
         when nothing emits. Its own stream of the frame (seed + 3). partial, unshadowed : optional
         outputs (`MeshLights.irradiance`), so that `penumbra.adaptive_direct` can take this as
-        its `direct` where the emitters are few triangles (`MeshLights.ratio`)."""
+        its `direct` where the emitters are few triangles (`MeshLights.ratio`); unshadowed and
+        cones, sampled by power, as `MeshLights.irradiance` fills them."""
         emitters = self.surfaces.emitters
         if emitters is None:
             return None
@@ -457,12 +459,13 @@ class GISystem:
         per_block = max(1, DIRECT_BLOCK_RAYS // max(samples, 1))
         eps = float(self.tracer.epsilon)
         if n <= per_block:
-            return emitters.irradiance(points, normals, self.tracer, rng, samples, eps, partial, unshadowed)
+            return emitters.irradiance(points, normals, self.tracer, rng, samples, eps, partial, unshadowed, cones)
         starts = range(0, n, per_block)
         return np.concatenate(self._blocks([
             (emitters.irradiance, (points[a : a + per_block], normals[a : a + per_block], self.tracer, child, samples,
                                    eps, None if partial is None else partial[a : a + per_block],
-                                   None if unshadowed is None else unshadowed[a : a + per_block]), {})
+                                   None if unshadowed is None else unshadowed[a : a + per_block],
+                                   None if cones is None else cones[a : a + per_block]), {})
             for a, child in zip(starts, rng.spawn(len(starts)), strict=True)]))
 
     def _blocks(self, calls: list) -> list:

@@ -23,7 +23,7 @@ from ..emitters import emitter_samples, worth_sampling
 from ..evaluate import HitLookup
 from ..lights import RATIO_MIN_SAMPLES, one_sample_exact_lamps, rough_lights
 from ..penumbra import FIRST_SAMPLES as PENUMBRA_FIRST_SAMPLES
-from ..penumbra import adaptive_direct, filter_camera
+from ..penumbra import adaptive_direct, filter_camera, filter_emitter_light
 from ..sampling import frame_rng
 from ..screen_light import ScreenLight
 from ..settings import MULTI_BOUNCE
@@ -153,6 +153,9 @@ class CentreLight:
     #: (n, lamps) float32 each lamp's visibility at the points (`glossy_ltc.visibility`; NaN
     #: unknown), or None: the glossy lobes' closed-form area-lamp light is shadowed by it.
     visibility: np.ndarray | None = None
+    #: (h w, 3) float32 the emitters' filtered share of `direct` (`penumbra.filter_emitter_light`),
+    #: or None: subframes keep it on the centre's surface (`subpixel.CentreSample.emitter`).
+    emitter: np.ndarray | None = None
 
 
 #: Fewest shadow rays per lamp a jittered subframe traces at a pixel that sees another surface
@@ -468,7 +471,7 @@ class FramePipeline:
         lens = self.lens if count > 1 else None
         if count > 1:
             centre = CentreSample.from_gbuffer(direct, position, normal, film.read("depth"), surface=surface,
-                                               lamp_light=lamp_light)
+                                               lamp_light=lamp_light, emitter=centre_light.emitter)
             coc = coc_pixels(lens, proj, film.read("depth"), self.width) if lens is not None else 0.0
             if coc < SHARP_COC_PX:
                 lens = None  # nothing it sees blurs visibly: the pinhole's subframes
@@ -668,6 +671,7 @@ class FramePipeline:
                                          n_full if s_full is None else s_full, pix_full, direct[pix_full, :3])
         # Emissive triangles sampled as lights at every pixel (`emitters.py`), where pixel rays
         # remove the cache's share of them (with pixel rays off the cache's gather keeps it).
+        emitter = None
         if self.settings.pixel_rays > 0 and worth_sampling(system.surfaces.emitters, system.scene.lights):
             samples = emitter_samples(self.direct_samples)
             if system.surfaces.emitters.ratio:
@@ -677,10 +681,18 @@ class FramePipeline:
                                                         (self.height, self.width), frame, samples, camera=camera,
                                                         pool=system.updater.pool)[0]
             else:
-                direct[pix_full, :3] += system.emitter_light(p_full, n_full, frame, samples)
+                # Many triangles, sampled by power: their light without shadows and their
+                # visibility filtered apart (`penumbra.filter_emitter_light`).
+                open_light = np.zeros((p_full.shape[0], 3), np.float32)
+                cones = np.zeros((p_full.shape[0], 3), np.float32)
+                light = system.emitter_light(p_full, n_full, frame, samples, unshadowed=open_light, cones=cones)
+                emitter = np.zeros((self.height * self.width, 3), np.float32)
+                emitter[pix_full] = filter_emitter_light(light, open_light, cones, p_full, n_full, pix_full,
+                                                         (self.height, self.width), camera, pool=system.updater.pool)
+                direct[pix_full, :3] += emitter[pix_full]
             screen = dataclasses.replace(screen, emitters_sampled=True)
         return CentreLight(direct, lamp_light, screen, p_full, n_full, pix_full, s_full,
-                           (time.perf_counter() - tic) * 1e3, visibility)
+                           (time.perf_counter() - tic) * 1e3, visibility, emitter)
 
     def _centre_locator(self, view, proj):
         """(points, flat pixels) -> where the centre raster shows the points (`lens.centre_offsets`)."""

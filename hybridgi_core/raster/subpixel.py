@@ -301,19 +301,27 @@ class CentreSample:
     #: (h * w, L) bool: lamp l's light changes across the pixel (`lamp_edges`); None without
     #: `lamp_light`. `light_edge` is then its any() over the lamps.
     lamp_edge: np.ndarray | None = None
+    #: (h * w, 3) float32 the emitters' share of `direct` where it was filtered over the image
+    #: (`penumbra.filter_emitter_light`), or None. Its steps are no light edges, and a subframe
+    #: keeps it wherever its pixel sees the centre's surface (`subframe_direct`): sampled again
+    #: at the halo's light edges, its raw samples speckled the wall beside a glowing sign.
+    emitter: np.ndarray | None = None
 
     @property
     def surface_normal(self) -> np.ndarray:
         return self.normal if self.surface is None else self.surface
 
     @classmethod
-    def from_gbuffer(cls, direct, position, normal, depth, surface=None, lamp_light=None) -> CentreSample:
+    def from_gbuffer(cls, direct, position, normal, depth, surface=None, lamp_light=None,
+                     emitter=None) -> CentreSample:
         """From the read-backs (h, w, 4) / (h, w, >= 3) / (h, w, 1) and the direct light;
         surface : the `surface` target's read-back (h, w, >= 3), or None / `normal` itself;
-        lamp_light : (h * w, L, 3) each lamp's share of `direct`, or None."""
+        lamp_light : (h * w, L, 3) each lamp's share of `direct`, or None; emitter : `emitter`."""
         h, w = position.shape[:2]
         n = h * w
         total = _rgb_sum(np.asarray(direct)).reshape(h, w)
+        if emitter is not None:
+            total = np.maximum(total - emitter.sum(axis=1).reshape(h, w), 0.0)
         floor = edge_floor(total)
         lamp_edge = None
         if lamp_light is None:
@@ -325,7 +333,7 @@ class CentreSample:
                 edge |= lamp_edge[:, k]
         return cls(direct, position.reshape(n, -1), normal.reshape(n, -1), depth.reshape(n), edge,
                    None if surface is None or surface is normal else surface.reshape(n, -1),
-                   lamp_light, lamp_edge)
+                   lamp_light, lamp_edge, emitter)
 
 
 def edge_floor(total: np.ndarray) -> float:
@@ -581,6 +589,7 @@ def subframe_direct(system, centre: CentreSample, position: np.ndarray, normal: 
     nrm = normal.reshape(n_pix, -1)
     bent = surface is not None and surface is not normal
     hit, same = subframe_surfaces(centre, position, normal, surface) if surfaces is None else surfaces
+    on_surface = same
     lamp_edge = None
     if centre.lamp_edge is not None:
         lamp_edge = centre.lamp_edge & (hit & same)[:, None]  # same surface, some lamp's edge
@@ -611,8 +620,16 @@ def subframe_direct(system, centre: CentreSample, position: np.ndarray, normal: 
     # below a block of `GISystem.direct`, which would run it on this thread alone) use both cores.
     jobs = _Jobs(system, samples)
     emitted = None
-    if emitters and fresh.any():
-        e_rows = np.flatnonzero(fresh)
+    kept = None
+    if emitters and centre.emitter is not None:
+        # The centre's filtered emitter light where the pixel sees its surface (a lamp's light
+        # edge: its lamps are traced again below), samples of its own elsewhere.
+        kept = np.flatnonzero(fresh & on_surface)
+        fresh_emitted = fresh & ~on_surface
+    else:
+        fresh_emitted = fresh
+    if emitters and fresh_emitted.any():
+        e_rows = np.flatnonzero(fresh_emitted)
         e_p, e_n, e_keep = pixels_to_points(pos[e_rows][None], nrm[e_rows][None])
         emitted = jobs.submit(e_p.shape[0], system.emitter_light, e_p, e_n, seed_frame, samples)
     if lamp_edge is None:
@@ -652,6 +669,8 @@ def subframe_direct(system, centre: CentreSample, position: np.ndarray, normal: 
                 direct[rows, :3] += light
         if emitted is not None:
             direct[e_rows[e_keep], :3] += emitted.result()
+        if kept is not None and kept.size:
+            direct[kept, :3] += centre.emitter[kept]
         return direct
     touched = []
     for k, job in lamps:
