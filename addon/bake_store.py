@@ -81,11 +81,42 @@ class BakeStore:
         self._remember(key, array)
         return array
 
+    def load_arrays(self, key: str) -> dict[str, np.ndarray] | None:
+        """The named arrays `save_arrays` kept on disk under `key`, or None (disk only: the caller
+        keeps what it built from them)."""
+        disk = self.directory() / f"{key}.npz"
+        if not disk.is_file():
+            return None
+        try:
+            with np.load(disk, allow_pickle=False) as data:
+                arrays = {name: data[name] for name in data.files}
+        except (OSError, ValueError, KeyError, EOFError) as err:
+            log.debug("%s: %s unreadable (%s); made again", self.folder, disk.name, err)
+            return None
+        try:
+            os.utime(disk)
+        except OSError:
+            pass
+        return arrays
+
+    def save_arrays(self, key: str, arrays: dict[str, np.ndarray]) -> None:
+        """Keep named arrays on disk under `key` (written whole, then renamed), as `put` does."""
+        try:
+            disk = self.directory() / f"{key}.npz"
+            disk.parent.mkdir(parents=True, exist_ok=True)
+            tmp = disk.with_suffix(".tmp.npz")
+            with open(tmp, "wb") as handle:
+                np.savez(handle, **arrays)
+            os.replace(tmp, disk)
+            self.prune()
+        except OSError as err:
+            log.debug("%s not cached on disk: %s", self.folder, err)
+
     def prune(self) -> int:
         """Delete the least recently used bakes (by modification time: `get` touches what it
         reads) until the folder holds at most `disk_limit` bytes; returns how many went."""
         files = []
-        for path in self.directory().glob("*.npy"):
+        for path in [*self.directory().glob("*.npy"), *self.directory().glob("*.npz")]:
             try:
                 stat = path.stat()
             except OSError:

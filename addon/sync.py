@@ -13,8 +13,10 @@ Metallic and Glass BSDFs, mixed by constant, Fresnel or Layer Weight factors: `h
 and the view-dependent weight they leave the diffuse part.
 """
 
+import hashlib
 import logging
 import math
+import os
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -30,6 +32,7 @@ from hybridgi_core.rows import cross_rows, equal_rows, float_bits
 from hybridgi_core.specular import SpecularLayer
 
 from . import compat, material_bake, world_bake
+from .bake_store import BakeStore
 
 log = logging.getLogger(__name__)
 
@@ -2777,6 +2780,8 @@ def _ies_profile(socket, name, notes):
 #: not change costs nothing on the next sync. A few entries: worlds are few and maps large.
 _SPLITS: dict = {}
 _SPLITS_KEPT = 4
+#: The splits on disk (~3 MiB each), by `_split_disk_key`.
+_SPLIT_STORE = BakeStore("environment", kept=1, disk_limit=256 << 20)
 
 
 def _euler_matrix(euler):
@@ -2812,17 +2817,59 @@ def _texture_to_world(env_node, world_name):
     return np.linalg.inv(forward)
 
 
-def _cached_split(key, read, to_world=None):
-    """The `EnvironmentSplit` cached under `key`, else of the map `read()` returns (None: none)."""
+def _cached_split(key, read, to_world=None, disk_key: str | None = None):
+    """The `EnvironmentSplit` cached under `key`, else of the map `read()` returns (None: none).
+    disk_key : the split's name on disk (`_SPLIT_STORE`), or None: kept in memory only.
+
+    Why on disk: a map's split costs 0.1-0.4 s at 1024x512 and over a second at 4096x2048 (the
+    pixels' read besides), paid by every new process (each `hybridgi render`, each frame range),
+    where a 640x360 render takes 1-3 s; the material and world bakes were already kept so."""
     split = _SPLITS.get(key)
+    if split is None and disk_key is not None:
+        arrays = _SPLIT_STORE.load_arrays(disk_key)
+        if arrays is not None:
+            try:
+                split = environment.split_from_arrays(arrays)
+            except (KeyError, TypeError, ValueError) as err:
+                log.debug("environment split %s unreadable (%s): split again", disk_key, err)
     if split is None:
         pixels = read()
         if pixels is None:
             return None
-        split = _SPLITS[key] = environment.split_environment(pixels, to_world)
-        while len(_SPLITS) > _SPLITS_KEPT:
-            _SPLITS.pop(next(iter(_SPLITS)))
+        split = environment.split_environment(pixels, to_world)
+        if disk_key is not None:
+            _SPLIT_STORE.save_arrays(disk_key, environment.split_arrays(split))
+    _SPLITS[key] = split
+    while len(_SPLITS) > _SPLITS_KEPT:
+        _SPLITS.pop(next(iter(_SPLITS)))
     return split
+
+
+def _split_disk_key(*parts) -> str:
+    """A file name for a split of what `parts` name, with the split's version and Blender's."""
+    import bpy  # noqa: PLC0415
+
+    digest = hashlib.sha256(f"split={environment.SPLIT_VERSION}|{bpy.app.version_string}".encode())
+    for part in parts:
+        digest.update(part if isinstance(part, bytes) else repr(part).encode())
+    return digest.hexdigest()[:32]
+
+
+def _image_file_key(image, to_world) -> str | None:
+    """`_split_disk_key` of an image read from a file unchanged since (its absolute path, size in
+    bytes and modification time, its colour space, the map's rotation), or None: packed,
+    generated, edited in Blender, or not found (memory only)."""
+    import bpy  # noqa: PLC0415
+
+    if image.source != "FILE" or image.packed_file is not None or image.is_dirty:
+        return None
+    try:
+        path = os.path.realpath(bpy.path.abspath(image.filepath, library=image.library))
+        stat = os.stat(path)
+    except (OSError, ValueError):
+        return None
+    return _split_disk_key("file", path, stat.st_size, stat.st_mtime_ns, tuple(image.size),
+                           image.colorspace_settings.name, to_world.round(6).tobytes())
 
 
 #: Cycles' colour of an image texture whose file cannot be read (`TEX_IMAGE_MISSING_R/G/B`).
@@ -2840,7 +2887,7 @@ def _environment_split(source, world_name):
     image = image.original
     key = (image.name_full, image.filepath, tuple(image.size), image.is_dirty, to_world.round(6).tobytes(),
            image.colorspace_settings.name)
-    split = _cached_split(key, lambda: image_pixels(image), to_world)
+    split = _cached_split(key, lambda: image_pixels(image), to_world, _image_file_key(image, to_world))
     if split is None:
         # A file that is gone (a .blend moved away from its HDRI, a path of another machine):
         # Cycles lights and shows the world in its missing-texture magenta; so does this reader,
@@ -2909,7 +2956,8 @@ def _world_split(world, node, wait=True, rays="camera"):
         if split is not None:
             return split, float(_value(node.inputs["Strength"]))
     key = world_bake.world_key(world, rays)
-    split = _cached_split(("baked", key), lambda: world_bake.bake_world(world, wait=wait, key=key, rays=rays))
+    split = _cached_split(("baked", key), lambda: world_bake.bake_world(world, wait=wait, key=key, rays=rays),
+                          disk_key=_split_disk_key("baked", key))
     if split is None:
         return None
     size = _sky_sun_size(world.node_tree)

@@ -78,6 +78,37 @@ class EnvironmentSplit:
     more_suns: tuple = ()
 
 
+#: Changes whenever `split_environment`'s answer for the same map changes: splits kept on disk
+#: (`split_arrays`, the add-on's split store) are keyed by it.
+SPLIT_VERSION = 1
+
+
+def split_arrays(split: EnvironmentSplit) -> dict[str, np.ndarray]:
+    """`split` as named arrays (for `np.savez`; `split_from_arrays` reads them back)."""
+    out = {"sun_irradiance": np.asarray(split.sun_irradiance), "sun_angle": np.asarray(float(split.sun_angle)),
+           "sky": np.asarray(split.sky), "sky_sh": np.asarray(split.sky_sh)}
+    optional = {"sun_direction": split.sun_direction, "sky_map": split.sky_map, "to_world": split.to_world,
+                "background": split.background}
+    out.update({name: np.asarray(value) for name, value in optional.items() if value is not None})
+    for i, (direction, irradiance, angle) in enumerate(split.more_suns):
+        out[f"more_sun_{i}_direction"] = np.asarray(direction)
+        out[f"more_sun_{i}_irradiance"] = np.asarray(irradiance)
+        out[f"more_sun_{i}_angle"] = np.asarray(float(angle))
+    return out
+
+
+def split_from_arrays(arrays) -> EnvironmentSplit:
+    """The `EnvironmentSplit` that `split_arrays` wrote (arrays: a mapping such as `np.load`'s)."""
+    names = set(arrays.keys())
+    get = lambda name: np.asarray(arrays[name]) if name in names else None  # noqa: E731
+    suns = []
+    while f"more_sun_{len(suns)}_angle" in names:
+        i = len(suns)
+        suns.append((get(f"more_sun_{i}_direction"), get(f"more_sun_{i}_irradiance"), float(get(f"more_sun_{i}_angle"))))
+    return EnvironmentSplit(get("sun_direction"), get("sun_irradiance"), float(get("sun_angle")), get("sky"),
+                            get("sky_sh"), get("sky_map"), get("to_world"), get("background"), tuple(suns))
+
+
 def equirect_directions(height: int, width: int, rows: slice | None = None) -> tuple[np.ndarray, np.ndarray]:
     """((h, w, 3) unit texture-space directions of the pixel centres, (h,) solid angle of a pixel
     in each row). Blender/Cycles: u = (pi - atan2(y, x)) / 2pi, v = 0.5 + asin(z) / pi.

@@ -184,3 +184,31 @@ def test_a_large_map_splits_on_a_filtered_copy_with_its_sun_at_full_resolution()
     np.testing.assert_allclose(split.sky_sh, want_sh, rtol=2e-3, atol=2e-3 * np.abs(want_sh).max())
     assert split.sky_map.max() < 0.6  # the sun is the lamp's, none of it left where rays escape
     assert split.background.shape == (h, w, 3) and split.background.max() > 2000  # the camera sees it
+
+
+def test_a_split_kept_as_arrays_reads_back_the_same():
+    """`split_arrays` / `split_from_arrays` (the add-on keeps splits on disk with them): every
+    field back as it was, a map without a sun and one with more suns alike."""
+    import io
+
+    from hybridgi_core.environment import split_arrays, split_from_arrays
+
+    boxes, _ = sky_with_sun((0.3, 0.2, 0.9))
+    extra, _ = sky_with_sun((-0.7, 0.4, 0.3), sun_radiance=900.0, sun_radius=np.radians(4.0))
+    for pixels, to_world in ((boxes, None), (np.maximum(boxes, extra), np.eye(3)), (np.full((H, W, 3), 0.3), None)):
+        split = split_environment(pixels, to_world)
+        buffer = io.BytesIO()
+        np.savez(buffer, **split_arrays(split))
+        buffer.seek(0)
+        back = split_from_arrays(np.load(buffer, allow_pickle=False))
+        for name in ("sun_direction", "sun_irradiance", "sky", "sky_sh", "sky_map", "to_world", "background"):
+            mine, theirs = getattr(split, name), getattr(back, name)
+            assert (mine is None) == (theirs is None), name
+            if mine is not None:
+                np.testing.assert_array_equal(np.asarray(theirs), np.asarray(mine))
+                assert np.asarray(theirs).dtype == np.asarray(mine).dtype, name
+        assert back.sun_angle == split.sun_angle and len(back.more_suns) == len(split.more_suns)
+        for (d0, e0, a0), (d1, e1, a1) in zip(split.more_suns, back.more_suns, strict=True):
+            np.testing.assert_array_equal(d1, d0)
+            np.testing.assert_array_equal(e1, e0)
+            assert a1 == a0

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import logging
 import math
+import os
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -776,3 +778,38 @@ def test_principled_specular_layers_are_read_and_approximations_named_once(bpy_m
     assert "rough diffuse" in notes[0] and "'rough'" in notes[0] and "'smooth'" not in notes[0]
     assert coated_material.sheen_layered
     assert not [r for r in caplog.records if "lacks the glossy part" in r.getMessage()]
+
+
+def test_an_environment_maps_split_is_kept_on_disk_for_the_next_process(bpy_module, scene, sync, tmp_path,
+                                                                        monkeypatch):
+    """A map read from a file is split once: a later process (here: the in-memory cache emptied)
+    reads the split from disk, the same, without splitting again; a file that changes is split
+    again."""
+    import shutil
+
+    from hybridgi_core import environment
+
+    bpy = bpy_module
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
+    path = tmp_path / "sky.exr"
+    shutil.copy(Path(bpy.utils.system_resource("DATAFILES")) / "studiolights" / "world" / "forest.exr", path)
+    world = bpy.data.worlds.new("hdri")
+    world.use_nodes = True
+    node = world.node_tree.nodes.new("ShaderNodeTexEnvironment")
+    node.image = bpy.data.images.load(str(path))
+    splits = []
+    real = environment.split_environment
+    monkeypatch.setattr(environment, "split_environment", lambda *a, **k: splits.append(1) or real(*a, **k))
+
+    def split():
+        sync._SPLITS.clear()
+        return sync._environment_split(node, world.name)
+
+    first, second = split(), split()
+    assert len(splits) == 1
+    np.testing.assert_array_equal(second.sky_map, first.sky_map)
+    np.testing.assert_array_equal(second.sun_irradiance, first.sun_irradiance)
+    assert len(list((tmp_path / "cache" / "hybridgi" / "environment").glob("*.npz"))) == 1
+    os.utime(path, ns=(path.stat().st_atime_ns, path.stat().st_mtime_ns + 10**9))  # the file changed
+    split()
+    assert len(splits) == 2
