@@ -53,6 +53,15 @@ def rendered(blend, prefix, res, *extra, env=None) -> dict:
     return exr.read_channels(json.loads(run.stdout.strip().splitlines()[-1])["exr"])
 
 
+def against_cycles(blend, folder: Path, res: str, samples: int = 256) -> tuple[dict, dict, np.ndarray]:
+    """(ours, cycles, geometry): the channels of BLEND rendered by HybridGI at its defaults and by
+    Cycles at `samples` spp (prefixes folder/hg and folder/cy), and the Cycles render's geometry
+    pixels (h, w) bool, over which `pass_error` compares them."""
+    ours = rendered(blend, folder / "hg", res)
+    cycles = rendered(blend, folder / "cy", res, "--engine", "CYCLES", "--samples", str(samples))
+    return ours, cycles, layer(cycles, "Depth", "Z")[..., 0] < 1e9
+
+
 def layer(channels, name, components="RGB") -> np.ndarray:
     """(h, w, len(components)) float32 of a pass (rows top-down, as the EXR stores them)."""
     return np.stack([channels[f"ViewLayer.{name}.{c}"] for c in components], axis=-1)
@@ -90,6 +99,14 @@ def sun_towards(direction, energy):
     sun.rotation_euler = Vector(direction).to_track_quat("-Z", "Y").to_euler()
     bpy.context.scene.collection.objects.link(sun)
     return sun
+def area_lamp_at(location, target, energy, size, name="lamp"):
+    lamp = bpy.data.objects.new(name, bpy.data.lights.new(name, "AREA"))
+    lamp.data.energy = energy
+    lamp.data.size = size
+    lamp.location = location
+    lamp.rotation_euler = (Vector(target) - lamp.location).to_track_quat("-Z", "Y").to_euler()
+    bpy.context.scene.collection.objects.link(lamp)
+    return lamp
 """
 
 

@@ -14,7 +14,7 @@ import pytest
 from hybridgi_core.cutout import Cutouts
 from hybridgi_core.snapshot import Material, concat_geometry, geometry_from_arrays
 from hybridgi_core.trace.embree import EmbreeTracer
-from tests.cli_renders import STAGE_HELPERS, layer, pass_error, rendered
+from tests.cli_renders import STAGE_HELPERS, against_cycles, layer, pass_error, rendered
 
 
 def _quad(z, material, uv=True):
@@ -185,12 +185,7 @@ VEIL = "import math, sys, bpy\nfrom mathutils import Vector\n" + STAGE_HELPERS +
     bpy.ops.mesh.primitive_plane_add(size=2.0, location=(0.0, -0.3, 1.0), rotation=(math.radians(90), 0.0, 0.2))
     bpy.context.active_object.data.materials.append(veil)
     camera_at((0.0, -6.0, 2.5), (0.0, 0.0, 0.8))
-    lamp = bpy.data.objects.new("key", bpy.data.lights.new("key", "AREA"))
-    lamp.data.energy = 400.0
-    lamp.data.size = 1.5
-    lamp.location = (2.5, -2.5, 3.5)
-    lamp.rotation_euler = (Vector((0.0, 0.0, 0.8)) - lamp.location).to_track_quat("-Z", "Y").to_euler()
-    scene.collection.objects.link(lamp)
+    area_lamp_at((2.5, -2.5, 3.5), (0.0, 0.0, 0.8), 400.0, 1.5, name="key")
     scene.world = bpy.data.worlds.new("world")
     scene.world.color = (0.15, 0.17, 0.2)
     bpy.ops.wm.save_as_mainfile(filepath=sys.argv[-1])
@@ -207,9 +202,7 @@ def test_a_veil_of_constant_alpha_against_cycles(tmp_path):
     against 1024 spp 0.0995 -> 0.0091 (Cycles 16 spp + OIDN 0.0058)."""
     blend = tmp_path / "veil.blend"
     subprocess.run([sys.executable, "-c", VEIL, str(blend)], check=True, capture_output=True)
-    ours = rendered(blend, tmp_path / "hg", "128x72")
-    cycles = rendered(blend, tmp_path / "cy", "128x72", "--engine", "CYCLES", "--samples", "256")
-    geometry = layer(cycles, "Depth", "Z")[..., 0] < 1e9
+    ours, cycles, geometry = against_cycles(blend, tmp_path, "128x72")
     error = pass_error(ours, cycles, "Combined", geometry)
     print(f"Combined {error:.4f}")
     assert error < 0.03, error

@@ -9,7 +9,7 @@ import pytest
 
 from hybridgi_core import flat_faces
 from hybridgi_core.corner_triangles import from_sizes
-from tests.cli_renders import STAGE_HELPERS, layer, pass_error, rendered, run_bpy
+from tests.cli_renders import STAGE_HELPERS, against_cycles, layer, pass_error, run_bpy
 
 
 def _quad(lift: float):
@@ -86,9 +86,7 @@ def test_a_displaced_flat_grid_is_shaded_facet_by_facet_as_in_cycles(tmp_path):
     256 spp at 96x54 (the faces' own normals, as before: 0.084)."""
     blend = tmp_path / "flat_wave.blend"
     run_bpy(SCENE, PATH=str(blend))
-    ours = rendered(blend, tmp_path / "hg", "96x54")
-    cycles = rendered(blend, tmp_path / "cy", "96x54", "--engine", "CYCLES", "--samples", "256")
-    geometry = layer(cycles, "Depth", "Z")[..., 0] < 1e9
+    ours, cycles, geometry = against_cycles(blend, tmp_path, "96x54")
     error = pass_error(ours, cycles, "Combined", geometry)
     print(f"Combined {error:.4f}")
     assert error < 0.04, error

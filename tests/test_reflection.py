@@ -168,17 +168,8 @@ SCENE = "import sys, bpy\nfrom mathutils import Vector\n" + STAGE_HELPERS + text
     for name, colour, x in (("red", (0.8, 0.1, 0.1), -1.0), ("green", (0.1, 0.7, 0.1), 1.1)):
         bpy.ops.mesh.primitive_cube_add(size=1.5, location=(x, 1.2, 0.75))
         bpy.context.active_object.data.materials.append(principled(name, colour, 1.0))
-    camera = bpy.data.objects.new("camera", bpy.data.cameras.new("camera"))
-    camera.location = (0.0, -6.0, 2.0)
-    camera.rotation_euler = (Vector((0.0, 0.5, 0.5)) - camera.location).to_track_quat("-Z", "Y").to_euler()
-    scene.collection.objects.link(camera)
-    scene.camera = camera
-    lamp = bpy.data.objects.new("lamp", bpy.data.lights.new("lamp", "AREA"))
-    lamp.data.energy = 500.0
-    lamp.data.size = 2.0
-    lamp.location = (1.0, -2.0, 4.0)
-    lamp.rotation_euler = (Vector((0.0, 0.5, 0.5)) - lamp.location).to_track_quat("-Z", "Y").to_euler()
-    scene.collection.objects.link(lamp)
+    camera_at((0.0, -6.0, 2.0), (0.0, 0.5, 0.5))
+    area_lamp_at((1.0, -2.0, 4.0), (0.0, 0.5, 0.5), 500.0, 2.0)
     scene.world = bpy.data.worlds.new("world")
     scene.world.color = (0.05, 0.06, 0.08)
     for flag in ("use_pass_glossy_direct", "use_pass_glossy_indirect", "use_pass_glossy_color"):
