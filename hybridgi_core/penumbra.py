@@ -442,22 +442,22 @@ def filter_emitter_light(light: np.ndarray, open_light: np.ndarray, cones: np.nd
     own). Splitting visibility from the unshadowed light keeps the shadows' edges where the
     filter reaches far."""
     sampled = np.maximum(light - cones, 0.0)
-    seen = open_light.max(axis=1) > 0
-    visibility = np.where(seen[:, None], sampled / np.maximum(open_light, np.float32(1e-30)), 0.0).astype(np.float32)
-    smooth = filter_at_pixels(np.asarray(open_light, np.float32), seen, points, normals, pix, shape, camera,
-                              EMITTER_OPEN_PASSES, pool)
-    shade = filter_at_pixels(visibility, seen, points, normals, pix, shape, camera, FILTER_PASSES, pool)
-    return np.where(seen[:, None], smooth * np.clip(shade, 0.0, 1.0), sampled).astype(np.float32) + cones
+    return filter_penumbra(sampled, open_light, points, normals, pix, shape, camera, pool,
+                           open_passes=EMITTER_OPEN_PASSES) + cones
 
 
 def filter_penumbra(light: np.ndarray, open_light: np.ndarray, points: np.ndarray, normals: np.ndarray,
-                    pix: np.ndarray, shape: tuple[int, int], camera, pool=None) -> np.ndarray:
+                    pix: np.ndarray, shape: tuple[int, int], camera, pool=None, open_passes: int = 0) -> np.ndarray:
     """(n, 3) the penumbra pixels' light with its visibility (light / the unshadowed light)
     averaged over their neighbours on the same surface (`pixel_gather.filter_at_pixels`: plane and
     normal guided a-trous passes), times their own unshadowed light: 24 shadow rays leave a
     large lamp's soft shadow grainy (Cycles' image is denoised); the shading's own detail (the
-    unshadowed term) is kept per pixel."""
+    unshadowed term) is kept per pixel. open_passes > 0: the unshadowed light is itself an
+    estimate (`filter_emitter_light`), averaged that many passes on its surfaces first."""
     seen = open_light.max(axis=1) > 0
     visibility = np.where(seen[:, None], light / np.maximum(open_light, np.float32(1e-30)), 0.0).astype(np.float32)
     out = filter_at_pixels(visibility, seen, points, normals, pix, shape, camera, FILTER_PASSES, pool)
+    if open_passes > 0:
+        open_light = filter_at_pixels(np.asarray(open_light, np.float32), seen, points, normals, pix, shape, camera,
+                                      open_passes, pool)
     return np.where(seen[:, None], open_light * np.clip(out, 0.0, 1.0), light).astype(np.float32)

@@ -44,8 +44,8 @@ def _sub_centroids(levels: int) -> np.ndarray:
 
 
 #: Where a textured emitter's triangles read their mean (`SurfaceTable._glowing_means`): the
-#: centroid, then the centroids of its 16 sub-triangles; past GLOW_MEAN_LIMIT texel reads in all,
-#: the centroid alone.
+#: centroids of its 16 sub-triangles, the one at the triangle's own centroid first; past
+#: GLOW_MEAN_LIMIT texel reads in all, that first one alone.
 GLOW_POINTS = _sub_centroids(4)
 GLOW_MEAN_LIMIT = 1 << 21
 #: Share of its material's mean emission a textured triangle's mean adds (`_glowing_means`).
