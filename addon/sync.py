@@ -2817,15 +2817,19 @@ def _texture_to_world(env_node, world_name):
     return np.linalg.inv(forward)
 
 
-def _cached_split(key, read, to_world=None, disk_key: str | None = None):
+def _cached_split(key, read, to_world=None, disk_key=None):
     """The `EnvironmentSplit` cached under `key`, else of the map `read()` returns (None: none).
-    disk_key : the split's name on disk (`_SPLIT_STORE`), or None: kept in memory only.
+    disk_key : disk_key() -> the split's name on disk (`_SPLIT_STORE`) or None (kept in memory
+    only), called only where memory misses (a file's stat and a hash per sync otherwise).
 
     Why on disk: a map's split costs 0.1-0.4 s at 1024x512 and over a second at 4096x2048 (the
     pixels' read besides), paid by every new process (each `hybridgi render`, each frame range),
     where a 640x360 render takes 1-3 s; the material and world bakes were already kept so."""
     split = _SPLITS.get(key)
-    if split is None and disk_key is not None:
+    if split is not None:
+        return split
+    disk_key = None if disk_key is None else disk_key()
+    if disk_key is not None:
         arrays = _SPLIT_STORE.load_arrays(disk_key)
         if arrays is not None:
             try:
@@ -2887,7 +2891,7 @@ def _environment_split(source, world_name):
     image = image.original
     key = (image.name_full, image.filepath, tuple(image.size), image.is_dirty, to_world.round(6).tobytes(),
            image.colorspace_settings.name)
-    split = _cached_split(key, lambda: image_pixels(image), to_world, _image_file_key(image, to_world))
+    split = _cached_split(key, lambda: image_pixels(image), to_world, lambda: _image_file_key(image, to_world))
     if split is None:
         # A file that is gone (a .blend moved away from its HDRI, a path of another machine):
         # Cycles lights and shows the world in its missing-texture magenta; so does this reader,
@@ -2957,7 +2961,7 @@ def _world_split(world, node, wait=True, rays="camera"):
             return split, float(_value(node.inputs["Strength"]))
     key = world_bake.world_key(world, rays)
     split = _cached_split(("baked", key), lambda: world_bake.bake_world(world, wait=wait, key=key, rays=rays),
-                          disk_key=_split_disk_key("baked", key))
+                          disk_key=lambda: _split_disk_key("baked", key))
     if split is None:
         return None
     size = _sky_sun_size(world.node_tree)
