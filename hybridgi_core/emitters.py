@@ -99,6 +99,8 @@ class MeshLights:
         `radiance` is their mean, and a sample reads `texture`
     texture : texture(prims (c,), u (c,), v (c,)) -> (c, 3) float32 the radiance of triangles
         `prims` (indices in the traced geometry) at barycentrics u, v (`shading.SurfaceTable`)
+    closed : (k,) int the closed emitter (one object's triangles with a `side`) each triangle
+        bounds, -1 for none; None: none (`exact`: a receiver inside one sees its inner sides)
     """
 
     prims: np.ndarray
@@ -118,6 +120,7 @@ class MeshLights:
     side: np.ndarray | None = None
     glows: np.ndarray | None = None
     texture: Callable | None = None
+    closed: np.ndarray | None = None
 
     @classmethod
     def from_triangles(cls, positions: np.ndarray, triangles: np.ndarray, emission: np.ndarray,
@@ -171,9 +174,9 @@ class MeshLights:
         centre = v0 + (e1 + e2) / _F32(3.0)
         radius = np.max([np.linalg.norm(v0 + e - centre, axis=1) for e in (0.0, e1, e2)], axis=0)
         group, spheres, share = _compact_groups(owner, v0, e1, e2, area, choose)
-        side = _sides(owner, v0, e1, e2) if prims.size <= EXACT_TRIANGLES else None
+        side, closed = _sides(owner, v0, e1, e2) if prims.size <= EXACT_TRIANGLES else (None, None)
         return cls(prims, v0, e1, e2, (cross / twice[:, None]).astype(_F32), area, emission[prims], choose, cdf,
-                   centre, radius.astype(_F32), group, spheres, share, side)
+                   centre, radius.astype(_F32), group, spheres, share, side, closed=closed)
 
     @property
     def ratio(self) -> bool:
@@ -228,15 +231,27 @@ class MeshLights:
         out = np.zeros((p.shape[0], k))
         corners = [self.v0.astype(np.float64) + e for e in (0.0, self.e1.astype(np.float64), self.e2.astype(np.float64))]
         side = np.zeros(k, np.int8) if self.side is None else self.side
+        inside = self._inside(p, corners[0], side)
         for j in range(k):
             rows = slice(None)
-            if side[j] != 0:  # a closed emitter: only receivers on its outer side see this face
+            if side[j] != 0:  # a closed emitter: only receivers on its outer side see this face,
+                # and those inside it (a room whose walls glow: they see every face's inner side)
                 height = (p - corners[0][j]) @ self.normal[j].astype(np.float64)
-                rows = np.flatnonzero(height * side[j] > 0)
+                rows = np.flatnonzero((height * side[j] > 0) | inside[:, self.closed[j]])
                 if rows.size == 0:
                     continue
             out[rows, j] = polygon_light.cosine_solid_angle(np.stack([c[j] for c in corners]), p[rows], nrm[rows])
         return out
+
+    def _inside(self, p: np.ndarray, v0: np.ndarray, side: np.ndarray) -> np.ndarray:
+        """(n, C) bool: the receivers p (n, 3) behind every face of each closed emitter (inside a
+        convex one), C = the closed emitters' count (0 columns without any)."""
+        count = 0 if self.closed is None else int(self.closed.max(initial=-1)) + 1
+        inside = np.ones((p.shape[0], count), bool)
+        for j in np.flatnonzero(side != 0):
+            height = (p - v0[j]) @ self.normal[j].astype(np.float64)
+            inside[:, self.closed[j]] &= height * side[j] <= 0
+        return inside
 
     def _ratio_block(self, p, n, tracer, rng, samples, epsilon, partial=None, unshadowed=None):
         """`irradiance` of a few triangles (EXACT_TRIANGLES at most) as the lamps' ratio estimator
@@ -249,7 +264,12 @@ class MeshLights:
         lit by a 3 m x 10 cm LED strip read its walls' Diffuse Direct -7% in speckles (rel L1 0.26
         at 160x90 against Cycles). Unshadowed receivers are now exact; penumbrae keep the
         samples' noise, in the share only."""
-        exact = self.exact(p, n)  # (m, k)
+        # The receivers as the shadow rays leave them, epsilon off their surface: a receiver on an
+        # emitter's own face (its pixels, a probe ray's hit on it) lies a rounding error to either
+        # side of the face's plane, and behind it Lambert's form sees the face's back (emitters are
+        # two-sided) fill its hemisphere: E = pi L at every other pixel of a panel, and a room's
+        # bounce light 7-12% high where probe hits sample the emitters.
+        exact = self.exact(p + n * _F32(epsilon), n)  # (m, k)
         lum = exact * (self.radiance @ LUMA).astype(np.float64)[None, :]
         total = lum.sum(axis=1)
         light = (exact @ self.radiance.astype(np.float64)).astype(_F32)  # (m, 3) unshadowed
@@ -546,15 +566,17 @@ EXACT_TRIANGLES = 16
 SOLID_SAMPLES = 12
 
 
-def _sides(owner: np.ndarray, v0: np.ndarray, e1: np.ndarray, e2: np.ndarray) -> np.ndarray:
-    """(k,) int8: +1 for the triangles of an object (`owner`) whose emissive triangles close a
-    volume they face out of (every edge shared by two of them, in opposite directions, and the
-    volume their normals enclose positive), -1 where they face into it, 0 elsewhere (both sides).
+def _sides(owner: np.ndarray, v0: np.ndarray, e1: np.ndarray, e2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """((k,) int8, (k,) int): +1 for the triangles of an object (`owner`) whose emissive triangles
+    close a volume they face out of (every edge shared by two of them, in opposite directions, and
+    the volume their normals enclose positive), -1 where they face into it, 0 elsewhere (both
+    sides); and the number of the closed volume each bounds (0, 1, ...; -1 for none).
 
     Why: emission is two-sided, and the inner side of a closed emitter (an LED strip, a box) is
     never seen; counted by the closed form (`MeshLights.exact`), it doubled the light its shadow
     rays then had to take back, so no receiver was exact."""
     side = np.zeros(owner.shape[0], np.int8)
+    closed = np.full(owner.shape[0], -1, np.int64)
     corners = np.stack([v0, v0 + e1, v0 + e2], axis=1).astype(np.float64)  # (k, 3, 3)
     scale = max(float(np.abs(corners).max()), 1e-30) * 1e-6
     for rows in _objects(owner):
@@ -571,7 +593,8 @@ def _sides(owner: np.ndarray, v0: np.ndarray, e1: np.ndarray, e2: np.ndarray) ->
         extent = float(np.ptp(c.reshape(-1, 3), axis=0).max())
         if abs(volume) > 1e-9 * extent**3:
             side[rows] = 1 if volume > 0 else -1
-    return side
+            closed[rows] = closed.max() + 1
+    return side, closed
 
 
 #: Solid angle (sr) above which a triangle is sampled in its solid angle rather than its area:

@@ -84,7 +84,8 @@ def test_a_few_triangles_are_exact_where_unshadowed_and_scaled_by_their_shadow_e
     lights = MeshLights.from_triangles(positions, triangles, emission)
     points, up, _ = receivers()
     polygon = np.array([tris[0][0], tris[0][1], tris[0][2], tris[1][2]], np.float64)
-    exact = cosine_solid_angle(polygon, points, up)[:, None] * np.array([3.0, 2.0, 1.0])
+    # At the receivers as their shadow rays leave them, epsilon off the surface (`_ratio_block`).
+    exact = cosine_solid_angle(polygon, points + up * 1e-4, up)[:, None] * np.array([3.0, 2.0, 1.0])
     got = lights.irradiance(points, up, TriangleTracer(tris), np.random.default_rng(4), 4, 1e-4)
     np.testing.assert_allclose(got, exact, rtol=1e-5, atol=1e-7)
     # A blocker over half the panel: receivers under its edge see part of it.
@@ -134,9 +135,44 @@ def test_a_closed_emitter_lights_only_by_its_outer_faces():
     normals = np.array([[0, -1, 0]] * 3 + [[0, 0, -1]] * 2, np.float32)
     tracer = TriangleTracer(tris)
     got = lights.irradiance(points, normals, tracer, np.random.default_rng(6), 4, 1e-4)
-    seen = lights.exact(points, normals) @ emission.astype(np.float64)
+    seen = lights.exact(points + normals * 1e-4, normals) @ emission.astype(np.float64)
     np.testing.assert_allclose(got, seen, rtol=1e-5)
     np.testing.assert_allclose(got, sampled_by_power(lights, points, normals, tracer, 20000, 7), rtol=0.03)
+
+
+def test_a_point_on_an_emitter_gets_no_light_from_its_own_face():
+    """The panel's own pixels, or a probe ray's hit on it: a rounding error off the face's plane
+    to either side. Behind the face (emitters are two-sided) Lambert's form saw its back fill the
+    hemisphere, pi L, at every other such point; Cycles' Diffuse Direct there is 0."""
+    positions, triangles, emission, tris = panel(half=0.5)
+    lights = MeshLights.from_triangles(positions, triangles, emission)
+    on = np.array([[x, y, 2.0 + dz] for x, y in ((0.1, 0.2), (-0.3, -0.1)) for dz in (-3e-7, 0.0, 3e-7)], np.float32)
+    for facing in (-1.0, 1.0):
+        normals = np.tile(np.array([0.0, 0.0, facing], np.float32), (on.shape[0], 1))
+        for tracer in (None, TriangleTracer(tris)):
+            got = lights.irradiance(on, normals, tracer, np.random.default_rng(2), 4, 1e-4)
+            np.testing.assert_allclose(got, 0.0, atol=1e-3)
+
+
+def test_inside_a_closed_emitter_every_face_lights_by_its_inner_side():
+    """A room whose closed walls glow (a furnace; every face emits both ways, as Cycles' emission
+    does): a receiver inside sees every wall by its inner side, whichever way they are wound, so
+    the closed form gives the whole sphere's light, pi L on any normal."""
+    one = np.zeros(12, np.int64)
+    emission = np.tile(np.array([2.0, 1.0, 0.5], np.float32), (12, 1))
+    points = np.array([[0.1, -0.2, 0.3], [-0.4, 0.3, -0.1]], np.float32)
+    normals = np.array([[0, 0, 1], [0.6, 0.0, -0.8]], np.float32)
+    for inward in (False, True):
+        tris = box_triangles((0.0, 0.0, 0.0), (1.0, 1.0, 1.0), inward=inward).astype(np.float32)
+        lights = MeshLights.from_triangles(tris.reshape(-1, 3), np.arange(36).reshape(12, 3), emission, objects=one)
+        assert (lights.side != 0).all()
+        got = lights.irradiance(points, normals, TriangleTracer(tris), np.random.default_rng(3), 4, 1e-4)
+        np.testing.assert_allclose(got, np.pi * np.tile(emission[0], (2, 1)), rtol=1e-4)
+    # Outside it the same box still lights by its outer faces alone (no double count).
+    outside = lights.exact(np.array([[0.0, 0.0, 3.0]]), np.array([[0.0, 0.0, -1.0]])) @ emission.astype(np.float64)
+    square = np.array([[-1.0, -1.0, 1.0], [1.0, -1.0, 1.0], [1.0, 1.0, 1.0], [-1.0, 1.0, 1.0]])
+    face = cosine_solid_angle(square, np.array([[0.0, 0.0, 3.0]]), np.array([[0.0, 0.0, -1.0]]))
+    np.testing.assert_allclose(outside[0], face[0] * emission[0], rtol=1e-6)
 
 
 def test_triangles_are_chosen_by_power_and_nothing_emitting_is_none():
