@@ -46,6 +46,9 @@ class CellSamples:
     depth_count: np.ndarray  # (T,) rays per texel when every cell shares the directions, else (m, T)
     backface: np.ndarray  # (m,)
     shaded: np.ndarray | None = None  # (m,) bool: radiance bands estimated (None = all)
+    #: (m, K, 3) the direct band without the emitters that probe-ray hits sample themselves
+    #: (`solver.GISolver`), or None: hits read `sh_direct`
+    sh_direct_hit: np.ndarray | None = None
 
 
 class IrradianceCache:
@@ -57,6 +60,9 @@ class IrradianceCache:
         t = settings.depth_texels**2
         self.sh_direct = np.zeros((n, k, 3), np.float32)
         self.sh_indirect = np.zeros((n, k, 3), np.float32)
+        #: (n, K, 3) the direct band as probe-ray hits read it where they sample the emitters
+        #: themselves (`CellSamples.sh_direct_hit`; the solver's first blend allocates it), or None
+        self.sh_direct_hit = None
         self.ao_sh = np.zeros((n, k), np.float32)
         self.depth = np.zeros((n, t, 2), np.float32)
         self.depth_cap = np.float32(DEPTH_CAP_CELLS * grid.cell_size)
@@ -107,7 +113,12 @@ class IrradianceCache:
         shaded = np.ones(m, bool) if s.shaded is None else np.asarray(s.shaded, bool)
         a_rad = (a * shaded)[:, None]
         # Flat (m, -1) rows: broadcasting a per-cell weight over short trailing axes is slow.
-        for name, new, w in (("sh_direct", s.sh_direct, a_rad), ("sh_indirect", s.sh_indirect, a_rad), ("ao_sh", s.ao_sh, a1)):
+        bands = [("sh_direct", s.sh_direct, a_rad), ("sh_indirect", s.sh_indirect, a_rad), ("ao_sh", s.ao_sh, a1)]
+        if s.sh_direct_hit is not None:
+            if self.sh_direct_hit is None:
+                self.sh_direct_hit = self.sh_direct.copy()
+            bands.append(("sh_direct_hit", s.sh_direct_hit, a_rad))
+        for name, new, w in bands:
             arr = getattr(self, name)
             old = arr[c].reshape(m, -1)
             delta = new.reshape(m, -1) - old

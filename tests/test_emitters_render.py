@@ -66,7 +66,10 @@ def test_a_room_lit_by_an_emissive_panel_has_cycles_direct_light(cuts):
     triangles in closed form, shadowed by the samples' share (`MeshLights._ratio_block`):
     Diffuse Direct 0.026 -> 0.010. Cut into 98 triangles it is sampled by power (`_block`), its
     light without shadows and its visibility filtered apart (`penumbra.filter_emitter_light`):
-    Diffuse Direct 0.026 -> 0.018 (Combined 0.144 either way)."""
+    Diffuse Direct 0.026 -> 0.018 (Combined 0.144 either way). The cache's probe hits sample the
+    panel too (`solver.GISolver.hit_emitters`): Diffuse Indirect's sum against Cycles' 0.858 ->
+    0.912 (two triangles) and 0.858 -> 0.870 (98); the ceiling 2 cm over the panel is lit many
+    times brighter than the cell in front of it said."""
     import tempfile
     from pathlib import Path
 
@@ -82,7 +85,10 @@ def test_a_room_lit_by_an_emissive_panel_has_cycles_direct_light(cuts):
         errors[name] = float(np.abs(mine - reference)[geometry].sum() / np.abs(reference)[geometry].sum())
     mine, reference = layer(ours, "Diffuse Direct")[geometry], layer(cycles, "Diffuse Direct")[geometry]
     ratio = float(mine.sum() / reference.sum())
-    print(errors, f"Diffuse Direct sum ratio {ratio:.3f}")
+    bounce = float(layer(ours, "Diffuse Indirect")[geometry].sum() / layer(cycles, "Diffuse Indirect")[geometry].sum())
+    print(errors, f"Diffuse Direct sum ratio {ratio:.3f}, Diffuse Indirect {bounce:.3f}")
     assert abs(ratio - 1.0) < 0.05, ratio  # the emitter's light counted once
     assert errors["Diffuse Direct"] < (0.015 if cuts == 0 else 0.022), errors
     assert errors["Combined"] < 0.16, errors
+    if cuts == 0:
+        assert bounce > 0.89, bounce
