@@ -440,7 +440,10 @@ def filter_emitter_light(light: np.ndarray, open_light: np.ndarray, cones: np.nd
     Why: 16 samples per pixel of a sign in 98 triangles left its wall and floor grainy (320x180
     against Cycles 1024 spp, Diffuse Direct rel L1 0.39; Cycles 16 spp + OIDN denoises its
     own). Splitting visibility from the unshadowed light keeps the shadows' edges where the
-    filter reaches far."""
+    filter reaches far. camera None (an orthographic view: no eye to scale the planes' distances
+    by): the samples' light as it is."""
+    if camera is None:
+        return np.asarray(light, np.float32)
     sampled = np.maximum(light - cones, 0.0)
     return filter_penumbra(sampled, open_light, points, normals, pix, shape, camera, pool,
                            open_passes=EMITTER_OPEN_PASSES) + cones

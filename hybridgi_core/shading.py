@@ -184,6 +184,9 @@ class SurfaceTable:
         rays_only = sorted(i for i, m in enumerate(self.materials) if getattr(m, "coverage", 1.0) < 1.0)
         skip = np.isin(self.material_index, np.asarray(rays_only, np.int32)) if rays_only else None
         emission, glows = self.records[:-1, _EMIT], None
+        around = _enclosing_emitters(self._positions, emission, np.asarray(self._geometry.object_index))
+        if around is not None:
+            skip = around if skip is None else skip | around
         if self.glowing:
             glows = np.isin(self.material_index, np.asarray(self.glowing, np.int32))
             emission = emission.copy()
@@ -420,3 +423,30 @@ def sample_texture(texture: np.ndarray, uv: np.ndarray) -> np.ndarray:
     top = t[y0, x0] * (1 - fx) + t[y0, x1] * fx
     bottom = t[y1, x0] * (1 - fx) + t[y1, x1] * fx
     return (top * (1 - fy) + bottom * fy).astype(np.float32)
+
+
+def _enclosing_emitters(packed: np.ndarray, emission: np.ndarray, objects: np.ndarray) -> np.ndarray | None:
+    """(T,) bool the triangles of emissive objects whose bounding box holds every surface that does
+    not emit (a sky dome, a glowing studio box around the scene), or None: they stand in for a
+    world and are left to the rays, as the world is.
+
+    Why: sampled by area, an emitter all around a receiver gives each sample a random corner of
+    its sky; the pixel rays' cosine directions find it as they find the world (a scene under an
+    emissive sphere of 30 m, 160x90 Combined against Cycles: 0.0536 sampled, 0.0111 by rays;
+    Cycles 16 spp + OIDN 0.0080)."""
+    lit = (np.asarray(emission, np.float32).reshape(-1, 3).max(axis=1) > 0)
+    if not lit.any() or lit.all():
+        return None
+    p = np.asarray(packed, np.float32).reshape(-1, 9)
+    corners = np.concatenate([p[:, 0:3], p[:, 0:3] + p[:, 3:6], p[:, 0:3] + p[:, 6:9]], axis=1).reshape(-1, 3, 3)
+    rest = corners[~lit].reshape(-1, 3)
+    lo, hi = rest.min(axis=0), rest.max(axis=0)
+    out = np.zeros(lit.shape[0], bool)
+    rows = np.flatnonzero(lit)
+    obj = np.asarray(objects).reshape(-1)[rows]
+    for o in np.unique(obj):
+        mine = rows[obj == o]
+        c = corners[mine].reshape(-1, 3)
+        if (c.min(axis=0) <= lo).all() and (c.max(axis=0) >= hi).all():
+            out[mine] = True
+    return out if out.any() else None

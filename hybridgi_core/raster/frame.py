@@ -687,8 +687,12 @@ class FramePipeline:
                 cones = np.zeros((p_full.shape[0], 3), np.float32)
                 light = system.emitter_light(p_full, n_full, frame, samples, unshadowed=open_light, cones=cones)
                 emitter = np.zeros((self.height * self.width, 3), np.float32)
+                # The lamps' `camera` is None beside a sun (its penumbrae a pixel wide); the
+                # emitters' light is filtered whatever lamps light the scene (a sun of strength 0
+                # crashed here), unless the view is orthographic.
+                eye = filter_camera((), camera_eye(view, proj))
                 emitter[pix_full] = filter_emitter_light(light, open_light, cones, p_full, n_full, pix_full,
-                                                         (self.height, self.width), camera, pool=system.updater.pool)
+                                                         (self.height, self.width), eye, pool=system.updater.pool)
                 direct[pix_full, :3] += emitter[pix_full]
             screen = dataclasses.replace(screen, emitters_sampled=True)
         return CentreLight(direct, lamp_light, screen, p_full, n_full, pix_full, s_full,
