@@ -204,6 +204,13 @@ def test_refracting_glass_takes_its_share_of_a_pixel_over_the_raster():
     np.testing.assert_array_equal(acc.read("diffuse_direct"), before["diffuse_direct"])
     np.testing.assert_allclose(acc.read("combined_premultiplied")[0, 0], before["combined_premultiplied"][0, 0])
     np.testing.assert_allclose(acc.read("combined_premultiplied")[0, 1, 3], 1.0)
+    # A pixel wholly behind glass: no sample saw a diffuse colour, so its light passes read 0 as
+    # Cycles' do (they had kept the see-through surface's light).
+    acc.set_refraction(np.array([[0.0, 1.0]], np.float32), np.full((1, 2, 3), 2.0, np.float32))
+    np.testing.assert_array_equal(acc.read("diffuse_color")[0, 1, :3], 0.0)
+    for name in ("diffuse_direct", "diffuse_indirect"):
+        np.testing.assert_array_equal(acc.read(name)[0, 1, :3], 0.0)
+        np.testing.assert_array_equal(acc.read(name)[0, 0], before["diffuse_direct"][0, 0])
 
 
 def test_one_sample_per_pixel_takes_the_filters_share_of_each_neighbour():
