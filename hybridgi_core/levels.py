@@ -299,7 +299,12 @@ def build_levels(system, points: np.ndarray, normals: np.ndarray, depth: np.ndar
         return None
     base = system.cache
     bounced = s.indirect_quality == MULTI_BOUNCE
-    lookup = HitLookup(base, bounced=bounced) if s.indirect_quality != AO_ONLY else None
+    # The finer levels' hits sample the emitters as level 0's did (`GISolver.hit_emitters`), and
+    # then read level 0 without them: read with them too, a furnace's walls lit them twice (1.5 x).
+    sampled = base.sh_direct_hit is not None and system.solver.hit_emitters() is not None
+    direct = base.sh_direct_hit if sampled else base.sh_direct
+    lookup = (HitLookup(base, bounced=bounced, coeffs=direct + base.sh_indirect if bounced else direct)
+              if s.indirect_quality != AO_ONLY else None)
     fine = []
     for grid in grids:
         try:
@@ -314,6 +319,7 @@ def build_levels(system, points: np.ndarray, normals: np.ndarray, depth: np.ndar
             break
         solver = GISolver(cache, system.tracer, system.updater.scene, system.tracer.epsilon, system.updater.pool)
         solver.viewpoint = system.viewpoint  # its cells the camera sees are open too (`open_space.py`)
+        solver.sample_emitters = sampled
         solver.begin(cells)
         for b in range(max(1, batches)):
             stats.merge(solver.trace_batch(b))

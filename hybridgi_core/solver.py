@@ -189,6 +189,10 @@ class GISolver:
         #: cost as much as the shadow rays they save (Cornell box, 2 batches: 1.4 s vs 1.3 s of
         #: worker time per batch); worth it with many batches or many lamps per hit.
         self.use_lamp_table = False
+        #: Whether stored hits may sample the emitters (`hit_emitters`): off where the cache their
+        #: further bounces read has no direct band without them (a finer level over a level 0
+        #: that never sampled them, `levels.build_levels`).
+        self.sample_emitters = True
         self.lamps = LampLightTable(cache.grid.lo, cache.grid.cell_size)
         self.cells = np.zeros(0, np.int64)
         self.chunks: list[StoredHits] = []
@@ -430,7 +434,7 @@ class GISolver:
         room 0.0765 -> 0.0543, screen room 0.0715 -> 0.0503, panel under a ceiling 0.1113 ->
         0.0942, the low panel 0.0505 -> 0.0548; +0.3 to 0.7 s of samples at any resolution)."""
         emitters = self.scene.surfaces.emitters
-        if emitters is None or self.cache.settings.indirect_quality == AO_ONLY:
+        if emitters is None or not self.sample_emitters or self.cache.settings.indirect_quality == AO_ONLY:
             return None
         return emitters if worth_sampling(emitters, self.scene.lights) else None
 
