@@ -219,13 +219,15 @@ def begin_glossy(system, points, normals, pix, shape: tuple[int, int], material,
     # sample stands for the pixel); the reflection rays' lobes by half as much (`RAY_WIDEN_SHARE`).
     widen = footprint_alpha2(normals, pix, shape)
     ray_rough = widened_roughness(rough, RAY_WIDEN_SHARE * widen[lit])
-    # Area lamps in lobes much narrower than they are: the reflection rays estimate them.
+    # Area lamps in closed form first (`glossy_ltc`: noise-free where the lamp is wholly seen);
+    # of the rest, those in lobes much narrower than they are: the reflection rays estimate them.
     skip = np.zeros((n, len(system.scene.lights)), bool)
-    if reflection_rays > 0 and lit.size:
-        skip[lit] = bsdf_lamps(system.scene.lights, points[lit], normals[lit], rough) & (traced_share(rough) > 0)[:, None]
     level = (np.asarray(albedo, np.float32).reshape(-1, 3) * irradiance) @ LUMA / np.float32(np.pi)
     exact, closed = glossy_ltc.closed_form(system.scene.lights, mats, points, normals, to_eye, rows, visibility, skip,
                                            level, pool)
+    if reflection_rays > 0 and lit.size:
+        skip[lit] = (bsdf_lamps(system.scene.lights, points[lit], normals[lit], rough, to_eye[lit])
+                     & (traced_share(rough) > 0)[:, None] & ~closed[lit])
     level = level + exact @ LUMA
     direct = np.zeros((n, 3), np.float32)
     direct[:] = adaptive_lamp_glossy(system, points, normals, to_eye, rows, pix, shape, frame, samples,

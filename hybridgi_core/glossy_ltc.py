@@ -28,8 +28,12 @@ from .glossy_noise import NOISE
 from .lights import _area_shape
 from .pixel_gather import LUMA
 
-#: Smoothest lobe (Blender roughness) whose area-lamp light is taken in closed form.
-MIN_ROUGHNESS = 0.25
+#: Smoothest lobe (Blender roughness) whose area-lamp light is taken in closed form. The fit reads
+#: a lamp's light within 3% down to 0.1 (against 400k area samples of the lobe: a 1 m lamp in
+#: the mirror direction 0.965 / 0.941 at 0.1, 0.556 / 0.546 at 0.25); a chrome-like Glossy BSDF
+#: 0.15 under a 2 m lamp had its highlight from reflection rays, speckled (160x90 Combined 0.177
+#: against Cycles; 0.141 in closed form).
+MIN_ROUGHNESS = 0.1
 #: Most grazing view (its cosine to the normal) whose lamp light is taken in closed form.
 MIN_VIEW_COSINE = 0.3
 #: How far off the closed form is taken to read where it is not `trusted` (10-30% on a lamp the

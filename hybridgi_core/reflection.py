@@ -150,11 +150,17 @@ def sample_reflections(normals: np.ndarray, to_eye: np.ndarray, rough: np.ndarra
     return world, weight.astype(_F32)
 
 
-def bsdf_lamps(lights, points: np.ndarray, normals: np.ndarray, rough: np.ndarray) -> np.ndarray:
+def bsdf_lamps(lights, points: np.ndarray, normals: np.ndarray, rough: np.ndarray,
+               to_eye: np.ndarray | None = None) -> np.ndarray:
     """(n, L) bool: which of the L lamps the reflection rays of each receiver estimate (area lamps
-    facing it whose solid angle exceeds BSDF_LAMP_RATIO x its lobe's; the module docstring)."""
+    facing it whose solid angle exceeds BSDF_LAMP_RATIO x its lobe's; the module docstring). With
+    `to_eye` (n, 3), only where the lamp lies within the lobe's core (`_in_core`)."""
     pts = np.asarray(points, np.float64).reshape(-1, 3)
     nrm = np.asarray(normals, np.float64).reshape(-1, 3)
+    mirror = None
+    if to_eye is not None:
+        v = np.asarray(to_eye, np.float64).reshape(-1, 3)
+        mirror = 2.0 * (v * nrm).sum(1, keepdims=True) * nrm - v
     out = np.zeros((pts.shape[0], len(lights)), bool)
     alpha = np.asarray(rough, np.float64).reshape(-1) ** 2
     lobe = 4.0 * np.pi * alpha * alpha
@@ -169,8 +175,28 @@ def bsdf_lamps(lights, points: np.ndarray, normals: np.ndarray, rough: np.ndarra
         d2 = np.maximum((to * to).sum(1), 1e-12)
         cos_l = -(to @ shape.normal.astype(np.float64)) / np.sqrt(d2)  # > 0: the receiver faces its front
         facing = (cos_l > 0) & ((to * nrm).sum(1) > -np.sqrt(shape.area))
-        out[:, j] = facing & (shape.area * np.maximum(cos_l, 0.0) / d2 > BSDF_LAMP_RATIO * lobe)
+        big = facing & (shape.area * np.maximum(cos_l, 0.0) / d2 > BSDF_LAMP_RATIO * lobe)
+        if mirror is not None:
+            big &= _in_core(mirror, to, d2, shape.area, alpha)
+        out[:, j] = big
     return out
+
+
+#: Lobe widths (2 alpha, radians) beyond a lamp's edge within which its reflection rays estimate it.
+CORE_WIDTHS = 2.0
+
+
+def _in_core(mirror: np.ndarray, to: np.ndarray, d2: np.ndarray, area: float, alpha: np.ndarray) -> np.ndarray:
+    """(n,) bool: receivers whose mirror direction (n, 3) points at the lamp (centre `to` (n, 3)
+    away, squared distance d2, area) or within CORE_WIDTHS lobe widths of its edge. Why: in a
+    sharp lobe's tail the rays meet the lamp once in many pixels, each meeting weighing the lamp's
+    full radiance over the ray count: a chrome ball's highlight sat in a halo of white specks
+    reaching 15 pixels out (Glossy BSDF 0.15 under a 2 m lamp, 160x90 Combined 0.177 against
+    Cycles, C16 0.077), where lamp sampling, smooth across the lamp there, needs few samples."""
+    cos = (mirror * to).sum(1) / np.sqrt(d2) / np.maximum(np.linalg.norm(mirror, axis=1), 1e-12)
+    angle = np.arccos(np.clip(cos, -1.0, 1.0))
+    radius = np.arctan(np.sqrt(area / np.pi) / np.sqrt(d2))
+    return angle <= radius + CORE_WIDTHS * 2.0 * alpha
 
 
 def lamp_glossy_without(system, points, normals, to_eye, rows, frame: int, samples: int,

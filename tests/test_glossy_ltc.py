@@ -171,7 +171,7 @@ def test_the_diffuse_visibility_shadows_the_closed_form():
 
 def test_other_lamps_and_smooth_lobes_stay_with_lamp_sampling():
     mats = glossy.GlossyMaterials.from_materials([Material(specular=sp.SpecularLayer(roughness=0.5)),
-                                                  Material(specular=sp.SpecularLayer(roughness=0.1))])
+                                                  Material(specular=sp.SpecularLayer(roughness=0.05))])
     area = _floor_lamp()
     point = Light(kind="POINT", color=np.ones(3, np.float32), power=50.0, matrix=np.eye(4))
     spread = _floor_lamp()

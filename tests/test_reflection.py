@@ -259,10 +259,17 @@ def test_a_chrome_ball_shows_the_area_lamp_as_a_sharp_highlight(tmp_path):
         ref = layer(cycles, name)
         return float(np.abs(layer(ours, name) - ref)[ball].sum() / np.abs(ref)[ball].sum())
 
-    # Measured at 96x72 against 256 spp, on the ball: Glossy Direct 1.73 -> 0.125, Combined 1.36 -> 0.113.
+    # Measured at 96x72 against 256 spp, on the ball: Glossy Direct 1.73 (lamp sampling) -> 0.125
+    # (the rays), Combined 1.36 -> 0.113. Roughness 0.1 now takes the lamp in closed form
+    # (`glossy_ltc.MIN_ROUGHNESS`) where it is wholly seen, with or without reflection rays.
     assert ball.sum() > 200
-    assert error(rays, "Glossy Direct") < 0.5 * error(sampled, "Glossy Direct")
-    assert error(rays, "Combined") < 0.5 * error(sampled, "Combined")
+    errors = {(run, name): error(ours, name) for run, ours in (("rays", rays), ("sampled", sampled))
+              for name in ("Glossy Direct", "Combined")}
+    print(errors)
+    # (Now Glossy Direct 0.076 / 0.089, Combined 0.074 with the rays, 0.25 without: the world's
+    # reflection then comes from the cache alone.)
+    assert errors[("rays", "Glossy Direct")] < 0.15 and errors[("sampled", "Glossy Direct")] < 0.15, errors
+    assert errors[("rays", "Combined")] < min(0.15, 0.5 * errors[("sampled", "Combined")]), errors
     # The highlight's energy is kept: the ball's Glossy Direct sums to Cycles' within 25%.
     ref_sum = layer(cycles, "Glossy Direct")[ball].sum()
     assert abs(layer(rays, "Glossy Direct")[ball].sum() - ref_sum) < 0.25 * ref_sum
