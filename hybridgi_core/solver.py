@@ -71,6 +71,9 @@ WARM_GAIN_MAX = 16.0
 #: and two read the emitter rooms alike (160x90 Combined: strip 0.0543 / 0.0542, panel room 0.0942 /
 #: 0.0941, low panel 0.0548 / 0.0550); a few triangles' closed form is exact wherever unshadowed.
 HIT_EMITTER_SAMPLES = 1
+#: Most emissive triangles whose own bounding spheres mark hits' stale emitter light after a move
+#: (`GISolver._emitter_spheres`); more: one sphere around them all.
+EMITTER_SPHERES = 16
 #: Hits per lamp-table bin of the first batch that trace shadow rays (the rest share their mean).
 LAMP_SAMPLES_PER_BIN = 2
 #: Weight of each visible face neighbour in `filter_cells` (0: no filter).
@@ -899,8 +902,9 @@ class GISolver:
 
     def _mark_shadows(self, chunk: StoredHits, boxes, pad) -> None:
         """Flag hits whose shadow rays could pass through a box (conservatively: the segment to
-        each lamp's centre against the box grown by the lamp's extent; a sun's ray to infinity)."""
-        if chunk.hit.size == 0 or not self.scene.lights:
+        each lamp's centre against the box grown by the lamp's extent; a sun's ray to infinity;
+        the emitters the hits sample as spheres, `_emitter_spheres`)."""
+        if chunk.hit.size == 0 or not self._has_hit_lamps():
             return
         p = chunk.positions(self.cache.centers)
         for lt in self.scene.lights:
@@ -909,6 +913,25 @@ class GISolver:
             grow = np.float32(0.0 if lt.kind == "SUN" else _light_extent(lt))
             d, reach = _to_lamp(lt, p)
             chunk.lamp_stale |= segments_meet_boxes(p, d, reach, [(lo - pad - grow, hi + pad + grow) for lo, hi in boxes])
+        for centre, radius in self._emitter_spheres():
+            to = np.asarray(centre, np.float32)[None, :] - p
+            reach = np.linalg.norm(to, axis=1)
+            d = to / np.maximum(reach, np.float32(1e-12))[:, None]
+            grow = np.float32(radius)
+            chunk.lamp_stale |= segments_meet_boxes(p, d, reach, [(lo - pad - grow, hi + pad + grow) for lo, hi in boxes])
+
+    def _emitter_spheres(self) -> list[tuple[np.ndarray, float]]:
+        """Bounding spheres (centre (3,), radius) of the emitters the hits sample (`hit_emitters`):
+        each triangle's for a few, else one around them all. Why: a box moved between a wall and
+        the LED strip that lights it must re-shade the wall's hits, whose rays it does not cross."""
+        em = self.hit_emitters()
+        if em is None:
+            return []
+        if em.prims.size <= EMITTER_SPHERES:
+            return [(em.centre[i], float(em.radius[i])) for i in range(em.prims.size)]
+        corners = np.concatenate([em.v0, em.v0 + em.e1, em.v0 + em.e2]).astype(np.float64)
+        lo, hi = corners.min(axis=0), corners.max(axis=0)
+        return [(0.5 * (lo + hi), float(0.5 * np.linalg.norm(hi - lo)))]
 
     def lights_changed(self) -> None:
         """Lamps, world or materials changed: every stored hit is re-shaded at the next resolve."""

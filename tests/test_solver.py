@@ -123,6 +123,15 @@ def room_with_ball(ball_lo=(4.0, 4.5, 0.0), energy=300.0, ball_dynamic=False):
     )
 
 
+def emissive_panel_room():
+    """A 4 m room lit only by a glowing slab under its ceiling (sampled by the hits: no lamp)."""
+    room = box([0, 0, 0], [4, 4, 4], inward=True, obj=0)
+    slab = box([1.2, 1.2, 3.7], [2.8, 2.8, 3.75], inward=False, material=1, obj=1)
+    mats = [Material("white", np.full(3, 0.7, np.float32)),
+            Material("panel", np.full(3, 0.8, np.float32), None, np.full(3, 20.0, np.float32))]
+    return make_snapshot(concat_geometry([room, slab]), mats, [], World(), [ObjectInfo("room"), ObjectInfo("slab")])
+
+
 def _stored_ray_segments(gi):
     """Per stored batch: (cells (m,), origins (n, 3), dirs (n, 3), t (n,)) of every stored ray."""
     out = []
@@ -192,6 +201,37 @@ def test_shadow_marks_of_a_moved_box_are_those_of_every_stored_hits_segment_to_t
     expect, marked = np.concatenate(expect), np.concatenate(marked)
     assert 0 < expect.sum() < expect.size
     np.testing.assert_array_equal(marked, expect)
+
+
+def test_a_box_moved_between_an_emitter_and_a_wall_re_shades_the_wall_hits():
+    """Hits that sample an emitter (`GISolver.hit_emitters`) take its light through shadow rays a
+    moved box may cross without crossing their probe ray: `invalidate_boxes` flags them as a lamp's
+    (`_emitter_spheres`), every hit whose segment to a panel triangle meets the box at least."""
+    s = CacheSettings(resolution=12, rays_per_cell=32)
+    panel = emissive_panel_room()
+    lo, hi = np.array([1.0, 1.0, 1.2], np.float32), np.array([2.0, 2.0, 1.6], np.float32)
+    with GISystem(panel, s) as gi:
+        gi.solve(batches=1)
+        assert gi.solver.hit_emitters() is not None
+        for chunk in gi.solver.chunks:
+            chunk.lamp_stale[:] = False
+        gi.solver.invalidate_boxes([(lo, hi)])
+        marked = np.concatenate([chunk.lamp_stale for chunk in gi.solver.chunks])
+        # Every hit whose segment to a panel triangle's centre meets the box (grown by its radius).
+        em = gi.solver.hit_emitters()
+        pad = np.float32(gi.solver.epsilon) * 4
+        expect = []
+        for chunk in gi.solver.chunks:
+            p = chunk.positions(gi.cache.centers)
+            hit = np.zeros(p.shape[0], bool)
+            for c, r in zip(em.centre, em.radius, strict=True):
+                to = c[None, :] - p
+                reach = np.linalg.norm(to, axis=1)
+                hit |= segments_meet_box(p, to / reach[:, None], reach, lo - pad - r, hi + pad + r)
+            expect.append(hit)
+        expect = np.concatenate(expect)
+    assert 0 < expect.sum() < expect.size
+    assert (marked >= expect).all()
 
 
 def test_resolve_after_a_move_retraces_only_stale_rays_and_matches_a_fresh_solve():
