@@ -235,26 +235,29 @@ class MeshLights:
         out = np.zeros((p.shape[0], k))
         corners = [self.v0.astype(np.float64) + e for e in (0.0, self.e1.astype(np.float64), self.e2.astype(np.float64))]
         side = np.zeros(k, np.int8) if self.side is None else self.side
-        inside = self._inside(p, corners[0], side)
+        # Each receiver's height over the faces of closed emitters, on their outer side's sign.
+        outer = np.zeros((p.shape[0], k))
+        for j in np.flatnonzero(side != 0):
+            outer[:, j] = ((p - corners[0][j]) @ self.normal[j].astype(np.float64)) * side[j]
+        inside = self._inside(outer, side)
         for j in range(k):
             rows = slice(None)
             if side[j] != 0:  # a closed emitter: only receivers on its outer side see this face,
                 # and those inside it (a room whose walls glow: they see every face's inner side)
-                height = (p - corners[0][j]) @ self.normal[j].astype(np.float64)
-                rows = np.flatnonzero((height * side[j] > 0) | inside[:, self.closed[j]])
+                rows = np.flatnonzero((outer[:, j] > 0) | inside[:, self.closed[j]])
                 if rows.size == 0:
                     continue
             out[rows, j] = polygon_light.cosine_solid_angle(np.stack([c[j] for c in corners]), p[rows], nrm[rows])
         return out
 
-    def _inside(self, p: np.ndarray, v0: np.ndarray, side: np.ndarray) -> np.ndarray:
-        """(n, C) bool: the receivers p (n, 3) behind every face of each closed emitter (inside a
-        convex one), C = the closed emitters' count (0 columns without any)."""
+    def _inside(self, outer: np.ndarray, side: np.ndarray) -> np.ndarray:
+        """(n, C) bool: the receivers behind every face of each closed emitter (inside a convex
+        one), from their heights over the faces on the outer side's sign (outer (n, k));
+        C = the closed emitters' count (0 columns without any)."""
         count = 0 if self.closed is None else int(self.closed.max(initial=-1)) + 1
-        inside = np.ones((p.shape[0], count), bool)
+        inside = np.ones((outer.shape[0], count), bool)
         for j in np.flatnonzero(side != 0):
-            height = (p - v0[j]) @ self.normal[j].astype(np.float64)
-            inside[:, self.closed[j]] &= height * side[j] <= 0
+            inside[:, self.closed[j]] &= outer[:, j] <= 0
         return inside
 
     def _ratio_block(self, p, n, tracer, rng, samples, epsilon, partial=None, unshadowed=None):
@@ -589,7 +592,9 @@ class Clusters:
 
     order : (k,) the triangles, cluster by cluster; start : (C + 1,) each cluster's first place in
     `order`; centre (C, 3), radius (C,) bounding spheres; power (C,); within : (k,) each
-    triangle's share of its cluster's power; group : (C,) each cluster's compact emitter or -1."""
+    triangle's share of its cluster's power; group : (C,) each cluster's compact emitter or -1;
+    running : (k + 1,) the running sum of `within` in `order` (0 first): a cluster's members'
+    cumulative shares, where `draw` finds a triangle."""
 
     order: np.ndarray
     start: np.ndarray
@@ -598,6 +603,7 @@ class Clusters:
     power: np.ndarray
     within: np.ndarray
     group: np.ndarray
+    running: np.ndarray
 
     @classmethod
     def build(cls, owner, centre, radius, power, group) -> Clusters | None:
@@ -627,7 +633,8 @@ class Clusters:
         which = np.repeat(np.arange(len(parts)), np.diff(start))
         within[order] = pw[order] / np.maximum(totals[which], 1e-300)
         return cls(order, start, np.asarray(centres), np.asarray(radii), totals, within,
-                   np.asarray([group[p[0]] for p in parts], np.int64))
+                   np.asarray([group[p[0]] for p in parts], np.int64),
+                   np.concatenate([[0.0], np.cumsum(within[order])]))
 
     def chances(self, p: np.ndarray, n: np.ndarray) -> np.ndarray:
         """(m, C) float32 each receiver's (points, unit normals (m, 3)) chance of each cluster."""
@@ -673,12 +680,10 @@ class Clusters:
         first, size = self.start[pick], np.diff(self.start)[pick]
         # Within the cluster by power: its members' running shares.
         u = rng.random(m * samples)
-        tri = np.empty(m * samples, np.int64)
-        run = np.cumsum(self.within[self.order])
-        base = np.concatenate([[0.0], run])[first]
+        run = self.running[1:]
+        base = self.running[first]
         slot = np.searchsorted(run, base + u * (run[first + size - 1] - base), side="right")
-        slot = np.clip(slot, first, first + size - 1)
-        tri[:] = self.order[slot]
+        tri = self.order[np.clip(slot, first, first + size - 1)]
         picked = chance[row, pick].astype(np.float64) * self.within[tri]
         group_chance = np.ones(m * samples)
         if groups:

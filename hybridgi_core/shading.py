@@ -184,15 +184,15 @@ class SurfaceTable:
         rays_only = sorted(i for i, m in enumerate(self.materials) if getattr(m, "coverage", 1.0) < 1.0)
         skip = np.isin(self.material_index, np.asarray(rays_only, np.int32)) if rays_only else None
         emission, glows = self.records[:-1, _EMIT], None
-        around = _enclosing_emitters(self._positions, emission, np.asarray(self._geometry.object_index))
+        objects = np.asarray(self._geometry.object_index)
+        around = _enclosing_emitters(self._positions, emission, objects)
         if around is not None:
             skip = around if skip is None else skip | around
         if self.glowing:
             glows = np.isin(self.material_index, np.asarray(self.glowing, np.int32))
             emission = emission.copy()
             emission[glows] = self._glowing_means(np.flatnonzero(glows))
-        self.emitters = MeshLights.from_packed(self._positions, emission, skip, np.asarray(self._geometry.object_index),
-                                               glows, self._texel_emission)
+        self.emitters = MeshLights.from_packed(self._positions, emission, skip, objects, glows, self._texel_emission)
         self.sampled = np.zeros(self.records.shape[0], bool)
         if self.emitters is not None:
             self.sampled[self.emitters.prims] = True

@@ -850,6 +850,7 @@ class GISolver:
         touched = []
         padded = [(lo - pad, hi + pad) for lo, hi in boxes]
         around = _union(padded)
+        spheres = self._emitter_spheres()
         for chunk in self.chunks:
             m, r = chunk.cells.size, chunk.r
             reach = np.minimum(chunk.t, tfar)
@@ -864,7 +865,7 @@ class GISolver:
             if crosses.any():
                 chunk.ray_stale = crosses if chunk.ray_stale is None else chunk.ray_stale | crosses
                 touched.append(chunk.cells[crosses.reshape(m, r).any(axis=1)])
-            self._mark_shadows(chunk, boxes, pad)
+            self._mark_shadows(chunk, boxes, pad, spheres)
         if not touched:
             return np.zeros(0, np.int64)
         return np.unique(np.concatenate(touched))
@@ -900,24 +901,19 @@ class GISolver:
         chunk.ray_stale = None
         return int(idx.size)
 
-    def _mark_shadows(self, chunk: StoredHits, boxes, pad) -> None:
+    def _mark_shadows(self, chunk: StoredHits, boxes, pad, spheres) -> None:
         """Flag hits whose shadow rays could pass through a box (conservatively: the segment to
         each lamp's centre against the box grown by the lamp's extent; a sun's ray to infinity;
-        the emitters the hits sample as spheres, `_emitter_spheres`)."""
-        if chunk.hit.size == 0 or not self._has_hit_lamps():
+        the emitters the hits sample as their bounding spheres, `spheres` from `_emitter_spheres`)."""
+        if chunk.hit.size == 0 or not (self.scene.lights or spheres):
             return
         p = chunk.positions(self.cache.centers)
-        for lt in self.scene.lights:
-            # A sun disc spreads its rays by the angle: grow the box with distance instead of a
-            # fixed pad; a cone test is overkill: a small angle is covered by 2x the pad.
-            grow = np.float32(0.0 if lt.kind == "SUN" else _light_extent(lt))
-            d, reach = _to_lamp(lt, p)
-            chunk.lamp_stale |= segments_meet_boxes(p, d, reach, [(lo - pad - grow, hi + pad + grow) for lo, hi in boxes])
-        for centre, radius in self._emitter_spheres():
-            to = np.asarray(centre, np.float32)[None, :] - p
-            reach = np.linalg.norm(to, axis=1)
-            d = to / np.maximum(reach, np.float32(1e-12))[:, None]
-            grow = np.float32(radius)
+        # A sun disc spreads its rays by the angle: grow the box with distance instead of a fixed
+        # pad; a cone test is overkill: a small angle is covered by 2x the pad.
+        targets = [(_to_lamp(lt, p), 0.0 if lt.kind == "SUN" else _light_extent(lt)) for lt in self.scene.lights]
+        targets += [(_to_point(centre, p), radius) for centre, radius in spheres]
+        for (d, reach), grow in targets:
+            grow = np.float32(grow)
             chunk.lamp_stale |= segments_meet_boxes(p, d, reach, [(lo - pad - grow, hi + pad + grow) for lo, hi in boxes])
 
     def _emitter_spheres(self) -> list[tuple[np.ndarray, float]]:
@@ -1113,7 +1109,12 @@ def _to_lamp(light, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     if light.kind == "SUN":
         d = np.broadcast_to(-np.asarray(light.direction, np.float32), points.shape)
         return d, np.full(points.shape[0], np.inf, np.float32)
-    to = np.asarray(light.position, np.float32) - points
+    return _to_point(light.position, points)
+
+
+def _to_point(position, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(unit directions (n, 3), reach (n,)) of segments from points to a position (3,)."""
+    to = np.asarray(position, np.float32) - points
     reach = np.sqrt(np.einsum("ij,ij->i", to, to)).astype(np.float32)
     return to / np.maximum(reach, np.float32(1e-12))[:, None], reach
 

@@ -830,20 +830,16 @@ class FilmAccumulator:
             if value.shape[-1] > 3:
                 value[..., 3:4] = (1.0 - c) * value[..., 3:4] + c
             extra[name] = value
-        for name in ("diffuse_color", "glossy_color"):
+        # The colours keep the share that missed; the light passes divided by them are 0 where
+        # nothing missed.
+        scales = {name: 1.0 - c for name in ("diffuse_color", "glossy_color")}
+        scales.update(dict.fromkeys(COLOR_DIVIDED_PASSES, c < np.float32(1.0 - 1e-6)))
+        for name, scale in scales.items():
             try:
                 value = np.array(self.read(name), np.float32)
             except KeyError:
                 continue
-            value[..., :3] *= 1.0 - c
-            extra[name] = value
-        whole = c >= np.float32(1.0 - 1e-6)
-        for name in COLOR_DIVIDED_PASSES:
-            try:
-                value = np.array(self.read(name), np.float32)
-            except KeyError:
-                continue
-            value[..., :3] *= ~whole
+            value[..., :3] *= scale
             extra[name] = value
         self._extra = extra
 
