@@ -53,8 +53,9 @@ from .rows import finite_rows
 from .snapshot import Light
 
 _F32 = np.float32
-#: Receivers x samples per block (bounds the temporaries).
-CHUNK = 1 << 15
+#: Receivers x samples per block (bounds the temporaries; 128k, not 32k: fewer GIL hand-overs,
+#: `reflection.CHUNK_RAYS`).
+CHUNK = 1 << 17
 #: Rec. 709 luminance weights (the `variance` output's luminance).
 _LUMA = LUMA.astype(_F32)
 #: Below this roughness a lobe is too sharp to meet a sampled lamp point (Cycles evaluates none).

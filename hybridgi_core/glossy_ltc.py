@@ -48,8 +48,8 @@ SHARP = 1e-3
 #: Most lamps whose per-lamp diffuse light a frame keeps for the closed form's visibility
 #: (`direct_outputs`: (n, lamps, 3) float32 more); more take lamp sampling.
 LAMP_LIMIT = 8
-#: Receivers per pool job.
-CHUNK = 1 << 14
+#: Receivers per pool job (64k, not 16k: fewer GIL hand-overs, `reflection.CHUNK_RAYS`).
+CHUNK = 1 << 16
 
 
 def eligible_lamps(lights) -> np.ndarray:
