@@ -106,9 +106,13 @@ LADDER = (
     # over its neighbours (`subpixel.reconstruction_taps`): Combined -0.002 to -0.005 for +0.04 to
     # +0.17 s at 640x360 (bunny_npm 0.0317 -> 0.0289, dragon 0.0665 -> 0.0617, spheres 0.0130 ->
     # 0.0102), about twice the ladder's slope from this rung to the next.
-    ("r16 x16 w2 p16 s1", ("resolution=16", "rays_per_cell=16", "warmup_iterations=2", "pixel_rays=16",
-                           "pixel_samples=1", "reflection_rays=4")),
-    # The next two take 24 shadow samples in penumbrae, not the default's 48, as the r40 rung does
+    # 24 shadow samples in penumbrae, as the next rungs (640x360, medians of three alternating runs,
+    # stop 61): -gpu bunny_npm 1.41 -> 1.34 s, morse 0.95 -> 0.90, dragon_npm 1.74 -> 1.70, spheres
+    # 1.21 -> 1.11; Combined bunny 0.0261 -> 0.0263, the others equal to 3 digits. (One run each
+    # before: atrium 2.07 -> 1.94, Cornell 1.04 -> 1.01, car 0.84 -> 0.79, equal errors.)
+    ("r16 x16 w2 p16 s1 ss24", ("resolution=16", "rays_per_cell=16", "warmup_iterations=2", "pixel_rays=16",
+                                "pixel_samples=1", "reflection_rays=4", "shadow_samples=24")),
+    # The next two take 24 shadow samples in penumbrae too, not the default's 48, as the r40 rung does
     # (640x360, two runs: spheres r32 0.0072 at 1.48 s against 0.0072 at 1.60 s, r24 0.0086 at
     # 1.18 s against 1.26 s; Cornell r32 0.0209 / 1.14 s against 0.0208 / 1.20 s; atrium equal).
     ("r24 x32 w4 p16 s2 ss24", ("resolution=24", "rays_per_cell=32", "warmup_iterations=4", "pixel_rays=16",
