@@ -179,7 +179,9 @@ def bsdf_lamps(lights, points: np.ndarray, normals: np.ndarray, rough: np.ndarra
         facing = (cos_l > 0) & ((to * nrm).sum(1) > -np.sqrt(shape.area))
         big = facing & (shape.area * np.maximum(cos_l, 0.0) / d2 > BSDF_LAMP_RATIO * lobe)
         if mirror is not None:
-            big &= _in_core(mirror, to, d2, shape.area, alpha)
+            # Only where the lamp is big enough: most receivers' lobes are far wider than any lamp.
+            rows = np.flatnonzero(big)
+            big[rows] = _in_core(mirror[rows], to[rows], d2[rows], shape.area, alpha[rows])
         out[:, j] = big
     return out
 
