@@ -41,8 +41,12 @@ log = logging.getLogger(__name__)
 #: 16k was fastest on one thread (the float64 temporaries stay in cache), but two pool threads on
 #: 16k chunks were no faster than one: each numpy call on a few thousand receivers lasts a few us,
 #: and the threads spend it handing the GIL back and forth. 32k: the full-res first penumbra pass
-#: (Cornell 640x360, 127k receivers x 8) 180 -> 150 ms on the pool.
-CHUNK_RAYS = 1 << 15
+#: (Cornell 640x360, 127k receivers x 8) 180 -> 150 ms on the pool. 64k (stop 61, this 2-core VM,
+#: five alternating runs of the r16 rung at 640x360, medians without GPU passes): bunny_npm 1.44 ->
+#: 1.38 s, dragon_npm 1.76 -> 1.69, spheres 1.15 -> 1.15, Cornell 0.71 -> 0.71 (13 of 20 pairs
+#: faster; the direct step 644 -> 623, 559 -> 518, 629 -> 623, 332 -> 310 ms); a 52k-pixel penumbra
+#: at 48 samples on a pool of two ran 0.74 x one thread's speed at 32k, 1.17 x at 128k.
+CHUNK_RAYS = 1 << 16
 
 #: Sheared area lamps only (area sampling): a sample closer than this fraction of its patch size,
 #: sqrt(A / samples), counts as that far away, keeping the 1/d^2 estimate finite on the lamp.
