@@ -67,8 +67,8 @@ LUMA = ENV_LUMA.astype(np.float32)
 TILED_RAYS = True
 #: Rays per work item (pixels x rays): fixed, so the result does not depend on the thread count.
 #: 128k, not 64k, with the glossy light's work items (`reflection.CHUNK_RAYS`): fewer, longer numpy
-#: calls, fewer hand-overs of the GIL: each numpy call hands it over, and on this 2-core VM a hand-over costs about what a
-#: 32k-element call computes (direct light on a pool of two: 0.74 x one thread's speed at 32k rays
+#: calls, fewer hand-overs of the GIL, which most numpy calls release and retake; on this 2-core VM
+#: a hand-over costs about what a 32k-element call computes (direct light on a pool of two: 0.74 x one thread's speed at 32k rays
 #: per item, 1.17 x at 128k, 1.52 x at 512k). 640x360, r16 rung, medians of three alternating runs:
 #: -gpu bunny_npm 2.06 -> 1.92 s, dragon_npm 2.28 -> 2.13, morse 1.20 -> 1.10, spheres 1.62 -> 1.46,
 #: atrium 1.98 -> 1.85, Cornell 0.95 -> 0.93, car 0.73 -> 0.76; 256k read no better.

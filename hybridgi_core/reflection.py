@@ -54,7 +54,7 @@ TRACE_ROUGHNESS = 2.0
 SEED_OFFSET = 3
 #: Pixels x rays per work item (fixed: the result does not depend on the thread count). 128k, not
 #: 32k: fewer GIL hand-overs (`pixel_gather.CHUNK_RAYS`; the glossy step of bunny_npm's r16 rung
-#: 1.35 -> 1.18 s with `glossy.CHUNK` and `glossy_ltc.CHUNK`).
+#: 1.35 -> 1.18 s with `glossy.CHUNK`).
 CHUNK_RAYS = 131072
 #: An area lamp is sampled by the reflection rays (not by lamp sampling) at pixels where its solid
 #: angle exceeds this many times the lobe's (~4 pi alpha^2: the reflected cone of the GGX lobe).
@@ -159,10 +159,6 @@ def bsdf_lamps(lights, points: np.ndarray, normals: np.ndarray, rough: np.ndarra
     `to_eye` (n, 3), only where the lamp lies within the lobe's core (`_in_core`)."""
     pts = np.asarray(points, np.float64).reshape(-1, 3)
     nrm = np.asarray(normals, np.float64).reshape(-1, 3)
-    mirror = None
-    if to_eye is not None:
-        v = np.asarray(to_eye, np.float64).reshape(-1, 3)
-        mirror = 2.0 * (v * nrm).sum(1, keepdims=True) * nrm - v
     out = np.zeros((pts.shape[0], len(lights)), bool)
     alpha = np.asarray(rough, np.float64).reshape(-1) ** 2
     lobe = 4.0 * np.pi * alpha * alpha
@@ -178,10 +174,12 @@ def bsdf_lamps(lights, points: np.ndarray, normals: np.ndarray, rough: np.ndarra
         cos_l = -(to @ shape.normal.astype(np.float64)) / np.sqrt(d2)  # > 0: the receiver faces its front
         facing = (cos_l > 0) & ((to * nrm).sum(1) > -np.sqrt(shape.area))
         big = facing & (shape.area * np.maximum(cos_l, 0.0) / d2 > BSDF_LAMP_RATIO * lobe)
-        if mirror is not None:
+        if to_eye is not None:
             # Only where the lamp is big enough: most receivers' lobes are far wider than any lamp.
             rows = np.flatnonzero(big)
-            big[rows] = _in_core(mirror[rows], to[rows], d2[rows], shape.area, alpha[rows])
+            v, nr = np.asarray(to_eye, np.float64).reshape(-1, 3)[rows], nrm[rows]
+            mirror = 2.0 * (v * nr).sum(1, keepdims=True) * nr - v
+            big[rows] = _in_core(mirror, to[rows], d2[rows], shape.area, alpha[rows])
         out[:, j] = big
     return out
 
