@@ -127,14 +127,19 @@ def _clip_to_horizon(v: list[np.ndarray], h: np.ndarray):
 def clip_below(v: list[np.ndarray], h: np.ndarray) -> tuple[list[np.ndarray], np.ndarray]:
     """(planes, count): convex polygons (three (m, k) vertex component planes) clipped to the
     side h >= 0 of a plane through the receiver (heights h (m, k) of their vertices), as three
-    (m, 2k) planes whose first `count` (m,) vertices are the clipped polygon's and whose other
+    (m, k + 1) planes whose first `count` (m,) vertices are the clipped polygon's and whose other
     slots repeat its last vertex (edges of length 0 add nothing to Lambert's sums), so another
     plane can clip them again (`ltc.polygon_integral`: the surface's horizon, then the cosine's).
-    A row with no vertex above the plane has count 0."""
+    A row with no vertex above the plane has count 0. k + 1 slots, not the clip's 2k: a convex
+    polygon cut by one plane gains one vertex at most (its vertices above the plane are one run),
+    and the slots past it would be zero-length edges that every later sum still computes (a
+    lamp's four vertices over bunny_npm's 38k cut receivers: 8 -> 5 columns, the glossy lamp
+    light 159 -> 147 ms, the same values). A sliver within rounding of the plane that reads more
+    runs keeps its first k + 1 vertices (it spans no solid angle)."""
     clipped, valid = _clip_to_horizon(v, h)
     order = np.argsort(~valid, axis=1, kind="stable")  # valid vertices first, order kept
-    count = valid.sum(axis=1)
-    j = np.arange(valid.shape[1])[None, :]
+    count = np.minimum(valid.sum(axis=1), h.shape[1] + 1)
+    j = np.arange(h.shape[1] + 1)[None, :]
     slot = np.take_along_axis(order, np.where(j < count[:, None], j, np.maximum(count - 1, 0)[:, None]), axis=1)
     return [np.take_along_axis(c, slot, axis=1) for c in clipped], count
 

@@ -141,3 +141,41 @@ def test_tilted_disc_lamp_matches_the_sampled_estimate():
     one = np.mean([direct_irradiance([lamp], pts, nrm, TriangleTracer([]), np.random.default_rng(s), samples=1)
                    for s in range(400)], axis=0)
     assert np.allclose(one, want, rtol=0.08)
+
+
+def test_clip_below_keeps_k_plus_one_slots_and_the_clipped_polygon():
+    """Polygons of k = 4 and 6 vertices cut by random planes through the origin: k + 1 slots,
+    the first `count` the clipped polygon's vertices (each above the plane or on it), the rest
+    repeating the last, and its vector form factor that of the polygon clipped by hand (the
+    kept vertices and the edges' crossings, in boundary order)."""
+    from hybridgi_core.polygon_light import clip_below
+
+    rng = np.random.default_rng(5)
+    for k in (4, 6):
+        angle = np.linspace(0.0, 2 * np.pi, k, endpoint=False)
+        m = 200
+        centre = rng.normal(size=(m, 3)) + np.array([0.0, 0.0, 2.0])
+        ring = np.stack([np.cos(angle), np.sin(angle), np.zeros(k)], axis=1)  # (k, 3) convex, planar
+        poly = centre[:, None, :] + 0.8 * ring[None]  # (m, k, 3)
+        plane = rng.normal(size=(m, 3))
+        h = np.einsum("mkc,mc->mk", poly, plane)
+        v = [poly[..., c] for c in range(3)]
+        (x, y, z), count = clip_below(v, h)
+        assert x.shape == (m, k + 1)
+        for i in range(m):
+            kept = []
+            for j in range(k):
+                a, b, ha, hb = poly[i, j], poly[i, (j + 1) % k], h[i, j], h[i, (j + 1) % k]
+                if ha >= 0:
+                    kept.append(a)
+                if (ha >= 0) != (hb >= 0):
+                    kept.append(a + ha / (ha - hb) * (b - a))
+            assert count[i] == len(kept) <= k + 1
+            got = np.stack([x[i], y[i], z[i]], axis=1)
+            if kept:
+                assert np.allclose(got[: count[i]], np.array(kept))
+                assert np.allclose(got[count[i]:], got[count[i] - 1])
+            if len(kept) >= 3:  # the repeated slots add nothing to the form factor
+                own = np.array(kept)
+                assert np.allclose(vector_form_factor([x[i : i + 1], y[i : i + 1], z[i : i + 1]]),
+                                   vector_form_factor([own[None, :, c] for c in range(3)]), atol=1e-12)
