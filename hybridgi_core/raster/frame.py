@@ -483,7 +483,7 @@ class FramePipeline:
         reused = None
         if jittered:
             texture_filter = subframe_texture_filter(offsets.shape[0], self.filter_size)
-            # The reused light's filter (numpy, ~30 ms at 640x360) beside the first subframe's raster.
+            # The reused light's filter (numpy, ~25 ms at 640x360) beside the first subframe's raster.
             reused = self._stage_thread().submit(self._reused_centre, centre, offsets.shape[0])
         apertures = lens_points(offsets.shape[0], lens) if lens is not None and jittered else None
         camera_proj, sub_view = proj, view

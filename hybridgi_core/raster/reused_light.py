@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .subpixel import SAME_COS, SAME_PLANE, reconstruction_taps
+from .subpixel import SAME_COS, SAME_PLANE, neighbour_pairs, reconstruction_taps
 
 
 def reuse_taps(count: int, filter_size: float, filter_type: str) -> np.ndarray:
@@ -61,7 +61,7 @@ def filter_on_surface(light: np.ndarray, position: np.ndarray, normal: np.ndarra
         acc = out * np.float32(taps[r])
         total = np.full((h, w), np.float32(taps[r]))
         for k in range(1, r + 1):
-            a, b = _pair(axis, k)  # each pixel a and its neighbour b, k further along the axis
+            a, b = neighbour_pairs(axis, k)  # each pixel a and its neighbour b, k further along the axis
             d = [pos[j][b] - pos[j][a] for j in range(3)]  # once for the pair, read both ways
             both = geo[a] & geo[b]
             both &= (nrm[0][a] * nrm[0][b] + nrm[1][a] * nrm[1][b] + nrm[2][a] * nrm[2][b]) >= SAME_COS
@@ -79,9 +79,3 @@ def filter_on_surface(light: np.ndarray, position: np.ndarray, normal: np.ndarra
     out[unchanged] = light[unchanged]
     return out
 
-
-def _pair(axis: int, k: int):
-    """Index pair (pixel, its neighbour k further along `axis`) of an (h, w) image: views."""
-    lo, hi = [slice(None), slice(None)], [slice(None), slice(None)]
-    lo[axis], hi[axis] = slice(0, -k), slice(k, None)
-    return tuple(lo), tuple(hi)

@@ -358,7 +358,7 @@ def light_edges(light: np.ndarray, contrast: float = LIGHT_EDGE_CONTRAST, scale:
     scale = light if scale is None else np.asarray(scale, np.float32)
     edge = np.zeros(light.shape, bool)
     for axis in (0, 1):
-        a, b = _neighbours(axis)
+        a, b = neighbour_pairs(axis)
         big = np.maximum(scale[a], scale[b])
         np.maximum(big, np.float32(max(floor / max(contrast, 1e-12), 1e-12)), out=big)
         big *= np.float32(contrast)
@@ -370,10 +370,11 @@ def light_edges(light: np.ndarray, contrast: float = LIGHT_EDGE_CONTRAST, scale:
     return edge
 
 
-def _neighbours(axis: int) -> tuple[tuple[slice, slice], tuple[slice, slice]]:
-    """Index pairs of every pixel and its next neighbour along `axis` of an (h, w) image."""
+def neighbour_pairs(axis: int, step: int = 1) -> tuple[tuple[slice, slice], tuple[slice, slice]]:
+    """Index pairs of every pixel and its neighbour `step` pixels further along `axis` of an
+    (h, w) image (views: no padded copies)."""
     a, b = [slice(None), slice(None)], [slice(None), slice(None)]
-    a[axis], b[axis] = slice(0, -1), slice(1, None)
+    a[axis], b[axis] = slice(0, -step), slice(step, None)
     return tuple(a), tuple(b)
 
 
@@ -436,7 +437,7 @@ def surface_edges(position: np.ndarray, normal: np.ndarray, depth: np.ndarray) -
     d = np.maximum(np.asarray(depth, np.float32).reshape(h, w), np.float32(1e-6))
     edge = np.zeros((h, w), bool)
     for axis in (0, 1):
-        a, b = _neighbours(axis)
+        a, b = neighbour_pairs(axis)
         pa, na, da = p[a].reshape(-1, 3), n[a].reshape(-1, 3), d[a].reshape(-1)
         pb, nb, db = p[b].reshape(-1, 3), n[b].reshape(-1, 3), d[b].reshape(-1)
         # Each on the other's tangent plane, facing alike (`same_plane`, both ways).
@@ -551,7 +552,7 @@ def gi_edges(centre: CentreSample, indirect: np.ndarray, height: int, width: int
     for axis in (0, 1):
         if out.shape[axis] < 2:
             continue
-        a, b = _neighbours(axis)
+        a, b = neighbour_pairs(axis)
         both = geo[a] & geo[b]
         m = pos[a].shape[0] * pos[a].shape[1]
         same = same_surface(pos[a].reshape(m, pos.shape[-1]), nrm[a].reshape(m, nrm.shape[-1]),
